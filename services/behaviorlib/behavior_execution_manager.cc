@@ -1,0 +1,885 @@
+#include "behaviorlib/behavior_execution_manager.h"
+
+#include <google/protobuf/util/time_util.h>
+
+#include <cmath>
+#include <future>
+#include <sstream>
+
+#include "behaviorlib/parameters.h"
+
+namespace behaviorlib {
+namespace {
+
+using google::protobuf::util::TimeUtil;
+using SteadyTime = std::chrono::steady_clock::time_point;
+
+int64_t steadyNs(SteadyTime t) {
+  return std::chrono::duration_cast<std::chrono::nanoseconds>(t.time_since_epoch()).count();
+}
+
+google::protobuf::Timestamp toTimestamp(TimePoint t) {
+  return TimeUtil::NanosecondsToTimestamp(t.time_since_epoch().count());
+}
+
+google::protobuf::Duration toProtoDuration(Duration d) {
+  return TimeUtil::NanosecondsToDuration(d.count());
+}
+
+std::string seconds(Duration d) {
+  std::ostringstream out;
+  out << std::chrono::duration<double>(d).count() << " s";
+  return out.str();
+}
+
+std::string joinReasons(const std::vector<std::string>& reasons) {
+  std::string out;
+  for (const auto& r : reasons) {
+    if (!out.empty()) out += "; ";
+    out += r;
+  }
+  return out.empty() ? "no reason given" : out;
+}
+
+template <class T>
+absl::StatusOr<T> waitFor(const std::function<void(Done<T>)>& start,
+                          std::chrono::milliseconds timeout) {
+  auto promise = std::make_shared<std::promise<absl::StatusOr<T>>>();
+  auto future = promise->get_future();
+  start([promise](absl::StatusOr<T> result) { promise->set_value(std::move(result)); });
+  if (future.wait_for(timeout) != std::future_status::ready) {
+    return absl::DeadlineExceededError("the behavior did not answer in time (blocked user code?)");
+  }
+  return future.get();
+}
+
+// Moves a shared message's content into a new owned one.
+std::unique_ptr<google::protobuf::Message> takeMessage(google::protobuf::Message& from) {
+  std::unique_ptr<google::protobuf::Message> out(from.New());
+  out->GetReflection()->Swap(out.get(), &from);
+  return out;
+}
+
+}  // namespace
+
+std::string causeName(v1::TerminationCause cause) {
+  std::string name = v1::TerminationCause_Name(cause);
+  constexpr std::string_view kPrefix = "TERMINATION_CAUSE_";
+  return name.rfind(kPrefix, 0) == 0 ? name.substr(kPrefix.size()) : name;
+}
+
+// Wakes the worker when simulated or fake time reaches the next tick.
+class BehaviorExecutionManager::WakeOnClock final : public ClockListener {
+ public:
+  explicit WakeOnClock(BehaviorExecutionManager* owner) : owner_(owner) {}
+  void onClockAdvanced() override {
+    if (!owner_->wants_ticks_.load(std::memory_order_acquire)) return;
+    { std::lock_guard lock(owner_->mutex_); }
+    owner_->cv_.notify_one();
+  }
+
+ private:
+  BehaviorExecutionManager* owner_;
+};
+
+BehaviorExecutionManager::BehaviorExecutionManager(
+    std::string name, const google::protobuf::Descriptor* parameters_type, BehaviorOptions options)
+    : name_(std::move(name)), parameters_type_(parameters_type), options_(options) {}
+
+BehaviorExecutionManager::~BehaviorExecutionManager() {
+  if (worker_.joinable()) worker_.detach();  // stop() was not called: a host bug
+}
+
+absl::Status BehaviorExecutionManager::start(BehaviorContext context) {
+  if (!context.clock || !context.events) {
+    return absl::InvalidArgumentError("behavior " + name_ + " needs a clock and an event log");
+  }
+  context_ = std::move(context);
+  try {
+    if (context_.config && context_.config.IsMap()) {
+      if (auto f = context_.config["frequency_hz"]) options_.frequency_hz = f.as<double>();
+      if (auto m = context_.config["maximum_execution_time_s"]) {
+        options_.maximum_execution_time =
+            std::chrono::duration_cast<Duration>(std::chrono::duration<double>(m.as<double>()));
+      }
+      if (auto w = context_.config["watchdog_timeout_s"]) {
+        options_.watchdog_timeout =
+            std::chrono::milliseconds(static_cast<int64_t>(std::llround(w.as<double>() * 1000.0)));
+      }
+    }
+  } catch (const YAML::Exception& e) {
+    return absl::InvalidArgumentError("configuration of " + name_ + ": " + e.what());
+  }
+  if (!(options_.frequency_hz > 0.0 && options_.frequency_hz <= 10000.0)) {
+    return absl::InvalidArgumentError("configuration of " + name_ +
+                                      ": frequency_hz must be in (0, 10000]");
+  }
+  if (options_.watchdog_timeout <= std::chrono::milliseconds(0)) {
+    return absl::InvalidArgumentError("configuration of " + name_ +
+                                      ": watchdog_timeout_s must be positive");
+  }
+  period_ = Duration(static_cast<int64_t>(std::llround(1e9 / options_.frequency_hz)));
+  clock_listener_ = std::make_unique<WakeOnClock>(this);
+  context_.clock->addListener(clock_listener_.get());
+  worker_ = std::thread([this] { run(); });
+
+  auto configured = waitFor<bool>(
+      [this](Done<bool> done) {
+        post(
+            [this, done] {
+              absl::Status status;
+              if (!guarded("onConfigure", [&] { status = onConfigure(context_.config); })) {
+                status = absl::InternalError(failure_message_);
+              }
+              if (status.ok()) {
+                done(true);
+              } else {
+                done(status);
+              }
+            },
+            cancelWith(done, name_));
+      },
+      std::chrono::seconds(60));
+  if (!configured.ok()) {
+    stop();
+    return configured.status();
+  }
+  return absl::OkStatus();
+}
+
+void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
+  if (!worker_.joinable()) return;
+  post(
+      [this] {
+        State state;
+        {
+          std::lock_guard lock(mutex_);
+          state = state_;
+        }
+        if (state == State::kActive || state == State::kPaused) {
+          finish(v1::TERMINATION_CAUSE_INTERRUPTED, "process shutting down");
+        }
+        std::lock_guard lock(mutex_);
+        stopping_ = true;
+      },
+      nullptr);
+  bool exited;
+  {
+    std::unique_lock lock(mutex_);
+    exited = exited_cv_.wait_for(lock, timeout, [this] { return exited_; });
+  }
+  if (exited) {
+    worker_.join();
+  } else {
+    // Stuck in user code: the process is going away; do not hang it.
+    worker_.detach();
+  }
+  if (clock_listener_) context_.clock->removeListener(clock_listener_.get());
+}
+
+void BehaviorExecutionManager::post(std::function<void()> command, std::function<void()> cancel) {
+  {
+    std::lock_guard lock(mutex_);
+    if (!exited_) {
+      commands_.push_back({std::move(command), std::move(cancel)});
+      cv_.notify_one();
+      return;
+    }
+  }
+  if (cancel) cancel();
+}
+
+template <class T>
+std::function<void()> BehaviorExecutionManager::cancelWith(const Done<T>& done,
+                                                           const std::string& name) {
+  return [done, name] { done(absl::UnavailableError(name + " is shutting down")); };
+}
+
+void BehaviorExecutionManager::run() {
+  std::unique_lock lock(mutex_);
+  while (true) {
+    if (stopping_) break;
+    if (!commands_.empty()) {
+      auto command = std::move(commands_.front());
+      commands_.pop_front();
+      lock.unlock();
+      command.run();
+      lock.lock();
+      continue;
+    }
+    if (state_ == State::kActive) {
+      if (!context_.clock->valid()) {
+        cv_.wait_for(lock, std::chrono::milliseconds(50));
+        continue;
+      }
+      const TimePoint now = context_.clock->now();
+      if (now >= next_tick_) {
+        next_tick_ += period_;
+        // Never burst to catch up: a late tick moves the schedule.
+        if (next_tick_ <= now) next_tick_ = now + period_;
+        lock.unlock();
+        execute();
+        lock.lock();
+        continue;
+      }
+      cv_.wait_for(lock, context_.clock->wallWaitFor(next_tick_ - now));
+    } else {
+      cv_.wait(lock);  // inactive: no CPU until a command arrives
+    }
+  }
+  exited_ = true;
+  std::deque<Command> left = std::move(commands_);
+  commands_.clear();
+  exited_cv_.notify_all();
+  lock.unlock();
+  for (auto& command : left) {
+    if (command.cancel) command.cancel();
+  }
+}
+
+template <class F>
+bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
+  call_function_.store(function, std::memory_order_relaxed);
+  call_started_ns_.store(steadyNs(std::chrono::steady_clock::now()), std::memory_order_release);
+  bool ok = true;
+  try {
+    f();
+  } catch (const std::exception& e) {
+    ok = false;
+    failure_message_ =
+        std::string(call_function_.load(std::memory_order_relaxed)) + " threw: " + e.what();
+  } catch (...) {
+    ok = false;
+    failure_message_ = std::string(call_function_.load(std::memory_order_relaxed)) +
+                       " threw a non-standard exception";
+  }
+  call_started_ns_.store(0, std::memory_order_release);
+  bool fired;
+  {
+    std::lock_guard lock(mutex_);
+    fired = watchdog_fired_;
+  }
+  if (fired) {
+    // The watchdog already ended this activation while the call was stuck;
+    // now that it returned, clean up and accept activations again.
+    if (std::string_view(function) != "onDeactivate") {
+      try {
+        onDeactivate();
+      } catch (...) {
+      }
+    }
+    {
+      std::lock_guard lock(mutex_);
+      watchdog_fired_ = false;
+      state_ = State::kInactive;
+      activation_id_.clear();
+      parameters_.reset();
+    }
+    reportActive(false);
+    failure_message_ = "stopped by the watchdog";
+    return false;
+  }
+  return ok;
+}
+
+void BehaviorExecutionManager::watchdogCheck(std::chrono::steady_clock::time_point now) {
+  const int64_t started = call_started_ns_.load(std::memory_order_acquire);
+  if (started == 0) return;
+  const auto limit =
+      std::chrono::duration_cast<std::chrono::nanoseconds>(options_.watchdog_timeout);
+  if (steadyNs(now) - started < limit.count()) return;
+  std::lock_guard lock(mutex_);
+  if (watchdog_fired_ || call_started_ns_.load(std::memory_order_acquire) != started) return;
+  if (state_ != State::kActive && state_ != State::kPaused) return;
+  watchdog_fired_ = true;
+  const char* function = call_function_.load(std::memory_order_relaxed);
+  recordFinishedLocked(v1::TERMINATION_CAUSE_PROCESS_FAILURE,
+                       std::string(function ? function : "user code") + " did not return within " +
+                           seconds(limit) + " (watchdog); " + name_ +
+                           " accepts activations again once it returns");
+  state_ = State::kBlocked;
+}
+
+Duration BehaviorExecutionManager::activeTimeLocked(TimePoint now) const {
+  if (state_ == State::kActive) return active_accumulated_ + (now - active_since_);
+  return active_accumulated_;
+}
+
+Duration BehaviorExecutionManager::activeTime() const {
+  return activeTimeLocked(context_.clock->now());
+}
+
+void BehaviorExecutionManager::execute() {
+  const auto t0 = std::chrono::steady_clock::now();
+  v1::TerminationCause cause = v1::TERMINATION_CAUSE_UNSPECIFIED;
+  std::string message;
+  Situation situation;
+  const bool ok = guarded("monitoring", [&] {
+    call_function_.store("checkProcesses", std::memory_order_relaxed);
+    if (Verdict v = checkProcesses(); v.finishes()) {
+      cause = v1::TERMINATION_CAUSE_PROCESS_FAILURE;
+      message = v.message();
+      return;
+    }
+    call_function_.store("checkSituation", std::memory_order_relaxed);
+    situation = checkSituation();
+    if (!situation.feasible) {
+      cause = v1::TERMINATION_CAUSE_SITUATION_CHANGE;
+      message = joinReasons(situation.reasons);
+      return;
+    }
+    call_function_.store("checkGoal", std::memory_order_relaxed);
+    if (Verdict v = checkGoal(); v.finishes()) {
+      cause = v1::TERMINATION_CAUSE_GOAL_ACHIEVED;
+      message = v.message();
+      return;
+    }
+    call_function_.store("checkProgress", std::memory_order_relaxed);
+    if (Verdict v = checkProgress(); v.finishes()) {
+      cause = v1::TERMINATION_CAUSE_WRONG_PROGRESS;
+      message = v.message();
+      return;
+    }
+  });
+  if (!ok) {
+    if (failure_message_ != "stopped by the watchdog") {
+      finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
+    }
+    return;
+  }
+  if (cause == v1::TERMINATION_CAUSE_UNSPECIFIED && maximum_execution_time_ > Duration::zero() &&
+      activeTime() >= maximum_execution_time_) {
+    cause = v1::TERMINATION_CAUSE_TIME_OUT;
+    message = "not finished within maximum_execution_time " + seconds(maximum_execution_time_) +
+              " of active time";
+  }
+  if (context_.observer) context_.observer->onMonitoring(std::chrono::steady_clock::now() - t0);
+  if (cause != v1::TERMINATION_CAUSE_UNSPECIFIED) {
+    finish(cause, message);
+    return;
+  }
+  if (std::abs(situation.performance_ratio - reported_performance_) >=
+          options_.situation_report_threshold ||
+      situation.reasons != reported_reasons_) {
+    std::lock_guard lock(mutex_);
+    reported_performance_ = situation.performance_ratio;
+    reported_reasons_ = situation.reasons;
+    v1::BehaviorEvent event = newEventLocked();
+    auto* changed = event.mutable_situation_changed();
+    changed->set_feasible(true);
+    changed->set_performance_ratio(situation.performance_ratio);
+    for (const auto& r : situation.reasons) changed->add_reasons(r);
+    context_.events->append(std::move(event));
+    if (context_.observer) context_.observer->onSituation(situation.performance_ratio);
+  }
+  const bool executed = guarded("onExecute", [&] { onExecute(); });
+  if (first_execute_pending_) {
+    first_execute_pending_ = false;
+    if (context_.observer) {
+      context_.observer->onFirstExecute(std::chrono::steady_clock::now() - activate_received_);
+    }
+  }
+  if (!executed && failure_message_ != "stopped by the watchdog") {
+    finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
+  }
+}
+
+void BehaviorExecutionManager::finish(v1::TerminationCause cause, const std::string& message) {
+  std::string full_message = message;
+  if (!guarded("onDeactivate", [&] { onDeactivate(); })) {
+    if (failure_message_ == "stopped by the watchdog") return;
+    full_message += (full_message.empty() ? "" : "; ") + failure_message_;
+  }
+  {
+    std::lock_guard lock(mutex_);
+    if (state_ != State::kActive && state_ != State::kPaused) return;
+    recordFinishedLocked(cause, full_message);
+    state_ = State::kInactive;
+    activation_id_.clear();
+    parameters_.reset();
+  }
+  reportActive(false);
+}
+
+void BehaviorExecutionManager::recordFinishedLocked(v1::TerminationCause cause,
+                                                    const std::string& message) {
+  const TimePoint now = context_.clock->now();
+  v1::BehaviorEvent event = newEventLocked();
+  auto* finished = event.mutable_finished();
+  finished->set_cause(cause);
+  finished->set_message(message);
+  *finished->mutable_active_duration() = toProtoDuration(activeTimeLocked(now));
+  if (parameters_) *finished->mutable_parameters() = params::toStruct(*parameters_);
+  wants_ticks_.store(false, std::memory_order_release);
+  finished_.push_back({activation_id_, cause});
+  if (finished_.size() > kFinishedRemembered) finished_.pop_front();
+  context_.events->append(std::move(event));
+  if (context_.observer) context_.observer->onFinished(cause);
+}
+
+v1::BehaviorEvent BehaviorExecutionManager::newEventLocked() const {
+  v1::BehaviorEvent event;
+  event.set_behavior(name_);
+  event.set_activation_id(activation_id_);
+  *event.mutable_time() = toTimestamp(context_.clock->now());
+  return event;
+}
+
+void BehaviorExecutionManager::reportActive(bool active) {
+  if (context_.on_active_changed) context_.on_active_changed(active);
+}
+
+absl::Status BehaviorExecutionManager::checkActivationIdLocked(const std::string& activation_id,
+                                                               const char* verb) const {
+  const bool running = state_ == State::kActive || state_ == State::kPaused;
+  if (!activation_id.empty() && (!running || activation_id != activation_id_)) {
+    return absl::AbortedError("cannot " + std::string(verb) + " activation " + activation_id +
+                              " of " + name_ + ": it is not the current activation (current: " +
+                              (running ? activation_id_ : std::string("none")) + ")");
+  }
+  if (!running) {
+    return absl::FailedPreconditionError("cannot " + std::string(verb) + " " + name_ +
+                                         ": it is not active");
+  }
+  return absl::OkStatus();
+}
+
+// ---- Uniform interface -------------------------------------------------------
+
+// While user code stuck past the watchdog still runs, the worker cannot take
+// commands; answer at once instead of queueing behind it.
+bool BehaviorExecutionManager::refuseWhileBlocked(const std::function<void(absl::Status)>& reply) {
+  {
+    std::lock_guard lock(mutex_);
+    if (state_ != State::kBlocked) return false;
+  }
+  reply(absl::FailedPreconditionError(
+      name_ +
+      " is blocked: user code of its previous activation has not returned yet (stopped "
+      "by the watchdog); try again later"));
+  return true;
+}
+
+void BehaviorExecutionManager::activate(std::unique_ptr<google::protobuf::Message> parameters,
+                                        std::string request_id, Done<v1::ActivateResponse> done,
+                                        SteadyTime received) {
+  if (!parameters || parameters->GetDescriptor() != parameters_type_) {
+    done(absl::InvalidArgumentError(name_ + " takes parameters of type " +
+                                    parameters_type_->full_name()));
+    return;
+  }
+  if (absl::Status s = params::applyDefaultsAndValidate(parameters.get()); !s.ok()) {
+    done(s);
+    return;
+  }
+  if (refuseWhileBlocked([&](absl::Status s) { done(s); })) return;
+  // std::function needs a copyable callable: share the message until the
+  // worker takes it.
+  std::shared_ptr<google::protobuf::Message> holder(parameters.release());
+  post([this, holder, request_id = std::move(request_id), received,
+        done] { doActivate(takeMessage(*holder), request_id, received, done); },
+       cancelWith(done, name_));
+}
+
+void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Message> parameters,
+                                          const std::string& request_id, SteadyTime received,
+                                          const Done<v1::ActivateResponse>& done) {
+  {
+    std::lock_guard lock(mutex_);
+    const auto wall_now = std::chrono::steady_clock::now();
+    while (!request_id_order_.empty() &&
+           wall_now - request_id_order_.front().first > kRequestIdWindow) {
+      request_ids_.erase(request_id_order_.front().second);
+      request_id_order_.pop_front();
+    }
+    if (!request_id.empty()) {
+      if (auto it = request_ids_.find(request_id); it != request_ids_.end()) {
+        v1::ActivateResponse response = it->second.first;
+        response.set_replayed(true);
+        done(std::move(response));
+        return;
+      }
+    }
+    if (state_ == State::kBlocked) {
+      done(absl::FailedPreconditionError(
+          name_ +
+          " is blocked: user code of its previous activation has not returned yet "
+          "(stopped by the watchdog); try again later"));
+      return;
+    }
+    if (state_ != State::kInactive) {
+      done(absl::FailedPreconditionError(name_ + " is already active (activation " +
+                                         activation_id_ +
+                                         "); deactivate it first, or use Modify to change its "
+                                         "parameters"));
+      return;
+    }
+    if (!context_.clock->valid()) {
+      done(absl::FailedPreconditionError(
+          "the behavior clock has no time yet; is the simulator publishing on the 'clock' "
+          "topic?"));
+      return;
+    }
+  }
+  Situation situation;
+  if (!guarded("checkSituation", [&] { situation = checkSituation(); })) {
+    done(absl::FailedPreconditionError(name_ + " cannot be activated: " + failure_message_));
+    return;
+  }
+  if (!situation.feasible) {
+    done(absl::FailedPreconditionError(name_ + " cannot be activated in the current situation: " +
+                                       joinReasons(situation.reasons)));
+    return;
+  }
+  const TimePoint now = context_.clock->now();
+  {
+    std::lock_guard lock(mutex_);
+    parameters_ = std::move(parameters);
+    activation_id_ = name_ + "-" + context_.events->incarnation().substr(0, 8) + "-" +
+                     std::to_string(++activation_counter_);
+    maximum_execution_time_ = options_.maximum_execution_time;
+    activation_time_ = now;
+    active_since_ = now;
+    active_accumulated_ = Duration::zero();
+  }
+  absl::Status status;
+  if (!guarded("onActivate", [&] { status = onActivate(); })) {
+    status = absl::InternalError(failure_message_);
+  }
+  if (!status.ok()) {
+    {
+      std::lock_guard lock(mutex_);
+      parameters_.reset();
+      activation_id_.clear();
+    }
+    done(absl::Status(status.code(),
+                      name_ + " refused activation: " + std::string(status.message())));
+    return;
+  }
+  v1::ActivateResponse response;
+  {
+    std::lock_guard lock(mutex_);
+    state_ = State::kActive;
+    next_tick_ = now;
+    first_execute_pending_ = true;
+    activate_received_ = received;
+    reported_performance_ = situation.performance_ratio;
+    reported_reasons_ = situation.reasons;
+    response.set_activation_id(activation_id_);
+    *response.mutable_activation_time() = toTimestamp(now);
+    *response.mutable_parameters() = params::toStruct(*parameters_);
+    v1::BehaviorEvent event = newEventLocked();
+    *event.mutable_activated()->mutable_parameters() = response.parameters();
+    context_.events->append(std::move(event));
+    if (!request_id.empty()) {
+      request_ids_[request_id] = {response, std::chrono::steady_clock::now()};
+      request_id_order_.emplace_back(std::chrono::steady_clock::now(), request_id);
+    }
+    wants_ticks_.store(true, std::memory_order_release);
+  }
+  reportActive(true);
+  if (context_.observer) context_.observer->onActivated();
+  done(std::move(response));
+}
+
+void BehaviorExecutionManager::deactivate(std::string activation_id,
+                                          Done<v1::DeactivateResponse> done) {
+  {
+    std::unique_lock lock(mutex_);
+    if (state_ == State::kBlocked) {
+      for (const auto& f : finished_) {
+        if (!activation_id.empty() && f.activation_id == activation_id) {
+          v1::DeactivateResponse response;
+          response.set_activation_id(activation_id);
+          response.set_cause(f.cause);
+          response.set_already_finished(true);
+          lock.unlock();
+          done(std::move(response));
+          return;
+        }
+      }
+      lock.unlock();
+      refuseWhileBlocked([&](absl::Status s) { done(s); });
+      return;
+    }
+  }
+  post(
+      [this, activation_id = std::move(activation_id), done] {
+        std::string current;
+        {
+          std::lock_guard lock(mutex_);
+          const bool running = state_ == State::kActive || state_ == State::kPaused;
+          if (!running && !activation_id.empty()) {
+            for (const auto& f : finished_) {
+              if (f.activation_id == activation_id) {
+                v1::DeactivateResponse response;
+                response.set_activation_id(activation_id);
+                response.set_cause(f.cause);
+                response.set_already_finished(true);
+                done(std::move(response));
+                return;
+              }
+            }
+          }
+          if (absl::Status s = checkActivationIdLocked(activation_id, "deactivate"); !s.ok()) {
+            done(s);
+            return;
+          }
+          current = activation_id_;
+        }
+        finish(v1::TERMINATION_CAUSE_INTERRUPTED, "deactivation requested");
+        v1::DeactivateResponse response;
+        response.set_activation_id(current);
+        response.set_cause(v1::TERMINATION_CAUSE_INTERRUPTED);
+        done(std::move(response));
+      },
+      cancelWith(done, name_));
+}
+
+void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseResponse> done) {
+  if (refuseWhileBlocked([&](absl::Status s) { done(s); })) return;
+  post(
+      [this, activation_id = std::move(activation_id), done] {
+        std::string current;
+        {
+          std::lock_guard lock(mutex_);
+          if (absl::Status s = checkActivationIdLocked(activation_id, "pause"); !s.ok()) {
+            done(s);
+            return;
+          }
+          if (state_ == State::kPaused) {
+            done(absl::FailedPreconditionError(name_ + " is already paused"));
+            return;
+          }
+          const TimePoint now = context_.clock->now();
+          active_accumulated_ += now - active_since_;
+          state_ = State::kPaused;
+          wants_ticks_.store(false, std::memory_order_release);
+          current = activation_id_;
+        }
+        if (!guarded("onPause", [&] { onPause(); })) {
+          if (failure_message_ != "stopped by the watchdog") {
+            finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
+          }
+          done(absl::AbortedError(name_ + " failed while pausing; the activation ended"));
+          return;
+        }
+        {
+          std::lock_guard lock(mutex_);
+          v1::BehaviorEvent event = newEventLocked();
+          event.mutable_paused();
+          context_.events->append(std::move(event));
+        }
+        v1::PauseResponse response;
+        response.set_activation_id(current);
+        done(std::move(response));
+      },
+      cancelWith(done, name_));
+}
+
+void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::ResumeResponse> done) {
+  if (refuseWhileBlocked([&](absl::Status s) { done(s); })) return;
+  post(
+      [this, activation_id = std::move(activation_id), done] {
+        std::string current;
+        {
+          std::lock_guard lock(mutex_);
+          if (absl::Status s = checkActivationIdLocked(activation_id, "resume"); !s.ok()) {
+            done(s);
+            return;
+          }
+          if (state_ != State::kPaused) {
+            done(absl::FailedPreconditionError(name_ + " is not paused"));
+            return;
+          }
+          current = activation_id_;
+        }
+        if (!guarded("onResume", [&] { onResume(); })) {
+          if (failure_message_ != "stopped by the watchdog") {
+            finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
+          }
+          done(absl::AbortedError(name_ + " failed while resuming; the activation ended"));
+          return;
+        }
+        {
+          std::lock_guard lock(mutex_);
+          const TimePoint now = context_.clock->now();
+          state_ = State::kActive;
+          active_since_ = now;
+          next_tick_ = now;
+          v1::BehaviorEvent event = newEventLocked();
+          event.mutable_resumed();
+          context_.events->append(std::move(event));
+          wants_ticks_.store(true, std::memory_order_release);
+        }
+        v1::ResumeResponse response;
+        response.set_activation_id(current);
+        done(std::move(response));
+      },
+      cancelWith(done, name_));
+}
+
+void BehaviorExecutionManager::modify(std::string activation_id,
+                                      std::unique_ptr<google::protobuf::Message> update,
+                                      Done<v1::ModifyResponse> done) {
+  if (!update || update->GetDescriptor() != parameters_type_) {
+    done(absl::InvalidArgumentError(name_ + " takes parameters of type " +
+                                    parameters_type_->full_name()));
+    return;
+  }
+  if (refuseWhileBlocked([&](absl::Status s) { done(s); })) return;
+  std::shared_ptr<google::protobuf::Message> holder(update.release());
+  post(
+      [this, activation_id = std::move(activation_id), holder, done] {
+        std::unique_ptr<google::protobuf::Message> update = takeMessage(*holder);
+        std::unique_ptr<google::protobuf::Message> merged;
+        std::string current;
+        {
+          std::lock_guard lock(mutex_);
+          if (absl::Status s = checkActivationIdLocked(activation_id, "modify"); !s.ok()) {
+            done(s);
+            return;
+          }
+          merged.reset(parameters_->New());
+          merged->CopyFrom(*parameters_);
+          current = activation_id_;
+        }
+        params::mergeUpdate(*update, merged.get());
+        if (absl::Status s = params::applyDefaultsAndValidate(merged.get()); !s.ok()) {
+          done(s);
+          return;
+        }
+        absl::Status status;
+        if (!guarded("onModify", [&] { status = onModify(*merged); })) {
+          if (failure_message_ != "stopped by the watchdog") {
+            finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
+          }
+          done(absl::AbortedError(name_ + " failed while modifying; the activation ended"));
+          return;
+        }
+        if (!status.ok()) {
+          done(absl::Status(status.code(), name_ + " refused the new parameters: " +
+                                               std::string(status.message())));
+          return;
+        }
+        v1::ModifyResponse response;
+        {
+          std::lock_guard lock(mutex_);
+          parameters_ = std::move(merged);
+          response.set_activation_id(current);
+          *response.mutable_parameters() = params::toStruct(*parameters_);
+          v1::BehaviorEvent event = newEventLocked();
+          *event.mutable_modified()->mutable_parameters() = response.parameters();
+          context_.events->append(std::move(event));
+        }
+        done(std::move(response));
+      },
+      cancelWith(done, name_));
+}
+
+void BehaviorExecutionManager::checkSituationNow(Done<v1::CheckSituationResponse> done) {
+  if (refuseWhileBlocked([&](absl::Status s) {
+        v1::CheckSituationResponse response;
+        response.set_feasible(false);
+        response.add_reasons(std::string(s.message()));
+        done(std::move(response));
+      })) {
+    return;
+  }
+  post(
+      [this, done] {
+        Situation situation;
+        v1::CheckSituationResponse response;
+        if (!guarded("checkSituation", [&] { situation = checkSituation(); })) {
+          response.set_feasible(false);
+          response.add_reasons(failure_message_);
+          done(std::move(response));
+          return;
+        }
+        response.set_feasible(situation.feasible);
+        response.set_performance_ratio(situation.performance_ratio);
+        for (const auto& r : situation.reasons) response.add_reasons(r);
+        done(std::move(response));
+      },
+      cancelWith(done, name_));
+}
+
+v1::BehaviorState BehaviorExecutionManager::state() const {
+  std::lock_guard lock(mutex_);
+  switch (state_) {
+    case State::kInactive:
+      return v1::BEHAVIOR_STATE_INACTIVE;
+    case State::kActive:
+      return v1::BEHAVIOR_STATE_ACTIVE;
+    case State::kPaused:
+      return v1::BEHAVIOR_STATE_PAUSED;
+    case State::kBlocked:
+      return v1::BEHAVIOR_STATE_BLOCKED;
+  }
+  return v1::BEHAVIOR_STATE_UNSPECIFIED;
+}
+
+v1::CheckActivationResponse BehaviorExecutionManager::checkActivation() const {
+  v1::CheckActivationResponse response;
+  response.set_state(state());
+  std::lock_guard lock(mutex_);
+  const bool running = state_ == State::kActive || state_ == State::kPaused;
+  response.set_active(running);
+  if (running) {
+    response.set_activation_id(activation_id_);
+    if (parameters_) *response.mutable_parameters() = params::toStruct(*parameters_);
+    *response.mutable_activation_time() = toTimestamp(activation_time_);
+    *response.mutable_active_duration() = toProtoDuration(activeTimeLocked(context_.clock->now()));
+  }
+  return response;
+}
+
+absl::StatusOr<v1::ActivateResponse> BehaviorExecutionManager::activateAndWait(
+    std::unique_ptr<google::protobuf::Message> parameters, std::string request_id,
+    std::chrono::milliseconds timeout) {
+  auto* raw = parameters.release();
+  return waitFor<v1::ActivateResponse>(
+      [&](Done<v1::ActivateResponse> done) {
+        activate(std::unique_ptr<google::protobuf::Message>(raw), request_id, std::move(done));
+      },
+      timeout);
+}
+
+absl::StatusOr<v1::DeactivateResponse> BehaviorExecutionManager::deactivateAndWait(
+    std::string activation_id, std::chrono::milliseconds timeout) {
+  return waitFor<v1::DeactivateResponse>(
+      [&](Done<v1::DeactivateResponse> done) { deactivate(activation_id, std::move(done)); },
+      timeout);
+}
+
+absl::StatusOr<v1::PauseResponse> BehaviorExecutionManager::pauseAndWait(
+    std::string activation_id) {
+  return waitFor<v1::PauseResponse>(
+      [&](Done<v1::PauseResponse> done) { pause(activation_id, std::move(done)); },
+      std::chrono::seconds(5));
+}
+
+absl::StatusOr<v1::ResumeResponse> BehaviorExecutionManager::resumeAndWait(
+    std::string activation_id) {
+  return waitFor<v1::ResumeResponse>(
+      [&](Done<v1::ResumeResponse> done) { resume(activation_id, std::move(done)); },
+      std::chrono::seconds(5));
+}
+
+absl::StatusOr<v1::ModifyResponse> BehaviorExecutionManager::modifyAndWait(
+    std::unique_ptr<google::protobuf::Message> update, std::string activation_id) {
+  auto* raw = update.release();
+  return waitFor<v1::ModifyResponse>(
+      [&](Done<v1::ModifyResponse> done) {
+        modify(activation_id, std::unique_ptr<google::protobuf::Message>(raw), std::move(done));
+      },
+      std::chrono::seconds(5));
+}
+
+absl::StatusOr<v1::CheckSituationResponse> BehaviorExecutionManager::checkSituationAndWait() {
+  return waitFor<v1::CheckSituationResponse>(
+      [&](Done<v1::CheckSituationResponse> done) { checkSituationNow(std::move(done)); },
+      std::chrono::seconds(5));
+}
+
+}  // namespace behaviorlib

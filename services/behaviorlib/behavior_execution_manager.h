@@ -1,0 +1,345 @@
+#pragma once
+
+// BehaviorExecutionManager: a robot behavior that controls itself and manages
+// its own execution (Molina et al., "Programming Robot Behaviors with Execution
+// Management Functions"). Subclass it (through Behavior<Params>), override the
+// paper's functions, and register the class in a behavior system:
+//
+//   class WaitBehavior final : public behaviorlib::Behavior<v1::WaitParameters> {
+//    public:
+//     WaitBehavior() : Behavior("WAIT") {}
+//    protected:
+//     behaviorlib::Verdict checkGoal() override {
+//       return activeTime() >= seconds(parameters().duration_s())
+//                  ? behaviorlib::Verdict::finish("waited")
+//                  : behaviorlib::Verdict::keepGoing();
+//     }
+//   };
+//
+// Threading: every user function of one behavior is called on that behavior's
+// own worker thread, one at a time, so user code needs no locking of its own
+// state. Lifecycle calls (activate, deactivate, ...) may come from any thread;
+// they are queued to the worker and complete through a callback.
+//
+// The tick (execute(), not overridable) runs, in this order:
+//   1. checkProcesses()  -> PROCESS_FAILURE   (other checks rely on the processes)
+//   2. checkSituation()  -> SITUATION_CHANGE  (the assumptions must hold before
+//                                              a goal or progress verdict can be trusted)
+//   3. checkGoal()       -> GOAL_ACHIEVED
+//   4. checkProgress()   -> WRONG_PROGRESS
+//   5. maximum_execution_time (active time only) -> TIME_OUT
+//   6. onExecute()
+// The first check that reports ends the activation with its cause: onDeactivate()
+// runs and then the finished event is emitted. An exception from any user
+// function ends the activation with PROCESS_FAILURE. Activation wakes the worker
+// at once: the first tick (and onExecute) follows onActivate immediately.
+
+#include <google/protobuf/message.h>
+#include <yaml-cpp/yaml.h>
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <deque>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "behaviorlib/clock.h"
+#include "behaviorlib/event_log.h"
+#include "behaviorlib/v1/behavior.pb.h"
+
+namespace behaviorlib {
+
+/// checkSituation()'s answer: do the behavior's assumptions hold, and how well
+/// would it perform.
+struct Situation {
+  bool feasible = true;
+  /// Estimated performance in [0, 1]; 1 is optimal.
+  double performance_ratio = 1.0;
+  std::vector<std::string> reasons;
+
+  static Situation ok(double performance_ratio = 1.0) { return {true, performance_ratio, {}}; }
+  static Situation infeasible(std::string reason) { return {false, 0.0, {std::move(reason)}}; }
+};
+
+/// The answer of checkGoal(), checkProgress() and checkProcesses(): keep going,
+/// or finish the activation (with that function's termination cause) and say
+/// why.
+class Verdict {
+ public:
+  static Verdict keepGoing() { return Verdict(false, {}); }
+  static Verdict finish(std::string message) { return Verdict(true, std::move(message)); }
+  bool finishes() const { return finishes_; }
+  const std::string& message() const { return message_; }
+
+ private:
+  Verdict(bool finishes, std::string message) : finishes_(finishes), message_(std::move(message)) {}
+  bool finishes_;
+  std::string message_;
+};
+
+/// Execution settings; the system's --config file may override them per
+/// behavior (keys frequency_hz, maximum_execution_time_s, watchdog_timeout_s).
+struct BehaviorOptions {
+  /// Ticks per second of the behavior's clock while active.
+  double frequency_hz = 100.0;
+  /// Maximum active time before TIME_OUT; zero means none.
+  Duration maximum_execution_time{0};
+  /// Wall time a user function may run before the activation is ended with
+  /// PROCESS_FAILURE.
+  std::chrono::milliseconds watchdog_timeout{1000};
+  /// A change of the performance ratio at least this large, while active,
+  /// emits a situation-changed event.
+  double situation_report_threshold = 0.1;
+};
+
+/// Receives the measurements the library makes (Prometheus in servers).
+/// Called on the behavior's worker thread; must be cheap and non-blocking.
+class BehaviorObserver {
+ public:
+  virtual ~BehaviorObserver() = default;
+  virtual void onActivated() {}
+  /// Wall time from the activate request's arrival to the first onExecute
+  /// (the paper's t3).
+  virtual void onFirstExecute(std::chrono::nanoseconds /*activation_latency*/) {}
+  virtual void onFinished(v1::TerminationCause /*cause*/) {}
+  /// Wall time of the four monitoring functions of one tick (the paper's t1).
+  virtual void onMonitoring(std::chrono::nanoseconds /*duration*/) {}
+  virtual void onSituation(double /*performance_ratio*/) {}
+};
+
+/// What the hosting system gives a behavior when it starts.
+struct BehaviorContext {
+  const Clock* clock = nullptr;
+  EventLog* events = nullptr;
+  BehaviorObserver* observer = nullptr;  // optional
+  std::string robot_id;
+  /// This behavior's section of the --config file (may be null).
+  YAML::Node config;
+  /// Called (on the worker) when the behavior becomes active or inactive; the
+  /// system's watchdog uses it to poll only while something runs.
+  std::function<void(bool active)> on_active_changed;
+};
+
+template <class T>
+using Done = std::function<void(absl::StatusOr<T>)>;
+
+class BehaviorExecutionManager {
+ public:
+  BehaviorExecutionManager(std::string name, const google::protobuf::Descriptor* parameters_type,
+                           BehaviorOptions options = {});
+  BehaviorExecutionManager(const BehaviorExecutionManager&) = delete;
+  BehaviorExecutionManager& operator=(const BehaviorExecutionManager&) = delete;
+  /// The host must call stop() before destroying a started behavior.
+  virtual ~BehaviorExecutionManager();
+
+  const std::string& name() const { return name_; }
+  const google::protobuf::Descriptor& parametersType() const { return *parameters_type_; }
+  /// Options after configuration.
+  const BehaviorOptions& options() const { return options_; }
+
+  // ---- Host interface ------------------------------------------------------
+
+  /// Applies the config overrides, starts the worker and runs onConfigure() on
+  /// it; an error from onConfigure is returned and the behavior stays stopped.
+  absl::Status start(BehaviorContext context);
+  /// Ends an active activation with INTERRUPTED ("process shutting down"),
+  /// emits its event and joins the worker (waits at most `timeout` for a
+  /// worker stuck in user code, then leaves it).
+  void stop(std::chrono::milliseconds timeout = std::chrono::seconds(3));
+
+  /// Called by the system watchdog (any thread): ends the activation with
+  /// PROCESS_FAILURE if a user function has run longer than the watchdog
+  /// timeout at `now`.
+  void watchdogCheck(std::chrono::steady_clock::time_point now);
+
+  // ---- Uniform interface (thread-safe; completions run on the worker) ------
+
+  /// Validates `parameters` (defaults, ranges; INVALID_ARGUMENT naming the
+  /// field), then on the worker: replays a known `request_id`; refuses when
+  /// already active or the situation is infeasible (FAILED_PRECONDITION);
+  /// runs onActivate(); emits the activated event; replies; and runs the
+  /// first tick at once. `received` is when the request arrived (for t3).
+  void activate(std::unique_ptr<google::protobuf::Message> parameters, std::string request_id,
+                Done<v1::ActivateResponse> done,
+                std::chrono::steady_clock::time_point received = std::chrono::steady_clock::now());
+  /// Ends the activation with INTERRUPTED. ABORTED when `activation_id` is
+  /// set but is not the current activation (except a finished one while
+  /// nothing else runs: success with already_finished).
+  void deactivate(std::string activation_id, Done<v1::DeactivateResponse> done);
+  void pause(std::string activation_id, Done<v1::PauseResponse> done);
+  void resume(std::string activation_id, Done<v1::ResumeResponse> done);
+  /// Applies the set fields of `update` over the current parameters
+  /// (params::mergeUpdate), validates, and calls onModify().
+  void modify(std::string activation_id, std::unique_ptr<google::protobuf::Message> update,
+              Done<v1::ModifyResponse> done);
+  /// Runs checkSituation() on the worker.
+  void checkSituationNow(Done<v1::CheckSituationResponse> done);
+  /// Reads the current activation state (no user code; immediate).
+  v1::CheckActivationResponse checkActivation() const;
+  v1::BehaviorState state() const;
+
+  // Blocking conveniences (tests, tools); wait at most `timeout` wall time.
+  absl::StatusOr<v1::ActivateResponse> activateAndWait(
+      std::unique_ptr<google::protobuf::Message> parameters, std::string request_id = {},
+      std::chrono::milliseconds timeout = std::chrono::seconds(5));
+  absl::StatusOr<v1::DeactivateResponse> deactivateAndWait(
+      std::string activation_id = {}, std::chrono::milliseconds timeout = std::chrono::seconds(5));
+  absl::StatusOr<v1::PauseResponse> pauseAndWait(std::string activation_id = {});
+  absl::StatusOr<v1::ResumeResponse> resumeAndWait(std::string activation_id = {});
+  absl::StatusOr<v1::ModifyResponse> modifyAndWait(
+      std::unique_ptr<google::protobuf::Message> update, std::string activation_id = {});
+  absl::StatusOr<v1::CheckSituationResponse> checkSituationAndWait();
+
+  /// One monitoring tick: the four checks, the time-out, then onExecute().
+  /// Driven by the worker; not overridable (the paper's execute()).
+  void execute();
+
+  /// How long request_ids are remembered for idempotent Activate.
+  static constexpr std::chrono::minutes kRequestIdWindow{10};
+  /// How many finished activation ids are remembered (for Deactivate replies).
+  static constexpr size_t kFinishedRemembered = 64;
+
+ protected:
+  // ---- Activation management (the paper's table) ---------------------------
+  /// Reads configuration (this behavior's section of --config).
+  virtual absl::Status onConfigure(const YAML::Node& /*config*/) { return absl::OkStatus(); }
+  /// Prepares an activation; parameters() are set. An error refuses it.
+  virtual absl::Status onActivate() { return absl::OkStatus(); }
+  /// One step of the behavior's control.
+  virtual void onExecute() {}
+  /// Leaves a safe, stable state; releases what onActivate acquired.
+  virtual void onDeactivate() {}
+
+  // ---- Execution monitoring (the paper's table) ----------------------------
+  virtual Situation checkSituation() { return Situation::ok(); }
+  virtual Verdict checkGoal() { return Verdict::keepGoing(); }
+  virtual Verdict checkProgress() { return Verdict::keepGoing(); }
+  virtual Verdict checkProcesses() { return Verdict::keepGoing(); }
+
+  // ---- Beyond the paper ----------------------------------------------------
+  /// Paused: a motion behavior should hold position here.
+  virtual void onPause() {}
+  virtual void onResume() {}
+  /// New parameters are about to take effect; an error refuses them.
+  virtual absl::Status onModify(const google::protobuf::Message& /*new_parameters*/) {
+    return absl::OkStatus();
+  }
+
+  // ---- For subclasses (worker thread) --------------------------------------
+  const Clock& clock() const { return *context_.clock; }
+  TimePoint now() const { return context_.clock->now(); }
+  /// Active (not paused) time of the current activation.
+  Duration activeTime() const;
+  const google::protobuf::Message& parametersMessage() const { return *parameters_; }
+  const std::string& activationId() const { return activation_id_; }
+  const std::string& robotId() const { return context_.robot_id; }
+  /// Overrides maximum_execution_time for the current activation (e.g. from
+  /// its parameters, in onActivate()); zero means none.
+  void setMaximumExecutionTime(Duration d) { maximum_execution_time_ = d; }
+
+ private:
+  enum class State { kInactive, kActive, kPaused, kBlocked };
+  struct Finished {
+    std::string activation_id;
+    v1::TerminationCause cause;
+  };
+
+  class WakeOnClock;
+  void run();
+  // Queues `command` for the worker; if the worker has stopped (or stops
+  // before running it), `cancel` runs instead so that every caller gets an
+  // answer.
+  void post(std::function<void()> command, std::function<void()> cancel);
+  template <class T>
+  static std::function<void()> cancelWith(const Done<T>& done, const std::string& name);
+  // Ends the current activation (worker thread, lock not held).
+  void finish(v1::TerminationCause cause, const std::string& message);
+  // Emits the finished event and bookkeeping (lock held).
+  void recordFinishedLocked(v1::TerminationCause cause, const std::string& message);
+  v1::BehaviorEvent newEventLocked() const;
+  Duration activeTimeLocked(TimePoint now) const;
+  template <class F>
+  bool guarded(const char* function, F&& f);  // runs user code; false if it threw
+  void doActivate(std::unique_ptr<google::protobuf::Message> parameters,
+                  const std::string& request_id, std::chrono::steady_clock::time_point received,
+                  const Done<v1::ActivateResponse>& done);
+  void reportActive(bool active);
+  // True (after calling `reply` with FAILED_PRECONDITION) while blocked.
+  bool refuseWhileBlocked(const std::function<void(absl::Status)>& reply);
+  absl::Status checkActivationIdLocked(const std::string& activation_id, const char* verb) const;
+
+  const std::string name_;
+  const google::protobuf::Descriptor* parameters_type_;
+  BehaviorOptions options_;
+  BehaviorContext context_;
+  std::unique_ptr<WakeOnClock> clock_listener_;
+
+  mutable std::mutex mutex_;
+  std::condition_variable cv_;
+  struct Command {
+    std::function<void()> run;
+    std::function<void()> cancel;
+  };
+  std::deque<Command> commands_;
+  bool stopping_ = false;
+  bool exited_ = false;
+  std::condition_variable exited_cv_;
+  std::thread worker_;
+
+  // Activation state: written on the worker under mutex_; the worker reads it
+  // without the lock.
+  State state_ = State::kInactive;
+  std::string activation_id_;
+  std::unique_ptr<google::protobuf::Message> parameters_;
+  TimePoint activation_time_{};
+  TimePoint active_since_{};
+  Duration active_accumulated_{0};
+  Duration maximum_execution_time_{0};
+  TimePoint next_tick_{};
+  Duration period_{0};
+  bool first_execute_pending_ = false;
+  std::chrono::steady_clock::time_point activate_received_{};
+  double reported_performance_ = 1.0;
+  std::vector<std::string> reported_reasons_;
+  uint64_t activation_counter_ = 0;
+  std::atomic<bool> wants_ticks_{false};
+
+  // Failure reported from user code (exception) during the current call.
+  std::string failure_message_;
+
+  // Watchdog: steady-clock ns when the current user call started (0: none).
+  std::atomic<int64_t> call_started_ns_{0};
+  std::atomic<const char*> call_function_{nullptr};
+  bool watchdog_fired_ = false;  // under mutex_
+
+  std::map<std::string, std::pair<v1::ActivateResponse, std::chrono::steady_clock::time_point>>
+      request_ids_;
+  std::deque<std::pair<std::chrono::steady_clock::time_point, std::string>> request_id_order_;
+  std::deque<Finished> finished_;
+};
+
+/// A behavior with a typed parameter message.
+template <class Params>
+class Behavior : public BehaviorExecutionManager {
+ public:
+  using Parameters = Params;
+  explicit Behavior(std::string name, BehaviorOptions options = {})
+      : BehaviorExecutionManager(std::move(name), Params::descriptor(), options) {}
+
+ protected:
+  /// The current activation's parameters (defaults applied, validated).
+  const Params& parameters() const { return static_cast<const Params&>(parametersMessage()); }
+};
+
+/// A TerminationCause's short name ("GOAL_ACHIEVED").
+std::string causeName(v1::TerminationCause cause);
+
+}  // namespace behaviorlib

@@ -1,0 +1,116 @@
+#include "behaviorlib/behavior_host.h"
+
+#include <algorithm>
+
+namespace behaviorlib {
+namespace {
+
+EventLogOptions eventOptions(const BehaviorHostOptions& options) {
+  EventLogOptions events = options.events;
+  events.robot_id = options.robot_id;
+  events.system = options.system;
+  return events;
+}
+
+}  // namespace
+
+BehaviorHost::BehaviorHost(BehaviorHostOptions options, const Clock& clock)
+    : options_(std::move(options)), clock_(clock), events_(eventOptions(options_)) {}
+
+BehaviorHost::~BehaviorHost() { stop(); }
+
+void BehaviorHost::add(std::unique_ptr<BehaviorExecutionManager> behavior) {
+  behaviors_.push_back(std::move(behavior));
+}
+
+absl::Status BehaviorHost::start(const YAML::Node& config) {
+  for (size_t i = 0; i < behaviors_.size(); ++i) {
+    for (size_t j = i + 1; j < behaviors_.size(); ++j) {
+      if (behaviors_[i]->name() == behaviors_[j]->name()) {
+        return absl::InvalidArgumentError("behavior " + behaviors_[i]->name() +
+                                          " is registered twice");
+      }
+    }
+  }
+  YAML::Node section;
+  if (config && config.IsMap() && config["behaviors"]) section = config["behaviors"];
+  for (auto& behavior : behaviors_) {
+    BehaviorContext context;
+    context.clock = &clock_;
+    context.events = &events_;
+    context.robot_id = options_.robot_id;
+    if (section && section.IsMap() && section[behavior->name()]) {
+      context.config = section[behavior->name()];
+    }
+    if (observer_factory_) {
+      if (auto observer = observer_factory_(*behavior)) {
+        context.observer = observer.get();
+        observers_.push_back(std::move(observer));
+      }
+    }
+    context.on_active_changed = [this](bool active) { onActiveChanged(active); };
+    if (absl::Status s = behavior->start(std::move(context)); !s.ok()) {
+      stop();
+      return s;
+    }
+  }
+  started_ = true;
+  watchdog_ = std::thread([this] { watchdogLoop(); });
+  return absl::OkStatus();
+}
+
+void BehaviorHost::stop() {
+  for (auto& behavior : behaviors_) behavior->stop();
+  {
+    std::lock_guard lock(mutex_);
+    stopping_ = true;
+  }
+  cv_.notify_all();
+  if (watchdog_.joinable()) watchdog_.join();
+  started_ = false;
+}
+
+BehaviorExecutionManager* BehaviorHost::find(const std::string& name) const {
+  for (const auto& behavior : behaviors_) {
+    if (behavior->name() == name) return behavior.get();
+  }
+  return nullptr;
+}
+
+int BehaviorHost::activeCount() const {
+  std::lock_guard lock(mutex_);
+  return active_count_;
+}
+
+void BehaviorHost::onActiveChanged(bool active) {
+  {
+    std::lock_guard lock(mutex_);
+    active_count_ += active ? 1 : -1;
+  }
+  if (active) cv_.notify_all();
+}
+
+void BehaviorHost::watchdogLoop() {
+  // Poll only while something is active, at a quarter of the shortest
+  // timeout: idle systems stay idle.
+  std::chrono::milliseconds period(1000);
+  for (const auto& behavior : behaviors_) {
+    period = std::min(period, behavior->options().watchdog_timeout / 4);
+  }
+  period = std::max(period, std::chrono::milliseconds(5));
+  std::unique_lock lock(mutex_);
+  while (!stopping_) {
+    if (active_count_ <= 0) {
+      cv_.wait(lock, [this] { return stopping_ || active_count_ > 0; });
+      continue;
+    }
+    cv_.wait_for(lock, period, [this] { return stopping_; });
+    if (stopping_) break;
+    lock.unlock();
+    const auto now = std::chrono::steady_clock::now();
+    for (auto& behavior : behaviors_) behavior->watchdogCheck(now);
+    lock.lock();
+  }
+}
+
+}  // namespace behaviorlib

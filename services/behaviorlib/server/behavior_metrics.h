@@ -1,0 +1,41 @@
+#pragma once
+
+// Prometheus metrics of a behavior system, labelled robot, system, behavior
+// (and cause). Label sets are resolved once per behavior at start, never per
+// tick.
+//
+//   BehaviorMetrics metrics(registry, "drone1", "basic_quadrotor_behaviors");
+//   host.setObserverFactory(metrics.observerFactory());
+
+#include <prometheus/counter.h>
+#include <prometheus/family.h>
+#include <prometheus/gauge.h>
+#include <prometheus/histogram.h>
+#include <prometheus/registry.h>
+
+#include <memory>
+#include <string>
+
+#include "behaviorlib/behavior_host.h"
+
+namespace behaviorlib::server {
+
+class BehaviorMetrics {
+ public:
+  BehaviorMetrics(prometheus::Registry& registry, std::string robot_id, std::string system);
+  /// Creates one observer per behavior (for BehaviorHost::setObserverFactory).
+  BehaviorHost::ObserverFactory observerFactory();
+
+ private:
+  friend class PrometheusObserver;
+  std::string robot_id_;
+  std::string system_;
+  prometheus::Family<prometheus::Counter>& activations_;
+  prometheus::Family<prometheus::Counter>& terminations_;
+  prometheus::Family<prometheus::Gauge>& active_;
+  prometheus::Family<prometheus::Histogram>& monitoring_;
+  prometheus::Family<prometheus::Histogram>& activation_;
+  prometheus::Family<prometheus::Gauge>& performance_;
+};
+
+}  // namespace behaviorlib::server

@@ -1,0 +1,152 @@
+#include "behaviorlib/server/behavior_system_main.h"
+
+#include <google/protobuf/descriptor.h>
+#include <yaml-cpp/yaml.h>
+
+#include <cstdio>
+#include <iostream>
+
+#include "behaviorlib/behavior_host.h"
+#include "behaviorlib/clock.h"
+#include "behaviorlib/server/behavior_metrics.h"
+#include "behaviorlib/server/behavior_system_service.h"
+#include "behaviorlib/server/flags.h"
+#include "behaviorlib/server/server_runtime.h"
+#include "behaviorlib/v1/options.pb.h"
+#include "channel/channel_client.h"
+#include "channel/sim_clock.h"
+
+namespace behaviorlib::server {
+
+void BehaviorSystemBuilder::checkServiceMatches(const BehaviorExecutionManager& behavior,
+                                                const char* service_full_name) {
+  const auto* service =
+      google::protobuf::DescriptorPool::generated_pool()->FindServiceByName(service_full_name);
+  if (!service) throw std::logic_error(std::string("unknown service ") + service_full_name);
+  const auto& info = service->options().GetExtension(v1::behavior);
+  if (info.name() != behavior.name()) {
+    throw std::logic_error("behavior " + behavior.name() + " registered with service " +
+                           service_full_name + ", which declares behavior '" + info.name() + "'");
+  }
+  if (info.parameters_type() != behavior.parametersType().full_name()) {
+    throw std::logic_error("behavior " + behavior.name() + " takes " +
+                           behavior.parametersType().full_name() + " but service " +
+                           service_full_name + " declares " + info.parameters_type());
+  }
+}
+
+int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
+                      const std::function<void(BehaviorSystemBuilder&)>& register_behaviors) {
+  ServerRuntime::blockShutdownSignals();
+  const std::string program = system_name;
+
+  std::string robot_id = "drone1";
+  std::string listen = "127.0.0.1:50061";
+  std::string metrics_listen = "127.0.0.1:0";
+  std::string port_file;
+  std::string channel;
+  std::string clock_kind = "steady";
+  std::string config_path;
+  std::string coordinator;
+  FlagSet flags("behavior system " + system_name +
+                ": hosts its behaviors as gRPC services (typed per behavior, plus "
+                "behaviorlib.v1.BehaviorSystem)");
+  flags.add("robot-id", &robot_id, "robot this process serves");
+  flags.add("listen", &listen, "gRPC address host:port (port 0 picks a free port)");
+  flags.add("metrics-listen", &metrics_listen,
+            "Prometheus /metrics address host:port (port 0 picks a free port; empty disables)");
+  flags.add("port-file", &port_file, "write the bound ports here (grpc_port=, metrics_port=)");
+  flags.add("channel", &channel, "data channel broker address host:port");
+  flags.add("clock", &clock_kind,
+            "behavior clock: 'steady' (host monotonic time) or 'sim' (the channel's 'clock' "
+            "topic, published by the simulator)");
+  flags.add("config", &config_path,
+            "YAML file: behaviors: {NAME: {frequency_hz, maximum_execution_time_s, "
+            "watchdog_timeout_s, ...}}");
+  flags.add("coordinator", &coordinator,
+            "coordinator address for registration (not used yet: the coordinator is not built)");
+  int exit_code = 0;
+  if (!flags.parse(argc, argv, &exit_code)) return exit_code;
+
+  YAML::Node config;
+  if (!config_path.empty()) {
+    try {
+      config = YAML::LoadFile(config_path);
+    } catch (const YAML::Exception& e) {
+      fatal(program, "cannot read --config " + config_path + ": " + e.what());
+      return 2;
+    }
+  }
+
+  std::unique_ptr<channel::ChannelClient> channel_client;
+  if (!channel.empty()) channel_client = std::make_unique<channel::ChannelClient>(channel);
+  std::unique_ptr<Clock> clock;
+  if (clock_kind == "steady") {
+    clock = std::make_unique<SteadyClock>();
+  } else if (clock_kind == "sim") {
+    if (!channel_client) {
+      fatal(program, "--clock sim needs --channel (simulated time comes from its 'clock' topic)");
+      return 2;
+    }
+    clock = std::make_unique<channel::SimClock>(*channel_client);
+  } else {
+    fatal(program, "--clock must be 'steady' or 'sim', not '" + clock_kind + "'");
+    return 2;
+  }
+
+  AcceptGate gate;
+  BehaviorSystemBuilder builder(gate);
+  register_behaviors(builder);
+
+  BehaviorHostOptions host_options;
+  host_options.robot_id = robot_id;
+  host_options.system = system_name;
+  BehaviorHost host(host_options, *clock);
+  for (auto& behavior : builder.behaviors()) host.add(std::move(behavior));
+
+  ServerRuntime runtime;
+  BehaviorMetrics metrics(runtime.registry(), robot_id, system_name);
+  host.setObserverFactory(metrics.observerFactory());
+  std::string error;
+  if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
+  if (absl::Status s = host.start(config); !s.ok()) {
+    return fatal(program, "cannot start behaviors: " + std::string(s.message()));
+  }
+
+  BehaviorSystemService system_service(host, gate, builder.serviceNames());
+  grpc::ServerBuilder server_builder;
+  std::vector<std::string> names = {v1::BehaviorSystem::service_full_name()};
+  server_builder.RegisterService(&system_service);
+  for (auto& service : builder.services()) server_builder.RegisterService(service.get());
+  for (const auto& [behavior, service] : builder.serviceNames()) names.push_back(service);
+  if (!runtime.startServer(server_builder, listen, names, &error)) {
+    host.stop();
+    return fatal(program, error);
+  }
+  if (!runtime.writePortFile(port_file, &error)) {
+    runtime.shutdown(std::chrono::seconds(1));
+    host.stop();
+    return fatal(program, error);
+  }
+  std::string hosted;
+  for (const auto& b : host.behaviors()) hosted += (hosted.empty() ? "" : ", ") + b->name();
+  std::fprintf(stderr,
+               "%s: robot %s, behaviors [%s], gRPC on port %d, metrics on port %d, clock %s, "
+               "incarnation %s\n",
+               program.c_str(), robot_id.c_str(), hosted.c_str(), runtime.grpcPort(),
+               runtime.metricsPort(), clock_kind.c_str(), host.events().incarnation().c_str());
+
+  const int sig = ServerRuntime::waitForShutdownSignal();
+  std::fprintf(stderr, "%s: signal %d, interrupting active behaviors and shutting down\n",
+               program.c_str(), sig);
+  // Order matters: refuse new lifecycle calls, end activations (their
+  // INTERRUPTED events go to subscribers), let the streams drain, then stop
+  // serving.
+  gate.close();
+  host.stop();
+  system_service.shutdownStreams();
+  runtime.shutdown(std::chrono::seconds(3));
+  return 0;
+}
+
+}  // namespace behaviorlib::server

@@ -1,0 +1,259 @@
+#include "behaviorlib/server/behavior_system_service.h"
+
+#include <google/protobuf/descriptor.h>
+#include <google/protobuf/message.h>
+#include <google/protobuf/util/time_util.h>
+
+#include "behaviorlib/parameters.h"
+#include "behaviorlib/server/status.h"
+#include "behaviorlib/v1/options.pb.h"
+
+namespace behaviorlib::server {
+
+// One WatchEvents stream: the start message, then the subscription's events,
+// one write at a time. Woken by the event log when events arrive; never
+// blocks the appending behavior.
+class EventStreamReactor final : public grpc::ServerWriteReactor<v1::WatchEventsResponse> {
+ public:
+  EventStreamReactor(BehaviorSystemService* service, const v1::WatchEventsRequest& request)
+      : service_(service) {
+    SubscribeOptions options;
+    options.since_seq = request.since_seq();
+    options.incarnation = request.incarnation();
+    options.behaviors.assign(request.behaviors().begin(), request.behaviors().end());
+    // writing_ starts true so that a wake before the start message is written
+    // cannot send an event first.
+    subscription_ = service_->host_.events().subscribe(options, [this] { onWake(); });
+    std::lock_guard lock(mutex_);
+    *message_.mutable_start() = subscription_->start();
+    StartWrite(&message_);
+  }
+
+  // Called when the service shuts down: finish once the queue is drained.
+  void shutdown() {
+    std::lock_guard lock(mutex_);
+    shutting_down_ = true;
+    if (!writing_) writeNextLocked();
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard lock(mutex_);
+    writing_ = false;
+    if (!ok) {
+      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "stream broken"));
+      return;
+    }
+    writeNextLocked();
+  }
+
+  void OnCancel() override {
+    std::lock_guard lock(mutex_);
+    cancelled_ = true;
+    if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
+  }
+
+  void OnDone() override {
+    subscription_->cancel();
+    service_->removeStream(this);
+    delete this;
+  }
+
+ private:
+  void onWake() {
+    std::lock_guard lock(mutex_);
+    if (!writing_) writeNextLocked();
+  }
+
+  void writeNextLocked() {
+    if (finished_) return;
+    if (cancelled_) {
+      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
+      return;
+    }
+    if (EventPtr event = subscription_->pop()) {
+      *message_.mutable_event() = *event;
+      writing_ = true;
+      StartWrite(&message_);
+      return;
+    }
+    if (subscription_->overflowed()) {
+      finishLocked(grpc::Status(
+          grpc::StatusCode::RESOURCE_EXHAUSTED,
+          "subscriber too slow: events were produced faster than it read them; resume with "
+          "since_seq=" +
+              std::to_string(subscription_->lastPoppedSeq()) +
+              " and incarnation=" + subscription_->start().incarnation()));
+      return;
+    }
+    if (shutting_down_) {
+      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE,
+                                "the behavior system is shutting down; resume with since_seq=" +
+                                    std::to_string(subscription_->lastPoppedSeq())));
+    }
+  }
+
+  void finishLocked(const grpc::Status& status) {
+    if (finished_) return;
+    finished_ = true;
+    Finish(status);
+  }
+
+  BehaviorSystemService* service_;
+  std::unique_ptr<EventSubscription> subscription_;
+  std::mutex mutex_;
+  v1::WatchEventsResponse message_;
+  bool writing_ = true;
+  bool finished_ = false;
+  bool cancelled_ = false;
+  bool shutting_down_ = false;
+};
+
+BehaviorSystemService::BehaviorSystemService(BehaviorHost& host, const AcceptGate& gate,
+                                             std::map<std::string, std::string> typed_services)
+    : host_(host), gate_(gate), typed_services_(std::move(typed_services)) {}
+
+BehaviorSystemService::~BehaviorSystemService() = default;
+
+void BehaviorSystemService::shutdownStreams() {
+  // Reactors delete themselves only after removeStream(), which needs
+  // streams_mutex_, so every stream in the set is alive while we hold it.
+  std::lock_guard lock(streams_mutex_);
+  shutting_down_ = true;
+  for (auto* stream : streams_) stream->shutdown();
+}
+
+void BehaviorSystemService::removeStream(EventStreamReactor* stream) {
+  std::lock_guard lock(streams_mutex_);
+  streams_.erase(stream);
+}
+
+BehaviorExecutionManager* BehaviorSystemService::lookup(const std::string& name,
+                                                        grpc::Status* status) const {
+  if (auto* behavior = host_.find(name)) return behavior;
+  std::string known;
+  for (const auto& b : host_.behaviors()) known += (known.empty() ? "" : ", ") + b->name();
+  *status = grpc::Status(grpc::StatusCode::NOT_FOUND,
+                         "unknown behavior '" + name + "'; " + host_.system() + " hosts: " + known);
+  return nullptr;
+}
+
+std::unique_ptr<google::protobuf::Message> BehaviorSystemService::fromStruct(
+    const BehaviorExecutionManager& behavior, const google::protobuf::Struct& in,
+    grpc::Status* status) const {
+  const auto* prototype = google::protobuf::MessageFactory::generated_factory()->GetPrototype(
+      &behavior.parametersType());
+  std::unique_ptr<google::protobuf::Message> message(prototype->New());
+  if (absl::Status s = params::fromStruct(in, message.get()); !s.ok()) {
+    *status = toGrpc(s);
+    return nullptr;
+  }
+  return message;
+}
+
+grpc::ServerUnaryReactor* BehaviorSystemService::ListBehaviors(
+    grpc::CallbackServerContext* context, const v1::ListBehaviorsRequest* /*request*/,
+    v1::ListBehaviorsResponse* response) {
+  response->set_robot_id(host_.robotId());
+  response->set_system(host_.system());
+  response->set_incarnation(host_.events().incarnation());
+  const auto* pool = google::protobuf::DescriptorPool::generated_pool();
+  for (const auto& behavior : host_.behaviors()) {
+    auto* d = response->add_behaviors();
+    d->set_name(behavior->name());
+    d->set_parameters_type(behavior->parametersType().full_name());
+    if (auto it = typed_services_.find(behavior->name()); it != typed_services_.end()) {
+      d->set_service(it->second);
+      if (const auto* service = pool->FindServiceByName(it->second)) {
+        const auto& info = service->options().GetExtension(v1::behavior);
+        d->set_description(info.description());
+        d->set_kind(info.kind());
+      }
+    }
+    params::describe(behavior->parametersType(), d->mutable_parameters());
+    *d->mutable_maximum_execution_time() = google::protobuf::util::TimeUtil::NanosecondsToDuration(
+        behavior->options().maximum_execution_time.count());
+    d->set_frequency_hz(behavior->options().frequency_hz);
+    d->set_state(behavior->state());
+  }
+  return finishNow(context, grpc::Status::OK);
+}
+
+grpc::ServerWriteReactor<v1::WatchEventsResponse>* BehaviorSystemService::WatchEvents(
+    grpc::CallbackServerContext* /*context*/, const v1::WatchEventsRequest* request) {
+  auto* stream = new EventStreamReactor(this, *request);
+  std::lock_guard lock(streams_mutex_);
+  streams_.insert(stream);
+  if (shutting_down_) stream->shutdown();
+  return stream;
+}
+
+grpc::ServerUnaryReactor* BehaviorSystemService::ActivateBehavior(
+    grpc::CallbackServerContext* context, const v1::ActivateBehaviorRequest* request,
+    v1::ActivateResponse* response) {
+  grpc::Status status;
+  auto* behavior = lookup(request->behavior(), &status);
+  if (!behavior) return finishNow(context, status);
+  auto parameters = fromStruct(*behavior, request->parameters(), &status);
+  if (!parameters) return finishNow(context, status);
+  return activateCall(context, gate_, *behavior, std::move(parameters), request->request_id(),
+                      response);
+}
+
+grpc::ServerUnaryReactor* BehaviorSystemService::DeactivateBehavior(
+    grpc::CallbackServerContext* context, const v1::DeactivateBehaviorRequest* request,
+    v1::DeactivateResponse* response) {
+  grpc::Status status;
+  auto* behavior = lookup(request->behavior(), &status);
+  if (!behavior) return finishNow(context, status);
+  return deactivateCall(context, gate_, *behavior, request->activation_id(), response);
+}
+
+grpc::ServerUnaryReactor* BehaviorSystemService::CheckBehaviorActivation(
+    grpc::CallbackServerContext* context, const v1::CheckBehaviorActivationRequest* request,
+    v1::CheckActivationResponse* response) {
+  grpc::Status status;
+  auto* behavior = lookup(request->behavior(), &status);
+  if (!behavior) return finishNow(context, status);
+  return checkActivationCall(context, *behavior, response);
+}
+
+grpc::ServerUnaryReactor* BehaviorSystemService::CheckBehaviorSituation(
+    grpc::CallbackServerContext* context, const v1::CheckBehaviorSituationRequest* request,
+    v1::CheckSituationResponse* response) {
+  grpc::Status status;
+  auto* behavior = lookup(request->behavior(), &status);
+  if (!behavior) return finishNow(context, status);
+  return checkSituationCall(context, gate_, *behavior, response);
+}
+
+grpc::ServerUnaryReactor* BehaviorSystemService::PauseBehavior(
+    grpc::CallbackServerContext* context, const v1::PauseBehaviorRequest* request,
+    v1::PauseResponse* response) {
+  grpc::Status status;
+  auto* behavior = lookup(request->behavior(), &status);
+  if (!behavior) return finishNow(context, status);
+  return pauseCall(context, gate_, *behavior, request->activation_id(), response);
+}
+
+grpc::ServerUnaryReactor* BehaviorSystemService::ResumeBehavior(
+    grpc::CallbackServerContext* context, const v1::ResumeBehaviorRequest* request,
+    v1::ResumeResponse* response) {
+  grpc::Status status;
+  auto* behavior = lookup(request->behavior(), &status);
+  if (!behavior) return finishNow(context, status);
+  return resumeCall(context, gate_, *behavior, request->activation_id(), response);
+}
+
+grpc::ServerUnaryReactor* BehaviorSystemService::ModifyBehavior(
+    grpc::CallbackServerContext* context, const v1::ModifyBehaviorRequest* request,
+    v1::ModifyResponse* response) {
+  grpc::Status status;
+  auto* behavior = lookup(request->behavior(), &status);
+  if (!behavior) return finishNow(context, status);
+  auto update = fromStruct(*behavior, request->parameters(), &status);
+  if (!update) return finishNow(context, status);
+  return modifyCall(context, gate_, *behavior, request->activation_id(), std::move(update),
+                    response);
+}
+
+}  // namespace behaviorlib::server

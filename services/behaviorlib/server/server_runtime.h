@@ -1,0 +1,92 @@
+#pragma once
+
+// What every behaviorlib server process shares: a gRPC server with the
+// standard health service and reflection, a Prometheus /metrics endpoint,
+// the port file that tells scripts and tests which ports were bound
+// (`--listen 127.0.0.1:0` is allowed), and orderly SIGTERM handling.
+//
+//   ServerRuntime::blockShutdownSignals();      // first thing in main()
+//   ServerRuntime runtime;
+//   if (!runtime.startMetrics(metrics_listen, &error)) ...
+//   grpc::ServerBuilder builder;
+//   builder.RegisterService(&my_service);
+//   if (!runtime.startServer(builder, listen, {"my.pkg.MyService"}, &error)) ...
+//   runtime.writePortFile(port_file);
+//   ServerRuntime::waitForShutdownSignal();
+//   runtime.shutdown(std::chrono::seconds(5));
+
+#include <chrono>
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace grpc {
+class Server;
+class ServerBuilder;
+class Service;
+}  // namespace grpc
+
+namespace prometheus {
+class Exposer;
+class Registry;
+}  // namespace prometheus
+
+namespace behaviorlib::server {
+
+class ServerRuntime {
+ public:
+  ServerRuntime();
+  ~ServerRuntime();
+  ServerRuntime(const ServerRuntime&) = delete;
+  ServerRuntime& operator=(const ServerRuntime&) = delete;
+
+  /// Blocks SIGTERM and SIGINT in the calling thread (and so in every thread
+  /// it starts later); call it first in main().
+  static void blockShutdownSignals();
+  /// Waits for SIGTERM or SIGINT; returns the signal number.
+  static int waitForShutdownSignal();
+
+  /// The registry served on /metrics.
+  prometheus::Registry& registry() { return *registry_; }
+  std::shared_ptr<prometheus::Registry> registryPtr() { return registry_; }
+
+  /// Serves /metrics on `address` ("host:port", port 0 allowed; empty means
+  /// no metrics endpoint). False with an actionable `error` if it cannot bind.
+  bool startMetrics(const std::string& address, std::string* error);
+
+  /// Enables the health service and reflection, listens on `address`
+  /// (insecure, port 0 allowed) and starts the server. `service_names` are
+  /// the fully-qualified services registered on `builder`; each is reported
+  /// SERVING by the health service, as is the overall "" service. False with
+  /// an actionable `error` when the address cannot be bound.
+  bool startServer(grpc::ServerBuilder& builder, const std::string& address,
+                   std::vector<std::string> service_names, std::string* error);
+
+  grpc::Server* server() { return server_.get(); }
+  int grpcPort() const { return grpc_port_; }
+  int metricsPort() const { return metrics_port_; }
+
+  /// Sets one service's (or "" for the server's) health status.
+  void setServing(const std::string& service_name, bool serving);
+
+  /// Writes "grpc_port=N\nmetrics_port=M\n" atomically (temp file + rename).
+  bool writePortFile(const std::string& path, std::string* error) const;
+
+  /// Marks every service NOT_SERVING, then shuts the server down, letting
+  /// calls in flight finish until `deadline` from now.
+  void shutdown(std::chrono::milliseconds deadline);
+
+ private:
+  std::shared_ptr<prometheus::Registry> registry_;
+  std::unique_ptr<prometheus::Exposer> exposer_;
+  std::vector<std::unique_ptr<grpc::Service>> reflection_services_;
+  std::unique_ptr<grpc::Server> server_;
+  std::vector<std::string> service_names_;
+  int grpc_port_ = 0;
+  int metrics_port_ = 0;
+};
+
+/// Prints "<program>: <message>" to stderr; returns 1 for use as an exit code.
+int fatal(const std::string& program, const std::string& message);
+
+}  // namespace behaviorlib::server

@@ -1,0 +1,94 @@
+#pragma once
+
+// The common data channel broker: behaviorlib.v1.DataChannel over the gRPC
+// callback API. Publishers stream typed samples onto named topics; each
+// subscription gets its own bounded buffer, so a slow subscriber loses
+// samples (counted in dropped_count) instead of slowing publishers or other
+// subscribers. No thread is held per stream.
+//
+//   prometheus::Registry registry;
+//   behaviorlib::channel::Broker broker(registry);
+//   grpc::ServerBuilder builder;
+//   builder.RegisterService(&broker);
+//   auto server = builder.BuildAndStart();
+//   ...
+//   broker.shutdown();  // ends every stream, then
+//   server->Shutdown();
+
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <unordered_set>
+
+#include "absl/strings/string_view.h"
+#include "behaviorlib/v1/channel.grpc.pb.h"
+#include "channel/topic.h"
+
+namespace prometheus {
+class Counter;
+class Gauge;
+template <typename T>
+class Family;
+class Registry;
+}  // namespace prometheus
+
+namespace behaviorlib::channel {
+
+/// Delivery buffer limits of DELIVERY_MODE_QUEUE subscriptions.
+inline constexpr uint32_t kDefaultQueueSize = 100;
+inline constexpr uint32_t kMaxQueueSize = 10000;
+
+/// Implements behaviorlib.v1.DataChannel. Thread-safe; register it on a
+/// grpc::ServerBuilder. It must outlive the server it is registered on.
+class Broker final : public v1::DataChannel::CallbackService {
+ public:
+  /// Metrics (behaviorlib_channel_*) are registered on `registry`, which must
+  /// outlive the broker.
+  explicit Broker(prometheus::Registry& registry);
+  ~Broker() override;
+  Broker(const Broker&) = delete;
+  Broker& operator=(const Broker&) = delete;
+
+  grpc::ServerReadReactor<v1::PublishRequest>* Publish(grpc::CallbackServerContext* context,
+                                                       v1::PublishResponse* response) override;
+  grpc::ServerWriteReactor<v1::SubscribeResponse>* Subscribe(
+      grpc::CallbackServerContext* context, const v1::SubscribeRequest* request) override;
+  grpc::ServerUnaryReactor* GetLatest(grpc::CallbackServerContext* context,
+                                      const v1::GetLatestRequest* request,
+                                      v1::GetLatestResponse* response) override;
+  grpc::ServerUnaryReactor* ListTopics(grpc::CallbackServerContext* context,
+                                       const v1::ListTopicsRequest* request,
+                                       v1::ListTopicsResponse* response) override;
+
+  /// Ends every Publish and Subscribe stream with UNAVAILABLE and refuses new
+  /// ones, so that grpc::Server::Shutdown does not wait for clients that keep
+  /// their streams open. Call it before shutting the server down.
+  void shutdown();
+
+ private:
+  class PublishReactor;
+  class SubscribeReactor;
+  struct Topic;
+  struct Metrics;
+
+  // Validates and stores one sample; fans it out to the subscribers.
+  grpc::Status publish(PublishReactor& publisher, v1::PublishRequest& request);
+  // Caller holds mutex_.
+  std::shared_ptr<Topic> topicLocked(const std::string& name);
+  void removeSubscriber(const std::shared_ptr<Topic>& topic, const SubscribeReactor* subscriber);
+  void removePublisher(PublishReactor* publisher);
+  void countRejected(absl::string_view reason);
+
+  std::unique_ptr<Metrics> metrics_;
+
+  // Lock order: mutex_, then Topic::mutex, then a subscription's mutex.
+  std::mutex mutex_;
+  // Sorted, for ListTopics. A topic stays once something was published on
+  // it; a topic that only had waiting subscribers goes away with them.
+  std::map<std::string, std::shared_ptr<Topic>, std::less<>> topics_;
+  std::unordered_set<PublishReactor*> publishers_;
+  bool shutting_down_ = false;
+};
+
+}  // namespace behaviorlib::channel

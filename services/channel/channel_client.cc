@@ -1,0 +1,292 @@
+#include "channel/channel_client.h"
+
+#include <google/protobuf/message.h>
+#include <grpcpp/grpcpp.h>
+
+#include <algorithm>
+#include <atomic>
+#include <condition_variable>
+#include <mutex>
+#include <thread>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "behaviorlib/v1/channel.grpc.pb.h"
+#include "channel/topic.h"
+
+namespace behaviorlib::channel {
+namespace {
+
+constexpr std::chrono::milliseconds kInitialBackoff(100);
+constexpr std::chrono::milliseconds kMaxBackoff(2000);
+
+absl::Status toAbsl(const grpc::Status& status) {
+  return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
+}
+
+}  // namespace
+
+// ---------------------------------------------------------------------------
+// Subscription
+
+class Subscription::Impl {
+ public:
+  Impl(std::shared_ptr<v1::DataChannel::Stub> stub, v1::SubscribeRequest request,
+       std::function<void(const v1::SubscribeResponse&)> on_sample)
+      : stub_(std::move(stub)), request_(std::move(request)), on_sample_(std::move(on_sample)) {}
+
+  ~Impl() { stop(); }
+
+  // A subscription refused before it started (e.g. invalid topic name).
+  void fail(absl::Status status) {
+    std::lock_guard lock(mutex_);
+    status_ = std::move(status);
+  }
+
+  void start() {
+    thread_ = std::thread([this] { run(); });
+  }
+
+  void stop() {
+    {
+      std::lock_guard lock(mutex_);
+      stopping_ = true;
+      if (context_ != nullptr) context_->TryCancel();
+    }
+    cv_.notify_all();
+    if (thread_.joinable()) thread_.join();
+  }
+
+  bool connected() const {
+    std::lock_guard lock(mutex_);
+    return connected_;
+  }
+
+  bool waitConnected(std::chrono::milliseconds timeout) const {
+    std::unique_lock lock(mutex_);
+    return cv_.wait_for(lock, timeout, [this] { return connected_; });
+  }
+
+  uint64_t connectCount() const {
+    std::lock_guard lock(mutex_);
+    return connect_count_;
+  }
+
+  uint64_t receivedCount() const { return received_.load(); }
+
+  absl::Status status() const {
+    std::lock_guard lock(mutex_);
+    return status_;
+  }
+
+ private:
+  void run() {
+    std::chrono::milliseconds backoff = kInitialBackoff;
+    while (true) {
+      grpc::ClientContext context;
+      {
+        std::lock_guard lock(mutex_);
+        if (stopping_) return;
+        context_ = &context;
+      }
+      std::unique_ptr<grpc::ClientReader<v1::SubscribeResponse>> reader =
+          stub_->Subscribe(&context, request_);
+      // The broker sends its initial metadata once the subscription is
+      // registered; a refused or failed call carries none of ours.
+      reader->WaitForInitialMetadata();
+      const auto& metadata = context.GetServerInitialMetadata();
+      if (metadata.find(kSubscribedMetadataKey) != metadata.end()) {
+        std::lock_guard lock(mutex_);
+        connected_ = true;
+        ++connect_count_;
+        backoff = kInitialBackoff;
+        cv_.notify_all();
+      }
+      v1::SubscribeResponse response;
+      while (reader->Read(&response)) {
+        received_.fetch_add(1);
+        on_sample_(response);
+      }
+      const grpc::Status status = reader->Finish();
+      std::unique_lock lock(mutex_);
+      context_ = nullptr;
+      connected_ = false;
+      status_ = toAbsl(status);
+      cv_.notify_all();
+      // A request the broker itself refuses will be refused again.
+      if (stopping_ || status.error_code() == grpc::StatusCode::INVALID_ARGUMENT) return;
+      cv_.wait_for(lock, backoff, [this] { return stopping_; });
+      if (stopping_) return;
+      backoff = std::min(backoff * 2, kMaxBackoff);
+    }
+  }
+
+  const std::shared_ptr<v1::DataChannel::Stub> stub_;
+  const v1::SubscribeRequest request_;
+  const std::function<void(const v1::SubscribeResponse&)> on_sample_;
+  std::thread thread_;
+  std::atomic<uint64_t> received_{0};
+
+  mutable std::mutex mutex_;
+  mutable std::condition_variable cv_;
+  grpc::ClientContext* context_ = nullptr;  // of the stream in progress
+  bool stopping_ = false;
+  bool connected_ = false;
+  uint64_t connect_count_ = 0;
+  absl::Status status_;
+};
+
+Subscription::Subscription(std::shared_ptr<Impl> impl) : impl_(std::move(impl)) {}
+Subscription::~Subscription() { impl_->stop(); }
+bool Subscription::connected() const { return impl_->connected(); }
+bool Subscription::waitConnected(std::chrono::milliseconds timeout) const {
+  return impl_->waitConnected(timeout);
+}
+uint64_t Subscription::connectCount() const { return impl_->connectCount(); }
+uint64_t Subscription::receivedCount() const { return impl_->receivedCount(); }
+absl::Status Subscription::status() const { return impl_->status(); }
+
+// ---------------------------------------------------------------------------
+// ChannelClient
+
+class ChannelClient::Impl {
+ public:
+  explicit Impl(std::string address)
+      : address_(std::move(address)),
+        channel_(grpc::CreateChannel(address_, grpc::InsecureChannelCredentials())),
+        stub_(v1::DataChannel::NewStub(channel_)) {}
+
+  ~Impl() {
+    std::lock_guard lock(publish_mutex_);
+    if (writer_) closeLocked(nullptr).IgnoreError();
+  }
+
+  absl::Status publish(const std::string& topic, const google::protobuf::Message& sample) {
+    if (absl::Status status = validateTopicName(topic); !status.ok()) return status;
+    v1::PublishRequest request;
+    request.set_topic(topic);
+    request.mutable_sample()->PackFrom(sample);
+    std::lock_guard lock(publish_mutex_);
+    while (true) {
+      const bool fresh = !writer_;
+      if (fresh) openLocked();
+      if (writer_->Write(request)) return absl::OkStatus();
+      absl::Status status = closeLocked(nullptr);
+      // A stream that worked before and broke because the broker went away
+      // (restart) deserves one retry on a new stream; anything else, or a
+      // fresh stream failing, is reported.
+      const bool broker_gone = status.ok() || status.code() == absl::StatusCode::kUnavailable;
+      if (fresh || !broker_gone) {
+        return status.ok() ? absl::UnavailableError(absl::StrCat(
+                                 "publish stream to ", address_, " was closed by the broker"))
+                           : status;
+      }
+    }
+  }
+
+  absl::StatusOr<uint64_t> flush() {
+    std::lock_guard lock(publish_mutex_);
+    if (!writer_) return 0;
+    uint64_t accepted = 0;
+    absl::Status status = closeLocked(&accepted);
+    if (!status.ok()) return status;
+    return accepted;
+  }
+
+  absl::StatusOr<v1::SubscribeResponse> getLatest(const std::string& topic,
+                                                  std::chrono::milliseconds timeout) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + timeout);
+    v1::GetLatestRequest request;
+    request.set_topic(topic);
+    v1::GetLatestResponse response;
+    grpc::Status status = stub_->GetLatest(&context, request, &response);
+    if (!status.ok()) return toAbsl(status);
+    return std::move(*response.mutable_sample());
+  }
+
+  absl::StatusOr<std::vector<v1::TopicInfo>> listTopics(const std::string& prefix,
+                                                        std::chrono::milliseconds timeout) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + timeout);
+    v1::ListTopicsRequest request;
+    request.set_prefix(prefix);
+    v1::ListTopicsResponse response;
+    grpc::Status status = stub_->ListTopics(&context, request, &response);
+    if (!status.ok()) return toAbsl(status);
+    return std::vector<v1::TopicInfo>(response.topics().begin(), response.topics().end());
+  }
+
+  std::unique_ptr<Subscription> subscribe(
+      const std::string& topic, SubscribeOptions options,
+      std::function<void(const v1::SubscribeResponse&)> on_sample) {
+    v1::SubscribeRequest request;
+    request.set_topic(topic);
+    request.set_mode(options.mode);
+    request.set_queue_size(options.queue_size);
+    request.set_send_latest_first(options.send_latest_first);
+    auto impl = std::make_shared<Subscription::Impl>(stub_, std::move(request), std::move(on_sample));
+    if (absl::Status status = validateTopicName(topic); !status.ok()) {
+      impl->fail(std::move(status));
+    } else {
+      impl->start();
+    }
+    return std::make_unique<Subscription>(std::move(impl));
+  }
+
+  const std::string address_;
+
+ private:
+  void openLocked() {
+    publish_context_ = std::make_unique<grpc::ClientContext>();
+    publish_response_.Clear();
+    writer_ = stub_->Publish(publish_context_.get(), &publish_response_);
+  }
+
+  absl::Status closeLocked(uint64_t* accepted) {
+    writer_->WritesDone();
+    const grpc::Status status = writer_->Finish();
+    if (accepted != nullptr) *accepted = publish_response_.accepted_count();
+    writer_.reset();
+    publish_context_.reset();
+    return toAbsl(status);
+  }
+
+  const std::shared_ptr<grpc::Channel> channel_;
+  const std::shared_ptr<v1::DataChannel::Stub> stub_;
+
+  std::mutex publish_mutex_;  // guards the publish stream below
+  std::unique_ptr<grpc::ClientContext> publish_context_;
+  v1::PublishResponse publish_response_;
+  std::unique_ptr<grpc::ClientWriter<v1::PublishRequest>> writer_;
+};
+
+ChannelClient::ChannelClient(const std::string& address) : impl_(std::make_unique<Impl>(address)) {}
+ChannelClient::~ChannelClient() = default;
+
+const std::string& ChannelClient::address() const { return impl_->address_; }
+
+absl::Status ChannelClient::publish(const std::string& topic,
+                                    const google::protobuf::Message& sample) {
+  return impl_->publish(topic, sample);
+}
+
+absl::StatusOr<uint64_t> ChannelClient::flush() { return impl_->flush(); }
+
+absl::StatusOr<v1::SubscribeResponse> ChannelClient::getLatest(const std::string& topic,
+                                                               std::chrono::milliseconds timeout) {
+  return impl_->getLatest(topic, timeout);
+}
+
+absl::StatusOr<std::vector<v1::TopicInfo>> ChannelClient::listTopics(
+    const std::string& prefix, std::chrono::milliseconds timeout) {
+  return impl_->listTopics(prefix, timeout);
+}
+
+std::unique_ptr<Subscription> ChannelClient::subscribe(
+    const std::string& topic, SubscribeOptions options,
+    std::function<void(const v1::SubscribeResponse&)> on_sample) {
+  return impl_->subscribe(topic, options, std::move(on_sample));
+}
+
+}  // namespace behaviorlib::channel

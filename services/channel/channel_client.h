@@ -1,0 +1,145 @@
+#pragma once
+
+// Client of the common data channel (behaviorlib.v1.DataChannel).
+//
+//   behaviorlib::channel::ChannelClient channel("127.0.0.1:50051");
+//
+//   // Publish: one stream per client, opened on first use.
+//   behaviorlib::v1::PoseStamped pose = ...;
+//   absl::Status s = channel.publish("robots/drone1/pose", pose);
+//
+//   // Subscribe: a background reader that reconnects until destroyed.
+//   auto sub = channel.subscribeTyped<behaviorlib::v1::PoseStamped>(
+//       "robots/drone1/pose", {.mode = behaviorlib::v1::DELIVERY_MODE_LATEST},
+//       [](const behaviorlib::v1::PoseStamped& p) { ... });
+//   sub.reset();  // cancels the stream and joins the reader
+//
+//   // The newest sample, or NOT_FOUND.
+//   absl::StatusOr<behaviorlib::v1::SubscribeResponse> latest =
+//       channel.getLatest("robots/drone1/pose");
+
+#include <chrono>
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "behaviorlib/v1/channel.pb.h"
+
+namespace google::protobuf {
+class Message;
+}  // namespace google::protobuf
+
+namespace behaviorlib::channel {
+
+/// How a subscription is buffered by the broker (see SubscribeRequest).
+struct SubscribeOptions {
+  /// LATEST keeps only the newest undelivered sample; QUEUE keeps up to
+  /// queue_size and drops the oldest.
+  v1::DeliveryMode mode = v1::DELIVERY_MODE_LATEST;
+  /// Queue length for QUEUE mode, 1..10000; 0 means the broker default (100).
+  uint32_t queue_size = 0;
+  /// Deliver the sample already on the topic first (also after every
+  /// reconnection).
+  bool send_latest_first = false;
+};
+
+/// A running subscription, made by ChannelClient::subscribe. Its reader
+/// thread calls the callback for every sample and reconnects (with backoff
+/// from 100 ms to 2 s) whenever the stream ends, until the Subscription is
+/// destroyed. It only gives up when the broker refuses the request itself
+/// (INVALID_ARGUMENT, e.g. a bad topic name): see status().
+class Subscription {
+ public:
+  class Impl;
+  explicit Subscription(std::shared_ptr<Impl> impl);
+  /// Cancels the stream and joins the reader thread (promptly). Must not be
+  /// called from inside the callback.
+  ~Subscription();
+  Subscription(const Subscription&) = delete;
+  Subscription& operator=(const Subscription&) = delete;
+
+  /// True while a stream is established and registered at the broker (from
+  /// then on every published sample reaches this subscription).
+  bool connected() const;
+  /// Waits until connected() (true) or `timeout` passes (false).
+  bool waitConnected(std::chrono::milliseconds timeout) const;
+  /// Streams established so far (1 after the first connection; grows with
+  /// every reconnection).
+  uint64_t connectCount() const;
+  /// Samples delivered to the callback so far.
+  uint64_t receivedCount() const;
+  /// Why the last stream ended (OK while the first one is running). When
+  /// the broker refused the request (INVALID_ARGUMENT), the subscription has
+  /// stopped for good.
+  absl::Status status() const;
+
+ private:
+  std::shared_ptr<Impl> impl_;
+};
+
+/// A connection to a channel broker. Thread-safe.
+class ChannelClient {
+ public:
+  /// `address` is "host:port"; the gRPC channel is created here and connects
+  /// lazily.
+  explicit ChannelClient(const std::string& address);
+  /// Closes the publish stream (half-close, waits for the broker's reply).
+  /// Subscriptions made by this client keep working until they are destroyed.
+  ~ChannelClient();
+  ChannelClient(const ChannelClient&) = delete;
+  ChannelClient& operator=(const ChannelClient&) = delete;
+
+  const std::string& address() const;
+
+  /// Publishes `sample` (packed into an Any) on `topic`. Uses one Publish
+  /// stream per client, opened on first use and reopened after a failure.
+  /// Returns INVALID_ARGUMENT at once for a bad topic name. A stream is
+  /// asynchronous: when the broker refuses a sample (wrong type for the
+  /// topic, ...) it ends the stream, and the refusal is returned by a later
+  /// publish() (whose own sample was then not sent) or flush(). When the
+  /// broker went away, the sample is retried once on a new stream.
+  absl::Status publish(const std::string& topic, const google::protobuf::Message& sample);
+
+  /// Closes the publish stream and returns the number of samples the broker
+  /// accepted on it, or the status it ended with. The next publish() opens
+  /// a new stream.
+  absl::StatusOr<uint64_t> flush();
+
+  /// The newest sample on `topic`; NOT_FOUND when nothing was published yet.
+  absl::StatusOr<v1::SubscribeResponse> getLatest(
+      const std::string& topic, std::chrono::milliseconds timeout = std::chrono::seconds(5));
+
+  /// The broker's topics (sorted), optionally only those starting with
+  /// `prefix`.
+  absl::StatusOr<std::vector<v1::TopicInfo>> listTopics(
+      const std::string& prefix = "", std::chrono::milliseconds timeout = std::chrono::seconds(5));
+
+  /// Subscribes to `topic`; `on_sample` runs on the subscription's reader
+  /// thread, one sample at a time, and should return quickly (a slow
+  /// callback makes the broker drop samples for this subscription).
+  std::unique_ptr<Subscription> subscribe(
+      const std::string& topic, SubscribeOptions options,
+      std::function<void(const v1::SubscribeResponse&)> on_sample);
+
+  /// Like subscribe(), unpacking each sample as T; samples of another type
+  /// are skipped.
+  template <class T>
+  std::unique_ptr<Subscription> subscribeTyped(const std::string& topic, SubscribeOptions options,
+                                               std::function<void(const T&)> on_sample) {
+    return subscribe(topic, options,
+                     [on_sample = std::move(on_sample)](const v1::SubscribeResponse& response) {
+                       T message;
+                       if (response.sample().UnpackTo(&message)) on_sample(message);
+                     });
+  }
+
+ private:
+  class Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace behaviorlib::channel

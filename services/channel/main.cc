@@ -1,0 +1,66 @@
+// channel_broker: serves behaviorlib.v1.DataChannel (the common data channel).
+//
+//   channel_broker --listen 127.0.0.1:50051 --metrics-listen 127.0.0.1:9100
+//
+// Exits 0 after SIGTERM/SIGINT (every stream ended), 1 when it cannot bind,
+// 2 on bad flags.
+
+#include <grpcpp/grpcpp.h>
+
+#include <chrono>
+#include <cstdio>
+#include <string>
+
+#include "behaviorlib/server/flags.h"
+#include "behaviorlib/server/server_runtime.h"
+#include "channel/broker.h"
+
+int main(int argc, char** argv) {
+  using behaviorlib::server::fatal;
+  using behaviorlib::server::ServerRuntime;
+  // Before any thread exists, so that every thread inherits the mask and the
+  // signal is only taken by waitForShutdownSignal().
+  ServerRuntime::blockShutdownSignals();
+  const std::string program = "channel_broker";
+
+  std::string listen = "127.0.0.1:50051";
+  std::string metrics_listen = "127.0.0.1:9100";
+  std::string port_file;
+  behaviorlib::server::FlagSet flags(
+      "the common data channel broker (behaviorlib.v1.DataChannel): typed samples on named "
+      "topics");
+  flags.add("listen", &listen, "gRPC address host:port (port 0: any free port)");
+  flags.add("metrics-listen", &metrics_listen,
+            "Prometheus /metrics address host:port (port 0: any free port; empty: disabled)");
+  flags.add("port-file", &port_file,
+            "write the bound ports here as grpc_port=N / metrics_port=M once serving");
+  int exit_code = 0;
+  if (!flags.parse(argc, argv, &exit_code)) return exit_code;
+
+  ServerRuntime runtime;
+  std::string error;
+  if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
+
+  // Declared after `runtime` but shut down explicitly below on every path
+  // where the server was started, so the server never outlives the broker.
+  behaviorlib::channel::Broker broker(runtime.registry());
+  grpc::ServerBuilder builder;
+  builder.RegisterService(&broker);
+  if (!runtime.startServer(builder, listen, {"behaviorlib.v1.DataChannel"}, &error)) {
+    return fatal(program, error);
+  }
+  if (!runtime.writePortFile(port_file, &error)) {
+    runtime.shutdown(std::chrono::milliseconds(0));
+    return fatal(program, error);
+  }
+  std::fprintf(stderr, "%s: serving behaviorlib.v1.DataChannel on port %d (metrics port %d)\n",
+               program.c_str(), runtime.grpcPort(), runtime.metricsPort());
+
+  const int sig = ServerRuntime::waitForShutdownSignal();
+  std::fprintf(stderr, "%s: signal %d, shutting down\n", program.c_str(), sig);
+  // End every stream first: Server::Shutdown would otherwise wait for
+  // subscribers that never hang up.
+  broker.shutdown();
+  runtime.shutdown(std::chrono::seconds(2));
+  return 0;
+}

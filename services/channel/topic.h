@@ -1,0 +1,66 @@
+#pragma once
+
+// Rules shared by the broker and its clients: which topic names are valid and
+// which published samples are acceptable.
+//
+//   absl::Status s = behaviorlib::channel::validateTopicName("robots/drone1/pose");
+//   if (!s.ok()) return s;  // INVALID_ARGUMENT naming the topic and the rule
+//
+//   const google::protobuf::Descriptor* type = nullptr;
+//   absl::string_view reason;
+//   s = behaviorlib::channel::checkSample("clock", any, &type, &reason);
+
+#include <cstddef>
+#include <string>
+
+#include "absl/status/status.h"
+#include "absl/strings/string_view.h"
+
+namespace google::protobuf {
+class Any;
+class Descriptor;
+}  // namespace google::protobuf
+
+namespace behaviorlib::channel {
+
+/// The topic carrying simulated time (behaviorlib.v1.Clock samples).
+inline constexpr absl::string_view kClockTopic = "clock";
+
+/// Server-initial-metadata key the broker sends on a Subscribe stream once
+/// the subscription is registered, so that clients know that every sample
+/// published from then on reaches them.
+inline constexpr char kSubscribedMetadataKey[] = "behaviorlib-subscribed";
+
+/// Longest accepted topic name. Names become metric labels, so they are
+/// bounded.
+inline constexpr std::size_t kMaxTopicNameLength = 256;
+
+/// OK when `topic` is "clock" or "robots/{robot_id}/{name...}" (at least one
+/// name segment after the robot id; every segment non-empty and made of
+/// letters, digits, '_', '-' and '.'), otherwise INVALID_ARGUMENT naming the
+/// topic and the rule it breaks.
+absl::Status validateTopicName(absl::string_view topic);
+
+/// Reasons a sample is rejected, used as the `reason` label of
+/// behaviorlib_channel_rejected_samples_total.
+namespace reject_reason {
+inline constexpr absl::string_view kInvalidTopic = "invalid_topic";
+inline constexpr absl::string_view kMissingSample = "missing_sample";
+inline constexpr absl::string_view kUnknownType = "unknown_type";
+inline constexpr absl::string_view kMalformedSample = "malformed_sample";
+inline constexpr absl::string_view kTypeMismatch = "type_mismatch";
+}  // namespace reject_reason
+
+/// Checks a sample published on `topic` (only used in messages): its type_url
+/// must name a message type compiled into this program (looked up in the
+/// generated descriptor pool after the last '/') and its value must parse as
+/// that type. On success sets `*type`; on failure returns INVALID_ARGUMENT
+/// and sets `*reason` to one of reject_reason.
+absl::Status checkSample(absl::string_view topic, const google::protobuf::Any& sample,
+                         const google::protobuf::Descriptor** type, absl::string_view* reason);
+
+/// The full message type name in an Any type_url ("type.googleapis.com/a.B"
+/// -> "a.B").
+absl::string_view typeNameOfUrl(absl::string_view type_url);
+
+}  // namespace behaviorlib::channel

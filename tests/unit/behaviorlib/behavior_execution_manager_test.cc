@@ -1,0 +1,452 @@
+#include "behaviorlib/behavior_execution_manager.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+#include <condition_variable>
+
+#include "behaviorlib/behavior_host.h"
+#include "behaviorlib/clock.h"
+#include "test_behaviors.h"
+
+namespace behaviorlib {
+namespace {
+
+using std::chrono::milliseconds;
+using std::chrono::seconds;
+using ::testing::ElementsAre;
+using testing::EventCollector;
+using testing::eventually;
+using ::testing::HasSubstr;
+using testing::ScriptedBehavior;
+using testing::waitParams;
+
+class BehaviorExecutionManagerTest : public ::testing::Test {
+ protected:
+  ScriptedBehavior& start(BehaviorOptions options = {}) {
+    auto behavior = std::make_unique<ScriptedBehavior>("SCRIPTED", options);
+    behavior_ = behavior.get();
+    host_.add(std::move(behavior));
+    EXPECT_TRUE(host_.start().ok());
+    return *behavior_;
+  }
+  // Activates and waits for the first tick's onExecute, which runs right
+  // after onActivate without any clock advance.
+  v1::ActivateResponse activate(double duration_s = 1.0, std::string request_id = {}) {
+    const int executed = behavior_->count("onExecute");
+    auto r = behavior_->activateAndWait(waitParams(duration_s), std::move(request_id));
+    EXPECT_TRUE(r.ok()) << r.status();
+    EXPECT_TRUE(eventually([&] { return behavior_->count("onExecute") > executed; }));
+    return r.ok() ? *r : v1::ActivateResponse();
+  }
+  // Advances fake time by one 100 Hz period and waits for the tick.
+  void tick() {
+    const int before = behavior_->count("checkProcesses");
+    clock_.advance(milliseconds(10));
+    ASSERT_TRUE(eventually([&] { return behavior_->count("checkProcesses") > before; }));
+  }
+
+  FakeClock clock_;
+  BehaviorHost host_{testing::hostOptions("drone1", "test"), clock_};
+  EventCollector events_{host_.events()};
+  ScriptedBehavior* behavior_ = nullptr;
+};
+
+TEST_F(BehaviorExecutionManagerTest, FirstTickRunsAtActivationWithoutWaitingForTheClock) {
+  auto& b = start();
+  activate();
+  // Time never advanced: the first tick must still happen.
+  ASSERT_TRUE(eventually([&] { return b.count("onExecute") == 1; }));
+  EXPECT_THAT(b.calls(), ElementsAre("checkSituation", "onActivate", "checkProcesses",
+                                     "checkSituation", "checkGoal", "checkProgress", "onExecute"));
+  std::this_thread::sleep_for(milliseconds(30));
+  EXPECT_EQ(b.count("onExecute"), 1) << "no further tick until the clock advances";
+  tick();
+  EXPECT_TRUE(eventually([&] { return b.count("onExecute") == 2; }));
+}
+
+TEST_F(BehaviorExecutionManagerTest, CheckProcessesRunsEveryTickBeforeTheGoal) {
+  auto& b = start();
+  activate();
+  tick();
+  tick();
+  EXPECT_EQ(b.count("checkProcesses"), 3);
+  EXPECT_EQ(b.count("checkGoal"), 3);
+}
+
+TEST_F(BehaviorExecutionManagerTest, InactiveBehaviorDoesNotTick) {
+  auto& b = start();
+  clock_.advance(seconds(1));
+  std::this_thread::sleep_for(milliseconds(20));
+  EXPECT_EQ(b.count("checkProcesses"), 0);
+}
+
+// ---- Every termination cause ----------------------------------------------
+
+struct CauseCase {
+  std::string name;
+  v1::TerminationCause cause;
+  std::function<void(ScriptedBehavior&)> script;
+  std::string message;
+};
+
+class TerminationCauseTest : public BehaviorExecutionManagerTest,
+                             public ::testing::WithParamInterface<CauseCase> {};
+
+TEST_P(TerminationCauseTest, EndsActivationWithCauseThenDeactivates) {
+  BehaviorOptions options;
+  options.maximum_execution_time = seconds(1);
+  auto& b = start(options);
+  const auto& param = GetParam();
+  // Scripts trigger from the second tick on, after a successful activation.
+  param.script(b);
+  const auto activation = activate();
+  if (param.cause == v1::TERMINATION_CAUSE_INTERRUPTED) {
+    ASSERT_TRUE(b.deactivateAndWait(activation.activation_id()).ok());
+  } else if (param.cause == v1::TERMINATION_CAUSE_TIME_OUT) {
+    clock_.advance(milliseconds(1500));
+  } else {
+    tick();
+  }
+  const auto finished = events_.waitFinished();
+  ASSERT_TRUE(finished.has_finished());
+  EXPECT_EQ(finished.finished().cause(), param.cause);
+  EXPECT_THAT(finished.finished().message(), HasSubstr(param.message));
+  EXPECT_EQ(finished.activation_id(), activation.activation_id());
+  EXPECT_EQ(finished.behavior(), "SCRIPTED");
+  EXPECT_EQ(finished.finished().parameters().fields().at("duration_s").number_value(), 1.0);
+  EXPECT_EQ(b.count("onDeactivate"), 1);
+  // onDeactivate runs before the event is emitted.
+  EXPECT_EQ(b.calls().back(), "onDeactivate");
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_FALSE(b.checkActivation().active());
+}
+
+int ticksSeen(ScriptedBehavior& b) { return b.count("onExecute"); }
+
+INSTANTIATE_TEST_SUITE_P(
+    AllCauses, TerminationCauseTest,
+    ::testing::Values(CauseCase{"GoalAchieved", v1::TERMINATION_CAUSE_GOAL_ACHIEVED,
+                                [](ScriptedBehavior& b) {
+                                  b.goal = [&b] {
+                                    return ticksSeen(b) >= 1 ? Verdict::finish("reached")
+                                                             : Verdict::keepGoing();
+                                  };
+                                },
+                                "reached"},
+                      CauseCase{"TimeOut", v1::TERMINATION_CAUSE_TIME_OUT, [](ScriptedBehavior&) {},
+                                "maximum_execution_time"},
+                      CauseCase{"WrongProgress", v1::TERMINATION_CAUSE_WRONG_PROGRESS,
+                                [](ScriptedBehavior& b) {
+                                  b.progress = [&b] {
+                                    return ticksSeen(b) >= 1 ? Verdict::finish("moving away")
+                                                             : Verdict::keepGoing();
+                                  };
+                                },
+                                "moving away"},
+                      CauseCase{"SituationChange", v1::TERMINATION_CAUSE_SITUATION_CHANGE,
+                                [](ScriptedBehavior& b) {
+                                  b.situation = [&b] {
+                                    return ticksSeen(b) >= 1 ? Situation::infeasible("too dark")
+                                                             : Situation::ok();
+                                  };
+                                },
+                                "too dark"},
+                      CauseCase{"ProcessFailure", v1::TERMINATION_CAUSE_PROCESS_FAILURE,
+                                [](ScriptedBehavior& b) {
+                                  b.processes = [&b] {
+                                    return ticksSeen(b) >= 1 ? Verdict::finish("planner died")
+                                                             : Verdict::keepGoing();
+                                  };
+                                },
+                                "planner died"},
+                      CauseCase{"ProcessFailureFromException",
+                                v1::TERMINATION_CAUSE_PROCESS_FAILURE,
+                                [](ScriptedBehavior& b) {
+                                  b.on_execute = [&b] {
+                                    if (ticksSeen(b) >= 2)
+                                      throw std::runtime_error("division by zero");
+                                  };
+                                },
+                                "onExecute threw: division by zero"},
+                      CauseCase{"Interrupted", v1::TERMINATION_CAUSE_INTERRUPTED,
+                                [](ScriptedBehavior&) {}, "deactivation requested"}),
+    [](const auto& info) { return info.param.name; });
+
+// ---- Lifecycle errors ------------------------------------------------------
+
+TEST_F(BehaviorExecutionManagerTest, RejectsInvalidParametersNamingTheField) {
+  auto& b = start();
+  auto missing = b.activateAndWait(std::make_unique<v1::WaitParameters>());
+  EXPECT_EQ(missing.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(missing.status().message(), HasSubstr("duration_s"));
+  auto negative = b.activateAndWait(waitParams(-1));
+  EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(negative.status().message(), HasSubstr("duration_s"));
+  EXPECT_EQ(b.count("onActivate"), 0);
+}
+
+TEST_F(BehaviorExecutionManagerTest, RefusesSecondActivationWhileActive) {
+  auto& b = start();
+  activate();
+  auto again = b.activateAndWait(waitParams(2));
+  EXPECT_EQ(again.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(again.status().message(), HasSubstr("already active"));
+}
+
+TEST_F(BehaviorExecutionManagerTest, RefusesActivationWhenSituationIsInfeasible) {
+  auto& b = start();
+  b.situation = [] { return Situation::infeasible("the robot is not flying"); };
+  auto r = b.activateAndWait(waitParams(1));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(r.status().message(), HasSubstr("the robot is not flying"));
+  auto situation = b.checkSituationAndWait();
+  ASSERT_TRUE(situation.ok());
+  EXPECT_FALSE(situation->feasible());
+  EXPECT_THAT(situation->reasons(), ElementsAre("the robot is not flying"));
+}
+
+TEST_F(BehaviorExecutionManagerTest, OnActivateErrorRefusesActivation) {
+  auto& b = start();
+  b.on_activate = [] { return absl::FailedPreconditionError("no map loaded"); };
+  auto r = b.activateAndWait(waitParams(1));
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(r.status().message(), HasSubstr("no map loaded"));
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kActivated), 0);
+}
+
+TEST_F(BehaviorExecutionManagerTest, DeactivateWhenInactiveIsFailedPrecondition) {
+  auto& b = start();
+  auto r = b.deactivateAndWait();
+  EXPECT_EQ(r.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(b.pauseAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(b.resumeAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(b.modifyAndWait(waitParams(2)).status().code(), absl::StatusCode::kFailedPrecondition);
+}
+
+TEST_F(BehaviorExecutionManagerTest, SameRequestIdReturnsTheSameActivation) {
+  auto& b = start();
+  const auto first = activate(1.0, "req-1");
+  auto retry = b.activateAndWait(waitParams(1.0), "req-1");
+  ASSERT_TRUE(retry.ok()) << retry.status();
+  EXPECT_EQ(retry->activation_id(), first.activation_id());
+  EXPECT_TRUE(retry->replayed());
+  EXPECT_FALSE(first.replayed());
+  EXPECT_EQ(b.count("onActivate"), 1);
+  EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kActivated), 1);
+  // A different id is a new request, refused because already active.
+  EXPECT_EQ(b.activateAndWait(waitParams(1.0), "req-2").status().code(),
+            absl::StatusCode::kFailedPrecondition);
+  // After the activation ended, the old id still replays (within the window).
+  ASSERT_TRUE(b.deactivateAndWait().ok());
+  auto late = b.activateAndWait(waitParams(1.0), "req-1");
+  ASSERT_TRUE(late.ok());
+  EXPECT_EQ(late->activation_id(), first.activation_id());
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+}
+
+TEST_F(BehaviorExecutionManagerTest, StaleActivationIdNeverStopsANewerActivation) {
+  auto& b = start();
+  const auto old_activation = activate();
+  ASSERT_TRUE(b.deactivateAndWait(old_activation.activation_id()).ok());
+  // Retrying the deactivation of a finished activation reports how it ended.
+  auto retry = b.deactivateAndWait(old_activation.activation_id());
+  ASSERT_TRUE(retry.ok()) << retry.status();
+  EXPECT_TRUE(retry->already_finished());
+  EXPECT_EQ(retry->cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+
+  const auto current = activate();
+  ASSERT_NE(current.activation_id(), old_activation.activation_id());
+  for (auto code :
+       {b.deactivateAndWait(old_activation.activation_id()).status().code(),
+        b.pauseAndWait(old_activation.activation_id()).status().code(),
+        b.resumeAndWait(old_activation.activation_id()).status().code(),
+        b.modifyAndWait(waitParams(3), old_activation.activation_id()).status().code()}) {
+    EXPECT_EQ(code, absl::StatusCode::kAborted);
+  }
+  EXPECT_EQ(b.checkActivation().activation_id(), current.activation_id());
+  EXPECT_TRUE(b.checkActivation().active());
+}
+
+// ---- Pause, resume, modify -------------------------------------------------
+
+TEST_F(BehaviorExecutionManagerTest, PauseStopsMonitoringAndTheTimeOutCountsActiveTimeOnly) {
+  BehaviorOptions options;
+  options.maximum_execution_time = seconds(2);
+  auto& b = start(options);
+  const auto activation = activate();
+  clock_.advance(milliseconds(1500));
+  ASSERT_TRUE(eventually([&] { return b.lastActiveTime() >= milliseconds(1500); }));
+  ASSERT_TRUE(b.pauseAndWait(activation.activation_id()).ok());
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_PAUSED);
+  EXPECT_EQ(b.pauseAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
+  const int checks = b.count("checkProcesses");
+  clock_.advance(seconds(10));
+  std::this_thread::sleep_for(milliseconds(30));
+  EXPECT_EQ(b.count("checkProcesses"), checks) << "no monitoring while paused";
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_PAUSED) << "paused time must not time out";
+  const auto paused_status = b.checkActivation();
+  EXPECT_TRUE(paused_status.active());
+  EXPECT_EQ(paused_status.active_duration().seconds(), 1);
+
+  ASSERT_TRUE(b.resumeAndWait(activation.activation_id()).ok());
+  ASSERT_TRUE(eventually([&] { return b.count("checkProcesses") > checks; }))
+      << "resume ticks at once";
+  clock_.advance(milliseconds(400));
+  std::this_thread::sleep_for(milliseconds(20));
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_ACTIVE);
+  clock_.advance(milliseconds(200));
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_TIME_OUT);
+  EXPECT_NEAR(finished.finished().active_duration().seconds() +
+                  finished.finished().active_duration().nanos() * 1e-9,
+              2.1, 0.01);
+  EXPECT_EQ(b.count("onPause"), 1);
+  EXPECT_EQ(b.count("onResume"), 1);
+  EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kPaused), 1);
+  EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kResumed), 1);
+}
+
+TEST_F(BehaviorExecutionManagerTest, ModifyMergesValidatesAndNotifies) {
+  auto& b = start();
+  const auto activation = activate(5.0);
+  auto modified = b.modifyAndWait(waitParams(7.0), activation.activation_id());
+  ASSERT_TRUE(modified.ok()) << modified.status();
+  EXPECT_EQ(modified->parameters().fields().at("duration_s").number_value(), 7.0);
+  tick();
+  EXPECT_TRUE(eventually([&] { return b.durationParameter() == 7.0; }));
+  EXPECT_EQ(b.checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
+
+  auto bad = b.modifyAndWait(waitParams(-3.0));
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
+  // An empty update keeps everything.
+  ASSERT_TRUE(b.modifyAndWait(std::make_unique<v1::WaitParameters>()).ok());
+  EXPECT_EQ(b.checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
+
+  b.on_modify = [](const google::protobuf::Message&) {
+    return absl::FailedPreconditionError("cannot shorten now");
+  };
+  auto refused = b.modifyAndWait(waitParams(1.0));
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_THAT(refused.status().message(), HasSubstr("cannot shorten now"));
+  EXPECT_EQ(b.checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
+  EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kModified), 2);
+}
+
+TEST_F(BehaviorExecutionManagerTest, PerformanceChangeEmitsSituationChanged) {
+  auto& b = start();
+  std::atomic<double> performance{1.0};
+  b.situation = [&] { return Situation::ok(performance.load()); };
+  activate();
+  tick();
+  performance = 0.95;  // below the 0.1 threshold
+  tick();
+  EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kSituationChanged), 0);
+  performance = 0.5;
+  tick();
+  ASSERT_TRUE(
+      eventually([&] { return events_.countKind(v1::BehaviorEvent::kSituationChanged) == 1; }));
+  for (const auto& e : events_.events()) {
+    if (e.has_situation_changed()) {
+      EXPECT_DOUBLE_EQ(e.situation_changed().performance_ratio(), 0.5);
+    }
+  }
+}
+
+// ---- Watchdog, exceptions, shutdown ----------------------------------------
+
+TEST_F(BehaviorExecutionManagerTest, StuckOnExecuteEndsWithProcessFailureAndProcessKeepsServing) {
+  BehaviorOptions options;
+  options.watchdog_timeout = milliseconds(100);
+  auto& b = start(options);
+  std::mutex m;
+  std::condition_variable cv;
+  bool release = false;
+  b.on_execute = [&] {
+    std::unique_lock lock(m);
+    cv.wait(lock, [&] { return release; });
+  };
+  const auto activation = activate();
+  const auto finished = events_.waitFinished();
+  ASSERT_TRUE(finished.has_finished());
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  EXPECT_THAT(finished.finished().message(), HasSubstr("onExecute did not return"));
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_BLOCKED);
+  auto refused = b.activateAndWait(waitParams(1), {}, milliseconds(200));
+  EXPECT_FALSE(refused.ok());
+
+  {
+    std::lock_guard lock(m);
+    release = true;
+  }
+  cv.notify_all();
+  ASSERT_TRUE(eventually([&] { return b.state() == v1::BEHAVIOR_STATE_INACTIVE; }));
+  EXPECT_EQ(b.count("onDeactivate"), 1);
+  b.on_execute = [] {};
+  activate();
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_ACTIVE);
+  EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kFinished), 1);
+}
+
+TEST_F(BehaviorExecutionManagerTest, ExceptionInMonitoringIsProcessFailure) {
+  auto& b = start();
+  b.goal = []() -> Verdict { throw std::out_of_range("bad index"); };
+  ASSERT_TRUE(b.activateAndWait(waitParams(1)).ok());
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  EXPECT_THAT(finished.finished().message(), HasSubstr("checkGoal threw: bad index"));
+}
+
+TEST_F(BehaviorExecutionManagerTest, HostStopInterruptsActiveBehaviors) {
+  auto& b = start();
+  const auto activation = activate();
+  host_.stop();
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+  EXPECT_EQ(finished.activation_id(), activation.activation_id());
+  EXPECT_EQ(b.count("onDeactivate"), 1);
+  // Calls after stop get an answer, not a hang.
+  EXPECT_EQ(b.activateAndWait(waitParams(1)).status().code(), absl::StatusCode::kUnavailable);
+}
+
+TEST_F(BehaviorExecutionManagerTest, EventsCarryHostIdentityAndIncreasingSeq) {
+  auto& b = start();
+  const auto activation = activate();
+  ASSERT_TRUE(b.deactivateAndWait().ok());
+  const auto events = events_.events();
+  ASSERT_EQ(events.size(), 2u);
+  EXPECT_TRUE(events[0].has_activated());
+  EXPECT_TRUE(events[1].has_finished());
+  EXPECT_EQ(events[1].seq(), events[0].seq() + 1);
+  for (const auto& e : events) {
+    EXPECT_EQ(e.robot_id(), "drone1");
+    EXPECT_EQ(e.system(), "test");
+    EXPECT_EQ(e.incarnation(), host_.events().incarnation());
+    EXPECT_EQ(e.activation_id(), activation.activation_id());
+    EXPECT_EQ(e.time().seconds(), 3600);  // the fake clock's start
+  }
+}
+
+TEST(BehaviorConfigTest, ConfigOverridesOptionsAndRejectsBadValues) {
+  FakeClock clock;
+  BehaviorHost host(testing::hostOptions("r", "s"), clock);
+  auto behavior = std::make_unique<ScriptedBehavior>();
+  auto* b = behavior.get();
+  host.add(std::move(behavior));
+  YAML::Node config = YAML::Load(
+      "behaviors:\n  SCRIPTED:\n    frequency_hz: 20\n    maximum_execution_time_s: 3.5\n");
+  ASSERT_TRUE(host.start(config).ok());
+  EXPECT_EQ(b->options().frequency_hz, 20.0);
+  EXPECT_EQ(b->options().maximum_execution_time, milliseconds(3500));
+  host.stop();
+
+  BehaviorHost bad_host(testing::hostOptions("r", "s"), clock);
+  bad_host.add(std::make_unique<ScriptedBehavior>());
+  auto status = bad_host.start(YAML::Load("behaviors:\n  SCRIPTED:\n    frequency_hz: -1\n"));
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(status.message(), HasSubstr("frequency_hz"));
+}
+
+}  // namespace
+}  // namespace behaviorlib

@@ -1,6 +1,6 @@
 #include "basic_quadrotor_behaviors/wait_behavior.h"
 
-#include <cmath>
+#include <cstdio>
 
 namespace behaviorlib::basic {
 
@@ -8,7 +8,9 @@ Verdict WaitBehavior::checkGoal() {
   const auto wanted = std::chrono::duration_cast<Duration>(
       std::chrono::duration<double>(parameters().duration_s()));
   if (activeTime() >= wanted) {
-    return Verdict::finish("waited " + std::to_string(parameters().duration_s()) + " s");
+    char message[64];
+    std::snprintf(message, sizeof(message), "waited %g s", parameters().duration_s());
+    return Verdict::finish(message);
   }
   return Verdict::keepGoing();
 }

@@ -1,0 +1,8 @@
+#!/bin/sh
+# The main job on a fresh Debian 12 machine: installs the packages, builds,
+# and runs the stack on loopback (no Docker) with the demo mission end to end.
+set -eu
+cd "$(dirname "$0")/.."
+scripts/install-deps.sh
+scripts/build.sh
+exec /usr/bin/python3 deploy/local/launch.py --build-dir "${BUILD_DIR:-build}" --demo

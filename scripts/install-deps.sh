@@ -8,8 +8,8 @@ set -eu
 BUILD_PACKAGES="g++ cmake ninja-build pkg-config libgtest-dev libgmock-dev libbenchmark-dev \
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libeigen3-dev \
   libompl-dev libboost-serialization-dev libboost-filesystem-dev libboost-system-dev \
-  liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev"
-TEST_PACKAGES="python3 python3-grpcio python3-protobuf grpc-proto prometheus docker-compose procps"
+  liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev grpc-proto"
+TEST_PACKAGES="python3 python3-grpcio python3-protobuf prometheus docker-compose procps"
 
 packages="$BUILD_PACKAGES"
 if [ "${1:-}" != "--build" ]; then

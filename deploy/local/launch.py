@@ -20,6 +20,9 @@ import tempfile
 import time
 
 
+CONFIG_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "config")
+
+
 class Service:
     """One server process started with --port-file."""
 
@@ -129,7 +132,8 @@ def main():
                          [binary(build_dir,
                                  "services/basic_quadrotor_behaviors/basic_quadrotor_behaviors"),
                           "--robot-id", args.robot_id, "--listen", "127.0.0.1:0",
-                          "--metrics-listen", "127.0.0.1:0", "--channel", broker.address],
+                          "--metrics-listen", "127.0.0.1:0", "--channel", broker.address,
+                          "--config", os.path.join(CONFIG_DIR, "basic_quadrotor_behaviors.yaml")],
                          port_dir)
         services.append(system)
         system.start()

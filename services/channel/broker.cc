@@ -400,9 +400,9 @@ grpc::Status Broker::publish(PublishReactor& publisher, v1::PublishRequest& requ
     const std::string carried = topic->type->full_name();
     topic_lock.unlock();
     countRejected(reject_reason::kTypeMismatch);
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                        absl::StrCat("topic '", topic->name, "' carries ", carried, "; got ",
-                                     type->full_name()));
+    return grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        absl::StrCat("topic '", topic->name, "' carries ", carried, "; got ", type->full_name()));
   }
   topic->type = type;
   sample->set_topic_seq(++topic->seq);
@@ -434,11 +434,10 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
     latest_only = false;
     queue_size = request->queue_size() == 0 ? kDefaultQueueSize : request->queue_size();
     if (queue_size > kMaxQueueSize) {
-      invalid = grpc::Status(
-          grpc::StatusCode::INVALID_ARGUMENT,
-          absl::StrCat("queue_size ", request->queue_size(), " for topic '", request->topic(),
-                       "' is out of range: use 1..", kMaxQueueSize, " (0 means ",
-                       kDefaultQueueSize, ")"));
+      invalid = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                             absl::StrCat("queue_size ", request->queue_size(), " for topic '",
+                                          request->topic(), "' is out of range: use 1..",
+                                          kMaxQueueSize, " (0 means ", kDefaultQueueSize, ")"));
     }
   } else if (request->mode() != v1::DELIVERY_MODE_LATEST &&
              request->mode() != v1::DELIVERY_MODE_UNSPECIFIED) {

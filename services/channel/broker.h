@@ -35,10 +35,6 @@ class Registry;
 
 namespace behaviorlib::channel {
 
-/// Delivery buffer limits of DELIVERY_MODE_QUEUE subscriptions.
-inline constexpr uint32_t kDefaultQueueSize = 100;
-inline constexpr uint32_t kMaxQueueSize = 10000;
-
 /// Implements behaviorlib.v1.DataChannel. Thread-safe; register it on a
 /// grpc::ServerBuilder. It must outlive the server it is registered on.
 class Broker final : public v1::DataChannel::CallbackService {

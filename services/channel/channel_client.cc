@@ -24,6 +24,17 @@ absl::Status toAbsl(const grpc::Status& status) {
   return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
 }
 
+// gRPC's own reconnection backoff (1 s growing to 120 s by default) would
+// hold a broker restart back far longer than our subscriptions' 100 ms..2 s
+// retry loop; align the two.
+grpc::ChannelArguments channelArguments() {
+  grpc::ChannelArguments args;
+  args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, static_cast<int>(kInitialBackoff.count()));
+  args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, static_cast<int>(kInitialBackoff.count()));
+  args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, static_cast<int>(kMaxBackoff.count()));
+  return args;
+}
+
 }  // namespace
 
 // ---------------------------------------------------------------------------
@@ -153,7 +164,8 @@ class ChannelClient::Impl {
  public:
   explicit Impl(std::string address)
       : address_(std::move(address)),
-        channel_(grpc::CreateChannel(address_, grpc::InsecureChannelCredentials())),
+        channel_(grpc::CreateCustomChannel(address_, grpc::InsecureChannelCredentials(),
+                                           channelArguments())),
         stub_(v1::DataChannel::NewStub(channel_)) {}
 
   ~Impl() {
@@ -177,8 +189,8 @@ class ChannelClient::Impl {
       // fresh stream failing, is reported.
       const bool broker_gone = status.ok() || status.code() == absl::StatusCode::kUnavailable;
       if (fresh || !broker_gone) {
-        return status.ok() ? absl::UnavailableError(absl::StrCat(
-                                 "publish stream to ", address_, " was closed by the broker"))
+        return status.ok() ? absl::UnavailableError(absl::StrCat("publish stream to ", address_,
+                                                                 " was closed by the broker"))
                            : status;
       }
     }
@@ -225,7 +237,8 @@ class ChannelClient::Impl {
     request.set_mode(options.mode);
     request.set_queue_size(options.queue_size);
     request.set_send_latest_first(options.send_latest_first);
-    auto impl = std::make_shared<Subscription::Impl>(stub_, std::move(request), std::move(on_sample));
+    auto impl =
+        std::make_shared<Subscription::Impl>(stub_, std::move(request), std::move(on_sample));
     if (absl::Status status = validateTopicName(topic); !status.ok()) {
       impl->fail(std::move(status));
     } else {

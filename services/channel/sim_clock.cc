@@ -40,8 +40,9 @@ void SimClock::subscribe(ChannelClient& client) {
   SubscribeOptions options;
   options.mode = v1::DELIVERY_MODE_LATEST;
   options.send_latest_first = true;
-  subscription_ = client.subscribeTyped<v1::Clock>(
-      std::string(kClockTopic), options, [this](const v1::Clock& sample) { onClockSample(sample); });
+  subscription_ =
+      client.subscribeTyped<v1::Clock>(std::string(kClockTopic), options,
+                                       [this](const v1::Clock& sample) { onClockSample(sample); });
 }
 
 TimePoint SimClock::now() const {
@@ -76,8 +77,8 @@ void SimClock::onClockSample(const v1::Clock& sample) {
     time_scale_ = sample.time_scale();
     paused_ = sample.paused();
     valid_ = true;
-    last_wall_update_ = TimePoint(std::chrono::duration_cast<Duration>(
-        std::chrono::system_clock::now().time_since_epoch()));
+    last_wall_update_ = TimePoint(
+        std::chrono::duration_cast<Duration>(std::chrono::system_clock::now().time_since_epoch()));
     last_steady_update_ = std::chrono::steady_clock::now();
   }
   // Outside mutex_: listeners typically call now() right away.

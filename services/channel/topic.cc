@@ -51,9 +51,9 @@ absl::Status validateTopicName(absl::string_view topic) {
     if (segment.empty()) return badTopic(topic, "it has an empty segment");
     for (char c : segment) {
       if (!segmentCharOk(c)) {
-        return badTopic(topic, absl::StrCat("segment '", segment, "' contains a character (0x",
-                                            absl::Hex(static_cast<unsigned char>(c)),
-                                            ") that is not allowed"));
+        return badTopic(
+            topic, absl::StrCat("segment '", segment, "' contains a character (0x",
+                                absl::Hex(static_cast<unsigned char>(c)), ") that is not allowed"));
       }
     }
   }
@@ -88,8 +88,8 @@ absl::Status checkSample(absl::string_view topic, const google::protobuf::Any& s
   if (!parsed->ParseFromString(sample.value())) {
     *reason = reject_reason::kMalformedSample;
     return absl::InvalidArgumentError(absl::StrCat("sample on topic '", topic,
-                                                    "' is malformed: its bytes do not parse as ",
-                                                    descriptor->full_name()));
+                                                   "' is malformed: its bytes do not parse as ",
+                                                   descriptor->full_name()));
   }
   *type = descriptor;
   return absl::OkStatus();

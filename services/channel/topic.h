@@ -11,6 +11,7 @@
 //   s = behaviorlib::channel::checkSample("clock", any, &type, &reason);
 
 #include <cstddef>
+#include <cstdint>
 #include <string>
 
 #include "absl/status/status.h"
@@ -30,6 +31,11 @@ inline constexpr absl::string_view kClockTopic = "clock";
 /// the subscription is registered, so that clients know that every sample
 /// published from then on reaches them.
 inline constexpr char kSubscribedMetadataKey[] = "behaviorlib-subscribed";
+
+/// Buffer limits of DELIVERY_MODE_QUEUE subscriptions (queue_size 0 means
+/// the default).
+inline constexpr uint32_t kDefaultQueueSize = 100;
+inline constexpr uint32_t kMaxQueueSize = 10000;
 
 /// Longest accepted topic name. Names become metric labels, so they are
 /// bounded.

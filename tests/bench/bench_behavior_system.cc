@@ -18,6 +18,8 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/server/behavior_system_main.h"
+// grpc::Service must be complete where the builder is used.
+#include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "bench/bench_shm.h"
 

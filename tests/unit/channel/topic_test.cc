@@ -17,10 +17,10 @@ TEST(TopicNameTest, AcceptsClockAndRobotTopics) {
 }
 
 TEST(TopicNameTest, RejectsBadNamesNamingTopicAndRule) {
-  for (const char* bad : {"", "clocks", "Clock", "robots", "robots/", "robots/drone1",
-                          "robots/drone1/", "robots//pose", "/robots/drone1/pose",
-                          "robots/drone 1/pose", "robots/drone1/pose?", "robot/drone1/pose",
-                          "robots/drone1//pose", "robots/dr\xc3\xb6ne/pose"}) {
+  for (const char* bad :
+       {"", "clocks", "Clock", "robots", "robots/", "robots/drone1", "robots/drone1/",
+        "robots//pose", "/robots/drone1/pose", "robots/drone 1/pose", "robots/drone1/pose?",
+        "robot/drone1/pose", "robots/drone1//pose", "robots/dr\xc3\xb6ne/pose"}) {
     absl::Status status = validateTopicName(bad);
     EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument) << "'" << bad << "'";
     EXPECT_NE(status.message().find(std::string("'") + bad + "'"), std::string::npos)
@@ -51,8 +51,7 @@ TEST(CheckSampleTest, RejectsMissingUnknownAndMalformedSamples) {
   absl::string_view reason;
 
   google::protobuf::Any empty;
-  EXPECT_EQ(checkSample("clock", empty, &type, &reason).code(),
-            absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(checkSample("clock", empty, &type, &reason).code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(reason, reject_reason::kMissingSample);
 
   google::protobuf::Any unknown;

@@ -1,0 +1,669 @@
+// Integration tests of the channel_broker binary: started as a real process on
+// free loopback ports, driven over gRPC (raw stubs and ChannelClient).
+
+#include <fcntl.h>
+#include <gmock/gmock.h>
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+#include <signal.h>
+#include <spawn.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <fstream>
+#include <mutex>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "behaviorlib/v1/channel.grpc.pb.h"
+#include "behaviorlib/v1/types.pb.h"
+#include "channel/channel_client.h"
+#include "channel/sim_clock.h"
+#include "channel/topic.h"
+#include "support/server_process.h"
+
+extern char** environ;
+
+namespace behaviorlib::channel {
+namespace {
+
+using std::chrono::milliseconds;
+using std::chrono::seconds;
+using ::testing::HasSubstr;
+
+const char* const kBrokerPath = CHANNEL_BROKER_PATH;
+
+// Polls `condition` until true or `timeout`.
+template <class F>
+bool eventually(F condition, std::chrono::milliseconds timeout = seconds(10)) {
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  while (std::chrono::steady_clock::now() < deadline) {
+    if (condition()) return true;
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  return condition();
+}
+
+std::shared_ptr<grpc::Channel> makeChannel(const std::string& address, bool small_window = false) {
+  grpc::ChannelArguments args;
+  // Each channel gets its own connection, so that one stream's flow control
+  // cannot interfere with another's.
+  args.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
+  if (small_window) {
+    // A reader that does not read stalls the broker's writes as soon as the
+    // default 64 KiB stream window is full; without BDP probing the window
+    // does not grow.
+    args.SetInt(GRPC_ARG_HTTP2_BDP_PROBE, 0);
+  }
+  return grpc::CreateCustomChannel(address, grpc::InsecureChannelCredentials(), args);
+}
+
+v1::SubscribeRequest subscribeRequest(const std::string& topic,
+                                      v1::DeliveryMode mode = v1::DELIVERY_MODE_QUEUE,
+                                      uint32_t queue_size = 0, bool send_latest_first = false) {
+  v1::SubscribeRequest request;
+  request.set_topic(topic);
+  request.set_mode(mode);
+  request.set_queue_size(queue_size);
+  request.set_send_latest_first(send_latest_first);
+  return request;
+}
+
+v1::Text text(const std::string& s) {
+  v1::Text t;
+  t.set_text(s);
+  return t;
+}
+
+v1::Clock clockSample(int64_t sec, double time_scale = 1.0) {
+  v1::Clock c;
+  c.mutable_time()->set_seconds(sec);
+  *c.mutable_header()->mutable_stamp() = c.time();
+  c.set_time_scale(time_scale);
+  return c;
+}
+
+v1::PublishRequest publishRequest(const std::string& topic, const google::protobuf::Message& m) {
+  v1::PublishRequest request;
+  request.set_topic(topic);
+  request.mutable_sample()->PackFrom(m);
+  return request;
+}
+
+// A raw Publish stream.
+class RawPublisher {
+ public:
+  explicit RawPublisher(const std::shared_ptr<grpc::Channel>& channel)
+      : stub_(v1::DataChannel::NewStub(channel)) {
+    context_.set_deadline(std::chrono::system_clock::now() + seconds(60));
+    writer_ = stub_->Publish(&context_, &response_);
+  }
+  bool write(const v1::PublishRequest& request) { return writer_->Write(request); }
+  bool write(const std::string& topic, const google::protobuf::Message& m) {
+    return write(publishRequest(topic, m));
+  }
+  grpc::Status finish() {
+    writer_->WritesDone();
+    return writer_->Finish();
+  }
+  uint64_t accepted() const { return response_.accepted_count(); }
+
+ private:
+  std::unique_ptr<v1::DataChannel::Stub> stub_;
+  grpc::ClientContext context_;
+  v1::PublishResponse response_;
+  std::unique_ptr<grpc::ClientWriter<v1::PublishRequest>> writer_;
+};
+
+// Publishes one sample on a fresh stream and returns the stream's status.
+grpc::Status publishOnce(const std::shared_ptr<grpc::Channel>& channel,
+                         const v1::PublishRequest& request) {
+  RawPublisher publisher(channel);
+  publisher.write(request);
+  return publisher.finish();
+}
+
+// A raw Subscribe stream.
+class RawSubscriber {
+ public:
+  RawSubscriber(const std::shared_ptr<grpc::Channel>& channel, const v1::SubscribeRequest& request)
+      : stub_(v1::DataChannel::NewStub(channel)) {
+    context_.set_deadline(std::chrono::system_clock::now() + seconds(60));
+    reader_ = stub_->Subscribe(&context_, request);
+  }
+  // True once the broker registered the subscription.
+  bool waitSubscribed() {
+    reader_->WaitForInitialMetadata();
+    return context_.GetServerInitialMetadata().count(kSubscribedMetadataKey) > 0;
+  }
+  bool read(v1::SubscribeResponse* response) { return reader_->Read(response); }
+  grpc::Status finish() { return reader_->Finish(); }
+  void cancel() { context_.TryCancel(); }
+
+ private:
+  std::unique_ptr<v1::DataChannel::Stub> stub_;
+  grpc::ClientContext context_;
+  std::unique_ptr<grpc::ClientReader<v1::SubscribeResponse>> reader_;
+};
+
+class ChannelBrokerTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(broker_.start()) << broker_.error();
+    channel_ = makeChannel(broker_.address());
+    stub_ = v1::DataChannel::NewStub(channel_);
+  }
+
+  grpc::Status getLatest(const std::string& topic, v1::GetLatestResponse* response) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + seconds(5));
+    v1::GetLatestRequest request;
+    request.set_topic(topic);
+    return stub_->GetLatest(&context, request, response);
+  }
+
+  v1::ListTopicsResponse listTopics(const std::string& prefix = "") {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + seconds(5));
+    v1::ListTopicsRequest request;
+    request.set_prefix(prefix);
+    v1::ListTopicsResponse response;
+    EXPECT_TRUE(stub_->ListTopics(&context, request, &response).ok());
+    return response;
+  }
+
+  support::ServerProcess broker_{kBrokerPath, {}};
+  std::shared_ptr<grpc::Channel> channel_;
+  std::unique_ptr<v1::DataChannel::Stub> stub_;
+};
+
+TEST_F(ChannelBrokerTest, PublishSubscribeRoundTrip) {
+  RawSubscriber subscriber(channel_, subscribeRequest("robots/d1/imu"));
+  ASSERT_TRUE(subscriber.waitSubscribed());
+
+  RawPublisher publisher(channel_);
+  for (int i = 0; i < 3; ++i) {
+    v1::Imu imu;
+    imu.mutable_header()->set_seq(static_cast<uint64_t>(i));
+    imu.mutable_angular_velocity_rad_s()->set_z(0.5 * i);
+    ASSERT_TRUE(publisher.write("robots/d1/imu", imu));
+  }
+  for (uint64_t i = 0; i < 3; ++i) {
+    v1::SubscribeResponse response;
+    ASSERT_TRUE(subscriber.read(&response));
+    EXPECT_EQ(response.topic(), "robots/d1/imu");
+    EXPECT_EQ(response.topic_seq(), i + 1);
+    EXPECT_EQ(response.dropped_count(), 0u);
+    EXPECT_GT(response.receive_time().seconds(), 0);
+    v1::Imu imu;
+    ASSERT_TRUE(response.sample().UnpackTo(&imu));
+    EXPECT_EQ(imu.header().seq(), i);
+    EXPECT_DOUBLE_EQ(imu.angular_velocity_rad_s().z(), 0.5 * static_cast<double>(i));
+  }
+  ASSERT_TRUE(publisher.finish().ok());
+  EXPECT_EQ(publisher.accepted(), 3u);
+  subscriber.cancel();
+  EXPECT_EQ(subscriber.finish().error_code(), grpc::StatusCode::CANCELLED);
+}
+
+// A subscriber that does not read loses samples (counted) instead of slowing
+// the publisher or a fast subscriber.
+TEST_F(ChannelBrokerTest, SlowSubscriberDropsWithoutBlockingPublisherOrOthers) {
+  constexpr int kSamples = 1000;
+  constexpr uint32_t kSlowQueue = 10;
+  const std::string topic = "robots/d1/camera";
+  // Each sample is larger than the slow reader's flow-control window, so
+  // that the transport cannot hide the reader's slowness: the broker's
+  // first write to it stalls and everything else goes through its queue.
+  v1::Image image;
+  image.set_encoding("mono8");
+  image.set_data(std::string(100 * 1024, 'x'));
+
+  RawSubscriber slow(makeChannel(broker_.address(), /*small_window=*/true),
+                     subscribeRequest(topic, v1::DELIVERY_MODE_QUEUE, kSlowQueue));
+  ASSERT_TRUE(slow.waitSubscribed());
+  RawSubscriber fast(makeChannel(broker_.address()),
+                     subscribeRequest(topic, v1::DELIVERY_MODE_QUEUE, kMaxQueueSize));
+  ASSERT_TRUE(fast.waitSubscribed());
+
+  std::vector<uint64_t> fast_seqs;
+  uint64_t fast_dropped = 0;
+  std::thread fast_reader([&] {
+    v1::SubscribeResponse response;
+    while (fast_seqs.size() < kSamples && fast.read(&response)) {
+      fast_seqs.push_back(response.topic_seq());
+      fast_dropped = response.dropped_count();
+    }
+  });
+
+  const auto start = std::chrono::steady_clock::now();
+  RawPublisher publisher(makeChannel(broker_.address()));
+  for (int i = 0; i < kSamples; ++i) {
+    image.mutable_header()->set_seq(static_cast<uint64_t>(i));
+    ASSERT_TRUE(publisher.write(topic, image)) << "sample " << i;
+  }
+  ASSERT_TRUE(publisher.finish().ok());
+  EXPECT_EQ(publisher.accepted(), static_cast<uint64_t>(kSamples));
+  const auto publish_time = std::chrono::steady_clock::now() - start;
+  fast_reader.join();
+
+  ASSERT_EQ(fast_seqs.size(), static_cast<size_t>(kSamples));
+  for (int i = 0; i < kSamples; ++i) EXPECT_EQ(fast_seqs[i], static_cast<uint64_t>(i + 1));
+  EXPECT_EQ(fast_dropped, 0u);
+  EXPECT_LT(publish_time, seconds(30));
+
+  // Now the slow subscriber reads what it was left with: the newest samples,
+  // with the loss counted.
+  std::vector<uint64_t> slow_seqs;
+  uint64_t slow_dropped = 0;
+  v1::SubscribeResponse response;
+  while (slow.read(&response)) {
+    slow_seqs.push_back(response.topic_seq());
+    EXPECT_GE(response.dropped_count(), slow_dropped) << "dropped_count is cumulative";
+    slow_dropped = response.dropped_count();
+    if (response.topic_seq() == kSamples) break;
+  }
+  ASSERT_FALSE(slow_seqs.empty());
+  EXPECT_EQ(slow_seqs.back(), static_cast<uint64_t>(kSamples));
+  EXPECT_LE(slow_seqs.size(), kSlowQueue + 1u);
+  EXPECT_GE(slow_dropped, kSamples - kSlowQueue);
+  EXPECT_EQ(slow_seqs.size() + slow_dropped, static_cast<size_t>(kSamples));
+  slow.cancel();
+  fast.cancel();
+  slow.finish();
+  fast.finish();
+}
+
+TEST_F(ChannelBrokerTest, LatestModeKeepsOnlyTheNewestSample) {
+  const std::string topic = "robots/d1/state";
+  v1::Image image;
+  image.set_data(std::string(100 * 1024, 'y'));
+  RawSubscriber latest(makeChannel(broker_.address(), /*small_window=*/true),
+                       subscribeRequest(topic, v1::DELIVERY_MODE_LATEST));
+  ASSERT_TRUE(latest.waitSubscribed());
+  RawPublisher publisher(channel_);
+  for (int i = 0; i < 50; ++i) ASSERT_TRUE(publisher.write(topic, image));
+  ASSERT_TRUE(publisher.finish().ok());
+
+  std::vector<uint64_t> seqs;
+  v1::SubscribeResponse response;
+  while (latest.read(&response)) {
+    seqs.push_back(response.topic_seq());
+    if (response.topic_seq() == 50) break;
+  }
+  ASSERT_FALSE(seqs.empty());
+  EXPECT_EQ(seqs.back(), 50u);
+  // At most the sample whose write had started, then the newest.
+  EXPECT_LE(seqs.size(), 2u);
+  EXPECT_EQ(response.dropped_count() + seqs.size(), 50u);
+  latest.cancel();
+  latest.finish();
+}
+
+TEST_F(ChannelBrokerTest, SendLatestFirstAndWaitingForUnpublishedTopic) {
+  // Subscribing to a topic nobody published on yet is allowed: it waits.
+  RawSubscriber waiting(channel_, subscribeRequest("robots/d2/text", v1::DELIVERY_MODE_LATEST));
+  ASSERT_TRUE(waiting.waitSubscribed());
+  ASSERT_TRUE(publishOnce(channel_, publishRequest("robots/d2/text", text("first"))).ok());
+  v1::SubscribeResponse response;
+  ASSERT_TRUE(waiting.read(&response));
+  v1::Text t;
+  ASSERT_TRUE(response.sample().UnpackTo(&t));
+  EXPECT_EQ(t.text(), "first");
+
+  RawSubscriber late(channel_, subscribeRequest("robots/d2/text", v1::DELIVERY_MODE_QUEUE, 5,
+                                                /*send_latest_first=*/true));
+  ASSERT_TRUE(late.waitSubscribed());
+  ASSERT_TRUE(late.read(&response));
+  EXPECT_EQ(response.topic_seq(), 1u);
+  ASSERT_TRUE(publishOnce(channel_, publishRequest("robots/d2/text", text("second"))).ok());
+  ASSERT_TRUE(late.read(&response));
+  EXPECT_EQ(response.topic_seq(), 2u);
+  waiting.cancel();
+  late.cancel();
+  waiting.finish();
+  late.finish();
+}
+
+TEST_F(ChannelBrokerTest, TypeConflictEndsOnlyThatStream) {
+  const std::string topic = "robots/d1/tick";
+  RawPublisher good(channel_);
+  ASSERT_TRUE(good.write(topic, clockSample(1)));
+  // Make sure the first sample fixed the topic's type.
+  ASSERT_TRUE(eventually([&] {
+    v1::GetLatestResponse r;
+    return getLatest(topic, &r).ok();
+  }));
+
+  RawPublisher bad(channel_);
+  bad.write(topic, v1::Imu());
+  grpc::Status status = bad.finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_EQ(status.error_message(),
+            "topic 'robots/d1/tick' carries behaviorlib.v1.Clock; got behaviorlib.v1.Imu");
+
+  // The other stream and the broker carry on.
+  ASSERT_TRUE(good.write(topic, clockSample(2)));
+  ASSERT_TRUE(good.finish().ok());
+  EXPECT_EQ(good.accepted(), 2u);
+  v1::GetLatestResponse latest;
+  ASSERT_TRUE(getLatest(topic, &latest).ok());
+  EXPECT_EQ(latest.sample().topic_seq(), 2u);
+  auto topics = listTopics(topic);
+  ASSERT_EQ(topics.topics_size(), 1);
+  EXPECT_EQ(topics.topics(0).type(), "behaviorlib.v1.Clock");
+}
+
+TEST_F(ChannelBrokerTest, MalformedOrUnknownSamplesAreRejected) {
+  v1::PublishRequest malformed;
+  malformed.set_topic("robots/d1/imu");
+  malformed.mutable_sample()->set_type_url("type.googleapis.com/behaviorlib.v1.Imu");
+  malformed.mutable_sample()->set_value(std::string(12, '\xff'));
+  grpc::Status status = publishOnce(channel_, malformed);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(), HasSubstr("robots/d1/imu"));
+  EXPECT_THAT(status.error_message(), HasSubstr("malformed"));
+
+  v1::PublishRequest unknown;
+  unknown.set_topic("robots/d1/imu");
+  unknown.mutable_sample()->set_type_url("type.googleapis.com/acme.Secret");
+  status = publishOnce(channel_, unknown);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(), HasSubstr("acme.Secret"));
+
+  v1::PublishRequest missing;
+  missing.set_topic("robots/d1/imu");
+  EXPECT_EQ(publishOnce(channel_, missing).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+
+  // Nothing was stored, and the broker still serves.
+  v1::GetLatestResponse latest;
+  EXPECT_EQ(getLatest("robots/d1/imu", &latest).error_code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_TRUE(publishOnce(channel_, publishRequest("robots/d1/imu", v1::Imu())).ok());
+}
+
+TEST_F(ChannelBrokerTest, InvalidTopicsAndRequestsAreRejected) {
+  grpc::Status status = publishOnce(channel_, publishRequest("robots/d1", text("x")));
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(), HasSubstr("'robots/d1'"));
+  EXPECT_THAT(status.error_message(), HasSubstr("robots/{robot_id}/{name}"));
+
+  RawSubscriber bad_topic(channel_, subscribeRequest("robots/d 1/x"));
+  EXPECT_FALSE(bad_topic.waitSubscribed());
+  status = bad_topic.finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(), HasSubstr("robots/d 1/x"));
+
+  RawSubscriber bad_queue(
+      channel_, subscribeRequest("robots/d1/x", v1::DELIVERY_MODE_QUEUE, kMaxQueueSize + 1));
+  EXPECT_FALSE(bad_queue.waitSubscribed());
+  status = bad_queue.finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(), HasSubstr("queue_size"));
+
+  v1::GetLatestResponse latest;
+  EXPECT_EQ(getLatest("nope", &latest).error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+}
+
+TEST_F(ChannelBrokerTest, GetLatestAndListTopics) {
+  v1::GetLatestResponse latest;
+  grpc::Status status = getLatest("robots/d1/pose", &latest);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_THAT(status.error_message(), HasSubstr("robots/d1/pose"));
+
+  RawPublisher publisher(channel_);
+  v1::PoseStamped pose;
+  pose.mutable_pose()->mutable_position_m()->set_x(1.5);
+  ASSERT_TRUE(publisher.write("robots/d1/pose", pose));
+  pose.mutable_pose()->mutable_position_m()->set_x(2.5);
+  ASSERT_TRUE(publisher.write("robots/d1/pose", pose));
+  ASSERT_TRUE(publisher.write("robots/d2/pose", pose));
+  ASSERT_TRUE(publisher.write("clock", clockSample(7)));
+  ASSERT_TRUE(publisher.finish().ok());
+
+  ASSERT_TRUE(getLatest("robots/d1/pose", &latest).ok());
+  EXPECT_EQ(latest.sample().topic_seq(), 2u);
+  v1::PoseStamped got;
+  ASSERT_TRUE(latest.sample().sample().UnpackTo(&got));
+  EXPECT_DOUBLE_EQ(got.pose().position_m().x(), 2.5);
+
+  RawSubscriber subscriber(channel_, subscribeRequest("robots/d2/pose"));
+  ASSERT_TRUE(subscriber.waitSubscribed());
+
+  auto all = listTopics();
+  ASSERT_EQ(all.topics_size(), 3);
+  EXPECT_EQ(all.topics(0).name(), "clock");
+  EXPECT_EQ(all.topics(0).type(), "behaviorlib.v1.Clock");
+  EXPECT_EQ(all.topics(1).name(), "robots/d1/pose");
+  EXPECT_EQ(all.topics(1).type(), "behaviorlib.v1.PoseStamped");
+  EXPECT_EQ(all.topics(1).published_count(), 2u);
+  EXPECT_EQ(all.topics(1).subscriber_count(), 0u);
+  EXPECT_GT(all.topics(1).last_receive_time().seconds(), 0);
+  EXPECT_EQ(all.topics(2).name(), "robots/d2/pose");
+  EXPECT_EQ(all.topics(2).subscriber_count(), 1u);
+
+  auto d1 = listTopics("robots/d1/");
+  ASSERT_EQ(d1.topics_size(), 1);
+  EXPECT_EQ(d1.topics(0).name(), "robots/d1/pose");
+
+  // A cancelled subscription is released.
+  subscriber.cancel();
+  subscriber.finish();
+  EXPECT_TRUE(
+      eventually([&] { return listTopics("robots/d2/").topics(0).subscriber_count() == 0; }));
+
+  // A topic that only ever had a waiting subscriber is forgotten with it.
+  {
+    RawSubscriber waiting(channel_, subscribeRequest("robots/d9/nothing"));
+    ASSERT_TRUE(waiting.waitSubscribed());
+    EXPECT_EQ(listTopics("robots/d9/").topics_size(), 1);
+    waiting.cancel();
+    waiting.finish();
+  }
+  EXPECT_TRUE(eventually([&] { return listTopics("robots/d9/").topics_size() == 0; }));
+}
+
+TEST_F(ChannelBrokerTest, ChannelClientPublishSubscribeAndQueries) {
+  ChannelClient client(broker_.address());
+  std::mutex mutex;
+  std::vector<std::string> texts;
+  auto sub = client.subscribeTyped<v1::Text>("robots/d3/chat",
+                                             {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 50},
+                                             [&](const v1::Text& t) {
+                                               std::lock_guard lock(mutex);
+                                               texts.push_back(t.text());
+                                             });
+  ASSERT_TRUE(sub->waitConnected(seconds(10)));
+  EXPECT_EQ(sub->connectCount(), 1u);
+
+  for (int i = 0; i < 5; ++i)
+    ASSERT_TRUE(client.publish("robots/d3/chat", text(std::to_string(i))).ok());
+  ASSERT_TRUE(eventually([&] {
+    std::lock_guard lock(mutex);
+    return texts.size() == 5;
+  }));
+  {
+    std::lock_guard lock(mutex);
+    EXPECT_THAT(texts, ::testing::ElementsAre("0", "1", "2", "3", "4"));
+  }
+  EXPECT_EQ(sub->receivedCount(), 5u);
+
+  auto latest = client.getLatest("robots/d3/chat");
+  ASSERT_TRUE(latest.ok()) << latest.status();
+  EXPECT_EQ(latest->topic_seq(), 5u);
+  EXPECT_EQ(client.getLatest("robots/d3/none").status().code(), absl::StatusCode::kNotFound);
+
+  auto topics = client.listTopics("robots/d3/");
+  ASSERT_TRUE(topics.ok());
+  ASSERT_EQ(topics->size(), 1u);
+  EXPECT_EQ((*topics)[0].type(), "behaviorlib.v1.Text");
+
+  EXPECT_EQ(client.publish("bad topic", text("x")).code(), absl::StatusCode::kInvalidArgument);
+
+  // A refused sample ends the stream; the refusal surfaces on flush().
+  auto accepted = client.flush();
+  ASSERT_TRUE(accepted.ok()) << accepted.status();
+  EXPECT_EQ(*accepted, 5u);
+  ASSERT_TRUE(client.publish("robots/d3/chat", clockSample(1)).ok());  // wrong type
+  auto refused = client.flush();
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(refused.status().message()), HasSubstr("carries behaviorlib.v1.Text"));
+  // The next publish opens a new stream.
+  EXPECT_TRUE(client.publish("robots/d3/chat", text("after")).ok());
+  EXPECT_TRUE(client.flush().ok());
+
+  // A subscription the broker refuses stops for good.
+  auto bad = client.subscribe("robots/x", {}, [](const v1::SubscribeResponse&) {});
+  EXPECT_EQ(bad->status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_FALSE(bad->connected());
+}
+
+TEST_F(ChannelBrokerTest, ChannelClientSubscriberReconnectsAfterBrokerRestart) {
+  const int port = broker_.grpcPort();
+  ChannelClient client(broker_.address());
+  std::atomic<int> received{0};
+  auto sub = client.subscribeTyped<v1::Text>("robots/d4/chat", {.mode = v1::DELIVERY_MODE_QUEUE},
+                                             [&](const v1::Text&) { ++received; });
+  ASSERT_TRUE(sub->waitConnected(seconds(10)));
+  ASSERT_TRUE(client.publish("robots/d4/chat", text("before")).ok());
+  ASSERT_TRUE(eventually([&] { return received.load() == 1; }));
+
+  ASSERT_EQ(broker_.terminate(), 0);
+  ASSERT_TRUE(eventually([&] { return !sub->connected(); }));
+
+  // Same port, new process.
+  support::ServerProcess restarted(kBrokerPath, {"--listen", "127.0.0.1:" + std::to_string(port)});
+  ASSERT_TRUE(restarted.start()) << restarted.error();
+  ASSERT_EQ(restarted.grpcPort(), port);
+  ASSERT_TRUE(eventually([&] { return sub->connected() && sub->connectCount() >= 2; }, seconds(15)))
+      << sub->status();
+  // The client's publish stream died with the old broker; publish reopens it.
+  ASSERT_TRUE(eventually([&] { return client.publish("robots/d4/chat", text("after")).ok(); }));
+  ASSERT_TRUE(eventually([&] { return received.load() >= 2; }));
+  EXPECT_EQ(restarted.terminate(), 0);
+}
+
+TEST_F(ChannelBrokerTest, SimClockFollowsTheClockTopic) {
+  ChannelClient publisher(broker_.address());
+  ASSERT_TRUE(publisher.publish("clock", clockSample(1000, 5.0)).ok());
+  ASSERT_TRUE(publisher.flush().ok());
+
+  SimClock clock(broker_.address());
+  // send_latest_first: the time already on the topic arrives at once.
+  ASSERT_TRUE(eventually([&] { return clock.valid(); }));
+  EXPECT_EQ(clock.now(), TimePoint(seconds(1000)));
+  EXPECT_DOUBLE_EQ(clock.timeScale(), 5.0);
+  EXPECT_FALSE(clock.stale(seconds(5)));
+
+  struct Listener : ClockListener {
+    void onClockAdvanced() override { ++calls; }
+    std::atomic<int> calls{0};
+  } listener;
+  clock.addListener(&listener);
+  ASSERT_TRUE(publisher.publish("clock", clockSample(1001, 5.0)).ok());
+  ASSERT_TRUE(eventually([&] { return clock.now() == TimePoint(seconds(1001)); }));
+  EXPECT_GE(listener.calls.load(), 1);
+  clock.removeListener(&listener);
+  EXPECT_EQ(clock.wallWaitFor(milliseconds(100)), milliseconds(20));
+}
+
+TEST_F(ChannelBrokerTest, MetricsEndpoint) {
+  ASSERT_GT(broker_.metricsPort(), 0);
+  RawPublisher publisher(channel_);
+  for (int i = 0; i < 5; ++i) ASSERT_TRUE(publisher.write("robots/m1/pose", v1::PoseStamped()));
+  ASSERT_TRUE(publisher.finish().ok());
+  publishOnce(channel_, publishRequest("robots/m1", v1::PoseStamped()));  // rejected
+  RawSubscriber subscriber(channel_, subscribeRequest("robots/m1/pose"));
+  ASSERT_TRUE(subscriber.waitSubscribed());
+
+  const std::string metrics = support::httpGet(broker_.metricsPort(), "/metrics");
+  EXPECT_THAT(metrics,
+              HasSubstr("behaviorlib_channel_samples_in_total{topic=\"robots/m1/pose\"} 5"));
+  EXPECT_THAT(metrics,
+              HasSubstr("behaviorlib_channel_rejected_samples_total{reason=\"invalid_topic\"} 1"));
+  EXPECT_THAT(metrics, HasSubstr("behaviorlib_channel_subscribers{topic=\"robots/m1/pose\"} 1"));
+  EXPECT_THAT(metrics, HasSubstr("behaviorlib_channel_samples_out_total"));
+  EXPECT_THAT(metrics, HasSubstr("behaviorlib_channel_dropped_samples_total"));
+  subscriber.cancel();
+  subscriber.finish();
+}
+
+TEST_F(ChannelBrokerTest, SigtermEndsStreamsAndExitsZero) {
+  RawSubscriber subscriber(channel_, subscribeRequest("robots/d5/x"));
+  ASSERT_TRUE(subscriber.waitSubscribed());
+  // An open publish stream must not hold the shutdown up either.
+  RawPublisher publisher(channel_);
+  ASSERT_TRUE(publisher.write("robots/d5/x", text("hello")));
+  v1::SubscribeResponse response;
+  ASSERT_TRUE(subscriber.read(&response));
+
+  const auto start = std::chrono::steady_clock::now();
+  EXPECT_EQ(broker_.terminate(), 0);
+  // Streams are ended at once; the rest is bounded gRPC and metrics-server
+  // shutdown, far from the 10 s that terminate() would wait.
+  EXPECT_LT(std::chrono::steady_clock::now() - start, seconds(5));
+  EXPECT_FALSE(subscriber.read(&response));  // the stream ended
+  EXPECT_EQ(subscriber.finish().error_code(), grpc::StatusCode::UNAVAILABLE);
+  EXPECT_FALSE(publisher.finish().ok());
+}
+
+// Runs the broker with `args` until it exits by itself; returns the wait
+// status and the stderr output.
+int runToExit(const std::vector<std::string>& args, std::string* stderr_text) {
+  char path[] = "/tmp/channel-broker-stderr-XXXXXX";
+  int fd = mkstemp(path);
+  if (fd < 0) return -1;
+  close(fd);
+  std::vector<std::string> argv_s = {kBrokerPath};
+  argv_s.insert(argv_s.end(), args.begin(), args.end());
+  std::vector<char*> argv;
+  for (auto& a : argv_s) argv.push_back(a.data());
+  argv.push_back(nullptr);
+  posix_spawn_file_actions_t actions;
+  posix_spawn_file_actions_init(&actions);
+  posix_spawn_file_actions_addopen(&actions, STDERR_FILENO, path, O_WRONLY | O_TRUNC, 0);
+  pid_t pid = -1;
+  const int rc = posix_spawn(&pid, kBrokerPath, &actions, nullptr, argv.data(), environ);
+  posix_spawn_file_actions_destroy(&actions);
+  if (rc != 0) return -1;
+  int status = 0;
+  const auto deadline = std::chrono::steady_clock::now() + seconds(10);
+  while (waitpid(pid, &status, WNOHANG) == 0) {
+    if (std::chrono::steady_clock::now() > deadline) {
+      kill(pid, SIGKILL);
+      waitpid(pid, &status, 0);
+      break;
+    }
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  std::ifstream in(path);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  *stderr_text = ss.str();
+  unlink(path);
+  return status;
+}
+
+TEST_F(ChannelBrokerTest, PortInUseFailsCleanly) {
+  std::string err;
+  int status = runToExit({"--listen", broker_.address(), "--metrics-listen", "127.0.0.1:0"}, &err);
+  ASSERT_TRUE(WIFEXITED(status)) << "killed by signal " << WTERMSIG(status) << ": " << err;
+  EXPECT_EQ(WEXITSTATUS(status), 1);
+  EXPECT_THAT(err, HasSubstr("cannot listen on " + broker_.address()));
+
+  status = runToExit({"--listen", "127.0.0.1:0", "--metrics-listen",
+                      "127.0.0.1:" + std::to_string(broker_.metricsPort())},
+                     &err);
+  ASSERT_TRUE(WIFEXITED(status)) << "killed by signal " << WTERMSIG(status) << ": " << err;
+  EXPECT_EQ(WEXITSTATUS(status), 1);
+  EXPECT_THAT(err, HasSubstr("cannot serve metrics"));
+
+  // The running broker is unaffected.
+  EXPECT_TRUE(publishOnce(channel_, publishRequest("robots/d1/x", text("still here"))).ok());
+}
+
+}  // namespace
+}  // namespace behaviorlib::channel

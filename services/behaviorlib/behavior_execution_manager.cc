@@ -413,8 +413,9 @@ void BehaviorExecutionManager::recordFinishedLocked(v1::TerminationCause cause,
   wants_ticks_.store(false, std::memory_order_release);
   finished_.push_back({activation_id_, cause});
   if (finished_.size() > kFinishedRemembered) finished_.pop_front();
-  context_.events->append(std::move(event));
+  // Metrics first, so that a client that sees the event reads updated counters.
   if (context_.observer) context_.observer->onFinished(cause);
+  context_.events->append(std::move(event));
 }
 
 v1::BehaviorEvent BehaviorExecutionManager::newEventLocked() const {
@@ -568,6 +569,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     response.set_activation_id(activation_id_);
     *response.mutable_activation_time() = toTimestamp(now);
     *response.mutable_parameters() = params::toStruct(*parameters_);
+    if (context_.observer) context_.observer->onActivated();
     v1::BehaviorEvent event = newEventLocked();
     *event.mutable_activated()->mutable_parameters() = response.parameters();
     context_.events->append(std::move(event));
@@ -578,7 +580,6 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     wants_ticks_.store(true, std::memory_order_release);
   }
   reportActive(true);
-  if (context_.observer) context_.observer->onActivated();
   done(std::move(response));
 }
 

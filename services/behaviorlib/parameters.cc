@@ -20,6 +20,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "behaviorlib/documentation.h"
 #include "behaviorlib/v1/options.pb.h"
 
 namespace behaviorlib::params {
@@ -38,6 +39,11 @@ constexpr int kMaxDescribeDepth = 8;
 constexpr size_t kMaxQuotedLength = 60;
 
 const v1::ParameterRule& ruleOf(const FD& field) { return field.options().GetExtension(v1::param); }
+
+// The rule's description, else the field's comment in its .proto file.
+std::string descriptionOf(const FD& field, const v1::ParameterRule& rule) {
+  return rule.description().empty() ? leadingComment(field.full_name()) : rule.description();
+}
 
 // Shortest text that reads back as the same double, so that error messages
 // show exactly what the caller sent ("2.5", "86400", "1e+40").
@@ -728,9 +734,9 @@ absl::Status validateField(pb::Message* m, const FD& field, const std::string& p
   }
   if (rule.required() && !isSet(*m, field)) {
     return absl::InvalidArgumentError(
-        rule.description().empty()
+        descriptionOf(field, rule).empty()
             ? absl::StrCat("parameter '", path, "' is required")
-            : absl::StrCat("parameter '", path, "' is required: ", rule.description()));
+            : absl::StrCat("parameter '", path, "' is required: ", descriptionOf(field, rule)));
   }
   if (field.is_map()) {
     const FD& key_field = *field.message_type()->map_key();
@@ -888,7 +894,7 @@ void describeFields(const pb::Descriptor& d, int depth, std::vector<const pb::De
     if (rule.has_range()) *schema->mutable_range() = rule.range();
     schema->set_default_json(rule.default_json());
     schema->set_required(rule.required());
-    schema->set_description(rule.description());
+    schema->set_description(descriptionOf(field, rule));
     if (value_field.cpp_type() == FD::CPPTYPE_ENUM) {
       const pb::EnumDescriptor& e = *value_field.enum_type();
       for (int j = 0; j < e.value_count(); ++j) schema->add_enum_values(e.value(j)->name());

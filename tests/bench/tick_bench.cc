@@ -135,11 +135,16 @@ void BM_TickNoWorkWithMetricsEvery10ms(benchmark::State& state) {
   tick<NoWorkBehavior>(state, true, /*cold=*/true);
 }
 
+void BM_TickNoWorkNoObserverEvery10ms(benchmark::State& state) {
+  tick<NoWorkBehavior>(state, false, /*cold=*/true);
+}
+
 BENCHMARK(BM_TickNoWorkWithMetrics);
 BENCHMARK(BM_TickNoWorkNoObserver);
 BENCHMARK(BM_TickWaitLikeWithMetrics);
 // 100 ticks of 10 ms: one second per repetition.
 BENCHMARK(BM_TickNoWorkWithMetricsEvery10ms)->UseManualTime()->Iterations(100);
+BENCHMARK(BM_TickNoWorkNoObserverEvery10ms)->UseManualTime()->Iterations(100);
 
 bool hasFlag(int argc, char** argv, const char* prefix) {
   for (int i = 1; i < argc; ++i) {

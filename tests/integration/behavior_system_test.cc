@@ -3,7 +3,6 @@
 // real channel_broker, both started on free loopback ports and driven over
 // gRPC exactly as the coordinator, scripts or grpcurl would. No mocks.
 
-#include <fcntl.h>
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>
 #include <google/protobuf/util/time_util.h>
@@ -25,7 +24,6 @@
 #include <memory>
 #include <mutex>
 #include <optional>
-#include <set>
 #include <sstream>
 #include <string>
 #include <thread>

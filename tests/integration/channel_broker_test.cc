@@ -130,9 +130,10 @@ grpc::Status publishOnce(const std::shared_ptr<grpc::Channel>& channel,
 // A raw Subscribe stream.
 class RawSubscriber {
  public:
-  RawSubscriber(const std::shared_ptr<grpc::Channel>& channel, const v1::SubscribeRequest& request)
+  RawSubscriber(const std::shared_ptr<grpc::Channel>& channel, const v1::SubscribeRequest& request,
+                std::chrono::milliseconds deadline = seconds(60))
       : stub_(v1::DataChannel::NewStub(channel)) {
-    context_.set_deadline(std::chrono::system_clock::now() + seconds(60));
+    context_.set_deadline(std::chrono::system_clock::now() + deadline);
     reader_ = stub_->Subscribe(&context_, request);
   }
   // True once the broker registered the subscription.
@@ -276,6 +277,74 @@ TEST_F(ChannelBrokerTest, SlowSubscriberDropsWithoutBlockingPublisherOrOthers) {
   fast.cancel();
   slow.finish();
   fast.finish();
+}
+
+// Concurrent publishers on one topic while subscriptions come and go: a
+// steady subscriber sees every sample once, in topic_seq order.
+TEST_F(ChannelBrokerTest, ConcurrentPublishersAndSubscriberChurn) {
+  constexpr int kPublishers = 4;
+  constexpr int kPerPublisher = 2000;
+  constexpr uint64_t kTotal = kPublishers * kPerPublisher;
+  const std::string topic = "robots/d6/chatter";
+  RawSubscriber steady(makeChannel(broker_.address()),
+                       subscribeRequest(topic, v1::DELIVERY_MODE_QUEUE, kMaxQueueSize));
+  ASSERT_TRUE(steady.waitSubscribed());
+
+  std::atomic<bool> publishing{true};
+  std::vector<std::thread> churners;
+  std::atomic<int> churn_rounds{0};
+  for (int c = 0; c < 3; ++c) {
+    churners.emplace_back([&, c] {
+      auto channel = makeChannel(broker_.address());
+      while (publishing.load()) {
+        RawSubscriber sub(
+            channel,
+            subscribeRequest(topic, c % 2 ? v1::DELIVERY_MODE_LATEST : v1::DELIVERY_MODE_QUEUE, 3,
+                             /*send_latest_first=*/c == 2),
+            /*deadline=*/milliseconds(300));
+        if (sub.waitSubscribed()) {
+          v1::SubscribeResponse response;
+          for (int i = 0; i < 3 && sub.read(&response); ++i) {
+          }
+        }
+        sub.cancel();
+        sub.finish();
+        ++churn_rounds;
+      }
+    });
+  }
+  std::vector<std::thread> publishers;
+  for (int p = 0; p < kPublishers; ++p) {
+    publishers.emplace_back([&, p] {
+      RawPublisher publisher(makeChannel(broker_.address()));
+      for (int i = 0; i < kPerPublisher; ++i) {
+        if (!publisher.write(topic, text(std::to_string(p) + ":" + std::to_string(i)))) break;
+      }
+      EXPECT_TRUE(publisher.finish().ok());
+      EXPECT_EQ(publisher.accepted(), static_cast<uint64_t>(kPerPublisher));
+    });
+  }
+
+  uint64_t expected_seq = 1;
+  v1::SubscribeResponse response;
+  while (expected_seq <= kTotal && steady.read(&response)) {
+    ASSERT_EQ(response.topic_seq(), expected_seq);
+    ASSERT_EQ(response.dropped_count(), 0u);
+    ++expected_seq;
+  }
+  EXPECT_EQ(expected_seq, kTotal + 1);
+  for (auto& t : publishers) t.join();
+  publishing = false;
+  for (auto& t : churners) t.join();
+  EXPECT_GT(churn_rounds.load(), 0);
+  steady.cancel();
+  steady.finish();
+
+  EXPECT_TRUE(eventually([&] {
+    auto topics = listTopics(topic);
+    return topics.topics_size() == 1 && topics.topics(0).subscriber_count() == 0 &&
+           topics.topics(0).published_count() == kTotal;
+  }));
 }
 
 TEST_F(ChannelBrokerTest, LatestModeKeepsOnlyTheNewestSample) {

@@ -5,6 +5,7 @@
 #include <google/protobuf/util/time_util.h>
 
 #include "behaviorlib/parameters.h"
+#include "behaviorlib/documentation.h"
 #include "behaviorlib/server/status.h"
 #include "behaviorlib/v1/options.pb.h"
 
@@ -165,7 +166,8 @@ grpc::ServerUnaryReactor* BehaviorSystemService::ListBehaviors(
       d->set_service(it->second);
       if (const auto* service = pool->FindServiceByName(it->second)) {
         const auto& info = service->options().GetExtension(v1::behavior);
-        d->set_description(info.description());
+        d->set_description(info.description().empty() ? leadingComment(it->second)
+                                                      : info.description());
         d->set_kind(info.kind());
       }
     }

@@ -55,6 +55,7 @@ std::string leadingComment(const std::string& full_name) {
   if (auto* s = pool.FindServiceByName(full_name)) return commentOf(s);
   if (auto* m = pool.FindMessageTypeByName(full_name)) return commentOf(m);
   if (auto* f = pool.FindFieldByName(full_name)) return commentOf(f);
+  if (auto* x = pool.FindExtensionByName(full_name)) return commentOf(x);
   if (auto* e = pool.FindEnumTypeByName(full_name)) return commentOf(e);
   if (auto* v = pool.FindEnumValueByName(full_name)) return commentOf(v);
   if (auto* m = pool.FindMethodByName(full_name)) return commentOf(m);

@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <future>
+#include <optional>
 #include <sstream>
 
 #include "behaviorlib/parameters.h"
@@ -153,7 +154,7 @@ void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
       [this] {
         State state;
         {
-          std::lock_guard lock(mutex_);
+          std::unique_lock lock(mutex_);
           state = state_;
         }
         if (state == State::kActive || state == State::kPaused) {
@@ -485,7 +486,8 @@ void BehaviorExecutionManager::activate(std::unique_ptr<google::protobuf::Messag
 void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Message> parameters,
                                           const std::string& request_id, SteadyTime received,
                                           const Done<v1::ActivateResponse>& done) {
-  {
+  // Answered after the lock is released: completions never run under it.
+  auto early = [&]() -> std::optional<absl::StatusOr<v1::ActivateResponse>> {
     std::lock_guard lock(mutex_);
     const auto wall_now = std::chrono::steady_clock::now();
     while (!request_id_order_.empty() &&
@@ -497,30 +499,31 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
       if (auto it = request_ids_.find(request_id); it != request_ids_.end()) {
         v1::ActivateResponse response = it->second.first;
         response.set_replayed(true);
-        done(std::move(response));
-        return;
+        return response;
       }
     }
     if (state_ == State::kBlocked) {
-      done(absl::FailedPreconditionError(
+      return absl::FailedPreconditionError(
           name_ +
           " is blocked: user code of its previous activation has not returned yet "
-          "(stopped by the watchdog); try again later"));
-      return;
+          "(stopped by the watchdog); try again later");
     }
     if (state_ != State::kInactive) {
-      done(absl::FailedPreconditionError(name_ + " is already active (activation " +
-                                         activation_id_ +
-                                         "); deactivate it first, or use Modify to change its "
-                                         "parameters"));
-      return;
+      return absl::FailedPreconditionError(name_ + " is already active (activation " +
+                                           activation_id_ +
+                                           "); deactivate it first, or use Modify to change its "
+                                           "parameters");
     }
     if (!context_.clock->valid()) {
-      done(absl::FailedPreconditionError(
+      return absl::FailedPreconditionError(
           "the behavior clock has no time yet; is the simulator publishing on the 'clock' "
-          "topic?"));
-      return;
+          "topic?");
     }
+    return std::nullopt;
+  }();
+  if (early) {
+    done(std::move(*early));
+    return;
   }
   Situation situation;
   if (!guarded("checkSituation", [&] { situation = checkSituation(); })) {
@@ -608,7 +611,7 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          std::lock_guard lock(mutex_);
+          std::unique_lock lock(mutex_);
           const bool running = state_ == State::kActive || state_ == State::kPaused;
           if (!running && !activation_id.empty()) {
             for (const auto& f : finished_) {
@@ -617,12 +620,14 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
                 response.set_activation_id(activation_id);
                 response.set_cause(f.cause);
                 response.set_already_finished(true);
+                lock.unlock();
                 done(std::move(response));
                 return;
               }
             }
           }
           if (absl::Status s = checkActivationIdLocked(activation_id, "deactivate"); !s.ok()) {
+            lock.unlock();
             done(s);
             return;
           }
@@ -643,12 +648,14 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          std::lock_guard lock(mutex_);
+          std::unique_lock lock(mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "pause"); !s.ok()) {
+            lock.unlock();
             done(s);
             return;
           }
           if (state_ == State::kPaused) {
+            lock.unlock();
             done(absl::FailedPreconditionError(name_ + " is already paused"));
             return;
           }
@@ -666,7 +673,7 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
           return;
         }
         {
-          std::lock_guard lock(mutex_);
+          std::unique_lock lock(mutex_);
           v1::BehaviorEvent event = newEventLocked();
           event.mutable_paused();
           context_.events->append(std::move(event));
@@ -684,12 +691,14 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          std::lock_guard lock(mutex_);
+          std::unique_lock lock(mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "resume"); !s.ok()) {
+            lock.unlock();
             done(s);
             return;
           }
           if (state_ != State::kPaused) {
+            lock.unlock();
             done(absl::FailedPreconditionError(name_ + " is not paused"));
             return;
           }
@@ -703,7 +712,7 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
           return;
         }
         {
-          std::lock_guard lock(mutex_);
+          std::unique_lock lock(mutex_);
           const TimePoint now = context_.clock->now();
           state_ = State::kActive;
           active_since_ = now;
@@ -736,8 +745,9 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         std::unique_ptr<google::protobuf::Message> merged;
         std::string current;
         {
-          std::lock_guard lock(mutex_);
+          std::unique_lock lock(mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "modify"); !s.ok()) {
+            lock.unlock();
             done(s);
             return;
           }
@@ -765,7 +775,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         v1::ModifyResponse response;
         {
-          std::lock_guard lock(mutex_);
+          std::unique_lock lock(mutex_);
           parameters_ = std::move(merged);
           response.set_activation_id(current);
           *response.mutable_parameters() = params::toStruct(*parameters_);

@@ -254,12 +254,9 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
     failure_message_ = std::string(call_function_.load(std::memory_order_relaxed)) +
                        " threw a non-standard exception";
   }
-  call_started_ns_.store(0, std::memory_order_release);
-  bool fired;
-  {
-    std::lock_guard lock(mutex_);
-    fired = watchdog_fired_;
-  }
+  // The exchange decides, without a lock, whether the watchdog claimed this
+  // call (it swaps the start stamp for kWatchdogFired) before it returned.
+  const bool fired = call_started_ns_.exchange(0, std::memory_order_acq_rel) == kWatchdogFired;
   if (fired) {
     // The watchdog already ended this activation while the call was stuck;
     // now that it returned, clean up and accept activations again.
@@ -271,7 +268,6 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
     }
     {
       std::lock_guard lock(mutex_);
-      watchdog_fired_ = false;
       state_ = State::kInactive;
       activation_id_.clear();
       parameters_.reset();
@@ -285,14 +281,17 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
 
 void BehaviorExecutionManager::watchdogCheck(std::chrono::steady_clock::time_point now) {
   const int64_t started = call_started_ns_.load(std::memory_order_acquire);
-  if (started == 0) return;
+  if (started <= 0) return;  // no call running, or already claimed
   const auto limit =
       std::chrono::duration_cast<std::chrono::nanoseconds>(options_.watchdog_timeout);
   if (steadyNs(now) - started < limit.count()) return;
   std::lock_guard lock(mutex_);
-  if (watchdog_fired_ || call_started_ns_.load(std::memory_order_acquire) != started) return;
   if (state_ != State::kActive && state_ != State::kPaused) return;
-  watchdog_fired_ = true;
+  int64_t expected = started;
+  if (!call_started_ns_.compare_exchange_strong(expected, kWatchdogFired,
+                                                std::memory_order_acq_rel)) {
+    return;  // the call returned meanwhile
+  }
   const char* function = call_function_.load(std::memory_order_relaxed);
   recordFinishedLocked(v1::TERMINATION_CAUSE_PROCESS_FAILURE,
                        std::string(function ? function : "user code") + " did not return within " +

@@ -315,10 +315,11 @@ class BehaviorExecutionManager {
   // Failure reported from user code (exception) during the current call.
   std::string failure_message_;
 
-  // Watchdog: steady-clock ns when the current user call started (0: none).
+  // Watchdog: steady-clock ns when the current user call started (0: none;
+  // kWatchdogFired: the watchdog ended the activation while the call ran).
+  static constexpr int64_t kWatchdogFired = -1;
   std::atomic<int64_t> call_started_ns_{0};
   std::atomic<const char*> call_function_{nullptr};
-  bool watchdog_fired_ = false;  // under mutex_
 
   std::map<std::string, std::pair<v1::ActivateResponse, std::chrono::steady_clock::time_point>>
       request_ids_;

@@ -36,8 +36,9 @@ using EventPtr = std::shared_ptr<const v1::BehaviorEvent>;
 struct EventLogOptions {
   std::string robot_id;
   std::string system;
-  /// Maximum retained events.
-  size_t capacity = 10000;
+  /// Maximum retained events (about 1 KiB each): enough for a subscriber to
+  /// resume after an outage of many minutes at a few activations per second.
+  size_t capacity = 2048;
   /// How long events are kept after their activation finished.
   std::chrono::nanoseconds retention = std::chrono::minutes(10);
   /// Maximum undelivered events per subscriber before it is cut off.

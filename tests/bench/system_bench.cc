@@ -918,6 +918,12 @@ int run(const Options& o) {
 
 int main(int argc, char** argv) {
   behaviorlib::bench::Options options;
+  for (int i = 1; i < argc; ++i) {
+    if (std::strcmp(argv[i], "--help") == 0) {
+      behaviorlib::bench::usage();
+      return 0;
+    }
+  }
   if (!behaviorlib::bench::parseOptions(argc, argv, &options)) return 2;
   try {
     return behaviorlib::bench::run(options);

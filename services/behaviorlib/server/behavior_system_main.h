@@ -16,6 +16,7 @@
 // --clock (steady|sim), --config (YAML), --coordinator. Run with --help.
 
 #include <grpcpp/grpcpp.h>
+#include <grpcpp/impl/service_type.h>
 
 #include <functional>
 #include <map>

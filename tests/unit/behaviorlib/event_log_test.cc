@@ -677,7 +677,9 @@ TEST(EventLogTest, NoGapOrDuplicateBetweenReplayAndLiveWithEviction) { checkRepl
 
 TEST(EventLogTest, FilteredSubscriptionGetsExactlyItsBehaviorUnderConcurrentAppends) {
   constexpr int kEvents = 10000;
-  EventLog log(testOptions());
+  EventLogOptions options = testOptions();
+  options.capacity = kEvents;  // everything stays retained: the filter is under test
+  EventLog log(options);
   std::thread appender([&] {
     for (int i = 0; i < kEvents; ++i) log.append(modified(i % 3 == 0 ? "WAIT" : "LAND", "a"));
   });

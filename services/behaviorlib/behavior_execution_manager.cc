@@ -273,6 +273,7 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
       parameters_.reset();
     }
     reportActive(false);
+    if (context_.observer) context_.observer->onBlocked(false);
     failure_message_ = "stopped by the watchdog";
     return false;
   }
@@ -298,6 +299,7 @@ void BehaviorExecutionManager::watchdogCheck(std::chrono::steady_clock::time_poi
                            seconds(limit) + " (watchdog); " + name_ +
                            " accepts activations again once it returns");
   state_ = State::kBlocked;
+  if (context_.observer) context_.observer->onBlocked(true);
 }
 
 Duration BehaviorExecutionManager::activeTimeLocked(TimePoint now) const {

@@ -113,6 +113,9 @@ class BehaviorObserver {
   /// Wall time of the four monitoring functions of one tick (the paper's t1).
   virtual void onMonitoring(std::chrono::nanoseconds /*duration*/) {}
   virtual void onSituation(double /*performance_ratio*/) {}
+  /// The watchdog stopped a stuck user function (true); it returned (false).
+  /// May be called from the watchdog thread.
+  virtual void onBlocked(bool /*blocked*/) {}
 };
 
 /// What the hosting system gives a behavior when it starts.

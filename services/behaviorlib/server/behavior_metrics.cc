@@ -29,7 +29,9 @@ constexpr std::array<v1::TerminationCause, 6> kCauses = {
 
 class PrometheusObserver final : public BehaviorObserver {
  public:
-  PrometheusObserver(BehaviorMetrics& m, const std::string& behavior) {
+  PrometheusObserver(BehaviorMetrics& m, const std::string& behavior,
+                     BehaviorMetrics::BlockedCallback on_blocked)
+      : behavior_(behavior), on_blocked_(std::move(on_blocked)) {
     const prometheus::Labels labels = {
         {"robot", m.robot_id_}, {"system", m.system_}, {"behavior", behavior}};
     activations_ = &m.activations_.Add(labels);
@@ -62,8 +64,13 @@ class PrometheusObserver final : public BehaviorObserver {
     monitoring_->Observe(std::chrono::duration<double>(duration).count());
   }
   void onSituation(double performance_ratio) override { performance_->Set(performance_ratio); }
+  void onBlocked(bool blocked) override {
+    if (on_blocked_) on_blocked_(behavior_, blocked);
+  }
 
  private:
+  std::string behavior_;
+  BehaviorMetrics::BlockedCallback on_blocked_;
   prometheus::Counter* activations_ = nullptr;
   std::array<prometheus::Counter*, 7> terminations_{};
   prometheus::Gauge* active_ = nullptr;
@@ -101,9 +108,10 @@ BehaviorMetrics::BehaviorMetrics(prometheus::Registry& registry, std::string rob
                        .Help("Latest performance estimate of checkSituation, in [0, 1]")
                        .Register(registry)) {}
 
-BehaviorHost::ObserverFactory BehaviorMetrics::observerFactory() {
-  return [this](const BehaviorExecutionManager& behavior) -> std::unique_ptr<BehaviorObserver> {
-    return std::make_unique<PrometheusObserver>(*this, behavior.name());
+BehaviorHost::ObserverFactory BehaviorMetrics::observerFactory(BlockedCallback on_blocked) {
+  return [this, on_blocked](
+             const BehaviorExecutionManager& behavior) -> std::unique_ptr<BehaviorObserver> {
+    return std::make_unique<PrometheusObserver>(*this, behavior.name(), on_blocked);
   };
 }
 

@@ -13,6 +13,7 @@
 #include <prometheus/histogram.h>
 #include <prometheus/registry.h>
 
+#include <functional>
 #include <memory>
 #include <string>
 
@@ -23,8 +24,11 @@ namespace behaviorlib::server {
 class BehaviorMetrics {
  public:
   BehaviorMetrics(prometheus::Registry& registry, std::string robot_id, std::string system);
+  /// Called when a behavior is blocked by the watchdog (true) and when it
+  /// recovers (false); e.g. to report it NOT_SERVING through gRPC health.
+  using BlockedCallback = std::function<void(const std::string& behavior, bool blocked)>;
   /// Creates one observer per behavior (for BehaviorHost::setObserverFactory).
-  BehaviorHost::ObserverFactory observerFactory();
+  BehaviorHost::ObserverFactory observerFactory(BlockedCallback on_blocked = nullptr);
 
  private:
   friend class PrometheusObserver;

@@ -106,7 +106,14 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
 
   ServerRuntime runtime;
   BehaviorMetrics metrics(runtime.registry(), robot_id, system_name);
-  host.setObserverFactory(metrics.observerFactory());
+  // A behavior blocked by the watchdog reports its typed service NOT_SERVING.
+  const auto service_names = builder.serviceNames();
+  host.setObserverFactory(
+      metrics.observerFactory([&runtime, service_names](const std::string& behavior, bool blocked) {
+        if (auto it = service_names.find(behavior); it != service_names.end()) {
+          runtime.setServing(it->second, !blocked);
+        }
+      }));
   std::string error;
   if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
   if (absl::Status s = host.start(config); !s.ok()) {

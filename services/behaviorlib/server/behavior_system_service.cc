@@ -4,8 +4,8 @@
 #include <google/protobuf/message.h>
 #include <google/protobuf/util/time_util.h>
 
-#include "behaviorlib/parameters.h"
 #include "behaviorlib/documentation.h"
+#include "behaviorlib/parameters.h"
 #include "behaviorlib/server/status.h"
 #include "behaviorlib/v1/options.pb.h"
 

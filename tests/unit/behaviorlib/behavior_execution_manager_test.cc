@@ -389,6 +389,46 @@ TEST_F(BehaviorExecutionManagerTest, StuckOnExecuteEndsWithProcessFailureAndProc
   EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kFinished), 1);
 }
 
+class RecordingObserver final : public BehaviorObserver {
+ public:
+  std::atomic<int> activated{0}, finished{0}, first_execute{0}, monitoring{0};
+  std::atomic<int> blocked{0}, unblocked{0};
+  void onActivated() override { ++activated; }
+  void onFirstExecute(std::chrono::nanoseconds) override { ++first_execute; }
+  void onFinished(v1::TerminationCause) override { ++finished; }
+  void onMonitoring(std::chrono::nanoseconds) override { ++monitoring; }
+  void onBlocked(bool b) override { ++(b ? blocked : unblocked); }
+};
+
+TEST_F(BehaviorExecutionManagerTest, ObserverSeesActivationTicksBlockAndRecovery) {
+  RecordingObserver* observer = nullptr;
+  host_.setObserverFactory([&](const BehaviorExecutionManager&) {
+    auto o = std::make_unique<RecordingObserver>();
+    observer = o.get();
+    return o;
+  });
+  BehaviorOptions options;
+  options.watchdog_timeout = milliseconds(100);
+  auto& b = start(options);
+  ASSERT_NE(observer, nullptr);
+  std::atomic<bool> stuck{false};
+  b.on_execute = [&] {
+    while (stuck) std::this_thread::sleep_for(milliseconds(1));
+  };
+  activate();
+  EXPECT_EQ(observer->activated, 1);
+  EXPECT_EQ(observer->first_execute, 1);
+  EXPECT_GE(observer->monitoring, 1);
+  stuck = true;
+  tick();
+  ASSERT_TRUE(eventually([&] { return observer->blocked == 1; }));
+  EXPECT_EQ(observer->finished, 1);
+  EXPECT_EQ(observer->unblocked, 0);
+  stuck = false;
+  ASSERT_TRUE(eventually([&] { return observer->unblocked == 1; }));
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+}
+
 TEST_F(BehaviorExecutionManagerTest, ExceptionInMonitoringIsProcessFailure) {
   auto& b = start();
   b.goal = []() -> Verdict { throw std::out_of_range("bad index"); };

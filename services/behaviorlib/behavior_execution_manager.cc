@@ -240,6 +240,7 @@ void BehaviorExecutionManager::run() {
 
 template <class F>
 bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
+  stopped_by_watchdog_ = false;
   call_function_.store(function, std::memory_order_relaxed);
   call_started_ns_.store(steadyNs(std::chrono::steady_clock::now()), std::memory_order_release);
   bool ok = true;
@@ -275,9 +276,20 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
     reportActive(false);
     if (context_.observer) context_.observer->onBlocked(false);
     failure_message_ = "stopped by the watchdog";
+    stopped_by_watchdog_ = true;
     return false;
   }
   return ok;
+}
+
+template <class F>
+bool BehaviorExecutionManager::hookOrAbort(const char* function, F&& hook,
+                                           const std::function<void(absl::Status)>& reply) {
+  if (guarded(function, std::forward<F>(hook))) return true;
+  const std::string why = failure_message_;
+  if (!stopped_by_watchdog_) finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, why);
+  reply(absl::AbortedError(name_ + ": " + why + "; the activation ended with PROCESS_FAILURE"));
+  return false;
 }
 
 void BehaviorExecutionManager::watchdogCheck(std::chrono::steady_clock::time_point now) {
@@ -344,9 +356,7 @@ void BehaviorExecutionManager::execute() {
     }
   });
   if (!ok) {
-    if (failure_message_ != "stopped by the watchdog") {
-      finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
-    }
+    if (!stopped_by_watchdog_) finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
     return;
   }
   if (cause == v1::TERMINATION_CAUSE_UNSPECIFIED && maximum_execution_time_ > Duration::zero() &&
@@ -381,7 +391,7 @@ void BehaviorExecutionManager::execute() {
       context_.observer->onFirstExecute(std::chrono::steady_clock::now() - activate_received_);
     }
   }
-  if (!executed && failure_message_ != "stopped by the watchdog") {
+  if (!executed && !stopped_by_watchdog_) {
     finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
   }
 }
@@ -389,7 +399,7 @@ void BehaviorExecutionManager::execute() {
 void BehaviorExecutionManager::finish(v1::TerminationCause cause, const std::string& message) {
   std::string full_message = message;
   if (!guarded("onDeactivate", [&] { onDeactivate(); })) {
-    if (failure_message_ == "stopped by the watchdog") return;
+    if (stopped_by_watchdog_) return;
     full_message += (full_message.empty() ? "" : "; ") + failure_message_;
   }
   {
@@ -666,13 +676,9 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
           wants_ticks_.store(false, std::memory_order_release);
           current = activation_id_;
         }
-        if (!guarded("onPause", [&] { onPause(); })) {
-          if (failure_message_ != "stopped by the watchdog") {
-            finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
-          }
-          done(absl::AbortedError(name_ + " failed while pausing; the activation ended"));
+        if (!hookOrAbort(
+                "onPause", [&] { onPause(); }, [&](absl::Status s) { done(s); }))
           return;
-        }
         {
           std::unique_lock lock(mutex_);
           v1::BehaviorEvent event = newEventLocked();
@@ -705,13 +711,9 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
           }
           current = activation_id_;
         }
-        if (!guarded("onResume", [&] { onResume(); })) {
-          if (failure_message_ != "stopped by the watchdog") {
-            finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
-          }
-          done(absl::AbortedError(name_ + " failed while resuming; the activation ended"));
+        if (!hookOrAbort(
+                "onResume", [&] { onResume(); }, [&](absl::Status s) { done(s); }))
           return;
-        }
         {
           std::unique_lock lock(mutex_);
           const TimePoint now = context_.clock->now();
@@ -762,11 +764,9 @@ void BehaviorExecutionManager::modify(std::string activation_id,
           return;
         }
         absl::Status status;
-        if (!guarded("onModify", [&] { status = onModify(*merged); })) {
-          if (failure_message_ != "stopped by the watchdog") {
-            finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
-          }
-          done(absl::AbortedError(name_ + " failed while modifying; the activation ended"));
+        if (!hookOrAbort(
+                "onModify", [&] { status = onModify(*merged); },
+                [&](absl::Status s) { done(s); })) {
           return;
         }
         if (!status.ok()) {

@@ -271,6 +271,10 @@ class BehaviorExecutionManager {
   Duration activeTimeLocked(TimePoint now) const;
   template <class F>
   bool guarded(const char* function, F&& f);  // runs user code; false if it threw
+  // Runs a lifecycle hook; if it fails, ends the activation with
+  // PROCESS_FAILURE and replies ABORTED. False then.
+  template <class F>
+  bool hookOrAbort(const char* function, F&& hook, const std::function<void(absl::Status)>& reply);
   void doActivate(std::unique_ptr<google::protobuf::Message> parameters,
                   const std::string& request_id, std::chrono::steady_clock::time_point received,
                   const Done<v1::ActivateResponse>& done);
@@ -315,8 +319,10 @@ class BehaviorExecutionManager {
   uint64_t activation_counter_ = 0;
   std::atomic<bool> wants_ticks_{false};
 
-  // Failure reported from user code (exception) during the current call.
+  // Failure reported from user code (exception) during the current call, and
+  // whether the watchdog had stopped it (worker thread only).
   std::string failure_message_;
+  bool stopped_by_watchdog_ = false;
 
   // Watchdog: steady-clock ns when the current user call started (0: none;
   // kWatchdogFired: the watchdog ended the activation while the call ran).

@@ -429,6 +429,19 @@ TEST_F(BehaviorExecutionManagerTest, ObserverSeesActivationTicksBlockAndRecovery
   EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
 }
 
+TEST_F(BehaviorExecutionManagerTest, HookThatThrowsWhilePausingEndsTheActivation) {
+  auto& b = start();
+  b.on_pause = [] { throw std::runtime_error("brake stuck"); };
+  const auto activation = activate();
+  auto paused = b.pauseAndWait(activation.activation_id());
+  EXPECT_EQ(paused.status().code(), absl::StatusCode::kAborted);
+  EXPECT_THAT(paused.status().message(), HasSubstr("onPause threw: brake stuck"));
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kPaused), 0);
+}
+
 TEST_F(BehaviorExecutionManagerTest, ExceptionInMonitoringIsProcessFailure) {
   auto& b = start();
   b.goal = []() -> Verdict { throw std::out_of_range("bad index"); };

@@ -25,6 +25,7 @@ class ScriptedBehavior final : public Behavior<v1::WaitParameters> {
 
   std::function<absl::Status()> on_activate = [] { return absl::OkStatus(); };
   std::function<void()> on_execute = [] {};
+  std::function<void()> on_pause = [] {};
   std::function<Situation()> situation = [] { return Situation::ok(); };
   std::function<Verdict()> goal = [] { return Verdict::keepGoing(); };
   std::function<Verdict()> progress = [] { return Verdict::keepGoing(); };
@@ -61,7 +62,10 @@ class ScriptedBehavior final : public Behavior<v1::WaitParameters> {
     on_execute();
   }
   void onDeactivate() override { record("onDeactivate"); }
-  void onPause() override { record("onPause"); }
+  void onPause() override {
+    record("onPause");
+    on_pause();
+  }
   void onResume() override { record("onResume"); }
   absl::Status onModify(const google::protobuf::Message& p) override {
     record("onModify");

@@ -21,6 +21,8 @@ import time
 
 
 CONFIG_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "config")
+# frequency_hz of WAIT in deploy/config/basic_quadrotor_behaviors.yaml
+CONFIGURED_WAIT_HZ = 50
 
 
 class Service:
@@ -84,7 +86,11 @@ def run_demo(build_dir, system):
                                         capture_output=True, text=True).stdout)
     for b in listing["behaviors"]:
         params = ", ".join(f"{p['name']} [{p.get('unit', '')}]" for p in b.get("parameters", []))
-        print(f"  {b['name']:<6} {b.get('service', '')}: {b.get('description', '')} ({params})")
+        print(f"  {b['name']:<6} {b.get('service', '')}: {b.get('description', '')} ({params}; "
+              f"{b.get('frequency_hz')} Hz)")
+    wait = next((b for b in listing["behaviors"] if b["name"] == "WAIT"), None)
+    if wait is None or wait.get("frequency_hz") != CONFIGURED_WAIT_HZ:
+        raise RuntimeError("WAIT is missing or did not take its frequency from --config")
 
     print("\n== events (WatchEvents) ==", flush=True)
     watcher = subprocess.Popen([ctl, *target, "watch", "--until-finished", "WAIT",

@@ -12,6 +12,7 @@ Uses only the Python standard library.
 """
 import argparse
 import json
+import shutil
 import os
 import signal
 import subprocess
@@ -164,6 +165,7 @@ def main():
             print(f"  {s.name} exited with code {code}")
             if code != 0:
                 status = status or 1
+        shutil.rmtree(port_dir, ignore_errors=True)
     return status
 
 

@@ -1,0 +1,107 @@
+#include "simulator/core/simulation.h"
+
+#include <thread>
+
+namespace behaviorlib::sim {
+
+Simulation::Simulation(SimulationOptions options) : options_(options) {}
+
+absl::Status Simulation::addVehicle(const std::string& robot_id,
+                                    std::unique_ptr<VehicleModel> model) {
+  std::lock_guard lock(mutex_);
+  if (vehicles_.count(robot_id)) {
+    return absl::AlreadyExistsError("vehicle " + robot_id + " is already in the world");
+  }
+  Vehicle vehicle{VehiclePlatform(robot_id, options_.platform), std::move(model)};
+  vehicle.platform.update(now_, vehicle.model->snapshot());
+  vehicles_.emplace(robot_id, std::move(vehicle));
+  return absl::OkStatus();
+}
+
+std::vector<std::string> Simulation::robotIds() const {
+  std::lock_guard lock(mutex_);
+  std::vector<std::string> ids;
+  for (const auto& [id, vehicle] : vehicles_) ids.push_back(id);
+  return ids;
+}
+
+void Simulation::addStepListener(StepListener listener) {
+  std::lock_guard lock(mutex_);
+  listeners_.push_back(std::move(listener));
+}
+
+SimTime Simulation::now() const {
+  std::lock_guard lock(mutex_);
+  return now_;
+}
+
+absl::Status Simulation::unknownVehicle(const std::string& robot_id) const {
+  std::string known;
+  for (const auto& [id, vehicle] : vehicles_) known += (known.empty() ? "" : ", ") + id;
+  return absl::NotFoundError("unknown vehicle '" + robot_id +
+                             "'; the world has: " + (known.empty() ? std::string("none") : known));
+}
+
+void Simulation::stepLocked() {
+  const double dt = std::chrono::duration<double>(options_.physics_step).count();
+  for (auto& [id, vehicle] : vehicles_) {
+    // The platform decides with the state at the start of the step; the
+    // model integrates the step with that command.
+    vehicle.platform.update(now_, vehicle.model->snapshot());
+    vehicle.model->command(vehicle.platform.command());
+    vehicle.model->step(dt);
+  }
+  now_ += options_.physics_step;
+  for (auto& listener : listeners_) listener(now_);
+}
+
+void Simulation::advance(SimDuration duration) {
+  std::lock_guard lock(mutex_);
+  const SimTime end = now_ + duration;
+  while (now_ < end) stepLocked();
+}
+
+void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::atomic<bool>& stop) {
+  using Clock = std::chrono::steady_clock;
+  auto wall_start = Clock::now();
+  SimTime sim_start = now();
+  double scale = time_scale.load();
+  while (!stop.load()) {
+    const double current = time_scale.load();
+    if (current != scale) {  // re-anchor so that a new scale applies from now on
+      scale = current;
+      wall_start = Clock::now();
+      sim_start = now();
+    }
+    const auto wall_elapsed = Clock::now() - wall_start;
+    const SimTime target =
+        sim_start + std::chrono::duration_cast<SimDuration>(wall_elapsed * scale);
+    SimTime reached;
+    {
+      std::lock_guard lock(mutex_);
+      // Catch up in bounded batches so that RPCs get the mutex in between.
+      for (int i = 0; i < 100 && now_ < target; ++i) stepLocked();
+      reached = now_;
+    }
+    const double wall_s = std::chrono::duration<double>(Clock::now() - wall_start).count();
+    if (wall_s > 0.5) {
+      real_time_factor_.store(std::chrono::duration<double>(reached - sim_start).count() / wall_s);
+    }
+    if (reached >= target) {
+      // Ahead of the scaled wall clock: sleep until the next step is due.
+      const auto due = wall_start + std::chrono::duration_cast<Clock::duration>(
+                                        (reached - sim_start + options_.physics_step) / scale);
+      std::this_thread::sleep_until(due);
+    }
+  }
+}
+
+absl::StatusOr<std::pair<VehicleSnapshot, v1::FlightState>> Simulation::vehicleState(
+    const std::string& robot_id) const {
+  std::lock_guard lock(mutex_);
+  auto it = vehicles_.find(robot_id);
+  if (it == vehicles_.end()) return unknownVehicle(robot_id);
+  return std::make_pair(it->second.model->snapshot(), it->second.platform.state());
+}
+
+}  // namespace behaviorlib::sim

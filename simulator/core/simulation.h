@@ -1,0 +1,102 @@
+#pragma once
+
+// Simulation: simulated time, the fixed physics step and the vehicles of one
+// world, each a VehicleModel (the physics) behind a VehiclePlatform (lease,
+// flight states, failsafe). No gRPC: the simulator service drives it, tests
+// drive it directly.
+//
+//   Simulation sim({.physics_step = 1ms});
+//   sim.addVehicle("drone1", std::make_unique<MyModel>());
+//   sim.advance(std::chrono::seconds(2));             // lock-step
+//   // or: sim.runRealTime(5.0, stop_flag)            // 5x real time, paced by the wall clock
+//
+// Thread-safety: every public method takes the simulation's mutex; listeners
+// run on the stepping thread with the mutex held and must not call back in.
+
+#include <atomic>
+#include <chrono>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "simulator/platform/vehicle_platform.h"
+
+namespace behaviorlib::sim {
+
+/// The physics of one vehicle, as the simulation needs it.
+class VehicleModel {
+ public:
+  virtual ~VehicleModel() = default;
+  /// What the autopilot should track from now on.
+  virtual void command(const PlatformCommand& command) = 0;
+  /// Advances the vehicle by `dt` seconds.
+  virtual void step(double dt_s) = 0;
+  /// Current state for the platform logic and for publishing.
+  virtual VehicleSnapshot snapshot() const = 0;
+};
+
+struct SimulationOptions {
+  /// Fixed physics step.
+  SimDuration physics_step = std::chrono::milliseconds(1);
+  PlatformOptions platform;
+};
+
+class Simulation {
+ public:
+  /// Called after every physics step with the simulated time (mutex held).
+  using StepListener = std::function<void(SimTime now)>;
+
+  explicit Simulation(SimulationOptions options);
+
+  /// Adds a vehicle; ALREADY_EXISTS for a duplicate robot id.
+  absl::Status addVehicle(const std::string& robot_id, std::unique_ptr<VehicleModel> model);
+  std::vector<std::string> robotIds() const;
+  void addStepListener(StepListener listener);
+
+  SimTime now() const;
+  /// Advances simulated time by `duration` (rounded up to whole steps) as
+  /// fast as possible; used in lock-step mode and by tests.
+  void advance(SimDuration duration);
+  /// Steps in real time scaled by `time_scale` (simulated seconds per wall
+  /// second) until `stop` becomes true; never runs ahead of the scaled wall
+  /// clock, and reports how far it fell behind through realTimeFactor().
+  void runRealTime(const std::atomic<double>& time_scale, const std::atomic<bool>& stop);
+  /// Simulated seconds per wall second achieved by the last runRealTime.
+  double realTimeFactor() const { return real_time_factor_.load(); }
+
+  /// Runs `f` on the platform of `robot_id` under the simulation's mutex
+  /// (NOT_FOUND for an unknown vehicle). The platform sees the current time.
+  template <class F>
+  auto withPlatform(const std::string& robot_id, F&& f)
+      -> absl::StatusOr<decltype(f(std::declval<VehiclePlatform&>(), SimTime{}))> {
+    std::lock_guard lock(mutex_);
+    auto it = vehicles_.find(robot_id);
+    if (it == vehicles_.end()) return unknownVehicle(robot_id);
+    return f(it->second.platform, now_);
+  }
+  /// The vehicle's latest snapshot and flight state.
+  absl::StatusOr<std::pair<VehicleSnapshot, v1::FlightState>> vehicleState(
+      const std::string& robot_id) const;
+
+ private:
+  struct Vehicle {
+    VehiclePlatform platform;
+    std::unique_ptr<VehicleModel> model;
+  };
+  void stepLocked();
+  absl::Status unknownVehicle(const std::string& robot_id) const;
+
+  SimulationOptions options_;
+  mutable std::mutex mutex_;
+  SimTime now_{0};
+  std::map<std::string, Vehicle> vehicles_;
+  std::vector<StepListener> listeners_;
+  std::atomic<double> real_time_factor_{0.0};
+};
+
+}  // namespace behaviorlib::sim

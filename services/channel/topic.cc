@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "behaviorlib/v1/platform.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
 namespace behaviorlib::channel {
@@ -28,11 +29,15 @@ absl::Status badTopic(absl::string_view topic, absl::string_view problem) {
       absl::StrCat("invalid topic '", topic, "': ", problem, "; ", kRule));
 }
 
-// Samples of the standard data types (types.proto) must be accepted even by a
-// binary that never names one of them: a static library's object file, and so
-// its descriptor registration, is only linked when something references it.
+// Samples of the standard data types (types.proto) and of the platform's
+// status (platform.proto, published by the simulator) must be accepted even
+// by a binary that never names one of them: a static library's object file,
+// and so its descriptor registration, is only linked when something
+// references it.
 [[maybe_unused]] const google::protobuf::Descriptor* const kLinkStandardTypes =
     v1::Clock::descriptor();
+[[maybe_unused]] const google::protobuf::Descriptor* const kLinkPlatformTypes =
+    v1::FlightStatus::descriptor();
 
 }  // namespace
 

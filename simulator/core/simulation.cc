@@ -52,7 +52,12 @@ void Simulation::stepLocked() {
     vehicle.model->step(dt);
   }
   now_ += options_.physics_step;
-  for (auto& listener : listeners_) listener(now_);
+  if (listeners_.empty()) return;
+  reports_.clear();
+  for (const auto& [id, vehicle] : vehicles_) {
+    reports_.push_back({&id, vehicle.model->snapshot(), &vehicle.platform});
+  }
+  for (auto& listener : listeners_) listener(now_, reports_);
 }
 
 void Simulation::advance(SimDuration duration) {
@@ -61,14 +66,22 @@ void Simulation::advance(SimDuration duration) {
   while (now_ < end) stepLocked();
 }
 
-void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::atomic<bool>& stop) {
+void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::atomic<bool>& paused,
+                             const std::atomic<bool>& stop) {
   using Clock = std::chrono::steady_clock;
   auto wall_start = Clock::now();
   SimTime sim_start = now();
   double scale = time_scale.load();
+  bool was_paused = false;
   while (!stop.load()) {
+    if (paused.load()) {
+      was_paused = true;
+      std::this_thread::sleep_for(std::chrono::milliseconds(5));
+      continue;
+    }
     const double current = time_scale.load();
-    if (current != scale) {  // re-anchor so that a new scale applies from now on
+    if (current != scale || was_paused) {  // re-anchor: the new pace applies from now on
+      was_paused = false;
       scale = current;
       wall_start = Clock::now();
       sim_start = now();

@@ -46,10 +46,18 @@ struct SimulationOptions {
   PlatformOptions platform;
 };
 
+/// One vehicle as step listeners see it (valid during the call only).
+struct VehicleReport {
+  const std::string* robot_id;
+  VehicleSnapshot snapshot;
+  const VehiclePlatform* platform;
+};
+
 class Simulation {
  public:
-  /// Called after every physics step with the simulated time (mutex held).
-  using StepListener = std::function<void(SimTime now)>;
+  /// Called after every physics step with the simulated time and every
+  /// vehicle (mutex held: must be quick, must not call back in).
+  using StepListener = std::function<void(SimTime now, const std::vector<VehicleReport>& vehicles)>;
 
   explicit Simulation(SimulationOptions options);
 
@@ -63,9 +71,11 @@ class Simulation {
   /// fast as possible; used in lock-step mode and by tests.
   void advance(SimDuration duration);
   /// Steps in real time scaled by `time_scale` (simulated seconds per wall
-  /// second) until `stop` becomes true; never runs ahead of the scaled wall
-  /// clock, and reports how far it fell behind through realTimeFactor().
-  void runRealTime(const std::atomic<double>& time_scale, const std::atomic<bool>& stop);
+  /// second) until `stop` becomes true, except while `paused` (lock-step:
+  /// others advance time); never runs ahead of the scaled wall clock, and
+  /// reports the achieved rate through realTimeFactor().
+  void runRealTime(const std::atomic<double>& time_scale, const std::atomic<bool>& paused,
+                   const std::atomic<bool>& stop);
   /// Simulated seconds per wall second achieved by the last runRealTime.
   double realTimeFactor() const { return real_time_factor_.load(); }
 
@@ -96,6 +106,7 @@ class Simulation {
   SimTime now_{0};
   std::map<std::string, Vehicle> vehicles_;
   std::vector<StepListener> listeners_;
+  std::vector<VehicleReport> reports_;  // reused every step
   std::atomic<double> real_time_factor_{0.0};
 };
 

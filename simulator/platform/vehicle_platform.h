@@ -34,8 +34,10 @@ struct VehicleSnapshot {
   Eigen::Vector3d position_m = Eigen::Vector3d::Zero();    ///< world ENU
   Eigen::Vector3d velocity_m_s = Eigen::Vector3d::Zero();  ///< world ENU
   double yaw_rad = 0.0;                                    ///< counter-clockwise from +x (east)
-  bool on_ground = true;                                   ///< resting on the ground (landed)
-  bool crashed = false;                                    ///< hard impact or collision
+  Eigen::Quaterniond orientation = Eigen::Quaterniond::Identity();   ///< world <- body
+  Eigen::Vector3d angular_velocity_rad_s = Eigen::Vector3d::Zero();  ///< body FLU
+  bool on_ground = true;  ///< resting on the ground (landed)
+  bool crashed = false;   ///< hard impact or collision
   double battery_ratio = 1.0;
 };
 

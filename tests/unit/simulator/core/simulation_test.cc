@@ -73,13 +73,18 @@ class SimulationTest : public ::testing::Test {
 
 TEST_F(SimulationTest, AdvanceStepsAtTheFixedPhysicsRateAndNotifiesListeners) {
   std::vector<SimTime> stamps;
-  sim_.addStepListener([&](SimTime now) { stamps.push_back(now); });
+  size_t reported = 0;
+  sim_.addStepListener([&](SimTime now, const std::vector<VehicleReport>& vehicles) {
+    stamps.push_back(now);
+    reported = vehicles.size();
+  });
   sim_.advance(milliseconds(250));
   EXPECT_EQ(sim_.now(), milliseconds(250));
   EXPECT_EQ(model_->steps_, 250);
   ASSERT_EQ(stamps.size(), 250u);
   EXPECT_EQ(stamps.front(), milliseconds(1));
   EXPECT_EQ(stamps.back(), milliseconds(250));
+  EXPECT_EQ(reported, 1u);
 }
 
 TEST_F(SimulationTest, TakeOffInClosedLoopReachesHoveringAtTheTargetAltitude) {
@@ -140,9 +145,9 @@ TEST_F(SimulationTest, UnknownAndDuplicateVehiclesAreReported) {
 
 TEST_F(SimulationTest, RealTimeRunNeverGetsAheadOfTheScaledWallClock) {
   std::atomic<double> scale{20.0};
-  std::atomic<bool> stop{false};
+  std::atomic<bool> stop{false}, paused{false};
   const auto wall_start = std::chrono::steady_clock::now();
-  std::thread runner([&] { sim_.runRealTime(scale, stop); });
+  std::thread runner([&] { sim_.runRealTime(scale, paused, stop); });
   std::this_thread::sleep_for(milliseconds(200));
   stop = true;
   runner.join();

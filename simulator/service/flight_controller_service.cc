@@ -1,0 +1,208 @@
+#include "simulator/service/flight_controller_service.h"
+
+#include <google/protobuf/util/time_util.h>
+
+#include "simulator/service/latest_writer.h"
+
+namespace behaviorlib::sim {
+namespace {
+
+grpc::Status toGrpc(const absl::Status& s) {
+  if (s.ok()) return grpc::Status::OK;
+  return grpc::Status(static_cast<grpc::StatusCode>(s.code()), std::string(s.message()));
+}
+
+// Runs a platform call and finishes the reactor with its outcome. `fill`
+// copies a successful value into the response.
+template <class F, class Fill>
+grpc::ServerUnaryReactor* platformCall(grpc::CallbackServerContext* context, Simulation& simulation,
+                                       const std::string& robot_id, F&& call, Fill&& fill) {
+  auto* reactor = context->DefaultReactor();
+  auto outer = simulation.withPlatform(robot_id, std::forward<F>(call));
+  if (!outer.ok()) {
+    reactor->Finish(toGrpc(outer.status()));
+  } else if (!outer->ok()) {
+    reactor->Finish(toGrpc(outer->status()));
+  } else {
+    fill(**outer);
+    reactor->Finish(grpc::Status::OK);
+  }
+  return reactor;
+}
+
+v1::FlightStatus statusOf(const std::string& robot_id, SimTime now, const VehicleReport& report) {
+  v1::FlightStatus status;
+  status.mutable_header()->set_robot_id(robot_id);
+  status.mutable_header()->set_frame_id("world");
+  *status.mutable_header()->mutable_stamp() =
+      google::protobuf::util::TimeUtil::NanosecondsToTimestamp(now.count());
+  status.set_state(report.platform->state());
+  status.set_lease_holder(report.platform->leaseHolder());
+  status.set_failsafe_active(report.platform->failsafeActive());
+  status.set_battery_ratio(report.snapshot.battery_ratio);
+  return status;
+}
+
+bool sameStatus(const v1::FlightStatus& a, const v1::FlightStatus& b) {
+  return a.state() == b.state() && a.lease_holder() == b.lease_holder() &&
+         a.failsafe_active() == b.failsafe_active() &&
+         std::abs(a.battery_ratio() - b.battery_ratio()) < 0.01;
+}
+
+}  // namespace
+
+// One StreamSetpoints stream: applies each setpoint; the first refusal ends it.
+class SetpointReader final : public grpc::ServerReadReactor<v1::SetpointRequest> {
+ public:
+  SetpointReader(FlightControllerService* service, v1::StreamSetpointsResponse* response)
+      : service_(service), response_(response) {
+    StartRead(&request_);
+  }
+  void OnReadDone(bool ok) override {
+    if (!ok) {  // the client finished sending
+      Finish(grpc::Status::OK);
+      return;
+    }
+    auto applied = service_->applySetpoint(request_);
+    if (!applied.ok()) {
+      Finish(toGrpc(applied.status()));
+      return;
+    }
+    response_->set_accepted_count(response_->accepted_count() + 1);
+    StartRead(&request_);
+  }
+  void OnDone() override { delete this; }
+
+ private:
+  FlightControllerService* service_;
+  v1::StreamSetpointsResponse* response_;
+  v1::SetpointRequest request_;
+};
+
+FlightControllerService::FlightControllerService(Simulation& simulation) : simulation_(simulation) {
+  simulation_.addStepListener([this](SimTime now, const std::vector<VehicleReport>& vehicles) {
+    std::lock_guard lock(watchers_mutex_);
+    for (const auto& report : vehicles) {
+      const std::string& id = *report.robot_id;
+      v1::FlightStatus status = statusOf(id, now, report);
+      auto it = last_status_.find(id);
+      if (it != last_status_.end() && sameStatus(it->second, status)) continue;
+      last_status_[id] = status;
+      v1::WatchFlightStateResponse message;
+      *message.mutable_status() = status;
+      for (auto* watcher : watchers_) {
+        if (watcher->key() == id) watcher->offer(message);
+      }
+    }
+  });
+}
+
+FlightControllerService::~FlightControllerService() = default;
+
+void FlightControllerService::shutdown() {
+  std::lock_guard lock(watchers_mutex_);
+  shutting_down_ = true;
+  for (auto* watcher : watchers_) {
+    watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));
+  }
+}
+
+void FlightControllerService::removeWatcher(FlightStatusWatcher* watcher) {
+  std::lock_guard lock(watchers_mutex_);
+  watchers_.erase(watcher);
+}
+
+grpc::ServerUnaryReactor* FlightControllerService::AcquireLease(
+    grpc::CallbackServerContext* context, const v1::AcquireLeaseRequest* request,
+    v1::AcquireLeaseResponse* response) {
+  const auto ttl = std::chrono::nanoseconds(
+      google::protobuf::util::TimeUtil::DurationToNanoseconds(request->ttl()));
+  return platformCall(
+      context, simulation_, request->robot_id(),
+      [&](VehiclePlatform& p, SimTime now) {
+        return p.acquireLease(request->holder(), ttl, request->preempt(), now);
+      },
+      [&](const v1::AcquireLeaseResponse& r) { *response = r; });
+}
+
+grpc::ServerUnaryReactor* FlightControllerService::RenewLease(grpc::CallbackServerContext* context,
+                                                              const v1::RenewLeaseRequest* request,
+                                                              v1::RenewLeaseResponse* response) {
+  return platformCall(
+      context, simulation_, request->robot_id(),
+      [&](VehiclePlatform& p, SimTime now) { return p.renewLease(request->lease_id(), now); },
+      [&](const v1::RenewLeaseResponse& r) { *response = r; });
+}
+
+grpc::ServerUnaryReactor* FlightControllerService::ReleaseLease(
+    grpc::CallbackServerContext* context, const v1::ReleaseLeaseRequest* request,
+    v1::ReleaseLeaseResponse* /*response*/) {
+  return platformCall(
+      context, simulation_, request->robot_id(),
+      [&](VehiclePlatform& p, SimTime now) -> absl::StatusOr<bool> {
+        if (absl::Status s = p.releaseLease(request->lease_id(), now); !s.ok()) return s;
+        return true;
+      },
+      [](bool) {});
+}
+
+grpc::ServerUnaryReactor* FlightControllerService::ExecuteFlightAction(
+    grpc::CallbackServerContext* context, const v1::ExecuteFlightActionRequest* request,
+    v1::ExecuteFlightActionResponse* response) {
+  return platformCall(
+      context, simulation_, request->robot_id(),
+      [&](VehiclePlatform& p, SimTime now) {
+        return p.executeAction(request->action(), request->lease_id(),
+                               request->takeoff_altitude_m(), request->confirm(), now);
+      },
+      [&](v1::FlightState state) { response->set_state(state); });
+}
+
+absl::StatusOr<v1::FlightState> FlightControllerService::applySetpoint(
+    const v1::SetpointRequest& request) {
+  auto outer = simulation_.withPlatform(request.robot_id(), [&](VehiclePlatform& p, SimTime now) {
+    return p.setpoint(request, now);
+  });
+  if (!outer.ok()) return outer.status();
+  return *outer;
+}
+
+grpc::ServerUnaryReactor* FlightControllerService::SendSetpoint(
+    grpc::CallbackServerContext* context, const v1::SetpointRequest* request,
+    v1::SendSetpointResponse* response) {
+  auto* reactor = context->DefaultReactor();
+  auto applied = applySetpoint(*request);
+  if (applied.ok()) response->set_state(*applied);
+  reactor->Finish(toGrpc(applied.status()));
+  return reactor;
+}
+
+grpc::ServerReadReactor<v1::SetpointRequest>* FlightControllerService::StreamSetpoints(
+    grpc::CallbackServerContext* /*context*/, v1::StreamSetpointsResponse* response) {
+  return new SetpointReader(this, response);
+}
+
+grpc::ServerWriteReactor<v1::WatchFlightStateResponse>* FlightControllerService::WatchFlightState(
+    grpc::CallbackServerContext* /*context*/, const v1::WatchFlightStateRequest* request) {
+  auto* watcher = new FlightStatusWatcher(request->robot_id(),
+                                          [this](FlightStatusWatcher* w) { removeWatcher(w); });
+  auto state = simulation_.vehicleState(request->robot_id());
+  std::lock_guard lock(watchers_mutex_);
+  if (!state.ok()) {
+    watcher->end(toGrpc(state.status()));
+    return watcher;
+  }
+  if (shutting_down_) {
+    watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));
+    return watcher;
+  }
+  watchers_.insert(watcher);
+  if (auto it = last_status_.find(request->robot_id()); it != last_status_.end()) {
+    v1::WatchFlightStateResponse message;  // the current status first
+    *message.mutable_status() = it->second;
+    watcher->offer(message);
+  }
+  return watcher;
+}
+
+}  // namespace behaviorlib::sim

@@ -1,0 +1,66 @@
+#pragma once
+
+// The FlightController gRPC service over a Simulation: each call runs on the
+// vehicle's VehiclePlatform under the simulation's mutex. Flight-state
+// watchers are fed by a step listener (latest status per vehicle; a slow
+// watcher skips intermediate states but never blocks the physics).
+
+#include <grpcpp/grpcpp.h>
+
+#include <map>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+
+#include "behaviorlib/v1/platform.grpc.pb.h"
+#include "simulator/core/simulation.h"
+#include "simulator/service/latest_writer.h"
+
+namespace behaviorlib::sim {
+
+using FlightStatusWatcher = LatestWriter<v1::WatchFlightStateResponse>;
+
+class FlightControllerService final : public v1::FlightController::CallbackService {
+ public:
+  explicit FlightControllerService(Simulation& simulation);
+  ~FlightControllerService() override;
+
+  /// Ends every WatchFlightState and StreamSetpoints stream (shutdown).
+  void shutdown();
+
+  grpc::ServerUnaryReactor* AcquireLease(grpc::CallbackServerContext* context,
+                                         const v1::AcquireLeaseRequest* request,
+                                         v1::AcquireLeaseResponse* response) override;
+  grpc::ServerUnaryReactor* RenewLease(grpc::CallbackServerContext* context,
+                                       const v1::RenewLeaseRequest* request,
+                                       v1::RenewLeaseResponse* response) override;
+  grpc::ServerUnaryReactor* ReleaseLease(grpc::CallbackServerContext* context,
+                                         const v1::ReleaseLeaseRequest* request,
+                                         v1::ReleaseLeaseResponse* response) override;
+  grpc::ServerUnaryReactor* ExecuteFlightAction(grpc::CallbackServerContext* context,
+                                                const v1::ExecuteFlightActionRequest* request,
+                                                v1::ExecuteFlightActionResponse* response) override;
+  grpc::ServerUnaryReactor* SendSetpoint(grpc::CallbackServerContext* context,
+                                         const v1::SetpointRequest* request,
+                                         v1::SendSetpointResponse* response) override;
+  grpc::ServerReadReactor<v1::SetpointRequest>* StreamSetpoints(
+      grpc::CallbackServerContext* context, v1::StreamSetpointsResponse* response) override;
+  grpc::ServerWriteReactor<v1::WatchFlightStateResponse>* WatchFlightState(
+      grpc::CallbackServerContext* context, const v1::WatchFlightStateRequest* request) override;
+
+  /// Applies one setpoint (shared by SendSetpoint and StreamSetpoints).
+  absl::StatusOr<v1::FlightState> applySetpoint(const v1::SetpointRequest& request);
+
+ private:
+  void onStep(SimTime now);
+  void removeWatcher(FlightStatusWatcher* watcher);
+
+  Simulation& simulation_;
+  std::mutex watchers_mutex_;
+  std::set<FlightStatusWatcher*> watchers_;
+  std::map<std::string, v1::FlightStatus> last_status_;
+  bool shutting_down_ = false;
+};
+
+}  // namespace behaviorlib::sim

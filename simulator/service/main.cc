@@ -1,0 +1,116 @@
+// simulator: the quadrotor simulation service. Serves FlightController (the
+// platform interface) and Simulator (time, state, faults) on one port, and
+// publishes simulated time and ground truth on the data channel.
+
+#include <cstdio>
+#include <sstream>
+#include <thread>
+
+#include "behaviorlib/server/flags.h"
+#include "behaviorlib/server/server_runtime.h"
+#include "behaviorlib/v1/platform.grpc.pb.h"
+#include "behaviorlib/v1/simulator.grpc.pb.h"
+#include "channel/channel_client.h"
+#include "simulator/service/channel_publisher.h"
+#include "simulator/service/flight_controller_service.h"
+#include "simulator/service/simulator_service.h"
+#include "simulator/service/vehicle_models.h"
+
+int main(int argc, char** argv) {
+  using behaviorlib::server::fatal;
+  using behaviorlib::server::FlagSet;
+  using behaviorlib::server::ServerRuntime;
+  namespace sim = behaviorlib::sim;
+  ServerRuntime::blockShutdownSignals();
+  const std::string program = "simulator";
+
+  std::string listen = "127.0.0.1:50070";
+  std::string metrics_listen = "127.0.0.1:0";
+  std::string port_file;
+  std::string channel;
+  std::string vehicles = "drone1";
+  double time_scale = 1.0;
+  bool lock_step = false;
+  bool fault_injection = false;
+  FlagSet flags(
+      "quadrotor simulator: FlightController + Simulator services, state and time on "
+      "the data channel");
+  flags.add("listen", &listen, "gRPC address host:port (port 0 picks a free port)");
+  flags.add("metrics-listen", &metrics_listen, "Prometheus /metrics address (empty disables)");
+  flags.add("port-file", &port_file, "write the bound ports here (grpc_port=, metrics_port=)");
+  flags.add("channel", &channel, "data channel broker address; empty: publish nothing");
+  flags.add("vehicles", &vehicles,
+            "comma-separated robot ids; vehicle i starts landed at x = 2 i m");
+  flags.add("time-scale", &time_scale, "simulated seconds per wall second (0.1..1000)");
+  flags.add("lock-step", &lock_step, "advance time only through Simulator.Step");
+  flags.add("enable-fault-injection", &fault_injection, "accept Simulator.InjectFailure");
+  int exit_code = 0;
+  if (!flags.parse(argc, argv, &exit_code)) return exit_code;
+  if (!(time_scale >= 0.1 && time_scale <= 1000.0)) {
+    fatal(program, "--time-scale must be within [0.1, 1000]");
+    return 2;
+  }
+
+  sim::Simulation simulation(sim::SimulationOptions{});
+  std::istringstream ids(vehicles);
+  std::string id;
+  int index = 0;
+  while (std::getline(ids, id, ',')) {
+    if (id.empty()) continue;
+    auto status = simulation.addVehicle(
+        id, sim::makeQuadrotorModel(Eigen::Vector3d(2.0 * index++, 0.0, 0.0)));
+    if (!status.ok()) {
+      fatal(program, "--vehicles: " + std::string(status.message()));
+      return 2;
+    }
+  }
+  if (index == 0) {
+    fatal(program, "--vehicles names no vehicle");
+    return 2;
+  }
+
+  sim::TimeControl time;
+  time.time_scale.store(time_scale);
+  time.lock_step.store(lock_step);
+
+  std::unique_ptr<behaviorlib::channel::ChannelClient> client;
+  std::unique_ptr<sim::ChannelPublisher> publisher;
+  if (!channel.empty()) {
+    client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
+    publisher =
+        std::make_unique<sim::ChannelPublisher>(*client, simulation, time, sim::PublishRates{});
+  }
+
+  ServerRuntime runtime;
+  std::string error;
+  if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
+  sim::FlightControllerService flight_controller(simulation);
+  sim::SimulatorService simulator(simulation, time, fault_injection);
+  grpc::ServerBuilder builder;
+  builder.RegisterService(&flight_controller);
+  builder.RegisterService(&simulator);
+  if (!runtime.startServer(builder, listen,
+                           {behaviorlib::v1::FlightController::service_full_name(),
+                            behaviorlib::v1::Simulator::service_full_name()},
+                           &error)) {
+    return fatal(program, error);
+  }
+  if (!runtime.writePortFile(port_file, &error)) return fatal(program, error);
+
+  // The stepping thread: real time scaled; in lock-step, Step drives time.
+  std::atomic<bool> stop{false};
+  std::thread stepper([&] { simulation.runRealTime(time.time_scale, time.lock_step, stop); });
+  std::fprintf(stderr, "%s: vehicles [%s], gRPC on port %d, metrics on port %d, time scale %g%s\n",
+               program.c_str(), vehicles.c_str(), runtime.grpcPort(), runtime.metricsPort(),
+               time_scale, lock_step ? " (lock-step)" : "");
+
+  ServerRuntime::waitForShutdownSignal();
+  std::fprintf(stderr, "%s: shutting down\n", program.c_str());
+  flight_controller.shutdown();
+  simulator.shutdown();
+  runtime.shutdown(std::chrono::seconds(2));
+  stop = true;
+  stepper.join();
+  publisher.reset();
+  return 0;
+}

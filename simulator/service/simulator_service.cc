@@ -1,0 +1,164 @@
+#include "simulator/service/simulator_service.h"
+
+#include <google/protobuf/util/time_util.h>
+
+#include <cmath>
+
+namespace behaviorlib::sim {
+namespace {
+
+using google::protobuf::util::TimeUtil;
+
+grpc::ServerUnaryReactor* finish(grpc::CallbackServerContext* context, const grpc::Status& s) {
+  auto* reactor = context->DefaultReactor();
+  reactor->Finish(s);
+  return reactor;
+}
+
+void setVector(v1::Vector3* out, const Eigen::Vector3d& v) {
+  out->set_x(v.x());
+  out->set_y(v.y());
+  out->set_z(v.z());
+}
+
+}  // namespace
+
+v1::VehicleState vehicleStateMessage(const std::string& robot_id, SimTime now,
+                                     const VehicleReport& report) {
+  v1::VehicleState state;
+  state.mutable_header()->set_robot_id(robot_id);
+  state.mutable_header()->set_frame_id("world");
+  *state.mutable_header()->mutable_stamp() = TimeUtil::NanosecondsToTimestamp(now.count());
+  const auto& s = report.snapshot;
+  setVector(state.mutable_pose()->mutable_position_m(), s.position_m);
+  auto* q = state.mutable_pose()->mutable_orientation();
+  q->set_w(s.orientation.w());
+  q->set_x(s.orientation.x());
+  q->set_y(s.orientation.y());
+  q->set_z(s.orientation.z());
+  setVector(state.mutable_twist()->mutable_linear_m_s(), s.velocity_m_s);
+  setVector(state.mutable_twist()->mutable_angular_rad_s(), s.angular_velocity_rad_s);
+  state.set_flight_state(report.platform->state());
+  state.set_battery_ratio(s.battery_ratio);
+  state.set_crashed(s.crashed);
+  return state;
+}
+
+SimulatorService::SimulatorService(Simulation& simulation, TimeControl& time,
+                                   bool fault_injection_enabled)
+    : simulation_(simulation), time_(time), fault_injection_enabled_(fault_injection_enabled) {
+  simulation_.addStepListener([this](SimTime now, const std::vector<VehicleReport>& vehicles) {
+    std::lock_guard lock(watchers_mutex_);
+    if (watchers_.empty()) return;
+    const double t = std::chrono::duration<double>(now).count();
+    for (auto& [watcher, watch] : watchers_) {
+      if (t + 1e-9 < watch.next_s) continue;
+      watch.next_s = t + watch.period_s;
+      for (const auto& report : vehicles) {
+        if (!watcher->key().empty() && watcher->key() != *report.robot_id) continue;
+        v1::WatchStateResponse message;
+        *message.mutable_state() = vehicleStateMessage(*report.robot_id, now, report);
+        watcher->offer(message);
+      }
+    }
+  });
+}
+
+void SimulatorService::shutdown() {
+  std::lock_guard lock(watchers_mutex_);
+  shutting_down_ = true;
+  for (auto& [watcher, watch] : watchers_) {
+    watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));
+  }
+}
+
+void SimulatorService::removeWatcher(StateWatcher* watcher) {
+  std::lock_guard lock(watchers_mutex_);
+  watchers_.erase(watcher);
+}
+
+grpc::ServerUnaryReactor* SimulatorService::Reset(grpc::CallbackServerContext* context,
+                                                  const v1::ResetRequest* /*request*/,
+                                                  v1::ResetResponse* /*response*/) {
+  return finish(context, grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                                      "Reset is not built yet: world files are not loaded by "
+                                      "this version of the simulator"));
+}
+
+grpc::ServerUnaryReactor* SimulatorService::SetTimeScale(grpc::CallbackServerContext* context,
+                                                         const v1::SetTimeScaleRequest* request,
+                                                         v1::SetTimeScaleResponse* response) {
+  if (!request->lock_step()) {
+    const double scale = request->time_scale();
+    if (!std::isfinite(scale) || scale < 0.1 || scale > 1000.0) {
+      return finish(context, grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                                          "time_scale must be within [0.1, 1000], got " +
+                                              std::to_string(scale)));
+    }
+    time_.time_scale.store(scale);
+  }
+  time_.lock_step.store(request->lock_step());
+  response->set_time_scale(time_.time_scale.load());
+  response->set_lock_step(time_.lock_step.load());
+  return finish(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* SimulatorService::Step(grpc::CallbackServerContext* context,
+                                                 const v1::StepRequest* request,
+                                                 v1::StepResponse* response) {
+  if (!time_.lock_step.load()) {
+    return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                                        "Step needs lock-step mode: call SetTimeScale with "
+                                        "lock_step = true first"));
+  }
+  const int64_t ns = TimeUtil::DurationToNanoseconds(request->duration());
+  if (ns <= 0 || ns > int64_t{3600} * 1000000000) {
+    return finish(context, grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                                        "duration must be within (0, 3600 s]"));
+  }
+  simulation_.advance(std::chrono::nanoseconds(ns));
+  *response->mutable_time() = TimeUtil::NanosecondsToTimestamp(simulation_.now().count());
+  return finish(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* SimulatorService::InjectFailure(grpc::CallbackServerContext* context,
+                                                          const v1::InjectFailureRequest* request,
+                                                          v1::InjectFailureResponse* /*response*/) {
+  if (!fault_injection_enabled_) {
+    return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                                        "fault injection is disabled; start the simulator with "
+                                        "--enable-fault-injection"));
+  }
+  return finish(context, grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
+                                      "fault injection of " +
+                                          v1::FailureComponent_Name(request->component()) +
+                                          " is not modelled yet"));
+}
+
+grpc::ServerWriteReactor<v1::WatchStateResponse>* SimulatorService::WatchState(
+    grpc::CallbackServerContext* /*context*/, const v1::WatchStateRequest* request) {
+  // One robot id per stream in this version (empty: all vehicles).
+  const std::string key = request->robot_ids_size() == 1 ? request->robot_ids(0) : "";
+  auto* watcher = new StateWatcher(key, [this](StateWatcher* w) { removeWatcher(w); });
+  if (request->robot_ids_size() > 1) {
+    watcher->end(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                              "name one robot id, or none for all vehicles"));
+    return watcher;
+  }
+  if (!key.empty()) {
+    if (auto s = simulation_.vehicleState(key); !s.ok()) {
+      watcher->end(grpc::Status(grpc::StatusCode::NOT_FOUND, std::string(s.status().message())));
+      return watcher;
+    }
+  }
+  const double rate = request->rate_hz() > 0 ? std::min(request->rate_hz(), 1000.0) : 50.0;
+  std::lock_guard lock(watchers_mutex_);
+  if (shutting_down_) {
+    watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));
+    return watcher;
+  }
+  watchers_[watcher] = Watch{1.0 / rate};
+  return watcher;
+}
+
+}  // namespace behaviorlib::sim

@@ -1,0 +1,68 @@
+#pragma once
+
+// The Simulator gRPC service: time scale and lock-step, Step, WatchState,
+// and (refused unless enabled) fault injection.
+
+#include <grpcpp/grpcpp.h>
+
+#include <atomic>
+#include <map>
+#include <mutex>
+#include <set>
+
+#include "behaviorlib/v1/simulator.grpc.pb.h"
+#include "simulator/core/simulation.h"
+#include "simulator/service/latest_writer.h"
+
+namespace behaviorlib::sim {
+
+/// How the simulation is paced; shared with the stepping thread.
+struct TimeControl {
+  std::atomic<double> time_scale{1.0};
+  std::atomic<bool> lock_step{false};
+};
+
+using StateWatcher = LatestWriter<v1::WatchStateResponse>;
+
+class SimulatorService final : public v1::Simulator::CallbackService {
+ public:
+  SimulatorService(Simulation& simulation, TimeControl& time, bool fault_injection_enabled);
+
+  /// Ends every WatchState stream (shutdown).
+  void shutdown();
+
+  grpc::ServerUnaryReactor* Reset(grpc::CallbackServerContext* context,
+                                  const v1::ResetRequest* request,
+                                  v1::ResetResponse* response) override;
+  grpc::ServerUnaryReactor* SetTimeScale(grpc::CallbackServerContext* context,
+                                         const v1::SetTimeScaleRequest* request,
+                                         v1::SetTimeScaleResponse* response) override;
+  grpc::ServerUnaryReactor* Step(grpc::CallbackServerContext* context,
+                                 const v1::StepRequest* request,
+                                 v1::StepResponse* response) override;
+  grpc::ServerUnaryReactor* InjectFailure(grpc::CallbackServerContext* context,
+                                          const v1::InjectFailureRequest* request,
+                                          v1::InjectFailureResponse* response) override;
+  grpc::ServerWriteReactor<v1::WatchStateResponse>* WatchState(
+      grpc::CallbackServerContext* context, const v1::WatchStateRequest* request) override;
+
+ private:
+  struct Watch {
+    double period_s;
+    double next_s = 0.0;
+  };
+  void removeWatcher(StateWatcher* watcher);
+
+  Simulation& simulation_;
+  TimeControl& time_;
+  const bool fault_injection_enabled_;
+  std::mutex watchers_mutex_;
+  std::map<StateWatcher*, Watch> watchers_;
+  bool shutting_down_ = false;
+};
+
+/// The ground-truth state of a vehicle as published.
+v1::VehicleState vehicleStateMessage(const std::string& robot_id, SimTime now,
+                                     const VehicleReport& report);
+
+}  // namespace behaviorlib::sim

@@ -1,0 +1,72 @@
+#include "simulator/service/vehicle_models.h"
+
+#include <cmath>
+
+#include "simulator/dynamics/autopilot.h"
+#include "simulator/dynamics/quadrotor.h"
+
+namespace behaviorlib::sim {
+namespace {
+
+// Translates the platform's command into the autopilot's setpoint.
+Setpoint toSetpoint(const PlatformCommand& c) {
+  switch (c.kind) {
+    case PlatformCommand::Kind::kThrustRates:
+      return ThrustRates{c.thrust_ratio, c.vector};
+    case PlatformCommand::Kind::kAttitudeThrust:
+      return AttitudeThrust{c.orientation, c.thrust_ratio};
+    case PlatformCommand::Kind::kVelocityYawRate:
+      return VelocityYawRate{c.vector, c.yaw_rate_rad_s};
+    case PlatformCommand::Kind::kPositionYaw:
+      return PositionYaw{c.vector, c.yaw_rad};
+    case PlatformCommand::Kind::kIdle:
+      break;
+  }
+  return Idle{};
+}
+
+// The rigid-body quadrotor flown by the simulator's autopilot.
+class QuadrotorModel final : public VehicleModel {
+ public:
+  explicit QuadrotorModel(const Eigen::Vector3d& start)
+      : quadrotor_(QuadrotorParams{}, initialState(start)), autopilot_(QuadrotorParams{}) {}
+
+  void command(const PlatformCommand& command) override { setpoint_ = toSetpoint(command); }
+  void step(double dt_s) override {
+    quadrotor_.step(dt_s, autopilot_.update(quadrotor_.state(), setpoint_, dt_s));
+  }
+  VehicleSnapshot snapshot() const override {
+    const QuadrotorState& s = quadrotor_.state();
+    VehicleSnapshot out;
+    out.position_m = s.position_m;
+    out.velocity_m_s = s.velocity_m_s;
+    out.orientation = s.orientation;
+    out.angular_velocity_rad_s = s.angular_velocity_rad_s;
+    const Eigen::Vector3d forward = s.orientation * Eigen::Vector3d::UnitX();
+    out.yaw_rad = std::atan2(forward.y(), forward.x());
+    out.on_ground = s.landed;
+    out.crashed = s.crashed;
+    out.battery_ratio = s.battery_soc;
+    return out;
+  }
+
+ private:
+  static QuadrotorState initialState(const Eigen::Vector3d& start) {
+    QuadrotorState state;
+    state.position_m = start;
+    state.landed = true;
+    return state;
+  }
+
+  Quadrotor quadrotor_;
+  Autopilot autopilot_;
+  Setpoint setpoint_ = Idle{};
+};
+
+}  // namespace
+
+std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_position_m) {
+  return std::make_unique<QuadrotorModel>(start_position_m);
+}
+
+}  // namespace behaviorlib::sim

@@ -1,0 +1,258 @@
+// The simulator binary with its real dynamics, on free loopback ports, driven
+// over gRPC as a motion controller would, with state and time checked on the
+// real data channel broker.
+
+#include <google/protobuf/util/time_util.h>
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <thread>
+
+#include "behaviorlib/v1/behavior.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.grpc.pb.h"
+#include "behaviorlib/v1/channel.grpc.pb.h"
+#include "behaviorlib/v1/platform.grpc.pb.h"
+#include "behaviorlib/v1/simulator.grpc.pb.h"
+#include "support/server_process.h"
+
+namespace {
+
+namespace v1 = behaviorlib::v1;
+using google::protobuf::util::TimeUtil;
+using std::chrono::milliseconds;
+using std::chrono::seconds;
+
+std::unique_ptr<grpc::ClientContext> deadline(seconds s = seconds(10)) {
+  auto context = std::make_unique<grpc::ClientContext>();
+  context->set_deadline(std::chrono::system_clock::now() + s);
+  return context;
+}
+
+class SimulatorServiceTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    ASSERT_TRUE(broker_.start()) << broker_.error();
+    simulator_ = std::make_unique<support::ServerProcess>(
+        BEHAVIORLIB_SIMULATOR_PATH,
+        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", "drone1,drone2",
+                                 "--time-scale", "10"});
+    ASSERT_TRUE(simulator_->start()) << simulator_->error();
+    auto channel = grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials());
+    flight_ = v1::FlightController::NewStub(channel);
+    sim_ = v1::Simulator::NewStub(channel);
+    data_ = v1::DataChannel::NewStub(
+        grpc::CreateChannel(broker_.address(), grpc::InsecureChannelCredentials()));
+  }
+
+  std::string lease(const std::string& holder = "test-controller", int ttl_ms = 500) {
+    v1::AcquireLeaseRequest request;
+    request.set_robot_id("drone1");
+    request.set_holder(holder);
+    *request.mutable_ttl() = TimeUtil::MillisecondsToDuration(ttl_ms);
+    v1::AcquireLeaseResponse response;
+    auto status = flight_->AcquireLease(deadline().get(), request, &response);
+    EXPECT_TRUE(status.ok()) << status.error_message();
+    return response.lease_id();
+  }
+  grpc::Status action(v1::FlightAction a, const std::string& lease_id, double altitude = 0) {
+    v1::ExecuteFlightActionRequest request;
+    request.set_robot_id("drone1");
+    request.set_lease_id(lease_id);
+    request.set_action(a);
+    request.set_takeoff_altitude_m(altitude);
+    v1::ExecuteFlightActionResponse response;
+    return flight_->ExecuteFlightAction(deadline().get(), request, &response);
+  }
+  // Ground truth of drone1 from the broker.
+  v1::PoseStamped pose() {
+    v1::GetLatestRequest request;
+    request.set_topic("robots/drone1/ground_truth/pose");
+    v1::GetLatestResponse response;
+    v1::PoseStamped pose;
+    if (data_->GetLatest(deadline().get(), request, &response).ok()) {
+      response.sample().sample().UnpackTo(&pose);
+    }
+    return pose;
+  }
+  // Waits (wall time) for drone1's flight state.
+  bool waitForState(v1::FlightState wanted, seconds timeout) {
+    auto context = deadline(timeout);
+    v1::WatchFlightStateRequest request;
+    request.set_robot_id("drone1");
+    auto reader = flight_->WatchFlightState(context.get(), request);
+    v1::WatchFlightStateResponse message;
+    while (reader->Read(&message)) {
+      last_status_ = message.status();
+      if (message.status().state() == wanted) {
+        context->TryCancel();
+        reader->Finish();
+        return true;
+      }
+    }
+    reader->Finish();
+    return false;
+  }
+
+  support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
+  std::unique_ptr<support::ServerProcess> simulator_;
+  std::unique_ptr<v1::FlightController::Stub> flight_;
+  std::unique_ptr<v1::Simulator::Stub> sim_;
+  std::unique_ptr<v1::DataChannel::Stub> data_;
+  v1::FlightStatus last_status_;
+};
+
+TEST_F(SimulatorServiceTest, TakeOffWithTheRealDynamicsHoversAtTheTargetAltitude) {
+  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_LANDED, seconds(5)));
+  const std::string id = lease("test-controller", 5000);
+  ASSERT_TRUE(action(v1::FLIGHT_ACTION_TAKE_OFF, id, 2.0).ok());
+  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_HOVERING, seconds(10)));
+  std::this_thread::sleep_for(milliseconds(500));  // 5 s simulated: settle
+  const auto p = pose();
+  EXPECT_NEAR(p.pose().position_m().z(), 2.0, 0.25);
+  EXPECT_NEAR(p.pose().position_m().x(), 0.0, 0.25);
+  EXPECT_EQ(p.header().robot_id(), "drone1");
+  EXPECT_EQ(p.header().frame_id(), "world");
+}
+
+TEST_F(SimulatorServiceTest, LeaseRefusesOthersAndItsLossHoversThenLands) {
+  const std::string id = lease("controller", 5000);
+  ASSERT_TRUE(action(v1::FLIGHT_ACTION_TAKE_OFF, id, 1.5).ok());
+  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_HOVERING, seconds(10)));
+
+  v1::AcquireLeaseRequest intruder;
+  intruder.set_robot_id("drone1");
+  intruder.set_holder("intruder");
+  v1::AcquireLeaseResponse ignored;
+  auto refused = flight_->AcquireLease(deadline().get(), intruder, &ignored);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  EXPECT_NE(refused.error_message().find("controller"), std::string::npos);
+
+  v1::SetpointRequest setpoint;
+  setpoint.set_robot_id("drone1");
+  setpoint.set_lease_id("forged");
+  setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s()->set_x(1.0);
+  v1::SendSetpointResponse response;
+  EXPECT_EQ(flight_->SendSetpoint(deadline().get(), setpoint, &response).error_code(),
+            grpc::StatusCode::FAILED_PRECONDITION);
+  setpoint.set_lease_id(id);
+  setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s()->set_x(std::nan(""));
+  EXPECT_EQ(flight_->SendSetpoint(deadline().get(), setpoint, &response).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+  setpoint.set_robot_id("drone9");
+  EXPECT_EQ(flight_->SendSetpoint(deadline().get(), setpoint, &response).error_code(),
+            grpc::StatusCode::NOT_FOUND);
+
+  // A short lease, one setpoint, then silence: hover (failsafe), then land.
+  const std::string short_lease = lease("controller", 200);
+  setpoint.set_robot_id("drone1");
+  setpoint.set_lease_id(short_lease);
+  setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s()->set_x(0.5);
+  ASSERT_TRUE(flight_->SendSetpoint(deadline().get(), setpoint, &response).ok());
+  EXPECT_EQ(response.state(), v1::FLIGHT_STATE_FLYING);
+  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_HOVERING, seconds(5)));
+  EXPECT_TRUE(last_status_.failsafe_active());
+  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_LANDING, seconds(5)));
+  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_LANDED, seconds(10)));
+  EXPECT_NEAR(pose().pose().position_m().z(), 0.0, 0.05);
+}
+
+TEST_F(SimulatorServiceTest, LockStepAdvancesExactlyAndFaultInjectionIsOffByDefault) {
+  v1::SetTimeScaleRequest lock;
+  lock.set_lock_step(true);
+  v1::SetTimeScaleResponse scale;
+  ASSERT_TRUE(sim_->SetTimeScale(deadline().get(), lock, &scale).ok());
+  EXPECT_TRUE(scale.lock_step());
+  v1::StepRequest step;
+  *step.mutable_duration() = TimeUtil::MillisecondsToDuration(10);
+  v1::StepResponse before, after;
+  ASSERT_TRUE(sim_->Step(deadline().get(), step, &before).ok());
+  *step.mutable_duration() = TimeUtil::SecondsToDuration(2);
+  ASSERT_TRUE(sim_->Step(deadline().get(), step, &after).ok());
+  EXPECT_EQ(TimeUtil::DurationToMilliseconds(after.time() - before.time()), 2000);
+
+  v1::SetTimeScaleRequest bad;
+  bad.set_time_scale(1e6);
+  EXPECT_EQ(sim_->SetTimeScale(deadline().get(), bad, &scale).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+
+  v1::InjectFailureRequest failure;
+  failure.set_robot_id("drone1");
+  failure.set_component(v1::FAILURE_COMPONENT_GPS);
+  failure.set_type(v1::FAILURE_TYPE_OFF);
+  v1::InjectFailureResponse injected;
+  EXPECT_EQ(sim_->InjectFailure(deadline().get(), failure, &injected).error_code(),
+            grpc::StatusCode::FAILED_PRECONDITION);
+}
+
+TEST_F(SimulatorServiceTest, SimulatedTimeDrivesABehaviorSystemThroughTheChannel) {
+  v1::GetLatestRequest request;
+  request.set_topic("clock");
+  v1::GetLatestResponse response;
+  bool published = false;
+  for (int attempt = 0; attempt < 100 && !published; ++attempt) {  // first samples in flight
+    published = data_->GetLatest(deadline().get(), request, &response).ok();
+    if (!published) std::this_thread::sleep_for(milliseconds(20));
+  }
+  ASSERT_TRUE(published) << "no sample on 'clock'";
+  v1::Clock clock;
+  ASSERT_TRUE(response.sample().sample().UnpackTo(&clock));
+  EXPECT_DOUBLE_EQ(clock.time_scale(), 10.0);
+
+  support::ServerProcess system(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH,
+                                {"--channel", broker_.address(), "--clock", "sim"});
+  ASSERT_TRUE(system.start()) << system.error();
+  auto stub = v1::BehaviorSystem::NewStub(
+      grpc::CreateChannel(system.address(), grpc::InsecureChannelCredentials()));
+  auto watch_context = deadline(seconds(20));
+  auto reader = stub->WatchEvents(watch_context.get(), v1::WatchEventsRequest());
+  v1::WatchEventsResponse message;
+  ASSERT_TRUE(reader->Read(&message));  // the start message
+
+  // WAIT 3 s of simulated time at 10x: about 0.3 s of wall time.
+  v1::ActivateBehaviorRequest activate;
+  activate.set_behavior("WAIT");
+  (*activate.mutable_parameters()->mutable_fields())["duration_s"].set_number_value(3.0);
+  v1::ActivateResponse activated;
+  grpc::Status status;
+  const auto wall_start = std::chrono::steady_clock::now();
+  for (int attempt = 0; attempt < 50; ++attempt) {  // until the sim clock reached the system
+    status = stub->ActivateBehavior(deadline().get(), activate, &activated);
+    if (status.ok()) break;
+    std::this_thread::sleep_for(milliseconds(20));
+  }
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  v1::BehaviorEvent finished;
+  while (reader->Read(&message)) {
+    if (message.has_event() && message.event().has_finished()) {
+      finished = message.event();
+      break;
+    }
+  }
+  const double wall_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - wall_start).count();
+  watch_context->TryCancel();
+  reader->Finish();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  const double active_s =
+      TimeUtil::DurationToMilliseconds(finished.finished().active_duration()) / 1e3;
+  EXPECT_NEAR(active_s, 3.0, 0.1) << "active time is simulated time";
+  EXPECT_LT(wall_s, 2.5) << "3 simulated seconds at 10x";
+  EXPECT_EQ(system.terminate(), 0);
+}
+
+TEST_F(SimulatorServiceTest, SigtermEndsStreamsAndExitsZero) {
+  auto context = deadline(seconds(20));
+  v1::WatchFlightStateRequest request;
+  request.set_robot_id("drone2");
+  auto reader = flight_->WatchFlightState(context.get(), request);
+  v1::WatchFlightStateResponse message;
+  ASSERT_TRUE(reader->Read(&message));
+  EXPECT_EQ(message.status().state(), v1::FLIGHT_STATE_LANDED);
+  EXPECT_EQ(simulator_->terminate(), 0);
+  while (reader->Read(&message)) {
+  }
+  EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::UNAVAILABLE);
+}
+
+}  // namespace

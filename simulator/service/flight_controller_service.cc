@@ -2,15 +2,13 @@
 
 #include <google/protobuf/util/time_util.h>
 
+#include "behaviorlib/server/status.h"
 #include "simulator/service/latest_writer.h"
 
 namespace behaviorlib::sim {
 namespace {
 
-grpc::Status toGrpc(const absl::Status& s) {
-  if (s.ok()) return grpc::Status::OK;
-  return grpc::Status(static_cast<grpc::StatusCode>(s.code()), std::string(s.message()));
-}
+using server::toGrpc;
 
 // Runs a platform call and finishes the reactor with its outcome. `fill`
 // copies a successful value into the response.
@@ -186,21 +184,34 @@ grpc::ServerWriteReactor<v1::WatchFlightStateResponse>* FlightControllerService:
     grpc::CallbackServerContext* /*context*/, const v1::WatchFlightStateRequest* request) {
   auto* watcher = new FlightStatusWatcher(request->robot_id(),
                                           [this](FlightStatusWatcher* w) { removeWatcher(w); });
-  auto state = simulation_.vehicleState(request->robot_id());
-  std::lock_guard lock(watchers_mutex_);
-  if (!state.ok()) {
-    watcher->end(toGrpc(state.status()));
-    return watcher;
-  }
-  if (shutting_down_) {
-    watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));
-    return watcher;
-  }
-  watchers_.insert(watcher);
-  if (auto it = last_status_.find(request->robot_id()); it != last_status_.end()) {
-    v1::WatchFlightStateResponse message;  // the current status first
-    *message.mutable_status() = it->second;
-    watcher->offer(message);
+  // Registered under the simulation's mutex, then the watchers' one (the
+  // order the step listener uses), so that the first message is the current
+  // status and no later change is missed.
+  auto registered = simulation_.withPlatform(
+      request->robot_id(), [&](VehiclePlatform& p, SimTime now) -> grpc::Status {
+        std::lock_guard lock(watchers_mutex_);
+        if (shutting_down_) {
+          return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down");
+        }
+        v1::WatchFlightStateResponse message;
+        v1::FlightStatus& status = *message.mutable_status();
+        if (auto it = last_status_.find(request->robot_id()); it != last_status_.end()) {
+          status = it->second;  // battery as of the last step
+        }
+        status.mutable_header()->set_robot_id(request->robot_id());
+        *status.mutable_header()->mutable_stamp() =
+            google::protobuf::util::TimeUtil::NanosecondsToTimestamp(now.count());
+        status.set_state(p.state());
+        status.set_lease_holder(p.leaseHolder());
+        status.set_failsafe_active(p.failsafeActive());
+        watchers_.insert(watcher);
+        watcher->offer(message);
+        return grpc::Status::OK;
+      });
+  if (!registered.ok()) {
+    watcher->end(toGrpc(registered.status()));
+  } else if (!registered->ok()) {
+    watcher->end(*registered);
   }
   return watcher;
 }

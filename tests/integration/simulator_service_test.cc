@@ -75,8 +75,8 @@ class SimulatorServiceTest : public ::testing::Test {
     }
     return pose;
   }
-  // Waits (wall time) for drone1's flight state.
-  bool waitForState(v1::FlightState wanted, seconds timeout) {
+  // Waits (wall time) for drone1's flight state (and failsafe flag if asked).
+  bool waitForState(v1::FlightState wanted, seconds timeout, bool want_failsafe = false) {
     auto context = deadline(timeout);
     v1::WatchFlightStateRequest request;
     request.set_robot_id("drone1");
@@ -84,7 +84,8 @@ class SimulatorServiceTest : public ::testing::Test {
     v1::WatchFlightStateResponse message;
     while (reader->Read(&message)) {
       last_status_ = message.status();
-      if (message.status().state() == wanted) {
+      if (message.status().state() == wanted &&
+          (!want_failsafe || message.status().failsafe_active())) {
         context->TryCancel();
         reader->Finish();
         return true;
@@ -150,8 +151,7 @@ TEST_F(SimulatorServiceTest, LeaseRefusesOthersAndItsLossHoversThenLands) {
   setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s()->set_x(0.5);
   ASSERT_TRUE(flight_->SendSetpoint(deadline().get(), setpoint, &response).ok());
   EXPECT_EQ(response.state(), v1::FLIGHT_STATE_FLYING);
-  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_HOVERING, seconds(5)));
-  EXPECT_TRUE(last_status_.failsafe_active());
+  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_HOVERING, seconds(5), /*want_failsafe=*/true));
   ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_LANDING, seconds(5)));
   ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_LANDED, seconds(10)));
   EXPECT_NEAR(pose().pose().position_m().z(), 0.0, 0.05);

@@ -18,6 +18,17 @@ absl::Status Simulation::addVehicle(const std::string& robot_id,
   return absl::OkStatus();
 }
 
+void Simulation::resetVehicles(std::map<std::string, std::unique_ptr<VehicleModel>> vehicles) {
+  std::lock_guard lock(mutex_);
+  vehicles_.clear();
+  now_ = SimTime{0};
+  for (auto& [id, model] : vehicles) {
+    Vehicle vehicle{VehiclePlatform(id, options_.platform), std::move(model)};
+    vehicle.platform.update(now_, vehicle.model->snapshot());
+    vehicles_.emplace(id, std::move(vehicle));
+  }
+}
+
 std::vector<std::string> Simulation::robotIds() const {
   std::lock_guard lock(mutex_);
   std::vector<std::string> ids;

@@ -64,6 +64,9 @@ class Simulation {
   /// Adds a vehicle; ALREADY_EXISTS for a duplicate robot id.
   absl::Status addVehicle(const std::string& robot_id, std::unique_ptr<VehicleModel> model);
   std::vector<std::string> robotIds() const;
+  /// Replaces every vehicle and restarts simulated time at zero (Reset).
+  /// Listeners stay registered.
+  void resetVehicles(std::map<std::string, std::unique_ptr<VehicleModel>> vehicles);
   void addStepListener(StepListener listener);
 
   SimTime now() const;

@@ -29,6 +29,8 @@ int main(int argc, char** argv) {
   std::string port_file;
   std::string channel;
   std::string vehicles = "drone1";
+  std::string world_arg;
+  std::string worlds_dir = BEHAVIORLIB_WORLDS_DIR;
   double time_scale = 1.0;
   bool lock_step = false;
   bool fault_injection = false;
@@ -39,8 +41,13 @@ int main(int argc, char** argv) {
   flags.add("metrics-listen", &metrics_listen, "Prometheus /metrics address (empty disables)");
   flags.add("port-file", &port_file, "write the bound ports here (grpc_port=, metrics_port=)");
   flags.add("channel", &channel, "data channel broker address; empty: publish nothing");
+  flags.add("world", &world_arg,
+            "world file, or the name of a shipped world (empty_field, rooms, aircraft); empty: "
+            "an empty field");
+  flags.add("worlds-dir", &worlds_dir, "where the shipped worlds are");
   flags.add("vehicles", &vehicles,
-            "comma-separated robot ids; vehicle i starts landed at x = 2 i m");
+            "comma-separated robot ids for a world without start poses; vehicle i starts "
+            "landed at x = 2 i m");
   flags.add("time-scale", &time_scale, "simulated seconds per wall second (0.1..1000)");
   flags.add("lock-step", &lock_step, "advance time only through Simulator.Step");
   flags.add("enable-fault-injection", &fault_injection, "accept Simulator.InjectFailure");
@@ -52,22 +59,22 @@ int main(int argc, char** argv) {
   }
 
   sim::Simulation simulation(sim::SimulationOptions{});
+  sim::WorldControl worlds;
+  worlds.worlds_dir = worlds_dir;
   std::istringstream ids(vehicles);
-  std::string id;
-  int index = 0;
-  while (std::getline(ids, id, ',')) {
-    if (id.empty()) continue;
-    auto status = simulation.addVehicle(
-        id, sim::makeQuadrotorModel(Eigen::Vector3d(2.0 * index++, 0.0, 0.0)));
-    if (!status.ok()) {
-      fatal(program, "--vehicles: " + std::string(status.message()));
-      return 2;
-    }
+  for (std::string id; std::getline(ids, id, ',');) {
+    if (!id.empty()) worlds.fallback_ids.push_back(id);
   }
-  if (index == 0) {
+  if (worlds.fallback_ids.empty()) {
     fatal(program, "--vehicles names no vehicle");
     return 2;
   }
+  if (absl::Status s = sim::loadWorldInto(worlds, world_arg, simulation); !s.ok()) {
+    fatal(program, "--world: " + std::string(s.message()));
+    return 2;
+  }
+  std::string robot_ids;
+  for (const auto& id : simulation.robotIds()) robot_ids += (robot_ids.empty() ? "" : ",") + id;
 
   sim::TimeControl time;
   time.time_scale.store(time_scale);
@@ -85,7 +92,7 @@ int main(int argc, char** argv) {
   std::string error;
   if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
   sim::FlightControllerService flight_controller(simulation);
-  sim::SimulatorService simulator(simulation, time, fault_injection);
+  sim::SimulatorService simulator(simulation, time, worlds, fault_injection);
   grpc::ServerBuilder builder;
   builder.RegisterService(&flight_controller);
   builder.RegisterService(&simulator);
@@ -101,7 +108,7 @@ int main(int argc, char** argv) {
   std::atomic<bool> stop{false};
   std::thread stepper([&] { simulation.runRealTime(time.time_scale, time.lock_step, stop); });
   std::fprintf(stderr, "%s: vehicles [%s], gRPC on port %d, metrics on port %d, time scale %g%s\n",
-               program.c_str(), vehicles.c_str(), runtime.grpcPort(), runtime.metricsPort(),
+               program.c_str(), robot_ids.c_str(), runtime.grpcPort(), runtime.metricsPort(),
                time_scale, lock_step ? " (lock-step)" : "");
 
   ServerRuntime::waitForShutdownSignal();

@@ -4,6 +4,8 @@
 
 #include <cmath>
 
+#include "simulator/service/vehicle_models.h"
+
 namespace behaviorlib::sim {
 namespace {
 
@@ -44,9 +46,27 @@ v1::VehicleState vehicleStateMessage(const std::string& robot_id, SimTime now,
   return state;
 }
 
-SimulatorService::SimulatorService(Simulation& simulation, TimeControl& time,
+absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg,
+                           Simulation& simulation) {
+  auto world = std::make_shared<World>();
+  if (!world_arg.empty()) {
+    auto loaded = loadWorldByName(world_arg, control.worlds_dir);
+    if (!loaded.ok()) return loaded.status();
+    *world = std::move(*loaded);
+  }
+  simulation.resetVehicles(makeVehicles(*world, control.fallback_ids));
+  // The old world may go now: no vehicle refers to it any more.
+  control.world = std::move(world);
+  control.world_arg = world_arg;
+  return absl::OkStatus();
+}
+
+SimulatorService::SimulatorService(Simulation& simulation, TimeControl& time, WorldControl& worlds,
                                    bool fault_injection_enabled)
-    : simulation_(simulation), time_(time), fault_injection_enabled_(fault_injection_enabled) {
+    : simulation_(simulation),
+      time_(time),
+      worlds_(worlds),
+      fault_injection_enabled_(fault_injection_enabled) {
   simulation_.addStepListener([this](SimTime now, const std::vector<VehicleReport>& vehicles) {
     std::lock_guard lock(watchers_mutex_);
     if (watchers_.empty()) return;
@@ -78,11 +98,18 @@ void SimulatorService::removeWatcher(StateWatcher* watcher) {
 }
 
 grpc::ServerUnaryReactor* SimulatorService::Reset(grpc::CallbackServerContext* context,
-                                                  const v1::ResetRequest* /*request*/,
-                                                  v1::ResetResponse* /*response*/) {
-  return finish(context, grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
-                                      "Reset is not built yet: world files are not loaded by "
-                                      "this version of the simulator"));
+                                                  const v1::ResetRequest* request,
+                                                  v1::ResetResponse* response) {
+  std::lock_guard lock(worlds_.mutex);
+  const std::string world = request->world().empty() ? worlds_.world_arg : request->world();
+  if (absl::Status s = loadWorldInto(worlds_, world, simulation_); !s.ok()) {
+    return finish(context,
+                  grpc::Status(static_cast<grpc::StatusCode>(s.code()), std::string(s.message())));
+  }
+  if (request->seed() != 0) worlds_.seed = request->seed();
+  for (const auto& id : simulation_.robotIds()) response->add_robot_ids(id);
+  *response->mutable_time() = TimeUtil::NanosecondsToTimestamp(simulation_.now().count());
+  return finish(context, grpc::Status::OK);
 }
 
 grpc::ServerUnaryReactor* SimulatorService::SetTimeScale(grpc::CallbackServerContext* context,

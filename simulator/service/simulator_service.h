@@ -7,12 +7,16 @@
 
 #include <atomic>
 #include <map>
+#include <memory>
 #include <mutex>
 #include <set>
+#include <string>
+#include <vector>
 
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "simulator/core/simulation.h"
 #include "simulator/service/latest_writer.h"
+#include "simulator/world/world.h"
 
 namespace behaviorlib::sim {
 
@@ -22,11 +26,28 @@ struct TimeControl {
   std::atomic<bool> lock_step{false};
 };
 
+/// The world the vehicles fly in, replaced by Reset.
+struct WorldControl {
+  std::mutex mutex;
+  std::shared_ptr<const World> world;  ///< outlives the vehicles that collide with it
+  std::string world_arg;               ///< path or shipped name; "" for an empty field
+  std::string worlds_dir;              ///< where shipped worlds are
+  std::vector<std::string> fallback_ids;
+  uint64_t seed = 1;
+};
+
+/// Loads `world_arg` ("" -> an empty field) and puts its vehicles into
+/// `simulation`, restarting time. INVALID_ARGUMENT/NOT_FOUND naming the file,
+/// line and problem for a bad world.
+absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg,
+                           Simulation& simulation);
+
 using StateWatcher = LatestWriter<v1::WatchStateResponse>;
 
 class SimulatorService final : public v1::Simulator::CallbackService {
  public:
-  SimulatorService(Simulation& simulation, TimeControl& time, bool fault_injection_enabled);
+  SimulatorService(Simulation& simulation, TimeControl& time, WorldControl& worlds,
+                   bool fault_injection_enabled);
 
   /// Ends every WatchState stream (shutdown).
   void shutdown();
@@ -55,6 +76,7 @@ class SimulatorService final : public v1::Simulator::CallbackService {
 
   Simulation& simulation_;
   TimeControl& time_;
+  WorldControl& worlds_;
   const bool fault_injection_enabled_;
   std::mutex watchers_mutex_;
   std::map<StateWatcher*, Watch> watchers_;

@@ -28,8 +28,10 @@ Setpoint toSetpoint(const PlatformCommand& c) {
 // The rigid-body quadrotor flown by the simulator's autopilot.
 class QuadrotorModel final : public VehicleModel {
  public:
-  explicit QuadrotorModel(const Eigen::Vector3d& start)
-      : quadrotor_(QuadrotorParams{}, initialState(start)), autopilot_(QuadrotorParams{}) {}
+  QuadrotorModel(const Eigen::Vector3d& start, double yaw_rad, const CollisionWorld* world)
+      : quadrotor_(QuadrotorParams{}, initialState(start, yaw_rad)), autopilot_(QuadrotorParams{}) {
+    if (world) quadrotor_.setCollisionWorld(world);
+  }
 
   void command(const PlatformCommand& command) override { setpoint_ = toSetpoint(command); }
   void step(double dt_s) override {
@@ -51,9 +53,10 @@ class QuadrotorModel final : public VehicleModel {
   }
 
  private:
-  static QuadrotorState initialState(const Eigen::Vector3d& start) {
+  static QuadrotorState initialState(const Eigen::Vector3d& start, double yaw_rad) {
     QuadrotorState state;
     state.position_m = start;
+    state.orientation = Eigen::Quaterniond(Eigen::AngleAxisd(yaw_rad, Eigen::Vector3d::UnitZ()));
     state.landed = true;
     return state;
   }
@@ -65,8 +68,30 @@ class QuadrotorModel final : public VehicleModel {
 
 }  // namespace
 
-std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_position_m) {
-  return std::make_unique<QuadrotorModel>(start_position_m);
+std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_position_m,
+                                                 double yaw_rad, const CollisionWorld* world) {
+  return std::make_unique<QuadrotorModel>(start_position_m, yaw_rad, world);
+}
+
+std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
+    const World& world, const std::vector<std::string>& fallback_ids) {
+  std::map<std::string, std::unique_ptr<VehicleModel>> vehicles;
+  for (const auto& start : world.startPoses()) {
+    vehicles[start.robot_id] = makeQuadrotorModel(start.position_m, start.yaw_rad, &world);
+  }
+  if (vehicles.empty()) {
+    for (size_t i = 0; i < fallback_ids.size(); ++i) {
+      vehicles[fallback_ids[i]] =
+          makeQuadrotorModel(Eigen::Vector3d(2.0 * static_cast<double>(i), 0, 0), 0.0, &world);
+    }
+  }
+  return vehicles;
+}
+
+absl::StatusOr<World> loadWorldByName(const std::string& world, const std::string& worlds_dir) {
+  const bool is_name = world.find('/') == std::string::npos &&
+                       (world.size() < 5 || world.substr(world.size() - 5) != ".yaml");
+  return loadWorld(is_name ? worlds_dir + "/" + world + ".yaml" : world);
 }
 
 }  // namespace behaviorlib::sim

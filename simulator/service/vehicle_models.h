@@ -1,16 +1,36 @@
 #pragma once
 
 // The physics behind each simulated vehicle: the quadrotor dynamics with its
-// autopilot (simulator/dynamics), adapted to the Simulation's VehicleModel.
+// autopilot (simulator/dynamics), adapted to the Simulation's VehicleModel;
+// and the vehicles of a world file.
 
 #include <Eigen/Core>
+#include <map>
 #include <memory>
+#include <string>
+#include <vector>
 
+#include "absl/status/statusor.h"
 #include "simulator/core/simulation.h"
+#include "simulator/world/world.h"
 
 namespace behaviorlib::sim {
 
-/// A quadrotor with default parameters, landed at `start_position_m`.
-std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_position_m);
+/// A quadrotor with default parameters, landed at `start_position_m` facing
+/// `yaw_rad`; it crashes on `world`'s surfaces when given one (which must
+/// outlive it).
+std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_position_m,
+                                                 double yaw_rad = 0.0,
+                                                 const CollisionWorld* world = nullptr);
+
+/// One quadrotor per start pose of `world`; or, when the world has none, one
+/// per id of `fallback_ids`, landed at x = 2 i m.
+std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
+    const World& world, const std::vector<std::string>& fallback_ids);
+
+/// Loads a world by path, or by the name of a shipped world ("rooms" ->
+/// `<worlds_dir>/rooms.yaml`). The error names the file, the line and the
+/// problem.
+absl::StatusOr<World> loadWorldByName(const std::string& world, const std::string& worlds_dir);
 
 }  // namespace behaviorlib::sim

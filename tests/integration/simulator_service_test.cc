@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <fstream>
 #include <thread>
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
@@ -239,6 +240,49 @@ TEST_F(SimulatorServiceTest, SimulatedTimeDrivesABehaviorSystemThroughTheChannel
   EXPECT_NEAR(active_s, 3.0, 0.1) << "active time is simulated time";
   EXPECT_LT(wall_s, 2.5) << "3 simulated seconds at 10x";
   EXPECT_EQ(system.terminate(), 0);
+}
+
+TEST_F(SimulatorServiceTest, ResetLoadsWorldsAndReportsBadWorldFiles) {
+  v1::ResetRequest reset;
+  reset.set_world("rooms");
+  v1::ResetResponse response;
+  auto status = sim_->Reset(deadline().get(), reset, &response);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_EQ(std::vector<std::string>(response.robot_ids().begin(), response.robot_ids().end()),
+            (std::vector<std::string>{"drone1", "drone2"}));
+  EXPECT_LT(TimeUtil::TimestampToMilliseconds(response.time()), 100) << "time restarts";
+  // drone1 starts where the world file puts it.
+  std::this_thread::sleep_for(milliseconds(100));
+  bool at_start = false;
+  for (int attempt = 0; attempt < 50 && !at_start; ++attempt) {
+    const auto p = pose();
+    at_start = std::abs(p.pose().position_m().x() - 2.0) < 0.01 &&
+               std::abs(p.pose().position_m().y() - 2.0) < 0.01;
+    if (!at_start) std::this_thread::sleep_for(milliseconds(20));
+  }
+  EXPECT_TRUE(at_start);
+
+  const std::string bad = ::testing::TempDir() + "/bad_world.yaml";
+  {
+    std::ofstream out(bad);
+    out << "name: bad\nboxes:\n  - name: crate\n    center_m: [0, 0, 1]\n    size_m: [1, -1, 1]\n";
+  }
+  reset.set_world(bad);
+  status = sim_->Reset(deadline().get(), reset, &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(status.error_message().find("bad_world.yaml:"), std::string::npos)
+      << status.error_message();
+  reset.set_world("no_such_world");
+  EXPECT_NE(sim_->Reset(deadline().get(), reset, &response).error_code(), grpc::StatusCode::OK);
+  // A failed reset leaves the running world alone.
+  v1::WatchFlightStateRequest watch;
+  watch.set_robot_id("drone2");
+  auto context = deadline(seconds(5));
+  auto reader = flight_->WatchFlightState(context.get(), watch);
+  v1::WatchFlightStateResponse message;
+  EXPECT_TRUE(reader->Read(&message));
+  context->TryCancel();
+  reader->Finish();
 }
 
 TEST_F(SimulatorServiceTest, SigtermEndsStreamsAndExitsZero) {

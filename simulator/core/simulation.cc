@@ -22,6 +22,7 @@ void Simulation::resetVehicles(std::map<std::string, std::unique_ptr<VehicleMode
   std::lock_guard lock(mutex_);
   vehicles_.clear();
   now_ = SimTime{0};
+  ++epoch_;
   for (auto& [id, model] : vehicles) {
     Vehicle vehicle{VehiclePlatform(id, options_.platform), std::move(model)};
     vehicle.platform.update(now_, vehicle.model->snapshot());
@@ -84,6 +85,11 @@ void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::a
   SimTime sim_start = now();
   double scale = time_scale.load();
   bool was_paused = false;
+  uint64_t epoch = 0;
+  {
+    std::lock_guard lock(mutex_);
+    epoch = epoch_;
+  }
   while (!stop.load()) {
     if (paused.load()) {
       was_paused = true;
@@ -103,6 +109,12 @@ void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::a
     SimTime reached;
     {
       std::lock_guard lock(mutex_);
+      if (epoch_ != epoch) {  // time restarted (Reset): pace from here
+        epoch = epoch_;
+        wall_start = Clock::now();
+        sim_start = now_;
+        continue;
+      }
       // Catch up in bounded batches so that RPCs get the mutex in between.
       for (int i = 0; i < 100 && now_ < target; ++i) stepLocked();
       reached = now_;

@@ -107,6 +107,7 @@ class Simulation {
   SimulationOptions options_;
   mutable std::mutex mutex_;
   SimTime now_{0};
+  uint64_t epoch_ = 0;  // incremented by resetVehicles: pacing re-anchors
   std::map<std::string, Vehicle> vehicles_;
   std::vector<StepListener> listeners_;
   std::vector<VehicleReport> reports_;  // reused every step

@@ -42,6 +42,8 @@ void ChannelPublisher::onStep(SimTime now, const std::vector<VehicleReport>& veh
   const auto stamp = google::protobuf::util::TimeUtil::NanosecondsToTimestamp(now.count());
   bool queued = false;
   std::lock_guard lock(mutex_);
+  if (t < last_t_) next_clock_s_ = next_truth_s_ = next_state_s_ = 0.0;  // Reset restarted time
+  last_t_ = t;
   if (t + 1e-9 >= next_clock_s_) {
     next_clock_s_ = t + 1.0 / rates_.clock_hz;
     auto clock = std::make_unique<v1::Clock>();

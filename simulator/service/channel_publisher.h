@@ -51,7 +51,7 @@ class ChannelPublisher {
   channel::ChannelClient& client_;
   const TimeControl& time_;
   PublishRates rates_;
-  double next_clock_s_ = 0, next_truth_s_ = 0, next_state_s_ = 0;
+  double next_clock_s_ = 0, next_truth_s_ = 0, next_state_s_ = 0, last_t_ = 0;
 
   std::mutex mutex_;
   std::condition_variable cv_;

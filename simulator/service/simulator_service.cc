@@ -72,7 +72,7 @@ SimulatorService::SimulatorService(Simulation& simulation, TimeControl& time, Wo
     if (watchers_.empty()) return;
     const double t = std::chrono::duration<double>(now).count();
     for (auto& [watcher, watch] : watchers_) {
-      if (t + 1e-9 < watch.next_s) continue;
+      if (t + 1e-9 < watch.next_s && watch.next_s - t <= watch.period_s) continue;
       watch.next_s = t + watch.period_s;
       for (const auto& report : vehicles) {
         if (!watcher->key().empty() && watcher->key() != *report.robot_id) continue;

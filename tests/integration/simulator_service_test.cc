@@ -242,7 +242,23 @@ TEST_F(SimulatorServiceTest, SimulatedTimeDrivesABehaviorSystemThroughTheChannel
   EXPECT_EQ(system.terminate(), 0);
 }
 
+// Simulated time on the channel's clock topic (seconds; -1 when none yet).
+double clockSeconds(v1::DataChannel::Stub& data) {
+  v1::GetLatestRequest request;
+  request.set_topic("clock");
+  v1::GetLatestResponse response;
+  v1::Clock clock;
+  if (!data.GetLatest(deadline().get(), request, &response).ok() ||
+      !response.sample().sample().UnpackTo(&clock)) {
+    return -1;
+  }
+  return TimeUtil::TimestampToMilliseconds(clock.time()) / 1e3;
+}
+
 TEST_F(SimulatorServiceTest, ResetLoadsWorldsAndReportsBadWorldFiles) {
+  std::this_thread::sleep_for(milliseconds(300));  // about 3 s of simulated time
+  const double before_reset = clockSeconds(*data_);
+  ASSERT_GT(before_reset, 1.0);
   v1::ResetRequest reset;
   reset.set_world("rooms");
   v1::ResetResponse response;
@@ -251,6 +267,13 @@ TEST_F(SimulatorServiceTest, ResetLoadsWorldsAndReportsBadWorldFiles) {
   EXPECT_EQ(std::vector<std::string>(response.robot_ids().begin(), response.robot_ids().end()),
             (std::vector<std::string>{"drone1", "drone2"}));
   EXPECT_LT(TimeUtil::TimestampToMilliseconds(response.time()), 100) << "time restarts";
+  bool restarted = false;  // the clock topic follows at once, not after catching up
+  for (int attempt = 0; attempt < 50 && !restarted; ++attempt) {
+    const double now = clockSeconds(*data_);
+    restarted = now >= 0 && now < before_reset / 2;
+    if (!restarted) std::this_thread::sleep_for(milliseconds(2));
+  }
+  EXPECT_TRUE(restarted);
   // drone1 starts where the world file puts it.
   std::this_thread::sleep_for(milliseconds(100));
   bool at_start = false;

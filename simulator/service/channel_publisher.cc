@@ -3,6 +3,7 @@
 #include <google/protobuf/util/time_util.h>
 
 #include "behaviorlib/v1/types.pb.h"
+#include "simulator/service/messages.h"
 
 namespace behaviorlib::sim {
 namespace {
@@ -72,12 +73,8 @@ void ChannelPublisher::onStep(SimTime now, const std::vector<VehicleReport>& veh
       enqueueLocked(prefix + "ground_truth/twist", std::move(twist));
     }
     if (state) {
-      auto status = std::make_unique<v1::FlightStatus>();
-      *status->mutable_header() = full.header();
-      status->set_state(full.flight_state());
-      status->set_lease_holder(report.platform->leaseHolder());
-      status->set_failsafe_active(report.platform->failsafeActive());
-      status->set_battery_ratio(full.battery_ratio());
+      auto status = std::make_unique<v1::FlightStatus>(flightStatusMessage(
+          *report.robot_id, now, *report.platform, report.snapshot.battery_ratio));
       enqueueLocked(prefix + "flight_state", std::move(status));
     }
     queued = true;

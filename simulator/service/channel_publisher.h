@@ -22,7 +22,7 @@
 
 #include "channel/channel_client.h"
 #include "simulator/core/simulation.h"
-#include "simulator/service/simulator_service.h"
+#include "simulator/service/simulator_service.h"  // TimeControl
 
 namespace behaviorlib::sim {
 

@@ -4,6 +4,7 @@
 
 #include "behaviorlib/server/status.h"
 #include "simulator/service/latest_writer.h"
+#include "simulator/service/messages.h"
 
 namespace behaviorlib::sim {
 namespace {
@@ -26,19 +27,6 @@ grpc::ServerUnaryReactor* platformCall(grpc::CallbackServerContext* context, Sim
     reactor->Finish(grpc::Status::OK);
   }
   return reactor;
-}
-
-v1::FlightStatus statusOf(const std::string& robot_id, SimTime now, const VehicleReport& report) {
-  v1::FlightStatus status;
-  status.mutable_header()->set_robot_id(robot_id);
-  status.mutable_header()->set_frame_id("world");
-  *status.mutable_header()->mutable_stamp() =
-      google::protobuf::util::TimeUtil::NanosecondsToTimestamp(now.count());
-  status.set_state(report.platform->state());
-  status.set_lease_holder(report.platform->leaseHolder());
-  status.set_failsafe_active(report.platform->failsafeActive());
-  status.set_battery_ratio(report.snapshot.battery_ratio);
-  return status;
 }
 
 bool sameStatus(const v1::FlightStatus& a, const v1::FlightStatus& b) {
@@ -82,7 +70,8 @@ FlightControllerService::FlightControllerService(Simulation& simulation) : simul
     std::lock_guard lock(watchers_mutex_);
     for (const auto& report : vehicles) {
       const std::string& id = *report.robot_id;
-      v1::FlightStatus status = statusOf(id, now, report);
+      v1::FlightStatus status =
+          flightStatusMessage(id, now, *report.platform, report.snapshot.battery_ratio);
       auto it = last_status_.find(id);
       if (it != last_status_.end() && sameStatus(it->second, status)) continue;
       last_status_[id] = status;
@@ -193,17 +182,12 @@ grpc::ServerWriteReactor<v1::WatchFlightStateResponse>* FlightControllerService:
         if (shutting_down_) {
           return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down");
         }
+        // Battery as of the last step; the rest from the platform now.
+        auto cached = last_status_.find(request->robot_id());
         v1::WatchFlightStateResponse message;
-        v1::FlightStatus& status = *message.mutable_status();
-        if (auto it = last_status_.find(request->robot_id()); it != last_status_.end()) {
-          status = it->second;  // battery as of the last step
-        }
-        status.mutable_header()->set_robot_id(request->robot_id());
-        *status.mutable_header()->mutable_stamp() =
-            google::protobuf::util::TimeUtil::NanosecondsToTimestamp(now.count());
-        status.set_state(p.state());
-        status.set_lease_holder(p.leaseHolder());
-        status.set_failsafe_active(p.failsafeActive());
+        *message.mutable_status() = flightStatusMessage(
+            request->robot_id(), now, p,
+            cached != last_status_.end() ? cached->second.battery_ratio() : 1.0);
         watchers_.insert(watcher);
         watcher->offer(message);
         return grpc::Status::OK;

@@ -53,7 +53,6 @@ class FlightControllerService final : public v1::FlightController::CallbackServi
   absl::StatusOr<v1::FlightState> applySetpoint(const v1::SetpointRequest& request);
 
  private:
-  void onStep(SimTime now);
   void removeWatcher(FlightStatusWatcher* watcher);
 
   Simulation& simulation_;

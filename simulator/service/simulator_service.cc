@@ -4,6 +4,7 @@
 
 #include <cmath>
 
+#include "simulator/service/messages.h"
 #include "simulator/service/vehicle_models.h"
 
 namespace behaviorlib::sim {
@@ -17,34 +18,7 @@ grpc::ServerUnaryReactor* finish(grpc::CallbackServerContext* context, const grp
   return reactor;
 }
 
-void setVector(v1::Vector3* out, const Eigen::Vector3d& v) {
-  out->set_x(v.x());
-  out->set_y(v.y());
-  out->set_z(v.z());
-}
-
 }  // namespace
-
-v1::VehicleState vehicleStateMessage(const std::string& robot_id, SimTime now,
-                                     const VehicleReport& report) {
-  v1::VehicleState state;
-  state.mutable_header()->set_robot_id(robot_id);
-  state.mutable_header()->set_frame_id("world");
-  *state.mutable_header()->mutable_stamp() = TimeUtil::NanosecondsToTimestamp(now.count());
-  const auto& s = report.snapshot;
-  setVector(state.mutable_pose()->mutable_position_m(), s.position_m);
-  auto* q = state.mutable_pose()->mutable_orientation();
-  q->set_w(s.orientation.w());
-  q->set_x(s.orientation.x());
-  q->set_y(s.orientation.y());
-  q->set_z(s.orientation.z());
-  setVector(state.mutable_twist()->mutable_linear_m_s(), s.velocity_m_s);
-  setVector(state.mutable_twist()->mutable_angular_rad_s(), s.angular_velocity_rad_s);
-  state.set_flight_state(report.platform->state());
-  state.set_battery_ratio(s.battery_ratio);
-  state.set_crashed(s.crashed);
-  return state;
-}
 
 absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg,
                            Simulation& simulation) {

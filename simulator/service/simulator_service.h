@@ -83,8 +83,4 @@ class SimulatorService final : public v1::Simulator::CallbackService {
   bool shutting_down_ = false;
 };
 
-/// The ground-truth state of a vehicle as published.
-v1::VehicleState vehicleStateMessage(const std::string& robot_id, SimTime now,
-                                     const VehicleReport& report);
-
 }  // namespace behaviorlib::sim

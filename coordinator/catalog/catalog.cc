@@ -1,0 +1,310 @@
+#include "coordinator/catalog/catalog.h"
+
+#include <yaml-cpp/yaml.h>
+
+#include <cmath>
+#include <fstream>
+#include <functional>
+#include <set>
+#include <sstream>
+
+namespace behaviorlib::coordinator {
+namespace {
+
+template <typename... Args>
+std::string cat(const Args&... args) {
+  std::ostringstream out;
+  (out << ... << args);
+  return out.str();
+}
+
+int lineOf(const YAML::Node& node) {
+  const YAML::Mark mark = node.Mark();
+  return mark.is_null() ? 1 : mark.line + 1;
+}
+
+std::string join(const std::vector<std::string>& items) {
+  std::string out;
+  for (const auto& item : items) out += (out.empty() ? "" : ", ") + item;
+  return out;
+}
+
+class Parser {
+ public:
+  explicit Parser(std::string file) : file_(std::move(file)) {}
+
+  absl::Status error(const YAML::Node& node, const std::string& what) const {
+    return absl::InvalidArgumentError(cat(file_, ":", lineOf(node), ": ", what));
+  }
+
+  /// Checks that `node` is a mapping whose keys are all in `allowed`.
+  absl::Status mapping(const YAML::Node& node, const std::string& what,
+                       const std::vector<std::string>& allowed) const {
+    if (!node.IsMap()) return error(node, what + ": expected a mapping");
+    std::set<std::string> seen;
+    for (const auto& entry : node) {
+      const std::string key = entry.first.as<std::string>();
+      if (!seen.insert(key).second)
+        return error(entry.first, what + ": duplicate key '" + key + "'");
+      bool known = allowed.empty();
+      for (const auto& a : allowed) known = known || a == key;
+      if (!known) {
+        return error(entry.first,
+                     cat(what, ": unknown key '", key, "' (expected ", join(allowed), ")"));
+      }
+    }
+    return absl::OkStatus();
+  }
+
+  absl::Status names(const YAML::Node& node, const std::string& what,
+                     std::vector<std::string>* out) const {
+    if (node.IsScalar()) {
+      out->push_back(node.as<std::string>());
+      return absl::OkStatus();
+    }
+    if (!node.IsSequence()) return error(node, what + ": expected a list of names");
+    for (const auto& item : node) {
+      if (!item.IsScalar()) return error(item, what + ": expected a name");
+      out->push_back(item.as<std::string>());
+    }
+    return absl::OkStatus();
+  }
+
+  absl::Status value(const YAML::Node& node, const std::string& what,
+                     google::protobuf::Value* out) const {
+    if (node.IsNull()) {
+      out->set_null_value(google::protobuf::NULL_VALUE);
+    } else if (node.IsScalar()) {
+      const std::string text = node.Scalar();
+      bool b = false;
+      double d = 0;
+      if (node.Tag() == "!") {  // quoted: always a string
+        out->set_string_value(text);
+      } else if (YAML::convert<bool>::decode(node, b)) {
+        out->set_bool_value(b);
+      } else if (YAML::convert<double>::decode(node, d) && std::isfinite(d)) {
+        out->set_number_value(d);
+      } else {
+        out->set_string_value(text);
+      }
+    } else if (node.IsSequence()) {
+      auto* list = out->mutable_list_value();
+      for (const auto& item : node) {
+        if (auto s = value(item, what, list->add_values()); !s.ok()) return s;
+      }
+    } else if (node.IsMap()) {
+      auto* fields = out->mutable_struct_value()->mutable_fields();
+      for (const auto& entry : node) {
+        if (auto s = value(entry.second, what, &(*fields)[entry.first.as<std::string>()]);
+            !s.ok()) {
+          return s;
+        }
+      }
+    } else {
+      return error(node, what + ": unsupported value");
+    }
+    return absl::OkStatus();
+  }
+
+ private:
+  std::string file_;
+};
+
+// The JSON type a ParameterSchema accepts, checked against a default value.
+bool typeMatches(const v1::ParameterSchema& schema, const google::protobuf::Value& value) {
+  if (schema.repeated()) {
+    if (!value.has_list_value()) return false;
+    v1::ParameterSchema element = schema;
+    element.set_repeated(false);
+    for (const auto& item : value.list_value().values()) {
+      if (!typeMatches(element, item)) return false;
+    }
+    return true;
+  }
+  const std::string& type = schema.type();
+  if (type == "number" || type == "integer") return value.has_number_value();
+  if (type == "boolean") return value.has_bool_value();
+  if (type == "string" || type == "enum" || type == "bytes") return value.has_string_value();
+  if (type == "object") return value.has_struct_value();
+  return true;
+}
+
+}  // namespace
+
+absl::StatusOr<Catalog> Catalog::load(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) return absl::InvalidArgumentError(cat(path, ": cannot read the catalog file"));
+  std::stringstream text;
+  text << in.rdbuf();
+  return parse(text.str(), path);
+}
+
+absl::StatusOr<Catalog> Catalog::parse(const std::string& yaml, const std::string& file_name) {
+  Parser p(file_name);
+  YAML::Node root;
+  try {
+    root = YAML::Load(yaml);
+  } catch (const YAML::ParserException& e) {
+    return absl::InvalidArgumentError(
+        cat(file_name, ":", e.mark.line + 1, ": not valid YAML: ", e.msg));
+  }
+  if (root.IsNull()) return absl::InvalidArgumentError(file_name + ":1: the catalog is empty");
+  if (auto s = p.mapping(root, "catalog", {"capabilities", "resources", "behaviors"}); !s.ok()) {
+    return s;
+  }
+  Catalog catalog;
+  catalog.file_name_ = file_name;
+  if (const YAML::Node caps = root["capabilities"]) {
+    if (auto s = p.mapping(caps, "capabilities", {}); !s.ok()) return s;
+    for (const auto& entry : caps) {
+      Capability c;
+      c.name = entry.first.as<std::string>();
+      c.line = lineOf(entry.first);
+      const std::string what = "capability '" + c.name + "'";
+      if (!entry.second.IsNull()) {
+        if (auto s = p.mapping(entry.second, what, {"description", "default"}); !s.ok()) return s;
+        if (entry.second["description"])
+          c.description = entry.second["description"].as<std::string>();
+        if (entry.second["default"]) c.default_provider = entry.second["default"].as<std::string>();
+      }
+      catalog.capabilities_[c.name] = c;
+    }
+  }
+  if (const YAML::Node resources = root["resources"]) {
+    if (auto s = p.mapping(resources, "resources", {}); !s.ok()) return s;
+    for (const auto& entry : resources) {
+      catalog.resources_[entry.first.as<std::string>()] =
+          entry.second.IsScalar() ? entry.second.as<std::string>() : "";
+    }
+  }
+  const YAML::Node behaviors = root["behaviors"];
+  if (!behaviors) return p.error(root, "catalog: missing 'behaviors'");
+  if (auto s = p.mapping(behaviors, "behaviors", {}); !s.ok()) return s;
+  for (const auto& entry : behaviors) {
+    CatalogBehavior b;
+    b.name = entry.first.as<std::string>();
+    b.line = lineOf(entry.first);
+    const std::string what = "behavior '" + b.name + "'";
+    if (!entry.second.IsNull()) {
+      const YAML::Node& body = entry.second;
+      if (auto s =
+              p.mapping(body, what, {"description", "provides", "requires", "holds", "defaults"});
+          !s.ok()) {
+        return s;
+      }
+      if (body["description"]) b.description = body["description"].as<std::string>();
+      for (auto [key, out] : {std::pair{"provides", &b.provides},
+                              std::pair{"requires", &b.requires_}, std::pair{"holds", &b.holds}}) {
+        if (!body[key]) continue;
+        if (auto s = p.names(body[key], what + " " + key, out); !s.ok()) return s;
+        for (const auto& name : *out) {
+          const bool is_resource = std::string(key) == "holds";
+          const bool declared = is_resource ? catalog.resources_.count(name) > 0
+                                            : catalog.capabilities_.count(name) > 0;
+          if (!declared) {
+            return p.error(body[key],
+                           cat(what, ": ", key, " '", name, "', which is not a declared ",
+                               is_resource ? "resource" : "capability"));
+          }
+        }
+      }
+      if (const YAML::Node defaults = body["defaults"]) {
+        if (!defaults.IsMap()) return p.error(defaults, what + " defaults: expected a mapping");
+        google::protobuf::Value value;
+        if (auto s = p.value(defaults, what + " defaults", &value); !s.ok()) return s;
+        b.defaults = value.struct_value();
+      }
+    }
+    catalog.behaviors_[b.name] = std::move(b);
+  }
+  if (auto s = catalog.validate(); !s.ok()) return s;
+  return catalog;
+}
+
+std::string Catalog::where(int line) const { return cat(file_name_, ":", line, ": "); }
+
+absl::Status Catalog::validate() const {
+  for (const auto& [name, c] : capabilities_) {
+    if (c.default_provider.empty()) continue;
+    const CatalogBehavior* provider = find(c.default_provider);
+    if (provider == nullptr) {
+      return absl::InvalidArgumentError(cat(where(c.line), "capability '", name, "': default '",
+                                            c.default_provider, "' is not a listed behavior"));
+    }
+    bool provides = false;
+    for (const auto& p : provider->provides) provides = provides || p == name;
+    if (!provides) {
+      return absl::InvalidArgumentError(cat(where(c.line), "capability '", name, "': default '",
+                                            c.default_provider, "' does not provide it"));
+    }
+  }
+  // Requirements followed through default providers must not loop.
+  std::map<std::string, int> mark;  // 1 visiting, 2 done
+  std::function<absl::Status(const CatalogBehavior&, std::vector<std::string>&)> visit =
+      [&](const CatalogBehavior& b, std::vector<std::string>& chain) -> absl::Status {
+    if (mark[b.name] == 2) return absl::OkStatus();
+    if (mark[b.name] == 1) {
+      chain.push_back(b.name);
+      std::string path;
+      for (const auto& n : chain) path += (path.empty() ? "" : " -> ") + n;
+      return absl::InvalidArgumentError(
+          cat(where(b.line), "behavior '", b.name, "': requirements loop: ", path));
+    }
+    mark[b.name] = 1;
+    chain.push_back(b.name);
+    for (const auto& cap : b.requires_) {
+      bool self = false;
+      for (const auto& p : b.provides) self = self || p == cap;
+      const Capability* c = capability(cap);
+      if (self || c == nullptr || c->default_provider.empty()) continue;
+      if (auto s = visit(*find(c->default_provider), chain); !s.ok()) return s;
+    }
+    chain.pop_back();
+    mark[b.name] = 2;
+    return absl::OkStatus();
+  };
+  for (const auto& [name, b] : behaviors_) {
+    std::vector<std::string> chain;
+    if (auto s = visit(b, chain); !s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+const CatalogBehavior* Catalog::find(const std::string& behavior) const {
+  auto it = behaviors_.find(behavior);
+  return it == behaviors_.end() ? nullptr : &it->second;
+}
+
+const Capability* Catalog::capability(const std::string& name) const {
+  auto it = capabilities_.find(name);
+  return it == capabilities_.end() ? nullptr : &it->second;
+}
+
+absl::Status Catalog::checkRegistration(const v1::BehaviorDescription& registered,
+                                        const std::string& system) const {
+  const CatalogBehavior* entry = find(registered.name());
+  if (entry == nullptr) return absl::OkStatus();
+  for (const auto& [key, value] : entry->defaults.fields()) {
+    const v1::ParameterSchema* schema = nullptr;
+    std::vector<std::string> known;
+    for (const auto& p : registered.parameters()) {
+      known.push_back(p.name());
+      if (p.name() == key) schema = &p;
+    }
+    if (schema == nullptr) {
+      return absl::InvalidArgumentError(
+          cat(where(entry->line), "behavior '", entry->name, "': default parameter '", key,
+              "' is not a parameter of ", entry->name, " as registered by ", system,
+              " (its parameters: ", known.empty() ? "none" : join(known), ")"));
+    }
+    if (!typeMatches(*schema, value)) {
+      return absl::InvalidArgumentError(cat(where(entry->line), "behavior '", entry->name,
+                                            "': default parameter '", key, "' must be of type ",
+                                            schema->repeated() ? "list of " : "", schema->type(),
+                                            " as registered by ", system));
+    }
+  }
+  return absl::OkStatus();
+}
+
+}  // namespace behaviorlib::coordinator

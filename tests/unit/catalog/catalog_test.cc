@@ -1,0 +1,169 @@
+#include "coordinator/catalog/catalog.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+namespace behaviorlib::coordinator {
+namespace {
+
+using ::testing::HasSubstr;
+
+constexpr const char* kCatalog = R"(capabilities:
+  self_localization:
+    default: LOCALIZE
+resources:
+  platform: the lease
+behaviors:
+  LOCALIZE:
+    provides: [self_localization]
+  MOVE:
+    requires: self_localization
+    holds: [platform]
+    defaults: {speed_m_s: 1.5, mode: "fast", enabled: true, path: [1, 2]}
+)";
+
+TEST(Catalog, ParsesCapabilitiesResourcesAndDefaults) {
+  auto catalog = Catalog::parse(kCatalog, "c.yaml");
+  ASSERT_TRUE(catalog.ok()) << catalog.status();
+  const CatalogBehavior* move = catalog->find("MOVE");
+  ASSERT_NE(move, nullptr);
+  EXPECT_EQ(move->line, 9);
+  EXPECT_EQ(move->requires_, std::vector<std::string>{"self_localization"});
+  EXPECT_EQ(move->holds, std::vector<std::string>{"platform"});
+  const auto& d = move->defaults.fields();
+  EXPECT_DOUBLE_EQ(d.at("speed_m_s").number_value(), 1.5);
+  EXPECT_EQ(d.at("mode").string_value(), "fast");
+  EXPECT_TRUE(d.at("enabled").bool_value());
+  EXPECT_EQ(d.at("path").list_value().values_size(), 2);
+  EXPECT_EQ(catalog->capability("self_localization")->default_provider, "LOCALIZE");
+  EXPECT_EQ(catalog->find("UNLISTED"), nullptr);
+}
+
+struct BadCatalog {
+  std::string text;
+  int line;
+  std::string problem;
+};
+
+class CatalogErrors : public ::testing::TestWithParam<BadCatalog> {};
+
+TEST_P(CatalogErrors, NameFileLineAndProblem) {
+  auto catalog = Catalog::parse(GetParam().text, "bad.yaml");
+  ASSERT_FALSE(catalog.ok());
+  EXPECT_EQ(catalog.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(catalog.status().message()),
+              HasSubstr("bad.yaml:" + std::to_string(GetParam().line) + ": "));
+  EXPECT_THAT(std::string(catalog.status().message()), HasSubstr(GetParam().problem));
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Problems, CatalogErrors,
+    ::testing::Values(
+        BadCatalog{"behaviors:\n  A:\n    provide: [x]\n", 3, "unknown key 'provide'"},
+        BadCatalog{"behaviors:\n  A:\n    requires: [nav]\n", 3, "not a declared capability"},
+        BadCatalog{"resources: {r: x}\nbehaviors:\n  A:\n    holds: [q]\n", 4,
+                   "not a declared resource"},
+        BadCatalog{"capabilities:\n  c:\n    default: B\nbehaviors:\n  A: {}\n", 2,
+                   "'B' is not a listed behavior"},
+        BadCatalog{"capabilities:\n  c:\n    default: A\nbehaviors:\n  A: {}\n", 2,
+                   "does not provide it"},
+        BadCatalog{"capabilities:\n  a: {default: A}\n  b: {default: B}\nbehaviors:\n"
+                   "  A: {provides: [a], requires: [b]}\n  B: {provides: [b], requires: [a]}\n",
+                   5, "requirements loop: A -> B -> A"},
+        BadCatalog{"behaviors:\n  A: {}\n  A: {}\n", 3, "duplicate key 'A'"},
+        BadCatalog{"behaviors: [A, B\n", 2, "not valid YAML"},
+        BadCatalog{"capabilities: {}\n", 1, "missing 'behaviors'"}));
+
+v1::BehaviorDescription registered(const std::string& name) {
+  v1::BehaviorDescription d;
+  d.set_name(name);
+  auto* speed = d.add_parameters();
+  speed->set_name("speed_m_s");
+  speed->set_type("number");
+  auto* mode = d.add_parameters();
+  mode->set_name("mode");
+  mode->set_type("enum");
+  auto* enabled = d.add_parameters();
+  enabled->set_name("enabled");
+  enabled->set_type("boolean");
+  auto* path = d.add_parameters();
+  path->set_name("path");
+  path->set_type("number");
+  path->set_repeated(true);
+  return d;
+}
+
+TEST(Catalog, DefaultsAgreeingWithTheRegistrationAreAccepted) {
+  auto catalog = Catalog::parse(kCatalog, "c.yaml");
+  ASSERT_TRUE(catalog.ok());
+  EXPECT_TRUE(catalog->checkRegistration(registered("MOVE"), "motion_system").ok());
+  EXPECT_TRUE(catalog->checkRegistration(registered("NOT_IN_CATALOG"), "motion_system").ok());
+}
+
+TEST(Catalog, ADefaultTheRegistrationDoesNotKnowNamesLineAndParameter) {
+  auto catalog = Catalog::parse(kCatalog, "c.yaml");
+  ASSERT_TRUE(catalog.ok());
+  v1::BehaviorDescription d = registered("MOVE");
+  d.mutable_parameters()->RemoveLast();  // no "path" any more
+  absl::Status s = catalog->checkRegistration(d, "motion_system");
+  EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(s.message()),
+              HasSubstr("c.yaml:9: behavior 'MOVE': default parameter 'path'"));
+  EXPECT_THAT(std::string(s.message()), HasSubstr("registered by motion_system"));
+}
+
+TEST(Catalog, ADefaultOfTheWrongTypeIsAnError) {
+  auto catalog = Catalog::parse(kCatalog, "c.yaml");
+  ASSERT_TRUE(catalog.ok());
+  v1::BehaviorDescription d = registered("MOVE");
+  d.mutable_parameters(0)->set_type("string");  // speed_m_s default is a number
+  absl::Status s = catalog->checkRegistration(d, "motion_system");
+  EXPECT_THAT(std::string(s.message()), HasSubstr("'speed_m_s' must be of type string"));
+}
+
+TEST(Catalog, TheShippedCatalogCoversEveryBehaviorOfThePapersTable) {
+  auto catalog = Catalog::load(BEHAVIORLIB_SHIPPED_CATALOG);
+  ASSERT_TRUE(catalog.ok()) << catalog.status();
+  for (const char* name : {"LAND",
+                           "TAKE_OFF",
+                           "WAIT",
+                           "SELF_LOCALIZE_WITH_GROUND_TRUTH",
+                           "ESTIMATE_POSITION_WITH_SENSOR",
+                           "ESTIMATE_POSITION_WITH_LINEAR_SPEED",
+                           "HOVER_WITH_FLIGHT_ACTION_CONTROL",
+                           "SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION",
+                           "FOLLOW_PATH_WITH_MPC_CONTROL",
+                           "ROTATE_WITH_MPC_CONTROL",
+                           "HOVER_WITH_MPC_CONTROL",
+                           "QUADROTOR_MPC_MOTION_CONTROL",
+                           "FOLLOW_PATH",
+                           "ROTATE_WITH_PID_CONTROL",
+                           "KEEP_HOVERING_WITH_PID_CONTROL",
+                           "KEEP_MOVING_WITH_PID_CONTROL",
+                           "QUADROTOR_PID_MOTION_CONTROL",
+                           "QUADROTOR_PID_THRUST_CONTROL",
+                           "MOVE_VERTICAL_WITH_PLATFORM_CONTROL",
+                           "MOVE_AT_SPEED_WITH_PLATFORM_CONTROL",
+                           "ROTATE_WITH_PLATFORM_CONTROL",
+                           "GENERATE_PATH_WITH_OCCUPANCY_GRID",
+                           "CLEAR_OCCUPANCY_GRID",
+                           "SAVE_OCCUPANCY_GRID",
+                           "PAY_ATTENTION_TO_QR_CODES",
+                           "PAY_ATTENTION_TO_ROBOT_MESSAGES",
+                           "INFORM_ROBOTS",
+                           "INFORM_POSITION_TO_ROBOTS",
+                           "INFORM_OPERATOR",
+                           "REQUEST_OPERATOR_ASSISTANCE"}) {
+    EXPECT_NE(catalog->find(name), nullptr) << name;
+  }
+  EXPECT_EQ(catalog->behaviors().size(), 30u);
+}
+
+TEST(Catalog, AMissingFileIsNamed) {
+  auto catalog = Catalog::load("/nonexistent/catalog.yaml");
+  EXPECT_EQ(catalog.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(catalog.status().message()), HasSubstr("/nonexistent/catalog.yaml"));
+}
+
+}  // namespace
+}  // namespace behaviorlib::coordinator

@@ -8,107 +8,14 @@
 #include <set>
 #include <sstream>
 
+#include "coordinator/common/yaml_support.h"
+
 namespace behaviorlib::coordinator {
 namespace {
 
-template <typename... Args>
-std::string cat(const Args&... args) {
-  std::ostringstream out;
-  (out << ... << args);
-  return out.str();
-}
-
-int lineOf(const YAML::Node& node) {
-  const YAML::Mark mark = node.Mark();
-  return mark.is_null() ? 1 : mark.line + 1;
-}
-
-std::string join(const std::vector<std::string>& items) {
-  std::string out;
-  for (const auto& item : items) out += (out.empty() ? "" : ", ") + item;
-  return out;
-}
-
-class Parser {
- public:
-  explicit Parser(std::string file) : file_(std::move(file)) {}
-
-  absl::Status error(const YAML::Node& node, const std::string& what) const {
-    return absl::InvalidArgumentError(cat(file_, ":", lineOf(node), ": ", what));
-  }
-
-  /// Checks that `node` is a mapping whose keys are all in `allowed`.
-  absl::Status mapping(const YAML::Node& node, const std::string& what,
-                       const std::vector<std::string>& allowed) const {
-    if (!node.IsMap()) return error(node, what + ": expected a mapping");
-    std::set<std::string> seen;
-    for (const auto& entry : node) {
-      const std::string key = entry.first.as<std::string>();
-      if (!seen.insert(key).second)
-        return error(entry.first, what + ": duplicate key '" + key + "'");
-      bool known = allowed.empty();
-      for (const auto& a : allowed) known = known || a == key;
-      if (!known) {
-        return error(entry.first,
-                     cat(what, ": unknown key '", key, "' (expected ", join(allowed), ")"));
-      }
-    }
-    return absl::OkStatus();
-  }
-
-  absl::Status names(const YAML::Node& node, const std::string& what,
-                     std::vector<std::string>* out) const {
-    if (node.IsScalar()) {
-      out->push_back(node.as<std::string>());
-      return absl::OkStatus();
-    }
-    if (!node.IsSequence()) return error(node, what + ": expected a list of names");
-    for (const auto& item : node) {
-      if (!item.IsScalar()) return error(item, what + ": expected a name");
-      out->push_back(item.as<std::string>());
-    }
-    return absl::OkStatus();
-  }
-
-  absl::Status value(const YAML::Node& node, const std::string& what,
-                     google::protobuf::Value* out) const {
-    if (node.IsNull()) {
-      out->set_null_value(google::protobuf::NULL_VALUE);
-    } else if (node.IsScalar()) {
-      const std::string text = node.Scalar();
-      bool b = false;
-      double d = 0;
-      if (node.Tag() == "!") {  // quoted: always a string
-        out->set_string_value(text);
-      } else if (YAML::convert<bool>::decode(node, b)) {
-        out->set_bool_value(b);
-      } else if (YAML::convert<double>::decode(node, d) && std::isfinite(d)) {
-        out->set_number_value(d);
-      } else {
-        out->set_string_value(text);
-      }
-    } else if (node.IsSequence()) {
-      auto* list = out->mutable_list_value();
-      for (const auto& item : node) {
-        if (auto s = value(item, what, list->add_values()); !s.ok()) return s;
-      }
-    } else if (node.IsMap()) {
-      auto* fields = out->mutable_struct_value()->mutable_fields();
-      for (const auto& entry : node) {
-        if (auto s = value(entry.second, what, &(*fields)[entry.first.as<std::string>()]);
-            !s.ok()) {
-          return s;
-        }
-      }
-    } else {
-      return error(node, what + ": unsupported value");
-    }
-    return absl::OkStatus();
-  }
-
- private:
-  std::string file_;
-};
+using yaml::cat;
+using yaml::join;
+using yaml::lineOf;
 
 // The JSON type a ParameterSchema accepts, checked against a default value.
 bool typeMatches(const v1::ParameterSchema& schema, const google::protobuf::Value& value) {
@@ -140,14 +47,9 @@ absl::StatusOr<Catalog> Catalog::load(const std::string& path) {
 }
 
 absl::StatusOr<Catalog> Catalog::parse(const std::string& yaml, const std::string& file_name) {
-  Parser p(file_name);
+  yaml::Reader p(file_name);
   YAML::Node root;
-  try {
-    root = YAML::Load(yaml);
-  } catch (const YAML::ParserException& e) {
-    return absl::InvalidArgumentError(
-        cat(file_name, ":", e.mark.line + 1, ": not valid YAML: ", e.msg));
-  }
+  if (auto s = yaml::load(yaml, file_name, &root); !s.ok()) return s;
   if (root.IsNull()) return absl::InvalidArgumentError(file_name + ":1: the catalog is empty");
   if (auto s = p.mapping(root, "catalog", {"capabilities", "resources", "behaviors"}); !s.ok()) {
     return s;

@@ -1,0 +1,260 @@
+#include "coordinator/belief/belief_store.h"
+
+#include <google/protobuf/util/json_util.h>
+#include <google/protobuf/util/time_util.h>
+
+#include <algorithm>
+
+#include "coordinator/durable/journal.h"
+
+namespace behaviorlib::coordinator {
+namespace {
+
+constexpr const char* kOpen = "${belief.";
+
+std::string valueText(const google::protobuf::Value& value) {
+  switch (value.kind_case()) {
+    case google::protobuf::Value::kStringValue:
+      return value.string_value();
+    case google::protobuf::Value::kBoolValue:
+      return value.bool_value() ? "true" : "false";
+    case google::protobuf::Value::kNullValue:
+      return "null";
+    default: {
+      std::string json;
+      (void)google::protobuf::util::MessageToJsonString(value, &json);
+      return json;
+    }
+  }
+}
+
+}  // namespace
+
+BeliefStore::BeliefStore(Journal* journal) : journal_(journal) {}
+
+absl::Status BeliefStore::checkKey(const std::string& key) {
+  auto bad = [&](const std::string& why) {
+    return absl::InvalidArgumentError(
+        "belief key '" + key + "' " + why +
+        " (letters, digits, '_', '-', '.', segments separated by '/')");
+  };
+  if (key.empty()) return bad("is empty");
+  if (key.size() > 256) return bad("is longer than 256 characters");
+  if (key.front() == '/' || key.back() == '/' || key.find("//") != std::string::npos) {
+    return bad("has an empty segment");
+  }
+  for (char c : key) {
+    const bool ok = (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') ||
+                    c == '_' || c == '-' || c == '.' || c == '/';
+    if (!ok) return bad(std::string("has the character '") + c + "'");
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<std::string>> BeliefStore::bindingsIn(const std::string& text) {
+  std::vector<std::string> keys;
+  for (size_t at = text.find(kOpen); at != std::string::npos; at = text.find(kOpen, at)) {
+    const size_t start = at + std::char_traits<char>::length(kOpen);
+    const size_t end = text.find('}', start);
+    if (end == std::string::npos) {
+      return absl::InvalidArgumentError("unterminated binding in '" + text +
+                                        "' (expected ${belief.<key>})");
+    }
+    const std::string key = text.substr(start, end - start);
+    if (absl::Status s = checkKey(key); !s.ok()) {
+      return absl::InvalidArgumentError("binding in '" + text + "': " + std::string(s.message()));
+    }
+    keys.push_back(key);
+    at = end + 1;
+  }
+  return keys;
+}
+
+void BeliefStore::restore(const v1::Belief& belief) {
+  std::lock_guard lock(mutex_);
+  beliefs_[belief.key()] = belief;
+  version_ = std::max(version_, belief.version());
+}
+
+absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
+                                              const google::protobuf::Value& value,
+                                              const std::string& writer, const std::string& type) {
+  if (absl::Status s = checkKey(key); !s.ok()) return s;
+  v1::Belief belief;
+  belief.set_key(key);
+  *belief.mutable_value() = value;
+  belief.set_type(type);
+  belief.set_writer(writer);
+  *belief.mutable_update_time() = google::protobuf::util::TimeUtil::GetCurrentTime();
+  {
+    std::lock_guard lock(mutex_);
+    belief.set_version(version_ + 1);
+    if (journal_ != nullptr) {
+      v1::JournalRecord record;
+      *record.mutable_belief() = belief;
+      if (absl::Status s = journal_->append(record); !s.ok()) return s;
+    }
+    version_ = belief.version();
+    beliefs_[key] = belief;
+  }
+  changed_.notify_all();
+  return belief;
+}
+
+absl::StatusOr<v1::Belief> BeliefStore::writeMessage(const std::string& key,
+                                                     const google::protobuf::Message& message,
+                                                     const std::string& writer) {
+  std::string json;
+  google::protobuf::util::JsonPrintOptions options;
+  options.preserve_proto_field_names = true;  // position_m, as in parameters
+  if (!google::protobuf::util::MessageToJsonString(message, &json, options).ok()) {
+    return absl::InvalidArgumentError("cannot encode " + message.GetTypeName() + " as JSON");
+  }
+  google::protobuf::Value value;
+  if (!google::protobuf::util::JsonStringToMessage(json, &value).ok()) {
+    return absl::InternalError("cannot decode the JSON form of " + message.GetTypeName());
+  }
+  return write(key, value, writer, message.GetTypeName());
+}
+
+absl::Status BeliefStore::erase(const std::string& key, const std::string& writer) {
+  {
+    std::lock_guard lock(mutex_);
+    auto it = beliefs_.find(key);
+    if (it == beliefs_.end() || it->second.deleted()) {
+      return absl::NotFoundError("no belief '" + key + "' in memory");
+    }
+    v1::Belief tombstone;
+    tombstone.set_key(key);
+    tombstone.set_writer(writer);
+    tombstone.set_deleted(true);
+    tombstone.set_version(version_ + 1);
+    *tombstone.mutable_update_time() = google::protobuf::util::TimeUtil::GetCurrentTime();
+    if (journal_ != nullptr) {
+      v1::JournalRecord record;
+      *record.mutable_belief() = tombstone;
+      if (absl::Status s = journal_->append(record); !s.ok()) return s;
+    }
+    version_ = tombstone.version();
+    it->second = tombstone;
+  }
+  changed_.notify_all();
+  return absl::OkStatus();
+}
+
+std::optional<v1::Belief> BeliefStore::get(const std::string& key) const {
+  std::lock_guard lock(mutex_);
+  auto it = beliefs_.find(key);
+  if (it == beliefs_.end() || it->second.deleted()) return std::nullopt;
+  return it->second;
+}
+
+std::vector<v1::Belief> BeliefStore::list(const std::string& prefix) const {
+  std::lock_guard lock(mutex_);
+  std::vector<v1::Belief> out;
+  for (auto it = beliefs_.lower_bound(prefix); it != beliefs_.end(); ++it) {
+    if (it->first.compare(0, prefix.size(), prefix) != 0) break;
+    if (!it->second.deleted()) out.push_back(it->second);
+  }
+  return out;
+}
+
+uint64_t BeliefStore::version() const {
+  std::lock_guard lock(mutex_);
+  return version_;
+}
+
+std::vector<v1::Belief> BeliefStore::waitForChanges(uint64_t since_version,
+                                                    const std::string& prefix,
+                                                    std::chrono::milliseconds timeout) const {
+  std::unique_lock lock(mutex_);
+  auto collect = [&] {
+    std::vector<v1::Belief> out;
+    for (const auto& [key, belief] : beliefs_) {
+      if (belief.version() > since_version && key.compare(0, prefix.size(), prefix) == 0) {
+        out.push_back(belief);
+      }
+    }
+    std::sort(out.begin(), out.end(),
+              [](const v1::Belief& a, const v1::Belief& b) { return a.version() < b.version(); });
+    return out;
+  };
+  std::vector<v1::Belief> out = collect();
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  while (out.empty() && !woken_) {
+    if (changed_.wait_until(lock, deadline) == std::cv_status::timeout) break;
+    out = collect();
+  }
+  return out;
+}
+
+void BeliefStore::wakeAll() {
+  {
+    std::lock_guard lock(mutex_);
+    woken_ = true;
+  }
+  changed_.notify_all();
+}
+
+absl::StatusOr<google::protobuf::Value> BeliefStore::resolveValue(
+    const google::protobuf::Value& value) const {
+  google::protobuf::Value out = value;
+  if (value.has_string_value()) {
+    const std::string& text = value.string_value();
+    auto keys = bindingsIn(text);
+    if (!keys.ok()) return keys.status();
+    if (keys->empty()) return out;
+    std::lock_guard lock(mutex_);
+    auto lookup = [&](const std::string& key) -> absl::StatusOr<google::protobuf::Value> {
+      auto it = beliefs_.find(key);
+      if (it == beliefs_.end() || it->second.deleted()) {
+        return absl::FailedPreconditionError("belief '" + key + "' is not in memory (bound by '" +
+                                             text + "')");
+      }
+      return it->second.value();
+    };
+    if (keys->size() == 1 && text == std::string(kOpen) + keys->front() + "}") {
+      return lookup(keys->front());
+    }
+    std::string result = text;
+    for (const auto& key : *keys) {
+      auto v = lookup(key);
+      if (!v.ok()) return v.status();
+      const std::string binding = std::string(kOpen) + key + "}";
+      result.replace(result.find(binding), binding.size(), valueText(*v));
+    }
+    out.set_string_value(result);
+  } else if (value.has_list_value()) {
+    auto* list = out.mutable_list_value();
+    for (int i = 0; i < list->values_size(); ++i) {
+      auto v = resolveValue(value.list_value().values(i));
+      if (!v.ok()) return v.status();
+      *list->mutable_values(i) = *v;
+    }
+  } else if (value.has_struct_value()) {
+    auto s = resolve(value.struct_value());
+    if (!s.ok()) return s.status();
+    *out.mutable_struct_value() = *s;
+  }
+  return out;
+}
+
+absl::StatusOr<google::protobuf::Struct> BeliefStore::resolve(
+    const google::protobuf::Struct& parameters) const {
+  google::protobuf::Struct out;
+  for (const auto& [key, value] : parameters.fields()) {
+    auto v = resolveValue(value);
+    if (!v.ok()) return v.status();
+    (*out.mutable_fields())[key] = *v;
+  }
+  return out;
+}
+
+std::vector<v1::Belief> BeliefStore::snapshot() const {
+  std::lock_guard lock(mutex_);
+  std::vector<v1::Belief> out;
+  for (const auto& [key, belief] : beliefs_) out.push_back(belief);
+  return out;
+}
+
+}  // namespace behaviorlib::coordinator

@@ -1,0 +1,93 @@
+#pragma once
+
+// Belief memory: typed facts (a planned path, detected markers, a saved
+// map's file, an operator's answer) written by behaviors, missions and
+// people, read and watched by missions and people. Every write gets a
+// store-wide version; a deletion is kept as a tombstone so that watchers
+// see it. With a Journal every change is appended before it is visible, and
+// a restarted coordinator restores the store by replaying the journal.
+//
+//   BeliefStore beliefs(journal);
+//   beliefs.write("drone1/path", path_value, "drone1/GENERATE_PATH_WITH_OCCUPANCY_GRID");
+//   beliefs.writeMessage("drone1/path", path_proto, writer);   // stored as JSON, type kept
+//   Struct params = beliefs.resolve(step_params).value();      // "${belief.drone1/path}"
+//
+// Thread-safe.
+
+#include <google/protobuf/message.h>
+#include <google/protobuf/struct.pb.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <map>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "behaviorlib/v1/mission.pb.h"
+
+namespace behaviorlib::coordinator {
+
+class Journal;
+
+class BeliefStore {
+ public:
+  /// `journal` may be null (memory only); it must outlive the store.
+  explicit BeliefStore(Journal* journal = nullptr);
+
+  /// Restores one journal record's belief (replay at start; no new version).
+  void restore(const v1::Belief& belief);
+
+  /// Writes `key`. INVALID_ARGUMENT for a bad key; the journal's error when
+  /// it cannot be recorded (then nothing changes).
+  absl::StatusOr<v1::Belief> write(const std::string& key, const google::protobuf::Value& value,
+                                   const std::string& writer, const std::string& type = "");
+  /// Writes a typed message as its JSON form, keeping its type name.
+  absl::StatusOr<v1::Belief> writeMessage(const std::string& key,
+                                          const google::protobuf::Message& message,
+                                          const std::string& writer);
+  /// Deletes `key`; NOT_FOUND when absent.
+  absl::Status erase(const std::string& key, const std::string& writer);
+
+  std::optional<v1::Belief> get(const std::string& key) const;
+  /// Current beliefs whose key starts with `prefix`, sorted by key.
+  std::vector<v1::Belief> list(const std::string& prefix = "") const;
+  /// Latest version written so far.
+  uint64_t version() const;
+  /// Changes (writes and tombstones) newer than `since_version` under
+  /// `prefix`, waiting up to `timeout` for one to happen; sorted by version.
+  std::vector<v1::Belief> waitForChanges(uint64_t since_version, const std::string& prefix,
+                                         std::chrono::milliseconds timeout) const;
+  /// Wakes every waitForChanges() (shutdown).
+  void wakeAll();
+
+  /// Replaces "${belief.<key>}" in the strings of `parameters`: a string that
+  /// is exactly one binding takes the belief's value (a number, a list, an
+  /// object...); a binding inside a longer string is replaced by the value's
+  /// text. FAILED_PRECONDITION naming the key when it is not in memory.
+  absl::StatusOr<google::protobuf::Struct> resolve(
+      const google::protobuf::Struct& parameters) const;
+
+  /// Every current belief and tombstone, for journal compaction.
+  std::vector<v1::Belief> snapshot() const;
+
+  /// OK for a valid key; INVALID_ARGUMENT explaining the rule otherwise.
+  static absl::Status checkKey(const std::string& key);
+  /// The keys of the "${belief.<key>}" bindings in `text`, in order;
+  /// INVALID_ARGUMENT for an unterminated or malformed binding.
+  static absl::StatusOr<std::vector<std::string>> bindingsIn(const std::string& text);
+
+ private:
+  absl::StatusOr<google::protobuf::Value> resolveValue(const google::protobuf::Value& value) const;
+
+  Journal* journal_;
+  mutable std::mutex mutex_;
+  mutable std::condition_variable changed_;
+  std::map<std::string, v1::Belief> beliefs_;  // tombstones included
+  uint64_t version_ = 0;
+  bool woken_ = false;
+};
+
+}  // namespace behaviorlib::coordinator

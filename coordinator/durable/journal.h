@@ -1,0 +1,75 @@
+#pragma once
+
+// Journal: the coordinator's append-only log on disk. Every change that must
+// survive a restart (a belief written, a mission's state) is appended as one
+// record; at start the file is replayed. Records are framed as
+//   [u32 length, little endian][u32 CRC-32 of the payload][payload: JournalRecord]
+// so that a record torn by a crash in the middle of a write is recognised
+// and cut off (the records before it are kept). The file grows until
+// compact() rewrites it from a snapshot (write to a temporary file, fsync,
+// rename: a crash leaves either the old or the new journal).
+//
+//   auto journal = Journal::open("/var/lib/behaviorlib/coordinator.journal",
+//                                [&](const v1::JournalRecord& r) { restore(r); });
+//   journal.value()->append(record);
+//
+// A process killed with SIGKILL loses nothing that append() returned for
+// (the kernel holds the written bytes); with `fsync_each_append` a power
+// loss does not either, at the cost of one fdatasync per record.
+// Thread-safe.
+
+#include <cstdint>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "behaviorlib/v1/mission.pb.h"
+
+namespace behaviorlib::coordinator {
+
+struct JournalOptions {
+  bool fsync_each_append = false;
+};
+
+class Journal {
+ public:
+  using Replay = std::function<void(const v1::JournalRecord&)>;
+
+  /// Opens or creates `path` and replays its records through `replay` in
+  /// order. A torn or corrupt tail is truncated (see truncatedBytes()).
+  static absl::StatusOr<std::unique_ptr<Journal>> open(const std::string& path,
+                                                       const Replay& replay,
+                                                       JournalOptions options = {});
+  ~Journal();
+  Journal(const Journal&) = delete;
+  Journal& operator=(const Journal&) = delete;
+
+  /// Appends one record (durable against a process crash once it returns).
+  absl::Status append(const v1::JournalRecord& record);
+  /// Replaces the journal's content with `snapshot` atomically.
+  absl::Status compact(const std::vector<v1::JournalRecord>& snapshot);
+
+  const std::string& path() const { return path_; }
+  /// Records replayed at open plus appended since (reset by compact()).
+  uint64_t recordCount() const;
+  uint64_t sizeBytes() const;
+  /// Bytes cut off at open because the last record was torn or corrupt.
+  uint64_t truncatedBytes() const { return truncated_bytes_; }
+
+ private:
+  Journal(std::string path, int fd, JournalOptions options);
+  absl::Status writeAll(int fd, const std::string& bytes);
+
+  std::string path_;
+  int fd_ = -1;
+  JournalOptions options_;
+  mutable std::mutex mutex_;
+  uint64_t records_ = 0;
+  uint64_t size_ = 0;
+  uint64_t truncated_bytes_ = 0;
+};
+
+}  // namespace behaviorlib::coordinator

@@ -1,0 +1,111 @@
+#pragma once
+
+// Mission files (YAML): what a mission activates, in which order, and what
+// each termination cause leads to.
+//
+//   name: inspect_and_land
+//   robot: drone1                       # the start request may name another
+//   recurrent:                          # active during the whole mission
+//     - behavior: SELF_LOCALIZE_WITH_GROUND_TRUTH
+//   safety:                             # run when the mission aborts
+//     - behavior: LAND
+//   steps:
+//     - name: take_off
+//       behavior: TAKE_OFF
+//       parameters: {altitude_m: 1.5}
+//       on:
+//         TIME_OUT: {retry: 2}          # then abort (or: {retry: 2, then: continue})
+//         WRONG_PROGRESS: {fallback: [{behavior: LAND}]}
+//         REFUSED: continue             # the activation itself was refused
+//         otherwise: abort              # every cause not listed (GOAL_ACHIEVED continues)
+//     - name: follow
+//       if: {belief: drone1/path, exists: true}       # or {belief: k, equals: v}
+//       behavior: FOLLOW_PATH
+//       parameters: {path: "${belief.drone1/path}"}   # the belief's value
+//       remember: {followed: true}      # written to belief memory on GOAL_ACHIEVED
+//
+// Actions: continue, abort, {retry: N[, then: <action>]}, {fallback: [steps]}
+// (the fallback steps replace the failed step; the mission then continues).
+// Causes: GOAL_ACHIEVED, TIME_OUT, WRONG_PROGRESS, SITUATION_CHANGE,
+// PROCESS_FAILURE, INTERRUPTED, and REFUSED (the activation failed: plan,
+// parameters, situation). A recurrent behavior that finishes during the
+// mission aborts it. A step may have no behavior and only `remember`.
+//
+// Every problem is INVALID_ARGUMENT "<file>:<line>: <what>: <problem>".
+
+#include <google/protobuf/struct.pb.h>
+
+#include <functional>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "behaviorlib/v1/behavior.pb.h"
+
+namespace behaviorlib::coordinator {
+
+struct MissionStep;
+
+/// What a termination cause leads to.
+struct MissionAction {
+  enum class Kind { kContinue, kAbort, kRetry, kFallback };
+  Kind kind = Kind::kAbort;
+  int retries = 0;                      ///< kRetry: extra attempts
+  std::shared_ptr<MissionAction> then;  ///< kRetry: when exhausted (null: abort)
+  std::vector<MissionStep> fallback;    ///< kFallback
+  int line = 0;
+};
+
+/// A condition on belief memory.
+struct BeliefCondition {
+  std::string key;
+  std::optional<bool> exists;                     ///< {exists: true|false}
+  std::optional<google::protobuf::Value> equals;  ///< {equals: value}
+  int line = 0;
+};
+
+struct MissionStep {
+  std::string name;      ///< empty: "step <n>"
+  std::string behavior;  ///< empty: a step that only remembers
+  google::protobuf::Struct parameters;
+  std::map<std::string, int> parameter_lines;
+  /// Keyed by cause name ("TIME_OUT", ..., "REFUSED") or "otherwise".
+  std::map<std::string, MissionAction> on;
+  std::optional<BeliefCondition> condition;
+  google::protobuf::Struct remember;
+  int line = 0;
+};
+
+struct MissionSpec {
+  std::string file;  ///< for messages
+  std::string name;
+  std::string description;
+  std::string robot_id;
+  std::vector<MissionStep> recurrent;
+  std::vector<MissionStep> safety;
+  std::vector<MissionStep> steps;
+  int line = 1;
+};
+
+/// Parses mission text; `file` names it in messages.
+absl::StatusOr<MissionSpec> parseMission(const std::string& yaml, const std::string& file);
+/// Reads and parses a mission file.
+absl::StatusOr<MissionSpec> loadMission(const std::string& path);
+
+/// The registered description of `behavior` on the mission's robot, or
+/// nullptr when no system of the robot hosts it.
+using BehaviorLookup = std::function<const v1::BehaviorDescription*(const std::string& behavior)>;
+
+/// Checks a parsed mission against what is registered, before anything
+/// flies: every behavior is hosted, every parameter is one of the
+/// behavior's, and literal values have the parameter's JSON type (bindings
+/// are checked when they are resolved). INVALID_ARGUMENT with file and line.
+absl::Status checkMission(const MissionSpec& mission, const BehaviorLookup& lookup);
+
+/// "GOAL_ACHIEVED", ... for a TerminationCause.
+std::string causeName(v1::TerminationCause cause);
+
+}  // namespace behaviorlib::coordinator

@@ -1,0 +1,551 @@
+#include "coordinator/mission/mission_runner.h"
+
+#include <google/protobuf/util/message_differencer.h>
+#include <google/protobuf/util/time_util.h>
+
+#include <sstream>
+
+namespace behaviorlib::coordinator {
+namespace {
+
+using google::protobuf::util::TimeUtil;
+
+std::string pathText(const std::vector<int>& path) {
+  std::string out;
+  for (size_t i = 0; i < path.size(); ++i) {
+    out += (i == 0 ? "steps/" : "/fallback/") + std::to_string(path[i]);
+  }
+  return out;
+}
+
+std::vector<int> pathOf(const v1::MissionStepRecord& r) {
+  return {r.path().begin(), r.path().end()};
+}
+
+bool startsWith(const std::vector<int>& path, const std::vector<int>& prefix) {
+  return path.size() >= prefix.size() && std::equal(prefix.begin(), prefix.end(), path.begin());
+}
+
+}  // namespace
+
+MissionRunner::MissionRunner(MissionSpec spec, std::string mission_id, std::string robot_id,
+                             std::string source, MissionActions& actions, BeliefStore& beliefs,
+                             OnChange on_change)
+    : spec_(std::move(spec)),
+      actions_(actions),
+      beliefs_(beliefs),
+      on_change_(std::move(on_change)) {
+  status_.set_mission_id(std::move(mission_id));
+  status_.set_name(spec_.name);
+  status_.set_robot_id(std::move(robot_id));
+  status_.set_file(spec_.file);
+  status_.set_source(std::move(source));
+  status_.set_state(v1::MISSION_STATE_RUNNING);
+  *status_.mutable_start_time() = TimeUtil::GetCurrentTime();
+}
+
+MissionRunner::MissionRunner(MissionSpec spec, const v1::MissionStatus& status,
+                             MissionActions& actions, BeliefStore& beliefs, OnChange on_change)
+    : spec_(std::move(spec)),
+      actions_(actions),
+      beliefs_(beliefs),
+      on_change_(std::move(on_change)),
+      status_(status) {
+  resuming_ = true;
+  resume_from_.assign(status.steps().begin(), status.steps().end());
+  pause_requested_ = status.state() == v1::MISSION_STATE_PAUSED;
+}
+
+MissionRunner::~MissionRunner() {
+  {
+    std::lock_guard lock(mutex_);
+    quit_ = true;
+  }
+  cv_.notify_all();
+  if (thread_.joinable()) thread_.join();
+}
+
+void MissionRunner::start() {
+  thread_ = std::thread([this] { run(); });
+}
+
+absl::Status MissionRunner::pause() {
+  std::lock_guard lock(mutex_);
+  if (done_ || status_.state() != v1::MISSION_STATE_RUNNING || status_.in_safety_steps()) {
+    return absl::FailedPreconditionError("mission '" + status_.mission_id() + "' is " +
+                                         v1::MissionState_Name(status_.state()) +
+                                         ", not running: nothing to pause");
+  }
+  if (pause_requested_)
+    return absl::FailedPreconditionError("mission '" + status_.mission_id() +
+                                         "' is already pausing");
+  pause_requested_ = true;
+  cv_.notify_all();
+  return absl::OkStatus();
+}
+
+absl::Status MissionRunner::resume() {
+  std::lock_guard lock(mutex_);
+  if (done_ || !pause_requested_) {
+    return absl::FailedPreconditionError("mission '" + status_.mission_id() + "' is not paused");
+  }
+  pause_requested_ = false;
+  cv_.notify_all();
+  return absl::OkStatus();
+}
+
+absl::Status MissionRunner::abort(const std::string& reason) {
+  std::lock_guard lock(mutex_);
+  if (done_ || status_.state() == v1::MISSION_STATE_FAILED ||
+      status_.state() == v1::MISSION_STATE_ABORTED) {
+    return absl::FailedPreconditionError("mission '" + status_.mission_id() + "' already ended (" +
+                                         v1::MissionState_Name(status_.state()) + ")");
+  }
+  abort_requested_ = true;
+  abort_reason_ = reason.empty() ? "aborted by request" : reason;
+  cv_.notify_all();
+  return absl::OkStatus();
+}
+
+v1::MissionStatus MissionRunner::status() const {
+  std::lock_guard lock(mutex_);
+  return status_;
+}
+
+bool MissionRunner::finished() const {
+  std::lock_guard lock(mutex_);
+  return done_;
+}
+
+bool MissionRunner::waitFinished(std::chrono::milliseconds timeout) const {
+  std::unique_lock lock(mutex_);
+  return cv_.wait_for(lock, timeout, [this] { return done_; });
+}
+
+void MissionRunner::publish() {
+  v1::MissionStatus copy;
+  {
+    std::lock_guard lock(mutex_);
+    copy = status_;
+  }
+  if (on_change_) on_change_(copy);
+  cv_.notify_all();
+}
+
+int MissionRunner::addRecord(v1::MissionStepRecord record) {
+  int index = 0;
+  {
+    std::lock_guard lock(mutex_);
+    *status_.add_steps() = std::move(record);
+    index = status_.steps_size() - 1;
+  }
+  publish();
+  return index;
+}
+
+void MissionRunner::updateRecord(int index,
+                                 const std::function<void(v1::MissionStepRecord&)>& change) {
+  {
+    std::lock_guard lock(mutex_);
+    change(*status_.mutable_steps(index));
+  }
+  publish();
+}
+
+void MissionRunner::setState(v1::MissionState state, const std::string& message) {
+  {
+    std::lock_guard lock(mutex_);
+    status_.set_state(state);
+    if (!message.empty()) status_.set_message(message);
+  }
+  publish();
+}
+
+std::string MissionRunner::stepLabel(const MissionStep& step, const std::vector<int>& path) const {
+  std::string label = step.name.empty() ? pathText(path) : "'" + step.name + "'";
+  if (!step.behavior.empty()) label += " (" + step.behavior + ")";
+  return "step " + label;
+}
+
+void MissionRunner::run() {
+  const std::string robot = status().robot_id();
+  const std::string id = status().mission_id();
+  const bool safety_pending = status().in_safety_steps();
+
+  // Recurrent behaviors: the same request ids after a restart give back the
+  // same activations.
+  for (size_t i = 0; i < spec_.recurrent.size(); ++i) {
+    const MissionStep& r = spec_.recurrent[i];
+    auto params = beliefs_.resolve(r.parameters);
+    absl::StatusOr<std::string> activation =
+        params.ok()
+            ? actions_.activate(robot, r.behavior, *params, id + "/recurrent/" + std::to_string(i))
+            : absl::StatusOr<std::string>(params.status());
+    if (!activation.ok()) {
+      if (safety_pending) continue;
+      failure_ = "recurrent behavior " + r.behavior +
+                 " was refused: " + std::string(activation.status().message());
+      runSafety();
+      return;
+    }
+    recurrent_.emplace_back(r.behavior, *activation);
+  }
+
+  Flow flow = Flow::kAbort;
+  if (safety_pending) {
+    failure_ = status().message();
+  } else {
+    std::vector<int> resume_path;
+    if (resuming_ && !resume_from_.empty()) resume_path = pathOf(resume_from_.back());
+    if (!resuming_ || resume_from_.empty()) publish();  // the first record of a new mission
+    flow = runList(spec_.steps, {}, resume_path);
+  }
+  switch (flow) {
+    case Flow::kQuit:
+      return;  // shutdown: the journal keeps the mission running
+    case Flow::kDone:
+      deactivateRecurrent();
+      {
+        std::lock_guard lock(mutex_);
+        *status_.mutable_end_time() = TimeUtil::GetCurrentTime();
+        done_ = true;
+      }
+      setState(v1::MISSION_STATE_SUCCEEDED);
+      return;
+    case Flow::kAbortRequested:
+      if (failure_.empty()) {
+        std::lock_guard lock(mutex_);
+        failure_ = abort_reason_;
+      }
+      {
+        std::lock_guard lock(mutex_);
+        status_.set_state(v1::MISSION_STATE_ABORTED);
+      }
+      runSafety();
+      return;
+    case Flow::kAbort:
+      runSafety();
+      return;
+  }
+}
+
+void MissionRunner::runSafety() {
+  const std::string robot = status().robot_id();
+  const std::string id = status().mission_id();
+  {
+    std::lock_guard lock(mutex_);
+    if (status_.state() != v1::MISSION_STATE_ABORTED) status_.set_state(v1::MISSION_STATE_FAILED);
+    status_.set_message(failure_);
+    status_.set_in_safety_steps(true);
+  }
+  publish();
+  std::string notes;
+  for (size_t i = 0; i < spec_.safety.size(); ++i) {
+    const MissionStep& step = spec_.safety[i];
+    auto params = beliefs_.resolve(step.parameters);
+    absl::StatusOr<std::string> activation =
+        params.ok()
+            ? actions_.activate(robot, step.behavior, *params, id + "/safety/" + std::to_string(i))
+            : absl::StatusOr<std::string>(params.status());
+    if (!activation.ok()) {
+      notes += "; safety step " + step.behavior +
+               " refused: " + std::string(activation.status().message());
+      continue;
+    }
+    for (;;) {
+      {
+        std::lock_guard lock(mutex_);
+        if (quit_) return;  // resumed by the next coordinator
+      }
+      auto finished = actions_.awaitFinished(robot, *activation, kPoll);
+      if (!finished) continue;
+      if (finished->cause != v1::TERMINATION_CAUSE_GOAL_ACHIEVED) {
+        notes += "; safety step " + step.behavior + " finished " + causeName(finished->cause) +
+                 ": " + finished->message;
+      }
+      break;
+    }
+  }
+  deactivateRecurrent();
+  {
+    std::lock_guard lock(mutex_);
+    status_.set_in_safety_steps(false);
+    status_.set_message(failure_ + notes);
+    *status_.mutable_end_time() = TimeUtil::GetCurrentTime();
+    done_ = true;
+  }
+  publish();
+}
+
+void MissionRunner::deactivateRecurrent() {
+  const std::string robot = status().robot_id();
+  for (auto it = recurrent_.rbegin(); it != recurrent_.rend(); ++it) {
+    (void)actions_.deactivate(robot, it->first);
+  }
+}
+
+std::optional<std::string> MissionRunner::recurrentFinished() {
+  const std::string robot = status().robot_id();
+  for (const auto& [behavior, activation] : recurrent_) {
+    if (auto f = actions_.awaitFinished(robot, activation, std::chrono::milliseconds(0))) {
+      return "recurrent behavior " + behavior + " finished " + causeName(f->cause) +
+             (f->message.empty() ? "" : ": " + f->message);
+    }
+  }
+  return std::nullopt;
+}
+
+MissionRunner::Flow MissionRunner::runList(const std::vector<MissionStep>& steps,
+                                           const std::vector<int>& prefix,
+                                           std::vector<int> resume_path) {
+  size_t start = 0;
+  std::vector<int> tail;
+  if (!resume_path.empty()) {
+    start = static_cast<size_t>(resume_path.front());
+    tail.assign(resume_path.begin() + 1, resume_path.end());
+  }
+  for (size_t i = start; i < steps.size(); ++i) {
+    std::vector<int> path = prefix;
+    path.push_back(static_cast<int>(i));
+    const Flow flow =
+        runStep(steps[i], path, i == start && !resume_path.empty() ? tail : std::vector<int>{});
+    if (i == start && !resume_path.empty()) resume_from_.clear();  // resumed: live from here
+    if (flow != Flow::kDone) return flow;
+  }
+  return Flow::kDone;
+}
+
+bool MissionRunner::conditionHolds(const BeliefCondition& c) const {
+  const std::optional<v1::Belief> belief = beliefs_.get(c.key);
+  if (c.exists.has_value()) return belief.has_value() == *c.exists;
+  return belief.has_value() &&
+         google::protobuf::util::MessageDifferencer::Equals(belief->value(), *c.equals);
+}
+
+void MissionRunner::rememberAll(const MissionStep& step) {
+  if (step.remember.fields().empty()) return;
+  auto values = beliefs_.resolve(step.remember);
+  const std::string writer = "mission:" + status().mission_id();
+  if (!values.ok()) return;
+  for (const auto& [key, value] : values->fields()) (void)beliefs_.write(key, value, writer);
+}
+
+const MissionAction* MissionRunner::actionFor(const MissionStep& step,
+                                              const std::string& cause) const {
+  if (auto it = step.on.find(cause); it != step.on.end()) return &it->second;
+  if (cause == "GOAL_ACHIEVED") return nullptr;  // continue
+  if (auto it = step.on.find("otherwise"); it != step.on.end()) return &it->second;
+  static const MissionAction kAbort{};
+  return &kAbort;
+}
+
+MissionRunner::Flow MissionRunner::waitWhilePaused() {
+  std::unique_lock lock(mutex_);
+  if (pause_requested_ && status_.state() == v1::MISSION_STATE_RUNNING) {
+    status_.set_state(v1::MISSION_STATE_PAUSED);
+    lock.unlock();
+    publish();
+    lock.lock();
+  }
+  cv_.wait(lock, [this] { return quit_ || abort_requested_ || !pause_requested_; });
+  if (quit_) return Flow::kQuit;
+  if (abort_requested_) return Flow::kAbortRequested;
+  if (status_.state() == v1::MISSION_STATE_PAUSED) {
+    status_.set_state(v1::MISSION_STATE_RUNNING);
+    lock.unlock();
+    publish();
+  }
+  return Flow::kDone;
+}
+
+MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
+                                           const std::string& activation_id,
+                                           FinishedActivation* finished) {
+  const std::string robot = status().robot_id();
+  bool paused_behavior = false;
+  for (;;) {
+    bool quit, abort, pause;
+    {
+      std::lock_guard lock(mutex_);
+      quit = quit_;
+      abort = abort_requested_;
+      pause = pause_requested_;
+    }
+    if (quit) return Flow::kQuit;
+    if (abort) {
+      (void)actions_.deactivate(robot, step.behavior);
+      return Flow::kAbortRequested;
+    }
+    if (pause != paused_behavior) {
+      absl::Status s =
+          pause ? actions_.pause(robot, step.behavior) : actions_.resume(robot, step.behavior);
+      paused_behavior = pause;
+      {
+        std::lock_guard lock(mutex_);
+        status_.set_state(pause ? v1::MISSION_STATE_PAUSED : v1::MISSION_STATE_RUNNING);
+        if (!s.ok())
+          status_.set_message(std::string(pause ? "pausing " : "resuming ") + step.behavior + ": " +
+                              std::string(s.message()));
+      }
+      publish();
+    }
+    if (auto f = actions_.awaitFinished(robot, activation_id, kPoll)) {
+      *finished = *f;
+      return Flow::kDone;
+    }
+    if (auto r = recurrentFinished()) {
+      (void)actions_.deactivate(robot, step.behavior);
+      failure_ = *r;
+      return Flow::kAbort;
+    }
+  }
+}
+
+MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::vector<int>& path,
+                                           std::vector<int> resume_tail) {
+  const std::string robot = status().robot_id();
+  const std::string label = stepLabel(step, path);
+
+  // The latest record of this step, when resuming into it.
+  std::optional<v1::MissionStepRecord> recorded;
+  for (auto it = resume_from_.rbegin(); it != resume_from_.rend(); ++it) {
+    if (pathOf(*it) == path) {
+      recorded = *it;
+      break;
+    }
+  }
+  const bool resume_here = !resume_from_.empty() && startsWith(pathOf(resume_from_.back()), path);
+  if (!resume_here) recorded.reset();
+
+  if (!resume_tail.empty() && recorded) {
+    // We were inside this step's fallback: the recorded cause says which.
+    const std::string cause = recorded->state() == v1::MISSION_STEP_STATE_REFUSED
+                                  ? "REFUSED"
+                                  : causeName(recorded->cause());
+    const MissionAction* action = actionFor(step, cause);
+    while (action && action->kind == MissionAction::Kind::kRetry) action = action->then.get();
+    if (action && action->kind == MissionAction::Kind::kFallback) {
+      return runList(action->fallback, path, resume_tail);
+    }
+  }
+
+  if (Flow f = waitWhilePaused(); f != Flow::kDone) return f;
+
+  if (step.condition && !(recorded && recorded->state() == v1::MISSION_STEP_STATE_SKIPPED)) {
+    if (!conditionHolds(*step.condition)) {
+      v1::MissionStepRecord skipped;
+      for (int p : path) skipped.add_path(p);
+      skipped.set_name(step.name);
+      skipped.set_behavior(step.behavior);
+      skipped.set_state(v1::MISSION_STEP_STATE_SKIPPED);
+      skipped.set_message("condition on belief '" + step.condition->key + "' does not hold");
+      addRecord(std::move(skipped));
+      return Flow::kDone;
+    }
+  } else if (recorded && recorded->state() == v1::MISSION_STEP_STATE_SKIPPED) {
+    return Flow::kDone;
+  }
+  if (step.behavior.empty()) {
+    rememberAll(step);
+    return Flow::kDone;
+  }
+
+  int attempt = recorded ? recorded->attempt() : 1;
+  for (;;) {
+    const std::string request_id =
+        status().mission_id() + "/" + pathText(path) + "/attempt/" + std::to_string(attempt);
+    std::string cause;
+    std::string message;
+    FinishedActivation finished;
+    int index = -1;
+    const bool reuse =
+        recorded && recorded->attempt() == attempt && recorded->request_id() == request_id;
+    if (reuse && (recorded->state() == v1::MISSION_STEP_STATE_FINISHED ||
+                  recorded->state() == v1::MISSION_STEP_STATE_REFUSED)) {
+      // It ended before the restart: follow its recorded cause.
+      cause = recorded->state() == v1::MISSION_STEP_STATE_REFUSED ? "REFUSED"
+                                                                  : causeName(recorded->cause());
+      message = recorded->message();
+      finished.cause = recorded->cause();
+    } else {
+      if (reuse) {
+        std::lock_guard lock(mutex_);
+        for (int i = status_.steps_size() - 1; i >= 0; --i) {
+          if (status_.steps(i).request_id() == request_id) {
+            index = i;
+            break;
+          }
+        }
+      }
+      auto params = beliefs_.resolve(step.parameters);
+      if (index < 0) {
+        v1::MissionStepRecord record;
+        for (int p : path) record.add_path(p);
+        record.set_name(step.name);
+        record.set_behavior(step.behavior);
+        record.set_attempt(attempt);
+        record.set_request_id(request_id);
+        record.set_state(v1::MISSION_STEP_STATE_RUNNING);
+        if (params.ok()) *record.mutable_parameters() = *params;
+        index = addRecord(std::move(record));  // journaled before the activation
+      }
+      absl::StatusOr<std::string> activation =
+          params.ok() ? actions_.activate(robot, step.behavior, *params, request_id)
+                      : absl::StatusOr<std::string>(params.status());
+      if (!activation.ok()) {
+        cause = "REFUSED";
+        message = std::string(activation.status().message());
+        updateRecord(index, [&](v1::MissionStepRecord& r) {
+          r.set_state(v1::MISSION_STEP_STATE_REFUSED);
+          r.set_message(message);
+        });
+      } else {
+        updateRecord(index, [&](v1::MissionStepRecord& r) { r.set_activation_id(*activation); });
+        const Flow flow = waitFor(step, *activation, &finished);
+        if (flow == Flow::kAbortRequested) {
+          updateRecord(index, [&](v1::MissionStepRecord& r) {
+            r.set_state(v1::MISSION_STEP_STATE_FINISHED);
+            r.set_cause(v1::TERMINATION_CAUSE_INTERRUPTED);
+            r.set_message("mission aborted");
+          });
+        }
+        if (flow != Flow::kDone) return flow;
+        cause = causeName(finished.cause);
+        message = finished.message;
+        updateRecord(index, [&](v1::MissionStepRecord& r) {
+          r.set_state(v1::MISSION_STEP_STATE_FINISHED);
+          r.set_cause(finished.cause);
+          r.set_message(message);
+        });
+      }
+    }
+    recorded.reset();
+    const MissionAction* action = actionFor(step, cause);
+    if (action == nullptr || action->kind == MissionAction::Kind::kContinue) {
+      if (cause == "GOAL_ACHIEVED") rememberAll(step);
+      return Flow::kDone;
+    }
+    const std::string what = label + " " +
+                             (cause == "REFUSED" ? "was refused" : "finished " + cause) +
+                             (message.empty() ? "" : ": " + message);
+    if (action->kind == MissionAction::Kind::kRetry) {
+      if (attempt <= action->retries) {
+        ++attempt;
+        continue;
+      }
+      action = action->then.get();
+      if (action == nullptr || action->kind == MissionAction::Kind::kAbort) {
+        failure_ = what + " (after " + std::to_string(attempt) + " attempts)";
+        return Flow::kAbort;
+      }
+      if (action->kind == MissionAction::Kind::kContinue) return Flow::kDone;
+    }
+    if (action->kind == MissionAction::Kind::kAbort) {
+      failure_ = what;
+      return Flow::kAbort;
+    }
+    return runList(action->fallback, path, {});  // kFallback
+  }
+}
+
+}  // namespace behaviorlib::coordinator

@@ -1,0 +1,145 @@
+#pragma once
+
+// MissionRunner: runs one mission (a MissionSpec) on one robot in a thread of
+// its own: activates its recurrent behaviors, then each step's behavior, waits
+// for its finished event, and follows what the step says for the termination
+// cause (continue, retry, fallback, abort); on abort it runs the safety steps.
+// Pause, resume and abort come from other threads.
+//
+// Exactly once across coordinator restarts: every change of the mission's
+// state is handed to `on_change` (the coordinator journals it) BEFORE the
+// runner acts on it, and every activation carries a request id derived from
+// the mission id, the step's position and the attempt
+// ("<mission>/steps/2/attempt/1"). A restarted coordinator builds the runner
+// with resume() from the journaled status: the step that was running is
+// activated again with the same request id, which the behavior system
+// answers with the same activation (nothing is activated twice), and its
+// finished event (replayed if it happened meanwhile) decides what comes next.
+//
+// No gRPC: the coordinator's service implements MissionActions (through the
+// catalog's activation plans and its event stream); tests fake them.
+
+#include <google/protobuf/struct.pb.h>
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "behaviorlib/v1/mission.pb.h"
+#include "coordinator/belief/belief_store.h"
+#include "coordinator/mission/mission_file.h"
+
+namespace behaviorlib::coordinator {
+
+struct FinishedActivation {
+  v1::TerminationCause cause = v1::TERMINATION_CAUSE_UNSPECIFIED;
+  std::string message;
+};
+
+class MissionActions {
+ public:
+  virtual ~MissionActions() = default;
+  /// Activates `behavior` on `robot`; the same `request_id` gives back the
+  /// same activation id.
+  virtual absl::StatusOr<std::string> activate(const std::string& robot,
+                                               const std::string& behavior,
+                                               const google::protobuf::Struct& parameters,
+                                               const std::string& request_id) = 0;
+  /// OK when the behavior is (now) inactive.
+  virtual absl::Status deactivate(const std::string& robot, const std::string& behavior) = 0;
+  virtual absl::Status pause(const std::string& robot, const std::string& behavior) = 0;
+  virtual absl::Status resume(const std::string& robot, const std::string& behavior) = 0;
+  /// The finished event of `activation_id`, also when it happened before
+  /// this call; nullopt when none arrives within `timeout`.
+  virtual std::optional<FinishedActivation> awaitFinished(const std::string& robot,
+                                                          const std::string& activation_id,
+                                                          std::chrono::milliseconds timeout) = 0;
+};
+
+class MissionRunner {
+ public:
+  /// Receives the mission's status after every change (runner thread; the
+  /// runner acts only after it returns).
+  using OnChange = std::function<void(const v1::MissionStatus&)>;
+
+  /// A new mission. `source` is the mission file's text (kept in the status
+  /// so that a restarted coordinator can parse it again).
+  MissionRunner(MissionSpec spec, std::string mission_id, std::string robot_id, std::string source,
+                MissionActions& actions, BeliefStore& beliefs, OnChange on_change);
+  /// A mission recorded as `status` (not finished), continued where it was.
+  MissionRunner(MissionSpec spec, const v1::MissionStatus& status, MissionActions& actions,
+                BeliefStore& beliefs, OnChange on_change);
+  /// Stops the thread without aborting the mission (it stays RUNNING in the
+  /// journal, to be resumed by the next coordinator).
+  ~MissionRunner();
+  MissionRunner(const MissionRunner&) = delete;
+  MissionRunner& operator=(const MissionRunner&) = delete;
+
+  void start();
+  /// FAILED_PRECONDITION when the mission is not running (or already paused).
+  absl::Status pause();
+  /// FAILED_PRECONDITION when the mission is not paused.
+  absl::Status resume();
+  /// Deactivates the current behavior, runs the safety steps, ends ABORTED.
+  /// FAILED_PRECONDITION when the mission already ended.
+  absl::Status abort(const std::string& reason);
+
+  v1::MissionStatus status() const;
+  bool finished() const;
+  /// Waits until the mission ends (or `timeout`); true when it ended.
+  bool waitFinished(std::chrono::milliseconds timeout) const;
+
+  /// How often the runner looks at pause/abort requests while it waits.
+  static constexpr std::chrono::milliseconds kPoll{50};
+
+ private:
+  enum class Flow { kDone, kAbort, kAbortRequested, kQuit };
+
+  void run();
+  Flow runList(const std::vector<MissionStep>& steps, const std::vector<int>& prefix,
+               std::vector<int> resume_path);
+  Flow runStep(const MissionStep& step, const std::vector<int>& path, std::vector<int> resume_tail);
+  Flow waitFor(const MissionStep& step, const std::string& activation_id,
+               FinishedActivation* finished);
+  Flow waitWhilePaused();
+  void runSafety();
+  void deactivateRecurrent();
+  std::optional<std::string> recurrentFinished();
+  const MissionAction* actionFor(const MissionStep& step, const std::string& cause) const;
+  bool conditionHolds(const BeliefCondition& c) const;
+  void rememberAll(const MissionStep& step);
+
+  // Status updates (each one published through on_change_).
+  int addRecord(v1::MissionStepRecord record);
+  void updateRecord(int index, const std::function<void(v1::MissionStepRecord&)>& change);
+  void setState(v1::MissionState state, const std::string& message = "");
+  /// Hands a copy of the status to on_change_ (called without the mutex).
+  void publish();
+  std::string stepLabel(const MissionStep& step, const std::vector<int>& path) const;
+
+  MissionSpec spec_;
+  MissionActions& actions_;
+  BeliefStore& beliefs_;
+  OnChange on_change_;
+
+  mutable std::mutex mutex_;
+  mutable std::condition_variable cv_;
+  v1::MissionStatus status_;
+  bool quit_ = false, abort_requested_ = false, pause_requested_ = false, done_ = false;
+  std::string abort_reason_;
+  std::string failure_;  // why the mission is failing (set before the safety steps)
+  std::vector<std::pair<std::string, std::string>> recurrent_;  // behavior, activation id
+  std::vector<v1::MissionStepRecord> resume_from_;              // history when resuming
+  bool resuming_ = false;
+  std::thread thread_;
+};
+
+}  // namespace behaviorlib::coordinator

@@ -1,0 +1,147 @@
+#include "coordinator/mission/mission_file.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+
+namespace behaviorlib::coordinator {
+namespace {
+
+using ::testing::HasSubstr;
+
+constexpr const char* kMission = R"(name: demo
+robot: drone1
+recurrent:
+  - behavior: SELF_LOCALIZE_WITH_GROUND_TRUTH
+safety:
+  - behavior: LAND
+steps:
+  - name: take_off
+    behavior: TAKE_OFF
+    parameters: {altitude_m: 1.5}
+    on:
+      TIME_OUT: {retry: 2, then: continue}
+      WRONG_PROGRESS:
+        fallback:
+          - behavior: LAND
+      otherwise: abort
+  - name: follow
+    if: {belief: drone1/path, exists: true}
+    behavior: FOLLOW_PATH
+    parameters:
+      path: "${belief.drone1/path}"
+    remember: {followed: true}
+  - remember: {done: "yes"}
+)";
+
+TEST(MissionFile, ParsesStepsActionsConditionsAndBindings) {
+  auto mission = parseMission(kMission, "demo.yaml");
+  ASSERT_TRUE(mission.ok()) << mission.status();
+  EXPECT_EQ(mission->name, "demo");
+  EXPECT_EQ(mission->robot_id, "drone1");
+  ASSERT_EQ(mission->steps.size(), 3u);
+  ASSERT_EQ(mission->recurrent.size(), 1u);
+  ASSERT_EQ(mission->safety.size(), 1u);
+  const MissionStep& take_off = mission->steps[0];
+  EXPECT_EQ(take_off.line, 8);
+  EXPECT_EQ(take_off.parameters.fields().at("altitude_m").number_value(), 1.5);
+  EXPECT_EQ(take_off.on.at("TIME_OUT").kind, MissionAction::Kind::kRetry);
+  EXPECT_EQ(take_off.on.at("TIME_OUT").retries, 2);
+  EXPECT_EQ(take_off.on.at("TIME_OUT").then->kind, MissionAction::Kind::kContinue);
+  EXPECT_EQ(take_off.on.at("WRONG_PROGRESS").fallback.at(0).behavior, "LAND");
+  const MissionStep& follow = mission->steps[1];
+  ASSERT_TRUE(follow.condition.has_value());
+  EXPECT_EQ(follow.condition->key, "drone1/path");
+  EXPECT_EQ(follow.parameter_lines.at("path"), 21);
+  EXPECT_TRUE(mission->steps[2].behavior.empty());
+}
+
+struct BadMission {
+  std::string text;
+  int line;
+  std::string problem;
+};
+
+class MissionFileErrors : public ::testing::TestWithParam<BadMission> {};
+
+TEST_P(MissionFileErrors, NameFileLineAndProblem) {
+  auto mission = parseMission(GetParam().text, "m.yaml");
+  ASSERT_FALSE(mission.ok());
+  EXPECT_EQ(mission.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(mission.status().message()),
+              HasSubstr("m.yaml:" + std::to_string(GetParam().line) + ": "));
+  EXPECT_THAT(std::string(mission.status().message()), HasSubstr(GetParam().problem));
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    Problems, MissionFileErrors,
+    ::testing::Values(
+        BadMission{"name: x\n", 1, "missing 'steps'"},
+        BadMission{"steps: []\n", 1, "'steps' is empty"},
+        BadMission{"steps:\n  - behavior: A\n    param: {}\n", 3, "unknown key 'param'"},
+        BadMission{"steps:\n  - behavior: A\n    on:\n      TIMEOUT: abort\n", 4,
+                   "unknown key 'TIMEOUT'"},
+        BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: again\n", 4,
+                   "unknown action 'again'"},
+        BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: {retry: 0}\n", 4, "1..100"},
+        BadMission{"steps:\n  - behavior: A\n    parameters: {p: \"${belief.x\"}\n", 3,
+                   "unterminated binding"},
+        BadMission{"steps:\n  - name: x\n", 2, "needs a 'behavior'"},
+        BadMission{"steps:\n  - behavior: A\n    if: {belief: k}\n", 3,
+                   "exactly one of 'exists' and 'equals'"},
+        BadMission{"steps:\n  - remember: {\"bad key\": 1}\n", 2, "has the character ' '"},
+        BadMission{
+            "safety:\n  - behavior: LAND\n    on: {TIME_OUT: abort}\nsteps:\n  - behavior: A\n", 2,
+            "'on' and 'if' are for steps only"},
+        BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: {fallback: []}\n", 4,
+                   "fallback: empty"},
+        BadMission{"steps: [\n", 2, "not valid YAML"}));
+
+v1::BehaviorDescription description(const std::string& name) {
+  v1::BehaviorDescription d;
+  d.set_name(name);
+  auto* p = d.add_parameters();
+  p->set_name("altitude_m");
+  p->set_type("number");
+  auto* path = d.add_parameters();
+  path->set_name("path");
+  path->set_type("object");
+  path->set_repeated(true);
+  return d;
+}
+
+TEST(MissionFile, CheckedAgainstTheRegisteredBehaviorsBeforeAnythingFlies) {
+  auto mission = parseMission(kMission, "demo.yaml");
+  ASSERT_TRUE(mission.ok());
+  std::map<std::string, v1::BehaviorDescription> registered;
+  for (const char* name : {"SELF_LOCALIZE_WITH_GROUND_TRUTH", "LAND", "TAKE_OFF", "FOLLOW_PATH"}) {
+    registered[name] = description(name);
+  }
+  auto lookup = [&](const std::string& b) -> const v1::BehaviorDescription* {
+    auto it = registered.find(b);
+    return it == registered.end() ? nullptr : &it->second;
+  };
+  EXPECT_TRUE(checkMission(*mission, lookup).ok());  // the binding is checked later
+
+  registered.erase("LAND");  // used by the safety step and a fallback
+  absl::Status missing = checkMission(*mission, lookup);
+  EXPECT_EQ(missing.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(
+      std::string(missing.message()),
+      HasSubstr(
+          "demo.yaml:15: behavior LAND is not hosted by any registered system of robot 'drone1'"));
+  registered["LAND"] = description("LAND");
+
+  registered["TAKE_OFF"].mutable_parameters()->DeleteSubrange(0, 1);
+  absl::Status unknown = checkMission(*mission, lookup);
+  EXPECT_THAT(
+      std::string(unknown.message()),
+      HasSubstr("demo.yaml:10: TAKE_OFF has no parameter 'altitude_m' (its parameters: path)"));
+
+  registered["TAKE_OFF"] = description("TAKE_OFF");
+  registered["TAKE_OFF"].mutable_parameters(0)->set_type("string");
+  EXPECT_THAT(std::string(checkMission(*mission, lookup).message()),
+              HasSubstr("TAKE_OFF parameter 'altitude_m' must be a string"));
+}
+
+}  // namespace
+}  // namespace behaviorlib::coordinator

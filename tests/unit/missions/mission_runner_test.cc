@@ -1,0 +1,439 @@
+#include "coordinator/mission/mission_runner.h"
+
+#include <gmock/gmock.h>
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <deque>
+#include <map>
+#include <set>
+
+#include "coordinator/durable/journal.h"
+
+namespace behaviorlib::coordinator {
+namespace {
+
+using std::chrono::milliseconds;
+using std::chrono::seconds;
+using ::testing::ElementsAre;
+using ::testing::HasSubstr;
+
+// Behavior systems as the runner sees them: activations finish with
+// scripted causes; request ids are idempotent, as in the real systems.
+class ScriptedActions : public MissionActions {
+ public:
+  // Causes of the successive activations of a behavior (GOAL_ACHIEVED when
+  // the script is empty).
+  void script(const std::string& behavior, std::vector<v1::TerminationCause> causes) {
+    std::lock_guard lock(mutex_);
+    for (auto c : causes) script_[behavior].push_back(c);
+  }
+  // Activations of `behavior` stay active until finish() or deactivate().
+  void hold(const std::string& behavior) {
+    std::lock_guard lock(mutex_);
+    held_.insert(behavior);
+  }
+  void finish(const std::string& behavior, v1::TerminationCause cause) {
+    std::lock_guard lock(mutex_);
+    held_.erase(behavior);
+    for (auto& [id, b] : behavior_of_) {
+      if (b == behavior && !outcome_.count(id)) outcome_[id] = {cause, "scripted"};
+    }
+  }
+  void refuse(const std::string& behavior, absl::Status status) {
+    std::lock_guard lock(mutex_);
+    refuse_[behavior] = status;
+  }
+  std::vector<std::string> calls() const {
+    std::lock_guard lock(mutex_);
+    return calls_;
+  }
+  int count(const std::string& call) const {
+    auto c = calls();
+    return static_cast<int>(std::count(c.begin(), c.end(), call));
+  }
+  bool active(const std::string& behavior) const {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, b] : behavior_of_) {
+      if (b == behavior && !outcome_.count(id)) return true;
+    }
+    return false;
+  }
+  google::protobuf::Struct lastParameters(const std::string& behavior) const {
+    std::lock_guard lock(mutex_);
+    return parameters_.at(behavior);
+  }
+
+  absl::StatusOr<std::string> activate(const std::string&, const std::string& behavior,
+                                       const google::protobuf::Struct& parameters,
+                                       const std::string& request_id) override {
+    std::lock_guard lock(mutex_);
+    if (auto it = by_request_.find(request_id); it != by_request_.end()) {
+      calls_.push_back("same activation " + behavior);
+      return it->second;
+    }
+    if (auto it = refuse_.find(behavior); it != refuse_.end()) {
+      calls_.push_back("refused " + behavior);
+      return it->second;
+    }
+    calls_.push_back("activate " + behavior);
+    std::string id = "a";
+    id += std::to_string(++next_);
+    by_request_[request_id] = id;
+    behavior_of_[id] = behavior;
+    parameters_[behavior] = parameters;
+    if (!held_.count(behavior)) {
+      auto& queue = script_[behavior];
+      v1::TerminationCause cause = v1::TERMINATION_CAUSE_GOAL_ACHIEVED;
+      if (!queue.empty()) {
+        cause = queue.front();
+        queue.pop_front();
+      }
+      outcome_[id] = {cause, "scripted"};
+    }
+    return id;
+  }
+  absl::Status deactivate(const std::string&, const std::string& behavior) override {
+    std::lock_guard lock(mutex_);
+    calls_.push_back("deactivate " + behavior);
+    for (auto& [id, b] : behavior_of_) {
+      if (b == behavior && !outcome_.count(id))
+        outcome_[id] = {v1::TERMINATION_CAUSE_INTERRUPTED, "deactivated"};
+    }
+    return absl::OkStatus();
+  }
+  absl::Status pause(const std::string&, const std::string& behavior) override {
+    std::lock_guard lock(mutex_);
+    calls_.push_back("pause " + behavior);
+    return absl::OkStatus();
+  }
+  absl::Status resume(const std::string&, const std::string& behavior) override {
+    std::lock_guard lock(mutex_);
+    calls_.push_back("resume " + behavior);
+    return absl::OkStatus();
+  }
+  std::optional<FinishedActivation> awaitFinished(const std::string&, const std::string& id,
+                                                  milliseconds timeout) override {
+    {
+      std::lock_guard lock(mutex_);
+      if (auto it = outcome_.find(id); it != outcome_.end()) return it->second;
+    }
+    std::this_thread::sleep_for(std::min(timeout, milliseconds(1)));
+    return std::nullopt;
+  }
+
+ private:
+  mutable std::mutex mutex_;
+  std::vector<std::string> calls_;
+  std::map<std::string, std::deque<v1::TerminationCause>> script_;
+  std::set<std::string> held_;
+  std::map<std::string, absl::Status> refuse_;
+  std::map<std::string, std::string> by_request_, behavior_of_;
+  std::map<std::string, FinishedActivation> outcome_;
+  std::map<std::string, google::protobuf::Struct> parameters_;
+  int next_ = 0;
+};
+
+MissionSpec mission(const std::string& yaml) {
+  auto spec = parseMission(yaml, "test.yaml");
+  EXPECT_TRUE(spec.ok()) << spec.status();
+  return *spec;
+}
+
+struct MissionRun {
+  ScriptedActions actions;
+  BeliefStore beliefs;
+  std::mutex mutex;
+  std::vector<v1::MissionStatus> changes;
+  std::unique_ptr<MissionRunner> runner;
+
+  void start(const std::string& yaml, const std::string& id = "m1") {
+    runner = std::make_unique<MissionRunner>(mission(yaml), id, "drone1", yaml, actions, beliefs,
+                                             [this](const v1::MissionStatus& s) {
+                                               std::lock_guard lock(mutex);
+                                               changes.push_back(s);
+                                             });
+    runner->start();
+  }
+  v1::MissionStatus finish() {
+    EXPECT_TRUE(runner->waitFinished(seconds(10)));
+    return runner->status();
+  }
+  v1::MissionStatus last() {
+    std::lock_guard lock(mutex);
+    return changes.back();
+  }
+};
+
+template <class F>
+bool eventually(F f) {
+  for (int i = 0; i < 5000; ++i) {
+    if (f()) return true;
+    std::this_thread::sleep_for(milliseconds(1));
+  }
+  return false;
+}
+
+constexpr const char* kTakeOffFollowLand = R"(name: demo
+recurrent:
+  - behavior: SELF_LOCALIZE
+safety:
+  - behavior: LAND
+steps:
+  - behavior: TAKE_OFF
+  - behavior: FOLLOW_PATH
+  - behavior: LAND
+)";
+
+TEST(MissionRunner, RunsStepsInOrderWithRecurrentBehaviorsAround) {
+  MissionRun run;
+  run.actions.hold("SELF_LOCALIZE");
+  run.start(kTakeOffFollowLand);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_SUCCEEDED) << status.message();
+  EXPECT_THAT(run.actions.calls(),
+              ElementsAre("activate SELF_LOCALIZE", "activate TAKE_OFF", "activate FOLLOW_PATH",
+                          "activate LAND", "deactivate SELF_LOCALIZE"));
+  ASSERT_EQ(status.steps_size(), 3);
+  EXPECT_EQ(status.steps(1).behavior(), "FOLLOW_PATH");
+  EXPECT_EQ(status.steps(1).cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  EXPECT_EQ(status.steps(1).request_id(), "m1/steps/1/attempt/1");
+  EXPECT_TRUE(status.has_end_time());
+}
+
+constexpr const char* kBranches = R"(name: branches
+safety:
+  - behavior: LAND
+steps:
+  - behavior: STEP
+    on:
+      TIME_OUT: {retry: 2}
+      WRONG_PROGRESS: {fallback: [{behavior: RECOVER}, {behavior: RECOVER_MORE}]}
+      SITUATION_CHANGE: continue
+      REFUSED: continue
+      otherwise: abort
+  - behavior: NEXT
+)";
+
+struct Branch {
+  std::vector<v1::TerminationCause> causes;  // of STEP's activations
+  v1::MissionState state;
+  std::vector<std::string> calls;
+};
+
+class MissionBranches : public ::testing::TestWithParam<Branch> {};
+
+TEST_P(MissionBranches, FollowTheTerminationCause) {
+  MissionRun run;
+  run.actions.script("STEP", GetParam().causes);
+  run.start(kBranches);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), GetParam().state) << status.message();
+  EXPECT_EQ(run.actions.calls(), GetParam().calls);
+}
+
+INSTANTIATE_TEST_SUITE_P(
+    EachCause, MissionBranches,
+    ::testing::Values(Branch{{v1::TERMINATION_CAUSE_GOAL_ACHIEVED},
+                             v1::MISSION_STATE_SUCCEEDED,
+                             {"activate STEP", "activate NEXT"}},
+                      Branch{{v1::TERMINATION_CAUSE_TIME_OUT, v1::TERMINATION_CAUSE_TIME_OUT},
+                             v1::MISSION_STATE_SUCCEEDED,
+                             {"activate STEP", "activate STEP", "activate STEP", "activate NEXT"}},
+                      Branch{{v1::TERMINATION_CAUSE_TIME_OUT, v1::TERMINATION_CAUSE_TIME_OUT,
+                              v1::TERMINATION_CAUSE_TIME_OUT},
+                             v1::MISSION_STATE_FAILED,
+                             {"activate STEP", "activate STEP", "activate STEP", "activate LAND"}},
+                      Branch{{v1::TERMINATION_CAUSE_WRONG_PROGRESS},
+                             v1::MISSION_STATE_SUCCEEDED,
+                             {"activate STEP", "activate RECOVER", "activate RECOVER_MORE",
+                              "activate NEXT"}},
+                      Branch{{v1::TERMINATION_CAUSE_SITUATION_CHANGE},
+                             v1::MISSION_STATE_SUCCEEDED,
+                             {"activate STEP", "activate NEXT"}},
+                      Branch{{v1::TERMINATION_CAUSE_PROCESS_FAILURE},
+                             v1::MISSION_STATE_FAILED,
+                             {"activate STEP", "activate LAND"}},
+                      Branch{{v1::TERMINATION_CAUSE_INTERRUPTED},
+                             v1::MISSION_STATE_FAILED,
+                             {"activate STEP", "activate LAND"}}));
+
+TEST(MissionRunner, ARefusedActivationIsACauseToo) {
+  MissionRun run;
+  run.actions.refuse("STEP", absl::FailedPreconditionError("already flying"));
+  run.start(kBranches);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_SUCCEEDED);
+  EXPECT_EQ(status.steps(0).state(), v1::MISSION_STEP_STATE_REFUSED);
+  EXPECT_EQ(status.steps(0).message(), "already flying");
+}
+
+TEST(MissionRunner, AFailureNamesTheStepAndCause) {
+  MissionRun run;
+  run.actions.script("STEP", {v1::TERMINATION_CAUSE_PROCESS_FAILURE});
+  run.start(kBranches);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_FAILED);
+  EXPECT_THAT(status.message(),
+              HasSubstr("step steps/0 (STEP) finished PROCESS_FAILURE: scripted"));
+  EXPECT_FALSE(status.in_safety_steps());
+}
+
+TEST(MissionRunner, BindsBeliefsIntoParametersAndSkipsOnConditions) {
+  MissionRun run;
+  google::protobuf::Value path;
+  path.mutable_list_value()->add_values()->set_number_value(4.0);
+  ASSERT_TRUE(run.beliefs.write("drone1/path", path, "GENERATE_PATH").ok());
+  run.start(R"(name: bind
+steps:
+  - behavior: FOLLOW_PATH
+    parameters: {path: "${belief.drone1/path}", speed_m_s: 1.0}
+    remember: {followed: true}
+  - behavior: CELEBRATE
+    if: {belief: operator_answer, equals: "yes"}
+  - remember: {report: "followed ${belief.followed}"}
+)");
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_SUCCEEDED);
+  const auto params = run.actions.lastParameters("FOLLOW_PATH");
+  EXPECT_EQ(params.fields().at("path").list_value().values(0).number_value(), 4.0);
+  EXPECT_EQ(params.fields().at("speed_m_s").number_value(), 1.0);
+  EXPECT_EQ(run.actions.count("activate CELEBRATE"), 0);
+  EXPECT_EQ(status.steps(1).state(), v1::MISSION_STEP_STATE_SKIPPED);
+  EXPECT_EQ(run.beliefs.get("report")->value().string_value(), "followed true");
+}
+
+TEST(MissionRunner, AnUnboundBeliefRefusesTheStep) {
+  MissionRun run;
+  run.start("steps:\n  - behavior: FOLLOW_PATH\n    parameters: {path: \"${belief.none}\"}\n");
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_FAILED);
+  EXPECT_THAT(status.message(), HasSubstr("belief 'none' is not in memory"));
+  EXPECT_EQ(run.actions.count("activate FOLLOW_PATH"), 0);
+}
+
+TEST(MissionRunner, AbortDeactivatesTheCurrentBehaviorAndRunsTheSafetySteps) {
+  MissionRun run;
+  run.actions.hold("SELF_LOCALIZE");
+  run.actions.hold("FOLLOW_PATH");
+  run.start(kTakeOffFollowLand);
+  ASSERT_TRUE(eventually([&] { return run.actions.active("FOLLOW_PATH"); }));
+  ASSERT_TRUE(run.runner->abort("operator said so").ok());
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_ABORTED);
+  EXPECT_EQ(status.message(), "operator said so");
+  EXPECT_EQ(status.steps(1).cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+  EXPECT_THAT(run.actions.calls(),
+              ElementsAre("activate SELF_LOCALIZE", "activate TAKE_OFF", "activate FOLLOW_PATH",
+                          "deactivate FOLLOW_PATH", "activate LAND", "deactivate SELF_LOCALIZE"));
+  EXPECT_EQ(run.runner->abort("again").code(), absl::StatusCode::kFailedPrecondition);
+}
+
+TEST(MissionRunner, PauseAndResumeReachTheActiveBehavior) {
+  MissionRun run;
+  run.actions.hold("SELF_LOCALIZE");
+  run.actions.hold("FOLLOW_PATH");
+  run.start(kTakeOffFollowLand);
+  ASSERT_TRUE(eventually([&] { return run.actions.active("FOLLOW_PATH"); }));
+  ASSERT_TRUE(run.runner->pause().ok());
+  ASSERT_TRUE(eventually([&] { return run.runner->status().state() == v1::MISSION_STATE_PAUSED; }));
+  EXPECT_EQ(run.actions.count("pause FOLLOW_PATH"), 1);
+  EXPECT_EQ(run.runner->pause().code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(run.runner->resume().ok());
+  ASSERT_TRUE(eventually([&] { return run.actions.count("resume FOLLOW_PATH") == 1; }));
+  run.actions.finish("FOLLOW_PATH", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  EXPECT_EQ(run.finish().state(), v1::MISSION_STATE_SUCCEEDED);
+  EXPECT_EQ(run.runner->resume().code(), absl::StatusCode::kFailedPrecondition);
+}
+
+TEST(MissionRunner, ARecurrentBehaviorThatEndsAbortsTheMission) {
+  MissionRun run;
+  run.actions.hold("SELF_LOCALIZE");
+  run.actions.hold("FOLLOW_PATH");
+  run.start(kTakeOffFollowLand);
+  ASSERT_TRUE(eventually([&] { return run.actions.active("FOLLOW_PATH"); }));
+  run.actions.finish("SELF_LOCALIZE", v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_FAILED);
+  EXPECT_THAT(status.message(),
+              HasSubstr("recurrent behavior SELF_LOCALIZE finished PROCESS_FAILURE"));
+  EXPECT_EQ(run.actions.count("deactivate FOLLOW_PATH"), 1);
+  EXPECT_EQ(run.actions.count("activate LAND"), 1);
+}
+
+TEST(MissionRunner, AResumedMissionActivatesNothingTwice) {
+  // The coordinator journals every change; it dies while FOLLOW_PATH runs.
+  char name[] = "/tmp/mission_journal_XXXXXX";
+  close(mkstemp(name));
+  ScriptedActions actions;  // the behavior systems outlive the coordinator
+  actions.hold("SELF_LOCALIZE");
+  actions.hold("FOLLOW_PATH");
+  {
+    auto journal = Journal::open(name, [](const v1::JournalRecord&) {});
+    ASSERT_TRUE(journal.ok());
+    BeliefStore beliefs(journal->get());
+    MissionRunner runner(mission(kTakeOffFollowLand), "m7", "drone1", kTakeOffFollowLand, actions,
+                         beliefs, [&](const v1::MissionStatus& s) {
+                           v1::JournalRecord r;
+                           *r.mutable_mission() = s;
+                           ASSERT_TRUE((*journal)->append(r).ok());
+                         });
+    runner.start();
+    ASSERT_TRUE(eventually([&] { return actions.active("FOLLOW_PATH"); }));
+  }  // the coordinator is gone; the mission was not aborted
+  EXPECT_TRUE(actions.active("FOLLOW_PATH"));
+
+  // A new coordinator replays the journal and resumes the mission.
+  std::optional<v1::MissionStatus> recorded;
+  BeliefStore beliefs;
+  auto journal = Journal::open(name, [&](const v1::JournalRecord& r) {
+    if (r.has_mission()) recorded = r.mission();
+  });
+  ASSERT_TRUE(journal.ok());
+  ASSERT_TRUE(recorded.has_value());
+  EXPECT_EQ(recorded->state(), v1::MISSION_STATE_RUNNING);
+  auto spec = parseMission(recorded->source(), recorded->file());
+  ASSERT_TRUE(spec.ok());
+  MissionRunner resumed(*spec, *recorded, actions, beliefs, nullptr);
+  resumed.start();
+  ASSERT_TRUE(eventually([&] { return actions.count("same activation FOLLOW_PATH") == 1; }));
+  actions.finish("FOLLOW_PATH", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  ASSERT_TRUE(resumed.waitFinished(seconds(10)));
+  EXPECT_EQ(resumed.status().state(), v1::MISSION_STATE_SUCCEEDED);
+  EXPECT_EQ(actions.count("activate TAKE_OFF"), 1);
+  EXPECT_EQ(actions.count("activate FOLLOW_PATH"), 1);
+  EXPECT_EQ(actions.count("activate SELF_LOCALIZE"), 1);
+  EXPECT_EQ(actions.count("activate LAND"), 1);
+  EXPECT_EQ(resumed.status().steps_size(), 3);
+  std::remove(name);
+}
+
+TEST(MissionRunner, AMissionResumedInsideAFallbackFinishesTheFallback) {
+  ScriptedActions actions;
+  actions.script("STEP", {v1::TERMINATION_CAUSE_WRONG_PROGRESS});
+  actions.hold("RECOVER");
+  BeliefStore beliefs;
+  std::vector<v1::MissionStatus> changes;
+  std::mutex mutex;
+  {
+    MissionRunner runner(mission(kBranches), "m8", "drone1", kBranches, actions, beliefs,
+                         [&](const v1::MissionStatus& s) {
+                           std::lock_guard lock(mutex);
+                           changes.push_back(s);
+                         });
+    runner.start();
+    ASSERT_TRUE(eventually([&] { return actions.active("RECOVER"); }));
+  }
+  MissionRunner resumed(mission(kBranches), changes.back(), actions, beliefs, nullptr);
+  resumed.start();
+  ASSERT_TRUE(eventually([&] { return actions.count("same activation RECOVER") == 1; }));
+  actions.finish("RECOVER", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  ASSERT_TRUE(resumed.waitFinished(seconds(10)));
+  EXPECT_EQ(resumed.status().state(), v1::MISSION_STATE_SUCCEEDED);
+  EXPECT_THAT(actions.calls(),
+              ElementsAre("activate STEP", "activate RECOVER", "same activation RECOVER",
+                          "activate RECOVER_MORE", "activate NEXT"));
+}
+
+}  // namespace
+}  // namespace behaviorlib::coordinator

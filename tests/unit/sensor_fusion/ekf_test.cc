@@ -1,0 +1,166 @@
+#include "sensor_fusion/ekf.h"
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdio>
+#include <random>
+
+#include "simulator/dynamics/autopilot.h"
+#include "simulator/dynamics/quadrotor.h"
+
+namespace behaviorlib::fusion {
+namespace {
+
+// A flight of the simulator's quadrotor (velocity setpoints along a circle
+// with climbs) and the sensor samples a real vehicle would give.
+class SyntheticFlight {
+ public:
+  struct Noise {
+    double gyro_rad_s = 0.005 * std::sqrt(200.0);  // per sample at 200 Hz
+    double accel_m_s2 = 0.05 * std::sqrt(200.0);
+    Eigen::Vector3d gyro_bias{0.01, -0.02, 0.005};
+    Eigen::Vector3d accel_bias{0.1, -0.05, 0.08};
+    double gps_h_m = 0.3, gps_v_m = 0.5;
+    double baro_m = 0.1, flow_m_s = 0.05, yaw_rad = 0.05;
+  } noise;
+
+  explicit SyntheticFlight(uint64_t seed)
+      : quad_(params_, start()), autopilot_(params_), rng_(seed) {}
+
+  /// Runs `seconds` of flight; callbacks get the samples as they happen.
+  template <class OnImu, class OnGps, class OnBaro, class OnFlow, class OnYaw, class OnTruth>
+  void fly(double seconds, OnImu on_imu, OnGps on_gps, OnBaro on_baro, OnFlow on_flow, OnYaw on_yaw,
+           OnTruth on_truth) {
+    std::normal_distribution<double> n(0.0, 1.0);
+    auto noisy3 = [&](double s) {
+      // One draw per statement: a defined order, the same samples everywhere.
+      Eigen::Vector3d v;
+      v.x() = n(rng_) * s;
+      v.y() = n(rng_) * s;
+      v.z() = n(rng_) * s;
+      return v;
+    };
+    Eigen::Vector3d v_prev = quad_.state().velocity_m_s;
+    const int steps = static_cast<int>(seconds * 1000.0);
+    for (int k = 1; k <= steps; ++k) {
+      const double t = k * 0.001;
+      const sim::Setpoint sp = sim::VelocityYawRate{
+          {2.0 * std::cos(0.4 * t), 2.0 * std::sin(0.4 * t), 0.3 * std::sin(0.2 * t)}, 0.2};
+      quad_.step(0.001, autopilot_.update(quad_.state(), sp, 0.001));
+      const auto& s = quad_.state();
+      if (k % 5 == 0) {  // IMU 200 Hz
+        const Eigen::Vector3d a_world = (s.velocity_m_s - v_prev) / 0.005;
+        v_prev = s.velocity_m_s;
+        const Eigen::Vector3d f_body =
+            s.orientation.conjugate() * (a_world + Eigen::Vector3d(0, 0, 9.81));
+        on_imu(s.angular_velocity_rad_s + noise.gyro_bias + noisy3(noise.gyro_rad_s),
+               f_body + noise.accel_bias + noisy3(noise.accel_m_s2), 0.005);
+      }
+      if (k % 100 == 0) {
+        Eigen::Vector3d gps = s.position_m;
+        gps.x() += n(rng_) * noise.gps_h_m;
+        gps.y() += n(rng_) * noise.gps_h_m;
+        gps.z() += n(rng_) * noise.gps_v_m;
+        on_gps(gps);
+        const Eigen::Vector3d forward = s.orientation * Eigen::Vector3d::UnitX();
+        on_yaw(std::atan2(forward.y(), forward.x()) + n(rng_) * noise.yaw_rad);
+      }
+      if (k % 40 == 0) on_baro(s.position_m.z() + n(rng_) * noise.baro_m);
+      if (k % 33 == 0) on_flow(s.orientation.conjugate() * s.velocity_m_s + noisy3(noise.flow_m_s));
+      if (k % 5 == 0) on_truth(s.position_m, s.velocity_m_s);
+    }
+  }
+
+  const sim::QuadrotorState& state() const { return quad_.state(); }
+
+ private:
+  sim::QuadrotorState start() const {
+    sim::QuadrotorState s;
+    s.position_m = {0, 0, 5};
+    s.motor_speeds_rad_s.fill(params_.hoverMotorSpeedRadS());
+    return s;
+  }
+  sim::QuadrotorParams params_;
+  sim::Quadrotor quad_;
+  sim::Autopilot autopilot_;
+  std::mt19937_64 rng_;
+};
+
+struct Result {
+  double position_rmse_m = 0;
+  double velocity_rmse_m_s = 0;
+  uint64_t rejected = 0;
+  InsEkf ekf;
+};
+
+Result runFlight(uint64_t seed, bool gps_garbage = false, double seconds = 60.0) {
+  SyntheticFlight flight(seed);
+  Result r;
+  InsEkf& ekf = r.ekf;
+  ekf.initialize(flight.state().position_m + Eigen::Vector3d(0.5, -0.5, 0.2),
+                 Eigen::Vector3d::Zero(), flight.state().orientation);
+  double sum_p = 0, sum_v = 0;
+  int count = 0, gps_count = 0;
+  flight.fly(
+      seconds, [&](auto w, auto f, double dt) { ekf.predict(w, f, dt); },
+      [&](Eigen::Vector3d gps) {
+        if (gps_garbage && ++gps_count % 5 == 0) gps += Eigen::Vector3d(80, -40, 30);  // garbage
+        ekf.updatePosition(gps, flight.noise.gps_h_m, flight.noise.gps_v_m);
+      },
+      [&](double z) { ekf.updateAltitude(z, flight.noise.baro_m); },
+      [&](const Eigen::Vector3d& v) { ekf.updateBodyVelocity(v, flight.noise.flow_m_s); },
+      [&](double yaw) { ekf.updateYaw(yaw, flight.noise.yaw_rad); },
+      [&](const Eigen::Vector3d& p, const Eigen::Vector3d& v) {
+        if (count++ < 2000) return;  // after 10 s of convergence
+        sum_p += (ekf.position() - p).squaredNorm();
+        sum_v += (ekf.velocity() - v).squaredNorm();
+      });
+  const double n = static_cast<double>(count - 2000);
+  r.position_rmse_m = std::sqrt(sum_p / n);
+  r.velocity_rmse_m_s = std::sqrt(sum_v / n);
+  r.rejected = ekf.rejectedCount();
+  return r;
+}
+
+TEST(InsEkf, FusesImuGpsBaroFlowAndYawWithinTheBound) {
+  for (uint64_t seed : {1u, 2u, 3u}) {
+    const Result r = runFlight(seed);
+    std::printf("seed %llu: position RMSE %.3f m, velocity RMSE %.3f m/s\n",
+                static_cast<unsigned long long>(seed), r.position_rmse_m, r.velocity_rmse_m_s);
+    EXPECT_LT(r.position_rmse_m, 0.15) << "seed " << seed;
+    EXPECT_LT(r.velocity_rmse_m_s, 0.1) << "seed " << seed;
+    EXPECT_TRUE(r.ekf.finite());
+    // The biases are learnt.
+    EXPECT_NEAR(r.ekf.gyroBias().z(), 0.005, 0.01) << "seed " << seed;
+  }
+}
+
+TEST(InsEkf, GarbagePositionsAreRejectedAndCounted) {
+  const Result clean = runFlight(4);
+  const Result garbage = runFlight(4, /*gps_garbage=*/true);
+  EXPECT_GE(garbage.rejected, 100u);  // one fix in five, 600 fixes
+  EXPECT_LT(garbage.position_rmse_m, 0.2);
+  EXPECT_LT(clean.rejected, 10u);
+}
+
+TEST(InsEkf, WithoutCorrectionsTheUncertaintyGrows) {
+  InsEkf ekf;
+  ekf.initialize({0, 0, 1}, Eigen::Vector3d::Zero(), Eigen::Quaterniond::Identity());
+  const double before = ekf.horizontalStddevM();
+  for (int i = 0; i < 2000; ++i) ekf.predict(Eigen::Vector3d::Zero(), {0, 0, 9.81}, 0.005);
+  EXPECT_GT(ekf.horizontalStddevM(), 2.0 * before);  // a dead GPS shows in the covariance
+  EXPECT_NEAR(ekf.position().z(), 1.0, 1e-9);        // a level IMU at rest: no drift
+}
+
+TEST(InsEkf, NonFiniteMeasurementsAreRejected) {
+  InsEkf ekf;
+  ekf.initialize({0, 0, 1}, Eigen::Vector3d::Zero(), Eigen::Quaterniond::Identity());
+  EXPECT_FALSE(ekf.updatePosition({std::nan(""), 0, 0}, 0.3, 0.5).accepted);
+  EXPECT_FALSE(ekf.updateAltitude(std::nan(""), 0.1).accepted);
+  EXPECT_EQ(ekf.rejectedCount(), 2u);
+  EXPECT_TRUE(ekf.finite());
+}
+
+}  // namespace
+}  // namespace behaviorlib::fusion

@@ -1,0 +1,143 @@
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cstdio>
+
+#include "navigation/occupancy_map.h"
+#include "navigation/path_planner.h"
+#include "unit/navigation/mapping.h"
+
+namespace behaviorlib::nav {
+namespace {
+
+class Building : public ::testing::Test {
+ protected:
+  static void SetUpTestSuite() {
+    seedPlanner(42);
+    auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+    ASSERT_TRUE(world.ok()) << world.status();
+    world_ = new sim::World(std::move(*world));
+    auto lidar = sim::Lidar::create(*world_, testing::mappingLidar());
+    ASSERT_TRUE(lidar.ok());
+    map_ = new OccupancyMap();
+    // Scan from the middle of each room and each doorway, 1.5 m up.
+    for (const Eigen::Vector3d& p :
+         {Eigen::Vector3d(3, 3, 1.5), Eigen::Vector3d(3, 7, 1.5), Eigen::Vector3d(9, 5, 1.5),
+          Eigen::Vector3d(15, 3, 1.5), Eigen::Vector3d(15, 8, 1.5), Eigen::Vector3d(6, 5, 1.5),
+          Eigen::Vector3d(12, 3, 1.5), Eigen::Vector3d(15, 5.5, 1.5)}) {
+      testing::scanInto(*map_, *lidar, p);
+    }
+  }
+  static void TearDownTestSuite() {
+    delete map_;
+    delete world_;
+  }
+
+  static PlanOptions buildingVolume() {
+    PlanOptions o;
+    o.bounds_min_m = {0.2, 0.2, 0.8};
+    o.bounds_max_m = {17.8, 9.8, 2.0};
+    return o;
+  }
+
+  // The path's segments, sampled every 5 cm, keep the vehicle's radius from
+  // the world's real surfaces.
+  static void expectCollisionFree(const PlannedPath& path, double radius) {
+    for (size_t i = 1; i < path.waypoints_m.size(); ++i) {
+      const Eigen::Vector3d a = path.waypoints_m[i - 1], b = path.waypoints_m[i];
+      const int n = std::max(1, static_cast<int>((b - a).norm() / 0.05));
+      for (int k = 0; k <= n; ++k) {
+        const Eigen::Vector3d p = a + (b - a) * (static_cast<double>(k) / n);
+        ASSERT_EQ(world_->collidingSurface(p, radius * 0.9), "") << "at (" << p.transpose() << ")";
+      }
+    }
+  }
+
+  static sim::World* world_;
+  static OccupancyMap* map_;
+};
+
+sim::World* Building::world_ = nullptr;
+OccupancyMap* Building::map_ = nullptr;
+
+TEST_F(Building, TheMapHasTheWallsAndTheRoomsFreeSpace) {
+  EXPECT_TRUE(map_->occupied({6.0, 2.0, 1.5}));   // wall between A and B
+  EXPECT_FALSE(map_->occupied({3.0, 3.0, 1.5}));  // room A
+  EXPECT_TRUE(map_->known({3.0, 3.0, 1.5}));
+  EXPECT_FALSE(map_->known({30.0, 30.0, 1.5}));
+  EXPECT_TRUE(map_->collides({5.8, 2.0, 1.5}, 0.3));
+  EXPECT_FALSE(map_->collides({3.0, 3.0, 1.5}, 0.3));
+  // Most of the building's free volume between 0.8 and 2.0 m is mapped.
+  const double mapped = map_->freeVolumeM3({0.1, 0.1, 0.8}, {17.9, 9.9, 2.0});
+  EXPECT_GT(mapped, 0.7 * 17.8 * 9.8 * 1.2);
+}
+
+TEST_F(Building, PlansFromRoomToRoomThroughTheDoors) {
+  const PlanOptions options = buildingVolume();
+  for (const auto& [from, to] : std::vector<std::pair<Eigen::Vector3d, Eigen::Vector3d>>{
+           {{2, 2, 1.5}, {16.5, 8.5, 1.5}},  // A -> D: through B and C
+           {{9, 8, 1.5}, {3, 7, 1.2}},   // B -> A
+           {{15, 2, 1.5}, {9, 2, 1.5}}}) {
+    auto path = planPath(*map_, from, to, options);
+    ASSERT_TRUE(path.ok()) << path.status();
+    EXPECT_EQ(path->waypoints_m.front(), from);
+    EXPECT_LT((path->waypoints_m.back() - to).norm(), 1e-6);
+    EXPECT_GT(path->length_m, (to - from).norm() - 1e-9);
+    expectCollisionFree(*path, options.vehicle_radius_m);
+  }
+}
+
+TEST_F(Building, RefusesGoalsOutsideTheMapOrInsideObstacles) {
+  const PlanOptions options = buildingVolume();
+  auto outside = planPath(*map_, {2, 2, 1.5}, {40, 2, 1.5}, options);
+  EXPECT_EQ(outside.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(outside.status().message()).find("outside the planning volume"),
+            std::string::npos);
+  auto in_wall = planPath(*map_, {2, 2, 1.5}, {6.0, 2.0, 1.5}, options);
+  EXPECT_EQ(in_wall.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(std::string(in_wall.status().message()).find("inside an obstacle"), std::string::npos);
+}
+
+TEST(OccupancyMapAlone, AnUnreachableGoalIsReportedAfterTheTimeout) {
+  // A closed box around the goal.
+  OccupancyMap map;
+  std::vector<Eigen::Vector3d> shell;
+  for (double a = -1.0; a <= 1.0001; a += 0.05) {
+    for (double b = -1.0; b <= 1.0001; b += 0.05) {
+      for (const Eigen::Vector3d& p :
+           {Eigen::Vector3d(-1, a, b), Eigen::Vector3d(1, a, b), Eigen::Vector3d(a, -1, b),
+            Eigen::Vector3d(a, 1, b), Eigen::Vector3d(a, b, -1), Eigen::Vector3d(a, b, 1)}) {
+        shell.push_back(p + Eigen::Vector3d(5, 5, 2));
+      }
+    }
+  }
+  for (int i = 0; i < 3; ++i) map.insertScan({5, 5, 2}, shell);
+  PlanOptions options;
+  options.bounds_min_m = {0, 0, 0.5};
+  options.bounds_max_m = {10, 10, 4};
+  options.timeout_s = 0.2;
+  auto path = planPath(map, {1, 1, 2}, {5, 5, 2}, options);
+  EXPECT_EQ(path.status().code(), absl::StatusCode::kNotFound);
+  EXPECT_NE(std::string(path.status().message()).find("may be unreachable"), std::string::npos);
+}
+
+TEST(OccupancyMapAlone, SavesAFileOctoMapReadsBack) {
+  OccupancyMap map;
+  map.insertScan({0, 0, 1}, {{2, 0, 1}, {0, 2, 1}, {-2, 0, 1}});
+  char name[] = "/tmp/map_XXXXXX";
+  close(mkstemp(name));
+  const std::string path = std::string(name) + ".bt";
+  ASSERT_TRUE(map.save(path).ok());
+  octomap::OcTree loaded(0.1);
+  ASSERT_TRUE(loaded.readBinary(path));
+  size_t occupied = 0;
+  for (auto it = loaded.begin_leafs(); it != loaded.end_leafs(); ++it)
+    occupied += loaded.isNodeOccupied(*it);
+  EXPECT_EQ(occupied, map.occupiedLeafCount());
+  EXPECT_EQ(map.save("/nonexistent-dir/map.bt").code(), absl::StatusCode::kInvalidArgument);
+  std::remove(path.c_str());
+  std::remove(name);
+}
+
+}  // namespace
+}  // namespace behaviorlib::nav

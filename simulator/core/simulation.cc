@@ -18,7 +18,8 @@ absl::Status Simulation::addVehicle(const std::string& robot_id,
   return absl::OkStatus();
 }
 
-void Simulation::resetVehicles(std::map<std::string, std::unique_ptr<VehicleModel>> vehicles) {
+void Simulation::resetVehicles(std::map<std::string, std::unique_ptr<VehicleModel>> vehicles,
+                               const std::function<void()>& then) {
   std::lock_guard lock(mutex_);
   vehicles_.clear();
   now_ = SimTime{0};
@@ -28,6 +29,7 @@ void Simulation::resetVehicles(std::map<std::string, std::unique_ptr<VehicleMode
     vehicle.platform.update(now_, vehicle.model->snapshot());
     vehicles_.emplace(id, std::move(vehicle));
   }
+  if (then) then();
 }
 
 std::vector<std::string> Simulation::robotIds() const {

@@ -65,8 +65,12 @@ class Simulation {
   absl::Status addVehicle(const std::string& robot_id, std::unique_ptr<VehicleModel> model);
   std::vector<std::string> robotIds() const;
   /// Replaces every vehicle and restarts simulated time at zero (Reset).
-  /// Listeners stay registered.
-  void resetVehicles(std::map<std::string, std::unique_ptr<VehicleModel>> vehicles);
+  /// Listeners stay registered. `then`, when given, runs under the
+  /// simulation's mutex once the new vehicles are in place and before the
+  /// next step (e.g. to restart sensors in step with the new vehicles); it
+  /// must not call back in.
+  void resetVehicles(std::map<std::string, std::unique_ptr<VehicleModel>> vehicles,
+                     const std::function<void()>& then = {});
   void addStepListener(StepListener listener);
 
   SimTime now() const;

@@ -33,12 +33,16 @@ using SimTime = std::chrono::nanoseconds;  // since the simulation epoch
 struct VehicleSnapshot {
   Eigen::Vector3d position_m = Eigen::Vector3d::Zero();    ///< world ENU
   Eigen::Vector3d velocity_m_s = Eigen::Vector3d::Zero();  ///< world ENU
-  double yaw_rad = 0.0;                                    ///< counter-clockwise from +x (east)
+  /// Acceleration over the last step, world ENU; zero while resting.
+  Eigen::Vector3d acceleration_m_s2 = Eigen::Vector3d::Zero();
+  double yaw_rad = 0.0;  ///< counter-clockwise from +x (east)
   Eigen::Quaterniond orientation = Eigen::Quaterniond::Identity();   ///< world <- body
   Eigen::Vector3d angular_velocity_rad_s = Eigen::Vector3d::Zero();  ///< body FLU
   bool on_ground = true;  ///< resting on the ground (landed)
   bool crashed = false;   ///< hard impact or collision
   double battery_ratio = 1.0;
+  double battery_voltage_v = 0.0;  ///< terminal voltage under the present load
+  double battery_current_a = 0.0;  ///< drawn from the battery
 };
 
 /// What the control loops should track now.

@@ -1,8 +1,10 @@
 // simulator: the quadrotor simulation service. Serves FlightController (the
 // platform interface) and Simulator (time, state, faults) on one port, and
-// publishes simulated time and ground truth on the data channel.
+// publishes simulated time, ground truth and the sensors on the data channel
+// (topics in simulator/service/channel_publisher.h).
 
 #include <cstdio>
+#include <cstdlib>
 #include <sstream>
 #include <thread>
 
@@ -13,6 +15,7 @@
 #include "channel/channel_client.h"
 #include "simulator/service/channel_publisher.h"
 #include "simulator/service/flight_controller_service.h"
+#include "simulator/service/sensor_publisher.h"
 #include "simulator/service/simulator_service.h"
 #include "simulator/service/vehicle_models.h"
 
@@ -34,6 +37,8 @@ int main(int argc, char** argv) {
   double time_scale = 1.0;
   bool lock_step = false;
   bool fault_injection = false;
+  std::string sensor_config_path;
+  std::string seed_arg = "1";
   FlagSet flags(
       "quadrotor simulator: FlightController + Simulator services, state and time on "
       "the data channel");
@@ -51,6 +56,11 @@ int main(int argc, char** argv) {
   flags.add("time-scale", &time_scale, "simulated seconds per wall second (0.1..1000)");
   flags.add("lock-step", &lock_step, "advance time only through Simulator.Step");
   flags.add("enable-fault-injection", &fault_injection, "accept Simulator.InjectFailure");
+  flags.add("sensor-config", &sensor_config_path,
+            "YAML file of sensor rates, noise, lidar and camera settings (see "
+            "simulator/sensors/README.md); empty: the defaults");
+  flags.add("seed", &seed_arg,
+            "seed of the sensor noise (a positive integer; Reset can change it)");
   int exit_code = 0;
   if (!flags.parse(argc, argv, &exit_code)) return exit_code;
   if (!(time_scale >= 0.1 && time_scale <= 1000.0)) {
@@ -58,7 +68,45 @@ int main(int argc, char** argv) {
     return 2;
   }
 
+  uint64_t seed = 0;
+  {
+    char* end = nullptr;
+    seed = std::strtoull(seed_arg.c_str(), &end, 10);
+    if (seed_arg.empty() || *end != '\0' || seed == 0 || seed_arg[0] == '-') {
+      fatal(program, "--seed must be a positive integer, got '" + seed_arg + "'");
+      return 2;
+    }
+  }
+  sim::SensorConfig sensor_config;
+  if (!sensor_config_path.empty()) {
+    absl::StatusOr<sim::SensorConfig> loaded = sim::loadSensorConfig(sensor_config_path);
+    if (!loaded.ok()) {
+      fatal(program, "--sensor-config: " + std::string(loaded.status().message()));
+      return 2;
+    }
+    sensor_config = std::move(*loaded);
+  }
+
   sim::Simulation simulation(sim::SimulationOptions{});
+  sim::TimeControl time;
+  time.time_scale.store(time_scale);
+  time.lock_step.store(lock_step);
+
+  // Publishers first: loading the world restarts the sensors.
+  std::unique_ptr<behaviorlib::channel::ChannelClient> client;
+  std::unique_ptr<behaviorlib::channel::ChannelClient> sensor_client;
+  std::unique_ptr<sim::ChannelPublisher> publisher;
+  std::unique_ptr<sim::SensorPublisher> sensors;
+  if (!channel.empty()) {
+    client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
+    publisher =
+        std::make_unique<sim::ChannelPublisher>(*client, simulation, time, sim::PublishRates{});
+    // A stream of their own, so that images never delay the clock.
+    sensor_client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
+    sensors =
+        std::make_unique<sim::SensorPublisher>(*sensor_client, simulation, time, sensor_config);
+  }
+
   sim::WorldControl worlds;
   worlds.worlds_dir = worlds_dir;
   std::istringstream ids(vehicles);
@@ -69,24 +117,16 @@ int main(int argc, char** argv) {
     fatal(program, "--vehicles names no vehicle");
     return 2;
   }
-  if (absl::Status s = sim::loadWorldInto(worlds, world_arg, simulation); !s.ok()) {
+  if (sensors) {
+    worlds.on_reset = [&sensors](const std::shared_ptr<const sim::World>& world,
+                                 uint64_t world_seed) { sensors->reset(world, world_seed); };
+  }
+  if (absl::Status s = sim::loadWorldInto(worlds, world_arg, seed, simulation); !s.ok()) {
     fatal(program, "--world: " + std::string(s.message()));
     return 2;
   }
   std::string robot_ids;
   for (const auto& id : simulation.robotIds()) robot_ids += (robot_ids.empty() ? "" : ",") + id;
-
-  sim::TimeControl time;
-  time.time_scale.store(time_scale);
-  time.lock_step.store(lock_step);
-
-  std::unique_ptr<behaviorlib::channel::ChannelClient> client;
-  std::unique_ptr<sim::ChannelPublisher> publisher;
-  if (!channel.empty()) {
-    client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
-    publisher =
-        std::make_unique<sim::ChannelPublisher>(*client, simulation, time, sim::PublishRates{});
-  }
 
   ServerRuntime runtime;
   std::string error;
@@ -118,6 +158,14 @@ int main(int argc, char** argv) {
   runtime.shutdown(std::chrono::seconds(2));
   stop = true;
   stepper.join();
+  if (sensors) {
+    const auto& s = sensors->sensors();
+    std::fprintf(stderr, "%s: sensor frames dropped (worker busy): lidar %llu, camera %llu\n",
+                 program.c_str(),
+                 static_cast<unsigned long long>(s.droppedCount(sim::SensorKind::kLidar)),
+                 static_cast<unsigned long long>(s.droppedCount(sim::SensorKind::kCamera)));
+  }
+  sensors.reset();
   publisher.reset();
   return 0;
 }

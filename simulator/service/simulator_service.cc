@@ -20,7 +20,7 @@ grpc::ServerUnaryReactor* finish(grpc::CallbackServerContext* context, const grp
 
 }  // namespace
 
-absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg,
+absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg, uint64_t seed,
                            Simulation& simulation) {
   auto world = std::make_shared<World>();
   if (!world_arg.empty()) {
@@ -28,10 +28,15 @@ absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg,
     if (!loaded.ok()) return loaded.status();
     *world = std::move(*loaded);
   }
-  simulation.resetVehicles(makeVehicles(*world, control.fallback_ids));
-  // The old world may go now: no vehicle refers to it any more.
-  control.world = std::move(world);
+  std::shared_ptr<const World> shared = world;
+  simulation.resetVehicles(makeVehicles(*world, control.fallback_ids), [&] {
+    if (control.on_reset) control.on_reset(shared, seed);
+  });
+  // The old world may go now: no vehicle refers to it any more (the sensors
+  // hold the world they use).
+  control.world = std::move(shared);
   control.world_arg = world_arg;
+  control.seed = seed;
   return absl::OkStatus();
 }
 
@@ -76,11 +81,11 @@ grpc::ServerUnaryReactor* SimulatorService::Reset(grpc::CallbackServerContext* c
                                                   v1::ResetResponse* response) {
   std::lock_guard lock(worlds_.mutex);
   const std::string world = request->world().empty() ? worlds_.world_arg : request->world();
-  if (absl::Status s = loadWorldInto(worlds_, world, simulation_); !s.ok()) {
+  const uint64_t seed = request->seed() != 0 ? request->seed() : worlds_.seed;
+  if (absl::Status s = loadWorldInto(worlds_, world, seed, simulation_); !s.ok()) {
     return finish(context,
                   grpc::Status(static_cast<grpc::StatusCode>(s.code()), std::string(s.message())));
   }
-  if (request->seed() != 0) worlds_.seed = request->seed();
   for (const auto& id : simulation_.robotIds()) response->add_robot_ids(id);
   *response->mutable_time() = TimeUtil::NanosecondsToTimestamp(simulation_.now().count());
   return finish(context, grpc::Status::OK);

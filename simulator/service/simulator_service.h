@@ -6,6 +6,7 @@
 #include <grpcpp/grpcpp.h>
 
 #include <atomic>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -33,13 +34,17 @@ struct WorldControl {
   std::string world_arg;               ///< path or shipped name; "" for an empty field
   std::string worlds_dir;              ///< where shipped worlds are
   std::vector<std::string> fallback_ids;
-  uint64_t seed = 1;
+  uint64_t seed = 1;  ///< of every random process (sensor noise)
+  /// Runs under the simulation's mutex when the new vehicles are in place,
+  /// before the next step, with the new world and seed: restarts the sensors.
+  std::function<void(const std::shared_ptr<const World>& world, uint64_t seed)> on_reset;
 };
 
 /// Loads `world_arg` ("" -> an empty field) and puts its vehicles into
-/// `simulation`, restarting time. INVALID_ARGUMENT/NOT_FOUND naming the file,
-/// line and problem for a bad world.
-absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg,
+/// `simulation`, restarting time, with `seed` for every random process (then
+/// control.seed). INVALID_ARGUMENT/NOT_FOUND naming the file, line and
+/// problem for a bad world; then nothing changes.
+absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg, uint64_t seed,
                            Simulation& simulation);
 
 using StateWatcher = LatestWriter<v1::WatchStateResponse>;

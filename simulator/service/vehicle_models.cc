@@ -49,6 +49,11 @@ class QuadrotorModel final : public VehicleModel {
     out.on_ground = s.landed;
     out.crashed = s.crashed;
     out.battery_ratio = s.battery_soc;
+    out.acceleration_m_s2 = s.acceleration_m_s2;
+    out.battery_voltage_v = s.battery_voltage_v;
+    // The battery model draws I = P / V_open_circuit (Quadrotor::updateBattery).
+    const double open_circuit_v = quadrotor_.openCircuitVoltage(s.battery_soc);
+    out.battery_current_a = open_circuit_v > 0.0 ? s.battery_power_w / open_circuit_v : 0.0;
     return out;
   }
 

@@ -1,0 +1,68 @@
+#include "simulator/service/sensor_publisher.h"
+
+#include <set>
+#include <string>
+#include <string_view>
+
+#include "simulator/service/sensor_messages.h"
+
+namespace behaviorlib::sim {
+namespace {
+
+constexpr std::string_view kRobotsPrefix = "robots/";
+constexpr std::string_view kCameraSuffix = "/camera/image";
+
+}  // namespace
+
+SensorPublisher::SensorPublisher(channel::ChannelClient& client, Simulation& simulation,
+                                 const TimeControl& time, SensorConfig config,
+                                 std::chrono::milliseconds poll_period)
+    : client_(client),
+      poll_period_(poll_period),
+      queue_(client, PublishQueueLimits{}),
+      sensors_(std::move(config), [this](SensorSample sample) {
+        std::string topic = sensorTopic(sample);
+        queue_.push(std::move(topic), sensorMessage(std::move(sample)));
+      }) {
+  simulation.addStepListener([this, &time](SimTime now, const std::vector<VehicleReport>& v) {
+    sensors_.onStep(now, v, time.lock_step.load());
+  });
+  if (sensors_.config().camera.rate_hz > 0.0) poller_ = std::thread([this] { pollSubscribers(); });
+}
+
+SensorPublisher::~SensorPublisher() {
+  {
+    std::lock_guard lock(poll_mutex_);
+    stopping_ = true;
+  }
+  poll_cv_.notify_all();
+  if (poller_.joinable()) poller_.join();
+}
+
+void SensorPublisher::pollSubscribers() {
+  std::unique_lock lock(poll_mutex_);
+  while (!stopping_) {
+    lock.unlock();
+    std::set<std::string> wanted;
+    // When the broker cannot be asked, nobody can be subscribed either.
+    auto topics = client_.listTopics(std::string(kRobotsPrefix), std::chrono::seconds(1));
+    if (topics.ok()) {
+      for (const auto& topic : *topics) {
+        const std::string& name = topic.name();
+        if (topic.subscriber_count() == 0 ||
+            name.size() <= kRobotsPrefix.size() + kCameraSuffix.size() ||
+            name.compare(name.size() - kCameraSuffix.size(), kCameraSuffix.size(), kCameraSuffix) !=
+                0) {
+          continue;
+        }
+        wanted.insert(name.substr(kRobotsPrefix.size(),
+                                  name.size() - kRobotsPrefix.size() - kCameraSuffix.size()));
+      }
+    }
+    sensors_.setWantedCameras(std::move(wanted));
+    lock.lock();
+    poll_cv_.wait_for(lock, poll_period_, [this] { return stopping_; });
+  }
+}
+
+}  // namespace behaviorlib::sim

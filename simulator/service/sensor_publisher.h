@@ -1,0 +1,64 @@
+#pragma once
+
+// SensorPublisher: the simulated sensors of every vehicle (SensorSystem) on
+// the data channel. Samples are turned into messages and queued for a
+// publishing thread of their own (topics in channel_publisher.h). Camera
+// frames are rendered only while someone subscribes to a vehicle's
+// `robots/{id}/camera/image`: a thread asks the broker (ListTopics,
+// subscriber_count) every `poll_period` of wall time.
+//
+//   SensorPublisher sensors(client, simulation, time, config);
+//   worlds.on_reset = [&](auto world, uint64_t seed) { sensors.reset(world, seed); };
+
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <thread>
+
+#include "channel/channel_client.h"
+#include "simulator/core/simulation.h"
+#include "simulator/sensors/sensor_system.h"
+#include "simulator/service/publish_queue.h"
+#include "simulator/service/simulator_service.h"  // TimeControl
+
+namespace behaviorlib::sim {
+
+class SensorPublisher {
+ public:
+  /// Registers a step listener on `simulation`; in lock-step (`time`) the
+  /// physics waits for lidar and camera frames instead of dropping them.
+  /// Precondition: config.validate() is OK.
+  SensorPublisher(channel::ChannelClient& client, Simulation& simulation, const TimeControl& time,
+                  SensorConfig config,
+                  std::chrono::milliseconds poll_period = std::chrono::milliseconds(500));
+  /// Stops the poller, the workers and the publishing thread. The step
+  /// listener must not run any more.
+  ~SensorPublisher();
+  SensorPublisher(const SensorPublisher&) = delete;
+  SensorPublisher& operator=(const SensorPublisher&) = delete;
+
+  /// Restarts every sensor for a new world and seed (Reset); call it from
+  /// Simulation::resetVehicles' `then`.
+  void reset(std::shared_ptr<const World> world, uint64_t seed) { sensors_.reset(world, seed); }
+
+  const SensorSystem& sensors() const { return sensors_; }
+  uint64_t publishedCount() const { return queue_.publishedCount(); }
+  uint64_t droppedCount() const { return queue_.droppedCount(); }
+
+ private:
+  void pollSubscribers();
+
+  channel::ChannelClient& client_;
+  const std::chrono::milliseconds poll_period_;
+  PublishQueue queue_;  // before sensors_: the workers push into it
+  SensorSystem sensors_;
+
+  std::mutex poll_mutex_;
+  std::condition_variable poll_cv_;
+  bool stopping_ = false;
+  std::thread poller_;
+};
+
+}  // namespace behaviorlib::sim

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
+#include <limits>
 
 namespace behaviorlib::nav {
 namespace {
@@ -36,12 +38,17 @@ void OccupancyMap::insertScan(const Eigen::Vector3d& origin_m,
     if (!p.allFinite()) continue;
     if (tree_->computeRayKeys(origin, toOcto(p), ray)) free_cells.insert(ray.begin(), ray.end());
   }
-  for (const auto& key : free_cells) tree_->updateNode(key, false, true);
-  tree_->insertPointCloud(cloud, origin, -1.0, /*lazy_eval=*/true, /*discretize=*/true);
-  tree_->updateInnerOccupancy();
+  for (const auto& key : free_cells) tree_->updateNode(key, false, /*lazy_eval=*/false);
+  // Inner nodes are updated along the way (lazy_eval false): a full
+  // updateInnerOccupancy() would walk the whole tree on every scan.
+  tree_->insertPointCloud(cloud, origin, -1.0, /*lazy_eval=*/false, /*discretize=*/true);
+  ++revision_;
 }
 
-void OccupancyMap::clear() { tree_->clear(); }
+void OccupancyMap::clear() {
+  tree_->clear();
+  ++revision_;
+}
 
 bool OccupancyMap::occupied(const Eigen::Vector3d& p) const {
   const octomap::OcTreeNode* node = tree_->search(toOcto(p));
@@ -111,6 +118,158 @@ double OccupancyMap::freeVolumeM3(const Eigen::Vector3d& min_m,
     v += part;
   }
   return v;
+}
+
+}  // namespace behaviorlib::nav
+
+namespace behaviorlib::nav {
+
+namespace {
+
+// One pass of the exact 1-D squared Euclidean distance transform (Felzenszwalb
+// and Huttenlocher's lower envelope of parabolas) over n samples `f` spaced
+// `stride` apart in `data`.
+void distance1d(float* data, int n, size_t stride, std::vector<float>& f, std::vector<float>& d,
+                std::vector<int>& v, std::vector<float>& z) {
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  for (int i = 0; i < n; ++i) f[i] = data[i * stride];
+  int k = 0;
+  v[0] = 0;
+  z[0] = -kInf;
+  z[1] = kInf;
+  for (int q = 1; q < n; ++q) {
+    if (f[q] == kInf) continue;
+    if (f[v[k]] == kInf) {
+      v[k] = q;
+      continue;
+    }
+    float s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0f * (q - v[k]));
+    while (k > 0 && s <= z[k]) {
+      --k;
+      s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0f * (q - v[k]));
+    }
+    ++k;
+    v[k] = q;
+    z[k] = s;
+    z[k + 1] = kInf;
+  }
+  k = 0;
+  for (int q = 0; q < n; ++q) {
+    while (z[k + 1] < q) ++k;
+    d[q] = f[v[k]] == kInf ? kInf : (q - v[k]) * (q - v[k]) + f[v[k]];
+  }
+  for (int i = 0; i < n; ++i) data[i * stride] = d[i];
+}
+
+}  // namespace
+
+InflatedGrid::InflatedGrid(const OccupancyMap& map, const Eigen::Vector3d& min_m,
+                           const Eigen::Vector3d& max_m, double radius_m)
+    : min_(min_m), resolution_(map.resolutionM()) {
+  // Occupied cells (pruned leaves cover several), padded by the radius so
+  // that obstacles just outside the box still count.
+  const int pad = static_cast<int>(std::ceil(radius_m / resolution_)) + 1;
+  for (int i = 0; i < 3; ++i) {
+    size_[i] = std::max(1, static_cast<int>(std::ceil((max_m[i] - min_m[i]) / resolution_)));
+  }
+  const Eigen::Vector3i full = size_ + Eigen::Vector3i::Constant(2 * pad);
+  const size_t count = static_cast<size_t>(full.x()) * full.y() * full.z();
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  std::vector<float> dist(count, kInf);
+  auto index = [&](int x, int y, int z) {
+    return (static_cast<size_t>(x) * full.y() + y) * full.z() + z;
+  };
+  const octomap::OcTree& tree = map.tree();
+  const Eigen::Vector3d origin = min_m - Eigen::Vector3d::Constant(pad * resolution_);
+  const Eigen::Vector3d top = origin + full.cast<double>() * resolution_;
+  auto mark = [&](const Eigen::Vector3d& c, double half) {
+    Eigen::Vector3i lo, hi;
+    for (int i = 0; i < 3; ++i) {
+      lo[i] =
+          std::max(0, static_cast<int>(std::floor((c[i] - half - origin[i]) / resolution_ + 1e-6)));
+      hi[i] =
+          std::min(full[i] - 1,
+                   static_cast<int>(std::ceil((c[i] + half - origin[i]) / resolution_ - 1e-6)) - 1);
+    }
+    for (int x = lo.x(); x <= hi.x(); ++x) {
+      for (int y = lo.y(); y <= hi.y(); ++y) {
+        for (int z = lo.z(); z <= hi.z(); ++z) dist[index(x, y, z)] = 0.0f;
+      }
+    }
+  };
+  // Depth-first over the octree, skipping every subtree whose node is not
+  // occupied: inner nodes hold the maximum of their children (the map is
+  // updated without lazy evaluation), so only branches leading to occupied
+  // voxels are visited, and only those that meet the box.
+  const unsigned max_depth = tree.getTreeDepth();
+  const octomap::OcTreeKey root_key = tree.coordToKey(octomap::point3d(0, 0, 0));
+  std::function<void(const octomap::OcTreeNode*, const octomap::OcTreeKey&, unsigned)> visit =
+      [&](const octomap::OcTreeNode* node, const octomap::OcTreeKey& key, unsigned depth) {
+        if (!tree.isNodeOccupied(node)) return;
+        const double size = resolution_ * static_cast<double>(1u << (max_depth - depth));
+        const octomap::point3d pc = tree.keyToCoord(key, depth);
+        const Eigen::Vector3d c(pc.x(), pc.y(), pc.z());
+        for (int i = 0; i < 3; ++i) {
+          if (c[i] + 0.5 * size < origin[i] || c[i] - 0.5 * size > top[i]) return;
+        }
+        if (depth == max_depth || !tree.nodeHasChildren(node)) {
+          mark(c, 0.5 * size);
+          return;
+        }
+        const unsigned short offset = static_cast<unsigned short>(root_key[0] >> (depth + 1));
+        for (unsigned i = 0; i < 8; ++i) {
+          if (!tree.nodeChildExists(node, i)) continue;
+          octomap::OcTreeKey child;
+          octomap::computeChildKey(i, offset, key, child);
+          visit(tree.getNodeChild(node, i), child, depth + 1);
+        }
+      };
+  if (tree.getRoot() != nullptr) visit(tree.getRoot(), root_key, 0);
+  // Squared distance (in cells) to the nearest occupied cell: three passes.
+  const int longest = full.maxCoeff();
+  std::vector<float> f(longest), d(longest), z(longest + 1);
+  std::vector<int> v(longest);
+  for (int x = 0; x < full.x(); ++x) {
+    for (int y = 0; y < full.y(); ++y) distance1d(&dist[index(x, y, 0)], full.z(), 1, f, d, v, z);
+  }
+  for (int x = 0; x < full.x(); ++x) {
+    for (int z0 = 0; z0 < full.z(); ++z0)
+      distance1d(&dist[index(x, 0, z0)], full.y(), full.z(), f, d, v, z);
+  }
+  for (int y = 0; y < full.y(); ++y) {
+    for (int z0 = 0; z0 < full.z(); ++z0) {
+      distance1d(&dist[index(0, y, z0)], full.x(), static_cast<size_t>(full.y()) * full.z(), f, d,
+                 v, z);
+    }
+  }
+  // A cell is blocked when the nearest occupied cell's cube is within the
+  // radius of its centre (centre distance minus half a cell).
+  cells_.assign(static_cast<size_t>(size_.x()) * size_.y() * size_.z(), 0);
+  const double limit = radius_m / resolution_ + 0.5;
+  const float limit2 = static_cast<float>(limit * limit);
+  for (int x = 0; x < size_.x(); ++x) {
+    for (int y = 0; y < size_.y(); ++y) {
+      for (int z0 = 0; z0 < size_.z(); ++z0) {
+        if (dist[index(x + pad, y + pad, z0 + pad)] <= limit2) {
+          cells_[(static_cast<size_t>(x) * size_.y() + y) * size_.z() + z0] = 1;
+        }
+      }
+    }
+  }
+}
+
+bool InflatedGrid::blocked(const Eigen::Vector3d& p) const {
+  Eigen::Vector3i cell;
+  for (int i = 0; i < 3; ++i) {
+    const double f = std::floor((p[i] - min_[i]) / resolution_);
+    if (!(f >= 0 && f < size_[i])) return true;
+    cell[i] = static_cast<int>(f);
+  }
+  return cells_[(static_cast<size_t>(cell.x()) * size_.y() + cell.y()) * size_.z() + cell.z()] != 0;
+}
+
+size_t InflatedGrid::blockedCount() const {
+  return static_cast<size_t>(std::count(cells_.begin(), cells_.end(), 1));
 }
 
 }  // namespace behaviorlib::nav

@@ -1,12 +1,14 @@
 #include "navigation/path_planner.h"
 
 #include <ompl/base/spaces/RealVectorStateSpace.h>
+#include <ompl/geometric/PathSimplifier.h>
 #include <ompl/geometric/SimpleSetup.h>
 #include <ompl/geometric/planners/rrt/RRTConnect.h>
 #include <ompl/util/Console.h>
 #include <ompl/util/RandomNumbers.h>
 
 #include <chrono>
+#include <cmath>
 #include <mutex>
 #include <sstream>
 
@@ -50,7 +52,14 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
                                       text(options.bounds_min_m) + " .. " +
                                       text(options.bounds_max_m));
   }
-  if (map.collides(goal_m, options.vehicle_radius_m)) {
+  const auto t0 = std::chrono::steady_clock::now();
+  // One dense inflated grid per plan: thousands of checks, one lookup each.
+  // Cells are judged by their centre: add half a cell diagonal of margin.
+  const double margin = 0.5 * std::sqrt(3.0) * map.resolutionM();
+  const InflatedGrid grid(map, options.bounds_min_m, options.bounds_max_m,
+                          options.vehicle_radius_m + margin);
+  const auto t_grid = std::chrono::steady_clock::now();
+  if (grid.blocked(goal_m)) {
     return absl::InvalidArgumentError(
         "goal " + text(goal_m) + " is inside an obstacle: an occupied voxel is within " +
         std::to_string(options.vehicle_radius_m) + " m (the vehicle's radius)");
@@ -59,7 +68,7 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
     return absl::FailedPreconditionError("the vehicle at " + text(start_m) +
                                          " is outside the planning volume");
   }
-  if (map.collides(start_m, options.vehicle_radius_m)) {
+  if (grid.blocked(start_m)) {
     return absl::FailedPreconditionError(
         "the vehicle at " + text(start_m) +
         " is closer to an obstacle than its radius: move it away first");
@@ -73,10 +82,9 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
   }
   space->setBounds(bounds);
   og::SimpleSetup setup(space);
-  const double radius = options.vehicle_radius_m;
-  setup.setStateValidityChecker([&map, radius](const ob::State* state) {
+  setup.setStateValidityChecker([&grid](const ob::State* state) {
     const double* v = state->as<ob::RealVectorStateSpace::StateType>()->values;
-    return !map.collides(Eigen::Vector3d(v[0], v[1], v[2]), radius);
+    return !grid.blocked(Eigen::Vector3d(v[0], v[1], v[2]));
   });
   const double extent = space->getMaximumExtent();
   setup.getSpaceInformation()->setStateValidityCheckingResolution(
@@ -89,14 +97,19 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
   setup.setStartAndGoalStates(start, goal, 1e-3);
   setup.setPlanner(std::make_shared<og::RRTConnect>(setup.getSpaceInformation()));
 
-  const auto t0 = std::chrono::steady_clock::now();
   const ob::PlannerStatus solved = setup.solve(options.timeout_s);
   if (solved != ob::PlannerStatus::EXACT_SOLUTION) {
     return absl::NotFoundError("no path from " + text(start_m) + " to " + text(goal_m) +
                                " found within " + std::to_string(options.timeout_s) +
                                " s (the goal may be unreachable)");
   }
-  if (options.simplify_s > 0) setup.simplifySolution(options.simplify_s);
+  if (options.shortcut_attempts > 0) {
+    // Bounded work, not a time budget (simplifySolution(t) may use all of t).
+    og::PathSimplifier simplifier(setup.getSpaceInformation());
+    og::PathGeometric& raw = setup.getSolutionPath();
+    simplifier.reduceVertices(raw);
+    simplifier.shortcutPath(raw, options.shortcut_attempts);
+  }
   const auto t1 = std::chrono::steady_clock::now();
 
   PlannedPath path;
@@ -108,6 +121,7 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
     path.length_m += (path.waypoints_m[i] - path.waypoints_m[i - 1]).norm();
   }
   path.planning_time_s = std::chrono::duration<double>(t1 - t0).count();
+  path.inflation_time_s = std::chrono::duration<double>(t_grid - t0).count();
   return path;
 }
 

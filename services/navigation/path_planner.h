@@ -31,14 +31,16 @@ struct PlanOptions {
   Eigen::Vector3d bounds_max_m{50, 50, 5.0};
   /// Spacing of the collision checks along a motion (m).
   double check_spacing_m = 0.05;
-  /// Time spent shortening the path (s).
-  double simplify_s = 0.05;
+  /// Shortcutting attempts when shortening the path (OMPL's PathSimplifier:
+  /// vertex reduction, then random shortcuts); 0 keeps the raw path.
+  unsigned int shortcut_attempts = 100;
 };
 
 struct PlannedPath {
   std::vector<Eigen::Vector3d> waypoints_m;  ///< start first, goal last
   double length_m = 0.0;
-  double planning_time_s = 0.0;
+  double planning_time_s = 0.0;   ///< all of it, wall time
+  double inflation_time_s = 0.0;  ///< of which building the inflated grid
 };
 
 absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vector3d& start_m,

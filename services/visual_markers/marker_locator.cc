@@ -46,25 +46,45 @@ std::vector<std::pair<std::string, std::vector<cv::Point2f>>> MarkerLocator::dec
   } else {
     gray = image;
   }
-  // cv::QRCodeDetector locates every code with accurate corners (top-left,
-  // top-right, bottom-right, bottom-left of the symbol); WeChatQRCode decodes
-  // each one from a crop around it (without its CNN models it treats its
-  // input as one candidate, so whole-image corners would be meaningless).
-  std::vector<cv::Point2f> corners;
+  // WeChatQRCode decodes fast (~1.5 ms a frame) but, without its CNN models,
+  // treats the whole image as one candidate: its corners are the image's,
+  // and with several codes in view it may decode none. cv::QRCodeDetector
+  // locates every code with the symbol's corners (top-left, top-right,
+  // bottom-right, bottom-left) but cannot decode on Debian (no quirc) and
+  // costs ~12 ms (detectMulti). So: locate every code; one code that WeChat
+  // decoded on the whole image is paired at once, otherwise each located
+  // code is decoded from a crop around it.
+  std::vector<std::string> texts;
+  try {
+    texts = impl_->decoder.detectAndDecode(gray);
+  } catch (const cv::Exception&) {
+    texts.clear();
+  }
+  texts.erase(std::remove(texts.begin(), texts.end(), std::string()), texts.end());
+
   // OpenCV 4.6's locator is fragile on crisp synthetic edges and on lone
-  // codes: try the image, then a lightly blurred copy, with detectMulti and
-  // then detect().
+  // codes: detectMulti on the image, then on a lightly blurred copy, then
+  // (a code was decoded but not located) detect() on both.
+  std::vector<cv::Point2f> corners;
   cv::Mat blurred;
   cv::GaussianBlur(gray, blurred, cv::Size(3, 3), 0);
-  for (const cv::Mat* candidate : {&gray, &blurred}) {
-    try {
-      if (impl_->detector.detectMulti(*candidate, corners) ||
-          impl_->detector.detect(*candidate, corners)) {
-        break;
+  auto locate = [&](bool multi) {
+    for (const cv::Mat* candidate : {&gray, &blurred}) {
+      try {
+        if (multi ? impl_->detector.detectMulti(*candidate, corners)
+                  : impl_->detector.detect(*candidate, corners)) {
+          return;
+        }
+      } catch (const cv::Exception&) {
       }
-    } catch (const cv::Exception&) {
+      corners.clear();
     }
-    corners.clear();
+  };
+  locate(/*multi=*/true);
+  if (corners.empty() && !texts.empty()) locate(/*multi=*/false);
+  if (corners.size() == 4 && texts.size() == 1) {
+    out.emplace_back(texts.front(), corners);
+    return out;
   }
   const cv::Rect whole(0, 0, gray.cols, gray.rows);
   for (size_t i = 0; i + 3 < corners.size(); i += 4) {
@@ -76,14 +96,14 @@ std::vector<std::pair<std::string, std::vector<cv::Point2f>>> MarkerLocator::dec
                       region.height + 2 * margin) &
              whole;
     if (region.area() <= 0) continue;
-    std::vector<std::string> texts;
+    std::vector<std::string> found;
     try {
-      texts = impl_->decoder.detectAndDecode(gray(region));
+      found = impl_->decoder.detectAndDecode(gray(region));
     } catch (const cv::Exception&) {
       continue;
     }
-    if (texts.empty() || texts.front().empty()) continue;
-    out.emplace_back(texts.front(), std::move(quad));
+    if (found.empty() || found.front().empty()) continue;
+    out.emplace_back(found.front(), std::move(quad));
   }
   return out;
 }

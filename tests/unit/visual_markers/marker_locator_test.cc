@@ -2,10 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <numbers>
 #include <opencv2/imgproc.hpp>
+#include <opencv2/objdetect.hpp>
 
 #include "simulator/world/camera.h"
 #include "simulator/world/world.h"
@@ -88,6 +90,27 @@ TEST_F(Aircraft, AnImageWithoutMarkersGivesNothing) {
   EXPECT_TRUE(
       locator.locate(camera_->render({30, 30, 2}, up_to_sky), up_to_sky, {30, 30, 2}).empty());
   EXPECT_TRUE(locator.locate(cv::Mat(), up_to_sky, {0, 0, 0}).empty());
+}
+
+TEST(MarkerLocator, DecodesSeveralCodesInOneImage) {
+  cv::Mat canvas(480, 640, CV_8UC1, cv::Scalar(255));
+  int x = 40;
+  for (const std::string text : {"FIRST-CODE", "SECOND-CODE"}) {
+    cv::Mat code, big;
+    cv::QRCodeEncoder::create()->encode(text, code);
+    cv::resize(code, big, cv::Size(), 8, 8, cv::INTER_NEAREST);
+    big.copyTo(canvas(cv::Rect(x, 140, big.cols, big.rows)));
+    x += big.cols + 80;
+  }
+  MarkerLocator locator(CameraModel{}, 1.0);
+  const auto found = locator.decode(canvas);
+  std::vector<std::string> texts;
+  for (const auto& [text, quad] : found) {
+    texts.push_back(text);
+    EXPECT_EQ(quad.size(), 4u);
+  }
+  std::sort(texts.begin(), texts.end());
+  EXPECT_EQ(texts, (std::vector<std::string>{"FIRST-CODE", "SECOND-CODE"}));
 }
 
 TEST(MarkerLocator, TheSymbolSideExcludesTheQuietZone) {

@@ -189,7 +189,10 @@ class Bench {
     if (!response.sample().UnpackTo(&pose)) return;
     v1::SetpointRequest setpoint;
     setpoint.set_robot_id(kRobot);
-    setpoint.set_lease_id(lease_id_);
+    {
+      std::lock_guard lock(mutex_);
+      setpoint.set_lease_id(lease_id_);
+    }
     setpoint.mutable_position_yaw()->mutable_position_m()->set_z(2.0);
     v1::SendSetpointResponse reply;
     const grpc::Status status = flight_->SendSetpoint(context().get(), setpoint, &reply);
@@ -219,9 +222,27 @@ class Bench {
     r.loop_us.push_back(acked_us - broker_us);
   }
 
+  // A fresh lease before each window: at a scale the simulator cannot
+  // sustain, setpoints come too late for the lease and it lapses (counted as
+  // refused setpoints in that window).
+  bool renewLease() {
+    v1::AcquireLeaseRequest request;
+    request.set_robot_id(kRobot);
+    request.set_holder("closed_loop_bench");
+    request.set_preempt(true);
+    *request.mutable_ttl() = TimeUtil::SecondsToDuration(10);
+    v1::AcquireLeaseResponse lease;
+    if (auto s = flight_->AcquireLease(context().get(), request, &lease); !s.ok()) {
+      return fail("AcquireLease: " + s.error_message()) == 0;
+    }
+    std::lock_guard lock(mutex_);
+    lease_id_ = lease.lease_id();
+    return true;
+  }
+
   // One window at `scale`.
   bool measure(double scale, ScaleResult* r) {
-    if (!setScale(scale)) return false;
+    if (!setScale(scale) || !renewLease()) return false;
     r->scale = scale;
     std::this_thread::sleep_for(milliseconds(300));  // let the pacing settle
     {
@@ -233,10 +254,6 @@ class Bench {
     window_ = nullptr;
     if (r->samples < 2)
       return fail("no state samples arrived at scale " + std::to_string(scale)) == 0;
-    if (r->refused > 0) {
-      return fail(std::to_string(r->refused) + " setpoints refused at scale " +
-                  std::to_string(scale) + ": " + last_error_) == 0;
-    }
     // A replaced sample also leaves a gap in the stamps: count it once.
     r->stamp_gaps = r->stamp_gaps > r->replaced ? r->stamp_gaps - r->replaced : 0;
     r->achieved_scale =
@@ -247,19 +264,21 @@ class Bench {
   void print(const std::vector<ScaleResult>& results) {
     std::printf(
         "| time scale | achieved | state rate (wall Hz) | samples | missed (replaced + "
-        "publisher gaps) | deliver p50 / p99 (us) | loop p50 / p99 (us) |\n");
-    std::printf("|---:|---:|---:|---:|---:|---:|---:|\n");
+        "publisher gaps + refused) | setpoints refused | deliver p50 / p99 (us) | loop p50 / p99 "
+        "(us) |\n");
+    std::printf("|---:|---:|---:|---:|---:|---:|---:|---:|\n");
     double best = 0;
     bool none_missed_so_far = true;
     for (const auto& r : results) {
-      const uint64_t missed = r.replaced + r.stamp_gaps;
+      const uint64_t missed = r.replaced + r.stamp_gaps + r.refused;
       std::printf(
-          "| %g | %.1f | %.0f | %llu | %llu (%llu + %llu) | %.0f / %.0f | %.0f / %.0f |\n", r.scale,
-          r.achieved_scale, r.achieved_scale / kStatePeriodS,
+          "| %g | %.1f | %.0f | %llu | %llu (%llu + %llu) | %llu | %.0f / %.0f | %.0f / %.0f |\n",
+          r.scale, r.achieved_scale, r.achieved_scale / kStatePeriodS,
           static_cast<unsigned long long>(r.samples), static_cast<unsigned long long>(missed),
           static_cast<unsigned long long>(r.replaced),
-          static_cast<unsigned long long>(r.stamp_gaps), percentile(r.deliver_us, 0.5),
-          percentile(r.deliver_us, 0.99), percentile(r.loop_us, 0.5), percentile(r.loop_us, 0.99));
+          static_cast<unsigned long long>(r.stamp_gaps), static_cast<unsigned long long>(r.refused),
+          percentile(r.deliver_us, 0.5), percentile(r.deliver_us, 0.99), percentile(r.loop_us, 0.5),
+          percentile(r.loop_us, 0.99));
       none_missed_so_far = none_missed_so_far && missed == 0;
       if (none_missed_so_far) best = r.scale;
     }

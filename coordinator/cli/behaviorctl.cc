@@ -1,5 +1,6 @@
 // behaviorctl: a command-line client of a behavior-system process (the generic
-// behaviorlib.v1.BehaviorSystem service).
+// behaviorlib.v1.BehaviorSystem service) or of the coordinator
+// (behaviorlib.v1.Coordinator), which routes by robot and behavior.
 //
 //   behaviorctl --target 127.0.0.1:50061 list
 //   behaviorctl --target 127.0.0.1:50061 activate WAIT '{"duration_s": 2}'
@@ -7,8 +8,12 @@
 //   behaviorctl --target 127.0.0.1:50061 deactivate WAIT [activation_id]
 //   behaviorctl --target 127.0.0.1:50061 status WAIT
 //
+//   behaviorctl --coordinator 127.0.0.1:50060 systems
+//   behaviorctl --coordinator 127.0.0.1:50060 list [--robot drone1]
+//   behaviorctl --coordinator 127.0.0.1:50060 --robot drone1 activate WAIT '{"duration_s": 2}'
+//   behaviorctl --coordinator 127.0.0.1:50060 watch [--robot drone1] [--behavior WAIT]
+//
 // Output is one JSON object per line, so it can be piped into other tools.
-// The coordinator (a later part of the project) will extend it.
 
 #include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
@@ -20,6 +25,7 @@
 #include <vector>
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
+#include "behaviorlib/v1/coordinator.grpc.pb.h"
 
 namespace {
 
@@ -35,16 +41,20 @@ std::string toJson(const google::protobuf::Message& message) {
 
 int usage() {
   std::fputs(
-      "usage: behaviorctl --target HOST:PORT COMMAND ...\n"
+      "usage: behaviorctl --target HOST:PORT COMMAND ...        (one behavior system)\n"
+      "       behaviorctl --coordinator HOST:PORT COMMAND ...   (the fleet, by robot)\n"
       "commands:\n"
       "  list                                 behaviors and their parameter schemas\n"
       "  activate BEHAVIOR [JSON] [--request-id ID]\n"
       "  deactivate BEHAVIOR [ACTIVATION_ID]\n"
-      "  pause BEHAVIOR | resume BEHAVIOR\n"
-      "  modify BEHAVIOR JSON\n"
+      "  pause BEHAVIOR | resume BEHAVIOR     (--target only)\n"
+      "  modify BEHAVIOR JSON                 (--target only)\n"
       "  status BEHAVIOR                      CheckActivation\n"
       "  situation BEHAVIOR                   CheckSituation\n"
-      "  watch [--since-seq N] [--incarnation ID] [--until-finished BEHAVIOR] [--timeout-s S]\n",
+      "  watch [--since-seq N] [--incarnation ID] [--until-finished BEHAVIOR] [--timeout-s S]\n"
+      "  systems                              (--coordinator only) registered systems\n"
+      "with --coordinator: --robot ID names the robot (required by activate, deactivate,\n"
+      "  status, situation; a filter for list, systems, watch); --behavior NAME filters watch\n",
       stderr);
   return 2;
 }
@@ -55,10 +65,134 @@ int fail(const grpc::Status& status) {
   return 1;
 }
 
+struct CoordinatorCommand {
+  std::string address;
+  std::string robot;
+  std::string behavior_filter;
+  std::string request_id;
+  std::string incarnation;
+  std::string until_finished;
+  uint64_t since_seq = 0;
+  double timeout_s = 0;
+  std::vector<std::string> args;
+};
+
+// The commands through the coordinator (behaviorlib.v1.Coordinator).
+int runCoordinator(const CoordinatorCommand& c) {
+  auto stub =
+      v1::Coordinator::NewStub(grpc::CreateChannel(c.address, grpc::InsecureChannelCredentials()));
+  const std::string& command = c.args[0];
+  const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
+  auto needRobot = [&]() -> bool {
+    if (!c.robot.empty()) return true;
+    std::fprintf(stderr, "behaviorctl: '%s' through the coordinator needs --robot ID\n",
+                 command.c_str());
+    return false;
+  };
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+
+  if (command == "list" || command == "status") {
+    if (command == "status" && !needRobot()) return 2;
+    v1::ListFleetBehaviorsRequest request;
+    request.set_robot_id(c.robot);
+    if (command == "status") request.set_behavior(behavior);
+    v1::ListFleetBehaviorsResponse response;
+    auto s = stub->ListBehaviors(&context, request, &response);
+    if (!s.ok()) return fail(s);
+    if (command == "status" && response.behaviors().empty()) {
+      std::fprintf(stderr, "behaviorctl: robot %s has no behavior '%s'\n", c.robot.c_str(),
+                   behavior.c_str());
+      return 1;
+    }
+    std::cout << toJson(response) << std::endl;
+  } else if (command == "systems") {
+    v1::ListSystemsRequest request;
+    request.set_robot_id(c.robot);
+    v1::ListSystemsResponse response;
+    auto s = stub->ListSystems(&context, request, &response);
+    if (!s.ok()) return fail(s);
+    std::cout << toJson(response) << std::endl;
+  } else if (command == "activate") {
+    if (!needRobot()) return 2;
+    v1::ActivateFleetBehaviorRequest request;
+    request.set_robot_id(c.robot);
+    request.set_behavior(behavior);
+    request.set_request_id(c.request_id);
+    if (c.args.size() > 2) {
+      auto status =
+          google::protobuf::util::JsonStringToMessage(c.args[2], request.mutable_parameters());
+      if (!status.ok()) {
+        std::fprintf(stderr, "behaviorctl: parameters are not a JSON object: %s\n",
+                     std::string(status.message()).c_str());
+        return 2;
+      }
+    }
+    v1::ActivateFleetBehaviorResponse response;
+    auto s = stub->ActivateBehavior(&context, request, &response);
+    if (!s.ok()) return fail(s);
+    std::cout << toJson(response) << std::endl;
+  } else if (command == "deactivate") {
+    if (!needRobot()) return 2;
+    v1::DeactivateFleetBehaviorRequest request;
+    request.set_robot_id(c.robot);
+    request.set_behavior(behavior);
+    if (c.args.size() > 2) request.set_activation_id(c.args[2]);
+    v1::DeactivateFleetBehaviorResponse response;
+    auto s = stub->DeactivateBehavior(&context, request, &response);
+    if (!s.ok()) return fail(s);
+    std::cout << toJson(response) << std::endl;
+  } else if (command == "situation") {
+    if (!needRobot()) return 2;
+    v1::CheckFleetBehaviorSituationRequest request;
+    request.set_robot_id(c.robot);
+    request.set_behavior(behavior);
+    v1::CheckFleetBehaviorSituationResponse response;
+    auto s = stub->CheckBehaviorSituation(&context, request, &response);
+    if (!s.ok()) return fail(s);
+    std::cout << toJson(response) << std::endl;
+  } else if (command == "watch") {
+    grpc::ClientContext watch_context;
+    if (c.timeout_s > 0) {
+      watch_context.set_deadline(
+          std::chrono::system_clock::now() +
+          std::chrono::milliseconds(static_cast<int64_t>(c.timeout_s * 1e3)));
+    }
+    v1::WatchFleetEventsRequest request;
+    request.set_since_seq(c.since_seq);
+    request.set_incarnation(c.incarnation);
+    if (!c.robot.empty()) request.add_robot_ids(c.robot);
+    if (!c.behavior_filter.empty()) request.add_behaviors(c.behavior_filter);
+    auto reader = stub->WatchEvents(&watch_context, request);
+    v1::WatchFleetEventsResponse message;
+    while (reader->Read(&message)) {
+      std::cout << toJson(message) << std::endl;
+      if (!c.until_finished.empty() && message.has_event() &&
+          message.event().has_behavior_event() && message.event().behavior_event().has_finished() &&
+          message.event().behavior_event().behavior() == c.until_finished) {
+        watch_context.TryCancel();
+        reader->Finish();
+        return 0;
+      }
+    }
+    auto s = reader->Finish();
+    if (!s.ok()) return fail(s);
+  } else if (command == "pause" || command == "resume" || command == "modify") {
+    std::fprintf(stderr,
+                 "behaviorctl: '%s' is not routed by the coordinator; use --target with the "
+                 "hosting system's address (see 'behaviorctl --coordinator ... list')\n",
+                 command.c_str());
+    return 2;
+  } else {
+    return usage();
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string target;
+  std::string target, coordinator, robot, behavior_filter;
   std::vector<std::string> args;
   std::string request_id, incarnation, until_finished;
   uint64_t since_seq = 0;
@@ -68,6 +202,12 @@ int main(int argc, char** argv) {
     auto value = [&]() -> std::string { return i + 1 < argc ? argv[++i] : ""; };
     if (a == "--target") {
       target = value();
+    } else if (a == "--coordinator") {
+      coordinator = value();
+    } else if (a == "--robot") {
+      robot = value();
+    } else if (a == "--behavior") {
+      behavior_filter = value();
     } else if (a == "--request-id") {
       request_id = value();
     } else if (a == "--since-seq") {
@@ -84,7 +224,11 @@ int main(int argc, char** argv) {
       args.push_back(a);
     }
   }
-  if (target.empty() || args.empty()) return usage();
+  if (args.empty() || target.empty() == coordinator.empty()) return usage();
+  if (!coordinator.empty()) {
+    return runCoordinator({coordinator, robot, behavior_filter, request_id, incarnation,
+                           until_finished, since_seq, timeout_s, args});
+  }
   auto stub =
       v1::BehaviorSystem::NewStub(grpc::CreateChannel(target, grpc::InsecureChannelCredentials()));
   const std::string& command = args[0];

@@ -1,15 +1,32 @@
 // basic_quadrotor_behaviors: the paper's behavior system of basic quadrotor
-// behaviors. For now it hosts WAIT; TAKE_OFF, LAND, HOVER and the localization
-// behaviors join it with the flight behaviors.
+// behaviors: WAIT, TAKE_OFF, LAND, HOVER_WITH_FLIGHT_ACTION_CONTROL and
+// SELF_LOCALIZE_WITH_GROUND_TRUTH. The flight behaviors command the platform
+// through --flight-controller and read the pose estimate from --channel
+// (topics in topics.h); run with --clock sim under the simulator.
 
+#include "basic_quadrotor_behaviors/hover_behavior.h"
+#include "basic_quadrotor_behaviors/land_behavior.h"
+#include "basic_quadrotor_behaviors/self_localize_behavior.h"
+#include "basic_quadrotor_behaviors/take_off_behavior.h"
 #include "basic_quadrotor_behaviors/wait_behavior.h"
 #include "behaviorlib/server/behavior_system_main.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.grpc.pb.h"
+#include "flight_common/remote_vehicle.h"
 
 int main(int argc, char** argv) {
   using behaviorlib::server::BehaviorSystemBuilder;
+  namespace basic = behaviorlib::basic;
+  namespace flight = behaviorlib::flight;
+  namespace v1 = behaviorlib::v1;
   return behaviorlib::server::runBehaviorSystem(
       argc, argv, "basic_quadrotor_behaviors", [](BehaviorSystemBuilder& builder) {
-        builder.add<behaviorlib::basic::WaitBehavior, behaviorlib::v1::Wait>();
+        auto& vehicle = builder.own(std::make_unique<flight::RemoteVehicle>(builder.context()));
+        builder.add<basic::WaitBehavior, v1::Wait>();
+        builder.add<basic::TakeOffBehavior, v1::TakeOff>(vehicle);
+        builder.add<basic::LandBehavior, v1::Land>(vehicle);
+        builder.add<basic::HoverWithFlightActionControlBehavior, v1::HoverWithFlightActionControl>(
+            vehicle);
+        builder.add<basic::SelfLocalizeWithGroundTruthBehavior, v1::SelfLocalizeWithGroundTruth>(
+            builder.context().channel);
       });
 }

@@ -10,6 +10,8 @@
 #include "behaviorlib/clock.h"
 #include "behaviorlib/server/behavior_metrics.h"
 #include "behaviorlib/server/behavior_system_service.h"
+#include "behaviorlib/server/coordinator_registration.h"
+#include "behaviorlib/server/dead_reckoning_clock.h"
 #include "behaviorlib/server/flags.h"
 #include "behaviorlib/server/server_runtime.h"
 #include "behaviorlib/v1/options.pb.h"
@@ -17,6 +19,15 @@
 #include "channel/sim_clock.h"
 
 namespace behaviorlib::server {
+namespace {
+
+// How long the simulator's clock may fall silent (wall time) before --clock
+// sim dead-reckons simulated time at the last time scale (see
+// DeadReckoningClock): long enough for a loaded machine's hiccups, short
+// enough that a dead simulator is noticed within about a second.
+constexpr std::chrono::seconds kSimClockGrace(1);
+
+}  // namespace
 
 void BehaviorSystemBuilder::checkServiceMatches(const BehaviorExecutionManager& behavior,
                                                 const char* service_full_name) {
@@ -48,6 +59,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   std::string clock_kind = "steady";
   std::string config_path;
   std::string coordinator;
+  std::string flight_controller;
   FlagSet flags("behavior system " + system_name +
                 ": hosts its behaviors as gRPC services (typed per behavior, plus "
                 "behaviorlib.v1.BehaviorSystem)");
@@ -64,7 +76,12 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
             "YAML file: behaviors: {NAME: {frequency_hz, maximum_execution_time_s, "
             "watchdog_timeout_s, ...}}");
   flags.add("coordinator", &coordinator,
-            "coordinator address for registration (not used yet: the coordinator is not built)");
+            "coordinator address host:port: register there (retrying until it is up) with this "
+            "process's real bound port, send heartbeats, register again after a coordinator "
+            "restart, unregister on SIGTERM; empty: no registration");
+  flags.add("flight-controller", &flight_controller,
+            "FlightController address host:port (the simulator's, or an autopilot bridge's) for "
+            "flight behaviors; empty: they report that no flight controller is configured");
   int exit_code = 0;
   if (!flags.parse(argc, argv, &exit_code)) return exit_code;
 
@@ -80,6 +97,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
 
   std::unique_ptr<channel::ChannelClient> channel_client;
   if (!channel.empty()) channel_client = std::make_unique<channel::ChannelClient>(channel);
+  std::unique_ptr<channel::SimClock> sim_clock;
   std::unique_ptr<Clock> clock;
   if (clock_kind == "steady") {
     clock = std::make_unique<SteadyClock>();
@@ -88,14 +106,22 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
       fatal(program, "--clock sim needs --channel (simulated time comes from its 'clock' topic)");
       return 2;
     }
-    clock = std::make_unique<channel::SimClock>(*channel_client);
+    sim_clock = std::make_unique<channel::SimClock>(*channel_client);
+    clock = std::make_unique<DeadReckoningClock>(*sim_clock, kSimClockGrace);
   } else {
     fatal(program, "--clock must be 'steady' or 'sim', not '" + clock_kind + "'");
     return 2;
   }
 
   AcceptGate gate;
-  BehaviorSystemBuilder builder(gate);
+  SystemContext context;
+  context.system = system_name;
+  context.robot_id = robot_id;
+  context.clock = clock.get();
+  context.channel = channel_client.get();
+  context.flight_controller = flight_controller;
+  context.config = config;
+  BehaviorSystemBuilder builder(gate, std::move(context));
   register_behaviors(builder);
 
   BehaviorHostOptions host_options;
@@ -142,6 +168,8 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
                "incarnation %s\n",
                program.c_str(), robot_id.c_str(), hosted.c_str(), runtime.grpcPort(),
                runtime.metricsPort(), clock_kind.c_str(), host.events().incarnation().c_str());
+  auto registration =
+      startCoordinatorRegistration(coordinator, listen, runtime.grpcPort(), host, program);
 
   const int sig = ServerRuntime::waitForShutdownSignal();
   std::fprintf(stderr, "%s: signal %d, interrupting active behaviors and shutting down\n",
@@ -151,8 +179,15 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   // serving.
   gate.close();
   host.stop();
+  // Unregistering names the last event's seq: the coordinator reads the
+  // stream up to it, so the INTERRUPTED events above still reach it.
+  if (registration) registration->stop();
   system_service.shutdownStreams();
-  runtime.shutdown(std::chrono::seconds(3));
+  // Every call of ours has finished by now (the gate is closed, the host
+  // stopped, the streams drained): the grace period only covers health and
+  // reflection calls. Keep it short: gRPC waits for it in full while any
+  // client merely keeps an idle connection open.
+  runtime.shutdown(std::chrono::milliseconds(500));
   return 0;
 }
 

@@ -13,34 +13,87 @@
 //   }
 //
 // Flags: --robot-id, --listen, --metrics-listen, --port-file, --channel,
-// --clock (steady|sim), --config (YAML), --coordinator. Run with --help.
+// --clock (steady|sim), --config (YAML), --coordinator, --flight-controller.
+// Run with --help.
+//
+// Behaviors that need the process's connections (the data channel, the
+// flight controller's address) take them from builder.context(), either in
+// their constructor (add<> forwards arguments) or through a resource the
+// builder keeps alive for the process's life:
+//
+//   [](BehaviorSystemBuilder& b) {
+//     auto& vehicle = b.own(std::make_unique<RemoteVehicle>(b.context()));
+//     b.add<TakeOffBehavior, behaviorlib::v1::TakeOff>(vehicle);
+//   }
 
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/impl/service_type.h>
+#include <yaml-cpp/yaml.h>
 
 #include <functional>
 #include <map>
 #include <memory>
 #include <stdexcept>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/clock.h"
 #include "behaviorlib/server/lifecycle_calls.h"
 #include "behaviorlib/server/typed_behavior_service.h"
 
+namespace behaviorlib::channel {
+class ChannelClient;
+}  // namespace behaviorlib::channel
+
 namespace behaviorlib::server {
+
+/// What a behavior-system process offers its behaviors beyond the
+/// BehaviorContext each behavior gets at start(): the connections and
+/// settings made from its flags. Everything here lives until the process
+/// has stopped every behavior.
+struct SystemContext {
+  /// The system's name ("basic_quadrotor_behaviors").
+  std::string system;
+  /// --robot-id.
+  std::string robot_id;
+  /// The behaviors' clock (--clock).
+  const Clock* clock = nullptr;
+  /// The data channel (--channel); null when the process runs without one.
+  channel::ChannelClient* channel = nullptr;
+  /// --flight-controller: the FlightController's address ("host:port");
+  /// empty when none was given.
+  std::string flight_controller;
+  /// The whole --config document (may be null).
+  YAML::Node config;
+};
 
 /// Collects the behaviors of a system and their typed services.
 class BehaviorSystemBuilder {
  public:
-  explicit BehaviorSystemBuilder(const AcceptGate& gate) : gate_(gate) {}
+  explicit BehaviorSystemBuilder(const AcceptGate& gate, SystemContext context = {})
+      : gate_(gate), context_(std::move(context)) {}
 
-  /// Hosts BehaviorT and serves it as the typed service S. The behavior's
-  /// name must equal S's `(behaviorlib.v1.behavior).name` option.
-  template <class BehaviorT, class S>
-  BehaviorSystemBuilder& add() {
-    auto behavior = std::make_unique<BehaviorT>();
+  /// The process's connections and settings, for behaviors and resources.
+  const SystemContext& context() const { return context_; }
+
+  /// Keeps `resource` (shared by several behaviors: a vehicle connection, a
+  /// cache of topics) alive until every behavior has been stopped, and
+  /// returns it.
+  template <class T>
+  T& own(std::unique_ptr<T> resource) {
+    T& ref = *resource;
+    resources_.push_back(std::shared_ptr<void>(std::move(resource)));
+    return ref;
+  }
+
+  /// Hosts BehaviorT (constructed from `args`) and serves it as the typed
+  /// service S. The behavior's name must equal S's
+  /// `(behaviorlib.v1.behavior).name` option.
+  template <class BehaviorT, class S, class... Args>
+  BehaviorSystemBuilder& add(Args&&... args) {
+    auto behavior = std::make_unique<BehaviorT>(std::forward<Args>(args)...);
     checkServiceMatches(*behavior, S::service_full_name());
     services_.push_back(std::make_unique<TypedBehaviorService<S>>(*behavior, gate_));
     service_names_[behavior->name()] = S::service_full_name();
@@ -65,6 +118,9 @@ class BehaviorSystemBuilder {
                                   const char* service_full_name);
 
   const AcceptGate& gate_;
+  SystemContext context_;
+  // Declared before behaviors_: destroyed after them.
+  std::vector<std::shared_ptr<void>> resources_;
   std::vector<std::unique_ptr<BehaviorExecutionManager>> behaviors_;
   std::vector<std::unique_ptr<grpc::Service>> services_;
   std::map<std::string, std::string> service_names_;

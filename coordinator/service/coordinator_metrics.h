@@ -1,0 +1,38 @@
+#pragma once
+
+// Prometheus metrics of the coordinator (names behaviorlib_coordinator_*).
+// Every series is created once here; updates are plain counter and gauge
+// operations.
+
+#include <prometheus/counter.h>
+#include <prometheus/gauge.h>
+#include <prometheus/registry.h>
+
+namespace behaviorlib::coordinator {
+
+struct CoordinatorMetrics {
+  explicit CoordinatorMetrics(prometheus::Registry& registry);
+
+  /// Behavior events received from systems and forwarded to the stream.
+  prometheus::Counter& events_received;
+  /// Events received again after a resume (or of an activation already
+  /// finished by the coordinator) and dropped.
+  prometheus::Counter& events_dropped_duplicate;
+  /// Events a system no longer retained when the coordinator resumed.
+  prometheus::Counter& events_lost;
+  /// Finished events the coordinator made for activations of systems that
+  /// went down, restarted or left.
+  prometheus::Counter& events_synthesized;
+  /// Systems the coordinator knows (registered or configured).
+  prometheus::Gauge& systems_registered;
+  /// Systems whose event stream is established.
+  prometheus::Gauge& systems_up;
+  /// Times a system was declared down by supervision.
+  prometheus::Counter& systems_down;
+  /// Event streams to systems re-opened after a break.
+  prometheus::Counter& stream_reconnects;
+  /// Open Coordinator.WatchEvents streams.
+  prometheus::Gauge& subscribers;
+};
+
+}  // namespace behaviorlib::coordinator

@@ -1,0 +1,364 @@
+#include "coordinator/service/coordinator_service.h"
+
+#include <google/protobuf/util/time_util.h>
+
+#include <memory>
+#include <utility>
+
+#include "coordinator/service/systems_config.h"
+
+namespace behaviorlib::coordinator {
+
+namespace {
+
+grpc::ServerUnaryReactor* finishNow(grpc::CallbackServerContext* context,
+                                    const grpc::Status& status) {
+  auto* reactor = context->DefaultReactor();
+  reactor->Finish(status);
+  return reactor;
+}
+
+grpc::Status missing(const std::string& field, const std::string& hint) {
+  return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, field + " is empty: " + hint);
+}
+
+// A client context for a call made on behalf of `server`: its cancellation
+// and deadline carry over, and the call never waits longer than `limit`.
+std::unique_ptr<grpc::ClientContext> childContext(grpc::CallbackServerContext* server,
+                                                  std::chrono::milliseconds limit) {
+  auto context = grpc::ClientContext::FromCallbackServerContext(*server);
+  context->set_deadline(std::chrono::system_clock::now() + limit);
+  return context;
+}
+
+// The hosting system's refusal, with the system named.
+grpc::Status fromSystem(const grpc::Status& status, const Registry::Route& route) {
+  return grpc::Status(status.error_code(), "robot " + route.robot_id + ", system " + route.system +
+                                               " at " + route.address + ": " +
+                                               status.error_message());
+}
+
+// One lifecycle call forwarded to a behavior system.
+template <class Request, class Response>
+struct ForwardedCall {
+  std::unique_ptr<grpc::ClientContext> context;
+  Registry::Route route;
+  Request request;
+  Response response;
+};
+
+}  // namespace
+
+// One WatchEvents stream: the start message, then the subscription's events,
+// one write at a time; woken by the log when events arrive, never blocking
+// the appending intake thread.
+class FleetStreamReactor final : public grpc::ServerWriteReactor<v1::WatchFleetEventsResponse> {
+ public:
+  FleetStreamReactor(CoordinatorService* service, const v1::WatchFleetEventsRequest& request)
+      : service_(service) {
+    FleetSubscribeOptions options;
+    options.since_seq = request.since_seq();
+    options.incarnation = request.incarnation();
+    options.robot_ids.assign(request.robot_ids().begin(), request.robot_ids().end());
+    options.behaviors.assign(request.behaviors().begin(), request.behaviors().end());
+    // writing_ starts true so that a wake before the start message is
+    // written cannot send an event first.
+    subscription_ = service_->log_.subscribe(options, [this] { onWake(); });
+    service_->metrics_.subscribers.Increment();
+    std::lock_guard lock(mutex_);
+    *message_.mutable_start() = subscription_->start();
+    StartWrite(&message_);
+  }
+
+  void shutdown() {
+    std::lock_guard lock(mutex_);
+    shutting_down_ = true;
+    if (!writing_) writeNextLocked();
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard lock(mutex_);
+    writing_ = false;
+    if (!ok) {
+      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "stream broken"));
+      return;
+    }
+    writeNextLocked();
+  }
+
+  void OnCancel() override {
+    std::lock_guard lock(mutex_);
+    cancelled_ = true;
+    if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
+  }
+
+  void OnDone() override {
+    subscription_->cancel();
+    service_->metrics_.subscribers.Decrement();
+    service_->removeStream(this);
+    delete this;
+  }
+
+ private:
+  void onWake() {
+    std::lock_guard lock(mutex_);
+    if (!writing_) writeNextLocked();
+  }
+
+  std::string resumeHint() const {
+    return "resume with since_seq=" + std::to_string(subscription_->lastPoppedSeq()) +
+           " and incarnation=" + subscription_->start().incarnation();
+  }
+
+  void writeNextLocked() {
+    if (finished_) return;
+    if (cancelled_) {
+      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
+      return;
+    }
+    if (FleetEventPtr event = subscription_->pop()) {
+      *message_.mutable_event() = *event;
+      writing_ = true;
+      StartWrite(&message_);
+      return;
+    }
+    if (subscription_->overflowed()) {
+      finishLocked(grpc::Status(
+          grpc::StatusCode::RESOURCE_EXHAUSTED,
+          "subscriber too slow: events were produced faster than it read them; " + resumeHint()));
+      return;
+    }
+    if (shutting_down_) {
+      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE,
+                                "the coordinator is shutting down; " + resumeHint()));
+    }
+  }
+
+  void finishLocked(const grpc::Status& status) {
+    if (finished_) return;
+    finished_ = true;
+    Finish(status);
+  }
+
+  CoordinatorService* service_;
+  std::unique_ptr<FleetSubscription> subscription_;
+  std::mutex mutex_;
+  v1::WatchFleetEventsResponse message_;
+  bool writing_ = true;
+  bool finished_ = false;
+  bool cancelled_ = false;
+  bool shutting_down_ = false;
+};
+
+CoordinatorService::CoordinatorService(Registry& registry, FleetEventLog& log,
+                                       CoordinatorMetrics& metrics,
+                                       CoordinatorServiceOptions options)
+    : registry_(registry), log_(log), metrics_(metrics), options_(options) {}
+
+CoordinatorService::~CoordinatorService() = default;
+
+void CoordinatorService::shutdownStreams() {
+  // Reactors delete themselves only after removeStream(), which needs
+  // streams_mutex_, so every stream in the set is alive while we hold it.
+  std::lock_guard lock(streams_mutex_);
+  shutting_down_ = true;
+  for (auto* stream : streams_) stream->shutdown();
+}
+
+void CoordinatorService::removeStream(FleetStreamReactor* stream) {
+  std::lock_guard lock(streams_mutex_);
+  streams_.erase(stream);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
+    grpc::CallbackServerContext* context, const v1::RegisterSystemRequest* request,
+    v1::RegisterSystemResponse* response) {
+  if (request->robot_id().empty()) return finishNow(context, missing("robot_id", "name the robot"));
+  if (request->system().empty()) {
+    return finishNow(context, missing("system", "name the behavior system"));
+  }
+  if (request->incarnation().empty()) {
+    return finishNow(context, missing("incarnation", "send the system's incarnation id"));
+  }
+  if (!isHostPort(request->address())) {
+    return finishNow(context, grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                                           "address '" + request->address() +
+                                               "': expected host:port of the system's gRPC "
+                                               "server, reachable from the coordinator"));
+  }
+  // Read the system's own description at the address it advertises: this
+  // both checks that the coordinator can reach it and gives the schemas.
+  struct Describe {
+    std::shared_ptr<grpc::Channel> channel;
+    std::unique_ptr<v1::BehaviorSystem::Stub> stub;
+    std::unique_ptr<grpc::ClientContext> context;
+    v1::ListBehaviorsRequest request;
+    v1::ListBehaviorsResponse description;
+  };
+  auto* reactor = context->DefaultReactor();
+  auto* call = new Describe();
+  call->channel = grpc::CreateCustomChannel(request->address(), grpc::InsecureChannelCredentials(),
+                                            fastReconnectArguments());
+  call->stub = v1::BehaviorSystem::NewStub(call->channel);
+  call->context = childContext(context, options_.describe_timeout);
+  call->stub->async()->ListBehaviors(
+      call->context.get(), &call->request, &call->description,
+      [this, call, reactor, request, response](grpc::Status status) {
+        std::unique_ptr<Describe> owned(call);
+        const std::string who = "robot " + request->robot_id() + " system " + request->system();
+        if (!status.ok()) {
+          reactor->Finish(
+              grpc::Status(grpc::StatusCode::UNAVAILABLE,
+                           "cannot read the behaviors of " + who + " at " + request->address() +
+                               " (BehaviorSystem.ListBehaviors: " + status.error_message() +
+                               "); is that address reachable from the coordinator?"));
+          return;
+        }
+        const auto& d = owned->description;
+        if (d.robot_id() != request->robot_id() || d.system() != request->system() ||
+            d.incarnation() != request->incarnation()) {
+          reactor->Finish(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                                       request->address() + " serves robot " + d.robot_id() +
+                                           " system " + d.system() + " incarnation " +
+                                           d.incarnation() + ", not the registered " + who +
+                                           " incarnation " + request->incarnation()));
+          return;
+        }
+        const grpc::Status registered = registry_.registerSystem(*request, d);
+        if (registered.ok()) {
+          response->set_coordinator_incarnation(log_.incarnation());
+          *response->mutable_heartbeat_interval() =
+              google::protobuf::util::TimeUtil::MillisecondsToDuration(
+                  options_.heartbeat_interval.count());
+          for (const auto& b : d.behaviors()) response->add_behaviors(b.name());
+        }
+        reactor->Finish(registered);
+      });
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::Heartbeat(grpc::CallbackServerContext* context,
+                                                        const v1::HeartbeatRequest* request,
+                                                        v1::HeartbeatResponse* response) {
+  const grpc::Status status = registry_.heartbeat(*request);
+  if (status.ok()) response->set_coordinator_incarnation(log_.incarnation());
+  return finishNow(context, status);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::UnregisterSystem(
+    grpc::CallbackServerContext* context, const v1::UnregisterSystemRequest* request,
+    v1::UnregisterSystemResponse* /*response*/) {
+  return finishNow(context, registry_.unregister(*request));
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ListSystems(grpc::CallbackServerContext* context,
+                                                          const v1::ListSystemsRequest* request,
+                                                          v1::ListSystemsResponse* response) {
+  registry_.listSystems(request->robot_id(), response);
+  return finishNow(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ListBehaviors(
+    grpc::CallbackServerContext* context, const v1::ListFleetBehaviorsRequest* request,
+    v1::ListFleetBehaviorsResponse* response) {
+  registry_.listBehaviors(request->robot_id(), request->behavior(), response);
+  return finishNow(context, grpc::Status::OK);
+}
+
+grpc::ServerWriteReactor<v1::WatchFleetEventsResponse>* CoordinatorService::WatchEvents(
+    grpc::CallbackServerContext* /*context*/, const v1::WatchFleetEventsRequest* request) {
+  auto* stream = new FleetStreamReactor(this, *request);
+  std::lock_guard lock(streams_mutex_);
+  streams_.insert(stream);
+  if (shutting_down_) stream->shutdown();
+  return stream;
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
+    grpc::CallbackServerContext* context, const v1::ActivateFleetBehaviorRequest* request,
+    v1::ActivateFleetBehaviorResponse* response) {
+  using Call = ForwardedCall<v1::ActivateBehaviorRequest, v1::ActivateResponse>;
+  auto call = std::make_unique<Call>();
+  if (auto s = registry_.route(request->robot_id(), request->behavior(), &call->route); !s.ok()) {
+    return finishNow(context, s);
+  }
+  call->context = childContext(context, options_.default_call_timeout);
+  call->request.set_behavior(request->behavior());
+  *call->request.mutable_parameters() = request->parameters();
+  call->request.set_request_id(request->request_id());
+  auto* reactor = context->DefaultReactor();
+  Call* raw = call.release();
+  raw->route.stub->async()->ActivateBehavior(raw->context.get(), &raw->request, &raw->response,
+                                             [raw, reactor, response](grpc::Status status) {
+                                               std::unique_ptr<Call> owned(raw);
+                                               if (!status.ok()) {
+                                                 reactor->Finish(fromSystem(status, owned->route));
+                                                 return;
+                                               }
+                                               response->set_robot_id(owned->route.robot_id);
+                                               response->set_system(owned->route.system);
+                                               *response->mutable_activation() =
+                                                   std::move(owned->response);
+                                               reactor->Finish(grpc::Status::OK);
+                                             });
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
+    grpc::CallbackServerContext* context, const v1::DeactivateFleetBehaviorRequest* request,
+    v1::DeactivateFleetBehaviorResponse* response) {
+  using Call = ForwardedCall<v1::DeactivateBehaviorRequest, v1::DeactivateResponse>;
+  auto call = std::make_unique<Call>();
+  if (auto s = registry_.route(request->robot_id(), request->behavior(), &call->route); !s.ok()) {
+    return finishNow(context, s);
+  }
+  call->context = childContext(context, options_.default_call_timeout);
+  call->request.set_behavior(request->behavior());
+  call->request.set_activation_id(request->activation_id());
+  auto* reactor = context->DefaultReactor();
+  Call* raw = call.release();
+  raw->route.stub->async()->DeactivateBehavior(
+      raw->context.get(), &raw->request, &raw->response,
+      [raw, reactor, response](grpc::Status status) {
+        std::unique_ptr<Call> owned(raw);
+        if (!status.ok()) {
+          reactor->Finish(fromSystem(status, owned->route));
+          return;
+        }
+        response->set_robot_id(owned->route.robot_id);
+        response->set_system(owned->route.system);
+        *response->mutable_result() = std::move(owned->response);
+        reactor->Finish(grpc::Status::OK);
+      });
+  return reactor;
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::CheckBehaviorSituation(
+    grpc::CallbackServerContext* context, const v1::CheckFleetBehaviorSituationRequest* request,
+    v1::CheckFleetBehaviorSituationResponse* response) {
+  using Call = ForwardedCall<v1::CheckBehaviorSituationRequest, v1::CheckSituationResponse>;
+  auto call = std::make_unique<Call>();
+  if (auto s = registry_.route(request->robot_id(), request->behavior(), &call->route); !s.ok()) {
+    return finishNow(context, s);
+  }
+  call->context = childContext(context, options_.default_call_timeout);
+  call->request.set_behavior(request->behavior());
+  auto* reactor = context->DefaultReactor();
+  Call* raw = call.release();
+  raw->route.stub->async()->CheckBehaviorSituation(
+      raw->context.get(), &raw->request, &raw->response,
+      [raw, reactor, response](grpc::Status status) {
+        std::unique_ptr<Call> owned(raw);
+        if (!status.ok()) {
+          reactor->Finish(fromSystem(status, owned->route));
+          return;
+        }
+        response->set_robot_id(owned->route.robot_id);
+        response->set_system(owned->route.system);
+        *response->mutable_situation() = std::move(owned->response);
+        reactor->Finish(grpc::Status::OK);
+      });
+  return reactor;
+}
+
+}  // namespace behaviorlib::coordinator

@@ -1,0 +1,189 @@
+#pragma once
+
+// The coordinator's connection to one behavior-system process: its event
+// intake and its supervision, on one thread per system.
+//
+// The thread reads the system's ListBehaviors (whenever a new incarnation
+// appears) and follows its WatchEvents stream, resuming with since_seq and the
+// incarnation after every break so that no event is lost or doubled
+// (ActivationTracker). When the stream breaks it checks the system's gRPC
+// health every probe interval; once the check has failed for the grace period
+// (Supervision) the system is DOWN and every activation in progress there gets
+// a synthesized PROCESS_FAILURE. It keeps contacting the system: a new
+// incarnation (a restart, or a registration naming a new address) makes it UP
+// again, and the old incarnation's activations still in progress end with
+// PROCESS_FAILURE first. Every event of the system's, and every state change,
+// is appended to the FleetEventLog by this thread only, so they appear in the
+// order they happened.
+//
+//   SystemLink link({.robot_id = "drone1", .address = "127.0.0.1:50061",
+//                    .source = v1::SYSTEM_SOURCE_CONFIG}, log, metrics, options, on_retired);
+//   link.start();
+//   ...
+//   link.stop();   // cancels the stream, joins the thread
+
+#include <grpcpp/grpcpp.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "behaviorlib/v1/behavior.grpc.pb.h"
+#include "behaviorlib/v1/coordinator.pb.h"
+#include "coordinator/service/activation_tracker.h"
+#include "coordinator/service/coordinator_metrics.h"
+#include "coordinator/service/fleet_event_log.h"
+#include "coordinator/service/supervision.h"
+
+namespace behaviorlib::coordinator {
+
+struct LinkOptions {
+  /// How long the health check must keep failing (after the stream broke)
+  /// before the system is declared down. Wall time.
+  std::chrono::nanoseconds grace = std::chrono::seconds(1);
+  /// Deadline of one health check.
+  std::chrono::milliseconds health_timeout{250};
+  /// Health checks while reconnecting.
+  std::chrono::milliseconds probe_interval{100};
+  /// Health checks while down or unregistered.
+  std::chrono::milliseconds idle_probe_interval{500};
+  /// Deadline of ListBehaviors and of the calls the link makes itself.
+  std::chrono::milliseconds call_timeout{3000};
+};
+
+struct LinkIdentity {
+  std::string robot_id;
+  /// Empty for a --systems entry until the system is reached.
+  std::string system;
+  std::string address;
+  v1::SystemSource source = v1::SYSTEM_SOURCE_UNSPECIFIED;
+};
+
+/// gRPC channel arguments for connections to behavior systems and to the
+/// coordinator: reconnect within 100 ms .. 2 s (gRPC's default backoff grows
+/// to 120 s, far longer than a restart takes).
+grpc::ChannelArguments fastReconnectArguments();
+
+class SystemLink {
+ public:
+  /// `on_retired` is called (on the link's thread) when a registered system
+  /// unregistered and the link ended for good.
+  SystemLink(LinkIdentity identity, FleetEventLog& log, CoordinatorMetrics& metrics,
+             LinkOptions options, std::function<void(SystemLink*)> on_retired);
+  /// Stops the thread.
+  ~SystemLink();
+  SystemLink(const SystemLink&) = delete;
+  SystemLink& operator=(const SystemLink&) = delete;
+
+  void start();
+  /// Cancels whatever the thread waits for and joins it. Idempotent.
+  void stop();
+
+  /// A (re)registration: the system at `address` described itself with
+  /// `description` (already checked against the request). A new address or
+  /// incarnation makes the link reconnect at once.
+  void registered(const std::string& address, const v1::ListBehaviorsResponse& description);
+  /// Records a heartbeat of `incarnation`; false if it is not the registered
+  /// incarnation.
+  bool heartbeat(const std::string& incarnation);
+  /// The system shuts down cleanly: read its events up to `final_seq`, then
+  /// leave (registered systems are removed; configured ones stay listed and
+  /// are contacted again). False if `incarnation` is not the registered one.
+  bool unregister(const std::string& incarnation, uint64_t final_seq);
+
+  const std::string& robotId() const { return identity_.robot_id; }
+  v1::SystemSource source() const { return identity_.source; }
+  std::string system() const;
+  std::string address() const;
+  std::string registeredIncarnation() const;
+  v1::SystemState state() const;
+  /// Unregistered and ended (registered systems only).
+  bool retired() const;
+  /// Unregistering: waiting for the last events.
+  bool leaving() const;
+
+  v1::SystemInfo info() const;
+  /// Names of the hosted behaviors (empty before the first contact).
+  std::vector<std::string> behaviorNames() const;
+  bool hosts(const std::string& behavior) const;
+  /// Appends the hosted behaviors matching `behavior` ("" for all).
+  void describeBehaviors(const std::string& behavior,
+                         google::protobuf::RepeatedPtrField<v1::FleetBehavior>* out) const;
+
+  /// For routing a call: the stub, or nullptr with `status` UNAVAILABLE
+  /// saying why the system cannot be used now.
+  std::shared_ptr<v1::BehaviorSystem::Stub> stubForCall(grpc::Status* status) const;
+
+ private:
+  struct StreamEnd {
+    /// Why the stream ended (or could not be used), for messages.
+    std::string reason;
+    bool got_start = false;
+  };
+
+  void run();
+  StreamEnd readStream(v1::BehaviorSystem::Stub& stub, const v1::WatchEventsRequest& request);
+  bool onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::Stub& stub);
+  void onEvent(const v1::BehaviorEvent& event, grpc::ClientContext& context);
+  void onBroken(const std::string& reason);
+  void declareDown(const std::string& health_detail);
+  // Returns false when the link retired (the thread must end).
+  bool finishLeaving();
+  void deactivateFenced();
+
+  // Register the context of the event stream, and of the other blocking call
+  // in progress (nullptr when none), so that stop() and pokes can cancel them.
+  void setStreamCall(grpc::ClientContext* context);
+  void setCall(grpc::ClientContext* context);
+  // Wakes the thread and cancels its call: something changed.
+  void pokeLocked();
+  // Waits up to `duration` unless stopped or poked.
+  void waitFor(std::chrono::milliseconds duration);
+  void rebuildChannelLocked();
+  // Changes the state; returns the SystemStateChangedEvent to append (after
+  // unlocking), if it changed.
+  std::optional<v1::FleetEvent> setStateLocked(v1::SystemState state, std::string message);
+  v1::SystemInfo infoLocked() const;
+  void append(std::vector<v1::FleetEvent> events);
+  std::string nameLocked() const;
+
+  LinkIdentity identity_;
+  FleetEventLog& log_;
+  CoordinatorMetrics& metrics_;
+  const LinkOptions options_;
+  std::function<void(SystemLink*)> on_retired_;
+  std::thread thread_;
+
+  mutable std::mutex mutex_;
+  std::condition_variable cv_;
+  bool stopping_ = false;
+  bool poked_ = false;
+  grpc::ClientContext* stream_call_ = nullptr;
+  grpc::ClientContext* call_ = nullptr;
+  std::shared_ptr<grpc::Channel> channel_;
+  std::shared_ptr<v1::BehaviorSystem::Stub> stub_;
+  v1::ListBehaviorsResponse description_;
+  std::string registered_incarnation_;
+  v1::SystemState state_ = v1::SYSTEM_STATE_UNSPECIFIED;
+  std::string state_message_;
+  std::chrono::system_clock::time_point state_time_;
+  std::optional<std::chrono::system_clock::time_point> last_heartbeat_;
+  ActivationTracker tracker_;
+  Supervision supervision_;
+  std::string last_break_;       // why the stream last ended, for messages
+  std::string start_failure_;    // why onStart refused the stream
+  bool had_stream_ = false;      // a stream was established before
+  uint64_t replay_end_seq_ = 0;  // the fence check runs once the replay is through
+  bool fence_check_pending_ = false;
+  bool leaving_ = false;
+  uint64_t final_seq_ = 0;
+  bool retired_ = false;
+};
+
+}  // namespace behaviorlib::coordinator

@@ -1,0 +1,88 @@
+#pragma once
+
+// What the flight behaviors (TAKE_OFF, LAND, HOVER_WITH_FLIGHT_ACTION_CONTROL,
+// and the motion behaviors) share: their --config settings and the checks of their inputs.
+//
+// Config keys of each flight behavior's section (defaults in brackets):
+//   pose_timeout_s [0.5]        pose/twist estimate older than this (behavior
+//                               clock): PROCESS_FAILURE
+//   lease_ttl_s [2]             ttl of the command lease (renewed every ttl/4)
+//   preempt_lease [false]       take the lease from another holder
+//   min_battery_ratio [0.3]     below it the behavior is infeasible
+//   full_battery_ratio [0.6]    at or above it the performance estimate is 1
+//   progress_window_s [3]       window of the progress checks
+// plus the library's frequency_hz, maximum_execution_time_s, watchdog_timeout_s.
+
+#include <yaml-cpp/yaml.h>
+
+#include <optional>
+#include <string>
+
+#include "absl/status/status.h"
+#include "behaviorlib/behavior_execution_manager.h"
+#include "flight_common/vehicle.h"
+
+namespace behaviorlib::flight {
+
+struct FlightSettings {
+  Duration pose_timeout = std::chrono::milliseconds(500);
+  Duration lease_ttl = std::chrono::seconds(2);
+  bool preempt_lease = false;
+  double min_battery_ratio = 0.3;
+  double full_battery_ratio = 0.6;
+  Duration progress_window = std::chrono::seconds(3);
+
+  /// Reads the keys above from a behavior's config section (missing keys
+  /// keep their values); INVALID_ARGUMENT naming a bad key.
+  absl::Status read(const YAML::Node& config);
+};
+
+/// Reads a double key of `config` into `*value` when present, checking
+/// (min, max]; INVALID_ARGUMENT naming the key otherwise.
+absl::Status readNumber(const YAML::Node& config, const char* key, double min, double max,
+                        double* value);
+/// The same for a duration given in seconds.
+absl::Status readSeconds(const YAML::Node& config, const char* key, double min, double max,
+                         Duration* value);
+
+/// Defaults of the flight behaviors' execution: 20 Hz, the given maximum
+/// execution time, and a 2 s watchdog (a user function may make up to three
+/// bounded calls to the flight controller and the channel).
+BehaviorOptions flightBehaviorOptions(Duration maximum_execution_time);
+
+/// True for the airborne states (TAKING_OFF, FLYING, HOVERING, LANDING).
+bool airborne(v1::FlightState state);
+/// True while the platform accepts setpoints: FLYING or HOVERING.
+bool flying(v1::FlightState state);
+
+/// A fresh sample's problem: "pose estimate on <topic> is 0.4 s old (limit
+/// 0.25 s)"; nullopt when fresh.
+std::optional<std::string> staleness(const std::string& what, const v1::Header& header,
+                                     TimePoint now, Duration limit);
+
+/// checkProcesses() of the flight behaviors: the flight controller answers
+/// (flight status known), the pose (and, if `need_twist`, twist) estimate is
+/// fresh on the behavior clock, and the lease (if any) is still renewed. The
+/// first problem found, as a message; nullopt when all is well. Fills
+/// `status`, `pose`, `twist` on success.
+std::optional<std::string> checkFlightInputs(Vehicle& vehicle, TimePoint now,
+                                             const FlightSettings& settings,
+                                             const VehicleLease* lease, bool need_twist,
+                                             v1::FlightStatus* status, v1::PoseStamped* pose,
+                                             v1::TwistStamped* twist);
+
+/// checkSituation() reasons shared by the flight behaviors before they are
+/// activated: a flight controller that answers, a fresh pose estimate and
+/// the battery above the minimum. Appends to `situation` and returns the
+/// flight status when known.
+std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimePoint now,
+                                                         const FlightSettings& settings,
+                                                         bool check_battery, Situation* situation);
+
+/// While active: the situation turns infeasible on an emergency or crash,
+/// a lease taken by another holder, or (if `check_battery`) the battery
+/// below the minimum; the performance follows the battery.
+Situation activeFlightSituation(const v1::FlightStatus& status, const VehicleLease* lease,
+                                const FlightSettings& settings, bool check_battery);
+
+}  // namespace behaviorlib::flight

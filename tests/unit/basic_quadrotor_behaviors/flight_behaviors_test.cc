@@ -1,0 +1,287 @@
+// The monitoring of TAKE_OFF, LAND and HOVER_WITH_FLIGHT_ACTION_CONTROL
+// against a fake vehicle on a FakeClock: each termination cause provoked
+// through the input that should cause it.
+
+#include <gtest/gtest.h>
+
+#include <thread>
+
+#include "basic_quadrotor_behaviors/hover_behavior.h"
+#include "basic_quadrotor_behaviors/land_behavior.h"
+#include "basic_quadrotor_behaviors/take_off_behavior.h"
+#include "behaviorlib/behavior_host.h"
+#include "fake_vehicle.h"
+#include "test_behaviors.h"
+
+namespace behaviorlib::basic {
+namespace {
+
+using std::chrono::milliseconds;
+using testing::FakeVehicle;
+
+std::unique_ptr<v1::TakeOffParameters> altitude(double altitude_m) {
+  auto p = std::make_unique<v1::TakeOffParameters>();
+  p->set_altitude_m(altitude_m);
+  return p;
+}
+
+std::unique_ptr<v1::HoverWithFlightActionControlParameters> drift(double max_drift_m) {
+  auto p = std::make_unique<v1::HoverWithFlightActionControlParameters>();
+  p->set_max_drift_m(max_drift_m);
+  return p;
+}
+
+class FlightBehaviorsUnitTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    host_.add(std::make_unique<TakeOffBehavior>(vehicle_));
+    host_.add(std::make_unique<LandBehavior>(vehicle_));
+    host_.add(std::make_unique<HoverWithFlightActionControlBehavior>(vehicle_));
+    ASSERT_TRUE(host_.start().ok());
+    take_off_ = host_.find("TAKE_OFF");
+    land_ = host_.find("LAND");
+    hover_ = host_.find("HOVER_WITH_FLIGHT_ACTION_CONTROL");
+  }
+
+  // Advances the fake clock in 50 ms steps (one tick each at 20 Hz), giving
+  // the worker a moment to tick, until `total` passed or `behavior` ended.
+  void fly(Duration total, const BehaviorExecutionManager* behavior) {
+    for (Duration done{0}; done < total; done += milliseconds(50)) {
+      clock_.advance(milliseconds(50));
+      std::this_thread::sleep_for(milliseconds(5));
+      if (behavior->state() == v1::BEHAVIOR_STATE_INACTIVE) return;
+    }
+  }
+
+  FakeClock clock_;
+  FakeVehicle vehicle_{clock_};
+  BehaviorHost host_{behaviorlib::testing::hostOptions("drone1", "basic_quadrotor_behaviors"),
+                     clock_};
+  behaviorlib::testing::EventCollector events_{host_.events()};
+  BehaviorExecutionManager* take_off_ = nullptr;
+  BehaviorExecutionManager* land_ = nullptr;
+  BehaviorExecutionManager* hover_ = nullptr;
+};
+
+TEST_F(FlightBehaviorsUnitTest, TakeOffAchievesItsGoalOnlyAfterHoldingTheAltitudeForTheDwell) {
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(1.5)).ok());
+  EXPECT_EQ(vehicle_.commands(), std::vector<std::string>{"TAKE_OFF 1.50"});
+  EXPECT_EQ(vehicle_.leaseHolder(), "drone1/TAKE_OFF");
+  vehicle_.setState(v1::FLIGHT_STATE_TAKING_OFF);
+  vehicle_.setPosition(0, 0, 0.8);
+  vehicle_.setVerticalSpeed(1.0);
+  fly(milliseconds(500), take_off_);
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(0, 0, 1.45);
+  vehicle_.setVerticalSpeed(0.02);
+  fly(milliseconds(800), take_off_);
+  EXPECT_EQ(take_off_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "the dwell is 1 s";
+  fly(milliseconds(1000), take_off_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << finished.ShortDebugString();
+  EXPECT_NE(finished.finished().message().find("1.50"), std::string::npos);
+  // Already hovering: no HOVER needed, the lease is released.
+  EXPECT_EQ(vehicle_.commands(), (std::vector<std::string>{"TAKE_OFF 1.50", "RELEASE"}));
+  EXPECT_EQ(vehicle_.followers(), 0);
+}
+
+TEST_F(FlightBehaviorsUnitTest, TakeOffWithAVerticalSpeedAboveTheLimitIsNotAGoal) {
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(1.0)).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(0, 0, 1.0);
+  vehicle_.setVerticalSpeed(0.5);
+  fly(milliseconds(2000), take_off_);
+  EXPECT_EQ(take_off_->state(), v1::BEHAVIOR_STATE_ACTIVE);
+  ASSERT_TRUE(take_off_->deactivateAndWait().ok());
+  // Interrupted: hovering already, so only the release.
+  EXPECT_EQ(vehicle_.commands().back(), "RELEASE");
+}
+
+TEST_F(FlightBehaviorsUnitTest, TakeOffModifiedSendsTheNewAltitudeOnceTheTakeOffActionEnded) {
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(1.0)).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_TAKING_OFF);
+  vehicle_.setPosition(0, 0, 0.5);
+  vehicle_.setVerticalSpeed(1.0);
+  ASSERT_TRUE(take_off_->modifyAndWait(altitude(2.0)).ok());
+  fly(milliseconds(200), take_off_);
+  EXPECT_EQ(vehicle_.commands(), std::vector<std::string>{"TAKE_OFF 1.00"})
+      << "no setpoint while the platform's take-off runs";
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(0, 0, 1.0);
+  vehicle_.setVerticalSpeed(0.0);
+  fly(milliseconds(200), take_off_);
+  EXPECT_TRUE(behaviorlib::testing::eventually([&] {
+    return vehicle_.commands() == std::vector<std::string>{"TAKE_OFF 1.00", "GOTO 2.00"};
+  }));
+  EXPECT_EQ(take_off_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "1.0 m is not the new goal";
+  vehicle_.setState(v1::FLIGHT_STATE_FLYING);
+  vehicle_.setPosition(0, 0, 2.0);
+  fly(milliseconds(1500), take_off_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << finished.ShortDebugString();
+  // FLYING on a setpoint when it ended: HOVER, then the release.
+  EXPECT_EQ(vehicle_.commands(),
+            (std::vector<std::string>{"TAKE_OFF 1.00", "GOTO 2.00", "HOVER", "RELEASE"}));
+}
+
+TEST_F(FlightBehaviorsUnitTest, TakeOffIsRefusedUnlessLandedWithEnoughBattery) {
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  auto refused = take_off_->activateAndWait(altitude(1.0));
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(refused.status().message().find("LANDED"), std::string::npos)
+      << refused.status().message();
+  vehicle_.setState(v1::FLIGHT_STATE_LANDED);
+  vehicle_.setBattery(0.1);
+  refused = take_off_->activateAndWait(altitude(1.0));
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(refused.status().message().find("battery"), std::string::npos)
+      << refused.status().message();
+  EXPECT_TRUE(vehicle_.commands().empty()) << "nothing was commanded";
+
+  // The performance estimate falls with the battery.
+  vehicle_.setBattery(0.9);
+  const auto full = take_off_->checkSituationAndWait();
+  vehicle_.setBattery(0.4);
+  const auto low = take_off_->checkSituationAndWait();
+  ASSERT_TRUE(full.ok() && low.ok());
+  EXPECT_TRUE(full->feasible() && low->feasible());
+  EXPECT_DOUBLE_EQ(full->performance_ratio(), 1.0);
+  EXPECT_LT(low->performance_ratio(), 0.7);
+
+  vehicle_.setReachable(false);
+  const auto unreachable = take_off_->checkSituationAndWait();
+  ASSERT_TRUE(unreachable.ok());
+  EXPECT_FALSE(unreachable->feasible());
+  EXPECT_NE(unreachable->reasons(0).find("unreachable"), std::string::npos);
+}
+
+TEST_F(FlightBehaviorsUnitTest, TakeOffWithoutClimbIsWrongProgress) {
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(2.0)).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_TAKING_OFF);
+  vehicle_.setPosition(0, 0, 0.3);
+  fly(milliseconds(4000), take_off_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
+      << finished.ShortDebugString();
+  EXPECT_NE(finished.finished().message().find("no progress"), std::string::npos);
+  // Left hovering: TAKING_OFF when it ended, so HOVER before the release.
+  EXPECT_EQ(vehicle_.commands(), (std::vector<std::string>{"TAKE_OFF 2.00", "HOVER", "RELEASE"}));
+}
+
+TEST_F(FlightBehaviorsUnitTest, TakeOffEndsWithWrongProgressOnAnUnexpectedLanding) {
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(2.0)).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_TAKING_OFF);
+  vehicle_.setPosition(0, 0, 0.5);
+  fly(milliseconds(200), take_off_);
+  vehicle_.setState(v1::FLIGHT_STATE_LANDING);
+  fly(milliseconds(200), take_off_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS);
+  EXPECT_NE(finished.finished().message().find("unexpected landing"), std::string::npos)
+      << finished.finished().message();
+}
+
+TEST_F(FlightBehaviorsUnitTest, TakeOffEndsWithProcessFailureWhenThePoseEstimateGoesStale) {
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(2.0)).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_TAKING_OFF);
+  fly(milliseconds(200), take_off_);
+  vehicle_.freezeEstimate(true);
+  fly(milliseconds(450), take_off_);
+  EXPECT_EQ(take_off_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "0.45 s is within the 0.5 s limit";
+  fly(milliseconds(200), take_off_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  EXPECT_NE(finished.finished().message().find("pose estimate"), std::string::npos)
+      << finished.finished().message();
+}
+
+TEST_F(FlightBehaviorsUnitTest, AnUnreachableFlightControllerIsAProcessFailure) {
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(2.0)).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_TAKING_OFF);
+  fly(milliseconds(100), take_off_);
+  vehicle_.setReachable(false);
+  fly(milliseconds(100), take_off_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  EXPECT_NE(finished.finished().message().find("unreachable"), std::string::npos)
+      << finished.finished().message();
+}
+
+TEST_F(FlightBehaviorsUnitTest, LandAchievesItsGoalWhenLandedAndDetectsAStalledDescent) {
+  auto refused = land_->activateAndWait(std::make_unique<v1::LandParameters>());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(refused.status().message().find("in the air"), std::string::npos);
+
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(0, 0, 1.0);
+  ASSERT_TRUE(land_->activateAndWait(std::make_unique<v1::LandParameters>()).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_LANDING);
+  vehicle_.setPosition(0, 0, 0.5);
+  fly(milliseconds(200), land_);
+  vehicle_.setState(v1::FLIGHT_STATE_LANDED);
+  vehicle_.setPosition(0, 0, 0.0);
+  fly(milliseconds(200), land_);
+  auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << finished.ShortDebugString();
+  EXPECT_EQ(vehicle_.commands(), (std::vector<std::string>{"LAND", "RELEASE"}));
+
+  // Again, but the descent stalls at 0.8 m: WRONG_PROGRESS, and LAND leaves
+  // the vehicle hovering.
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(0, 0, 0.8);
+  ASSERT_TRUE(land_->activateAndWait(std::make_unique<v1::LandParameters>()).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_LANDING);
+  fly(milliseconds(4000), land_);
+  finished = events_.waitFinished(1);
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
+      << finished.ShortDebugString();
+  EXPECT_NE(finished.finished().message().find("descent stalled"), std::string::npos);
+  const auto commands = vehicle_.commands();
+  ASSERT_GE(commands.size(), 2u);
+  EXPECT_EQ(commands[commands.size() - 2], "HOVER");
+}
+
+TEST_F(FlightBehaviorsUnitTest, HoverReportsDriftAsWrongProgressAndALowBatteryAsSituationChange) {
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(1, 2, 1.5);
+  ASSERT_TRUE(hover_->activateAndWait(drift(0.3)).ok());
+  EXPECT_EQ(vehicle_.commands(), std::vector<std::string>{"HOVER"});
+  vehicle_.setPosition(1.2, 2, 1.5);
+  fly(milliseconds(500), hover_);
+  EXPECT_EQ(hover_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "0.2 m is within 0.3 m";
+  vehicle_.setPosition(1.4, 2, 1.5);
+  fly(milliseconds(200), hover_);
+  auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS);
+  EXPECT_NE(finished.finished().message().find("drifted 0.40 m"), std::string::npos)
+      << finished.finished().message();
+  EXPECT_EQ(vehicle_.leaseHolder(), "") << "released";
+
+  vehicle_.setPosition(1, 2, 1.5);
+  ASSERT_TRUE(hover_->activateAndWait(drift(0.3)).ok());
+  fly(milliseconds(500), hover_);
+  vehicle_.setBattery(0.15);
+  fly(milliseconds(200), hover_);
+  finished = events_.waitFinished(1);
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_SITUATION_CHANGE);
+  EXPECT_NE(finished.finished().message().find("battery"), std::string::npos)
+      << finished.finished().message();
+}
+
+TEST_F(FlightBehaviorsUnitTest, ALeaseTakenByAnotherHolderIsASituationChange) {
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  ASSERT_TRUE(hover_->activateAndWait(drift(0.5)).ok());
+  fly(milliseconds(200), hover_);
+  vehicle_.loseLease();
+  fly(milliseconds(200), hover_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_SITUATION_CHANGE);
+  EXPECT_NE(finished.finished().message().find("intruder"), std::string::npos)
+      << finished.finished().message();
+}
+
+}  // namespace
+}  // namespace behaviorlib::basic

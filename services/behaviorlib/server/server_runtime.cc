@@ -110,6 +110,11 @@ void ServerRuntime::shutdown(std::chrono::milliseconds deadline) {
   server_->Shutdown(std::chrono::system_clock::now() + deadline);
   server_->Wait();
   server_.reset();
+  // The process is about to exit. Stopping the metrics endpoint would block
+  // for up to two seconds (civetweb's master thread polls its sockets in
+  // 2 s quanta and mg_stop waits for it); the process's exit ends its
+  // threads anyway, so the exposer (and the registry it holds) is left to it.
+  if (exposer_) (void)exposer_.release();
 }
 
 int fatal(const std::string& program, const std::string& message) {

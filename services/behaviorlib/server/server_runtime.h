@@ -73,7 +73,9 @@ class ServerRuntime {
   bool writePortFile(const std::string& path, std::string* error) const;
 
   /// Marks every service NOT_SERVING, then shuts the server down, letting
-  /// calls in flight finish until `deadline` from now.
+  /// calls in flight finish until `deadline` from now. For the end of a
+  /// process: the metrics endpoint is abandoned to the process's exit
+  /// (stopping it takes up to 2 s).
   void shutdown(std::chrono::milliseconds deadline);
 
  private:

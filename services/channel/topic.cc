@@ -9,6 +9,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "behaviorlib/v1/motion.pb.h"
 #include "behaviorlib/v1/platform.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
@@ -38,6 +39,10 @@ absl::Status badTopic(absl::string_view topic, absl::string_view problem) {
     v1::Clock::descriptor();
 [[maybe_unused]] const google::protobuf::Descriptor* const kLinkPlatformTypes =
     v1::FlightStatus::descriptor();
+// Motion references and motion-controller status (motion.proto), exchanged
+// by the motion behaviors.
+[[maybe_unused]] const google::protobuf::Descriptor* const kLinkMotionTypes =
+    v1::MotionReference::descriptor();
 
 }  // namespace
 

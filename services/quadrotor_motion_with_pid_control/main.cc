@@ -1,0 +1,55 @@
+// quadrotor_motion_with_pid_control: the paper's behavior system of motion
+// with PID control. The high-level behaviors (FOLLOW_PATH,
+// ROTATE_WITH_PID_CONTROL, KEEP_HOVERING_WITH_PID_CONTROL,
+// KEEP_MOVING_WITH_PID_CONTROL) publish motion references on the data channel;
+// the motion controllers (QUADROTOR_PID_MOTION_CONTROL: attitude + thrust;
+// QUADROTOR_PID_THRUST_CONTROL: thrust + body rates) follow them, commanding
+// the platform through --flight-controller under its lease. Run with
+// --clock sim under the simulator; topics in
+// services/motion_behaviors/motion_topics.h.
+
+#include "behaviorlib/server/behavior_system_main.h"
+#include "behaviorlib/v1/behaviors/quadrotor_motion_with_pid_control.grpc.pb.h"
+#include "flight_common/remote_vehicle.h"
+#include "motion_behaviors/follow_path_behavior.h"
+#include "motion_behaviors/hover_behavior.h"
+#include "motion_behaviors/motion_control_behavior.h"
+#include "motion_behaviors/motion_link.h"
+#include "motion_behaviors/rotate_behavior.h"
+#include "quadrotor_motion_with_pid_control/keep_moving_behavior.h"
+
+int main(int argc, char** argv) {
+  using behaviorlib::server::BehaviorSystemBuilder;
+  namespace mb = behaviorlib::motion_behaviors;
+  namespace v1 = behaviorlib::v1;
+  return behaviorlib::server::runBehaviorSystem(
+      argc, argv, "quadrotor_motion_with_pid_control", [](BehaviorSystemBuilder& builder) {
+        const auto& context = builder.context();
+        auto& vehicle = builder.own(std::make_unique<behaviorlib::flight::RemoteVehicle>(context));
+        auto& link =
+            builder.own(std::make_unique<mb::RemoteMotionLink>(context.channel, context.robot_id));
+        builder.add<mb::FollowPathBehavior<v1::FollowPathParameters>, v1::FollowPath>(
+            "FOLLOW_PATH", vehicle, link);
+        builder
+            .add<mb::RotateBehavior<v1::RotateWithPidControlParameters>, v1::RotateWithPidControl>(
+                "ROTATE_WITH_PID_CONTROL", vehicle, link);
+        builder.add<mb::HoverBehavior<v1::KeepHoveringWithPidControlParameters>,
+                    v1::KeepHoveringWithPidControl>("KEEP_HOVERING_WITH_PID_CONTROL", vehicle,
+                                                    link);
+        builder.add<mb::KeepMovingWithPidControlBehavior, v1::KeepMovingWithPidControl>(vehicle,
+                                                                                        link);
+        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidMotionControlParameters>,
+                    v1::QuadrotorPidMotionControl>(
+            "QUADROTOR_PID_MOTION_CONTROL", vehicle, link,
+            [](const mb::ControllerConfig& config, const behaviorlib::motion::VehicleModel& model) {
+              return mb::makePidAttitudeController(model, config.pid);
+            });
+        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidThrustControlParameters>,
+                    v1::QuadrotorPidThrustControl>(
+            "QUADROTOR_PID_THRUST_CONTROL", vehicle, link,
+            [](const mb::ControllerConfig& config, const behaviorlib::motion::VehicleModel& model) {
+              return mb::makePidThrustRatesController(model, config.pid, config.attitude_p,
+                                                      config.max_rate_rad_s);
+            });
+      });
+}

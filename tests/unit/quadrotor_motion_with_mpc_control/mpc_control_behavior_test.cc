@@ -1,0 +1,95 @@
+// QUADROTOR_MPC_MOTION_CONTROL and HOVER_WITH_MPC_CONTROL (the MPC system's
+// behaviors, from behaviorlib::motion_behaviors) against a fake vehicle and an
+// in-memory motion link on a FakeClock.
+
+#include <gtest/gtest.h>
+
+#include <thread>
+
+#include "behaviorlib/behavior_host.h"
+#include "behaviorlib/v1/behaviors/quadrotor_motion_with_mpc_control.pb.h"
+#include "fake_motion_link.h"
+#include "fake_vehicle.h"
+#include "motion_behaviors/hover_behavior.h"
+#include "motion_behaviors/motion_control_behavior.h"
+#include "motion_behaviors/motion_messages.h"
+#include "test_behaviors.h"
+
+namespace behaviorlib::motion_behaviors {
+namespace {
+
+using std::chrono::milliseconds;
+using FakeVehicle = basic::testing::FakeVehicle;
+using testing::FakeMotionLink;
+
+class MpcControlUnitTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+    vehicle_.setPosition(0, 0, 2);
+    host_.add(std::make_unique<HoverBehavior<v1::HoverWithMpcControlParameters>>(
+        "HOVER_WITH_MPC_CONTROL", vehicle_, link_));
+    host_.add(std::make_unique<MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters>>(
+        "QUADROTOR_MPC_MOTION_CONTROL", vehicle_, link_,
+        [](const ControllerConfig& config, const motion::VehicleModel& model) {
+          return makeMpcController(model, config.mpc);
+        }));
+    ASSERT_TRUE(host_.start().ok());
+    hover_ = host_.find("HOVER_WITH_MPC_CONTROL");
+    controller_ = host_.find("QUADROTOR_MPC_MOTION_CONTROL");
+  }
+
+  void fly(Duration total, const BehaviorExecutionManager* behavior) {
+    for (Duration done{0}; done < total; done += milliseconds(10)) {
+      clock_.advance(milliseconds(10));
+      std::this_thread::sleep_for(milliseconds(1));
+      if (behavior->state() == v1::BEHAVIOR_STATE_INACTIVE) return;
+    }
+  }
+
+  FakeClock clock_;
+  FakeVehicle vehicle_{clock_};
+  FakeMotionLink link_;
+  BehaviorHost host_{
+      behaviorlib::testing::hostOptions("drone1", "quadrotor_motion_with_mpc_control"), clock_};
+  behaviorlib::testing::EventCollector events_{host_.events()};
+  BehaviorExecutionManager* hover_ = nullptr;
+  BehaviorExecutionManager* controller_ = nullptr;
+};
+
+TEST_F(MpcControlUnitTest, TheControllerFollowsTheHoverReferenceAndTheHoverSeesItFollowed) {
+  auto params = std::make_unique<v1::QuadrotorMpcMotionControlParameters>();
+  params->set_max_tilt_rad(0.3);
+  ASSERT_TRUE(controller_->activateAndWait(std::move(params)).ok());
+  auto hover = hover_->activateAndWait(std::make_unique<v1::HoverWithMpcControlParameters>());
+  ASSERT_TRUE(hover.ok()) << hover.status();
+  fly(std::chrono::seconds(3), hover_);
+  EXPECT_EQ(hover_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "a controller follows it";
+  const auto statuses = link_.statuses();
+  ASSERT_FALSE(statuses.empty());
+  EXPECT_EQ(statuses.back().controller(), "QUADROTOR_MPC_MOTION_CONTROL");
+  EXPECT_EQ(statuses.back().state(), v1::MOTION_CONTROLLER_STATE_TRACKING);
+  EXPECT_EQ(statuses.back().reference_source(), hover->activation_id());
+  const auto setpoints = vehicle_.setpoints();
+  ASSERT_GE(setpoints.size(), 250u);
+  EXPECT_NEAR(setpoints.back().attitude_thrust().thrust_ratio(), 1.5 * 9.81 / 48.0, 0.03);
+
+  // The vehicle pushed 1 m away: the MPC tilts towards the point, within
+  // its tilt limit; the hover drifts beyond 0.5 m: WRONG_PROGRESS.
+  vehicle_.setPosition(-1, 0, 2);
+  fly(milliseconds(100), hover_);
+  const auto& q = vehicle_.setpoints().back().attitude_thrust().orientation();
+  const double tilt = 2.0 * std::acos(std::min(1.0, std::sqrt(q.w() * q.w() + q.z() * q.z())));
+  EXPECT_GT(q.y(), 0.01) << "pitched to accelerate east";
+  EXPECT_LE(tilt, 0.3 + 1e-6);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.activation_id(), hover->activation_id());
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
+      << finished.ShortDebugString();
+  ASSERT_TRUE(controller_->deactivateAndWait().ok());
+  EXPECT_EQ(link_.statuses().back().state(), v1::MOTION_CONTROLLER_STATE_STOPPED);
+  EXPECT_EQ(vehicle_.commands().back(), "RELEASE");
+}
+
+}  // namespace
+}  // namespace behaviorlib::motion_behaviors

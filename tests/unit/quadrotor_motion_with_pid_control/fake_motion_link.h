@@ -1,0 +1,74 @@
+#pragma once
+
+// A MotionLink in memory: what the behaviors publish is kept (every
+// reference, every status) and what they read is whatever the test (or the
+// behaviors) published last, while followed.
+
+#include <mutex>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "motion_behaviors/motion_link.h"
+
+namespace behaviorlib::motion_behaviors::testing {
+
+class FakeMotionLink final : public MotionLink {
+ public:
+  absl::Status publishReference(const v1::MotionReference& reference) override {
+    std::lock_guard lock(mutex_);
+    references_.push_back(reference);
+    return absl::OkStatus();
+  }
+  absl::Status publishStatus(const v1::MotionControlStatus& status) override {
+    std::lock_guard lock(mutex_);
+    statuses_.push_back(status);
+    return absl::OkStatus();
+  }
+  void followReferences(bool follow) override {
+    std::lock_guard lock(mutex_);
+    reference_followers_ += follow ? 1 : -1;
+  }
+  void followStatus(bool follow) override {
+    std::lock_guard lock(mutex_);
+    status_followers_ += follow ? 1 : -1;
+  }
+  std::optional<v1::MotionReference> latestReference() override {
+    std::lock_guard lock(mutex_);
+    if (reference_followers_ <= 0 || references_.empty()) return std::nullopt;
+    return references_.back();
+  }
+  std::optional<v1::MotionControlStatus> latestStatus() override {
+    std::lock_guard lock(mutex_);
+    if (status_followers_ <= 0 || statuses_.empty()) return std::nullopt;
+    return statuses_.back();
+  }
+  std::string referenceTopic() const override { return "robots/drone1/motion_reference"; }
+  std::string statusTopic() const override { return "robots/drone1/motion_control/status"; }
+
+  std::vector<v1::MotionReference> references() const {
+    std::lock_guard lock(mutex_);
+    return references_;
+  }
+  std::vector<v1::MotionControlStatus> statuses() const {
+    std::lock_guard lock(mutex_);
+    return statuses_;
+  }
+  int referenceFollowers() const {
+    std::lock_guard lock(mutex_);
+    return reference_followers_;
+  }
+  int statusFollowers() const {
+    std::lock_guard lock(mutex_);
+    return status_followers_;
+  }
+
+ private:
+  mutable std::mutex mutex_;
+  std::vector<v1::MotionReference> references_;
+  std::vector<v1::MotionControlStatus> statuses_;
+  int reference_followers_ = 0;
+  int status_followers_ = 0;
+};
+
+}  // namespace behaviorlib::motion_behaviors::testing

@@ -1,5 +1,6 @@
 #include "simulator/core/simulation.h"
 
+#include <limits>
 #include <thread>
 
 namespace behaviorlib::sim {
@@ -13,6 +14,7 @@ absl::Status Simulation::addVehicle(const std::string& robot_id,
     return absl::AlreadyExistsError("vehicle " + robot_id + " is already in the world");
   }
   Vehicle vehicle{VehiclePlatform(robot_id, options_.platform), std::move(model)};
+  vehicle.model->setWind(wind_);
   vehicle.platform.update(now_, vehicle.model->snapshot());
   vehicles_.emplace(robot_id, std::move(vehicle));
   return absl::OkStatus();
@@ -24,6 +26,7 @@ void Simulation::resetVehicles(std::map<std::string, std::unique_ptr<VehicleMode
   vehicles_.clear();
   now_ = SimTime{0};
   ++epoch_;
+  wind_ = Wind{};
   for (auto& [id, model] : vehicles) {
     Vehicle vehicle{VehiclePlatform(id, options_.platform), std::move(model)};
     vehicle.platform.update(now_, vehicle.model->snapshot());
@@ -42,6 +45,31 @@ std::vector<std::string> Simulation::robotIds() const {
 void Simulation::addStepListener(StepListener listener) {
   std::lock_guard lock(mutex_);
   listeners_.push_back(std::move(listener));
+}
+
+void Simulation::setStepTimer(StepTimer timer) {
+  std::lock_guard lock(mutex_);
+  step_timer_ = std::move(timer);
+}
+
+void Simulation::setWind(const Wind& wind) {
+  std::lock_guard lock(mutex_);
+  wind_ = wind;
+  for (auto& [id, vehicle] : vehicles_) vehicle.model->setWind(wind_);
+}
+
+Wind Simulation::wind() const {
+  std::lock_guard lock(mutex_);
+  return wind_;
+}
+
+void Simulation::stepBatchLocked(SimTime target, int max_steps) {
+  // Two clock reads per batch, not per step: the timer sees the mean.
+  const auto start =
+      step_timer_ ? std::chrono::steady_clock::now() : std::chrono::steady_clock::time_point{};
+  int steps = 0;
+  for (; steps < max_steps && now_ < target; ++steps) stepLocked();
+  if (step_timer_ && steps > 0) step_timer_(steps, std::chrono::steady_clock::now() - start);
 }
 
 SimTime Simulation::now() const {
@@ -76,8 +104,7 @@ void Simulation::stepLocked() {
 
 void Simulation::advance(SimDuration duration) {
   std::lock_guard lock(mutex_);
-  const SimTime end = now_ + duration;
-  while (now_ < end) stepLocked();
+  stepBatchLocked(now_ + duration, std::numeric_limits<int>::max());
 }
 
 void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::atomic<bool>& paused,
@@ -118,7 +145,7 @@ void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::a
         continue;
       }
       // Catch up in bounded batches so that RPCs get the mutex in between.
-      for (int i = 0; i < 100 && now_ < target; ++i) stepLocked();
+      stepBatchLocked(target, 100);
       reached = now_;
     }
     const double wall_s = std::chrono::duration<double>(Clock::now() - wall_start).count();

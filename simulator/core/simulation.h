@@ -13,6 +13,7 @@
 // Thread-safety: every public method takes the simulation's mutex; listeners
 // run on the stepping thread with the mutex held and must not call back in.
 
+#include <Eigen/Core>
 #include <atomic>
 #include <chrono>
 #include <functional>
@@ -28,6 +29,14 @@
 
 namespace behaviorlib::sim {
 
+/// Wind over the whole world: a steady velocity plus turbulence.
+struct Wind {
+  Eigen::Vector3d velocity_m_s = Eigen::Vector3d::Zero();  ///< world ENU
+  /// Standard deviation of the gusts per axis (m/s): an Ornstein-Uhlenbeck
+  /// process per vehicle (simulator/dynamics/gust.h); 0: steady wind.
+  double gust_stddev_m_s = 0.0;
+};
+
 /// The physics of one vehicle, as the simulation needs it.
 class VehicleModel {
  public:
@@ -38,6 +47,21 @@ class VehicleModel {
   virtual void step(double dt_s) = 0;
   /// Current state for the platform logic and for publishing.
   virtual VehicleSnapshot snapshot() const = 0;
+
+  // Fault injection (Simulator.InjectFailure). A model without motors, a
+  // battery or drag keeps the defaults, which do nothing.
+
+  /// Number of motors whose efficiency setMotorEfficiency can change.
+  virtual int motorCount() const { return 0; }
+  /// The fraction of its nominal thrust motor `motor` (0..motorCount()-1)
+  /// produces from now on, in [0, 1]; 0 is a dead motor. The autopilot is
+  /// not told.
+  virtual void setMotorEfficiency(int /*motor*/, double /*efficiency*/) {}
+  /// A failing cell: the battery loses `ratio` (0..1) of its full charge at
+  /// once (not below empty).
+  virtual void dropBatteryCharge(double /*ratio*/) {}
+  /// The air the vehicle flies in from now on.
+  virtual void setWind(const Wind& /*wind*/) {}
 };
 
 struct SimulationOptions {
@@ -64,14 +88,26 @@ class Simulation {
   /// Adds a vehicle; ALREADY_EXISTS for a duplicate robot id.
   absl::Status addVehicle(const std::string& robot_id, std::unique_ptr<VehicleModel> model);
   std::vector<std::string> robotIds() const;
-  /// Replaces every vehicle and restarts simulated time at zero (Reset).
-  /// Listeners stay registered. `then`, when given, runs under the
+  /// Replaces every vehicle and restarts simulated time at zero (Reset); the
+  /// wind becomes calm. Listeners stay registered. `then`, when given, runs under the
   /// simulation's mutex once the new vehicles are in place and before the
   /// next step (e.g. to restart sensors in step with the new vehicles); it
   /// must not call back in.
   void resetVehicles(std::map<std::string, std::unique_ptr<VehicleModel>> vehicles,
                      const std::function<void()>& then = {});
   void addStepListener(StepListener listener);
+
+  /// Wall time the physics took: called after every batch of `steps` steps
+  /// (up to 100 when free-running, a whole advance() in lock-step) with the
+  /// wall time of the batch, listeners included. Mutex held: must be quick.
+  using StepTimer = std::function<void(int steps, std::chrono::nanoseconds wall)>;
+  /// Replaces the step timer (empty: none).
+  void setStepTimer(StepTimer timer);
+
+  /// Sets the wind for every vehicle, present and added later (until the next
+  /// resetVehicles, which makes it calm).
+  void setWind(const Wind& wind);
+  Wind wind() const;
 
   SimTime now() const;
   /// Advances simulated time by `duration` (rounded up to whole steps) as
@@ -96,6 +132,28 @@ class Simulation {
     if (it == vehicles_.end()) return unknownVehicle(robot_id);
     return f(it->second.platform, now_);
   }
+  /// Runs `f` on the model (the physics) of `robot_id` under the simulation's
+  /// mutex (NOT_FOUND for an unknown vehicle), with the current time: faults
+  /// applied there take effect from the next step on.
+  template <class F>
+  auto withModel(const std::string& robot_id, F&& f)
+      -> absl::StatusOr<decltype(f(std::declval<VehicleModel&>(), SimTime{}))> {
+    std::lock_guard lock(mutex_);
+    auto it = vehicles_.find(robot_id);
+    if (it == vehicles_.end()) return unknownVehicle(robot_id);
+    return f(*it->second.model, now_);
+  }
+  /// Calls `f(now, report)` under the simulation's mutex for every vehicle,
+  /// or only for `robot_id` when it is not empty, as step listeners see them
+  /// (e.g. to send a watcher the current state before the next step).
+  template <class F>
+  void visitVehicles(const std::string& robot_id, F&& f) const {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, vehicle] : vehicles_) {
+      if (!robot_id.empty() && id != robot_id) continue;
+      f(now_, VehicleReport{&id, vehicle.model->snapshot(), &vehicle.platform});
+    }
+  }
   /// The vehicle's latest snapshot and flight state.
   absl::StatusOr<std::pair<VehicleSnapshot, v1::FlightState>> vehicleState(
       const std::string& robot_id) const;
@@ -106,6 +164,8 @@ class Simulation {
     std::unique_ptr<VehicleModel> model;
   };
   void stepLocked();
+  /// Steps until `target` or `max_steps`, reporting to the step timer.
+  void stepBatchLocked(SimTime target, int max_steps);
   absl::Status unknownVehicle(const std::string& robot_id) const;
 
   SimulationOptions options_;
@@ -115,6 +175,8 @@ class Simulation {
   std::map<std::string, Vehicle> vehicles_;
   std::vector<StepListener> listeners_;
   std::vector<VehicleReport> reports_;  // reused every step
+  StepTimer step_timer_;
+  Wind wind_;
   std::atomic<double> real_time_factor_{0.0};
 };
 

@@ -4,20 +4,6 @@
 #include <utility>
 
 namespace behaviorlib::sim {
-namespace {
-
-// FNV-1a: a hash of the robot id that is the same on every platform, unlike
-// std::hash, so seeds are reproducible.
-std::uint64_t stableHash(const std::string& s) {
-  std::uint64_t h = 0xcbf29ce484222325ULL;
-  for (const unsigned char c : s) {
-    h ^= c;
-    h *= 0x100000001b3ULL;
-  }
-  return h;
-}
-
-}  // namespace
 
 SimVehicle::SimVehicle(std::string robot_id, const QuadrotorParams& params,
                        const QuadrotorState& initial, const AutopilotParams& autopilot,
@@ -25,18 +11,11 @@ SimVehicle::SimVehicle(std::string robot_id, const QuadrotorParams& params,
     : robot_id_(std::move(robot_id)),
       quadrotor_(params, initial),
       autopilot_(params, autopilot),
-      rng_(seed) {}
+      gusts_(seed) {}
 
 void SimVehicle::step(double dt_s, const WorldSimOptions& options) {
-  if (options.gust_std_m_s > 0.0 && options.gust_time_constant_s > 0.0) {
-    // Ornstein-Uhlenbeck, exact discretization: stationary std gust_std_m_s.
-    const double decay = std::exp(-dt_s / options.gust_time_constant_s);
-    const double noise = options.gust_std_m_s * std::sqrt(1.0 - decay * decay);
-    for (int i = 0; i < 3; ++i) gust_m_s_(i) = decay * gust_m_s_(i) + noise * normal_(rng_);
-  } else {
-    gust_m_s_.setZero();
-  }
-  quadrotor_.setWindVelocity(options.wind_m_s + gust_m_s_);
+  quadrotor_.setWindVelocity(options.wind_m_s +
+                             gusts_.step(dt_s, options.gust_std_m_s, options.gust_time_constant_s));
   commands_ = autopilot_.update(quadrotor_.state(), setpoint_, dt_s);
   quadrotor_.step(dt_s, commands_);
 }
@@ -46,7 +25,7 @@ WorldSim::WorldSim(WorldSimOptions options) : options_(std::move(options)) {}
 SimVehicle* WorldSim::addVehicle(const std::string& robot_id, const QuadrotorState& initial,
                                  const QuadrotorParams& params, const AutopilotParams& autopilot) {
   if (robot_id.empty() || vehicles_.count(robot_id) > 0) return nullptr;
-  const std::uint64_t seed = options_.seed ^ stableHash(robot_id);
+  const std::uint64_t seed = gustSeed(options_.seed, robot_id);
   auto vehicle = std::make_unique<SimVehicle>(robot_id, params, initial, autopilot, seed);
   vehicle->quadrotor().setCollisionWorld(collision_world_);
   vehicle->quadrotor().setWindVelocity(options_.wind_m_s);

@@ -20,11 +20,11 @@
 #include <cstdint>
 #include <map>
 #include <memory>
-#include <random>
 #include <string>
 #include <vector>
 
 #include "simulator/dynamics/autopilot.h"
+#include "simulator/dynamics/gust.h"
 #include "simulator/dynamics/quadrotor.h"
 #include "simulator/dynamics/vehicle_params.h"
 #include "simulator/world/collision_world.h"
@@ -41,7 +41,7 @@ struct WorldSimOptions {
   /// Standard deviation of the turbulence per axis (m/s); 0 turns it off.
   double gust_std_m_s = 0.0;
   /// Correlation time of the turbulence (s).
-  double gust_time_constant_s = 2.0;
+  double gust_time_constant_s = kDefaultGustTimeConstantS;
 };
 
 /// One vehicle of a WorldSim: its dynamics, its autopilot, its setpoint.
@@ -66,7 +66,7 @@ class SimVehicle {
   /// Motor commands of the last step.
   const MotorCommands& motorCommands() const { return commands_; }
   /// Turbulence currently added to the mean wind (m/s, world).
-  const Eigen::Vector3d& gust() const { return gust_m_s_; }
+  const Eigen::Vector3d& gust() const { return gusts_.gust(); }
 
   /// One physics step: autopilot, wind, dynamics.
   void step(double dt_s, const WorldSimOptions& options);
@@ -77,9 +77,7 @@ class SimVehicle {
   Autopilot autopilot_;
   Setpoint setpoint_ = Idle{};
   MotorCommands commands_{};
-  Eigen::Vector3d gust_m_s_ = Eigen::Vector3d::Zero();
-  std::mt19937_64 rng_;
-  std::normal_distribution<double> normal_{0.0, 1.0};
+  GustModel gusts_;
 };
 
 /// Several vehicles in one world. See the file comment.

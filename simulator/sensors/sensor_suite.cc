@@ -107,34 +107,54 @@ bool RateSchedule::due(SimTime now) {
   return true;
 }
 
+uint64_t SensorSuite::faultSeed(uint64_t seed, SensorKind kind) const {
+  // A generator of its own, so that faults never shift the sensor's noise.
+  return sensorSeed(seed, robot_id_, std::string(sensorName(kind)) + "/faults");
+}
+
 SensorSuite::Simple SensorSuite::simple(SensorKind kind, double rate_hz, uint64_t seed,
-                                        const SensorOutput::Sink* sink) const {
+                                        const SensorOutput::Sink* sink,
+                                        const SensorChannels& channels) const {
   return Simple{RateSchedule(rate_hz),
                 std::mt19937_64(sensorSeed(seed, robot_id_, sensorName(kind))),
-                SensorOutput(robot_id_, kind, sink)};
+                SensorOutput(robot_id_, kind, sink, channels[static_cast<std::size_t>(kind)],
+                             SensorFaultModel::of(kind, config_), faultSeed(seed, kind))};
+}
+
+std::shared_ptr<FrameSensor> SensorSuite::frameSensor(SensorKind kind, uint64_t seed,
+                                                      const SensorOutput::Sink* sink,
+                                                      const SensorChannels& channels) const {
+  return std::make_shared<FrameSensor>(robot_id_, kind, sink,
+                                       channels[static_cast<std::size_t>(kind)],
+                                       SensorFaultModel::of(kind, config_), faultSeed(seed, kind));
 }
 
 SensorSuite::SensorSuite(std::string robot_id, const SensorConfig& config, uint64_t seed,
-                         std::shared_ptr<const SensorScene> scene, const SensorOutput::Sink* sink)
+                         std::shared_ptr<const SensorScene> scene, const SensorOutput::Sink* sink,
+                         const SensorChannels& channels)
     : robot_id_(std::move(robot_id)),
       config_(config),
       scene_(std::move(scene)),
       imu_{RateSchedule(config.imu.rate_hz),
            std::mt19937_64(sensorSeed(seed, robot_id_, sensorName(SensorKind::kImu))),
-           SensorOutput(robot_id_, SensorKind::kImu, sink)},
-      gps_(simple(SensorKind::kGps, config.gps.rate_hz, seed, sink)),
-      baro_(simple(SensorKind::kBaro, config.baro.rate_hz, seed, sink)),
-      linear_speed_(simple(SensorKind::kLinearSpeed, config.linear_speed.rate_hz, seed, sink)),
-      battery_(simple(SensorKind::kBattery, config.battery.rate_hz, seed, sink)),
+           SensorOutput(robot_id_, SensorKind::kImu, sink,
+                        channels[static_cast<std::size_t>(SensorKind::kImu)],
+                        SensorFaultModel::of(SensorKind::kImu, config_),
+                        faultSeed(seed, SensorKind::kImu))},
+      gps_(simple(SensorKind::kGps, config.gps.rate_hz, seed, sink, channels)),
+      baro_(simple(SensorKind::kBaro, config.baro.rate_hz, seed, sink, channels)),
+      linear_speed_(
+          simple(SensorKind::kLinearSpeed, config.linear_speed.rate_hz, seed, sink, channels)),
+      battery_(simple(SensorKind::kBattery, config.battery.rate_hz, seed, sink, channels)),
       camera_info_(simple(SensorKind::kCameraInfo,
                           config.camera.rate_hz > 0.0 ? config.camera.info_rate_hz : 0.0, seed,
-                          sink)),
+                          sink, channels)),
       lidar_{RateSchedule(scene_->lidar ? config.lidar.rate_hz : 0.0),
              std::mt19937_64(sensorSeed(seed, robot_id_, sensorName(SensorKind::kLidar))),
-             std::make_shared<FrameSensor>(robot_id_, SensorKind::kLidar, sink)},
+             frameSensor(SensorKind::kLidar, seed, sink, channels)},
       camera_{RateSchedule(scene_->camera ? config.camera.rate_hz : 0.0),
               std::mt19937_64(sensorSeed(seed, robot_id_, sensorName(SensorKind::kCamera))),
-              std::make_shared<FrameSensor>(robot_id_, SensorKind::kCamera, sink)} {
+              frameSensor(SensorKind::kCamera, seed, sink, channels)} {
   // The biases a unit starts with (after every reset).
   imu_.gyro_bias = config_.imu.gyro_bias_stddev_rad_s * normal3(imu_.rng);
   imu_.accel_bias = config_.imu.accel_bias_stddev_m_s2 * normal3(imu_.rng);
@@ -162,6 +182,16 @@ void SensorSuite::sampleImu(SimTime now, const VehicleSnapshot& state) {
 
 void SensorSuite::step(SimTime now, const VehicleSnapshot& state,
                        std::vector<FrameRequest>* frames) {
+  // Delayed samples (faults) due now go out before the new ones.
+  imu_.output.release(now);
+  gps_.output.release(now);
+  baro_.output.release(now);
+  linear_speed_.output.release(now);
+  battery_.output.release(now);
+  camera_info_.output.release(now);
+  lidar_.sensor->output.release(now);
+  camera_.sensor->output.release(now);
+
   if (imu_.schedule.due(now)) sampleImu(now, state);
   if (gps_.schedule.due(now)) {
     const GpsConfig& c = config_.gps;

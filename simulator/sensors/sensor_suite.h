@@ -16,6 +16,7 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
+#include <array>
 #include <atomic>
 #include <cstdint>
 #include <memory>
@@ -26,6 +27,7 @@
 #include <vector>
 
 #include "simulator/sensors/sensor_config.h"
+#include "simulator/sensors/sensor_faults.h"
 #include "simulator/sensors/sensor_output.h"
 #include "simulator/sensors/sensor_samples.h"
 #include "simulator/sensors/sensor_workers.h"
@@ -53,11 +55,16 @@ struct SensorScene {
 
 /// A sensor whose frames are made on a worker (lidar, camera).
 struct FrameSensor {
-  FrameSensor(std::string robot_id, SensorKind kind, const SensorOutput::Sink* sink)
-      : output(std::move(robot_id), kind, sink) {}
+  FrameSensor(std::string robot_id, SensorKind kind, const SensorOutput::Sink* sink,
+              std::shared_ptr<SensorChannel> channel, SensorFaultModel model, uint64_t fault_seed)
+      : output(std::move(robot_id), kind, sink, std::move(channel), model, fault_seed) {}
   SensorOutput output;
   SensorWorkers::Slot slot;
 };
+
+/// Per sensor kind, the channel (faults, counters) of one vehicle's sensor;
+/// null entries: no faults, no per-vehicle counters.
+using SensorChannels = std::array<std::shared_ptr<SensorChannel>, kSensorKindCount>;
 
 /// A frame to make: the sensor and the body pose at `stamp`.
 struct FrameRequest {
@@ -87,14 +94,16 @@ class RateSchedule {
 class SensorSuite {
  public:
   /// `scene` and `sink` must outlive the suite's frames. Initial biases are
-  /// drawn here.
+  /// drawn here. Each output applies the faults of its entry of `channels`.
   SensorSuite(std::string robot_id, const SensorConfig& config, uint64_t seed,
-              std::shared_ptr<const SensorScene> scene, const SensorOutput::Sink* sink);
+              std::shared_ptr<const SensorScene> scene, const SensorOutput::Sink* sink,
+              const SensorChannels& channels = {});
 
   const std::string& robotId() const { return robot_id_; }
 
   /// Samples the sensors due at `now` from the true `state`: publishes the
   /// cheap ones and appends the lidar and camera frames to make to `frames`.
+  /// First publishes the delayed samples (faults) due at `now`.
   void step(SimTime now, const VehicleSnapshot& state, std::vector<FrameRequest>* frames);
 
  private:
@@ -118,8 +127,12 @@ class SensorSuite {
     std::shared_ptr<FrameSensor> sensor;
   };
 
-  Simple simple(SensorKind kind, double rate_hz, uint64_t seed,
-                const SensorOutput::Sink* sink) const;
+  uint64_t faultSeed(uint64_t seed, SensorKind kind) const;
+  Simple simple(SensorKind kind, double rate_hz, uint64_t seed, const SensorOutput::Sink* sink,
+                const SensorChannels& channels) const;
+  std::shared_ptr<FrameSensor> frameSensor(SensorKind kind, uint64_t seed,
+                                           const SensorOutput::Sink* sink,
+                                           const SensorChannels& channels) const;
   void sampleImu(SimTime now, const VehicleSnapshot& state);
 
   std::string robot_id_;

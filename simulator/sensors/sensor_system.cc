@@ -43,13 +43,14 @@ LidarData lidarData(const Lidar& lidar, const LidarScan& scan, bool three_d) {
 
 }  // namespace
 
-SensorSystem::SensorSystem(SensorConfig config, Sink sink)
+SensorSystem::SensorSystem(SensorConfig config, Sink sink, FrameTimer frame_timer)
     : config_(validated(std::move(config))),
       user_sink_(std::move(sink)),
       sink_([this](SensorSample sample) {
         published_[indexOf(sample.kind)].fetch_add(1, std::memory_order_relaxed);
         user_sink_(std::move(sample));
       }),
+      frame_timer_(std::move(frame_timer)),
       scene_(std::make_shared<const SensorScene>(nullptr, config_)),
       workers_(config_.worker_threads) {}
 
@@ -64,6 +65,51 @@ void SensorSystem::reset(std::shared_ptr<const World> world, uint64_t seed) {
   scene_ = std::move(scene);
   seed_ = seed;
   suites_.clear();
+  std::lock_guard lock(channels_mutex_);
+  for (auto& [id, channels] : channels_) {
+    for (const auto& channel : channels) channel->clearFaults();
+  }
+}
+
+const SensorChannels& SensorSystem::channelsOf(const std::string& robot_id) {
+  std::lock_guard lock(channels_mutex_);
+  auto it = channels_.find(robot_id);
+  if (it == channels_.end()) {
+    SensorChannels channels;
+    for (auto& channel : channels) channel = std::make_shared<SensorChannel>();
+    it = channels_.emplace(robot_id, std::move(channels)).first;
+  }
+  return it->second;  // std::map: stable, and entries are never erased
+}
+
+void SensorSystem::setFault(const std::string& robot_id, SensorKind kind, SimTime since,
+                            const SensorFault& fault) {
+  channelsOf(robot_id)[indexOf(kind)]->setFault(since, fault);
+}
+
+SensorFault SensorSystem::fault(const std::string& robot_id, SensorKind kind) const {
+  std::lock_guard lock(channels_mutex_);
+  auto it = channels_.find(robot_id);
+  return it == channels_.end() ? SensorFault{} : it->second[indexOf(kind)]->current();
+}
+
+std::vector<SensorSystem::SensorStats> SensorSystem::stats() const {
+  std::lock_guard lock(channels_mutex_);
+  std::vector<SensorStats> out;
+  for (const auto& [id, channels] : channels_) {
+    for (int k = 0; k < kSensorKindCount; ++k) {
+      const SensorChannel& channel = *channels[static_cast<std::size_t>(k)];
+      SensorStats s;
+      s.robot_id = id;
+      s.kind = static_cast<SensorKind>(k);
+      s.published = channel.published.load(std::memory_order_relaxed);
+      s.fault_dropped = channel.fault_dropped.load(std::memory_order_relaxed);
+      s.frames_dropped = channel.frames_dropped.load(std::memory_order_relaxed);
+      s.fault = channel.current().type;
+      out.push_back(std::move(s));
+    }
+  }
+  return out;
 }
 
 void SensorSystem::onStep(SimTime now, const std::vector<VehicleReport>& vehicles,
@@ -73,8 +119,9 @@ void SensorSystem::onStep(SimTime now, const std::vector<VehicleReport>& vehicle
     auto it = suites_.find(*report.robot_id);
     if (it == suites_.end()) {
       it = suites_
-               .emplace(*report.robot_id, std::make_unique<SensorSuite>(*report.robot_id, config_,
-                                                                        seed_, scene_, &sink_))
+               .emplace(*report.robot_id,
+                        std::make_unique<SensorSuite>(*report.robot_id, config_, seed_, scene_,
+                                                      &sink_, channelsOf(*report.robot_id)))
                .first;
     }
     it->second->step(now, report.snapshot, &frames_);
@@ -92,9 +139,19 @@ void SensorSystem::onStep(SimTime now, const std::vector<VehicleReport>& vehicle
 void SensorSystem::submit(FrameRequest request, bool wait) {
   FrameSensor& sensor = *request.sensor;
   const SensorKind kind = sensor.output.kind();
+  // In lock-step a delayed frame must be in its output's queue before the
+  // step it is due at, whatever the workers' speed: make it now.
+  const bool delayed =
+      wait && sensor.output.channel() != nullptr &&
+      sensor.output.channel()->faultAt(request.stamp).type == SensorFaultType::kDelayed;
   auto job = [this, scene = scene_, request = std::move(request)] { makeFrame(scene, request); };
-  if (!workers_.submit(sensor.slot, std::move(job), wait)) {
+  if (workers_.submit(sensor.slot, std::move(job), wait)) {
+    if (delayed) workers_.waitFor(sensor.slot);
+  } else {
     dropped_[indexOf(kind)].fetch_add(1, std::memory_order_relaxed);
+    if (SensorChannel* channel = sensor.output.channel()) {
+      channel->frames_dropped.fetch_add(1, std::memory_order_relaxed);
+    }
   }
 }
 
@@ -102,6 +159,7 @@ void SensorSystem::makeFrame(const std::shared_ptr<const SensorScene>& scene,
                              const FrameRequest& request) {
   if (scene->retired.load()) return;
   FrameSensor& sensor = *request.sensor;
+  const auto start = std::chrono::steady_clock::now();
   SampleData data;
   if (sensor.output.kind() == SensorKind::kLidar) {
     std::mt19937_64 rng(request.noise_seed);
@@ -113,6 +171,9 @@ void SensorSystem::makeFrame(const std::shared_ptr<const SensorScene>& scene,
         encodeImage(image, config_.camera.format, config_.camera.jpeg_quality);
     if (!encoded.ok()) {
       dropped_[indexOf(SensorKind::kCamera)].fetch_add(1, std::memory_order_relaxed);
+      if (SensorChannel* channel = sensor.output.channel()) {
+        channel->frames_dropped.fetch_add(1, std::memory_order_relaxed);
+      }
       return;
     }
     CameraImageData frame;
@@ -122,6 +183,7 @@ void SensorSystem::makeFrame(const std::shared_ptr<const SensorScene>& scene,
     frame.data = std::move(*encoded);
     data = std::move(frame);
   }
+  if (frame_timer_) frame_timer_(sensor.output.kind(), std::chrono::steady_clock::now() - start);
   std::lock_guard lock(emit_mutex_);
   if (scene->retired.load()) return;
   sensor.output.publish(request.stamp, std::move(data));

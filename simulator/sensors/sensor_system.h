@@ -24,10 +24,17 @@
 // samples, bit for bit (each sensor has its own generator; see
 // sensor_suite.h). The camera is rendered only while wanted, which depends
 // on subscribers, so camera images may differ in number, not in content.
+//
+// Faults (sensor_faults.h): setFault() injects one into a vehicle's sensor
+// for the samples stamped after a given simulated time; reset() clears them.
+// Each vehicle's sensor keeps its counters (published, removed by a fault,
+// frames dropped) across resets, for metrics (stats()).
 
 #include <array>
 #include <atomic>
+#include <chrono>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -45,11 +52,14 @@ namespace behaviorlib::sim {
 class SensorSystem {
  public:
   using Sink = SensorOutput::Sink;
+  /// Told the wall time a worker took to make one lidar scan or camera
+  /// frame (ray casting, or rendering and encoding); called on the workers.
+  using FrameTimer = std::function<void(SensorKind kind, std::chrono::nanoseconds wall)>;
 
   /// Starts config.worker_threads workers. Precondition: config.validate()
   /// is OK (std::invalid_argument otherwise). Starts with an empty world and
   /// seed 1.
-  SensorSystem(SensorConfig config, Sink sink);
+  SensorSystem(SensorConfig config, Sink sink, FrameTimer frame_timer = {});
   /// Stops the workers; frames in flight are dropped.
   ~SensorSystem();
   SensorSystem(const SensorSystem&) = delete;
@@ -59,9 +69,10 @@ class SensorSystem {
 
   /// Restarts every sensor for `world` (null: an empty field) and `seed`:
   /// new generators, biases and drifts, sequence numbers from 0, schedules
-  /// from time 0; frames of the old world still in flight are discarded.
-  /// Must not run concurrently with onStep (call it from the simulation's
-  /// reset, see Simulation::resetVehicles).
+  /// from time 0, no faults; frames of the old world still in flight (and
+  /// samples a fault delays) are discarded. Must not run concurrently with
+  /// onStep (call it from the simulation's reset, see
+  /// Simulation::resetVehicles).
   void reset(std::shared_ptr<const World> world, uint64_t seed);
 
   /// Samples every vehicle's sensors due at `now`. A vehicle seen for the
@@ -83,13 +94,41 @@ class SensorSystem {
   /// Blocks until no frame is queued or being made (tests).
   void waitIdle();
 
+  /// Injects `fault` (kOk clears) into `robot_id`'s sensor `kind` for the
+  /// samples stamped after `since` (the current simulated time: a frame
+  /// still being made keeps the fault of its stamp). Works for a vehicle
+  /// whose sensors have not sampled yet. Thread-safe.
+  void setFault(const std::string& robot_id, SensorKind kind, SimTime since,
+                const SensorFault& fault);
+  /// The last fault set on `robot_id`'s sensor `kind` (kOk if none).
+  SensorFault fault(const std::string& robot_id, SensorKind kind) const;
+
+  /// One vehicle's sensor as metrics see it.
+  struct SensorStats {
+    std::string robot_id;
+    SensorKind kind = SensorKind::kImu;
+    uint64_t published = 0;       ///< handed to the sink
+    uint64_t fault_dropped = 0;   ///< removed by a fault (off, intermittent)
+    uint64_t frames_dropped = 0;  ///< lidar/camera: the previous frame was not done
+    SensorFaultType fault = SensorFaultType::kOk;  ///< the last fault set
+  };
+  /// Every vehicle's sensors seen so far (since construction, across
+  /// resets), by robot id and kind. Thread-safe.
+  std::vector<SensorStats> stats() const;
+
  private:
   void submit(FrameRequest request, bool wait);
   void makeFrame(const std::shared_ptr<const SensorScene>& scene, const FrameRequest& request);
+  /// The channels of `robot_id`'s sensors, made on first use.
+  const SensorChannels& channelsOf(const std::string& robot_id);
 
   const SensorConfig config_;
   const Sink user_sink_;
   const Sink sink_;  ///< counts, then calls user_sink_
+  const FrameTimer frame_timer_;
+
+  mutable std::mutex channels_mutex_;
+  std::map<std::string, SensorChannels> channels_;  ///< never erased
   std::array<std::atomic<uint64_t>, kSensorKindCount> published_{};
   std::array<std::atomic<uint64_t>, kSensorKindCount> dropped_{};
 

@@ -44,6 +44,11 @@ void SensorWorkers::waitIdle() {
   done_cv_.wait(lock, [&] { return stopping_ || (queue_.empty() && running_ == 0); });
 }
 
+void SensorWorkers::waitFor(const Slot& slot) {
+  std::unique_lock lock(mutex_);
+  done_cv_.wait(lock, [&] { return stopping_ || !slot.busy; });
+}
+
 void SensorWorkers::run() {
   std::unique_lock lock(mutex_);
   while (true) {

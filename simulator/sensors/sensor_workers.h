@@ -37,6 +37,8 @@ class SensorWorkers {
   bool submit(Slot& slot, std::function<void()> job, bool wait);
   /// Blocks until nothing is queued or running.
   void waitIdle();
+  /// Blocks until `slot`'s job (if any) is done.
+  void waitFor(const Slot& slot);
   /// Stops the threads (idempotent).
   void stop();
 

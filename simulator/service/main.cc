@@ -13,9 +13,11 @@
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "channel/channel_client.h"
+#include "simulator/faults/fault_injector.h"
 #include "simulator/service/channel_publisher.h"
 #include "simulator/service/flight_controller_service.h"
 #include "simulator/service/sensor_publisher.h"
+#include "simulator/service/simulator_metrics.h"
 #include "simulator/service/simulator_service.h"
 #include "simulator/service/vehicle_models.h"
 
@@ -55,7 +57,9 @@ int main(int argc, char** argv) {
             "landed at x = 2 i m");
   flags.add("time-scale", &time_scale, "simulated seconds per wall second (0.1..1000)");
   flags.add("lock-step", &lock_step, "advance time only through Simulator.Step");
-  flags.add("enable-fault-injection", &fault_injection, "accept Simulator.InjectFailure");
+  flags.add("enable-fault-injection", &fault_injection,
+            "accept Simulator.InjectFailure (sensor, motor, battery and wind faults; see "
+            "simulator.proto)");
   flags.add("sensor-config", &sensor_config_path,
             "YAML file of sensor rates, noise, lidar and camera settings (see "
             "simulator/sensors/README.md); empty: the defaults");
@@ -92,6 +96,11 @@ int main(int argc, char** argv) {
   time.time_scale.store(time_scale);
   time.lock_step.store(lock_step);
 
+  ServerRuntime runtime;
+  std::string error;
+  if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
+  sim::SimulatorMetrics metrics(runtime.registry(), simulation, time);
+
   // Publishers first: loading the world restarts the sensors.
   std::unique_ptr<behaviorlib::channel::ChannelClient> client;
   std::unique_ptr<behaviorlib::channel::ChannelClient> sensor_client;
@@ -103,9 +112,10 @@ int main(int argc, char** argv) {
         std::make_unique<sim::ChannelPublisher>(*client, simulation, time, sim::PublishRates{});
     // A stream of their own, so that images never delay the clock.
     sensor_client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
-    sensors =
-        std::make_unique<sim::SensorPublisher>(*sensor_client, simulation, time, sensor_config);
+    sensors = std::make_unique<sim::SensorPublisher>(*sensor_client, simulation, time,
+                                                     sensor_config, metrics.frameTimer());
   }
+  sim::FaultInjector faults(simulation, sensors ? &sensors->sensors() : nullptr);
 
   sim::WorldControl worlds;
   worlds.worlds_dir = worlds_dir;
@@ -117,10 +127,13 @@ int main(int argc, char** argv) {
     fatal(program, "--vehicles names no vehicle");
     return 2;
   }
-  if (sensors) {
-    worlds.on_reset = [&sensors](const std::shared_ptr<const sim::World>& world,
-                                 uint64_t world_seed) { sensors->reset(world, world_seed); };
-  }
+  // Reset restarts the sensors and forgets the faults (the vehicles are new,
+  // the wind calm).
+  worlds.on_reset = [&sensors, &faults](const std::shared_ptr<const sim::World>& world,
+                                        uint64_t world_seed) {
+    if (sensors) sensors->reset(world, world_seed);
+    faults.reset();
+  };
   if (absl::Status s = sim::loadWorldInto(worlds, world_arg, seed, simulation); !s.ok()) {
     fatal(program, "--world: " + std::string(s.message()));
     return 2;
@@ -128,11 +141,8 @@ int main(int argc, char** argv) {
   std::string robot_ids;
   for (const auto& id : simulation.robotIds()) robot_ids += (robot_ids.empty() ? "" : ",") + id;
 
-  ServerRuntime runtime;
-  std::string error;
-  if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
   sim::FlightControllerService flight_controller(simulation);
-  sim::SimulatorService simulator(simulation, time, worlds, fault_injection);
+  sim::SimulatorService simulator(simulation, time, worlds, fault_injection ? &faults : nullptr);
   grpc::ServerBuilder builder;
   builder.RegisterService(&flight_controller);
   builder.RegisterService(&simulator);
@@ -143,6 +153,8 @@ int main(int argc, char** argv) {
     return fatal(program, error);
   }
   if (!runtime.writePortFile(port_file, &error)) return fatal(program, error);
+  // Stopped before the publishers go (below).
+  metrics.start({.sensors = sensors.get(), .state = publisher.get(), .faults = &faults});
 
   // The stepping thread: real time scaled; in lock-step, Step drives time.
   std::atomic<bool> stop{false};
@@ -158,6 +170,7 @@ int main(int argc, char** argv) {
   runtime.shutdown(std::chrono::seconds(2));
   stop = true;
   stepper.join();
+  metrics.stop();
   if (sensors) {
     const auto& s = sensors->sensors();
     std::fprintf(stderr, "%s: sensor frames dropped (worker busy): lidar %llu, camera %llu\n",

@@ -16,14 +16,18 @@ constexpr std::string_view kCameraSuffix = "/camera/image";
 
 SensorPublisher::SensorPublisher(channel::ChannelClient& client, Simulation& simulation,
                                  const TimeControl& time, SensorConfig config,
+                                 SensorSystem::FrameTimer frame_timer,
                                  std::chrono::milliseconds poll_period)
     : client_(client),
       poll_period_(poll_period),
       queue_(client, PublishQueueLimits{}),
-      sensors_(std::move(config), [this](SensorSample sample) {
-        std::string topic = sensorTopic(sample);
-        queue_.push(std::move(topic), sensorMessage(std::move(sample)));
-      }) {
+      sensors_(
+          std::move(config),
+          [this](SensorSample sample) {
+            std::string topic = sensorTopic(sample);
+            queue_.push(std::move(topic), sensorMessage(std::move(sample)));
+          },
+          std::move(frame_timer)) {
   simulation.addStepListener([this, &time](SimTime now, const std::vector<VehicleReport>& v) {
     sensors_.onStep(now, v, time.lock_step.load());
   });

@@ -29,9 +29,10 @@ class SensorPublisher {
  public:
   /// Registers a step listener on `simulation`; in lock-step (`time`) the
   /// physics waits for lidar and camera frames instead of dropping them.
+  /// `frame_timer` (optional) is told how long each frame took to make.
   /// Precondition: config.validate() is OK.
   SensorPublisher(channel::ChannelClient& client, Simulation& simulation, const TimeControl& time,
-                  SensorConfig config,
+                  SensorConfig config, SensorSystem::FrameTimer frame_timer = {},
                   std::chrono::milliseconds poll_period = std::chrono::milliseconds(500));
   /// Stops the poller, the workers and the publishing thread. The step
   /// listener must not run any more.
@@ -44,6 +45,8 @@ class SensorPublisher {
   void reset(std::shared_ptr<const World> world, uint64_t seed) { sensors_.reset(world, seed); }
 
   const SensorSystem& sensors() const { return sensors_; }
+  /// For fault injection (SensorSystem::setFault is thread-safe).
+  SensorSystem& sensors() { return sensors_; }
   uint64_t publishedCount() const { return queue_.publishedCount(); }
   uint64_t droppedCount() const { return queue_.droppedCount(); }
 

@@ -4,6 +4,7 @@
 
 #include <cmath>
 
+#include "behaviorlib/server/status.h"
 #include "simulator/service/messages.h"
 #include "simulator/service/vehicle_models.h"
 
@@ -29,7 +30,7 @@ absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg, 
     *world = std::move(*loaded);
   }
   std::shared_ptr<const World> shared = world;
-  simulation.resetVehicles(makeVehicles(*world, control.fallback_ids), [&] {
+  simulation.resetVehicles(makeVehicles(*world, control.fallback_ids, seed), [&] {
     if (control.on_reset) control.on_reset(shared, seed);
   });
   // The old world may go now: no vehicle refers to it any more (the sensors
@@ -41,11 +42,8 @@ absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg, 
 }
 
 SimulatorService::SimulatorService(Simulation& simulation, TimeControl& time, WorldControl& worlds,
-                                   bool fault_injection_enabled)
-    : simulation_(simulation),
-      time_(time),
-      worlds_(worlds),
-      fault_injection_enabled_(fault_injection_enabled) {
+                                   FaultInjector* faults)
+    : simulation_(simulation), time_(time), worlds_(worlds), faults_(faults) {
   simulation_.addStepListener([this](SimTime now, const std::vector<VehicleReport>& vehicles) {
     std::lock_guard lock(watchers_mutex_);
     if (watchers_.empty()) return;
@@ -130,15 +128,14 @@ grpc::ServerUnaryReactor* SimulatorService::Step(grpc::CallbackServerContext* co
 grpc::ServerUnaryReactor* SimulatorService::InjectFailure(grpc::CallbackServerContext* context,
                                                           const v1::InjectFailureRequest* request,
                                                           v1::InjectFailureResponse* /*response*/) {
-  if (!fault_injection_enabled_) {
+  if (faults_ == nullptr) {
     return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
                                         "fault injection is disabled; start the simulator with "
                                         "--enable-fault-injection"));
   }
-  return finish(context, grpc::Status(grpc::StatusCode::UNIMPLEMENTED,
-                                      "fault injection of " +
-                                          v1::FailureComponent_Name(request->component()) +
-                                          " is not modelled yet"));
+  // Under the worlds' mutex: never half-way through a Reset.
+  std::lock_guard lock(worlds_.mutex);
+  return finish(context, server::toGrpc(faults_->inject(*request)));
 }
 
 grpc::ServerWriteReactor<v1::WatchStateResponse>* SimulatorService::WatchState(
@@ -158,6 +155,14 @@ grpc::ServerWriteReactor<v1::WatchStateResponse>* SimulatorService::WatchState(
     }
   }
   const double rate = request->rate_hz() > 0 ? std::min(request->rate_hz(), 1000.0) : 50.0;
+  // The current state first, also while time stands still (lock-step). Not
+  // under watchers_mutex_: the step listener takes it with the simulation's
+  // mutex held.
+  simulation_.visitVehicles(key, [&](SimTime now, const VehicleReport& report) {
+    v1::WatchStateResponse message;
+    *message.mutable_state() = vehicleStateMessage(*report.robot_id, now, report);
+    watcher->offer(message);
+  });
   std::lock_guard lock(watchers_mutex_);
   if (shutting_down_) {
     watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));

@@ -1,7 +1,7 @@
 #pragma once
 
 // The Simulator gRPC service: time scale and lock-step, Step, WatchState,
-// and (refused unless enabled) fault injection.
+// and (refused unless enabled) fault injection through a FaultInjector.
 
 #include <grpcpp/grpcpp.h>
 
@@ -16,6 +16,7 @@
 
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "simulator/core/simulation.h"
+#include "simulator/faults/fault_injector.h"
 #include "simulator/service/latest_writer.h"
 #include "simulator/world/world.h"
 
@@ -51,8 +52,10 @@ using StateWatcher = LatestWriter<v1::WatchStateResponse>;
 
 class SimulatorService final : public v1::Simulator::CallbackService {
  public:
+  /// `faults` null: InjectFailure is refused with FAILED_PRECONDITION
+  /// (fault injection not enabled). Everything must outlive the service.
   SimulatorService(Simulation& simulation, TimeControl& time, WorldControl& worlds,
-                   bool fault_injection_enabled);
+                   FaultInjector* faults);
 
   /// Ends every WatchState stream (shutdown).
   void shutdown();
@@ -82,7 +85,7 @@ class SimulatorService final : public v1::Simulator::CallbackService {
   Simulation& simulation_;
   TimeControl& time_;
   WorldControl& worlds_;
-  const bool fault_injection_enabled_;
+  FaultInjector* const faults_;
   std::mutex watchers_mutex_;
   std::map<StateWatcher*, Watch> watchers_;
   bool shutting_down_ = false;

@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "simulator/dynamics/autopilot.h"
+#include "simulator/dynamics/gust.h"
 #include "simulator/dynamics/quadrotor.h"
 
 namespace behaviorlib::sim {
@@ -28,14 +29,37 @@ Setpoint toSetpoint(const PlatformCommand& c) {
 // The rigid-body quadrotor flown by the simulator's autopilot.
 class QuadrotorModel final : public VehicleModel {
  public:
-  QuadrotorModel(const Eigen::Vector3d& start, double yaw_rad, const CollisionWorld* world)
-      : quadrotor_(QuadrotorParams{}, initialState(start, yaw_rad)), autopilot_(QuadrotorParams{}) {
+  QuadrotorModel(const Eigen::Vector3d& start, double yaw_rad, const CollisionWorld* world,
+                 uint64_t gust_seed)
+      : quadrotor_(QuadrotorParams{}, initialState(start, yaw_rad)),
+        autopilot_(QuadrotorParams{}),
+        gusts_(gust_seed) {
     if (world) quadrotor_.setCollisionWorld(world);
   }
 
   void command(const PlatformCommand& command) override { setpoint_ = toSetpoint(command); }
   void step(double dt_s) override {
+    if (wind_.gust_stddev_m_s > 0.0) {
+      quadrotor_.setWindVelocity(
+          wind_.velocity_m_s + gusts_.step(dt_s, wind_.gust_stddev_m_s, kDefaultGustTimeConstantS));
+    }
     quadrotor_.step(dt_s, autopilot_.update(quadrotor_.state(), setpoint_, dt_s));
+  }
+
+  int motorCount() const override { return kMotorCount; }
+  void setMotorEfficiency(int motor, double efficiency) override {
+    quadrotor_.setMotorEfficiency(motor, efficiency);
+  }
+  void dropBatteryCharge(double ratio) override {
+    quadrotor_.setBatteryStateOfCharge(quadrotor_.state().battery_soc - ratio);
+  }
+  void setWind(const Wind& wind) override {
+    wind_ = wind;
+    // Steady wind (or calm): the gusts restart from zero when turned on again.
+    if (wind_.gust_stddev_m_s <= 0.0) {
+      gusts_.step(0.0, 0.0, kDefaultGustTimeConstantS);
+      quadrotor_.setWindVelocity(wind_.velocity_m_s);
+    }
   }
   VehicleSnapshot snapshot() const override {
     const QuadrotorState& s = quadrotor_.state();
@@ -69,25 +93,30 @@ class QuadrotorModel final : public VehicleModel {
   Quadrotor quadrotor_;
   Autopilot autopilot_;
   Setpoint setpoint_ = Idle{};
+  Wind wind_;
+  GustModel gusts_;
 };
 
 }  // namespace
 
 std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_position_m,
-                                                 double yaw_rad, const CollisionWorld* world) {
-  return std::make_unique<QuadrotorModel>(start_position_m, yaw_rad, world);
+                                                 double yaw_rad, const CollisionWorld* world,
+                                                 uint64_t gust_seed) {
+  return std::make_unique<QuadrotorModel>(start_position_m, yaw_rad, world, gust_seed);
 }
 
 std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
-    const World& world, const std::vector<std::string>& fallback_ids) {
+    const World& world, const std::vector<std::string>& fallback_ids, uint64_t seed) {
   std::map<std::string, std::unique_ptr<VehicleModel>> vehicles;
   for (const auto& start : world.startPoses()) {
-    vehicles[start.robot_id] = makeQuadrotorModel(start.position_m, start.yaw_rad, &world);
+    vehicles[start.robot_id] =
+        makeQuadrotorModel(start.position_m, start.yaw_rad, &world, gustSeed(seed, start.robot_id));
   }
   if (vehicles.empty()) {
     for (size_t i = 0; i < fallback_ids.size(); ++i) {
       vehicles[fallback_ids[i]] =
-          makeQuadrotorModel(Eigen::Vector3d(2.0 * static_cast<double>(i), 0, 0), 0.0, &world);
+          makeQuadrotorModel(Eigen::Vector3d(2.0 * static_cast<double>(i), 0, 0), 0.0, &world,
+                             gustSeed(seed, fallback_ids[i]));
     }
   }
   return vehicles;

@@ -12,7 +12,9 @@
 // replaced before delivery (latest-only subscription) plus gaps in the
 // samples' simulated stamps (the simulator's own publisher falling behind).
 // The highest scale with no missed sample is the one the end-to-end tests may
-// use for a 100 Hz controller.
+// use for a 100 Hz controller. The simulator runs with its defaults: every
+// sensor publishing at its default rate (nobody subscribes to the camera, so
+// it does not render), as in a mission.
 //
 //   closed_loop_bench                 # full sweep (about 30 s), markdown table
 //   closed_loop_bench --smoke         # one short scale: fails on errors only

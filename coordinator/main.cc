@@ -12,10 +12,14 @@
 
 #include <chrono>
 #include <cstdio>
+#include <filesystem>
+#include <memory>
 #include <string>
 
 #include "behaviorlib/server/flags.h"
 #include "behaviorlib/server/server_runtime.h"
+#include "coordinator/belief/belief_store.h"
+#include "coordinator/durable/journal.h"
 #include "coordinator/service/coordinator_metrics.h"
 #include "coordinator/service/coordinator_service.h"
 #include "coordinator/service/fleet_event_log.h"
@@ -34,6 +38,7 @@ int main(int argc, char** argv) {
   std::string metrics_listen = "127.0.0.1:0";
   std::string port_file;
   std::string systems_path;
+  std::string state_dir;
   double grace_s = 1.0;
   double heartbeat_s = 1.0;
   double event_buffer = 10000;
@@ -45,6 +50,9 @@ int main(int argc, char** argv) {
   flags.add("metrics-listen", &metrics_listen,
             "Prometheus /metrics address host:port (port 0 picks a free port; empty disables)");
   flags.add("port-file", &port_file, "write the bound ports here (grpc_port=, metrics_port=)");
+  flags.add("state-dir", &state_dir,
+            "directory of the coordinator's journal (belief memory survives a restart); empty: "
+            "belief memory in memory only");
   flags.add("systems", &systems_path,
             "YAML file of behavior systems to contact at start and whenever they come back: "
             "systems: [{robot_id, address}]");
@@ -91,7 +99,30 @@ int main(int argc, char** argv) {
   registry_options.link.grace =
       std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::duration<double>(grace_s));
   coord::Registry registry(log, metrics, registry_options);
+  // Belief memory, restored from the journal.
+  std::unique_ptr<coord::Journal> journal;
+  coord::BeliefStore beliefs_restore;  // replay target before the journal is attached
+  if (!state_dir.empty()) {
+    std::error_code ec;
+    std::filesystem::create_directories(state_dir, ec);
+    auto opened = coord::Journal::open(state_dir + "/coordinator.journal",
+                                       [&](const behaviorlib::v1::JournalRecord& record) {
+                                         if (record.has_belief())
+                                           beliefs_restore.restore(record.belief());
+                                       });
+    if (!opened.ok()) {
+      fatal(program, "--state-dir: " + std::string(opened.status().message()));
+      return 2;
+    }
+    journal = std::move(*opened);
+  } else {
+    std::fprintf(stderr, "%s: no --state-dir: belief memory is lost when the coordinator stops\n",
+                 program.c_str());
+  }
+  coord::BeliefStore beliefs(journal.get());
+  for (const auto& belief : beliefs_restore.snapshot()) beliefs.restore(belief);
   coord::CoordinatorServiceOptions service_options;
+  service_options.beliefs = &beliefs;
   service_options.heartbeat_interval =
       std::chrono::milliseconds(static_cast<int64_t>(heartbeat_s * 1000.0));
   coord::CoordinatorService service(registry, log, metrics, service_options);

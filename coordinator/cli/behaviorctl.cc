@@ -53,6 +53,7 @@ int usage() {
       "  situation BEHAVIOR                   CheckSituation\n"
       "  watch [--since-seq N] [--incarnation ID] [--until-finished BEHAVIOR] [--timeout-s S]\n"
       "  systems                              (--coordinator only) registered systems\n"
+      "  belief list [PREFIX] | get KEY | set KEY JSON | delete KEY   (--coordinator only)\n"
       "with --coordinator: --robot ID names the robot (required by activate, deactivate,\n"
       "  status, situation; a filter for list, systems, watch); --behavior NAME filters watch\n",
       stderr);
@@ -177,6 +178,47 @@ int runCoordinator(const CoordinatorCommand& c) {
     }
     auto s = reader->Finish();
     if (!s.ok()) return fail(s);
+  } else if (command == "belief") {
+    // belief list [PREFIX] | get KEY | set KEY JSON | delete KEY
+    const std::string verb = c.args.size() > 1 ? c.args[1] : "";
+    const std::string key = c.args.size() > 2 ? c.args[2] : "";
+    if (verb == "list") {
+      v1::ListBeliefsRequest request;
+      request.set_prefix(key);
+      v1::ListBeliefsResponse response;
+      if (auto s = stub->ListBeliefs(&context, request, &response); !s.ok()) return fail(s);
+      std::cout << toJson(response) << std::endl;
+    } else if (verb == "get" && !key.empty()) {
+      v1::ReadBeliefRequest request;
+      request.set_key(key);
+      v1::ReadBeliefResponse response;
+      if (auto s = stub->ReadBelief(&context, request, &response); !s.ok()) return fail(s);
+      std::cout << toJson(response.belief()) << std::endl;
+    } else if (verb == "set" && c.args.size() > 3) {
+      v1::WriteBeliefRequest request;
+      request.set_key(key);
+      request.set_writer("operator");
+      if (!google::protobuf::util::JsonStringToMessage(c.args[3], request.mutable_value()).ok()) {
+        std::fprintf(stderr,
+                     "behaviorctl: the value must be JSON (a string needs quotes: '\"yes\"')\n");
+        return 2;
+      }
+      v1::WriteBeliefResponse response;
+      if (auto s = stub->WriteBelief(&context, request, &response); !s.ok()) return fail(s);
+      std::cout << toJson(response.belief()) << std::endl;
+    } else if (verb == "delete" && !key.empty()) {
+      v1::DeleteBeliefRequest request;
+      request.set_key(key);
+      request.set_writer("operator");
+      v1::DeleteBeliefResponse response;
+      if (auto s = stub->DeleteBelief(&context, request, &response); !s.ok()) return fail(s);
+    } else {
+      std::fputs(
+          "usage: behaviorctl --coordinator ADDR belief list [PREFIX] | get KEY | set KEY JSON | "
+          "delete KEY\n",
+          stderr);
+      return 2;
+    }
   } else if (command == "pause" || command == "resume" || command == "modify") {
     std::fprintf(stderr,
                  "behaviorctl: '%s' is not routed by the coordinator; use --target with the "

@@ -5,6 +5,8 @@
 #include <memory>
 #include <utility>
 
+#include "behaviorlib/server/status.h"
+#include "coordinator/belief/belief_store.h"
 #include "coordinator/service/systems_config.h"
 
 namespace behaviorlib::coordinator {
@@ -359,6 +361,68 @@ grpc::ServerUnaryReactor* CoordinatorService::CheckBehaviorSituation(
         reactor->Finish(grpc::Status::OK);
       });
   return reactor;
+}
+
+}  // namespace behaviorlib::coordinator
+
+// ---- Belief memory -----------------------------------------------------------
+
+namespace behaviorlib::coordinator {
+namespace {
+
+grpc::Status noBeliefs() {
+  return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                      "this coordinator keeps no belief memory");
+}
+
+}  // namespace
+
+grpc::ServerUnaryReactor* CoordinatorService::WriteBelief(grpc::CallbackServerContext* context,
+                                                          const v1::WriteBeliefRequest* request,
+                                                          v1::WriteBeliefResponse* response) {
+  if (options_.beliefs == nullptr) return finishNow(context, noBeliefs());
+  if (request->writer().empty()) {
+    return finishNow(context, missing("writer", "say who writes the belief (\"operator\", ...)"));
+  }
+  auto written =
+      options_.beliefs->write(request->key(), request->value(), request->writer(), request->type());
+  if (!written.ok()) return finishNow(context, server::toGrpc(written.status()));
+  *response->mutable_belief() = *written;
+  return finishNow(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ReadBelief(grpc::CallbackServerContext* context,
+                                                         const v1::ReadBeliefRequest* request,
+                                                         v1::ReadBeliefResponse* response) {
+  if (options_.beliefs == nullptr) return finishNow(context, noBeliefs());
+  auto belief = options_.beliefs->get(request->key());
+  if (!belief) {
+    return finishNow(context, grpc::Status(grpc::StatusCode::NOT_FOUND,
+                                           "no belief '" + request->key() + "' in memory"));
+  }
+  *response->mutable_belief() = *belief;
+  return finishNow(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ListBeliefs(grpc::CallbackServerContext* context,
+                                                          const v1::ListBeliefsRequest* request,
+                                                          v1::ListBeliefsResponse* response) {
+  if (options_.beliefs == nullptr) return finishNow(context, noBeliefs());
+  for (auto& belief : options_.beliefs->list(request->prefix())) {
+    *response->add_beliefs() = std::move(belief);
+  }
+  return finishNow(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::DeleteBelief(grpc::CallbackServerContext* context,
+                                                           const v1::DeleteBeliefRequest* request,
+                                                           v1::DeleteBeliefResponse* /*response*/) {
+  if (options_.beliefs == nullptr) return finishNow(context, noBeliefs());
+  if (request->writer().empty()) {
+    return finishNow(context, missing("writer", "say who deletes the belief"));
+  }
+  return finishNow(context,
+                   server::toGrpc(options_.beliefs->erase(request->key(), request->writer())));
 }
 
 }  // namespace behaviorlib::coordinator

@@ -26,6 +26,7 @@
 namespace behaviorlib::coordinator {
 
 class FleetStreamReactor;
+class BeliefStore;
 
 struct CoordinatorServiceOptions {
   /// Told to systems at registration: how often to send Heartbeat.
@@ -34,6 +35,9 @@ struct CoordinatorServiceOptions {
   std::chrono::milliseconds describe_timeout{3000};
   /// Deadline of a routed lifecycle call when the client set none.
   std::chrono::milliseconds default_call_timeout{30000};
+  /// Belief memory served by WriteBelief/ReadBelief/...; must outlive the
+  /// service. Null: those calls answer FAILED_PRECONDITION.
+  BeliefStore* beliefs = nullptr;
 };
 
 class CoordinatorService final : public v1::Coordinator::CallbackService {
@@ -63,6 +67,18 @@ class CoordinatorService final : public v1::Coordinator::CallbackService {
                                           v1::ListFleetBehaviorsResponse* response) override;
   grpc::ServerWriteReactor<v1::WatchFleetEventsResponse>* WatchEvents(
       grpc::CallbackServerContext* context, const v1::WatchFleetEventsRequest* request) override;
+  grpc::ServerUnaryReactor* WriteBelief(grpc::CallbackServerContext* context,
+                                        const v1::WriteBeliefRequest* request,
+                                        v1::WriteBeliefResponse* response) override;
+  grpc::ServerUnaryReactor* ReadBelief(grpc::CallbackServerContext* context,
+                                       const v1::ReadBeliefRequest* request,
+                                       v1::ReadBeliefResponse* response) override;
+  grpc::ServerUnaryReactor* ListBeliefs(grpc::CallbackServerContext* context,
+                                        const v1::ListBeliefsRequest* request,
+                                        v1::ListBeliefsResponse* response) override;
+  grpc::ServerUnaryReactor* DeleteBelief(grpc::CallbackServerContext* context,
+                                         const v1::DeleteBeliefRequest* request,
+                                         v1::DeleteBeliefResponse* response) override;
   grpc::ServerUnaryReactor* ActivateBehavior(grpc::CallbackServerContext* context,
                                              const v1::ActivateFleetBehaviorRequest* request,
                                              v1::ActivateFleetBehaviorResponse* response) override;
@@ -75,6 +91,7 @@ class CoordinatorService final : public v1::Coordinator::CallbackService {
 
  private:
   friend class FleetStreamReactor;
+  class BeliefStore;
   void removeStream(FleetStreamReactor* stream);
 
   Registry& registry_;

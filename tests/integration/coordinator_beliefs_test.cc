@@ -1,0 +1,134 @@
+// Belief memory served by the real coordinator process: write, read, list,
+// delete, the errors a person gets, and the journal that keeps it across a
+// crash (kill -9) of the coordinator.
+
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdlib>
+#include <filesystem>
+#include <string>
+
+#include "behaviorlib/v1/coordinator.grpc.pb.h"
+#include "support/server_process.h"
+
+namespace {
+
+namespace v1 = behaviorlib::v1;
+
+std::unique_ptr<grpc::ClientContext> deadline() {
+  auto context = std::make_unique<grpc::ClientContext>();
+  context->set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(5));
+  return context;
+}
+
+class CoordinatorBeliefsTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    char dir[] = "/tmp/coordinator_state_XXXXXX";
+    ASSERT_NE(mkdtemp(dir), nullptr);
+    state_dir_ = dir;
+    start();
+  }
+  void TearDown() override {
+    coordinator_.reset();
+    std::filesystem::remove_all(state_dir_);
+  }
+  void start() {
+    coordinator_ = std::make_unique<support::ServerProcess>(
+        BEHAVIORLIB_COORDINATOR_PATH, std::vector<std::string>{"--state-dir", state_dir_});
+    ASSERT_TRUE(coordinator_->start()) << coordinator_->error();
+    stub_ = v1::Coordinator::NewStub(
+        grpc::CreateChannel(coordinator_->address(), grpc::InsecureChannelCredentials()));
+  }
+  grpc::Status write(const std::string& key, const std::string& text, v1::Belief* out = nullptr) {
+    v1::WriteBeliefRequest request;
+    request.set_key(key);
+    request.mutable_value()->set_string_value(text);
+    request.set_writer("operator");
+    v1::WriteBeliefResponse response;
+    grpc::Status status = stub_->WriteBelief(deadline().get(), request, &response);
+    if (out) *out = response.belief();
+    return status;
+  }
+  grpc::Status read(const std::string& key, v1::Belief* out) {
+    v1::ReadBeliefRequest request;
+    request.set_key(key);
+    v1::ReadBeliefResponse response;
+    grpc::Status status = stub_->ReadBelief(deadline().get(), request, &response);
+    *out = response.belief();
+    return status;
+  }
+
+  std::string state_dir_;
+  std::unique_ptr<support::ServerProcess> coordinator_;
+  std::unique_ptr<v1::Coordinator::Stub> stub_;
+};
+
+TEST_F(CoordinatorBeliefsTest, WritesReadsListsAndDeletes) {
+  v1::Belief written;
+  ASSERT_TRUE(write("drone1/answer", "yes", &written).ok());
+  EXPECT_EQ(written.version(), 1u);
+  EXPECT_EQ(written.writer(), "operator");
+  ASSERT_TRUE(write("drone2/answer", "no").ok());
+  v1::Belief belief;
+  ASSERT_TRUE(read("drone1/answer", &belief).ok());
+  EXPECT_EQ(belief.value().string_value(), "yes");
+
+  v1::ListBeliefsRequest list;
+  list.set_prefix("drone1/");
+  v1::ListBeliefsResponse listed;
+  ASSERT_TRUE(stub_->ListBeliefs(deadline().get(), list, &listed).ok());
+  ASSERT_EQ(listed.beliefs_size(), 1);
+  EXPECT_EQ(listed.beliefs(0).key(), "drone1/answer");
+
+  v1::DeleteBeliefRequest erase;
+  erase.set_key("drone1/answer");
+  erase.set_writer("operator");
+  v1::DeleteBeliefResponse erased;
+  ASSERT_TRUE(stub_->DeleteBelief(deadline().get(), erase, &erased).ok());
+  EXPECT_EQ(read("drone1/answer", &belief).error_code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_EQ(stub_->DeleteBelief(deadline().get(), erase, &erased).error_code(),
+            grpc::StatusCode::NOT_FOUND);
+}
+
+TEST_F(CoordinatorBeliefsTest, BadRequestsSayWhatIsWrong) {
+  grpc::Status bad_key = write("drone 1/answer", "yes");
+  EXPECT_EQ(bad_key.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(bad_key.error_message().find("has the character ' '"), std::string::npos)
+      << bad_key.error_message();
+  v1::WriteBeliefRequest anonymous;
+  anonymous.set_key("k");
+  v1::WriteBeliefResponse response;
+  grpc::Status no_writer = stub_->WriteBelief(deadline().get(), anonymous, &response);
+  EXPECT_EQ(no_writer.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_NE(no_writer.error_message().find("writer"), std::string::npos);
+  v1::Belief belief;
+  grpc::Status missing = read("nowhere", &belief);
+  EXPECT_EQ(missing.error_code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_NE(missing.error_message().find("nowhere"), std::string::npos);
+}
+
+TEST_F(CoordinatorBeliefsTest, BeliefsSurviveACrashOfTheCoordinator) {
+  ASSERT_TRUE(write("map_file", "/maps/building.bt").ok());
+  ASSERT_TRUE(write("gone", "soon").ok());
+  v1::DeleteBeliefRequest erase;
+  erase.set_key("gone");
+  erase.set_writer("operator");
+  v1::DeleteBeliefResponse erased;
+  ASSERT_TRUE(stub_->DeleteBelief(deadline().get(), erase, &erased).ok());
+  coordinator_->kill();  // SIGKILL: no orderly shutdown
+  start();
+  v1::Belief belief;
+  ASSERT_TRUE(read("map_file", &belief).ok());
+  EXPECT_EQ(belief.value().string_value(), "/maps/building.bt");
+  EXPECT_EQ(read("gone", &belief).error_code(), grpc::StatusCode::NOT_FOUND);
+  // Versions go on from where they were.
+  v1::Belief next;
+  ASSERT_TRUE(write("after", "restart", &next).ok());
+  EXPECT_EQ(next.version(), 4u);
+}
+
+}  // namespace

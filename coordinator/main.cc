@@ -4,27 +4,59 @@
 // systems and routes lifecycle calls by robot and behavior.
 //
 //   coordinator --listen 127.0.0.1:50060 --systems deploy/config/systems.yaml
+//       --catalog deploy/config/catalog.yaml --state-dir /var/lib/behaviorlib
+//       --flight-controller drone1=127.0.0.1:50070 --channel 127.0.0.1:50051
+//
+// With --catalog, ActivateBehavior applies the catalog's plans; missions,
+// belief memory and (with --flight-controller) the safety rules are served.
 //
 // Exits 0 after SIGTERM/SIGINT, 1 when it cannot bind, 2 on bad flags or a
 // bad --systems file.
 
 #include <grpcpp/grpcpp.h>
 
+#include <algorithm>
+#include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
+#include <map>
 #include <memory>
+#include <optional>
 #include <string>
 
 #include "behaviorlib/server/flags.h"
 #include "behaviorlib/server/server_runtime.h"
 #include "coordinator/belief/belief_store.h"
+#include "coordinator/catalog/catalog.h"
 #include "coordinator/durable/journal.h"
+#include "coordinator/service/blocking_pool.h"
 #include "coordinator/service/coordinator_metrics.h"
 #include "coordinator/service/coordinator_service.h"
+#include "coordinator/service/fleet_control.h"
 #include "coordinator/service/fleet_event_log.h"
+#include "coordinator/service/mission_manager.h"
 #include "coordinator/service/registry.h"
+#include "coordinator/service/safety.h"
 #include "coordinator/service/systems_config.h"
+
+namespace {
+
+// "a,b,,c" -> {"a", "b", "c"}.
+std::vector<std::string> splitList(const std::string& text) {
+  std::vector<std::string> out;
+  size_t start = 0;
+  while (start <= text.size()) {
+    const size_t comma = std::min(text.find(',', start), text.size());
+    if (comma > start) out.push_back(text.substr(start, comma - start));
+    start = comma + 1;
+  }
+  return out;
+}
+
+}  // namespace
 
 int main(int argc, char** argv) {
   using behaviorlib::server::fatal;
@@ -42,6 +74,14 @@ int main(int argc, char** argv) {
   double grace_s = 1.0;
   double heartbeat_s = 1.0;
   double event_buffer = 10000;
+  std::string catalog_path;
+  std::string flight_controllers;
+  std::string channel_address;
+  std::string geofence_text;
+  double critical_battery = 0.10;
+  double hover_before_land_s = 1.0;
+  double workers = 4;
+  double resume_wait_s = 60;
   behaviorlib::server::FlagSet flags(
       "the coordinator (behaviorlib.v1.Coordinator): registry of behavior systems, one "
       "resumable event stream for the fleet, supervision, lifecycle calls by robot and "
@@ -51,7 +91,8 @@ int main(int argc, char** argv) {
             "Prometheus /metrics address host:port (port 0 picks a free port; empty disables)");
   flags.add("port-file", &port_file, "write the bound ports here (grpc_port=, metrics_port=)");
   flags.add("state-dir", &state_dir,
-            "directory of the coordinator's journal (belief memory survives a restart); empty: "
+            "directory of the coordinator's journal (belief memory and missions survive a "
+            "restart); empty: "
             "belief memory in memory only");
   flags.add("systems", &systems_path,
             "YAML file of behavior systems to contact at start and whenever they come back: "
@@ -63,8 +104,84 @@ int main(int argc, char** argv) {
             "how often registered systems are asked to send Heartbeat (wall seconds)");
   flags.add("event-buffer", &event_buffer,
             "events retained for WatchEvents replay (since_seq), oldest evicted first");
+  flags.add("catalog", &catalog_path,
+            "behavior catalog (YAML, see deploy/config/catalog.yaml): ActivateBehavior applies "
+            "its plans (conflicts deactivated, requirements activated); empty: no rules");
+  flags.add("flight-controller", &flight_controllers,
+            "robot=host:port[,robot=host:port...]: each robot's FlightController, for "
+            "EmergencyLand, Kill and the safety rules (motion controller failure or lease lost: "
+            "hover then land; critical battery: land; geofence)");
+  flags.add("channel", &channel_address,
+            "data channel broker host:port, for the robots' pose estimates (geofence rule)");
+  flags.add("geofence", &geofence_text,
+            "min_x,min_y,min_z,max_x,max_y,max_z in metres (world ENU) for robots whose mission "
+            "has no geofence; empty: none");
+  flags.add("critical-battery", &critical_battery,
+            "battery state of charge (0..1) under which a flying robot is landed");
+  flags.add("hover-before-land-s", &hover_before_land_s,
+            "wall seconds a robot hovers before the safety policy lands it");
+  flags.add("workers", &workers, "threads for blocking calls (plans, safety actions)");
+  flags.add("resume-wait-s", &resume_wait_s,
+            "after a restart, wall seconds a journaled mission waits for its robot's systems to "
+            "register again before it is marked FAILED");
   int exit_code = 0;
   if (!flags.parse(argc, argv, &exit_code)) return exit_code;
+  if (!(critical_battery >= 0 && critical_battery <= 1)) {
+    fatal(program, "--critical-battery must be within [0, 1]");
+    return 2;
+  }
+  if (!(hover_before_land_s >= 0 && hover_before_land_s <= 60)) {
+    fatal(program, "--hover-before-land-s must be within [0, 60]");
+    return 2;
+  }
+  if (!(workers >= 1 && workers <= 64)) {
+    fatal(program, "--workers must be within [1, 64]");
+    return 2;
+  }
+  if (!(resume_wait_s >= 0 && resume_wait_s <= 3600)) {
+    fatal(program, "--resume-wait-s must be within [0, 3600]");
+    return 2;
+  }
+  std::vector<std::pair<std::string, std::string>> robot_fcs;
+  for (const std::string& item : splitList(flight_controllers)) {
+    const auto eq = item.find('=');
+    if (eq == std::string::npos || eq == 0 || eq + 1 == item.size()) {
+      fatal(program, "--flight-controller: '" + item +
+                         "' is not robot=host:port (e.g. drone1=127.0.0.1:50070)");
+      return 2;
+    }
+    robot_fcs.emplace_back(item.substr(0, eq), item.substr(eq + 1));
+  }
+  std::optional<coord::Geofence> geofence;
+  if (!geofence_text.empty()) {
+    std::vector<std::string> parts = splitList(geofence_text);
+    coord::Geofence fence;
+    bool ok = parts.size() == 6;
+    for (size_t i = 0; ok && i < 6; ++i) {
+      char* end = nullptr;
+      const double v = std::strtod(parts[i].c_str(), &end);
+      ok = end != parts[i].c_str() && *end == '\0' && std::isfinite(v);
+      (i < 3 ? fence.min_m[i] : fence.max_m[i - 3]) = v;
+    }
+    for (size_t i = 0; ok && i < 3; ++i) ok = fence.min_m[i] < fence.max_m[i];
+    if (!ok) {
+      fatal(program,
+            "--geofence: expected min_x,min_y,min_z,max_x,max_y,max_z in metres with "
+            "each min below its max, got '" +
+                geofence_text + "'");
+      return 2;
+    }
+    geofence = fence;
+  }
+  std::shared_ptr<const coord::Catalog> catalog;
+  if (!catalog_path.empty()) {
+    auto loaded = coord::Catalog::load(catalog_path);
+    if (!loaded.ok()) {
+      fatal(program, "--catalog: " + std::string(loaded.status().message()));
+      return 2;
+    }
+    catalog = std::make_shared<const coord::Catalog>(std::move(*loaded));
+  }
   if (!(grace_s >= 0.05 && grace_s <= 600)) {
     fatal(program, "--grace-period-s must be within [0.05, 600]");
     return 2;
@@ -95,21 +212,46 @@ int main(int argc, char** argv) {
   coord::FleetEventLogOptions log_options;
   log_options.capacity = static_cast<size_t>(event_buffer);
   coord::FleetEventLog log(log_options);
+  // Registrations are journaled (once the journal is open) so that a
+  // restarted coordinator knows where its systems are.
+  std::atomic<coord::Journal*> registry_journal{nullptr};
   coord::RegistryOptions registry_options;
+  registry_options.on_membership = [&registry_journal](const behaviorlib::v1::SystemRecord& r) {
+    coord::Journal* j = registry_journal.load();
+    if (j == nullptr) return;
+    behaviorlib::v1::JournalRecord record;
+    *record.mutable_system() = r;
+    if (auto s = j->append(record); !s.ok()) {
+      std::fprintf(stderr, "coordinator: cannot journal the registration of %s/%s: %s\n",
+                   r.robot_id().c_str(), r.system().c_str(), std::string(s.message()).c_str());
+    }
+  };
   registry_options.link.grace =
       std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::duration<double>(grace_s));
   coord::Registry registry(log, metrics, registry_options);
   // Belief memory, restored from the journal.
   std::unique_ptr<coord::Journal> journal;
   coord::BeliefStore beliefs_restore;  // replay target before the journal is attached
+  std::vector<behaviorlib::v1::MissionStatus> missions_restore;
+  // Systems known before the restart, by robot and system name.
+  std::map<std::pair<std::string, std::string>, behaviorlib::v1::SystemRecord> systems_restore;
   if (!state_dir.empty()) {
     std::error_code ec;
     std::filesystem::create_directories(state_dir, ec);
-    auto opened = coord::Journal::open(state_dir + "/coordinator.journal",
-                                       [&](const behaviorlib::v1::JournalRecord& record) {
-                                         if (record.has_belief())
-                                           beliefs_restore.restore(record.belief());
-                                       });
+    auto opened = coord::Journal::open(
+        state_dir + "/coordinator.journal", [&](const behaviorlib::v1::JournalRecord& record) {
+          if (record.has_belief()) beliefs_restore.restore(record.belief());
+          if (record.has_mission()) missions_restore.push_back(record.mission());
+          if (record.has_system()) {
+            const auto& r = record.system();
+            const auto key = std::make_pair(r.robot_id(), r.system());
+            if (r.unregistered()) {
+              systems_restore.erase(key);
+            } else {
+              systems_restore[key] = r;
+            }
+          }
+        });
     if (!opened.ok()) {
       fatal(program, "--state-dir: " + std::string(opened.status().message()));
       return 2;
@@ -121,8 +263,49 @@ int main(int argc, char** argv) {
   }
   coord::BeliefStore beliefs(journal.get());
   for (const auto& belief : beliefs_restore.snapshot()) beliefs.restore(belief);
+  coord::BlockingPool pool(static_cast<int>(workers));
+  coord::FleetControl fleet(registry, log, catalog);
+  coord::MissionManagerOptions mission_options;
+  mission_options.resume_wait =
+      std::chrono::milliseconds(static_cast<int64_t>(resume_wait_s * 1000.0));
+  coord::MissionManager missions(fleet, registry, beliefs, journal.get(), mission_options);
+  for (const auto& status : missions_restore) missions.restore(status);
+  if (journal) {
+    // Start from a compact journal: the current beliefs and missions.
+    std::vector<behaviorlib::v1::JournalRecord> snapshot = missions.snapshot();
+    for (const auto& [key, system] : systems_restore) {
+      behaviorlib::v1::JournalRecord record;
+      *record.mutable_system() = system;
+      snapshot.push_back(std::move(record));
+    }
+    for (const auto& belief : beliefs.snapshot()) {
+      behaviorlib::v1::JournalRecord record;
+      *record.mutable_belief() = belief;
+      snapshot.push_back(std::move(record));
+    }
+    if (auto s = journal->compact(snapshot); !s.ok()) {
+      fatal(program, "--state-dir: cannot compact the journal: " + std::string(s.message()));
+      return 2;
+    }
+  }
+  registry_journal.store(journal.get());
+  coord::SafetyOptions safety_options;
+  safety_options.critical_battery_ratio = critical_battery;
+  safety_options.hover_before_land =
+      std::chrono::milliseconds(static_cast<int64_t>(hover_before_land_s * 1000.0));
+  safety_options.geofence = geofence;
+  safety_options.channel_address = channel_address;
+  std::unique_ptr<coord::SafetyController> safety;
+  if (!robot_fcs.empty()) {
+    safety = std::make_unique<coord::SafetyController>(fleet, missions, log, safety_options);
+    for (const auto& [robot, address] : robot_fcs) safety->addRobot(robot, address);
+  }
   coord::CoordinatorServiceOptions service_options;
   service_options.beliefs = &beliefs;
+  service_options.fleet = &fleet;
+  service_options.missions = &missions;
+  service_options.safety = safety.get();
+  service_options.pool = &pool;
   service_options.heartbeat_interval =
       std::chrono::milliseconds(static_cast<int64_t>(heartbeat_s * 1000.0));
   coord::CoordinatorService service(registry, log, metrics, service_options);
@@ -138,6 +321,19 @@ int main(int argc, char** argv) {
     return fatal(program, error);
   }
   for (const auto& system : configured) registry.addConfigured(system);
+  // Systems registered before a restart are contacted at once (they also
+  // register again at their next heartbeat).
+  for (const auto& [key, system] : systems_restore) {
+    const bool listed = std::any_of(configured.begin(), configured.end(),
+                                    [&](const auto& c) { return c.address == system.address(); });
+    if (listed) continue;
+    coord::ConfiguredSystem known;
+    known.robot_id = system.robot_id();
+    known.address = system.address();
+    registry.addConfigured(known);
+  }
+  if (safety) safety->start();
+  missions.resumeRestored();
   std::fprintf(stderr,
                "%s: serving behaviorlib.v1.Coordinator on port %d (metrics port %d), "
                "incarnation %s, %zu configured systems, grace period %.2f s\n",
@@ -150,6 +346,10 @@ int main(int argc, char** argv) {
   // resume point), then the links to the systems, then the server: in-flight
   // calls forwarded to systems are cancelled along with their server call.
   service.shutdownStreams();
+  if (safety) safety->stop();
+  missions.stop();  // running missions stay RUNNING in the journal
+  fleet.stop();
+  pool.stop();
   registry.stop();
   runtime.shutdown(std::chrono::milliseconds(1000));
   return 0;

@@ -3,18 +3,35 @@
 # Used by .ci/run, the README and deploy/compose/Dockerfile.
 #   scripts/install-deps.sh          build + runtime + test packages
 #   scripts/install-deps.sh --build  build + runtime packages only (Docker build stage)
+#   scripts/install-deps.sh --runtime  the shared libraries the binaries load, nothing else
+#                                      (Docker runtime stage; tests/deploy checks the list)
 set -eu
 
 BUILD_PACKAGES="g++ cmake ninja-build pkg-config libgtest-dev libgmock-dev libbenchmark-dev \
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libeigen3-dev \
   libompl-dev libboost-serialization-dev libboost-filesystem-dev libboost-system-dev \
   liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev grpc-proto"
-TEST_PACKAGES="python3 python3-grpcio python3-protobuf prometheus docker-compose procps"
+# What the built binaries load (each package pulls in its own dependencies), for
+# a machine that only runs them. tests/deploy/runtime_packages_test.py checks
+# that every library a built binary needs comes from one of these. OpenCV:
+# the simulator's camera and the visual markers; OMPL, OctoMap and Boost: the
+# navigation library.
+RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libgrpc++1.51 libgrpc29 libprotobuf32 \
+  libabsl20220623 libprometheus-cpp-core1.0 libprometheus-cpp-pull1.0 libyaml-cpp0.7 \
+  libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-objdetect406 \
+  libopencv-calib3d406 libopencv-contrib406 libompl16 liboctomap1.9 \
+  libboost-serialization1.74.0 libboost-filesystem1.74.0 libboost-system1.74.0"
+TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml prometheus docker-compose procps"
 
-packages="$BUILD_PACKAGES"
-if [ "${1:-}" != "--build" ]; then
-  packages="$packages $TEST_PACKAGES"
-fi
+case "${1:-}" in
+  "") packages="$BUILD_PACKAGES $TEST_PACKAGES" ;;
+  --build) packages="$BUILD_PACKAGES" ;;
+  --runtime) packages="$RUNTIME_PACKAGES" ;;
+  *)
+    echo "usage: $0 [--build | --runtime]" >&2
+    exit 2
+    ;;
+esac
 
 SUDO=""
 if [ "$(id -u)" != "0" ]; then

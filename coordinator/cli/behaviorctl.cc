@@ -12,6 +12,12 @@
 //   behaviorctl --coordinator 127.0.0.1:50060 list [--robot drone1]
 //   behaviorctl --coordinator 127.0.0.1:50060 --robot drone1 activate WAIT '{"duration_s": 2}'
 //   behaviorctl --coordinator 127.0.0.1:50060 watch [--robot drone1] [--behavior WAIT]
+//   behaviorctl --coordinator 127.0.0.1:50060 --robot drone1 activate FOLLOW_PATH '{...}' --dry-run
+//   behaviorctl --coordinator 127.0.0.1:50060 mission run deploy/missions/demo.yaml
+//   behaviorctl --coordinator 127.0.0.1:50060 mission status|abort|pause|resume MISSION_ID
+//   behaviorctl --coordinator 127.0.0.1:50060 --robot drone1 emergency-land
+//   behaviorctl --coordinator 127.0.0.1:50060 --robot drone1 kill --confirm
+//   behaviorctl --target 127.0.0.1:50061 health        (exit 0 when SERVING)
 //
 // Output is one JSON object per line, so it can be piped into other tools.
 
@@ -20,12 +26,15 @@
 
 #include <chrono>
 #include <cstdio>
+#include <fstream>
 #include <iostream>
+#include <sstream>
 #include <string>
 #include <vector>
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
+#include "coordinator/service/health_check.h"
 
 namespace {
 
@@ -54,6 +63,13 @@ int usage() {
       "  watch [--since-seq N] [--incarnation ID] [--until-finished BEHAVIOR] [--timeout-s S]\n"
       "  systems                              (--coordinator only) registered systems\n"
       "  belief list [PREFIX] | get KEY | set KEY JSON | delete KEY   (--coordinator only)\n"
+      "  mission run FILE [--mission-id ID] [--detach]   start (the file is sent as text) and\n"
+      "                                       follow it; exit 0 when it SUCCEEDED\n"
+      "  mission status ID | list | watch ID | pause ID | resume ID | abort ID [REASON]\n"
+      "  emergency-land [REASON] | kill --confirm [REASON]   (--coordinator, --robot)\n"
+      "  health                               gRPC health check; exit 0 when SERVING\n"
+      "activate through the coordinator: --dry-run shows the catalog's plan only,\n"
+      "  --skip-plan activates the behavior alone\n"
       "with --coordinator: --robot ID names the robot (required by activate, deactivate,\n"
       "  status, situation; a filter for list, systems, watch); --behavior NAME filters watch\n",
       stderr);
@@ -76,7 +92,54 @@ struct CoordinatorCommand {
   uint64_t since_seq = 0;
   double timeout_s = 0;
   std::vector<std::string> args;
+  bool dry_run = false;
+  bool skip_plan = false;
+  bool detach = false;
+  bool confirm = false;
+  std::string mission_id;
 };
+
+// One line per change of a mission's status, on stderr (the last status is
+// printed as JSON on stdout by the caller).
+void printProgress(const v1::MissionStatus& status, int* printed_steps) {
+  const int n = status.steps_size();
+  for (int i = std::max(0, *printed_steps - 1); i < n; ++i) {
+    const auto& step = status.steps(i);
+    std::string cause;
+    if (step.cause() != v1::TERMINATION_CAUSE_UNSPECIFIED) {
+      cause = v1::TerminationCause_Name(step.cause());
+    }
+    std::fprintf(stderr, "mission %s: %-16s %-36s attempt %d  %s%s%s\n",
+                 status.mission_id().c_str(), step.name().c_str(), step.behavior().c_str(),
+                 step.attempt(), v1::MissionStepState_Name(step.state()).c_str(),
+                 cause.empty() ? "" : " ", cause.c_str());
+  }
+  *printed_steps = n;
+  if (status.has_end_time() || status.state() == v1::MISSION_STATE_SUCCEEDED) {
+    std::fprintf(stderr, "mission %s: %s%s%s\n", status.mission_id().c_str(),
+                 v1::MissionState_Name(status.state()).c_str(),
+                 status.message().empty() ? "" : ": ", status.message().c_str());
+  }
+}
+
+// Follows a mission until it ends; 0 when it SUCCEEDED.
+int followMission(v1::Coordinator::Stub& stub, const std::string& mission_id) {
+  grpc::ClientContext context;
+  v1::WatchMissionRequest request;
+  request.set_mission_id(mission_id);
+  auto reader = stub.WatchMission(&context, request);
+  v1::WatchMissionResponse message;
+  v1::MissionStatus last;
+  int printed = 0;
+  while (reader->Read(&message)) {
+    last = message.status();
+    printProgress(last, &printed);
+  }
+  auto s = reader->Finish();
+  if (!s.ok()) return fail(s);
+  std::cout << toJson(last) << std::endl;
+  return last.state() == v1::MISSION_STATE_SUCCEEDED ? 0 : 1;
+}
 
 // The commands through the coordinator (behaviorlib.v1.Coordinator).
 int runCoordinator(const CoordinatorCommand& c) {
@@ -120,6 +183,8 @@ int runCoordinator(const CoordinatorCommand& c) {
     request.set_robot_id(c.robot);
     request.set_behavior(behavior);
     request.set_request_id(c.request_id);
+    request.set_dry_run(c.dry_run);
+    request.set_skip_plan(c.skip_plan);
     if (c.args.size() > 2) {
       auto status =
           google::protobuf::util::JsonStringToMessage(c.args[2], request.mutable_parameters());
@@ -219,6 +284,70 @@ int runCoordinator(const CoordinatorCommand& c) {
           stderr);
       return 2;
     }
+  } else if (command == "mission") {
+    const std::string verb = c.args.size() > 1 ? c.args[1] : "";
+    const std::string arg = c.args.size() > 2 ? c.args[2] : "";
+    if (verb == "run" && !arg.empty()) {
+      std::ifstream in(arg);
+      if (!in) {
+        std::fprintf(stderr, "behaviorctl: cannot read mission file %s\n", arg.c_str());
+        return 2;
+      }
+      std::stringstream text;
+      text << in.rdbuf();
+      v1::StartMissionRequest request;
+      request.set_text(text.str());
+      request.set_robot_id(c.robot);
+      request.set_mission_id(c.mission_id);
+      v1::StartMissionResponse response;
+      if (auto s = stub->StartMission(&context, request, &response); !s.ok()) return fail(s);
+      if (c.detach) {
+        std::cout << toJson(response.status()) << std::endl;
+        return 0;
+      }
+      return followMission(*stub, response.status().mission_id());
+    } else if (verb == "watch" && !arg.empty()) {
+      return followMission(*stub, arg);
+    } else if (verb == "status" && !arg.empty()) {
+      v1::GetMissionRequest request;
+      request.set_mission_id(arg);
+      v1::GetMissionResponse response;
+      if (auto s = stub->GetMission(&context, request, &response); !s.ok()) return fail(s);
+      std::cout << toJson(response.status()) << std::endl;
+    } else if (verb == "list") {
+      v1::ListMissionsResponse response;
+      if (auto s = stub->ListMissions(&context, v1::ListMissionsRequest(), &response); !s.ok()) {
+        return fail(s);
+      }
+      std::cout << toJson(response) << std::endl;
+    } else if ((verb == "pause" || verb == "resume" || verb == "abort") && !arg.empty()) {
+      v1::MissionControlRequest request;
+      request.set_mission_id(arg);
+      request.set_reason(c.args.size() > 3 ? c.args[3] : "requested with behaviorctl");
+      v1::MissionControlResponse response;
+      grpc::Status s = verb == "pause"    ? stub->PauseMission(&context, request, &response)
+                       : verb == "resume" ? stub->ResumeMission(&context, request, &response)
+                                          : stub->AbortMission(&context, request, &response);
+      if (!s.ok()) return fail(s);
+      std::cout << toJson(response.status()) << std::endl;
+    } else {
+      std::fputs(
+          "usage: behaviorctl --coordinator ADDR mission run FILE [--robot ID] [--mission-id ID] "
+          "[--detach] | status ID | list | watch ID | pause ID | resume ID | abort ID [REASON]\n",
+          stderr);
+      return 2;
+    }
+  } else if (command == "emergency-land" || command == "kill") {
+    if (!needRobot()) return 2;
+    v1::SafetyActionRequest request;
+    request.set_robot_id(c.robot);
+    request.set_confirm(c.confirm);
+    request.set_reason(c.args.size() > 1 ? c.args[1] : "requested with behaviorctl");
+    v1::SafetyActionResponse response;
+    grpc::Status s = command == "kill" ? stub->Kill(&context, request, &response)
+                                       : stub->EmergencyLand(&context, request, &response);
+    if (!s.ok()) return fail(s);
+    std::cout << toJson(response) << std::endl;
   } else if (command == "pause" || command == "resume" || command == "modify") {
     std::fprintf(stderr,
                  "behaviorctl: '%s' is not routed by the coordinator; use --target with the "
@@ -239,6 +368,8 @@ int main(int argc, char** argv) {
   std::string request_id, incarnation, until_finished;
   uint64_t since_seq = 0;
   double timeout_s = 0;
+  bool dry_run = false, skip_plan = false, detach = false, confirm = false;
+  std::string mission_id;
   for (int i = 1; i < argc; ++i) {
     std::string a = argv[i];
     auto value = [&]() -> std::string { return i + 1 < argc ? argv[++i] : ""; };
@@ -260,6 +391,16 @@ int main(int argc, char** argv) {
       until_finished = value();
     } else if (a == "--timeout-s") {
       timeout_s = std::stod(value());
+    } else if (a == "--dry-run") {
+      dry_run = true;
+    } else if (a == "--skip-plan") {
+      skip_plan = true;
+    } else if (a == "--detach") {
+      detach = true;
+    } else if (a == "--confirm") {
+      confirm = true;
+    } else if (a == "--mission-id") {
+      mission_id = value();
     } else if (a == "--help" || a == "-h") {
       return usage();
     } else {
@@ -267,9 +408,37 @@ int main(int argc, char** argv) {
     }
   }
   if (args.empty() || target.empty() == coordinator.empty()) return usage();
+  if (args[0] == "health") {
+    // The standard gRPC health service, for docker-compose health checks.
+    const std::string address = coordinator.empty() ? target : coordinator;
+    auto result = behaviorlib::coordinator::checkHealth(
+        grpc::CreateChannel(address, grpc::InsecureChannelCredentials()), "",
+        std::chrono::milliseconds(static_cast<int64_t>((timeout_s > 0 ? timeout_s : 3.0) * 1e3)));
+    if (!result.serving) {
+      std::fprintf(stderr, "behaviorctl: %s is not serving: %s\n", address.c_str(),
+                   result.detail.c_str());
+      return 1;
+    }
+    std::cout << "{\"status\":\"SERVING\"}" << std::endl;
+    return 0;
+  }
   if (!coordinator.empty()) {
-    return runCoordinator({coordinator, robot, behavior_filter, request_id, incarnation,
-                           until_finished, since_seq, timeout_s, args});
+    CoordinatorCommand command;
+    command.address = coordinator;
+    command.robot = robot;
+    command.behavior_filter = behavior_filter;
+    command.request_id = request_id;
+    command.incarnation = incarnation;
+    command.until_finished = until_finished;
+    command.since_seq = since_seq;
+    command.timeout_s = timeout_s;
+    command.args = args;
+    command.dry_run = dry_run;
+    command.skip_plan = skip_plan;
+    command.detach = detach;
+    command.confirm = confirm;
+    command.mission_id = mission_id;
+    return runCoordinator(command);
   }
   auto stub =
       v1::BehaviorSystem::NewStub(grpc::CreateChannel(target, grpc::InsecureChannelCredentials()));

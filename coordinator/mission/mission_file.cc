@@ -1,5 +1,6 @@
 #include "coordinator/mission/mission_file.h"
 
+#include <cmath>
 #include <fstream>
 #include <sstream>
 
@@ -27,8 +28,9 @@ class MissionParser {
     MissionSpec spec;
     spec.file = r_.file();
     if (root.IsNull()) return absl::InvalidArgumentError(r_.file() + ":1: the mission is empty");
-    if (auto s = r_.mapping(root, "mission",
-                            {"name", "description", "robot", "recurrent", "safety", "steps"});
+    if (auto s = r_.mapping(
+            root, "mission",
+            {"name", "description", "robot", "geofence", "recurrent", "safety", "steps"});
         !s.ok()) {
       return s;
     }
@@ -43,6 +45,9 @@ class MissionParser {
     }
     if (root["robot"]) {
       if (auto s = r_.text(root["robot"], "mission robot", &spec.robot_id); !s.ok()) return s;
+    }
+    if (root["geofence"]) {
+      if (auto s = geofence(root["geofence"], &spec); !s.ok()) return s;
     }
     if (!root["steps"]) return r_.error(root, "mission: missing 'steps'");
     if (auto s = stepList(root["steps"], "steps", &spec.steps); !s.ok()) return s;
@@ -65,6 +70,39 @@ class MissionParser {
   }
 
  private:
+  // geofence: {min_m: [x, y, z], max_m: [x, y, z]} (world ENU, metres).
+  absl::Status geofence(const YAML::Node& node, MissionSpec* spec) {
+    if (auto s = r_.mapping(node, "geofence", {"min_m", "max_m"}); !s.ok()) return s;
+    Geofence fence;
+    for (auto [key, out] : {std::pair{"min_m", &fence.min_m}, std::pair{"max_m", &fence.max_m}}) {
+      const YAML::Node corner = node[key];
+      if (!corner)
+        return r_.error(node, cat("geofence: missing '", key, "' ([x, y, z] in metres)"));
+      if (!corner.IsSequence() || corner.size() != 3) {
+        return r_.error(corner, cat("geofence ", key, ": expected [x, y, z] in metres"));
+      }
+      for (size_t i = 0; i < 3; ++i) {
+        try {
+          (*out)[i] = corner[i].as<double>();
+        } catch (const YAML::Exception&) {
+          return r_.error(corner[i],
+                          cat("geofence ", key, ": '", corner[i].Scalar(), "' is not a number"));
+        }
+        if (!std::isfinite((*out)[i])) {
+          return r_.error(corner[i], cat("geofence ", key, ": coordinates must be finite"));
+        }
+      }
+    }
+    for (size_t i = 0; i < 3; ++i) {
+      if (!(fence.min_m[i] < fence.max_m[i])) {
+        return r_.error(node, "geofence: min_m must be below max_m on every axis");
+      }
+    }
+    fence.line = node.Mark().line + 1;
+    spec->geofence = fence;
+    return absl::OkStatus();
+  }
+
   absl::Status stepList(const YAML::Node& node, const std::string& what,
                         std::vector<MissionStep>* out) {
     if (!node.IsSequence()) return r_.error(node, what + ": expected a list of steps");

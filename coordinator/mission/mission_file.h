@@ -7,6 +7,7 @@
 //   robot: drone1                       # the start request may name another
 //   recurrent:                          # active during the whole mission
 //     - behavior: SELF_LOCALIZE_WITH_GROUND_TRUTH
+//   geofence: {min_m: [-10, -10, 0], max_m: [10, 10, 5]}   # optional
 //   safety:                             # run when the mission aborts
 //     - behavior: LAND
 //   steps:
@@ -35,6 +36,7 @@
 
 #include <google/protobuf/struct.pb.h>
 
+#include <array>
 #include <functional>
 #include <map>
 #include <memory>
@@ -79,11 +81,24 @@ struct MissionStep {
   int line = 0;
 };
 
+/// An axis-aligned box the vehicle must stay in (world ENU, metres).
+struct Geofence {
+  std::array<double, 3> min_m{};
+  std::array<double, 3> max_m{};
+  int line = 0;
+  bool contains(double x, double y, double z) const {
+    return x >= min_m[0] && x <= max_m[0] && y >= min_m[1] && y <= max_m[1] && z >= min_m[2] &&
+           z <= max_m[2];
+  }
+};
+
 struct MissionSpec {
   std::string file;  ///< for messages
   std::string name;
   std::string description;
   std::string robot_id;
+  /// Leaving it makes the coordinator hover the vehicle and abort the mission.
+  std::optional<Geofence> geofence;
   std::vector<MissionStep> recurrent;
   std::vector<MissionStep> safety;
   std::vector<MissionStep> steps;

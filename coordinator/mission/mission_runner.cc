@@ -94,7 +94,7 @@ absl::Status MissionRunner::resume() {
   return absl::OkStatus();
 }
 
-absl::Status MissionRunner::abort(const std::string& reason) {
+absl::Status MissionRunner::abort(const std::string& reason, bool run_safety) {
   std::lock_guard lock(mutex_);
   if (done_ || status_.state() == v1::MISSION_STATE_FAILED ||
       status_.state() == v1::MISSION_STATE_ABORTED) {
@@ -103,6 +103,7 @@ absl::Status MissionRunner::abort(const std::string& reason) {
   }
   abort_requested_ = true;
   abort_reason_ = reason.empty() ? "aborted by request" : reason;
+  if (!run_safety) skip_safety_ = true;
   cv_.notify_all();
   return absl::OkStatus();
 }
@@ -232,16 +233,24 @@ void MissionRunner::run() {
 void MissionRunner::runSafety() {
   const std::string robot = status().robot_id();
   const std::string id = status().mission_id();
+  bool skip = false;
   {
     std::lock_guard lock(mutex_);
     if (status_.state() != v1::MISSION_STATE_ABORTED) status_.set_state(v1::MISSION_STATE_FAILED);
     status_.set_message(failure_);
     status_.set_in_safety_steps(true);
+    skip = skip_safety_;
+    if (skip)
+      status_.set_message(
+          failure_ +
+          "; safety steps skipped (the vehicle is landed by the coordinator's safety action)");
   }
   publish();
+  const std::vector<MissionStep> no_steps;
+  const std::vector<MissionStep>& safety = skip ? no_steps : spec_.safety;
   std::string notes;
-  for (size_t i = 0; i < spec_.safety.size(); ++i) {
-    const MissionStep& step = spec_.safety[i];
+  for (size_t i = 0; i < safety.size(); ++i) {
+    const MissionStep& step = safety[i];
     auto params = beliefs_.resolve(step.parameters);
     absl::StatusOr<std::string> activation =
         params.ok()

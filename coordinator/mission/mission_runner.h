@@ -88,9 +88,10 @@ class MissionRunner {
   absl::Status pause();
   /// FAILED_PRECONDITION when the mission is not paused.
   absl::Status resume();
-  /// Deactivates the current behavior, runs the safety steps, ends ABORTED.
-  /// FAILED_PRECONDITION when the mission already ended.
-  absl::Status abort(const std::string& reason);
+  /// Deactivates the current behavior, runs the safety steps (unless
+  /// `run_safety` is false: a safety action lands the vehicle itself), ends
+  /// ABORTED. FAILED_PRECONDITION when the mission already ended.
+  absl::Status abort(const std::string& reason, bool run_safety = true);
 
   v1::MissionStatus status() const;
   bool finished() const;
@@ -134,6 +135,7 @@ class MissionRunner {
   mutable std::condition_variable cv_;
   v1::MissionStatus status_;
   bool quit_ = false, abort_requested_ = false, pause_requested_ = false, done_ = false;
+  bool skip_safety_ = false;
   std::string abort_reason_;
   std::string failure_;  // why the mission is failing (set before the safety steps)
   std::vector<std::pair<std::string, std::string>> recurrent_;  // behavior, activation id

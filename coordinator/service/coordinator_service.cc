@@ -7,6 +7,7 @@
 
 #include "behaviorlib/server/status.h"
 #include "coordinator/belief/belief_store.h"
+#include "coordinator/service/fleet_control.h"
 #include "coordinator/service/systems_config.h"
 
 namespace behaviorlib::coordinator {
@@ -162,9 +163,31 @@ CoordinatorService::~CoordinatorService() = default;
 void CoordinatorService::shutdownStreams() {
   // Reactors delete themselves only after removeStream(), which needs
   // streams_mutex_, so every stream in the set is alive while we hold it.
+  std::map<uint64_t, std::function<void()>> hooks;
+  {
+    std::lock_guard lock(streams_mutex_);
+    shutting_down_ = true;
+    for (auto* stream : streams_) stream->shutdown();
+    hooks.swap(shutdown_hooks_);
+  }
+  for (auto& [id, hook] : hooks) hook();
+}
+
+uint64_t CoordinatorService::newHookId() {
   std::lock_guard lock(streams_mutex_);
-  shutting_down_ = true;
-  for (auto* stream : streams_) stream->shutdown();
+  return next_hook_++;
+}
+
+bool CoordinatorService::addShutdownHook(uint64_t id, std::function<void()> hook) {
+  std::lock_guard lock(streams_mutex_);
+  if (shutting_down_) return false;
+  shutdown_hooks_[id] = std::move(hook);
+  return true;
+}
+
+void CoordinatorService::removeShutdownHook(uint64_t id) {
+  std::lock_guard lock(streams_mutex_);
+  shutdown_hooks_.erase(id);
 }
 
 void CoordinatorService::removeStream(FleetStreamReactor* stream) {
@@ -279,6 +302,32 @@ grpc::ServerWriteReactor<v1::WatchFleetEventsResponse>* CoordinatorService::Watc
 grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
     grpc::CallbackServerContext* context, const v1::ActivateFleetBehaviorRequest* request,
     v1::ActivateFleetBehaviorResponse* response) {
+  if (options_.fleet != nullptr) {
+    return runBlocking(context, [this, request, response] {
+      auto done = options_.fleet->activateBehavior({request->robot_id(), request->behavior(),
+                                                    request->parameters(), request->request_id(),
+                                                    request->dry_run(), request->skip_plan()});
+      if (!done.ok()) return server::toGrpc(done.status());
+      response->set_robot_id(request->robot_id());
+      response->set_system(done->system);
+      *response->mutable_activation() = std::move(done->activation);
+      for (const auto& step : done->plan.steps) {
+        auto* out = response->add_plan();
+        out->set_kind(step.kind == StepKind::kDeactivate ? v1::ActivationPlanStep::KIND_DEACTIVATE
+                      : step.kind == StepKind::kCheckSituation
+                          ? v1::ActivationPlanStep::KIND_CHECK_SITUATION
+                          : v1::ActivationPlanStep::KIND_ACTIVATE);
+        out->set_behavior(step.behavior);
+        *out->mutable_parameters() = step.parameters;
+        out->set_reason(step.reason);
+      }
+      return grpc::Status::OK;
+    });
+  }
+  if (request->dry_run()) {
+    return finishNow(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                                           "dry_run needs the coordinator's behavior catalog"));
+  }
   using Call = ForwardedCall<v1::ActivateBehaviorRequest, v1::ActivateResponse>;
   auto call = std::make_unique<Call>();
   if (auto s = registry_.route(request->robot_id(), request->behavior(), &call->route); !s.ok()) {
@@ -309,6 +358,18 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
 grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
     grpc::CallbackServerContext* context, const v1::DeactivateFleetBehaviorRequest* request,
     v1::DeactivateFleetBehaviorResponse* response) {
+  if (options_.fleet != nullptr) {
+    return runBlocking(context, [this, request, response] {
+      std::string system;
+      auto done = options_.fleet->deactivateBehavior(request->robot_id(), request->behavior(),
+                                                     request->activation_id(), &system);
+      if (!done.ok()) return server::toGrpc(done.status());
+      response->set_robot_id(request->robot_id());
+      response->set_system(system);
+      *response->mutable_result() = std::move(*done);
+      return grpc::Status::OK;
+    });
+  }
   using Call = ForwardedCall<v1::DeactivateBehaviorRequest, v1::DeactivateResponse>;
   auto call = std::make_unique<Call>();
   if (auto s = registry_.route(request->robot_id(), request->behavior(), &call->route); !s.ok()) {

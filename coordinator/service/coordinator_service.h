@@ -15,6 +15,8 @@
 #include <grpcpp/grpcpp.h>
 
 #include <chrono>
+#include <functional>
+#include <map>
 #include <mutex>
 #include <set>
 
@@ -26,7 +28,13 @@
 namespace behaviorlib::coordinator {
 
 class FleetStreamReactor;
+class MissionStreamReactor;
+class BeliefStreamReactor;
 class BeliefStore;
+class BlockingPool;
+class FleetControl;
+class MissionManager;
+class SafetyController;
 
 struct CoordinatorServiceOptions {
   /// Told to systems at registration: how often to send Heartbeat.
@@ -38,6 +46,15 @@ struct CoordinatorServiceOptions {
   /// Belief memory served by WriteBelief/ReadBelief/...; must outlive the
   /// service. Null: those calls answer FAILED_PRECONDITION.
   BeliefStore* beliefs = nullptr;
+  /// Plans and blocking calls (ActivateBehavior, DeactivateBehavior);
+  /// null: lifecycle calls are forwarded without the catalog's plan.
+  FleetControl* fleet = nullptr;
+  /// Missions; null: mission calls answer FAILED_PRECONDITION.
+  MissionManager* missions = nullptr;
+  /// EmergencyLand and Kill; null: they answer FAILED_PRECONDITION.
+  SafetyController* safety = nullptr;
+  /// Where blocking work runs (required with fleet, missions or safety).
+  BlockingPool* pool = nullptr;
 };
 
 class CoordinatorService final : public v1::Coordinator::CallbackService {
@@ -79,6 +96,34 @@ class CoordinatorService final : public v1::Coordinator::CallbackService {
   grpc::ServerUnaryReactor* DeleteBelief(grpc::CallbackServerContext* context,
                                          const v1::DeleteBeliefRequest* request,
                                          v1::DeleteBeliefResponse* response) override;
+  grpc::ServerWriteReactor<v1::WatchBeliefsResponse>* WatchBeliefs(
+      grpc::CallbackServerContext* context, const v1::WatchBeliefsRequest* request) override;
+  grpc::ServerUnaryReactor* StartMission(grpc::CallbackServerContext* context,
+                                         const v1::StartMissionRequest* request,
+                                         v1::StartMissionResponse* response) override;
+  grpc::ServerUnaryReactor* GetMission(grpc::CallbackServerContext* context,
+                                       const v1::GetMissionRequest* request,
+                                       v1::GetMissionResponse* response) override;
+  grpc::ServerUnaryReactor* ListMissions(grpc::CallbackServerContext* context,
+                                         const v1::ListMissionsRequest* request,
+                                         v1::ListMissionsResponse* response) override;
+  grpc::ServerWriteReactor<v1::WatchMissionResponse>* WatchMission(
+      grpc::CallbackServerContext* context, const v1::WatchMissionRequest* request) override;
+  grpc::ServerUnaryReactor* PauseMission(grpc::CallbackServerContext* context,
+                                         const v1::MissionControlRequest* request,
+                                         v1::MissionControlResponse* response) override;
+  grpc::ServerUnaryReactor* ResumeMission(grpc::CallbackServerContext* context,
+                                          const v1::MissionControlRequest* request,
+                                          v1::MissionControlResponse* response) override;
+  grpc::ServerUnaryReactor* AbortMission(grpc::CallbackServerContext* context,
+                                         const v1::MissionControlRequest* request,
+                                         v1::MissionControlResponse* response) override;
+  grpc::ServerUnaryReactor* EmergencyLand(grpc::CallbackServerContext* context,
+                                          const v1::SafetyActionRequest* request,
+                                          v1::SafetyActionResponse* response) override;
+  grpc::ServerUnaryReactor* Kill(grpc::CallbackServerContext* context,
+                                 const v1::SafetyActionRequest* request,
+                                 v1::SafetyActionResponse* response) override;
   grpc::ServerUnaryReactor* ActivateBehavior(grpc::CallbackServerContext* context,
                                              const v1::ActivateFleetBehaviorRequest* request,
                                              v1::ActivateFleetBehaviorResponse* response) override;
@@ -91,8 +136,17 @@ class CoordinatorService final : public v1::Coordinator::CallbackService {
 
  private:
   friend class FleetStreamReactor;
-  class BeliefStore;
+  friend class MissionStreamReactor;
+  friend class BeliefStreamReactor;
   void removeStream(FleetStreamReactor* stream);
+  /// Runs `work` on the blocking pool and finishes the call with its status.
+  grpc::ServerUnaryReactor* runBlocking(grpc::CallbackServerContext* context,
+                                        std::function<grpc::Status()> work);
+  /// Streams (WatchMission, WatchBeliefs) are ended by shutdownStreams():
+  /// addShutdownHook returns false (and keeps nothing) once it has run.
+  uint64_t newHookId();
+  bool addShutdownHook(uint64_t id, std::function<void()> hook);
+  void removeShutdownHook(uint64_t id);
 
   Registry& registry_;
   FleetEventLog& log_;
@@ -101,6 +155,8 @@ class CoordinatorService final : public v1::Coordinator::CallbackService {
   std::mutex streams_mutex_;
   std::set<FleetStreamReactor*> streams_;
   bool shutting_down_ = false;
+  uint64_t next_hook_ = 1;
+  std::map<uint64_t, std::function<void()>> shutdown_hooks_;
 };
 
 }  // namespace behaviorlib::coordinator

@@ -116,6 +116,13 @@ grpc::Status Registry::registerSystem(const v1::RegisterSystemRequest& request,
     }
   }
   for (auto& link : reaped) link->stop();
+  if (status.ok() && options_.on_membership) {
+    v1::SystemRecord record;
+    record.set_robot_id(request.robot_id());
+    record.set_system(request.system());
+    record.set_address(request.address());
+    options_.on_membership(record);
+  }
   return status;
 }
 
@@ -143,12 +150,23 @@ grpc::Status Registry::heartbeat(const v1::HeartbeatRequest& request) {
 }
 
 grpc::Status Registry::unregister(const v1::UnregisterSystemRequest& request) {
-  std::lock_guard lock(mutex_);
-  auto link = findLocked(request.robot_id(), request.system(), "");
-  if (!link || !link->unregister(request.incarnation(), request.final_seq())) {
-    return grpc::Status(grpc::StatusCode::NOT_FOUND,
-                        "incarnation " + request.incarnation() + " of robot " + request.robot_id() +
-                            " system " + request.system() + " is not registered");
+  v1::SystemRecord record;
+  {
+    std::lock_guard lock(mutex_);
+    auto link = findLocked(request.robot_id(), request.system(), "");
+    if (!link || !link->unregister(request.incarnation(), request.final_seq())) {
+      return grpc::Status(grpc::StatusCode::NOT_FOUND, "incarnation " + request.incarnation() +
+                                                           " of robot " + request.robot_id() +
+                                                           " system " + request.system() +
+                                                           " is not registered");
+    }
+    record.set_address(link->address());
+  }
+  if (options_.on_membership) {
+    record.set_robot_id(request.robot_id());
+    record.set_system(request.system());
+    record.set_unregistered(true);
+    options_.on_membership(record);
   }
   return grpc::Status::OK;
 }

@@ -13,6 +13,7 @@
 
 #include <grpcpp/grpcpp.h>
 
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -20,6 +21,7 @@
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.pb.h"
+#include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/service/coordinator_metrics.h"
 #include "coordinator/service/fleet_event_log.h"
 #include "coordinator/service/system_link.h"
@@ -29,6 +31,9 @@ namespace behaviorlib::coordinator {
 
 struct RegistryOptions {
   LinkOptions link;
+  /// Called after a system registered (registered = true) or unregistered,
+  /// under no lock of the registry (the coordinator journals it).
+  std::function<void(const v1::SystemRecord& record)> on_membership;
 };
 
 class Registry {

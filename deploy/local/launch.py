@@ -1,18 +1,39 @@
-#!/usr/bin/env python3
+#!/usr/bin/python3
 """Starts the behaviorlib stack on this machine, without Docker.
 
-Starts the data channel broker and the behavior systems on loopback (ports
-chosen free at run time unless given), prints where each one listens, and
-either runs the demo mission (--demo) or serves until Ctrl-C.
+Starts on loopback, with ports chosen free at run time, each one health
+checked before the next: the data channel broker, the simulator, the
+coordinator and every behavior system that is built. Writes one log file per
+process, the ports, the pids and Prometheus file-based service discovery
+targets into a run directory. Then either serves until Ctrl-C, or (--demo)
+flies the demo mission through the coordinator, prints its progress, and
+writes a mission report (report.md, report.json, trajectory.png). Stops
+every process in reverse order (SIGTERM, then SIGKILL after a time-out) on
+exit and on Ctrl-C.
 
     deploy/local/launch.py --build-dir build --demo
     deploy/local/launch.py --build-dir build          # serve until Ctrl-C
 
-Uses only the Python standard library.
+Run directory (--run-dir; default a new directory under /tmp):
+    logs/<process>.log         what each process printed
+    ports/<process>.ports      its bound ports (grpc_port=, metrics_port=)
+    pids.json                  the pid of each process started
+    prometheus_targets.json    file_sd targets, one per /metrics port, labelled
+                               job (channel_broker, simulator, coordinator,
+                               behavior_system), system (process name), robot;
+                               scrape with honor_labels: true so that a
+                               metric's own system/robot labels win
+    coordinator/               the coordinator's --state-dir
+    report.md, report.json, trajectory.png   (--demo)
+
+Exit code 0 when every process started and stopped cleanly and, with --demo,
+the mission SUCCEEDED; 128 + the signal's number when stopped by a signal.
+
+Needs Debian's python3-grpcio, python3-protobuf and python3-yaml; calls the
+servers through gRPC reflection (no generated code).
 """
+
 import argparse
-import json
-import shutil
 import os
 import signal
 import subprocess
@@ -20,152 +41,227 @@ import sys
 import tempfile
 import time
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import demo  # noqa: E402
+import report  # noqa: E402
+import rpc  # noqa: E402
+from stack import Process, Stack, StartError  # noqa: E402
 
-CONFIG_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "config")
-# frequency_hz of WAIT in deploy/config/basic_quadrotor_behaviors.yaml
-CONFIGURED_WAIT_HZ = 50
+REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
+CONFIG_DIR = os.path.join(REPO, "deploy", "config")
 
-
-class Service:
-    """One server process started with --port-file."""
-
-    def __init__(self, name, argv, port_dir):
-        self.name = name
-        self.port_file = os.path.join(port_dir, name + ".ports")
-        self.argv = argv + ["--port-file", self.port_file]
-        self.process = None
-        self.grpc_port = 0
-        self.metrics_port = 0
-
-    def start(self, timeout_s=15.0):
-        self.process = subprocess.Popen(self.argv)
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                raise RuntimeError(f"{self.name} exited with code {self.process.returncode} "
-                                   f"before it was ready: {' '.join(self.argv)}")
-            if os.path.exists(self.port_file):
-                ports = dict(line.strip().split("=", 1)
-                             for line in open(self.port_file) if "=" in line)
-                self.grpc_port = int(ports.get("grpc_port", 0))
-                self.metrics_port = int(ports.get("metrics_port", 0))
-                if self.grpc_port:
-                    return
-            time.sleep(0.02)
-        raise RuntimeError(f"{self.name} did not report its ports within {timeout_s} s")
-
-    @property
-    def address(self):
-        return f"127.0.0.1:{self.grpc_port}"
-
-    def stop(self, timeout_s=10.0):
-        """SIGTERM, wait; returns the exit code (killed: -9)."""
-        if self.process is None or self.process.poll() is not None:
-            return self.process.returncode if self.process else 0
-        self.process.send_signal(signal.SIGTERM)
-        try:
-            return self.process.wait(timeout=timeout_s)
-        except subprocess.TimeoutExpired:
-            self.process.kill()
-            self.process.wait()
-            return -9
+# The behavior systems, started in this order when their binary is built
+# (services/<name>/<name>), each with deploy/config/<name>.yaml when present.
+BEHAVIOR_SYSTEMS = [
+    "basic_quadrotor_behaviors",
+    "quadrotor_motion_with_pid_control",
+    "quadrotor_motion_with_mpc_control",
+    "quadrotor_motion_with_platform_control",
+    "multi_sensor_fusion",
+    "navigation_with_lidar",
+    "attention_to_visual_markers",
+    "swarm_interaction",
+    "operator_interaction",
+]
+REQUIRED_SYSTEMS = ["basic_quadrotor_behaviors"]
 
 
-def binary(build_dir, relative):
+class Interrupted(Exception):
+    """SIGINT, SIGTERM or SIGHUP reached the launcher."""
+
+    def __init__(self, signum):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _on_signal(signum, _frame):
+    raise Interrupted(signum)
+
+
+def say(text=""):
+    print(text, flush=True)
+
+
+def binary(build_dir, relative, required=True):
     path = os.path.join(build_dir, relative)
-    if not os.access(path, os.X_OK):
-        sys.exit(f"launch.py: {path} not found; build first (cmake --build {build_dir})")
-    return path
+    if os.access(path, os.X_OK):
+        return path
+    if required:
+        raise StartError(f"{path} not found; build first (scripts/build.sh, or cmake --build "
+                         f"{build_dir})")
+    return None
 
 
-def run_demo(build_dir, system):
-    """WAIT activated end to end through the generic API; events printed."""
-    ctl = binary(build_dir, "coordinator/cli/behaviorctl")
-    target = ["--target", system.address]
-    print("\n== behaviors hosted by basic_quadrotor_behaviors ==", flush=True)
-    listing = json.loads(subprocess.run([ctl, *target, "list"], check=True,
-                                        capture_output=True, text=True).stdout)
-    for b in listing["behaviors"]:
-        params = ", ".join(f"{p['name']} [{p.get('unit', '')}]" for p in b.get("parameters", []))
-        print(f"  {b['name']:<6} {b.get('service', '')}: {b.get('description', '')} ({params}; "
-              f"{b.get('frequency_hz')} Hz)")
-    wait = next((b for b in listing["behaviors"] if b["name"] == "WAIT"), None)
-    if wait is None or wait.get("frequency_hz") != CONFIGURED_WAIT_HZ:
-        raise RuntimeError("WAIT is missing or did not take its frequency from --config")
+def start_stack(args, build_dir, stack):
+    robot = args.robot_id
+    listen = ["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"]
+    broker = stack.start(Process("channel_broker",
+                                 [binary(build_dir, "services/channel/channel_broker"), *listen],
+                                 stack.run_dir, "channel_broker"))
 
-    print("\n== events (WatchEvents) ==", flush=True)
-    watcher = subprocess.Popen([ctl, *target, "watch", "--until-finished", "WAIT",
-                                "--timeout-s", "30"], stdout=subprocess.PIPE, text=True)
-    first = watcher.stdout.readline()  # the stream's start message: subscribed
-    print("  " + first.strip(), flush=True)
-    print("\n== activate WAIT {duration_s: 2} ==", flush=True)
-    activated = subprocess.run([ctl, *target, "activate", "WAIT", '{"duration_s": 2}'],
-                               check=True, capture_output=True, text=True).stdout
-    print("  " + activated.strip(), flush=True)
-    finished = None
-    for line in watcher.stdout:
-        print("  " + line.strip(), flush=True)
-        event = json.loads(line).get("event", {})
-        if "finished" in event:
-            finished = event
-    watcher.wait(timeout=10)
-    if not finished or finished["finished"]["cause"] != "TERMINATION_CAUSE_GOAL_ACHIEVED":
-        raise RuntimeError("WAIT did not finish with GOAL_ACHIEVED")
-    print(f"\nWAIT finished: {finished['finished']['cause']} after "
-          f"{finished['finished'].get('active_duration', '?')} "
-          f"({finished['finished'].get('message', '')})", flush=True)
+    simulator_argv = [binary(build_dir, "simulator/service/simulator"), *listen,
+                      "--channel", broker.address, "--vehicles", robot,
+                      "--worlds-dir", os.path.join(REPO, "simulator", "worlds"),
+                      "--time-scale", str(args.time_scale), "--seed", str(args.seed)]
+    if args.world:
+        simulator_argv += ["--world", args.world]
+    if args.enable_fault_injection:
+        simulator_argv.append("--enable-fault-injection")
+    simulator = stack.start(Process("simulator", simulator_argv, stack.run_dir, "simulator"))
+
+    coordinator_bin = binary(build_dir, "coordinator/coordinator")
+    coordinator_argv = [coordinator_bin, *listen,
+                        "--state-dir", os.path.join(stack.run_dir, "coordinator")]
+    coordinator_argv += ["--catalog", os.path.join(CONFIG_DIR, "catalog.yaml"),
+                         "--flight-controller", f"{robot}={simulator.address}",
+                         "--channel", broker.address]
+    coordinator = stack.start(Process("coordinator", coordinator_argv, stack.run_dir,
+                                      "coordinator"))
+
+    systems = []
+    for name in BEHAVIOR_SYSTEMS:
+        path = binary(build_dir, f"services/{name}/{name}", required=name in REQUIRED_SYSTEMS)
+        if path is None:
+            say(f"  note: {name} is not built ({build_dir}/services/{name}/{name}); "
+                f"its behaviors are unavailable")
+            continue
+        argv = [path, *listen, "--robot-id", robot, "--channel", broker.address,
+                "--clock", "sim", "--flight-controller", simulator.address,
+                "--coordinator", coordinator.address]
+        config = os.path.join(CONFIG_DIR, name + ".yaml")
+        if os.path.exists(config):
+            argv += ["--config", config]
+        systems.append(stack.start(Process(name, argv, stack.run_dir, "behavior_system", robot)))
+    return simulator, coordinator, systems
+
+
+def run_demo(args, simulator, coordinator, systems, state):
+    """Flies the mission; fills `state` with what the report needs as it
+    goes (the mission's status, the event and trajectory recorders)."""
+    robot = args.robot_id
+    coordinator_client = rpc.Client(coordinator.address, [demo.COORDINATOR])
+    state["clients"].append(coordinator_client)
+    simulator_client = rpc.Client(simulator.address, [demo.SIMULATOR])
+    state["clients"].append(simulator_client)
+    events = state["events"] = demo.EventRecorder(coordinator_client, robot)
+    trajectory = state["trajectory"] = demo.TrajectoryRecorder(simulator_client, robot)
+    events.start()
+    trajectory.start()
+    demo.wait_for_systems(coordinator_client, robot, [s.name for s in systems])
+
+    mission_path = os.path.abspath(args.mission)
+    mission_id = f"demo-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    say(f"\n== mission {os.path.relpath(mission_path, REPO)} on {robot} "
+        f"(simulator at {args.time_scale}x) ==")
+
+    def on_status(status):
+        state["mission"] = status
+
+    demo.run_mission(coordinator_client, mission_path, robot, mission_id,
+                     args.mission_timeout_s, say, on_status)
+    if not events.wait_settled(3.0):
+        say("  note: some activations had no finished event 3 s after the mission ended")
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--build-dir", default="build")
+    parser.add_argument("--build-dir", default="build", help="where the binaries are built")
+    parser.add_argument("--run-dir", default="",
+                        help="directory for logs, ports, state and the report (default: a new "
+                             "directory under /tmp)")
     parser.add_argument("--robot-id", default="drone1")
+    parser.add_argument("--time-scale", type=float, default=5.0,
+                        help="simulated seconds per wall second. The whole stack takes about "
+                             "0.2-0.3 s of CPU per simulated second: at 10x it saturates two "
+                             "cores and the controllers fall behind; 5x leaves a margin")
+    parser.add_argument("--world", default="",
+                        help="simulator world (file or shipped name); default an empty field")
+    parser.add_argument("--seed", type=int, default=1, help="the simulator's noise seed")
+    parser.add_argument("--enable-fault-injection", action="store_true",
+                        help="let Simulator.InjectFailure inject faults")
     parser.add_argument("--demo", action="store_true",
-                        help="run the demo mission, then stop everything")
+                        help="fly the demo mission, write the report, then stop everything")
+    parser.add_argument("--mission", default=os.path.join(REPO, "deploy", "missions", "demo.yaml"),
+                        help="mission file flown by --demo")
+    parser.add_argument("--mission-timeout-s", type=float, default=300.0,
+                        help="wall seconds after which the demo aborts the mission")
+    parser.add_argument("--stop-timeout-s", type=float, default=10.0,
+                        help="wall seconds a process has after SIGTERM before SIGKILL")
     args = parser.parse_args()
     build_dir = os.path.abspath(args.build_dir)
+    run_dir = os.path.abspath(args.run_dir) if args.run_dir else tempfile.mkdtemp(
+        prefix="behaviorlib-run-")
+    os.makedirs(run_dir, exist_ok=True)
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, _on_signal)
 
-    port_dir = tempfile.mkdtemp(prefix="behaviorlib-local-")
-    broker = Service("channel_broker",
-                     [binary(build_dir, "services/channel/channel_broker"),
-                      "--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"], port_dir)
-    system = None
-    services = [broker]
+    started = time.monotonic()
+    stack = Stack(run_dir)
     status = 0
+    demo_state = {"mission": {}, "events": None, "trajectory": None, "clients": []}
+    figures = ([], [])
+    interrupted = ""
+    say(f"run directory: {run_dir}")
     try:
-        broker.start()
-        system = Service("basic_quadrotor_behaviors",
-                         [binary(build_dir,
-                                 "services/basic_quadrotor_behaviors/basic_quadrotor_behaviors"),
-                          "--robot-id", args.robot_id, "--listen", "127.0.0.1:0",
-                          "--metrics-listen", "127.0.0.1:0", "--channel", broker.address,
-                          "--config", os.path.join(CONFIG_DIR, "basic_quadrotor_behaviors.yaml")],
-                         port_dir)
-        services.append(system)
-        system.start()
-        print("\n== running ==")
-        for s in services:
-            print(f"  {s.name:<26} gRPC {s.address}   metrics "
-                  f"http://127.0.0.1:{s.metrics_port}/metrics")
-        sys.stdout.flush()
+        say("\n== starting ==")
+        simulator, coordinator, systems = start_stack(args, build_dir, stack)
+        targets = stack.write_prometheus_targets()
+        say("\n== running ==")
+        for p in stack.processes:
+            metrics = f"http://{p.metrics_address}/metrics" if p.metrics_port else "-"
+            say(f"  {p.name:<40} gRPC {p.address:<17} metrics {metrics}")
+        say(f"  Prometheus targets: {targets}")
         if args.demo:
-            run_demo(build_dir, system)
+            run_demo(args, simulator, coordinator, systems, demo_state)
+            if demo_state["mission"].get("state") != "MISSION_STATE_SUCCEEDED":
+                status = 1
         else:
-            print("Ctrl-C stops everything.")
-            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
-            signal.sigwait({signal.SIGINT, signal.SIGTERM})
-    except (RuntimeError, subprocess.CalledProcessError) as e:
-        print(f"launch.py: {e}", file=sys.stderr)
+            say("Ctrl-C stops everything.")
+            while True:
+                for p in stack.processes:
+                    if not p.running():
+                        raise StartError(f"{p.name} exited with code {p.process.returncode}; "
+                                         f"log {p.log_path}")
+                time.sleep(0.5)
+    except Interrupted as signal_received:
+        interrupted = str(signal_received)
+        say(f"\n{interrupted}: stopping")
+        status = 128 + signal_received.signum
+    except (StartError, RuntimeError, rpc.grpc.RpcError, OSError) as error:
+        text = (f"{error.code().name}: {error.details()}" if isinstance(error, rpc.grpc.RpcError)
+                else str(error))
+        print(f"launch.py: {text}", file=sys.stderr, flush=True)
         status = 1
     finally:
-        print("\n== stopping ==")
-        for s in reversed(services):
-            code = s.stop()
-            print(f"  {s.name} exited with code {code}")
-            if code != 0:
-                status = status or 1
-        shutil.rmtree(port_dir, ignore_errors=True)
+        # Signals during the shutdown would leave processes behind.
+        for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(signum, signal.SIG_IGN)
+        recorders = [demo_state[k] for k in ("events", "trajectory") if demo_state[k]]
+        for recorder in recorders:
+            recorder.stop()
+        if recorders:
+            figures = demo.collect_figures(stack, say)
+        for client in demo_state["clients"]:
+            client.close()
+        say("\n== stopping ==")
+        clean = stack.stop(args.stop_timeout_s, say)
+        if not clean:
+            status = status or 1
+    if demo_state["events"] and demo_state["trajectory"]:
+        behaviors, processes = figures
+        for row in processes:
+            row["exit_code"] = stack.find(row["name"]).exit_code
+        mission = demo_state["mission"]
+        settings = {"mission": os.path.relpath(os.path.abspath(args.mission), REPO),
+                    "robot_id": args.robot_id, "time_scale": args.time_scale,
+                    "world": args.world, "seed": args.seed, "run_dir": run_dir,
+                    "wall_s": time.monotonic() - started, "interrupted": interrupted}
+        report.write(run_dir, settings, mission, demo_state["events"].behavior_events(),
+                     behaviors, processes, demo_state["trajectory"].snapshot(), clean)
+        state = mission.get("state", "MISSION_STATE_UNSPECIFIED").replace("MISSION_STATE_", "")
+        say(f"\nmission {mission.get('name', '')}: {state}")
+        say(f"report: {os.path.join(run_dir, 'report.md')} (also report.json, trajectory.png)")
     return status
 
 

@@ -1,9 +1,13 @@
 // basic_quadrotor_behaviors: the paper's behavior system of basic quadrotor
-// behaviors: WAIT, TAKE_OFF, LAND, HOVER_WITH_FLIGHT_ACTION_CONTROL and
-// SELF_LOCALIZE_WITH_GROUND_TRUTH. The flight behaviors command the platform
-// through --flight-controller and read the pose estimate from --channel
-// (topics in topics.h); run with --clock sim under the simulator.
+// behaviors: WAIT, TAKE_OFF, LAND, HOVER_WITH_FLIGHT_ACTION_CONTROL and the
+// self-localization behaviors SELF_LOCALIZE_WITH_GROUND_TRUTH,
+// ESTIMATE_POSITION_WITH_SENSOR and ESTIMATE_POSITION_WITH_LINEAR_SPEED. The
+// flight behaviors command the platform through --flight-controller and read
+// the pose estimate from --channel (topics in topics.h); run with --clock sim
+// under the simulator.
 
+#include "basic_quadrotor_behaviors/estimate_with_linear_speed_behavior.h"
+#include "basic_quadrotor_behaviors/estimate_with_sensor_behavior.h"
 #include "basic_quadrotor_behaviors/hover_behavior.h"
 #include "basic_quadrotor_behaviors/land_behavior.h"
 #include "basic_quadrotor_behaviors/self_localize_behavior.h"
@@ -28,5 +32,9 @@ int main(int argc, char** argv) {
             vehicle);
         builder.add<basic::SelfLocalizeWithGroundTruthBehavior, v1::SelfLocalizeWithGroundTruth>(
             builder.context().channel);
+        builder.add<basic::EstimatePositionWithSensorBehavior, v1::EstimatePositionWithSensor>(
+            builder.context().channel);
+        builder.add<basic::EstimatePositionWithLinearSpeedBehavior,
+                    v1::EstimatePositionWithLinearSpeed>(builder.context().channel);
       });
 }

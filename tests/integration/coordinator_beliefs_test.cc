@@ -11,7 +11,9 @@
 #include <filesystem>
 #include <string>
 
+#include "behaviorlib/server/belief_client.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
+#include "behaviorlib/v1/types.pb.h"
 #include "support/server_process.h"
 
 namespace {
@@ -129,6 +131,78 @@ TEST_F(CoordinatorBeliefsTest, BeliefsSurviveACrashOfTheCoordinator) {
   v1::Belief next;
   ASSERT_TRUE(write("after", "restart", &next).ok());
   EXPECT_EQ(next.version(), 4u);
+}
+
+TEST_F(CoordinatorBeliefsTest, BehaviorSystemsWriteTypedBeliefsThroughTheLibraryClient) {
+  behaviorlib::server::BeliefClient client(coordinator_->address());
+  v1::PoseStamped marker;
+  marker.mutable_header()->set_frame_id("world");
+  marker.mutable_pose()->mutable_position_m()->set_x(2.5);
+  marker.mutable_pose()->mutable_position_m()->set_z(1.0);
+  auto written =
+      client.writeMessage("drone1/markers/QR_7", marker, "drone1/PAY_ATTENTION_TO_QR_CODES");
+  ASSERT_TRUE(written.ok()) << written.status();
+  EXPECT_EQ(written->type(), "behaviorlib.v1.PoseStamped");
+  // Another reader sees the typed value with its fields.
+  v1::Belief belief;
+  ASSERT_TRUE(read("drone1/markers/QR_7", &belief).ok());
+  EXPECT_EQ(belief.writer(), "drone1/PAY_ATTENTION_TO_QR_CODES");
+  const auto& fields = belief.value().struct_value().fields();
+  ASSERT_TRUE(fields.contains("pose"));
+  EXPECT_DOUBLE_EQ(fields.at("pose")
+                       .struct_value()
+                       .fields()
+                       .at("position_m")
+                       .struct_value()
+                       .fields()
+                       .at("x")
+                       .number_value(),
+                   2.5);
+  auto bad = client.write("", google::protobuf::Value(), "drone1/X");
+  EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_NE(bad.status().message().find(coordinator_->address()), std::string::npos);
+  // A coordinator that is gone is UNAVAILABLE, named.
+  coordinator_->kill();
+  auto gone = client.read("drone1/markers/QR_7");
+  EXPECT_EQ(gone.status().code(), absl::StatusCode::kUnavailable) << gone.status();
+}
+
+TEST_F(CoordinatorBeliefsTest, WatchBeliefsSendsTheCurrentBeliefsThenEveryChange) {
+  ASSERT_TRUE(write("drone1/before", "a").ok());
+  ASSERT_TRUE(write("drone2/other", "x").ok());
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  v1::WatchBeliefsRequest request;
+  request.set_prefix("drone1/");
+  auto reader = stub_->WatchBeliefs(&context, request);
+  v1::WatchBeliefsResponse message;
+  ASSERT_TRUE(reader->Read(&message));
+  EXPECT_EQ(message.belief().key(), "drone1/before");
+  ASSERT_TRUE(write("drone2/ignored", "y").ok());
+  ASSERT_TRUE(write("drone1/after", "b").ok());
+  ASSERT_TRUE(reader->Read(&message));
+  EXPECT_EQ(message.belief().key(), "drone1/after");  // drone2/ is filtered out
+  v1::DeleteBeliefRequest erase;
+  erase.set_key("drone1/before");
+  erase.set_writer("operator");
+  v1::DeleteBeliefResponse erased;
+  ASSERT_TRUE(stub_->DeleteBelief(deadline().get(), erase, &erased).ok());
+  ASSERT_TRUE(reader->Read(&message));
+  EXPECT_EQ(message.belief().key(), "drone1/before");
+  EXPECT_TRUE(message.belief().deleted());
+  // Resuming after a version replays what came after it.
+  const uint64_t resume_from = message.belief().version() - 1;
+  context.TryCancel();
+  reader->Finish();
+  grpc::ClientContext again;
+  again.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  request.set_since_version(resume_from);
+  auto replay = stub_->WatchBeliefs(&again, request);
+  ASSERT_TRUE(replay->Read(&message));
+  EXPECT_EQ(message.belief().key(), "drone1/before");
+  EXPECT_TRUE(message.belief().deleted());
+  again.TryCancel();
+  replay->Finish();
 }
 
 }  // namespace

@@ -428,7 +428,7 @@ TEST(FlightBehaviorsWithoutSimulatorTest, TheSystemServesAndCheckSituationSaysWh
   // Still serving.
   v1::ListBehaviorsResponse listing;
   EXPECT_TRUE(stub->ListBehaviors(deadline().get(), v1::ListBehaviorsRequest(), &listing).ok());
-  EXPECT_EQ(listing.behaviors_size(), 5);
+  EXPECT_EQ(listing.behaviors_size(), 7);
 }
 
 }  // namespace

@@ -121,6 +121,11 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   context.channel = channel_client.get();
   context.flight_controller = flight_controller;
   context.config = config;
+  std::unique_ptr<BeliefClient> belief_client;
+  if (!coordinator.empty()) {
+    belief_client = std::make_unique<BeliefClient>(coordinator);
+    context.beliefs = belief_client.get();
+  }
   BehaviorSystemBuilder builder(gate, std::move(context));
   register_behaviors(builder);
 

@@ -40,6 +40,7 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/clock.h"
+#include "behaviorlib/server/belief_client.h"
 #include "behaviorlib/server/lifecycle_calls.h"
 #include "behaviorlib/server/typed_behavior_service.h"
 
@@ -67,6 +68,8 @@ struct SystemContext {
   std::string flight_controller;
   /// The whole --config document (may be null).
   YAML::Node config;
+  /// The coordinator's belief memory (--coordinator); null without one.
+  const BeliefClient* beliefs = nullptr;
 };
 
 /// Collects the behaviors of a system and their typed services.

@@ -1,0 +1,361 @@
+// The coordinator's blocking calls and its mission, belief-watch and safety
+// RPCs (the rest of CoordinatorService is in coordinator_service.cc).
+
+#include <deque>
+#include <memory>
+#include <thread>
+#include <utility>
+
+#include "behaviorlib/server/status.h"
+#include "coordinator/belief/belief_store.h"
+#include "coordinator/service/blocking_pool.h"
+#include "coordinator/service/coordinator_service.h"
+#include "coordinator/service/fleet_control.h"
+#include "coordinator/service/mission_manager.h"
+#include "coordinator/service/safety.h"
+
+namespace behaviorlib::coordinator {
+
+namespace {
+
+grpc::ServerUnaryReactor* finishWith(grpc::CallbackServerContext* context,
+                                     const grpc::Status& status) {
+  auto* reactor = context->DefaultReactor();
+  reactor->Finish(status);
+  return reactor;
+}
+
+grpc::Status notServed(const std::string& what, const std::string& flag) {
+  return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                      "this coordinator does not serve " + what + " (" + flag + ")");
+}
+
+bool missionEnded(const v1::MissionStatus& status) {
+  return status.has_end_time() || status.state() == v1::MISSION_STATE_SUCCEEDED;
+}
+
+// A server stream fed from other threads: messages are queued and written
+// one at a time; end() finishes once the queue is written. The queue and
+// the reactor's liveness live in a shared Core, so that a producer holding
+// the core never touches a reactor that is gone.
+template <class Response>
+class QueuedStream : public grpc::ServerWriteReactor<Response> {
+ public:
+  struct Core {
+    std::mutex mutex;
+    QueuedStream* stream = nullptr;  // null once the call is done
+  };
+
+  QueuedStream() : core_(std::make_shared<Core>()) { core_->stream = this; }
+
+  std::shared_ptr<Core> core() const { return core_; }
+
+  /// Queues `message`; with `last`, finishes OK after it. Call with
+  /// core()->mutex held and core()->stream non-null.
+  void pushLocked(Response message, bool last) {
+    if (ending_) return;
+    queue_.push_back(std::move(message));
+    if (last) end_status_ = grpc::Status::OK, ending_ = true;
+    if (!writing_) writeNextLocked();
+  }
+  /// Finishes with `status` once the queue is written (core mutex held).
+  void endLocked(const grpc::Status& status) {
+    if (ending_) return;
+    ending_ = true;
+    end_status_ = status;
+    if (!writing_) writeNextLocked();
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard lock(core_->mutex);
+    writing_ = false;
+    if (!ok) {
+      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "stream broken"));
+      return;
+    }
+    writeNextLocked();
+  }
+  void OnCancel() override {
+    std::lock_guard lock(core_->mutex);
+    cancelled_ = true;
+    if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
+  }
+  void OnDone() override {
+    {
+      std::lock_guard lock(core_->mutex);
+      core_->stream = nullptr;
+    }
+    onDone();
+    delete this;
+  }
+
+ protected:
+  virtual void onDone() {}
+
+ private:
+  void writeNextLocked() {
+    if (finished_) return;
+    if (cancelled_) {
+      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
+      return;
+    }
+    if (!queue_.empty()) {
+      current_ = std::move(queue_.front());
+      queue_.pop_front();
+      writing_ = true;
+      this->StartWrite(&current_);
+      return;
+    }
+    if (ending_) finishLocked(end_status_);
+  }
+  void finishLocked(const grpc::Status& status) {
+    if (finished_) return;
+    finished_ = true;
+    this->Finish(status);
+  }
+
+  std::shared_ptr<Core> core_;
+  std::deque<Response> queue_;
+  Response current_;
+  bool writing_ = false, finished_ = false, cancelled_ = false, ending_ = false;
+  grpc::Status end_status_;
+};
+
+}  // namespace
+
+// WatchMission: the mission's status now, then after every change, until it
+// ends.
+class MissionStreamReactor final : public QueuedStream<v1::WatchMissionResponse> {
+ public:
+  MissionStreamReactor(CoordinatorService* service, const std::string& mission_id)
+      : service_(service), hook_(service->newHookId()) {
+    auto core = this->core();
+    MissionManager* missions = service_->options_.missions;
+    if (missions == nullptr) {
+      std::lock_guard lock(core->mutex);
+      endLocked(notServed("missions", "started without missions"));
+      return;
+    }
+    auto token = missions->watch(mission_id, [core](const v1::MissionStatus& status) {
+      std::lock_guard lock(core->mutex);
+      if (core->stream == nullptr) return;
+      v1::WatchMissionResponse message;
+      *message.mutable_status() = status;
+      static_cast<MissionStreamReactor*>(core->stream)
+          ->pushLocked(std::move(message), missionEnded(status));
+    });
+    if (!token.ok()) {
+      std::lock_guard lock(core->mutex);
+      endLocked(server::toGrpc(token.status()));
+      return;
+    }
+    token_ = *token;
+    const bool added = service_->addShutdownHook(hook_, [core] {
+      std::lock_guard lock(core->mutex);
+      if (core->stream != nullptr) {
+        static_cast<MissionStreamReactor*>(core->stream)
+            ->endLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE,
+                                     "the coordinator is shutting down; watch the mission again"));
+      }
+    });
+    if (!added) {
+      std::lock_guard lock(core->mutex);
+      endLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down"));
+    }
+  }
+
+ private:
+  void onDone() override {
+    service_->removeShutdownHook(hook_);
+    if (token_ != 0) service_->options_.missions->unwatch(token_);
+  }
+
+  CoordinatorService* service_;
+  uint64_t hook_;
+  uint64_t token_ = 0;
+};
+
+// WatchBeliefs: the changes after since_version, then new ones, from a
+// thread of its own that waits on the belief store.
+class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> {
+ public:
+  BeliefStreamReactor(CoordinatorService* service, const v1::WatchBeliefsRequest& request)
+      : service_(service), hook_(service->newHookId()) {
+    auto core = this->core();
+    BeliefStore* beliefs = service_->options_.beliefs;
+    if (beliefs == nullptr) {
+      std::lock_guard lock(core->mutex);
+      endLocked(notServed("belief memory", "started without it"));
+      return;
+    }
+    const bool added = service_->addShutdownHook(hook_, [core] {
+      std::lock_guard lock(core->mutex);
+      if (core->stream != nullptr) {
+        static_cast<BeliefStreamReactor*>(core->stream)
+            ->endLocked(
+                grpc::Status(grpc::StatusCode::UNAVAILABLE,
+                             "the coordinator is shutting down; resume with since_version"));
+      }
+    });
+    if (!added) {
+      std::lock_guard lock(core->mutex);
+      endLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down"));
+      return;
+    }
+    thread_ = std::thread([this, core, beliefs, prefix = request.prefix(),
+                           since = request.since_version()]() mutable {
+      // since_version 0: the current beliefs first (no tombstones).
+      if (since == 0) {
+        const uint64_t now = beliefs->version();
+        std::lock_guard lock(core->mutex);
+        if (core->stream == nullptr) return;
+        for (auto& belief : beliefs->list(prefix)) {
+          v1::WatchBeliefsResponse message;
+          *message.mutable_belief() = std::move(belief);
+          pushLocked(std::move(message), false);
+        }
+        since = now;
+      }
+      while (!stop_.load()) {
+        auto changes = beliefs->waitForChanges(since, prefix, std::chrono::milliseconds(100));
+        std::lock_guard lock(core->mutex);
+        if (core->stream == nullptr) return;
+        for (auto& belief : changes) {
+          since = std::max<uint64_t>(since, belief.version());
+          v1::WatchBeliefsResponse message;
+          *message.mutable_belief() = std::move(belief);
+          pushLocked(std::move(message), false);
+        }
+      }
+    });
+  }
+
+ private:
+  void onDone() override {
+    stop_.store(true);
+    if (thread_.joinable()) thread_.join();
+    service_->removeShutdownHook(hook_);
+  }
+
+  CoordinatorService* service_;
+  uint64_t hook_;
+  std::atomic<bool> stop_{false};
+  std::thread thread_;
+};
+
+grpc::ServerUnaryReactor* CoordinatorService::runBlocking(grpc::CallbackServerContext* context,
+                                                          std::function<grpc::Status()> work) {
+  auto* reactor = context->DefaultReactor();
+  if (options_.pool == nullptr ||
+      !options_.pool->post([reactor, work = std::move(work)] { reactor->Finish(work()); })) {
+    reactor->Finish(
+        grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down"));
+  }
+  return reactor;
+}
+
+grpc::ServerWriteReactor<v1::WatchBeliefsResponse>* CoordinatorService::WatchBeliefs(
+    grpc::CallbackServerContext* /*context*/, const v1::WatchBeliefsRequest* request) {
+  return new BeliefStreamReactor(this, *request);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::StartMission(grpc::CallbackServerContext* context,
+                                                           const v1::StartMissionRequest* request,
+                                                           v1::StartMissionResponse* response) {
+  if (options_.missions == nullptr)
+    return finishWith(context, notServed("missions", "no missions"));
+  // Checking the file against the registry and starting are quick; the
+  // mission then runs on its own thread.
+  auto started = options_.missions->start(*request);
+  if (!started.ok()) return finishWith(context, server::toGrpc(started.status()));
+  *response->mutable_status() = std::move(*started);
+  return finishWith(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::GetMission(grpc::CallbackServerContext* context,
+                                                         const v1::GetMissionRequest* request,
+                                                         v1::GetMissionResponse* response) {
+  if (options_.missions == nullptr)
+    return finishWith(context, notServed("missions", "no missions"));
+  auto status = options_.missions->get(request->mission_id());
+  if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
+  *response->mutable_status() = std::move(*status);
+  return finishWith(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ListMissions(
+    grpc::CallbackServerContext* context, const v1::ListMissionsRequest* /*request*/,
+    v1::ListMissionsResponse* response) {
+  if (options_.missions == nullptr)
+    return finishWith(context, notServed("missions", "no missions"));
+  for (auto& status : options_.missions->list()) *response->add_missions() = std::move(status);
+  return finishWith(context, grpc::Status::OK);
+}
+
+grpc::ServerWriteReactor<v1::WatchMissionResponse>* CoordinatorService::WatchMission(
+    grpc::CallbackServerContext* /*context*/, const v1::WatchMissionRequest* request) {
+  return new MissionStreamReactor(this, request->mission_id());
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::PauseMission(grpc::CallbackServerContext* context,
+                                                           const v1::MissionControlRequest* request,
+                                                           v1::MissionControlResponse* response) {
+  if (options_.missions == nullptr)
+    return finishWith(context, notServed("missions", "no missions"));
+  auto status = options_.missions->pause(request->mission_id());
+  if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
+  *response->mutable_status() = std::move(*status);
+  return finishWith(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ResumeMission(
+    grpc::CallbackServerContext* context, const v1::MissionControlRequest* request,
+    v1::MissionControlResponse* response) {
+  if (options_.missions == nullptr)
+    return finishWith(context, notServed("missions", "no missions"));
+  auto status = options_.missions->resume(request->mission_id());
+  if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
+  *response->mutable_status() = std::move(*status);
+  return finishWith(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::AbortMission(grpc::CallbackServerContext* context,
+                                                           const v1::MissionControlRequest* request,
+                                                           v1::MissionControlResponse* response) {
+  if (options_.missions == nullptr)
+    return finishWith(context, notServed("missions", "no missions"));
+  auto status = options_.missions->abort(request->mission_id(), request->reason());
+  if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
+  *response->mutable_status() = std::move(*status);
+  return finishWith(context, grpc::Status::OK);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::EmergencyLand(grpc::CallbackServerContext* context,
+                                                            const v1::SafetyActionRequest* request,
+                                                            v1::SafetyActionResponse* response) {
+  if (options_.safety == nullptr) {
+    return finishWith(context, notServed("safety actions", "start it with --flight-controller"));
+  }
+  return runBlocking(context, [this, request, response] {
+    auto done = options_.safety->emergencyLand(request->robot_id(), request->reason());
+    if (!done.ok()) return server::toGrpc(done.status());
+    response->set_message(*done);
+    return grpc::Status::OK;
+  });
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::Kill(grpc::CallbackServerContext* context,
+                                                   const v1::SafetyActionRequest* request,
+                                                   v1::SafetyActionResponse* response) {
+  if (options_.safety == nullptr) {
+    return finishWith(context, notServed("safety actions", "start it with --flight-controller"));
+  }
+  return runBlocking(context, [this, request, response] {
+    auto done = options_.safety->kill(request->robot_id(), request->confirm(), request->reason());
+    if (!done.ok()) return server::toGrpc(done.status());
+    response->set_message(*done);
+    return grpc::Status::OK;
+  });
+}
+
+}  // namespace behaviorlib::coordinator

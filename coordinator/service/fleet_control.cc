@@ -1,0 +1,367 @@
+#include "coordinator/service/fleet_control.h"
+
+#include <grpcpp/grpcpp.h>
+
+#include <thread>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+
+namespace behaviorlib::coordinator {
+
+namespace {
+
+// The systems see the platform through streams of their own: for a moment
+// after a behavior ended (its command lease released, the flight state
+// changed), another system's situation check can still answer from the old
+// state ("the command lease is held by drone1/TAKE_OFF"). A refusal is asked
+// again until it has held this long.
+constexpr std::chrono::milliseconds kSituationSettle{500};
+
+absl::Status toAbsl(const grpc::Status& status) {
+  if (status.ok()) return absl::OkStatus();
+  return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
+}
+
+absl::Status fromSystem(const grpc::Status& status, const Registry::Route& route) {
+  return absl::Status(static_cast<absl::StatusCode>(status.error_code()),
+                      absl::StrCat("robot ", route.robot_id, ", system ", route.system, " at ",
+                                   route.address, ": ", status.error_message()));
+}
+
+}  // namespace
+
+// The plan's steps, routed to the robot's systems.
+class FleetControl::StepActions final : public PlanActions {
+ public:
+  StepActions(FleetControl& fleet, std::string robot_id, std::string target, std::string request_id)
+      : fleet_(fleet),
+        robot_id_(std::move(robot_id)),
+        target_(std::move(target)),
+        request_id_(std::move(request_id)) {}
+
+  absl::Status checkSituation(const std::string& behavior) override {
+    Registry::Route route;
+    if (auto s = fleet_.route(robot_id_, behavior, &route); !s.ok()) return s;
+    const auto until = std::chrono::steady_clock::now() + kSituationSettle;
+    absl::Status s = fleet_.callCheckSituation(route, behavior);
+    while (s.code() == absl::StatusCode::kFailedPrecondition &&
+           fleet_.options_.apply.settle_poll.count() > 0 &&
+           std::chrono::steady_clock::now() < until) {
+      std::this_thread::sleep_for(fleet_.options_.apply.settle_poll);
+      s = fleet_.callCheckSituation(route, behavior);
+    }
+    return s;
+  }
+
+  absl::StatusOr<std::string> activate(const std::string& behavior,
+                                       const google::protobuf::Struct& parameters) override {
+    Registry::Route route;
+    if (auto s = fleet_.route(robot_id_, behavior, &route); !s.ok()) return s;
+    // Requirements get a request id derived from the target's, so that a
+    // retried plan (a resumed mission) does not start them twice either.
+    const std::string request_id =
+        request_id_.empty()
+            ? ""
+            : (behavior == target_ ? request_id_ : absl::StrCat(request_id_, "/", behavior));
+    auto response = fleet_.callActivate(route, behavior, parameters, request_id);
+    if (!response.ok()) return response.status();
+    if (!response->replayed() &&
+        !fleet_.awaitSeen(response->activation_id(), fleet_.options_.event_timeout)) {
+      return absl::DeadlineExceededError(
+          absl::StrCat(behavior, " was activated (", response->activation_id(),
+                       ") but its activated event did not reach the coordinator within ",
+                       fleet_.options_.event_timeout.count(), " ms"));
+    }
+    if (behavior == target_) {
+      target_response_ = *response;
+      target_system_ = route.system;
+    }
+    return response->activation_id();
+  }
+
+  absl::Status deactivate(const std::string& behavior) override {
+    return fleet_.deactivateBehavior(robot_id_, behavior, "").status();
+  }
+
+  v1::ActivateResponse target_response_;
+  std::string target_system_;
+
+ private:
+  FleetControl& fleet_;
+  std::string robot_id_;
+  std::string target_;
+  std::string request_id_;
+};
+
+FleetControl::FleetControl(Registry& registry, FleetEventLog& log,
+                           std::shared_ptr<const Catalog> catalog, FleetControlOptions options)
+    : registry_(registry), log_(log), catalog_(std::move(catalog)), options_(std::move(options)) {
+  if (!catalog_) catalog_ = std::make_shared<Catalog>();
+  auto subscription = log_.subscribe({}, [this] { drainEvents(); });
+  {
+    std::lock_guard lock(index_mutex_);
+    subscription_ = std::move(subscription);
+  }
+  drainEvents();  // the replay is queued without a wake (and wakes before now found none)
+}
+
+FleetControl::~FleetControl() {
+  stop();
+  subscription_->cancel();
+}
+
+void FleetControl::stop() {
+  std::lock_guard lock(index_mutex_);
+  stopped_ = true;
+  index_changed_.notify_all();
+}
+
+void FleetControl::drainEvents() {
+  bool changed = false;
+  std::lock_guard lock(index_mutex_);
+  if (!subscription_) return;
+  while (FleetEventPtr event = subscription_->pop()) {
+    if (!event->has_behavior_event()) continue;
+    const v1::BehaviorEvent& e = event->behavior_event();
+    if (e.activation_id().empty()) continue;
+    if (e.has_activated() || e.has_finished()) {
+      if (seen_.insert(e.activation_id()).second) {
+        seen_order_.push_back(e.activation_id());
+        while (seen_order_.size() > options_.remembered_activations) {
+          seen_.erase(seen_order_.front());
+          finished_.erase(seen_order_.front());
+          seen_order_.pop_front();
+        }
+      }
+      changed = true;
+    }
+    if (e.has_finished()) {
+      finished_[e.activation_id()] = {e.finished().cause(), e.finished().message()};
+    }
+  }
+  if (changed) index_changed_.notify_all();
+}
+
+bool FleetControl::awaitSeen(const std::string& activation_id, std::chrono::milliseconds timeout) {
+  std::unique_lock lock(index_mutex_);
+  return index_changed_.wait_for(lock, timeout, [&] {
+    return stopped_ || seen_.contains(activation_id);
+  }) && !stopped_;
+}
+
+bool FleetControl::awaitFinishedSeen(const std::string& activation_id,
+                                     std::chrono::milliseconds timeout) {
+  std::unique_lock lock(index_mutex_);
+  return index_changed_.wait_for(lock, timeout, [&] {
+    return stopped_ || finished_.contains(activation_id);
+  }) && !stopped_;
+}
+
+std::optional<FinishedActivation> FleetControl::awaitFinished(const std::string& /*robot*/,
+                                                              const std::string& activation_id,
+                                                              std::chrono::milliseconds timeout) {
+  std::unique_lock lock(index_mutex_);
+  index_changed_.wait_for(lock, timeout,
+                          [&] { return stopped_ || finished_.contains(activation_id); });
+  auto it = finished_.find(activation_id);
+  if (it == finished_.end()) return std::nullopt;
+  return it->second;
+}
+
+std::recursive_mutex& FleetControl::robotLock(const std::string& robot_id) {
+  std::lock_guard lock(locks_mutex_);
+  auto& slot = robot_locks_[robot_id];
+  if (!slot) slot = std::make_unique<std::recursive_mutex>();
+  return *slot;
+}
+
+absl::Status FleetControl::route(const std::string& robot_id, const std::string& behavior,
+                                 Registry::Route* out) const {
+  {
+    std::lock_guard lock(index_mutex_);
+    if (stopped_) return absl::CancelledError("the coordinator is shutting down");
+  }
+  return toAbsl(registry_.route(robot_id, behavior, out));
+}
+
+absl::StatusOr<v1::ActivateResponse> FleetControl::callActivate(
+    const Registry::Route& route, const std::string& behavior,
+    const google::protobuf::Struct& parameters, const std::string& request_id) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
+  v1::ActivateBehaviorRequest request;
+  request.set_behavior(behavior);
+  *request.mutable_parameters() = parameters;
+  request.set_request_id(request_id);
+  v1::ActivateResponse response;
+  grpc::Status status = route.stub->ActivateBehavior(&context, request, &response);
+  if (!status.ok()) return fromSystem(status, route);
+  return response;
+}
+
+absl::StatusOr<v1::DeactivateResponse> FleetControl::callDeactivate(
+    const Registry::Route& route, const std::string& behavior, const std::string& activation_id) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
+  v1::DeactivateBehaviorRequest request;
+  request.set_behavior(behavior);
+  request.set_activation_id(activation_id);
+  v1::DeactivateResponse response;
+  grpc::Status status = route.stub->DeactivateBehavior(&context, request, &response);
+  if (!status.ok()) return fromSystem(status, route);
+  return response;
+}
+
+absl::Status FleetControl::callCheckSituation(const Registry::Route& route,
+                                              const std::string& behavior) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
+  v1::CheckBehaviorSituationRequest request;
+  request.set_behavior(behavior);
+  v1::CheckSituationResponse response;
+  grpc::Status status = route.stub->CheckBehaviorSituation(&context, request, &response);
+  if (!status.ok()) return fromSystem(status, route);
+  if (response.feasible()) return absl::OkStatus();
+  std::string reasons;
+  for (const auto& r : response.reasons())
+    absl::StrAppend(&reasons, reasons.empty() ? "" : "; ", r);
+  return absl::FailedPreconditionError(absl::StrCat(
+      behavior,
+      " cannot be activated now: ", reasons.empty() ? "its situation check failed" : reasons));
+}
+
+std::map<std::string, std::string> FleetControl::activeBehaviors(
+    const std::string& robot_id) const {
+  v1::ListFleetBehaviorsResponse list;
+  registry_.listBehaviors(robot_id, "", &list);
+  std::map<std::string, std::string> active;
+  for (const auto& b : list.behaviors()) {
+    const auto state = b.description().state();
+    if (state == v1::BEHAVIOR_STATE_ACTIVE || state == v1::BEHAVIOR_STATE_PAUSED) {
+      active[b.description().name()] = b.activation_id();
+    }
+  }
+  return active;
+}
+
+absl::StatusOr<FleetControl::ActivateResult> FleetControl::activateBehavior(
+    const ActivateRequest& request) {
+  Registry::Route target_route;
+  if (auto s = route(request.robot_id, request.behavior, &target_route); !s.ok()) return s;
+  ActivateResult result;
+  result.system = target_route.system;
+
+  std::lock_guard robot_lock(robotLock(request.robot_id));
+  if (request.skip_plan) {
+    result.plan = {request.robot_id, request.behavior, {}};
+    result.plan.steps.push_back({StepKind::kActivate, request.behavior, request.parameters,
+                                 "the target (the catalog's plan skipped)"});
+    if (request.dry_run) return result;
+    auto response =
+        callActivate(target_route, request.behavior, request.parameters, request.request_id);
+    if (!response.ok()) return response.status();
+    if (!response->replayed()) awaitSeen(response->activation_id(), options_.event_timeout);
+    result.activation = std::move(*response);
+    return result;
+  }
+
+  PlanRequest plan_request;
+  plan_request.robot_id = request.robot_id;
+  plan_request.target = request.behavior;
+  plan_request.parameters = request.parameters;
+  v1::ListFleetBehaviorsResponse list;
+  registry_.listBehaviors(request.robot_id, "", &list);
+  for (const auto& b : list.behaviors()) {
+    if (b.system_state() != v1::SYSTEM_STATE_UP) continue;
+    plan_request.available.insert(b.description().name());
+    const auto state = b.description().state();
+    if (state == v1::BEHAVIOR_STATE_ACTIVE || state == v1::BEHAVIOR_STATE_PAUSED) {
+      plan_request.active.insert(b.description().name());
+    }
+  }
+  // A retried request (same request id) for a target that is active already
+  // goes to its system, which answers with the activation it remembers.
+  if (!request.request_id.empty() && plan_request.active.contains(request.behavior)) {
+    result.plan = {request.robot_id, request.behavior, {}};
+    result.plan.steps.push_back({StepKind::kActivate, request.behavior, request.parameters,
+                                 "the target (a retry of request " + request.request_id + ")"});
+    if (request.dry_run) return result;
+    auto response =
+        callActivate(target_route, request.behavior, request.parameters, request.request_id);
+    if (!response.ok()) return response.status();
+    result.activation = std::move(*response);
+    return result;
+  }
+  auto plan = makePlan(*catalog_, plan_request);
+  if (!plan.ok()) return plan.status();
+  result.plan = std::move(*plan);
+  if (request.dry_run) return result;
+  StepActions actions(*this, request.robot_id, request.behavior, request.request_id);
+  auto applied = applyPlan(result.plan, actions, options_.apply);
+  if (!applied.ok()) return applied.status();
+  result.activation = std::move(actions.target_response_);
+  result.system = actions.target_system_;
+  return result;
+}
+
+absl::StatusOr<v1::DeactivateResponse> FleetControl::deactivateBehavior(
+    const std::string& robot_id, const std::string& behavior, const std::string& activation_id,
+    std::string* system) {
+  Registry::Route r;
+  if (auto s = route(robot_id, behavior, &r); !s.ok()) return s;
+  if (system != nullptr) *system = r.system;
+  std::lock_guard robot_lock(robotLock(robot_id));
+  auto response = callDeactivate(r, behavior, activation_id);
+  if (!response.ok()) {
+    // Inactive already is what the caller wants.
+    if (response.status().code() == absl::StatusCode::kFailedPrecondition &&
+        activation_id.empty() && !activeBehaviors(robot_id).contains(behavior)) {
+      return v1::DeactivateResponse();
+    }
+    return response.status();
+  }
+  if (!response->already_finished() && !response->activation_id().empty()) {
+    awaitFinishedSeen(response->activation_id(), options_.event_timeout);
+  }
+  return response;
+}
+
+absl::StatusOr<std::string> FleetControl::activate(const std::string& robot,
+                                                   const std::string& behavior,
+                                                   const google::protobuf::Struct& parameters,
+                                                   const std::string& request_id) {
+  auto done = activateBehavior({robot, behavior, parameters, request_id, false, false});
+  if (!done.ok()) return done.status();
+  return done->activation.activation_id();
+}
+
+absl::Status FleetControl::deactivate(const std::string& robot, const std::string& behavior) {
+  return deactivateBehavior(robot, behavior, "").status();
+}
+
+absl::Status FleetControl::pause(const std::string& robot, const std::string& behavior) {
+  Registry::Route r;
+  if (auto s = route(robot, behavior, &r); !s.ok()) return s;
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
+  v1::PauseBehaviorRequest request;
+  request.set_behavior(behavior);
+  v1::PauseResponse response;
+  grpc::Status status = r.stub->PauseBehavior(&context, request, &response);
+  return status.ok() ? absl::OkStatus() : fromSystem(status, r);
+}
+
+absl::Status FleetControl::resume(const std::string& robot, const std::string& behavior) {
+  Registry::Route r;
+  if (auto s = route(robot, behavior, &r); !s.ok()) return s;
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
+  v1::ResumeBehaviorRequest request;
+  request.set_behavior(behavior);
+  v1::ResumeResponse response;
+  grpc::Status status = r.stub->ResumeBehavior(&context, request, &response);
+  return status.ok() ? absl::OkStatus() : fromSystem(status, r);
+}
+
+}  // namespace behaviorlib::coordinator

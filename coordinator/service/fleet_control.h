@@ -1,0 +1,161 @@
+#pragma once
+
+// FleetControl: the coordinator's blocking operations on the fleet, shared by
+// the gRPC service (ActivateBehavior with the catalog's plan), the missions
+// (it is their MissionActions) and the safety policy.
+//
+//   FleetControl fleet(registry, log, catalog, {});
+//   auto done = fleet.activateBehavior({.robot_id = "drone1", .behavior = "FOLLOW_PATH",
+//                                       .parameters = params});
+//   // done->plan: CheckSituation, deactivate what conflicts, activate what is
+//   // missing, activate the target; applied under the robot's lock.
+//   auto finished = fleet.awaitFinished("drone1", done->activation.activation_id(), 10s);
+//
+// Activations of one robot are serialized (one plan at a time per robot);
+// different robots proceed in parallel. After each activation or
+// deactivation of a plan, FleetControl waits until the system's event has
+// reached the coordinator's event log, so that the next plan sees the robot
+// as it is. It follows the log itself (an index of activations seen and
+// finished), so awaitFinished also answers for an activation that finished
+// before it was asked.
+//
+// Calls block: callers are the service's worker pool and mission threads,
+// never gRPC's callback threads. Thread-safe.
+
+#include <google/protobuf/struct.pb.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <deque>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <set>
+#include <string>
+#include <unordered_map>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+#include "behaviorlib/v1/behavior.pb.h"
+#include "coordinator/catalog/catalog.h"
+#include "coordinator/catalog/planner.h"
+#include "coordinator/mission/mission_runner.h"
+#include "coordinator/service/fleet_event_log.h"
+#include "coordinator/service/registry.h"
+
+namespace behaviorlib::coordinator {
+
+struct FleetControlOptions {
+  /// Deadline of each call to a behavior system.
+  std::chrono::milliseconds call_timeout{10000};
+  /// How long a plan step waits for its event to reach the coordinator.
+  std::chrono::milliseconds event_timeout{3000};
+  /// Retrying CheckSituation of a behavior whose requirement was just
+  /// activated (see ApplyOptions).
+  ApplyOptions apply;
+  /// Finished activations remembered for awaitFinished.
+  size_t remembered_activations = 100000;
+};
+
+class FleetControl final : public MissionActions {
+ public:
+  /// `catalog` may be empty (no rules: every activation is the target only).
+  FleetControl(Registry& registry, FleetEventLog& log, std::shared_ptr<const Catalog> catalog,
+               FleetControlOptions options = {});
+  ~FleetControl() override;
+  FleetControl(const FleetControl&) = delete;
+  FleetControl& operator=(const FleetControl&) = delete;
+
+  const Catalog* catalog() const { return catalog_.get(); }
+
+  struct ActivateRequest {
+    std::string robot_id;
+    std::string behavior;
+    google::protobuf::Struct parameters;
+    std::string request_id;
+    /// Only make the plan.
+    bool dry_run = false;
+    /// Only activate the target (no plan).
+    bool skip_plan = false;
+  };
+  struct ActivateResult {
+    std::string system;
+    /// The target's activation (empty for a dry run).
+    v1::ActivateResponse activation;
+    Plan plan;
+  };
+  /// Plans and applies (see the header comment). Status codes: those of
+  /// makePlan (NOT_FOUND, FAILED_PRECONDITION, INVALID_ARGUMENT), those of the
+  /// failing step with the step named, UNAVAILABLE when a system is down,
+  /// CANCELLED after stop().
+  absl::StatusOr<ActivateResult> activateBehavior(const ActivateRequest& request);
+
+  /// Deactivates one behavior (INTERRUPTED) under the robot's lock and waits
+  /// for its finished event to reach the log; OK when it was inactive. `system` receives the
+  /// hosting system.
+  absl::StatusOr<v1::DeactivateResponse> deactivateBehavior(const std::string& robot_id,
+                                                            const std::string& behavior,
+                                                            const std::string& activation_id,
+                                                            std::string* system = nullptr);
+
+  /// The robot's active (or paused) behaviors as the event stream tells,
+  /// with their activation ids.
+  std::map<std::string, std::string> activeBehaviors(const std::string& robot_id) const;
+
+  /// Ends every blocking call in progress (CANCELLED) and refuses new ones.
+  void stop();
+
+  // MissionActions.
+  absl::StatusOr<std::string> activate(const std::string& robot, const std::string& behavior,
+                                       const google::protobuf::Struct& parameters,
+                                       const std::string& request_id) override;
+  absl::Status deactivate(const std::string& robot, const std::string& behavior) override;
+  absl::Status pause(const std::string& robot, const std::string& behavior) override;
+  absl::Status resume(const std::string& robot, const std::string& behavior) override;
+  std::optional<FinishedActivation> awaitFinished(const std::string& robot,
+                                                  const std::string& activation_id,
+                                                  std::chrono::milliseconds timeout) override;
+
+ private:
+  class StepActions;
+
+  // The robot's serialization lock.
+  std::recursive_mutex& robotLock(const std::string& robot_id);
+  // Calls a system; the status names robot, system and address.
+  absl::Status route(const std::string& robot_id, const std::string& behavior,
+                     Registry::Route* out) const;
+  absl::StatusOr<v1::ActivateResponse> callActivate(const Registry::Route& route,
+                                                    const std::string& behavior,
+                                                    const google::protobuf::Struct& parameters,
+                                                    const std::string& request_id);
+  absl::StatusOr<v1::DeactivateResponse> callDeactivate(const Registry::Route& route,
+                                                        const std::string& behavior,
+                                                        const std::string& activation_id);
+  absl::Status callCheckSituation(const Registry::Route& route, const std::string& behavior);
+
+  // Event index, fed by a subscription to the log.
+  void drainEvents();
+  /// Waits until the activated (or finished) event of `activation_id` is in
+  /// the log; false on timeout or stop.
+  bool awaitSeen(const std::string& activation_id, std::chrono::milliseconds timeout);
+  bool awaitFinishedSeen(const std::string& activation_id, std::chrono::milliseconds timeout);
+
+  Registry& registry_;
+  FleetEventLog& log_;
+  std::shared_ptr<const Catalog> catalog_;
+  const FleetControlOptions options_;
+
+  std::mutex locks_mutex_;
+  std::map<std::string, std::unique_ptr<std::recursive_mutex>> robot_locks_;
+
+  mutable std::mutex index_mutex_;
+  std::condition_variable index_changed_;
+  bool stopped_ = false;
+  std::unordered_map<std::string, FinishedActivation> finished_;  // by activation id
+  std::set<std::string> seen_;                                    // activated or finished
+  std::deque<std::string> seen_order_;                            // eviction order
+  std::unique_ptr<FleetSubscription> subscription_;
+};
+
+}  // namespace behaviorlib::coordinator

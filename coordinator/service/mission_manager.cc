@@ -1,0 +1,424 @@
+#include "coordinator/service/mission_manager.h"
+
+#include <google/protobuf/util/time_util.h>
+#include <grpcpp/grpcpp.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <limits>
+#include <random>
+#include <set>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+
+namespace behaviorlib::coordinator {
+
+namespace {
+
+std::string newMissionId(const std::string& name) {
+  static std::mutex mutex;
+  static std::mt19937_64 rng{std::random_device{}()};
+  std::lock_guard lock(mutex);
+  char suffix[9];
+  std::snprintf(suffix, sizeof(suffix), "%08x", static_cast<unsigned>(rng() & 0xffffffffu));
+  return absl::StrCat(name.empty() ? "mission" : name, "-", suffix);
+}
+
+void collectBehaviors(const std::vector<MissionStep>& steps, std::set<std::string>* out) {
+  for (const auto& step : steps) {
+    if (!step.behavior.empty()) out->insert(step.behavior);
+    for (const auto& [cause, action] : step.on) {
+      collectBehaviors(action.fallback, out);
+      for (auto then = action.then; then; then = then->then) collectBehaviors(then->fallback, out);
+    }
+  }
+}
+
+absl::Status unknownMission(const std::string& mission_id) {
+  return absl::NotFoundError(
+      absl::StrCat("no mission '", mission_id, "' (ListMissions lists them)"));
+}
+
+std::set<std::string> behaviorsOf(const MissionSpec& spec) {
+  std::set<std::string> names;
+  collectBehaviors(spec.recurrent, &names);
+  collectBehaviors(spec.safety, &names);
+  collectBehaviors(spec.steps, &names);
+  return names;
+}
+
+// The newest event seq of the behavior system at `address` (the start
+// message of its WatchEvents, asked for events after the largest seq: nothing
+// is replayed); nullopt when it cannot be asked.
+std::optional<uint64_t> latestSeqOf(const std::string& address) {
+  auto stub =
+      v1::BehaviorSystem::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(2));
+  v1::WatchEventsRequest request;
+  request.set_since_seq(std::numeric_limits<uint64_t>::max() - 1);
+  auto reader = stub->WatchEvents(&context, request);
+  v1::WatchEventsResponse message;
+  std::optional<uint64_t> latest;
+  if (reader->Read(&message) && message.has_start()) latest = message.start().latest_seq();
+  context.TryCancel();
+  (void)reader->Finish();
+  return latest;
+}
+
+// True when every system hosting one of `behaviors` on the robot is UP and
+// the coordinator has received every event it had emitted: the registry then
+// knows what is active there, so that a resumed mission's plans see the robot
+// as it is (its repeated activations are replays, not conflicts).
+bool systemsCaughtUp(const Registry& registry, const std::set<std::string>& behaviors,
+                     const std::string& robot_id, std::string* lagging) {
+  std::set<std::string> systems;
+  for (const auto& behavior : behaviors) {
+    Registry::Route route;
+    if (registry.route(robot_id, behavior, &route).ok()) systems.insert(route.system);
+  }
+  v1::ListSystemsResponse list;
+  registry.listSystems(robot_id, &list);
+  for (const auto& s : list.systems()) {
+    if (!systems.contains(s.system())) continue;
+    if (s.state() != v1::SYSTEM_STATE_UP) {
+      *lagging = absl::StrCat("system ", s.system(), " (", v1::SystemState_Name(s.state()), ")");
+      return false;
+    }
+    const std::optional<uint64_t> latest = latestSeqOf(s.address());
+    if (!latest || s.last_event_seq() < *latest) {
+      *lagging = absl::StrCat("system ", s.system(), " (its event replay is not complete)");
+      return false;
+    }
+  }
+  return true;
+}
+
+}  // namespace
+
+MissionManager::MissionManager(FleetControl& fleet, Registry& registry, BeliefStore& beliefs,
+                               Journal* journal, MissionManagerOptions options)
+    : fleet_(fleet), registry_(registry), beliefs_(beliefs), journal_(journal), options_(options) {}
+
+MissionManager::~MissionManager() { stop(); }
+
+bool MissionManager::ended(const v1::MissionStatus& status) {
+  return status.has_end_time() || status.state() == v1::MISSION_STATE_SUCCEEDED;
+}
+
+void MissionManager::stop() {
+  std::vector<std::unique_ptr<MissionRunner>> runners;
+  std::vector<std::thread> resumers;
+  {
+    std::lock_guard lock(mutex_);
+    stopped_ = true;
+    for (auto& [id, entry] : missions_) {
+      if (entry.runner) runners.push_back(std::move(entry.runner));
+    }
+    resumers.swap(resumers_);
+  }
+  stop_cv_.notify_all();
+  for (auto& t : resumers) t.join();
+  runners.clear();  // joins their threads; onChange may still run meanwhile
+}
+
+void MissionManager::restore(const v1::MissionStatus& status) {
+  std::lock_guard lock(mutex_);
+  Entry& entry = missions_[status.mission_id()];
+  if (entry.order == 0) entry.order = next_order_++;
+  entry.status = status;
+}
+
+void MissionManager::resumeRestored() {
+  std::lock_guard lock(mutex_);
+  for (const auto& [id, entry] : missions_) {
+    if (ended(entry.status) || entry.runner) continue;
+    resumers_.emplace_back([this, id = id] { resumeOne(id); });
+  }
+}
+
+bool MissionManager::behaviorsRoutable(const MissionSpec& spec, const std::string& robot_id,
+                                       std::string* missing) const {
+  for (const auto& behavior : behaviorsOf(spec)) {
+    Registry::Route route;
+    if (!registry_.route(robot_id, behavior, &route).ok()) {
+      *missing = behavior;
+      return false;
+    }
+  }
+  return true;
+}
+
+void MissionManager::resumeOne(const std::string& mission_id) {
+  v1::MissionStatus status;
+  {
+    std::lock_guard lock(mutex_);
+    status = missions_.at(mission_id).status;
+  }
+  auto fail = [&](const std::string& why) {
+    status.set_state(v1::MISSION_STATE_FAILED);
+    status.set_message(why);
+    *status.mutable_end_time() = google::protobuf::util::TimeUtil::GetCurrentTime();
+    onChange(status);
+  };
+  auto spec = parseMission(status.source(), status.file());
+  if (!spec.ok()) {
+    fail(absl::StrCat("cannot resume after a coordinator restart: ", spec.status().message()));
+    return;
+  }
+  // Wait until every behavior the mission names is served again (the
+  // systems register with the new coordinator within a heartbeat).
+  const auto deadline = std::chrono::steady_clock::now() + options_.resume_wait;
+  std::string missing;
+  for (;;) {
+    if (behaviorsRoutable(*spec, status.robot_id(), &missing) &&
+        systemsCaughtUp(registry_, behaviorsOf(*spec), status.robot_id(), &missing)) {
+      break;
+    }
+    std::unique_lock lock(mutex_);
+    if (stop_cv_.wait_for(lock, std::chrono::milliseconds(100), [&] { return stopped_; })) return;
+    if (std::chrono::steady_clock::now() > deadline) {
+      lock.unlock();
+      fail(absl::StrCat("cannot resume after a coordinator restart: ", missing, " on robot '",
+                        status.robot_id(), "' was not served again within ",
+                        options_.resume_wait.count(), " ms"));
+      return;
+    }
+  }
+  std::lock_guard lock(mutex_);
+  if (stopped_) return;
+  std::fprintf(stderr, "coordinator: resuming mission %s (%s) on robot %s\n", mission_id.c_str(),
+               v1::MissionState_Name(status.state()).c_str(), status.robot_id().c_str());
+  Entry& entry = missions_.at(mission_id);
+  entry.geofence = spec->geofence;
+  entry.runner =
+      std::make_unique<MissionRunner>(std::move(*spec), status, fleet_, beliefs_,
+                                      [this](const v1::MissionStatus& s) { onChange(s); });
+  entry.runner->start();
+}
+
+void MissionManager::onChange(const v1::MissionStatus& status) {
+  if (journal_ != nullptr) {
+    v1::JournalRecord record;
+    *record.mutable_mission() = status;
+    if (auto s = journal_->append(record); !s.ok()) {
+      std::fprintf(stderr, "coordinator: mission %s: cannot journal its status: %s\n",
+                   status.mission_id().c_str(), std::string(s.message()).c_str());
+    }
+  }
+  std::vector<Listener> listeners;
+  {
+    std::lock_guard lock(mutex_);
+    auto it = missions_.find(status.mission_id());
+    if (it != missions_.end()) it->second.status = status;
+    for (const auto& [token, listener] : listeners_) {
+      if (listener.first == status.mission_id()) listeners.push_back(listener.second);
+    }
+  }
+  for (const auto& listener : listeners) listener(status);
+}
+
+absl::Status MissionManager::checkAgainstRegistry(const MissionSpec& spec,
+                                                  const std::string& robot_id) const {
+  v1::ListFleetBehaviorsResponse list;
+  registry_.listBehaviors(robot_id, "", &list);
+  std::map<std::string, v1::BehaviorDescription> hosted;
+  for (const auto& b : list.behaviors()) hosted[b.description().name()] = b.description();
+  if (hosted.empty()) {
+    return absl::FailedPreconditionError(absl::StrCat(
+        "robot '", robot_id, "' has no registered behavior system: start its systems first"));
+  }
+  return checkMission(spec, [&](const std::string& behavior) -> const v1::BehaviorDescription* {
+    auto it = hosted.find(behavior);
+    return it == hosted.end() ? nullptr : &it->second;
+  });
+}
+
+absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRequest& request) {
+  std::string text;
+  std::string file;
+  absl::StatusOr<MissionSpec> spec = absl::InvalidArgumentError(
+      "no mission: set file_path (a mission file the coordinator can read) or text");
+  if (request.has_file_path()) {
+    file = request.file_path();
+    spec = loadMission(file);
+    if (spec.ok()) {
+      // Keep the text so that a restarted coordinator can parse it again.
+      FILE* f = std::fopen(file.c_str(), "rb");
+      if (f != nullptr) {
+        char buffer[4096];
+        size_t n;
+        while ((n = std::fread(buffer, 1, sizeof(buffer), f)) > 0) text.append(buffer, n);
+        std::fclose(f);
+      }
+    }
+  } else if (request.has_text()) {
+    file = "<mission text>";
+    text = request.text();
+    spec = parseMission(text, file);
+  }
+  if (!spec.ok()) return spec.status();
+  const std::string robot_id = request.robot_id().empty() ? spec->robot_id : request.robot_id();
+  if (robot_id.empty()) {
+    return absl::InvalidArgumentError(absl::StrCat(
+        file, ": no robot: give `robot:` in the mission file or robot_id in the request"));
+  }
+  if (!request.mission_id().empty()) {
+    if (auto existing = get(request.mission_id()); existing.ok()) return existing;
+  }
+  if (auto s = checkAgainstRegistry(*spec, robot_id); !s.ok()) return s;
+
+  std::lock_guard lock(mutex_);
+  if (stopped_) return absl::UnavailableError("the coordinator is shutting down");
+  for (const auto& [id, entry] : missions_) {
+    if (entry.status.robot_id() == robot_id && !ended(entry.status)) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("robot '", robot_id, "' runs mission '", id, "' (",
+                       v1::MissionState_Name(entry.status.state()), "): abort it first"));
+    }
+  }
+  const std::string mission_id =
+      request.mission_id().empty() ? newMissionId(spec->name) : request.mission_id();
+  Entry& entry = missions_[mission_id];
+  entry.order = next_order_++;
+  entry.geofence = spec->geofence;
+  entry.runner = std::make_unique<MissionRunner>(
+      std::move(*spec), mission_id, robot_id, text, fleet_, beliefs_,
+      [this](const v1::MissionStatus& s) { onChange(s); });
+  entry.status = entry.runner->status();
+  entry.runner->start();
+  return entry.status;
+}
+
+absl::StatusOr<v1::MissionStatus> MissionManager::get(const std::string& mission_id) const {
+  std::lock_guard lock(mutex_);
+  auto it = missions_.find(mission_id);
+  if (it == missions_.end()) {
+    return absl::NotFoundError(
+        absl::StrCat("no mission '", mission_id, "' (ListMissions lists them)"));
+  }
+  return it->second.runner ? it->second.runner->status() : it->second.status;
+}
+
+std::vector<v1::MissionStatus> MissionManager::list() const {
+  std::vector<std::pair<uint64_t, v1::MissionStatus>> all;
+  {
+    std::lock_guard lock(mutex_);
+    for (const auto& [id, entry] : missions_) {
+      all.emplace_back(entry.order, entry.runner ? entry.runner->status() : entry.status);
+    }
+  }
+  std::sort(all.begin(), all.end(), [](const auto& a, const auto& b) { return a.first > b.first; });
+  std::vector<v1::MissionStatus> out;
+  for (auto& [order, status] : all) out.push_back(std::move(status));
+  return out;
+}
+
+std::optional<std::string> MissionManager::runningMissionOf(const std::string& robot_id) const {
+  std::lock_guard lock(mutex_);
+  for (const auto& [id, entry] : missions_) {
+    if (entry.status.robot_id() == robot_id && !ended(entry.status)) return id;
+  }
+  return std::nullopt;
+}
+
+std::optional<std::pair<std::string, Geofence>> MissionManager::geofenceOf(
+    const std::string& robot_id) const {
+  std::lock_guard lock(mutex_);
+  for (const auto& [id, entry] : missions_) {
+    if (entry.status.robot_id() == robot_id && !ended(entry.status) && entry.geofence) {
+      return std::make_pair(id, *entry.geofence);
+    }
+  }
+  return std::nullopt;
+}
+
+absl::StatusOr<v1::MissionStatus> MissionManager::pause(const std::string& mission_id) {
+  MissionRunner* runner = nullptr;
+  {
+    std::lock_guard lock(mutex_);
+    auto it = missions_.find(mission_id);
+    if (it == missions_.end()) return unknownMission(mission_id);  // mutex_ is held
+    runner = it->second.runner.get();
+    if (runner == nullptr) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("mission '", mission_id, "' is not running here (",
+                       v1::MissionState_Name(it->second.status.state()), ")"));
+    }
+  }
+  if (auto s = runner->pause(); !s.ok()) return s;
+  return runner->status();
+}
+
+absl::StatusOr<v1::MissionStatus> MissionManager::resume(const std::string& mission_id) {
+  MissionRunner* runner = nullptr;
+  {
+    std::lock_guard lock(mutex_);
+    auto it = missions_.find(mission_id);
+    if (it == missions_.end()) return unknownMission(mission_id);  // mutex_ is held
+    runner = it->second.runner.get();
+    if (runner == nullptr) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("mission '", mission_id, "' is not running here (",
+                       v1::MissionState_Name(it->second.status.state()), ")"));
+    }
+  }
+  if (auto s = runner->resume(); !s.ok()) return s;
+  return runner->status();
+}
+
+absl::StatusOr<v1::MissionStatus> MissionManager::abort(const std::string& mission_id,
+                                                        const std::string& reason,
+                                                        bool run_safety) {
+  MissionRunner* runner = nullptr;
+  {
+    std::lock_guard lock(mutex_);
+    auto it = missions_.find(mission_id);
+    if (it == missions_.end()) return unknownMission(mission_id);  // mutex_ is held
+    runner = it->second.runner.get();
+    if (runner == nullptr) {
+      return absl::FailedPreconditionError(
+          absl::StrCat("mission '", mission_id, "' is not running here (",
+                       v1::MissionState_Name(it->second.status.state()), ")"));
+    }
+  }
+  if (auto s = runner->abort(reason, run_safety); !s.ok()) return s;
+  return runner->status();
+}
+
+absl::StatusOr<uint64_t> MissionManager::watch(const std::string& mission_id, Listener listener) {
+  v1::MissionStatus now;
+  uint64_t token = 0;
+  {
+    std::lock_guard lock(mutex_);
+    auto it = missions_.find(mission_id);
+    if (it == missions_.end()) {
+      return absl::NotFoundError(
+          absl::StrCat("no mission '", mission_id, "' (ListMissions lists them)"));
+    }
+    now = it->second.runner ? it->second.runner->status() : it->second.status;
+    token = next_token_++;
+    listeners_[token] = {mission_id, listener};
+  }
+  listener(now);
+  return token;
+}
+
+void MissionManager::unwatch(uint64_t token) {
+  std::lock_guard lock(mutex_);
+  listeners_.erase(token);
+}
+
+std::vector<v1::JournalRecord> MissionManager::snapshot() const {
+  std::vector<v1::JournalRecord> records;
+  std::lock_guard lock(mutex_);
+  for (const auto& [id, entry] : missions_) {
+    v1::JournalRecord record;
+    *record.mutable_mission() = entry.runner ? entry.runner->status() : entry.status;
+    records.push_back(std::move(record));
+  }
+  return records;
+}
+
+}  // namespace behaviorlib::coordinator

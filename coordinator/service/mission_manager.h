@@ -1,0 +1,127 @@
+#pragma once
+
+// MissionManager: the coordinator's missions. Parses and checks a mission
+// file against what the robot's systems registered (nothing flies before the
+// file is known good), runs it with a MissionRunner over FleetControl, and
+// journals every status change before the runner acts on it. At start the
+// journal's statuses are restored; a mission that was running is resumed as
+// soon as every behavior it names is served again, and the runner's request
+// ids make the behavior systems answer a repeated activation with the
+// activation they remember (nothing is activated twice).
+//
+//   MissionManager missions(fleet, registry, beliefs, journal.get(), {});
+//   missions.restore(status);          // each journaled MissionStatus, in order
+//   missions.resumeRestored();         // once the server is up
+//   auto started = missions.start(request);
+//   missions.stop();                   // shutdown: running missions stay RUNNING
+//
+// Thread-safe.
+
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "behaviorlib/v1/coordinator.pb.h"
+#include "behaviorlib/v1/mission.pb.h"
+#include "coordinator/belief/belief_store.h"
+#include "coordinator/durable/journal.h"
+#include "coordinator/mission/mission_runner.h"
+#include "coordinator/service/fleet_control.h"
+#include "coordinator/service/registry.h"
+
+namespace behaviorlib::coordinator {
+
+struct MissionManagerOptions {
+  /// How long a restored mission waits for its robot's systems to be back
+  /// before it is marked FAILED.
+  std::chrono::milliseconds resume_wait{60000};
+};
+
+class MissionManager {
+ public:
+  MissionManager(FleetControl& fleet, Registry& registry, BeliefStore& beliefs, Journal* journal,
+                 MissionManagerOptions options = {});
+  /// Stops (see stop()).
+  ~MissionManager();
+  MissionManager(const MissionManager&) = delete;
+  MissionManager& operator=(const MissionManager&) = delete;
+
+  /// One journaled status (journal replay, before resumeRestored()); the
+  /// latest one per mission id wins.
+  void restore(const v1::MissionStatus& status);
+  /// Resumes every restored mission that had not ended, each once its
+  /// behaviors are routable again (on a thread of its own).
+  void resumeRestored();
+
+  /// INVALID_ARGUMENT naming file, line and problem for a bad mission;
+  /// FAILED_PRECONDITION when the robot runs another mission; an existing
+  /// mission id returns that mission.
+  absl::StatusOr<v1::MissionStatus> start(const v1::StartMissionRequest& request);
+  absl::StatusOr<v1::MissionStatus> get(const std::string& mission_id) const;
+  /// Newest first.
+  std::vector<v1::MissionStatus> list() const;
+  absl::StatusOr<v1::MissionStatus> pause(const std::string& mission_id);
+  absl::StatusOr<v1::MissionStatus> resume(const std::string& mission_id);
+  absl::StatusOr<v1::MissionStatus> abort(const std::string& mission_id, const std::string& reason,
+                                          bool run_safety = true);
+  /// The id of the robot's mission that has not ended, if any.
+  std::optional<std::string> runningMissionOf(const std::string& robot_id) const;
+  /// The geofence of the robot's running mission, with the mission's id.
+  std::optional<std::pair<std::string, Geofence>> geofenceOf(const std::string& robot_id) const;
+
+  /// Calls `listener` with the mission's status now and after every change
+  /// (from the runner's thread; it must not block). Returns a token for
+  /// unwatch(); NOT_FOUND for an unknown id.
+  using Listener = std::function<void(const v1::MissionStatus&)>;
+  absl::StatusOr<uint64_t> watch(const std::string& mission_id, Listener listener);
+  void unwatch(uint64_t token);
+
+  /// Journal records of the current state (beliefs are the store's), for
+  /// compaction.
+  std::vector<v1::JournalRecord> snapshot() const;
+
+  /// Stops every runner without ending its mission (the journal keeps it
+  /// RUNNING for the next coordinator).
+  void stop();
+
+ private:
+  struct Entry {
+    v1::MissionStatus status;
+    std::unique_ptr<MissionRunner> runner;
+    std::optional<Geofence> geofence;
+    uint64_t order = 0;  // start order, for list()
+  };
+
+  void onChange(const v1::MissionStatus& status);
+  absl::Status checkAgainstRegistry(const MissionSpec& spec, const std::string& robot_id) const;
+  bool behaviorsRoutable(const MissionSpec& spec, const std::string& robot_id,
+                         std::string* missing) const;
+  void resumeOne(const std::string& mission_id);
+  static bool ended(const v1::MissionStatus& status);
+
+  FleetControl& fleet_;
+  Registry& registry_;
+  BeliefStore& beliefs_;
+  Journal* journal_;
+  const MissionManagerOptions options_;
+
+  mutable std::mutex mutex_;
+  std::condition_variable stop_cv_;
+  bool stopped_ = false;
+  std::map<std::string, Entry> missions_;
+  uint64_t next_order_ = 1;
+  uint64_t next_token_ = 1;
+  std::map<uint64_t, std::pair<std::string, Listener>> listeners_;
+  std::vector<std::thread> resumers_;
+};
+
+}  // namespace behaviorlib::coordinator

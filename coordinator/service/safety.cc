@@ -1,0 +1,437 @@
+#include "coordinator/service/safety.h"
+
+#include <cstdio>
+#include <set>
+#include <utility>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_format.h"
+#include "behaviorlib/v1/platform.pb.h"
+#include "channel/channel_client.h"
+#include "flight_common/topics.h"
+#include "platform/flight_controller_client.h"
+#include "platform/flight_state_watcher.h"
+
+namespace behaviorlib::coordinator {
+
+namespace {
+
+bool airborne(v1::FlightState state) {
+  return state == v1::FLIGHT_STATE_TAKING_OFF || state == v1::FLIGHT_STATE_FLYING ||
+         state == v1::FLIGHT_STATE_HOVERING;
+}
+
+constexpr char kSafetyHolderSuffix[] = "/coordinator-safety";
+constexpr std::chrono::seconds kSafetyLeaseTtl{10};
+
+}  // namespace
+
+struct SafetyController::Robot {
+  Robot(std::string id, const std::string& address)
+      : robot_id(std::move(id)),
+        fc(std::make_unique<platform::FlightControllerClient>(address, robot_id)),
+        watcher(std::make_unique<platform::FlightStateWatcher>(*fc)) {}
+
+  std::string robot_id;
+  std::unique_ptr<platform::FlightControllerClient> fc;
+  std::unique_ptr<platform::FlightStateWatcher> watcher;
+  std::unique_ptr<channel::Subscription> pose_subscription;
+
+  // Guarded by SafetyController::mutex_.
+  bool acting = false;  // an action thread is running for this robot
+  bool failure_fired = false, battery_fired = false, geofence_fired = false;
+  // Motion controllers active when the coordinator took the lease: they fail
+  // because of it, which is no controller failure.
+  std::set<std::string> preempted_controllers;
+  std::optional<v1::PoseStamped> pose;
+  std::chrono::steady_clock::time_point pose_received;
+};
+
+SafetyController::SafetyController(FleetControl& fleet, MissionManager& missions,
+                                   FleetEventLog& log, SafetyOptions options)
+    : fleet_(fleet), missions_(missions), log_(log), options_(std::move(options)) {
+  if (!options_.channel_address.empty()) {
+    channel_ = std::make_unique<channel::ChannelClient>(options_.channel_address);
+  }
+}
+
+SafetyController::~SafetyController() { stop(); }
+
+void SafetyController::addRobot(const std::string& robot_id, const std::string& flight_controller) {
+  auto robot = std::make_unique<Robot>(robot_id, flight_controller);
+  Robot* raw = robot.get();
+  if (channel_) {
+    raw->pose_subscription = channel_->subscribeTyped<v1::PoseStamped>(
+        flight::poseEstimateTopic(robot_id), {}, [this, raw](const v1::PoseStamped& pose) {
+          std::lock_guard lock(mutex_);
+          raw->pose = pose;
+          raw->pose_received = std::chrono::steady_clock::now();
+        });
+  }
+  std::lock_guard lock(mutex_);
+  robots_[robot_id] = std::move(robot);
+}
+
+void SafetyController::start() {
+  FleetSubscribeOptions from_now;
+  from_now.since_seq = log_.latestSeq();
+  auto subscription = log_.subscribe(from_now, [this] { onEvents(); });
+  {
+    std::lock_guard lock(mutex_);
+    subscription_ = std::move(subscription);
+  }
+  onEvents();
+  policy_ = std::thread([this] { policyLoop(); });
+}
+
+void SafetyController::stop() {
+  std::vector<std::thread> actions;
+  {
+    std::lock_guard lock(mutex_);
+    if (stopping_ && !policy_.joinable() && actions_.empty()) return;
+    stopping_ = true;
+  }
+  cv_.notify_all();
+  if (policy_.joinable()) policy_.join();
+  {
+    std::lock_guard lock(mutex_);
+    actions.swap(actions_);
+  }
+  for (auto& t : actions) t.join();
+  std::unique_ptr<FleetSubscription> subscription;
+  {
+    std::lock_guard lock(mutex_);
+    subscription.swap(subscription_);
+  }
+  if (subscription) subscription->cancel();
+}
+
+SafetyController::Robot* SafetyController::find(const std::string& robot_id) const {
+  std::lock_guard lock(mutex_);
+  auto it = robots_.find(robot_id);
+  return it == robots_.end() ? nullptr : it->second.get();
+}
+
+std::vector<std::string> SafetyController::firedRules() const {
+  std::lock_guard lock(mutex_);
+  return fired_;
+}
+
+void SafetyController::onEvents() {
+  // Runs on the log's appending thread: only note what happened.
+  bool noted = false;
+  std::lock_guard lock(mutex_);
+  if (!subscription_) return;
+  while (FleetEventPtr event = subscription_->pop()) {
+    if (!event->has_behavior_event()) continue;
+    const v1::BehaviorEvent& e = event->behavior_event();
+    if (!e.has_finished() || e.finished().cause() != v1::TERMINATION_CAUSE_PROCESS_FAILURE) {
+      continue;
+    }
+    const CatalogBehavior* entry = fleet_.catalog()->find(e.behavior());
+    if (entry == nullptr) continue;
+    bool controller = false;
+    for (const auto& cap : entry->provides) controller |= cap == "motion_control";
+    auto robot = robots_.find(e.robot_id());
+    if (!controller || robot == robots_.end()) continue;
+    if (robot->second->preempted_controllers.contains(e.activation_id())) continue;
+    pending_failures_.push_back(e.robot_id() + "\n" + e.behavior() + ": " + e.finished().message());
+    noted = true;
+  }
+  if (noted) cv_.notify_all();
+}
+
+void SafetyController::policyLoop() {
+  for (;;) {
+    std::vector<Robot*> robots;
+    std::vector<std::string> failures;
+    {
+      std::unique_lock lock(mutex_);
+      cv_.wait_for(lock, options_.poll, [&] { return stopping_ || !pending_failures_.empty(); });
+      if (stopping_) return;
+      failures.swap(pending_failures_);
+      for (auto& [id, robot] : robots_) robots.push_back(robot.get());
+    }
+    for (const auto& failure : failures) {
+      const auto split = failure.find('\n');
+      Robot* robot = find(failure.substr(0, split));
+      if (robot == nullptr) continue;
+      auto status = robot->watcher->latest();
+      if (status.ok() && !airborne(status->state())) continue;
+      bool fire_now = false;
+      {
+        std::lock_guard lock(mutex_);
+        fire_now = !robot->failure_fired && !robot->acting;
+        robot->failure_fired = true;
+      }
+      if (fire_now) {
+        fire(*robot,
+             absl::StrCat("motion controller failed (", failure.substr(split + 1),
+                          "): hover, then land"),
+             true, true, false);
+      }
+    }
+    for (Robot* robot : robots) checkRobot(*robot);
+  }
+}
+
+void SafetyController::checkRobot(Robot& robot) {
+  auto status = robot.watcher->latest();
+  if (!status.ok()) return;
+  const bool flying = airborne(status->state());
+  std::string rule;
+  bool hover_first = false, land = false, with_safety_steps = false;
+  {
+    std::lock_guard lock(mutex_);
+    if (!flying) {
+      if (status->state() == v1::FLIGHT_STATE_LANDED && !robot.acting) {
+        robot.failure_fired = robot.battery_fired = robot.geofence_fired = false;
+        robot.preempted_controllers.clear();
+      }
+      return;
+    }
+    if (robot.acting) return;
+    if (!robot.failure_fired && status->failsafe_active()) {
+      robot.failure_fired = true;
+      rule =
+          "the platform's lease failsafe engaged (the motion controller lost its lease): "
+          "hover, then land";
+      hover_first = land = true;
+    } else if (!robot.battery_fired && status->battery_ratio() < options_.critical_battery_ratio) {
+      robot.battery_fired = true;
+      rule = absl::StrFormat("battery %.2f below the critical %.2f: land", status->battery_ratio(),
+                             options_.critical_battery_ratio);
+      land = true;
+    } else if (!robot.geofence_fired && robot.pose &&
+               std::chrono::steady_clock::now() - robot.pose_received < std::chrono::seconds(2)) {
+      std::optional<Geofence> fence = options_.geofence;
+      std::string whose = "the configured geofence";
+      if (auto mission = missions_.geofenceOf(robot.robot_id)) {
+        fence = mission->second;
+        whose = "the geofence of mission " + mission->first;
+      }
+      const auto& p = robot.pose->pose().position_m();
+      if (fence && !fence->contains(p.x(), p.y(), p.z())) {
+        robot.geofence_fired = true;
+        rule = absl::StrFormat("left %s at (%.2f, %.2f, %.2f): hover and abort the mission", whose,
+                               p.x(), p.y(), p.z());
+        hover_first = true;
+        with_safety_steps = true;
+      }
+    }
+  }
+  if (!rule.empty()) fire(robot, rule, hover_first, land, with_safety_steps);
+}
+
+void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_first, bool land,
+                            bool abort_with_safety_steps) {
+  const std::string said = robot.robot_id + ": " + rule;
+  std::fprintf(stderr, "coordinator: safety: %s\n", said.c_str());
+  std::lock_guard lock(mutex_);
+  if (stopping_) return;
+  fired_.push_back(said);
+  robot.acting = true;
+  actions_.emplace_back([this, &robot, rule, hover_first, land, abort_with_safety_steps] {
+    // Take the vehicle first (preempting whoever commands it), then stand
+    // the mission down: the safety steps of an abort may need the lease.
+    std::string lease_id;
+    auto lease = takeLease(robot);
+    if (lease.ok()) lease_id = lease->lease_id();
+    if (hover_first && lease.ok()) {
+      (void)robot.fc->executeFlightAction(lease_id, v1::FLIGHT_ACTION_HOVER);
+    }
+    if (!land) {
+      // Hand the vehicle back hovering; the mission's safety steps (if any)
+      // take it from here.
+      if (lease.ok()) (void)robot.fc->releaseLease(lease_id);
+      standDown(robot.robot_id, "safety: " + rule, abort_with_safety_steps);
+    } else {
+      standDown(robot.robot_id, "safety: " + rule, abort_with_safety_steps);
+      if (hover_first) {
+        std::unique_lock lock(mutex_);
+        cv_.wait_for(lock, options_.hover_before_land, [&] { return stopping_; });
+      }
+      if (lease.ok()) {
+        // The behaviors that commanded the vehicle are gone: land, keeping
+        // the lease alive until the vehicle is down.
+        lease = takeLease(robot);
+        if (lease.ok()) lease_id = lease->lease_id();
+        auto landed = robot.fc->executeFlightAction(lease_id, v1::FLIGHT_ACTION_LAND);
+        if (!landed.ok()) {
+          std::fprintf(stderr, "coordinator: safety: %s: LAND refused (%s); EMERGENCY_LAND\n",
+                       robot.robot_id.c_str(), std::string(landed.status().message()).c_str());
+          (void)robot.fc->executeFlightAction(lease_id, v1::FLIGHT_ACTION_EMERGENCY_LAND);
+        }
+        const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(2);
+        while (std::chrono::steady_clock::now() < deadline) {
+          auto status = robot.watcher->latest();
+          if (status.ok() && !airborne(status->state()) &&
+              status->state() != v1::FLIGHT_STATE_LANDING) {
+            break;
+          }
+          if (!robot.fc->renewLease(lease_id).ok()) break;  // taken over, or gone
+          std::unique_lock lock(mutex_);
+          if (cv_.wait_for(lock, std::chrono::milliseconds(100), [&] { return stopping_; })) break;
+        }
+        (void)robot.fc->releaseLease(lease_id);
+      } else {
+        std::fprintf(stderr, "coordinator: safety: %s: no lease (%s); EMERGENCY_LAND\n",
+                     robot.robot_id.c_str(), std::string(lease.status().message()).c_str());
+        (void)robot.fc->executeFlightAction("", v1::FLIGHT_ACTION_EMERGENCY_LAND);
+      }
+    }
+    std::lock_guard lock(mutex_);
+    robot.acting = false;
+  });
+}
+
+std::string SafetyController::standDown(const std::string& robot_id, const std::string& reason,
+                                        bool run_safety_steps) {
+  std::string done;
+  if (auto mission = missions_.runningMissionOf(robot_id)) {
+    auto aborted = missions_.abort(*mission, reason, run_safety_steps);
+    auto now = missions_.get(*mission);
+    if (!aborted.ok() && now.ok() && now->state() == v1::MISSION_STATE_ABORTED) {
+      done = absl::StrCat("; mission ", *mission, " aborted");  // by an earlier call
+    } else if (!aborted.ok()) {
+      done = absl::StrCat("; mission ", *mission, " not aborted: ", aborted.status().message());
+    } else {
+      done = absl::StrCat("; mission ", *mission, " aborted");
+      // The runner looks at an abort between its waits: deactivating its
+      // behavior before it has would end the mission FAILED on that step.
+      const auto deadline = std::chrono::steady_clock::now() + options_.mission_ack_timeout;
+      for (;;) {
+        auto status = missions_.get(*mission);
+        if (!status.ok() || status->state() == v1::MISSION_STATE_ABORTED ||
+            status->state() == v1::MISSION_STATE_FAILED || status->has_end_time()) {
+          break;
+        }
+        if (std::chrono::steady_clock::now() >= deadline) {
+          absl::StrAppend(&done, " (its runner had not taken the abort within ",
+                          options_.mission_ack_timeout.count(), " ms)");
+          break;
+        }
+        std::unique_lock lock(mutex_);
+        if (cv_.wait_for(lock, std::chrono::milliseconds(5), [&] { return stopping_; })) break;
+      }
+    }
+  }
+  if (run_safety_steps) return done;  // the mission's safety steps command the vehicle
+  int deactivated = 0;
+  for (const auto& [behavior, activation] : fleet_.activeBehaviors(robot_id)) {
+    const CatalogBehavior* entry = fleet_.catalog()->find(behavior);
+    if (entry == nullptr) continue;
+    bool commands = false;
+    for (const auto& r : entry->holds)
+      commands |= r == "platform_commands" || r == "motion_reference";
+    if (!commands) continue;
+    if (fleet_.deactivateBehavior(robot_id, behavior, activation).ok()) ++deactivated;
+  }
+  return absl::StrCat(done, "; ", deactivated, " commanding behaviors deactivated");
+}
+
+absl::StatusOr<v1::AcquireLeaseResponse> SafetyController::takeLease(Robot& robot) {
+  std::set<std::string> controllers;
+  for (const auto& [behavior, activation] : fleet_.activeBehaviors(robot.robot_id)) {
+    const CatalogBehavior* entry = fleet_.catalog()->find(behavior);
+    if (entry == nullptr) continue;
+    for (const auto& cap : entry->provides) {
+      if (cap == "motion_control") controllers.insert(activation);
+    }
+  }
+  {
+    std::lock_guard lock(mutex_);
+    robot.preempted_controllers.insert(controllers.begin(), controllers.end());
+  }
+  return robot.fc->acquireLease(robot.robot_id + kSafetyHolderSuffix, kSafetyLeaseTtl,
+                                /*preempt=*/true);
+}
+
+absl::StatusOr<std::string> SafetyController::flightAction(Robot& robot, int action, bool confirm) {
+  const auto kind = static_cast<v1::FlightAction>(action);
+  // The lease keeps a behavior still running from commanding meanwhile; the
+  // platform accepts these actions without it.
+  auto lease = takeLease(robot);
+  const std::string lease_id = lease.ok() ? lease->lease_id() : "";
+  auto state = robot.fc->executeFlightAction(lease_id, kind, 0.0, confirm);
+  // Released at once: in EMERGENCY the platform takes no setpoint or action
+  // but KILL, and a lease kept would refuse the next take-off.
+  if (!lease_id.empty()) (void)robot.fc->releaseLease(lease_id);
+  if (!state.ok()) return state.status();
+  return absl::StrCat(v1::FlightAction_Name(kind), " accepted by the flight controller at ",
+                      robot.fc->address(), " (state ", v1::FlightState_Name(*state), ")");
+}
+
+absl::StatusOr<std::string> SafetyController::emergencyLand(const std::string& robot_id,
+                                                            const std::string& reason) {
+  Robot* robot = find(robot_id);
+  if (robot == nullptr) {
+    return absl::NotFoundError(absl::StrCat("no flight controller known for robot '", robot_id,
+                                            "': start the coordinator with --flight-controller ",
+                                            robot_id, "=host:port"));
+  }
+  // Stand down first, within the budget, then land whatever the stand-down
+  // got done (it goes on in the background).
+  struct StandDown {
+    std::mutex mutex;
+    std::condition_variable cv;
+    bool done = false;
+    std::string result;
+  };
+  auto shared = std::make_shared<StandDown>();
+  const std::string why = "emergency land" + (reason.empty() ? "" : ": " + reason);
+  {
+    std::lock_guard lock(mutex_);
+    if (stopping_) return absl::UnavailableError("the coordinator is shutting down");
+    fired_.push_back(robot_id + ": EmergencyLand requested: " + reason);
+    actions_.emplace_back([this, shared, robot_id, why] {
+      std::string result = standDown(robot_id, why, false);
+      std::lock_guard lock(shared->mutex);
+      shared->result = std::move(result);
+      shared->done = true;
+      shared->cv.notify_all();
+    });
+  }
+  std::string stood_down;
+  {
+    std::unique_lock lock(shared->mutex);
+    if (shared->cv.wait_for(lock, options_.stand_down_budget, [&] { return shared->done; })) {
+      stood_down = shared->result;
+    } else {
+      stood_down = absl::StrCat("; standing down (mission abort, deactivations) took longer than ",
+                                options_.stand_down_budget.count(), " ms: goes on meanwhile");
+    }
+  }
+  auto done = flightAction(*robot, v1::FLIGHT_ACTION_EMERGENCY_LAND, false);
+  if (!done.ok()) return done.status();
+  return *done + stood_down;
+}
+
+absl::StatusOr<std::string> SafetyController::kill(const std::string& robot_id, bool confirm,
+                                                   const std::string& reason) {
+  if (!confirm) {
+    return absl::InvalidArgumentError(
+        "Kill stops the motors and the vehicle falls: set confirm to true to do it");
+  }
+  Robot* robot = find(robot_id);
+  if (robot == nullptr) {
+    return absl::NotFoundError(absl::StrCat("no flight controller known for robot '", robot_id,
+                                            "': start the coordinator with --flight-controller ",
+                                            robot_id, "=host:port"));
+  }
+  const std::string why = "kill" + (reason.empty() ? "" : ": " + reason);
+  // Motors off first; the mission is told at once (so that it ends ABORTED
+  // for this reason), its behaviors are deactivated after.
+  if (auto mission = missions_.runningMissionOf(robot_id)) {
+    (void)missions_.abort(*mission, why, /*run_safety=*/false);
+  }
+  auto done = flightAction(*robot, v1::FLIGHT_ACTION_KILL, true);
+  if (!done.ok()) return done.status();
+  {
+    std::lock_guard lock(mutex_);
+    fired_.push_back(robot_id + ": Kill requested: " + reason);
+  }
+  return *done + standDown(robot_id, why, false);
+}
+
+}  // namespace behaviorlib::coordinator

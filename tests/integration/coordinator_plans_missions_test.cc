@@ -1,0 +1,1084 @@
+// The coordinator's activation plans and missions against the real stack:
+// the channel broker, the simulator at 5x (fixed seed), basic_quadrotor_behaviors
+// and quadrotor_motion_with_pid_control (each registering with --coordinator),
+// and the coordinator with the shipped behavior catalog and a --state-dir,
+// every one a real process on free loopback ports, driven over gRPC (and
+// behaviorctl). Behavior times are simulated time; every wait is bounded in
+// wall time.
+
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <array>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <memory>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "coordinator_test_support.h"
+#include "support/server_process.h"
+
+namespace coordinator_test {
+namespace {
+
+constexpr char kRobot[] = "drone1";
+constexpr char kCatalog[] = BEHAVIORLIB_CATALOG_PATH;
+constexpr char kDemoMission[] = BEHAVIORLIB_DEMO_MISSION_PATH;
+// 5x: a process starved for 0.1 s of wall time misses 0.5 s of simulated
+// time, within the systems' staleness limits (1 s).
+constexpr char kTimeScale[] = "5";
+constexpr char kSeed[] = "7";
+constexpr char kSelfLocalize[] = "SELF_LOCALIZE_WITH_GROUND_TRUTH";
+constexpr char kPid[] = "QUADROTOR_PID_MOTION_CONTROL";
+
+using google::protobuf::util::MessageToJsonString;
+
+std::string json(const google::protobuf::Message& message) {
+  std::string out;
+  (void)MessageToJsonString(message, &out);
+  return out;
+}
+
+/// The behavior events of kRobot in the coordinator's WatchEvents, kept in
+/// order; waits look at the whole history, so the order of the waits does
+/// not matter.
+class FleetRecorder {
+ public:
+  explicit FleetRecorder(const std::string& address)
+      : stub_(v1::Coordinator::NewStub(
+            grpc::CreateChannel(address, grpc::InsecureChannelCredentials()))) {
+    context_.set_deadline(std::chrono::system_clock::now() + seconds(120));
+    v1::WatchFleetEventsRequest request;
+    request.add_robot_ids(kRobot);
+    reader_ = stub_->WatchEvents(&context_, request);
+    thread_ = std::thread([this] {
+      v1::WatchFleetEventsResponse message;
+      while (reader_->Read(&message)) {
+        std::lock_guard lock(mutex_);
+        if (message.has_start()) started_ = true;
+        if (message.has_event() && message.event().has_behavior_event()) {
+          events_.push_back(message.event().behavior_event());
+        }
+        cv_.notify_all();
+      }
+      reader_->Finish();
+      std::lock_guard lock(mutex_);
+      ended_ = true;
+      cv_.notify_all();
+    });
+  }
+  ~FleetRecorder() {
+    context_.TryCancel();
+    thread_.join();
+  }
+  FleetRecorder(const FleetRecorder&) = delete;
+  FleetRecorder& operator=(const FleetRecorder&) = delete;
+
+  bool waitStarted(milliseconds timeout = kEventTimeout) {
+    std::unique_lock lock(mutex_);
+    return cv_.wait_for(lock, timeout, [&] { return started_; });
+  }
+
+  /// The first event matching `predicate`, waiting up to `timeout`.
+  std::optional<v1::BehaviorEvent> waitFor(
+      const std::function<bool(const v1::BehaviorEvent&)>& predicate,
+      milliseconds timeout = kEventTimeout) {
+    std::unique_lock lock(mutex_);
+    std::optional<v1::BehaviorEvent> found;
+    cv_.wait_for(lock, timeout, [&] {
+      for (const auto& e : events_) {
+        if (predicate(e)) {
+          found = e;
+          return true;
+        }
+      }
+      return ended_;
+    });
+    return found;
+  }
+  std::optional<v1::BehaviorEvent> finished(const std::string& activation_id,
+                                            milliseconds timeout = kEventTimeout) {
+    return waitFor(
+        [&](const v1::BehaviorEvent& e) {
+          return e.activation_id() == activation_id && e.has_finished();
+        },
+        timeout);
+  }
+  std::optional<v1::BehaviorEvent> activated(const std::string& activation_id,
+                                             milliseconds timeout = kEventTimeout) {
+    return waitFor(
+        [&](const v1::BehaviorEvent& e) {
+          return e.activation_id() == activation_id && e.has_activated();
+        },
+        timeout);
+  }
+  std::vector<v1::BehaviorEvent> events() {
+    std::lock_guard lock(mutex_);
+    return events_;
+  }
+
+ private:
+  std::unique_ptr<v1::Coordinator::Stub> stub_;
+  grpc::ClientContext context_;
+  std::unique_ptr<grpc::ClientReader<v1::WatchFleetEventsResponse>> reader_;
+  std::thread thread_;
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  std::vector<v1::BehaviorEvent> events_;
+  bool started_ = false;
+  bool ended_ = false;
+};
+
+/// A WatchMission stream: every status received, kept in order.
+class MissionWatcher {
+ public:
+  MissionWatcher(const std::string& address, const std::string& mission_id)
+      : stub_(v1::Coordinator::NewStub(
+            grpc::CreateChannel(address, grpc::InsecureChannelCredentials()))) {
+    context_.set_deadline(std::chrono::system_clock::now() + seconds(120));
+    v1::WatchMissionRequest request;
+    request.set_mission_id(mission_id);
+    reader_ = stub_->WatchMission(&context_, request);
+    thread_ = std::thread([this] {
+      v1::WatchMissionResponse message;
+      while (reader_->Read(&message)) {
+        std::lock_guard lock(mutex_);
+        statuses_.push_back(message.status());
+        cv_.notify_all();
+      }
+      grpc::Status status = reader_->Finish();
+      std::lock_guard lock(mutex_);
+      end_status_ = status;
+      ended_ = true;
+      cv_.notify_all();
+    });
+  }
+  ~MissionWatcher() {
+    context_.TryCancel();
+    thread_.join();
+  }
+  MissionWatcher(const MissionWatcher&) = delete;
+  MissionWatcher& operator=(const MissionWatcher&) = delete;
+
+  /// The first status received that matches `predicate`.
+  std::optional<v1::MissionStatus> waitFor(
+      const std::function<bool(const v1::MissionStatus&)>& predicate, milliseconds timeout) {
+    std::unique_lock lock(mutex_);
+    std::optional<v1::MissionStatus> found;
+    cv_.wait_for(lock, timeout, [&] {
+      for (const auto& s : statuses_) {
+        if (predicate(s)) {
+          found = s;
+          return true;
+        }
+      }
+      return ended_;
+    });
+    return found;
+  }
+  /// Waits until the stream ends (it ends after the mission has ended); the
+  /// last status, or nullopt on timeout or an error status.
+  std::optional<v1::MissionStatus> waitEnd(milliseconds timeout) {
+    std::unique_lock lock(mutex_);
+    if (!cv_.wait_for(lock, timeout, [&] { return ended_; })) {
+      ADD_FAILURE() << "the mission did not end within " << timeout.count()
+                    << " ms; last: " << (statuses_.empty() ? "none" : json(statuses_.back()));
+      return std::nullopt;
+    }
+    EXPECT_TRUE(end_status_.ok()) << describe(end_status_);
+    if (statuses_.empty()) return std::nullopt;
+    return statuses_.back();
+  }
+  std::vector<v1::MissionStatus> statuses() {
+    std::lock_guard lock(mutex_);
+    return statuses_;
+  }
+  /// The stream's final status, once it ended (within `timeout`).
+  std::optional<grpc::Status> endStatus(milliseconds timeout) {
+    std::unique_lock lock(mutex_);
+    if (!cv_.wait_for(lock, timeout, [&] { return ended_; })) return std::nullopt;
+    return end_status_;
+  }
+
+ private:
+  std::unique_ptr<v1::Coordinator::Stub> stub_;
+  grpc::ClientContext context_;
+  std::unique_ptr<grpc::ClientReader<v1::WatchMissionResponse>> reader_;
+  std::thread thread_;
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  std::vector<v1::MissionStatus> statuses_;
+  bool ended_ = false;
+  grpc::Status end_status_;
+};
+
+/// Every event a behavior system retains (its own WatchEvents from
+/// since_seq 0, up to its latest seq at the time of the call).
+std::vector<v1::BehaviorEvent> systemHistory(const std::string& address) {
+  auto stub =
+      v1::BehaviorSystem::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + kCallTimeout);
+  v1::WatchEventsRequest request;
+  request.set_since_seq(0);
+  auto reader = stub->WatchEvents(&context, request);
+  v1::WatchEventsResponse message;
+  std::vector<v1::BehaviorEvent> events;
+  if (!reader->Read(&message) || !message.has_start()) {
+    ADD_FAILURE() << "no WatchEventsStart from " << address;
+    return events;
+  }
+  const uint64_t latest = message.start().latest_seq();
+  EXPECT_FALSE(message.start().events_dropped()) << "the history is complete";
+  while (events.size() < latest && reader->Read(&message)) {
+    if (message.has_event()) events.push_back(message.event());
+    if (message.has_event() && message.event().seq() >= latest) break;
+  }
+  context.TryCancel();
+  reader->Finish();
+  return events;
+}
+
+/// Runs `command` with a shell; its exit code, and its output in `output`.
+int run(const std::string& command, std::string* output) {
+  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
+  if (!pipe) return -1;
+  char buffer[4096];
+  size_t n;
+  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) output->append(buffer, n);
+  const int status = pclose(pipe);
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
+// JSON of a path_m value: [{"x": .., "y": .., "z": ..}, ...].
+std::string pathJson(const std::vector<std::array<double, 3>>& points) {
+  std::string out = "[";
+  for (size_t i = 0; i < points.size(); ++i) {
+    out += (i ? ", " : "") + std::string("{\"x\": ") + std::to_string(points[i][0]) +
+           ", \"y\": " + std::to_string(points[i][1]) + ", \"z\": " + std::to_string(points[i][2]) +
+           "}";
+  }
+  return out + "]";
+}
+
+// The points of a path_m value: {x, y, z} objects, an absent coordinate
+// being 0 (a system's Struct of its parameter message leaves zeros out).
+std::vector<std::array<double, 3>> pointsOf(const google::protobuf::Value& value) {
+  std::vector<std::array<double, 3>> points;
+  for (const auto& item : value.list_value().values()) {
+    std::array<double, 3> point{};
+    const auto& fields = item.struct_value().fields();
+    const char* const axes[] = {"x", "y", "z"};
+    for (size_t i = 0; i < 3; ++i) {
+      if (auto it = fields.find(axes[i]); it != fields.end()) point[i] = it->second.number_value();
+    }
+    points.push_back(point);
+  }
+  return points;
+}
+
+std::string causeOf(const v1::BehaviorEvent& e) {
+  return v1::TerminationCause_Name(e.finished().cause()) + " " + e.finished().message();
+}
+
+class CoordinatorPlansMissionsTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    char dir[] = "/tmp/coordinator_plans_XXXXXX";
+    ASSERT_NE(mkdtemp(dir), nullptr);
+    state_dir_ = dir;
+    ASSERT_TRUE(broker_.start()) << broker_.error();
+    simulator_ = std::make_unique<support::ServerProcess>(
+        BEHAVIORLIB_SIMULATOR_PATH,
+        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
+                                 "--time-scale", kTimeScale, "--seed", kSeed});
+    ASSERT_TRUE(simulator_->start()) << simulator_->error();
+    ASSERT_NO_FATAL_FAILURE(startCoordinator({}));
+    basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH);
+    pid_ = startSystem(BEHAVIORLIB_PID_SYSTEM_PATH, BEHAVIORLIB_PID_CONFIG_PATH);
+    ASSERT_TRUE(basic_ && pid_);
+    ASSERT_NO_FATAL_FAILURE(waitForSystems());
+  }
+
+  void TearDown() override {
+    recorder_.reset();
+    for (auto* p : {&pid_, &basic_}) {
+      if (*p && (*p)->running()) (*p)->kill();
+    }
+    if (coordinator_ && coordinator_->running()) {
+      EXPECT_EQ(coordinator_->terminate(), 0) << "the coordinator exits 0 on SIGTERM";
+    }
+    if (simulator_ && simulator_->running()) simulator_->kill();
+    std::filesystem::remove_all(state_dir_);
+  }
+
+  void startCoordinator(std::vector<std::string> extra) {
+    std::vector<std::string> args = {
+        "--catalog", kCatalog, "--state-dir", state_dir_, "--heartbeat-interval-s", "0.25"};
+    args.insert(args.end(), extra.begin(), extra.end());
+    coordinator_ = std::make_unique<support::ServerProcess>(BEHAVIORLIB_COORDINATOR_PATH, args);
+    ASSERT_TRUE(coordinator_->start()) << coordinator_->error();
+    client_ = std::make_unique<CoordinatorClient>(coordinator_->address());
+    stub_ = v1::Coordinator::NewStub(
+        grpc::CreateChannel(coordinator_->address(), grpc::InsecureChannelCredentials()));
+  }
+
+  std::unique_ptr<support::ServerProcess> startSystem(const std::string& binary,
+                                                      const std::string& config) {
+    auto system = std::make_unique<support::ServerProcess>(
+        binary,
+        std::vector<std::string>{"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
+                                 "sim", "--flight-controller", simulator_->address(), "--config",
+                                 config, "--coordinator", coordinator_->address()});
+    if (!system->start()) {
+      ADD_FAILURE() << binary << ": " << system->error();
+      return nullptr;
+    }
+    return system;
+  }
+
+  // Both systems of kRobot registered and UP.
+  void waitForSystems() {
+    ASSERT_TRUE(waitUntil(
+        [&] {
+          auto reply = client_->listSystems(kRobot);
+          if (!reply.status.ok() || reply.response.systems_size() != 2) return false;
+          for (const auto& s : reply.response.systems()) {
+            if (s.state() != v1::SYSTEM_STATE_UP) return false;
+          }
+          return true;
+        },
+        seconds(10)))
+        << json(client_->listSystems(kRobot).response);
+  }
+
+  // The recorder of the coordinator's event stream (started now).
+  FleetRecorder& recorder() {
+    recorder_ = std::make_unique<FleetRecorder>(coordinator_->address());
+    EXPECT_TRUE(recorder_->waitStarted());
+    return *recorder_;
+  }
+
+  Reply<v1::ActivateFleetBehaviorResponse> activate(const std::string& behavior,
+                                                    const std::string& parameters_json,
+                                                    bool dry_run = false) {
+    v1::ActivateFleetBehaviorRequest request;
+    request.set_robot_id(kRobot);
+    request.set_behavior(behavior);
+    *request.mutable_parameters() = structFromJson(parameters_json);
+    request.set_dry_run(dry_run);
+    // A plan waits for events and retries situation checks: more than kCallTimeout.
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + seconds(20));
+    Reply<v1::ActivateFleetBehaviorResponse> reply;
+    reply.status = stub_->ActivateBehavior(&context, request, &reply.response);
+    return reply;
+  }
+
+  // The behavior's state and activation id as the coordinator lists them.
+  std::pair<v1::BehaviorState, std::string> stateOf(const std::string& behavior) {
+    auto reply = client_->listBehaviors(kRobot, behavior);
+    EXPECT_TRUE(reply.status.ok()) << describe(reply.status);
+    if (reply.response.behaviors_size() != 1) {
+      ADD_FAILURE() << behavior << " listed " << reply.response.behaviors_size() << " times";
+      return {v1::BEHAVIOR_STATE_UNSPECIFIED, ""};
+    }
+    const auto& b = reply.response.behaviors(0);
+    return {b.description().state(), b.activation_id()};
+  }
+
+  // The names of kRobot's active (or paused) behaviors.
+  std::set<std::string> activeBehaviors() {
+    auto reply = client_->listBehaviors(kRobot);
+    EXPECT_TRUE(reply.status.ok()) << describe(reply.status);
+    std::set<std::string> active;
+    for (const auto& b : reply.response.behaviors()) {
+      if (b.description().state() == v1::BEHAVIOR_STATE_ACTIVE ||
+          b.description().state() == v1::BEHAVIOR_STATE_PAUSED) {
+        active.insert(b.description().name());
+      }
+    }
+    return active;
+  }
+
+  Reply<v1::StartMissionResponse> startMissionText(const std::string& text,
+                                                   const std::string& mission_id = "") {
+    v1::StartMissionRequest request;
+    request.set_text(text);
+    request.set_mission_id(mission_id);
+    return unary(*stub_, &v1::Coordinator::Stub::StartMission, request);
+  }
+  Reply<v1::StartMissionResponse> startMissionFile(const std::string& path,
+                                                   const std::string& mission_id = "") {
+    v1::StartMissionRequest request;
+    request.set_file_path(path);
+    request.set_mission_id(mission_id);
+    return unary(*stub_, &v1::Coordinator::Stub::StartMission, request);
+  }
+  Reply<v1::MissionControlResponse> control(
+      grpc::Status (v1::Coordinator::Stub::*method)(grpc::ClientContext*,
+                                                    const v1::MissionControlRequest&,
+                                                    v1::MissionControlResponse*),
+      const std::string& mission_id, const std::string& reason = "") {
+    v1::MissionControlRequest request;
+    request.set_mission_id(mission_id);
+    request.set_reason(reason);
+    return unary(*stub_, method, request);
+  }
+  Reply<v1::WriteBeliefResponse> writeBelief(const std::string& key,
+                                             const std::string& value_json) {
+    v1::WriteBeliefRequest request;
+    request.set_key(key);
+    EXPECT_TRUE(
+        google::protobuf::util::JsonStringToMessage(value_json, request.mutable_value()).ok())
+        << value_json;
+    request.set_writer("operator");
+    return unary(*stub_, &v1::Coordinator::Stub::WriteBelief, request);
+  }
+
+  // Runs the mission `text` to its end (bounded); its final status.
+  v1::MissionStatus runMission(const std::string& text, milliseconds timeout = seconds(30)) {
+    auto started = startMissionText(text);
+    EXPECT_TRUE(started.status.ok()) << describe(started.status);
+    if (!started.status.ok()) return {};
+    MissionWatcher watcher(coordinator_->address(), started.response.status().mission_id());
+    return watcher.waitEnd(timeout).value_or(v1::MissionStatus());
+  }
+
+  std::string state_dir_;
+  support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
+  std::unique_ptr<support::ServerProcess> simulator_;
+  std::unique_ptr<support::ServerProcess> coordinator_;
+  std::unique_ptr<support::ServerProcess> basic_;
+  std::unique_ptr<support::ServerProcess> pid_;
+  std::unique_ptr<CoordinatorClient> client_;
+  std::unique_ptr<v1::Coordinator::Stub> stub_;
+  std::unique_ptr<FleetRecorder> recorder_;
+};
+
+// Issue items: a dry run returns the plan and activates nothing; requirements
+// are activated by the plan; a failing step rolls the plan back; an
+// incompatible activation deactivates the other (INTERRUPTED).
+TEST_F(CoordinatorPlansMissionsTest, PlansActivateRequirementsRollBackAndInterruptConflicts) {
+  FleetRecorder& events = recorder();
+  const std::string path = pathJson({{3.0, 0.0, 1.0}, {3.0, 3.0, 1.0}});
+
+  // 1. Dry run of FOLLOW_PATH on a robot with nothing active: the plan, and
+  // nothing activated.
+  auto dry = activate("FOLLOW_PATH", "{\"path_m\": " + path + ", \"speed_m_s\": 0.5}", true);
+  ASSERT_TRUE(dry.status.ok()) << describe(dry.status);
+  EXPECT_TRUE(dry.response.activation().activation_id().empty());
+  EXPECT_EQ(dry.response.system(), "quadrotor_motion_with_pid_control");
+  using Step = v1::ActivationPlanStep;
+  const std::vector<std::pair<Step::Kind, std::string>> expected = {
+      {Step::KIND_CHECK_SITUATION, kSelfLocalize}, {Step::KIND_ACTIVATE, kSelfLocalize},
+      {Step::KIND_CHECK_SITUATION, kPid},          {Step::KIND_ACTIVATE, kPid},
+      {Step::KIND_CHECK_SITUATION, "FOLLOW_PATH"}, {Step::KIND_ACTIVATE, "FOLLOW_PATH"}};
+  ASSERT_EQ(dry.response.plan_size(), static_cast<int>(expected.size())) << json(dry.response);
+  for (size_t i = 0; i < expected.size(); ++i) {
+    const auto& step = dry.response.plan(static_cast<int>(i));
+    EXPECT_EQ(step.kind(), expected[i].first) << json(step);
+    EXPECT_EQ(step.behavior(), expected[i].second) << json(step);
+  }
+  EXPECT_EQ(dry.response.plan(1).reason(), "provides self_localization required by FOLLOW_PATH");
+  EXPECT_EQ(dry.response.plan(3).reason(), "provides motion_control required by FOLLOW_PATH");
+  EXPECT_EQ(dry.response.plan(5).reason(), "the target");
+  EXPECT_EQ(dry.response.plan(5).parameters().fields().at("speed_m_s").number_value(), 0.5)
+      << "the caller's parameters in the target's step";
+  EXPECT_EQ(dry.response.plan(5).parameters().fields().at("path_m").list_value().values_size(), 2);
+  EXPECT_TRUE(activeBehaviors().empty()) << "a dry run activates nothing";
+  EXPECT_FALSE(events.waitFor([](const v1::BehaviorEvent&) { return true; }, milliseconds(300)))
+      << "a dry run activates nothing: " << json(events.events().front());
+
+  // 2a. TAKE_OFF: the plan activates its requirement, self-localization.
+  auto take_off = activate("TAKE_OFF", R"({"altitude_m": 1.0})");
+  ASSERT_TRUE(take_off.status.ok()) << describe(take_off.status);
+  ASSERT_EQ(take_off.response.plan_size(), 4) << json(take_off.response);
+  EXPECT_EQ(take_off.response.plan(1).kind(), Step::KIND_ACTIVATE);
+  EXPECT_EQ(take_off.response.plan(1).behavior(), kSelfLocalize);
+  EXPECT_EQ(take_off.response.plan(1).reason(), "provides self_localization required by TAKE_OFF");
+  const auto [localize_state, localize_id] = stateOf(kSelfLocalize);
+  EXPECT_EQ(localize_state, v1::BEHAVIOR_STATE_ACTIVE);
+  ASSERT_TRUE(events.activated(localize_id)) << "activated by the plan, seen in the stream";
+  const std::string take_off_id = take_off.response.activation().activation_id();
+  auto took_off = events.finished(take_off_id, seconds(20));
+  ASSERT_TRUE(took_off) << "TAKE_OFF did not finish";
+  ASSERT_EQ(took_off->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << causeOf(*took_off);
+
+  // 4. A failing step rolls the plan back: the PID controller is activated
+  // as FOLLOW_PATH's requirement, FOLLOW_PATH refuses its parameters, the
+  // controller is stopped again; self-localization (not started by this
+  // plan) stays.
+  auto refused = activate("FOLLOW_PATH", "{\"path_m\": " + path + ", \"speed_m_s\": 50}");
+  ASSERT_EQ(refused.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << describe(refused.status);
+  const std::string message = refused.status.error_message();
+  EXPECT_NE(message.find("step 4 of 4 (activate FOLLOW_PATH)"), std::string::npos) << message;
+  EXPECT_NE(message.find("speed_m_s"), std::string::npos) << message;
+  EXPECT_NE(message.find("what the plan activated was stopped"), std::string::npos) << message;
+  EXPECT_EQ(stateOf(kPid).first, v1::BEHAVIOR_STATE_INACTIVE) << "rolled back";
+  EXPECT_EQ(stateOf("FOLLOW_PATH").first, v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_EQ(stateOf(kSelfLocalize), std::make_pair(v1::BEHAVIOR_STATE_ACTIVE, localize_id));
+  auto rolled_back = events.waitFor(
+      [](const v1::BehaviorEvent& e) { return e.behavior() == kPid && e.has_finished(); });
+  ASSERT_TRUE(rolled_back) << "the controller the plan started was not stopped";
+  EXPECT_EQ(rolled_back->finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+  EXPECT_TRUE(events.activated(rolled_back->activation_id())) << "it had been activated";
+
+  // 2b. FOLLOW_PATH: the plan activates the PID controller (self-localization
+  // is active already).
+  auto follow = activate("FOLLOW_PATH", "{\"path_m\": " + path + ", \"speed_m_s\": 0.5}");
+  ASSERT_TRUE(follow.status.ok()) << describe(follow.status);
+  ASSERT_EQ(follow.response.plan_size(), 4) << json(follow.response);
+  EXPECT_EQ(follow.response.plan(1).behavior(), kPid);
+  EXPECT_EQ(follow.response.plan(1).kind(), Step::KIND_ACTIVATE);
+  EXPECT_EQ(follow.response.plan(1).reason(), "provides motion_control required by FOLLOW_PATH");
+  const std::string follow_id = follow.response.activation().activation_id();
+  const auto [pid_state, pid_id] = stateOf(kPid);
+  ASSERT_EQ(pid_state, v1::BEHAVIOR_STATE_ACTIVE);
+  EXPECT_NE(pid_id, rolled_back->activation_id()) << "a new activation";
+  EXPECT_EQ(stateOf("FOLLOW_PATH"), std::make_pair(v1::BEHAVIOR_STATE_ACTIVE, follow_id));
+
+  // 3. HOVER_WITH_FLIGHT_ACTION_CONTROL holds the platform's commands and
+  // the motion reference: FOLLOW_PATH, then its controller, are deactivated
+  // and finish INTERRUPTED.
+  auto hover = activate("HOVER_WITH_FLIGHT_ACTION_CONTROL", "{}");
+  ASSERT_TRUE(hover.status.ok()) << describe(hover.status);
+  ASSERT_GE(hover.response.plan_size(), 4) << json(hover.response);
+  EXPECT_EQ(hover.response.plan(0).kind(), Step::KIND_DEACTIVATE);
+  EXPECT_EQ(hover.response.plan(0).behavior(), "FOLLOW_PATH") << "users before what they use";
+  EXPECT_EQ(hover.response.plan(0).reason(),
+            "holds motion_reference, which HOVER_WITH_FLIGHT_ACTION_CONTROL needs");
+  EXPECT_EQ(hover.response.plan(1).kind(), Step::KIND_DEACTIVATE);
+  EXPECT_EQ(hover.response.plan(1).behavior(), kPid);
+  EXPECT_EQ(hover.response.plan(1).reason(),
+            "holds platform_commands, which HOVER_WITH_FLIGHT_ACTION_CONTROL needs");
+  for (const std::string& id : {follow_id, pid_id}) {
+    auto finished = events.finished(id);
+    ASSERT_TRUE(finished) << id << " did not finish in the coordinator's stream";
+    EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED)
+        << causeOf(*finished);
+  }
+  EXPECT_EQ(activeBehaviors(),
+            (std::set<std::string>{kSelfLocalize, "HOVER_WITH_FLIGHT_ACTION_CONTROL"}));
+
+  // LAND takes over from the hover the same way, and lands.
+  auto land = activate("LAND", "{}");
+  ASSERT_TRUE(land.status.ok()) << describe(land.status);
+  auto hovered = events.finished(hover.response.activation().activation_id());
+  ASSERT_TRUE(hovered);
+  EXPECT_EQ(hovered->finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+  auto landed = events.finished(land.response.activation().activation_id(), seconds(20));
+  ASSERT_TRUE(landed) << "LAND did not finish";
+  EXPECT_EQ(landed->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED) << causeOf(*landed);
+
+  // Each activation of the stream finished exactly once.
+  std::map<std::string, int> finished_count;
+  for (const auto& e : events.events()) finished_count[e.activation_id()] += e.has_finished();
+  for (const auto& [id, n] : finished_count) {
+    if (id != localize_id) {
+      EXPECT_EQ(n, 1) << id;
+    }
+  }
+}
+
+// The shipped demo mission (take off, 4 m square, rotate, land) through
+// StartMission + WatchMission: every step GOAL_ACHIEVED.
+TEST_F(CoordinatorPlansMissionsTest, TheDemoMissionSucceedsWithEveryStepGoalAchieved) {
+  FleetRecorder& events = recorder();
+  auto started = startMissionFile(kDemoMission, "demo-1");
+  ASSERT_TRUE(started.status.ok()) << describe(started.status);
+  EXPECT_EQ(started.response.status().mission_id(), "demo-1");
+  EXPECT_EQ(started.response.status().name(), "demo_square");
+  EXPECT_EQ(started.response.status().robot_id(), kRobot);
+  EXPECT_EQ(started.response.status().file(), kDemoMission);
+  MissionWatcher watcher(coordinator_->address(), "demo-1");
+  const auto last = watcher.waitEnd(seconds(45));
+  ASSERT_TRUE(last);
+  ASSERT_EQ(last->state(), v1::MISSION_STATE_SUCCEEDED) << json(*last);
+  const std::vector<std::string> behaviors = {"WAIT", "TAKE_OFF", "FOLLOW_PATH",
+                                              "ROTATE_WITH_PID_CONTROL", "LAND"};
+  ASSERT_EQ(last->steps_size(), static_cast<int>(behaviors.size())) << json(*last);
+  for (int i = 0; i < last->steps_size(); ++i) {
+    const auto& step = last->steps(i);
+    SCOPED_TRACE(json(step));
+    EXPECT_EQ(step.behavior(), behaviors[static_cast<size_t>(i)]);
+    EXPECT_EQ(step.path_size(), 1);
+    EXPECT_EQ(step.attempt(), 1);
+    EXPECT_EQ(step.state(), v1::MISSION_STEP_STATE_FINISHED);
+    EXPECT_EQ(step.cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+    EXPECT_EQ(step.request_id(), "demo-1/steps/" + std::to_string(i) + "/attempt/1");
+    auto finished = events.finished(step.activation_id(), seconds(2));
+    ASSERT_TRUE(finished) << "the step's activation is in the coordinator's stream";
+    EXPECT_EQ(finished->behavior(), step.behavior());
+  }
+  EXPECT_TRUE(last->has_end_time());
+  EXPECT_FALSE(last->in_safety_steps());
+  // The stream showed the progress: RUNNING first, then each step.
+  const auto statuses = watcher.statuses();
+  ASSERT_GE(statuses.size(), 6u);
+  EXPECT_EQ(statuses.front().state(), v1::MISSION_STATE_RUNNING);
+  // The recurrent self-localization ends with the mission; LAND's plan
+  // stopped the controller FOLLOW_PATH's plan had started.
+  EXPECT_TRUE(waitUntil([&] { return activeBehaviors().empty(); }, seconds(5)))
+      << "still active after the mission: " << activeBehaviors().size();
+  auto controller = events.waitFor(
+      [](const v1::BehaviorEvent& e) { return e.behavior() == kPid && e.has_finished(); });
+  ASSERT_TRUE(controller);
+  EXPECT_EQ(controller->finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+
+  auto got = unary(*stub_, &v1::Coordinator::Stub::GetMission, [] {
+    v1::GetMissionRequest r;
+    r.set_mission_id("demo-1");
+    return r;
+  }());
+  ASSERT_TRUE(got.status.ok()) << describe(got.status);
+  EXPECT_EQ(got.response.status().state(), v1::MISSION_STATE_SUCCEEDED);
+  auto listed = unary(*stub_, &v1::Coordinator::Stub::ListMissions, v1::ListMissionsRequest());
+  ASSERT_TRUE(listed.status.ok());
+  ASSERT_EQ(listed.response.missions_size(), 1);
+  EXPECT_EQ(listed.response.missions(0).mission_id(), "demo-1");
+  // Starting the same id again returns that mission (idempotent).
+  auto again = startMissionFile(kDemoMission, "demo-1");
+  ASSERT_TRUE(again.status.ok()) << describe(again.status);
+  EXPECT_EQ(again.response.status().state(), v1::MISSION_STATE_SUCCEEDED);
+}
+
+// A mission branches on termination causes (REFUSED -> continue, TIME_OUT ->
+// retry then fallback, a condition on belief memory, remember); a refusal
+// with no branch aborts it and runs its safety step; a bad mission file is
+// refused before anything runs, naming its line.
+TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFilesAreRefused) {
+  FleetRecorder& events = recorder();
+
+  // Bad mission text: the line of the unknown parameter.
+  const std::string bad_text =
+      "name: bad\n"
+      "robot: drone1\n"
+      "steps:\n"
+      "  - name: wait\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration: 1.0}\n";
+  auto bad = startMissionText(bad_text);
+  ASSERT_EQ(bad.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(bad.status);
+  EXPECT_NE(bad.status.error_message().find("<mission text>:6: WAIT has no parameter 'duration'"),
+            std::string::npos)
+      << bad.status.error_message();
+  EXPECT_NE(bad.status.error_message().find("duration_s"), std::string::npos)
+      << "names the parameters it has: " << bad.status.error_message();
+  // A bad mission file: its path and line.
+  const std::string bad_file = state_dir_ + "/bad_mission.yaml";
+  std::ofstream(bad_file) << "name: bad_file\n"
+                             "robot: drone1\n"
+                             "steps:\n"
+                             "  - behavior: WAIT\n"
+                             "    parameters: {duration_s: 1.0}\n"
+                             "    on:\n"
+                             "      TIME_OUT: retry_forever\n";
+  bad = startMissionFile(bad_file);
+  ASSERT_EQ(bad.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(bad.status);
+  EXPECT_NE(bad.status.error_message().find(bad_file + ":7:"), std::string::npos)
+      << bad.status.error_message();
+  EXPECT_NE(bad.status.error_message().find("unknown action 'retry_forever'"), std::string::npos)
+      << bad.status.error_message();
+  // A behavior no system of the robot hosts.
+  bad = startMissionText("robot: drone1\nsteps:\n  - behavior: FLY_TO_THE_MOON\n");
+  ASSERT_EQ(bad.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(bad.status);
+  EXPECT_NE(bad.status.error_message().find("<mission text>:3: behavior FLY_TO_THE_MOON is not "
+                                            "hosted"),
+            std::string::npos)
+      << bad.status.error_message();
+  auto listed = unary(*stub_, &v1::Coordinator::Stub::ListMissions, v1::ListMissionsRequest());
+  ASSERT_TRUE(listed.status.ok());
+  EXPECT_EQ(listed.response.missions_size(), 0) << "no mission was started";
+  EXPECT_FALSE(events.waitFor([](const v1::BehaviorEvent&) { return true; }, milliseconds(200)))
+      << "nothing was activated";
+
+  // REFUSED: WAIT beyond its range (the system refuses it) -> continue.
+  // TIME_OUT: the dead reckoning with a 0.3 s limit, retried once, then a
+  // fallback. A step whose condition does not hold is skipped.
+  const std::string branches =
+      "name: branches\n"
+      "robot: drone1\n"
+      "steps:\n"
+      "  - name: too_long\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 100000}\n"
+      "    on:\n"
+      "      REFUSED: continue\n"
+      "  - name: reckon\n"
+      "    behavior: ESTIMATE_POSITION_WITH_LINEAR_SPEED\n"
+      "    parameters: {initial_x_m: 0, initial_y_m: 0, initial_z_m: 0, max_duration_s: 0.3}\n"
+      "    on:\n"
+      "      TIME_OUT:\n"
+      "        retry: 1\n"
+      "        then: {fallback: [{name: instead, behavior: WAIT, parameters: {duration_s: 0.2}}]}\n"
+      "  - name: after\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 0.1}\n"
+      "    remember: {drone1/branches_done: true}\n"
+      "  - name: only_if_told\n"
+      "    if: {belief: drone1/never_written, exists: true}\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 0.1}\n";
+  const v1::MissionStatus done = runMission(branches);
+  ASSERT_EQ(done.state(), v1::MISSION_STATE_SUCCEEDED) << json(done);
+  ASSERT_EQ(done.steps_size(), 6) << json(done);
+  struct Expected {
+    std::vector<int> path;
+    std::string name;
+    int attempt;
+    v1::MissionStepState state;
+    v1::TerminationCause cause;
+  };
+  const std::vector<Expected> expected = {
+      {{0}, "too_long", 1, v1::MISSION_STEP_STATE_REFUSED, v1::TERMINATION_CAUSE_UNSPECIFIED},
+      {{1}, "reckon", 1, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_TIME_OUT},
+      {{1}, "reckon", 2, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_TIME_OUT},
+      {{1, 0}, "instead", 1, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_GOAL_ACHIEVED},
+      {{2}, "after", 1, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_GOAL_ACHIEVED},
+      {{3}, "only_if_told", 0, v1::MISSION_STEP_STATE_SKIPPED, v1::TERMINATION_CAUSE_UNSPECIFIED}};
+  for (size_t i = 0; i < expected.size(); ++i) {
+    const auto& step = done.steps(static_cast<int>(i));
+    SCOPED_TRACE(json(step));
+    EXPECT_EQ(std::vector<int>(step.path().begin(), step.path().end()), expected[i].path);
+    EXPECT_EQ(step.name(), expected[i].name);
+    EXPECT_EQ(step.attempt(), expected[i].attempt);
+    EXPECT_EQ(step.state(), expected[i].state);
+    EXPECT_EQ(step.cause(), expected[i].cause);
+  }
+  EXPECT_NE(done.steps(0).message().find("duration_s"), std::string::npos)
+      << "the refusal names the parameter";
+  // The two attempts were two activations, each ended by its time limit.
+  EXPECT_NE(done.steps(1).activation_id(), done.steps(2).activation_id());
+  for (int i : {1, 2}) {
+    auto timed_out = events.finished(done.steps(i).activation_id(), seconds(2));
+    ASSERT_TRUE(timed_out);
+    EXPECT_EQ(timed_out->finished().cause(), v1::TERMINATION_CAUSE_TIME_OUT);
+  }
+  v1::ReadBeliefRequest read;
+  read.set_key("drone1/branches_done");
+  auto remembered = unary(*stub_, &v1::Coordinator::Stub::ReadBelief, read);
+  ASSERT_TRUE(remembered.status.ok()) << describe(remembered.status);
+  EXPECT_TRUE(remembered.response.belief().value().bool_value());
+  EXPECT_EQ(remembered.response.belief().writer(), "mission:" + done.mission_id());
+
+  // A refusal without a branch aborts the mission (FAILED) and its safety
+  // step runs.
+  const v1::MissionStatus failed = runMission(
+      "name: refused\n"
+      "robot: drone1\n"
+      "safety:\n"
+      "  - behavior: WAIT\n"
+      "    parameters: {duration_s: 0.15}\n"
+      "steps:\n"
+      "  - name: too_long\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: -1}\n"
+      "  - name: never\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 0.1}\n");
+  ASSERT_EQ(failed.state(), v1::MISSION_STATE_FAILED) << json(failed);
+  EXPECT_NE(failed.message().find("step 'too_long' (WAIT) was refused"), std::string::npos)
+      << failed.message();
+  ASSERT_EQ(failed.steps_size(), 1) << "nothing after the refusal: " << json(failed);
+  // The safety step is the only WAIT of 0.15 s.
+  auto safety = events.waitFor([&](const v1::BehaviorEvent& e) {
+    const auto& parameters = e.finished().parameters().fields();
+    return e.behavior() == "WAIT" && e.has_finished() && parameters.contains("duration_s") &&
+           parameters.at("duration_s").number_value() == 0.15;
+  });
+  ASSERT_TRUE(safety) << "the safety step did not run";
+  EXPECT_EQ(safety->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+}
+
+// ${belief.key} in a step's parameters takes the belief's value (a path
+// written by an operator, flown by FOLLOW_PATH); WatchBeliefs streams the
+// current beliefs, then new ones (the mission's own `remember` included).
+TEST_F(CoordinatorPlansMissionsTest, FollowPathFliesThePathABeliefHoldsAndWatchBeliefsStreamsIt) {
+  FleetRecorder& events = recorder();
+  ASSERT_TRUE(writeBelief("drone1/home", "\"pad 1\"").status.ok());
+  ASSERT_TRUE(writeBelief("other/home", "\"pad 2\"").status.ok());
+
+  grpc::ClientContext watch_context;
+  watch_context.set_deadline(std::chrono::system_clock::now() + seconds(60));
+  v1::WatchBeliefsRequest watch_request;
+  watch_request.set_prefix("drone1/");
+  auto beliefs = stub_->WatchBeliefs(&watch_context, watch_request);
+  v1::WatchBeliefsResponse change;
+  ASSERT_TRUE(beliefs->Read(&change)) << "the current belief first";
+  EXPECT_EQ(change.belief().key(), "drone1/home");
+  EXPECT_EQ(change.belief().value().string_value(), "pad 1");
+  EXPECT_EQ(change.belief().version(), 1u);
+
+  const std::vector<std::array<double, 3>> points = {{1.5, 0.0, 1.0}, {1.5, 1.5, 1.0}};
+  const std::string path = pathJson(points);
+  auto written = writeBelief("drone1/path", path);
+  ASSERT_TRUE(written.status.ok()) << describe(written.status);
+  ASSERT_TRUE(beliefs->Read(&change)) << "then the new one";
+  EXPECT_EQ(change.belief().key(), "drone1/path");
+  EXPECT_EQ(change.belief().version(), 3u) << "other/home was version 2, outside the prefix";
+  EXPECT_EQ(change.belief().value().list_value().values_size(), 2);
+
+  const v1::MissionStatus done = runMission(
+      "name: follow_a_belief\n"
+      "robot: drone1\n"
+      "recurrent:\n"
+      "  - behavior: SELF_LOCALIZE_WITH_GROUND_TRUTH\n"
+      "safety:\n"
+      "  - behavior: LAND\n"
+      "steps:\n"
+      "  - name: settle\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 1.0}\n"
+      "  - name: take_off\n"
+      "    behavior: TAKE_OFF\n"
+      "    parameters: {altitude_m: 1.0}\n"
+      "    on: {REFUSED: {retry: 2}}\n"
+      "  - name: follow\n"
+      "    behavior: FOLLOW_PATH\n"
+      "    parameters: {path_m: \"${belief.drone1/path}\", speed_m_s: 1.0}\n"
+      "    remember: {drone1/followed: \"${belief.drone1/home}\"}\n"
+      "  - name: land\n"
+      "    behavior: LAND\n");
+  ASSERT_EQ(done.state(), v1::MISSION_STATE_SUCCEEDED) << json(done);
+  ASSERT_EQ(done.steps_size(), 4) << json(done);
+  const auto& follow = done.steps(2);
+  EXPECT_EQ(follow.behavior(), "FOLLOW_PATH");
+  EXPECT_EQ(follow.cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED) << json(follow);
+  // The record and the behavior's own activated event carry the belief's path.
+  ASSERT_EQ(pointsOf(written.response.belief().value()), points);
+  EXPECT_EQ(pointsOf(follow.parameters().fields().at("path_m")), points);
+  auto activated = events.activated(follow.activation_id(), seconds(2));
+  ASSERT_TRUE(activated);
+  EXPECT_EQ(pointsOf(activated->activated().parameters().fields().at("path_m")), points);
+
+  // The mission's `remember` reaches the watcher.
+  ASSERT_TRUE(beliefs->Read(&change));
+  EXPECT_EQ(change.belief().key(), "drone1/followed");
+  EXPECT_EQ(change.belief().value().string_value(), "pad 1");
+  EXPECT_EQ(change.belief().writer(), "mission:" + done.mission_id());
+  watch_context.TryCancel();
+  beliefs->Finish();
+}
+
+// PauseMission pauses the current behavior, ResumeMission resumes it;
+// AbortMission interrupts it and runs the safety step (LAND).
+TEST_F(CoordinatorPlansMissionsTest, PauseResumeAndAbortWhichRunsTheSafetyStepLand) {
+  FleetRecorder& events = recorder();
+  auto started = startMissionText(
+      "name: hold\n"
+      "robot: drone1\n"
+      "recurrent:\n"
+      "  - behavior: SELF_LOCALIZE_WITH_GROUND_TRUTH\n"
+      "safety:\n"
+      "  - behavior: LAND\n"
+      "steps:\n"
+      "  - name: settle\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 1.0}\n"
+      "  - name: take_off\n"
+      "    behavior: TAKE_OFF\n"
+      "    parameters: {altitude_m: 1.0}\n"
+      "    on: {REFUSED: {retry: 2}}\n"
+      "  - name: hold\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 600}\n"
+      "  - name: never\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 0.1}\n",
+      "hold-1");
+  ASSERT_TRUE(started.status.ok()) << describe(started.status);
+  MissionWatcher watcher(coordinator_->address(), "hold-1");
+  auto holding = watcher.waitFor(
+      [](const v1::MissionStatus& s) {
+        return s.steps_size() == 3 && !s.steps(2).activation_id().empty();
+      },
+      seconds(30));
+  ASSERT_TRUE(holding) << "the mission did not reach its third step";
+  const std::string hold_id = holding->steps(2).activation_id();
+  ASSERT_TRUE(events.activated(hold_id));
+  // One mission per robot at a time.
+  auto second = startMissionText("robot: drone1\nsteps:\n  - behavior: WAIT\n");
+  EXPECT_EQ(second.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION)
+      << describe(second.status);
+  EXPECT_NE(second.status.error_message().find("hold-1"), std::string::npos)
+      << second.status.error_message();
+  {
+    MissionWatcher unknown(coordinator_->address(), "no-such-mission");
+    const auto end = unknown.endStatus(seconds(5));
+    ASSERT_TRUE(end) << "WatchMission of an unknown mission did not end";
+    EXPECT_EQ(end->error_code(), grpc::StatusCode::NOT_FOUND) << describe(*end);
+    EXPECT_TRUE(unknown.statuses().empty());
+  }
+
+  auto paused = control(&v1::Coordinator::Stub::PauseMission, "hold-1");
+  ASSERT_TRUE(paused.status.ok()) << describe(paused.status);
+  ASSERT_TRUE(watcher.waitFor(
+      [](const v1::MissionStatus& s) { return s.state() == v1::MISSION_STATE_PAUSED; }, seconds(5)))
+      << "no PAUSED status";
+  ASSERT_TRUE(events.waitFor([&](const v1::BehaviorEvent& e) {
+    return e.activation_id() == hold_id && e.has_paused();
+  })) << "the current behavior was not paused";
+  EXPECT_EQ(stateOf("WAIT").first, v1::BEHAVIOR_STATE_PAUSED);
+  auto twice = control(&v1::Coordinator::Stub::PauseMission, "hold-1");
+  EXPECT_EQ(twice.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION)
+      << describe(twice.status);
+
+  auto resumed = control(&v1::Coordinator::Stub::ResumeMission, "hold-1");
+  ASSERT_TRUE(resumed.status.ok()) << describe(resumed.status);
+  ASSERT_TRUE(events.waitFor([&](const v1::BehaviorEvent& e) {
+    return e.activation_id() == hold_id && e.has_resumed();
+  })) << "the current behavior was not resumed";
+  EXPECT_TRUE(
+      waitUntil([&] { return stateOf("WAIT").first == v1::BEHAVIOR_STATE_ACTIVE; }, seconds(5)));
+
+  auto aborted = control(&v1::Coordinator::Stub::AbortMission, "hold-1", "operator said stop");
+  ASSERT_TRUE(aborted.status.ok()) << describe(aborted.status);
+  const auto last = watcher.waitEnd(seconds(30));
+  ASSERT_TRUE(last);
+  EXPECT_EQ(last->state(), v1::MISSION_STATE_ABORTED) << json(*last);
+  EXPECT_NE(last->message().find("operator said stop"), std::string::npos) << last->message();
+  EXPECT_FALSE(last->in_safety_steps());
+  ASSERT_EQ(last->steps_size(), 3) << json(*last);
+  EXPECT_EQ(last->steps(2).cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+  auto interrupted = events.finished(hold_id, seconds(2));
+  ASSERT_TRUE(interrupted);
+  EXPECT_EQ(interrupted->finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+  // The safety step: LAND, to the ground.
+  auto land = events.waitFor(
+      [](const v1::BehaviorEvent& e) { return e.behavior() == "LAND" && e.has_finished(); },
+      seconds(2));
+  ASSERT_TRUE(land) << "the safety step LAND did not run";
+  EXPECT_EQ(land->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED) << causeOf(*land);
+  EXPECT_TRUE(watcher.waitFor(
+      [](const v1::MissionStatus& s) {
+        return s.in_safety_steps() && s.state() == v1::MISSION_STATE_ABORTED;
+      },
+      seconds(2)))
+      << "the stream showed the safety steps running";
+  EXPECT_TRUE(waitUntil([&] { return activeBehaviors().empty(); }, seconds(5)))
+      << "the recurrent behavior ends with the mission";
+  auto again = control(&v1::Coordinator::Stub::AbortMission, "hold-1");
+  EXPECT_EQ(again.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION)
+      << describe(again.status);
+  auto unknown = control(&v1::Coordinator::Stub::PauseMission, "no-such-mission");
+  EXPECT_EQ(unknown.status.error_code(), grpc::StatusCode::NOT_FOUND) << describe(unknown.status);
+}
+
+// kill -9 of the coordinator while the demo flies its square; a new
+// coordinator with the same --state-dir (and port, where the systems
+// register again) resumes the mission, which succeeds, and the systems' own
+// event histories show every behavior activated exactly once.
+TEST_F(CoordinatorPlansMissionsTest,
+       AKilledCoordinatorResumesTheMissionWithoutDoublingActivations) {
+  auto started = startMissionFile(kDemoMission, "demo-crash");
+  ASSERT_TRUE(started.status.ok()) << describe(started.status);
+  std::string follow_id;
+  {
+    MissionWatcher watcher(coordinator_->address(), "demo-crash");
+    auto flying = watcher.waitFor(
+        [](const v1::MissionStatus& s) {
+          return s.steps_size() == 3 && s.steps(2).behavior() == "FOLLOW_PATH" &&
+                 !s.steps(2).activation_id().empty();
+        },
+        seconds(30));
+    ASSERT_TRUE(flying) << "the demo did not reach FOLLOW_PATH";
+    follow_id = flying->steps(2).activation_id();
+  }
+  // Mid-path: 3 s of simulated time into the 16 s square (past the time its
+  // controller is given to start following).
+  SystemClient pid_system(pid_->address());
+  ASSERT_TRUE(waitUntil(
+      [&] {
+        auto check = pid_system.checkActivation("FOLLOW_PATH");
+        return check.status.ok() && check.response.active_duration().seconds() >= 3;
+      },
+      seconds(10)))
+      << json(pid_system.checkActivation("FOLLOW_PATH").response);
+  const int port = coordinator_->grpcPort();
+  coordinator_->kill();
+  // FOLLOW_PATH goes on without the coordinator.
+  auto check = pid_system.checkActivation("FOLLOW_PATH");
+  ASSERT_TRUE(check.status.ok()) << describe(check.status);
+  EXPECT_TRUE(check.response.active());
+  EXPECT_EQ(check.response.activation_id(), follow_id);
+
+  ASSERT_NO_FATAL_FAILURE(startCoordinator({"--listen", "127.0.0.1:" + std::to_string(port)}));
+  ASSERT_EQ(coordinator_->grpcPort(), port);
+  ASSERT_NO_FATAL_FAILURE(waitForSystems());
+  MissionWatcher watcher(coordinator_->address(), "demo-crash");
+  const auto last = watcher.waitEnd(seconds(45));
+  ASSERT_TRUE(last);
+  ASSERT_EQ(last->state(), v1::MISSION_STATE_SUCCEEDED) << json(*last);
+  ASSERT_EQ(last->steps_size(), 5) << "each step once: " << json(*last);
+  for (int i = 0; i < last->steps_size(); ++i) {
+    SCOPED_TRACE(json(last->steps(i)));
+    EXPECT_EQ(last->steps(i).path(0), i);
+    EXPECT_EQ(last->steps(i).attempt(), 1);
+    EXPECT_EQ(last->steps(i).cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  }
+  EXPECT_EQ(last->steps(2).activation_id(), follow_id) << "the same activation, not a new one";
+
+  // Every behavior the mission used was activated once, and finished once,
+  // as each behavior system itself recorded it.
+  std::map<std::string, int> activated, finished;
+  for (const auto* system : {basic_.get(), pid_.get()}) {
+    for (const auto& e : systemHistory(system->address())) {
+      activated[e.behavior()] += e.has_activated();
+      finished[e.behavior()] += e.has_finished();
+    }
+  }
+  const std::map<std::string, int> once = {
+      {"WAIT", 1}, {"TAKE_OFF", 1},    {"FOLLOW_PATH", 1}, {"ROTATE_WITH_PID_CONTROL", 1},
+      {"LAND", 1}, {kSelfLocalize, 1}, {kPid, 1}};
+  EXPECT_EQ(activated, once);
+  EXPECT_TRUE(waitUntil([&] { return activeBehaviors().empty(); }, seconds(5)));
+  finished.clear();
+  for (const auto* system : {basic_.get(), pid_.get()}) {
+    for (const auto& e : systemHistory(system->address()))
+      finished[e.behavior()] += e.has_finished();
+  }
+  EXPECT_EQ(finished, once);
+}
+
+// behaviorctl against the coordinator: health, a dry run, and `mission run`
+// of the demo (exit 0 when it SUCCEEDED).
+TEST_F(CoordinatorPlansMissionsTest, BehaviorctlRunsTheDemoMissionAndChecksHealth) {
+  const std::string ctl =
+      std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " + coordinator_->address();
+  std::string output;
+  ASSERT_EQ(run(ctl + " health", &output), 0) << output;
+  EXPECT_NE(output.find("SERVING"), std::string::npos) << output;
+
+  output.clear();
+  ASSERT_EQ(run(ctl + " --robot drone1 activate FOLLOW_PATH "
+                      "'{\"path_m\": [{\"x\": 1, \"y\": 0, \"z\": 1}]}' --dry-run",
+                &output),
+            0)
+      << output;
+  EXPECT_NE(output.find("KIND_ACTIVATE"), std::string::npos) << output;
+  EXPECT_NE(output.find(kPid), std::string::npos) << output;
+  EXPECT_TRUE(activeBehaviors().empty()) << "a dry run activates nothing";
+
+  output.clear();
+  const int code = run("timeout 60 " + ctl + " mission run " + kDemoMission, &output);
+  ASSERT_EQ(code, 0) << output;
+  EXPECT_NE(output.find("MISSION_STATE_SUCCEEDED"), std::string::npos) << output;
+  EXPECT_NE(output.find("fly_square"), std::string::npos) << "progress lines: " << output;
+
+  // Not serving: exit 1.
+  output.clear();
+  EXPECT_EQ(coordinator_->terminate(), 0);
+  EXPECT_EQ(run(ctl + " health --timeout-s 1", &output), 1) << output;
+}
+
+}  // namespace
+}  // namespace coordinator_test

@@ -12,15 +12,13 @@ BUILD_PACKAGES="g++ cmake ninja-build pkg-config libgtest-dev libgmock-dev libbe
   libompl-dev libboost-serialization-dev libboost-filesystem-dev libboost-system-dev \
   liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev grpc-proto"
 # What the built binaries load (each package pulls in its own dependencies), for
-# a machine that only runs them. tests/deploy/runtime_packages_test.py checks
-# that every library a built binary needs comes from one of these. OpenCV:
-# the simulator's camera and the visual markers; OMPL, OctoMap and Boost: the
-# navigation library.
+# a machine that only runs them (Docker runtime stage). When a binary comes to
+# need another library, tests/deploy/runtime_packages_test.py names the package
+# to add here.
 RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libgrpc++1.51 libgrpc29 libprotobuf32 \
   libabsl20220623 libprometheus-cpp-core1.0 libprometheus-cpp-pull1.0 libyaml-cpp0.7 \
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-objdetect406 \
-  libopencv-calib3d406 libopencv-contrib406 libompl16 liboctomap1.9 \
-  libboost-serialization1.74.0 libboost-filesystem1.74.0 libboost-system1.74.0"
+  libopencv-contrib406"
 TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml prometheus docker-compose procps"
 
 case "${1:-}" in

@@ -259,9 +259,11 @@ absl::StatusOr<PlanResult> applyPlan(const Plan& plan, PlanActions& actions,
         break;
       case StepKind::kCheckSituation: {
         absl::Status s = actions.checkSituation(step.behavior);
-        if (!s.ok() && !result.activated.empty() && options.settle_poll.count() > 0) {
-          for (auto waited = std::chrono::milliseconds(0);
-               !s.ok() && waited < options.settle_timeout; waited += options.settle_poll) {
+        const auto window =
+            result.activated.empty() ? options.lag_timeout : options.settle_timeout;
+        if (!s.ok() && options.settle_poll.count() > 0) {
+          for (auto waited = std::chrono::milliseconds(0); !s.ok() && waited < window;
+               waited += options.settle_poll) {
             sleep(options.settle_poll);
             s = actions.checkSituation(step.behavior);
           }

@@ -94,6 +94,11 @@ struct ApplyOptions {
   /// to `settle_timeout` (wall time). Zero: no retry.
   std::chrono::milliseconds settle_timeout{2000};
   std::chrono::milliseconds settle_poll{50};
+  /// Without such a requirement, a refusal is still retried for this long:
+  /// a situation is computed from streamed state (the flight status, the
+  /// pose estimate), which may lag the change that just happened (the lease
+  /// the previous behavior released a moment ago).
+  std::chrono::milliseconds lag_timeout{300};
   /// How to wait between retries (tests make it instant).
   std::function<void(std::chrono::milliseconds)> sleep;
 };

@@ -219,16 +219,32 @@ TEST(ApplyPlan, ASituationThatDependsOnAJustStartedRequirementIsRetried) {
             4);
 }
 
-TEST(ApplyPlan, ASituationThatNeverHoldsFailsWithoutRetryWhenNothingWasStarted) {
+TEST(ApplyPlan, ASituationThatNeverHoldsIsRetriedOnlyForTheStateLagWhenNothingWasStarted) {
   auto plan = makePlan(shipped(), request("WAIT", {}));
   ASSERT_TRUE(plan.ok());
   FakeActions actions;
   actions.situation_fails["WAIT"] = absl::OkStatus();
-  auto result = applyPlan(*plan, actions, instant());
+  ApplyOptions options = instant();
+  options.lag_timeout = std::chrono::milliseconds(200);
+  options.settle_poll = std::chrono::milliseconds(50);
+  auto result = applyPlan(*plan, actions, options);
   EXPECT_EQ(result.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(std::string(result.status().message()),
               HasSubstr("step 1 of 2 (check_situation WAIT)"));
-  EXPECT_THAT(actions.calls, ElementsAre("check_situation WAIT"));
+  // The first check and four retries over the 200 ms lag window; nothing
+  // activated.
+  EXPECT_EQ(actions.calls, std::vector<std::string>(5, "check_situation WAIT"));
+}
+
+TEST(ApplyPlan, ARefusalFromStaleStateClearsWithinTheLagWindow) {
+  auto plan = makePlan(shipped(), request("WAIT", {}));
+  ASSERT_TRUE(plan.ok());
+  FakeActions actions;
+  actions.situation_fails["WAIT"] = absl::OkStatus();
+  actions.situation_failures_left = 2;
+  auto result = applyPlan(*plan, actions, instant());
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_EQ(result->activation_id, "id-WAIT");
 }
 
 }  // namespace

@@ -8,6 +8,7 @@
 #include <unistd.h>
 
 #include <cstdio>
+#include <filesystem>
 #include <fstream>
 #include <map>
 #include <memory>
@@ -401,6 +402,31 @@ TEST_F(CoordinatorTest, SystemsRegisterAgainWithARestartedCoordinator) {
   auto finished = watcher.waitFinished(r.response.activation().activation_id());
   ASSERT_TRUE(finished);
   EXPECT_EQ(finished->behavior_event().finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+}
+
+TEST_F(CoordinatorTest, ARestartedCoordinatorContactsItsJournaledSystemsBeforeTheirNextHeartbeat) {
+  char dir[] = "/tmp/coordinator_registry_XXXXXX";
+  ASSERT_NE(mkdtemp(dir), nullptr);
+  const std::string state_dir = dir;
+  // Systems are told to send a heartbeat every 60 s: within this test only
+  // the journal can tell a restarted coordinator where they are.
+  const std::vector<std::string> args = {"--state-dir", state_dir, "--heartbeat-interval-s", "60"};
+  ASSERT_EQ(coordinator_->terminate(), 0);
+  startCoordinator(args);
+  auto& a = startSystem("robot-a");
+  ASSERT_TRUE(client_->waitForSystem("robot-a", v1::SYSTEM_STATE_UP));
+  const int port = coordinator_->grpcPort();
+
+  coordinator_->kill();
+  std::vector<std::string> again = args;
+  again.insert(again.end(), {"--listen", "127.0.0.1:" + std::to_string(port)});
+  startCoordinator(again);
+  ASSERT_TRUE(client_->waitForSystem("robot-a", v1::SYSTEM_STATE_UP, seconds(5)))
+      << "the restarted coordinator did not contact the journaled system";
+  EXPECT_EQ(client_->system("robot-a")->address(), a.address());
+  auto r = client_->activate("robot-a", "WAIT", R"({"duration_s": 0.05})");
+  EXPECT_TRUE(r.status.ok()) << describe(r.status);
+  std::filesystem::remove_all(state_dir);
 }
 
 TEST_F(CoordinatorTest, SigtermOfASystemDeliversItsInterruptedEventsThenUnregistersIt) {

@@ -249,6 +249,18 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
                                            " incarnation " + request->incarnation()));
           return;
         }
+        // The catalog's rules must fit what the system serves (a default
+        // parameter the behavior does not have is the catalog's mistake,
+        // named with its file and line).
+        if (options_.fleet != nullptr) {
+          for (const auto& b : d.behaviors()) {
+            if (auto s = options_.fleet->catalog()->checkRegistration(b, request->system());
+                !s.ok()) {
+              reactor->Finish(server::toGrpc(s));
+              return;
+            }
+          }
+        }
         const grpc::Status registered = registry_.registerSystem(*request, d);
         if (registered.ok()) {
           response->set_coordinator_incarnation(log_.incarnation());

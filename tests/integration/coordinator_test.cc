@@ -429,6 +429,41 @@ TEST_F(CoordinatorTest, ARestartedCoordinatorContactsItsJournaledSystemsBeforeTh
   std::filesystem::remove_all(state_dir);
 }
 
+TEST_F(CoordinatorTest, ACatalogEntryThatDisagreesWithTheRegistrationIsRefusedWithItsLine) {
+  char path[] = "/tmp/catalog_XXXXXX.yaml";
+  const int fd = mkstemps(path, 5);
+  ASSERT_GE(fd, 0);
+  close(fd);
+  {
+    std::ofstream catalog(path);
+    catalog << "behaviors:\n"
+               "  TAKE_OFF: {}\n"
+               "  WAIT:\n"
+               "    defaults: {duration_seconds: 2}\n";  // line 3; WAIT has duration_s
+  }
+  ASSERT_EQ(coordinator_->terminate(), 0);
+  startCoordinator({"--catalog", path});
+  // A system that does not register by itself, registered by hand.
+  systems_.push_back(std::make_unique<support::ServerProcess>(
+      kSystemBinary, std::vector<std::string>{"--robot-id", "robot-a"}));
+  ASSERT_TRUE(systems_.back()->start()) << systems_.back()->error();
+  auto own = SystemClient(systems_.back()->address()).listBehaviors();
+  ASSERT_TRUE(own.status.ok()) << describe(own.status);
+  v1::RegisterSystemRequest reg;
+  reg.set_robot_id("robot-a");
+  reg.set_system(kSystem);
+  reg.set_address(systems_.back()->address());
+  reg.set_incarnation(own.response.incarnation());
+  auto g = client_->registerSystem(reg);
+  EXPECT_EQ(g.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(g.status);
+  EXPECT_NE(g.status.error_message().find(std::string(path) + ":3"), std::string::npos)
+      << describe(g.status);
+  EXPECT_NE(g.status.error_message().find("duration_seconds"), std::string::npos)
+      << describe(g.status);
+  EXPECT_FALSE(client_->system("robot-a")) << "a refused system is not registered";
+  std::remove(path);
+}
+
 TEST_F(CoordinatorTest, SigtermOfASystemDeliversItsInterruptedEventsThenUnregistersIt) {
   auto& a = startSystem("robot-a");
   ASSERT_TRUE(client_->waitForSystem("robot-a", v1::SYSTEM_STATE_UP));

@@ -6,27 +6,31 @@
 //
 //   coordinator_bench                  # full run (about 1 minute), markdown to stdout
 //   coordinator_bench --smoke          # tiny run for CI: fails on errors, not timings
-//   coordinator_bench --behaviors 100,1000 --window-s 15 --activations 500
+//   coordinator_bench --behaviors 100,1000 --window-s 15 --activations 500 --robots 1
 //
-// For each fleet size (--behaviors, spread evenly over --systems systems of
-// robot "bench", behaviors BENCH_0001..):
+// For each fleet size (--behaviors, spread evenly over --systems systems,
+// behaviors BENCH_0001.., all systems serving robot "bench" unless --robots
+// spreads them):
+//   idle        CPU of the coordinator and the systems with nothing to do.
 //   events      --subscribers clients each open Coordinator.WatchEvents (own
-//               connection, no filter). One driver thread per system calls
-//               BehaviorSystem.ActivateBehavior on its system directly,
-//               round robin over its behaviors, with duration_s 0: each
-//               activation yields an activated and a finished event
-//               (GOAL_ACHIEVED on the first tick) as fast as the machine
-//               allows. The drivers hold back while a subscriber is more than
-//               --max-lag events behind, so that no subscriber reaches the
-//               coordinator's per-subscriber queue limit (4096): the figure is
-//               the sustained rate. Measured over --window-s after --warmup-s:
-//               events/s into the coordinator (its own counter), events/s
-//               delivered to each subscriber, the lag of each event (the
-//               system's wall_time of the event -> received by the
-//               subscriber, and the coordinator's wall_time -> received), the
-//               lag in events, and the CPU of each party. Afterwards every
-//               subscriber must have received every activated and finished
-//               event exactly once, with consecutive coordinator seqs.
+//               connection, no filter, live events only). One driver thread
+//               per system calls BehaviorSystem.ActivateBehavior on its
+//               system directly, round robin over its behaviors, with
+//               duration_s 0: each activation yields an activated and a
+//               finished event (GOAL_ACHIEVED on the first tick). First as
+//               fast as the machine allows, then at a fixed rate
+//               (--paced-events-per-s) for the lag below saturation. The
+//               drivers hold back while a subscriber is more than --max-lag
+//               events behind, so that no subscriber reaches the
+//               coordinator's per-subscriber queue limit (4096). Measured over
+//               a window after a warm-up: events/s into the coordinator (its
+//               own counter), events/s delivered to each subscriber, the lag
+//               of each event (the system's wall_time of the event ->
+//               received by the subscriber, and the coordinator's wall_time
+//               -> received), the lag in events, and the CPU of each party.
+//               Afterwards every subscriber must have received every
+//               activated and finished event exactly once, with consecutive
+//               coordinator seqs.
 //   activation  --activations iterations, each on the next behavior (round
 //               robin over the systems), in random order: through the
 //               coordinator (Coordinator.ActivateBehavior with duration_s
@@ -1245,10 +1249,12 @@ void printReport(const Options& o, const std::vector<FleetResult>& results,
                          &r.paced});
     }
   }
-  std::printf(
-      "### Events through the coordinator (max rate: %g s window after %g s warm-up; paced: %g s "
-      "window after %g s)\n\n",
-      o.window_s, o.warmup_s, o.paced_window_s, std::min(1.0, o.warmup_s));
+  std::printf("### Events through the coordinator (max rate: %g s window after %g s warm-up",
+              o.window_s, o.warmup_s);
+  if (o.paced_events_per_s > 0) {
+    std::printf("; paced: %g s window after %g s", o.paced_window_s, std::min(1.0, o.warmup_s));
+  }
+  std::printf(")\n\n");
   std::printf("| figure |");
   for (const auto& c : columns) std::printf(" %s |", c.label.c_str());
   std::printf("\n|---|");

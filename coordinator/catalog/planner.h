@@ -98,7 +98,7 @@ struct ApplyOptions {
   /// a situation is computed from streamed state (the flight status, the
   /// pose estimate), which may lag the change that just happened (the lease
   /// the previous behavior released a moment ago).
-  std::chrono::milliseconds lag_timeout{300};
+  std::chrono::milliseconds lag_timeout{500};
   /// How to wait between retries (tests make it instant).
   std::function<void(std::chrono::milliseconds)> sleep;
 };

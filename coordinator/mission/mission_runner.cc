@@ -526,6 +526,15 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
           r.set_cause(finished.cause);
           r.set_message(message);
         });
+        // An abort requested while the step was finishing (the safety
+        // policy stands the robot down, which ends the step) wins over the
+        // step's own outcome; the record keeps the real cause.
+        bool aborting = false;
+        {
+          std::lock_guard lock(mutex_);
+          aborting = abort_requested_;
+        }
+        if (aborting) return Flow::kAbortRequested;
       }
     }
     recorded.reset();

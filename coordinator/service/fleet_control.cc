@@ -11,13 +11,6 @@ namespace behaviorlib::coordinator {
 
 namespace {
 
-// The systems see the platform through streams of their own: for a moment
-// after a behavior ended (its command lease released, the flight state
-// changed), another system's situation check can still answer from the old
-// state ("the command lease is held by drone1/TAKE_OFF"). A refusal is asked
-// again until it has held this long.
-constexpr std::chrono::milliseconds kSituationSettle{500};
-
 absl::Status toAbsl(const grpc::Status& status) {
   if (status.ok()) return absl::OkStatus();
   return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
@@ -43,15 +36,9 @@ class FleetControl::StepActions final : public PlanActions {
   absl::Status checkSituation(const std::string& behavior) override {
     Registry::Route route;
     if (auto s = fleet_.route(robot_id_, behavior, &route); !s.ok()) return s;
-    const auto until = std::chrono::steady_clock::now() + kSituationSettle;
-    absl::Status s = fleet_.callCheckSituation(route, behavior);
-    while (s.code() == absl::StatusCode::kFailedPrecondition &&
-           fleet_.options_.apply.settle_poll.count() > 0 &&
-           std::chrono::steady_clock::now() < until) {
-      std::this_thread::sleep_for(fleet_.options_.apply.settle_poll);
-      s = fleet_.callCheckSituation(route, behavior);
-    }
-    return s;
+    // A refusal computed from lagging state (a lease released a moment
+    // ago) is asked again by applyPlan (ApplyOptions::lag_timeout).
+    return fleet_.callCheckSituation(route, behavior);
   }
 
   absl::StatusOr<std::string> activate(const std::string& behavior,
@@ -233,13 +220,10 @@ absl::Status FleetControl::callCheckSituation(const Registry::Route& route,
 
 std::map<std::string, std::string> FleetControl::activeBehaviors(
     const std::string& robot_id) const {
-  v1::ListFleetBehaviorsResponse list;
-  registry_.listBehaviors(robot_id, "", &list);
   std::map<std::string, std::string> active;
-  for (const auto& b : list.behaviors()) {
-    const auto state = b.description().state();
-    if (state == v1::BEHAVIOR_STATE_ACTIVE || state == v1::BEHAVIOR_STATE_PAUSED) {
-      active[b.description().name()] = b.activation_id();
+  for (const auto& b : registry_.robotBehaviors(robot_id)) {
+    if (b.state == v1::BEHAVIOR_STATE_ACTIVE || b.state == v1::BEHAVIOR_STATE_PAUSED) {
+      active[b.name] = b.activation_id;
     }
   }
   return active;
@@ -270,14 +254,11 @@ absl::StatusOr<FleetControl::ActivateResult> FleetControl::activateBehavior(
   plan_request.robot_id = request.robot_id;
   plan_request.target = request.behavior;
   plan_request.parameters = request.parameters;
-  v1::ListFleetBehaviorsResponse list;
-  registry_.listBehaviors(request.robot_id, "", &list);
-  for (const auto& b : list.behaviors()) {
-    if (b.system_state() != v1::SYSTEM_STATE_UP) continue;
-    plan_request.available.insert(b.description().name());
-    const auto state = b.description().state();
-    if (state == v1::BEHAVIOR_STATE_ACTIVE || state == v1::BEHAVIOR_STATE_PAUSED) {
-      plan_request.active.insert(b.description().name());
+  for (const auto& b : registry_.robotBehaviors(request.robot_id)) {
+    if (!b.system_up) continue;
+    plan_request.available.insert(b.name);
+    if (b.state == v1::BEHAVIOR_STATE_ACTIVE || b.state == v1::BEHAVIOR_STATE_PAUSED) {
+      plan_request.active.insert(b.name);
     }
   }
   // A retried request (same request id) for a target that is active already
@@ -340,28 +321,27 @@ absl::Status FleetControl::deactivate(const std::string& robot, const std::strin
   return deactivateBehavior(robot, behavior, "").status();
 }
 
-absl::Status FleetControl::pause(const std::string& robot, const std::string& behavior) {
+template <class Request, class Response>
+absl::Status FleetControl::callLifecycle(const std::string& robot, const std::string& behavior,
+                                         grpc::Status (v1::BehaviorSystem::Stub::*method)(
+                                             grpc::ClientContext*, const Request&, Response*)) {
   Registry::Route r;
   if (auto s = route(robot, behavior, &r); !s.ok()) return s;
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
-  v1::PauseBehaviorRequest request;
+  Request request;
   request.set_behavior(behavior);
-  v1::PauseResponse response;
-  grpc::Status status = r.stub->PauseBehavior(&context, request, &response);
+  Response response;
+  grpc::Status status = ((*r.stub).*method)(&context, request, &response);
   return status.ok() ? absl::OkStatus() : fromSystem(status, r);
 }
 
+absl::Status FleetControl::pause(const std::string& robot, const std::string& behavior) {
+  return callLifecycle(robot, behavior, &v1::BehaviorSystem::Stub::PauseBehavior);
+}
+
 absl::Status FleetControl::resume(const std::string& robot, const std::string& behavior) {
-  Registry::Route r;
-  if (auto s = route(robot, behavior, &r); !s.ok()) return s;
-  grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
-  v1::ResumeBehaviorRequest request;
-  request.set_behavior(behavior);
-  v1::ResumeResponse response;
-  grpc::Status status = r.stub->ResumeBehavior(&context, request, &response);
-  return status.ok() ? absl::OkStatus() : fromSystem(status, r);
+  return callLifecycle(robot, behavior, &v1::BehaviorSystem::Stub::ResumeBehavior);
 }
 
 }  // namespace behaviorlib::coordinator

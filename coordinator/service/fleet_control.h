@@ -23,6 +23,7 @@
 // never gRPC's callback threads. Thread-safe.
 
 #include <google/protobuf/struct.pb.h>
+#include <grpcpp/grpcpp.h>
 
 #include <chrono>
 #include <condition_variable>
@@ -133,6 +134,12 @@ class FleetControl final : public MissionActions {
                                                         const std::string& behavior,
                                                         const std::string& activation_id);
   absl::Status callCheckSituation(const Registry::Route& route, const std::string& behavior);
+  /// Pause or Resume on the behavior's system.
+  template <class Request, class Response>
+  absl::Status callLifecycle(const std::string& robot, const std::string& behavior,
+                             grpc::Status (v1::BehaviorSystem::Stub::*method)(grpc::ClientContext*,
+                                                                              const Request&,
+                                                                              Response*));
 
   // Event index, fed by a subscription to the log.
   void drainEvents();

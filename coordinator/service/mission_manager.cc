@@ -334,7 +334,8 @@ std::optional<std::pair<std::string, Geofence>> MissionManager::geofenceOf(
   return std::nullopt;
 }
 
-absl::StatusOr<v1::MissionStatus> MissionManager::pause(const std::string& mission_id) {
+absl::StatusOr<v1::MissionStatus> MissionManager::control(
+    const std::string& mission_id, const std::function<absl::Status(MissionRunner&)>& request) {
   MissionRunner* runner = nullptr;
   {
     std::lock_guard lock(mutex_);
@@ -347,44 +348,23 @@ absl::StatusOr<v1::MissionStatus> MissionManager::pause(const std::string& missi
                        v1::MissionState_Name(it->second.status.state()), ")"));
     }
   }
-  if (auto s = runner->pause(); !s.ok()) return s;
+  // Runners live until stop(); the call is made without the lock.
+  if (auto s = request(*runner); !s.ok()) return s;
   return runner->status();
 }
 
+absl::StatusOr<v1::MissionStatus> MissionManager::pause(const std::string& mission_id) {
+  return control(mission_id, [](MissionRunner& r) { return r.pause(); });
+}
+
 absl::StatusOr<v1::MissionStatus> MissionManager::resume(const std::string& mission_id) {
-  MissionRunner* runner = nullptr;
-  {
-    std::lock_guard lock(mutex_);
-    auto it = missions_.find(mission_id);
-    if (it == missions_.end()) return unknownMission(mission_id);  // mutex_ is held
-    runner = it->second.runner.get();
-    if (runner == nullptr) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("mission '", mission_id, "' is not running here (",
-                       v1::MissionState_Name(it->second.status.state()), ")"));
-    }
-  }
-  if (auto s = runner->resume(); !s.ok()) return s;
-  return runner->status();
+  return control(mission_id, [](MissionRunner& r) { return r.resume(); });
 }
 
 absl::StatusOr<v1::MissionStatus> MissionManager::abort(const std::string& mission_id,
                                                         const std::string& reason,
                                                         bool run_safety) {
-  MissionRunner* runner = nullptr;
-  {
-    std::lock_guard lock(mutex_);
-    auto it = missions_.find(mission_id);
-    if (it == missions_.end()) return unknownMission(mission_id);  // mutex_ is held
-    runner = it->second.runner.get();
-    if (runner == nullptr) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("mission '", mission_id, "' is not running here (",
-                       v1::MissionState_Name(it->second.status.state()), ")"));
-    }
-  }
-  if (auto s = runner->abort(reason, run_safety); !s.ok()) return s;
-  return runner->status();
+  return control(mission_id, [&](MissionRunner& r) { return r.abort(reason, run_safety); });
 }
 
 absl::StatusOr<uint64_t> MissionManager::watch(const std::string& mission_id, Listener listener) {

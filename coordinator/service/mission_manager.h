@@ -102,6 +102,10 @@ class MissionManager {
   };
 
   void onChange(const v1::MissionStatus& status);
+  /// Runs `request` on the mission's runner: NOT_FOUND for an unknown id,
+  /// FAILED_PRECONDITION when it is not running in this coordinator.
+  absl::StatusOr<v1::MissionStatus> control(
+      const std::string& mission_id, const std::function<absl::Status(MissionRunner&)>& request);
   absl::Status checkAgainstRegistry(const MissionSpec& spec, const std::string& robot_id) const;
   bool behaviorsRoutable(const MissionSpec& spec, const std::string& robot_id,
                          std::string* missing) const;

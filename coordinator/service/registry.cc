@@ -218,6 +218,16 @@ void Registry::listBehaviors(const std::string& robot_id, const std::string& beh
             });
 }
 
+std::vector<SystemLink::BehaviorView> Registry::robotBehaviors(const std::string& robot_id) const {
+  std::vector<SystemLink::BehaviorView> views;
+  std::lock_guard lock(mutex_);
+  for (const auto& link : links_) {
+    if (link->retired() || link->robotId() != robot_id) continue;
+    link->viewBehaviors(&views);
+  }
+  return views;
+}
+
 grpc::Status Registry::route(const std::string& robot_id, const std::string& behavior,
                              Route* out) const {
   if (robot_id.empty()) {

@@ -62,6 +62,8 @@ class Registry {
   void listSystems(const std::string& robot_id, v1::ListSystemsResponse* response) const;
   void listBehaviors(const std::string& robot_id, const std::string& behavior,
                      v1::ListFleetBehaviorsResponse* response) const;
+  /// The robot's behaviors as plans see them (names and states only).
+  std::vector<SystemLink::BehaviorView> robotBehaviors(const std::string& robot_id) const;
 
   /// Where a robot's behavior is served.
   struct Route {

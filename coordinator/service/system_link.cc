@@ -559,6 +559,25 @@ bool SystemLink::hosts(const std::string& behavior) const {
                      [&](const v1::BehaviorDescription& b) { return b.name() == behavior; });
 }
 
+void SystemLink::viewBehaviors(std::vector<BehaviorView>* out) const {
+  std::lock_guard lock(mutex_);
+  const bool tracked = state_ == v1::SYSTEM_STATE_UP || state_ == v1::SYSTEM_STATE_RECONNECTING;
+  const auto& active = tracker_.active();
+  for (const auto& description : description_.behaviors()) {
+    BehaviorView view;
+    view.name = description.name();
+    view.system_up = state_ == v1::SYSTEM_STATE_UP;
+    if (tracked) {
+      view.state = v1::BEHAVIOR_STATE_INACTIVE;
+      if (auto it = active.find(description.name()); it != active.end()) {
+        view.state = it->second.state;
+        view.activation_id = it->second.activation_id;
+      }
+    }
+    out->push_back(std::move(view));
+  }
+}
+
 void SystemLink::describeBehaviors(
     const std::string& behavior, google::protobuf::RepeatedPtrField<v1::FleetBehavior>* out) const {
   std::lock_guard lock(mutex_);

@@ -112,6 +112,17 @@ class SystemLink {
   /// Names of the hosted behaviors (empty before the first contact).
   std::vector<std::string> behaviorNames() const;
   bool hosts(const std::string& behavior) const;
+  /// One hosted behavior as plans see it (no schema copied).
+  struct BehaviorView {
+    std::string name;
+    /// The system is UP.
+    bool system_up = false;
+    /// ACTIVE, PAUSED or INACTIVE while tracked, UNSPECIFIED otherwise.
+    v1::BehaviorState state = v1::BEHAVIOR_STATE_UNSPECIFIED;
+    std::string activation_id;
+  };
+  /// Appends every hosted behavior's view.
+  void viewBehaviors(std::vector<BehaviorView>* out) const;
   /// Appends the hosted behaviors matching `behavior` ("" for all).
   void describeBehaviors(const std::string& behavior,
                          google::protobuf::RepeatedPtrField<v1::FleetBehavior>* out) const;

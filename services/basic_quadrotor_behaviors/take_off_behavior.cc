@@ -1,5 +1,8 @@
 #include "basic_quadrotor_behaviors/take_off_behavior.h"
 
+#include <algorithm>
+#include <cmath>
+
 #include "platform/flight_controller_client.h"
 
 namespace behaviorlib::basic {
@@ -155,7 +158,12 @@ Verdict TakeOffBehavior::checkProgress() {
   const double z = pose_.pose().position_m().z();
   climb_.add(now(), z);
   const double to_go = target_z_ - z;
-  if (climb_.full() && std::abs(to_go) > altitude_tolerance_m_) {
+  // A small overshoot at the end of a fast climb is the autopilot settling,
+  // not moving away: above the target, only an overshoot beyond this band
+  // is judged.
+  const double overshoot_band = std::max(0.5, 3.0 * altitude_tolerance_m_);
+  const bool judged = to_go > altitude_tolerance_m_ || to_go < -overshoot_band;
+  if (climb_.full() && judged) {
     // Progress is movement towards the target (up, or down after a Modify).
     const double towards = to_go > 0 ? climb_.change() : -climb_.change();
     if (towards < min_climb_m_) {

@@ -703,7 +703,9 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
 
   // REFUSED: WAIT beyond its range (the system refuses it) -> continue.
   // TIME_OUT: the dead reckoning with a 0.3 s limit, retried once, then a
-  // fallback. A step whose condition does not hold is skipped.
+  // fallback. WRONG_PROGRESS: the dead reckoning's drift bound (5 mm/s)
+  // passes a 5 cm limit after 10 s -> continue. A step whose condition does
+  // not hold is skipped.
   const std::string branches =
       "name: branches\n"
       "robot: drone1\n"
@@ -720,6 +722,11 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
       "      TIME_OUT:\n"
       "        retry: 1\n"
       "        then: {fallback: [{name: instead, behavior: WAIT, parameters: {duration_s: 0.2}}]}\n"
+      "  - name: drift\n"
+      "    behavior: ESTIMATE_POSITION_WITH_LINEAR_SPEED\n"
+      "    parameters: {initial_x_m: 0, initial_y_m: 0, initial_z_m: 0, max_drift_m: 0.05}\n"
+      "    on:\n"
+      "      WRONG_PROGRESS: continue\n"
       "  - name: after\n"
       "    behavior: WAIT\n"
       "    parameters: {duration_s: 0.1}\n"
@@ -730,7 +737,7 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
       "    parameters: {duration_s: 0.1}\n";
   const v1::MissionStatus done = runMission(branches);
   ASSERT_EQ(done.state(), v1::MISSION_STATE_SUCCEEDED) << json(done);
-  ASSERT_EQ(done.steps_size(), 6) << json(done);
+  ASSERT_EQ(done.steps_size(), 7) << json(done);
   struct Expected {
     std::vector<int> path;
     std::string name;
@@ -743,8 +750,9 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
       {{1}, "reckon", 1, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_TIME_OUT},
       {{1}, "reckon", 2, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_TIME_OUT},
       {{1, 0}, "instead", 1, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_GOAL_ACHIEVED},
-      {{2}, "after", 1, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_GOAL_ACHIEVED},
-      {{3}, "only_if_told", 0, v1::MISSION_STEP_STATE_SKIPPED, v1::TERMINATION_CAUSE_UNSPECIFIED}};
+      {{2}, "drift", 1, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_WRONG_PROGRESS},
+      {{3}, "after", 1, v1::MISSION_STEP_STATE_FINISHED, v1::TERMINATION_CAUSE_GOAL_ACHIEVED},
+      {{4}, "only_if_told", 0, v1::MISSION_STEP_STATE_SKIPPED, v1::TERMINATION_CAUSE_UNSPECIFIED}};
   for (size_t i = 0; i < expected.size(); ++i) {
     const auto& step = done.steps(static_cast<int>(i));
     SCOPED_TRACE(json(step));

@@ -1,0 +1,143 @@
+#pragma once
+
+// LidarMapper: the OctoMap navigation_with_lidar keeps while it runs, built
+// from the robot's lidar scans and its pose estimate, and shared by the
+// system's behaviors.
+//
+//   LidarMapper mapper(channel, "drone1", settings);   // starts mapping
+//   mapper.withMap([](const nav::OccupancyMap& map) { ... });  // locked
+//   std::optional<v1::PoseStamped> pose = mapper.latestPose();
+//
+// Threads: the subscription's reader queues each scan (robots/{id}/lidar/scan,
+// delivered in QUEUE mode: none is skipped by the broker) into a bounded
+// local queue; a mapping thread of its own takes them in order and inserts
+// them. A scan is placed with the pose estimate whose stamp is nearest to
+// the scan's (robots/{id}/self_localization/pose, kept for the last second),
+// and skipped when none is within pose_match_s.
+//
+// The lidar is 2-D (one horizontal plane). Rays are inserted as measured
+// (hits, and free space along every ray); each voxel column where a hit
+// lands is then marked occupied from column_min_z_m to column_max_z_m, so
+// that a wall seen at flight height blocks the planner at every planned
+// altitude (the building's walls are vertical). Hits below ground_max_z_m are
+// the ground (a tilted vehicle) and are ignored.
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <atomic>
+#include <condition_variable>
+#include <cstdint>
+#include <deque>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <thread>
+#include <unordered_set>
+
+#include "absl/status/status.h"
+#include "behaviorlib/v1/types.pb.h"
+#include "channel/channel_client.h"
+#include "navigation/occupancy_map.h"
+
+namespace YAML {
+class Node;
+}  // namespace YAML
+
+namespace behaviorlib::nav {
+
+/// The `mapping:` section of the system's --config (defaults here).
+struct MapperSettings {
+  double resolution_m = 0.1;
+  /// Ranges beyond this are inserted as free space up to it only.
+  double max_range_m = 12.0;
+  /// Lidar position in the body frame (the simulator's default mount).
+  Eigen::Vector3d lidar_mount_m{0.0, 0.0, 0.1};
+  double ground_max_z_m = 0.05;
+  double column_min_z_m = 0.0;
+  double column_max_z_m = 3.0;
+  /// Altitudes a path may use; a goal outside them is outside the map. A
+  /// 2-D lidar cannot see what lies above a door (its lintel, 2.2 m up in
+  /// the building): the top stays below it by more than a vehicle radius.
+  double planning_min_z_m = 0.5;
+  double planning_max_z_m = 1.8;
+  /// Largest stamp difference between a scan and the pose it is placed with.
+  double pose_match_s = 0.05;
+  /// Scans waiting for the mapping thread; the oldest is dropped beyond.
+  int scan_queue_size = 50;
+
+  /// Reads the keys of `mapping` (missing keys keep their values);
+  /// INVALID_ARGUMENT naming a bad key.
+  absl::Status read(const YAML::Node& mapping);
+};
+
+/// Counters of the mapping thread.
+struct MapperStats {
+  uint64_t scans_received = 0;
+  uint64_t scans_inserted = 0;
+  uint64_t scans_without_pose = 0;
+  uint64_t scans_dropped = 0;  ///< queue full
+};
+
+class LidarMapper {
+ public:
+  /// Subscribes and starts the mapping thread; `channel` may be null (no
+  /// map is built then).
+  LidarMapper(channel::ChannelClient* channel, std::string robot_id, MapperSettings settings);
+  ~LidarMapper();
+  LidarMapper(const LidarMapper&) = delete;
+  LidarMapper& operator=(const LidarMapper&) = delete;
+
+  const MapperSettings& settings() const { return settings_; }
+  channel::ChannelClient* channel() const { return channel_; }
+  const std::string& robotId() const { return robot_id_; }
+  std::string scanTopic() const;
+  std::string poseTopic() const;
+
+  /// Calls f(const OccupancyMap&) with the map locked (mapping waits).
+  template <class F>
+  auto withMap(F&& f) const {
+    std::lock_guard lock(map_mutex_);
+    return f(static_cast<const OccupancyMap&>(map_));
+  }
+  /// Forgets the map (and the extruded columns).
+  void clear();
+  /// The newest pose estimate received, if any.
+  std::optional<v1::PoseStamped> latestPose() const;
+  MapperStats stats() const;
+
+  /// The box a plan may use: the horizontal extent of the known map and the
+  /// planning altitudes; nullopt for an empty map. Map lock held by caller.
+  std::optional<std::pair<Eigen::Vector3d, Eigen::Vector3d>> planningVolumeLocked(
+      const OccupancyMap& map) const;
+
+ private:
+  void onScan(const v1::LaserScan& scan);
+  void onPose(const v1::PoseStamped& pose);
+  void run();
+  void insert(const v1::LaserScan& scan, const v1::PoseStamped& pose);
+  std::optional<v1::PoseStamped> poseAt(int64_t stamp_ns) const;
+
+  channel::ChannelClient* channel_;
+  const std::string robot_id_;
+  const MapperSettings settings_;
+
+  mutable std::mutex map_mutex_;
+  OccupancyMap map_;
+  std::unordered_set<uint64_t> columns_;  // xy cells already extruded (map_mutex_)
+
+  mutable std::mutex mutex_;  // queue, poses, stats
+  std::condition_variable cv_;
+  std::deque<v1::LaserScan> queue_;
+  std::deque<v1::PoseStamped> poses_;  // the last second, by stamp
+  MapperStats stats_;
+  bool stopping_ = false;
+
+  std::thread thread_;
+  std::unique_ptr<channel::Subscription> scan_sub_, pose_sub_;
+};
+
+/// Nanoseconds of a header's stamp.
+int64_t stampNs(const v1::Header& header);
+
+}  // namespace behaviorlib::nav

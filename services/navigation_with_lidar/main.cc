@@ -1,0 +1,34 @@
+// navigation_with_lidar: the behavior system that maps with the lidar while
+// it runs and plans paths on that map (GENERATE_PATH_WITH_OCCUPANCY_GRID,
+// CLEAR_OCCUPANCY_GRID, SAVE_OCCUPANCY_GRID).
+
+#include <cstdlib>
+#include <iostream>
+#include <memory>
+
+#include "behaviorlib/server/behavior_system_main.h"
+#include "behaviorlib/v1/behaviors/navigation_with_lidar.grpc.pb.h"
+#include "navigation_with_lidar/generate_path_behavior.h"
+#include "navigation_with_lidar/lidar_mapper.h"
+#include "navigation_with_lidar/map_behaviors.h"
+
+int main(int argc, char** argv) {
+  return behaviorlib::server::runBehaviorSystem(
+      argc, argv, "navigation_with_lidar", [](behaviorlib::server::BehaviorSystemBuilder& b) {
+        namespace nav = behaviorlib::nav;
+        const auto& context = b.context();
+        nav::MapperSettings settings;
+        const YAML::Node mapping = context.config ? context.config["mapping"] : YAML::Node();
+        if (absl::Status s = settings.read(mapping); !s.ok()) {
+          std::cerr << "navigation_with_lidar: --config: " << s.message() << std::endl;
+          std::exit(2);
+        }
+        auto& mapper =
+            b.own(std::make_unique<nav::LidarMapper>(context.channel, context.robot_id, settings));
+        b.add<nav::GeneratePathBehavior, behaviorlib::v1::GeneratePathWithOccupancyGrid>(
+            mapper, context.beliefs);
+        b.add<nav::ClearOccupancyGridBehavior, behaviorlib::v1::ClearOccupancyGrid>(mapper);
+        b.add<nav::SaveOccupancyGridBehavior, behaviorlib::v1::SaveOccupancyGrid>(mapper,
+                                                                                  context.beliefs);
+      });
+}

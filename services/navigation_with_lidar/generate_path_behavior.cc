@@ -6,6 +6,7 @@
 #include <cmath>
 #include <iostream>
 #include <sstream>
+#include <string>
 #include <vector>
 
 #include "flight_common/flight_monitoring.h"
@@ -135,23 +136,56 @@ Situation GeneratePathBehavior::checkSituation() {
     const bool empty =
         mapper_.withMap([](const OccupancyMap& map) { return map.tree().size() == 0; });
     if (empty) {
-      return Situation::infeasible("the map is empty: no lidar scan on " + mapper_.scanTopic() +
-                                   " has been mapped yet (is the simulator's lidar publishing?)");
+      const MapperStats stats = mapper_.stats();
+      return Situation::infeasible(
+          "the map is empty: no lidar scan on " + mapper_.scanTopic() +
+          " has been mapped yet (is the simulator's lidar publishing?): " +
+          std::to_string(stats.scans_received) + " scans received, " +
+          std::to_string(stats.scans_without_pose) + " without a pose estimate within " +
+          "pose_match_s of their stamp, " + std::to_string(stats.scans_dropped) + " dropped");
     }
   }
   return Situation::ok();
+}
+
+std::optional<GeneratePathBehavior::Box> GeneratePathBehavior::planningVolume(
+    const OccupancyMap& map, const std::optional<Box>& bounds) const {
+  auto volume = mapper_.planningVolumeLocked(map);
+  if (volume && bounds) {
+    volume->first = volume->first.cwiseMax(bounds->first);
+    volume->second = volume->second.cwiseMin(bounds->second);
+  }
+  return volume;
+}
+
+std::optional<GeneratePathBehavior::Box> GeneratePathBehavior::boundsParameter() const {
+  const auto& p = parameters();
+  if (!p.has_bounds_min_m() || !p.has_bounds_max_m()) return std::nullopt;
+  return Box{vec(p.bounds_min_m()), vec(p.bounds_max_m())};
 }
 
 absl::Status GeneratePathBehavior::onActivate() {
   const auto& p = parameters();
   const Eigen::Vector3d goal = vec(p.goal_m());
   if (!goal.allFinite()) return absl::InvalidArgumentError("goal_m must be finite coordinates");
+  if (p.has_bounds_min_m() != p.has_bounds_max_m()) {
+    return absl::InvalidArgumentError(
+        "bounds_min_m and bounds_max_m go together: give both corners of the box, or neither");
+  }
+  if (p.has_bounds_min_m()) {
+    const Eigen::Vector3d lo = vec(p.bounds_min_m()), hi = vec(p.bounds_max_m());
+    if (!lo.allFinite() || !hi.allFinite() || (lo.array() >= hi.array()).any()) {
+      return absl::InvalidArgumentError("bounds_min_m " + text(lo) +
+                                        " must be below bounds_max_m " + text(hi) +
+                                        " in every coordinate (finite, metres)");
+    }
+  }
   const std::optional<v1::PoseStamped> pose = mapper_.latestPose();
   if (!pose) return absl::FailedPreconditionError("no pose estimate on " + mapper_.poseTopic());
   start_m_ = vec(pose->pose().position_m());
   const double radius = p.vehicle_radius_m();
   absl::Status status = mapper_.withMap([&](const OccupancyMap& map) -> absl::Status {
-    const auto volume = mapper_.planningVolumeLocked(map);
+    const auto volume = planningVolume(map, boundsParameter());
     if (!volume) return absl::FailedPreconditionError("the map is empty: nothing mapped yet");
     const auto& [lo, hi] = *volume;
     if ((goal.array() < lo.array()).any() || (goal.array() > hi.array()).any()) {
@@ -196,6 +230,7 @@ void GeneratePathBehavior::startAttempt() {
   a.options.timeout_s = p.planning_time_limit_s();
   a.options.shortcut_attempts = static_cast<unsigned>(shortcut_attempts_);
   a.belief_key = beliefKey();
+  a.bounds = boundsParameter();
   {
     std::lock_guard lock(mutex_);
     a.id = ++current_id_;
@@ -226,7 +261,7 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
   r.id = attempt.id;
   std::optional<absl::StatusOr<PlannedPath>> planned;
   mapper_.withMap([&](const OccupancyMap& map) {
-    const auto volume = mapper_.planningVolumeLocked(map);
+    const auto volume = planningVolume(map, attempt.bounds);
     if (!volume) {
       r.outcome = Outcome::kInvalid;
       r.message = "the map was cleared while planning";

@@ -40,6 +40,7 @@
 #include <optional>
 #include <string>
 #include <thread>
+#include <utility>
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/server/belief_client.h"
@@ -80,11 +81,21 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
 
  private:
   enum class Outcome { kRunning, kWritten, kUnreachable, kTimedOut, kInvalid, kOutputFailed };
+  /// An axis-aligned box: lowest and highest corner, metres, world frame.
+  using Box = std::pair<Eigen::Vector3d, Eigen::Vector3d>;
+  /// The map's planning volume (LidarMapper::planningVolumeLocked) clipped
+  /// to `bounds` when given; nullopt for an empty map.
+  std::optional<Box> planningVolume(const OccupancyMap& map,
+                                    const std::optional<Box>& bounds) const;
+  /// bounds_min_m/bounds_max_m of the activation, when both are given.
+  std::optional<Box> boundsParameter() const;
+
   struct Attempt {
     uint64_t id = 0;
     Eigen::Vector3d start_m, goal_m;
     PlanOptions options;
     std::string belief_key;
+    std::optional<Box> bounds;  ///< bounds_min_m/bounds_max_m, read on the behavior's thread
   };
   struct Result {
     uint64_t id = 0;

@@ -13,6 +13,9 @@ namespace behaviorlib::nav {
 namespace {
 
 constexpr int64_t kPoseHistoryNs = 1'000'000'000;
+/// A scan newer than the newest pose by less than this waits for its pose
+/// (on its way); a pose stream that stopped longer ago is not waited for.
+constexpr int64_t kPoseWaitWindowNs = 200'000'000;
 
 Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
 
@@ -112,6 +115,7 @@ void LidarMapper::onPose(const v1::PoseStamped& pose) {
   while (!poses_.empty() && stampNs(poses_.front().header()) < t - kPoseHistoryNs) {
     poses_.pop_front();
   }
+  cv_.notify_all();  // a scan may be waiting for this pose
 }
 
 void LidarMapper::onScan(const v1::LaserScan& scan) {
@@ -150,9 +154,15 @@ void LidarMapper::run() {
     queue_.pop_front();
     const int64_t stamp = stampNs(scan.header());
     std::optional<v1::PoseStamped> pose = poseAt(stamp);
-    if (!pose) {
-      // The pose of a fresh scan may still be on its way: wait a little.
-      cv_.wait_for(lock, std::chrono::milliseconds(50), [&] { return stopping_; });
+    // The pose of a fresh scan may still be on its way (the newest pose is
+    // older than the scan): wait a little. Otherwise, with no pose estimate
+    // at all or only newer ones, none will come: skip at once, or a backlog
+    // of scans taken before localization started (10 Hz at a 5x time scale
+    // is 50 a second) would hold the mapping thread for seconds each.
+    if (!pose && !poses_.empty() && stampNs(poses_.back().header()) < stamp &&
+        stamp - stampNs(poses_.back().header()) < kPoseWaitWindowNs) {
+      cv_.wait_for(lock, std::chrono::milliseconds(50),
+                   [&] { return stopping_ || stampNs(poses_.back().header()) >= stamp; });
       if (stopping_) return;
       pose = poseAt(stamp);
     }

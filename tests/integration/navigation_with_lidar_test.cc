@@ -252,6 +252,53 @@ TEST_F(NavigationWithLidarTest, GoalsOutsideTheMapOrInAWallAreRefused) {
       << in_wall.error_message();
 }
 
+TEST_F(NavigationWithLidarTest, BoundsClipThePlanningVolumeAndBadBoundsAreRefused) {
+  v1::ActivateResponse response;
+  // Room B's centre is in the map, but outside a box around room A only.
+  grpc::Status outside = nav_client_->activate(
+      "GENERATE_PATH_WITH_OCCUPANCY_GRID",
+      R"({"goal_m": {"x": 9, "y": 5, "z": 1}, "bounds_min_m": {"x": 0, "y": 0, "z": 0},
+          "bounds_max_m": {"x": 6, "y": 10, "z": 3}})",
+      &response);
+  EXPECT_EQ(outside.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(outside);
+  EXPECT_NE(outside.error_message().find("outside the map"), std::string::npos)
+      << outside.error_message();
+  grpc::Status one_corner = nav_client_->activate(
+      "GENERATE_PATH_WITH_OCCUPANCY_GRID",
+      R"({"goal_m": {"x": 3, "y": 5, "z": 1}, "bounds_min_m": {"x": 0, "y": 0, "z": 0}})",
+      &response);
+  EXPECT_EQ(one_corner.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(one_corner);
+  EXPECT_NE(one_corner.error_message().find("go together"), std::string::npos)
+      << one_corner.error_message();
+  grpc::Status inverted = nav_client_->activate(
+      "GENERATE_PATH_WITH_OCCUPANCY_GRID",
+      R"({"goal_m": {"x": 3, "y": 5, "z": 1}, "bounds_min_m": {"x": 18, "y": 0, "z": 0},
+          "bounds_max_m": {"x": 0, "y": 10, "z": 3}})",
+      &response);
+  EXPECT_EQ(inverted.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(inverted);
+  EXPECT_NE(inverted.error_message().find("bounds_min_m"), std::string::npos)
+      << inverted.error_message();
+  // Inside the box around the building, the plan from room A to room B
+  // stays in the box.
+  const auto finished =
+      run("GENERATE_PATH_WITH_OCCUPANCY_GRID",
+          R"({"goal_m": {"x": 9, "y": 5, "z": 1}, "belief_key": "drone1/bounded_path",
+              "bounds_min_m": {"x": 0, "y": 0, "z": 0}, "bounds_max_m": {"x": 18, "y": 10, "z": 3}})");
+  ASSERT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << finished.ShortDebugString();
+  v1::Belief belief;
+  ASSERT_TRUE(readBelief("drone1/bounded_path", &belief).ok());
+  ASSERT_GT(belief.value().list_value().values_size(), 1);
+  for (const auto& point : belief.value().list_value().values()) {
+    const auto& f = point.struct_value().fields();
+    for (const char* axis : {"x", "y"}) {
+      const double v = f.contains(axis) ? f.at(axis).number_value() : 0.0;
+      EXPECT_GE(v, 0.0) << axis;
+      EXPECT_LE(v, std::string(axis) == "x" ? 18.0 : 10.0) << axis;
+    }
+  }
+}
+
 TEST_F(NavigationWithLidarTest, SavesAMapOctoMapReadsBackAndNamesItInBeliefMemory) {
   const std::string file = *dir_ + "/building.bt";
   const auto finished = run("SAVE_OCCUPANCY_GRID", "{\"file_path\": \"" + file + "\"}");

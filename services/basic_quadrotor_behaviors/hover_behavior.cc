@@ -12,7 +12,9 @@ HoverWithFlightActionControlBehavior::HoverWithFlightActionControlBehavior(fligh
       vehicle_(vehicle) {}
 
 absl::Status HoverWithFlightActionControlBehavior::onConfigure(const YAML::Node& config) {
-  return settings_.read(config);
+  if (auto s = settings_.read(config); !s.ok()) return s;
+  wind_.configure(settings_);
+  return absl::OkStatus();
 }
 
 absl::Status HoverWithFlightActionControlBehavior::onActivate() {
@@ -49,7 +51,11 @@ void HoverWithFlightActionControlBehavior::onDeactivate() {
 }
 
 Situation HoverWithFlightActionControlBehavior::checkSituation() {
-  if (active_) return flight::activeFlightSituation(status_, lease_.get(), settings_, true);
+  if (active_) {
+    Situation situation = flight::activeFlightSituation(status_, lease_.get(), settings_, true);
+    wind_.apply(&situation);
+    return situation;
+  }
   Situation situation;
   auto status = flight::checkFlightPreconditions(vehicle_, now(), settings_, true, &situation);
   if (status && status->state() != v1::FLIGHT_STATE_FLYING &&
@@ -60,6 +66,10 @@ Situation HoverWithFlightActionControlBehavior::checkSituation() {
                              "HOVER_WITH_FLIGHT_ACTION_CONTROL needs " + robotId() +
                                  " FLYING or HOVERING; it is " +
                                  platform::flightStateName(status->state()));
+  }
+  if (status && situation.feasible) {
+    wind_.observe(*status, vehicle_);
+    wind_.apply(&situation);
   }
   return situation;
 }
@@ -91,6 +101,7 @@ Verdict HoverWithFlightActionControlBehavior::checkProcesses() {
                                                &status_, &pose_, &unused)) {
     return Verdict::finish(*problem);
   }
+  wind_.observe(status_, vehicle_);
   return Verdict::keepGoing();
 }
 

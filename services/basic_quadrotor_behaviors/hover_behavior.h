@@ -8,6 +8,8 @@
 //                   battery >= min_battery_ratio, fresh pose estimate; while
 //                   active: battery above the minimum (else SITUATION_CHANGE),
 //                   no emergency, lease not taken; performance follows the battery
+//                   and the wind (flight::WindWatch: the wind estimated from the
+//                   vehicle's lean, every tick while active)
 //   checkGoal       none (recurrent)
 //   checkProgress   drift from the hover point beyond max_drift_m, or the
 //                   platform leaving the hover: WRONG_PROGRESS
@@ -23,6 +25,7 @@
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "flight_common/flight_support.h"
 #include "flight_common/vehicle.h"
+#include "flight_common/wind_watch.h"
 
 namespace behaviorlib::basic {
 
@@ -43,6 +46,7 @@ class HoverWithFlightActionControlBehavior final
  private:
   flight::Vehicle& vehicle_;
   flight::FlightSettings settings_;
+  flight::WindWatch wind_;
 
   bool active_ = false;
   std::unique_ptr<flight::VehicleLease> lease_;

@@ -13,6 +13,7 @@ absl::Status LandBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = flight::readNumber(config, "min_descent_m", 0, 100, &min_descent_m_); !s.ok())
     return s;
   descent_.setWindow(settings_.progress_window);
+  wind_.configure(settings_);
   return absl::OkStatus();
 }
 
@@ -64,7 +65,11 @@ void LandBehavior::onResume() {
 }
 
 Situation LandBehavior::checkSituation() {
-  if (active_) return flight::activeFlightSituation(status_, lease_.get(), settings_, false);
+  if (active_) {
+    Situation situation = flight::activeFlightSituation(status_, lease_.get(), settings_, false);
+    wind_.apply(&situation);
+    return situation;
+  }
   Situation situation;
   auto status = flight::checkFlightPreconditions(vehicle_, now(), settings_, false, &situation);
   if (status && !flight::airborne(status->state())) {
@@ -73,6 +78,10 @@ Situation LandBehavior::checkSituation() {
     situation.reasons.insert(situation.reasons.begin(),
                              "LAND needs " + robotId() + " in the air; it is " +
                                  platform::flightStateName(status->state()));
+  }
+  if (status && situation.feasible) {
+    wind_.observe(*status, vehicle_);
+    wind_.apply(&situation);
   }
   return situation;
 }
@@ -115,6 +124,7 @@ Verdict LandBehavior::checkProcesses() {
                                                &status_, &pose_, &unused)) {
     return Verdict::finish(*problem);
   }
+  wind_.observe(status_, vehicle_);
   if (!command_error_.empty()) return Verdict::finish(command_error_);
   return Verdict::keepGoing();
 }

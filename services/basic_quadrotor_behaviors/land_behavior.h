@@ -6,7 +6,8 @@
 //
 //   checkSituation  before: flight controller answers, the vehicle in the air,
 //                   fresh pose estimate; while active: no emergency, lease not
-//                   taken; performance follows the battery
+//                   taken; performance follows the battery and the wind
+//                   (flight::WindWatch)
 //   checkGoal       the platform reports LANDED
 //   checkProgress   descent below min_descent_m over progress_window_s, a
 //                   climb, or the platform leaving the landing: WRONG_PROGRESS
@@ -23,6 +24,7 @@
 #include "flight_common/flight_monitoring.h"
 #include "flight_common/flight_support.h"
 #include "flight_common/vehicle.h"
+#include "flight_common/wind_watch.h"
 
 namespace behaviorlib::basic {
 
@@ -45,6 +47,7 @@ class LandBehavior final : public Behavior<v1::LandParameters> {
  private:
   flight::Vehicle& vehicle_;
   flight::FlightSettings settings_;
+  flight::WindWatch wind_;
   double min_descent_m_ = 0.1;
   flight::ProgressWindow descent_{std::chrono::seconds(3)};
 

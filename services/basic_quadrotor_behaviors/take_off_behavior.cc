@@ -18,6 +18,7 @@ TakeOffBehavior::TakeOffBehavior(flight::Vehicle& vehicle)
 
 absl::Status TakeOffBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = settings_.read(config); !s.ok()) return s;
+  wind_.configure(settings_);
   if (auto s = flight::readNumber(config, "altitude_tolerance_m", 0, 10, &altitude_tolerance_m_);
       !s.ok()) {
     return s;
@@ -119,7 +120,11 @@ absl::Status TakeOffBehavior::onModify(const google::protobuf::Message& new_para
 }
 
 Situation TakeOffBehavior::checkSituation() {
-  if (active_) return flight::activeFlightSituation(status_, lease_.get(), settings_, false);
+  if (active_) {
+    Situation situation = flight::activeFlightSituation(status_, lease_.get(), settings_, false);
+    wind_.apply(&situation);
+    return situation;
+  }
   Situation situation;
   auto status = flight::checkFlightPreconditions(vehicle_, now(), settings_, true, &situation);
   if (status && status->state() != v1::FLIGHT_STATE_LANDED) {
@@ -181,6 +186,7 @@ Verdict TakeOffBehavior::checkProcesses() {
                                                &status_, &pose_, &twist_)) {
     return Verdict::finish(*problem);
   }
+  wind_.observe(status_, pose_, twist_);
   if (!command_error_.empty()) return Verdict::finish(command_error_);
   return Verdict::keepGoing();
 }

@@ -9,6 +9,7 @@
 //   checkSituation  before: flight controller answers, LANDED, battery >=
 //                   min_battery_ratio, fresh pose estimate; while active: no
 //                   emergency, lease not taken; performance follows the battery
+//                   and, once airborne, the wind (flight::WindWatch)
 //   checkGoal       altitude within tolerance, small vertical speed, for a dwell
 //   checkProgress   no climb towards the target over progress_window_s, or an
 //                   unexpected landing: WRONG_PROGRESS
@@ -29,6 +30,7 @@
 #include "flight_common/flight_monitoring.h"
 #include "flight_common/flight_support.h"
 #include "flight_common/vehicle.h"
+#include "flight_common/wind_watch.h"
 
 namespace behaviorlib::basic {
 
@@ -53,6 +55,7 @@ class TakeOffBehavior final : public Behavior<v1::TakeOffParameters> {
  private:
   flight::Vehicle& vehicle_;
   flight::FlightSettings settings_;
+  flight::WindWatch wind_;
   double altitude_tolerance_m_ = 0.1;
   double max_vertical_speed_m_s_ = 0.1;
   double min_climb_m_ = 0.1;

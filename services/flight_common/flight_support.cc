@@ -42,6 +42,28 @@ absl::Status FlightSettings::read(const YAML::Node& config) {
   if (auto s = readSeconds(config, "progress_window_s", 0, 600, &progress_window); !s.ok()) {
     return s;
   }
+  if (auto s = readNumber(config, "mass_kg", 0.01, 1000, &wind.mass_kg); !s.ok()) return s;
+  if (auto s = readNumber(config, "linear_drag_n_s_m", -1e-9, 1000, &wind.linear_drag_n_s_m);
+      !s.ok()) {
+    return s;
+  }
+  if (auto s =
+          readNumber(config, "quadratic_drag_n_s2_m2", -1e-9, 1000, &wind.quadratic_drag_n_s2_m2);
+      !s.ok()) {
+    return s;
+  }
+  if (wind.linear_drag_n_s_m <= 0.0 && wind.quadratic_drag_n_s2_m2 <= 0.0) {
+    return absl::InvalidArgumentError(
+        "linear_drag_n_s_m and quadratic_drag_n_s2_m2 cannot both be 0");
+  }
+  if (auto s = readNumber(config, "wind_time_constant_s", 0, 60, &wind.time_constant_s); !s.ok()) {
+    return s;
+  }
+  if (auto s = readNumber(config, "calm_wind_m_s", -1e-9, 100, &calm_wind_m_s); !s.ok()) return s;
+  if (auto s = readNumber(config, "max_wind_m_s", 0, 100, &max_wind_m_s); !s.ok()) return s;
+  if (max_wind_m_s <= calm_wind_m_s) {
+    return absl::InvalidArgumentError("max_wind_m_s must be above calm_wind_m_s");
+  }
   if (config && config.IsMap() && config["preempt_lease"]) {
     try {
       preempt_lease = config["preempt_lease"].as<bool>();

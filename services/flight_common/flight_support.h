@@ -11,6 +11,13 @@
 //   min_battery_ratio [0.3]     below it the behavior is infeasible
 //   full_battery_ratio [0.6]    at or above it the performance estimate is 1
 //   progress_window_s [3]       window of the progress checks
+// and the wind estimate of the performance (flight_common/wind_watch.h):
+//   mass_kg [1.5]               the airframe's mass
+//   linear_drag_n_s_m [0.25]    its body-axis (x, y) drag: F = -(c1 v + c2 |v| v)
+//   quadratic_drag_n_s2_m2 [0.04]
+//   wind_time_constant_s [1]    low-pass filter of the estimate
+//   calm_wind_m_s [2]           up to this wind the performance is not lowered
+//   max_wind_m_s [10]           at and beyond it the wind's factor is 0.2
 // plus the library's frequency_hz, maximum_execution_time_s, watchdog_timeout_s.
 
 #include <yaml-cpp/yaml.h>
@@ -21,6 +28,7 @@
 #include "absl/status/status.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "flight_common/vehicle.h"
+#include "motion_control/wind_estimator.h"
 
 namespace behaviorlib::flight {
 
@@ -31,6 +39,12 @@ struct FlightSettings {
   double min_battery_ratio = 0.3;
   double full_battery_ratio = 0.6;
   Duration progress_window = std::chrono::seconds(3);
+  /// The airframe's drag model and the wind estimate's filter.
+  motion::WindEstimatorParams wind;
+  /// Wind speeds (m/s) where the performance estimate starts to fall, and
+  /// where it reaches its floor (x0.2).
+  double calm_wind_m_s = 2.0;
+  double max_wind_m_s = 10.0;
 
   /// Reads the keys above from a behavior's config section (missing keys
   /// keep their values); INVALID_ARGUMENT naming a bad key.

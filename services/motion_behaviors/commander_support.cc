@@ -5,6 +5,12 @@
 
 namespace behaviorlib::motion_behaviors {
 
+absl::Status CommanderSupport::configure(const YAML::Node& config) {
+  if (auto s = settings_.read(config); !s.ok()) return s;
+  wind_.configure(settings_);
+  return absl::OkStatus();
+}
+
 Situation CommanderSupport::situationBefore(TimePoint now, const std::string& behavior) {
   Situation situation;
   auto status = flight::checkFlightPreconditions(vehicle_, now, settings_, true, &situation);
@@ -21,6 +27,10 @@ Situation CommanderSupport::situationBefore(TimePoint now, const std::string& be
     refuse("the command lease of " + vehicle_.robotId() + " is held by " + status->lease_holder() +
            ": only one commander at a time (deactivate it first)");
   }
+  if (situation.feasible) {
+    wind_.observe(*status, vehicle_);
+    wind_.apply(&situation);
+  }
   return situation;
 }
 
@@ -30,6 +40,7 @@ Situation CommanderSupport::situationActive() const {
     return Situation::infeasible("the vehicle is no longer flying: the platform reports " +
                                  platform::flightStateName(status_.state()));
   }
+  wind_.apply(&situation);
   return situation;
 }
 
@@ -71,6 +82,7 @@ std::optional<std::string> CommanderSupport::checkProcesses(TimePoint now) {
     return problem;
   }
   state_ = stateOf(pose_, twist_);
+  wind_.observe(status_, pose_, twist_);
   if (lease_) {
     if (absl::Status s = lease_->status(); !s.ok()) return std::string(s.message());
   }

@@ -18,7 +18,11 @@
 //
 // Config keys (defaults in brackets): pose_timeout_s [0.5], lease_ttl_s [2],
 // preempt_lease [false], min_battery_ratio [0.3], full_battery_ratio [0.6],
-// progress_window_s [3] (flight::FlightSettings).
+// progress_window_s [3], and the wind estimate's mass_kg, linear_drag_n_s_m,
+// quadratic_drag_n_s2_m2, wind_time_constant_s, calm_wind_m_s [2],
+// max_wind_m_s [10] (flight::FlightSettings). The performance estimate is the
+// battery's factor times the wind's (flight::WindWatch, fed every tick by
+// checkProcesses(), once by situationBefore()).
 
 #include <yaml-cpp/yaml.h>
 
@@ -30,6 +34,7 @@
 #include "behaviorlib/behavior_execution_manager.h"
 #include "flight_common/flight_support.h"
 #include "flight_common/vehicle.h"
+#include "flight_common/wind_watch.h"
 #include "motion_control/motion_types.h"
 
 namespace behaviorlib::motion_behaviors {
@@ -38,14 +43,15 @@ class CommanderSupport {
  public:
   explicit CommanderSupport(flight::Vehicle& vehicle) : vehicle_(vehicle) {}
 
-  absl::Status configure(const YAML::Node& config) { return settings_.read(config); }
+  absl::Status configure(const YAML::Node& config);
   const flight::FlightSettings& settings() const { return settings_; }
 
   /// Before activation: a flight controller that answers, FLYING or
   /// HOVERING, a fresh pose estimate, the battery, the lease free (unless
-  /// preempt_lease).
+  /// preempt_lease); the performance follows the battery and the wind.
   Situation situationBefore(TimePoint now, const std::string& behavior);
-  /// While active: no emergency, still flying, the battery.
+  /// While active: no emergency, still flying, the battery; the performance
+  /// follows the battery and the wind.
   Situation situationActive() const;
 
   /// Reads the first estimate (state()), runs `check` (the behavior's own
@@ -77,6 +83,7 @@ class CommanderSupport {
   double yawRad() const { return state_.yawRad(); }
   const v1::PoseStamped& pose() const { return pose_; }
   const v1::TwistStamped& twist() const { return twist_; }
+  const flight::WindWatch& wind() const { return wind_; }
 
  private:
   flight::Vehicle& vehicle_;
@@ -87,6 +94,7 @@ class CommanderSupport {
   v1::PoseStamped pose_;
   v1::TwistStamped twist_;
   motion::StateEstimate state_;
+  flight::WindWatch wind_;
 };
 
 }  // namespace behaviorlib::motion_behaviors

@@ -32,6 +32,12 @@ BehaviorOptions referenceBehaviorOptions(Duration maximum_execution_time) {
 ReferenceSupport::ReferenceSupport(flight::Vehicle& vehicle, MotionLink& link)
     : vehicle_(vehicle), link_(link) {}
 
+absl::Status ReferenceSupport::configure(const YAML::Node& config) {
+  if (auto s = settings_.read(config); !s.ok()) return s;
+  wind_.configure(settings_.flight);
+  return absl::OkStatus();
+}
+
 Situation ReferenceSupport::situationBefore(TimePoint now, const std::string& behavior) {
   Situation situation;
   auto status = flight::checkFlightPreconditions(vehicle_, now, settings_.flight, true, &situation);
@@ -43,6 +49,10 @@ Situation ReferenceSupport::situationBefore(TimePoint now, const std::string& be
                                  " FLYING or HOVERING; it is " +
                                  platform::flightStateName(status->state()));
   }
+  if (status && situation.feasible) {
+    wind_.observe(*status, vehicle_);
+    wind_.apply(&situation);
+  }
   return situation;
 }
 
@@ -52,6 +62,7 @@ Situation ReferenceSupport::situationActive() const {
     return Situation::infeasible("the vehicle is no longer flying: the platform reports " +
                                  platform::flightStateName(status_.state()));
   }
+  wind_.apply(&situation);
   return situation;
 }
 
@@ -93,6 +104,7 @@ std::optional<std::string> ReferenceSupport::checkProcesses(TimePoint now) {
     return problem;
   }
   state_ = stateOf(pose_, twist_);
+  wind_.observe(status_, pose_, twist_);
   return checkController(now);
 }
 

@@ -28,6 +28,12 @@
 //   progress_window_s [3]        window of the progress checks
 //   min_altitude_m [0.2]         lowest altitude a reference may ask for
 //   min_battery_ratio [0.3], full_battery_ratio [0.6]   as the flight behaviors
+//   mass_kg, linear_drag_n_s_m, quadratic_drag_n_s2_m2, wind_time_constant_s,
+//   calm_wind_m_s [2], max_wind_m_s [10]   the wind estimate (flight_common/wind_watch.h)
+//
+// The performance estimate (checkSituation) is the battery's factor times the
+// wind's: the wind is estimated every tick from the lean of the vehicle
+// (WindWatch), and once from the latest estimate before activation.
 
 #include <yaml-cpp/yaml.h>
 
@@ -39,6 +45,7 @@
 #include "behaviorlib/v1/motion.pb.h"
 #include "flight_common/flight_support.h"
 #include "flight_common/vehicle.h"
+#include "flight_common/wind_watch.h"
 #include "motion_behaviors/motion_link.h"
 #include "motion_control/motion_types.h"
 
@@ -64,16 +71,16 @@ class ReferenceSupport {
  public:
   ReferenceSupport(flight::Vehicle& vehicle, MotionLink& link);
 
-  absl::Status configure(const YAML::Node& config) { return settings_.read(config); }
+  absl::Status configure(const YAML::Node& config);
   const MotionSettings& settings() const { return settings_; }
 
   /// Before activation: a flight controller that answers, the vehicle
   /// FLYING or HOVERING, a fresh pose estimate, the battery above the
-  /// minimum.
+  /// minimum; the performance follows the battery and the wind.
   Situation situationBefore(TimePoint now, const std::string& behavior);
   /// While active (from the inputs checkProcesses() read): infeasible when
   /// the vehicle is no longer flying (landing, emergency) or the battery is
-  /// below the minimum; the performance follows the battery.
+  /// below the minimum; the performance follows the battery and the wind.
   Situation situationActive() const;
 
   /// Starts following the estimate and the controller's status and reads
@@ -97,6 +104,8 @@ class ReferenceSupport {
   const motion::StateEstimate& state() const { return state_; }
   double yawRad() const { return state_.yawRad(); }
   const v1::FlightStatus& flightStatus() const { return status_; }
+  /// The wind estimate (fed by checkProcesses()).
+  const flight::WindWatch& wind() const { return wind_; }
   /// The controller that last followed this activation's references ("" if none).
   const std::string& controller() const { return controller_; }
   MotionLink& link() { return link_; }
@@ -118,6 +127,7 @@ class ReferenceSupport {
   v1::PoseStamped pose_;
   v1::TwistStamped twist_;
   motion::StateEstimate state_;
+  flight::WindWatch wind_;
 };
 
 }  // namespace behaviorlib::motion_behaviors

@@ -8,6 +8,7 @@
 // Simulator.InjectFailure; estimates are compared with the ground truth on
 // the data channel, stamp by stamp. Every time is simulated time.
 
+#include <cstdlib>
 #include <map>
 
 #include "behaviorlib/v1/types.pb.h"
@@ -576,6 +577,68 @@ TEST_F(CausesWithPidTest, WindPushingTheVehicleOffThePathIsWrongProgress) {
   EXPECT_GT(stack_.truePosition().y() - start.y(), 0.8) << "pushed north, downwind";
   ASSERT_NO_FATAL_FAILURE(
       stack_.inject(stack_.failure(v1::FAILURE_COMPONENT_WIND, v1::FAILURE_TYPE_OK)));
+}
+
+/// The wind a situation's reason names ("wind of about 6.02 m/s ..."), or
+/// -1 without one.
+double windInReasons(const v1::CheckSituationResponse& situation) {
+  for (const auto& reason : situation.reasons()) {
+    const size_t at = reason.find("wind of about ");
+    if (at != std::string::npos) return std::atof(reason.c_str() + at + 14);
+  }
+  return -1.0;
+}
+
+TEST_F(CausesWithPidTest, SteadyWindLowersThePerformanceEstimateAndCalmRestoresIt) {
+  ASSERT_NO_FATAL_FAILURE(flyWithPid(1.5));
+  const std::string hover =
+      client_->start("KEEP_HOVERING_WITH_PID_CONTROL", "{\"max_drift_m\": 3}");
+  ASSERT_FALSE(hover.empty());
+  stack_.sleepSim(2.0);
+  // Calm air, full battery: the estimate is 1 (no wind term below 2 m/s).
+  const char* kHover = "KEEP_HOVERING_WITH_PID_CONTROL";
+  const char* kController = "QUADROTOR_PID_MOTION_CONTROL";
+  const auto calm = client_->checkSituation(kHover);
+  EXPECT_TRUE(calm.feasible()) << calm.ShortDebugString();
+  EXPECT_DOUBLE_EQ(calm.performance_ratio(), 1.0) << calm.ShortDebugString();
+  EXPECT_DOUBLE_EQ(client_->checkSituation(kController).performance_ratio(), 1.0);
+
+  // 6 m/s from the west: the vehicle leans about 11.5 degrees into it to hold
+  // its point; the behaviors read the wind from that lean:
+  // 1 - 0.8 (6 - 2) / (10 - 2) = 0.6.
+  auto wind = stack_.failure(v1::FAILURE_COMPONENT_WIND, v1::FAILURE_TYPE_SET);
+  wind.mutable_wind_velocity_m_s()->set_x(6.0);
+  ASSERT_NO_FATAL_FAILURE(stack_.inject(wind));
+  const double wind_at = stack_.simNow();
+  ASSERT_TRUE(FlightStack::waitFor(
+      [&] { return client_->checkSituation(kHover).performance_ratio() < 0.8; }, seconds(10)))
+      << client_->checkSituation(kHover).ShortDebugString();
+  const double lowered_after = stack_.simNow() - wind_at;
+  stack_.sleepSim(4.0);  // the PID's integrator and the estimate settle
+  const auto windy_hover = client_->checkSituation(kHover);
+  const auto windy_controller = client_->checkSituation(kController);
+  const auto windy_path = client_->checkSituation("FOLLOW_PATH");  // before activation
+  std::printf(
+      "wind 6 m/s: performance below 0.8 after %.2f s; then KEEP_HOVERING %.3f (wind %.2f m/s), "
+      "QUADROTOR_PID_MOTION_CONTROL %.3f, FOLLOW_PATH (inactive) %.3f\n",
+      lowered_after, windy_hover.performance_ratio(), windInReasons(windy_hover),
+      windy_controller.performance_ratio(), windy_path.performance_ratio());
+  for (const auto* situation : {&windy_hover, &windy_controller, &windy_path}) {
+    EXPECT_TRUE(situation->feasible()) << situation->ShortDebugString();
+    EXPECT_NEAR(situation->performance_ratio(), 0.6, 0.1) << situation->ShortDebugString();
+    EXPECT_NEAR(windInReasons(*situation), 6.0, 1.0) << situation->ShortDebugString();
+  }
+  EXPECT_LT(lowered_after, 5.0);
+  EXPECT_FALSE(client_->finished(hover, milliseconds(0))) << "still hovering, in the wind";
+
+  // Calm again: back to 1 once the vehicle stops leaning.
+  ASSERT_NO_FATAL_FAILURE(
+      stack_.inject(stack_.failure(v1::FAILURE_COMPONENT_WIND, v1::FAILURE_TYPE_OK)));
+  ASSERT_TRUE(FlightStack::waitFor(
+      [&] { return client_->checkSituation(kHover).performance_ratio() >= 0.99; }, seconds(10)))
+      << client_->checkSituation(kHover).ShortDebugString();
+  ASSERT_TRUE(client_->deactivate(kHover).ok());
+  EXPECT_EQ(finished(hover).finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
 }
 
 TEST_F(CausesWithPidTest, ABatteryDropWhileHoveringIsASituationChange) {

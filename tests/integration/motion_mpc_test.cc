@@ -91,6 +91,58 @@ TEST_F(MotionMpcTest, FollowsA4mSquareWithinTheCrossTrackBoundAndRotates90Degree
   ASSERT_NO_FATAL_FAILURE(stack_.land());
 }
 
+TEST_F(MotionMpcTest, BadInputIsInvalidArgumentNamingTheParameterBeforeAnythingMoves) {
+  ASSERT_NO_FATAL_FAILURE(stack_.localizeAndTakeOff(1.0));
+  const std::string controller = client_->start("QUADROTOR_MPC_MOTION_CONTROL", "{}");
+  ASSERT_FALSE(controller.empty());
+  stack_.sleepSim(1.0);
+  const Eigen::Vector3d before = position();
+  struct Case {
+    std::string json, names;
+  };
+  const std::vector<Case> cases = {
+      {"{\"path_m\": []}", "path_m"},
+      {"{}", "path_m"},
+      {pathJson({{1, 0, 1}, {1, 0, 0.05}}), "path_m[1]"},
+      {pathJson({{1, 0, 1}, {1500, 0, 1}}), "path_m"},
+      {pathJson({{1, 0, 1}}, "\"speed_m_s\": 50"), "speed_m_s"},
+      {pathJson({{1, 0, 1}}, "\"speed_m_s\": 0.01"), "speed_m_s"},
+      {pathJson({{1, 0, 1}}, "\"sped_m_s\": 1"), "sped_m_s"},
+  };
+  for (const auto& c : cases) {
+    v1::ActivateResponse response;
+    const grpc::Status status =
+        client_->activate("FOLLOW_PATH_WITH_MPC_CONTROL", c.json, &response);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+        << c.json << ": " << describe(status);
+    EXPECT_NE(status.error_message().find(c.names), std::string::npos)
+        << c.json << ": " << describe(status);
+  }
+  // A NaN coordinate (JSON cannot carry it: a Struct built in code), and a
+  // path longer than max_path_points (1000) of points 1 mm apart.
+  v1::ActivateResponse response;
+  grpc::Status status = client_->activate("FOLLOW_PATH_WITH_MPC_CONTROL",
+                                          pathStruct({{std::nan(""), 0, 1}, {2, 0, 1}}), &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(status);
+  EXPECT_NE(status.error_message().find("path_m[0]"), std::string::npos) << describe(status);
+  std::vector<Eigen::Vector3d> many;
+  for (int i = 0; i < 1001; ++i) many.push_back({before.x() + 0.001 * i, before.y(), 1.0});
+  status = client_->activate("FOLLOW_PATH_WITH_MPC_CONTROL", pathStruct(many), &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(status);
+  EXPECT_NE(status.error_message().find("path_m"), std::string::npos) << describe(status);
+  EXPECT_NE(status.error_message().find("max_path_points"), std::string::npos) << describe(status);
+  status = client_->activate("ROTATE_WITH_MPC_CONTROL", "{\"yaw_rad\": 9}", &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(status);
+  EXPECT_NE(status.error_message().find("yaw_rad"), std::string::npos) << describe(status);
+  // Nothing moved: the controller still holds where it started.
+  stack_.sleepSim(2.0);
+  EXPECT_LT((position() - before).norm(), 0.1);
+  EXPECT_EQ(stack_.flightStatus().lease_holder(), "drone1/QUADROTOR_MPC_MOTION_CONTROL")
+      << client_->finished(controller, milliseconds(0))
+             .value_or(v1::BehaviorEvent())
+             .ShortDebugString();
+}
+
 TEST_F(MotionMpcTest, TheLeaseRefusesASecondMotionControllerAndTheVehicleStaysControlled) {
   std::string error;
   auto pid = stack_.startSystem(BEHAVIORLIB_PID_SYSTEM_PATH, BEHAVIORLIB_PID_CONFIG_PATH, &error);

@@ -167,7 +167,12 @@ TEST_F(MotionPidTest, BadInputIsInvalidArgumentNamingTheParameterBeforeAnythingM
     EXPECT_NE(status.error_message().find(c.names), std::string::npos)
         << c.json << ": " << describe(status);
   }
+  // A NaN coordinate (JSON cannot carry it: a Struct built in code).
   v1::ActivateResponse response;
+  const grpc::Status nan =
+      client_->activate("FOLLOW_PATH", pathStruct({{1, 0, 1}, {2, std::nan(""), 1}}), &response);
+  EXPECT_EQ(nan.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(nan);
+  EXPECT_NE(nan.error_message().find("path_m[1]"), std::string::npos) << describe(nan);
   auto status = client_->activate("ROTATE_WITH_PID_CONTROL", "{\"yaw_rad\": 9}", &response);
   EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(status);
   EXPECT_NE(status.error_message().find("yaw_rad"), std::string::npos) << describe(status);

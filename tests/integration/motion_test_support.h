@@ -116,6 +116,21 @@ class SystemClient {
     }
     return status;
   }
+  /// Activates with parameters built in code (a Struct can carry what JSON
+  /// cannot, e.g. NaN); retried while the system has no simulated time yet.
+  grpc::Status activate(const std::string& behavior, const google::protobuf::Struct& parameters,
+                        v1::ActivateResponse* response) {
+    v1::ActivateBehaviorRequest request;
+    request.set_behavior(behavior);
+    *request.mutable_parameters() = parameters;
+    grpc::Status status;
+    for (int attempt = 0; attempt < 100; ++attempt) {
+      status = stub_->ActivateBehavior(deadline().get(), request, response);
+      if (status.ok() || status.error_message().find("no time yet") == std::string::npos) break;
+      std::this_thread::sleep_for(milliseconds(20));
+    }
+    return status;
+  }
   /// Activates and expects success; the activation id.
   std::string start(const std::string& behavior, const std::string& json) {
     v1::ActivateResponse response;
@@ -414,6 +429,20 @@ inline Tracking tracking(TruthRecorder& truth, const v1::BehaviorEvent& activate
   }
   if (out.samples > 0) out.rms_m = std::sqrt(sum / static_cast<double>(out.samples));
   return out;
+}
+
+/// {"path_m": [{"x": .., "y": .., "z": ..}, ...]} as a Struct built in code
+/// (coordinates may be NaN, which JSON cannot carry).
+inline google::protobuf::Struct pathStruct(const std::vector<Eigen::Vector3d>& points) {
+  google::protobuf::Struct parameters;
+  auto* list = (*parameters.mutable_fields())["path_m"].mutable_list_value();
+  for (const Eigen::Vector3d& p : points) {
+    auto* fields = list->add_values()->mutable_struct_value()->mutable_fields();
+    (*fields)["x"].set_number_value(p.x());
+    (*fields)["y"].set_number_value(p.y());
+    (*fields)["z"].set_number_value(p.z());
+  }
+  return parameters;
 }
 
 /// Writes `text` to a temporary file and returns its path (a test-specific

@@ -53,6 +53,13 @@ class FakeVehicle final : public flight::Vehicle {
     std::lock_guard lock(mutex_);
     yaw_ = yaw;
   }
+  /// Roll and pitch of the pose estimate (rad; Z-Y-X with the yaw), e.g.
+  /// the lean of a vehicle holding against wind.
+  void setTilt(double roll, double pitch) {
+    std::lock_guard lock(mutex_);
+    roll_ = roll;
+    pitch_ = pitch;
+  }
   /// Frozen: the estimate keeps the stamp it had (its source stopped).
   void freezeEstimate(bool frozen) {
     std::lock_guard lock(mutex_);
@@ -115,8 +122,14 @@ class FakeVehicle final : public flight::Vehicle {
     pose.mutable_pose()->mutable_position_m()->set_x(x_);
     pose.mutable_pose()->mutable_position_m()->set_y(y_);
     pose.mutable_pose()->mutable_position_m()->set_z(z_);
-    pose.mutable_pose()->mutable_orientation()->set_w(std::cos(yaw_ / 2));
-    pose.mutable_pose()->mutable_orientation()->set_z(std::sin(yaw_ / 2));
+    const double cy = std::cos(yaw_ / 2), sy = std::sin(yaw_ / 2);
+    const double cp = std::cos(pitch_ / 2), sp = std::sin(pitch_ / 2);
+    const double cr = std::cos(roll_ / 2), sr = std::sin(roll_ / 2);
+    auto* q = pose.mutable_pose()->mutable_orientation();
+    q->set_w(cr * cp * cy + sr * sp * sy);
+    q->set_x(sr * cp * cy - cr * sp * sy);
+    q->set_y(cr * sp * cy + sr * cp * sy);
+    q->set_z(cr * cp * sy - sr * sp * cy);
     return pose;
   }
   absl::StatusOr<v1::TwistStamped> twistEstimate() override {
@@ -193,7 +206,7 @@ class FakeVehicle final : public flight::Vehicle {
   v1::FlightState state_ = v1::FLIGHT_STATE_LANDED;
   double battery_ = 1.0;
   bool reachable_ = true;
-  double x_ = 0, y_ = 0, z_ = 0, vx_ = 0, vy_ = 0, vz_ = 0, yaw_ = 0;
+  double x_ = 0, y_ = 0, z_ = 0, vx_ = 0, vy_ = 0, vz_ = 0, yaw_ = 0, roll_ = 0, pitch_ = 0;
   bool frozen_ = false;
   TimePoint frozen_at_{};
   bool lease_lost_ = false;

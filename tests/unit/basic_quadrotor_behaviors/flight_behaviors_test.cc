@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <thread>
 
 #include "basic_quadrotor_behaviors/hover_behavior.h"
@@ -314,6 +315,59 @@ TEST_F(FlightBehaviorsUnitTest, ALeaseTakenByAnotherHolderIsASituationChange) {
   EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_SITUATION_CHANGE);
   EXPECT_NE(finished.finished().message().find("intruder"), std::string::npos)
       << finished.finished().message();
+}
+
+// The lean (pitch, rad) of the simulated airframe (1.5 kg, body drag
+// 0.25 v + 0.04 v^2 N) holding still in a wind of `wind_m_s`.
+double leanInWind(double wind_m_s) {
+  return std::asin((0.25 * wind_m_s + 0.04 * wind_m_s * wind_m_s) / (1.5 * 9.81));
+}
+
+TEST_F(FlightBehaviorsUnitTest, HoverPerformanceFallsInTheWindTheVehicleLeansAgainst) {
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(0, 0, 1.5);
+  auto calm = hover_->checkSituationAndWait();
+  ASSERT_TRUE(calm.ok());
+  EXPECT_TRUE(calm->feasible());
+  EXPECT_DOUBLE_EQ(calm->performance_ratio(), 1.0) << calm->ShortDebugString();
+
+  // Leaning against 6 m/s of wind (seen along the body's x axis: 6.1 m/s of
+  // horizontal wind): 1 - 0.8 (6.1 - 2) / (10 - 2) = 0.59, before
+  // activation from the latest estimate...
+  vehicle_.setTilt(0.0, leanInWind(6.0));
+  clock_.advance(std::chrono::seconds(1));  // a new sample of the estimate
+  auto windy = hover_->checkSituationAndWait();
+  ASSERT_TRUE(windy.ok());
+  EXPECT_TRUE(windy->feasible()) << "wind alone does not make it infeasible";
+  EXPECT_NEAR(windy->performance_ratio(), 0.59, 0.03) << windy->ShortDebugString();
+  ASSERT_EQ(windy->reasons_size(), 1);
+  EXPECT_NE(windy->reasons(0).find("wind of about 6.1"), std::string::npos) << windy->reasons(0);
+
+  // ... and while active, with the battery's factor on top.
+  ASSERT_TRUE(hover_->activateAndWait(drift(1.0)).ok());
+  fly(milliseconds(2000), hover_);
+  windy = hover_->checkSituationAndWait();
+  ASSERT_TRUE(windy.ok());
+  EXPECT_NEAR(windy->performance_ratio(), 0.59, 0.03) << windy->ShortDebugString();
+  vehicle_.setBattery(0.45);  // factor 0.2 + 0.8 * (0.45 - 0.3) / (0.6 - 0.3) = 0.6
+  fly(milliseconds(100), hover_);
+  windy = hover_->checkSituationAndWait();
+  ASSERT_TRUE(windy.ok());
+  EXPECT_NEAR(windy->performance_ratio(), 0.6 * 0.59, 0.03) << windy->ShortDebugString();
+
+  // The wind drops: back to the battery's factor within a few seconds.
+  vehicle_.setBattery(1.0);
+  vehicle_.setTilt(0.0, 0.0);
+  fly(milliseconds(300), hover_);
+  auto easing = hover_->checkSituationAndWait();
+  ASSERT_TRUE(easing.ok());
+  EXPECT_LT(easing->performance_ratio(), 0.9) << "filtered: " << easing->ShortDebugString();
+  fly(milliseconds(4000), hover_);
+  calm = hover_->checkSituationAndWait();
+  ASSERT_TRUE(calm.ok());
+  EXPECT_DOUBLE_EQ(calm->performance_ratio(), 1.0) << calm->ShortDebugString();
+  EXPECT_EQ(hover_->state(), v1::BEHAVIOR_STATE_ACTIVE);
+  ASSERT_TRUE(hover_->deactivateAndWait().ok());
 }
 
 }  // namespace

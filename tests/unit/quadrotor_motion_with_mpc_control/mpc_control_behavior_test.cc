@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <functional>
 #include <thread>
 
 #include "behaviorlib/behavior_host.h"
@@ -39,10 +40,14 @@ class MpcControlUnitTest : public ::testing::Test {
     controller_ = host_.find("QUADROTOR_MPC_MOTION_CONTROL");
   }
 
-  void fly(Duration total, const BehaviorExecutionManager* behavior) {
+  // Advances the fake clock in 10 ms steps (one controller tick each) until
+  // `total` passed or `behavior` ended; `each` runs after every step.
+  void fly(Duration total, const BehaviorExecutionManager* behavior,
+           const std::function<void()>& each = nullptr) {
     for (Duration done{0}; done < total; done += milliseconds(10)) {
       clock_.advance(milliseconds(10));
       std::this_thread::sleep_for(milliseconds(1));
+      if (each) each();
       if (behavior->state() == v1::BEHAVIOR_STATE_INACTIVE) return;
     }
   }
@@ -88,6 +93,55 @@ TEST_F(MpcControlUnitTest, TheControllerFollowsTheHoverReferenceAndTheHoverSeesI
       << finished.ShortDebugString();
   ASSERT_TRUE(controller_->deactivateAndWait().ok());
   EXPECT_EQ(link_.statuses().back().state(), v1::MOTION_CONTROLLER_STATE_STOPPED);
+  EXPECT_EQ(vehicle_.commands().back(), "RELEASE");
+}
+
+TEST_F(MpcControlUnitTest, AnOutputThatIsNotFiniteEndsTheControllerWithProcessFailure) {
+  ASSERT_TRUE(
+      controller_->activateAndWait(std::make_unique<v1::QuadrotorMpcMotionControlParameters>())
+          .ok());
+  fly(milliseconds(100), controller_);
+  const size_t sent = vehicle_.setpoints().size();
+  ASSERT_GE(sent, 5u);
+  // A diverged estimate: the MPC refuses it (output not finite), nothing
+  // more is sent.
+  vehicle_.setVelocity(0, NAN, 0);
+  fly(milliseconds(200), controller_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE)
+      << finished.ShortDebugString();
+  EXPECT_NE(finished.finished().message().find("output is not finite"), std::string::npos)
+      << finished.finished().message();
+  EXPECT_EQ(vehicle_.setpoints().size(), sent) << "no setpoint after the NaN";
+  EXPECT_EQ(vehicle_.commands().back(), "RELEASE");
+  EXPECT_EQ(link_.statuses().back().state(), v1::MOTION_CONTROLLER_STATE_STOPPED);
+}
+
+TEST_F(MpcControlUnitTest, AnOutputSaturatedLongerThanTheTimeoutEndsWithProcessFailure) {
+  ASSERT_TRUE(
+      controller_->activateAndWait(std::make_unique<v1::QuadrotorMpcMotionControlParameters>())
+          .ok());
+  // A fresh reference 50 m north that the (fake) vehicle never approaches:
+  // the MPC's first input sits on its box limit every step.
+  auto far_reference = [&] {
+    v1::MotionReference reference = toProto(holdAt({0, 50, 2}, 0.0));
+    stampHeader(clock_.now(), "drone1", 1, reference.mutable_header());
+    reference.set_source("TEST-FAR");
+    ASSERT_TRUE(link_.publishReference(reference).ok());
+  };
+  fly(milliseconds(1500), controller_, far_reference);
+  EXPECT_EQ(controller_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "saturation_timeout_s is 2 s";
+  ASSERT_FALSE(link_.statuses().empty());
+  EXPECT_TRUE(link_.statuses().back().saturated()) << link_.statuses().back().ShortDebugString();
+  fly(milliseconds(1000), controller_, far_reference);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE)
+      << finished.ShortDebugString();
+  EXPECT_NE(finished.finished().message().find("saturated (tilt or thrust limit)"),
+            std::string::npos)
+      << finished.finished().message();
+  EXPECT_NE(finished.finished().message().find("saturation_timeout_s"), std::string::npos)
+      << finished.finished().message();
   EXPECT_EQ(vehicle_.commands().back(), "RELEASE");
 }
 

@@ -92,6 +92,7 @@ TEST(PathChecksTest, BadPathsAreInvalidArgumentNamingThePoint) {
   EXPECT_EQ(low.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_NE(low.status().message().find("path_m[1]"), std::string::npos) << low.status();
   auto nan = makePathTracker(path({{1, NAN, 1}}), 1, 1, settings, 0.2);
+  EXPECT_EQ(nan.status().code(), absl::StatusCode::kInvalidArgument) << nan.status();
   EXPECT_NE(nan.status().message().find("path_m[0]"), std::string::npos) << nan.status();
   auto many =
       makePathTracker(path({{1, 0, 1}, {2, 0, 1}, {3, 0, 1}, {4, 0, 1}}), 1, 1, settings, 0.2);
@@ -270,6 +271,104 @@ TEST_F(MotionBehaviorsUnitTest, ControllerThatLosesTheLeaseEndsWithProcessFailur
       << finished.ShortDebugString();
   EXPECT_NE(finished.finished().message().find("lease"), std::string::npos)
       << finished.finished().message();
+}
+
+TEST_F(MotionBehaviorsUnitTest, ControllerWhoseOutputIsNotFiniteEndsWithProcessFailure) {
+  ASSERT_TRUE(
+      controller_->activateAndWait(std::make_unique<v1::QuadrotorPidMotionControlParameters>())
+          .ok());
+  fly(milliseconds(100), controller_);
+  const size_t sent = vehicle_.setpoints().size();
+  ASSERT_GE(sent, 5u);
+  // The estimate turns NaN (a diverged estimator): the PID's output is not
+  // finite; nothing more is sent and the controller ends.
+  vehicle_.setPosition(NAN, 0, 1);
+  fly(milliseconds(200), controller_);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE)
+      << finished.ShortDebugString();
+  EXPECT_NE(finished.finished().message().find("output is not finite"), std::string::npos)
+      << finished.finished().message();
+  EXPECT_NE(finished.finished().message().find("no setpoint sent"), std::string::npos)
+      << finished.finished().message();
+  EXPECT_EQ(vehicle_.setpoints().size(), sent) << "no setpoint after the NaN";
+  for (const auto& setpoint : vehicle_.setpoints()) {
+    EXPECT_TRUE(std::isfinite(setpoint.attitude_thrust().thrust_ratio()));
+  }
+  EXPECT_EQ(vehicle_.commands().back(), "RELEASE");
+}
+
+TEST_F(MotionBehaviorsUnitTest, ControllerSaturatedLongerThanTheTimeoutEndsWithProcessFailure) {
+  ASSERT_TRUE(
+      controller_->activateAndWait(std::make_unique<v1::QuadrotorPidMotionControlParameters>())
+          .ok());
+  // A fresh reference 50 m east that the (fake) vehicle never approaches:
+  // the PID asks for more than its tilt limit every step.
+  auto far_reference = [&] {
+    v1::MotionReference reference = toProto(holdAt({50, 0, 1}, 0.0));
+    stampHeader(clock_.now(), "drone1", 1, reference.mutable_header());
+    reference.set_source("TEST-FAR");
+    ASSERT_TRUE(link_.publishReference(reference).ok());
+  };
+  fly(milliseconds(1500), controller_, far_reference);
+  EXPECT_EQ(controller_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "saturation_timeout_s is 2 s";
+  ASSERT_FALSE(link_.statuses().empty());
+  EXPECT_TRUE(link_.statuses().back().saturated()) << link_.statuses().back().ShortDebugString();
+  fly(milliseconds(1000), controller_, far_reference);
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE)
+      << finished.ShortDebugString();
+  EXPECT_NE(finished.finished().message().find("saturated (tilt or thrust limit)"),
+            std::string::npos)
+      << finished.finished().message();
+  EXPECT_NE(finished.finished().message().find("saturation_timeout_s"), std::string::npos)
+      << finished.finished().message();
+  EXPECT_EQ(vehicle_.commands().back(), "RELEASE");
+}
+
+// The lean (pitch, rad) of the simulated airframe (1.5 kg, body drag
+// 0.25 v + 0.04 v^2 N) holding still in a wind of `wind_m_s`.
+double leanInWind(double wind_m_s) {
+  return std::asin((0.25 * wind_m_s + 0.04 * wind_m_s * wind_m_s) / (1.5 * 9.81));
+}
+
+TEST_F(MotionBehaviorsUnitTest, PerformanceFallsInTheWindTheVehicleLeansAgainst) {
+  auto calm = follow_path_->checkSituationAndWait();
+  ASSERT_TRUE(calm.ok());
+  EXPECT_DOUBLE_EQ(calm->performance_ratio(), 1.0) << calm->ShortDebugString();
+  ASSERT_TRUE(
+      controller_->activateAndWait(std::make_unique<v1::QuadrotorPidMotionControlParameters>())
+          .ok());
+  fly(milliseconds(200), controller_);
+  calm = controller_->checkSituationAndWait();
+  ASSERT_TRUE(calm.ok());
+  EXPECT_DOUBLE_EQ(calm->performance_ratio(), 1.0) << calm->ShortDebugString();
+
+  // Leaning against 6 m/s of wind (6.1 m/s horizontal): performance
+  // 1 - 0.8 (6.1 - 2) / (10 - 2) = 0.59, for the active controller (every
+  // tick) and for FOLLOW_PATH before its activation (the latest estimate).
+  vehicle_.setTilt(leanInWind(6.0), 0.0);
+  fly(std::chrono::seconds(3), controller_);
+  auto windy = controller_->checkSituationAndWait();
+  ASSERT_TRUE(windy.ok());
+  EXPECT_TRUE(windy->feasible());
+  EXPECT_NEAR(windy->performance_ratio(), 0.59, 0.03) << windy->ShortDebugString();
+  ASSERT_EQ(windy->reasons_size(), 1);
+  EXPECT_NE(windy->reasons(0).find("wind"), std::string::npos) << windy->reasons(0);
+  windy = follow_path_->checkSituationAndWait();
+  ASSERT_TRUE(windy.ok());
+  EXPECT_TRUE(windy->feasible());
+  EXPECT_NEAR(windy->performance_ratio(), 0.59, 0.03) << windy->ShortDebugString();
+  EXPECT_EQ(controller_->state(), v1::BEHAVIOR_STATE_ACTIVE);
+  // A performance change of 0.1 or more is an event.
+  bool reported = false;
+  for (const auto& e : events_.events()) {
+    if (e.has_situation_changed() && e.situation_changed().performance_ratio() < 0.75) {
+      reported = true;
+    }
+  }
+  EXPECT_TRUE(reported) << "a situation_changed event";
+  ASSERT_TRUE(controller_->deactivateAndWait().ok());
 }
 
 }  // namespace

@@ -246,22 +246,74 @@ void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_fi
       if (lease.ok()) (void)robot.fc->releaseLease(lease_id);
       standDown(robot.robot_id, "safety: " + rule, abort_with_safety_steps);
     } else {
-      standDown(robot.robot_id, "safety: " + rule, abort_with_safety_steps);
-      if (hover_first) {
-        std::unique_lock lock(mutex_);
-        cv_.wait_for(lock, options_.hover_before_land, [&] { return stopping_; });
+      // The stand-down goes on in the background: a system that does not
+      // answer (a hung motion controller, whose calls run into their
+      // deadline) must neither keep the vehicle in the air nor let the lease
+      // taken above expire (the platform's own failsafe would then land it).
+      // The vehicle lands once it has hovered `hover_before_land` and the
+      // stand-down is done or has had its budget; the lease is renewed
+      // meanwhile.
+      auto stood_down = std::make_shared<bool>(false);  // guarded by mutex_
+      {
+        std::lock_guard lock(mutex_);
+        if (stopping_) {
+          *stood_down = true;
+        } else {
+          actions_.emplace_back(
+              [this, stood_down, robot_id = robot.robot_id, rule, abort_with_safety_steps] {
+                standDown(robot_id, "safety: " + rule, abort_with_safety_steps);
+                std::lock_guard lock(mutex_);
+                *stood_down = true;
+                cv_.notify_all();
+              });
+        }
       }
-      if (lease.ok()) {
-        // The behaviors that commanded the vehicle are gone: land, keeping
-        // the lease alive until the vehicle is down.
+      const auto started = std::chrono::steady_clock::now();
+      const auto hover_until =
+          started + (hover_first ? options_.hover_before_land : std::chrono::milliseconds(0));
+      const auto stand_down_until = started + options_.stand_down_budget;
+      for (;;) {
+        {
+          std::unique_lock lock(mutex_);
+          const auto now = std::chrono::steady_clock::now();
+          if (stopping_ || (now >= hover_until && (*stood_down || now >= stand_down_until))) {
+            if (!*stood_down && !stopping_) {
+              std::fprintf(stderr,
+                           "coordinator: safety: %s: the stand-down took longer than %lld ms: "
+                           "landing meanwhile\n",
+                           robot.robot_id.c_str(),
+                           static_cast<long long>(options_.stand_down_budget.count()));
+            }
+            break;
+          }
+          cv_.wait_for(lock, std::chrono::milliseconds(100));
+        }
+        if (lease.ok()) (void)robot.fc->renewLease(lease_id);
+      }
+      // Land under the lease kept alive above; take it again if it was lost
+      // meanwhile, or if taking it did not answer in time (a loaded flight
+      // controller may have granted it late).
+      absl::StatusOr<v1::FlightState> landed =
+          absl::FailedPreconditionError("the coordinator holds no lease");
+      if (lease.ok()) landed = robot.fc->executeFlightAction(lease_id, v1::FLIGHT_ACTION_LAND);
+      if (!landed.ok()) {
         lease = takeLease(robot);
-        if (lease.ok()) lease_id = lease->lease_id();
-        auto landed = robot.fc->executeFlightAction(lease_id, v1::FLIGHT_ACTION_LAND);
+        if (lease.ok()) {
+          lease_id = lease->lease_id();
+          landed = robot.fc->executeFlightAction(lease_id, v1::FLIGHT_ACTION_LAND);
+        }
+      }
+      if (!lease.ok()) {
+        std::fprintf(stderr, "coordinator: safety: %s: no lease (%s); EMERGENCY_LAND\n",
+                     robot.robot_id.c_str(), std::string(lease.status().message()).c_str());
+        (void)robot.fc->executeFlightAction("", v1::FLIGHT_ACTION_EMERGENCY_LAND);
+      } else {
         if (!landed.ok()) {
           std::fprintf(stderr, "coordinator: safety: %s: LAND refused (%s); EMERGENCY_LAND\n",
                        robot.robot_id.c_str(), std::string(landed.status().message()).c_str());
           (void)robot.fc->executeFlightAction(lease_id, v1::FLIGHT_ACTION_EMERGENCY_LAND);
         }
+        // Keep the lease alive until the vehicle is down.
         const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(2);
         while (std::chrono::steady_clock::now() < deadline) {
           auto status = robot.watcher->latest();
@@ -274,10 +326,6 @@ void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_fi
           if (cv_.wait_for(lock, std::chrono::milliseconds(100), [&] { return stopping_; })) break;
         }
         (void)robot.fc->releaseLease(lease_id);
-      } else {
-        std::fprintf(stderr, "coordinator: safety: %s: no lease (%s); EMERGENCY_LAND\n",
-                     robot.robot_id.c_str(), std::string(lease.status().message()).c_str());
-        (void)robot.fc->executeFlightAction("", v1::FLIGHT_ACTION_EMERGENCY_LAND);
       }
     }
     std::lock_guard lock(mutex_);

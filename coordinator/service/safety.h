@@ -25,6 +25,9 @@
 //   - the pose estimate leaves the geofence (the running mission's, else the
 //     configured one): hover and abort the mission (its safety steps run).
 // Each rule fires once per flight (it re-arms when the vehicle has landed).
+// A rule that lands does not wait for a stand-down that hangs (a frozen
+// system's calls run into their deadline): it lands after its hover and at
+// most `stand_down_budget`, keeping its lease alive until the vehicle is down.
 // A motion controller from which the coordinator itself took the lease
 // fails (PROCESS_FAILURE) because of that: its failure fires no rule.
 // Standing a mission down waits (at most `mission_ack_timeout`) until its
@@ -83,8 +86,9 @@ struct SafetyOptions {
   /// Data channel broker, for the robots' pose estimates (geofence); empty:
   /// no geofence rule.
   std::string channel_address;
-  /// How long EmergencyLand waits for the stand-down (mission aborted,
-  /// commanding behaviors deactivated) before it lands regardless.
+  /// How long EmergencyLand, and the rules that land, wait for the
+  /// stand-down (mission aborted, commanding behaviors deactivated) before
+  /// they land regardless (the stand-down goes on meanwhile).
   std::chrono::milliseconds stand_down_budget{500};
   /// How long a stand-down waits for the mission's runner to take the abort.
   std::chrono::milliseconds mission_ack_timeout{2000};

@@ -1,5 +1,6 @@
 // The coordinator's activation plans and missions against the real stack:
-// the channel broker, the simulator at 5x (fixed seed), basic_quadrotor_behaviors
+// the channel broker, the simulator at 5x (fixed seed; fault injection on, for
+// a battery drop), basic_quadrotor_behaviors
 // and quadrotor_motion_with_pid_control (each registering with --coordinator),
 // and the coordinator with the shipped behavior catalog and a --state-dir,
 // every one a real process on free loopback ports, driven over gRPC (and
@@ -7,10 +8,12 @@
 // wall time.
 
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
 #include <array>
+#include <condition_variable>
 #include <cstdio>
 #include <cstdlib>
 #include <filesystem>
@@ -19,8 +22,10 @@
 #include <memory>
 #include <set>
 #include <string>
+#include <thread>
 #include <vector>
 
+#include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "coordinator_test_support.h"
 #include "support/server_process.h"
 
@@ -36,6 +41,7 @@ constexpr char kTimeScale[] = "5";
 constexpr char kSeed[] = "7";
 constexpr char kSelfLocalize[] = "SELF_LOCALIZE_WITH_GROUND_TRUTH";
 constexpr char kPid[] = "QUADROTOR_PID_MOTION_CONTROL";
+constexpr char kReckon[] = "ESTIMATE_POSITION_WITH_LINEAR_SPEED";
 
 using google::protobuf::util::MessageToJsonString;
 
@@ -297,7 +303,8 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
         std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", kTimeScale, "--seed", kSeed});
+                                 "--time-scale", kTimeScale, "--seed", kSeed,
+                                 "--enable-fault-injection"});
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     ASSERT_NO_FATAL_FAILURE(startCoordinator({}));
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH);
@@ -1086,6 +1093,313 @@ TEST_F(CoordinatorPlansMissionsTest, BehaviorctlRunsTheDemoMissionAndChecksHealt
   output.clear();
   EXPECT_EQ(coordinator_->terminate(), 0);
   EXPECT_EQ(run(ctl + " health --timeout-s 1", &output), 1) << output;
+}
+
+// Two ActivateBehavior calls on one robot at the same moment whose plans
+// conflict: SELF_LOCALIZE_WITH_GROUND_TRUTH and the dead reckoning both hold
+// the exclusive pose_estimate. The robot's plans are serialized: one plan is
+// applied, then the other, made afterwards, deactivates its behavior
+// (INTERRUPTED) and activates its own. Never both active, no interleaved
+// steps: in the stream, the first's activation, its end, the second's
+// activation. Unserialized, both plans would see no estimator active and
+// both would activate.
+TEST_F(CoordinatorPlansMissionsTest, ConcurrentConflictingActivationsOnOneRobotAreSerialized) {
+  FleetRecorder& events = recorder();
+  const std::map<std::string, std::string> parameters = {
+      {kSelfLocalize, "{}"},
+      {kReckon, R"({"initial_x_m": 0, "initial_y_m": 0, "initial_z_m": 0, "max_duration_s": 0})"}};
+  constexpr int kRounds = 4;
+  for (int round = 0; round < kRounds; ++round) {
+    SCOPED_TRACE("round " + std::to_string(round));
+    const size_t from = events.events().size();
+    const std::array<std::string, 2> behaviors = {round % 2 ? kReckon : kSelfLocalize,
+                                                  round % 2 ? kSelfLocalize : kReckon};
+    std::array<Reply<v1::ActivateFleetBehaviorResponse>, 2> replies;
+    std::array<double, 2> took_s{};
+    {
+      std::mutex mutex;
+      std::condition_variable cv;
+      int ready = 0;
+      bool go = false;
+      std::vector<std::thread> callers;
+      for (size_t i = 0; i < 2; ++i) {
+        callers.emplace_back([&, i] {
+          {
+            std::unique_lock lock(mutex);
+            ++ready;
+            cv.notify_all();
+            cv.wait(lock, [&] { return go; });
+          }
+          const auto sent = SteadyClock::now();
+          replies[i] = activate(behaviors[i], parameters.at(behaviors[i]));
+          took_s[i] = std::chrono::duration<double>(SteadyClock::now() - sent).count();
+        });
+      }
+      {
+        std::unique_lock lock(mutex);
+        cv.wait(lock, [&] { return ready == 2; });
+        go = true;
+      }
+      cv.notify_all();
+      for (auto& caller : callers) caller.join();
+    }
+
+    int ok = 0;
+    for (const auto& reply : replies) ok += reply.status.ok();
+    ASSERT_GE(ok, 1) << describe(replies[0].status) << " / " << describe(replies[1].status);
+    const auto active = activeBehaviors();
+    EXPECT_EQ(active.contains(kSelfLocalize) + active.contains(kReckon), 1)
+        << "exactly one holder of pose_estimate";
+    if (ok == 2) {
+      // Exactly one of the plans deactivated the other's behavior.
+      std::vector<size_t> deactivating;
+      for (size_t i = 0; i < 2; ++i) {
+        for (const auto& step : replies[i].response.plan()) {
+          if (step.kind() == v1::ActivationPlanStep::KIND_DEACTIVATE) deactivating.push_back(i);
+        }
+      }
+      ASSERT_EQ(deactivating.size(), 1u) << json(replies[0].response) << "\n"
+                                         << json(replies[1].response);
+      const size_t second = deactivating[0];
+      const size_t first = 1 - second;
+      const auto& plan = replies[second].response.plan();
+      ASSERT_GE(plan.size(), 1);
+      EXPECT_EQ(plan[0].behavior(), behaviors[first]) << json(replies[second].response);
+      EXPECT_EQ(plan[0].reason(), "holds pose_estimate, which " + behaviors[second] + " needs");
+      const std::string first_id = replies[first].response.activation().activation_id();
+      const std::string second_id = replies[second].response.activation().activation_id();
+      EXPECT_EQ(stateOf(behaviors[second]), std::make_pair(v1::BEHAVIOR_STATE_ACTIVE, second_id));
+      ASSERT_TRUE(events.finished(first_id));
+      ASSERT_TRUE(events.activated(second_id));
+      // The two plans' events, in the stream's order.
+      std::vector<std::string> order;
+      const auto all = events.events();
+      for (size_t i = from; i < all.size(); ++i) {
+        const auto& e = all[i];
+        if (e.activation_id() != first_id && e.activation_id() != second_id) continue;
+        order.push_back(e.behavior() + (e.has_activated() ? " activated" : "") +
+                        (e.has_finished() ? " finished " + causeOf(e) : ""));
+      }
+      const std::vector<std::string> expected = {
+          behaviors[first] + " activated",
+          behaviors[first] + " finished TERMINATION_CAUSE_INTERRUPTED ",
+          behaviors[second] + " activated"};
+      ASSERT_EQ(order.size(), expected.size()) << ::testing::PrintToString(order);
+      for (size_t i = 0; i < order.size(); ++i) {
+        EXPECT_EQ(order[i].substr(0, expected[i].size()), expected[i])
+            << ::testing::PrintToString(order);
+      }
+      std::printf("round %d: %s first (%.3f s), then %s deactivated it (%.3f s)\n", round,
+                  behaviors[first].c_str(), took_s[first], behaviors[second].c_str(),
+                  took_s[second]);
+    } else {
+      // One was refused: nothing of it was activated.
+      const size_t refused = replies[0].status.ok() ? 1 : 0;
+      std::printf("round %d: %s refused: %s\n", round, behaviors[refused].c_str(),
+                  describe(replies[refused].status).c_str());
+      EXPECT_TRUE(active.contains(behaviors[1 - refused]));
+      const auto all = events.events();
+      for (size_t i = from; i < all.size(); ++i) {
+        EXPECT_FALSE(all[i].behavior() == behaviors[refused] && all[i].has_activated())
+            << json(all[i]);
+      }
+    }
+    // Back to no estimator for the next round.
+    for (const std::string& behavior : {std::string(kSelfLocalize), std::string(kReckon)}) {
+      if (!active.contains(behavior)) continue;
+      const std::string id = stateOf(behavior).second;
+      auto stopped = client_->deactivate(kRobot, behavior);
+      ASSERT_TRUE(stopped.status.ok()) << describe(stopped.status);
+      ASSERT_TRUE(events.finished(id));
+    }
+    ASSERT_TRUE(waitUntil([&] { return activeBehaviors().empty(); }, seconds(5)));
+  }
+}
+
+// A mission branches on SITUATION_CHANGE: hovering with the flight action,
+// the battery drops below the behavior's minimum (the simulator's fault
+// injection); the hover ends SITUATION_CHANGE and the mission takes the
+// branch its file says (fallback: LAND, remembering it), then goes on.
+TEST_F(CoordinatorPlansMissionsTest, AMissionBranchesOnSituationChangeWhenTheBatteryDrops) {
+  FleetRecorder& events = recorder();
+  auto started = startMissionText(
+      "name: low_battery\n"
+      "robot: drone1\n"
+      "recurrent:\n"
+      "  - behavior: SELF_LOCALIZE_WITH_GROUND_TRUTH\n"
+      "safety:\n"
+      "  - behavior: LAND\n"
+      "steps:\n"
+      "  - name: settle\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 1.0}\n"
+      "  - name: take_off\n"
+      "    behavior: TAKE_OFF\n"
+      "    parameters: {altitude_m: 1.0}\n"
+      "    on: {REFUSED: {retry: 2}}\n"
+      "  - name: hover\n"
+      "    behavior: HOVER_WITH_FLIGHT_ACTION_CONTROL\n"
+      "    on:\n"
+      "      SITUATION_CHANGE:\n"
+      "        fallback:\n"
+      "          - name: land_on_low_battery\n"
+      "            behavior: LAND\n"
+      "            remember: {drone1/branches/situation_change: true}\n"
+      "      otherwise: abort\n"
+      "  - name: after\n"
+      "    remember: {drone1/branches/after_hover: true}\n",
+      "battery-1");
+  ASSERT_TRUE(started.status.ok()) << describe(started.status);
+  MissionWatcher watcher(coordinator_->address(), "battery-1");
+  auto hovering = watcher.waitFor(
+      [](const v1::MissionStatus& s) {
+        return s.steps_size() == 3 && !s.steps(2).activation_id().empty();
+      },
+      seconds(30));
+  ASSERT_TRUE(hovering) << "the mission did not reach its hover";
+  const std::string hover_id = hovering->steps(2).activation_id();
+  ASSERT_TRUE(events.activated(hover_id));
+  ASSERT_FALSE(events.finished(hover_id, milliseconds(300))) << "hovering";
+
+  // The battery loses 85 % of its full charge at once: below the hover's
+  // min_battery_ratio (0.2).
+  auto simulator = v1::Simulator::NewStub(
+      grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials()));
+  v1::InjectFailureRequest drop;
+  drop.set_robot_id(kRobot);
+  drop.set_component(v1::FAILURE_COMPONENT_BATTERY);
+  drop.set_type(v1::FAILURE_TYPE_DEGRADED);
+  drop.set_intensity(0.85);
+  auto injected = unary(*simulator, &v1::Simulator::Stub::InjectFailure, drop);
+  ASSERT_TRUE(injected.status.ok()) << describe(injected.status);
+
+  auto hover_end = events.finished(hover_id);
+  ASSERT_TRUE(hover_end) << "the hover did not end";
+  EXPECT_EQ(hover_end->finished().cause(), v1::TERMINATION_CAUSE_SITUATION_CHANGE)
+      << causeOf(*hover_end);
+  const auto last = watcher.waitEnd(seconds(30));
+  ASSERT_TRUE(last);
+  ASSERT_EQ(last->state(), v1::MISSION_STATE_SUCCEEDED) << json(*last);
+  ASSERT_EQ(last->steps_size(), 4) << json(*last);
+  const auto& hover = last->steps(2);
+  EXPECT_EQ(hover.name(), "hover");
+  EXPECT_EQ(hover.cause(), v1::TERMINATION_CAUSE_SITUATION_CHANGE) << json(hover);
+  EXPECT_NE(hover.message().find("battery"), std::string::npos) << hover.message();
+  const auto& fallback = last->steps(3);
+  EXPECT_EQ(std::vector<int>(fallback.path().begin(), fallback.path().end()),
+            (std::vector<int>{2, 0}))
+      << json(fallback);
+  EXPECT_EQ(fallback.name(), "land_on_low_battery");
+  EXPECT_EQ(fallback.behavior(), "LAND");
+  EXPECT_EQ(fallback.cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED) << json(fallback);
+  for (const std::string key :
+       {"drone1/branches/situation_change", "drone1/branches/after_hover"}) {
+    v1::ReadBeliefRequest read;
+    read.set_key(key);
+    auto belief = unary(*stub_, &v1::Coordinator::Stub::ReadBelief, read);
+    ASSERT_TRUE(belief.status.ok()) << key << ": " << describe(belief.status);
+    EXPECT_TRUE(belief.response.belief().value().bool_value()) << key;
+    EXPECT_EQ(belief.response.belief().writer(), "mission:battery-1") << key;
+  }
+  std::printf("battery drop while hovering: %s; fallback %s %s\n", causeOf(*hover_end).c_str(),
+              fallback.behavior().c_str(), v1::TerminationCause_Name(fallback.cause()).c_str());
+}
+
+// A mission branches on INTERRUPTED (its WAIT deactivated through the
+// coordinator: a fallback WAIT runs and remembers it) and on PROCESS_FAILURE
+// (the system hosting its next WAIT killed with SIGKILL: the coordinator's
+// supervision ends the WAIT with PROCESS_FAILURE, the branch remembers it);
+// without the branches either cause would abort the mission.
+TEST_F(CoordinatorPlansMissionsTest, AMissionBranchesOnInterruptedAndOnProcessFailure) {
+  FleetRecorder& events = recorder();
+  auto started = startMissionText(
+      "name: interrupted_then_failed\n"
+      "robot: drone1\n"
+      "steps:\n"
+      "  - name: hold\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 600}\n"
+      "    on:\n"
+      "      INTERRUPTED:\n"
+      "        fallback:\n"
+      "          - name: after_interrupt\n"
+      "            behavior: WAIT\n"
+      "            parameters: {duration_s: 0.1}\n"
+      "            remember: {drone1/branches/interrupted: true}\n"
+      "  - name: hold_again\n"
+      "    behavior: WAIT\n"
+      "    parameters: {duration_s: 600}\n"
+      "    on:\n"
+      "      PROCESS_FAILURE:\n"
+      "        fallback:\n"
+      "          - name: after_failure\n"
+      "            remember: {drone1/branches/process_failure: true}\n",
+      "causes-1");
+  ASSERT_TRUE(started.status.ok()) << describe(started.status);
+  MissionWatcher watcher(coordinator_->address(), "causes-1");
+
+  // INTERRUPTED: the first WAIT deactivated through the coordinator.
+  auto holding = watcher.waitFor(
+      [](const v1::MissionStatus& s) {
+        return s.steps_size() == 1 && !s.steps(0).activation_id().empty();
+      },
+      seconds(10));
+  ASSERT_TRUE(holding);
+  const std::string hold_id = holding->steps(0).activation_id();
+  ASSERT_TRUE(events.activated(hold_id));
+  auto deactivated = client_->deactivate(kRobot, "WAIT", hold_id);
+  ASSERT_TRUE(deactivated.status.ok()) << describe(deactivated.status);
+  auto interrupted = events.finished(hold_id);
+  ASSERT_TRUE(interrupted);
+  EXPECT_EQ(interrupted->finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+
+  // PROCESS_FAILURE: the system of the second WAIT killed.
+  auto holding_again = watcher.waitFor(
+      [](const v1::MissionStatus& s) {
+        return s.steps_size() == 3 && !s.steps(2).activation_id().empty();
+      },
+      seconds(10));
+  ASSERT_TRUE(holding_again) << json(watcher.statuses().back());
+  const std::string again_id = holding_again->steps(2).activation_id();
+  ASSERT_TRUE(events.activated(again_id));
+  const auto killed_at = SteadyClock::now();
+  basic_->kill();
+  auto failed = events.finished(again_id);
+  ASSERT_TRUE(failed) << "no PROCESS_FAILURE after the kill";
+  const double reported_s = std::chrono::duration<double>(SteadyClock::now() - killed_at).count();
+  EXPECT_EQ(failed->finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE) << causeOf(*failed);
+
+  const auto last = watcher.waitEnd(seconds(10));
+  ASSERT_TRUE(last);
+  ASSERT_EQ(last->state(), v1::MISSION_STATE_SUCCEEDED) << json(*last);
+  struct Expected {
+    std::vector<int> path;
+    std::string name;
+    v1::TerminationCause cause;
+  };
+  const std::vector<Expected> expected = {
+      {{0}, "hold", v1::TERMINATION_CAUSE_INTERRUPTED},
+      {{0, 0}, "after_interrupt", v1::TERMINATION_CAUSE_GOAL_ACHIEVED},
+      {{1}, "hold_again", v1::TERMINATION_CAUSE_PROCESS_FAILURE}};
+  ASSERT_EQ(last->steps_size(), static_cast<int>(expected.size())) << json(*last);
+  for (size_t i = 0; i < expected.size(); ++i) {
+    const auto& step = last->steps(static_cast<int>(i));
+    SCOPED_TRACE(json(step));
+    EXPECT_EQ(std::vector<int>(step.path().begin(), step.path().end()), expected[i].path);
+    EXPECT_EQ(step.name(), expected[i].name);
+    EXPECT_EQ(step.state(), v1::MISSION_STEP_STATE_FINISHED);
+    EXPECT_EQ(step.cause(), expected[i].cause);
+  }
+  for (const std::string key : {"drone1/branches/interrupted", "drone1/branches/process_failure"}) {
+    v1::ReadBeliefRequest read;
+    read.set_key(key);
+    auto belief = unary(*stub_, &v1::Coordinator::Stub::ReadBelief, read);
+    ASSERT_TRUE(belief.status.ok()) << key << ": " << describe(belief.status);
+    EXPECT_TRUE(belief.response.belief().value().bool_value()) << key;
+    EXPECT_EQ(belief.response.belief().writer(), "mission:causes-1") << key;
+  }
+  std::printf("SIGKILL of basic_quadrotor_behaviors: PROCESS_FAILURE after %.2f s (%s)\n",
+              reported_s, failed->finished().message().c_str());
 }
 
 }  // namespace

@@ -12,11 +12,14 @@
 // spans of the flight are simulated time (the state's stamps).
 
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <sys/wait.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
+#include <fstream>
 #include <functional>
 #include <memory>
 #include <mutex>
@@ -243,6 +246,29 @@ int run(const std::string& command, std::string* output) {
   return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
 }
 
+// Runs `command` with a shell, its stderr going to the test's; its exit
+// code. Its stdout in `output`; its last line parsed as JSON into `message`
+// (behaviorctl prints one JSON object per line).
+int runJson(const std::string& command, google::protobuf::Message* message, std::string* output) {
+  FILE* pipe = popen(command.c_str(), "r");
+  if (!pipe) return -1;
+  char buffer[4096];
+  size_t n;
+  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) output->append(buffer, n);
+  const int status = pclose(pipe);
+  std::string last = *output;
+  while (!last.empty() && last.back() == '\n') last.pop_back();
+  if (const auto newline = last.rfind('\n'); newline != std::string::npos) {
+    last = last.substr(newline + 1);
+  }
+  google::protobuf::util::JsonParseOptions options;
+  options.ignore_unknown_fields = false;
+  message->Clear();
+  const auto parsed = google::protobuf::util::JsonStringToMessage(last, message, options);
+  EXPECT_TRUE(parsed.ok()) << command << " printed: " << *output << "\n" << parsed.ToString();
+  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+}
+
 class CoordinatorSafetyTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -253,13 +279,21 @@ class CoordinatorSafetyTest : public ::testing::Test {
                                  "--time-scale", kTimeScale, "--seed", kSeed,
                                  "--enable-fault-injection"});
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
-    coordinator_ = std::make_unique<support::ServerProcess>(
-        BEHAVIORLIB_COORDINATOR_PATH,
-        std::vector<std::string>{"--catalog", BEHAVIORLIB_CATALOG_PATH, "--flight-controller",
-                                 std::string(kRobot) + "=" + simulator_->address(), "--channel",
-                                 broker_.address(), "--grace-period-s", std::to_string(kGraceS),
-                                 "--critical-battery", std::to_string(kCriticalBattery),
-                                 "--hover-before-land-s", std::to_string(kHoverBeforeLandS)});
+    std::vector<std::string> coordinator_args = {"--catalog",
+                                                 BEHAVIORLIB_CATALOG_PATH,
+                                                 "--flight-controller",
+                                                 std::string(kRobot) + "=" + simulator_->address(),
+                                                 "--channel",
+                                                 broker_.address(),
+                                                 "--grace-period-s",
+                                                 std::to_string(kGraceS),
+                                                 "--critical-battery",
+                                                 std::to_string(kCriticalBattery),
+                                                 "--hover-before-land-s",
+                                                 std::to_string(kHoverBeforeLandS)};
+    for (const auto& arg : extraCoordinatorArgs()) coordinator_args.push_back(arg);
+    coordinator_ =
+        std::make_unique<support::ServerProcess>(BEHAVIORLIB_COORDINATOR_PATH, coordinator_args);
     ASSERT_TRUE(coordinator_->start()) << coordinator_->error();
     client_ = std::make_unique<CoordinatorClient>(coordinator_->address());
     stub_ = v1::Coordinator::NewStub(
@@ -287,9 +321,15 @@ class CoordinatorSafetyTest : public ::testing::Test {
     ASSERT_EQ(flight_->latest()->state(), v1::FLIGHT_STATE_LANDED);
   }
 
+  /// Flags added to the coordinator's (fixtures of other configurations).
+  virtual std::vector<std::string> extraCoordinatorArgs() const { return {}; }
+
   void TearDown() override {
     events_.reset();
-    if (pid_ && pid_->running()) pid_->kill();
+    if (pid_ && pid_->running()) {
+      ::kill(pid_->pid(), SIGCONT);  // a test may have stopped it
+      pid_->kill();
+    }
     if (basic_ && basic_->running()) basic_->kill();
     if (coordinator_ && coordinator_->running()) {
       EXPECT_EQ(coordinator_->terminate(), 0) << "the coordinator stops cleanly";
@@ -700,6 +740,279 @@ TEST_F(CoordinatorSafetyTest, LeavingTheMissionGeofenceAbortsItAndItsSafetyStepL
               overshoot, ended.message().c_str());
   // Reacting takes a pose estimate through the broker, a policy poll (0.1 s)
   // and two calls to the platform, at 1 m/s and 3x; then the vehicle brakes.
+  EXPECT_LT(overshoot, 3.0) << "held near the fence, far from the path's end at x = 10 m";
+}
+
+// Seconds of wall time between two flight samples.
+double wallSeconds(SteadyClock::time_point from, SteadyClock::time_point to) {
+  return std::chrono::duration<double>(to - from).count();
+}
+
+// The motion controller hangs (SIGSTOP of the PID system during
+// FOLLOW_PATH): it stops renewing its lease, the platform's lease failsafe
+// engages (HOVERING, failsafe_active, no holder) and the coordinator's rule
+// takes the vehicle: it hovers under the coordinator's lease, then lands
+// under it, while the controller is still frozen (the stand-down's calls to
+// it cannot be answered: the landing does not wait for them) and before the
+// platform's own failsafe landing. The mission is aborted with the rule as
+// its reason; once the system runs again its behaviors end.
+TEST_F(CoordinatorSafetyTest, AHungControllerLosesItsLeaseAndTheFailsafeRuleHoversThenLands) {
+  std::string id;
+  const std::string follow = flyMission(missionText("lease_lost"), &id);
+  ASSERT_FALSE(follow.empty());
+  const std::string controller = activationOf("QUADROTOR_PID_MOTION_CONTROL");
+  ASSERT_FALSE(controller.empty()) << seenText();
+  EXPECT_EQ(flight_->latest()->lease_holder(),
+            std::string(kRobot) + "/QUADROTOR_PID_MOTION_CONTROL")
+      << flight_->trace();
+
+  const size_t mark = flight_->size();
+  const auto frozen_at = SteadyClock::now();
+  ASSERT_EQ(::kill(pid_->pid(), SIGSTOP), 0);
+
+  // The platform: the lease expired (1 s of simulated time), failsafe hover.
+  auto failsafe = flight_->waitFor(
+      mark, [](const v1::FlightStatus& s) { return s.failsafe_active(); }, seconds(3));
+  ASSERT_TRUE(failsafe) << flight_->trace(mark);
+  const FlightRecorder::Sample engaged = flight_->at(*failsafe);
+  EXPECT_EQ(engaged.status.state(), v1::FLIGHT_STATE_HOVERING) << flight_->trace(mark);
+  EXPECT_TRUE(engaged.status.lease_holder().empty()) << flight_->trace(mark);
+  // The coordinator's rule: hover under its own lease (the failsafe ends)...
+  auto hover = flight_->waitFor(
+      *failsafe,
+      [](const v1::FlightStatus& s) {
+        return s.state() == v1::FLIGHT_STATE_HOVERING && s.lease_holder() == kSafetyHolder;
+      },
+      seconds(2));
+  ASSERT_TRUE(hover) << flight_->trace(mark);
+  const double reacted_s = wallSeconds(engaged.at, flight_->at(*hover).at);
+  EXPECT_LT(reacted_s, 1.0) << flight_->trace(mark);
+  // ...then land, still under its lease.
+  auto landing = waitState(*hover, v1::FLIGHT_STATE_LANDING);
+  ASSERT_TRUE(landing) << flight_->trace(mark);
+  const double hovered_s = wallSeconds(flight_->at(*hover).at, flight_->at(*landing).at);
+  EXPECT_GE(hovered_s, 0.8 * kHoverBeforeLandS) << flight_->trace(mark);
+  EXPECT_LT(hovered_s, kHoverBeforeLandS + 1.0)
+      << "the landing did not wait for the frozen system: " << flight_->trace(mark);
+  auto landed = waitState(*landing, v1::FLIGHT_STATE_LANDED);
+  ASSERT_TRUE(landed) << flight_->trace(mark);
+  for (size_t i = *hover; i < *landed; ++i) {
+    const auto& s = flight_->at(i).status;
+    EXPECT_EQ(s.lease_holder(), kSafetyHolder)
+        << "the coordinator kept the vehicle to the ground: " << flight_->trace(mark);
+    EXPECT_FALSE(s.failsafe_active()) << flight_->trace(mark);
+  }
+  const double landed_s = wallSeconds(frozen_at, SteadyClock::now());
+  EXPECT_LT(landed_s, 8.0) << flight_->trace(mark);
+  expectOnTheGround();
+
+  // The system runs again: the mission (whose runner waited for the frozen
+  // system) ends ABORTED by the failsafe rule, FOLLOW_PATH and the
+  // controller end (not by their goal).
+  ASSERT_EQ(::kill(pid_->pid(), SIGCONT), 0);
+  const v1::MissionStatus ended = missionEnded(id, seconds(15));
+  EXPECT_EQ(ended.state(), v1::MISSION_STATE_ABORTED) << ended.ShortDebugString();
+  EXPECT_NE(ended.message().find("lease failsafe"), std::string::npos) << ended.message();
+  EXPECT_EQ(ended.message().find("motion controller failed"), std::string::npos)
+      << "the failsafe rule, not the controller-failure rule: " << ended.message();
+  for (const auto& activation : {follow, controller}) {
+    auto end = finished(activation, seconds(12));
+    ASSERT_TRUE(end) << activation << "\n" << seenText();
+    EXPECT_NE(end->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+        << end->ShortDebugString();
+  }
+  EXPECT_FALSE(waitEvent([](const v1::BehaviorEvent& e) { return e.behavior() == "LAND"; },
+                         milliseconds(200)))
+      << "landed by the rule, not by the mission's safety step: " << seenText();
+  EXPECT_EQ(flight_->latest()->state(), v1::FLIGHT_STATE_LANDED) << flight_->trace(mark);
+  std::printf(
+      "SIGSTOP of the PID system: lease failsafe, coordinator hover after %.2f s, landing after "
+      "%.2f s of hover, LANDED %.2f s after the freeze (wall); mission: %s\n",
+      wallSeconds(frozen_at, flight_->at(*hover).at), hovered_s, landed_s, ended.message().c_str());
+}
+
+// behaviorctl's situation, mission run --detach, mission status, deactivate
+// and emergency-land, each run as a subprocess against the coordinator.
+TEST_F(CoordinatorSafetyTest, BehaviorctlSituationMissionStatusDeactivateAndEmergencyLand) {
+  const std::string ctl = std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " +
+                          coordinator_->address() + " --robot " + kRobot;
+  std::string output;
+
+  // On the ground LAND is infeasible; the answer says why (exit 0: an
+  // answer, not an error).
+  v1::CheckFleetBehaviorSituationResponse situation;
+  ASSERT_EQ(runJson(ctl + " situation LAND", &situation, &output), 0) << output;
+  EXPECT_EQ(situation.robot_id(), kRobot);
+  EXPECT_EQ(situation.system(), "basic_quadrotor_behaviors");
+  EXPECT_FALSE(situation.situation().feasible()) << output;
+  ASSERT_FALSE(situation.situation().reasons().empty()) << output;
+  std::printf("behaviorctl situation LAND (landed): %s", output.c_str());
+
+  const std::string file = (std::filesystem::temp_directory_path() /
+                            ("behaviorctl_mission_" + std::to_string(::getpid()) + ".yaml"))
+                               .string();
+  std::ofstream(file) << "name: held\n"
+                         "robot: drone1\n"
+                         "recurrent:\n"
+                         "  - behavior: SELF_LOCALIZE_WITH_GROUND_TRUTH\n"
+                         "safety:\n"
+                         "  - behavior: LAND\n"
+                         "steps:\n"
+                         "  - name: settle\n"
+                         "    behavior: WAIT\n"
+                         "    parameters: {duration_s: 1.0}\n"
+                         "  - name: take_off\n"
+                         "    behavior: TAKE_OFF\n"
+                         "    parameters: {altitude_m: 1.5}\n"
+                         "    on: {REFUSED: {retry: 2}}\n"
+                         "  - name: hold\n"
+                         "    behavior: WAIT\n"
+                         "    parameters: {duration_s: 600}\n"
+                         "    on: {INTERRUPTED: continue}\n"
+                         "  - name: hold_on\n"
+                         "    behavior: WAIT\n"
+                         "    parameters: {duration_s: 600}\n";
+  v1::MissionStatus status;
+  output.clear();
+  const int started =
+      runJson(ctl + " mission run " + file + " --detach --mission-id ctl-1", &status, &output);
+  std::filesystem::remove(file);
+  ASSERT_EQ(started, 0) << output;
+  EXPECT_EQ(status.mission_id(), "ctl-1") << output;
+  EXPECT_EQ(status.name(), "held") << output;
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_RUNNING) << output;
+
+  // Hovering, holding in step 'hold'.
+  std::string hold_id;
+  ASSERT_TRUE(waitUntil(
+      [&] {
+        auto hold = step(mission("ctl-1"), "hold");
+        auto flight = flight_->latest();
+        if (!hold || hold->activation_id().empty() || !flight) return false;
+        hold_id = hold->activation_id();
+        return flight->state() == v1::FLIGHT_STATE_HOVERING;
+      },
+      seconds(25)))
+      << mission("ctl-1").ShortDebugString() << "\n"
+      << flight_->trace();
+
+  output.clear();
+  ASSERT_EQ(runJson(ctl + " mission status ctl-1", &status, &output), 0) << output;
+  EXPECT_EQ(status.mission_id(), "ctl-1");
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_RUNNING) << output;
+  ASSERT_EQ(status.steps_size(), 3) << output;
+  const std::vector<std::string> names = {"settle", "take_off", "hold"};
+  for (int i = 0; i < 3; ++i) EXPECT_EQ(status.steps(i).name(), names[static_cast<size_t>(i)]);
+  EXPECT_EQ(status.steps(1).cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED) << output;
+  EXPECT_EQ(status.steps(2).state(), v1::MISSION_STEP_STATE_RUNNING) << output;
+  EXPECT_EQ(status.steps(2).activation_id(), hold_id) << output;
+
+  // In the air LAND is feasible.
+  output.clear();
+  ASSERT_EQ(runJson(ctl + " situation LAND", &situation, &output), 0) << output;
+  EXPECT_TRUE(situation.situation().feasible()) << output;
+  EXPECT_GT(situation.situation().performance_ratio(), 0.0) << output;
+
+  // deactivate: the mission's WAIT ends INTERRUPTED, the mission takes its
+  // branch (continue) to the next step.
+  v1::DeactivateFleetBehaviorResponse deactivated;
+  output.clear();
+  ASSERT_EQ(runJson(ctl + " deactivate WAIT", &deactivated, &output), 0) << output;
+  EXPECT_EQ(deactivated.robot_id(), kRobot);
+  EXPECT_EQ(deactivated.system(), "basic_quadrotor_behaviors");
+  EXPECT_EQ(deactivated.result().activation_id(), hold_id) << output;
+  EXPECT_EQ(deactivated.result().cause(), v1::TERMINATION_CAUSE_INTERRUPTED) << output;
+  EXPECT_FALSE(deactivated.result().already_finished()) << output;
+  auto interrupted = finished(hold_id, seconds(2));
+  ASSERT_TRUE(interrupted) << seenText();
+  EXPECT_EQ(interrupted->finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+  ASSERT_TRUE(waitUntil(
+      [&] {
+        auto next = step(mission("ctl-1"), "hold_on");
+        return next && !next->activation_id().empty();
+      },
+      seconds(5)))
+      << mission("ctl-1").ShortDebugString();
+  output.clear();
+  ASSERT_EQ(runJson(ctl + " mission status ctl-1", &status, &output), 0) << output;
+  ASSERT_EQ(status.steps_size(), 4) << output;
+  EXPECT_EQ(status.steps(2).state(), v1::MISSION_STEP_STATE_FINISHED) << output;
+  EXPECT_EQ(status.steps(2).cause(), v1::TERMINATION_CAUSE_INTERRUPTED) << output;
+  EXPECT_EQ(status.steps(3).name(), "hold_on") << output;
+  EXPECT_EQ(status.steps(3).state(), v1::MISSION_STEP_STATE_RUNNING) << output;
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_RUNNING) << output;
+
+  // emergency-land: exit 0, says what it did; the vehicle comes down.
+  const size_t mark = flight_->size();
+  v1::SafetyActionResponse landed;
+  output.clear();
+  ASSERT_EQ(runJson(ctl + " emergency-land 'operator test with behaviorctl'", &landed, &output), 0)
+      << output;
+  std::printf("behaviorctl emergency-land: %s", output.c_str());
+  EXPECT_NE(landed.message().find("EMERGENCY_LAND"), std::string::npos) << output;
+  EXPECT_NE(landed.message().find("ctl-1"), std::string::npos) << "names the mission: " << output;
+  auto emergency = waitState(mark, v1::FLIGHT_STATE_EMERGENCY, seconds(2));
+  ASSERT_TRUE(emergency) << flight_->trace(mark);
+  ASSERT_TRUE(waitState(*emergency, v1::FLIGHT_STATE_LANDED)) << flight_->trace(mark);
+  expectOnTheGround();
+  (void)missionEnded("ctl-1");
+  output.clear();
+  ASSERT_EQ(runJson(ctl + " mission status ctl-1", &status, &output), 0) << output;
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_ABORTED) << output;
+  EXPECT_NE(status.message().find("emergency land: operator test with behaviorctl"),
+            std::string::npos)
+      << output;
+  EXPECT_TRUE(status.has_end_time()) << output;
+}
+
+// The coordinator's configured geofence (--geofence), for a mission that has
+// none of its own.
+class CoordinatorConfiguredGeofenceTest : public CoordinatorSafetyTest {
+ protected:
+  std::vector<std::string> extraCoordinatorArgs() const override {
+    return {"--geofence", "-2,-2,-1,3,2,4"};
+  }
+};
+
+TEST_F(CoordinatorConfiguredGeofenceTest, LeavingTheConfiguredGeofenceHoversAndAbortsTheMission) {
+  constexpr double kFenceX = 3.0;
+  std::string id;
+  const std::string follow = flyMission(missionText("configured_fence"), &id);
+  ASSERT_FALSE(follow.empty());
+  const size_t mark = flight_->size();
+
+  const v1::MissionStatus ended = missionEnded(id, seconds(25));
+  EXPECT_EQ(ended.state(), v1::MISSION_STATE_ABORTED) << ended.ShortDebugString();
+  EXPECT_NE(ended.message().find("left the configured geofence"), std::string::npos)
+      << ended.message();
+  auto stopped = finished(follow);
+  ASSERT_TRUE(stopped) << seenText();
+  EXPECT_NE(stopped->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+
+  // Held by the coordinator (it took the lease and hovered: FOLLOW_PATH
+  // alone keeps the vehicle FLYING; the stream may skip the short state in
+  // between), then landed by the mission's safety step.
+  auto taken = flight_->waitFor(
+      mark, [](const v1::FlightStatus& s) { return s.lease_holder() == kSafetyHolder; },
+      seconds(1));
+  ASSERT_TRUE(taken) << flight_->trace(mark);
+  auto hover = waitState(*taken, v1::FLIGHT_STATE_HOVERING, seconds(1));
+  ASSERT_TRUE(hover) << flight_->trace(mark);
+  auto land = waitEvent(
+      [](const v1::BehaviorEvent& e) { return e.behavior() == "LAND" && e.has_activated(); });
+  ASSERT_TRUE(land) << seenText() << "mission: " << ended.message();
+  auto landed = finished(land->activation_id(), kLandBound);
+  ASSERT_TRUE(landed) << seenText();
+  EXPECT_EQ(landed->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << landed->ShortDebugString();
+  auto landing = waitState(*hover, v1::FLIGHT_STATE_LANDING, seconds(1));
+  ASSERT_TRUE(landing) << flight_->trace(mark);
+  EXPECT_NE(flight_->at(*landing).status.lease_holder(), kSafetyHolder) << flight_->trace(mark);
+  ASSERT_TRUE(waitState(*landing, v1::FLIGHT_STATE_LANDED, seconds(1))) << flight_->trace(mark);
+  expectOnTheGround();
+  const double overshoot = vehicle_->maxX() - kFenceX;
+  std::printf("configured geofence at x = %.1f m: %.2f m past it; mission: %s\n", kFenceX,
+              overshoot, ended.message().c_str());
   EXPECT_LT(overshoot, 3.0) << "held near the fence, far from the path's end at x = 10 m";
 }
 

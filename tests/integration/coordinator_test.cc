@@ -4,9 +4,11 @@
 // --coordinator, or are listed in the coordinator's --systems file.
 
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -14,6 +16,7 @@
 #include <memory>
 #include <set>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "coordinator_test_support.h"
@@ -601,6 +604,54 @@ TEST_F(CoordinatorTest, BehaviorctlListsActivatesAndWatchesThroughTheCoordinator
   EXPECT_NE(output.find("ghost"), std::string::npos) << output;
   output.clear();
   EXPECT_EQ(run(ctl + " activate WAIT", &output), 2) << "needs --robot: " << output;
+}
+
+// ActivateBehavior is serialized per robot, not across robots: while a plan
+// of robot-a waits for its system (stopped with SIGSTOP, so that the call
+// cannot be answered), an activation on robot-b is applied and runs to its
+// end; robot-a's completes once its system runs again.
+TEST_F(CoordinatorTest, APlanWaitingOnOneRobotDoesNotHoldUpAnotherRobot) {
+  auto& a = startSystem("robot-a");
+  startSystem("robot-b");
+  ASSERT_TRUE(client_->waitForSystem("robot-a", v1::SYSTEM_STATE_UP));
+  ASSERT_TRUE(client_->waitForSystem("robot-b", v1::SYSTEM_STATE_UP));
+  FleetWatcher watcher(coordinator_->address());
+  ASSERT_TRUE(watcher.start());
+
+  ASSERT_EQ(::kill(a.pid(), SIGSTOP), 0);
+  std::atomic<bool> a_returned{false};
+  Reply<v1::ActivateFleetBehaviorResponse> ra;
+  const auto a_sent = SteadyClock::now();
+  double a_took_s = 0;
+  std::thread caller([&] {
+    ra = client_->activate("robot-a", "WAIT", R"({"duration_s": 0.05})");
+    a_took_s = std::chrono::duration<double>(SteadyClock::now() - a_sent).count();
+    a_returned = true;
+  });
+  std::this_thread::sleep_for(milliseconds(300));  // robot-a's plan is under way
+  EXPECT_FALSE(a_returned) << "robot-a's system is stopped: its call cannot have been answered";
+
+  const auto b_sent = SteadyClock::now();
+  auto rb = client_->activate("robot-b", "WAIT", R"({"duration_s": 0.05})");
+  const double b_took_s = std::chrono::duration<double>(SteadyClock::now() - b_sent).count();
+  EXPECT_TRUE(rb.status.ok()) << describe(rb.status);
+  EXPECT_LT(b_took_s, 1.0) << "robot-b's activation waited";
+  auto b_done = watcher.waitFinished(rb.response.activation().activation_id());
+  EXPECT_TRUE(b_done) << "robot-b's WAIT did not run to its end";
+  if (b_done) {
+    EXPECT_EQ(b_done->behavior_event().finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  }
+  EXPECT_FALSE(a_returned) << "robot-a's call returned while its system was stopped";
+
+  EXPECT_EQ(::kill(a.pid(), SIGCONT), 0);
+  caller.join();
+  ASSERT_TRUE(ra.status.ok()) << describe(ra.status);
+  EXPECT_EQ(ra.response.robot_id(), "robot-a");
+  auto a_done = watcher.waitFinished(ra.response.activation().activation_id());
+  ASSERT_TRUE(a_done);
+  EXPECT_EQ(a_done->behavior_event().finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  std::printf("robot-b's activation: %.3f s while robot-a's waited; robot-a's: %.3f s\n", b_took_s,
+              a_took_s);
 }
 
 }  // namespace

@@ -228,6 +228,9 @@ int main(int argc, char** argv) {
   };
   registry_options.link.grace =
       std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::duration<double>(grace_s));
+  // Missed heartbeats make the links probe a system whose stream stays open.
+  registry_options.link.heartbeat_interval =
+      std::chrono::milliseconds(static_cast<int64_t>(heartbeat_s * 1000.0));
   coord::Registry registry(log, metrics, registry_options);
   // Belief memory, restored from the journal.
   std::unique_ptr<coord::Journal> journal;

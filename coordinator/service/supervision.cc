@@ -16,15 +16,19 @@ void Supervision::streamBroken(TimePoint /*now*/) {
 }
 
 bool Supervision::healthChecked(bool serving, TimePoint now) {
-  if (stream_up_) return false;
   if (serving) {
     failing_since_.reset();
     return false;
   }
   if (!failing_since_) failing_since_ = now;
-  if (down_ || now - *failing_since_ < grace_) return false;
+  // While the stream is up only unanswered() acts on the failing window.
+  if (stream_up_ || down_ || now - *failing_since_ < grace_) return false;
   down_ = true;
   return true;
+}
+
+bool Supervision::unanswered(TimePoint now) const {
+  return stream_up_ && !down_ && failing_since_ && now - *failing_since_ >= grace_;
 }
 
 }  // namespace behaviorlib::coordinator

@@ -2,6 +2,11 @@
 
 // When is a behavior system down? When its event stream broke and its gRPC
 // health check has been failing for longer than a grace period (wall time).
+// A frozen process (SIGSTOP, a deadlock) keeps its connection and so its
+// stream open: while the stream is up the link still probes health when the
+// stream is silent or heartbeats stopped, and once those probes have failed
+// for the grace period (unanswered()) it breaks the stream itself; the first
+// failed check after that declares the system down.
 // A pure state machine: the intake thread feeds it what happened and when;
 // unit tests feed it a fake time.
 //
@@ -28,14 +33,19 @@ class Supervision {
   void streamBroken(TimePoint now);
   /// A health check answered at `now`; `serving` is true for SERVING. Returns
   /// true exactly once per outage: when the stream is broken and the check
-  /// has been failing for at least the grace period.
+  /// has been failing for at least the grace period. Checks while the stream
+  /// is up never return true, but a failing window they start is kept when
+  /// the stream breaks.
   bool healthChecked(bool serving, TimePoint now);
+  /// The stream is up but the health check has been failing for at least the
+  /// grace period at `now`: the process stopped answering (frozen) while its
+  /// connection stays open.
+  bool unanswered(TimePoint now) const;
 
   bool streamIsUp() const { return stream_up_; }
   /// True once declared down, until the stream is up again.
   bool down() const { return down_; }
-  /// Since when the health check has been failing (while the stream is
-  /// broken), if it is.
+  /// Since when the health check has been failing, if it is.
   std::optional<TimePoint> failingSince() const { return failing_since_; }
   std::chrono::nanoseconds grace() const { return grace_; }
 

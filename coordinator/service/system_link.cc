@@ -12,6 +12,7 @@ namespace {
 
 constexpr std::chrono::milliseconds kInitialBackoff(100);
 constexpr std::chrono::milliseconds kMaxBackoff(2000);
+constexpr std::chrono::milliseconds kFailingProbePause(50);
 
 using WallClock = std::chrono::system_clock;
 
@@ -71,6 +72,7 @@ SystemLink::~SystemLink() { stop(); }
 
 void SystemLink::start() {
   thread_ = std::thread([this] { run(); });
+  watch_thread_ = std::thread([this] { watch(); });
 }
 
 void SystemLink::stop() {
@@ -79,9 +81,13 @@ void SystemLink::stop() {
     stopping_ = true;
     if (stream_call_ != nullptr) stream_call_->TryCancel();
     if (call_ != nullptr) call_->TryCancel();
+    if (watch_call_ != nullptr) watch_call_->TryCancel();
   }
   cv_.notify_all();
   if (thread_.joinable() && thread_.get_id() != std::this_thread::get_id()) thread_.join();
+  if (watch_thread_.joinable() && watch_thread_.get_id() != std::this_thread::get_id()) {
+    watch_thread_.join();
+  }
 }
 
 void SystemLink::rebuildChannelLocked() {
@@ -100,6 +106,12 @@ void SystemLink::setCall(grpc::ClientContext* context) {
   std::lock_guard lock(mutex_);
   call_ = context;
   if (context != nullptr && (stopping_ || poked_)) context->TryCancel();
+}
+
+void SystemLink::setWatchCall(grpc::ClientContext* context) {
+  std::lock_guard lock(mutex_);
+  watch_call_ = context;
+  if (context != nullptr && stopping_) context->TryCancel();
 }
 
 void SystemLink::pokeLocked() {
@@ -181,11 +193,16 @@ void SystemLink::run() {
       std::lock_guard lock(mutex_);
       if (stopping_) return;
       if (leaving_) continue;
-      poked = poked_;
+      // A stream the watchdog broke is handled as broken even if poked.
+      poked = poked_ && !stalled_;
     }
     // Poked: the address or the registration changed; reconnect at once.
     if (poked) continue;
-    onBroken(end.reason);
+    std::string stall_detail;
+    if (onBroken(end.reason, &stall_detail)) {
+      // The watchdog's probes have failed for the grace period already.
+      declareDown(stall_detail, /*stopped_answering=*/true);
+    }
 
     // Probe the system's health until it answers, it is re-registered, or
     // the coordinator stops.
@@ -212,6 +229,63 @@ void SystemLink::run() {
   }
 }
 
+void SystemLink::watch() {
+  while (true) {
+    std::shared_ptr<grpc::Channel> channel;
+    uint64_t generation = 0;
+    std::string trigger;
+    {
+      std::unique_lock lock(mutex_);
+      // While probes fail, probe again soon: a failed probe already took its
+      // whole deadline, and the grace period counts from the first one.
+      const auto pause = supervision_.streamIsUp() && supervision_.failingSince()
+                             ? std::min(options_.stall_probe_interval, kFailingProbePause)
+                             : options_.stall_probe_interval;
+      cv_.wait_for(lock, pause, [this] { return stopping_; });
+      if (stopping_) return;
+      // Only a stream that is up can hide a frozen process; otherwise the
+      // intake thread probes health itself.
+      if (state_ != v1::SYSTEM_STATE_UP || !supervision_.streamIsUp() || stalled_ || leaving_) {
+        continue;
+      }
+      const auto now = std::chrono::steady_clock::now();
+      const auto silent = now - last_activity_;
+      std::optional<std::chrono::nanoseconds> heartbeat_age;
+      if (identity_.source == v1::SYSTEM_SOURCE_REGISTRATION && last_heartbeat_) {
+        heartbeat_age = WallClock::now() - *last_heartbeat_;
+      }
+      if (heartbeat_age && *heartbeat_age > 2 * options_.heartbeat_interval) {
+        trigger = "no heartbeat for " + secondsText(*heartbeat_age);
+      } else if (silent >= options_.silence) {
+        trigger = "its event stream was silent for " + secondsText(silent);
+      } else {
+        // The stream carries messages: the process answers.
+        supervision_.healthChecked(true, now);
+        continue;
+      }
+      channel = channel_;
+      generation = stream_generation_;
+    }
+    const auto probed = std::chrono::steady_clock::now();
+    const HealthResult health = checkHealth(channel, "", options_.stall_probe_timeout,
+                                            [this](grpc::ClientContext* c) { setWatchCall(c); });
+    std::lock_guard lock(mutex_);
+    if (stopping_) return;
+    // The stream changed meanwhile: this probe says nothing about it.
+    if (generation != stream_generation_ || state_ != v1::SYSTEM_STATE_UP ||
+        !supervision_.streamIsUp() || stalled_) {
+      continue;
+    }
+    supervision_.healthChecked(health.serving, probed);
+    if (!supervision_.unanswered(std::chrono::steady_clock::now())) continue;
+    // Frozen: break the stream; the intake thread declares the system down.
+    stalled_ = true;
+    stall_detail_ = trigger + "; " + health.detail;
+    logLine(nameLocked() + ": stopped answering (" + stall_detail_ + "); breaking its stream");
+    if (stream_call_ != nullptr) stream_call_->TryCancel();
+  }
+}
+
 SystemLink::StreamEnd SystemLink::readStream(v1::BehaviorSystem::Stub& stub,
                                              const v1::WatchEventsRequest& request) {
   grpc::ClientContext context;
@@ -224,6 +298,10 @@ SystemLink::StreamEnd SystemLink::readStream(v1::BehaviorSystem::Stub& stub,
     end.got_start = true;
     if (onStart(message.start(), stub)) {
       while (reader->Read(&message)) {
+        {
+          std::lock_guard lock(mutex_);
+          last_activity_ = std::chrono::steady_clock::now();
+        }
         if (message.has_event()) onEvent(message.event(), context);
       }
     } else {
@@ -303,6 +381,9 @@ bool SystemLink::onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::
     tracker_.startIncarnation(start.incarnation());
     if (had_stream_) metrics_.stream_reconnects.Increment();
     had_stream_ = true;
+    ++stream_generation_;
+    last_activity_ = std::chrono::steady_clock::now();
+    stalled_ = false;
     supervision_.streamUp();
     if (auto event = setStateLocked(v1::SYSTEM_STATE_UP, "event stream established (incarnation " +
                                                              start.incarnation() + ")")) {
@@ -343,11 +424,15 @@ void SystemLink::onEvent(const v1::BehaviorEvent& event, grpc::ClientContext& co
   if (leaving_done) context.TryCancel();
 }
 
-void SystemLink::onBroken(const std::string& reason) {
+bool SystemLink::onBroken(const std::string& reason, std::string* detail) {
   std::optional<v1::FleetEvent> event;
+  bool stalled = false;
   {
     std::lock_guard lock(mutex_);
-    last_break_ = reason;
+    stalled = stalled_;
+    stalled_ = false;
+    if (stalled) *detail = stall_detail_;
+    last_break_ = stalled ? "cancelled by the coordinator: the system stopped answering" : reason;
     supervision_.streamBroken(std::chrono::steady_clock::now());
     if (state_ == v1::SYSTEM_STATE_UP) {
       event = setStateLocked(v1::SYSTEM_STATE_RECONNECTING,
@@ -357,17 +442,22 @@ void SystemLink::onBroken(const std::string& reason) {
     }
   }
   if (event) log_.append(std::move(*event));
+  return stalled;
 }
 
-void SystemLink::declareDown(const std::string& health_detail) {
+void SystemLink::declareDown(const std::string& health_detail, bool stopped_answering) {
   std::vector<v1::FleetEvent> out;
   {
     std::lock_guard lock(mutex_);
     if (!supervision_.healthChecked(false, std::chrono::steady_clock::now())) return;
     if (state_ == v1::SYSTEM_STATE_UNREGISTERED) return;
-    const std::string reason = "its event stream broke (" + last_break_ +
-                               ") and its health check has failed for " +
-                               secondsText(supervision_.grace()) + " (" + health_detail + ")";
+    const std::string reason =
+        stopped_answering
+            ? "it stopped answering (frozen or hung: its connection stays open) and its health "
+              "check has failed for " +
+                  secondsText(supervision_.grace()) + " (" + health_detail + ")"
+            : "its event stream broke (" + last_break_ + ") and its health check has failed for " +
+                  secondsText(supervision_.grace()) + " (" + health_detail + ")";
     const std::string message = nameLocked() + " is down: " + reason;
     if (auto event = setStateLocked(v1::SYSTEM_STATE_DOWN, reason)) {
       out.push_back(std::move(*event));

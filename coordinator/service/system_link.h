@@ -12,9 +12,14 @@
 // a synthesized PROCESS_FAILURE. It keeps contacting the system: a new
 // incarnation (a restart, or a registration naming a new address) makes it UP
 // again, and the old incarnation's activations still in progress end with
-// PROCESS_FAILURE first. Every event of the system's, and every state change,
-// is appended to the FleetEventLog by this thread only, so they appear in the
-// order they happened.
+// PROCESS_FAILURE first. A second thread (the watchdog) probes health while
+// the stream is up but silent, or the system's heartbeats stopped: a frozen
+// process (SIGSTOP, deadlock) keeps its connection open and its stream never
+// breaks, so when those probes fail for the grace period the watchdog cancels
+// the stream and the intake thread declares the system down at once (it comes
+// back, same incarnation, as after a network cut). Every event of the
+// system's, and every state change, is appended to the FleetEventLog by the
+// intake thread only, so they appear in the order they happened.
 //
 //   SystemLink link({.robot_id = "drone1", .address = "127.0.0.1:50061",
 //                    .source = v1::SYSTEM_SOURCE_CONFIG}, log, metrics, options, on_retired);
@@ -55,6 +60,17 @@ struct LinkOptions {
   std::chrono::milliseconds idle_probe_interval{500};
   /// Deadline of ListBehaviors and of the calls the link makes itself.
   std::chrono::milliseconds call_timeout{3000};
+  /// The heartbeat interval registered systems are given; heartbeats missed
+  /// for more than two intervals make the watchdog probe health.
+  std::chrono::milliseconds heartbeat_interval{1000};
+  /// Watchdog of a system whose stream is up (a frozen process keeps it
+  /// open): when the stream has been silent this long, or heartbeats stopped,
+  /// health is probed every stall_probe_interval with a stall_probe_timeout
+  /// deadline; failing for the grace period breaks the stream and the system
+  /// is declared down.
+  std::chrono::milliseconds silence{500};
+  std::chrono::milliseconds stall_probe_interval{250};
+  std::chrono::milliseconds stall_probe_timeout{300};
 };
 
 struct LinkIdentity {
@@ -139,11 +155,15 @@ class SystemLink {
   };
 
   void run();
+  // The watchdog thread.
+  void watch();
   StreamEnd readStream(v1::BehaviorSystem::Stub& stub, const v1::WatchEventsRequest& request);
   bool onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::Stub& stub);
   void onEvent(const v1::BehaviorEvent& event, grpc::ClientContext& context);
-  void onBroken(const std::string& reason);
-  void declareDown(const std::string& health_detail);
+  // Returns true when the watchdog broke the stream (the system stopped
+  // answering); `detail` then says why.
+  bool onBroken(const std::string& reason, std::string* detail);
+  void declareDown(const std::string& health_detail, bool stopped_answering = false);
   // Returns false when the link retired (the thread must end).
   bool finishLeaving();
   void deactivateFenced();
@@ -152,6 +172,7 @@ class SystemLink {
   // in progress (nullptr when none), so that stop() and pokes can cancel them.
   void setStreamCall(grpc::ClientContext* context);
   void setCall(grpc::ClientContext* context);
+  void setWatchCall(grpc::ClientContext* context);
   // Wakes the thread and cancels its call: something changed.
   void pokeLocked();
   // Waits up to `duration` unless stopped or poked.
@@ -170,6 +191,7 @@ class SystemLink {
   const LinkOptions options_;
   std::function<void(SystemLink*)> on_retired_;
   std::thread thread_;
+  std::thread watch_thread_;
 
   mutable std::mutex mutex_;
   std::condition_variable cv_;
@@ -177,6 +199,7 @@ class SystemLink {
   bool poked_ = false;
   grpc::ClientContext* stream_call_ = nullptr;
   grpc::ClientContext* call_ = nullptr;
+  grpc::ClientContext* watch_call_ = nullptr;
   std::shared_ptr<grpc::Channel> channel_;
   std::shared_ptr<v1::BehaviorSystem::Stub> stub_;
   v1::ListBehaviorsResponse description_;
@@ -187,9 +210,13 @@ class SystemLink {
   std::optional<std::chrono::system_clock::time_point> last_heartbeat_;
   ActivationTracker tracker_;
   Supervision supervision_;
-  std::string last_break_;       // why the stream last ended, for messages
-  std::string start_failure_;    // why onStart refused the stream
-  bool had_stream_ = false;      // a stream was established before
+  std::string last_break_;                               // why the stream last ended, for messages
+  std::string start_failure_;                            // why onStart refused the stream
+  bool had_stream_ = false;                              // a stream was established before
+  uint64_t stream_generation_ = 0;                       // counts established streams
+  std::chrono::steady_clock::time_point last_activity_;  // last message on the stream
+  bool stalled_ = false;                                 // the watchdog broke the stream: no answer
+  std::string stall_detail_;                             // why, for messages
   uint64_t replay_end_seq_ = 0;  // the fence check runs once the replay is through
   bool fence_check_pending_ = false;
   bool leaving_ = false;

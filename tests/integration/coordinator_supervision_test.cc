@@ -1,13 +1,16 @@
 // Integration tests of the coordinator's event intake and supervision with
 // real processes on loopback: a behavior system killed with SIGKILL during an
-// activation, restarted, or cut off from the coordinator by a TCP proxy (the
-// coordinator reaches the system through it, as listed in --systems).
+// activation, restarted, frozen with SIGSTOP (its connection stays open), or
+// cut off from the coordinator by a TCP proxy (the coordinator reaches the
+// system through it, as listed in --systems).
 
 #include <gtest/gtest.h>
+#include <signal.h>
 #include <unistd.h>
 
 #include <fstream>
 #include <memory>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -262,6 +265,104 @@ TEST_F(CoordinatorSupervisionTest, AnOutageLongerThanTheGraceFailsTheActivationO
   auto done = watcher.waitFinished(next);
   ASSERT_TRUE(done);
   EXPECT_EQ(done->behavior_event().finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+}
+
+TEST_F(CoordinatorSupervisionTest, FrozenSystemGivesProcessFailureWithinThreeSecondsThenIsUsable) {
+  startCoordinator({});  // default grace period (1 s) and heartbeat interval (1 s)
+  startSystem();
+  ASSERT_TRUE(client_->waitForSystem(kRobot, v1::SYSTEM_STATE_UP));
+  const std::string incarnation = client_->system(kRobot)->incarnation();
+  // Two subscribers: one filtered to WAIT, one for everything.
+  FleetWatcher watcher(coordinator_->address(), FleetWatcher::request(0, "", {}, {"WAIT"}));
+  ASSERT_TRUE(watcher.start());
+  FleetWatcher all(coordinator_->address());
+  ASSERT_TRUE(all.start());
+  const std::string id = activateWait(60);
+  ASSERT_TRUE(watcher.waitActivated(id));
+  ASSERT_TRUE(all.waitActivated(id));
+
+  // SIGSTOP: the process keeps its TCP connections open, so the event
+  // stream never breaks; only missed answers tell.
+  const pid_t pid = system_->pid();
+  ASSERT_EQ(::kill(pid, SIGSTOP), 0);
+  const auto stopped = SteadyClock::now();
+  struct Resume {
+    pid_t pid;
+    bool done = false;
+    void operator()() {
+      if (!done) ::kill(pid, SIGCONT);
+      done = true;
+    }
+    ~Resume() { (*this)(); }
+  } resume{pid};
+
+  auto finished = watcher.waitFinished(id, seconds(3));
+  ASSERT_TRUE(finished) << "no finished event within 3 s of SIGSTOP";
+  const double after_s = std::chrono::duration<double>(SteadyClock::now() - stopped).count();
+  const auto& f = finished->behavior_event();
+  EXPECT_EQ(f.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  EXPECT_TRUE(finished->synthesized());
+  EXPECT_EQ(f.robot_id(), kRobot);
+  EXPECT_EQ(f.system(), kSystem);
+  EXPECT_EQ(f.incarnation(), incarnation);
+  const std::string& message = f.finished().message();
+  EXPECT_NE(message.find("stopped answering"), std::string::npos) << message;
+  EXPECT_NE(message.find(kSystem), std::string::npos) << message;
+  std::printf("PROCESS_FAILURE reached the subscriber %.2f s after SIGSTOP: %s\n", after_s,
+              message.c_str());
+  auto other = all.waitFinished(id, seconds(1));
+  ASSERT_TRUE(other) << "the second subscriber did not get the finished event";
+  EXPECT_EQ(other->behavior_event().finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+
+  auto info = client_->system(kRobot);
+  ASSERT_TRUE(info);
+  EXPECT_EQ(info->state(), v1::SYSTEM_STATE_DOWN);
+  // Calls are refused at once instead of blocking for their deadline.
+  const auto call_start = SteadyClock::now();
+  auto refused = client_->activate(kRobot, "WAIT", R"({"duration_s": 1})");
+  EXPECT_EQ(refused.status.error_code(), grpc::StatusCode::UNAVAILABLE) << describe(refused.status);
+  EXPECT_LT(SteadyClock::now() - call_start, milliseconds(500));
+
+  // SIGCONT: the same incarnation comes back, the coordinator reconnects
+  // (resuming by seq) and ends there the activation it reported failed.
+  resume();
+  ASSERT_TRUE(client_->waitForSystem(kRobot, v1::SYSTEM_STATE_UP, seconds(10)))
+      << "the resumed system did not come back";
+  EXPECT_EQ(client_->system(kRobot)->incarnation(), incarnation);
+  SystemClient direct(system_->address());
+  EXPECT_TRUE(
+      waitUntil([&] { return !direct.checkActivation("WAIT").response.active(); }, seconds(5)))
+      << "the activation reported failed is still running on the system";
+
+  // Usable again through the coordinator.
+  std::string next;
+  ASSERT_TRUE(waitUntil(
+      [&] {
+        auto r = client_->activate(kRobot, "WAIT", R"({"duration_s": 0.2})");
+        if (!r.status.ok()) return false;
+        next = r.response.activation().activation_id();
+        return true;
+      },
+      seconds(10)))
+      << "the resumed system cannot be activated through the coordinator";
+  auto done = watcher.waitFinished(next, seconds(5));
+  ASSERT_TRUE(done);
+  EXPECT_EQ(done->behavior_event().finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  EXPECT_FALSE(done->synthesized());
+
+  // No activation got two finished events.
+  FleetWatcher history(coordinator_->address());
+  ASSERT_TRUE(history.start());
+  const auto events = history.drain();
+  EXPECT_EQ(finishedCount(events, id), 1);
+  EXPECT_EQ(finishedCount(events, next), 1);
+  std::set<std::string> finished_ids;
+  for (const auto& e : behaviorEvents(events)) {
+    if (e.has_finished()) {
+      EXPECT_TRUE(finished_ids.insert(e.activation_id()).second)
+          << "two finished events for " << e.activation_id();
+    }
+  }
 }
 
 }  // namespace

@@ -60,5 +60,34 @@ TEST_F(SupervisionTest, ReconnectingEndsTheOutageAndALaterOneIsDeclaredAgain) {
   EXPECT_TRUE(supervision_.healthChecked(false, at(6000)));
 }
 
+TEST_F(SupervisionTest, AFrozenSystemIsUnansweredAfterTheGraceAndDownAtTheBreak) {
+  // The stream stays open (a SIGSTOPped process) while probes fail.
+  supervision_.streamUp();
+  EXPECT_FALSE(supervision_.healthChecked(false, at(100)));
+  EXPECT_EQ(supervision_.failingSince(), at(100));
+  EXPECT_FALSE(supervision_.unanswered(at(1099)));
+  EXPECT_FALSE(supervision_.healthChecked(false, at(1099)));
+  EXPECT_TRUE(supervision_.unanswered(at(1100)));
+  EXPECT_FALSE(supervision_.down()) << "not down while the stream is up";
+  // The link breaks the stream: the failing window is kept, so the next
+  // failed check declares it down at once.
+  supervision_.streamBroken(at(1150));
+  EXPECT_FALSE(supervision_.unanswered(at(1150)));
+  EXPECT_TRUE(supervision_.healthChecked(false, at(1160)));
+  EXPECT_TRUE(supervision_.down());
+}
+
+TEST_F(SupervisionTest, AnAnswerWhileTheStreamIsUpRestartsTheWindow) {
+  supervision_.streamUp();
+  supervision_.healthChecked(false, at(0));
+  supervision_.healthChecked(true, at(900));
+  EXPECT_FALSE(supervision_.failingSince().has_value());
+  supervision_.healthChecked(false, at(1000));
+  EXPECT_FALSE(supervision_.unanswered(at(1500)));
+  EXPECT_TRUE(supervision_.unanswered(at(2000)));
+  supervision_.streamUp();  // a new stream: the outage is over
+  EXPECT_FALSE(supervision_.unanswered(at(5000)));
+}
+
 }  // namespace
 }  // namespace behaviorlib::coordinator

@@ -1,10 +1,15 @@
-"""The demo mission through the coordinator, and what the report is made of:
-the coordinator's event stream (timeline), the simulator's ground truth
+"""The demo missions through the coordinator, and what the report is made
+of: the coordinator's event stream (timeline), the simulator's ground truth
 (trajectory), the behavior systems' /metrics (the paper's a, t1, t2, t3) and
-/proc (memory, CPU).
+/proc (memory, CPU), the coordinator's belief memory (QR markers found, the
+other robots' positions, the saved map) and the map_coverage tool (how much
+of the world's free space the saved map covers).
 """
 
+import json
+import os
 import re
+import subprocess
 import threading
 import time
 import urllib.request
@@ -165,6 +170,50 @@ class TrajectoryRecorder(_StreamThread):
             return list(self.samples)
 
 
+class BeliefRecorder(_StreamThread):
+    """The coordinator's WatchBeliefs under a key prefix: every write (the
+    current beliefs first), kept in order."""
+
+    def __init__(self, coordinator, prefix):
+        super().__init__("coordinator-beliefs")
+        self._coordinator = coordinator
+        self._prefix = prefix
+        self._lock = threading.Lock()
+        self.beliefs = []  # Belief dicts
+
+    def _open(self):
+        return self._coordinator.stream(COORDINATOR, "WatchBeliefs",
+                                        {"prefix": self._prefix, "since_version": 0})
+
+    def _handle(self, reply):
+        belief = rpc.to_dict(reply.belief)
+        with self._lock:
+            self.beliefs.append(belief)
+
+    def snapshot(self):
+        with self._lock:
+            return list(self.beliefs)
+
+
+def swarm_tracks(beliefs, robot_id):
+    """Every position of another robot that `robot_id` recorded
+    ({robot}/swarm/{other}/position writes, from a BeliefRecorder): {other:
+    [(stamp_s, x, y, z)]} in the order written."""
+    prefix = f"{robot_id}/swarm/"
+    tracks = {}
+    for belief in beliefs:
+        key = belief.get("key", "")
+        rest = key[len(prefix):] if key.startswith(prefix) else ""
+        value = belief.get("value")
+        if (belief.get("deleted") or not rest.endswith("/position") or rest.count("/") != 1
+                or not isinstance(value, dict)):
+            continue
+        stamp = timestamp_s(value.get("header", {}).get("stamp"))
+        x, y, z = _vector(value.get("pose", {}).get("position_m"))
+        tracks.setdefault(rest.split("/")[0], []).append((stamp, x, y, z))
+    return tracks
+
+
 def wait_for_systems(coordinator, robot_id, systems, timeout_s=20.0):
     """Waits until the coordinator has every one of `systems` UP (they
     register on their own when they start)."""
@@ -184,16 +233,18 @@ def wait_for_systems(coordinator, robot_id, systems, timeout_s=20.0):
 # --- progress ----------------------------------------------------------------
 
 class ProgressPrinter:
-    """One line per mission step change (and per mission state change)."""
+    """One line per mission step change (and per mission state change);
+    `prefix` (e.g. "drone2: ") tells the robots' missions apart."""
 
-    def __init__(self, out):
+    def __init__(self, out, prefix="", start=None):
         self._out = out
-        self._start = time.monotonic()
+        self._prefix = prefix
+        self._start = time.monotonic() if start is None else start
         self._seen = []  # (state, cause) per step record index
         self._state = None
 
     def _line(self, text):
-        self._out(f"  [{time.monotonic() - self._start:6.1f} s] {text}")
+        self._out(f"  [{time.monotonic() - self._start:6.1f} s] {self._prefix}{text}")
 
     def update(self, status):
         for i, record in enumerate(status.get("steps", [])):
@@ -259,6 +310,211 @@ def run_mission(coordinator, mission_path, robot_id, mission_id, timeout_s, out,
     status = coordinator.call(COORDINATOR, "GetMission", {"mission_id": mission_id})["status"]
     on_status(status)
     return status
+
+
+def run_missions(coordinator, missions, timeout_s, out, on_status):
+    """Several robots' missions at once: StartMission for each of
+    `missions` ([(robot_id, mission_path, mission_id)]) one after the other
+    (the robot_id overrides the file's robot), then WatchMission on each
+    until every one has ended. One progress line per step change, prefixed
+    with the robot. Returns {robot_id: final MissionStatus (dict)}, also
+    handing each status to on_status(robot_id, status). After `timeout_s`
+    of wall time the missions still running are aborted."""
+    lock = threading.Lock()
+
+    def say(text):
+        with lock:
+            out(text)
+
+    start = time.monotonic()
+    deadline = start + timeout_s
+    printers = {robot: ProgressPrinter(say, f"{robot}: ", start) for robot, _, _ in missions}
+    statuses = {}
+
+    def update(robot, status):
+        with lock:
+            statuses[robot] = status
+        on_status(robot, status)
+        printers[robot].update(status)
+
+    started_ids = []
+    try:
+        for robot, path, mission_id in missions:
+            reply = coordinator.call(COORDINATOR, "StartMission",
+                                     {"file_path": path, "robot_id": robot,
+                                      "mission_id": mission_id})
+            started_ids.append(mission_id)
+            update(robot, reply.get("status", {}))
+    except rpc.grpc.RpcError:
+        for mission_id in started_ids:  # not left flying on its own
+            try:
+                coordinator.call(COORDINATOR, "AbortMission",
+                                 {"mission_id": mission_id,
+                                  "reason": "another robot's mission could not start"})
+            except rpc.grpc.RpcError:
+                pass
+        raise
+
+    errors = []
+
+    def watch(robot, mission_id):
+        if statuses.get(robot, {}).get("state") in FINAL_MISSION_STATES:
+            return
+        call = coordinator.stream(COORDINATOR, "WatchMission", {"mission_id": mission_id},
+                                  timeout=max(0.1, deadline - time.monotonic()))
+        try:
+            for reply in call:
+                status = rpc.to_dict(reply.status)
+                update(robot, status)
+                if status.get("state") in FINAL_MISSION_STATES:
+                    break
+        except rpc.grpc.RpcError as error:
+            if error.code() not in (rpc.grpc.StatusCode.DEADLINE_EXCEEDED,
+                                    rpc.grpc.StatusCode.CANCELLED):
+                errors.append(error)
+        finally:
+            call.cancel()
+
+    threads = [threading.Thread(target=watch, args=(robot, mission_id), daemon=True,
+                                name=f"mission-{robot}") for robot, _, mission_id in missions]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        while thread.is_alive():  # a signal reaches the launcher meanwhile
+            thread.join(0.2)
+    if errors:
+        raise errors[0]
+    for robot, _, mission_id in missions:
+        state = statuses.get(robot, {}).get("state")
+        if state not in FINAL_MISSION_STATES:
+            say(f"  {robot}: mission still {state} after {timeout_s} s: aborting it")
+            coordinator.call(COORDINATOR, "AbortMission",
+                             {"mission_id": mission_id, "reason": "launcher time-out"})
+    # An aborted mission ends once its safety steps have run.
+    settle = time.monotonic() + 30.0
+    final = {}
+    for robot, _, mission_id in missions:
+        while True:
+            status = coordinator.call(COORDINATOR, "GetMission",
+                                      {"mission_id": mission_id})["status"]
+            if status.get("state") in FINAL_MISSION_STATES or time.monotonic() > settle:
+                break
+            time.sleep(0.2)
+        on_status(robot, status)
+        final[robot] = status
+    return final
+
+
+# --- belief memory ---------------------------------------------------------------
+
+def write_belief(coordinator, key, value, writer="launcher"):
+    """WriteBelief of a plain JSON value (a string, a number, a dict...)."""
+    coordinator.call(COORDINATOR, "WriteBelief", {"key": key, "value": value, "writer": writer})
+
+
+def list_beliefs(coordinator, prefix):
+    """The current beliefs whose key starts with `prefix` (ListBeliefs), by
+    key; values in JSON form."""
+    reply = coordinator.call(COORDINATOR, "ListBeliefs", {"prefix": prefix})
+    return {b["key"]: b for b in reply.get("beliefs", []) if not b.get("deleted")}
+
+
+def _vector(value):
+    """[x, y, z] of a Vector3 in JSON form (zeros are omitted there)."""
+    value = value if isinstance(value, dict) else {}
+    return [float(value.get(axis, 0.0)) for axis in ("x", "y", "z")]
+
+
+def robot_findings(coordinator, robot_id):
+    """What the application behaviors left in belief memory for `robot_id`
+    (keys "{robot}/..."):
+      map_file      the file SAVE_OCCUPANCY_GRID wrote ({robot}/map_file)
+      markers       PAY_ATTENTION_TO_QR_CODES' codes ({robot}/markers/<text>):
+                    [{text, position_m, sightings, marker_size_m, key}],
+                    with marker_count from {robot}/markers
+      swarm         PAY_ATTENTION_TO_ROBOT_MESSAGES' records ({robot}/swarm/...):
+                    positions {other: {position_m, stamp_s, key}},
+                    messages [{n, from, text, payload}], message_count,
+                    malformed_count
+    Only the keys found are present."""
+    beliefs = list_beliefs(coordinator, robot_id + "/")
+    found = {}
+    map_file = beliefs.get(f"{robot_id}/map_file")
+    if map_file is not None:
+        found["map_file"] = map_file.get("value")
+
+    markers_prefix = f"{robot_id}/markers/"
+    markers = []
+    for key, belief in beliefs.items():
+        if not key.startswith(markers_prefix):
+            continue
+        value = belief.get("value") if isinstance(belief.get("value"), dict) else {}
+        markers.append({"text": value.get("text", key[len(markers_prefix):]),
+                        "position_m": _vector(value.get("position_m")),
+                        "sightings": int(value.get("sightings", 0)),
+                        "marker_size_m": value.get("marker_size_m"), "key": key})
+    listed = beliefs.get(f"{robot_id}/markers")
+    if markers or listed is not None:
+        found["markers"] = sorted(markers, key=lambda m: m["text"])
+        value = listed.get("value") if listed is not None else None
+        found["marker_count"] = (int(value.get("count", 0)) if isinstance(value, dict)
+                                 else len(markers))
+
+    swarm_prefix = f"{robot_id}/swarm/"
+    swarm = {"positions": {}, "messages": []}
+    seen = False
+    for key, belief in beliefs.items():
+        if not key.startswith(swarm_prefix):
+            continue
+        seen = True
+        rest = key[len(swarm_prefix):]
+        value = belief.get("value")
+        if rest.endswith("/position") and rest.count("/") == 1 and isinstance(value, dict):
+            other = rest.split("/")[0]
+            header = value.get("header", {})
+            swarm["positions"][other] = {
+                "position_m": _vector(value.get("pose", {}).get("position_m")),
+                "stamp_s": timestamp_s(header.get("stamp")), "key": key}
+        elif rest.startswith("messages/") and isinstance(value, dict):
+            number = rest.split("/", 1)[1]
+            swarm["messages"].append({"n": int(number) if number.isdigit() else number,
+                                      "from": value.get("from", ""),
+                                      "text": value.get("text", ""),
+                                      "payload": value.get("payload")})
+        elif rest in ("message_count", "malformed_count"):
+            swarm[rest] = int(value or 0)
+    if seen:
+        swarm["messages"].sort(key=lambda m: (isinstance(m["n"], str), m["n"]))
+        found["swarm"] = swarm
+    return found
+
+
+def measure_map_coverage(tool, world_path, map_file, timeout_s=120.0):
+    """Runs `tool --world WORLD --map FILE --json` (map_coverage: how much of
+    the world's free space the saved map knows as free) and returns its JSON
+    object; {"error": why} when it cannot be measured."""
+    if not tool or not os.access(tool, os.X_OK):
+        return {"error": f"{tool} is not built"}
+    if not world_path:
+        return {"error": "no --world was given (the empty field has no free space to map)"}
+    if not isinstance(map_file, str) or not os.path.isfile(map_file):
+        return {"error": f"the map file {map_file!r} does not exist"}
+    argv = [tool, "--world", world_path, "--map", map_file, "--json"]
+    try:
+        result = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        return {"error": f"{' '.join(argv)}: {error}"}
+    if result.returncode != 0:
+        return {"error": f"{' '.join(argv)} exited with code {result.returncode}: "
+                         f"{(result.stderr or result.stdout).strip()[-500:]}"}
+    try:
+        measured = json.loads(result.stdout)
+    except ValueError as error:
+        return {"error": f"{' '.join(argv)} printed no JSON object ({error}): "
+                         f"{result.stdout.strip()[-500:]}"}
+    if not isinstance(measured, dict):
+        return {"error": f"{' '.join(argv)} printed {type(measured).__name__}, not an object"}
+    return measured
 
 
 # --- metrics and /proc -----------------------------------------------------------

@@ -6,13 +6,43 @@ checked before the next: the data channel broker, the simulator, the
 coordinator and every behavior system that is built. Writes one log file per
 process, the ports, the pids and Prometheus file-based service discovery
 targets into a run directory. Then either serves until Ctrl-C, or (--demo)
-flies the demo mission through the coordinator, prints its progress, and
-writes a mission report (report.md, report.json, trajectory.png). Stops
-every process in reverse order (SIGTERM, then SIGKILL after a time-out) on
-exit and on Ctrl-C.
+flies the demo mission (or the --mission files) through the coordinator,
+prints its progress, and writes a mission report (report.md, report.json,
+trajectory.png). Stops every process in reverse order (SIGTERM, then SIGKILL
+after a time-out) on exit and on Ctrl-C.
 
     deploy/local/launch.py --build-dir build --demo
     deploy/local/launch.py --build-dir build          # serve until Ctrl-C
+
+The paper's applications:
+
+    # aircraft inspection: QR markers found, with their positions, in the report
+    deploy/local/launch.py --demo --world aircraft \
+        --sensor-config deploy/config/simulator_sensors_aircraft.yaml \
+        --mission deploy/missions/aircraft_inspection.yaml
+    # two vehicles sharing their positions: every behavior system once per
+    # robot (process names suffixed with the robot), both missions at once
+    deploy/local/launch.py --demo --vehicles drone1,drone2 \
+        --mission drone1=deploy/missions/swarm_two_vehicles.yaml \
+        --mission drone2=deploy/missions/swarm_two_vehicles.yaml
+    # room exploration: the saved map's coverage of the building in the report
+    deploy/local/launch.py --demo --world rooms --mission deploy/missions/room_exploration.yaml
+
+Before the missions start, belief {robot}/output_dir names the directory
+where a mission may write its files (e.g. SAVE_OCCUPANCY_GRID's map): the
+run directory, or <run-dir>/<robot> with several robots. After the missions,
+the report lists what the behaviors left in the coordinator's belief memory
+for each robot: the QR markers found ({robot}/markers/...), the other
+robots' positions ({robot}/swarm/...), and the map saved by
+SAVE_OCCUPANCY_GRID ({robot}/map_file) with, when a world was given and
+build/services/navigation/map_coverage is built, the fraction of the world's
+free space it covers.
+
+Every behavior system started costs CPU even idle (on a two-core machine
+the whole one-robot stack took about 1.4 cores at 3x, and two robots 1.1
+cores at 1x): hence the 2x default; with a camera decoded, or with several
+robots, start only the systems the missions need with --systems (the
+applications' tests do, at 2-3x).
 
 Run directory (--run-dir; default a new directory under /tmp):
     logs/<process>.log         what each process printed
@@ -27,7 +57,7 @@ Run directory (--run-dir; default a new directory under /tmp):
     report.md, report.json, trajectory.png   (--demo)
 
 Exit code 0 when every process started and stopped cleanly and, with --demo,
-the mission SUCCEEDED; 128 + the signal's number when stopped by a signal.
+every mission SUCCEEDED; 128 + the signal's number when stopped by a signal.
 
 Needs Debian's python3-grpcio, python3-protobuf and python3-yaml; calls the
 servers through gRPC reflection (no generated code).
@@ -35,6 +65,7 @@ servers through gRPC reflection (no generated code).
 
 import argparse
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -49,6 +80,11 @@ from stack import Process, Stack, StartError  # noqa: E402
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 CONFIG_DIR = os.path.join(REPO, "deploy", "config")
+WORLDS_DIR = os.path.join(REPO, "simulator", "worlds")
+DEMO_MISSION = os.path.join(REPO, "deploy", "missions", "demo.yaml")
+# Measures how much of a world's free space a saved map covers (built with
+# services/navigation).
+MAP_COVERAGE = "services/navigation/map_coverage"
 
 # The behavior systems, started in this order when their binary is built
 # (services/<name>/<name>), each with deploy/config/<name>.yaml when present.
@@ -92,75 +128,221 @@ def binary(build_dir, relative, required=True):
     return None
 
 
+def world_file(world):
+    """The YAML file of --world (a path, or the name of a shipped world, as
+    the simulator resolves it); "" for the default empty field."""
+    if not world:
+        return ""
+    is_name = "/" not in world and not world.endswith(".yaml")
+    return os.path.join(WORLDS_DIR, world + ".yaml") if is_name else os.path.abspath(world)
+
+
+def world_markers(path):
+    """Marker text -> centre [x, y, z] of a world file (to compare the
+    markers found with); {} when it has none or cannot be read."""
+    if not path:
+        return {}
+    try:
+        import yaml  # Debian's python3-yaml
+        with open(path) as f:
+            world = yaml.safe_load(f) or {}
+        return {m["text"]: [float(v) for v in m["center_m"]]
+                for m in world.get("markers") or [] if "text" in m and "center_m" in m}
+    except (ImportError, OSError, ValueError, TypeError, KeyError, AttributeError) as error:
+        say(f"  note: cannot read the markers of {path}: {error}")
+        return {}
+
+
+def simulator_vehicles(simulator, timeout_s=3.0):
+    """The robot ids the simulator says it flies (its log's "vehicles [...]"
+    line), or None when it has not said so yet."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            with open(simulator.log_path, errors="replace") as f:
+                match = re.search(r"vehicles \[([^\]]*)\]", f.read())
+            if match:
+                return [v for v in match.group(1).split(",") if v]
+        except OSError:
+            pass
+        if time.monotonic() > deadline:
+            return None
+        time.sleep(0.05)
+
+
 def start_stack(args, build_dir, stack):
-    robot = args.robot_id
+    robots = args.vehicles
+    several = len(robots) > 1
     listen = ["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"]
     broker = stack.start(Process("channel_broker",
                                  [binary(build_dir, "services/channel/channel_broker"), *listen],
                                  stack.run_dir, "channel_broker"))
 
     simulator_argv = [binary(build_dir, "simulator/service/simulator"), *listen,
-                      "--channel", broker.address, "--vehicles", robot,
-                      "--worlds-dir", os.path.join(REPO, "simulator", "worlds"),
+                      "--channel", broker.address, "--vehicles", ",".join(robots),
+                      "--worlds-dir", WORLDS_DIR,
                       "--time-scale", str(args.time_scale), "--seed", str(args.seed)]
     if args.world:
         simulator_argv += ["--world", args.world]
+    if args.sensor_config:
+        simulator_argv += ["--sensor-config", os.path.abspath(args.sensor_config)]
     if args.enable_fault_injection:
         simulator_argv.append("--enable-fault-injection")
     simulator = stack.start(Process("simulator", simulator_argv, stack.run_dir, "simulator"))
+    # A world with start poses has its own vehicles, whatever --vehicles says.
+    flown = simulator_vehicles(simulator)
+    if flown is not None and not set(robots) <= set(flown):
+        missing = ", ".join(sorted(set(robots) - set(flown)))
+        raise StartError(f"the simulator has no vehicle {missing} (its vehicles: "
+                         f"{', '.join(flown)}; a world's start poses name them)")
 
     coordinator_bin = binary(build_dir, "coordinator/coordinator")
     coordinator_argv = [coordinator_bin, *listen,
                         "--state-dir", os.path.join(stack.run_dir, "coordinator")]
+    # One --flight-controller flag lists every robot (a repeated flag would
+    # replace the previous one).
     coordinator_argv += ["--catalog", os.path.join(CONFIG_DIR, "catalog.yaml"),
-                         "--flight-controller", f"{robot}={simulator.address}",
+                         "--flight-controller",
+                         ",".join(f"{robot}={simulator.address}" for robot in robots),
                          "--channel", broker.address]
     coordinator = stack.start(Process("coordinator", coordinator_argv, stack.run_dir,
                                       "coordinator"))
 
     systems = []
     for name in BEHAVIOR_SYSTEMS:
-        path = binary(build_dir, f"services/{name}/{name}", required=name in REQUIRED_SYSTEMS)
+        if args.systems and name not in args.systems and name not in REQUIRED_SYSTEMS:
+            continue
+        path = binary(build_dir, f"services/{name}/{name}",
+                      required=name in REQUIRED_SYSTEMS or name in args.systems)
         if path is None:
             say(f"  note: {name} is not built ({build_dir}/services/{name}/{name}); "
                 f"its behaviors are unavailable")
             continue
-        argv = [path, *listen, "--robot-id", robot, "--channel", broker.address,
-                "--clock", "sim", "--flight-controller", simulator.address,
-                "--coordinator", coordinator.address]
         config = os.path.join(CONFIG_DIR, name + ".yaml")
-        if os.path.exists(config):
-            argv += ["--config", config]
-        systems.append(stack.start(Process(name, argv, stack.run_dir, "behavior_system", robot)))
+        for robot in robots:
+            argv = [path, *listen, "--robot-id", robot, "--channel", broker.address,
+                    "--clock", "sim", "--flight-controller", simulator.address,
+                    "--coordinator", coordinator.address]
+            if os.path.exists(config):
+                argv += ["--config", config]
+            process_name = f"{name}-{robot}" if several else name
+            systems.append(stack.start(Process(process_name, argv, stack.run_dir,
+                                               "behavior_system", robot, system=name)))
     return simulator, coordinator, systems
 
 
-def run_demo(args, simulator, coordinator, systems, state):
-    """Flies the mission; fills `state` with what the report needs as it
-    goes (the mission's status, the event and trajectory recorders)."""
-    robot = args.robot_id
+def run_demo(args, run_dir, simulator, coordinator, systems, state):
+    """Flies the missions (every robot's at once); fills `state` with what
+    the report needs as it goes (each mission's status, the event and
+    trajectory recorders of each robot)."""
     coordinator_client = rpc.Client(coordinator.address, [demo.COORDINATOR])
     state["clients"].append(coordinator_client)
+    state["coordinator"] = coordinator_client
     simulator_client = rpc.Client(simulator.address, [demo.SIMULATOR])
     state["clients"].append(simulator_client)
-    events = state["events"] = demo.EventRecorder(coordinator_client, robot)
-    trajectory = state["trajectory"] = demo.TrajectoryRecorder(simulator_client, robot)
-    events.start()
-    trajectory.start()
-    demo.wait_for_systems(coordinator_client, robot, [s.name for s in systems])
+    for robot in args.vehicles:
+        state["events"][robot] = demo.EventRecorder(coordinator_client, robot)
+        state["trajectories"][robot] = demo.TrajectoryRecorder(simulator_client, robot)
+        # The other robots' positions as they arrive (the report keeps the
+        # last one and how every one matched the ground truth).
+        state["swarm"][robot] = demo.BeliefRecorder(coordinator_client, f"{robot}/swarm/")
+        for recorder in (state["events"][robot], state["trajectories"][robot],
+                         state["swarm"][robot]):
+            recorder.start()
+    for robot in args.vehicles:
+        demo.wait_for_systems(coordinator_client, robot,
+                              [s.system for s in systems if s.robot_id == robot])
 
-    mission_path = os.path.abspath(args.mission)
-    mission_id = f"demo-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
-    say(f"\n== mission {os.path.relpath(mission_path, REPO)} on {robot} "
-        f"(simulator at {args.time_scale}x) ==")
+    for robot in args.missions:
+        output_dir = run_dir if len(args.vehicles) == 1 else os.path.join(run_dir, robot)
+        os.makedirs(output_dir, exist_ok=True)
+        demo.write_belief(coordinator_client, f"{robot}/output_dir", output_dir)
 
-    def on_status(status):
-        state["mission"] = status
+    stamp = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    if len(args.vehicles) == 1:
+        robot = args.vehicles[0]
+        mission_path = args.missions[robot]
+        say(f"\n== mission {os.path.relpath(mission_path, REPO)} on {robot} "
+            f"(simulator at {args.time_scale}x) ==")
 
-    demo.run_mission(coordinator_client, mission_path, robot, mission_id,
-                     args.mission_timeout_s, say, on_status)
-    if not events.wait_settled(3.0):
-        say("  note: some activations had no finished event 3 s after the mission ended")
+        def on_status(status):
+            state["missions"][robot] = status
+
+        demo.run_mission(coordinator_client, mission_path, robot, f"demo-{stamp}",
+                         args.mission_timeout_s, say, on_status)
+    else:
+        missions = [(robot, args.missions[robot], f"demo-{stamp}-{robot}")
+                    for robot in args.vehicles if robot in args.missions]
+        say(f"\n== missions (simulator at {args.time_scale}x): "
+            + ", ".join(f"{os.path.relpath(path, REPO)} on {robot}"
+                        for robot, path, _ in missions) + " ==")
+
+        def on_status(robot, status):
+            state["missions"][robot] = status
+
+        demo.run_missions(coordinator_client, missions, args.mission_timeout_s, say, on_status)
+    for robot, events in state["events"].items():
+        if not events.wait_settled(3.0):
+            say(f"  note: some activations{'' if len(args.vehicles) == 1 else ' of ' + robot} "
+                f"had no finished event 3 s after the mission ended")
+
+
+def parse_missions(parser, args):
+    """args.missions: robot -> absolute mission file, from the --mission
+    values (FILE for the first robot, or ROBOT=FILE); the demo mission on
+    the first robot when there is none."""
+    missions = {}
+    for value in args.mission or []:
+        robot, sep, path = value.partition("=")
+        if not (sep and re.fullmatch(r"[A-Za-z0-9_.-]+", robot) and not os.path.exists(value)):
+            robot, path = args.vehicles[0], value
+        if robot not in args.vehicles:
+            parser.error(f"--mission {value}: {robot} is not one of the vehicles "
+                         f"({','.join(args.vehicles)})")
+        if robot in missions:
+            parser.error(f"--mission {value}: {robot} has a mission already "
+                         f"({missions[robot]})")
+        missions[robot] = os.path.abspath(path)
+    if not missions:
+        missions[args.vehicles[0]] = DEMO_MISSION
+    if args.demo:
+        for robot, path in missions.items():
+            if not os.path.isfile(path):
+                parser.error(f"--mission: {path} (for {robot}) is not a file")
+    return missions
+
+
+def robot_reports(args, build_dir, state):
+    """Per robot what report.write needs; measures the coverage of each map
+    saved (map_coverage), printing it."""
+    world_path = world_file(args.world)
+    tool = os.path.join(build_dir, MAP_COVERAGE)
+    robots = []
+    for robot in args.vehicles:
+        findings = dict(state["findings"].get(robot, {}))
+        if "map_file" in findings:
+            coverage = demo.measure_map_coverage(tool, world_path, findings["map_file"])
+            findings["map_coverage"] = coverage
+            who = "" if len(args.vehicles) == 1 else f" of {robot}"
+            if "mapped_fraction" in coverage:
+                say(f"map{who}: {coverage['mapped_fraction'] * 100:.0f} % of the world's free "
+                    f"space mapped ({findings['map_file']})")
+            else:
+                say(f"map{who}: coverage not measured: {coverage.get('error')}")
+        swarm = state["swarm"].get(robot)
+        tracks = demo.swarm_tracks(swarm.snapshot(), robot) if swarm else {}
+        if tracks:
+            findings["swarm_tracks"] = tracks
+        path = args.missions.get(robot)
+        events = state["events"].get(robot)
+        trajectory = state["trajectories"].get(robot)
+        robots.append({"robot_id": robot,
+                       "mission_file": os.path.relpath(path, REPO) if path else "",
+                       "mission": state["missions"].get(robot, {}),
+                       "behavior_events": events.behavior_events() if events else [],
+                       "samples": trajectory.snapshot() if trajectory else [],
+                       "findings": findings})
+    return robots
 
 
 def main():
@@ -170,25 +352,61 @@ def main():
     parser.add_argument("--run-dir", default="",
                         help="directory for logs, ports, state and the report (default: a new "
                              "directory under /tmp)")
-    parser.add_argument("--robot-id", default="drone1")
-    parser.add_argument("--time-scale", type=float, default=5.0,
-                        help="simulated seconds per wall second. The whole stack takes about "
-                             "0.2-0.3 s of CPU per simulated second: at 10x it saturates two "
-                             "cores and the controllers fall behind; 5x leaves a margin")
+    parser.add_argument("--robot-id", default="drone1",
+                        help="the robot, when --vehicles is not given")
+    parser.add_argument("--vehicles", default="",
+                        help="comma-separated robot ids (e.g. drone1,drone2): the simulator flies "
+                             "them all (in a world with start poses, they must be among them; "
+                             "in the empty field vehicle i starts at x = 2 i m) and every "
+                             "behavior system runs once per robot, named <system>-<robot>; "
+                             "default: --robot-id's one robot")
+    parser.add_argument("--time-scale", type=float, default=2.0,
+                        help="simulated seconds per wall second. The whole stack (every "
+                             "behavior system) takes about 0.45 s of CPU per simulated second "
+                             "idle, mostly the channel's clock and sensor traffic: at 3x it "
+                             "takes 1.4 cores of two and a flying mission can starve; 2x leaves "
+                             "a margin. With --systems (a lighter stack) 3-5x is fine")
     parser.add_argument("--world", default="",
                         help="simulator world (file or shipped name); default an empty field")
     parser.add_argument("--seed", type=int, default=1, help="the simulator's noise seed")
+    parser.add_argument("--systems", default="",
+                        help="comma-separated behavior systems to start (each must be built; "
+                             "basic_quadrotor_behaviors always is), e.g. "
+                             "quadrotor_motion_with_pid_control,swarm_interaction: a lighter "
+                             "stack; default: every behavior system that is built")
+    parser.add_argument("--sensor-config", default="",
+                        help="the simulator's sensor configuration (YAML; e.g. "
+                             "deploy/config/simulator_sensors_aircraft.yaml); default: the "
+                             "built-in defaults (deploy/config/simulator_sensors.yaml)")
     parser.add_argument("--enable-fault-injection", action="store_true",
                         help="let Simulator.InjectFailure inject faults")
     parser.add_argument("--demo", action="store_true",
-                        help="fly the demo mission, write the report, then stop everything")
-    parser.add_argument("--mission", default=os.path.join(REPO, "deploy", "missions", "demo.yaml"),
-                        help="mission file flown by --demo")
+                        help="fly the demo mission (or the --mission files), write the report, "
+                             "then stop everything")
+    parser.add_argument("--mission", action="append", metavar="[ROBOT=]FILE",
+                        help="mission file flown by --demo: FILE for the first (or only) robot, "
+                             "or ROBOT=FILE, repeated for several robots (each started through "
+                             "StartMission with its robot id, all at once); default "
+                             "deploy/missions/demo.yaml on the first robot")
     parser.add_argument("--mission-timeout-s", type=float, default=300.0,
-                        help="wall seconds after which the demo aborts the mission")
+                        help="wall seconds after which the demo aborts the missions")
     parser.add_argument("--stop-timeout-s", type=float, default=10.0,
                         help="wall seconds a process has after SIGTERM before SIGKILL")
     args = parser.parse_args()
+    args.vehicles = [v for v in args.vehicles.split(",") if v] or [args.robot_id]
+    if len(set(args.vehicles)) != len(args.vehicles):
+        parser.error(f"--vehicles {','.join(args.vehicles)}: a robot is named twice")
+    for robot in args.vehicles:
+        if not re.fullmatch(r"[A-Za-z0-9_-]+", robot):
+            parser.error(f"--vehicles: '{robot}' is not a robot id (letters, digits, _ and -)")
+    args.systems = [s for s in args.systems.split(",") if s]
+    for name in args.systems:
+        if name not in BEHAVIOR_SYSTEMS:
+            parser.error(f"--systems: no behavior system {name} (known: "
+                         f"{', '.join(BEHAVIOR_SYSTEMS)})")
+    args.missions = parse_missions(parser, args)
+    if args.sensor_config and not os.path.isfile(args.sensor_config):
+        parser.error(f"--sensor-config: {args.sensor_config} is not a file")
     build_dir = os.path.abspath(args.build_dir)
     run_dir = os.path.abspath(args.run_dir) if args.run_dir else tempfile.mkdtemp(
         prefix="behaviorlib-run-")
@@ -199,7 +417,8 @@ def main():
     started = time.monotonic()
     stack = Stack(run_dir)
     status = 0
-    demo_state = {"mission": {}, "events": None, "trajectory": None, "clients": []}
+    demo_state = {"missions": {}, "events": {}, "trajectories": {}, "swarm": {}, "findings": {},
+                  "coordinator": None, "clients": []}
     figures = ([], [])
     interrupted = ""
     say(f"run directory: {run_dir}")
@@ -213,8 +432,9 @@ def main():
             say(f"  {p.name:<40} gRPC {p.address:<17} metrics {metrics}")
         say(f"  Prometheus targets: {targets}")
         if args.demo:
-            run_demo(args, simulator, coordinator, systems, demo_state)
-            if demo_state["mission"].get("state") != "MISSION_STATE_SUCCEEDED":
+            run_demo(args, run_dir, simulator, coordinator, systems, demo_state)
+            if any(demo_state["missions"].get(robot, {}).get("state") != "MISSION_STATE_SUCCEEDED"
+                   for robot in args.missions):
                 status = 1
         else:
             say("Ctrl-C stops everything.")
@@ -237,30 +457,54 @@ def main():
         # Signals during the shutdown would leave processes behind.
         for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(signum, signal.SIG_IGN)
-        recorders = [demo_state[k] for k in ("events", "trajectory") if demo_state[k]]
+        recorders = (list(demo_state["events"].values())
+                     + list(demo_state["trajectories"].values())
+                     + list(demo_state["swarm"].values()))
         for recorder in recorders:
             recorder.stop()
         if recorders:
             figures = demo.collect_figures(stack, say)
+        if demo_state["coordinator"] is not None:
+            for robot in args.vehicles:
+                try:
+                    demo_state["findings"][robot] = demo.robot_findings(
+                        demo_state["coordinator"], robot)
+                except rpc.grpc.RpcError as error:
+                    say(f"  cannot read the beliefs of {robot}: {error.code().name}: "
+                        f"{error.details()}")
         for client in demo_state["clients"]:
             client.close()
         say("\n== stopping ==")
         clean = stack.stop(args.stop_timeout_s, say)
         if not clean:
             status = status or 1
-    if demo_state["events"] and demo_state["trajectory"]:
+    if demo_state["events"] and demo_state["trajectories"]:
         behaviors, processes = figures
         for row in processes:
             row["exit_code"] = stack.find(row["name"]).exit_code
-        mission = demo_state["mission"]
-        settings = {"mission": os.path.relpath(os.path.abspath(args.mission), REPO),
-                    "robot_id": args.robot_id, "time_scale": args.time_scale,
+        first = args.vehicles[0]
+        settings = {"mission": os.path.relpath(args.missions.get(first, ""), REPO)
+                    if first in args.missions else "",
+                    "robot_id": first, "time_scale": args.time_scale,
                     "world": args.world, "seed": args.seed, "run_dir": run_dir,
-                    "wall_s": time.monotonic() - started, "interrupted": interrupted}
-        report.write(run_dir, settings, mission, demo_state["events"].behavior_events(),
-                     behaviors, processes, demo_state["trajectory"].snapshot(), clean)
-        state = mission.get("state", "MISSION_STATE_UNSPECIFIED").replace("MISSION_STATE_", "")
-        say(f"\nmission {mission.get('name', '')}: {state}")
+                    "wall_s": time.monotonic() - started, "interrupted": interrupted,
+                    "vehicles": args.vehicles,
+                    "missions": {robot: os.path.relpath(path, REPO)
+                                 for robot, path in args.missions.items()},
+                    "sensor_config": os.path.relpath(os.path.abspath(args.sensor_config), REPO)
+                    if args.sensor_config else ""}
+        robots = robot_reports(args, build_dir, demo_state)
+        report.write(run_dir, settings, robots, behaviors, processes, clean,
+                     world_markers(world_file(args.world)))
+        say("")
+        for robot in args.vehicles:
+            if robot not in args.missions:
+                continue
+            mission = demo_state["missions"].get(robot, {})
+            state = mission.get("state", "MISSION_STATE_UNSPECIFIED").replace("MISSION_STATE_",
+                                                                              "")
+            where = "" if len(args.vehicles) == 1 else f" on {robot}"
+            say(f"mission {mission.get('name', '')}{where}: {state}")
         say(f"report: {os.path.join(run_dir, 'report.md')} (also report.json, trajectory.png)")
     return status
 

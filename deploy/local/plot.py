@@ -1,8 +1,10 @@
-"""A PNG plot of a flown x-y trajectory, in pure Python (zlib only): axes
-with metre ticks, the planned path dashed, the flown path solid, start and
-end marked.
+"""A PNG plot of flown x-y trajectories, in pure Python (zlib only): axes
+with metre ticks, the planned paths dashed, each vehicle's flown path solid
+in a colour of its own (with a legend when labelled), start and end marked.
 
     plot_trajectory("trajectory.png", flown=[(x, y), ...], planned=[(x, y), ...])
+    plot_trajectories("trajectory.png", [flown1, flown2], [planned1, planned2],
+                      labels=["drone1", "drone2"])
 """
 
 import math
@@ -16,6 +18,11 @@ PLANNED = (150, 150, 150)
 FLOWN = (31, 119, 180)
 START = (44, 160, 44)
 END = (214, 39, 40)
+# One colour per vehicle, the first being FLOWN; START and END are not among
+# them.
+VEHICLE_COLORS = [(FLOWN, "blue"), ((255, 127, 14), "orange"), ((148, 103, 189), "purple"),
+                  ((140, 86, 75), "brown"), ((227, 119, 194), "pink"),
+                  ((23, 190, 207), "cyan"), ((188, 189, 34), "olive"), ((0, 0, 0), "black")]
 
 # 3x5 glyphs, rows top to bottom, 3 bits each (bit 2 = left column).
 _FONT = {
@@ -24,6 +31,14 @@ _FONT = {
     "8": (7, 5, 7, 5, 7), "9": (7, 5, 7, 1, 7), "-": (0, 0, 7, 0, 0), ".": (0, 0, 0, 0, 2),
     "x": (0, 5, 2, 5, 0), "y": (5, 5, 2, 2, 2), "m": (0, 7, 7, 5, 5), "(": (1, 2, 2, 2, 1),
     ")": (4, 2, 2, 2, 4), " ": (0, 0, 0, 0, 0),
+    # Letters (one case) and a few more, for the legend's robot ids.
+    "a": (2, 5, 7, 5, 5), "b": (6, 5, 6, 5, 6), "c": (7, 4, 4, 4, 7), "d": (6, 5, 5, 5, 6),
+    "e": (7, 4, 6, 4, 7), "f": (7, 4, 6, 4, 4), "g": (7, 4, 5, 5, 7), "h": (5, 5, 7, 5, 5),
+    "i": (7, 2, 2, 2, 7), "j": (1, 1, 1, 5, 7), "k": (5, 5, 6, 5, 5), "l": (4, 4, 4, 4, 7),
+    "n": (6, 5, 5, 5, 5), "o": (2, 5, 5, 5, 2), "p": (6, 5, 6, 4, 4), "q": (2, 5, 5, 6, 3),
+    "r": (6, 5, 6, 5, 5), "s": (3, 4, 2, 1, 6), "t": (7, 2, 2, 2, 2), "u": (5, 5, 5, 5, 7),
+    "v": (5, 5, 5, 5, 2), "w": (5, 5, 7, 7, 5), "z": (7, 1, 2, 4, 7), "_": (0, 0, 0, 0, 7),
+    "/": (1, 1, 2, 4, 4), ":": (0, 2, 0, 2, 0),
 }
 
 
@@ -73,7 +88,7 @@ class Canvas:
     def text(self, x, y, string, color, scale=2):
         """Text from the small font, top-left corner at (x, y)."""
         for k, char in enumerate(string):
-            glyph = _FONT.get(char, _FONT[" "])
+            glyph = _FONT.get(char, _FONT.get(char.lower(), _FONT[" "]))
             for row, bits in enumerate(glyph):
                 for col in range(3):
                     if bits & (4 >> col):
@@ -101,9 +116,28 @@ def _label(value, step):
     return f"{value:.{decimals}f}"
 
 
+def vehicle_colors(count):
+    """The RGB colours of `count` vehicles' lines, in order."""
+    return [VEHICLE_COLORS[i % len(VEHICLE_COLORS)][0] for i in range(count)]
+
+
+def color_name(color):
+    return next((name for c, name in VEHICLE_COLORS if c == color), str(color))
+
+
 def plot_trajectory(path, flown, planned=(), size=640, margin=56):
-    """Writes the x-y plot (world ENU, x to the right, y up, equal scales)."""
-    points = list(flown) + list(planned)
+    """Writes the x-y plot of one vehicle (world ENU, x to the right, y up,
+    equal scales)."""
+    plot_trajectories(path, [flown], [planned], size=size, margin=margin)
+
+
+def plot_trajectories(path, flown_lines, planned_lines=(), labels=None, size=640, margin=56):
+    """Writes the x-y plot of several vehicles: each of `flown_lines` in its
+    colour (vehicle_colors), each of `planned_lines` grey and dashed; a
+    legend above the plot when `labels` (one per flown line) are given."""
+    flown_lines = [list(line) for line in flown_lines]
+    planned_lines = [list(line) for line in planned_lines]
+    points = [p for line in flown_lines + planned_lines for p in line]
     if not points:
         points = [(0.0, 0.0)]
     xs = [p[0] for p in points]
@@ -147,15 +181,26 @@ def plot_trajectory(path, flown, planned=(), size=640, margin=56):
     canvas.text(size // 2 - 20, size - margin + 28, "x (m)", AXIS)
     canvas.text(8, margin - 24, "y (m)", AXIS)
 
-    planned_px = [to_px(p) for p in planned]
-    for a, b in zip(planned_px, planned_px[1:]):
-        canvas.line(a[0], a[1], b[0], b[1], PLANNED, width=2, dash=6)
-    for p in planned_px:
-        canvas.dot(p[0], p[1], PLANNED, radius=4)
-    flown_px = [to_px(p) for p in flown]
-    for a, b in zip(flown_px, flown_px[1:]):
-        canvas.line(a[0], a[1], b[0], b[1], FLOWN, width=3)
-    if flown_px:
-        canvas.dot(flown_px[0][0], flown_px[0][1], START, radius=6)
-        canvas.dot(flown_px[-1][0], flown_px[-1][1], END, radius=4)
+    for planned in planned_lines:
+        planned_px = [to_px(p) for p in planned]
+        for a, b in zip(planned_px, planned_px[1:]):
+            canvas.line(a[0], a[1], b[0], b[1], PLANNED, width=2, dash=6)
+        for p in planned_px:
+            canvas.dot(p[0], p[1], PLANNED, radius=4)
+    colors = vehicle_colors(len(flown_lines))
+    for flown, color in zip(flown_lines, colors):
+        flown_px = [to_px(p) for p in flown]
+        for a, b in zip(flown_px, flown_px[1:]):
+            canvas.line(a[0], a[1], b[0], b[1], color, width=3)
+    for flown in flown_lines:  # over every line
+        flown_px = [to_px(p) for p in flown]
+        if flown_px:
+            canvas.dot(flown_px[0][0], flown_px[0][1], START, radius=6)
+            canvas.dot(flown_px[-1][0], flown_px[-1][1], END, radius=4)
+    if labels:
+        x = margin + 60
+        for label, color in zip(labels, colors):
+            canvas.line(x, margin - 19, x + 24, margin - 19, color, width=3)
+            canvas.text(x + 30, margin - 24, label, AXIS)
+            x += 30 + len(label) * 8 + 24
     canvas.save(path)

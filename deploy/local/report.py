@@ -1,11 +1,16 @@
 """The mission report: report.json (everything), report.md (for people) and
 trajectory.png, written into the run directory.
 
-report.json holds: the launch settings, the mission's final status, the
-timeline of behavior activations and terminations (the coordinator's event
-stream), per behavior the paper's columns a, t1, t2, t3 (from each behavior
-system's /metrics), memory and CPU per process (/proc), the trajectory's
-summary and the planned path.
+report.json holds: the launch settings, per robot (`robots`, by robot id, in
+launch order) its mission's final status, the timeline of its behavior
+activations and terminations (the coordinator's event stream), its
+trajectory's summary and planned path, and what its application behaviors
+left in belief memory (QR markers found, the other robots' positions, the
+saved map and the fraction of the world's free space it covers); per
+behavior the paper's columns a, t1, t2, t3 (from each behavior system's
+/metrics, labelled with the robot); memory and CPU per process (/proc). The
+first robot's mission, timeline and trajectory are also at the top level
+(`mission`, `timeline`, `trajectory`), as in a single-robot report.
 """
 
 import json
@@ -16,11 +21,10 @@ import plot
 from demo import duration_s, short_cause, timestamp_s
 
 
-def _timeline(behavior_events):
+def _timeline(behavior_events, t0=None):
     """Activations, terminations, pauses of the behavior events, with
-    simulated time relative to the first one."""
+    simulated time relative to `t0` (default: the first event's)."""
     rows = []
-    t0 = None
     for e in behavior_events:
         kind = next((k for k in ("activated", "finished", "paused", "resumed", "modified",
                                  "situation_changed") if k in e), None)
@@ -43,22 +47,48 @@ def _timeline(behavior_events):
     return rows
 
 
+def _first_event_time(behavior_events):
+    for e in behavior_events:
+        t = timestamp_s(e.get("time"))
+        if t is not None:
+            return t
+    return None
+
+
+def _follow_path(record, timeline, samples):
+    """The waypoints of a FOLLOW_PATH step record, from where the vehicle
+    was when it was activated."""
+    points = [(p.get("x", 0.0), p.get("y", 0.0), p.get("z", 0.0))
+              for p in record.get("parameters", {}).get("path_m", [])]
+    activation = record.get("activation_id", "")
+    start = next((r["sim_time_s"] for r in timeline
+                  if r["activation_id"] == activation and r["event"] == "activated"), None)
+    if start is not None and samples:
+        first = min(samples, key=lambda s: abs(s[0] - start))
+        points.insert(0, (first[1], first[2], first[3]))
+    return points
+
+
 def _planned_path(mission, timeline, samples):
-    """The FOLLOW_PATH waypoints of the mission (from where the vehicle was
+    """The first FOLLOW_PATH step's waypoints (from where the vehicle was
     when the path was activated), and that activation's id."""
     for record in mission.get("steps", []):
-        if record.get("behavior") != "FOLLOW_PATH":
-            continue
-        points = [(p.get("x", 0.0), p.get("y", 0.0), p.get("z", 0.0))
-                  for p in record.get("parameters", {}).get("path_m", [])]
-        activation = record.get("activation_id", "")
-        start = next((r["sim_time_s"] for r in timeline
-                      if r["activation_id"] == activation and r["event"] == "activated"), None)
-        if start is not None and samples:
-            first = min(samples, key=lambda s: abs(s[0] - start))
-            points.insert(0, (first[1], first[2], first[3]))
-        return points, activation
+        if record.get("behavior") == "FOLLOW_PATH":
+            return _follow_path(record, timeline, samples), record.get("activation_id", "")
     return [], ""
+
+
+def _planned_legs(mission, timeline, samples):
+    """Every FOLLOW_PATH step's waypoints (the first attempt of each step),
+    for the plot."""
+    legs, seen = [], set()
+    for record in mission.get("steps", []):
+        name = record.get("name", "")
+        if record.get("behavior") != "FOLLOW_PATH" or name in seen:
+            continue
+        seen.add(name)
+        legs.append(_follow_path(record, timeline, samples))
+    return legs
 
 
 def _cross_track(samples, path, timeline, activation):
@@ -86,20 +116,49 @@ def _cross_track(samples, path, timeline, activation):
             "max_m": max(errors), "samples": len(errors)}
 
 
+def _position_at(samples, t):
+    """The ground-truth position nearest in time to `t`, and how far in
+    time it is; None without samples."""
+    if not samples or t is None:
+        return None
+    s = min(samples, key=lambda s: abs(s[0] - t))
+    return [s[1], s[2], s[3]], abs(s[0] - t)
+
+
+def _track_summary(track, samples):
+    """Every position of another robot recorded in belief memory, against
+    that robot's ground truth at each one's stamp."""
+    stamps = [p[0] for p in track if p[0] is not None]
+    errors = []
+    for stamp, x, y, z in track:
+        truth = _position_at(samples, stamp)
+        if truth is not None:
+            errors.append(math.dist(truth[0], (x, y, z)))
+    return {"updates": len(track), "first_stamp_s": min(stamps, default=None),
+            "last_stamp_s": max(stamps, default=None),
+            "max_altitude_m": max((p[3] for p in track), default=None),
+            "max_error_m": max(errors, default=None),
+            "rms_error_m": math.sqrt(sum(e * e for e in errors) / len(errors)) if errors
+            else None}
+
+
 def _fmt(value, digits):
     return "-" if value is None else f"{value:.{digits}f}"
 
 
-def write(run_dir, settings, mission, behavior_events, behaviors, processes, samples, clean_exit):
-    """Writes report.json, report.md and trajectory.png; returns the report
-    dict."""
-    timeline = _timeline(behavior_events)
+def _xyz(p):
+    return "-" if p is None else f"({p[0]:.2f}, {p[1]:.2f}, {p[2]:.2f})"
+
+
+def _state(mission):
+    return mission.get("state", "MISSION_STATE_UNSPECIFIED").replace("MISSION_STATE_", "")
+
+
+def _trajectory(samples, mission, timeline):
     planned, follow_activation = _planned_path(mission, timeline, samples)
-    png = os.path.join(run_dir, "trajectory.png")
-    plot.plot_trajectory(png, [(s[1], s[2]) for s in samples], [(p[0], p[1]) for p in planned])
     distance = sum(math.dist(a[1:4], b[1:4]) for a, b in zip(samples, samples[1:]))
-    trajectory = {
-        "png": os.path.basename(png),
+    return {
+        "png": "trajectory.png",
         "samples": len(samples),
         "sim_duration_s": samples[-1][0] - samples[0][0] if samples else 0.0,
         "distance_flown_m": distance,
@@ -107,73 +166,288 @@ def write(run_dir, settings, mission, behavior_events, behaviors, processes, sam
         "planned_path_m": [list(p) for p in planned],
         "follow_path_cross_track": _cross_track(samples, planned, timeline, follow_activation),
     }
-    used = [b for b in behaviors if b.get("a")]
-    report = {"settings": settings, "mission": mission, "timeline": timeline,
-              "behaviors": used, "processes": processes, "trajectory": trajectory,
-              "clean_shutdown": clean_exit}
-    with open(os.path.join(run_dir, "report.json"), "w") as f:
-        json.dump(report, f, indent=2)
-        f.write("\n")
 
-    state = mission.get("state", "MISSION_STATE_UNSPECIFIED").replace("MISSION_STATE_", "")
-    lines = [f"# Mission report: {mission.get('name', '?')} ({state})", ""]
-    lines.append(f"- mission file: `{settings.get('mission', '')}`, robot "
-                 f"`{mission.get('robot_id', '')}`, id `{mission.get('mission_id', '')}`")
-    lines.append(f"- simulator time scale {settings.get('time_scale')}x, world "
-                 f"`{settings.get('world') or 'empty field'}`, seed {settings.get('seed')}")
-    lines.append(f"- wall time {settings.get('wall_s', 0):.1f} s; every process shut down "
-                 f"{'cleanly' if clean_exit else 'NOT cleanly (see processes)'}")
-    if mission.get("message"):
-        lines.append(f"- {mission['message']}")
-    if settings.get("interrupted"):
-        lines.append(f"- the launcher was stopped by {settings['interrupted']} before the "
-                     f"mission ended")
-    lines += ["", "## Mission steps", "", "| step | behavior | attempt | state | cause | message |",
-              "|---|---|---|---|---|---|"]
+
+def _findings(robot, findings, world_markers, samples_by_robot):
+    """The robot's belief-memory findings, with the markers compared with
+    the world file's and the other robots' positions with their ground
+    truth at the belief's stamp."""
+    out = {}
+    if "markers" in findings:
+        markers = []
+        for m in findings["markers"]:
+            row = dict(m)
+            truth = world_markers.get(m.get("text"))
+            if truth is not None:
+                row["world_center_m"] = truth
+                row["error_m"] = (math.dist(truth, m["position_m"])
+                                  if m.get("position_m") else None)
+            markers.append(row)
+        out["markers"] = markers
+        out["marker_count"] = findings.get("marker_count", len(markers))
+        if world_markers:
+            found = {m.get("text") for m in markers}
+            out["world_markers_not_found"] = sorted(t for t in world_markers if t not in found)
+    if "swarm" in findings:
+        swarm = json.loads(json.dumps(findings["swarm"]))  # a copy
+        tracks = findings.get("swarm_tracks", {})
+        for other, position in swarm.get("positions", {}).items():
+            truth = _position_at(samples_by_robot.get(other), position.get("stamp_s"))
+            if truth is not None and position.get("position_m"):
+                position["ground_truth_m"] = truth[0]
+                position["ground_truth_dt_s"] = truth[1]
+                position["error_m"] = math.dist(truth[0], position["position_m"])
+            if tracks.get(other):
+                position["track"] = _track_summary(tracks[other], samples_by_robot.get(other))
+        out["swarm"] = swarm
+    if "map_file" in findings:
+        out["map_file"] = findings["map_file"]
+    if "map_coverage" in findings:
+        out["map_coverage"] = findings["map_coverage"]
+    return out
+
+
+# --- markdown ------------------------------------------------------------------
+
+def _steps_md(mission, h):
+    lines = ["", f"{h} Mission steps", "",
+             "| step | behavior | attempt | state | cause | message |", "|---|---|---|---|---|---|"]
     for r in mission.get("steps", []):
         lines.append(f"| {r.get('name', '')} | {r.get('behavior', '')} | {r.get('attempt', 1)} | "
                      f"{r.get('state', '').replace('MISSION_STEP_STATE_', '')} | "
                      f"{short_cause(r.get('cause'))} | {r.get('message', '')} |")
-    lines += ["", "## Timeline (the coordinator's event stream; simulated time)", "",
-              "| t (s) | behavior | system | event | cause | active (s) | message |",
-              "|---:|---|---|---|---|---:|---|"]
+    return lines
+
+
+def _timeline_md(timeline, h):
+    lines = ["", f"{h} Timeline (the coordinator's event stream; simulated time)", "",
+             "| t (s) | behavior | system | event | cause | active (s) | message |",
+             "|---:|---|---|---|---|---:|---|"]
     for r in timeline:
         lines.append(f"| {_fmt(r['t_s'], 2)} | {r['behavior']} | {r['system']} | {r['event']} | "
                      f"{r.get('cause', '')} | {_fmt(r.get('active_s'), 2)} | "
                      f"{r.get('message', '')} |")
-    lines += ["", "## Behaviors (the paper's columns, from each system's /metrics)", "",
-              "a: activations; t1: mean time of the four monitoring functions per tick; "
-              "t2: accumulated monitoring time; t3: mean time from Activate to the first "
-              "onExecute.", "",
-              "| behavior | system | a | t1 (us) | t2 (ms) | t3 (ms) | ticks | terminations |",
-              "|---|---|---:|---:|---:|---:|---:|---|"]
+    return lines
+
+
+def _behaviors_md(used, h):
+    lines = ["", f"{h} Behaviors (the paper's columns, from each system's /metrics)", "",
+             "a: activations; t1: mean time of the four monitoring functions per tick; "
+             "t2: accumulated monitoring time; t3: mean time from Activate to the first "
+             "onExecute.", "",
+             "| behavior | system | a | t1 (us) | t2 (ms) | t3 (ms) | ticks | terminations |",
+             "|---|---|---:|---:|---:|---:|---:|---|"]
     for b in used:
         causes = ", ".join(f"{c} {n}" for c, n in sorted(b["terminations"].items()))
         lines.append(f"| {b['behavior']} | {b['system']} | {b['a']} | {_fmt(b['t1_us'], 2)} | "
                      f"{_fmt(b['t2_ms'], 3)} | {_fmt(b['t3_ms'], 3)} | "
                      f"{b.get('monitoring_ticks', 0)} | {causes} |")
-    lines += ["", "## Processes (/proc at the end of the mission)", "",
-              "| process | pid | RSS (MiB) | peak RSS (MiB) | CPU user (s) | CPU system (s) | "
-              "threads | exit code |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    return lines
+
+
+def _processes_md(processes, h):
+    lines = ["", f"{h} Processes (/proc at the end of the mission)", "",
+             "| process | pid | RSS (MiB) | peak RSS (MiB) | CPU user (s) | CPU system (s) | "
+             "threads | exit code |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for p in processes:
         def mib(key):
             return _fmt(p[key] / 1024, 1) if key in p else "-"
         lines.append(f"| {p['name']} | {p['pid']} | {mib('rss_kib')} | {mib('peak_rss_kib')} | "
                      f"{_fmt(p.get('cpu_user_s'), 2)} | {_fmt(p.get('cpu_system_s'), 2)} | "
                      f"{p.get('threads', '-')} | {p.get('exit_code', '-')} |")
-    lines += ["", "## Trajectory (simulator ground truth)", "",
-              f"![x-y trajectory]({trajectory['png']})", "",
-              "Blue: flown (green dot: start, red: end); grey dashed: the planned path. World "
-              "frame ENU, metres.", "",
-              f"- {trajectory['samples']} samples over {trajectory['sim_duration_s']:.1f} s of "
-              f"simulated time; {distance:.1f} m flown; highest altitude "
-              f"{trajectory['max_altitude_m']:.2f} m"]
+    return lines
+
+
+def _trajectory_bullets(trajectory):
+    lines = [f"- {trajectory['samples']} samples over {trajectory['sim_duration_s']:.1f} s of "
+             f"simulated time; {trajectory['distance_flown_m']:.1f} m flown; highest altitude "
+             f"{trajectory['max_altitude_m']:.2f} m"]
     ct = trajectory["follow_path_cross_track"]
     if ct:
         lines.append(f"- FOLLOW_PATH horizontal cross-track error: RMS {ct['rms_m']:.3f} m, "
                      f"max {ct['max_m']:.3f} m ({ct['samples']} samples)")
-    lines += ["", "Logs of every process: `logs/`; Prometheus targets: "
+    return lines
+
+
+def _findings_md(robot, found, h):
+    """The sections of what the application behaviors left in belief
+    memory; none when they left nothing."""
+    lines = []
+    if "markers" in found:
+        lines += ["", f"{h} QR markers found (belief memory `{robot}/markers`)", ""]
+        if found["markers"]:
+            lines += ["| text | position (m) | sightings | side (m) | world file's centre (m) | "
+                      "distance (m) |", "|---|---|---:|---:|---|---:|"]
+            for m in found["markers"]:
+                lines.append(f"| {m.get('text', '')} | {_xyz(m.get('position_m'))} | "
+                             f"{m.get('sightings', '-')} | {_fmt(m.get('marker_size_m'), 2)} | "
+                             f"{_xyz(m.get('world_center_m'))} | {_fmt(m.get('error_m'), 3)} |")
+        else:
+            lines.append("No marker found.")
+        missing = found.get("world_markers_not_found")
+        if missing:
+            lines += ["", "Markers of the world file not found: "
+                      + ", ".join(f"`{t}`" for t in missing) + "."]
+    if "swarm" in found:
+        swarm = found["swarm"]
+        lines += ["", f"{h} Swarm (belief memory `{robot}/swarm/`)", ""]
+        positions = swarm.get("positions", {})
+        if positions:
+            lines += ["| other robot | believed position (m) | stamp (s, sim) | ground truth then "
+                      "(m) | distance (m) |", "|---|---|---:|---|---:|"]
+            for other, p in sorted(positions.items()):
+                lines.append(f"| {other} | {_xyz(p.get('position_m'))} | "
+                             f"{_fmt(p.get('stamp_s'), 2)} | {_xyz(p.get('ground_truth_m'))} | "
+                             f"{_fmt(p.get('error_m'), 3)} |")
+            for other, p in sorted(positions.items()):
+                t = p.get("track")
+                if t:
+                    lines.append("")
+                    lines.append(f"- {other}: {t['updates']} positions written from t = "
+                                 f"{_fmt(t['first_stamp_s'], 1)} s to "
+                                 f"{_fmt(t['last_stamp_s'], 1)} s (highest "
+                                 f"{_fmt(t['max_altitude_m'], 2)} m); distance to {other}'s "
+                                 f"ground truth at their stamps: RMS {_fmt(t['rms_error_m'], 3)} "
+                                 f"m, max {_fmt(t['max_error_m'], 3)} m")
+        else:
+            lines.append("No other robot's position.")
+        lines += ["", f"- messages received: {swarm.get('message_count', 0)}; malformed samples "
+                  f"skipped: {swarm.get('malformed_count', 0)}"]
+        for m in swarm.get("messages", []):
+            lines.append(f"- message {m.get('n')} from `{m.get('from', '')}`: "
+                         f"{m.get('text', '')} {json.dumps(m.get('payload'))}")
+    if "map_file" in found or "map_coverage" in found:
+        lines += ["", f"{h} Map (belief memory `{robot}/map_file`)", "",
+                  f"- map file: `{found.get('map_file', '-')}`"]
+        coverage = found.get("map_coverage") or {}
+        if "mapped_fraction" in coverage:
+            lines.append(f"- Mapped fraction of the building's free space: "
+                         f"{coverage['mapped_fraction'] * 100:.0f} %")
+            lines.append(f"- free cells of the world: {coverage.get('free_cells', '-')}; known "
+                         f"free in the map: {coverage.get('known_free_cells', '-')} "
+                         f"(`map_coverage`)")
+        else:
+            lines.append(f"- mapped fraction not measured: "
+                         f"{coverage.get('error', 'no measurement')}")
+    return lines
+
+
+def _robot_json(r, world_markers, samples_by_robot):
+    mission = r.get("mission") or {}
+    timeline = r["timeline"]
+    entry = {"robot_id": r["robot_id"], "mission_file": r.get("mission_file", ""),
+             "mission": mission, "timeline": timeline,
+             "trajectory": _trajectory(r.get("samples", []), mission, timeline)}
+    entry.update(_findings(r["robot_id"], r.get("findings", {}), world_markers,
+                           samples_by_robot))
+    return entry
+
+
+def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_markers=None):
+    """Writes report.json, report.md and trajectory.png; returns the report
+    dict.
+
+    robots: one dict per robot, in launch order: robot_id, mission_file
+    (relative path, or "" without a mission), mission (its final
+    MissionStatus dict, or {}), behavior_events, samples (ground truth:
+    (t_sim_s, x, y, z, flight_state)), findings (demo.robot_findings, plus
+    map_coverage). world_markers: marker text -> centre [x, y, z] from the
+    world file, to compare the markers found with."""
+    world_markers = world_markers or {}
+    several = len(robots) > 1
+    # One time origin for every robot's timeline: the first event of all.
+    t0 = min((t for t in (_first_event_time(r["behavior_events"]) for r in robots)
+              if t is not None), default=None) if several else None
+    for r in robots:
+        r["timeline"] = _timeline(r["behavior_events"], t0)
+    samples_by_robot = {r["robot_id"]: r.get("samples", []) for r in robots}
+    entries = {r["robot_id"]: _robot_json(r, world_markers, samples_by_robot) for r in robots}
+    first = entries[robots[0]["robot_id"]]
+
+    png = os.path.join(run_dir, "trajectory.png")
+    lines_xy = [[(s[1], s[2]) for s in r.get("samples", [])] for r in robots]
+    planned_xy = []
+    for r in robots:
+        for leg in _planned_legs(r.get("mission") or {}, r["timeline"], r.get("samples", [])):
+            planned_xy.append([(p[0], p[1]) for p in leg])
+    colors = plot.vehicle_colors(len(robots))
+    plot.plot_trajectories(png, lines_xy, planned_xy,
+                           labels=[r["robot_id"] for r in robots] if several else None)
+
+    used = [b for b in behaviors if b.get("a")]
+    report = {"settings": settings, "mission": first["mission"], "timeline": first["timeline"],
+              "behaviors": used, "processes": processes, "trajectory": first["trajectory"],
+              "robots": entries, "clean_shutdown": clean_exit}
+    with open(os.path.join(run_dir, "report.json"), "w") as f:
+        json.dump(report, f, indent=2)
+        f.write("\n")
+
+    shutdown = (f"- wall time {settings.get('wall_s', 0):.1f} s; every process shut down "
+                f"{'cleanly' if clean_exit else 'NOT cleanly (see processes)'}")
+    world = (f"- simulator time scale {settings.get('time_scale')}x, world "
+             f"`{settings.get('world') or 'empty field'}`, seed {settings.get('seed')}")
+    if settings.get("sensor_config"):
+        world += f", sensor config `{settings['sensor_config']}`"
+    interrupted = ([f"- the launcher was stopped by {settings['interrupted']} before the "
+                    f"mission ended"] if settings.get("interrupted") else [])
+    image = ["", f"![x-y trajectory]({first['trajectory']['png']})", ""]
+    footer = ["", "Logs of every process: `logs/`; Prometheus targets: "
               "`prometheus_targets.json`.", ""]
+
+    if not several:
+        r, entry = robots[0], first
+        mission = entry["mission"]
+        lines = [f"# Mission report: {mission.get('name', '?')} ({_state(mission)})", ""]
+        lines.append(f"- mission file: `{settings.get('mission', '')}`, robot "
+                     f"`{mission.get('robot_id', '')}`, id `{mission.get('mission_id', '')}`")
+        lines += [world, shutdown]
+        if mission.get("message"):
+            lines.append(f"- {mission['message']}")
+        lines += interrupted
+        lines += _steps_md(mission, "##")
+        lines += _timeline_md(entry["timeline"], "##")
+        lines += _behaviors_md(used, "##")
+        lines += _processes_md(processes, "##")
+        lines += ["", "## Trajectory (simulator ground truth)"] + image
+        lines += ["Blue: flown (green dot: start, red: end); grey dashed: the planned path. "
+                  "World frame ENU, metres.", ""]
+        lines += _trajectory_bullets(entry["trajectory"])
+        lines += _findings_md(r["robot_id"], entry, "##")
+    else:
+        title = ", ".join(
+            f"{r['robot_id']} {(r.get('mission') or {}).get('name', '(no mission)')}"
+            + (f" ({_state(r['mission'])})" if r.get("mission") else "") for r in robots)
+        lines = [f"# Mission report: {title}", ""]
+        lines.append("- robots " + ", ".join(f"`{r['robot_id']}`" for r in robots)
+                     + "; mission files: "
+                     + ", ".join(f"{r['robot_id']} `{r.get('mission_file') or '-'}`"
+                                 for r in robots))
+        lines += [world, shutdown] + interrupted
+        for r in robots:
+            entry = entries[r["robot_id"]]
+            mission = entry["mission"]
+            if mission:
+                lines += ["", f"## {r['robot_id']}: {mission.get('name', '?')} "
+                          f"({_state(mission)})", "",
+                          f"- mission file: `{entry['mission_file']}`, id "
+                          f"`{mission.get('mission_id', '')}`"]
+                if mission.get("message"):
+                    lines.append(f"- {mission['message']}")
+                lines += _steps_md(mission, "###")
+            else:
+                lines += ["", f"## {r['robot_id']}: no mission"]
+            lines += _timeline_md(entry["timeline"], "###")
+            lines += _behaviors_md([b for b in used if b.get("robot") == r["robot_id"]], "###")
+            lines += ["", "### Trajectory (simulator ground truth)", ""]
+            lines += _trajectory_bullets(entry["trajectory"])
+            lines += _findings_md(r["robot_id"], entry, "###")
+        lines += _processes_md(processes, "##")
+        lines += ["", "## Trajectories (simulator ground truth)"] + image
+        legend = ", ".join(f"{r['robot_id']} {plot.color_name(c)}"
+                           for r, c in zip(robots, colors))
+        lines += [f"Flown: {legend} (green dot: start, red: end); grey dashed: the planned "
+                  f"paths. World frame ENU, metres.", ""]
+    lines += footer
     with open(os.path.join(run_dir, "report.md"), "w") as f:
         f.write("\n".join(lines))
     return report

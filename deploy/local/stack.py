@@ -26,10 +26,13 @@ class Process:
     """One server process started with --port-file; its output goes to
     <run-dir>/logs/<name>.log."""
 
-    def __init__(self, name, argv, run_dir, role, robot_id=""):
+    def __init__(self, name, argv, run_dir, role, robot_id="", system=""):
         self.name = name
         self.role = role  # Prometheus job: channel_broker, simulator, coordinator, behavior_system
         self.robot_id = robot_id
+        # The system's own name (a behavior system's binary), which the
+        # process name extends with the robot when several robots run.
+        self.system = system or name
         self.port_file = os.path.join(run_dir, "ports", name + ".ports")
         self.log_path = os.path.join(run_dir, "logs", name + ".log")
         self.argv = list(argv) + ["--port-file", self.port_file]
@@ -164,13 +167,13 @@ class Stack:
 
     def write_prometheus_targets(self):
         """Prometheus file-based service discovery: one target per metrics
-        port, labelled job (the process's role), system and robot. Returns
-        the file's path."""
+        port, labelled job (the process's role), system (the process name
+        without its robot suffix) and robot. Returns the file's path."""
         targets = []
         for p in self.processes:
             if not p.metrics_port:
                 continue
-            labels = {"job": p.role, "system": p.name}
+            labels = {"job": p.role, "system": p.system}
             if p.robot_id:
                 labels["robot"] = p.robot_id
             targets.append({"targets": [p.metrics_address], "labels": labels})

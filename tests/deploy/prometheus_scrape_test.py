@@ -40,9 +40,9 @@ import rpc  # noqa: E402
 
 BUILD_DIR = ds.DEFAULT_BUILD_DIR
 ROBOT = "drone1"
-# As tests/e2e/local_demo_test.py: at 3x the stack leaves room for another
+# As tests/e2e/local_demo_test.py: at 2x the stack leaves room for another
 # test on two cores.
-TIME_SCALE = "3"
+TIME_SCALE = "2"
 MISSION = os.path.join(ds.REPO, "deploy", "missions", "demo.yaml")
 MISSION_TIMEOUT_S = 40.0
 FLOWN = ("TAKE_OFF", "FOLLOW_PATH", "ROTATE_WITH_PID_CONTROL", "LAND")

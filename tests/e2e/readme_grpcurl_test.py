@@ -5,7 +5,7 @@
 Reads the two fenced blocks of the README's "Manual control with grpcurl"
 section (each announced by a `<!-- readme_grpcurl_test: ... -->` comment):
 the set-up block, whose launcher line starts the stack (here with a temporary
-run directory and --time-scale 3) and whose COORDINATOR=/BASIC= lines are run
+run directory and --time-scale 2) and whose COORDINATOR=/BASIC= lines are run
 by bash to find the addresses; and the session block, whose grpcurl commands
 are run one by one, in order, by bash, with `grpcurl` on the PATH being this
 file's grpcurl-compatible runner. Each command must exit as grpcurl would
@@ -47,9 +47,9 @@ REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), 
 README = os.path.join(REPO, "README.md")
 LAUNCHER = os.path.join(REPO, "deploy", "local", "launch.py")
 BUILD_DIR = os.environ.get("BEHAVIORLIB_BUILD_DIR", os.path.join(REPO, "build"))
-# As local_demo_test.py: at 3x the stack leaves room for the other test ctest
+# As local_demo_test.py: at 2x the stack leaves room for the other test ctest
 # may run next to this one.
-TIME_SCALE = "3"
+TIME_SCALE = "2"
 MARKER = "<!-- readme_grpcurl_test: {} -->"
 
 sys.path.insert(0, os.path.join(REPO, "tests", "integration"))
@@ -773,7 +773,7 @@ class ReadmeGrpcurlTest(unittest.TestCase):
 
     def _start_stack(self, setup):
         """The README's launcher line, with this build, a temporary run
-        directory and --time-scale 3; waits until it serves."""
+        directory and --time-scale 2; waits until it serves."""
         lines = [line for line in setup if "deploy/local/launch.py" in line]
         self.assertEqual(len(lines), 1, "one launcher line in the set-up block")
         words = shlex.split(lines[0], comments=True)

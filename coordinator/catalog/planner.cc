@@ -254,13 +254,18 @@ absl::StatusOr<PlanResult> applyPlan(const Plan& plan, PlanActions& actions,
     const PlanStep& step = plan.steps[i];
     switch (step.kind) {
       case StepKind::kDeactivate:
-        if (absl::Status s = actions.deactivate(step.behavior); !s.ok()) return fail(i, s);
-        result.deactivated.push_back(step.behavior);
+        if (absl::Status s = actions.deactivate(step.behavior); !s.ok()) {
+          // FAILED_PRECONDITION: it is not active. It finished on its own
+          // between the plan and this step (the plan reads streamed state;
+          // a safety action may have just stopped it): nothing to stop.
+          if (s.code() != absl::StatusCode::kFailedPrecondition) return fail(i, s);
+        } else {
+          result.deactivated.push_back(step.behavior);
+        }
         break;
       case StepKind::kCheckSituation: {
         absl::Status s = actions.checkSituation(step.behavior);
-        const auto window =
-            result.activated.empty() ? options.lag_timeout : options.settle_timeout;
+        const auto window = result.activated.empty() ? options.lag_timeout : options.settle_timeout;
         if (!s.ok() && options.settle_poll.count() > 0) {
           for (auto waited = std::chrono::milliseconds(0); !s.ok() && waited < window;
                waited += options.settle_poll) {

@@ -213,7 +213,11 @@ TEST_F(SwarmInteractionTest, EachVehicleLearnsTheOthersPositionAndMessagesReachT
   EXPECT_EQ(field(received->value(), "from").string_value(), kDrone1);
   EXPECT_EQ(field(received->value(), "text").string_value(), "hello drone2");
   EXPECT_EQ(number(field(received->value(), "payload"), "room"), 3.0);
-  EXPECT_EQ(read(std::string(kDrone2) + "/swarm/message_count")->value().number_value(), 1.0);
+  // The count is written after the message.
+  EXPECT_TRUE(FlightStack::waitFor([&] {
+    auto count = read(std::string(kDrone2) + "/swarm/message_count");
+    return count && count->value().number_value() == 1.0;
+  })) << "drone2's swarm/message_count is not 1";
   EXPECT_FALSE(read(std::string(kDrone1) + "/swarm/messages/1"))
       << "drone1 recorded a message not for it";
 

@@ -146,7 +146,7 @@ TEST(Planner, RefusesWithReasons) {
 class FakeActions : public PlanActions {
  public:
   std::vector<std::string> calls;
-  std::map<std::string, absl::Status> activate_fails, situation_fails;
+  std::map<std::string, absl::Status> activate_fails, situation_fails, deactivate_fails;
   int situation_failures_left = 0;  // for the behavior in situation_fails, then OK
 
   absl::Status checkSituation(const std::string& b) override {
@@ -164,6 +164,7 @@ class FakeActions : public PlanActions {
   }
   absl::Status deactivate(const std::string& b) override {
     calls.push_back("deactivate " + b);
+    if (auto it = deactivate_fails.find(b); it != deactivate_fails.end()) return it->second;
     return absl::OkStatus();
   }
 };
@@ -204,6 +205,25 @@ TEST(ApplyPlan, AFailingStepStopsWhatThePlanStartedAndNamesTheStep) {
                           "activate QUADROTOR_PID_MOTION_CONTROL", "check_situation FOLLOW_PATH",
                           "activate FOLLOW_PATH", "deactivate QUADROTOR_PID_MOTION_CONTROL",
                           "deactivate SELF_LOCALIZE_WITH_GROUND_TRUTH"));
+}
+
+TEST(ApplyPlan, AConflictThatAlreadyFinishedIsNotAFailureButAnUnreachableSystemIs) {
+  auto plan = makePlan(shipped(), request("FOLLOW_PATH", {"ROTATE_WITH_PID_CONTROL"}));
+  ASSERT_TRUE(plan.ok());
+  FakeActions actions;
+  actions.deactivate_fails["ROTATE_WITH_PID_CONTROL"] =
+      absl::FailedPreconditionError("cannot deactivate ROTATE_WITH_PID_CONTROL: it is not active");
+  auto result = applyPlan(*plan, actions, instant());
+  ASSERT_TRUE(result.ok()) << result.status();
+  EXPECT_TRUE(result->deactivated.empty());
+  EXPECT_EQ(result->activation_id, "id-FOLLOW_PATH");
+
+  FakeActions down;
+  down.deactivate_fails["ROTATE_WITH_PID_CONTROL"] = absl::UnavailableError("system is down");
+  auto failed = applyPlan(*plan, down, instant());
+  EXPECT_EQ(failed.status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_THAT(std::string(failed.status().message()),
+              HasSubstr("(deactivate ROTATE_WITH_PID_CONTROL)"));
 }
 
 TEST(ApplyPlan, ASituationThatDependsOnAJustStartedRequirementIsRetried) {

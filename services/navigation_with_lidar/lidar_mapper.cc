@@ -202,8 +202,11 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
   std::lock_guard lock(map_mutex_);
   map_.insertScan(origin, hits, misses);
   // Extrude each new column: one zero-length ray per voxel (occupied, and
-  // nothing else cleared).
+  // nothing else cleared). A hit above the planning altitudes is a door's
+  // lintel (or a ceiling) seen by a tilted vehicle, not a wall: it stays a
+  // voxel, or it would close the door below it.
   for (const Eigen::Vector3d& h : hits) {
+    if (h.z() > settings_.planning_max_z_m) continue;
     const auto cx = static_cast<int64_t>(std::floor(h.x() / res));
     const auto cy = static_cast<int64_t>(std::floor(h.y() / res));
     const uint64_t key =

@@ -103,18 +103,9 @@ class SystemClient {
   /// simulated time yet.
   grpc::Status activate(const std::string& behavior, const std::string& json,
                         v1::ActivateResponse* response) {
-    v1::ActivateBehaviorRequest request;
-    request.set_behavior(behavior);
-    EXPECT_TRUE(
-        google::protobuf::util::JsonStringToMessage(json, request.mutable_parameters()).ok())
-        << json;
-    grpc::Status status;
-    for (int attempt = 0; attempt < 100; ++attempt) {
-      status = stub_->ActivateBehavior(deadline().get(), request, response);
-      if (status.ok() || status.error_message().find("no time yet") == std::string::npos) break;
-      std::this_thread::sleep_for(milliseconds(20));
-    }
-    return status;
+    google::protobuf::Struct parameters;
+    EXPECT_TRUE(google::protobuf::util::JsonStringToMessage(json, &parameters).ok()) << json;
+    return activate(behavior, parameters, response);
   }
   /// Activates with parameters built in code (a Struct can carry what JSON
   /// cannot, e.g. NaN); retried while the system has no simulated time yet.

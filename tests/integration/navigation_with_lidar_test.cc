@@ -253,31 +253,23 @@ TEST_F(NavigationWithLidarTest, GoalsOutsideTheMapOrInAWallAreRefused) {
 }
 
 TEST_F(NavigationWithLidarTest, BoundsClipThePlanningVolumeAndBadBoundsAreRefused) {
-  v1::ActivateResponse response;
+  const auto expect_refused = [](const std::string& json, const std::string& reason) {
+    v1::ActivateResponse response;
+    const grpc::Status status =
+        nav_client_->activate("GENERATE_PATH_WITH_OCCUPANCY_GRID", json, &response);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(status);
+    EXPECT_NE(status.error_message().find(reason), std::string::npos) << status.error_message();
+  };
   // Room B's centre is in the map, but outside a box around room A only.
-  grpc::Status outside = nav_client_->activate(
-      "GENERATE_PATH_WITH_OCCUPANCY_GRID",
-      R"({"goal_m": {"x": 9, "y": 5, "z": 1}, "bounds_min_m": {"x": 0, "y": 0, "z": 0},
-          "bounds_max_m": {"x": 6, "y": 10, "z": 3}})",
-      &response);
-  EXPECT_EQ(outside.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(outside);
-  EXPECT_NE(outside.error_message().find("outside the map"), std::string::npos)
-      << outside.error_message();
-  grpc::Status one_corner = nav_client_->activate(
-      "GENERATE_PATH_WITH_OCCUPANCY_GRID",
+  expect_refused(R"({"goal_m": {"x": 9, "y": 5, "z": 1}, "bounds_min_m": {"x": 0, "y": 0, "z": 0},
+                     "bounds_max_m": {"x": 6, "y": 10, "z": 3}})",
+                 "outside the map");
+  expect_refused(
       R"({"goal_m": {"x": 3, "y": 5, "z": 1}, "bounds_min_m": {"x": 0, "y": 0, "z": 0}})",
-      &response);
-  EXPECT_EQ(one_corner.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(one_corner);
-  EXPECT_NE(one_corner.error_message().find("go together"), std::string::npos)
-      << one_corner.error_message();
-  grpc::Status inverted = nav_client_->activate(
-      "GENERATE_PATH_WITH_OCCUPANCY_GRID",
-      R"({"goal_m": {"x": 3, "y": 5, "z": 1}, "bounds_min_m": {"x": 18, "y": 0, "z": 0},
-          "bounds_max_m": {"x": 0, "y": 10, "z": 3}})",
-      &response);
-  EXPECT_EQ(inverted.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(inverted);
-  EXPECT_NE(inverted.error_message().find("bounds_min_m"), std::string::npos)
-      << inverted.error_message();
+      "go together");
+  expect_refused(R"({"goal_m": {"x": 3, "y": 5, "z": 1}, "bounds_min_m": {"x": 18, "y": 0, "z": 0},
+                     "bounds_max_m": {"x": 0, "y": 10, "z": 3}})",
+                 "must be below bounds_max_m");
   // Inside the box around the building, the plan from room A to room B
   // stays in the box.
   const auto finished =

@@ -30,9 +30,11 @@ namespace {
 
 constexpr char kBehavior[] = "PAY_ATTENTION_TO_QR_CODES";
 constexpr double kToleranceM = 0.3;
-// 4x rather than the motion tests' 5x: decoding a frame takes tens of
+// 3x rather than the motion tests' 5x: decoding a frame takes tens of
 // milliseconds of wall time, and the codes need min_sightings decoded frames.
-constexpr char kAttentionTimeScale[] = "4";
+// At 4x under ctest -j 2 the behavior dropped 16 of 22 frames at the tail
+// fin's viewpoint and missed that code.
+constexpr char kAttentionTimeScale[] = "3";
 
 std::string json(const google::protobuf::Message& m) {
   std::string out;

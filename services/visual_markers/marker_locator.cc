@@ -7,10 +7,11 @@
 #include <opencv2/objdetect.hpp>
 #include <opencv2/wechat_qrcode.hpp>
 
+#include "visual_markers/qr_finder.h"
+
 namespace behaviorlib::markers {
 
 struct MarkerLocator::Impl {
-  cv::QRCodeDetector detector;
   cv::wechat_qrcode::WeChatQRCode decoder;
 };
 
@@ -46,64 +47,38 @@ std::vector<std::pair<std::string, std::vector<cv::Point2f>>> MarkerLocator::dec
   } else {
     gray = image;
   }
-  // WeChatQRCode decodes fast (~1.5 ms a frame) but, without its CNN models,
-  // treats the whole image as one candidate: its corners are the image's,
-  // and with several codes in view it may decode none. cv::QRCodeDetector
-  // locates every code with the symbol's corners (top-left, top-right,
-  // bottom-right, bottom-left) but cannot decode on Debian (no quirc) and
-  // costs ~12 ms (detectMulti). So: locate every code; one code that WeChat
-  // decoded on the whole image is paired at once, otherwise each located
-  // code is decoded from a crop around it.
-  std::vector<std::string> texts;
-  try {
-    texts = impl_->decoder.detectAndDecode(gray);
-  } catch (const cv::Exception&) {
-    texts.clear();
-  }
-  texts.erase(std::remove(texts.begin(), texts.end(), std::string()), texts.end());
-
-  // OpenCV 4.6's locator is fragile on crisp synthetic edges and on lone
-  // codes: detectMulti on the image, then on a lightly blurred copy, then
-  // (a code was decoded but not located) detect() on both.
-  std::vector<cv::Point2f> corners;
-  cv::Mat blurred;
-  cv::GaussianBlur(gray, blurred, cv::Size(3, 3), 0);
-  auto locate = [&](bool multi) {
-    for (const cv::Mat* candidate : {&gray, &blurred}) {
-      try {
-        if (multi ? impl_->detector.detectMulti(*candidate, corners)
-                  : impl_->detector.detect(*candidate, corners)) {
-          return;
-        }
-      } catch (const cv::Exception&) {
-      }
-      corners.clear();
-    }
-  };
-  locate(/*multi=*/true);
-  if (corners.empty() && !texts.empty()) locate(/*multi=*/false);
-  if (corners.size() == 4 && texts.size() == 1) {
-    out.emplace_back(texts.front(), corners);
-    return out;
-  }
-  const cv::Rect whole(0, 0, gray.cols, gray.rows);
-  for (size_t i = 0; i + 3 < corners.size(); i += 4) {
-    std::vector<cv::Point2f> quad(corners.begin() + static_cast<long>(i),
-                                  corners.begin() + static_cast<long>(i) + 4);
-    cv::Rect region = cv::boundingRect(quad);
-    const int margin = std::max(region.width, region.height) / 4 + 4;
-    region = cv::Rect(region.x - margin, region.y - margin, region.width + 2 * margin,
-                      region.height + 2 * margin) &
-             whole;
-    if (region.area() <= 0) continue;
+  // Codes are located by their finder patterns (qr_finder.h); each is warped
+  // upright and decoded alone by WeChatQRCode. Without its CNN models (not
+  // packaged) WeChatQRCode treats its input as one candidate: given a whole
+  // frame it decodes at most one code and cannot say where it is; given a
+  // crop of the frame it tries scales and binarisers for ~20 ms. (Debian's
+  // OpenCV has no quirc, so cv::QRCodeDetector cannot decode.)
+  for (const QrQuad& quad : findQrSymbols(gray)) {
+    std::vector<cv::Point2f> corners(quad.corners.begin(), quad.corners.end());
+    // The symbol warped upright onto a white square of 4 px per module with
+    // its 4-module quiet zone: clean input whatever the view.
+    const float span_px =
+        static_cast<float>(cv::norm(corners[1] - corners[0]) + cv::norm(corners[3] - corners[0]));
+    const float modules =
+        quad.modules > 0
+            ? static_cast<float>(quad.modules)
+            : std::clamp(std::round(3.5f * span_px / quad.finder_side_px), 21.0f, 177.0f);
+    constexpr float kModulePx = 4.0f;
+    const float lo = 4 * kModulePx - 0.5f, hi = (4 + modules) * kModulePx - 0.5f;
+    const std::vector<cv::Point2f> upright = {{lo, lo}, {hi, lo}, {hi, hi}, {lo, hi}};
+    const int side = static_cast<int>((modules + 8) * kModulePx);
+    cv::Mat symbol;
+    cv::warpPerspective(gray, symbol, cv::getPerspectiveTransform(corners, upright),
+                        cv::Size(side, side), cv::INTER_LINEAR, cv::BORDER_CONSTANT,
+                        cv::Scalar(255));
     std::vector<std::string> found;
     try {
-      found = impl_->decoder.detectAndDecode(gray(region));
+      found = impl_->decoder.detectAndDecode(symbol);
     } catch (const cv::Exception&) {
       continue;
     }
     if (found.empty() || found.front().empty()) continue;
-    out.emplace_back(found.front(), std::move(quad));
+    out.emplace_back(found.front(), std::move(corners));
   }
   return out;
 }

@@ -3,7 +3,9 @@
 // system (--clock sim) on free loopback ports. The vehicle is flown through
 // the FlightController (take-off, then a circle of velocity setpoints); the
 // estimate published by SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION is compared
-// with the simulator's ground truth, stamp by stamp.
+// with the simulator's ground truth, stamp by stamp. Injected GPS faults
+// (garbage fixes, a silent receiver) and a dead simulator end the filter
+// through its monitoring.
 
 #include <google/protobuf/util/time_util.h>
 #include <grpcpp/grpcpp.h>
@@ -18,6 +20,7 @@
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
+#include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "support/server_process.h"
@@ -62,7 +65,7 @@ class SensorFusionSystemTest : public ::testing::Test {
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
         std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", "10", "--seed", "7"});
+                                 "--time-scale", "10", "--seed", "7", "--enable-fault-injection"});
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     system_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_MULTI_SENSOR_FUSION_PATH,
@@ -72,6 +75,8 @@ class SensorFusionSystemTest : public ::testing::Test {
     behaviors_ = v1::BehaviorSystem::NewStub(
         grpc::CreateChannel(system_->address(), grpc::InsecureChannelCredentials()));
     flight_ = v1::FlightController::NewStub(
+        grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials()));
+    sim_ = v1::Simulator::NewStub(
         grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials()));
     channel_ = std::make_unique<behaviorlib::channel::ChannelClient>(broker_.address());
   }
@@ -110,18 +115,30 @@ class SensorFusionSystemTest : public ::testing::Test {
     ASSERT_TRUE(hovering);
   }
 
-  // Activates the filter, retried while the system has no simulated time yet.
-  void activateFilter() {
+  // Activates the filter, retried while the system has no simulated time yet
+  // (or no sensor data after a fault was cleared); its activation id.
+  std::string activateFilter() {
     v1::ActivateBehaviorRequest request;
     request.set_behavior("SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION");
     grpc::Status status;
     for (int attempt = 0; attempt < 50; ++attempt) {
       v1::ActivateResponse response;
       status = behaviors_->ActivateBehavior(deadline().get(), request, &response);
-      if (status.ok()) return;
+      if (status.ok()) return response.activation_id();
       std::this_thread::sleep_for(milliseconds(100));
     }
-    FAIL() << status.error_message();
+    ADD_FAILURE() << status.error_message();
+    return "";
+  }
+
+  void inject(v1::FailureComponent component, v1::FailureType type) {
+    v1::InjectFailureRequest request;
+    request.set_robot_id(kRobot);
+    request.set_component(component);
+    request.set_type(type);
+    v1::InjectFailureResponse response;
+    const grpc::Status status = sim_->InjectFailure(deadline().get(), request, &response);
+    ASSERT_TRUE(status.ok()) << status.error_message();
   }
 
   void setVelocity(double vx, double vy) {
@@ -135,13 +152,16 @@ class SensorFusionSystemTest : public ::testing::Test {
     ASSERT_TRUE(flight_->SendSetpoint(deadline().get(), setpoint, &response).ok());
   }
 
-  std::optional<v1::BehaviorEvent> finishedEvent(milliseconds timeout) {
+  // The finished event of `activation_id` (any activation's when empty).
+  std::optional<v1::BehaviorEvent> finishedEvent(milliseconds timeout,
+                                                 const std::string& activation_id = "") {
     v1::WatchEventsRequest request;
     auto ctx = deadline(timeout);
     auto reader = behaviors_->WatchEvents(ctx.get(), request);
     v1::WatchEventsResponse message;
     while (reader->Read(&message)) {
-      if (message.has_event() && message.event().has_finished()) {
+      if (message.has_event() && message.event().has_finished() &&
+          (activation_id.empty() || message.event().activation_id() == activation_id)) {
         ctx->TryCancel();
         reader->Finish();
         return message.event();
@@ -154,6 +174,7 @@ class SensorFusionSystemTest : public ::testing::Test {
   std::unique_ptr<support::ServerProcess> simulator_, system_;
   std::unique_ptr<v1::BehaviorSystem::Stub> behaviors_;
   std::unique_ptr<v1::FlightController::Stub> flight_;
+  std::unique_ptr<v1::Simulator::Stub> sim_;
   std::unique_ptr<behaviorlib::channel::ChannelClient> channel_;
   std::unique_ptr<behaviorlib::channel::Subscription> truth_sub_, estimate_sub_;
   std::string lease_id_;
@@ -161,7 +182,7 @@ class SensorFusionSystemTest : public ::testing::Test {
 
 TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCentimetres) {
   ASSERT_NO_FATAL_FAILURE(takeOff());
-  ASSERT_NO_FATAL_FAILURE(activateFilter());
+  ASSERT_FALSE(activateFilter().empty());
   Track truth, estimate;
   const behaviorlib::channel::SubscribeOptions queued{.mode = v1::DELIVERY_MODE_QUEUE,
                                                       .queue_size = 5000};
@@ -216,8 +237,39 @@ TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCent
   EXPECT_LE(rmse, 0.15);
 }
 
+TEST_F(SensorFusionSystemTest, GarbageGpsIsWrongProgressAndASilentGpsAProcessFailure) {
+  // Fixes tens of metres off: the filter rejects them (innovation gate), and
+  // once more than max_rejected_ratio of the last gps_window are rejected
+  // the monitoring ends it WRONG_PROGRESS.
+  std::string id = activateFilter();
+  ASSERT_FALSE(id.empty());
+  std::this_thread::sleep_for(milliseconds(500));  // 5 s simulated: the filter runs
+  ASSERT_NO_FATAL_FAILURE(inject(v1::FAILURE_COMPONENT_GPS, v1::FAILURE_TYPE_GARBAGE));
+  auto finished = finishedEvent(seconds(15), id);
+  ASSERT_TRUE(finished.has_value());
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
+      << finished->ShortDebugString();
+  EXPECT_NE(finished->finished().message().find("rejects the GPS"), std::string::npos)
+      << finished->finished().message();
+
+  // The GPS falls silent (the IMU goes on): PROCESS_FAILURE naming it.
+  ASSERT_NO_FATAL_FAILURE(inject(v1::FAILURE_COMPONENT_GPS, v1::FAILURE_TYPE_OK));
+  id = activateFilter();
+  ASSERT_FALSE(id.empty());
+  std::this_thread::sleep_for(milliseconds(500));
+  ASSERT_NO_FATAL_FAILURE(inject(v1::FAILURE_COMPONENT_GPS, v1::FAILURE_TYPE_OFF));
+  finished = finishedEvent(seconds(15), id);
+  ASSERT_TRUE(finished.has_value());
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE)
+      << finished->ShortDebugString();
+  EXPECT_NE(finished->finished().message().find("GPS"), std::string::npos)
+      << finished->finished().message();
+  EXPECT_NE(finished->finished().message().find("silent"), std::string::npos)
+      << finished->finished().message();
+}
+
 TEST_F(SensorFusionSystemTest, ASilentImuIsAProcessFailure) {
-  ASSERT_NO_FATAL_FAILURE(activateFilter());
+  ASSERT_FALSE(activateFilter().empty());
   std::this_thread::sleep_for(milliseconds(500));  // 5 s simulated: the filter runs
   simulator_->kill();  // every sensor falls silent; the behavior clock dead-reckons
   auto finished = finishedEvent(seconds(15));

@@ -362,8 +362,9 @@ void BehaviorExecutionManager::execute() {
   if (cause == v1::TERMINATION_CAUSE_UNSPECIFIED && maximum_execution_time_ > Duration::zero() &&
       activeTime() >= maximum_execution_time_) {
     cause = v1::TERMINATION_CAUSE_TIME_OUT;
-    message = "not finished within maximum_execution_time " + seconds(maximum_execution_time_) +
-              " of active time";
+    message = !time_out_reason_.empty() ? time_out_reason_
+                                        : "not finished within maximum_execution_time " +
+                                              seconds(maximum_execution_time_) + " of active time";
   }
   if (context_.observer) context_.observer->onMonitoring(std::chrono::steady_clock::now() - t0);
   if (cause != v1::TERMINATION_CAUSE_UNSPECIFIED) {
@@ -553,6 +554,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     activation_id_ = name_ + "-" + context_.events->incarnation().substr(0, 8) + "-" +
                      std::to_string(++activation_counter_);
     maximum_execution_time_ = options_.maximum_execution_time;
+    time_out_reason_.clear();
     activation_time_ = now;
     active_since_ = now;
     active_accumulated_ = Duration::zero();

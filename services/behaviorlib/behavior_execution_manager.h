@@ -245,8 +245,13 @@ class BehaviorExecutionManager {
   const std::string& activationId() const { return activation_id_; }
   const std::string& robotId() const { return context_.robot_id; }
   /// Overrides maximum_execution_time for the current activation (e.g. from
-  /// its parameters, in onActivate()); zero means none.
-  void setMaximumExecutionTime(Duration d) { maximum_execution_time_ = d; }
+  /// its parameters, in onActivate()); zero means none. `reason`, when not
+  /// empty, is the TIME_OUT's message instead of the library's (e.g. a
+  /// behavior that ends itself through the time-out says why).
+  void setMaximumExecutionTime(Duration d, std::string reason = {}) {
+    maximum_execution_time_ = d;
+    time_out_reason_ = std::move(reason);
+  }
 
  private:
   enum class State { kInactive, kActive, kPaused, kBlocked };
@@ -310,6 +315,7 @@ class BehaviorExecutionManager {
   TimePoint active_since_{};
   Duration active_accumulated_{0};
   Duration maximum_execution_time_{0};
+  std::string time_out_reason_;
   TimePoint next_tick_{};
   Duration period_{0};
   bool first_execute_pending_ = false;

@@ -415,9 +415,11 @@ Verdict GeneratePathBehavior::checkProgress() {
                                     " s (limit " + flight::fixed2(limit) + " s)";
   if (replans_ >= parameters().max_replans()) {
     // TIME_OUT is the library's to give: end now through the time-out.
-    std::cerr << robotId() << "/GENERATE_PATH_WITH_OCCUPANCY_GRID: planning timed out "
-              << (replans_ + 1) << " time(s), no re-plan left: " << why << std::endl;
-    setMaximumExecutionTime(std::max(activeTime(), Duration(1)));
+    const std::string reason = "planning timed out on each of " + std::to_string(replans_ + 1) +
+                               " attempt(s) (max_replans " +
+                               std::to_string(parameters().max_replans()) + "); the last: " + why;
+    std::cerr << robotId() << "/GENERATE_PATH_WITH_OCCUPANCY_GRID: " << reason << std::endl;
+    setMaximumExecutionTime(std::max(activeTime(), Duration(1)), reason);
     return Verdict::keepGoing();
   }
   ++replans_;

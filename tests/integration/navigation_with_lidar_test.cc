@@ -4,14 +4,16 @@
 // TAKE_OFF) and the system under test. The vehicle takes off in room A, the
 // map builds from its scans; paths to room B avoid the building's real walls
 // and reach belief memory and the channel; an unreachable goal, goals outside
-// the map or in a wall, and a bad save path are reported; the saved map is
-// read back with OctoMap.
+// the map or in a wall, and a bad save path are reported; planning time-outs
+// re-plan up to max_replans, then end TIME_OUT; the saved map is read back
+// with OctoMap.
 
 #include <octomap/OcTree.h>
 #include <unistd.h>
 
 #include <atomic>
 #include <filesystem>
+#include <fstream>
 
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
@@ -235,6 +237,40 @@ TEST_F(NavigationWithLidarTest, AGoalBeyondDoorsNarrowerThanTheVehicleIsUnreacha
       << finished.finished().message();
   v1::Belief belief;
   EXPECT_EQ(readBelief("drone1/wide_path", &belief).error_code(), grpc::StatusCode::NOT_FOUND);
+}
+
+TEST_F(NavigationWithLidarTest, PlanningTimeOutsRePlanUpToTheLimitThenEndTimeOut) {
+  // A second navigation system on the same robot mapping at 5 cm: building
+  // the inflated grid of the building alone takes far longer than the 10 ms
+  // planning limit, and with no grace and 100 Hz monitoring every attempt
+  // is seen running past it: re-planned max_replans times, then TIME_OUT.
+  const std::string config = *dir_ + "/fine_map.yaml";
+  {
+    std::ofstream out(config);
+    out << "mapping:\n  resolution_m: 0.05\n"
+           "behaviors:\n  GENERATE_PATH_WITH_OCCUPANCY_GRID:\n"
+           "    frequency_hz: 100\n    timeout_grace_s: 0\n";
+  }
+  support::ServerProcess fine(BEHAVIORLIB_NAVIGATION_WITH_LIDAR_PATH,
+                              {"--robot-id", kRobot, "--channel", broker_->address(), "--clock",
+                               "sim", "--config", config});
+  ASSERT_TRUE(fine.start()) << fine.error();
+  SystemClient client(fine.address());
+  ASSERT_TRUE(FlightStack::waitFor([&] {
+    return client.checkSituation("GENERATE_PATH_WITH_OCCUPANCY_GRID").feasible();
+  })) << client.checkSituation("GENERATE_PATH_WITH_OCCUPANCY_GRID").ShortDebugString();
+  const std::string id = client.start(
+      "GENERATE_PATH_WITH_OCCUPANCY_GRID",
+      goalJson(kGoalInRoomB, kRadius, ", \"planning_time_limit_s\": 0.01, \"max_replans\": 2"));
+  ASSERT_FALSE(id.empty());
+  const auto finished = client.finished(id, seconds(30));
+  ASSERT_TRUE(finished.has_value());
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_TIME_OUT)
+      << finished->ShortDebugString();
+  EXPECT_NE(finished->finished().message().find("each of 3 attempt(s) (max_replans 2)"),
+            std::string::npos)
+      << finished->finished().message();
+  fine.terminate();
 }
 
 TEST_F(NavigationWithLidarTest, GoalsOutsideTheMapOrInAWallAreRefused) {

@@ -269,6 +269,32 @@ TEST_F(BehaviorExecutionManagerTest, StaleActivationIdNeverStopsANewerActivation
   EXPECT_TRUE(b.checkActivation().active());
 }
 
+TEST_F(BehaviorExecutionManagerTest, ABehaviorEndingThroughTheTimeOutGivesItsReason) {
+  BehaviorOptions options;
+  options.maximum_execution_time = seconds(1);
+  auto& b = start(options);
+  std::atomic<bool> give_up{true};
+  b.time_out_reason = [&] { return give_up ? std::string("planning timed out 3 times") : ""; };
+  activate();
+  // The limit set to the active time so far ends the activation at the next
+  // tick on which time has passed.
+  clock_.advance(milliseconds(10));
+  auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_TIME_OUT);
+  EXPECT_EQ(finished.finished().message(), "planning timed out 3 times");
+
+  // The next activation times out on its own limit, with the library's message.
+  give_up = false;
+  const auto second = activate();
+  clock_.advance(milliseconds(1100));
+  ASSERT_TRUE(eventually([&] { return b.state() == v1::BEHAVIOR_STATE_INACTIVE; }));
+  finished = events_.waitFinished(/*skip=*/1);
+  EXPECT_EQ(finished.activation_id(), second.activation_id());
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_TIME_OUT);
+  EXPECT_NE(finished.finished().message().find("maximum_execution_time 1"), std::string::npos)
+      << finished.finished().message();
+}
+
 // ---- Pause, resume, modify -------------------------------------------------
 
 TEST_F(BehaviorExecutionManagerTest, PauseStopsMonitoringAndTheTimeOutCountsActiveTimeOnly) {

@@ -32,6 +32,9 @@ class ScriptedBehavior final : public Behavior<v1::WaitParameters> {
   std::function<Verdict()> processes = [] { return Verdict::keepGoing(); };
   std::function<absl::Status(const google::protobuf::Message&)> on_modify =
       [](const google::protobuf::Message&) { return absl::OkStatus(); };
+  /// Not empty: checkProgress ends the activation through the time-out with
+  /// this reason as its message.
+  std::function<std::string()> time_out_reason = [] { return std::string(); };
 
   std::vector<std::string> calls() const {
     std::lock_guard lock(mutex_);
@@ -81,6 +84,9 @@ class ScriptedBehavior final : public Behavior<v1::WaitParameters> {
   }
   Verdict checkProgress() override {
     record("checkProgress");
+    if (std::string reason = time_out_reason(); !reason.empty()) {
+      setMaximumExecutionTime(std::max(activeTime(), Duration(1)), std::move(reason));
+    }
     return progress();
   }
   Verdict checkProcesses() override {

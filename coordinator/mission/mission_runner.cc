@@ -234,21 +234,21 @@ void MissionRunner::runSafety() {
   const std::string robot = status().robot_id();
   const std::string id = status().mission_id();
   bool skip = false;
+  // What the safety steps did (or that they were skipped), after the failure.
+  std::string notes;
   {
     std::lock_guard lock(mutex_);
     if (status_.state() != v1::MISSION_STATE_ABORTED) status_.set_state(v1::MISSION_STATE_FAILED);
-    status_.set_message(failure_);
     status_.set_in_safety_steps(true);
     skip = skip_safety_;
-    if (skip)
-      status_.set_message(
-          failure_ +
-          "; safety steps skipped (the vehicle is landed by the coordinator's safety action)");
+    if (skip) {
+      notes = "; safety steps skipped (the vehicle is landed by the coordinator's safety action)";
+    }
+    status_.set_message(failure_ + notes);
   }
   publish();
   const std::vector<MissionStep> no_steps;
   const std::vector<MissionStep>& safety = skip ? no_steps : spec_.safety;
-  std::string notes;
   for (size_t i = 0; i < safety.size(); ++i) {
     const MissionStep& step = safety[i];
     auto params = beliefs_.resolve(step.parameters);

@@ -329,6 +329,26 @@ TEST(MissionRunner, AbortDeactivatesTheCurrentBehaviorAndRunsTheSafetySteps) {
   EXPECT_EQ(run.runner->abort("again").code(), absl::StatusCode::kFailedPrecondition);
 }
 
+TEST(MissionRunner, AnAbortWithoutSafetyStepsSaysSoInTheFinalStatus) {
+  // The coordinator's own safety action lands the vehicle: the mission's
+  // safety steps are skipped, and its final message keeps saying so.
+  MissionRun run;
+  run.actions.hold("SELF_LOCALIZE");
+  run.actions.hold("FOLLOW_PATH");
+  run.start(kTakeOffFollowLand);
+  ASSERT_TRUE(eventually([&] { return run.actions.active("FOLLOW_PATH"); }));
+  ASSERT_TRUE(run.runner->abort("geofence breached", /*run_safety=*/false).ok());
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_ABORTED);
+  EXPECT_EQ(status.message(),
+            "geofence breached; safety steps skipped (the vehicle is landed by the coordinator's "
+            "safety action)");
+  EXPECT_FALSE(status.in_safety_steps());
+  EXPECT_THAT(run.actions.calls(),
+              ElementsAre("activate SELF_LOCALIZE", "activate TAKE_OFF", "activate FOLLOW_PATH",
+                          "deactivate FOLLOW_PATH", "deactivate SELF_LOCALIZE"));
+}
+
 TEST(MissionRunner, PauseAndResumeReachTheActiveBehavior) {
   MissionRun run;
   run.actions.hold("SELF_LOCALIZE");

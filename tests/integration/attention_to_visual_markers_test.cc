@@ -23,6 +23,7 @@
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "motion_test_support.h"
+#include "sim_faults.h"
 #include "simulator/world/world.h"
 
 namespace motion_test {
@@ -119,8 +120,6 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
     ASSERT_TRUE(basic_ && pid_ && attention_);
     basic_client_ = std::make_unique<SystemClient>(basic_->address());
     attention_client_ = std::make_unique<SystemClient>(attention_->address());
-    sim_ = v1::Simulator::NewStub(
-        grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials()));
     channel_ = std::make_unique<behaviorlib::channel::ChannelClient>(broker_.address());
     // The three systems registered and UP.
     ASSERT_TRUE(FlightStack::waitFor(
@@ -174,12 +173,8 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
   }
 
   void inject(v1::FailureType type) {
-    v1::InjectFailureRequest request;
-    request.set_robot_id(kRobot);
-    request.set_component(v1::FAILURE_COMPONENT_CAMERA);
-    request.set_type(type);
-    v1::InjectFailureResponse response;
-    const grpc::Status s = sim_->InjectFailure(deadline().get(), request, &response);
+    const grpc::Status s =
+        sim_faults::inject(simulator_->address(), kRobot, v1::FAILURE_COMPONENT_CAMERA, type);
     ASSERT_TRUE(s.ok()) << describe(s);
   }
 
@@ -197,7 +192,6 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
   support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
   std::unique_ptr<support::ServerProcess> simulator_, coordinator_, basic_, pid_, attention_;
   std::unique_ptr<v1::Coordinator::Stub> coordinator_stub_;
-  std::unique_ptr<v1::Simulator::Stub> sim_;
   std::unique_ptr<SystemClient> basic_client_, attention_client_;
   std::unique_ptr<behaviorlib::channel::ChannelClient> channel_;
 };

@@ -6,7 +6,7 @@
 // and reach belief memory and the channel; an unreachable goal, goals outside
 // the map or in a wall, and a bad save path are reported; planning time-outs
 // re-plan up to max_replans, then end TIME_OUT; the saved map is read back
-// with OctoMap.
+// with OctoMap; CLEAR empties it (the lidar stopped by fault injection).
 
 #include <octomap/OcTree.h>
 #include <unistd.h>
@@ -19,6 +19,7 @@
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "motion_test_support.h"
+#include "sim_faults.h"
 #include "simulator/world/world.h"
 
 namespace {
@@ -40,9 +41,10 @@ class NavigationWithLidarTest : public ::testing::Test {
 
     broker_ = new support::ServerProcess(BEHAVIORLIB_CHANNEL_BROKER_PATH, {});
     ASSERT_TRUE(broker_->start()) << broker_->error();
-    simulator_ = new support::ServerProcess(BEHAVIORLIB_SIMULATOR_PATH,
-                                            {"--channel", broker_->address(), "--world", "rooms",
-                                             "--time-scale", "4", "--seed", kSeed});
+    simulator_ = new support::ServerProcess(
+        BEHAVIORLIB_SIMULATOR_PATH,
+        {"--channel", broker_->address(), "--world", "rooms", "--time-scale", "4", "--seed", kSeed,
+         "--enable-fault-injection"});
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     coordinator_ = new support::ServerProcess(BEHAVIORLIB_COORDINATOR_PATH,
                                               {"--state-dir", *dir_ + "/coordinator"});
@@ -119,6 +121,21 @@ class NavigationWithLidarTest : public ::testing::Test {
     auto finished = nav_client_->finished(id, seconds(20));
     EXPECT_TRUE(finished) << behavior << " did not finish";
     return finished.value_or(v1::BehaviorEvent());
+  }
+
+  static void injectLidar(v1::FailureType type) {
+    const grpc::Status status =
+        sim_faults::inject(simulator_->address(), kRobot, v1::FAILURE_COMPONENT_LIDAR, type);
+    ASSERT_TRUE(status.ok()) << status.error_message();
+  }
+
+  static size_t occupiedIn(const std::string& file) {
+    octomap::OcTree tree(0.1);
+    EXPECT_TRUE(tree.readBinary(file)) << file;
+    size_t occupied = 0;
+    for (auto it = tree.begin_leafs(); it != tree.end_leafs(); ++it)
+      occupied += tree.isNodeOccupied(*it);
+    return occupied;
   }
 
   static grpc::Status readBelief(const std::string& key, v1::Belief* belief) {
@@ -372,6 +389,37 @@ TEST_F(NavigationWithLidarTest, AnUnwritableSavePathIsRefusedNamingIt) {
       << status.error_message();
   // The system keeps working.
   EXPECT_TRUE(nav_client_->checkSituation("GENERATE_PATH_WITH_OCCUPANCY_GRID").feasible());
+}
+
+// Last: it stops the lidar for a while (and waits until the map is back).
+TEST_F(NavigationWithLidarTest, ClearEmptiesTheMapAndMappingStartsAgainFromTheNextScan) {
+  // With the lidar stopped, the cleared map stays empty.
+  ASSERT_NO_FATAL_FAILURE(injectLidar(v1::FAILURE_TYPE_OFF));
+  std::this_thread::sleep_for(milliseconds(300));  // scans in flight are mapped first
+  const auto cleared = run("CLEAR_OCCUPANCY_GRID", "{}");
+  ASSERT_EQ(cleared.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << cleared.ShortDebugString();
+  const auto situation = nav_client_->checkSituation("GENERATE_PATH_WITH_OCCUPANCY_GRID");
+  EXPECT_FALSE(situation.feasible());
+  ASSERT_GT(situation.reasons_size(), 0);
+  EXPECT_NE(situation.reasons(0).find("the map is empty"), std::string::npos)
+      << situation.ShortDebugString();
+  const std::string empty_file = *dir_ + "/cleared.bt";
+  ASSERT_EQ(
+      run("SAVE_OCCUPANCY_GRID", "{\"file_path\": \"" + empty_file + "\"}").finished().cause(),
+      v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  EXPECT_EQ(occupiedIn(empty_file), 0u);
+
+  // The lidar back: the map builds again.
+  ASSERT_NO_FATAL_FAILURE(injectLidar(v1::FAILURE_TYPE_OK));
+  ASSERT_TRUE(FlightStack::waitFor(
+      [] { return nav_client_->checkSituation("GENERATE_PATH_WITH_OCCUPANCY_GRID").feasible(); }));
+  std::this_thread::sleep_for(milliseconds(500));  // 2 s simulated: 20 scans
+  const std::string rebuilt_file = *dir_ + "/rebuilt.bt";
+  ASSERT_EQ(
+      run("SAVE_OCCUPANCY_GRID", "{\"file_path\": \"" + rebuilt_file + "\"}").finished().cause(),
+      v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  EXPECT_GT(occupiedIn(rebuilt_file), 100u);
 }
 
 }  // namespace

@@ -51,6 +51,15 @@ absl::Status MapperSettings::read(const YAML::Node& mapping) {
     return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
   }
   scan_queue_size = static_cast<int>(queue);
+  for (auto [key, value, max] :
+       {std::tuple{"min_scan_interval_s", &thinning.min_interval_s, 60.0},
+        std::tuple{"still_distance_m", &thinning.still_distance_m, 100.0},
+        std::tuple{"still_angle_rad", &thinning.still_angle_rad, 3.15},
+        std::tuple{"still_scan_interval_s", &thinning.still_interval_s, 3600.0}}) {
+    if (auto s = readNumber(mapping, key, 0.0, max, value); !s.ok()) {
+      return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
+    }
+  }
   if (const YAML::Node mount = mapping["lidar_mount_m"]) {
     if (!mount.IsSequence() || mount.size() != 3) {
       return absl::InvalidArgumentError(
@@ -78,7 +87,8 @@ LidarMapper::LidarMapper(channel::ChannelClient* channel, std::string robot_id,
     : channel_(channel),
       robot_id_(std::move(robot_id)),
       settings_(settings),
-      map_(MapOptions{.resolution_m = settings.resolution_m}) {
+      map_(MapOptions{.resolution_m = settings.resolution_m}),
+      thinner_(settings.thinning) {
   if (!channel_) return;
   thread_ = std::thread([this] { run(); });
   pose_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
@@ -170,6 +180,10 @@ void LidarMapper::run() {
       ++stats_.scans_without_pose;
       continue;
     }
+    if (!thinner_.admit(stamp, vec(pose->pose().position_m()), quat(pose->pose().orientation()))) {
+      ++stats_.scans_thinned;
+      continue;
+    }
     lock.unlock();
     insert(scan, *pose);
     lock.lock();
@@ -220,6 +234,10 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
 }
 
 void LidarMapper::clear() {
+  {
+    std::lock_guard lock(mutex_);
+    thinner_.reset();  // mapping goes on from the next scan
+  }
   std::lock_guard lock(map_mutex_);
   map_.clear();
   columns_.clear();

@@ -39,6 +39,7 @@
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "navigation/occupancy_map.h"
+#include "navigation/scan_thinner.h"
 
 namespace YAML {
 class Node;
@@ -65,6 +66,12 @@ struct MapperSettings {
   double pose_match_s = 0.05;
   /// Scans waiting for the mapping thread; the oldest is dropped beyond.
   int scan_queue_size = 50;
+  /// Which scans are mapped (navigation/scan_thinner.h): at most one every
+  /// min_interval_s of simulated time, and standing still (moved less than
+  /// still_distance_m, turned less than still_angle_rad) one every
+  /// still_interval_s. Keys min_scan_interval_s, still_distance_m,
+  /// still_angle_rad, still_scan_interval_s.
+  ScanThinningSettings thinning;
 
   /// Reads the keys of `mapping` (missing keys keep their values);
   /// INVALID_ARGUMENT naming a bad key.
@@ -77,6 +84,7 @@ struct MapperStats {
   uint64_t scans_inserted = 0;
   uint64_t scans_without_pose = 0;
   uint64_t scans_dropped = 0;  ///< queue full
+  uint64_t scans_thinned = 0;  ///< not needed (ScanThinner)
 };
 
 class LidarMapper {
@@ -131,6 +139,7 @@ class LidarMapper {
   std::deque<v1::LaserScan> queue_;
   std::deque<v1::PoseStamped> poses_;  // the last second, by stamp
   MapperStats stats_;
+  ScanThinner thinner_;
   bool stopping_ = false;
 
   std::thread thread_;

@@ -195,10 +195,23 @@ struct Triple {
   double score;
 };
 
+/// Width of `finder` along the unit direction `u` (px).
+double extentAlong(const Finder& finder, const cv::Point2f& u) {
+  double lo = 0, hi = 0;
+  for (size_t k = 0; k < 4; ++k) {
+    const double d = finder.corners[k].dot(u);
+    lo = k == 0 ? d : std::min(lo, d);
+    hi = k == 0 ? d : std::max(hi, d);
+  }
+  return hi - lo;
+}
+
 /// Three finders that can be one symbol's: similar sizes, a right angle at
-/// the top-left one, equal legs of at least two finder sides (21 modules:
-/// the centres are 14 modules apart), up to a version-40 symbol's 170
-/// modules (~25 sides). Perspective bends both, hence the tolerances.
+/// the top-left one, equal legs, each at least two finder widths along it
+/// (21 modules: the centres are 14 modules apart) and at most a version-40
+/// symbol's 170 modules (~25 sides). Perspective bends all of it, hence the
+/// tolerances (a code seen 60 degrees off its normal is foreshortened to
+/// half its width; the finders' widths along a leg grow with the skew).
 std::optional<Triple> asSymbol(const std::vector<Finder>& f, size_t a, size_t b, size_t c) {
   const float smallest = std::min({f[a].side, f[b].side, f[c].side});
   const float largest = std::max({f[a].side, f[b].side, f[c].side});
@@ -208,10 +221,14 @@ std::optional<Triple> asSymbol(const std::vector<Finder>& f, size_t a, size_t b,
   for (const auto& [v, p, q] : {std::array{a, b, c}, std::array{b, a, c}, std::array{c, a, b}}) {
     const cv::Point2f leg1 = f[p].centre - f[v].centre, leg2 = f[q].centre - f[v].centre;
     const double l1 = cv::norm(leg1), l2 = cv::norm(leg2);
-    if (l1 < 1.6 * side || l2 < 1.6 * side || l1 > 26 * side || l2 > 26 * side) continue;
+    if (l1 < 1e-3 || l2 < 1e-3) continue;
+    // Each leg against the finders' width along it (foreshortened alike).
+    const double w1 = 0.5 * (extentAlong(f[v], leg1 / l1) + extentAlong(f[p], leg1 / l1));
+    const double w2 = 0.5 * (extentAlong(f[v], leg2 / l2) + extentAlong(f[q], leg2 / l2));
+    if (l1 < 1.35 * w1 || l2 < 1.35 * w2 || l1 > 26 * side || l2 > 26 * side) continue;
     const double ratio = l1 / l2;
     const double cosine = leg1.dot(leg2) / (l1 * l2);
-    if (ratio < 0.6 || ratio > 1.0 / 0.6 || std::abs(cosine) > 0.4) continue;
+    if (ratio < 0.45 || ratio > 1.0 / 0.45 || std::abs(cosine) > 0.55) continue;
     const double score = std::abs(std::log(ratio)) + std::abs(cosine) + (largest / smallest - 1.0);
     if (best && best->score <= score) continue;
     // Image y points down: the top-right finder is the first leg's when the

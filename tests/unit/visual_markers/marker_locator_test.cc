@@ -118,6 +118,26 @@ TEST_F(Aircraft, SymbolCornersAreFoundWithinAPixel) {
   EXPECT_LT(worsts[worsts.size() / 2], 0.4);
 }
 
+TEST_F(Aircraft, ViewsUpTo55DegreesOffTheNormalStillLocate) {
+  // Flying past a marker: seen 45 and 55 degrees off its normal, to either
+  // side (foreshortened to 0.7 and 0.57 of its width).
+  for (const sim::Marker& marker : world_->markers()) {
+    MarkerLocator locator(model_, marker.size_m);
+    for (const double degrees : {-55.0, -45.0, 45.0, 55.0}) {
+      const double angle = degrees * std::numbers::pi / 180.0;
+      const Eigen::Vector3d position = marker.center_m + marker.normal * 3.0 * std::cos(angle) +
+                                       marker.right() * 3.0 * std::sin(angle);
+      const Eigen::Quaterniond attitude = Eigen::Quaterniond::FromTwoVectors(
+          Eigen::Vector3d::UnitX(), (marker.center_m - position).normalized());
+      const auto found = locator.locate(camera_->render(position, attitude), attitude, position);
+      ASSERT_EQ(found.size(), 1u) << marker.name << " at " << degrees << " degrees";
+      EXPECT_EQ(found[0].text, marker.text);
+      EXPECT_LT((found[0].position_world_m - marker.center_m).norm(), 0.15)
+          << marker.name << " at " << degrees << " degrees";
+    }
+  }
+}
+
 TEST_F(Aircraft, NoisyBlurredAndCompressedFramesStillLocate) {
   // A real camera's frame: sensor noise (sigma 6 grey levels), a little
   // defocus, and JPEG at quality 75.

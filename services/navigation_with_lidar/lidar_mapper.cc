@@ -235,12 +235,14 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
 
 void LidarMapper::clear() {
   {
-    std::lock_guard lock(mutex_);
-    thinner_.reset();  // mapping goes on from the next scan
+    std::lock_guard lock(map_mutex_);
+    map_.clear();
+    columns_.clear();
   }
-  std::lock_guard lock(map_mutex_);
-  map_.clear();
-  columns_.clear();
+  // Then the next scan is mapped whatever it is (reset before the map was
+  // cleared, a scan mapped in between would be lost and the next thinned).
+  std::lock_guard lock(mutex_);
+  thinner_.reset();
 }
 
 std::optional<v1::PoseStamped> LidarMapper::latestPose() const {

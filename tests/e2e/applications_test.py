@@ -35,7 +35,6 @@ import json
 import math
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import tempfile
@@ -51,7 +50,7 @@ WORLDS = os.path.join(REPO, "simulator", "worlds")
 MISSIONS = os.path.join(REPO, "deploy", "missions")
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from local_demo_test import alive, read_png  # noqa: E402
+from local_demo_test import alive, kill_launched, launched_pids, read_png  # noqa: E402
 
 # Simulated seconds per wall second, per case. The launcher's full stack
 # (nine behavior systems per robot) takes about 1.4 cores idle at 3x on a
@@ -87,21 +86,14 @@ class ApplicationsTest(unittest.TestCase):
         self.passed = False
 
     def tearDown(self):
-        # Never leave a process behind, even when an assertion failed.
-        for pid in self._pids().values():
-            if alive(pid):
-                os.kill(pid, signal.SIGKILL)
+        kill_launched(self.run_dir)
         if self.passed and not os.environ.get("BEHAVIORLIB_KEEP_RUN_DIR"):
             shutil.rmtree(self.run_dir, ignore_errors=True)
         else:
             print(f"run directory kept: {self.run_dir}", file=sys.stderr, flush=True)
 
     def _pids(self):
-        try:
-            with open(os.path.join(self.run_dir, "pids.json")) as f:
-                return json.load(f)
-        except (OSError, ValueError):
-            return {}
+        return launched_pids(self.run_dir)
 
     def _launch(self, case, timeout_s, *extra):
         """Runs the launcher with --demo at the case's time scale; prints its

@@ -49,6 +49,24 @@ def alive(pid):
         return False
 
 
+def launched_pids(run_dir):
+    """The launcher's record of the processes it started ({name: pid}), {}
+    before it wrote one."""
+    try:
+        with open(os.path.join(run_dir, "pids.json")) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return {}
+
+
+def kill_launched(run_dir):
+    """SIGKILLs every process of the run still alive: never leave a process
+    behind, even when an assertion failed."""
+    for pid in launched_pids(run_dir).values():
+        if alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
 def read_png(path):
     """(width, height, RGB rows) of an 8-bit RGB non-interlaced PNG; checks
     the signature, every chunk's CRC and the filter bytes."""
@@ -82,18 +100,11 @@ class LocalDemoTest(unittest.TestCase):
         self.run_dir = tempfile.mkdtemp(prefix="local-demo-e2e-")
 
     def tearDown(self):
-        # Never leave a process behind, even when an assertion failed.
-        for pid in self._pids().values():
-            if alive(pid):
-                os.kill(pid, signal.SIGKILL)
+        kill_launched(self.run_dir)
         shutil.rmtree(self.run_dir, ignore_errors=True)
 
     def _pids(self):
-        try:
-            with open(os.path.join(self.run_dir, "pids.json")) as f:
-                return json.load(f)
-        except (OSError, ValueError):
-            return {}
+        return launched_pids(self.run_dir)
 
     def _launcher(self, *extra):
         return [sys.executable, LAUNCHER, "--build-dir", BUILD_DIR, "--run-dir", self.run_dir,

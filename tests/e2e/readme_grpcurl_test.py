@@ -54,6 +54,7 @@ MARKER = "<!-- readme_grpcurl_test: {} -->"
 
 sys.path.insert(0, os.path.join(REPO, "tests", "integration"))
 sys.path.insert(0, os.path.join(REPO, "deploy", "local"))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import grpc  # noqa: E402
 from google.protobuf import descriptor_pb2, json_format  # noqa: E402
@@ -61,6 +62,7 @@ from google.protobuf import descriptor_pb2, json_format  # noqa: E402
 import demo  # noqa: E402  (deploy/local: the launcher's own reflection clients)
 import reflection_client as rc  # noqa: E402
 import rpc  # noqa: E402
+from local_demo_test import kill_launched  # noqa: E402
 
 # --- the grpcurl-compatible runner -------------------------------------------
 
@@ -709,15 +711,6 @@ SESSION = [
 
 # --- the test ----------------------------------------------------------------------
 
-def alive(pid):
-    """True while `pid` exists and is not a zombie."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
 class ReadmeGrpcurlTest(unittest.TestCase):
     def setUp(self):
         self.temp = tempfile.mkdtemp(prefix="readme-grpcurl-e2e-")
@@ -751,17 +744,8 @@ class ReadmeGrpcurlTest(unittest.TestCase):
             except subprocess.TimeoutExpired:
                 self.launcher.kill()
                 self.launcher.wait()
-        for pid in self._pids().values():
-            if alive(pid):
-                os.kill(pid, signal.SIGKILL)
+        kill_launched(self.run_dir)
         shutil.rmtree(self.temp, ignore_errors=True)
-
-    def _pids(self):
-        try:
-            with open(os.path.join(self.run_dir, "pids.json")) as f:
-                return json.load(f)
-        except (OSError, ValueError):
-            return {}
 
     def _ports(self, name):
         ports = {}

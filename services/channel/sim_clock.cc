@@ -15,6 +15,9 @@ constexpr std::chrono::nanoseconds kMaxWallWait = std::chrono::milliseconds(50);
 // Time scales below this are treated as this, so that a tiny scale cannot
 // turn a short simulated wait into an overflowing wall wait.
 constexpr double kMinTimeScale = 1e-3;
+// A sample's wall_time older than this (or in the future) is taken as the
+// time of arrival: the publisher's host clock disagrees with ours.
+constexpr std::chrono::seconds kMaxSampleAge(5);
 
 TimePoint toTimePoint(const google::protobuf::Timestamp& t) {
   return TimePoint(std::chrono::seconds(t.seconds()) + std::chrono::nanoseconds(t.nanos()));
@@ -22,12 +25,14 @@ TimePoint toTimePoint(const google::protobuf::Timestamp& t) {
 
 }  // namespace
 
-SimClock::SimClock() = default;
+SimClock::SimClock() : SimClock(HostClocks{}) {}
 
-SimClock::SimClock(ChannelClient& client) { subscribe(client); }
+SimClock::SimClock(HostClocks host) : host_(std::move(host)) {}
+
+SimClock::SimClock(ChannelClient& client) : SimClock() { subscribe(client); }
 
 SimClock::SimClock(const std::string& address)
-    : own_client_(std::make_unique<ChannelClient>(address)) {
+    : host_(), own_client_(std::make_unique<ChannelClient>(address)) {
   subscribe(*own_client_);
 }
 
@@ -45,9 +50,18 @@ void SimClock::subscribe(ChannelClient& client) {
                                        [this](const v1::Clock& sample) { onClockSample(sample); });
 }
 
+TimePoint SimClock::lineAtLocked(std::chrono::steady_clock::time_point at) const {
+  if (paused_ || !(time_scale_ > 0.0) || at <= anchor_steady_) return anchor_time_;
+  const double elapsed_ns =
+      static_cast<double>(std::chrono::nanoseconds(at - anchor_steady_).count());
+  return anchor_time_ + Duration(static_cast<int64_t>(elapsed_ns * time_scale_));
+}
+
 TimePoint SimClock::now() const {
   std::lock_guard lock(mutex_);
-  return now_;
+  if (!valid_) return TimePoint{};
+  floor_ = std::max(floor_, lineAtLocked(host_.steady()));
+  return floor_;
 }
 
 std::chrono::nanoseconds SimClock::wallWaitFor(Duration remaining) const {
@@ -55,7 +69,7 @@ std::chrono::nanoseconds SimClock::wallWaitFor(Duration remaining) const {
   double scale = 0;
   {
     std::lock_guard lock(mutex_);
-    scale = time_scale_;
+    scale = paused_ ? 0.0 : time_scale_;
   }
   if (scale <= 0) return kMaxWallWait;  // lock-step: time moves only with samples
   // Compare in double nanoseconds so that huge `remaining` values cannot
@@ -71,15 +85,34 @@ bool SimClock::valid() const {
 }
 
 void SimClock::onClockSample(const v1::Clock& sample) {
+  const auto steady_now = host_.steady();
+  const auto system_now = host_.system();
+  // Where the sample's time held on our monotonic clock: its wall_time when
+  // our host clock agrees, else now (a publisher of every tick sets none).
+  auto anchor = steady_now;
+  if (sample.has_wall_time()) {
+    const auto age =
+        system_now - std::chrono::system_clock::time_point(
+                         std::chrono::duration_cast<std::chrono::system_clock::duration>(
+                             std::chrono::seconds(sample.wall_time().seconds()) +
+                             std::chrono::nanoseconds(sample.wall_time().nanos())));
+    if (age > std::chrono::system_clock::duration::zero() && age <= kMaxSampleAge) {
+      anchor = steady_now - std::chrono::duration_cast<std::chrono::steady_clock::duration>(age);
+    }
+  }
   {
     std::lock_guard lock(mutex_);
-    now_ = toTimePoint(sample.time());
+    if (!valid_ || sample.epoch() != epoch_) floor_ = TimePoint{};  // time restarted
+    anchor_time_ = toTimePoint(sample.time());
+    anchor_steady_ = anchor;
     time_scale_ = sample.time_scale();
     paused_ = sample.paused();
+    epoch_ = sample.epoch();
     valid_ = true;
-    last_wall_update_ = TimePoint(
-        std::chrono::duration_cast<Duration>(std::chrono::system_clock::now().time_since_epoch()));
-    last_steady_update_ = std::chrono::steady_clock::now();
+    ++samples_;
+    last_wall_update_ =
+        TimePoint(std::chrono::duration_cast<Duration>(system_now.time_since_epoch()));
+    last_steady_update_ = steady_now;
   }
   // Outside mutex_: listeners typically call now() right away.
   notifyListeners();
@@ -93,7 +126,7 @@ TimePoint SimClock::lastWallUpdate() const {
 bool SimClock::stale(std::chrono::nanoseconds wall_limit) const {
   std::lock_guard lock(mutex_);
   if (!valid_) return true;
-  return std::chrono::steady_clock::now() - last_steady_update_ > wall_limit;
+  return host_.steady() - last_steady_update_ > wall_limit;
 }
 
 double SimClock::timeScale() const {
@@ -104,6 +137,11 @@ double SimClock::timeScale() const {
 bool SimClock::paused() const {
   std::lock_guard lock(mutex_);
   return paused_;
+}
+
+uint64_t SimClock::sampleCount() const {
+  std::lock_guard lock(mutex_);
+  return samples_;
 }
 
 }  // namespace behaviorlib::channel

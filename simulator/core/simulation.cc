@@ -26,6 +26,11 @@ void Simulation::resetVehicles(std::map<std::string, std::unique_ptr<VehicleMode
   vehicles_.clear();
   now_ = SimTime{0};
   ++epoch_;
+  {
+    // Readers of the pace see the restart at once, also in lock-step.
+    std::lock_guard pace_lock(pace_mutex_);
+    pace_ = Pace{now_, std::chrono::steady_clock::now(), pace_.scale, epoch_, pace_.generation + 1};
+  }
   wind_ = Wind{};
   for (auto& [id, model] : vehicles) {
     Vehicle vehicle{VehiclePlatform(id, options_.platform), std::move(model)};
@@ -107,13 +112,28 @@ void Simulation::advance(SimDuration duration) {
   stepBatchLocked(now_ + duration, std::numeric_limits<int>::max());
 }
 
+Pace Simulation::pace() const {
+  std::lock_guard lock(pace_mutex_);
+  return pace_;
+}
+
+void Simulation::setPace(SimTime sim, std::chrono::steady_clock::time_point wall, double scale,
+                         uint64_t epoch) {
+  std::lock_guard lock(pace_mutex_);
+  pace_ = Pace{sim, wall, scale, epoch, pace_.generation + 1};
+}
+
 void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::atomic<bool>& paused,
                              const std::atomic<bool>& stop) {
   using Clock = std::chrono::steady_clock;
+  // The line being followed (restarted by a slip), and the start of the
+  // measured real-time factor (restarted only when the pace is changed).
   auto wall_start = Clock::now();
   SimTime sim_start = now();
+  auto rate_wall_start = wall_start;
+  SimTime rate_sim_start = sim_start;
   double scale = time_scale.load();
-  bool was_paused = false;
+  bool was_paused = true;  // the first pass anchors the line
   uint64_t epoch = 0;
   {
     std::lock_guard lock(mutex_);
@@ -121,6 +141,10 @@ void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::a
   }
   while (!stop.load()) {
     if (paused.load()) {
+      if (!was_paused) {
+        std::lock_guard lock(mutex_);
+        setPace(now_, Clock::now(), 0.0, epoch_);  // lock-step: others advance time
+      }
       was_paused = true;
       std::this_thread::sleep_for(std::chrono::milliseconds(5));
       continue;
@@ -129,8 +153,11 @@ void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::a
     if (current != scale || was_paused) {  // re-anchor: the new pace applies from now on
       was_paused = false;
       scale = current;
-      wall_start = Clock::now();
-      sim_start = now();
+      std::lock_guard lock(mutex_);
+      wall_start = rate_wall_start = Clock::now();
+      sim_start = rate_sim_start = now_;
+      epoch = epoch_;
+      setPace(sim_start, wall_start, scale, epoch);
     }
     const auto wall_elapsed = Clock::now() - wall_start;
     const SimTime target =
@@ -140,17 +167,28 @@ void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::a
       std::lock_guard lock(mutex_);
       if (epoch_ != epoch) {  // time restarted (Reset): pace from here
         epoch = epoch_;
-        wall_start = Clock::now();
-        sim_start = now_;
+        wall_start = rate_wall_start = Clock::now();
+        sim_start = rate_sim_start = now_;
+        setPace(sim_start, wall_start, scale, epoch);
         continue;
       }
       // Catch up in bounded batches so that RPCs get the mutex in between.
       stepBatchLocked(target, 100);
       reached = now_;
+      const auto wall_now = Clock::now();
+      if (reached + kSlipLag < target && wall_now - wall_start >= kMinLineAge) {
+        // Behind the line: restart it from here, so that readers
+        // extrapolating it are never far ahead of the physics.
+        wall_start = wall_now;
+        sim_start = reached;
+        setPace(sim_start, wall_start, scale, epoch);
+        slips_.fetch_add(1, std::memory_order_relaxed);
+      }
     }
-    const double wall_s = std::chrono::duration<double>(Clock::now() - wall_start).count();
+    const double wall_s = std::chrono::duration<double>(Clock::now() - rate_wall_start).count();
     if (wall_s > 0.5) {
-      real_time_factor_.store(std::chrono::duration<double>(reached - sim_start).count() / wall_s);
+      real_time_factor_.store(std::chrono::duration<double>(reached - rate_sim_start).count() /
+                              wall_s);
     }
     if (reached >= target) {
       // Ahead of the scaled wall clock: sleep until the next step is due.

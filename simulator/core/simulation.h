@@ -77,8 +77,29 @@ struct VehicleReport {
   const VehiclePlatform* platform;
 };
 
+/// The pace of free-running time: simulated time `sim` held at the host's
+/// monotonic `wall` and advances `scale` simulated seconds per wall second
+/// from there (0: lock-step, time moves only by advance()). `generation`
+/// changes with every new line: a new scale, lock-step entered or left, a
+/// Reset (`epoch` changes too), or the physics falling behind the line by
+/// more than Simulation::kSlipLag (it then slips: the line restarts from
+/// where the physics is, instead of bursting to catch up).
+struct Pace {
+  SimTime sim{0};
+  std::chrono::steady_clock::time_point wall{};
+  double scale = 0.0;
+  uint64_t epoch = 0;
+  uint64_t generation = 0;
+};
+
 class Simulation {
  public:
+  /// How far the physics may fall behind the scaled wall clock before the
+  /// pace slips, and how long a line lasts at least before the next slip
+  /// (wall time), which bounds the lines published under load.
+  static constexpr SimDuration kSlipLag = std::chrono::milliseconds(50);
+  static constexpr std::chrono::milliseconds kMinLineAge{20};
+
   /// Called after every physics step with the simulated time and every
   /// vehicle (mutex held: must be quick, must not call back in).
   using StepListener = std::function<void(SimTime now, const std::vector<VehicleReport>& vehicles)>;
@@ -121,6 +142,11 @@ class Simulation {
                    const std::atomic<bool>& stop);
   /// Simulated seconds per wall second achieved by the last runRealTime.
   double realTimeFactor() const { return real_time_factor_.load(); }
+  /// The current pace line (scale 0 before runRealTime and in lock-step).
+  /// Safe from step listeners.
+  Pace pace() const;
+  /// Times the pace slipped (the physics fell behind the scaled wall clock).
+  uint64_t slipCount() const { return slips_.load(); }
 
   /// Runs `f` on the platform of `robot_id` under the simulation's mutex
   /// (NOT_FOUND for an unknown vehicle). The platform sees the current time.
@@ -178,6 +204,13 @@ class Simulation {
   StepTimer step_timer_;
   Wind wind_;
   std::atomic<double> real_time_factor_{0.0};
+  // Guards pace_ alone (taken after mutex_ when both are), so that step
+  // listeners, which run under mutex_, can read it.
+  mutable std::mutex pace_mutex_;
+  Pace pace_;
+  std::atomic<uint64_t> slips_{0};
+  void setPace(SimTime sim, std::chrono::steady_clock::time_point wall, double scale,
+               uint64_t epoch);
 };
 
 }  // namespace behaviorlib::sim

@@ -2,14 +2,34 @@
 
 #include <google/protobuf/util/time_util.h>
 
+#include <random>
+
 #include "behaviorlib/v1/types.pb.h"
 #include "simulator/service/messages.h"
 
 namespace behaviorlib::sim {
 
+namespace {
+
+uint64_t randomEpochBase() {
+  std::random_device random;
+  return (static_cast<uint64_t>(random()) << 32) ^ (static_cast<uint64_t>(random()) << 8);
+}
+
+google::protobuf::Timestamp timestampOf(SimTime t) {
+  return google::protobuf::util::TimeUtil::NanosecondsToTimestamp(
+      std::chrono::duration_cast<std::chrono::nanoseconds>(t).count());
+}
+
+}  // namespace
+
 ChannelPublisher::ChannelPublisher(channel::ChannelClient& client, Simulation& simulation,
                                    const TimeControl& time, PublishRates rates)
-    : time_(time), rates_(rates), queue_(client, PublishQueueLimits{}) {
+    : simulation_(simulation),
+      time_(time),
+      rates_(rates),
+      epoch_base_(randomEpochBase()),
+      queue_(client, PublishQueueLimits{}) {
   simulation.addStepListener(
       [this](SimTime now, const std::vector<VehicleReport>& vehicles) { onStep(now, vehicles); });
 }
@@ -23,11 +43,7 @@ void ChannelPublisher::onStep(SimTime now, const std::vector<VehicleReport>& veh
   last_t_ = t;
   if (t + 1e-9 >= next_clock_s_) {
     next_clock_s_ = t + 1.0 / rates_.clock_hz;
-    auto clock = std::make_unique<v1::Clock>();
-    *clock->mutable_header()->mutable_stamp() = stamp;
-    *clock->mutable_time() = stamp;
-    clock->set_time_scale(time_.lock_step.load() ? 0.0 : time_.time_scale.load());
-    queue_.push("clock", std::move(clock));
+    publishClock(now);
   }
   const bool truth = t + 1e-9 >= next_truth_s_;
   const bool state = t + 1e-9 >= next_state_s_;
@@ -53,6 +69,43 @@ void ChannelPublisher::onStep(SimTime now, const std::vector<VehicleReport>& veh
                       *report.robot_id, now, *report.platform, report.snapshot.battery_ratio)));
     }
   }
+}
+
+void ChannelPublisher::publishClock(SimTime now) {
+  const Pace pace = simulation_.pace();
+  const bool free_running = !time_.lock_step.load() && pace.scale > 0.0;
+  const auto wall_now = std::chrono::steady_clock::now();
+  auto clock = std::make_unique<v1::Clock>();
+  clock->set_epoch(epoch_base_ + pace.epoch);
+  if (free_running && rates_.clock_every_tick) {
+    *clock->mutable_time() = timestampOf(now);
+    clock->set_time_scale(pace.scale);
+  } else if (free_running) {
+    // The line, placed at this instant; only when it changed or as the
+    // heartbeat: readers extrapolate it.
+    if (published_free_running_ && pace.generation == published_generation_ &&
+        wall_now - last_clock_wall_ < rates_.clock_heartbeat) {
+      return;
+    }
+    const auto line_now =
+        pace.sim + std::chrono::duration_cast<SimDuration>((wall_now - pace.wall) * pace.scale);
+    const auto system_now = std::chrono::system_clock::now();
+    *clock->mutable_time() = timestampOf(line_now);
+    *clock->mutable_wall_time() = google::protobuf::util::TimeUtil::NanosecondsToTimestamp(
+        std::chrono::duration_cast<std::chrono::nanoseconds>(system_now.time_since_epoch())
+            .count());
+    clock->set_time_scale(pace.scale);
+  } else {
+    // Lock-step: time stands between samples, which come every period.
+    *clock->mutable_time() = timestampOf(now);
+    clock->set_time_scale(0.0);
+  }
+  *clock->mutable_header()->mutable_stamp() = clock->time();
+  published_free_running_ = free_running;
+  published_generation_ = pace.generation;
+  last_clock_wall_ = wall_now;
+  clock_samples_.fetch_add(1, std::memory_order_relaxed);
+  queue_.push("clock", std::move(clock));
 }
 
 }  // namespace behaviorlib::sim

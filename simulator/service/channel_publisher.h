@@ -10,7 +10,12 @@
 // and carry the robot id; the sensors' (from imu on) also a `seq` per vehicle
 // and sensor, from 0 again after each Reset.
 //
-//   clock                              Clock         simulated time, 200 Hz
+//   clock                              Clock         simulated time: free-running,
+//                                                    its line (time, wall_time,
+//                                                    time scale) when it changes
+//                                                    and once a wall second; in
+//                                                    lock-step 200 Hz of
+//                                                    simulated time
 //   robots/{id}/ground_truth/pose      PoseStamped   frame world, 100 Hz
 //   robots/{id}/ground_truth/twist     TwistStamped  linear in world, angular
 //                                                    in the body frame, 100 Hz
@@ -31,6 +36,8 @@
 // The sensor rates are defaults: --sensor-config changes them (0 disables a
 // sensor); see simulator/sensors/README.md.
 
+#include <atomic>
+#include <chrono>
 #include <memory>
 
 #include "channel/channel_client.h"
@@ -41,7 +48,16 @@
 namespace behaviorlib::sim {
 
 struct PublishRates {
+  /// In lock-step, the rate of clock samples (simulated time); free-running,
+  /// how often the pace is looked at for a new line.
   double clock_hz = 200.0;
+  /// Free-running, the pace line is published again after this much wall
+  /// time without a change (a heartbeat for late readers and liveness).
+  std::chrono::nanoseconds clock_heartbeat = std::chrono::seconds(1);
+  /// Publish a clock sample every 1/clock_hz of simulated time also when
+  /// free-running (no wall_time: readers anchor at arrival), as before the
+  /// pace line; for comparison and for readers that want every tick.
+  bool clock_every_tick = false;
   double ground_truth_hz = 100.0;
   double flight_state_hz = 10.0;
 };
@@ -55,13 +71,25 @@ class ChannelPublisher {
   ChannelPublisher& operator=(const ChannelPublisher&) = delete;
 
   uint64_t publishedCount() const { return queue_.publishedCount(); }
+  /// Clock samples queued so far.
+  uint64_t clockSampleCount() const { return clock_samples_.load(); }
   uint64_t droppedCount() const { return queue_.droppedCount(); }
 
  private:
   void onStep(SimTime now, const std::vector<VehicleReport>& vehicles);
+  void publishClock(SimTime now);
 
+  const Simulation& simulation_;
   const TimeControl& time_;
   PublishRates rates_;
+  // Added to the simulation's epoch: a restarted simulator's time is told
+  // apart from the time of the one before.
+  const uint64_t epoch_base_;
+  // Physics thread only: the pace generation last published, and when.
+  uint64_t published_generation_ = 0;
+  bool published_free_running_ = false;
+  std::chrono::steady_clock::time_point last_clock_wall_{};
+  std::atomic<uint64_t> clock_samples_{0};
   // Physics thread only.
   double next_clock_s_ = 0, next_truth_s_ = 0, next_state_s_ = 0, last_t_ = 0;
   PublishQueue queue_;

@@ -39,6 +39,7 @@ int main(int argc, char** argv) {
   double time_scale = 1.0;
   bool lock_step = false;
   bool fault_injection = false;
+  std::string clock_publish = "line";
   std::string sensor_config_path;
   std::string seed_arg = "1";
   FlagSet flags(
@@ -57,6 +58,10 @@ int main(int argc, char** argv) {
             "landed at x = 2 i m");
   flags.add("time-scale", &time_scale, "simulated seconds per wall second (0.1..1000)");
   flags.add("lock-step", &lock_step, "advance time only through Simulator.Step");
+  flags.add("clock-publish", &clock_publish,
+            "free-running, how simulated time goes on the 'clock' topic: 'line' (its pace "
+            "line when it changes and once a wall second; readers extrapolate) or "
+            "'every-tick' (a sample every 5 ms of simulated time)");
   flags.add("enable-fault-injection", &fault_injection,
             "accept Simulator.InjectFailure (sensor, motor, battery and wind faults; see "
             "simulator.proto)");
@@ -72,6 +77,10 @@ int main(int argc, char** argv) {
     return 2;
   }
 
+  if (clock_publish != "line" && clock_publish != "every-tick") {
+    fatal(program, "--clock-publish must be 'line' or 'every-tick', not '" + clock_publish + "'");
+    return 2;
+  }
   uint64_t seed = 0;
   {
     char* end = nullptr;
@@ -108,8 +117,9 @@ int main(int argc, char** argv) {
   std::unique_ptr<sim::SensorPublisher> sensors;
   if (!channel.empty()) {
     client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
-    publisher =
-        std::make_unique<sim::ChannelPublisher>(*client, simulation, time, sim::PublishRates{});
+    sim::PublishRates rates;
+    rates.clock_every_tick = clock_publish == "every-tick";
+    publisher = std::make_unique<sim::ChannelPublisher>(*client, simulation, time, rates);
     // A stream of their own, so that images never delay the clock.
     sensor_client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
     sensors = std::make_unique<sim::SensorPublisher>(*sensor_client, simulation, time,

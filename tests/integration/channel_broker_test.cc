@@ -617,14 +617,15 @@ TEST_F(ChannelBrokerTest, ChannelClientSubscriberReconnectsAfterBrokerRestart) {
 
 TEST_F(ChannelBrokerTest, SimClockFollowsTheClockTopic) {
   ChannelClient publisher(broker_.address());
-  ASSERT_TRUE(publisher.publish("clock", clockSample(1000, 5.0)).ok());
+  // Lock-step (time scale 0): a sample is the time.
+  ASSERT_TRUE(publisher.publish("clock", clockSample(1000, 0.0)).ok());
   ASSERT_TRUE(publisher.flush().ok());
 
   SimClock clock(broker_.address());
   // send_latest_first: the time already on the topic arrives at once.
   ASSERT_TRUE(eventually([&] { return clock.valid(); }));
   EXPECT_EQ(clock.now(), TimePoint(seconds(1000)));
-  EXPECT_DOUBLE_EQ(clock.timeScale(), 5.0);
+  EXPECT_DOUBLE_EQ(clock.timeScale(), 0.0);
   EXPECT_FALSE(clock.stale(seconds(5)));
 
   struct Listener : ClockListener {
@@ -632,9 +633,16 @@ TEST_F(ChannelBrokerTest, SimClockFollowsTheClockTopic) {
     std::atomic<int> calls{0};
   } listener;
   clock.addListener(&listener);
-  ASSERT_TRUE(publisher.publish("clock", clockSample(1001, 5.0)).ok());
+  ASSERT_TRUE(publisher.publish("clock", clockSample(1001, 0.0)).ok());
   ASSERT_TRUE(eventually([&] { return clock.now() == TimePoint(seconds(1001)); }));
   EXPECT_GE(listener.calls.load(), 1);
+  // Free-running at 5x: the line is extrapolated between samples.
+  ASSERT_TRUE(publisher.publish("clock", clockSample(2000, 5.0)).ok());
+  ASSERT_TRUE(eventually([&] { return clock.timeScale() == 5.0; }));
+  const TimePoint first = clock.now();
+  EXPECT_GE(first, TimePoint(seconds(2000)));
+  ASSERT_TRUE(eventually([&] { return clock.now() >= first + milliseconds(100); }))
+      << "time advances without samples";
   clock.removeListener(&listener);
   EXPECT_EQ(clock.wallWaitFor(milliseconds(100)), milliseconds(20));
 }

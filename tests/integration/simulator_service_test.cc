@@ -8,6 +8,7 @@
 
 #include <cmath>
 #include <fstream>
+#include <optional>
 #include <thread>
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
@@ -242,20 +243,59 @@ TEST_F(SimulatorServiceTest, SimulatedTimeDrivesABehaviorSystemThroughTheChannel
   EXPECT_EQ(system.terminate(), 0);
 }
 
-// Simulated time on the channel's clock topic (seconds; -1 when none yet).
-double clockSeconds(v1::DataChannel::Stub& data) {
+// The latest Clock sample on the topic (nullopt when none).
+std::optional<v1::Clock> latestClock(v1::DataChannel::Stub& data) {
   v1::GetLatestRequest request;
   request.set_topic("clock");
   v1::GetLatestResponse response;
   v1::Clock clock;
   if (!data.GetLatest(deadline().get(), request, &response).ok() ||
       !response.sample().sample().UnpackTo(&clock)) {
-    return -1;
+    return std::nullopt;
   }
-  return TimeUtil::TimestampToMilliseconds(clock.time()) / 1e3;
+  return clock;
+}
+
+// Simulated time on the channel's clock topic (seconds; -1 when none yet):
+// its line extrapolated to now, as types.proto's Clock says.
+double clockSeconds(v1::DataChannel::Stub& data) {
+  const auto clock = latestClock(data);
+  if (!clock) return -1;
+  const double wall_now_s =
+      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+  const double since_s = wall_now_s - TimeUtil::TimestampToNanoseconds(clock->wall_time()) / 1e9;
+  return TimeUtil::TimestampToMilliseconds(clock->time()) / 1e3 +
+         (clock->has_wall_time() ? since_s * clock->time_scale() : 0.0);
+}
+
+TEST_F(SimulatorServiceTest, ClockTopicCarriesThePaceLineNotEveryTick) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + seconds(2));
+  v1::SubscribeRequest request;
+  request.set_topic("clock");
+  request.set_mode(v1::DELIVERY_MODE_QUEUE);
+  request.set_queue_size(10000);
+  auto reader = data_->Subscribe(&context, request);
+  v1::SubscribeResponse response;
+  int samples = 0;
+  v1::Clock last;
+  while (reader->Read(&response)) {
+    ++samples;
+    ASSERT_TRUE(response.sample().UnpackTo(&last));
+  }
+  // 2 s of wall time at 10x: a sample per 5 ms of simulated time would be
+  // 4000; the line comes once a wall second, and at most 50 times a second
+  // when the physics slips behind it.
+  EXPECT_GE(samples, 1);
+  EXPECT_LT(samples, 120);
+  EXPECT_DOUBLE_EQ(last.time_scale(), 10.0);
+  EXPECT_TRUE(last.has_wall_time());
+  EXPECT_NE(last.epoch(), 0u);
 }
 
 TEST_F(SimulatorServiceTest, ResetLoadsWorldsAndReportsBadWorldFiles) {
+  const auto epoch_before = latestClock(*data_);
+  ASSERT_TRUE(epoch_before);
   std::this_thread::sleep_for(milliseconds(300));  // about 3 s of simulated time
   const double before_reset = clockSeconds(*data_);
   ASSERT_GT(before_reset, 1.0);
@@ -274,6 +314,9 @@ TEST_F(SimulatorServiceTest, ResetLoadsWorldsAndReportsBadWorldFiles) {
     if (!restarted) std::this_thread::sleep_for(milliseconds(2));
   }
   EXPECT_TRUE(restarted);
+  const auto after = latestClock(*data_);
+  ASSERT_TRUE(after);
+  EXPECT_NE(after->epoch(), epoch_before->epoch()) << "time restarted: a new epoch";
   // drone1 starts where the world file puts it.
   std::this_thread::sleep_for(milliseconds(100));
   bool at_start = false;

@@ -11,7 +11,6 @@
 #include "behaviorlib/server/behavior_metrics.h"
 #include "behaviorlib/server/behavior_system_service.h"
 #include "behaviorlib/server/coordinator_registration.h"
-#include "behaviorlib/server/dead_reckoning_clock.h"
 #include "behaviorlib/server/flags.h"
 #include "behaviorlib/server/server_runtime.h"
 #include "behaviorlib/v1/options.pb.h"
@@ -19,15 +18,6 @@
 #include "channel/sim_clock.h"
 
 namespace behaviorlib::server {
-namespace {
-
-// How long the simulator's clock may fall silent (wall time) before --clock
-// sim dead-reckons simulated time at the last time scale (see
-// DeadReckoningClock): long enough for a loaded machine's hiccups, short
-// enough that a dead simulator is noticed within about a second.
-constexpr std::chrono::seconds kSimClockGrace(1);
-
-}  // namespace
 
 void BehaviorSystemBuilder::checkServiceMatches(const BehaviorExecutionManager& behavior,
                                                 const char* service_full_name) {
@@ -97,7 +87,6 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
 
   std::unique_ptr<channel::ChannelClient> channel_client;
   if (!channel.empty()) channel_client = std::make_unique<channel::ChannelClient>(channel);
-  std::unique_ptr<channel::SimClock> sim_clock;
   std::unique_ptr<Clock> clock;
   if (clock_kind == "steady") {
     clock = std::make_unique<SteadyClock>();
@@ -106,8 +95,9 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
       fatal(program, "--clock sim needs --channel (simulated time comes from its 'clock' topic)");
       return 2;
     }
-    sim_clock = std::make_unique<channel::SimClock>(*channel_client);
-    clock = std::make_unique<DeadReckoningClock>(*sim_clock, kSimClockGrace);
+    // Extrapolates the simulator's time line; runs on at the last time scale
+    // when the simulator dies, so that staleness checks notice it.
+    clock = std::make_unique<channel::SimClock>(*channel_client);
   } else {
     fatal(program, "--clock must be 'steady' or 'sim', not '" + clock_kind + "'");
     return 2;

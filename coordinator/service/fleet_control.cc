@@ -113,14 +113,7 @@ void FleetControl::drainEvents() {
     const v1::BehaviorEvent& e = event->behavior_event();
     if (e.activation_id().empty()) continue;
     if (e.has_activated() || e.has_finished()) {
-      if (seen_.insert(e.activation_id()).second) {
-        seen_order_.push_back(e.activation_id());
-        while (seen_order_.size() > options_.remembered_activations) {
-          seen_.erase(seen_order_.front());
-          finished_.erase(seen_order_.front());
-          seen_order_.pop_front();
-        }
-      }
+      rememberLocked(e.activation_id());
       changed = true;
     }
     if (e.has_finished()) {
@@ -128,6 +121,37 @@ void FleetControl::drainEvents() {
     }
   }
   if (changed) index_changed_.notify_all();
+}
+
+void FleetControl::rememberLocked(const std::string& activation_id) {
+  if (!seen_.insert(activation_id).second) return;
+  seen_order_.push_back(activation_id);
+  while (seen_order_.size() > options_.remembered_activations) {
+    seen_.erase(seen_order_.front());
+    finished_.erase(seen_order_.front());
+    deactivated_.erase(seen_order_.front());
+    seen_order_.pop_front();
+  }
+}
+
+void FleetControl::noteDeactivated(const std::string& activation_id) {
+  std::lock_guard lock(index_mutex_);
+  rememberLocked(activation_id);
+  deactivated_.insert(activation_id);
+}
+
+std::vector<SystemLink::BehaviorView> FleetControl::robotView(const std::string& robot_id) const {
+  std::vector<SystemLink::BehaviorView> view = registry_.robotBehaviors(robot_id);
+  std::lock_guard lock(index_mutex_);
+  for (auto& b : view) {
+    const bool running =
+        b.state == v1::BEHAVIOR_STATE_ACTIVE || b.state == v1::BEHAVIOR_STATE_PAUSED;
+    if (running &&
+        (finished_.contains(b.activation_id) || deactivated_.contains(b.activation_id))) {
+      b.state = v1::BEHAVIOR_STATE_INACTIVE;
+    }
+  }
+  return view;
 }
 
 bool FleetControl::awaitSeen(const std::string& activation_id, std::chrono::milliseconds timeout) {
@@ -221,7 +245,7 @@ absl::Status FleetControl::callCheckSituation(const Registry::Route& route,
 std::map<std::string, std::string> FleetControl::activeBehaviors(
     const std::string& robot_id) const {
   std::map<std::string, std::string> active;
-  for (const auto& b : registry_.robotBehaviors(robot_id)) {
+  for (const auto& b : robotView(robot_id)) {
     if (b.state == v1::BEHAVIOR_STATE_ACTIVE || b.state == v1::BEHAVIOR_STATE_PAUSED) {
       active[b.name] = b.activation_id;
     }
@@ -254,7 +278,7 @@ absl::StatusOr<FleetControl::ActivateResult> FleetControl::activateBehavior(
   plan_request.robot_id = request.robot_id;
   plan_request.target = request.behavior;
   plan_request.parameters = request.parameters;
-  for (const auto& b : registry_.robotBehaviors(request.robot_id)) {
+  for (const auto& b : robotView(request.robot_id)) {
     if (!b.system_up) continue;
     plan_request.available.insert(b.name);
     if (b.state == v1::BEHAVIOR_STATE_ACTIVE || b.state == v1::BEHAVIOR_STATE_PAUSED) {
@@ -302,8 +326,13 @@ absl::StatusOr<v1::DeactivateResponse> FleetControl::deactivateBehavior(
     }
     return response.status();
   }
-  if (!response->already_finished() && !response->activation_id().empty()) {
-    awaitFinishedSeen(response->activation_id(), options_.event_timeout);
+  if (!response->activation_id().empty()) {
+    // Read-your-writes: from here on this activation is not active for the
+    // coordinator, whether or not its finished event has arrived.
+    noteDeactivated(response->activation_id());
+    if (!response->already_finished()) {
+      awaitFinishedSeen(response->activation_id(), options_.event_timeout);
+    }
   }
   return response;
 }

@@ -147,6 +147,15 @@ class FleetControl final : public MissionActions {
   /// the log; false on timeout or stop.
   bool awaitSeen(const std::string& activation_id, std::chrono::milliseconds timeout);
   bool awaitFinishedSeen(const std::string& activation_id, std::chrono::milliseconds timeout);
+  /// Remembers `activation_id` (index_mutex_ held), evicting the oldest.
+  void rememberLocked(const std::string& activation_id);
+  /// Records that a Deactivate of `activation_id` returned OK: until its
+  /// finished event arrives, the registry's view may still call it active.
+  void noteDeactivated(const std::string& activation_id);
+  /// The robot's behaviors as the registry sees them, less the activations
+  /// known to have ended (a finished event seen, or a Deactivate that
+  /// returned OK): so the coordinator reads its own writes.
+  std::vector<SystemLink::BehaviorView> robotView(const std::string& robot_id) const;
 
   Registry& registry_;
   FleetEventLog& log_;
@@ -161,7 +170,8 @@ class FleetControl final : public MissionActions {
   bool stopped_ = false;
   std::unordered_map<std::string, FinishedActivation> finished_;  // by activation id
   std::set<std::string> seen_;                                    // activated or finished
-  std::deque<std::string> seen_order_;                            // eviction order
+  std::set<std::string> deactivated_;   // Deactivate returned OK; finished event maybe not seen
+  std::deque<std::string> seen_order_;  // eviction order
   std::unique_ptr<FleetSubscription> subscription_;
 };
 

@@ -254,10 +254,18 @@ void SystemLink::watch() {
       if (identity_.source == v1::SYSTEM_SOURCE_REGISTRATION && last_heartbeat_) {
         heartbeat_age = WallClock::now() - *last_heartbeat_;
       }
+      // A silent stream is normal for an idle system: while its heartbeats
+      // come, it is probed only when it runs behaviors (a frozen controller
+      // must be noticed within the grace period); without heartbeats (a
+      // --systems entry), at most once a heartbeat interval.
+      const bool busy = !tracker_.active().empty();
+      const bool probe_silence =
+          busy || (!heartbeat_age && now - last_silence_probe_ >= options_.heartbeat_interval);
       if (heartbeat_age && *heartbeat_age > 2 * options_.heartbeat_interval) {
         trigger = "no heartbeat for " + secondsText(*heartbeat_age);
-      } else if (silent >= options_.silence) {
+      } else if (silent >= options_.silence && probe_silence) {
         trigger = "its event stream was silent for " + secondsText(silent);
+        last_silence_probe_ = now;
       } else {
         // The stream carries messages: the process answers.
         supervision_.healthChecked(true, now);

@@ -209,6 +209,8 @@ class SystemLink {
   std::chrono::system_clock::time_point state_time_;
   std::optional<std::chrono::system_clock::time_point> last_heartbeat_;
   ActivationTracker tracker_;
+  // When the watchdog last probed an idle system for a silent stream.
+  std::chrono::steady_clock::time_point last_silence_probe_{};
   Supervision supervision_;
   std::string last_break_;                               // why the stream last ended, for messages
   std::string start_failure_;                            // why onStart refused the stream

@@ -11,6 +11,16 @@ prints its progress, and writes a mission report (report.md, report.json,
 trajectory.png). Stops every process in reverse order (SIGTERM, then SIGKILL
 after a time-out) on exit and on Ctrl-C.
 
+Meanwhile it supervises the processes as compose's `restart:` does. With
+--restart on-failure (the default) a process that crashes (a non-zero exit
+code, or killed by a signal) is started again with the same arguments, on
+the same ports (the others dial them; a behavior system registers again with
+the coordinator), after 0.5 s doubling up to 5 s; its log goes on in the same
+file and pids.json names its new pid. After 5 restarts of a process within
+60 s the launcher gives up and stops the stack (--demo: once the missions
+have ended). A process that exits with code 0 stays stopped. With --restart
+no, a process that exits stops the stack (while serving).
+
     deploy/local/launch.py --build-dir build --demo
     deploy/local/launch.py --build-dir build          # serve until Ctrl-C
 
@@ -76,7 +86,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import demo  # noqa: E402
 import report  # noqa: E402
 import rpc  # noqa: E402
-from stack import Process, Stack, StartError  # noqa: E402
+from stack import Process, RestartPolicy, Stack, StartError, Supervisor  # noqa: E402
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 CONFIG_DIR = os.path.join(REPO, "deploy", "config")
@@ -188,6 +198,8 @@ def start_stack(args, build_dir, stack):
         simulator_argv += ["--sensor-config", os.path.abspath(args.sensor_config)]
     if args.enable_fault_injection:
         simulator_argv.append("--enable-fault-injection")
+    if args.clock_publish != "line":
+        simulator_argv += ["--clock-publish", args.clock_publish]
     simulator = stack.start(Process("simulator", simulator_argv, stack.run_dir, "simulator"))
     # A world with start poses has its own vehicles, whatever --vehicles says.
     flown = simulator_vehicles(simulator)
@@ -378,6 +390,10 @@ def main():
                         help="the simulator's sensor configuration (YAML; e.g. "
                              "deploy/config/simulator_sensors_aircraft.yaml); default: the "
                              "built-in defaults (deploy/config/simulator_sensors.yaml)")
+    parser.add_argument("--clock-publish", choices=("line", "every-tick"), default="line",
+                        help="how the simulator publishes simulated time: its pace line when it "
+                             "changes and once a wall second (default; readers extrapolate), or "
+                             "a sample every 5 ms of simulated time (as before decision 16)")
     parser.add_argument("--enable-fault-injection", action="store_true",
                         help="let Simulator.InjectFailure inject faults")
     parser.add_argument("--demo", action="store_true",
@@ -392,6 +408,11 @@ def main():
                         help="wall seconds after which the demo aborts the missions")
     parser.add_argument("--stop-timeout-s", type=float, default=10.0,
                         help="wall seconds a process has after SIGTERM before SIGKILL")
+    parser.add_argument("--restart", choices=RestartPolicy.MODES, default="on-failure",
+                        help="on-failure: a process that crashes (non-zero exit code, or a "
+                             "signal) is started again on its ports, at most 5 times in 60 s "
+                             "(then the launcher gives up and stops the stack); no: a process "
+                             "that exits stops the stack (default: %(default)s)")
     args = parser.parse_args()
     args.vehicles = [v for v in args.vehicles.split(",") if v] or [args.robot_id]
     if len(set(args.vehicles)) != len(args.vehicles):
@@ -416,6 +437,7 @@ def main():
 
     started = time.monotonic()
     stack = Stack(run_dir)
+    supervisor = Supervisor(stack, RestartPolicy(args.restart), say)
     status = 0
     demo_state = {"missions": {}, "events": {}, "trajectories": {}, "swarm": {}, "findings": {},
                   "coordinator": None, "clients": []}
@@ -425,6 +447,7 @@ def main():
     try:
         say("\n== starting ==")
         simulator, coordinator, systems = start_stack(args, build_dir, stack)
+        supervisor.start()
         targets = stack.write_prometheus_targets()
         say("\n== running ==")
         for p in stack.processes:
@@ -433,16 +456,14 @@ def main():
         say(f"  Prometheus targets: {targets}")
         if args.demo:
             run_demo(args, run_dir, simulator, coordinator, systems, demo_state)
+            supervisor.check()
             if any(demo_state["missions"].get(robot, {}).get("state") != "MISSION_STATE_SUCCEEDED"
                    for robot in args.missions):
                 status = 1
         else:
             say("Ctrl-C stops everything.")
             while True:
-                for p in stack.processes:
-                    if not p.running():
-                        raise StartError(f"{p.name} exited with code {p.process.returncode}; "
-                                         f"log {p.log_path}")
+                supervisor.check()
                 time.sleep(0.5)
     except Interrupted as signal_received:
         interrupted = str(signal_received)
@@ -457,6 +478,8 @@ def main():
         # Signals during the shutdown would leave processes behind.
         for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
             signal.signal(signum, signal.SIG_IGN)
+        # No restart from here on: the processes are stopped on purpose.
+        supervisor.stop()
         recorders = (list(demo_state["events"].values())
                      + list(demo_state["trajectories"].values())
                      + list(demo_state["swarm"].values()))
@@ -481,7 +504,9 @@ def main():
     if demo_state["events"] and demo_state["trajectories"]:
         behaviors, processes = figures
         for row in processes:
-            row["exit_code"] = stack.find(row["name"]).exit_code
+            process = stack.find(row["name"])
+            row["exit_code"] = process.exit_code
+            row["restarts"] = process.restarts
         first = args.vehicles[0]
         settings = {"mission": os.path.relpath(args.missions.get(first, ""), REPO)
                     if first in args.missions else "",

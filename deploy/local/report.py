@@ -8,9 +8,10 @@ trajectory's summary and planned path, and what its application behaviors
 left in belief memory (QR markers found, the other robots' positions, the
 saved map and the fraction of the world's free space it covers); per
 behavior the paper's columns a, t1, t2, t3 (from each behavior system's
-/metrics, labelled with the robot); memory and CPU per process (/proc). The
-first robot's mission, timeline and trajectory are also at the top level
-(`mission`, `timeline`, `trajectory`), as in a single-robot report.
+/metrics, labelled with the robot); memory and CPU per process (/proc), and
+how many times the launcher restarted it. The first robot's mission,
+timeline and trajectory are also at the top level (`mission`, `timeline`,
+`trajectory`), as in a single-robot report.
 """
 
 import json
@@ -93,9 +94,10 @@ def _planned_legs(mission, timeline, samples):
 
 def _cross_track(samples, path, timeline, activation):
     """RMS and maximum horizontal distance to the planned polyline while the
-    path was followed (ground truth)."""
+    path was followed (ground truth); None when that time is unknown (e.g.
+    the coordinator's finished event for a system that died has none)."""
     times = {r["event"]: r["sim_time_s"] for r in timeline if r["activation_id"] == activation}
-    if len(path) < 2 or "activated" not in times or "finished" not in times:
+    if len(path) < 2 or times.get("activated") is None or times.get("finished") is None:
         return None
 
     def distance(px, py):
@@ -248,13 +250,14 @@ def _behaviors_md(used, h):
 def _processes_md(processes, h):
     lines = ["", f"{h} Processes (/proc at the end of the mission)", "",
              "| process | pid | RSS (MiB) | peak RSS (MiB) | CPU user (s) | CPU system (s) | "
-             "threads | exit code |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "threads | exit code | restarts |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for p in processes:
         def mib(key):
             return _fmt(p[key] / 1024, 1) if key in p else "-"
         lines.append(f"| {p['name']} | {p['pid']} | {mib('rss_kib')} | {mib('peak_rss_kib')} | "
                      f"{_fmt(p.get('cpu_user_s'), 2)} | {_fmt(p.get('cpu_system_s'), 2)} | "
-                     f"{p.get('threads', '-')} | {p.get('exit_code', '-')} |")
+                     f"{p.get('threads', '-')} | {p.get('exit_code', '-')} | "
+                     f"{p.get('restarts', 0)} |")
     return lines
 
 

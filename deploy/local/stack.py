@@ -5,12 +5,18 @@ the gRPC health protocol, one log file each, stopped in reverse order
 
 Each process runs in a session of its own, so a Ctrl-C at the terminal
 reaches only the launcher, which then stops them in order.
+
+A Supervisor thread applies a RestartPolicy (compose's `restart:`) to a
+process that exits while the stack runs: with "on-failure" one that failed
+is started again with the same arguments, on the ports it had (the others
+dial them), its output appended to its log and pids.json rewritten.
 """
 
 import json
 import os
 import signal
 import subprocess
+import threading
 import time
 
 import rpc
@@ -20,6 +26,18 @@ _CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 class StartError(RuntimeError):
     """A process did not start, or did not become healthy."""
+
+
+def read_ports(path):
+    """The ports a process wrote to its --port-file ({"grpc_port": ...,
+    "metrics_port": ...})."""
+    ports = {}
+    with open(path) as f:
+        for line in f:
+            key, _, value = line.strip().partition("=")
+            if value:
+                ports[key] = int(value)
+    return ports
 
 
 class Process:
@@ -40,6 +58,8 @@ class Process:
         self.grpc_port = 0
         self.metrics_port = 0
         self.exit_code = None
+        self.restarts = 0  # how many times the supervisor started it again
+        self.restart_times = []  # time.monotonic() of each restart
 
     @property
     def pid(self):
@@ -60,13 +80,21 @@ class Process:
         except OSError:
             return ""
 
-    def start(self, timeout_s=20.0, on_spawn=None):
+    def start(self, timeout_s=20.0, on_spawn=None, cancel=None):
         """Starts the process and waits until it reports its ports and its
         gRPC health check answers SERVING. `on_spawn` is called once the
-        process exists."""
+        process exists; `cancel` (a threading.Event), once set, ends the
+        wait with a StartError. Once healthy the process keeps its ports:
+        starting it again (a restart) serves on the same ones and appends to
+        its log."""
+        restarting = self.process is not None
+        if restarting:  # its new port file says when it is listening
+            self.grpc_port = self.metrics_port = 0
+            if os.path.exists(self.port_file):
+                os.remove(self.port_file)
         os.makedirs(os.path.dirname(self.port_file), exist_ok=True)
         os.makedirs(os.path.dirname(self.log_path), exist_ok=True)
-        with open(self.log_path, "wb") as log:
+        with open(self.log_path, "ab" if restarting else "wb") as log:
             log.write(("$ " + " ".join(self.argv) + "\n").encode())
             log.flush()
             self.process = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=log,
@@ -76,23 +104,21 @@ class Process:
         deadline = time.monotonic() + timeout_s
         health = "no answer"
         while time.monotonic() < deadline:
+            if cancel is not None and cancel.is_set():
+                raise StartError(f"{self.name}: start cancelled")
             if self.process.poll() is not None:
                 self.exit_code = self.process.returncode
-                raise StartError(f"{self.name} exited with code {self.exit_code} before it was "
-                                 f"ready; {self.log_path} ends with:\n{self._log_tail()}")
+                raise StartError(f"{self.name} exited with {self.exit_description()} before it "
+                                 f"was ready; {self.log_path} ends with:\n{self._log_tail()}")
             if not self.grpc_port and os.path.exists(self.port_file):
-                ports = {}
-                with open(self.port_file) as f:
-                    for line in f:
-                        key, _, value = line.strip().partition("=")
-                        if value:
-                            ports[key] = int(value)
+                ports = read_ports(self.port_file)
                 self.grpc_port = ports.get("grpc_port", 0)
                 self.metrics_port = ports.get("metrics_port", 0)
             if self.grpc_port:
                 try:
                     health = rpc.health_status(self.address, timeout=1.0)
                     if health == "SERVING":
+                        self._keep_ports()
                         return
                 except rpc.grpc.RpcError as error:
                     health = error.code().name
@@ -100,8 +126,33 @@ class Process:
         raise StartError(f"{self.name} was not healthy within {timeout_s} s (health: {health}); "
                          f"log {self.log_path}")
 
+    def _keep_ports(self):
+        """Rewrites the --listen and --metrics-listen arguments to the ports
+        bound (a first start asks for port 0): a restart then serves where
+        the other processes dial."""
+        bound = {"--listen": self.grpc_port, "--metrics-listen": self.metrics_port}
+        for i, arg in enumerate(self.argv[:-1]):
+            if bound.get(arg):
+                host = self.argv[i + 1].rpartition(":")[0]
+                self.argv[i + 1] = f"{host}:{bound[arg]}"
+
     def running(self):
         return self.process is not None and self.process.poll() is None
+
+    def exit_description(self):
+        """How the process ended: "code 1", "signal 9 (SIGKILL)"."""
+        code = self.process.returncode
+        if code is None or code >= 0:
+            return f"code {code}"
+        try:
+            return f"signal {-code} ({signal.Signals(-code).name})"
+        except ValueError:
+            return f"signal {-code}"
+
+    def log_note(self, text):
+        """Appends a line of the launcher's to the process's log."""
+        with open(self.log_path, "a") as log:
+            log.write(f"launch.py: {text}\n")
 
     def proc_stats(self):
         """Memory and CPU time from /proc/<pid> while it runs, else None."""
@@ -156,6 +207,11 @@ class Stack:
         process.start(timeout_s, on_spawn=self._write_pids)
         return process
 
+    def restart(self, process, timeout_s=20.0, cancel=None):
+        """Starts a process of the stack that exited again, with the same
+        arguments and ports; pids.json then names its new pid."""
+        process.start(timeout_s, on_spawn=self._write_pids, cancel=cancel)
+
     def find(self, name):
         return next((p for p in self.processes if p.name == name), None)
 
@@ -194,7 +250,135 @@ class Stack:
             was_running = p.running()
             code = p.stop(timeout_s)
             how = "exited" if was_running else "had already exited"
-            report(f"  {p.name:<40} {how} with code {code}")
+            restarts = (f"; restarted {p.restarts} time{'s' if p.restarts > 1 else ''}"
+                        if p.restarts else "")
+            report(f"  {p.name:<40} {how} with code {code}{restarts}")
             clean = clean and code == 0
         self._write_pids()
         return clean
+
+
+class RestartPolicy:
+    """compose's `restart:` for the stack's processes. "on-failure": a
+    process that exits with a non-zero code or is killed by a signal is
+    started again, after a delay that doubles with each restart of the last
+    `window_s` (from `first_delay_s` up to `max_delay_s`); after
+    `max_restarts` restarts within `window_s` it is not, and the launcher
+    gives up. One that exits with code 0 is left stopped. "no": no process is
+    restarted, and any exit stops the stack."""
+
+    MODES = ("on-failure", "no")
+
+    def __init__(self, mode="on-failure", max_restarts=5, window_s=60.0, first_delay_s=0.5,
+                 max_delay_s=5.0):
+        if mode not in self.MODES:
+            raise ValueError(f"restart policy {mode!r} is not one of {', '.join(self.MODES)}")
+        self.mode = mode
+        self.max_restarts = max_restarts
+        self.window_s = window_s
+        self.first_delay_s = first_delay_s
+        self.max_delay_s = max_delay_s
+
+    def leaves_stopped(self, process):
+        """True for a process that exited cleanly and stays so (on-failure)."""
+        return self.mode == "on-failure" and process.process.returncode == 0
+
+    def _recent(self, process, now):
+        return [t for t in process.restart_times if now - t < self.window_s]
+
+    def refusal(self, process, now):
+        """Why `process`, which exited, is not restarted; "" when it is."""
+        if self.mode == "no":
+            return "--restart no"
+        if len(self._recent(process, now)) >= self.max_restarts:
+            return f"restarted {self.max_restarts} times within {self.window_s:g} s already"
+        return ""
+
+    def delay_s(self, process, now):
+        """How long to wait before restarting `process`."""
+        return min(self.first_delay_s * 2 ** len(self._recent(process, now)), self.max_delay_s)
+
+
+class Supervisor:
+    """Watches the stack's processes on a thread of its own and applies the
+    restart policy to one that exits: restarts it (Stack.restart, after the
+    policy's delay), prints and appends to its log why, or gives up (then
+    `failure` says why and check() raises). Call stop() before Stack.stop():
+    a process stopped on purpose is never restarted.
+
+        supervisor = Supervisor(stack, RestartPolicy("on-failure"), say)
+        supervisor.start()
+        ...
+        supervisor.check()   # StartError once it gave up
+        supervisor.stop()
+        stack.stop()
+    """
+
+    def __init__(self, stack, policy, report=print, poll_s=0.2, start_timeout_s=20.0):
+        self._stack = stack
+        self._policy = policy
+        self._report = report
+        self._poll_s = poll_s
+        self._start_timeout_s = start_timeout_s
+        self._stopping = threading.Event()
+        self._left_stopped = set()  # names of processes that exited cleanly
+        self._thread = threading.Thread(target=self._run, name="supervisor", daemon=True)
+        self.failure = ""
+
+    def start(self):
+        self._thread.start()
+
+    def stop(self):
+        """Ends the supervision; waits for a restart in progress to give up."""
+        self._stopping.set()
+        if self._thread.is_alive():
+            self._thread.join()
+
+    def check(self):
+        """Raises StartError once the supervisor gave up on a process."""
+        if self.failure:
+            raise StartError(self.failure)
+
+    def _run(self):
+        while not self._stopping.wait(self._poll_s) and not self.failure:
+            for process in list(self._stack.processes):
+                if self._stopping.is_set() or self.failure:
+                    break
+                if (process.process is not None and not process.running()
+                        and process.name not in self._left_stopped):
+                    self._on_exit(process)
+
+    def _note(self, process, text):
+        self._report(f"  {text}")
+        process.log_note(text)
+
+    def _on_exit(self, process):
+        process.exit_code = process.process.returncode
+        exited = f"{process.name} exited with {process.exit_description()}"
+        if self._policy.leaves_stopped(process):
+            self._left_stopped.add(process.name)
+            self._note(process, f"{exited}; not restarted (--restart on-failure)")
+            return
+        now = time.monotonic()
+        refusal = self._policy.refusal(process, now)
+        if refusal:
+            self.failure = f"{exited}; not restarted ({refusal}); log {process.log_path}"
+            self._note(process, f"{exited}; not restarted ({refusal}): giving up")
+            return
+        delay_s = self._policy.delay_s(process, now)
+        process.restarts += 1
+        process.restart_times.append(now)
+        self._note(process, f"{exited}; restarting in {delay_s:g} s (restart {process.restarts})")
+        if not self._stopping.wait(delay_s):
+            self._restart(process)
+
+    def _restart(self, process):
+        try:
+            self._stack.restart(process, self._start_timeout_s, cancel=self._stopping)
+        except StartError as error:
+            self._note(process, f"restart {process.restarts} of {process.name} failed: {error}")
+            if process.running() and not self._stopping.is_set():
+                process.stop()  # not healthy: the next poll sees it exited
+            return
+        self._note(process, f"{process.name} restarted: pid {process.pid}, gRPC "
+                            f"{process.address}")

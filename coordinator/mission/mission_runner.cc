@@ -207,11 +207,13 @@ void MissionRunner::run() {
     case Flow::kDone:
       deactivateRecurrent();
       {
+        // One step: a waiter that sees done_ sees the final state too.
         std::lock_guard lock(mutex_);
         *status_.mutable_end_time() = TimeUtil::GetCurrentTime();
+        status_.set_state(v1::MISSION_STATE_SUCCEEDED);
         done_ = true;
       }
-      setState(v1::MISSION_STATE_SUCCEEDED);
+      publish();
       return;
     case Flow::kAbortRequested:
       if (failure_.empty()) {

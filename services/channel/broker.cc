@@ -39,6 +39,11 @@ google::protobuf::Timestamp wallNow() {
   return t;
 }
 
+// How long a GetLatest keeps a gated topic wanted, and how long one waits
+// for a gated topic's next sample.
+constexpr std::chrono::seconds kTransientInterest(2);
+constexpr std::chrono::seconds kMaxGetLatestWait(1);
+
 grpc::Status shuttingDownStatus() {
   return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the channel broker is shutting down");
 }
@@ -119,6 +124,108 @@ struct Broker::Topic {
   Sample latest;
   uint64_t seq = 0;  // also the number of samples published
   std::vector<std::shared_ptr<SubscribeReactor>> subscribers;
+  // Until when a GetLatest keeps the topic wanted (WatchInterest).
+  std::chrono::steady_clock::time_point wanted_until{};
+  // Its last publisher gates it by interest (kGatedPrefixMetadataKey).
+  bool gated = false;
+  // GetLatest calls waiting for the topic's next sample (a gated topic).
+  struct WaitingGet {
+    grpc::ServerUnaryReactor* reactor;
+    v1::GetLatestResponse* response;
+    std::chrono::steady_clock::time_point deadline;
+  };
+  std::vector<WaitingGet> waiting;
+
+  // Caller holds mutex.
+  bool wantedLocked(std::chrono::steady_clock::time_point now) const {
+    return !subscribers.empty() || wanted_until > now;
+  }
+};
+
+// ---------------------------------------------------------------------------
+// WatchInterest: one reactor per stream; only the newest wanted set waits to
+// be written, one write at a time (as a LATEST subscription).
+
+class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchInterestResponse> {
+ public:
+  InterestReactor(Broker* broker, std::string prefix)
+      : broker_(broker), prefix_(std::move(prefix)) {}
+
+  void setSelf(std::shared_ptr<InterestReactor> self) { self_ = std::move(self); }
+  const std::string& prefix() const { return prefix_; }
+
+  // Called with the broker's mutex held: replaces the unsent set when
+  // `wanted` differs from the last one offered. True when the caller must
+  // pump() after releasing the mutex.
+  bool offer(std::vector<std::string> wanted) {
+    std::lock_guard lock(mutex_);
+    if (finish_status_.has_value() || (offered_once_ && wanted == last_offered_)) return false;
+    offered_once_ = true;
+    last_offered_ = wanted;
+    pending_ = std::move(wanted);
+    return !busy_;
+  }
+
+  void pump() {
+    std::unique_lock lock(mutex_);
+    if (busy_ || finished_) return;
+    if (finish_status_.has_value()) {
+      finished_ = true;
+      const grpc::Status status = *finish_status_;
+      lock.unlock();
+      Finish(status);
+      return;
+    }
+    if (!pending_) return;
+    current_.Clear();
+    for (auto& name : *pending_) current_.add_wanted_topics(std::move(name));
+    pending_.reset();
+    busy_ = true;
+    lock.unlock();
+    StartWrite(&current_);
+  }
+
+  void requestFinish(grpc::Status status) {
+    {
+      std::lock_guard lock(mutex_);
+      if (!finish_status_.has_value()) finish_status_ = std::move(status);
+      pending_.reset();
+    }
+    pump();
+  }
+
+  void OnWriteDone(bool ok) override {
+    {
+      std::lock_guard lock(mutex_);
+      busy_ = false;
+      if (!ok && !finish_status_.has_value()) {
+        finish_status_ = grpc::Status(grpc::StatusCode::CANCELLED, "interest stream broken");
+      }
+    }
+    pump();
+  }
+
+  void OnCancel() override {
+    requestFinish(grpc::Status(grpc::StatusCode::CANCELLED, "interest watch cancelled"));
+  }
+
+  void OnDone() override {
+    broker_->removeInterestWatcher(this);
+    std::shared_ptr<InterestReactor> self = std::move(self_);
+  }
+
+ private:
+  Broker* const broker_;
+  const std::string prefix_;
+  std::shared_ptr<InterestReactor> self_;  // alive until OnDone
+  std::mutex mutex_;
+  bool offered_once_ = false;
+  std::vector<std::string> last_offered_;
+  std::optional<std::vector<std::string>> pending_;
+  bool busy_ = false;
+  std::optional<grpc::Status> finish_status_;
+  bool finished_ = false;
+  v1::WatchInterestResponse current_;  // owned by whoever set busy_
 };
 
 // ---------------------------------------------------------------------------
@@ -271,8 +378,19 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
 
 class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishRequest> {
  public:
-  PublishReactor(Broker* broker, v1::PublishResponse* response)
-      : broker_(broker), response_(response) {}
+  PublishReactor(Broker* broker, grpc::CallbackServerContext* context,
+                 v1::PublishResponse* response)
+      : broker_(broker), response_(response) {
+    const auto& metadata = context->client_metadata();
+    auto it = metadata.find(kGatedPrefixMetadataKey);
+    if (it != metadata.end()) gated_prefix_ = std::string(it->second.data(), it->second.size());
+  }
+
+  // Whether this stream's publisher gates `topic` by interest (it said so
+  // in its metadata, kGatedPrefixMetadataKey).
+  bool gates(absl::string_view topic) const {
+    return gated_prefix_.has_value() && absl::StartsWith(topic, *gated_prefix_);
+  }
 
   void start() {
     std::lock_guard lock(mutex_);
@@ -320,6 +438,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
 
   Broker* const broker_;
   v1::PublishResponse* const response_;
+  std::optional<std::string> gated_prefix_;
   v1::PublishRequest request_;  // used by one read at a time
   std::mutex mutex_;
   uint64_t accepted_ = 0;
@@ -329,9 +448,18 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
 // ---------------------------------------------------------------------------
 // Broker
 
-Broker::Broker(prometheus::Registry& registry) : metrics_(std::make_unique<Metrics>(registry)) {}
+Broker::Broker(prometheus::Registry& registry) : metrics_(std::make_unique<Metrics>(registry)) {
+  housekeeper_ = std::thread([this] { housekeep(); });
+}
 
-Broker::~Broker() = default;
+Broker::~Broker() {
+  {
+    std::lock_guard lock(mutex_);
+    shutting_down_ = true;
+  }
+  housekeeping_cv_.notify_all();
+  housekeeper_.join();
+}
 
 void Broker::countRejected(absl::string_view reason) {
   auto it = metrics_->rejected_by_reason.find(reason);
@@ -346,9 +474,9 @@ std::shared_ptr<Broker::Topic> Broker::topicLocked(const std::string& name) {
   return topic;
 }
 
-grpc::ServerReadReactor<v1::PublishRequest>* Broker::Publish(
-    grpc::CallbackServerContext* /*context*/, v1::PublishResponse* response) {
-  auto* reactor = new PublishReactor(this, response);
+grpc::ServerReadReactor<v1::PublishRequest>* Broker::Publish(grpc::CallbackServerContext* context,
+                                                             v1::PublishResponse* response) {
+  auto* reactor = new PublishReactor(this, context, response);
   bool refuse = false;
   {
     std::lock_guard lock(mutex_);
@@ -405,16 +533,26 @@ grpc::Status Broker::publish(PublishReactor& publisher, v1::PublishRequest& requ
         absl::StrCat("topic '", topic->name, "' carries ", carried, "; got ", type->full_name()));
   }
   topic->type = type;
+  topic->gated = publisher.gates(topic->name);
   sample->set_topic_seq(++topic->seq);
-  topic->latest = sample;
+  // A gated topic nobody wants keeps no sample (it would grow stale); this
+  // one (its first, say) still made the topic and its type known.
+  const bool keep = !topic->gated || topic->wantedLocked(std::chrono::steady_clock::now());
+  topic->latest = keep ? sample : nullptr;
   absl::InlinedVector<std::shared_ptr<SubscribeReactor>, 8> idle;
   for (const auto& subscriber : topic->subscribers) {
     if (subscriber->offer(topic->latest)) idle.push_back(subscriber);
   }
+  std::vector<Topic::WaitingGet> answered;
+  answered.swap(topic->waiting);
   topic_lock.unlock();
   topic->samples_in.Increment();
   publisher.cached_topic = std::move(topic);
   for (const auto& subscriber : idle) subscriber->pump();
+  for (auto& get : answered) {
+    *get.response->mutable_sample() = *sample;
+    get.reactor->Finish(grpc::Status::OK);
+  }
   return grpc::Status::OK;
 }
 
@@ -454,18 +592,25 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
   }
 
   bool registered = false;
+  InterestReactors watchers;
   {
     std::lock_guard lock(mutex_);
     if (!shutting_down_) {
       std::shared_ptr<Topic> topic = topicLocked(request->topic());
-      std::lock_guard topic_lock(topic->mutex);
-      reactor->attach(topic);
-      topic->subscribers.push_back(reactor);
-      topic->subscriber_gauge.Set(static_cast<double>(topic->subscribers.size()));
-      if (request->send_latest_first() && topic->latest) reactor->offer(topic->latest);
+      bool first = false;
+      {
+        std::lock_guard topic_lock(topic->mutex);
+        reactor->attach(topic);
+        first = topic->subscribers.empty();
+        topic->subscribers.push_back(reactor);
+        topic->subscriber_gauge.Set(static_cast<double>(topic->subscribers.size()));
+        if (request->send_latest_first() && topic->latest) reactor->offer(topic->latest);
+      }
+      if (first) interestChangedLocked(&watchers);
       registered = true;
     }
   }
+  for (const auto& watcher : watchers) watcher->pump();
   if (!registered) {
     reactor->requestFinish(shuttingDownStatus());
   } else {
@@ -476,22 +621,147 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
 
 void Broker::removeSubscriber(const std::shared_ptr<Topic>& topic,
                               const SubscribeReactor* subscriber) {
+  InterestReactors watchers;
+  {
+    std::lock_guard lock(mutex_);
+    bool last = false;
+    {
+      std::lock_guard topic_lock(topic->mutex);
+      auto& subs = topic->subscribers;
+      subs.erase(std::remove_if(subs.begin(), subs.end(),
+                                [subscriber](const auto& s) { return s.get() == subscriber; }),
+                 subs.end());
+      topic->subscriber_gauge.Set(static_cast<double>(subs.size()));
+      last = subs.empty();
+      if (last) forgetIfUnwantedLocked(*topic, std::chrono::steady_clock::now());
+      if (topic->seq == 0 && last && topic->waiting.empty()) {
+        // Only ever had waiting subscribers: forget it rather than keep a
+        // topic (and its metric series) for every name someone once asked
+        // for.
+        auto it = topics_.find(topic->name);
+        if (it != topics_.end() && it->second == topic) {
+          topics_.erase(it);
+          topic->removeMetrics(*metrics_);
+        }
+      }
+    }
+    if (last) interestChangedLocked(&watchers);
+  }
+  for (const auto& watcher : watchers) watcher->pump();
+}
+
+void Broker::forgetIfUnwantedLocked(Topic& topic, std::chrono::steady_clock::time_point now) {
+  if (topic.latest && topic.gated && !topic.wantedLocked(now)) topic.latest.reset();
+}
+
+void Broker::interestChangedLocked(InterestReactors* idle) {
+  if (interest_watchers_.empty()) return;
+  const auto now = std::chrono::steady_clock::now();
+  for (const auto& watcher : interest_watchers_) {
+    std::vector<std::string> wanted;
+    const std::string& prefix = watcher->prefix();
+    for (auto it = topics_.lower_bound(prefix);
+         it != topics_.end() && absl::StartsWith(it->first, prefix); ++it) {
+      std::lock_guard topic_lock(it->second->mutex);
+      if (it->second->wantedLocked(now)) wanted.push_back(it->first);
+    }
+    if (watcher->offer(std::move(wanted))) idle->push_back(watcher);
+  }
+}
+
+void Broker::removeInterestWatcher(const InterestReactor* watcher) {
   std::lock_guard lock(mutex_);
-  std::lock_guard topic_lock(topic->mutex);
-  auto& subs = topic->subscribers;
-  subs.erase(std::remove_if(subs.begin(), subs.end(),
-                            [subscriber](const auto& s) { return s.get() == subscriber; }),
-             subs.end());
-  topic->subscriber_gauge.Set(static_cast<double>(subs.size()));
-  if (topic->seq == 0 && subs.empty()) {
-    // Only ever had waiting subscribers: forget it rather than keep a topic
-    // (and its metric series) for every name someone once asked for.
-    auto it = topics_.find(topic->name);
-    if (it != topics_.end() && it->second == topic) {
-      topics_.erase(it);
-      topic->removeMetrics(*metrics_);
+  interest_watchers_.erase(std::remove_if(interest_watchers_.begin(), interest_watchers_.end(),
+                                          [watcher](const auto& w) { return w.get() == watcher; }),
+                           interest_watchers_.end());
+}
+
+grpc::ServerWriteReactor<v1::WatchInterestResponse>* Broker::WatchInterest(
+    grpc::CallbackServerContext* /*context*/, const v1::WatchInterestRequest* request) {
+  auto reactor = std::make_shared<InterestReactor>(this, request->prefix());
+  reactor->setSelf(reactor);
+  bool refused = false;
+  {
+    std::lock_guard lock(mutex_);
+    refused = shutting_down_;
+    if (!refused) {
+      interest_watchers_.push_back(reactor);
+      InterestReactors ignored;  // the new watcher is pumped below
+      interestChangedLocked(&ignored);
     }
   }
+  if (refused) {
+    reactor->requestFinish(shuttingDownStatus());
+  } else {
+    reactor->pump();
+  }
+  return reactor.get();
+}
+
+void Broker::housekeep() {
+  std::unique_lock lock(mutex_);
+  while (!shutting_down_) {
+    const auto now = std::chrono::steady_clock::now();
+    auto next = std::chrono::steady_clock::time_point::max();
+    std::vector<Topic::WaitingGet> expired;
+    bool interest_changed = false;
+    for (auto it = timed_topics_.begin(); it != timed_topics_.end();) {
+      const std::shared_ptr<Topic> keep = *it;  // outlives topic_lock
+      Topic& topic = *keep;
+      std::lock_guard topic_lock(topic.mutex);
+      auto& waiting = topic.waiting;
+      for (auto w = waiting.begin(); w != waiting.end();) {
+        if (w->deadline <= now) {
+          expired.push_back(*w);
+          w = waiting.erase(w);
+        } else {
+          next = std::min(next, w->deadline);
+          ++w;
+        }
+      }
+      if (topic.wanted_until != std::chrono::steady_clock::time_point{} &&
+          topic.wanted_until <= now) {
+        topic.wanted_until = {};
+        if (topic.subscribers.empty()) {
+          forgetIfUnwantedLocked(topic, now);
+          interest_changed = true;
+        }
+      } else if (topic.wanted_until != std::chrono::steady_clock::time_point{}) {
+        next = std::min(next, topic.wanted_until);
+      }
+      const bool timed =
+          !waiting.empty() || topic.wanted_until != std::chrono::steady_clock::time_point{};
+      it = timed ? std::next(it) : timed_topics_.erase(it);
+    }
+    InterestReactors watchers;
+    if (interest_changed) interestChangedLocked(&watchers);
+    if (!expired.empty() || !watchers.empty()) {
+      lock.unlock();
+      for (const auto& watcher : watchers) watcher->pump();
+      for (auto& get : expired) {
+        get.reactor->Finish(grpc::Status(
+            grpc::StatusCode::NOT_FOUND,
+            "no sample on the gated topic within the wait: its publisher did not resume it"));
+      }
+      lock.lock();
+      continue;
+    }
+    if (next == std::chrono::steady_clock::time_point::max()) {
+      housekeeping_cv_.wait(lock);
+    } else {
+      housekeeping_cv_.wait_until(lock, next);
+    }
+  }
+  // Shutting down: answer whoever still waits.
+  std::vector<Topic::WaitingGet> left;
+  for (const auto& topic : timed_topics_) {
+    std::lock_guard topic_lock(topic->mutex);
+    left.insert(left.end(), topic->waiting.begin(), topic->waiting.end());
+    topic->waiting.clear();
+  }
+  timed_topics_.clear();
+  lock.unlock();
+  for (auto& get : left) get.reactor->Finish(shuttingDownStatus());
 }
 
 grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context,
@@ -503,14 +773,48 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
     return reactor;
   }
   Sample latest;
+  InterestReactors watchers;
+  bool waits = false;
   {
     std::lock_guard lock(mutex_);
     auto it = topics_.find(request->topic());
-    if (it != topics_.end()) {
+    bool gated = false;
+    if (it != topics_.end() && !shutting_down_) {
+      std::lock_guard topic_lock(it->second->mutex);
+      gated = it->second->gated;
+    }
+    if (gated) {
+      // A gated topic is wanted for a while after a GetLatest, so that its
+      // publisher (re)starts it; without a sample the call waits for one.
+      std::shared_ptr<Topic> topic = it->second;
+      const auto now = std::chrono::steady_clock::now();
+      bool was_wanted = false;
+      {
+        std::lock_guard topic_lock(topic->mutex);
+        was_wanted = topic->wantedLocked(now);
+        topic->wanted_until = now + kTransientInterest;
+        latest = topic->latest;
+        if (!latest) {
+          const auto left = std::max<std::chrono::system_clock::duration>(
+              context->deadline() - std::chrono::system_clock::now(),
+              std::chrono::system_clock::duration::zero());
+          const auto wait = std::min<std::chrono::system_clock::duration>(kMaxGetLatestWait, left);
+          topic->waiting.push_back(
+              {reactor, response,
+               now + std::chrono::duration_cast<std::chrono::steady_clock::duration>(wait)});
+          waits = true;
+        }
+      }
+      timed_topics_.insert(topic);
+      housekeeping_cv_.notify_all();
+      if (!was_wanted) interestChangedLocked(&watchers);
+    } else if (it != topics_.end()) {
       std::lock_guard topic_lock(it->second->mutex);
       latest = it->second->latest;
     }
   }
+  for (const auto& watcher : watchers) watcher->pump();
+  if (waits) return reactor;
   if (!latest) {
     reactor->Finish(grpc::Status(
         grpc::StatusCode::NOT_FOUND,
@@ -547,6 +851,7 @@ grpc::ServerUnaryReactor* Broker::ListTopics(grpc::CallbackServerContext* contex
 
 void Broker::shutdown() {
   std::vector<std::shared_ptr<SubscribeReactor>> subscribers;
+  InterestReactors watchers;
   {
     std::lock_guard lock(mutex_);
     shutting_down_ = true;
@@ -558,8 +863,11 @@ void Broker::shutdown() {
     // dispatched to gRPC's threads), so this is safe under the lock, which
     // keeps the reactors alive meanwhile.
     for (PublishReactor* publisher : publishers_) publisher->requestFinish(shuttingDownStatus());
+    watchers = interest_watchers_;
   }
+  housekeeping_cv_.notify_all();  // answers the waiting GetLatest calls
   for (const auto& subscriber : subscribers) subscriber->requestFinish(shuttingDownStatus());
+  for (const auto& watcher : watchers) watcher->requestFinish(shuttingDownStatus());
 }
 
 }  // namespace behaviorlib::channel

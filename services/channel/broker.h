@@ -15,11 +15,15 @@
 //   broker.shutdown();  // ends every stream, then
 //   server->Shutdown();
 
+#include <condition_variable>
 #include <map>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <string>
+#include <thread>
 #include <unordered_set>
+#include <vector>
 
 #include "absl/strings/string_view.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
@@ -56,6 +60,8 @@ class Broker final : public v1::DataChannel::CallbackService {
   grpc::ServerUnaryReactor* ListTopics(grpc::CallbackServerContext* context,
                                        const v1::ListTopicsRequest* request,
                                        v1::ListTopicsResponse* response) override;
+  grpc::ServerWriteReactor<v1::WatchInterestResponse>* WatchInterest(
+      grpc::CallbackServerContext* context, const v1::WatchInterestRequest* request) override;
 
   /// Ends every Publish and Subscribe stream with UNAVAILABLE and refuses new
   /// ones, so that grpc::Server::Shutdown does not wait for clients that keep
@@ -65,8 +71,10 @@ class Broker final : public v1::DataChannel::CallbackService {
  private:
   class PublishReactor;
   class SubscribeReactor;
+  class InterestReactor;
   struct Topic;
   struct Metrics;
+  using InterestReactors = std::vector<std::shared_ptr<InterestReactor>>;
 
   // Validates and stores one sample; fans it out to the subscribers.
   grpc::Status publish(PublishReactor& publisher, v1::PublishRequest& request);
@@ -76,6 +84,16 @@ class Broker final : public v1::DataChannel::CallbackService {
   void removePublisher(PublishReactor* publisher);
   void countRejected(absl::string_view reason);
 
+  // Interest (WatchInterest). Callers hold mutex_.
+  // Sends every watcher whose wanted set changed its new set; the watchers
+  // to pump once mutex_ is released are appended to `idle`.
+  void interestChangedLocked(InterestReactors* idle);
+  // A gated topic nobody wants any more forgets its latest sample.
+  void forgetIfUnwantedLocked(Topic& topic, std::chrono::steady_clock::time_point now);
+  void removeInterestWatcher(const InterestReactor* watcher);
+  // Thread: expires GetLatest's transient interest and its waiting calls.
+  void housekeep();
+
   std::unique_ptr<Metrics> metrics_;
 
   // Lock order: mutex_, then Topic::mutex, then a subscription's mutex.
@@ -84,7 +102,12 @@ class Broker final : public v1::DataChannel::CallbackService {
   // it; a topic that only had waiting subscribers goes away with them.
   std::map<std::string, std::shared_ptr<Topic>, std::less<>> topics_;
   std::unordered_set<PublishReactor*> publishers_;
+  InterestReactors interest_watchers_;
+  // Topics with a transient interest or waiting GetLatest calls.
+  std::set<std::shared_ptr<Topic>> timed_topics_;
+  std::condition_variable housekeeping_cv_;
   bool shutting_down_ = false;
+  std::thread housekeeper_;  // started last
 };
 
 }  // namespace behaviorlib::channel

@@ -7,9 +7,12 @@
 #include <atomic>
 #include <condition_variable>
 #include <mutex>
+#include <optional>
 #include <thread>
 #include <utility>
 
+#include "absl/container/flat_hash_set.h"
+#include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "channel/topic.h"
@@ -158,6 +161,98 @@ uint64_t Subscription::receivedCount() const { return impl_->receivedCount(); }
 absl::Status Subscription::status() const { return impl_->status(); }
 
 // ---------------------------------------------------------------------------
+// InterestWatch
+
+class InterestWatch::Impl {
+ public:
+  Impl(std::shared_ptr<v1::DataChannel::Stub> stub, std::string prefix,
+       std::function<void()> on_change)
+      : stub_(std::move(stub)), prefix_(std::move(prefix)), on_change_(std::move(on_change)) {
+    thread_ = std::thread([this] { run(); });
+  }
+
+  ~Impl() { stop(); }
+
+  void stop() {
+    {
+      std::lock_guard lock(mutex_);
+      stopping_ = true;
+      if (context_ != nullptr) context_->TryCancel();
+    }
+    cv_.notify_all();
+    if (thread_.joinable()) thread_.join();
+  }
+
+  bool wanted(const std::string& topic) const {
+    if (!absl::StartsWith(topic, prefix_)) return true;  // not gated
+    std::lock_guard lock(mutex_);
+    return !known_ || wanted_.contains(topic);
+  }
+
+  bool known() const {
+    std::lock_guard lock(mutex_);
+    return known_;
+  }
+
+ private:
+  void run() {
+    std::chrono::milliseconds backoff = kInitialBackoff;
+    while (true) {
+      grpc::ClientContext context;
+      {
+        std::lock_guard lock(mutex_);
+        if (stopping_) return;
+        context_ = &context;
+      }
+      v1::WatchInterestRequest request;
+      request.set_prefix(prefix_);
+      auto reader = stub_->WatchInterest(&context, request);
+      v1::WatchInterestResponse response;
+      while (reader->Read(&response)) {
+        {
+          std::lock_guard lock(mutex_);
+          known_ = true;
+          wanted_ = absl::flat_hash_set<std::string>(response.wanted_topics().begin(),
+                                                     response.wanted_topics().end());
+        }
+        backoff = kInitialBackoff;
+        on_change_();
+      }
+      reader->Finish().IgnoreError();
+      bool was_known = false;
+      {
+        std::lock_guard lock(mutex_);
+        context_ = nullptr;
+        was_known = known_;
+        known_ = false;  // everything wanted until the broker answers again
+      }
+      if (was_known) on_change_();
+      std::unique_lock lock(mutex_);
+      cv_.wait_for(lock, backoff, [this] { return stopping_; });
+      if (stopping_) return;
+      backoff = std::min(backoff * 2, kMaxBackoff);
+    }
+  }
+
+  const std::shared_ptr<v1::DataChannel::Stub> stub_;
+  const std::string prefix_;
+  const std::function<void()> on_change_;
+  std::thread thread_;
+
+  mutable std::mutex mutex_;
+  std::condition_variable cv_;
+  grpc::ClientContext* context_ = nullptr;
+  bool stopping_ = false;
+  bool known_ = false;
+  absl::flat_hash_set<std::string> wanted_;
+};
+
+InterestWatch::InterestWatch(std::shared_ptr<Impl> impl) : impl_(std::move(impl)) {}
+InterestWatch::~InterestWatch() { impl_->stop(); }
+bool InterestWatch::wanted(const std::string& topic) const { return impl_->wanted(topic); }
+bool InterestWatch::known() const { return impl_->known(); }
+
+// ---------------------------------------------------------------------------
 // ChannelClient
 
 class ChannelClient::Impl {
@@ -247,11 +342,24 @@ class ChannelClient::Impl {
     return std::make_unique<Subscription>(std::move(impl));
   }
 
+  void gatePublishing(const std::string& prefix) {
+    std::lock_guard lock(publish_mutex_);
+    gated_prefix_ = prefix;
+    if (writer_) closeLocked(nullptr).IgnoreError();
+  }
+
+  std::unique_ptr<InterestWatch> watchInterest(const std::string& prefix,
+                                               std::function<void()> on_change) {
+    return std::make_unique<InterestWatch>(
+        std::make_shared<InterestWatch::Impl>(stub_, prefix, std::move(on_change)));
+  }
+
   const std::string address_;
 
  private:
   void openLocked() {
     publish_context_ = std::make_unique<grpc::ClientContext>();
+    if (gated_prefix_) publish_context_->AddMetadata(kGatedPrefixMetadataKey, *gated_prefix_);
     publish_response_.Clear();
     writer_ = stub_->Publish(publish_context_.get(), &publish_response_);
   }
@@ -272,6 +380,7 @@ class ChannelClient::Impl {
   std::unique_ptr<grpc::ClientContext> publish_context_;
   v1::PublishResponse publish_response_;
   std::unique_ptr<grpc::ClientWriter<v1::PublishRequest>> writer_;
+  std::optional<std::string> gated_prefix_;
 };
 
 ChannelClient::ChannelClient(const std::string& address) : impl_(std::make_unique<Impl>(address)) {}
@@ -300,6 +409,13 @@ std::unique_ptr<Subscription> ChannelClient::subscribe(
     const std::string& topic, SubscribeOptions options,
     std::function<void(const v1::SubscribeResponse&)> on_sample) {
   return impl_->subscribe(topic, options, std::move(on_sample));
+}
+
+void ChannelClient::gatePublishing(const std::string& prefix) { impl_->gatePublishing(prefix); }
+
+std::unique_ptr<InterestWatch> ChannelClient::watchInterest(const std::string& prefix,
+                                                            std::function<void()> on_change) {
+  return impl_->watchInterest(prefix, std::move(on_change));
 }
 
 }  // namespace behaviorlib::channel

@@ -81,6 +81,31 @@ class Subscription {
   std::shared_ptr<Impl> impl_;
 };
 
+/// Which topics under a prefix someone wants (DataChannel.WatchInterest),
+/// for a publisher that publishes only those: made by
+/// ChannelClient::watchInterest, its reader thread reconnects like a
+/// Subscription's. Until the broker's first answer, and whenever the stream
+/// is down, every topic counts as wanted (the publisher then publishes
+/// everything, as without a watch). Thread-safe.
+class InterestWatch {
+ public:
+  class Impl;
+  explicit InterestWatch(std::shared_ptr<Impl> impl);
+  /// Cancels the stream and joins the reader thread.
+  ~InterestWatch();
+  InterestWatch(const InterestWatch&) = delete;
+  InterestWatch& operator=(const InterestWatch&) = delete;
+
+  /// Whether `topic` is wanted now (true while the set is not known, and for
+  /// a topic outside the prefix).
+  bool wanted(const std::string& topic) const;
+  /// Whether the broker's wanted set is known (the stream is up).
+  bool known() const;
+
+ private:
+  std::shared_ptr<Impl> impl_;
+};
+
 /// A connection to a channel broker. Thread-safe.
 class ChannelClient {
  public:
@@ -124,6 +149,19 @@ class ChannelClient {
   std::unique_ptr<Subscription> subscribe(
       const std::string& topic, SubscribeOptions options,
       std::function<void(const v1::SubscribeResponse&)> on_sample);
+
+  /// Declares to the broker that this client publishes the topics under
+  /// `prefix` only while they are wanted (see watchInterest): the broker then
+  /// keeps no sample of one nobody wants, and a GetLatest of it waits for
+  /// the next. Applies from the next publish stream (the current one is
+  /// closed).
+  void gatePublishing(const std::string& prefix);
+
+  /// Watches which topics starting with `prefix` are wanted. `on_change`
+  /// runs on the watch's reader thread after every change of the wanted set
+  /// (or of whether it is known).
+  std::unique_ptr<InterestWatch> watchInterest(const std::string& prefix,
+                                               std::function<void()> on_change);
 
   /// Like subscribe(), unpacking each sample as T; samples of another type
   /// are skipped.

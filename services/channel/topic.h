@@ -32,6 +32,13 @@ inline constexpr absl::string_view kClockTopic = "clock";
 /// published from then on reaches them.
 inline constexpr char kSubscribedMetadataKey[] = "behaviorlib-subscribed";
 
+/// Client-metadata key of a Publish stream whose publisher gates the topics
+/// under the value (a prefix) by interest (DataChannel.WatchInterest): it
+/// publishes them only while wanted, so the broker keeps no sample of one
+/// nobody wants (it would grow stale) and a GetLatest of it waits for the
+/// next.
+inline constexpr char kGatedPrefixMetadataKey[] = "behaviorlib-gated-prefix";
+
 /// Buffer limits of DELIVERY_MODE_QUEUE subscriptions (queue_size 0 means
 /// the default).
 inline constexpr uint32_t kDefaultQueueSize = 100;

@@ -94,23 +94,35 @@ LidarMapper::LidarMapper(channel::ChannelClient* channel, std::string robot_id,
   pose_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
       poseTopic(), {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 200},
       [this](const v1::PoseStamped& p) { onPose(p); });
-  scan_sub_ = channel_->subscribeTyped<v1::LaserScan>(
-      scanTopic(),
-      {.mode = v1::DELIVERY_MODE_QUEUE,
-       .queue_size = static_cast<uint32_t>(std::max(1, settings_.scan_queue_size))},
-      [this](const v1::LaserScan& s) { onScan(s); });
+  // The scans are subscribed to only while pose estimates come (see
+  // followScans): without a pose no scan can be mapped, and an idle stack
+  // then carries no lidar data at all.
 }
 
 LidarMapper::~LidarMapper() {
-  // Readers first (their callbacks take mutex_), then the mapping thread.
-  scan_sub_.reset();
-  pose_sub_.reset();
+  // The mapping thread first (it makes and drops the scan subscription),
+  // then the readers (their callbacks take mutex_).
   {
     std::lock_guard lock(mutex_);
     stopping_ = true;
   }
   cv_.notify_all();
   if (thread_.joinable()) thread_.join();
+  scan_sub_.reset();
+  pose_sub_.reset();
+}
+
+void LidarMapper::followScans(bool want) {
+  if (want == (scan_sub_ != nullptr)) return;
+  if (!want) {
+    scan_sub_.reset();
+    return;
+  }
+  scan_sub_ = channel_->subscribeTyped<v1::LaserScan>(
+      scanTopic(),
+      {.mode = v1::DELIVERY_MODE_QUEUE,
+       .queue_size = static_cast<uint32_t>(std::max(1, settings_.scan_queue_size))},
+      [this](const v1::LaserScan& s) { onScan(s); });
 }
 
 std::string LidarMapper::scanTopic() const { return "robots/" + robot_id_ + "/lidar/scan"; }
@@ -125,7 +137,9 @@ void LidarMapper::onPose(const v1::PoseStamped& pose) {
   while (!poses_.empty() && stampNs(poses_.front().header()) < t - kPoseHistoryNs) {
     poses_.pop_front();
   }
-  cv_.notify_all();  // a scan may be waiting for this pose
+  last_pose_arrival_ = std::chrono::steady_clock::now();
+  ++poses_received_;
+  cv_.notify_all();  // a scan may be waiting for this pose (or the scans for poses)
 }
 
 void LidarMapper::onScan(const v1::LaserScan& scan) {
@@ -158,8 +172,25 @@ std::optional<v1::PoseStamped> LidarMapper::poseAt(int64_t stamp_ns) const {
 void LidarMapper::run() {
   std::unique_lock lock(mutex_);
   while (true) {
-    cv_.wait(lock, [&] { return stopping_ || !queue_.empty(); });
+    // Scans are followed while pose estimates arrive (host time: this is
+    // about the data flowing, not about simulated time).
+    const auto now = std::chrono::steady_clock::now();
+    const bool posed = last_pose_arrival_ && now - *last_pose_arrival_ < kScanFollowAfterPose;
+    if (posed != (scan_sub_ != nullptr)) {
+      lock.unlock();  // the scan callback takes mutex_
+      followScans(posed);
+      lock.lock();
+      continue;
+    }
+    const uint64_t poses_seen = poses_received_;
+    if (posed) {
+      cv_.wait_until(lock, *last_pose_arrival_ + kScanFollowAfterPose,
+                     [&] { return stopping_ || !queue_.empty(); });
+    } else {
+      cv_.wait(lock, [&] { return stopping_ || !queue_.empty() || poses_received_ != poses_seen; });
+    }
     if (stopping_) return;
+    if (queue_.empty()) continue;
     v1::LaserScan scan = std::move(queue_.front());
     queue_.pop_front();
     const int64_t stamp = stampNs(scan.header());

@@ -25,6 +25,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdint>
 #include <deque>
@@ -123,6 +124,8 @@ class LidarMapper {
   void onScan(const v1::LaserScan& scan);
   void onPose(const v1::PoseStamped& pose);
   void run();
+  // Makes or drops the scan subscription (mapping thread only).
+  void followScans(bool want);
   void insert(const v1::LaserScan& scan, const v1::PoseStamped& pose);
   std::optional<v1::PoseStamped> poseAt(int64_t stamp_ns) const;
 
@@ -141,6 +144,10 @@ class LidarMapper {
   MapperStats stats_;
   ScanThinner thinner_;
   bool stopping_ = false;
+  // When the last pose estimate arrived (host time); none yet: no scans.
+  std::optional<std::chrono::steady_clock::time_point> last_pose_arrival_;
+  uint64_t poses_received_ = 0;
+  static constexpr std::chrono::seconds kScanFollowAfterPose{2};
 
   std::thread thread_;
   std::unique_ptr<channel::Subscription> scan_sub_, pose_sub_;

@@ -1,5 +1,6 @@
 #include "simulator/core/simulation.h"
 
+#include <algorithm>
 #include <limits>
 #include <thread>
 
@@ -191,10 +192,12 @@ void Simulation::runRealTime(const std::atomic<double>& time_scale, const std::a
                               wall_s);
     }
     if (reached >= target) {
-      // Ahead of the scaled wall clock: sleep until the next step is due.
+      // Ahead of the scaled wall clock: sleep until the next step is due,
+      // but at least kMinWallSleep, so that above 1x the steps come in
+      // small batches instead of a wake-up per step (10 000 a second at 10x).
       const auto due = wall_start + std::chrono::duration_cast<Clock::duration>(
                                         (reached - sim_start + options_.physics_step) / scale);
-      std::this_thread::sleep_until(due);
+      std::this_thread::sleep_until(std::max(due, Clock::now() + kMinWallSleep));
     }
   }
 }

@@ -99,6 +99,8 @@ class Simulation {
   /// (wall time), which bounds the lines published under load.
   static constexpr SimDuration kSlipLag = std::chrono::milliseconds(50);
   static constexpr std::chrono::milliseconds kMinLineAge{20};
+  /// The shortest sleep of the free-running loop between batches of steps.
+  static constexpr std::chrono::milliseconds kMinWallSleep{1};
 
   /// Called after every physics step with the simulated time and every
   /// vehicle (mutex held: must be quick, must not call back in).

@@ -71,6 +71,10 @@ class ChannelPublisher {
   ChannelPublisher& operator=(const ChannelPublisher&) = delete;
 
   uint64_t publishedCount() const { return queue_.publishedCount(); }
+  /// Publishes the vehicles' topics only while wanted (PublishQueue).
+  void setInterest(const channel::InterestWatch* interest) { queue_.setInterest(interest); }
+  void interestChanged() { queue_.interestChanged(); }
+  uint64_t gatedCount() const { return queue_.gatedCount(); }
   /// Clock samples queued so far.
   uint64_t clockSampleCount() const { return clock_samples_.load(); }
   uint64_t droppedCount() const { return queue_.droppedCount(); }

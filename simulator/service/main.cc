@@ -40,6 +40,7 @@ int main(int argc, char** argv) {
   bool lock_step = false;
   bool fault_injection = false;
   std::string clock_publish = "line";
+  bool gate_topics = true;
   std::string sensor_config_path;
   std::string seed_arg = "1";
   FlagSet flags(
@@ -62,6 +63,9 @@ int main(int argc, char** argv) {
             "free-running, how simulated time goes on the 'clock' topic: 'line' (its pace "
             "line when it changes and once a wall second; readers extrapolate) or "
             "'every-tick' (a sample every 5 ms of simulated time)");
+  flags.add("gate-topics", &gate_topics,
+            "publish a vehicle's topic only while the broker says someone wants it "
+            "(DataChannel.WatchInterest); false: publish every sample");
   flags.add("enable-fault-injection", &fault_injection,
             "accept Simulator.InjectFailure (sensor, motor, battery and wind faults; see "
             "simulator.proto)");
@@ -125,6 +129,20 @@ int main(int argc, char** argv) {
     sensors = std::make_unique<sim::SensorPublisher>(*sensor_client, simulation, time,
                                                      sensor_config, metrics.frameTimer());
   }
+  // The vehicles' topics go to the broker only while someone wants them
+  // (subscribers, or a recent GetLatest): an idle stack publishes almost
+  // nothing. The clock is never gated.
+  std::unique_ptr<behaviorlib::channel::InterestWatch> interest;
+  if (client && gate_topics) {
+    client->gatePublishing("robots/");
+    sensor_client->gatePublishing("robots/");
+    interest = client->watchInterest("robots/", [&publisher, &sensors] {
+      if (publisher) publisher->interestChanged();
+      if (sensors) sensors->interestChanged();
+    });
+    publisher->setInterest(interest.get());
+    sensors->setInterest(interest.get());
+  }
   sim::FaultInjector faults(simulation, sensors ? &sensors->sensors() : nullptr);
 
   sim::WorldControl worlds;
@@ -187,6 +205,11 @@ int main(int argc, char** argv) {
                  program.c_str(),
                  static_cast<unsigned long long>(s.droppedCount(sim::SensorKind::kLidar)),
                  static_cast<unsigned long long>(s.droppedCount(sim::SensorKind::kCamera)));
+  }
+  if (interest) {
+    publisher->setInterest(nullptr);
+    sensors->setInterest(nullptr);
+    interest.reset();  // no more interestChanged calls
   }
   sensors.reset();
   publisher.reset();

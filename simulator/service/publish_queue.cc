@@ -1,5 +1,7 @@
 #include "simulator/service/publish_queue.h"
 
+#include <utility>
+
 namespace behaviorlib::sim {
 
 PublishQueue::PublishQueue(channel::ChannelClient& client, PublishQueueLimits limits)
@@ -15,21 +17,69 @@ PublishQueue::~PublishQueue() {
 }
 
 void PublishQueue::push(std::string topic, std::unique_ptr<google::protobuf::Message> sample) {
-  const std::size_t bytes = sample->ByteSizeLong() + topic.size();
   std::deque<Entry> evicted;  // freed outside the lock
+  std::unique_ptr<google::protobuf::Message> replaced;
   {
     std::lock_guard lock(mutex_);
-    while (!queue_.empty() &&
-           (queue_.size() >= limits_.max_messages || queued_bytes_ + bytes > limits_.max_bytes)) {
-      queued_bytes_ -= queue_.front().bytes;
-      evicted.push_back(std::move(queue_.front()));
-      queue_.pop_front();
-      ++dropped_;
+    if (interest_ != nullptr && !interest_->wanted(topic) && !seen_topics_.insert(topic).second) {
+      Newest& newest = newest_[topic];
+      replaced = std::exchange(newest.sample, std::move(sample));
+      newest.published = false;
+      ++gated_;
+      return;
     }
-    queue_.push_back({std::move(topic), std::move(sample), bytes});
-    queued_bytes_ += bytes;
+    queueLocked(std::move(topic), std::move(sample), &evicted);
   }
   cv_.notify_one();
+}
+
+void PublishQueue::queueLocked(std::string topic, std::unique_ptr<google::protobuf::Message> sample,
+                               std::deque<Entry>* evicted) {
+  const std::size_t bytes = sample->ByteSizeLong() + topic.size();
+  while (!queue_.empty() &&
+         (queue_.size() >= limits_.max_messages || queued_bytes_ + bytes > limits_.max_bytes)) {
+    queued_bytes_ -= queue_.front().bytes;
+    evicted->push_back(std::move(queue_.front()));
+    queue_.pop_front();
+    ++dropped_;
+  }
+  queue_.push_back({std::move(topic), std::move(sample), bytes});
+  queued_bytes_ += bytes;
+}
+
+void PublishQueue::setInterest(const channel::InterestWatch* interest) {
+  {
+    std::lock_guard lock(mutex_);
+    interest_ = interest;
+  }
+  interestChanged();
+}
+
+void PublishQueue::interestChanged() {
+  std::deque<Entry> evicted;
+  bool queued = false;
+  {
+    std::lock_guard lock(mutex_);
+    std::unordered_set<std::string> wanted;
+    for (auto& [topic, newest] : newest_) {
+      if (interest_ != nullptr && !interest_->wanted(topic)) continue;
+      wanted.insert(topic);
+      // Wanted again: the newest sample goes out at once (the broker kept
+      // none while nobody wanted the topic), unless it was wanted already.
+      if (wanted_.contains(topic) || !newest.sample) continue;
+      std::unique_ptr<google::protobuf::Message> sample;
+      if (newest.published) {
+        sample.reset(newest.sample->New());
+        sample->CopyFrom(*newest.sample);
+      } else {
+        sample = std::move(newest.sample);
+      }
+      queueLocked(topic, std::move(sample), &evicted);
+      queued = true;
+    }
+    wanted_ = std::move(wanted);
+  }
+  if (queued) cv_.notify_one();
 }
 
 void PublishQueue::run() {
@@ -46,8 +96,20 @@ void PublishQueue::run() {
     } else {
       ++dropped_;
     }
-    entry.sample.reset();
     lock.lock();
+    if (interest_ != nullptr) {
+      // Kept as the topic's newest unless a newer one is held already.
+      Newest& newest = newest_[entry.topic];
+      if (newest.published || !newest.sample) {
+        newest.sample = std::move(entry.sample);
+        newest.published = true;
+      }
+    }
+    if (entry.sample) {  // freed outside the lock
+      lock.unlock();
+      entry.sample.reset();
+      lock.lock();
+    }
   }
 }
 

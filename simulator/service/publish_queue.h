@@ -19,6 +19,8 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <unordered_map>
+#include <unordered_set>
 
 #include "channel/channel_client.h"
 
@@ -39,7 +41,20 @@ class PublishQueue {
   PublishQueue& operator=(const PublishQueue&) = delete;
 
   /// Queues a sample for `topic`. Thread-safe; never blocks on the broker.
+  /// With an interest watch, a sample of a topic nobody wants is held
+  /// instead (the newest per topic), except the topic's first, which makes
+  /// the topic known to the broker.
   void push(std::string topic, std::unique_ptr<google::protobuf::Message> sample);
+
+  /// Gates publishing by `interest` (nullptr: publish everything). It must
+  /// stay valid until replaced by nullptr.
+  void setInterest(const channel::InterestWatch* interest);
+  /// Queues the held samples of the topics now wanted (call when the watch
+  /// reports a change): a new subscriber gets the newest sample at once.
+  void interestChanged();
+  /// Samples held back because nobody wanted their topic (replaced by a
+  /// newer one, or published later).
+  uint64_t gatedCount() const { return gated_.load(); }
 
   uint64_t publishedCount() const { return published_.load(); }
   /// Dropped because the queue was full or the broker refused them.
@@ -57,8 +72,22 @@ class PublishQueue {
   const PublishQueueLimits limits_;
   std::mutex mutex_;
   std::condition_variable cv_;
+  void queueLocked(std::string topic, std::unique_ptr<google::protobuf::Message> sample,
+                   std::deque<Entry>* evicted);
+
   std::deque<Entry> queue_;
   std::size_t queued_bytes_ = 0;
+  const channel::InterestWatch* interest_ = nullptr;
+  std::unordered_set<std::string> seen_topics_;  // published at least once
+  // With an interest watch: the newest sample of every topic, and whether it
+  // went out already (a topic wanted again gets it, or a copy, at once).
+  struct Newest {
+    std::unique_ptr<google::protobuf::Message> sample;
+    bool published = false;
+  };
+  std::unordered_map<std::string, Newest> newest_;
+  std::unordered_set<std::string> wanted_;  // at the last interestChanged()
+  std::atomic<uint64_t> gated_{0};
   bool stopping_ = false;
   std::atomic<uint64_t> published_{0};
   std::atomic<uint64_t> dropped_{0};

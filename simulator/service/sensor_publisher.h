@@ -48,6 +48,10 @@ class SensorPublisher {
   /// For fault injection (SensorSystem::setFault is thread-safe).
   SensorSystem& sensors() { return sensors_; }
   uint64_t publishedCount() const { return queue_.publishedCount(); }
+  /// Publishes the vehicles' topics only while wanted (PublishQueue).
+  void setInterest(const channel::InterestWatch* interest) { queue_.setInterest(interest); }
+  void interestChanged() { queue_.interestChanged(); }
+  uint64_t gatedCount() const { return queue_.gatedCount(); }
   uint64_t droppedCount() const { return queue_.droppedCount(); }
 
  private:

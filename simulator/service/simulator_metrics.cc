@@ -93,6 +93,17 @@ SimulatorMetrics::SimulatorMetrics(prometheus::Registry& registry, Simulation& s
                                  "too slow, per stream (state: clock, ground truth, flight "
                                  "state; sensors)")
                            .Register(registry)),
+      publish_gated_(prometheus::BuildCounter()
+                         .Name("behaviorlib_simulator_publish_gated_total")
+                         .Help("Samples not published because nobody wanted their topic "
+                               "(DataChannel.WatchInterest), per stream")
+                         .Register(registry)),
+      pace_slips_(prometheus::BuildCounter()
+                      .Name("behaviorlib_simulator_pace_slips_total")
+                      .Help("Times the physics fell behind the scaled wall clock and the "
+                            "published time line restarted from it (decision 16)")
+                      .Register(registry)
+                      .Add({})),
       active_faults_(prometheus::BuildGauge()
                          .Name("behaviorlib_simulator_active_faults")
                          .Help("Injected faults in effect per vehicle and component (motor: "
@@ -102,6 +113,8 @@ SimulatorMetrics::SimulatorMetrics(prometheus::Registry& registry, Simulation& s
       camera_frame_seconds_(&frame_seconds_.Add({{"sensor", "camera"}}, frameBuckets())),
       state_dropped_(publish_dropped_.Add({{"stream", "state"}})),
       sensors_dropped_(publish_dropped_.Add({{"stream", "sensors"}})),
+      state_gated_(publish_gated_.Add({{"stream", "state"}})),
+      sensors_gated_(publish_gated_.Add({{"stream", "sensors"}})),
       step_increments_(stepBuckets().size() + 1, 0.0) {
   simulation_.setStepTimer(
       [this](int steps, std::chrono::nanoseconds wall) { onBatch(steps, wall); });
@@ -174,10 +187,13 @@ void SimulatorMetrics::update() {
   if (sources_.sensors != nullptr) {
     updateSensors(sources_.sensors->sensors());
     advance(sensors_dropped_, sources_.sensors->droppedCount(), sensors_dropped_seen_);
+    advance(sensors_gated_, sources_.sensors->gatedCount(), sensors_gated_seen_);
   }
   if (sources_.state != nullptr) {
     advance(state_dropped_, sources_.state->droppedCount(), state_dropped_seen_);
+    advance(state_gated_, sources_.state->gatedCount(), state_gated_seen_);
   }
+  advance(pace_slips_, simulation_.slipCount(), slips_seen_);
   if (sources_.faults != nullptr) updateFaults(*sources_.faults);
 }
 

@@ -124,11 +124,15 @@ class SimulatorMetrics {
   prometheus::Family<prometheus::Counter>& samples_dropped_;
   prometheus::Family<prometheus::Histogram>& frame_seconds_;
   prometheus::Family<prometheus::Counter>& publish_dropped_;
+  prometheus::Family<prometheus::Counter>& publish_gated_;
+  prometheus::Counter& pace_slips_;
   prometheus::Family<prometheus::Gauge>& active_faults_;
   prometheus::Histogram* lidar_frame_seconds_;
   prometheus::Histogram* camera_frame_seconds_;
   prometheus::Counter& state_dropped_;
   prometheus::Counter& sensors_dropped_;
+  prometheus::Counter& state_gated_;
+  prometheus::Counter& sensors_gated_;
 
   // Physics thread only (onBatch).
   std::vector<double> step_increments_;
@@ -140,6 +144,7 @@ class SimulatorMetrics {
   std::map<std::pair<std::string, SensorKind>, SensorSeries> sensors_;
   std::map<std::pair<std::string, std::string>, prometheus::Gauge*> faults_;
   uint64_t state_dropped_seen_ = 0, sensors_dropped_seen_ = 0;
+  uint64_t state_gated_seen_ = 0, sensors_gated_seen_ = 0, slips_seen_ = 0;
 
   std::mutex thread_mutex_;
   std::condition_variable thread_cv_;

@@ -647,6 +647,63 @@ TEST_F(ChannelBrokerTest, SimClockFollowsTheClockTopic) {
   EXPECT_EQ(clock.wallWaitFor(milliseconds(100)), milliseconds(20));
 }
 
+// WatchInterest: a topic is wanted while it has a subscriber and for 2 s
+// after a GetLatest. A gated topic (its publisher says it publishes only
+// while wanted) keeps no sample while nobody wants it, and a GetLatest of it
+// waits for the next one (NOT_FOUND after 1 s); other topics are untouched.
+TEST_F(ChannelBrokerTest, InterestFollowsSubscribersAndGetLatestOfGatedTopics) {
+  const std::string topic = "robots/d7/imu";
+  ChannelClient watcher(broker_.address());
+  std::atomic<int> changes{0};
+  auto watch = watcher.watchInterest("robots/d7/", [&] { ++changes; });
+  ASSERT_TRUE(eventually([&] { return watch->known(); }));
+  EXPECT_GE(changes.load(), 1);
+  EXPECT_TRUE(watch->wanted("clock")) << "outside the prefix: not gated";
+
+  ChannelClient publisher(broker_.address());
+  publisher.gatePublishing("robots/d7/");
+  ASSERT_TRUE(publisher.publish(topic, text("first")).ok());
+  ChannelClient other(broker_.address());  // does not gate
+  ASSERT_TRUE(other.publish("robots/d7/chat", text("kept")).ok());
+  ASSERT_TRUE(eventually([&] { return listTopics("robots/d7/").topics_size() == 2; }));
+  EXPECT_FALSE(watch->wanted(topic));
+  // Gated and unwanted: the topic is known, its sample not kept.
+  EXPECT_EQ(listTopics("robots/d7/").topics(1).name(), topic);
+  EXPECT_EQ(listTopics("robots/d7/").topics(1).published_count(), 1u);
+  EXPECT_FALSE(listTopics("robots/d7/").topics(1).has_last_receive_time());
+  // The other publisher's topic keeps its sample, wanted or not.
+  ChannelClient reader(broker_.address());
+  EXPECT_TRUE(reader.getLatest("robots/d7/chat", seconds(5)).ok());
+
+  // A GetLatest makes the gated topic wanted and waits for a sample; none
+  // comes.
+  const auto asked = std::chrono::steady_clock::now();
+  EXPECT_EQ(reader.getLatest(topic, seconds(5)).status().code(), absl::StatusCode::kNotFound);
+  EXPECT_GE(std::chrono::steady_clock::now() - asked, milliseconds(900)) << "it waited";
+  EXPECT_TRUE(eventually([&] { return watch->wanted(topic); }));
+  // A sample published while one waits is its answer.
+  std::thread later([&] {
+    std::this_thread::sleep_for(milliseconds(100));
+    EXPECT_TRUE(publisher.publish(topic, text("second")).ok());
+  });
+  auto got = reader.getLatest(topic, seconds(5));
+  later.join();
+  ASSERT_TRUE(got.ok()) << got.status();
+  v1::Text sample;
+  ASSERT_TRUE(got->sample().UnpackTo(&sample));
+  EXPECT_EQ(sample.text(), "second");
+  // 2 s after the last GetLatest nobody wants it, and its sample is gone.
+  EXPECT_TRUE(eventually([&] { return !watch->wanted(topic); }));
+  EXPECT_FALSE(listTopics("robots/d7/").topics(1).has_last_receive_time());
+
+  // A subscriber wants it until it leaves.
+  auto sub = reader.subscribe(topic, {}, [](const v1::SubscribeResponse&) {});
+  ASSERT_TRUE(sub->waitConnected(seconds(10)));
+  EXPECT_TRUE(eventually([&] { return watch->wanted(topic); }));
+  sub.reset();
+  EXPECT_TRUE(eventually([&] { return !watch->wanted(topic); }));
+}
+
 TEST_F(ChannelBrokerTest, MetricsEndpoint) {
   ASSERT_GT(broker_.metricsPort(), 0);
   RawPublisher publisher(channel_);

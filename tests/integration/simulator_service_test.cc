@@ -268,6 +268,61 @@ double clockSeconds(v1::DataChannel::Stub& data) {
          (clock->has_wall_time() ? since_s * clock->time_scale() : 0.0);
 }
 
+// The number of samples the broker took on `topic` so far (0 if unknown).
+uint64_t publishedCount(v1::DataChannel::Stub& data, const std::string& topic) {
+  v1::ListTopicsRequest request;
+  request.set_prefix(topic);
+  v1::ListTopicsResponse response;
+  if (!data.ListTopics(deadline().get(), request, &response).ok()) return 0;
+  for (const auto& info : response.topics()) {
+    if (info.name() == topic) return info.published_count();
+  }
+  return 0;
+}
+
+// Samples arriving on `topic` within `window` of wall time.
+int samplesWithin(v1::DataChannel::Stub& data, const std::string& topic,
+                  std::chrono::milliseconds window) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + window);
+  v1::SubscribeRequest request;
+  request.set_topic(topic);
+  request.set_mode(v1::DELIVERY_MODE_QUEUE);
+  request.set_queue_size(10000);
+  auto reader = data.Subscribe(&context, request);
+  v1::SubscribeResponse response;
+  int samples = 0;
+  while (reader->Read(&response)) ++samples;
+  return samples;
+}
+
+TEST_F(SimulatorServiceTest, VehicleTopicsArePublishedOnlyWhileWanted) {
+  const std::string imu = "robots/drone1/imu";
+  for (int attempt = 0; attempt < 100 && publishedCount(*data_, imu) == 0; ++attempt) {
+    std::this_thread::sleep_for(milliseconds(50));
+  }
+  ASSERT_GT(publishedCount(*data_, imu), 0u) << "the topic's first sample makes it known";
+  const uint64_t before = publishedCount(*data_, imu);
+  std::this_thread::sleep_for(milliseconds(500));  // 5 s simulated: 1000 IMU samples at 200 Hz
+  EXPECT_LT(publishedCount(*data_, imu) - before, 20u) << "nobody subscribes: (almost) none";
+  // A subscriber gets the stream at once, at its rate (1 s at 10x: 2000
+  // samples; the bound leaves room for a loaded machine).
+  EXPECT_GT(samplesWithin(*data_, imu, milliseconds(1000)), 200);
+  // A GetLatest gets a fresh sample although nobody subscribes.
+  const uint64_t after = publishedCount(*data_, imu);
+  std::this_thread::sleep_for(milliseconds(2500));  // the GetLatest interest of 2 s expired
+  ASSERT_LT(publishedCount(*data_, imu) - after, 20u);
+  v1::GetLatestRequest request;
+  request.set_topic("robots/drone1/ground_truth/pose");
+  v1::GetLatestResponse response;
+  ASSERT_TRUE(data_->GetLatest(deadline().get(), request, &response).ok());
+  v1::PoseStamped pose;
+  ASSERT_TRUE(response.sample().sample().UnpackTo(&pose));
+  EXPECT_NEAR(TimeUtil::TimestampToMilliseconds(pose.header().stamp()) / 1e3, clockSeconds(*data_),
+              1.0)
+      << "the pose is current (within 1 s simulated of the clock)";
+}
+
 TEST_F(SimulatorServiceTest, ClockTopicCarriesThePaceLineNotEveryTick) {
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + seconds(2));

@@ -200,6 +200,7 @@ def start_stack(args, build_dir, stack):
         simulator_argv.append("--enable-fault-injection")
     if args.clock_publish != "line":
         simulator_argv += ["--clock-publish", args.clock_publish]
+    simulator_argv += args.simulator_arg or []
     simulator = stack.start(Process("simulator", simulator_argv, stack.run_dir, "simulator"))
     # A world with start poses has its own vehicles, whatever --vehicles says.
     flown = simulator_vehicles(simulator)
@@ -373,11 +374,10 @@ def main():
                              "behavior system runs once per robot, named <system>-<robot>; "
                              "default: --robot-id's one robot")
     parser.add_argument("--time-scale", type=float, default=2.0,
-                        help="simulated seconds per wall second. The whole stack (every "
-                             "behavior system) takes about 0.45 s of CPU per simulated second "
-                             "idle, mostly the channel's clock and sensor traffic: at 3x it "
-                             "takes 1.4 cores of two and a flying mission can starve; 2x leaves "
-                             "a margin. With --systems (a lighter stack) 3-5x is fine")
+                        help="simulated seconds per wall second. Idle, the stack costs a few "
+                             "percent of a core at any scale; flying, the controllers run in "
+                             "scaled wall time and can starve on a loaded machine: 2x leaves a "
+                             "margin. With --systems (a lighter stack) 3-5x is fine")
     parser.add_argument("--world", default="",
                         help="simulator world (file or shipped name); default an empty field")
     parser.add_argument("--seed", type=int, default=1, help="the simulator's noise seed")
@@ -394,6 +394,10 @@ def main():
                         help="how the simulator publishes simulated time: its pace line when it "
                              "changes and once a wall second (default; readers extrapolate), or "
                              "a sample every 5 ms of simulated time (as before decision 16)")
+    parser.add_argument("--simulator-arg", action="append", metavar="ARG",
+                        help="an extra argument for the simulator (repeatable), e.g. "
+                             "--simulator-arg=--gate-topics=false to publish every sample as "
+                             "before decision 17 (benchmarks)")
     parser.add_argument("--enable-fault-injection", action="store_true",
                         help="let Simulator.InjectFailure inject faults")
     parser.add_argument("--demo", action="store_true",

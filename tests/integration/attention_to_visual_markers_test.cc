@@ -202,12 +202,19 @@ TEST_F(AttentionToVisualMarkersTest, TheInspectionMissionFindsEveryMarkerAndMoni
   ASSERT_EQ(world->markers().size(), 5u);
 
   // --- refusals before anything flies ---------------------------------------
-  // No pose estimate yet: refused, saying so.
+  // The camera info is there (the simulator publishes it at 1 Hz of
+  // simulated time; the check reads it first), so the only thing missing is
+  // the pose estimate: refused, saying so. Waiting for the camera info first
+  // keeps the assertion from depending on which of the two comes first.
+  bool camera_info = false;
+  for (int attempt = 0; attempt < 100 && !camera_info; ++attempt) {
+    camera_info =
+        channel_->getLatest(std::string("robots/") + kRobot + "/camera/info", seconds(2)).ok();
+  }
+  ASSERT_TRUE(camera_info) << "the simulator publishes no camera info";
   const auto situation = attention_client_->checkSituation(kBehavior);
   EXPECT_FALSE(situation.feasible());
   ASSERT_GT(situation.reasons_size(), 0);
-  // (The camera info, published at 1 Hz, may not have arrived yet either:
-  // the pose estimate is one of the reasons, not necessarily the first.)
   EXPECT_TRUE(std::any_of(
       situation.reasons().begin(), situation.reasons().end(),
       [](const std::string& r) { return r.find("pose estimate") != std::string::npos; }))

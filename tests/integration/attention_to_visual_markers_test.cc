@@ -207,9 +207,10 @@ TEST_F(AttentionToVisualMarkersTest, TheInspectionMissionFindsEveryMarkerAndMoni
   // the pose estimate: refused, saying so. Waiting for the camera info first
   // keeps the assertion from depending on which of the two comes first.
   bool camera_info = false;
-  for (int attempt = 0; attempt < 100 && !camera_info; ++attempt) {
+  for (int attempt = 0; attempt < 200 && !camera_info; ++attempt) {
     camera_info =
         channel_->getLatest(std::string("robots/") + kRobot + "/camera/info", seconds(2)).ok();
+    if (!camera_info) std::this_thread::sleep_for(milliseconds(50));  // not published yet
   }
   ASSERT_TRUE(camera_info) << "the simulator publishes no camera info";
   const auto situation = attention_client_->checkSituation(kBehavior);

@@ -180,9 +180,27 @@ def simulator_vehicles(simulator, timeout_s=3.0):
         time.sleep(0.05)
 
 
+def system_binaries(args, build_dir):
+    """The behavior systems to start: [(name, binary)]."""
+    found = []
+    for name in BEHAVIOR_SYSTEMS:
+        if args.systems and name not in args.systems and name not in REQUIRED_SYSTEMS:
+            continue
+        path = binary(build_dir, f"services/{name}/{name}",
+                      required=name in REQUIRED_SYSTEMS or name in args.systems)
+        if path is None:
+            say(f"  note: {name} is not built ({build_dir}/services/{name}/{name}); "
+                f"its behaviors are unavailable")
+            continue
+        found.append((name, path))
+    return found
+
+
 def start_stack(args, build_dir, stack):
     robots = args.vehicles
     several = len(robots) > 1
+    deterministic = args.time_scale == "max"
+    binaries = system_binaries(args, build_dir)
     listen = ["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"]
     broker = stack.start(Process("channel_broker",
                                  [binary(build_dir, "services/channel/channel_broker"), *listen],
@@ -198,6 +216,9 @@ def start_stack(args, build_dir, stack):
         simulator_argv += ["--sensor-config", os.path.abspath(args.sensor_config)]
     if args.enable_fault_injection:
         simulator_argv.append("--enable-fault-injection")
+    if deterministic:
+        # Time starts once every behavior system follows the grants.
+        simulator_argv += ["--min-followers", str(len(binaries) * len(robots))]
     if args.clock_publish != "line":
         simulator_argv += ["--clock-publish", args.clock_publish]
     simulator_argv += args.simulator_arg or []
@@ -222,20 +243,14 @@ def start_stack(args, build_dir, stack):
                                       "coordinator"))
 
     systems = []
-    for name in BEHAVIOR_SYSTEMS:
-        if args.systems and name not in args.systems and name not in REQUIRED_SYSTEMS:
-            continue
-        path = binary(build_dir, f"services/{name}/{name}",
-                      required=name in REQUIRED_SYSTEMS or name in args.systems)
-        if path is None:
-            say(f"  note: {name} is not built ({build_dir}/services/{name}/{name}); "
-                f"its behaviors are unavailable")
-            continue
+    for name, path in binaries:
         config = os.path.join(CONFIG_DIR, name + ".yaml")
         for robot in robots:
             argv = [path, *listen, "--robot-id", robot, "--channel", broker.address,
                     "--clock", "sim", "--flight-controller", simulator.address,
                     "--coordinator", coordinator.address]
+            if deterministic:
+                argv += ["--follow-time", simulator.address]
             if os.path.exists(config):
                 argv += ["--config", config]
             process_name = f"{name}-{robot}" if several else name
@@ -358,6 +373,16 @@ def robot_reports(args, build_dir, state):
     return robots
 
 
+def time_scale_arg(text):
+    """--time-scale: a number of simulated seconds per wall second, or 'max'."""
+    if text == "max":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is neither a number nor 'max'") from None
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -373,11 +398,13 @@ def main():
                              "in the empty field vehicle i starts at x = 2 i m) and every "
                              "behavior system runs once per robot, named <system>-<robot>; "
                              "default: --robot-id's one robot")
-    parser.add_argument("--time-scale", type=float, default=2.0,
+    parser.add_argument("--time-scale", type=time_scale_arg, default=2.0,
                         help="simulated seconds per wall second. Idle, the stack costs a few "
                              "percent of a core at any scale; flying, the controllers run in "
                              "scaled wall time and can starve on a loaded machine: 2x leaves a "
-                             "margin. With --systems (a lighter stack) 3-5x is fine")
+                             "margin. With --systems (a lighter stack) 3-5x is fine. 'max': "
+                             "the deterministic mode, time advanced in quanta as fast as every "
+                             "behavior system keeps up (a starved process slows the simulation)")
     parser.add_argument("--world", default="",
                         help="simulator world (file or shipped name); default an empty field")
     parser.add_argument("--seed", type=int, default=1, help="the simulator's noise seed")

@@ -63,6 +63,12 @@ std::unique_ptr<google::protobuf::Message> takeMessage(google::protobuf::Message
 
 }  // namespace
 
+bool BehaviorExecutionManager::caughtUp(TimePoint t) const {
+  std::lock_guard lock(mutex_);
+  if (!commands_.empty() || ticking_) return false;
+  return state_ != State::kActive || next_tick_ > t;
+}
+
 std::string causeName(v1::TerminationCause cause) {
   std::string name = v1::TerminationCause_Name(cause);
   constexpr std::string_view kPrefix = "TERMINATION_CAUSE_";
@@ -218,9 +224,11 @@ void BehaviorExecutionManager::run() {
         next_tick_ += period_;
         // Never burst to catch up: a late tick moves the schedule.
         if (next_tick_ <= now) next_tick_ = now + period_;
+        ticking_ = true;
         lock.unlock();
         execute();
         lock.lock();
+        ticking_ = false;
         continue;
       }
       cv_.wait_for(lock, context_.clock->wallWaitFor(next_tick_ - now));

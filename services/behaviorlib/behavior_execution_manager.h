@@ -185,6 +185,10 @@ class BehaviorExecutionManager {
               Done<v1::ModifyResponse> done);
   /// Runs checkSituation() on the worker.
   void checkSituationNow(Done<v1::CheckSituationResponse> done);
+  /// Whether everything due up to `t` on the behavior's clock has run: no
+  /// command waits, and an active behavior is not ticking and has its next
+  /// tick after `t` (the deterministic mode's catch-up report).
+  bool caughtUp(TimePoint t) const;
   /// Reads the current activation state (no user code; immediate).
   v1::CheckActivationResponse checkActivation() const;
   v1::BehaviorState state() const;
@@ -317,6 +321,7 @@ class BehaviorExecutionManager {
   Duration maximum_execution_time_{0};
   std::string time_out_reason_;
   TimePoint next_tick_{};
+  bool ticking_ = false;  // the worker runs a tick (guarded by mutex_)
   Duration period_{0};
   bool first_execute_pending_ = false;
   std::chrono::steady_clock::time_point activate_received_{};

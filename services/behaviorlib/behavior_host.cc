@@ -113,4 +113,11 @@ void BehaviorHost::watchdogLoop() {
   }
 }
 
+bool BehaviorHost::caughtUp(TimePoint t) const {
+  for (const auto& behavior : behaviors_) {
+    if (!behavior->caughtUp(t)) return false;
+  }
+  return true;
+}
+
 }  // namespace behaviorlib

@@ -60,6 +60,8 @@ class BehaviorHost {
   const std::vector<std::unique_ptr<BehaviorExecutionManager>>& behaviors() const {
     return behaviors_;
   }
+  /// Whether every behavior ran everything due up to `t` (caughtUp).
+  bool caughtUp(TimePoint t) const;
   EventLog& events() { return events_; }
   const Clock& clock() const { return clock_; }
   const std::string& robotId() const { return options_.robot_id; }

@@ -102,7 +102,14 @@ void SimClock::onClockSample(const v1::Clock& sample) {
   }
   {
     std::lock_guard lock(mutex_);
-    if (!valid_ || sample.epoch() != epoch_) floor_ = TimePoint{};  // time restarted
+    if (!valid_ || sample.epoch() != epoch_) {
+      floor_ = TimePoint{};  // time restarted
+    } else {
+      // The time reached so far stays reached, read or not: a late sample
+      // of an older time (the channel's, after a time grant) moves nothing
+      // back.
+      floor_ = std::max(floor_, lineAtLocked(steady_now));
+    }
     anchor_time_ = toTimePoint(sample.time());
     anchor_steady_ = anchor;
     time_scale_ = sample.time_scale();

@@ -71,6 +71,15 @@ void ChannelPublisher::onStep(SimTime now, const std::vector<VehicleReport>& veh
   }
 }
 
+v1::Clock ChannelPublisher::lockStepClock(SimTime t) const {
+  v1::Clock clock;
+  clock.set_epoch(epoch_base_ + simulation_.pace().epoch);
+  *clock.mutable_time() = timestampOf(t);
+  *clock.mutable_header()->mutable_stamp() = clock.time();
+  clock.set_time_scale(0.0);
+  return clock;
+}
+
 void ChannelPublisher::publishClock(SimTime now) {
   const Pace pace = simulation_.pace();
   const bool free_running = !time_.lock_step.load() && pace.scale > 0.0;

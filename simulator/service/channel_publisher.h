@@ -40,6 +40,7 @@
 #include <chrono>
 #include <memory>
 
+#include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "simulator/core/simulation.h"
 #include "simulator/service/publish_queue.h"
@@ -75,6 +76,11 @@ class ChannelPublisher {
   void setInterest(const channel::InterestWatch* interest) { queue_.setInterest(interest); }
   void interestChanged() { queue_.interestChanged(); }
   uint64_t gatedCount() const { return queue_.gatedCount(); }
+  /// Waits until everything queued went to the broker (deterministic mode).
+  bool waitDrained(std::chrono::milliseconds timeout) { return queue_.waitDrained(timeout); }
+  /// A lock-step clock sample of time `t` (time scale 0, this simulator's
+  /// epoch), as the clock topic carries in lock-step; also the time grants'.
+  v1::Clock lockStepClock(SimTime t) const;
   /// Clock samples queued so far.
   uint64_t clockSampleCount() const { return clock_samples_.load(); }
   uint64_t droppedCount() const { return queue_.droppedCount(); }

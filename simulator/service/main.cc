@@ -8,6 +8,8 @@
 #include <sstream>
 #include <thread>
 
+#include <google/protobuf/util/time_util.h>
+
 #include "behaviorlib/server/flags.h"
 #include "behaviorlib/server/server_runtime.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
@@ -36,8 +38,11 @@ int main(int argc, char** argv) {
   std::string vehicles = "drone1";
   std::string world_arg;
   std::string worlds_dir = BEHAVIORLIB_WORLDS_DIR;
-  double time_scale = 1.0;
+  std::string time_scale_arg = "1";
   bool lock_step = false;
+  double quantum_ms = 10.0;
+  double min_followers_arg = 0;  // FlagSet has no integers
+  double follower_timeout_s = 5.0;
   bool fault_injection = false;
   std::string clock_publish = "line";
   bool gate_topics = true;
@@ -57,8 +62,18 @@ int main(int argc, char** argv) {
   flags.add("vehicles", &vehicles,
             "comma-separated robot ids for a world without start poses; vehicle i starts "
             "landed at x = 2 i m");
-  flags.add("time-scale", &time_scale, "simulated seconds per wall second (0.1..1000)");
+  flags.add("time-scale", &time_scale_arg,
+            "simulated seconds per wall second (0.1..1000), or 'max': the deterministic mode, "
+            "time advanced by quanta as fast as every follower (Simulator.FollowTime) keeps up");
   flags.add("lock-step", &lock_step, "advance time only through Simulator.Step");
+  flags.add("quantum-ms", &quantum_ms,
+            "deterministic mode: simulated milliseconds per grant (1..100; at most the shortest "
+            "behavior tick period)");
+  flags.add("min-followers", &min_followers_arg,
+            "deterministic mode: time starts once this many followers joined (0..1000)");
+  flags.add("follower-timeout-s", &follower_timeout_s,
+            "deterministic mode: wall seconds a follower may take to catch up before time goes "
+            "on without it (0.1..600)");
   flags.add("clock-publish", &clock_publish,
             "free-running, how simulated time goes on the 'clock' topic: 'line' (its pace "
             "line when it changes and once a wall second; readers extrapolate) or "
@@ -76,8 +91,24 @@ int main(int argc, char** argv) {
             "seed of the sensor noise (a positive integer; Reset can change it)");
   int exit_code = 0;
   if (!flags.parse(argc, argv, &exit_code)) return exit_code;
-  if (!(time_scale >= 0.1 && time_scale <= 1000.0)) {
-    fatal(program, "--time-scale must be within [0.1, 1000]");
+  const bool deterministic = time_scale_arg == "max";
+  double time_scale = 1.0;
+  if (!deterministic) {
+    char* end = nullptr;
+    time_scale = std::strtod(time_scale_arg.c_str(), &end);
+    if (time_scale_arg.empty() || *end != '\0' || !(time_scale >= 0.1 && time_scale <= 1000.0)) {
+      fatal(program, "--time-scale must be within [0.1, 1000] or 'max', got '" + time_scale_arg +
+                         "'");
+      return 2;
+    }
+  }
+  const int min_followers = static_cast<int>(min_followers_arg);
+  if (!(quantum_ms >= 1.0 && quantum_ms <= 100.0) || !(min_followers_arg >= 0.0) ||
+      min_followers_arg > 1000.0 || min_followers != min_followers_arg ||
+      !(follower_timeout_s >= 0.1 && follower_timeout_s <= 600.0)) {
+    fatal(program,
+          "--quantum-ms must be within [1, 100], --min-followers within [0, 1000], "
+          "--follower-timeout-s within [0.1, 600]");
     return 2;
   }
 
@@ -107,7 +138,9 @@ int main(int argc, char** argv) {
   sim::Simulation simulation(sim::SimulationOptions{});
   sim::TimeControl time;
   time.time_scale.store(time_scale);
-  time.lock_step.store(lock_step);
+  // The deterministic mode steps in lock-step itself, under time grants.
+  time.lock_step.store(lock_step || deterministic);
+  time.deterministic.store(deterministic);
 
   ServerRuntime runtime;
   std::string error;
@@ -171,6 +204,9 @@ int main(int argc, char** argv) {
 
   sim::FlightControllerService flight_controller(simulation);
   sim::SimulatorService simulator(simulation, time, worlds, fault_injection ? &faults : nullptr);
+  sim::TimeGrants grants(std::chrono::duration_cast<std::chrono::nanoseconds>(
+      std::chrono::duration<double>(follower_timeout_s)));
+  if (deterministic) simulator.setTimeGrants(&grants);
   grpc::ServerBuilder builder;
   builder.RegisterService(&flight_controller);
   builder.RegisterService(&simulator);
@@ -184,19 +220,52 @@ int main(int argc, char** argv) {
   // Stopped before the publishers go (below).
   metrics.start({.sensors = sensors.get(), .state = publisher.get(), .faults = &faults});
 
-  // The stepping thread: real time scaled; in lock-step, Step drives time.
+  // The stepping thread: real time scaled; in lock-step, Step drives time;
+  // in the deterministic mode, quanta granted to the followers.
   std::atomic<bool> stop{false};
-  std::thread stepper([&] { simulation.runRealTime(time.time_scale, time.lock_step, stop); });
-  std::fprintf(stderr, "%s: vehicles [%s], gRPC on port %d, metrics on port %d, time scale %g%s\n",
-               program.c_str(), robot_ids.c_str(), runtime.grpcPort(), runtime.metricsPort(),
-               time_scale, lock_step ? " (lock-step)" : "");
+  const auto quantum = std::chrono::duration_cast<sim::SimDuration>(
+      std::chrono::duration<double, std::milli>(quantum_ms));
+  std::thread stepper([&] {
+    if (!deterministic) {
+      simulation.runRealTime(time.time_scale, time.lock_step, stop);
+      return;
+    }
+    grants.waitForFollowers(min_followers, stop);
+    while (!stop.load()) {
+      simulation.advance(quantum);
+      // What the quantum published reaches the broker before its grant.
+      if (publisher) publisher->waitDrained(std::chrono::seconds(1));
+      if (sensors) sensors->waitDrained(std::chrono::seconds(1));
+      behaviorlib::v1::Clock granted;
+      if (publisher) {
+        granted = publisher->lockStepClock(simulation.now());
+      } else {
+        *granted.mutable_time() = google::protobuf::util::TimeUtil::NanosecondsToTimestamp(
+            std::chrono::duration_cast<std::chrono::nanoseconds>(simulation.now()).count());
+      }
+      grants.grantAndWait(granted, stop);
+    }
+  });
+  if (deterministic) {
+    std::fprintf(stderr,
+                 "%s: vehicles [%s], gRPC on port %d, metrics on port %d, deterministic (time "
+                 "scale max, quanta of %g ms, waiting for %d followers)\n",
+                 program.c_str(), robot_ids.c_str(), runtime.grpcPort(), runtime.metricsPort(),
+                 quantum_ms, min_followers);
+  } else {
+    std::fprintf(stderr,
+                 "%s: vehicles [%s], gRPC on port %d, metrics on port %d, time scale %g%s\n",
+                 program.c_str(), robot_ids.c_str(), runtime.grpcPort(), runtime.metricsPort(),
+                 time_scale, lock_step ? " (lock-step)" : "");
+  }
 
   ServerRuntime::waitForShutdownSignal();
   std::fprintf(stderr, "%s: shutting down\n", program.c_str());
   flight_controller.shutdown();
   simulator.shutdown();
-  runtime.shutdown(std::chrono::seconds(2));
   stop = true;
+  grants.shutdown();  // ends the FollowTime streams and the stepper's wait
+  runtime.shutdown(std::chrono::seconds(2));
   stepper.join();
   metrics.stop();
   if (sensors) {

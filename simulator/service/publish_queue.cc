@@ -47,6 +47,12 @@ void PublishQueue::queueLocked(std::string topic, std::unique_ptr<google::protob
   queued_bytes_ += bytes;
 }
 
+bool PublishQueue::waitDrained(std::chrono::milliseconds timeout) {
+  std::unique_lock lock(mutex_);
+  return drained_cv_.wait_for(lock, timeout,
+                              [this] { return stopping_ || (queue_.empty() && !publishing_); });
+}
+
 void PublishQueue::setInterest(const channel::InterestWatch* interest) {
   {
     std::lock_guard lock(mutex_);
@@ -90,6 +96,7 @@ void PublishQueue::run() {
     Entry entry = std::move(queue_.front());
     queue_.pop_front();
     queued_bytes_ -= entry.bytes;
+    publishing_ = true;
     lock.unlock();
     if (client_.publish(entry.topic, *entry.sample).ok()) {
       ++published_;
@@ -97,6 +104,8 @@ void PublishQueue::run() {
       ++dropped_;
     }
     lock.lock();
+    publishing_ = false;
+    if (queue_.empty()) drained_cv_.notify_all();
     if (interest_ != nullptr) {
       // Kept as the topic's newest unless a newer one is held already.
       Newest& newest = newest_[entry.topic];

@@ -11,6 +11,7 @@
 #include <google/protobuf/message.h>
 
 #include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstddef>
 #include <cstdint>
@@ -46,6 +47,10 @@ class PublishQueue {
   /// the topic known to the broker.
   void push(std::string topic, std::unique_ptr<google::protobuf::Message> sample);
 
+  /// Waits until every queued sample went to the broker, or `timeout`;
+  /// false on timeout.
+  bool waitDrained(std::chrono::milliseconds timeout);
+
   /// Gates publishing by `interest` (nullptr: publish everything). It must
   /// stay valid until replaced by nullptr.
   void setInterest(const channel::InterestWatch* interest);
@@ -77,6 +82,8 @@ class PublishQueue {
 
   std::deque<Entry> queue_;
   std::size_t queued_bytes_ = 0;
+  bool publishing_ = false;  // the thread holds a sample being published
+  std::condition_variable drained_cv_;
   const channel::InterestWatch* interest_ = nullptr;
   std::unordered_set<std::string> seen_topics_;  // published at least once
   // With an interest watch: the newest sample of every topic, and whether it

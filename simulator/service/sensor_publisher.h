@@ -52,6 +52,8 @@ class SensorPublisher {
   void setInterest(const channel::InterestWatch* interest) { queue_.setInterest(interest); }
   void interestChanged() { queue_.interestChanged(); }
   uint64_t gatedCount() const { return queue_.gatedCount(); }
+  /// Waits until everything queued went to the broker (deterministic mode).
+  bool waitDrained(std::chrono::milliseconds timeout) { return queue_.waitDrained(timeout); }
   uint64_t droppedCount() const { return queue_.droppedCount(); }
 
  private:

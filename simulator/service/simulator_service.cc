@@ -92,6 +92,11 @@ grpc::ServerUnaryReactor* SimulatorService::Reset(grpc::CallbackServerContext* c
 grpc::ServerUnaryReactor* SimulatorService::SetTimeScale(grpc::CallbackServerContext* context,
                                                          const v1::SetTimeScaleRequest* request,
                                                          v1::SetTimeScaleResponse* response) {
+  if (time_.deterministic.load()) {
+    return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                                        "the simulator runs in deterministic mode (--time-scale "
+                                        "max): time advances under its followers' grants"));
+  }
   if (!request->lock_step()) {
     const double scale = request->time_scale();
     if (!std::isfinite(scale) || scale < 0.1 || scale > 1000.0) {
@@ -110,6 +115,11 @@ grpc::ServerUnaryReactor* SimulatorService::SetTimeScale(grpc::CallbackServerCon
 grpc::ServerUnaryReactor* SimulatorService::Step(grpc::CallbackServerContext* context,
                                                  const v1::StepRequest* request,
                                                  v1::StepResponse* response) {
+  if (time_.deterministic.load()) {
+    return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                                        "the simulator steps itself in deterministic mode "
+                                        "(--time-scale max)"));
+  }
   if (!time_.lock_step.load()) {
     return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
                                         "Step needs lock-step mode: call SetTimeScale with "
@@ -123,6 +133,22 @@ grpc::ServerUnaryReactor* SimulatorService::Step(grpc::CallbackServerContext* co
   simulation_.advance(std::chrono::nanoseconds(ns));
   *response->mutable_time() = TimeUtil::NanosecondsToTimestamp(simulation_.now().count());
   return finish(context, grpc::Status::OK);
+}
+
+grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>*
+SimulatorService::FollowTime(grpc::CallbackServerContext* context) {
+  if (grants_ != nullptr) return grants_->follow();
+  class Refused final
+      : public grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse> {
+   public:
+    Refused() {
+      Finish(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
+                          "FollowTime needs the deterministic mode (simulator --time-scale max)"));
+    }
+    void OnDone() override { delete this; }
+  };
+  (void)context;
+  return new Refused();
 }
 
 grpc::ServerUnaryReactor* SimulatorService::InjectFailure(grpc::CallbackServerContext* context,

@@ -17,6 +17,7 @@
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "simulator/core/simulation.h"
 #include "simulator/faults/fault_injector.h"
+#include "simulator/service/time_grants.h"
 #include "simulator/service/latest_writer.h"
 #include "simulator/world/world.h"
 
@@ -26,6 +27,9 @@ namespace behaviorlib::sim {
 struct TimeControl {
   std::atomic<double> time_scale{1.0};
   std::atomic<bool> lock_step{false};
+  /// Deterministic mode (--time-scale max): the simulator steps itself under
+  /// time grants; SetTimeScale and Step are refused.
+  std::atomic<bool> deterministic{false};
 };
 
 /// The world the vehicles fly in, replaced by Reset.
@@ -59,6 +63,8 @@ class SimulatorService final : public v1::Simulator::CallbackService {
 
   /// Ends every WatchState stream (shutdown).
   void shutdown();
+  /// Serves FollowTime from `grants` (deterministic mode); null refuses it.
+  void setTimeGrants(TimeGrants* grants) { grants_ = grants; }
 
   grpc::ServerUnaryReactor* Reset(grpc::CallbackServerContext* context,
                                   const v1::ResetRequest* request,
@@ -74,6 +80,8 @@ class SimulatorService final : public v1::Simulator::CallbackService {
                                           v1::InjectFailureResponse* response) override;
   grpc::ServerWriteReactor<v1::WatchStateResponse>* WatchState(
       grpc::CallbackServerContext* context, const v1::WatchStateRequest* request) override;
+  grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* FollowTime(
+      grpc::CallbackServerContext* context) override;
 
  private:
   struct Watch {
@@ -86,6 +94,7 @@ class SimulatorService final : public v1::Simulator::CallbackService {
   TimeControl& time_;
   WorldControl& worlds_;
   FaultInjector* const faults_;
+  TimeGrants* grants_ = nullptr;
   std::mutex watchers_mutex_;
   std::map<StateWatcher*, Watch> watchers_;
   bool shutting_down_ = false;

@@ -7,6 +7,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <csignal>
 #include <fstream>
 #include <optional>
 #include <thread>
@@ -418,6 +419,95 @@ TEST_F(SimulatorServiceTest, SigtermEndsStreamsAndExitsZero) {
   while (reader->Read(&message)) {
   }
   EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::UNAVAILABLE);
+}
+
+// Simulated time on the clock topic in lock-step (the deterministic mode's
+// samples are the time itself); -1 before any.
+double lockStepSeconds(v1::DataChannel::Stub& data) {
+  v1::GetLatestRequest request;
+  request.set_topic("clock");
+  v1::GetLatestResponse response;
+  v1::Clock clock;
+  if (!data.GetLatest(deadline().get(), request, &response).ok() ||
+      !response.sample().sample().UnpackTo(&clock)) {
+    return -1;
+  }
+  return TimeUtil::TimestampToNanoseconds(clock.time()) / 1e9;
+}
+
+// The deterministic mode (--time-scale max): time starts once the follower
+// joined, advances only as fast as it reports back, stands while it is
+// frozen (SIGSTOP: a starved process slows the simulation instead of
+// missing its deadlines), and a WAIT runs exactly its simulated duration.
+TEST(SimulatorDeterministicTest, TimeAdvancesOnlyAsFastAsItsFollowerKeepsUp) {
+  support::ServerProcess broker(BEHAVIORLIB_CHANNEL_BROKER_PATH, {});
+  ASSERT_TRUE(broker.start()) << broker.error();
+  support::ServerProcess simulator(BEHAVIORLIB_SIMULATOR_PATH,
+                                   {"--channel", broker.address(), "--time-scale", "max",
+                                    "--min-followers", "1", "--follower-timeout-s", "600"});
+  ASSERT_TRUE(simulator.start()) << simulator.error();
+  auto data = v1::DataChannel::NewStub(
+      grpc::CreateChannel(broker.address(), grpc::InsecureChannelCredentials()));
+  auto sim = v1::Simulator::NewStub(
+      grpc::CreateChannel(simulator.address(), grpc::InsecureChannelCredentials()));
+
+  // No follower yet: time has not started.
+  std::this_thread::sleep_for(milliseconds(300));
+  EXPECT_LE(lockStepSeconds(*data), 0.0);
+  // Step and SetTimeScale are refused: the simulator steps itself.
+  v1::StepRequest step;
+  step.mutable_duration()->set_seconds(1);
+  v1::StepResponse stepped;
+  EXPECT_EQ(sim->Step(deadline().get(), step, &stepped).error_code(),
+            grpc::StatusCode::FAILED_PRECONDITION);
+
+  support::ServerProcess system(
+      BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH,
+      {"--channel", broker.address(), "--clock", "sim", "--follow-time", simulator.address()});
+  ASSERT_TRUE(system.start()) << system.error();
+  double t = -1;
+  for (int attempt = 0; attempt < 200 && t < 1.0; ++attempt) {
+    std::this_thread::sleep_for(milliseconds(20));
+    t = lockStepSeconds(*data);
+  }
+  ASSERT_GE(t, 1.0) << "time did not advance with a follower";
+
+  // Frozen follower: time stands (within the grant in flight).
+  ASSERT_EQ(::kill(system.pid(), SIGSTOP), 0);
+  std::this_thread::sleep_for(milliseconds(200));
+  const double frozen = lockStepSeconds(*data);
+  std::this_thread::sleep_for(milliseconds(700));
+  EXPECT_LE(lockStepSeconds(*data) - frozen, 0.011) << "time went on without the follower";
+  ASSERT_EQ(::kill(system.pid(), SIGCONT), 0);
+
+  // A WAIT of 2 s runs 2 s of simulated time, however long in wall time.
+  auto stub = v1::BehaviorSystem::NewStub(
+      grpc::CreateChannel(system.address(), grpc::InsecureChannelCredentials()));
+  auto watch_context = deadline(seconds(30));
+  auto reader = stub->WatchEvents(watch_context.get(), v1::WatchEventsRequest());
+  v1::WatchEventsResponse message;
+  ASSERT_TRUE(reader->Read(&message));  // the start message
+  v1::ActivateBehaviorRequest activate;
+  activate.set_behavior("WAIT");
+  (*activate.mutable_parameters()->mutable_fields())["duration_s"].set_number_value(2.0);
+  v1::ActivateResponse activated;
+  const grpc::Status status = stub->ActivateBehavior(deadline().get(), activate, &activated);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  v1::BehaviorEvent finished;
+  while (reader->Read(&message)) {
+    if (message.has_event() && message.event().has_finished()) {
+      finished = message.event();
+      break;
+    }
+  }
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  const double active_s =
+      TimeUtil::DurationToNanoseconds(finished.finished().active_duration()) / 1e9;
+  EXPECT_GE(active_s, 2.0);
+  EXPECT_LE(active_s, 2.0 + 0.011) << "one quantum at most past its end";
+  EXPECT_EQ(system.terminate(), 0);
+  EXPECT_EQ(simulator.terminate(), 0);
+  EXPECT_EQ(broker.terminate(), 0);
 }
 
 }  // namespace

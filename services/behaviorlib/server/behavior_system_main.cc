@@ -13,6 +13,7 @@
 #include "behaviorlib/server/coordinator_registration.h"
 #include "behaviorlib/server/flags.h"
 #include "behaviorlib/server/server_runtime.h"
+#include "behaviorlib/server/time_follower.h"
 #include "behaviorlib/v1/options.pb.h"
 #include "channel/channel_client.h"
 #include "channel/sim_clock.h"
@@ -50,6 +51,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   std::string config_path;
   std::string coordinator;
   std::string flight_controller;
+  std::string follow_time;
   FlagSet flags("behavior system " + system_name +
                 ": hosts its behaviors as gRPC services (typed per behavior, plus "
                 "behaviorlib.v1.BehaviorSystem)");
@@ -72,8 +74,16 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   flags.add("flight-controller", &flight_controller,
             "FlightController address host:port (the simulator's, or an autopilot bridge's) for "
             "flight behaviors; empty: they report that no flight controller is configured");
+  flags.add("follow-time", &follow_time,
+            "simulator address host:port: follow its time grants (deterministic mode, "
+            "simulator --time-scale max): each granted time is reported back once every "
+            "behavior ran what was due, and the simulator waits for it; needs --clock sim");
   int exit_code = 0;
   if (!flags.parse(argc, argv, &exit_code)) return exit_code;
+  if (!follow_time.empty() && clock_kind != "sim") {
+    fatal(program, "--follow-time needs --clock sim (the grants set simulated time)");
+    return 2;
+  }
 
   YAML::Node config;
   if (!config_path.empty()) {
@@ -88,6 +98,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   std::unique_ptr<channel::ChannelClient> channel_client;
   if (!channel.empty()) channel_client = std::make_unique<channel::ChannelClient>(channel);
   std::unique_ptr<Clock> clock;
+  channel::SimClock* sim_clock = nullptr;
   if (clock_kind == "steady") {
     clock = std::make_unique<SteadyClock>();
   } else if (clock_kind == "sim") {
@@ -97,7 +108,9 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
     }
     // Extrapolates the simulator's time line; runs on at the last time scale
     // when the simulator dies, so that staleness checks notice it.
-    clock = std::make_unique<channel::SimClock>(*channel_client);
+    auto simulated = std::make_unique<channel::SimClock>(*channel_client);
+    sim_clock = simulated.get();
+    clock = std::move(simulated);
   } else {
     fatal(program, "--clock must be 'steady' or 'sim', not '" + clock_kind + "'");
     return 2;
@@ -165,6 +178,12 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
                runtime.metricsPort(), clock_kind.c_str(), host.events().incarnation().c_str());
   auto registration =
       startCoordinatorRegistration(coordinator, listen, runtime.grpcPort(), host, program);
+  std::unique_ptr<TimeFollower> follower;
+  if (!follow_time.empty()) {
+    follower = std::make_unique<TimeFollower>(follow_time, system_name + "/" + robot_id,
+                                              *sim_clock,
+                                              [&host](TimePoint t) { return host.caughtUp(t); });
+  }
 
   const int sig = ServerRuntime::waitForShutdownSignal();
   std::fprintf(stderr, "%s: signal %d, interrupting active behaviors and shutting down\n",
@@ -172,6 +191,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   // Order matters: refuse new lifecycle calls, end activations (their
   // INTERRUPTED events go to subscribers), let the streams drain, then stop
   // serving.
+  follower.reset();  // leaves the simulator's barrier first
   gate.close();
   host.stop();
   // Unregistering names the last event's seq: the coordinator reads the

@@ -117,6 +117,14 @@ TEST(SimClockTest, NeverReadsBackwardsWithinAnEpochButFollowsANewOne) {
   EXPECT_EQ(clock.now(), TimePoint(milliseconds(100)));
 }
 
+TEST(SimClockTest, ALateOlderSampleMovesNothingBackEvenUnread) {
+  FakeHost host;
+  SimClock clock(host.clocks());
+  clock.onClockSample(sample(7, 0, 0.0));  // a time grant, never read
+  clock.onClockSample(sample(6, 995'000'000, 0.0));  // the channel's, late
+  EXPECT_EQ(clock.now(), TimePoint(seconds(7)));
+}
+
 TEST(SimClockTest, StandsStillInLockStepOrWhilePaused) {
   FakeHost host;
   SimClock clock(host.clocks());

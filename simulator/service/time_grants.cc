@@ -1,0 +1,206 @@
+#include "simulator/service/time_grants.h"
+
+#include <google/protobuf/util/time_util.h>
+
+#include <algorithm>
+#include <cstdio>
+
+namespace behaviorlib::sim {
+namespace {
+
+using google::protobuf::util::TimeUtil;
+
+// How often waits look at the stop flag.
+constexpr std::chrono::milliseconds kStopPoll(100);
+
+}  // namespace
+
+// One FollowTime stream: reads reports one at a time, writes the newest
+// grant (one write in flight; a newer grant replaces an unsent one).
+class TimeGrants::Follower final
+    : public grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse> {
+ public:
+  explicit Follower(TimeGrants* owner) : owner_(owner) {}
+
+  void start() { StartRead(&request_); }
+
+  // Guarded by the owner's mutex.
+  std::string name;
+  bool joined = false;
+  bool silent = false;  // left out of the waits until it reports again
+  int64_t caught_up_ns = -1;
+
+  const v1::FollowTimeRequest& request() const { return request_; }
+
+  void grant(const v1::Clock& clock) {
+    std::lock_guard lock(mutex_);
+    if (finished_) return;
+    *pending_.mutable_clock() = clock;
+    has_pending_ = true;
+    if (!writing_) writeLocked();
+  }
+
+  void finish(const grpc::Status& status) {
+    std::lock_guard lock(mutex_);
+    if (finished_) return;
+    finished_ = true;
+    Finish(status);
+  }
+
+  void OnReadDone(bool ok) override {
+    if (!ok) {
+      finish(grpc::Status::OK);  // the follower half-closed or went away
+      return;
+    }
+    owner_->reported(this);
+    StartRead(&request_);
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard lock(mutex_);
+    writing_ = false;
+    if (!ok) {
+      if (!finished_) {
+        finished_ = true;
+        Finish(grpc::Status(grpc::StatusCode::CANCELLED, "the follower's stream broke"));
+      }
+      return;
+    }
+    if (has_pending_ && !finished_) writeLocked();
+  }
+
+  void OnDone() override {
+    owner_->left(this);
+    delete this;
+  }
+
+ private:
+  void writeLocked() {
+    current_ = pending_;
+    has_pending_ = false;
+    writing_ = true;
+    StartWrite(&current_);
+  }
+
+  TimeGrants* const owner_;
+  v1::FollowTimeRequest request_;  // one read at a time
+  std::mutex mutex_;
+  v1::FollowTimeResponse pending_, current_;
+  bool has_pending_ = false;
+  bool writing_ = false;
+  bool finished_ = false;
+};
+
+TimeGrants::TimeGrants(std::chrono::nanoseconds follower_timeout)
+    : follower_timeout_(follower_timeout) {}
+
+TimeGrants::~TimeGrants() { shutdown(); }
+
+grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* TimeGrants::follow() {
+  auto* follower = new Follower(this);
+  bool refuse = false;
+  {
+    std::lock_guard lock(mutex_);
+    refuse = shutting_down_;
+  }
+  if (refuse) {
+    follower->finish(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is stopping"));
+  } else {
+    follower->start();
+  }
+  return follower;
+}
+
+void TimeGrants::reported(Follower* follower) {
+  std::optional<v1::Clock> catch_up;
+  {
+    std::lock_guard lock(mutex_);
+    if (!follower->joined) {
+      follower->joined = true;
+      follower->name = follower->request().participant();
+      followers_.insert(follower);
+      std::fprintf(stderr, "simulator: %s follows the time grants (%zu followers)\n",
+                   follower->name.c_str(), followers_.size());
+      catch_up = last_grant_;  // it starts from the current grant
+    }
+    if (follower->request().has_caught_up_to()) {
+      follower->caught_up_ns = TimeUtil::TimestampToNanoseconds(follower->request().caught_up_to());
+      follower->silent = false;
+    }
+  }
+  cv_.notify_all();
+  if (catch_up) follower->grant(*catch_up);
+}
+
+void TimeGrants::left(Follower* follower) {
+  {
+    std::lock_guard lock(mutex_);
+    if (followers_.erase(follower) > 0) {
+      std::fprintf(stderr, "simulator: %s stopped following the time grants\n",
+                   follower->name.c_str());
+    }
+  }
+  cv_.notify_all();
+}
+
+void TimeGrants::waitForFollowers(int count, const std::atomic<bool>& stop) {
+  std::unique_lock lock(mutex_);
+  while (!stop.load() && !shutting_down_ && static_cast<int>(followers_.size()) < count) {
+    cv_.wait_for(lock, kStopPoll);
+  }
+}
+
+int TimeGrants::grantAndWait(const v1::Clock& clock, const std::atomic<bool>& stop) {
+  const int64_t t = TimeUtil::TimestampToNanoseconds(clock.time());
+  std::unique_lock lock(mutex_);
+  last_grant_ = clock;
+  ++grants_;
+  for (Follower* follower : followers_) follower->grant(clock);
+  const auto deadline = std::chrono::steady_clock::now() + follower_timeout_;
+  while (true) {
+    int caught_up = 0;
+    int waiting = 0;
+    for (const Follower* follower : followers_) {
+      if (follower->caught_up_ns >= t) {
+        ++caught_up;
+      } else if (!follower->silent) {
+        ++waiting;
+      }
+    }
+    if (waiting == 0 || stop.load() || shutting_down_) return caught_up;
+    if (std::chrono::steady_clock::now() >= deadline) {
+      for (Follower* follower : followers_) {
+        if (follower->caught_up_ns >= t || follower->silent) continue;
+        follower->silent = true;
+        ++timeouts_;
+        std::fprintf(stderr,
+                     "simulator: %s did not catch up within %.1f s of wall time; time goes on "
+                     "without waiting for it until it reports again\n",
+                     follower->name.c_str(),
+                     std::chrono::duration<double>(follower_timeout_).count());
+      }
+      return caught_up;
+    }
+    cv_.wait_until(lock, std::min(deadline, std::chrono::steady_clock::now() + kStopPoll));
+  }
+}
+
+void TimeGrants::shutdown() {
+  {
+    // Under mutex_: a follower's OnDone (which deletes it) waits for it in
+    // left(), and Finish never runs a reaction inline.
+    std::lock_guard lock(mutex_);
+    shutting_down_ = true;
+    for (Follower* follower : followers_) {
+      follower->finish(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is stopping"));
+    }
+  }
+  cv_.notify_all();
+}
+
+int TimeGrants::followerCount() const {
+  std::lock_guard lock(mutex_);
+  return static_cast<int>(followers_.size());
+}
+
+}  // namespace behaviorlib::sim

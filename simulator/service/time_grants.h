@@ -1,0 +1,76 @@
+#pragma once
+
+// TimeGrants: the deterministic mode's barrier (simulator --time-scale max).
+// The simulator advances time by a quantum, then grantAndWait() sends the new
+// time to every follower (Simulator.FollowTime streams, one per behavior
+// system) and waits until each has reported that it did everything due up to
+// it. A starved follower slows the simulation instead of missing deadlines; a
+// follower silent for `follower_timeout` of wall time after a grant is left
+// out of the waits until it reports again (a frozen or dead process must not
+// stop the world), and one whose stream ends is forgotten.
+//
+//   TimeGrants grants(std::chrono::seconds(5));
+//   SimulatorService::setTimeGrants(&grants);   // serves FollowTime
+//   grants.waitForFollowers(9, stop);
+//   while (!stop) { simulation.advance(10ms); grants.grantAndWait(clock, stop); }
+
+#include <grpcpp/grpcpp.h>
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <mutex>
+#include <optional>
+#include <set>
+#include <string>
+
+#include "behaviorlib/v1/simulator.pb.h"
+
+namespace behaviorlib::sim {
+
+class TimeGrants {
+ public:
+  explicit TimeGrants(std::chrono::nanoseconds follower_timeout);
+  /// Ends every stream (shutdown() must have been called, or no stream is
+  /// left).
+  ~TimeGrants();
+  TimeGrants(const TimeGrants&) = delete;
+  TimeGrants& operator=(const TimeGrants&) = delete;
+
+  /// The FollowTime handler.
+  grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* follow();
+
+  /// Waits until at least `count` followers joined (or `stop`).
+  void waitForFollowers(int count, const std::atomic<bool>& stop);
+  /// Grants `clock` (a lock-step sample) to every follower and waits until
+  /// each has caught up with it, left, or timed out (or `stop`). Returns the
+  /// number of followers that caught up.
+  int grantAndWait(const v1::Clock& clock, const std::atomic<bool>& stop);
+
+  /// Ends every FollowTime stream (UNAVAILABLE) and refuses new ones.
+  void shutdown();
+
+  /// Followers connected now; grants waited on so far; followers dropped
+  /// from a wait for silence.
+  int followerCount() const;
+  uint64_t grantCount() const { return grants_.load(); }
+  uint64_t timeoutCount() const { return timeouts_.load(); }
+
+ private:
+  class Follower;
+  void joined(Follower* follower);
+  void reported(Follower* follower);
+  void left(Follower* follower);
+
+  const std::chrono::nanoseconds follower_timeout_;
+  mutable std::mutex mutex_;
+  std::condition_variable cv_;
+  std::set<Follower*> followers_;
+  std::optional<v1::Clock> last_grant_;
+  bool shutting_down_ = false;
+  std::atomic<uint64_t> grants_{0};
+  std::atomic<uint64_t> timeouts_{0};
+};
+
+}  // namespace behaviorlib::sim

@@ -3,12 +3,12 @@
 // publishes simulated time, ground truth and the sensors on the data channel
 // (topics in simulator/service/channel_publisher.h).
 
+#include <google/protobuf/util/time_util.h>
+
 #include <cstdio>
 #include <cstdlib>
 #include <sstream>
 #include <thread>
-
-#include <google/protobuf/util/time_util.h>
 
 #include "behaviorlib/server/flags.h"
 #include "behaviorlib/server/server_runtime.h"
@@ -97,8 +97,8 @@ int main(int argc, char** argv) {
     char* end = nullptr;
     time_scale = std::strtod(time_scale_arg.c_str(), &end);
     if (time_scale_arg.empty() || *end != '\0' || !(time_scale >= 0.1 && time_scale <= 1000.0)) {
-      fatal(program, "--time-scale must be within [0.1, 1000] or 'max', got '" + time_scale_arg +
-                         "'");
+      fatal(program,
+            "--time-scale must be within [0.1, 1000] or 'max', got '" + time_scale_arg + "'");
       return 2;
     }
   }

@@ -17,8 +17,8 @@
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "simulator/core/simulation.h"
 #include "simulator/faults/fault_injector.h"
-#include "simulator/service/time_grants.h"
 #include "simulator/service/latest_writer.h"
+#include "simulator/service/time_grants.h"
 #include "simulator/world/world.h"
 
 namespace behaviorlib::sim {

@@ -180,8 +180,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
       startCoordinatorRegistration(coordinator, listen, runtime.grpcPort(), host, program);
   std::unique_ptr<TimeFollower> follower;
   if (!follow_time.empty()) {
-    follower = std::make_unique<TimeFollower>(follow_time, system_name + "/" + robot_id,
-                                              *sim_clock,
+    follower = std::make_unique<TimeFollower>(follow_time, system_name + "/" + robot_id, *sim_clock,
                                               [&host](TimePoint t) { return host.caughtUp(t); });
   }
 

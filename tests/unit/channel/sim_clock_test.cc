@@ -120,7 +120,7 @@ TEST(SimClockTest, NeverReadsBackwardsWithinAnEpochButFollowsANewOne) {
 TEST(SimClockTest, ALateOlderSampleMovesNothingBackEvenUnread) {
   FakeHost host;
   SimClock clock(host.clocks());
-  clock.onClockSample(sample(7, 0, 0.0));  // a time grant, never read
+  clock.onClockSample(sample(7, 0, 0.0));            // a time grant, never read
   clock.onClockSample(sample(6, 995'000'000, 0.0));  // the channel's, late
   EXPECT_EQ(clock.now(), TimePoint(seconds(7)));
 }

@@ -224,6 +224,17 @@ absl::StatusOr<v1::DeactivateResponse> FleetControl::callDeactivate(
   return response;
 }
 
+bool FleetControl::callStillActive(const Registry::Route& route, const std::string& behavior) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
+  v1::CheckBehaviorActivationRequest request;
+  request.set_behavior(behavior);
+  v1::CheckActivationResponse response;
+  // Unanswered: trust the view (the plan then refuses, as before).
+  if (!route.stub->CheckBehaviorActivation(&context, request, &response).ok()) return true;
+  return response.active();
+}
+
 absl::Status FleetControl::callCheckSituation(const Registry::Route& route,
                                               const std::string& behavior) {
   grpc::ClientContext context;
@@ -297,6 +308,13 @@ absl::StatusOr<FleetControl::ActivateResult> FleetControl::activateBehavior(
     if (!response.ok()) return response.status();
     result.activation = std::move(*response);
     return result;
+  }
+  // The view follows the systems' event streams, which can lag (activations
+  // made directly on a system, a loaded machine): before refusing the target
+  // as already active, ask its system, which knows.
+  if (plan_request.active.contains(request.behavior) &&
+      !callStillActive(target_route, request.behavior)) {
+    plan_request.active.erase(request.behavior);
   }
   auto plan = makePlan(*catalog_, plan_request);
   if (!plan.ok()) return plan.status();

@@ -134,6 +134,9 @@ class FleetControl final : public MissionActions {
                                                         const std::string& behavior,
                                                         const std::string& activation_id);
   absl::Status callCheckSituation(const Registry::Route& route, const std::string& behavior);
+  /// Whether the behavior's own system says it is active (true when it does
+  /// not answer).
+  bool callStillActive(const Registry::Route& route, const std::string& behavior);
   /// Pause or Resume on the behavior's system.
   template <class Request, class Response>
   absl::Status callLifecycle(const std::string& robot, const std::string& behavior,

@@ -399,8 +399,8 @@ def main():
                              "behavior system runs once per robot, named <system>-<robot>; "
                              "default: --robot-id's one robot")
     parser.add_argument("--time-scale", type=time_scale_arg, default=2.0,
-                        help="simulated seconds per wall second. Idle, the stack costs a few "
-                             "percent of a core at any scale; flying, the controllers run in "
+                        help="simulated seconds per wall second. Idle, the stack costs about 6 "
+                             "%% of a core at 1x and 10 %% at 10x; flying, the controllers run in "
                              "scaled wall time and can starve on a loaded machine: 2x leaves a "
                              "margin. With --systems (a lighter stack) 3-5x is fine. 'max': "
                              "the deterministic mode, time advanced in quanta as fast as every "

@@ -113,7 +113,6 @@ void ChannelPublisher::publishClock(SimTime now) {
   published_free_running_ = free_running;
   published_generation_ = pace.generation;
   last_clock_wall_ = wall_now;
-  clock_samples_.fetch_add(1, std::memory_order_relaxed);
   queue_.push("clock", std::move(clock));
 }
 

@@ -36,7 +36,6 @@
 // The sensor rates are defaults: --sensor-config changes them (0 disables a
 // sensor); see simulator/sensors/README.md.
 
-#include <atomic>
 #include <chrono>
 #include <memory>
 
@@ -81,8 +80,6 @@ class ChannelPublisher {
   /// A lock-step clock sample of time `t` (time scale 0, this simulator's
   /// epoch), as the clock topic carries in lock-step; also the time grants'.
   v1::Clock lockStepClock(SimTime t) const;
-  /// Clock samples queued so far.
-  uint64_t clockSampleCount() const { return clock_samples_.load(); }
   uint64_t droppedCount() const { return queue_.droppedCount(); }
 
  private:
@@ -99,7 +96,6 @@ class ChannelPublisher {
   uint64_t published_generation_ = 0;
   bool published_free_running_ = false;
   std::chrono::steady_clock::time_point last_clock_wall_{};
-  std::atomic<uint64_t> clock_samples_{0};
   // Physics thread only.
   double next_clock_s_ = 0, next_truth_s_ = 0, next_state_s_ = 0, last_t_ = 0;
   PublishQueue queue_;

@@ -32,6 +32,44 @@ std::unique_ptr<grpc::ClientContext> deadline(seconds s = seconds(10)) {
   return context;
 }
 
+// Activates WAIT{duration_s} on the behavior system at `address` (retried
+// for 1 s while it has no simulated time yet) and returns its finished
+// event; nullopt, with `error`, when refused or the event stream ended first.
+std::optional<v1::BehaviorEvent> runWait(const std::string& address, double duration_s,
+                                         std::string* error) {
+  auto stub =
+      v1::BehaviorSystem::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  auto watch_context = deadline(seconds(30));
+  auto reader = stub->WatchEvents(watch_context.get(), v1::WatchEventsRequest());
+  v1::WatchEventsResponse message;
+  if (!reader->Read(&message)) {  // the start message
+    *error = "no event stream";
+    return std::nullopt;
+  }
+  v1::ActivateBehaviorRequest activate;
+  activate.set_behavior("WAIT");
+  (*activate.mutable_parameters()->mutable_fields())["duration_s"].set_number_value(duration_s);
+  v1::ActivateResponse activated;
+  grpc::Status status;
+  for (int attempt = 0; attempt < 50; ++attempt) {  // until the sim clock reached the system
+    status = stub->ActivateBehavior(deadline().get(), activate, &activated);
+    if (status.ok()) break;
+    std::this_thread::sleep_for(milliseconds(20));
+  }
+  if (!status.ok()) {
+    *error = status.error_message();
+    return std::nullopt;
+  }
+  std::optional<v1::BehaviorEvent> finished;
+  while (!finished && reader->Read(&message)) {
+    if (message.has_event() && message.event().has_finished()) finished = message.event();
+  }
+  watch_context->TryCancel();
+  reader->Finish();
+  if (!finished) *error = "the event stream ended before WAIT finished";
+  return finished;
+}
+
 class SimulatorServiceTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -205,40 +243,16 @@ TEST_F(SimulatorServiceTest, SimulatedTimeDrivesABehaviorSystemThroughTheChannel
   support::ServerProcess system(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH,
                                 {"--channel", broker_.address(), "--clock", "sim"});
   ASSERT_TRUE(system.start()) << system.error();
-  auto stub = v1::BehaviorSystem::NewStub(
-      grpc::CreateChannel(system.address(), grpc::InsecureChannelCredentials()));
-  auto watch_context = deadline(seconds(20));
-  auto reader = stub->WatchEvents(watch_context.get(), v1::WatchEventsRequest());
-  v1::WatchEventsResponse message;
-  ASSERT_TRUE(reader->Read(&message));  // the start message
-
   // WAIT 3 s of simulated time at 10x: about 0.3 s of wall time.
-  v1::ActivateBehaviorRequest activate;
-  activate.set_behavior("WAIT");
-  (*activate.mutable_parameters()->mutable_fields())["duration_s"].set_number_value(3.0);
-  v1::ActivateResponse activated;
-  grpc::Status status;
   const auto wall_start = std::chrono::steady_clock::now();
-  for (int attempt = 0; attempt < 50; ++attempt) {  // until the sim clock reached the system
-    status = stub->ActivateBehavior(deadline().get(), activate, &activated);
-    if (status.ok()) break;
-    std::this_thread::sleep_for(milliseconds(20));
-  }
-  ASSERT_TRUE(status.ok()) << status.error_message();
-  v1::BehaviorEvent finished;
-  while (reader->Read(&message)) {
-    if (message.has_event() && message.event().has_finished()) {
-      finished = message.event();
-      break;
-    }
-  }
+  std::string error;
+  const auto finished = runWait(system.address(), 3.0, &error);
   const double wall_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - wall_start).count();
-  watch_context->TryCancel();
-  reader->Finish();
-  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  ASSERT_TRUE(finished) << error;
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
   const double active_s =
-      TimeUtil::DurationToMilliseconds(finished.finished().active_duration()) / 1e3;
+      TimeUtil::DurationToMilliseconds(finished->finished().active_duration()) / 1e3;
   EXPECT_NEAR(active_s, 3.0, 0.1) << "active time is simulated time";
   EXPECT_LT(wall_s, 2.5) << "3 simulated seconds at 10x";
   EXPECT_EQ(system.terminate(), 0);
@@ -424,20 +438,6 @@ TEST_F(SimulatorServiceTest, SigtermEndsStreamsAndExitsZero) {
   EXPECT_EQ(reader->Finish().error_code(), grpc::StatusCode::UNAVAILABLE);
 }
 
-// Simulated time on the clock topic in lock-step (the deterministic mode's
-// samples are the time itself); -1 before any.
-double lockStepSeconds(v1::DataChannel::Stub& data) {
-  v1::GetLatestRequest request;
-  request.set_topic("clock");
-  v1::GetLatestResponse response;
-  v1::Clock clock;
-  if (!data.GetLatest(deadline().get(), request, &response).ok() ||
-      !response.sample().sample().UnpackTo(&clock)) {
-    return -1;
-  }
-  return TimeUtil::TimestampToNanoseconds(clock.time()) / 1e9;
-}
-
 // The deterministic mode (--time-scale max): time starts once the follower
 // joined, advances only as fast as it reports back, stands while it is
 // frozen (SIGSTOP: a starved process slows the simulation instead of
@@ -456,7 +456,7 @@ TEST(SimulatorDeterministicTest, TimeAdvancesOnlyAsFastAsItsFollowerKeepsUp) {
 
   // No follower yet: time has not started.
   std::this_thread::sleep_for(milliseconds(300));
-  EXPECT_LE(lockStepSeconds(*data), 0.0);
+  EXPECT_LE(clockSeconds(*data), 0.0);
   // Step and SetTimeScale are refused: the simulator steps itself.
   v1::StepRequest step;
   step.mutable_duration()->set_seconds(1);
@@ -471,41 +471,25 @@ TEST(SimulatorDeterministicTest, TimeAdvancesOnlyAsFastAsItsFollowerKeepsUp) {
   double t = -1;
   for (int attempt = 0; attempt < 200 && t < 1.0; ++attempt) {
     std::this_thread::sleep_for(milliseconds(20));
-    t = lockStepSeconds(*data);
+    t = clockSeconds(*data);
   }
   ASSERT_GE(t, 1.0) << "time did not advance with a follower";
 
   // Frozen follower: time stands (within the grant in flight).
   ASSERT_EQ(::kill(system.pid(), SIGSTOP), 0);
   std::this_thread::sleep_for(milliseconds(200));
-  const double frozen = lockStepSeconds(*data);
+  const double frozen = clockSeconds(*data);
   std::this_thread::sleep_for(milliseconds(700));
-  EXPECT_LE(lockStepSeconds(*data) - frozen, 0.011) << "time went on without the follower";
+  EXPECT_LE(clockSeconds(*data) - frozen, 0.011) << "time went on without the follower";
   ASSERT_EQ(::kill(system.pid(), SIGCONT), 0);
 
   // A WAIT of 2 s runs 2 s of simulated time, however long in wall time.
-  auto stub = v1::BehaviorSystem::NewStub(
-      grpc::CreateChannel(system.address(), grpc::InsecureChannelCredentials()));
-  auto watch_context = deadline(seconds(30));
-  auto reader = stub->WatchEvents(watch_context.get(), v1::WatchEventsRequest());
-  v1::WatchEventsResponse message;
-  ASSERT_TRUE(reader->Read(&message));  // the start message
-  v1::ActivateBehaviorRequest activate;
-  activate.set_behavior("WAIT");
-  (*activate.mutable_parameters()->mutable_fields())["duration_s"].set_number_value(2.0);
-  v1::ActivateResponse activated;
-  const grpc::Status status = stub->ActivateBehavior(deadline().get(), activate, &activated);
-  ASSERT_TRUE(status.ok()) << status.error_message();
-  v1::BehaviorEvent finished;
-  while (reader->Read(&message)) {
-    if (message.has_event() && message.event().has_finished()) {
-      finished = message.event();
-      break;
-    }
-  }
-  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  std::string error;
+  const auto finished = runWait(system.address(), 2.0, &error);
+  ASSERT_TRUE(finished) << error;
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
   const double active_s =
-      TimeUtil::DurationToNanoseconds(finished.finished().active_duration()) / 1e9;
+      TimeUtil::DurationToNanoseconds(finished->finished().active_duration()) / 1e9;
   EXPECT_GE(active_s, 2.0);
   EXPECT_LE(active_s, 2.0 + 0.011) << "one quantum at most past its end";
   EXPECT_EQ(system.terminate(), 0);

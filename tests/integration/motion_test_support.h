@@ -108,7 +108,10 @@ class SystemClient {
     return activate(behavior, parameters, response);
   }
   /// Activates with parameters built in code (a Struct can carry what JSON
-  /// cannot, e.g. NaN); retried while the system has no simulated time yet.
+  /// cannot, e.g. NaN); retried while the system has no simulated time yet,
+  /// and while its flight-state stream still shows the lease of a commander
+  /// that just finished (the coordinator's planner retries such lagging
+  /// situations too; a commander still active keeps being refused).
   grpc::Status activate(const std::string& behavior, const google::protobuf::Struct& parameters,
                         v1::ActivateResponse* response) {
     v1::ActivateBehaviorRequest request;
@@ -117,7 +120,11 @@ class SystemClient {
     grpc::Status status;
     for (int attempt = 0; attempt < 100; ++attempt) {
       status = stub_->ActivateBehavior(deadline().get(), request, response);
-      if (status.ok() || status.error_message().find("no time yet") == std::string::npos) break;
+      const std::string& message = status.error_message();
+      if (status.ok() || (message.find("no time yet") == std::string::npos &&
+                          message.find("only one commander at a time") == std::string::npos)) {
+        break;
+      }
       std::this_thread::sleep_for(milliseconds(20));
     }
     return status;

@@ -387,7 +387,10 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
 
     shutdown = (f"- wall time {settings.get('wall_s', 0):.1f} s; every process shut down "
                 f"{'cleanly' if clean_exit else 'NOT cleanly (see processes)'}")
-    world = (f"- simulator time scale {settings.get('time_scale')}x, world "
+    scale = settings.get("time_scale")
+    scale_text = ("deterministic (time scale max)" if scale == "max"
+                  else f"time scale {scale}x")
+    world = (f"- simulator {scale_text}, world "
              f"`{settings.get('world') or 'empty field'}`, seed {settings.get('seed')}")
     if settings.get("sensor_config"):
         world += f", sensor config `{settings['sensor_config']}`"

@@ -88,10 +88,12 @@ class Process:
         starting it again (a restart) serves on the same ones and appends to
         its log."""
         restarting = self.process is not None
-        if restarting:  # its new port file says when it is listening
+        if restarting:
             self.grpc_port = self.metrics_port = 0
-            if os.path.exists(self.port_file):
-                os.remove(self.port_file)
+        # Its new port file says when it is listening (a reused run
+        # directory holds the last run's).
+        if os.path.exists(self.port_file):
+            os.remove(self.port_file)
         os.makedirs(os.path.dirname(self.port_file), exist_ok=True)
         os.makedirs(os.path.dirname(self.log_path), exist_ok=True)
         with open(self.log_path, "ab" if restarting else "wb") as log:

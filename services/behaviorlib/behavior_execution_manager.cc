@@ -69,6 +69,11 @@ bool BehaviorExecutionManager::caughtUp(TimePoint t) const {
   return state_ != State::kActive || next_tick_ > t;
 }
 
+bool BehaviorExecutionManager::idle() const {
+  std::lock_guard lock(mutex_);
+  return commands_.empty() && !ticking_ && state_ != State::kActive;
+}
+
 std::string causeName(v1::TerminationCause cause) {
   std::string name = v1::TerminationCause_Name(cause);
   constexpr std::string_view kPrefix = "TERMINATION_CAUSE_";

@@ -189,6 +189,10 @@ class BehaviorExecutionManager {
   /// command waits, and an active behavior is not ticking and has its next
   /// tick after `t` (the deterministic mode's catch-up report).
   bool caughtUp(TimePoint t) const;
+  /// Whether nothing runs until a call from outside: no command waits, no
+  /// tick runs, and the behavior is not active (the deterministic mode does
+  /// not wait for an idle system).
+  bool idle() const;
   /// Reads the current activation state (no user code; immediate).
   v1::CheckActivationResponse checkActivation() const;
   v1::BehaviorState state() const;

@@ -120,4 +120,11 @@ bool BehaviorHost::caughtUp(TimePoint t) const {
   return true;
 }
 
+bool BehaviorHost::idle() const {
+  for (const auto& behavior : behaviors_) {
+    if (!behavior->idle()) return false;
+  }
+  return true;
+}
+
 }  // namespace behaviorlib

@@ -62,6 +62,8 @@ class BehaviorHost {
   }
   /// Whether every behavior ran everything due up to `t` (caughtUp).
   bool caughtUp(TimePoint t) const;
+  /// Whether every behavior is idle (BehaviorExecutionManager::idle).
+  bool idle() const;
   EventLog& events() { return events_; }
   const Clock& clock() const { return clock_; }
   const std::string& robotId() const { return options_.robot_id; }

@@ -15,6 +15,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/container/flat_hash_map.h"
 #include "absl/container/inlined_vector.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
@@ -254,8 +255,8 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   }
 
   // Tells the client that it is registered (see kSubscribedMetadataKey).
-  void sendSubscribedMetadata() {
-    context_->AddInitialMetadata(kSubscribedMetadataKey, "1");
+  void sendSubscribedMetadata(uint64_t topic_seq) {
+    context_->AddInitialMetadata(kSubscribedMetadataKey, std::to_string(topic_seq));
     StartSendInitialMetadata();
   }
 
@@ -415,6 +416,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
       return;
     }
     ++accepted_;
+    published_seqs_[cached_topic.get()] = {cached_topic, published_seq};
     if (!finished_) StartRead(&request_);
   }
 
@@ -425,14 +427,19 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
 
   // The topic of the previous sample on this stream (a stream usually
   // publishes one topic), so that the common case skips the topic map and
-  // name validation. Only used from OnReadDone, one read at a time.
+  // name validation, and that sample's topic_seq. Only used from
+  // OnReadDone, one read at a time.
   std::shared_ptr<Topic> cached_topic;
+  uint64_t published_seq = 0;
 
  private:
   void finishLocked(const grpc::Status& status) {
     if (finished_) return;
     finished_ = true;
     response_->set_accepted_count(accepted_);
+    for (const auto& [key, topic_seq] : published_seqs_) {
+      (*response_->mutable_topic_seqs())[topic_seq.first->name] = topic_seq.second;
+    }
     Finish(status);
   }
 
@@ -442,6 +449,8 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
   v1::PublishRequest request_;  // used by one read at a time
   std::mutex mutex_;
   uint64_t accepted_ = 0;
+  // The last seq published on each topic (PublishResponse.topic_seqs).
+  absl::flat_hash_map<const Topic*, std::pair<std::shared_ptr<Topic>, uint64_t>> published_seqs_;
   bool finished_ = false;
 };
 
@@ -547,6 +556,7 @@ grpc::Status Broker::publish(PublishReactor& publisher, v1::PublishRequest& requ
   answered.swap(topic->waiting);
   topic_lock.unlock();
   topic->samples_in.Increment();
+  publisher.published_seq = sample->topic_seq();
   publisher.cached_topic = std::move(topic);
   for (const auto& subscriber : idle) subscriber->pump();
   for (auto& get : answered) {
@@ -592,6 +602,7 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
   }
 
   bool registered = false;
+  uint64_t registered_seq = 0;
   InterestReactors watchers;
   {
     std::lock_guard lock(mutex_);
@@ -604,6 +615,7 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
         first = topic->subscribers.empty();
         topic->subscribers.push_back(reactor);
         topic->subscriber_gauge.Set(static_cast<double>(topic->subscribers.size()));
+        registered_seq = topic->seq;
         if (request->send_latest_first() && topic->latest) reactor->offer(topic->latest);
       }
       if (first) interestChangedLocked(&watchers);
@@ -614,7 +626,7 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
   if (!registered) {
     reactor->requestFinish(shuttingDownStatus());
   } else {
-    reactor->sendSubscribedMetadata();
+    reactor->sendSubscribedMetadata(registered_seq);
   }
   return reactor.get();
 }

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <atomic>
 #include <condition_variable>
+#include <map>
 #include <mutex>
 #include <optional>
 #include <thread>
@@ -13,6 +14,7 @@
 
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "channel/topic.h"
@@ -40,14 +42,33 @@ grpc::ChannelArguments channelArguments() {
 
 }  // namespace
 
+// Wakes ChannelClient::waitDelivered when a subscription processed a sample
+// or its connection changed.
+struct ProgressSignal {
+  void notify() {
+    {
+      std::lock_guard lock(mutex);
+      ++generation;
+    }
+    cv.notify_all();
+  }
+  std::mutex mutex;
+  std::condition_variable cv;
+  uint64_t generation = 0;
+};
+
 // ---------------------------------------------------------------------------
 // Subscription
 
 class Subscription::Impl {
  public:
   Impl(std::shared_ptr<v1::DataChannel::Stub> stub, v1::SubscribeRequest request,
-       std::function<void(const v1::SubscribeResponse&)> on_sample)
-      : stub_(std::move(stub)), request_(std::move(request)), on_sample_(std::move(on_sample)) {}
+       std::function<void(const v1::SubscribeResponse&)> on_sample,
+       std::shared_ptr<ProgressSignal> progress)
+      : stub_(std::move(stub)),
+        request_(std::move(request)),
+        on_sample_(std::move(on_sample)),
+        progress_(std::move(progress)) {}
 
   ~Impl() { stop(); }
 
@@ -87,6 +108,8 @@ class Subscription::Impl {
   }
 
   uint64_t receivedCount() const { return received_.load(); }
+  uint64_t processedSeq() const { return processed_seq_.load(); }
+  const std::string& topic() const { return request_.topic(); }
 
   absl::Status status() const {
     std::lock_guard lock(mutex_);
@@ -109,19 +132,32 @@ class Subscription::Impl {
       // registered; a refused or failed call carries none of ours.
       reader->WaitForInitialMetadata();
       const auto& metadata = context.GetServerInitialMetadata();
-      if (metadata.find(kSubscribedMetadataKey) != metadata.end()) {
-        std::lock_guard lock(mutex_);
-        connected_ = true;
-        ++connect_count_;
-        backoff = kInitialBackoff;
+      if (auto it = metadata.find(kSubscribedMetadataKey); it != metadata.end()) {
+        // Samples published before the registration never come (unless the
+        // latest is sent first): delivered() must not wait for them.
+        uint64_t registered_seq = 0;
+        if (absl::SimpleAtoi(absl::string_view(it->second.data(), it->second.size()),
+                             &registered_seq)) {
+          processed_seq_.store(std::max(processed_seq_.load(), registered_seq));
+        }
+        {
+          std::lock_guard lock(mutex_);
+          connected_ = true;
+          ++connect_count_;
+          backoff = kInitialBackoff;
+        }
         cv_.notify_all();
+        progress_->notify();
       }
       v1::SubscribeResponse response;
       while (reader->Read(&response)) {
         received_.fetch_add(1);
         on_sample_(response);
+        processed_seq_.store(std::max(processed_seq_.load(), response.topic_seq()));
+        progress_->notify();
       }
       const grpc::Status status = reader->Finish();
+      progress_->notify();  // before connected_ goes: a waiter may look early
       std::unique_lock lock(mutex_);
       context_ = nullptr;
       connected_ = false;
@@ -138,8 +174,10 @@ class Subscription::Impl {
   const std::shared_ptr<v1::DataChannel::Stub> stub_;
   const v1::SubscribeRequest request_;
   const std::function<void(const v1::SubscribeResponse&)> on_sample_;
+  const std::shared_ptr<ProgressSignal> progress_;
   std::thread thread_;
   std::atomic<uint64_t> received_{0};
+  std::atomic<uint64_t> processed_seq_{0};
 
   mutable std::mutex mutex_;
   mutable std::condition_variable cv_;
@@ -158,6 +196,8 @@ bool Subscription::waitConnected(std::chrono::milliseconds timeout) const {
 }
 uint64_t Subscription::connectCount() const { return impl_->connectCount(); }
 uint64_t Subscription::receivedCount() const { return impl_->receivedCount(); }
+const std::string& Subscription::topic() const { return impl_->topic(); }
+uint64_t Subscription::processedSeq() const { return impl_->processedSeq(); }
 absl::Status Subscription::status() const { return impl_->status(); }
 
 // ---------------------------------------------------------------------------
@@ -277,7 +317,10 @@ class ChannelClient::Impl {
     while (true) {
       const bool fresh = !writer_;
       if (fresh) openLocked();
-      if (writer_->Write(request)) return absl::OkStatus();
+      if (writer_->Write(request)) {
+        unsynced_ = true;
+        return absl::OkStatus();
+      }
       absl::Status status = closeLocked(nullptr);
       // A stream that worked before and broke because the broker went away
       // (restart) deserves one retry on a new stream; anything else, or a
@@ -298,6 +341,45 @@ class ChannelClient::Impl {
     absl::Status status = closeLocked(&accepted);
     if (!status.ok()) return status;
     return accepted;
+  }
+
+  absl::Status sync() {
+    std::lock_guard lock(publish_mutex_);
+    if (!writer_ || !unsynced_) return absl::OkStatus();
+    return closeLocked(nullptr);
+  }
+
+  bool delivered(const std::function<uint64_t(const std::string&)>& topic_seq) const {
+    std::lock_guard lock(subscriptions_mutex_);
+    for (const auto& weak : subscriptions_) {
+      const std::shared_ptr<Subscription::Impl> sub = weak.lock();
+      if (!sub || !sub->connected()) continue;
+      if (sub->processedSeq() < topic_seq(sub->topic())) return false;
+    }
+    return true;
+  }
+
+  std::map<std::string, uint64_t> acceptedSeqs() const {
+    std::lock_guard lock(accepted_mutex_);
+    return accepted_seqs_;
+  }
+
+  bool waitDelivered(const std::function<uint64_t(const std::string&)>& topic_seq,
+                     std::chrono::milliseconds timeout) const {
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    while (true) {
+      uint64_t generation = 0;
+      {
+        std::lock_guard lock(progress_->mutex);
+        generation = progress_->generation;
+      }
+      if (delivered(topic_seq)) return true;
+      std::unique_lock lock(progress_->mutex);
+      if (!progress_->cv.wait_until(lock, deadline,
+                                    [&] { return progress_->generation != generation; })) {
+        return false;
+      }
+    }
   }
 
   absl::StatusOr<v1::SubscribeResponse> getLatest(const std::string& topic,
@@ -332,12 +414,15 @@ class ChannelClient::Impl {
     request.set_mode(options.mode);
     request.set_queue_size(options.queue_size);
     request.set_send_latest_first(options.send_latest_first);
-    auto impl =
-        std::make_shared<Subscription::Impl>(stub_, std::move(request), std::move(on_sample));
+    auto impl = std::make_shared<Subscription::Impl>(stub_, std::move(request),
+                                                     std::move(on_sample), progress_);
     if (absl::Status status = validateTopicName(topic); !status.ok()) {
       impl->fail(std::move(status));
     } else {
       impl->start();
+      std::lock_guard lock(subscriptions_mutex_);
+      std::erase_if(subscriptions_, [](const auto& weak) { return weak.expired(); });
+      subscriptions_.push_back(impl);
     }
     return std::make_unique<Subscription>(std::move(impl));
   }
@@ -368,8 +453,20 @@ class ChannelClient::Impl {
     writer_->WritesDone();
     const grpc::Status status = writer_->Finish();
     if (accepted != nullptr) *accepted = publish_response_.accepted_count();
+    {
+      std::lock_guard lock(accepted_mutex_);
+      if (status.ok()) {
+        for (const auto& [topic, seq] : publish_response_.topic_seqs()) {
+          uint64_t& known = accepted_seqs_[topic];
+          known = std::max(known, seq);
+        }
+      } else {
+        accepted_seqs_.clear();  // a broker restart numbers topics anew
+      }
+    }
     writer_.reset();
     publish_context_.reset();
+    unsynced_ = false;
     return toAbsl(status);
   }
 
@@ -381,6 +478,13 @@ class ChannelClient::Impl {
   v1::PublishResponse publish_response_;
   std::unique_ptr<grpc::ClientWriter<v1::PublishRequest>> writer_;
   std::optional<std::string> gated_prefix_;
+  bool unsynced_ = false;  // written on the stream since it opened
+  mutable std::mutex accepted_mutex_;
+  std::map<std::string, uint64_t> accepted_seqs_;  // PublishResponse.topic_seqs, merged
+
+  const std::shared_ptr<ProgressSignal> progress_ = std::make_shared<ProgressSignal>();
+  mutable std::mutex subscriptions_mutex_;
+  std::vector<std::weak_ptr<Subscription::Impl>> subscriptions_;  // for delivered()
 };
 
 ChannelClient::ChannelClient(const std::string& address) : impl_(std::make_unique<Impl>(address)) {}
@@ -394,6 +498,23 @@ absl::Status ChannelClient::publish(const std::string& topic,
 }
 
 absl::StatusOr<uint64_t> ChannelClient::flush() { return impl_->flush(); }
+
+absl::Status ChannelClient::sync() { return impl_->sync(); }
+
+bool ChannelClient::delivered(
+    const std::function<uint64_t(const std::string& topic)>& topic_seq) const {
+  return impl_->delivered(topic_seq);
+}
+
+std::map<std::string, uint64_t> ChannelClient::acceptedSeqs() const {
+  return impl_->acceptedSeqs();
+}
+
+bool ChannelClient::waitDelivered(
+    const std::function<uint64_t(const std::string& topic)>& topic_seq,
+    std::chrono::milliseconds timeout) const {
+  return impl_->waitDelivered(topic_seq, timeout);
+}
 
 absl::StatusOr<v1::SubscribeResponse> ChannelClient::getLatest(const std::string& topic,
                                                                std::chrono::milliseconds timeout) {

@@ -21,6 +21,7 @@
 #include <chrono>
 #include <cstdint>
 #include <functional>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -72,6 +73,11 @@ class Subscription {
   uint64_t connectCount() const;
   /// Samples delivered to the callback so far.
   uint64_t receivedCount() const;
+  /// The topic subscribed to.
+  const std::string& topic() const;
+  /// The topic_seq of the newest sample whose callback has returned (0
+  /// before the first).
+  uint64_t processedSeq() const;
   /// Why the last stream ended (OK while the first one is running). When
   /// the broker refused the request (INVALID_ARGUMENT), the subscription has
   /// stopped for good.
@@ -133,6 +139,26 @@ class ChannelClient {
   /// accepted on it, or the status it ended with. The next publish() opens
   /// a new stream.
   absl::StatusOr<uint64_t> flush();
+
+  /// Returns once every sample published by this client so far has been
+  /// accepted by the broker (a flush(), skipped when nothing was published
+  /// since the last one); the deterministic mode's barrier.
+  absl::Status sync();
+
+  /// The topic_seq of the last sample this client published on each topic,
+  /// as the broker reported when a stream closed (flush(), sync()); emptied
+  /// when a stream failed (a restarted broker numbers anew).
+  std::map<std::string, uint64_t> acceptedSeqs() const;
+
+  /// Whether every connected subscription made by this client has processed
+  /// the sample numbered `topic_seqs[topic]` on its topic, or a later one
+  /// (topics not in the map, and subscriptions not connected, count as
+  /// done); the deterministic mode's data barrier.
+  bool delivered(const std::function<uint64_t(const std::string& topic)>& topic_seq) const;
+  /// Waits until delivered(topic_seq) (true) or `timeout` passes (false);
+  /// woken by the subscriptions' progress, not by polling.
+  bool waitDelivered(const std::function<uint64_t(const std::string& topic)>& topic_seq,
+                     std::chrono::milliseconds timeout) const;
 
   /// The newest sample on `topic`; NOT_FOUND when nothing was published yet.
   absl::StatusOr<v1::SubscribeResponse> getLatest(

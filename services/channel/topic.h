@@ -29,7 +29,8 @@ inline constexpr absl::string_view kClockTopic = "clock";
 
 /// Server-initial-metadata key the broker sends on a Subscribe stream once
 /// the subscription is registered, so that clients know that every sample
-/// published from then on reaches them.
+/// published from then on reaches them. Its value is the topic's topic_seq
+/// at registration: samples up to it were published before.
 inline constexpr char kSubscribedMetadataKey[] = "behaviorlib-subscribed";
 
 /// Client-metadata key of a Publish stream whose publisher gates the topics

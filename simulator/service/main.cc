@@ -156,11 +156,19 @@ int main(int argc, char** argv) {
     client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
     sim::PublishRates rates;
     rates.clock_every_tick = clock_publish == "every-tick";
+    // Deterministic, the followers take their time from the grants; the
+    // clock topic is for everyone else (the coordinator, tools).
+    if (deterministic) rates.clock_hz = 20.0;
     publisher = std::make_unique<sim::ChannelPublisher>(*client, simulation, time, rates);
-    // A stream of their own, so that images never delay the clock.
-    sensor_client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
-    sensors = std::make_unique<sim::SensorPublisher>(*sensor_client, simulation, time,
-                                                     sensor_config, metrics.frameTimer());
+    // A stream of their own, so that images never delay the clock (free
+    // running; deterministic, the grants wait for both, and one stream is
+    // synced with one round trip).
+    if (!deterministic) {
+      sensor_client = std::make_unique<behaviorlib::channel::ChannelClient>(channel);
+    }
+    sensors =
+        std::make_unique<sim::SensorPublisher>(sensor_client ? *sensor_client : *client, simulation,
+                                               time, sensor_config, metrics.frameTimer());
   }
   // The vehicles' topics go to the broker only while someone wants them
   // (subscribers, or a recent GetLatest): an idle stack publishes almost
@@ -168,7 +176,7 @@ int main(int argc, char** argv) {
   std::unique_ptr<behaviorlib::channel::InterestWatch> interest;
   if (client && gate_topics) {
     client->gatePublishing("robots/");
-    sensor_client->gatePublishing("robots/");
+    if (sensor_client) sensor_client->gatePublishing("robots/");
     interest = client->watchInterest("robots/", [&publisher, &sensors] {
       if (publisher) publisher->interestChanged();
       if (sensors) sensors->interestChanged();
@@ -233,17 +241,23 @@ int main(int argc, char** argv) {
     grants.waitForFollowers(min_followers, stop);
     while (!stop.load()) {
       simulation.advance(quantum);
-      // What the quantum published reaches the broker before its grant.
-      if (publisher) publisher->waitDrained(std::chrono::seconds(1));
-      if (sensors) sensors->waitDrained(std::chrono::seconds(1));
-      behaviorlib::v1::Clock granted;
+      behaviorlib::v1::FollowTimeResponse grant;
       if (publisher) {
-        granted = publisher->lockStepClock(simulation.now());
+        // What the quantum published reaches the broker before its grant,
+        // and the grant names how far each topic got (the data barrier).
+        publisher->waitDrained(std::chrono::seconds(1));
+        sensors->waitDrained(std::chrono::seconds(1));
+        client->sync().IgnoreError();  // a broker away: the followers see stale data
+        for (const auto& [topic, seq] : client->acceptedSeqs()) {
+          (*grant.mutable_topic_seqs())[topic] = seq;
+        }
+        *grant.mutable_clock() = publisher->lockStepClock(simulation.now());
       } else {
-        *granted.mutable_time() = google::protobuf::util::TimeUtil::NanosecondsToTimestamp(
-            std::chrono::duration_cast<std::chrono::nanoseconds>(simulation.now()).count());
+        *grant.mutable_clock()->mutable_time() =
+            google::protobuf::util::TimeUtil::NanosecondsToTimestamp(
+                std::chrono::duration_cast<std::chrono::nanoseconds>(simulation.now()).count());
       }
-      grants.grantAndWait(granted, stop);
+      grants.grantAndWait(grant, stop);
     }
   });
   if (deterministic) {

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <map>
 
 namespace behaviorlib::sim {
 namespace {
@@ -28,14 +29,17 @@ class TimeGrants::Follower final
   std::string name;
   bool joined = false;
   bool silent = false;  // left out of the waits until it reports again
+  bool idle = false;    // said so in its last report: not waited for
+  // What it published, from its last report (FollowTimeRequest.topic_seqs).
+  std::map<std::string, uint64_t> topic_seqs;
   int64_t caught_up_ns = -1;
 
   const v1::FollowTimeRequest& request() const { return request_; }
 
-  void grant(const v1::Clock& clock) {
+  void grant(const v1::FollowTimeResponse& grant) {
     std::lock_guard lock(mutex_);
     if (finished_) return;
-    *pending_.mutable_clock() = clock;
+    pending_ = grant;
     has_pending_ = true;
     if (!writing_) writeLocked();
   }
@@ -112,7 +116,7 @@ grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* TimeGran
 }
 
 void TimeGrants::reported(Follower* follower) {
-  std::optional<v1::Clock> catch_up;
+  std::optional<v1::FollowTimeResponse> catch_up;
   {
     std::lock_guard lock(mutex_);
     if (!follower->joined) {
@@ -126,6 +130,11 @@ void TimeGrants::reported(Follower* follower) {
     if (follower->request().has_caught_up_to()) {
       follower->caught_up_ns = TimeUtil::TimestampToNanoseconds(follower->request().caught_up_to());
       follower->silent = false;
+      follower->idle = follower->request().idle();
+      follower->topic_seqs.clear();
+      for (const auto& [topic, seq] : follower->request().topic_seqs()) {
+        follower->topic_seqs[topic] = seq;
+      }
     }
   }
   cv_.notify_all();
@@ -150,12 +159,19 @@ void TimeGrants::waitForFollowers(int count, const std::atomic<bool>& stop) {
   }
 }
 
-int TimeGrants::grantAndWait(const v1::Clock& clock, const std::atomic<bool>& stop) {
-  const int64_t t = TimeUtil::TimestampToNanoseconds(clock.time());
+int TimeGrants::grantAndWait(v1::FollowTimeResponse grant, const std::atomic<bool>& stop) {
+  const int64_t t = TimeUtil::TimestampToNanoseconds(grant.clock().time());
   std::unique_lock lock(mutex_);
-  last_grant_ = clock;
+  // What the followers published before their last reports.
+  for (const Follower* follower : followers_) {
+    for (const auto& [topic, seq] : follower->topic_seqs) {
+      uint64_t& named = (*grant.mutable_topic_seqs())[topic];
+      named = std::max(named, seq);
+    }
+  }
+  last_grant_ = grant;
   ++grants_;
-  for (Follower* follower : followers_) follower->grant(clock);
+  for (Follower* follower : followers_) follower->grant(grant);
   const auto deadline = std::chrono::steady_clock::now() + follower_timeout_;
   while (true) {
     int caught_up = 0;
@@ -163,14 +179,14 @@ int TimeGrants::grantAndWait(const v1::Clock& clock, const std::atomic<bool>& st
     for (const Follower* follower : followers_) {
       if (follower->caught_up_ns >= t) {
         ++caught_up;
-      } else if (!follower->silent) {
+      } else if (!follower->silent && !follower->idle) {
         ++waiting;
       }
     }
     if (waiting == 0 || stop.load() || shutting_down_) return caught_up;
     if (std::chrono::steady_clock::now() >= deadline) {
       for (Follower* follower : followers_) {
-        if (follower->caught_up_ns >= t || follower->silent) continue;
+        if (follower->caught_up_ns >= t || follower->silent || follower->idle) continue;
         follower->silent = true;
         ++timeouts_;
         std::fprintf(stderr,

@@ -7,12 +7,14 @@
 // it. A starved follower slows the simulation instead of missing deadlines; a
 // follower silent for `follower_timeout` of wall time after a grant is left
 // out of the waits until it reports again (a frozen or dead process must not
-// stop the world), and one whose stream ends is forgotten.
+// stop the world), and one whose stream ends is forgotten. A follower whose
+// last report said it is idle (no behavior active) is granted but not waited
+// for.
 //
 //   TimeGrants grants(std::chrono::seconds(5));
 //   SimulatorService::setTimeGrants(&grants);   // serves FollowTime
 //   grants.waitForFollowers(9, stop);
-//   while (!stop) { simulation.advance(10ms); grants.grantAndWait(clock, stop); }
+//   while (!stop) { simulation.advance(10ms); grants.grantAndWait(grant, stop); }
 
 #include <grpcpp/grpcpp.h>
 
@@ -43,10 +45,12 @@ class TimeGrants {
 
   /// Waits until at least `count` followers joined (or `stop`).
   void waitForFollowers(int count, const std::atomic<bool>& stop);
-  /// Grants `clock` (a lock-step sample) to every follower and waits until
-  /// each has caught up with it, left, or timed out (or `stop`). Returns the
+  /// Grants `grant` (its clock a lock-step sample; the data barrier's
+  /// topic_seqs of the simulator's own samples, to which the followers' last
+  /// reported topic_seqs are added) to every follower and waits until each
+  /// has caught up with it, left, or timed out (or `stop`). Returns the
   /// number of followers that caught up.
-  int grantAndWait(const v1::Clock& clock, const std::atomic<bool>& stop);
+  int grantAndWait(v1::FollowTimeResponse grant, const std::atomic<bool>& stop);
 
   /// Ends every FollowTime stream (UNAVAILABLE) and refuses new ones.
   void shutdown();
@@ -67,7 +71,7 @@ class TimeGrants {
   mutable std::mutex mutex_;
   std::condition_variable cv_;
   std::set<Follower*> followers_;
-  std::optional<v1::Clock> last_grant_;
+  std::optional<v1::FollowTimeResponse> last_grant_;
   bool shutting_down_ = false;
   std::atomic<uint64_t> grants_{0};
   std::atomic<uint64_t> timeouts_{0};

@@ -13,6 +13,7 @@
 #include <atomic>
 #include <chrono>
 #include <fstream>
+#include <map>
 #include <mutex>
 #include <sstream>
 #include <string>
@@ -588,6 +589,63 @@ TEST_F(ChannelBrokerTest, ChannelClientPublishSubscribeAndQueries) {
   auto bad = client.subscribe("robots/x", {}, [](const v1::SubscribeResponse&) {});
   EXPECT_EQ(bad->status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_FALSE(bad->connected());
+}
+
+// The deterministic mode's barrier: sync() returns once the broker accepted
+// everything published, and delivered() tells whether each subscription has
+// processed the sample a topic_seq names (samples published before it
+// registered are not waited for).
+TEST_F(ChannelBrokerTest, SyncAndDeliveredAreTheDataBarrier) {
+  ChannelClient publisher(broker_.address());
+  EXPECT_TRUE(publisher.sync().ok());  // nothing published: nothing to wait for
+  for (int i = 0; i < 3; ++i) ASSERT_TRUE(publisher.publish("robots/d9/a", text("x")).ok());
+  ASSERT_TRUE(publisher.sync().ok());
+  // Accepted means counted: no waiting needed.
+  auto topics = publisher.listTopics("robots/d9/");
+  ASSERT_TRUE(topics.ok()) << topics.status();
+  ASSERT_EQ(topics->size(), 1u);
+  EXPECT_EQ((*topics)[0].published_count(), 3u);
+  // The broker's reply numbers the stream's last sample on each topic.
+  EXPECT_EQ(publisher.acceptedSeqs(), (std::map<std::string, uint64_t>{{"robots/d9/a", 3}}));
+
+  ChannelClient subscriber(broker_.address());
+  std::map<std::string, uint64_t> seqs = {{"robots/d9/a", 3}, {"robots/d9/b", 1}};
+  const auto seq_of = [&seqs](const std::string& topic) -> uint64_t {
+    const auto it = seqs.find(topic);
+    return it == seqs.end() ? 0 : it->second;
+  };
+  EXPECT_TRUE(subscriber.delivered(seq_of));  // no subscription yet
+  std::atomic<bool> release{false};
+  auto a = subscriber.subscribeTyped<v1::Text>("robots/d9/a", {.mode = v1::DELIVERY_MODE_QUEUE},
+                                               [](const v1::Text&) {});
+  // The callback holds b's samples until released: processed means returned.
+  auto b = subscriber.subscribeTyped<v1::Text>(
+      "robots/d9/b", {.mode = v1::DELIVERY_MODE_QUEUE}, [&release](const v1::Text&) {
+        while (!release.load()) std::this_thread::sleep_for(std::chrono::milliseconds(1));
+      });
+  ASSERT_TRUE(a->waitConnected(seconds(10)));
+  ASSERT_TRUE(b->waitConnected(seconds(10)));
+  // a registered after its 3 samples: they are not waited for. b's first
+  // sample is not published yet.
+  EXPECT_EQ(a->processedSeq(), 3u);
+  EXPECT_FALSE(subscriber.delivered(seq_of));
+  ASSERT_TRUE(publisher.publish("robots/d9/b", text("y")).ok());
+  ASSERT_TRUE(publisher.sync().ok());
+  ASSERT_TRUE(eventually([&] { return b->receivedCount() == 1; }));
+  EXPECT_FALSE(subscriber.delivered(seq_of));  // received, callback still running
+  release = true;
+  ASSERT_TRUE(eventually([&] { return subscriber.delivered(seq_of); }));
+  EXPECT_EQ(b->processedSeq(), 1u);
+  // A later sample on a is waited for once named.
+  seqs["robots/d9/a"] = 4;
+  EXPECT_FALSE(subscriber.delivered(seq_of));
+  ASSERT_TRUE(publisher.publish("robots/d9/a", text("z")).ok());
+  ASSERT_TRUE(publisher.sync().ok());
+  ASSERT_TRUE(eventually([&] { return subscriber.delivered(seq_of); }));
+  // A subscription that ended is not waited for.
+  seqs["robots/d9/b"] = 100;
+  b.reset();
+  EXPECT_TRUE(subscriber.delivered(seq_of));
 }
 
 TEST_F(ChannelBrokerTest, ChannelClientSubscriberReconnectsAfterBrokerRestart) {

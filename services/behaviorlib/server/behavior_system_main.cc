@@ -108,7 +108,10 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
     }
     // Extrapolates the simulator's time line; runs on at the last time scale
     // when the simulator dies, so that staleness checks notice it.
-    auto simulated = std::make_unique<channel::SimClock>(*channel_client);
+    // Following the time grants, the grants are the time: the clock topic
+    // would only repeat them.
+    auto simulated = follow_time.empty() ? std::make_unique<channel::SimClock>(*channel_client)
+                                         : std::make_unique<channel::SimClock>();
     sim_clock = simulated.get();
     clock = std::move(simulated);
   } else {
@@ -180,8 +183,9 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
       startCoordinatorRegistration(coordinator, listen, runtime.grpcPort(), host, program);
   std::unique_ptr<TimeFollower> follower;
   if (!follow_time.empty()) {
-    follower = std::make_unique<TimeFollower>(follow_time, system_name + "/" + robot_id, *sim_clock,
-                                              [&host](TimePoint t) { return host.caughtUp(t); });
+    follower = std::make_unique<TimeFollower>(
+        follow_time, system_name + "/" + robot_id, *sim_clock, channel_client.get(),
+        [&host](TimePoint t) { return host.caughtUp(t); }, [&host] { return host.idle(); });
   }
 
   const int sig = ServerRuntime::waitForShutdownSignal();

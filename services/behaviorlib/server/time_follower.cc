@@ -6,6 +6,7 @@
 #include <cstdio>
 
 #include "behaviorlib/v1/simulator.grpc.pb.h"
+#include "channel/channel_client.h"
 #include "channel/sim_clock.h"
 
 namespace behaviorlib::server {
@@ -15,6 +16,10 @@ constexpr std::chrono::milliseconds kInitialBackoff(100);
 constexpr std::chrono::milliseconds kMaxBackoff(2000);
 // How often the behaviors' progress is looked at while catching up.
 constexpr std::chrono::microseconds kCatchUpPoll(100);
+// How often a wait for data looks whether the follower is stopping.
+constexpr std::chrono::milliseconds kStopPoll(50);
+// The longest wait for a granted sample (wall time).
+constexpr std::chrono::milliseconds kDataWaitLimit(2000);
 
 TimePoint toTimePoint(const google::protobuf::Timestamp& t) {
   return TimePoint(std::chrono::seconds(t.seconds()) + std::chrono::nanoseconds(t.nanos()));
@@ -23,10 +28,13 @@ TimePoint toTimePoint(const google::protobuf::Timestamp& t) {
 }  // namespace
 
 TimeFollower::TimeFollower(const std::string& simulator_address, std::string participant,
-                           channel::SimClock& clock, std::function<bool(TimePoint)> caught_up)
+                           channel::SimClock& clock, channel::ChannelClient* channel,
+                           std::function<bool(TimePoint)> caught_up, std::function<bool()> idle)
     : participant_(std::move(participant)),
       clock_(clock),
+      data_(channel),
       caught_up_(std::move(caught_up)),
+      idle_(std::move(idle)),
       channel_(grpc::CreateChannel(simulator_address, grpc::InsecureChannelCredentials())),
       thread_([this] { run(); }) {}
 
@@ -40,8 +48,8 @@ TimeFollower::~TimeFollower() {
   thread_.join();
 }
 
-bool TimeFollower::awaitCaughtUp(TimePoint t) {
-  while (!caught_up_(t)) {
+bool TimeFollower::awaitUntil(const std::function<bool()>& done) {
+  while (!done()) {
     std::unique_lock lock(mutex_);
     if (cv_.wait_for(lock, kCatchUpPoll, [this] { return stopping_; })) return false;
   }
@@ -52,6 +60,8 @@ void TimeFollower::run() {
   auto stub = v1::Simulator::NewStub(channel_);
   std::chrono::milliseconds backoff = kInitialBackoff;
   bool told_refusal = false;
+  bool told_sync_failure = false;
+  bool told_data_timeout = false;
   while (true) {
     grpc::ClientContext context;
     {
@@ -64,13 +74,66 @@ void TimeFollower::run() {
     join.set_participant(participant_);
     if (stream->Write(join)) {
       v1::FollowTimeResponse grant;
+      bool reported_idle = false;
       while (stream->Read(&grant)) {
         backoff = kInitialBackoff;
+        // The data barrier: what was published up to the grant is in
+        // before the behaviors run.
+        if (data_ != nullptr && !grant.topic_seqs().empty()) {
+          const auto& seqs = grant.topic_seqs();
+          const auto topic_seq = [&seqs](const std::string& topic) -> uint64_t {
+            const auto it = seqs.find(topic);
+            return it == seqs.end() ? 0 : it->second;
+          };
+          // Bounded: a restarted broker numbers its topics anew, and a
+          // sample it dropped never comes; the behaviors then see what is
+          // there, as when free running.
+          const auto give_up = std::chrono::steady_clock::now() + kDataWaitLimit;
+          bool stopping = false;
+          while (!data_->waitDelivered(topic_seq, kStopPoll)) {
+            {
+              std::lock_guard lock(mutex_);
+              if ((stopping = stopping_)) break;
+            }
+            if (std::chrono::steady_clock::now() >= give_up) {
+              if (!told_data_timeout) {
+                std::fprintf(stderr,
+                             "%s: a granted sample did not arrive within %lld ms; going on "
+                             "without it (told once)\n",
+                             participant_.c_str(), static_cast<long long>(kDataWaitLimit.count()));
+                told_data_timeout = true;
+              }
+              break;
+            }
+          }
+          if (stopping) break;
+        }
         clock_.onClockSample(grant.clock());
-        if (!awaitCaughtUp(toTimePoint(grant.clock().time()))) break;
+        const TimePoint granted = toTimePoint(grant.clock().time());
+        if (!awaitUntil([&] { return caught_up_(granted); })) break;
+        // What the behaviors published reaches the broker before the report,
+        // so that the next grant's topic_seqs include it.
+        if (data_ != nullptr) {
+          if (absl::Status s = data_->sync(); !s.ok() && !told_sync_failure) {
+            std::fprintf(stderr, "%s: publishing before a time report failed: %s\n",
+                         participant_.c_str(), std::string(s.message()).c_str());
+            told_sync_failure = true;
+          }
+        }
+        // An idle system is not waited for: it reports only when that
+        // changes (the first report of a stream always goes).
+        const bool idle = idle_();
+        if (idle && reported_idle) continue;
         v1::FollowTimeRequest report;
         *report.mutable_caught_up_to() = grant.clock().time();
+        report.set_idle(idle);
+        if (data_ != nullptr) {
+          for (const auto& [topic, seq] : data_->acceptedSeqs()) {
+            (*report.mutable_topic_seqs())[topic] = seq;
+          }
+        }
         if (!stream->Write(report)) break;
+        reported_idle = idle;
         reported_.fetch_add(1, std::memory_order_relaxed);
       }
     }

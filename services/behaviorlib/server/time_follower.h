@@ -7,9 +7,18 @@
 // time is reported back, and only then does the simulator go on. So a
 // starved system slows the simulation instead of missing its deadlines.
 //
+// With a channel client, grants are also a data barrier: before the clock
+// moves, each subscription of the client waits for the sample the grant
+// names for its topic (FollowTimeResponse.topic_seqs), and before the report,
+// what the client published is synced to the broker.
+//
 //   channel::SimClock clock(channel);
 //   TimeFollower follower("127.0.0.1:50070", "basic_quadrotor_behaviors/drone1", clock,
-//                         [&](TimePoint t) { return host.caughtUp(t); });
+//                         &channel, [&](TimePoint t) { return host.caughtUp(t); },
+//                         [&] { return host.idle(); });
+//
+// A report also says whether the system is idle (no behavior active): the
+// simulator does not wait for idle systems.
 //
 // It reconnects (100 ms .. 2 s) while it lives; a simulator that is not in
 // the deterministic mode refuses (FAILED_PRECONDITION) and is asked again.
@@ -27,6 +36,7 @@
 #include "behaviorlib/clock.h"
 
 namespace behaviorlib::channel {
+class ChannelClient;
 class SimClock;
 }  // namespace behaviorlib::channel
 
@@ -35,7 +45,8 @@ namespace behaviorlib::server {
 class TimeFollower {
  public:
   TimeFollower(const std::string& simulator_address, std::string participant,
-               channel::SimClock& clock, std::function<bool(TimePoint)> caught_up);
+               channel::SimClock& clock, channel::ChannelClient* channel,
+               std::function<bool(TimePoint)> caught_up, std::function<bool()> idle);
   /// Cancels the stream and joins the thread.
   ~TimeFollower();
   TimeFollower(const TimeFollower&) = delete;
@@ -46,12 +57,14 @@ class TimeFollower {
 
  private:
   void run();
-  // Waits until caught_up(t) (polling), or stop; false when stopping.
-  bool awaitCaughtUp(TimePoint t);
+  // Waits until done() (polling), or stop; false when stopping.
+  bool awaitUntil(const std::function<bool()>& done);
 
   const std::string participant_;
   channel::SimClock& clock_;
+  channel::ChannelClient* const data_;  // may be null
   const std::function<bool(TimePoint)> caught_up_;
+  const std::function<bool()> idle_;
   std::shared_ptr<grpc::Channel> channel_;
   std::atomic<uint64_t> reported_{0};
 

@@ -1,5 +1,6 @@
-"""The mission report: report.json (everything), report.md (for people) and
-trajectory.png, written into the run directory.
+"""The mission report: report.json (everything), report.md (for people),
+trajectory.png and trajectory.json (each robot's ground truth samples:
+[t_sim_s, x, y, z, flight_state]), written into the run directory.
 
 report.json holds: the launch settings, per robot (`robots`, by robot id, in
 launch order) its mission's final status, the timeline of its behavior
@@ -383,6 +384,10 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
               "robots": entries, "clean_shutdown": clean_exit}
     with open(os.path.join(run_dir, "report.json"), "w") as f:
         json.dump(report, f, indent=2)
+        f.write("\n")
+    # The ground truth itself, to compare runs (tests/bench/stack/determinism_check.py).
+    with open(os.path.join(run_dir, "trajectory.json"), "w") as f:
+        json.dump({r["robot_id"]: [list(s) for s in r.get("samples", [])] for r in robots}, f)
         f.write("\n")
 
     shutdown = (f"- wall time {settings.get('wall_s', 0):.1f} s; every process shut down "

@@ -109,9 +109,9 @@ class CausesStack {
     if (!broker_.start()) return *error = "broker: " + broker_.error(), false;
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
-        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", kTimeScale, "--seed", kSeed,
-                                 "--enable-fault-injection"});
+        support::deterministicSimulatorArgs({"--channel", broker_.address(), "--vehicles", kRobot,
+                                             "--seed", kSeed, "--enable-fault-injection"},
+                                            1));
     if (!simulator_->start()) return *error = "simulator: " + simulator_->error(), false;
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH,
                          error);
@@ -131,9 +131,10 @@ class CausesStack {
                                                       const std::string& config,
                                                       std::string* error) {
     auto system = std::make_unique<support::ServerProcess>(
-        binary, std::vector<std::string>{"--robot-id", kRobot, "--channel", broker_.address(),
+        binary, support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(),
                                          "--clock", "sim", "--flight-controller",
-                                         simulator_->address(), "--config", config});
+                                         simulator_->address(), "--config", config},
+                                        simulator_->address()));
     if (!system->start()) {
       *error = binary + ": " + system->error();
       return nullptr;

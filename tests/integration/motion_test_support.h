@@ -33,6 +33,7 @@
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
+#include "support/deterministic.h"
 #include "support/server_process.h"
 
 namespace motion_test {
@@ -46,10 +47,6 @@ using WallClock = std::chrono::steady_clock;
 inline constexpr char kRobot[] = "drone1";
 /// Fixed seed of every random process in the simulator.
 inline constexpr char kSeed[] = "7";
-/// The simulator's time scale. 5x rather than 10x: a process starved for
-/// 0.1 s of wall time (two such tests under ctest -j 2 on 2 cores, or other
-/// load) then misses 0.5 s of simulated time, within the staleness limits.
-inline constexpr char kTimeScale[] = "5";
 
 inline std::unique_ptr<grpc::ClientContext> deadline(milliseconds timeout = seconds(5)) {
   auto context = std::make_unique<grpc::ClientContext>();
@@ -272,16 +269,16 @@ inline std::string pathJson(const std::vector<Eigen::Vector3d>& points,
   return out.str();
 }
 
-/// The broker, the simulator (5x, fixed seed) and basic_quadrotor_behaviors
-/// for localization, take-off and landing.
+/// The broker, the simulator (the deterministic mode, fixed seed) and
+/// basic_quadrotor_behaviors for localization, take-off and landing.
 class FlightStack {
  public:
   bool start(std::string* error) {
     if (!broker_.start()) return *error = "broker: " + broker_.error(), false;
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
-        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", kTimeScale, "--seed", kSeed});
+        support::deterministicSimulatorArgs(
+            {"--channel", broker_.address(), "--vehicles", kRobot, "--seed", kSeed}, 1));
     if (!simulator_->start()) return *error = "simulator: " + simulator_->error(), false;
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH,
                          error);
@@ -293,15 +290,16 @@ class FlightStack {
     return true;
   }
 
-  /// Starts a behavior system on this stack (--clock sim, --channel,
-  /// --flight-controller, --config).
+  /// Starts a behavior system on this stack (--clock sim following the time
+  /// grants, --channel, --flight-controller, --config).
   std::unique_ptr<support::ServerProcess> startSystem(const std::string& binary,
                                                       const std::string& config,
                                                       std::string* error) {
     auto system = std::make_unique<support::ServerProcess>(
-        binary, std::vector<std::string>{"--robot-id", kRobot, "--channel", broker_.address(),
+        binary, support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(),
                                          "--clock", "sim", "--flight-controller",
-                                         simulator_->address(), "--config", config});
+                                         simulator_->address(), "--config", config},
+                                        simulator_->address()));
     if (!system->start()) {
       *error = binary + ": " + system->error();
       return nullptr;

@@ -59,9 +59,10 @@ class SwarmInteractionTest : public ::testing::Test {
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
-        std::vector<std::string>{"--channel", broker_.address(), "--vehicles",
-                                 std::string(kDrone1) + "," + kDrone2, "--time-scale",
-                                 motion_test::kTimeScale, "--seed", motion_test::kSeed});
+        support::deterministicSimulatorArgs({"--channel", broker_.address(), "--vehicles",
+                                             std::string(kDrone1) + "," + kDrone2, "--seed",
+                                             motion_test::kSeed},
+                                            1));
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     coordinator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_COORDINATOR_PATH, std::vector<std::string>{"--state-dir", state_dir_});
@@ -98,8 +99,9 @@ class SwarmInteractionTest : public ::testing::Test {
   std::unique_ptr<support::ServerProcess> startSystem(const std::string& binary,
                                                       const std::string& robot,
                                                       std::vector<std::string> extra) {
-    std::vector<std::string> args = {"--robot-id",      robot,     "--channel",
-                                     broker_.address(), "--clock", "sim"};
+    std::vector<std::string> args = support::followTimeArgs(
+        {"--robot-id", robot, "--channel", broker_.address(), "--clock", "sim"},
+        simulator_->address());
     args.insert(args.end(), extra.begin(), extra.end());
     auto process = std::make_unique<support::ServerProcess>(binary, args);
     if (!process->start()) {

@@ -234,6 +234,16 @@ class InterestWatch::Impl {
     return known_;
   }
 
+  std::vector<std::string> wantedTopics() const {
+    std::vector<std::string> topics;
+    {
+      std::lock_guard lock(mutex_);
+      if (known_) topics.assign(wanted_.begin(), wanted_.end());
+    }
+    std::sort(topics.begin(), topics.end());
+    return topics;
+  }
+
  private:
   void run() {
     std::chrono::milliseconds backoff = kInitialBackoff;
@@ -291,6 +301,7 @@ InterestWatch::InterestWatch(std::shared_ptr<Impl> impl) : impl_(std::move(impl)
 InterestWatch::~InterestWatch() { impl_->stop(); }
 bool InterestWatch::wanted(const std::string& topic) const { return impl_->wanted(topic); }
 bool InterestWatch::known() const { return impl_->known(); }
+std::vector<std::string> InterestWatch::wantedTopics() const { return impl_->wantedTopics(); }
 
 // ---------------------------------------------------------------------------
 // ChannelClient

@@ -107,6 +107,8 @@ class InterestWatch {
   bool wanted(const std::string& topic) const;
   /// Whether the broker's wanted set is known (the stream is up).
   bool known() const;
+  /// The wanted topics under the prefix (sorted; empty while not known).
+  std::vector<std::string> wantedTopics() const;
 
  private:
   std::shared_ptr<Impl> impl_;

@@ -43,9 +43,44 @@ SensorPublisher::~SensorPublisher() {
   if (poller_.joinable()) poller_.join();
 }
 
+void SensorPublisher::setInterest(const channel::InterestWatch* interest) {
+  {
+    std::lock_guard lock(poll_mutex_);
+    interest_ = interest;
+  }
+  queue_.setInterest(interest);
+  camerasFromInterest();
+}
+
+void SensorPublisher::interestChanged() {
+  queue_.interestChanged();
+  if (!camerasFromInterest()) poll_cv_.notify_all();  // the poller asks the broker
+}
+
+bool SensorPublisher::camerasFromInterest() {
+  std::lock_guard lock(poll_mutex_);
+  if (interest_ == nullptr || !interest_->known()) return false;
+  std::set<std::string> wanted;
+  for (const std::string& name : interest_->wantedTopics()) {
+    if (name.size() > kRobotsPrefix.size() + kCameraSuffix.size() &&
+        name.compare(0, kRobotsPrefix.size(), kRobotsPrefix) == 0 &&
+        name.compare(name.size() - kCameraSuffix.size(), kCameraSuffix.size(), kCameraSuffix) ==
+            0) {
+      wanted.insert(name.substr(kRobotsPrefix.size(),
+                                name.size() - kRobotsPrefix.size() - kCameraSuffix.size()));
+    }
+  }
+  sensors_.setWantedCameras(std::move(wanted));
+  return true;
+}
+
 void SensorPublisher::pollSubscribers() {
   std::unique_lock lock(poll_mutex_);
   while (!stopping_) {
+    if (interest_ != nullptr && interest_->known()) {  // interestChanged() keeps them
+      poll_cv_.wait_for(lock, poll_period_, [this] { return stopping_; });
+      continue;
+    }
     lock.unlock();
     std::set<std::string> wanted;
     // When the broker cannot be asked, nobody can be subscribed either.

@@ -3,9 +3,11 @@
 // SensorPublisher: the simulated sensors of every vehicle (SensorSystem) on
 // the data channel. Samples are turned into messages and queued for a
 // publishing thread of their own (topics in channel_publisher.h). Camera
-// frames are rendered only while someone subscribes to a vehicle's
-// `robots/{id}/camera/image`: a thread asks the broker (ListTopics,
-// subscriber_count) every `poll_period` of wall time.
+// frames are rendered only while someone wants a vehicle's
+// `robots/{id}/camera/image`: with an interest watch (setInterest), as soon
+// as the broker says so; without one (or while it is down), a thread asks
+// the broker (ListTopics, subscriber_count) every `poll_period` of wall
+// time.
 //
 //   SensorPublisher sensors(client, simulation, time, config);
 //   worlds.on_reset = [&](auto world, uint64_t seed) { sensors.reset(world, seed); };
@@ -49,8 +51,8 @@ class SensorPublisher {
   SensorSystem& sensors() { return sensors_; }
   uint64_t publishedCount() const { return queue_.publishedCount(); }
   /// Publishes the vehicles' topics only while wanted (PublishQueue).
-  void setInterest(const channel::InterestWatch* interest) { queue_.setInterest(interest); }
-  void interestChanged() { queue_.interestChanged(); }
+  void setInterest(const channel::InterestWatch* interest);
+  void interestChanged();
   uint64_t gatedCount() const { return queue_.gatedCount(); }
   /// Waits until everything queued went to the broker (deterministic mode).
   bool waitDrained(std::chrono::milliseconds timeout) { return queue_.waitDrained(timeout); }
@@ -58,6 +60,8 @@ class SensorPublisher {
 
  private:
   void pollSubscribers();
+  // The wanted cameras from the interest watch; false while it is not known.
+  bool camerasFromInterest();
 
   channel::ChannelClient& client_;
   const std::chrono::milliseconds poll_period_;
@@ -67,6 +71,7 @@ class SensorPublisher {
   std::mutex poll_mutex_;
   std::condition_variable poll_cv_;
   bool stopping_ = false;
+  const channel::InterestWatch* interest_ = nullptr;  // guarded by poll_mutex_
   std::thread poller_;
 };
 

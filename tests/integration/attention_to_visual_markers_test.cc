@@ -25,17 +25,13 @@
 #include "motion_test_support.h"
 #include "sim_faults.h"
 #include "simulator/world/world.h"
+#include "support/deterministic.h"
 
 namespace motion_test {
 namespace {
 
 constexpr char kBehavior[] = "PAY_ATTENTION_TO_QR_CODES";
 constexpr double kToleranceM = 0.3;
-// 3x rather than the motion tests' 5x: decoding a frame takes tens of
-// milliseconds of wall time, and the codes need min_sightings decoded frames.
-// At 4x under ctest -j 2 the behavior dropped 16 of 22 frames at the tail
-// fin's viewpoint and missed that code.
-constexpr char kAttentionTimeScale[] = "3";
 
 std::string json(const google::protobuf::Message& m) {
   std::string out;
@@ -102,10 +98,13 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
-        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", kAttentionTimeScale, "--seed", kSeed, "--world",
-                                 "aircraft", "--sensor-config", sensors,
-                                 "--enable-fault-injection"});
+        // Deterministic: decoding a frame takes tens of milliseconds of wall
+        // time, and free running at 4x under ctest -j 2 the behavior dropped
+        // 16 of 22 frames at the tail fin's viewpoint and missed that code.
+        support::deterministicSimulatorArgs(
+            {"--channel", broker_.address(), "--vehicles", kRobot, "--seed", kSeed, "--world",
+             "aircraft", "--sensor-config", sensors, "--enable-fault-injection"},
+            1));
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     coordinator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_COORDINATOR_PATH,
@@ -164,7 +163,8 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
       args.push_back("--config");
       args.push_back(config);
     }
-    auto system = std::make_unique<support::ServerProcess>(binary, args);
+    auto system = std::make_unique<support::ServerProcess>(
+        binary, support::followTimeArgs(std::move(args), simulator_->address()));
     if (!system->start()) {
       ADD_FAILURE() << binary << ": " << system->error();
       return nullptr;

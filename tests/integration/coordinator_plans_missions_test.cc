@@ -27,6 +27,7 @@
 
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "coordinator_test_support.h"
+#include "support/deterministic.h"
 #include "support/server_process.h"
 
 namespace coordinator_test {
@@ -35,9 +36,6 @@ namespace {
 constexpr char kRobot[] = "drone1";
 constexpr char kCatalog[] = BEHAVIORLIB_CATALOG_PATH;
 constexpr char kDemoMission[] = BEHAVIORLIB_DEMO_MISSION_PATH;
-// 5x: a process starved for 0.1 s of wall time misses 0.5 s of simulated
-// time, within the systems' staleness limits (1 s).
-constexpr char kTimeScale[] = "5";
 constexpr char kSeed[] = "7";
 constexpr char kSelfLocalize[] = "SELF_LOCALIZE_WITH_GROUND_TRUTH";
 constexpr char kPid[] = "QUADROTOR_PID_MOTION_CONTROL";
@@ -302,9 +300,9 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
-        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", kTimeScale, "--seed", kSeed,
-                                 "--enable-fault-injection"});
+        support::deterministicSimulatorArgs({"--channel", broker_.address(), "--vehicles", kRobot,
+                                             "--seed", kSeed, "--enable-fault-injection"},
+                                            1));
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     ASSERT_NO_FATAL_FAILURE(startCoordinator({}));
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH);
@@ -340,9 +338,10 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
                                                       const std::string& config) {
     auto system = std::make_unique<support::ServerProcess>(
         binary,
-        std::vector<std::string>{"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
+        support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
                                  "sim", "--flight-controller", simulator_->address(), "--config",
-                                 config, "--coordinator", coordinator_->address()});
+                                 config, "--coordinator", coordinator_->address()},
+                                simulator_->address()));
     if (!system->start()) {
       ADD_FAILURE() << binary << ": " << system->error();
       return nullptr;

@@ -31,13 +31,13 @@
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "coordinator_test_support.h"
+#include "support/deterministic.h"
 #include "support/server_process.h"
 
 namespace coordinator_test {
 namespace {
 
 constexpr char kRobot[] = "drone1";
-constexpr char kTimeScale[] = "3";
 constexpr char kSeed[] = "7";
 /// The coordinator's --grace-period-s (its default).
 constexpr double kGraceS = 1.0;
@@ -275,9 +275,12 @@ class CoordinatorSafetyTest : public ::testing::Test {
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
-        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", kTimeScale, "--seed", kSeed,
-                                 "--enable-fault-injection"});
+        // A frozen busy system holds time for 1 s of wall time only (the
+        // default 5 s): the hung-controller test's lease then expires soon.
+        support::deterministicSimulatorArgs(
+            {"--channel", broker_.address(), "--vehicles", kRobot, "--seed", kSeed,
+             "--enable-fault-injection", "--follower-timeout-s", "1"},
+            1));
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     std::vector<std::string> coordinator_args = {"--catalog",
                                                  BEHAVIORLIB_CATALOG_PATH,
@@ -342,9 +345,10 @@ class CoordinatorSafetyTest : public ::testing::Test {
                                                       const std::string& config) {
     auto system = std::make_unique<support::ServerProcess>(
         binary,
-        std::vector<std::string>{"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
+        support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
                                  "sim", "--flight-controller", simulator_->address(), "--config",
-                                 config, "--coordinator", coordinator_->address()});
+                                 config, "--coordinator", coordinator_->address()},
+                                simulator_->address()));
     if (!system->start()) {
       ADD_FAILURE() << binary << ": " << system->error();
       return nullptr;
@@ -770,9 +774,11 @@ TEST_F(CoordinatorSafetyTest, AHungControllerLosesItsLeaseAndTheFailsafeRuleHove
   const auto frozen_at = SteadyClock::now();
   ASSERT_EQ(::kill(pid_->pid(), SIGSTOP), 0);
 
-  // The platform: the lease expired (1 s of simulated time), failsafe hover.
+  // The platform: the lease expired (1 s of simulated time, once the
+  // simulator stopped waiting for the frozen system: 1 s of wall time),
+  // failsafe hover.
   auto failsafe = flight_->waitFor(
-      mark, [](const v1::FlightStatus& s) { return s.failsafe_active(); }, seconds(3));
+      mark, [](const v1::FlightStatus& s) { return s.failsafe_active(); }, seconds(4));
   ASSERT_TRUE(failsafe) << flight_->trace(mark);
   const FlightRecorder::Sample engaged = flight_->at(*failsafe);
   EXPECT_EQ(engaged.status.state(), v1::FLIGHT_STATE_HOVERING) << flight_->trace(mark);

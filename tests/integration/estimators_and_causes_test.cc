@@ -14,6 +14,7 @@
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "motion_test_support.h"
+#include "support/deterministic.h"
 
 namespace motion_test {
 namespace {
@@ -131,10 +132,10 @@ class CausesStack {
                                                       const std::string& config,
                                                       std::string* error) {
     auto system = std::make_unique<support::ServerProcess>(
-        binary, support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(),
-                                         "--clock", "sim", "--flight-controller",
-                                         simulator_->address(), "--config", config},
-                                        simulator_->address()));
+        binary, support::followTimeArgs(
+                    {"--robot-id", kRobot, "--channel", broker_.address(), "--clock", "sim",
+                     "--flight-controller", simulator_->address(), "--config", config},
+                    simulator_->address()));
     if (!system->start()) {
       *error = binary + ": " + system->error();
       return nullptr;

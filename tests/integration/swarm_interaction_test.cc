@@ -22,6 +22,7 @@
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "motion_test_support.h"
+#include "support/deterministic.h"
 #include "support/server_process.h"
 
 namespace {
@@ -59,10 +60,10 @@ class SwarmInteractionTest : public ::testing::Test {
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
-        support::deterministicSimulatorArgs({"--channel", broker_.address(), "--vehicles",
-                                             std::string(kDrone1) + "," + kDrone2, "--seed",
-                                             motion_test::kSeed},
-                                            1));
+        support::deterministicSimulatorArgs(
+            {"--channel", broker_.address(), "--vehicles", std::string(kDrone1) + "," + kDrone2,
+             "--seed", motion_test::kSeed},
+            1));
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     coordinator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_COORDINATOR_PATH, std::vector<std::string>{"--state-dir", state_dir_});

@@ -26,6 +26,7 @@
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "support/deterministic.h"
 #include "support/server_process.h"
 
 namespace {
@@ -105,15 +106,15 @@ class FlightBehaviorsTest : public ::testing::Test {
   void SetUp() override {
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
-        BEHAVIORLIB_SIMULATOR_PATH,
-        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", "10"});
+        BEHAVIORLIB_SIMULATOR_PATH, support::deterministicSimulatorArgs(
+                                        {"--channel", broker_.address(), "--vehicles", kRobot}, 1));
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     system_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH,
-        std::vector<std::string>{"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
-                                 "sim", "--flight-controller", simulator_->address(), "--config",
-                                 BEHAVIORLIB_CONFIG_PATH});
+        support::followTimeArgs(
+            {"--robot-id", kRobot, "--channel", broker_.address(), "--clock", "sim",
+             "--flight-controller", simulator_->address(), "--config", BEHAVIORLIB_CONFIG_PATH},
+            simulator_->address()));
     ASSERT_TRUE(system_->start()) << system_->error();
     auto channel = grpc::CreateChannel(system_->address(), grpc::InsecureChannelCredentials());
     behaviors_ = v1::BehaviorSystem::NewStub(channel);

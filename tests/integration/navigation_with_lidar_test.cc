@@ -21,6 +21,7 @@
 #include "motion_test_support.h"
 #include "sim_faults.h"
 #include "simulator/world/world.h"
+#include "support/deterministic.h"
 
 namespace {
 
@@ -43,15 +44,17 @@ class NavigationWithLidarTest : public ::testing::Test {
     ASSERT_TRUE(broker_->start()) << broker_->error();
     simulator_ = new support::ServerProcess(
         BEHAVIORLIB_SIMULATOR_PATH,
-        {"--channel", broker_->address(), "--world", "rooms", "--time-scale", "4", "--seed", kSeed,
-         "--enable-fault-injection"});
+        support::deterministicSimulatorArgs({"--channel", broker_->address(), "--world", "rooms",
+                                             "--seed", kSeed, "--enable-fault-injection"},
+                                            1));
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     coordinator_ = new support::ServerProcess(BEHAVIORLIB_COORDINATOR_PATH,
                                               {"--state-dir", *dir_ + "/coordinator"});
     ASSERT_TRUE(coordinator_->start()) << coordinator_->error();
-    const std::vector<std::string> common{
-        "--robot-id", kRobot, "--channel",           broker_->address(),
-        "--clock",    "sim",  "--flight-controller", simulator_->address()};
+    const std::vector<std::string> common =
+        support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_->address(), "--clock",
+                                 "sim", "--flight-controller", simulator_->address()},
+                                simulator_->address());
     auto args = common;
     args.insert(args.end(), {"--config", BEHAVIORLIB_BASIC_CONFIG_PATH});
     basic_ = new support::ServerProcess(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, args);

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <optional>
 
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "channel/channel_client.h"
@@ -72,6 +73,7 @@ void TimeFollower::run() {
     auto stream = stub->FollowTime(&context);
     v1::FollowTimeRequest join;
     join.set_participant(participant_);
+    std::optional<v1::Clock> last_granted;
     if (stream->Write(join)) {
       v1::FollowTimeResponse grant;
       bool reported_idle = false;
@@ -109,6 +111,7 @@ void TimeFollower::run() {
           if (stopping) break;
         }
         clock_.onClockSample(grant.clock());
+        last_granted = grant.clock();
         const TimePoint granted = toTimePoint(grant.clock().time());
         if (!awaitUntil([&] { return caught_up_(granted); })) break;
         // What the behaviors published reaches the broker before the report,
@@ -139,6 +142,26 @@ void TimeFollower::run() {
     }
     stream->WritesDone();
     const grpc::Status status = stream->Finish();
+    bool stopping = false;
+    {
+      std::lock_guard lock(mutex_);
+      stopping = stopping_;
+    }
+    if (last_granted && !stopping) {
+      // The simulator went away: time runs on in real time from the last
+      // grant (as SimClock runs on at the last scale when free running), so
+      // that the behaviors' staleness checks notice (PROCESS_FAILURE)
+      // instead of waiting for a grant that may never come.
+      v1::Clock run_on = *last_granted;
+      run_on.set_time_scale(1.0);
+      *run_on.mutable_wall_time() = google::protobuf::util::TimeUtil::NanosecondsToTimestamp(
+          std::chrono::duration_cast<std::chrono::nanoseconds>(
+              std::chrono::system_clock::now().time_since_epoch())
+              .count());
+      clock_.onClockSample(run_on);
+      std::fprintf(stderr, "%s: the time grants ended (%s); time runs on in real time\n",
+                   participant_.c_str(), status.error_message().c_str());
+    }
     if (status.error_code() == grpc::StatusCode::FAILED_PRECONDITION && !told_refusal) {
       std::fprintf(stderr, "%s: the simulator gives no time grants (%s); asking again\n",
                    participant_.c_str(), status.error_message().c_str());

@@ -117,6 +117,9 @@ class CausesStack {
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH,
                          error);
     if (!basic_) return false;
+    if (!waitForSimulatedTime(simulator_->address(), 0.1)) {
+      return *error = "simulated time did not start", false;
+    }
     basic_client_ = std::make_unique<SystemClient>(basic_->address());
     auto channel = grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials());
     flight_ = v1::FlightController::NewStub(channel);

@@ -243,6 +243,30 @@ class TruthRecorder {
   std::vector<TruthSample> samples_;
 };
 
+/// Waits (at most `timeout` of wall time) until the simulator's time reached
+/// `min_s` (its ground truth's stamps): in the deterministic mode, time starts
+/// once the first behavior system joined, and a behavior activated before
+/// then finds no sensor data.
+inline bool waitForSimulatedTime(const std::string& simulator, double min_s,
+                                 milliseconds timeout = seconds(10)) {
+  auto stub =
+      v1::Simulator::NewStub(grpc::CreateChannel(simulator, grpc::InsecureChannelCredentials()));
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + timeout);
+  v1::WatchStateRequest request;
+  request.add_robot_ids(kRobot);
+  request.set_rate_hz(100);
+  auto reader = stub->WatchState(&context, request);
+  v1::WatchStateResponse message;
+  bool reached = false;
+  while (!reached && reader->Read(&message)) {
+    reached = stampSeconds(message.state().header().stamp()) >= min_s;
+  }
+  context.TryCancel();
+  reader->Finish();
+  return reached;
+}
+
 /// Distance from `p` to the polyline through `points`.
 inline double crossTrack(const Eigen::Vector3d& p, const std::vector<Eigen::Vector3d>& points) {
   double best = (p - points.front()).norm();
@@ -283,6 +307,9 @@ class FlightStack {
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH,
                          error);
     if (!basic_) return false;
+    if (!waitForSimulatedTime(simulator_->address(), 0.1)) {
+      return *error = "simulated time did not start", false;
+    }
     basic_client_ = std::make_unique<SystemClient>(basic_->address());
     truth_ = std::make_unique<TruthRecorder>(simulator_->address());
     flight_ = v1::FlightController::NewStub(
@@ -296,10 +323,10 @@ class FlightStack {
                                                       const std::string& config,
                                                       std::string* error) {
     auto system = std::make_unique<support::ServerProcess>(
-        binary, support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(),
-                                         "--clock", "sim", "--flight-controller",
-                                         simulator_->address(), "--config", config},
-                                        simulator_->address()));
+        binary, support::followTimeArgs(
+                    {"--robot-id", kRobot, "--channel", broker_.address(), "--clock", "sim",
+                     "--flight-controller", simulator_->address(), "--config", config},
+                    simulator_->address()));
     if (!system->start()) {
       *error = binary + ": " + system->error();
       return nullptr;

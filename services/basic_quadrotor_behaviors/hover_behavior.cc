@@ -57,7 +57,8 @@ Situation HoverWithFlightActionControlBehavior::checkSituation() {
     return situation;
   }
   Situation situation;
-  auto status = flight::checkFlightPreconditions(vehicle_, now(), settings_, true, &situation);
+  auto status =
+      flight::checkFlightPreconditions(vehicle_, now(), settings_, true, false, &situation);
   if (status && status->state() != v1::FLIGHT_STATE_FLYING &&
       status->state() != v1::FLIGHT_STATE_HOVERING) {
     situation.feasible = false;

@@ -71,7 +71,8 @@ Situation LandBehavior::checkSituation() {
     return situation;
   }
   Situation situation;
-  auto status = flight::checkFlightPreconditions(vehicle_, now(), settings_, false, &situation);
+  auto status =
+      flight::checkFlightPreconditions(vehicle_, now(), settings_, false, false, &situation);
   if (status && !flight::airborne(status->state())) {
     situation.feasible = false;
     situation.performance_ratio = 0.0;

@@ -126,7 +126,8 @@ Situation TakeOffBehavior::checkSituation() {
     return situation;
   }
   Situation situation;
-  auto status = flight::checkFlightPreconditions(vehicle_, now(), settings_, true, &situation);
+  auto status =
+      flight::checkFlightPreconditions(vehicle_, now(), settings_, true, true, &situation);
   if (status && status->state() != v1::FLIGHT_STATE_LANDED) {
     situation.feasible = false;
     situation.performance_ratio = 0.0;

@@ -132,7 +132,8 @@ std::optional<std::string> checkFlightInputs(Vehicle& vehicle, TimePoint now,
 
 std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimePoint now,
                                                          const FlightSettings& settings,
-                                                         bool check_battery, Situation* situation) {
+                                                         bool check_battery, bool need_twist,
+                                                         Situation* situation) {
   auto add = [&](std::string reason) {
     situation->feasible = false;
     situation->performance_ratio = 0.0;
@@ -159,6 +160,15 @@ std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimeP
   } else if (auto stale = staleness("the pose estimate on " + vehicle.poseTopic(), pose->header(),
                                     now, settings.pose_timeout)) {
     add(*stale + "; is a localization behavior active?");
+  }
+  if (need_twist) {
+    auto twist = vehicle.twistEstimate();
+    if (!twist.ok()) {
+      add("no velocity estimate: " + std::string(twist.status().message()));
+    } else if (auto stale = staleness("the velocity estimate", twist->header(), now,
+                                      settings.pose_timeout)) {
+      add(*stale + "; is a localization behavior active?");
+    }
   }
   return result;
 }

@@ -86,12 +86,15 @@ std::optional<std::string> checkFlightInputs(Vehicle& vehicle, TimePoint now,
                                              v1::TwistStamped* twist);
 
 /// checkSituation() reasons shared by the flight behaviors before they are
-/// activated: a flight controller that answers, a fresh pose estimate and
-/// the battery above the minimum. Appends to `situation` and returns the
-/// flight status when known.
+/// activated: a flight controller that answers, a fresh pose estimate (and
+/// velocity estimate, with `need_twist`: what checkFlightInputs will need,
+/// so that an activation is not refused by its first tick because one
+/// estimate arrived before the other) and the battery above the minimum.
+/// Appends to `situation` and returns the flight status when known.
 std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimePoint now,
                                                          const FlightSettings& settings,
-                                                         bool check_battery, Situation* situation);
+                                                         bool check_battery, bool need_twist,
+                                                         Situation* situation);
 
 /// While active: the situation turns infeasible on an emergency or crash,
 /// a lease taken by another holder, or (if `check_battery`) the battery

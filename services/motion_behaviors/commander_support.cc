@@ -13,7 +13,7 @@ absl::Status CommanderSupport::configure(const YAML::Node& config) {
 
 Situation CommanderSupport::situationBefore(TimePoint now, const std::string& behavior) {
   Situation situation;
-  auto status = flight::checkFlightPreconditions(vehicle_, now, settings_, true, &situation);
+  auto status = flight::checkFlightPreconditions(vehicle_, now, settings_, true, true, &situation);
   if (!status) return situation;
   auto refuse = [&](std::string reason) {
     situation.feasible = false;

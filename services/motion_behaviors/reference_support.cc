@@ -40,7 +40,8 @@ absl::Status ReferenceSupport::configure(const YAML::Node& config) {
 
 Situation ReferenceSupport::situationBefore(TimePoint now, const std::string& behavior) {
   Situation situation;
-  auto status = flight::checkFlightPreconditions(vehicle_, now, settings_.flight, true, &situation);
+  auto status =
+      flight::checkFlightPreconditions(vehicle_, now, settings_.flight, true, true, &situation);
   if (status && !flight::flying(status->state())) {
     situation.feasible = false;
     situation.performance_ratio = 0.0;

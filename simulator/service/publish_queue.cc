@@ -25,9 +25,14 @@ void PublishQueue::push(std::string topic, std::unique_ptr<google::protobuf::Mes
       Newest& newest = newest_[topic];
       replaced = std::exchange(newest.sample, std::move(sample));
       newest.published = false;
+      newest.sent_while_wanted = false;
       ++gated_;
       return;
     }
+    // Queued while wanted: the broker keeps it and its subscribers get it, so
+    // a topic found wanted by the next interestChanged() needs no re-send (a
+    // re-send would repeat it, or even follow it with an older sample).
+    if (interest_ != nullptr) newest_[topic].sent_while_wanted = interest_->wanted(topic);
     queueLocked(std::move(topic), std::move(sample), &evicted);
   }
   cv_.notify_one();
@@ -68,11 +73,14 @@ void PublishQueue::interestChanged() {
     std::lock_guard lock(mutex_);
     std::unordered_set<std::string> wanted;
     for (auto& [topic, newest] : newest_) {
-      if (interest_ != nullptr && !interest_->wanted(topic)) continue;
+      if (interest_ != nullptr && !interest_->wanted(topic)) {
+        newest.sent_while_wanted = false;  // the broker drops a stale sample nobody wants
+        continue;
+      }
       wanted.insert(topic);
       // Wanted again: the newest sample goes out at once (the broker kept
       // none while nobody wanted the topic), unless it was wanted already.
-      if (wanted_.contains(topic) || !newest.sample) continue;
+      if (wanted_.contains(topic) || !newest.sample || newest.sent_while_wanted) continue;
       std::unique_ptr<google::protobuf::Message> sample;
       if (newest.published) {
         sample.reset(newest.sample->New());

@@ -91,6 +91,7 @@ class PublishQueue {
   struct Newest {
     std::unique_ptr<google::protobuf::Message> sample;
     bool published = false;
+    bool sent_while_wanted = false;  // the newest was queued while wanted
   };
   std::unordered_map<std::string, Newest> newest_;
   std::unordered_set<std::string> wanted_;  // at the last interestChanged()

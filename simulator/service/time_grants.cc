@@ -36,12 +36,17 @@ class TimeGrants::Follower final
 
   const v1::FollowTimeRequest& request() const { return request_; }
 
+  // One grant in flight: the next (the newest pending) goes once the
+  // follower reported the previous one. A write completes when the message
+  // is in the transport's buffers, not when the follower read it, so without
+  // this an idle follower (not waited for) would fall behind by every grant
+  // buffered on its stream.
   void grant(const v1::FollowTimeResponse& grant) {
     std::lock_guard lock(mutex_);
     if (finished_) return;
     pending_ = grant;
     has_pending_ = true;
-    if (!writing_) writeLocked();
+    if (!writing_ && !awaiting_report_) writeLocked();
   }
 
   void finish(const grpc::Status& status) {
@@ -56,7 +61,13 @@ class TimeGrants::Follower final
       finish(grpc::Status::OK);  // the follower half-closed or went away
       return;
     }
+    const bool report = request_.has_caught_up_to();
     owner_->reported(this);
+    if (report) {
+      std::lock_guard lock(mutex_);
+      awaiting_report_ = false;
+      if (has_pending_ && !writing_ && !finished_) writeLocked();
+    }
     StartRead(&request_);
   }
 
@@ -70,7 +81,7 @@ class TimeGrants::Follower final
       }
       return;
     }
-    if (has_pending_ && !finished_) writeLocked();
+    if (has_pending_ && !finished_ && !awaiting_report_) writeLocked();
   }
 
   void OnDone() override {
@@ -83,6 +94,7 @@ class TimeGrants::Follower final
     current_ = pending_;
     has_pending_ = false;
     writing_ = true;
+    awaiting_report_ = true;
     StartWrite(&current_);
   }
 
@@ -92,6 +104,7 @@ class TimeGrants::Follower final
   v1::FollowTimeResponse pending_, current_;
   bool has_pending_ = false;
   bool writing_ = false;
+  bool awaiting_report_ = false;  // a grant was written, its report not read yet
   bool finished_ = false;
 };
 

@@ -193,17 +193,21 @@ class FlightBehaviorsTest : public ::testing::Test {
     return message.status();
   }
 
-  // Starts SELF_LOCALIZE_WITH_GROUND_TRUTH and waits for its first estimate.
+  // Starts SELF_LOCALIZE_WITH_GROUND_TRUTH and waits for its first pose and
+  // velocity estimates (two topics: either may come first).
   void localize() {
     v1::ActivateResponse activated;
     auto status = activate("SELF_LOCALIZE_WITH_GROUND_TRUTH", "{}", &activated);
     ASSERT_TRUE(status.ok()) << describe(status);
+    const auto estimated = [this] {
+      return latest<v1::PoseStamped>("robots/drone1/self_localization/pose") &&
+             latest<v1::TwistStamped>("robots/drone1/self_localization/twist");
+    };
     const auto until = WallClock::now() + seconds(5);
-    while (!latest<v1::PoseStamped>("robots/drone1/self_localization/pose") &&
-           WallClock::now() < until) {
+    while (!estimated() && WallClock::now() < until) {
       std::this_thread::sleep_for(milliseconds(10));
     }
-    ASSERT_TRUE(latest<v1::PoseStamped>("robots/drone1/self_localization/pose"));
+    ASSERT_TRUE(estimated());
   }
 
   // Takes off to `altitude_m` with the typed API and waits for the end.

@@ -156,8 +156,15 @@ TEST_F(MotionMpcTest, TheLeaseRefusesASecondMotionControllerAndTheVehicleStaysCo
   ASSERT_FALSE(pid_controller.empty());
   const std::string hover = pid_client.start("KEEP_HOVERING_WITH_PID_CONTROL", "{}");
   ASSERT_FALSE(hover.empty());
-  const auto situation = client_->checkSituation("QUADROTOR_MPC_MOTION_CONTROL");
-  EXPECT_FALSE(situation.feasible());
+  // The MPC system learns of the lease from its flight-state stream, which
+  // may lag the PID's activation reply.
+  v1::CheckSituationResponse situation;
+  EXPECT_TRUE(FlightStack::waitFor(
+      [&] {
+        situation = client_->checkSituation("QUADROTOR_MPC_MOTION_CONTROL");
+        return !situation.feasible();
+      },
+      seconds(5)));
   ASSERT_GT(situation.reasons_size(), 0);
   EXPECT_NE(situation.reasons(0).find("drone1/QUADROTOR_PID_MOTION_CONTROL"), std::string::npos)
       << situation.reasons(0);

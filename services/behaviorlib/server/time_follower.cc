@@ -76,7 +76,6 @@ void TimeFollower::run() {
     std::optional<v1::Clock> last_granted;
     if (stream->Write(join)) {
       v1::FollowTimeResponse grant;
-      bool reported_idle = false;
       while (stream->Read(&grant)) {
         backoff = kInitialBackoff;
         // The data barrier: what was published up to the grant is in
@@ -110,6 +109,14 @@ void TimeFollower::run() {
           }
           if (stopping) break;
         }
+        // Time does not move under a command or a tick still running for the
+        // previous grant (an idle system is not waited for, so grants may
+        // arrive while an activation runs: its start and its first tick
+        // would read different times).
+        if (last_granted) {
+          const TimePoint previous = toTimePoint(last_granted->time());
+          if (!awaitUntil([&] { return caught_up_(previous); })) break;
+        }
         clock_.onClockSample(grant.clock());
         last_granted = grant.clock();
         const TimePoint granted = toTimePoint(grant.clock().time());
@@ -123,10 +130,9 @@ void TimeFollower::run() {
             told_sync_failure = true;
           }
         }
-        // An idle system is not waited for: it reports only when that
-        // changes (the first report of a stream always goes).
+        // Every grant is reported (the simulator sends the next one then);
+        // an idle system's reports are not waited for.
         const bool idle = idle_();
-        if (idle && reported_idle) continue;
         v1::FollowTimeRequest report;
         *report.mutable_caught_up_to() = grant.clock().time();
         report.set_idle(idle);
@@ -136,7 +142,6 @@ void TimeFollower::run() {
           }
         }
         if (!stream->Write(report)) break;
-        reported_idle = idle;
         reported_.fetch_add(1, std::memory_order_relaxed);
       }
     }

@@ -281,10 +281,16 @@ class LocalRestartTest(unittest.TestCase):
         after_kill = trajectory.snapshot()[flown_before_kill:]
         self.assertGreater(max(z for _, _, _, z, _ in after_kill), 1.0, "it was flying")
         self.assertLess(after_kill[-1][3], 0.3)
-        failures = [e for e in events.behavior_events()
+        # The controller's PROCESS_FAILURE comes once the coordinator's
+        # grace period (wall time) has passed; the mission may have ended
+        # before, by the platform's lease failsafe (simulated time, which the
+        # deterministic mode runs fast).
+        def failures():
+            return [e for e in events.behavior_events()
                     if e.get("behavior") == MOTION_CONTROLLER
                     and e.get("finished", {}).get("cause") == "TERMINATION_CAUSE_PROCESS_FAILURE"]
-        self.assertEqual(len(failures), 1, events.behavior_events())
+        wait_for(failures, 15, f"{MOTION_CONTROLLER} ended PROCESS_FAILURE")
+        self.assertEqual(len(failures()), 1, events.behavior_events())
         with open(os.path.join(self.run_dir, "logs", "coordinator.log")) as f:
             self.assertRegex(f.read(), rf"coordinator: safety: {ROBOT}: .*hover, then land")
 

@@ -371,7 +371,12 @@ TEST_F(SimulatorServiceTest, ClockTopicCarriesThePaceLineNotEveryTick) {
 }
 
 TEST_F(SimulatorServiceTest, ResetLoadsWorldsAndReportsBadWorldFiles) {
-  const auto epoch_before = latestClock(*data_);
+  // The simulator's first clock sample may still be on its way.
+  std::optional<v1::Clock> epoch_before;
+  for (int attempt = 0; attempt < 250 && !epoch_before; ++attempt) {
+    epoch_before = latestClock(*data_);
+    if (!epoch_before) std::this_thread::sleep_for(milliseconds(20));
+  }
   ASSERT_TRUE(epoch_before);
   std::this_thread::sleep_for(milliseconds(300));  // about 3 s of simulated time
   const double before_reset = clockSeconds(*data_);

@@ -152,7 +152,7 @@ def main():
         print(f"| {i + 1} | {run['state']} | {run['sim_s']:.2f} | "
               f"{run['mission_wall_s'] or float('nan'):.2f} | {speed:.1f}x | "
               f"{'yes' if same else 'NO'} | {path:.4f} | {aligned:.4f} |")
-        ok = ok and run["state"] == "SUCCEEDED" and same and path <= args.tolerance_m
+        ok = ok and run["state"].endswith("SUCCEEDED") and same and path <= args.tolerance_m
     if not ok:
         for i, run in enumerate(runs):
             print(f"run {i + 1} steps: {run['steps']}", file=sys.stderr)

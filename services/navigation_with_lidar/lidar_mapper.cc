@@ -202,8 +202,10 @@ void LidarMapper::run() {
     // is 50 a second) would hold the mapping thread for seconds each.
     if (!pose && !poses_.empty() && stampNs(poses_.back().header()) < stamp &&
         stamp - stampNs(poses_.back().header()) < kPoseWaitWindowNs) {
+      waiting_for_pose_ = true;  // caught up: the pose comes with later data
       cv_.wait_for(lock, std::chrono::milliseconds(50),
                    [&] { return stopping_ || stampNs(poses_.back().header()) >= stamp; });
+      waiting_for_pose_ = false;
       if (stopping_) return;
       pose = poseAt(stamp);
     }
@@ -215,11 +217,18 @@ void LidarMapper::run() {
       ++stats_.scans_thinned;
       continue;
     }
+    inserting_ = true;
     lock.unlock();
     insert(scan, *pose);
     lock.lock();
+    inserting_ = false;
     ++stats_.scans_inserted;
   }
+}
+
+bool LidarMapper::caughtUp() const {
+  std::lock_guard lock(mutex_);
+  return !inserting_ && (queue_.empty() || waiting_for_pose_);
 }
 
 void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose) {

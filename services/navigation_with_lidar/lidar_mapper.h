@@ -120,6 +120,11 @@ class LidarMapper {
   std::optional<std::pair<Eigen::Vector3d, Eigen::Vector3d>> planningVolumeLocked(
       const OccupancyMap& map) const;
 
+  /// Whether every scan received so far is in the map (or skipped), or the
+  /// next waits for its pose estimate: the deterministic mode's catch-up
+  /// check (BehaviorSystemBuilder::addCatchUpCheck).
+  bool caughtUp() const;
+
  private:
   void onScan(const v1::LaserScan& scan);
   void onPose(const v1::PoseStamped& pose);
@@ -144,6 +149,8 @@ class LidarMapper {
   MapperStats stats_;
   ScanThinner thinner_;
   bool stopping_ = false;
+  bool inserting_ = false;         // a scan is going into the map
+  bool waiting_for_pose_ = false;  // the next scan waits for its pose estimate
   // When the last pose estimate arrived (host time); none yet: no scans.
   std::optional<std::chrono::steady_clock::time_point> last_pose_arrival_;
   uint64_t poses_received_ = 0;

@@ -25,6 +25,9 @@ int main(int argc, char** argv) {
         }
         auto& mapper =
             b.own(std::make_unique<nav::LidarMapper>(context.channel, context.robot_id, settings));
+        // Deterministic mode: the map holds every scan received before a grant
+        // is reported, whatever the machine's load.
+        b.addCatchUpCheck([&mapper] { return mapper.caughtUp(); });
         b.add<nav::GeneratePathBehavior, behaviorlib::v1::GeneratePathWithOccupancyGrid>(
             mapper, context.beliefs);
         b.add<nav::ClearOccupancyGridBehavior, behaviorlib::v1::ClearOccupancyGrid>(mapper);

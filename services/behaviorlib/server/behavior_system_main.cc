@@ -185,7 +185,14 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   if (!follow_time.empty()) {
     follower = std::make_unique<TimeFollower>(
         follow_time, system_name + "/" + robot_id, *sim_clock, channel_client.get(),
-        [&host](TimePoint t) { return host.caughtUp(t); }, [&host] { return host.idle(); });
+        [&host, &builder](TimePoint t) {
+          if (!host.caughtUp(t)) return false;
+          for (const auto& check : builder.catchUpChecks()) {
+            if (!check()) return false;
+          }
+          return true;
+        },
+        [&host] { return host.idle(); });
   }
 
   const int sig = ServerRuntime::waitForShutdownSignal();

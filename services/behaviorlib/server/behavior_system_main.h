@@ -111,6 +111,14 @@ class BehaviorSystemBuilder {
     return *this;
   }
 
+  /// Adds work outside the behaviors' ticks that the deterministic mode
+  /// waits for before the system reports a grant (e.g. a mapper inserting
+  /// the scans it received): `caught_up` says whether it is done.
+  void addCatchUpCheck(std::function<bool()> caught_up) {
+    catch_up_checks_.push_back(std::move(caught_up));
+  }
+  const std::vector<std::function<bool()>>& catchUpChecks() const { return catch_up_checks_; }
+
   std::vector<std::unique_ptr<BehaviorExecutionManager>>& behaviors() { return behaviors_; }
   std::vector<std::unique_ptr<grpc::Service>>& services() { return services_; }
   const std::map<std::string, std::string>& serviceNames() const { return service_names_; }
@@ -127,6 +135,7 @@ class BehaviorSystemBuilder {
   std::vector<std::unique_ptr<BehaviorExecutionManager>> behaviors_;
   std::vector<std::unique_ptr<grpc::Service>> services_;
   std::map<std::string, std::string> service_names_;
+  std::vector<std::function<bool()>> catch_up_checks_;
 };
 
 /// Parses flags, starts everything, serves until SIGTERM/SIGINT, then ends

@@ -20,8 +20,7 @@ namespace support {
 /// `args` plus --time-scale max and --min-followers `followers`.
 inline std::vector<std::string> deterministicSimulatorArgs(std::vector<std::string> args,
                                                            int followers) {
-  args.insert(args.end(),
-              {"--time-scale", "max", "--min-followers", std::to_string(followers)});
+  args.insert(args.end(), {"--time-scale", "max", "--min-followers", std::to_string(followers)});
   return args;
 }
 

@@ -57,9 +57,13 @@ from local_demo_test import alive, kill_launched, launched_pids, read_png  # noq
 # slows the mission instead of ending it with PROCESS_FAILURE (free running,
 # the behaviors' staleness limits in simulated time, 0.5-1 s, made 2-3x the
 # most a two-core machine held). Measured: the aircraft about 5.6x (106
-# simulated seconds in 19 s), the swarm 6x, the exploration 7x. Each case
-# still starts only the systems its mission needs (SYSTEMS below).
-TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "max"}
+# simulated seconds in 19 s), the swarm 6x. The exploration flew at 7x this
+# way but failed about one run in four (the vehicle clipped the C-D door on a
+# path planned with the vehicle's own radius on the fuller map this mode
+# builds; planning on an imperfect map is issue 17's), so it stays free
+# running at 3x, as before. Each case still starts only the systems its
+# mission needs (SYSTEMS below).
+TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "3"}
 # The behavior systems each case starts (--systems; basic_quadrotor_behaviors
 # always runs): what its mission needs, so that the idle rest of the stack
 # does not take the CPU the controllers need.

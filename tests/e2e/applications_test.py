@@ -24,8 +24,9 @@ the four-room building): the mission SUCCEEDED, the map it saved exists and
 is not empty, and map_coverage finds at least 80 % of the building's free
 space mapped.
 
-Each case prints its wall time. The simulator runs in the deterministic
-mode (TIME_SCALES below says why). A failed case keeps its
+Each case prints its wall time. The aircraft and swarm run in the
+deterministic mode, the exploration free running at 3x (TIME_SCALES below
+says why). A failed case keeps its
 run directory (logs, report) and prints where it is; so does every case with
 BEHAVIORLIB_KEEP_RUN_DIR=1 in the environment.
 """

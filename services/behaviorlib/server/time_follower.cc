@@ -49,6 +49,11 @@ TimeFollower::~TimeFollower() {
   thread_.join();
 }
 
+bool TimeFollower::isStopping() {
+  std::lock_guard lock(mutex_);
+  return stopping_;
+}
+
 bool TimeFollower::awaitUntil(const std::function<bool()>& done) {
   while (!done()) {
     std::unique_lock lock(mutex_);
@@ -92,10 +97,7 @@ void TimeFollower::run() {
           const auto give_up = std::chrono::steady_clock::now() + kDataWaitLimit;
           bool stopping = false;
           while (!data_->waitDelivered(topic_seq, kStopPoll)) {
-            {
-              std::lock_guard lock(mutex_);
-              if ((stopping = stopping_)) break;
-            }
+            if ((stopping = isStopping())) break;
             if (std::chrono::steady_clock::now() >= give_up) {
               if (!told_data_timeout) {
                 std::fprintf(stderr,
@@ -147,12 +149,7 @@ void TimeFollower::run() {
     }
     stream->WritesDone();
     const grpc::Status status = stream->Finish();
-    bool stopping = false;
-    {
-      std::lock_guard lock(mutex_);
-      stopping = stopping_;
-    }
-    if (last_granted && !stopping) {
+    if (last_granted && !isStopping()) {
       // The simulator went away: time runs on in real time from the last
       // grant (as SimClock runs on at the last scale when free running), so
       // that the behaviors' staleness checks notice (PROCESS_FAILURE)

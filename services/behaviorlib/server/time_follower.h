@@ -57,6 +57,7 @@ class TimeFollower {
 
  private:
   void run();
+  bool isStopping();
   // Waits until done() (polling), or stop; false when stopping.
   bool awaitUntil(const std::function<bool()>& done);
 

@@ -242,34 +242,46 @@ InflatedGrid::InflatedGrid(const OccupancyMap& map, const Eigen::Vector3d& min_m
                  v, z);
     }
   }
-  // A cell is blocked when the nearest occupied cell's cube is within the
-  // radius of its centre (centre distance minus half a cell).
-  cells_.assign(static_cast<size_t>(size_.x()) * size_.y() * size_.z(), 0);
-  const double limit = radius_m / resolution_ + 0.5;
-  const float limit2 = static_cast<float>(limit * limit);
+  // Clearance of a cell: from its centre to the nearest occupied cell's
+  // cube (centre distance minus half a cell); blocked within the radius.
+  radius_ = static_cast<float>(radius_m);
+  clearance_.assign(static_cast<size_t>(size_.x()) * size_.y() * size_.z(), kInf);
+  const float half = static_cast<float>(0.5 * resolution_);
   for (int x = 0; x < size_.x(); ++x) {
     for (int y = 0; y < size_.y(); ++y) {
       for (int z0 = 0; z0 < size_.z(); ++z0) {
-        if (dist[index(x + pad, y + pad, z0 + pad)] <= limit2) {
-          cells_[(static_cast<size_t>(x) * size_.y() + y) * size_.z() + z0] = 1;
-        }
+        const float d2 = dist[index(x + pad, y + pad, z0 + pad)];
+        if (d2 == kInf) continue;
+        clearance_[(static_cast<size_t>(x) * size_.y() + y) * size_.z() + z0] =
+            std::max(0.0f, std::sqrt(d2) * static_cast<float>(resolution_) - half);
       }
     }
   }
 }
 
-bool InflatedGrid::blocked(const Eigen::Vector3d& p) const {
+std::optional<size_t> InflatedGrid::cellOf(const Eigen::Vector3d& p) const {
   Eigen::Vector3i cell;
   for (int i = 0; i < 3; ++i) {
     const double f = std::floor((p[i] - min_[i]) / resolution_);
-    if (!(f >= 0 && f < size_[i])) return true;
+    if (!(f >= 0 && f < size_[i])) return std::nullopt;
     cell[i] = static_cast<int>(f);
   }
-  return cells_[(static_cast<size_t>(cell.x()) * size_.y() + cell.y()) * size_.z() + cell.z()] != 0;
+  return (static_cast<size_t>(cell.x()) * size_.y() + cell.y()) * size_.z() + cell.z();
+}
+
+bool InflatedGrid::blocked(const Eigen::Vector3d& p) const {
+  const std::optional<size_t> cell = cellOf(p);
+  return !cell || clearance_[*cell] <= radius_;
+}
+
+double InflatedGrid::clearanceM(const Eigen::Vector3d& p) const {
+  const std::optional<size_t> cell = cellOf(p);
+  return cell ? static_cast<double>(clearance_[*cell]) : 0.0;
 }
 
 size_t InflatedGrid::blockedCount() const {
-  return static_cast<size_t>(std::count(cells_.begin(), cells_.end(), 1));
+  return static_cast<size_t>(
+      std::count_if(clearance_.begin(), clearance_.end(), [&](float c) { return c <= radius_; }));
 }
 
 }  // namespace behaviorlib::nav

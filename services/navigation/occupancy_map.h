@@ -17,6 +17,7 @@
 #include <Eigen/Core>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -83,13 +84,21 @@ class InflatedGrid {
                double radius_m);
   /// True when `p` is blocked or outside the box.
   bool blocked(const Eigen::Vector3d& p) const;
+  /// Distance from the centre of `p`'s cell to the nearest occupied voxel's
+  /// cube (m; infinity with none in reach, 0 outside the box).
+  double clearanceM(const Eigen::Vector3d& p) const;
+  /// The radius the grid was inflated by (m).
+  double radiusM() const { return radius_; }
   size_t blockedCount() const;
 
  private:
+  std::optional<size_t> cellOf(const Eigen::Vector3d& p) const;
+
   Eigen::Vector3d min_;
   double resolution_;
   Eigen::Vector3i size_;
-  std::vector<uint8_t> cells_;
+  float radius_ = 0.0f;
+  std::vector<float> clearance_;
 };
 
 }  // namespace behaviorlib::nav

@@ -1,7 +1,6 @@
 #include "navigation/path_planner.h"
 
 #include <ompl/base/spaces/RealVectorStateSpace.h>
-#include <ompl/geometric/PathSimplifier.h>
 #include <ompl/geometric/SimpleSetup.h>
 #include <ompl/geometric/planners/rrt/RRTConnect.h>
 #include <ompl/util/Console.h>
@@ -9,6 +8,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <mutex>
 #include <sstream>
 
@@ -27,6 +27,99 @@ std::string text(const Eigen::Vector3d& p) {
 
 bool inside(const Eigen::Vector3d& p, const PlanOptions& o) {
   return (p.array() >= o.bounds_min_m.array()).all() && (p.array() <= o.bounds_max_m.array()).all();
+}
+
+// Points along the polyline, at most `step` apart, every vertex kept.
+std::vector<Eigen::Vector3d> densify(const std::vector<Eigen::Vector3d>& path, double step) {
+  std::vector<Eigen::Vector3d> out;
+  if (path.empty()) return out;
+  out.push_back(path.front());
+  for (size_t i = 1; i < path.size(); ++i) {
+    const Eigen::Vector3d d = path[i] - path[i - 1];
+    const int n = std::max(1, static_cast<int>(std::ceil(d.norm() / step)));
+    for (int k = 1; k <= n; ++k) out.push_back(path[i - 1] + d * (static_cast<double>(k) / n));
+  }
+  return out;
+}
+
+// Smallest clearance along the straight segment a-b, sampled every
+// `spacing`; below `floor_m` (or blocked) it stops early and returns -1.
+double segmentClearance(const InflatedGrid& grid, const Eigen::Vector3d& a,
+                        const Eigen::Vector3d& b, double spacing, double floor_m) {
+  const int n = std::max(1, static_cast<int>(std::ceil((b - a).norm() / spacing)));
+  double least = std::numeric_limits<double>::infinity();
+  for (int k = 0; k <= n; ++k) {
+    const Eigen::Vector3d p = a + (b - a) * (static_cast<double>(k) / n);
+    const double c = grid.clearanceM(p);
+    if (grid.blocked(p) || c < floor_m) return -1.0;
+    least = std::min(least, c);
+  }
+  return least;
+}
+
+// Moves each interior point up the clearance field, a cell at a time,
+// until it has `target_m` of clearance or can gain no more: in open space a
+// point near an obstacle moves out to the target, in a passage narrower
+// than that it moves to the passage's middle. A move that would leave a
+// blocked segment to a neighbour is not made.
+void pushAway(const InflatedGrid& grid, std::vector<Eigen::Vector3d>& points, double target_m,
+              double resolution, double spacing) {
+  const double h = resolution;
+  const double step = resolution;
+  for (size_t i = 1; i + 1 < points.size(); ++i) {
+    Eigen::Vector3d p = points[i];
+    double c = grid.clearanceM(p);
+    for (int iteration = 0; iteration < 20 && c < target_m; ++iteration) {
+      Eigen::Vector3d gradient;
+      for (int axis = 0; axis < 3; ++axis) {
+        Eigen::Vector3d d = Eigen::Vector3d::Zero();
+        d[axis] = h;
+        gradient[axis] = grid.clearanceM(p + d) - grid.clearanceM(p - d);
+      }
+      if (gradient.norm() < 1e-9) break;
+      const Eigen::Vector3d next = p + gradient.normalized() * step;
+      const double cn = grid.clearanceM(next);
+      if (cn < c || grid.blocked(next)) break;
+      p = next;
+      c = cn;
+    }
+    if (p == points[i]) continue;
+    if (segmentClearance(grid, points[i - 1], p, spacing, 0.0) >= 0.0 &&
+        segmentClearance(grid, p, points[i + 1], spacing, 0.0) >= 0.0) {
+      points[i] = p;
+    }
+  }
+}
+
+// From each point, straight to the farthest later point whose segment
+// keeps min(target, the least clearance of the points it replaces): the
+// path is shortened without being pulled against a wall or a corner where
+// the space allows more room.
+std::vector<Eigen::Vector3d> pullString(const InflatedGrid& grid,
+                                        const std::vector<Eigen::Vector3d>& points, double target_m,
+                                        double spacing) {
+  std::vector<Eigen::Vector3d> out;
+  if (points.empty()) return out;
+  std::vector<double> clearance(points.size());
+  for (size_t k = 0; k < points.size(); ++k) clearance[k] = grid.clearanceM(points[k]);
+  out.push_back(points.front());
+  size_t i = 0;
+  std::vector<double> least(points.size());
+  while (i + 1 < points.size()) {
+    least[i] = clearance[i];
+    for (size_t j = i + 1; j < points.size(); ++j) least[j] = std::min(least[j - 1], clearance[j]);
+    size_t chosen = i + 1;
+    for (size_t j = points.size() - 1; j > i + 1; --j) {
+      const double required = std::min(target_m, least[j]);
+      if (segmentClearance(grid, points[i], points[j], spacing, required - 1e-6) >= 0.0) {
+        chosen = j;
+        break;
+      }
+    }
+    out.push_back(points[chosen]);
+    i = chosen;
+  }
+  return out;
 }
 
 void quietOmpl() {
@@ -103,22 +196,29 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
                                " found within " + std::to_string(options.timeout_s) +
                                " s (the goal may be unreachable)");
   }
-  if (options.shortcut_attempts > 0) {
-    // Bounded work, not a time budget (simplifySolution(t) may use all of t).
-    og::PathSimplifier simplifier(setup.getSpaceInformation());
-    og::PathGeometric& raw = setup.getSolutionPath();
-    simplifier.reduceVertices(raw);
-    simplifier.shortcutPath(raw, options.shortcut_attempts);
+  std::vector<Eigen::Vector3d> raw;
+  for (const ob::State* s : setup.getSolutionPath().getStates()) {
+    const double* v = s->as<ob::RealVectorStateSpace::StateType>()->values;
+    raw.emplace_back(v[0], v[1], v[2]);
+  }
+  const double spacing = options.check_spacing_m;
+  PlannedPath path;
+  if (options.shorten) {
+    const double target = grid.radiusM() + std::max(0.0, options.preferred_clearance_m);
+    std::vector<Eigen::Vector3d> dense = densify(raw, map.resolutionM());
+    pushAway(grid, dense, target, map.resolutionM(), spacing);
+    path.waypoints_m = pullString(grid, dense, target, spacing);
+  } else {
+    path.waypoints_m = std::move(raw);
   }
   const auto t1 = std::chrono::steady_clock::now();
 
-  PlannedPath path;
-  for (const ob::State* s : setup.getSolutionPath().getStates()) {
-    const double* v = s->as<ob::RealVectorStateSpace::StateType>()->values;
-    path.waypoints_m.emplace_back(v[0], v[1], v[2]);
-  }
+  path.min_clearance_m = std::numeric_limits<double>::infinity();
   for (size_t i = 1; i < path.waypoints_m.size(); ++i) {
     path.length_m += (path.waypoints_m[i] - path.waypoints_m[i - 1]).norm();
+    const double c =
+        segmentClearance(grid, path.waypoints_m[i - 1], path.waypoints_m[i], spacing, 0.0);
+    path.min_clearance_m = std::min(path.min_clearance_m, c - grid.radiusM());
   }
   path.planning_time_s = std::chrono::duration<double>(t1 - t0).count();
   path.inflation_time_s = std::chrono::duration<double>(t_grid - t0).count();

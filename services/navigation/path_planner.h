@@ -31,9 +31,18 @@ struct PlanOptions {
   Eigen::Vector3d bounds_max_m{50, 50, 5.0};
   /// Spacing of the collision checks along a motion (m).
   double check_spacing_m = 0.05;
-  /// Shortcutting attempts when shortening the path (OMPL's PathSimplifier:
-  /// vertex reduction, then random shortcuts); 0 keeps the raw path.
-  unsigned int shortcut_attempts = 100;
+  /// Shorten the planner's raw path: from each waypoint, straight to the
+  /// farthest point of the raw path that can be reached without passing
+  /// closer to an obstacle than the preferred clearance (or than the raw
+  /// path itself passed there, in a passage narrower than that). false keeps
+  /// the raw path.
+  bool shorten = true;
+  /// Distance beyond the vehicle's radius that the shortened path keeps from
+  /// occupied voxels where the space allows it (m). A shortcut that hugs a
+  /// wall or a corner at the bare radius leaves no room for the controller's
+  /// tracking error, nor for the unseen part of an obstacle seen from one
+  /// side (unknown space counts as free).
+  double preferred_clearance_m = 0.2;
 };
 
 struct PlannedPath {
@@ -41,6 +50,9 @@ struct PlannedPath {
   double length_m = 0.0;
   double planning_time_s = 0.0;   ///< all of it, wall time
   double inflation_time_s = 0.0;  ///< of which building the inflated grid
+  /// Smallest distance beyond the vehicle's radius between the path and an
+  /// occupied voxel, sampled along it (m; infinity with none in reach).
+  double min_clearance_m = 0.0;
 };
 
 absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vector3d& start_m,

@@ -109,7 +109,7 @@ absl::Status GeneratePathBehavior::onConfigure(const YAML::Node& config) {
       !s.ok()) {
     return s;
   }
-  return flight::readNumber(config, "shortcut_attempts", -1e-9, 100000, &shortcut_attempts_);
+  return flight::readNumber(config, "preferred_clearance_m", -1e-9, 5, &preferred_clearance_m_);
 }
 
 std::string GeneratePathBehavior::beliefKey() const {
@@ -228,7 +228,7 @@ void GeneratePathBehavior::startAttempt() {
   a.goal_m = vec(p.goal_m());
   a.options.vehicle_radius_m = p.vehicle_radius_m();
   a.options.timeout_s = p.planning_time_limit_s();
-  a.options.shortcut_attempts = static_cast<unsigned>(shortcut_attempts_);
+  a.options.preferred_clearance_m = preferred_clearance_m_;
   a.belief_key = beliefKey();
   a.bounds = boundsParameter();
   {
@@ -322,6 +322,7 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
   r.waypoints = path.waypoints_m.size();
   r.length_m = path.length_m;
   r.planning_time_s = path.planning_time_s;
+  r.min_clearance_m = path.min_clearance_m;
   if (absl::Status s = mapper_.channel()->publish(pathTopic(robotId()), message); !s.ok()) {
     r.outcome = Outcome::kOutputFailed;
     r.message =
@@ -342,7 +343,14 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
   std::ostringstream out;
   out.precision(3);
   out << "path of " << r.waypoints << " waypoints, " << r.length_m << " m, planned in "
-      << r.planning_time_s << " s; on " << pathTopic(robotId())
+      << r.planning_time_s << " s, ";
+  if (std::isfinite(r.min_clearance_m)) {
+    out << "at least " << flight::fixed2(r.min_clearance_m)
+        << " m of clearance beyond the vehicle's radius";
+  } else {
+    out << "no obstacle in reach";
+  }
+  out << "; on " << pathTopic(robotId())
       << (beliefs_ ? " and in belief '" + attempt.belief_key + "'"
                    : " (no coordinator: not in belief memory)");
   r.message = out.str();

@@ -31,7 +31,9 @@
 // Config (defaults): pose_timeout_s [0.5], timeout_grace_s [0.5] (wall
 // time an attempt may run past its limit before it counts as timed out:
 // building the inflated grid is not part of OMPL's budget),
-// shortcut_attempts [100].
+// preferred_clearance_m [0.2] (distance beyond vehicle_radius_m that the
+// shortened path keeps from obstacles where the space allows it; see
+// PlanOptions).
 
 #include <chrono>
 #include <condition_variable>
@@ -102,7 +104,7 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
     Outcome outcome = Outcome::kRunning;
     std::string message;
     size_t waypoints = 0;
-    double length_m = 0, planning_time_s = 0;
+    double length_m = 0, planning_time_s = 0, min_clearance_m = 0;
   };
 
   void startAttempt();
@@ -115,7 +117,7 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   const server::BeliefClient* beliefs_;
   Duration pose_timeout_ = std::chrono::milliseconds(500);
   double timeout_grace_s_ = 0.5;
-  double shortcut_attempts_ = 100;
+  double preferred_clearance_m_ = 0.2;
 
   // Worker-thread state of the activation.
   Eigen::Vector3d start_m_ = Eigen::Vector3d::Zero();

@@ -87,6 +87,45 @@ TEST_F(Building, PlansFromRoomToRoomThroughTheDoors) {
   }
 }
 
+// Around the pillar in room D (the straight line goes through it): the
+// shortened path keeps the preferred clearance beyond the radius from the
+// real pillar; with none preferred it is pulled against the pillar's corner.
+TEST_F(Building, TheShortenedPathKeepsThePreferredClearanceWhereThereIsRoom) {
+  PlanOptions options = buildingVolume();
+  const Eigen::Vector3d from(16.5, 6.0, 1.5), to(13.5, 9.0, 1.5);
+  auto kept = planPath(*map_, from, to, options);
+  ASSERT_TRUE(kept.ok()) << kept.status();
+  EXPECT_GE(kept->min_clearance_m, options.preferred_clearance_m - 0.05);
+  // 0.9 of it from the world's real surfaces (the voxels are 0.1 m).
+  expectCollisionFree(*kept,
+                      (options.vehicle_radius_m + 0.9 * options.preferred_clearance_m) / 0.9);
+
+  options.preferred_clearance_m = 0.0;
+  auto hugging = planPath(*map_, from, to, options);
+  ASSERT_TRUE(hugging.ok()) << hugging.status();
+  EXPECT_LT(hugging->min_clearance_m, 0.1);
+  expectCollisionFree(*hugging, options.vehicle_radius_m);
+}
+
+// Through the doors (1.2 m) the preferred clearance cannot be kept: the
+// path goes through their middle and still arrives.
+TEST_F(Building, ADoorNarrowerThanThePreferredClearanceIsPassedInItsMiddle) {
+  PlanOptions options = buildingVolume();
+  options.vehicle_radius_m = 0.35;
+  options.preferred_clearance_m = 0.5;
+  auto path = planPath(*map_, {3, 3, 1.5}, {9, 5, 1.5}, options);  // A -> B, door at y 5
+  ASSERT_TRUE(path.ok()) << path.status();
+  EXPECT_LT(path->min_clearance_m, 0.5);
+  expectCollisionFree(*path, options.vehicle_radius_m);
+  // Where the path crosses the wall (x = 6) it is within 0.1 m of the door's middle.
+  for (size_t i = 1; i < path->waypoints_m.size(); ++i) {
+    const Eigen::Vector3d a = path->waypoints_m[i - 1], b = path->waypoints_m[i];
+    if ((a.x() - 6.0) * (b.x() - 6.0) > 0) continue;
+    const double y = a.y() + (b.y() - a.y()) * (6.0 - a.x()) / (b.x() - a.x());
+    EXPECT_NEAR(y, 5.0, 0.1);
+  }
+}
+
 TEST_F(Building, RefusesGoalsOutsideTheMapOrInsideObstacles) {
   const PlanOptions options = buildingVolume();
   auto outside = planPath(*map_, {2, 2, 1.5}, {40, 2, 1.5}, options);

@@ -259,17 +259,39 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
   // nothing else cleared). A hit above the planning altitudes is a door's
   // lintel (or a ceiling) seen by a tilted vehicle, not a wall: it stays a
   // voxel, or it would close the door below it.
+  auto columnVoxels = [&](int64_t cx, int64_t cy, auto&& fn) {
+    for (double z = settings_.column_min_z_m + 0.5 * res; z < settings_.column_max_z_m; z += res) {
+      fn(Eigen::Vector3d((static_cast<double>(cx) + 0.5) * res,
+                         (static_cast<double>(cy) + 0.5) * res, z));
+    }
+  };
   for (const Eigen::Vector3d& h : hits) {
     if (h.z() > settings_.planning_max_z_m) continue;
     const auto cx = static_cast<int64_t>(std::floor(h.x() / res));
     const auto cy = static_cast<int64_t>(std::floor(h.y() / res));
     const uint64_t key =
         (static_cast<uint64_t>(cx & 0xffffffff) << 32) | static_cast<uint64_t>(cy & 0xffffffff);
-    if (!columns_.insert(key).second) continue;
-    for (double z = settings_.column_min_z_m + 0.5 * res; z < settings_.column_max_z_m; z += res) {
-      const Eigen::Vector3d p((cx + 0.5) * res, (cy + 0.5) * res, z);
-      map_.insertScan(p, {p});
+    const double hz = (std::floor(h.z() / res) + 0.5) * res;
+    const Eigen::Vector3d raiser((static_cast<double>(cx) + 0.5) * res,
+                                 (static_cast<double>(cy) + 0.5) * res, hz);
+    if (!columns_.emplace(key, raiser).second) continue;
+    columnVoxels(cx, cy, [&](const Eigen::Vector3d& p) {
+      if (std::abs(p.z() - hz) > 0.25 * res) map_.insertScan(p, {p});
+    });
+  }
+  // A column whose raising voxel the rays have cleared since (a noisy hit
+  // on a door jamb's face that fell on the doorway's side of a voxel
+  // boundary) falls: the scan plane saw through it, so the rest of it was
+  // never there. Its other voxels go back to even odds.
+  for (auto it = columns_.begin(); it != columns_.end();) {
+    if (map_.occupied(it->second)) {
+      ++it;
+      continue;
     }
+    const auto cx = static_cast<int64_t>(std::floor(it->second.x() / res));
+    const auto cy = static_cast<int64_t>(std::floor(it->second.y() / res));
+    columnVoxels(cx, cy, [&](const Eigen::Vector3d& p) { map_.resetVoxel(p); });
+    it = columns_.erase(it);
   }
 }
 

@@ -34,7 +34,7 @@
 #include <optional>
 #include <string>
 #include <thread>
-#include <unordered_set>
+#include <unordered_map>
 
 #include "absl/status/status.h"
 #include "behaviorlib/v1/types.pb.h"
@@ -140,7 +140,9 @@ class LidarMapper {
 
   mutable std::mutex map_mutex_;
   OccupancyMap map_;
-  std::unordered_set<uint64_t> columns_;  // xy cells already extruded (map_mutex_)
+  // Columns extruded (map_mutex_): xy cell -> the centre of the voxel whose
+  // hit raised it. A column stands while that voxel stays occupied.
+  std::unordered_map<uint64_t, Eigen::Vector3d> columns_;
 
   mutable std::mutex mutex_;  // queue, poses, stats
   std::condition_variable cv_;

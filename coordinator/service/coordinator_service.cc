@@ -41,6 +41,9 @@ grpc::Status fromSystem(const grpc::Status& status, const Registry::Route& route
                                                status.error_message());
 }
 
+// WatchFleetEventsRequest.max_events_per_message is capped here.
+constexpr uint32_t kMaxEventsPerMessage = 1024;
+
 // One lifecycle call forwarded to a behavior system.
 template <class Request, class Response>
 struct ForwardedCall {
@@ -64,6 +67,7 @@ class FleetStreamReactor final : public grpc::ServerWriteReactor<v1::WatchFleetE
     options.incarnation = request.incarnation();
     options.robot_ids.assign(request.robot_ids().begin(), request.robot_ids().end());
     options.behaviors.assign(request.behaviors().begin(), request.behaviors().end());
+    max_batch_ = std::min<uint32_t>(request.max_events_per_message(), kMaxEventsPerMessage);
     // writing_ starts true so that a wake before the start message is
     // written cannot send an event first.
     subscription_ = service_->log_.subscribe(options, [this] { onWake(); });
@@ -119,7 +123,17 @@ class FleetStreamReactor final : public grpc::ServerWriteReactor<v1::WatchFleetE
       finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
       return;
     }
-    if (FleetEventPtr event = subscription_->pop()) {
+    if (max_batch_ > 1) {
+      const std::vector<FleetEventPtr> events = subscription_->popUpTo(max_batch_);
+      if (!events.empty()) {
+        auto* batch = message_.mutable_events();
+        batch->mutable_events()->Clear();
+        for (const FleetEventPtr& event : events) *batch->add_events() = *event;
+        writing_ = true;
+        StartWrite(&message_);
+        return;
+      }
+    } else if (FleetEventPtr event = subscription_->pop()) {
       *message_.mutable_event() = *event;
       writing_ = true;
       StartWrite(&message_);
@@ -147,6 +161,7 @@ class FleetStreamReactor final : public grpc::ServerWriteReactor<v1::WatchFleetE
   std::unique_ptr<FleetSubscription> subscription_;
   std::mutex mutex_;
   v1::WatchFleetEventsResponse message_;
+  uint32_t max_batch_ = 1;
   bool writing_ = true;
   bool finished_ = false;
   bool cancelled_ = false;

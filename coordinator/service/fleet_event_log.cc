@@ -93,6 +93,20 @@ FleetEventPtr FleetSubscription::pop() {
   return event;
 }
 
+std::vector<FleetEventPtr> FleetSubscription::popUpTo(size_t max) {
+  std::lock_guard lock(mutex_);
+  std::vector<FleetEventPtr> out;
+  const size_t n = std::min(max, queue_.size());
+  out.reserve(n);
+  for (size_t i = 0; i < n; ++i) {
+    out.push_back(std::move(queue_.front()));
+    queue_.pop_front();
+  }
+  replay_left_ -= std::min(replay_left_, n);
+  if (!out.empty()) last_popped_seq_ = out.back()->seq();
+  return out;
+}
+
 bool FleetSubscription::overflowed() const {
   std::lock_guard lock(mutex_);
   return overflowed_;
@@ -139,21 +153,34 @@ FleetEventLog::~FleetEventLog() {
 }
 
 FleetEventPtr FleetEventLog::append(v1::FleetEvent event) {
-  event.set_incarnation(options_.incarnation);
+  std::vector<v1::FleetEvent> one;
+  one.push_back(std::move(event));
+  return appendEvents(std::move(one));
+}
+
+void FleetEventLog::appendAll(std::vector<v1::FleetEvent> events) {
+  if (!events.empty()) appendEvents(std::move(events));
+}
+
+FleetEventPtr FleetEventLog::appendEvents(std::vector<v1::FleetEvent> events) {
   std::vector<std::shared_ptr<FleetSubscription::WakeSlot>> to_wake;
   FleetEventPtr stored;
   {
     std::lock_guard lock(mutex_);
-    // Under the lock so that wall_time never goes backwards as seq grows.
-    setNow(event.mutable_wall_time());
-    event.set_seq(next_seq_++);
-    stored = std::make_shared<const v1::FleetEvent>(std::move(event));
-    retained_.push_back(stored);
-    while (retained_.size() > options_.capacity) retained_.pop_front();
-    for (FleetSubscription* subscription : subscribers_) {
-      if (subscription->deliver(stored)) to_wake.push_back(subscription->wake_);
+    for (v1::FleetEvent& event : events) {
+      event.set_incarnation(options_.incarnation);
+      // Under the lock so that wall_time never goes backwards as seq grows.
+      setNow(event.mutable_wall_time());
+      event.set_seq(next_seq_++);
+      stored = std::make_shared<const v1::FleetEvent>(std::move(event));
+      retained_.push_back(stored);
+      while (retained_.size() > options_.capacity) retained_.pop_front();
+      for (FleetSubscription* subscription : subscribers_) {
+        if (subscription->deliver(stored)) to_wake.push_back(subscription->wake_);
+      }
     }
   }
+  // A subscriber's queue goes from empty to not empty once per batch.
   for (const auto& slot : to_wake) slot->fire();
   return stored;
 }

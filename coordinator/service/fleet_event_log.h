@@ -70,6 +70,8 @@ class FleetSubscription {
   const v1::WatchEventsStart& start() const { return start_; }
   /// Next queued event, or nullptr when none is queued.
   FleetEventPtr pop();
+  /// Up to `max` queued events, oldest first (empty when none).
+  std::vector<FleetEventPtr> popUpTo(size_t max);
   /// True once the queue overflowed; nothing more is delivered.
   bool overflowed() const;
   /// Seq of the last event handed out by pop(), or the since_seq the
@@ -114,6 +116,9 @@ class FleetEventLog {
   /// Appends: fills seq, incarnation and wall_time, retains the event and
   /// hands it to every matching subscriber. Never blocks on subscribers.
   FleetEventPtr append(v1::FleetEvent event);
+  /// append() for several events at once, in order: one lock, and each
+  /// subscriber woken once.
+  void appendAll(std::vector<v1::FleetEvent> events);
 
   /// Subscribes: computes the replay summary, queues the matching retained
   /// events after since_seq (all retained ones if the incarnation differs),
@@ -131,6 +136,8 @@ class FleetEventLog {
 
  private:
   friend class FleetSubscription;
+  // Appends in order under one lock; returns the last event stored.
+  FleetEventPtr appendEvents(std::vector<v1::FleetEvent> events);
   void unsubscribe(FleetSubscription* subscription);
 
   FleetEventLogOptions options_;

@@ -11,6 +11,8 @@ namespace behaviorlib::coordinator {
 namespace {
 
 constexpr std::chrono::milliseconds kInitialBackoff(100);
+// Events per message asked of a system's stream (WatchEventsRequest.max_events_per_message).
+constexpr uint32_t kIntakeBatch = 256;
 constexpr std::chrono::milliseconds kMaxBackoff(2000);
 constexpr std::chrono::milliseconds kFailingProbePause(50);
 
@@ -180,6 +182,8 @@ void SystemLink::run() {
       stub = stub_;
       request.set_since_seq(tracker_.lastSeq());
       request.set_incarnation(tracker_.incarnation());
+      // What the system has queued for us, in one message.
+      request.set_max_events_per_message(kIntakeBatch);
     }
     if (leaving) {
       if (!finishLeaving()) return;
@@ -310,7 +314,14 @@ SystemLink::StreamEnd SystemLink::readStream(v1::BehaviorSystem::Stub& stub,
           std::lock_guard lock(mutex_);
           last_activity_ = std::chrono::steady_clock::now();
         }
-        if (message.has_event()) onEvent(message.event(), context);
+        if (message.has_event()) {
+          onEvents({&message.event()}, context);
+        } else if (message.has_events()) {
+          std::vector<const v1::BehaviorEvent*> events;
+          events.reserve(static_cast<size_t>(message.events().events_size()));
+          for (const v1::BehaviorEvent& event : message.events().events()) events.push_back(&event);
+          onEvents(events, context);
+        }
       }
     } else {
       refused = true;
@@ -411,22 +422,29 @@ bool SystemLink::onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::
   return true;
 }
 
-void SystemLink::onEvent(const v1::BehaviorEvent& event, grpc::ClientContext& context) {
-  ActivationTracker::Verdict verdict;
+void SystemLink::onEvents(const std::vector<const v1::BehaviorEvent*>& events,
+                          grpc::ClientContext& context) {
+  std::vector<v1::FleetEvent> forward;
+  forward.reserve(events.size());
+  size_t duplicates = 0;
   bool fence_now = false;
   bool leaving_done = false;
   {
     std::lock_guard lock(mutex_);
-    verdict = tracker_.accept(event);
+    for (const v1::BehaviorEvent* event : events) {
+      if (tracker_.accept(*event) == ActivationTracker::Verdict::kForward) {
+        forward.push_back(behaviorFleetEvent(*event, /*synthesized=*/false));
+      } else {
+        ++duplicates;
+      }
+    }
     fence_now = fence_check_pending_ && tracker_.lastSeq() >= replay_end_seq_;
     leaving_done = leaving_ && tracker_.lastSeq() >= final_seq_;
   }
-  if (verdict == ActivationTracker::Verdict::kForward) {
-    log_.append(behaviorFleetEvent(event, /*synthesized=*/false));
-    metrics_.events_received.Increment();
-  } else {
-    metrics_.events_dropped_duplicate.Increment();
-  }
+  const size_t forwarded = forward.size();
+  log_.appendAll(std::move(forward));
+  metrics_.events_received.Increment(static_cast<double>(forwarded));
+  if (duplicates > 0) metrics_.events_dropped_duplicate.Increment(static_cast<double>(duplicates));
   if (fence_now) deactivateFenced();
   // Everything the leaving system emitted has arrived.
   if (leaving_done) context.TryCancel();

@@ -159,7 +159,8 @@ class SystemLink {
   void watch();
   StreamEnd readStream(v1::BehaviorSystem::Stub& stub, const v1::WatchEventsRequest& request);
   bool onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::Stub& stub);
-  void onEvent(const v1::BehaviorEvent& event, grpc::ClientContext& context);
+  // Events of the system's stream, in order (one message's worth).
+  void onEvents(const std::vector<const v1::BehaviorEvent*>& events, grpc::ClientContext& context);
   // Returns true when the watchdog broke the stream (the system stopped
   // answering); `detail` then says why.
   bool onBroken(const std::string& reason, std::string* detail);

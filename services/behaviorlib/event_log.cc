@@ -87,6 +87,20 @@ EventPtr EventSubscription::pop() {
   return event;
 }
 
+std::vector<EventPtr> EventSubscription::popUpTo(size_t max) {
+  std::lock_guard lock(mutex_);
+  std::vector<EventPtr> out;
+  const size_t n = std::min(max, queue_.size());
+  out.reserve(n);
+  for (size_t i = 0; i < n; ++i) {
+    out.push_back(std::move(queue_.front()));
+    queue_.pop_front();
+  }
+  replay_left_ -= std::min(replay_left_, n);
+  if (!out.empty()) last_popped_seq_ = out.back()->seq();
+  return out;
+}
+
 bool EventSubscription::overflowed() const {
   std::lock_guard lock(mutex_);
   return overflowed_;

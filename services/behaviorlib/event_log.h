@@ -70,6 +70,8 @@ class EventSubscription {
   const v1::WatchEventsStart& start() const { return start_; }
   /// Next queued event, or nullptr when none is queued.
   EventPtr pop();
+  /// Up to `max` queued events, oldest first (empty when none).
+  std::vector<EventPtr> popUpTo(size_t max);
   /// True once the queue overflowed; no further events are delivered.
   bool overflowed() const;
   /// Seq of the last event handed out by pop() (0 if none).

@@ -313,6 +313,66 @@ TEST_F(CoordinatorTest, ResumingFromSinceSeqReplaysTheMissedEventsExactlyOnce) {
   EXPECT_EQ(first->seq(), 1u) << "everything retained is replayed";
 }
 
+// max_events_per_message: the same events, in the same order, in batches of
+// at most that many (the replay of everything retained comes in full ones).
+TEST_F(CoordinatorTest, ASubscriberThatAsksForBatchesGetsTheSameEventsInFewerMessages) {
+  startSystem("robot-a");
+  ASSERT_TRUE(client_->waitForSystem("robot-a", v1::SYSTEM_STATE_UP));
+  FleetWatcher reference(coordinator_->address());
+  ASSERT_TRUE(reference.start());
+  for (int i = 0; i < 3; ++i) {
+    auto r = client_->activate("robot-a", "WAIT", R"({"duration_s": 0.05})");
+    ASSERT_TRUE(r.status.ok()) << describe(r.status);
+    ASSERT_TRUE(reference.waitFinished(r.response.activation().activation_id()));
+  }
+  std::vector<v1::FleetEvent> one_by_one;
+  {
+    FleetWatcher everything(coordinator_->address());
+    ASSERT_TRUE(everything.start());
+    one_by_one = everything.drain();
+  }
+  ASSERT_GE(one_by_one.size(), 7u) << "the system's UP and three WAITs";
+
+  v1::WatchFleetEventsRequest request = FleetWatcher::request(0, "");
+  request.set_max_events_per_message(4);
+  FleetWatcher batched(coordinator_->address(), request);
+  ASSERT_TRUE(batched.start());
+  std::vector<v1::FleetEvent> received;
+  size_t messages = 0;
+  while (received.size() < one_by_one.size()) {
+    auto message = batched.next();
+    ASSERT_TRUE(message) << "after " << received.size() << " events";
+    ASSERT_TRUE(message->has_events()) << message->ShortDebugString();
+    const auto& events = message->events().events();
+    ASSERT_GE(events.size(), 1);
+    ASSERT_LE(events.size(), 4);
+    received.insert(received.end(), events.begin(), events.end());
+    ++messages;
+  }
+  ASSERT_EQ(received.size(), one_by_one.size());
+  for (size_t i = 0; i < received.size(); ++i) {
+    EXPECT_EQ(received[i].SerializeAsString(), one_by_one[i].SerializeAsString()) << i;
+  }
+  EXPECT_EQ(messages, (one_by_one.size() + 3) / 4) << "the replay comes in full batches";
+
+  // Live events continue the sequence, still in batches.
+  auto live = client_->activate("robot-a", "WAIT", R"({"duration_s": 0.05})");
+  ASSERT_TRUE(live.status.ok());
+  uint64_t seq = received.back().seq();
+  bool finished = false;
+  while (!finished) {
+    auto message = batched.next();
+    ASSERT_TRUE(message) << "no live event after seq " << seq;
+    ASSERT_TRUE(message->has_events());
+    for (const v1::FleetEvent& e : message->events().events()) {
+      EXPECT_EQ(e.seq(), ++seq);
+      finished = finished || (e.behavior_event().has_finished() &&
+                              e.behavior_event().activation_id() ==
+                                  live.response.activation().activation_id());
+    }
+  }
+}
+
 TEST_F(CoordinatorTest, UnknownRobotsAndBehaviorsAndBadRequestsAreRefusedClearly) {
   auto& a = startSystem("robot-a");
   ASSERT_TRUE(client_->waitForSystem("robot-a", v1::SYSTEM_STATE_UP));

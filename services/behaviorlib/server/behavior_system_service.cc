@@ -11,6 +11,11 @@
 
 namespace behaviorlib::server {
 
+namespace {
+// WatchEventsRequest.max_events_per_message is capped here.
+constexpr uint32_t kMaxEventsPerMessage = 1024;
+}  // namespace
+
 // One WatchEvents stream: the start message, then the subscription's events,
 // one write at a time. Woken by the event log when events arrive; never
 // blocks the appending behavior.
@@ -22,6 +27,7 @@ class EventStreamReactor final : public grpc::ServerWriteReactor<v1::WatchEvents
     options.since_seq = request.since_seq();
     options.incarnation = request.incarnation();
     options.behaviors.assign(request.behaviors().begin(), request.behaviors().end());
+    max_batch_ = std::min<uint32_t>(request.max_events_per_message(), kMaxEventsPerMessage);
     // writing_ starts true so that a wake before the start message is written
     // cannot send an event first.
     subscription_ = service_->host_.events().subscribe(options, [this] { onWake(); });
@@ -71,7 +77,17 @@ class EventStreamReactor final : public grpc::ServerWriteReactor<v1::WatchEvents
       finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
       return;
     }
-    if (EventPtr event = subscription_->pop()) {
+    if (max_batch_ > 1) {
+      const std::vector<EventPtr> events = subscription_->popUpTo(max_batch_);
+      if (!events.empty()) {
+        auto* batch = message_.mutable_events();
+        batch->mutable_events()->Clear();
+        for (const EventPtr& event : events) *batch->add_events() = *event;
+        writing_ = true;
+        StartWrite(&message_);
+        return;
+      }
+    } else if (EventPtr event = subscription_->pop()) {
       *message_.mutable_event() = *event;
       writing_ = true;
       StartWrite(&message_);
@@ -103,6 +119,7 @@ class EventStreamReactor final : public grpc::ServerWriteReactor<v1::WatchEvents
   std::unique_ptr<EventSubscription> subscription_;
   std::mutex mutex_;
   v1::WatchEventsResponse message_;
+  uint32_t max_batch_ = 1;
   bool writing_ = true;
   bool finished_ = false;
   bool cancelled_ = false;

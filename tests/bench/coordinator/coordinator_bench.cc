@@ -146,6 +146,7 @@ struct Options {
   double paced_events_per_s = 1000;
   double paced_window_s = 5;
   int robots = 1;
+  int batch = 64;  // WatchEvents max_events_per_message of the subscribers
   unsigned seed = 20240611;
 };
 
@@ -155,7 +156,7 @@ void usage() {
       "usage: coordinator_bench [--smoke] [--systems N] [--subscribers N] [--behaviors N,M,...]\n"
       "                         [--warmup-s S] [--window-s S] [--activations N] [--max-lag N]\n"
       "                         [--paced-events-per-s R] [--paced-window-s S] [--robots N]\n"
-      "                         [--seed N]\n"
+      "                         [--seed N] [--batch N]\n"
       "  --smoke         tiny run for CI (fails on errors, never on timings)\n"
       "  --systems       behavior-system processes, default 20\n"
       "  --subscribers   Coordinator.WatchEvents clients, default 10\n"
@@ -170,7 +171,10 @@ void usage() {
       "                  below saturation), default 1000; 0 skips it\n"
       "  --paced-window-s      measured seconds of the paced run, default 5\n"
       "  --robots        robots the systems are spread over (round robin), default 1:\n"
-      "                  every system serves robot \"bench\"\n");
+      "                  every system serves robot \"bench\"\n"
+      "  --batch         events per message the subscribers ask for\n"
+      "                  (WatchEvents max_events_per_message), default 64; 1: one\n"
+      "                  event per message\n");
 }
 
 std::vector<int> parseList(const std::string& text) {
@@ -221,6 +225,8 @@ bool parseOptions(int argc, char** argv, Options* o) {
         o->paced_window_s = std::stod(value);
       } else if (arg == "--robots") {
         o->robots = std::stoi(value);
+      } else if (arg == "--batch") {
+        o->batch = std::stoi(value);
       } else if (arg == "--seed") {
         o->seed = static_cast<unsigned>(std::stoul(value));
       } else {
@@ -236,7 +242,7 @@ bool parseOptions(int argc, char** argv, Options* o) {
   if (o->systems < 1 || o->systems > 100 || o->subscribers < 1 || o->behaviors.empty() ||
       o->warmup_s < 0 || o->window_s <= 0 || o->activations < 2 || o->max_lag < 10 ||
       o->max_lag > 4000 || o->paced_events_per_s < 0 || o->paced_window_s <= 0 || o->robots < 1 ||
-      o->robots > o->systems) {
+      o->robots > o->systems || o->batch < 1 || o->batch > 1024) {
     std::fprintf(stderr,
                  "coordinator_bench: need 1-100 systems, >= 1 subscriber, a behavior count, "
                  "windows > 0, >= 2 activations, max lag in [10, 4000], a paced rate >= 0, "
@@ -737,36 +743,43 @@ class Subscriber {
         set(ready_);
         continue;
       }
-      const v1::FleetEvent& event = message.event();
-      if (last_seq != 0 && event.seq() != last_seq + 1 && error_.empty()) {
-        error_ = "coordinator seq jumped from " + std::to_string(last_seq) + " to " +
-                 std::to_string(event.seq());
+      if (message.has_event()) {
+        onEvent(message.event(), last_seq);
+      } else {
+        for (const v1::FleetEvent& event : message.events().events()) onEvent(event, last_seq);
       }
-      last_seq = event.seq();
-      if (!event.has_behavior_event()) continue;
-      const int64_t now = wallNs();
-      const v1::BehaviorEvent& e = event.behavior_event();
-      if (e.has_activated()) {
-        activated_.fetch_add(1);
-      } else if (e.has_finished()) {
-        if (e.finished().cause() != v1::TERMINATION_CAUSE_GOAL_ACHIEVED && error_.empty()) {
-          error_ = e.behavior() + " finished with cause " +
-                   v1::TerminationCause_Name(e.finished().cause()) + ", expected GOAL_ACHIEVED";
-        }
-        finished_.fetch_add(1);
-      }
-      if (recording_.load(std::memory_order_relaxed)) {
-        lag_system_.push_back(now - toNs(e.wall_time()));
-        lag_coordinator_.push_back(now - toNs(event.wall_time()));
-      }
-      received_.fetch_add(1, std::memory_order_relaxed);
-      progress_.onReceived();
     }
     const grpc::Status s = reader->Finish();
     if (s.error_code() != grpc::StatusCode::CANCELLED && error_.empty()) {
       error_ = "WatchEvents ended: " + describe(s);
     }
     set(done_);
+  }
+
+  void onEvent(const v1::FleetEvent& event, uint64_t& last_seq) {
+    if (last_seq != 0 && event.seq() != last_seq + 1 && error_.empty()) {
+      error_ = "coordinator seq jumped from " + std::to_string(last_seq) + " to " +
+               std::to_string(event.seq());
+    }
+    last_seq = event.seq();
+    if (!event.has_behavior_event()) return;
+    const int64_t now = wallNs();
+    const v1::BehaviorEvent& e = event.behavior_event();
+    if (e.has_activated()) {
+      activated_.fetch_add(1);
+    } else if (e.has_finished()) {
+      if (e.finished().cause() != v1::TERMINATION_CAUSE_GOAL_ACHIEVED && error_.empty()) {
+        error_ = e.behavior() + " finished with cause " +
+                 v1::TerminationCause_Name(e.finished().cause()) + ", expected GOAL_ACHIEVED";
+      }
+      finished_.fetch_add(1);
+    }
+    if (recording_.load(std::memory_order_relaxed)) {
+      lag_system_.push_back(now - toNs(e.wall_time()));
+      lag_coordinator_.push_back(now - toNs(event.wall_time()));
+    }
+    received_.fetch_add(1, std::memory_order_relaxed);
+    progress_.onReceived();
   }
 
   void set(std::atomic<bool>& flag) {
@@ -902,6 +915,7 @@ EventsResult runEvents(const Options& o, Fleet& fleet, double events_per_s, doub
   v1::WatchFleetEventsRequest request;
   request.set_since_seq(now.latest_seq());
   request.set_incarnation(now.incarnation());
+  request.set_max_events_per_message(static_cast<uint32_t>(o.batch));
   std::vector<std::unique_ptr<Subscriber>> subscribers;
   for (int i = 0; i < o.subscribers; ++i) {
     subscribers.push_back(

@@ -41,7 +41,8 @@ class ServerRuntime {
   ServerRuntime& operator=(const ServerRuntime&) = delete;
 
   /// Blocks SIGTERM and SIGINT in the calling thread (and so in every thread
-  /// it starts later); call it first in main().
+  /// it starts later), and turns off Abseil's lock-order checks; call it
+  /// first in main().
   static void blockShutdownSignals();
   /// Waits for SIGTERM or SIGINT; returns the signal number.
   static int waitForShutdownSignal();

@@ -50,13 +50,6 @@ void OccupancyMap::clear() {
   ++revision_;
 }
 
-void OccupancyMap::resetVoxel(const Eigen::Vector3d& p) {
-  const octomap::OcTreeNode* node = tree_->search(toOcto(p));
-  if (node == nullptr || !tree_->isNodeOccupied(node)) return;
-  tree_->setNodeValue(toOcto(p), 0.0f, /*lazy_eval=*/false);
-  ++revision_;
-}
-
 bool OccupancyMap::occupied(const Eigen::Vector3d& p) const {
   const octomap::OcTreeNode* node = tree_->search(toOcto(p));
   return node != nullptr && tree_->isNodeOccupied(node);

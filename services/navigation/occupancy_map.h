@@ -43,9 +43,6 @@ class OccupancyMap {
   void insertScan(const Eigen::Vector3d& origin_m, const std::vector<Eigen::Vector3d>& hits_m,
                   const std::vector<Eigen::Vector3d>& misses_m = {});
   void clear();
-  /// Sets an occupied voxel back to even odds (neither occupied nor free);
-  /// nothing for a free or unknown one.
-  void resetVoxel(const Eigen::Vector3d& p);
 
   /// True when an occupied voxel is within `radius_m` of `p` (distance to
   /// the voxel's cube).

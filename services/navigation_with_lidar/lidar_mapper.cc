@@ -37,6 +37,7 @@ absl::Status MapperSettings::read(const YAML::Node& mapping) {
        {std::tuple{"resolution_m", &resolution_m, 0.01, 1.0},
         std::tuple{"max_range_m", &max_range_m, 0.5, 100.0},
         std::tuple{"ground_max_z_m", &ground_max_z_m, -10.0, 10.0},
+        std::tuple{"hit_depth_m", &hit_depth_m, 0.0, 0.5},
         std::tuple{"column_min_z_m", &column_min_z_m, -10.0, 50.0},
         std::tuple{"column_max_z_m", &column_max_z_m, -10.0, 50.0},
         std::tuple{"planning_min_z_m", &planning_min_z_m, -10.0, 50.0},
@@ -88,6 +89,10 @@ LidarMapper::LidarMapper(channel::ChannelClient* channel, std::string robot_id,
       robot_id_(std::move(robot_id)),
       settings_(settings),
       map_(MapOptions{.resolution_m = settings.resolution_m}),
+      columns_(WallColumnSettings{.resolution_m = settings.resolution_m,
+                                  .min_z_m = settings.column_min_z_m,
+                                  .max_z_m = settings.column_max_z_m,
+                                  .max_hit_z_m = settings.planning_max_z_m}),
       thinner_(settings.thinning) {
   if (!channel_) return;
   thread_ = std::thread([this] { run(); });
@@ -248,51 +253,13 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
       misses.push_back(origin + dir * max_range);
       continue;
     }
-    const Eigen::Vector3d hit = origin + dir * r;
+    const Eigen::Vector3d hit = origin + dir * (r + settings_.hit_depth_m);
     if (hit.z() <= settings_.ground_max_z_m) continue;  // the ground, seen tilted
     hits.push_back(hit);
   }
-  const double res = settings_.resolution_m;
   std::lock_guard lock(map_mutex_);
   map_.insertScan(origin, hits, misses);
-  // Extrude each new column: one zero-length ray per voxel (occupied, and
-  // nothing else cleared). A hit above the planning altitudes is a door's
-  // lintel (or a ceiling) seen by a tilted vehicle, not a wall: it stays a
-  // voxel, or it would close the door below it.
-  auto columnVoxels = [&](int64_t cx, int64_t cy, auto&& fn) {
-    for (double z = settings_.column_min_z_m + 0.5 * res; z < settings_.column_max_z_m; z += res) {
-      fn(Eigen::Vector3d((static_cast<double>(cx) + 0.5) * res,
-                         (static_cast<double>(cy) + 0.5) * res, z));
-    }
-  };
-  for (const Eigen::Vector3d& h : hits) {
-    if (h.z() > settings_.planning_max_z_m) continue;
-    const auto cx = static_cast<int64_t>(std::floor(h.x() / res));
-    const auto cy = static_cast<int64_t>(std::floor(h.y() / res));
-    const uint64_t key =
-        (static_cast<uint64_t>(cx & 0xffffffff) << 32) | static_cast<uint64_t>(cy & 0xffffffff);
-    const double hz = (std::floor(h.z() / res) + 0.5) * res;
-    const Eigen::Vector3d raiser((static_cast<double>(cx) + 0.5) * res,
-                                 (static_cast<double>(cy) + 0.5) * res, hz);
-    if (!columns_.emplace(key, raiser).second) continue;
-    columnVoxels(cx, cy, [&](const Eigen::Vector3d& p) {
-      if (std::abs(p.z() - hz) > 0.25 * res) map_.insertScan(p, {p});
-    });
-  }
-  // A column whose raising voxel the rays have cleared since (a noisy hit
-  // on a door jamb's face that fell on the doorway's side of a voxel
-  // boundary) falls: the scan plane saw through it, so the rest of it was
-  // never there. Its other voxels go back to even odds.
-  for (auto it = columns_.begin(); it != columns_.end();) {
-    if (map_.occupied(it->second)) {
-      ++it;
-      continue;
-    }
-    const auto cx = static_cast<int64_t>(std::floor(it->second.x() / res));
-    const auto cy = static_cast<int64_t>(std::floor(it->second.y() / res));
-    columnVoxels(cx, cy, [&](const Eigen::Vector3d& p) { map_.resetVoxel(p); });
-    it = columns_.erase(it);
-  }
+  columns_.afterScan(map_, hits);
 }
 
 void LidarMapper::clear() {

@@ -43,12 +43,22 @@ def mission_for(robot, start_x, side_m):
     return re.sub(r"(?m)^robot: \S+$", f"robot: {robot}", text)
 
 
+def time_scale(text):
+    """The launcher's --time-scale: a positive factor, or max."""
+    if text == "max":
+        return text
+    if float(text) <= 0:
+        raise argparse.ArgumentTypeError("must be positive, or max")
+    return text
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--build-dir", default=os.path.join(REPO, "build"))
     parser.add_argument("--vehicles", type=int, default=10)
-    parser.add_argument("--time-scale", type=float, default=1.0)
+    parser.add_argument("--time-scale", type=time_scale, default="1",
+                        help="a factor, or max for the deterministic mode (decision 18)")
     parser.add_argument("--side-m", type=float, default=1.5)
     parser.add_argument("--timeout-s", type=float, default=300.0)
     args = parser.parse_args()
@@ -60,7 +70,7 @@ def main():
     run_dir = tempfile.mkdtemp(prefix="behaviorlib-fleet-")
     robots = [f"drone{i + 1}" for i in range(args.vehicles)]
     argv = [sys.executable, LAUNCHER, "--build-dir", os.path.abspath(args.build_dir),
-            "--run-dir", run_dir, "--demo", "--time-scale", str(args.time_scale),
+            "--run-dir", run_dir, "--demo", "--time-scale", args.time_scale,
             "--vehicles", ",".join(robots), "--systems", "quadrotor_motion_with_pid_control",
             "--mission-timeout-s", str(args.timeout_s)]
     for i, robot in enumerate(robots):
@@ -68,7 +78,7 @@ def main():
         with open(path, "w") as f:
             f.write(mission_for(robot, 2.0 * i, args.side_m))
         argv += ["--mission", f"{robot}={path}"]
-    print(f"# fleet_bench: {args.vehicles} vehicles at {args.time_scale:g}x, {os.cpu_count()} "
+    print(f"# fleet_bench: {args.vehicles} vehicles at {args.time_scale}x, {os.cpu_count()} "
           f"CPUs; run directory {run_dir}")
     launched = subprocess.run(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                               timeout=args.timeout_s + 120)

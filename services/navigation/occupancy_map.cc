@@ -50,6 +50,18 @@ void OccupancyMap::clear() {
   ++revision_;
 }
 
+bool OccupancyMap::certainlyFree(const Eigen::Vector3d& p) const {
+  const octomap::OcTreeNode* node = tree_->search(toOcto(p));
+  return node != nullptr && node->getLogOdds() <= tree_->getClampingThresMinLog() + 1e-3f;
+}
+
+void OccupancyMap::forgetVoxel(const Eigen::Vector3d& p) {
+  const octomap::OcTreeNode* node = tree_->search(toOcto(p));
+  if (node == nullptr || !tree_->isNodeOccupied(node)) return;
+  tree_->setNodeValue(toOcto(p), tree_->getOccupancyThresLog() - 0.01f, /*lazy_eval=*/false);
+  ++revision_;
+}
+
 bool OccupancyMap::occupied(const Eigen::Vector3d& p) const {
   const octomap::OcTreeNode* node = tree_->search(toOcto(p));
   return node != nullptr && tree_->isNodeOccupied(node);

@@ -43,6 +43,15 @@ class OccupancyMap {
   void insertScan(const Eigen::Vector3d& origin_m, const std::vector<Eigen::Vector3d>& hits_m,
                   const std::vector<Eigen::Vector3d>& misses_m = {});
   void clear();
+  /// True when `p`'s voxel is free at OctoMap's clamping bound: many more
+  /// rays crossed it than anything hit it.
+  bool certainlyFree(const Eigen::Vector3d& p) const;
+  /// Takes back what made a voxel occupied: its odds go to just below the
+  /// occupancy threshold (not occupied, as uncertain as a voxel can be;
+  /// nothing for a free or unknown one). OctoMap's deleteNode, which would
+  /// make it unknown, trips an OctoMap assertion on a tree updated without
+  /// lazy evaluation.
+  void forgetVoxel(const Eigen::Vector3d& p);
 
   /// True when an occupied voxel is within `radius_m` of `p` (distance to
   /// the voxel's cube).

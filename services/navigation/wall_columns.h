@@ -7,10 +7,13 @@
 // sees the wall at every height the vehicle may fly. A hit above the planning
 // heights (a door's lintel seen by a tilted vehicle) stays a voxel.
 //
-// A column never falls. Letting it fall once later rays cleared the voxel
-// that raised it was tried (a noisy hit on a door jamb's face can raise a
-// column in the doorway): rays that graze a wall clear its face voxels too,
-// and the fallen columns left holes in walls that a plan went through.
+// A column falls when the voxel whose hit raised it has become certainly
+// free (OctoMap's clamping bound: about seven rays crossed it for every hit):
+// the plane saw through it many times, so the hit was wrong (a scan placed
+// with a poor pose, noise on a door jamb's face) and the rest of the column,
+// which no ray of a plane lidar crosses, never was there. Such a column in a
+// doorway closed the door for good. Falling as soon as the voxel was merely
+// not occupied was tried: rays grazing a wall made holes in it.
 //
 //   WallColumns columns({.resolution_m = 0.1, .min_z_m = 0.0, .max_z_m = 3.0,
 //                        .max_hit_z_m = 1.8});
@@ -21,7 +24,7 @@
 
 #include <Eigen/Core>
 #include <cstdint>
-#include <unordered_set>
+#include <unordered_map>
 #include <vector>
 
 #include "navigation/occupancy_map.h"
@@ -42,14 +45,16 @@ class WallColumns {
   explicit WallColumns(WallColumnSettings settings) : settings_(settings) {}
 
   /// After a scan was inserted into `map`: raises the column of each hit
-  /// whose column is not raised yet.
+  /// whose column is not raised yet, then fells every column whose raising
+  /// voxel is certainly free.
   void afterScan(OccupancyMap& map, const std::vector<Eigen::Vector3d>& hits_m);
   void clear() { columns_.clear(); }
   size_t standing() const { return columns_.size(); }
 
  private:
   WallColumnSettings settings_;
-  std::unordered_set<uint64_t> columns_;  // xy cells raised
+  // xy cell -> the centre of the voxel whose hit raised the column.
+  std::unordered_map<uint64_t, Eigen::Vector3d> columns_;
 };
 
 }  // namespace behaviorlib::nav

@@ -7,11 +7,13 @@
 namespace behaviorlib::nav {
 namespace {
 
-// A plane lidar at 1.25 m looks along +x at a wall at x 3.05.
+// A plane lidar at 1.25 m looks along +x at a wall at x 3.05; a wrong hit at
+// x 1.95 (a scan placed with a poor pose, noise on a jamb) lies in between.
 class WallColumnsTest : public ::testing::Test {
  protected:
   const Eigen::Vector3d origin_{0.05, 0.05, 1.25};
   const Eigen::Vector3d wall_{3.05, 0.05, 1.25};
+  const Eigen::Vector3d wrong_{1.95, 0.05, 1.25};
   OccupancyMap map_{MapOptions{.resolution_m = 0.1}};
   WallColumns columns_{WallColumnSettings{}};
 
@@ -38,6 +40,35 @@ TEST_F(WallColumnsTest, AColumnIsRaisedOnce) {
   // Rays through the column's lower voxels would have cleared them: none
   // was cast (one zero-length ray per voxel, once).
   EXPECT_TRUE(occupiedAt(wall_, 0.55));
+}
+
+TEST_F(WallColumnsTest, AColumnFallsOnceRaysHaveCrossedItsVoxelManyTimes) {
+  scan(wrong_);
+  ASSERT_TRUE(occupiedAt(wrong_, 0.55));
+  // Rays through the wrong voxel to the wall: the voxel turns free after a
+  // few, the column still stands (a wall's face voxel grazed by a few rays
+  // must not fall) ...
+  int scans = 0;
+  while (map_.occupied(wrong_)) {
+    scan(wall_);
+    ASSERT_LT(++scans, 10);
+  }
+  EXPECT_TRUE(occupiedAt(wrong_, 0.55)) << "fell as soon as its voxel was not occupied";
+  // ... until the voxel is certainly free.
+  while (!map_.certainlyFree(wrong_)) {
+    scan(wall_);
+    ASSERT_LT(++scans, 30);
+  }
+  scan(wall_);
+  for (double z : {0.05, 0.55, 1.75, 2.95}) {
+    EXPECT_FALSE(occupiedAt(wrong_, z)) << "the column still stands at " << z;
+  }
+  EXPECT_EQ(columns_.standing(), 1u) << "only the wall's";
+  EXPECT_TRUE(occupiedAt(wall_, 0.55));
+  // Hit again, it rises again.
+  scan(wrong_);
+  EXPECT_TRUE(occupiedAt(wrong_, 0.55));
+  EXPECT_EQ(columns_.standing(), 2u);
 }
 
 TEST_F(WallColumnsTest, AHitAboveThePlanningHeightsStaysAVoxel) {

@@ -13,7 +13,6 @@
 namespace behaviorlib::markers {
 namespace {
 
-constexpr std::chrono::milliseconds kChannelReadTimeout(300);
 // The locator works with this size; estimates are rescaled to each code's.
 constexpr double kNominalSizeM = 1.0;
 
@@ -342,7 +341,7 @@ Situation QrAttentionBehavior::checkSituation() {
   }
   if (active_) return Situation::ok();
   const std::string info_topic = topic(robotId(), "camera/info");
-  auto info = channel_->getLatest(info_topic, kChannelReadTimeout);
+  auto info = channel_->getLatest(info_topic, flight::kChannelReadTimeout);
   if (!info.ok()) {
     return Situation::infeasible(
         info.status().code() == absl::StatusCode::kNotFound
@@ -359,7 +358,7 @@ Situation QrAttentionBehavior::checkSituation() {
                                  std::string(model.status().message()));
   }
   const std::string pose_topic = flight::poseEstimateTopic(robotId());
-  auto pose = channel_->getLatest(pose_topic, kChannelReadTimeout);
+  auto pose = channel_->getLatest(pose_topic, flight::kChannelReadTimeout);
   if (!pose.ok()) {
     return Situation::infeasible(
         pose.status().code() == absl::StatusCode::kNotFound

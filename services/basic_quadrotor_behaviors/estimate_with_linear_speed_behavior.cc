@@ -10,12 +10,6 @@
 #include "flight_common/vehicle.h"
 
 namespace behaviorlib::basic {
-namespace {
-
-constexpr std::chrono::milliseconds kChannelReadTimeout(300);
-
-}  // namespace
-
 EstimatePositionWithLinearSpeedBehavior::EstimatePositionWithLinearSpeedBehavior(
     channel::ChannelClient* channel)
     : Behavior("ESTIMATE_POSITION_WITH_LINEAR_SPEED",
@@ -115,7 +109,7 @@ absl::StatusOr<Eigen::Vector3d> EstimatePositionWithLinearSpeedBehavior::initial
         "start from the latest pose estimate");
   }
   const std::string topic = flight::poseEstimateTopic(robotId());
-  auto sample = channel_->getLatest(topic, kChannelReadTimeout);
+  auto sample = channel_->getLatest(topic, flight::kChannelReadTimeout);
   if (!sample.ok()) {
     return absl::FailedPreconditionError(
         sample.status().code() == absl::StatusCode::kNotFound
@@ -136,7 +130,7 @@ absl::StatusOr<Eigen::Vector3d> EstimatePositionWithLinearSpeedBehavior::initial
   Eigen::Vector3d position = toEigen(pose.pose().position_m());
   // Carry it over its age along the velocity estimate, when there is one.
   auto twist_sample =
-      channel_->getLatest(flight::twistEstimateTopic(robotId()), kChannelReadTimeout);
+      channel_->getLatest(flight::twistEstimateTopic(robotId()), flight::kChannelReadTimeout);
   v1::TwistStamped twist;
   if (twist_sample.ok() && twist_sample->sample().UnpackTo(&twist)) {
     const double age = std::chrono::duration<double>(at - flight::stampTime(pose.header())).count();

@@ -8,12 +8,6 @@
 #include "flight_common/vehicle.h"
 
 namespace behaviorlib::basic {
-namespace {
-
-constexpr std::chrono::milliseconds kChannelReadTimeout(300);
-
-}  // namespace
-
 SelfLocalizeWithGroundTruthBehavior::SelfLocalizeWithGroundTruthBehavior(
     channel::ChannelClient* channel)
     : Behavior("SELF_LOCALIZE_WITH_GROUND_TRUTH", flight::flightBehaviorOptions(Duration::zero())),
@@ -125,7 +119,7 @@ Situation SelfLocalizeWithGroundTruthBehavior::checkSituation() {
   }
   if (active_) return Situation::ok();
   const std::string topic = flight::groundTruthPoseTopic(robotId());
-  auto sample = channel_->getLatest(topic, kChannelReadTimeout);
+  auto sample = channel_->getLatest(topic, flight::kChannelReadTimeout);
   if (!sample.ok()) {
     return Situation::infeasible(sample.status().code() == absl::StatusCode::kNotFound
                                      ? "no ground truth on " + topic +

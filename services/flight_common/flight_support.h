@@ -22,6 +22,7 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include <chrono>
 #include <optional>
 #include <string>
 
@@ -31,6 +32,11 @@
 #include "motion_control/wind_estimator.h"
 
 namespace behaviorlib::flight {
+
+/// Wall-time bound of a one-off read of the channel (GetLatest) from a
+/// behavior's user function: under the behaviors' 1 s watchdog, with room
+/// for a loaded machine (300 ms refused activations beside a CPU hog).
+constexpr std::chrono::milliseconds kChannelReadTimeout{700};
 
 struct FlightSettings {
   Duration pose_timeout = std::chrono::milliseconds(500);

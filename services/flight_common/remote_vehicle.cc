@@ -1,15 +1,12 @@
 #include "flight_common/remote_vehicle.h"
 
+#include "flight_common/flight_support.h"
 #include "flight_common/setpoint_stream.h"
 #include "flight_common/topics.h"
 #include "platform/lease_keeper.h"
 
 namespace behaviorlib::flight {
 namespace {
-
-// Wall-time bound of a one-off read of the channel from a user function
-// (well under the behaviors' watchdog).
-constexpr std::chrono::milliseconds kChannelReadTimeout(300);
 
 class RemoteLease final : public VehicleLease {
  public:
@@ -126,7 +123,7 @@ absl::StatusOr<T> RemoteVehicle::latest(const std::string& topic, std::optional<
     std::lock_guard lock(mutex_);
     if (*cache) return **cache;
   }
-  auto sample = channel_->getLatest(topic, kChannelReadTimeout);
+  auto sample = channel_->getLatest(topic, flight::kChannelReadTimeout);
   if (!sample.ok()) {
     if (sample.status().code() == absl::StatusCode::kNotFound) {
       return absl::NotFoundError("nothing published on " + topic +

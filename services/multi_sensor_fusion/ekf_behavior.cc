@@ -10,8 +10,6 @@
 namespace behaviorlib::fusion {
 namespace {
 
-constexpr std::chrono::milliseconds kChannelReadTimeout(300);
-
 std::string topic(const std::string& robot, const char* name) {
   return "robots/" + robot + "/" + name;
 }
@@ -223,7 +221,7 @@ Situation EkfSelfLocalizationBehavior::checkSituation() {
   for (const auto& [name, limit] :
        {std::pair{"imu", imu_timeout_}, std::pair{"gps", gps_timeout_}}) {
     const std::string t = topic(robotId(), name);
-    auto sample = channel_->getLatest(t, kChannelReadTimeout);
+    auto sample = channel_->getLatest(t, flight::kChannelReadTimeout);
     if (!sample.ok()) {
       return Situation::infeasible(
           sample.status().code() == absl::StatusCode::kNotFound

@@ -9,8 +9,6 @@
 namespace behaviorlib::swarm {
 namespace {
 
-constexpr std::chrono::milliseconds kChannelReadTimeout(300);
-
 BehaviorOptions positionOptions() {
   BehaviorOptions o = flight::flightBehaviorOptions(Duration::zero());
   o.frequency_hz = 50.0;  // the highest rate_hz
@@ -106,7 +104,7 @@ Situation InformPositionToRobotsBehavior::checkSituation() {
   }
   if (active_) return Situation::ok();
   const std::string topic = flight::poseEstimateTopic(robotId());
-  auto sample = channel_->getLatest(topic, kChannelReadTimeout);
+  auto sample = channel_->getLatest(topic, flight::kChannelReadTimeout);
   if (!sample.ok()) {
     return Situation::infeasible(
         sample.status().code() == absl::StatusCode::kNotFound

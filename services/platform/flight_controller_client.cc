@@ -10,7 +10,11 @@ namespace {
 grpc::ChannelArguments channelArguments() {
   grpc::ChannelArguments args;
   args.SetInt(GRPC_ARG_INITIAL_RECONNECT_BACKOFF_MS, 100);
-  args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 100);
+  // gRPC gives each connection attempt at least this long (its "minimum
+  // connect timeout"); a refused attempt is still retried after the initial
+  // backoff. At 100 ms, a server slow to send its HTTP/2 settings on a loaded
+  // machine failed the call.
+  args.SetInt(GRPC_ARG_MIN_RECONNECT_BACKOFF_MS, 5000);
   args.SetInt(GRPC_ARG_MAX_RECONNECT_BACKOFF_MS, 1000);
   return args;
 }

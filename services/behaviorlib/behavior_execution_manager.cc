@@ -65,13 +65,14 @@ std::unique_ptr<google::protobuf::Message> takeMessage(google::protobuf::Message
 
 bool BehaviorExecutionManager::caughtUp(TimePoint t) const {
   std::lock_guard lock(mutex_);
-  if (!commands_.empty() || ticking_) return false;
+  if (gated_) return true;  // the command waits for time to be granted
+  if (!commands_.empty() || commanding_ || ticking_) return false;
   return state_ != State::kActive || next_tick_ > t;
 }
 
 bool BehaviorExecutionManager::idle() const {
   std::lock_guard lock(mutex_);
-  return commands_.empty() && !ticking_ && state_ != State::kActive;
+  return commands_.empty() && !gated_ && !commanding_ && !ticking_ && state_ != State::kActive;
 }
 
 std::string causeName(v1::TerminationCause cause) {
@@ -214,9 +215,18 @@ void BehaviorExecutionManager::run() {
     if (!commands_.empty()) {
       auto command = std::move(commands_.front());
       commands_.pop_front();
+      if (context_.before_command) {
+        gated_ = true;
+        lock.unlock();
+        context_.before_command();
+        lock.lock();
+        gated_ = false;
+      }
+      commanding_ = true;
       lock.unlock();
       command.run();
       lock.lock();
+      commanding_ = false;
       continue;
     }
     if (state_ == State::kActive) {

@@ -129,6 +129,14 @@ struct BehaviorContext {
   /// Called (on the worker) when the behavior becomes active or inactive; the
   /// system's watchdog uses it to poll only while something runs.
   std::function<void(bool active)> on_active_changed;
+  /// Optional: called on the worker before each command (activate,
+  /// deactivate, ...) runs, and may block until the command may run at the
+  /// current time (the deterministic mode's TimeFollower: a system that was
+  /// idle is not waited for, so its clock may lag the simulation; the gate
+  /// makes the simulator wait for it and brings its clock up to date first).
+  /// While a command waits there the behavior counts as caught up but not
+  /// idle.
+  std::function<void()> before_command;
 };
 
 template <class T>
@@ -186,11 +194,14 @@ class BehaviorExecutionManager {
   /// Runs checkSituation() on the worker.
   void checkSituationNow(Done<v1::CheckSituationResponse> done);
   /// Whether everything due up to `t` on the behavior's clock has run: no
-  /// command waits, and an active behavior is not ticking and has its next
-  /// tick after `t` (the deterministic mode's catch-up report).
+  /// command waits or runs, and an active behavior is not ticking and has its
+  /// next tick after `t` (the deterministic mode's catch-up report). A
+  /// command held at the time gate (BehaviorContext::before_command) waits
+  /// for time, so it counts as caught up.
   bool caughtUp(TimePoint t) const;
-  /// Whether nothing runs until a call from outside: no command waits, no
-  /// tick runs, and the behavior is not active (the deterministic mode does
+  /// Whether nothing runs until a call from outside: no command waits or
+  /// runs (at the time gate or beyond), no tick runs, and the behavior is not
+  /// active (the deterministic mode does
   /// not wait for an idle system).
   bool idle() const;
   /// Reads the current activation state (no user code; immediate).
@@ -326,6 +337,10 @@ class BehaviorExecutionManager {
   std::string time_out_reason_;
   TimePoint next_tick_{};
   bool ticking_ = false;  // the worker runs a tick (guarded by mutex_)
+  // The worker holds a command at the time gate (before_command), or runs
+  // one (guarded by mutex_).
+  bool gated_ = false;
+  bool commanding_ = false;
   Duration period_{0};
   bool first_execute_pending_ = false;
   std::chrono::steady_clock::time_point activate_received_{};

@@ -49,6 +49,7 @@ absl::Status BehaviorHost::start(const YAML::Node& config) {
       }
     }
     context.on_active_changed = [this](bool active) { onActiveChanged(active); };
+    context.before_command = options_.before_command;
     if (absl::Status s = behavior->start(std::move(context)); !s.ok()) {
       stop();
       return s;

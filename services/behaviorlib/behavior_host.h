@@ -14,6 +14,7 @@
 #include <yaml-cpp/yaml.h>
 
 #include <condition_variable>
+#include <functional>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -31,6 +32,9 @@ struct BehaviorHostOptions {
   std::string robot_id = "drone1";
   std::string system = "behavior_system";
   EventLogOptions events;  // robot_id and system are filled from above
+  /// Given to every behavior (BehaviorContext::before_command); must stay
+  /// callable until stop() returns.
+  std::function<void()> before_command;
 };
 
 class BehaviorHost {

@@ -451,7 +451,8 @@ TEST_F(SimulatorServiceTest, SigtermEndsStreamsAndExitsZero) {
 // joined, advances only as fast as it reports back while a behavior is
 // active, stands while it is frozen then (SIGSTOP: a starved process slows
 // the simulation instead of missing its deadlines), goes on without it while
-// it is idle, and a WAIT runs exactly its simulated duration.
+// it is idle, an activation of the idle system starts at the simulation's
+// time, and a WAIT runs exactly its simulated duration.
 TEST(SimulatorDeterministicTest, TimeAdvancesOnlyAsFastAsItsFollowerKeepsUp) {
   support::ServerProcess broker(BEHAVIORLIB_CHANNEL_BROKER_PATH, {});
   ASSERT_TRUE(broker.start()) << broker.error();
@@ -490,19 +491,32 @@ TEST(SimulatorDeterministicTest, TimeAdvancesOnlyAsFastAsItsFollowerKeepsUp) {
   ASSERT_EQ(::kill(system.pid(), SIGSTOP), 0);
   const double idle_frozen = clockSeconds(*data);
   std::this_thread::sleep_for(milliseconds(700));
-  EXPECT_GE(clockSeconds(*data) - idle_frozen, 0.5) << "time waited for an idle follower";
-  ASSERT_EQ(::kill(system.pid(), SIGCONT), 0);
+  const double before_activation = clockSeconds(*data);
+  EXPECT_GE(before_activation - idle_frozen, 0.5) << "time waited for an idle follower";
 
-  // A busy one (a long WAIT active) frozen: time stands, within the grant in
-  // flight and the clock topic's 50 ms.
+  // Its clock now lags the simulation by the time it was frozen. An
+  // activation sent while it is frozen, read the moment it thaws, waits for a
+  // grant sent after the system said it is busy: it starts at the
+  // simulation's time, not at the follower's stale one (which the next grant
+  // would have jumped forward under the new activation, by 0.7 s here).
   auto stub = v1::BehaviorSystem::NewStub(
       grpc::CreateChannel(system.address(), grpc::InsecureChannelCredentials()));
   v1::ActivateBehaviorRequest activate;
   activate.set_behavior("WAIT");
   (*activate.mutable_parameters()->mutable_fields())["duration_s"].set_number_value(3600);
   v1::ActivateResponse activated;
-  ASSERT_TRUE(stub->ActivateBehavior(deadline().get(), activate, &activated).ok());
-  // Its next report says busy (a grant or two after the activation).
+  grpc::Status activate_status;
+  std::thread activation(
+      [&] { activate_status = stub->ActivateBehavior(deadline().get(), activate, &activated); });
+  std::this_thread::sleep_for(milliseconds(100));  // the request waits in the socket
+  ASSERT_EQ(::kill(system.pid(), SIGCONT), 0);
+  activation.join();
+  ASSERT_TRUE(activate_status.ok()) << activate_status.error_message();
+  EXPECT_GE(TimeUtil::TimestampToNanoseconds(activated.activation_time()) / 1e9, before_activation)
+      << "the activation ran at a time the simulation had already passed";
+
+  // A busy one (a long WAIT active) frozen: time stands, within the grant in
+  // flight and the clock topic's 50 ms.
   std::this_thread::sleep_for(milliseconds(200));
   ASSERT_EQ(::kill(system.pid(), SIGSTOP), 0);
   std::this_thread::sleep_for(milliseconds(200));

@@ -135,9 +135,16 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   BehaviorSystemBuilder builder(gate, std::move(context));
   register_behaviors(builder);
 
+  // Declared before the host, which calls its awaitTurn() until it stops.
+  std::unique_ptr<TimeFollower> follower;
+  if (!follow_time.empty()) {
+    follower = std::make_unique<TimeFollower>(follow_time, system_name + "/" + robot_id, *sim_clock,
+                                              channel_client.get());
+  }
   BehaviorHostOptions host_options;
   host_options.robot_id = robot_id;
   host_options.system = system_name;
+  if (follower) host_options.before_command = [&follower] { follower->awaitTurn(); };
   BehaviorHost host(host_options, *clock);
   for (auto& behavior : builder.behaviors()) host.add(std::move(behavior));
 
@@ -181,10 +188,8 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
                runtime.metricsPort(), clock_kind.c_str(), host.events().incarnation().c_str());
   auto registration =
       startCoordinatorRegistration(coordinator, listen, runtime.grpcPort(), host, program);
-  std::unique_ptr<TimeFollower> follower;
-  if (!follow_time.empty()) {
-    follower = std::make_unique<TimeFollower>(
-        follow_time, system_name + "/" + robot_id, *sim_clock, channel_client.get(),
+  if (follower) {
+    follower->start(
         [&host, &builder](TimePoint t) {
           if (!host.caughtUp(t)) return false;
           for (const auto& check : builder.catchUpChecks()) {
@@ -201,7 +206,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   // Order matters: refuse new lifecycle calls, end activations (their
   // INTERRUPTED events go to subscribers), let the streams drain, then stop
   // serving.
-  follower.reset();  // leaves the simulator's barrier first
+  if (follower) follower->stop();  // leaves the simulator's barrier first
   gate.close();
   host.stop();
   // Unregistering names the last event's seq: the coordinator reads the

@@ -21,6 +21,9 @@ constexpr std::chrono::microseconds kCatchUpPoll(100);
 constexpr std::chrono::milliseconds kStopPoll(50);
 // The longest wait for a granted sample (wall time).
 constexpr std::chrono::milliseconds kDataWaitLimit(2000);
+// The longest wait of a command for its turn (wall time): the simulator may
+// be held up by another follower, for at most its --follower-timeout-s.
+constexpr std::chrono::milliseconds kTurnLimit(6000);
 
 TimePoint toTimePoint(const google::protobuf::Timestamp& t) {
   return TimePoint(std::chrono::seconds(t.seconds()) + std::chrono::nanoseconds(t.nanos()));
@@ -29,24 +32,43 @@ TimePoint toTimePoint(const google::protobuf::Timestamp& t) {
 }  // namespace
 
 TimeFollower::TimeFollower(const std::string& simulator_address, std::string participant,
-                           channel::SimClock& clock, channel::ChannelClient* channel,
-                           std::function<bool(TimePoint)> caught_up, std::function<bool()> idle)
+                           channel::SimClock& clock, channel::ChannelClient* channel)
     : participant_(std::move(participant)),
       clock_(clock),
       data_(channel),
-      caught_up_(std::move(caught_up)),
-      idle_(std::move(idle)),
-      channel_(grpc::CreateChannel(simulator_address, grpc::InsecureChannelCredentials())),
-      thread_([this] { run(); }) {}
+      channel_(grpc::CreateChannel(simulator_address, grpc::InsecureChannelCredentials())) {}
 
-TimeFollower::~TimeFollower() {
+TimeFollower::~TimeFollower() { stop(); }
+
+void TimeFollower::start(std::function<bool(TimePoint)> caught_up, std::function<bool()> idle) {
+  std::lock_guard lock(mutex_);
+  if (thread_.joinable() || stopping_) return;
+  caught_up_ = std::move(caught_up);
+  idle_ = std::move(idle);
+  thread_ = std::thread([this] { run(); });
+}
+
+void TimeFollower::stop() {
   {
     std::lock_guard lock(mutex_);
     stopping_ = true;
     if (context_ != nullptr) context_->TryCancel();
   }
   cv_.notify_all();
-  thread_.join();
+  if (thread_.joinable()) thread_.join();
+}
+
+void TimeFollower::awaitTurn() {
+  std::unique_lock lock(mutex_);
+  const auto ready = [this] { return stopping_ || !streaming_ || awaited_; };
+  if (ready()) return;
+  if (!cv_.wait_for(lock, kTurnLimit, ready) && !told_turn_timeout_) {
+    told_turn_timeout_ = true;
+    std::fprintf(stderr,
+                 "%s: a command waited %lld ms for the simulator's next time grant; running it "
+                 "at the last granted time (told once)\n",
+                 participant_.c_str(), static_cast<long long>(kTurnLimit.count()));
+  }
 }
 
 bool TimeFollower::isStopping() {
@@ -76,6 +98,15 @@ void TimeFollower::run() {
       context_ = &context;
     }
     auto stream = stub->FollowTime(&context);
+    const auto set_streaming = [this](bool streaming) {
+      {
+        std::lock_guard lock(mutex_);
+        streaming_ = streaming;
+        reported_busy_ = false;
+        awaited_ = false;
+      }
+      cv_.notify_all();
+    };
     v1::FollowTimeRequest join;
     join.set_participant(participant_);
     std::optional<v1::Clock> last_granted;
@@ -120,7 +151,16 @@ void TimeFollower::run() {
           if (!awaitUntil([&] { return caught_up_(previous); })) break;
         }
         clock_.onClockSample(grant.clock());
+        if (!last_granted) set_streaming(true);
         last_granted = grant.clock();
+        {
+          // Sent after our last report: if that said busy, the simulator
+          // waits for us from this grant on, and the clock is current; a
+          // command held in awaitTurn() may run.
+          std::lock_guard lock(mutex_);
+          awaited_ = reported_busy_;
+        }
+        cv_.notify_all();
         const TimePoint granted = toTimePoint(grant.clock().time());
         if (!awaitUntil([&] { return caught_up_(granted); })) break;
         // What the behaviors published reaches the broker before the report,
@@ -134,7 +174,16 @@ void TimeFollower::run() {
         }
         // Every grant is reported (the simulator sends the next one then);
         // an idle system's reports are not waited for.
-        const bool idle = idle_();
+        bool idle = false;
+        {
+          // Decided together with the gate's state: a command that checks
+          // awaitTurn() after this sees awaited_ false and waits for the next
+          // grant; one that checked before has made idle_() false.
+          std::lock_guard lock(mutex_);
+          idle = idle_();
+          reported_busy_ = !idle;
+          if (idle) awaited_ = false;
+        }
         v1::FollowTimeRequest report;
         *report.mutable_caught_up_to() = grant.clock().time();
         report.set_idle(idle);
@@ -147,6 +196,7 @@ void TimeFollower::run() {
         reported_.fetch_add(1, std::memory_order_relaxed);
       }
     }
+    set_streaming(false);
     stream->WritesDone();
     const grpc::Status status = stream->Finish();
     if (last_granted && !isStopping()) {

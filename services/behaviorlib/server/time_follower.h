@@ -14,11 +14,23 @@
 //
 //   channel::SimClock clock(channel);
 //   TimeFollower follower("127.0.0.1:50070", "basic_quadrotor_behaviors/drone1", clock,
-//                         &channel, [&](TimePoint t) { return host.caughtUp(t); },
-//                         [&] { return host.idle(); });
+//                         &channel);
+//   BehaviorHost host({.before_command = [&] { follower.awaitTurn(); }}, clock);
+//   ... host.start(config) ...
+//   follower.start([&](TimePoint t) { return host.caughtUp(t); },
+//                  [&] { return host.idle(); });
+//   ...
+//   follower.stop();   // leaves the barrier; awaitTurn() no longer waits
 //
-// A report also says whether the system is idle (no behavior active): the
-// simulator does not wait for idle systems.
+// A report also says whether the system is idle (no behavior active, no
+// command queued): the simulator does not wait for idle systems, so an idle
+// system's clock may lag the simulation by a few grants. A command from
+// outside (an activation) therefore first waits in awaitTurn(): the next
+// report says "busy", and the command runs once a grant sent after it has
+// moved the clock, so that it starts at the simulation's time and the
+// simulator waits for it from then on (without this an activation ran at the
+// lagging time, and the next grant jumped its behaviors forward by as much as
+// a second: stale-status and lost-lease failures under load).
 //
 // It reconnects (100 ms .. 2 s) while it lives; a simulator that is not in
 // the deterministic mode refuses (FAILED_PRECONDITION) and is asked again.
@@ -45,12 +57,26 @@ namespace behaviorlib::server {
 class TimeFollower {
  public:
   TimeFollower(const std::string& simulator_address, std::string participant,
-               channel::SimClock& clock, channel::ChannelClient* channel,
-               std::function<bool(TimePoint)> caught_up, std::function<bool()> idle);
-  /// Cancels the stream and joins the thread.
+               channel::SimClock& clock, channel::ChannelClient* channel);
+  /// stop()s.
   ~TimeFollower();
   TimeFollower(const TimeFollower&) = delete;
   TimeFollower& operator=(const TimeFollower&) = delete;
+
+  /// Joins the simulator's grants and follows them on a thread of its own;
+  /// `caught_up(t)`: everything due up to t ran; `idle()`: nothing runs
+  /// until a call from outside. At most once.
+  void start(std::function<bool(TimePoint)> caught_up, std::function<bool()> idle);
+  /// Cancels the stream and joins the thread; idempotent.
+  void stop();
+
+  /// The time gate of commands from outside (BehaviorContext::
+  /// before_command): returns at once while the simulator waits for this
+  /// system (its last report said busy) or no grants are followed; otherwise
+  /// waits (at most kTurnLimit of wall time, told once) until a grant sent
+  /// after a "busy" report moved the clock. The caller must make idle()
+  /// false before it calls (BehaviorExecutionManager does).
+  void awaitTurn();
 
   /// Grants reported back so far.
   uint64_t reportedCount() const { return reported_.load(); }
@@ -64,8 +90,8 @@ class TimeFollower {
   const std::string participant_;
   channel::SimClock& clock_;
   channel::ChannelClient* const data_;  // may be null
-  const std::function<bool(TimePoint)> caught_up_;
-  const std::function<bool()> idle_;
+  std::function<bool(TimePoint)> caught_up_;
+  std::function<bool()> idle_;
   std::shared_ptr<grpc::Channel> channel_;
   std::atomic<uint64_t> reported_{0};
 
@@ -73,7 +99,14 @@ class TimeFollower {
   std::condition_variable cv_;
   grpc::ClientContext* context_ = nullptr;
   bool stopping_ = false;
-  std::thread thread_;  // last
+  // The gate (guarded by mutex_): a grant was applied on the current stream;
+  // the last report said busy; the applied grant was sent after a busy
+  // report, and no idle report went since (the simulator waits for us).
+  bool streaming_ = false;
+  bool reported_busy_ = false;
+  bool awaited_ = false;
+  bool told_turn_timeout_ = false;
+  std::thread thread_;
 };
 
 }  // namespace behaviorlib::server

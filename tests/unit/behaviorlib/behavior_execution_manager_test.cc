@@ -4,6 +4,8 @@
 #include <gtest/gtest.h>
 
 #include <condition_variable>
+#include <future>
+#include <mutex>
 
 #include "behaviorlib/behavior_host.h"
 #include "behaviorlib/clock.h"
@@ -79,6 +81,101 @@ TEST_F(BehaviorExecutionManagerTest, InactiveBehaviorDoesNotTick) {
   clock_.advance(seconds(1));
   std::this_thread::sleep_for(milliseconds(20));
   EXPECT_EQ(b.count("checkProcesses"), 0);
+}
+
+// ---- The time gate (deterministic mode) ---------------------------------------
+
+// A before_command gate that holds commands while closed.
+class ClosableGate {
+ public:
+  void operator()() {
+    std::unique_lock lock(mutex_);
+    ++waiting_;
+    cv_.notify_all();
+    cv_.wait(lock, [this] { return open_; });
+    --waiting_;
+  }
+  void setOpen(bool open) {
+    {
+      std::lock_guard lock(mutex_);
+      open_ = open;
+    }
+    cv_.notify_all();
+  }
+  bool waitForWaiter() {
+    std::unique_lock lock(mutex_);
+    return cv_.wait_for(lock, seconds(5), [this] { return waiting_ > 0; });
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  bool open_ = true;
+  int waiting_ = 0;
+};
+
+TEST(BehaviorTimeGateTest, ACommandHeldAtTheGateIsCaughtUpButNotIdleAndRunsAtTheLaterTime) {
+  FakeClock clock;
+  ClosableGate gate;
+  BehaviorHostOptions options = testing::hostOptions("drone1", "test");
+  options.before_command = [&gate] { gate(); };
+  BehaviorHost host(options, clock);
+  auto owned = std::make_unique<ScriptedBehavior>("SCRIPTED");
+  ScriptedBehavior& b = *owned;
+  host.add(std::move(owned));
+  ASSERT_TRUE(host.start().ok());                        // configuring passes the open gate
+  EXPECT_TRUE(eventually([&] { return host.idle(); }));  // once the configure command returned
+
+  // onActivate blocks until released: a running command is neither caught
+  // up nor idle.
+  std::mutex m;
+  std::condition_variable cv;
+  bool in_activate = false, release = false;
+  TimePoint activated_at{};
+  b.on_activate = [&] {
+    std::unique_lock lock(m);
+    activated_at = clock.now();
+    in_activate = true;
+    cv.notify_all();
+    cv.wait(lock, [&] { return release; });
+    return absl::OkStatus();
+  };
+
+  gate.setOpen(false);
+  std::promise<absl::StatusOr<v1::ActivateResponse>> reply;
+  b.activate(waitParams(10.0), "",
+             [&reply](absl::StatusOr<v1::ActivateResponse> r) { reply.set_value(std::move(r)); });
+  ASSERT_TRUE(gate.waitForWaiter());
+  // Held at the gate: it waits for time, so the system is caught up with
+  // any time (the follower may apply the next grant), but it is not idle
+  // (the simulator must wait for it from the next grant on).
+  const TimePoint t0 = clock.now();
+  EXPECT_TRUE(host.caughtUp(t0 + seconds(1)));
+  EXPECT_FALSE(host.idle());
+  EXPECT_EQ(b.count("onActivate"), 0);
+
+  // The grant moves the clock, then the gate opens: the activation starts at
+  // the new time.
+  clock.advance(milliseconds(700));
+  gate.setOpen(true);
+  {
+    std::unique_lock lock(m);
+    ASSERT_TRUE(cv.wait_for(lock, seconds(5), [&] { return in_activate; }));
+  }
+  EXPECT_EQ(activated_at, t0 + milliseconds(700));
+  EXPECT_FALSE(host.caughtUp(clock.now())) << "time must not move under a running command";
+  EXPECT_FALSE(host.idle());
+  {
+    std::lock_guard lock(m);
+    release = true;
+  }
+  cv.notify_all();
+  auto future = reply.get_future();
+  ASSERT_EQ(future.wait_for(seconds(5)), std::future_status::ready);
+  EXPECT_TRUE(future.get().ok());
+  EXPECT_TRUE(eventually([&] { return host.caughtUp(clock.now()); }));
+  EXPECT_FALSE(host.idle()) << "active";
+  host.stop();
 }
 
 // ---- Every termination cause ----------------------------------------------

@@ -1,7 +1,10 @@
 // multi_sensor_fusion against the real simulator: the channel broker, the
-// simulator at 5x with its default sensors and noise, and the behavior
-// system (--clock sim) on free loopback ports. The vehicle is flown through
-// the FlightController (take-off, then a circle of velocity setpoints); the
+// simulator in the deterministic mode (decision 18) with its default sensors
+// and noise, and the behavior system following its time grants, on free
+// loopback ports; so a loaded machine slows simulated time instead of
+// starving the filter of IMU samples. The vehicle is flown through the
+// FlightController (take-off, then a circle of velocity setpoints computed
+// from simulated time); the
 // estimate published by SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION is compared
 // with the simulator's ground truth, stamp by stamp. Injected GPS faults
 // (garbage fixes, a silent receiver) and a dead simulator end the filter
@@ -11,6 +14,7 @@
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -23,6 +27,7 @@
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "sim_faults.h"
+#include "support/deterministic.h"
 #include "support/server_process.h"
 
 namespace {
@@ -33,9 +38,9 @@ using std::chrono::milliseconds;
 using std::chrono::seconds;
 
 constexpr char kRobot[] = "drone1";
-// Simulated seconds per wall second. At 10x a loaded machine (a camera test
-// beside it under ctest -j 2) starved the filter of IMU samples.
-constexpr double kTimeScale = 5.0;
+// How long the circle is flown, in simulated time; the wall-time bound.
+constexpr double kCircleSeconds = 40.0;
+constexpr seconds kCircleWallLimit(90);
 
 std::unique_ptr<grpc::ClientContext> deadline(milliseconds timeout = seconds(5)) {
   auto context = std::make_unique<grpc::ClientContext>();
@@ -50,6 +55,11 @@ class Track {
     const auto& p = pose.pose().position_m();
     std::lock_guard lock(mutex_);
     points_[TimeUtil::TimestampToNanoseconds(pose.header().stamp())] = {p.x(), p.y(), p.z()};
+  }
+  /// The newest stamp (ns of simulated time), or -1 before any.
+  int64_t newestStamp() const {
+    std::lock_guard lock(mutex_);
+    return points_.empty() ? -1 : points_.rbegin()->first;
   }
   std::map<int64_t, std::array<double, 3>> points() const {
     std::lock_guard lock(mutex_);
@@ -67,14 +77,15 @@ class SensorFusionSystemTest : public ::testing::Test {
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
-        std::vector<std::string>{"--channel", broker_.address(), "--vehicles", kRobot,
-                                 "--time-scale", std::to_string(kTimeScale), "--seed", "7",
-                                 "--enable-fault-injection"});
+        support::deterministicSimulatorArgs({"--channel", broker_.address(), "--vehicles", kRobot,
+                                             "--seed", "7", "--enable-fault-injection"},
+                                            1));
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     system_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_MULTI_SENSOR_FUSION_PATH,
-        std::vector<std::string>{"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
-                                 "sim", "--config", BEHAVIORLIB_CONFIG_PATH});
+        support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
+                                 "sim", "--config", BEHAVIORLIB_CONFIG_PATH},
+                                simulator_->address()));
     ASSERT_TRUE(system_->start()) << system_->error();
     behaviors_ = v1::BehaviorSystem::NewStub(
         grpc::CreateChannel(system_->address(), grpc::InsecureChannelCredentials()));
@@ -177,7 +188,9 @@ class SensorFusionSystemTest : public ::testing::Test {
 };
 
 TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCentimetres) {
-  ASSERT_NO_FATAL_FAILURE(takeOff());
+  // The filter first: while it is active the simulator waits for its
+  // system, so simulated time (and the 10 s lease) cannot run away between
+  // the take-off and the first setpoint.
   ASSERT_FALSE(activateFilter().empty());
   Track truth, estimate;
   const behaviorlib::channel::SubscribeOptions queued{.mode = v1::DELIVERY_MODE_QUEUE,
@@ -190,26 +203,37 @@ TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCent
       [&](const v1::PoseStamped& p) { estimate.add(p); });
   ASSERT_TRUE(truth_sub_->waitConnected(seconds(5)));
   ASSERT_TRUE(estimate_sub_->waitConnected(seconds(5)));
-  // About 40 s of simulated flight along a circle of radius 3 m at 1.5 m/s
-  // (8 s of wall time at 5x), a setpoint every 0.1 s of simulated time.
-  const auto start = std::chrono::steady_clock::now();
-  while (std::chrono::steady_clock::now() - start < seconds(8)) {
-    const double t =
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count() *
-        kTimeScale;
+  ASSERT_NO_FATAL_FAILURE(takeOff());
+  // A circle of 3 m radius (1.5 m/s, 0.5 rad/s), its velocity set from the
+  // newest ground truth's stamp: simulated time runs as fast as the filter
+  // keeps up, so the setpoints follow it rather than the wall clock.
+  const auto wall_start = std::chrono::steady_clock::now();
+  int64_t first_ns = -1;
+  while (true) {
+    ASSERT_LT(std::chrono::steady_clock::now() - wall_start, kCircleWallLimit)
+        << "simulated time did not advance " << kCircleSeconds << " s";
+    const int64_t now_ns = truth.newestStamp();
+    if (now_ns < 0) {
+      std::this_thread::sleep_for(milliseconds(5));
+      continue;
+    }
+    if (first_ns < 0) first_ns = now_ns;
+    const double t = static_cast<double>(now_ns - first_ns) / 1e9;
+    if (t >= kCircleSeconds) break;
     ASSERT_NO_FATAL_FAILURE(setVelocity(1.5 * std::cos(t / 2.0), 1.5 * std::sin(t / 2.0)));
-    std::this_thread::sleep_for(milliseconds(20));
+    std::this_thread::sleep_for(milliseconds(5));
   }
   truth_sub_.reset();
   estimate_sub_.reset();
 
   // Pair each estimate with the ground truth at the same stamp
   // (interpolated between the neighbouring 100 Hz samples); skip the first
-  // 5 s of simulated time while the filter converges.
+  // 5 s of simulated time of the circle while the filter converges after
+  // the take-off.
   const auto t = truth.points();
   const auto e = estimate.points();
   ASSERT_GT(e.size(), 1000u) << "the estimate is published at 100 Hz of simulated time";
-  const int64_t first = e.begin()->first + 5'000'000'000;
+  const int64_t first = std::max(e.begin()->first, first_ns) + 5'000'000'000;
   double sum = 0;
   int n = 0;
   for (const auto& [stamp, p] : e) {
@@ -240,7 +264,7 @@ TEST_F(SensorFusionSystemTest, GarbageGpsIsWrongProgressAndASilentGpsAProcessFai
   // the monitoring ends it WRONG_PROGRESS.
   std::string id = activateFilter();
   ASSERT_FALSE(id.empty());
-  std::this_thread::sleep_for(milliseconds(1000));  // 5 s simulated: the filter runs
+  std::this_thread::sleep_for(milliseconds(1000));  // the filter runs
   ASSERT_NO_FATAL_FAILURE(inject(v1::FAILURE_COMPONENT_GPS, v1::FAILURE_TYPE_GARBAGE));
   auto finished = finishedEvent(seconds(15), id);
   ASSERT_TRUE(finished.has_value());
@@ -267,8 +291,9 @@ TEST_F(SensorFusionSystemTest, GarbageGpsIsWrongProgressAndASilentGpsAProcessFai
 
 TEST_F(SensorFusionSystemTest, ASilentImuIsAProcessFailure) {
   ASSERT_FALSE(activateFilter().empty());
-  std::this_thread::sleep_for(milliseconds(1000));  // 5 s simulated: the filter runs
-  simulator_->kill();  // every sensor falls silent; the behavior clock dead-reckons
+  std::this_thread::sleep_for(milliseconds(1000));  // the filter runs
+  simulator_->kill();  // the grants end: the system's clock runs on in real time  // every sensor
+                       // falls silent; the behavior clock dead-reckons
   auto finished = finishedEvent(seconds(15));
   ASSERT_TRUE(finished.has_value());
   EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);

@@ -1,6 +1,9 @@
 #include "coordinator/service/coordinator_service.h"
 
+#include <google/protobuf/io/coded_stream.h>
 #include <google/protobuf/util/time_util.h>
+#include <grpcpp/support/proto_buffer_reader.h>
+#include <grpcpp/support/proto_buffer_writer.h>
 
 #include <memory>
 #include <utility>
@@ -43,6 +46,70 @@ grpc::Status fromSystem(const grpc::Status& status, const Registry::Route& route
 
 // WatchFleetEventsRequest.max_events_per_message is capped here.
 constexpr uint32_t kMaxEventsPerMessage = 1024;
+// A batch stops before this many bytes of events (one event may be larger):
+// clients receive at most 4 MiB a message by default.
+constexpr size_t kMaxBatchBytes = 1 << 20;
+
+// WatchFleetEventsResponse fields (coordinator.proto) written from the
+// events' stored wire forms: `event` (2) holds one FleetEvent, `events` (3) a
+// FleetEventBatch, whose `events` (1) repeats FleetEvent. Protobuf writes an
+// embedded message as its tag (field number << 3 | 2, length-delimited), its
+// size as a varint, then its bytes; written here with protobuf's
+// CodedOutputStream, the result parses as the typed message.
+constexpr uint32_t kLengthDelimited = 2;
+constexpr uint32_t kResponseEventTag = (2 << 3) | kLengthDelimited;
+constexpr uint32_t kResponseEventsTag = (3 << 3) | kLengthDelimited;
+constexpr uint32_t kBatchEventTag = (1 << 3) | kLengthDelimited;
+
+size_t embeddedSize(uint32_t tag, size_t size) {
+  using google::protobuf::io::CodedOutputStream;
+  return CodedOutputStream::VarintSize32(tag) +
+         CodedOutputStream::VarintSize32(static_cast<uint32_t>(size)) + size;
+}
+
+uint8_t* writeEmbeddedHeader(uint32_t tag, size_t size, uint8_t* out) {
+  using google::protobuf::io::CodedOutputStream;
+  out = CodedOutputStream::WriteTagToArray(tag, out);
+  return CodedOutputStream::WriteVarint32ToArray(static_cast<uint32_t>(size), out);
+}
+
+// One WatchEvents message carrying `records`: a FleetEventBatch, or the single
+// `event` field when `batch` is false (then records has one element).
+grpc::ByteBuffer eventsMessage(const std::vector<FleetEventRecordPtr>& records, bool batch) {
+  size_t inner = 0;
+  if (batch) {
+    for (const auto& record : records) inner += embeddedSize(kBatchEventTag, record->wire().size());
+  } else {
+    inner = records.front()->wire().size();
+  }
+  const uint32_t outer_tag = batch ? kResponseEventsTag : kResponseEventTag;
+  grpc::Slice slice(embeddedSize(outer_tag, inner));
+  uint8_t* out = const_cast<uint8_t*>(slice.begin());
+  out = writeEmbeddedHeader(outer_tag, inner, out);
+  for (const auto& record : records) {
+    const std::string& wire = record->wire();
+    if (batch) out = writeEmbeddedHeader(kBatchEventTag, wire.size(), out);
+    out = google::protobuf::io::CodedOutputStream::WriteRawToArray(
+        wire.data(), static_cast<int>(wire.size()), out);
+  }
+  return grpc::ByteBuffer(&slice, 1);
+}
+
+// A message serialized the usual way.
+grpc::ByteBuffer serialized(const google::protobuf::Message& message) {
+  grpc::ByteBuffer buffer;
+  bool own_buffer = false;
+  grpc::GenericSerialize<grpc::ProtoBufferWriter, google::protobuf::Message>(message, &buffer,
+                                                                             &own_buffer);
+  return buffer;
+}
+
+// A WatchEvents call refused at once.
+class RefusedEventStream final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
+ public:
+  explicit RefusedEventStream(const grpc::Status& status) { Finish(status); }
+  void OnDone() override { delete this; }
+};
 
 // One lifecycle call forwarded to a behavior system.
 template <class Request, class Response>
@@ -58,7 +125,7 @@ struct ForwardedCall {
 // One WatchEvents stream: the start message, then the subscription's events,
 // one write at a time; woken by the log when events arrive, never blocking
 // the appending intake thread.
-class FleetStreamReactor final : public grpc::ServerWriteReactor<v1::WatchFleetEventsResponse> {
+class FleetStreamReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
  public:
   FleetStreamReactor(CoordinatorService* service, const v1::WatchFleetEventsRequest& request)
       : service_(service) {
@@ -67,13 +134,15 @@ class FleetStreamReactor final : public grpc::ServerWriteReactor<v1::WatchFleetE
     options.incarnation = request.incarnation();
     options.robot_ids.assign(request.robot_ids().begin(), request.robot_ids().end());
     options.behaviors.assign(request.behaviors().begin(), request.behaviors().end());
-    max_batch_ = std::min<uint32_t>(request.max_events_per_message(), kMaxEventsPerMessage);
+    max_batch_ = std::clamp<uint32_t>(request.max_events_per_message(), 1, kMaxEventsPerMessage);
     // writing_ starts true so that a wake before the start message is
     // written cannot send an event first.
     subscription_ = service_->log_.subscribe(options, [this] { onWake(); });
     service_->metrics_.subscribers.Increment();
     std::lock_guard lock(mutex_);
-    *message_.mutable_start() = subscription_->start();
+    v1::WatchFleetEventsResponse start;
+    *start.mutable_start() = subscription_->start();
+    message_ = serialized(start);
     StartWrite(&message_);
   }
 
@@ -123,18 +192,12 @@ class FleetStreamReactor final : public grpc::ServerWriteReactor<v1::WatchFleetE
       finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
       return;
     }
-    if (max_batch_ > 1) {
-      const std::vector<FleetEventPtr> events = subscription_->popUpTo(max_batch_);
-      if (!events.empty()) {
-        auto* batch = message_.mutable_events();
-        batch->mutable_events()->Clear();
-        for (const FleetEventPtr& event : events) *batch->add_events() = *event;
-        writing_ = true;
-        StartWrite(&message_);
-        return;
-      }
-    } else if (FleetEventPtr event = subscription_->pop()) {
-      *message_.mutable_event() = *event;
+    // Each event's wire form is serialized once and shared by every
+    // subscriber (no per-subscriber copy of the message).
+    const std::vector<FleetEventRecordPtr> records =
+        subscription_->popRecordsUpTo(max_batch_, kMaxBatchBytes);
+    if (!records.empty()) {
+      message_ = eventsMessage(records, max_batch_ > 1);
       writing_ = true;
       StartWrite(&message_);
       return;
@@ -160,7 +223,7 @@ class FleetStreamReactor final : public grpc::ServerWriteReactor<v1::WatchFleetE
   CoordinatorService* service_;
   std::unique_ptr<FleetSubscription> subscription_;
   std::mutex mutex_;
-  v1::WatchFleetEventsResponse message_;
+  grpc::ByteBuffer message_;
   uint32_t max_batch_ = 1;
   bool writing_ = true;
   bool finished_ = false;
@@ -317,9 +380,19 @@ grpc::ServerUnaryReactor* CoordinatorService::ListBehaviors(
   return finishNow(context, grpc::Status::OK);
 }
 
-grpc::ServerWriteReactor<v1::WatchFleetEventsResponse>* CoordinatorService::WatchEvents(
-    grpc::CallbackServerContext* /*context*/, const v1::WatchFleetEventsRequest* request) {
-  auto* stream = new FleetStreamReactor(this, *request);
+grpc::ServerWriteReactor<grpc::ByteBuffer>* CoordinatorService::WatchEvents(
+    grpc::CallbackServerContext* /*context*/, const grpc::ByteBuffer* raw_request) {
+  v1::WatchFleetEventsRequest request;
+  grpc::ByteBuffer copy(*raw_request);  // shares the slices
+  if (grpc::Status parsed =
+          grpc::GenericDeserialize<grpc::ProtoBufferReader, v1::WatchFleetEventsRequest>(&copy,
+                                                                                         &request);
+      !parsed.ok()) {
+    return new RefusedEventStream(grpc::Status(
+        grpc::StatusCode::INVALID_ARGUMENT,
+        "WatchEvents: the request is not a WatchFleetEventsRequest: " + parsed.error_message()));
+  }
+  auto* stream = new FleetStreamReactor(this, request);
   std::lock_guard lock(streams_mutex_);
   streams_.insert(stream);
   if (shutting_down_) stream->shutdown();

@@ -57,7 +57,10 @@ struct CoordinatorServiceOptions {
   BlockingPool* pool = nullptr;
 };
 
-class CoordinatorService final : public v1::Coordinator::CallbackService {
+// WatchEvents is a raw method: its events are written from their stored
+// wire forms (FleetEventRecord), serialized once for every subscriber.
+class CoordinatorService final
+    : public v1::Coordinator::WithRawCallbackMethod_WatchEvents<v1::Coordinator::CallbackService> {
  public:
   CoordinatorService(Registry& registry, FleetEventLog& log, CoordinatorMetrics& metrics,
                      CoordinatorServiceOptions options);
@@ -82,8 +85,8 @@ class CoordinatorService final : public v1::Coordinator::CallbackService {
   grpc::ServerUnaryReactor* ListBehaviors(grpc::CallbackServerContext* context,
                                           const v1::ListFleetBehaviorsRequest* request,
                                           v1::ListFleetBehaviorsResponse* response) override;
-  grpc::ServerWriteReactor<v1::WatchFleetEventsResponse>* WatchEvents(
-      grpc::CallbackServerContext* context, const v1::WatchFleetEventsRequest* request) override;
+  grpc::ServerWriteReactor<grpc::ByteBuffer>* WatchEvents(grpc::CallbackServerContext* context,
+                                                          const grpc::ByteBuffer* request) override;
   grpc::ServerUnaryReactor* WriteBelief(grpc::CallbackServerContext* context,
                                         const v1::WriteBeliefRequest* request,
                                         v1::WriteBeliefResponse* response) override;

@@ -31,7 +31,17 @@ void setNow(google::protobuf::Timestamp* timestamp) {
   timestamp->set_nanos(static_cast<int32_t>((since_epoch - seconds).count()));
 }
 
+// The event of a stored record, sharing its ownership.
+FleetEventPtr eventOf(const FleetEventRecordPtr& record) {
+  return FleetEventPtr(record, &record->event());
+}
+
 }  // namespace
+
+const std::string& FleetEventRecord::wire() const {
+  std::call_once(serialized_, [this] { event_.SerializeToString(&wire_); });
+  return wire_;
+}
 
 bool matchesFilter(const v1::FleetEvent& event, const std::vector<std::string>& robot_ids,
                    const std::vector<std::string>& behaviors) {
@@ -84,26 +94,31 @@ struct FleetSubscription::WakeSlot {
 FleetSubscription::~FleetSubscription() { cancel(); }
 
 FleetEventPtr FleetSubscription::pop() {
-  std::lock_guard lock(mutex_);
-  if (queue_.empty()) return nullptr;
-  FleetEventPtr event = std::move(queue_.front());
-  queue_.pop_front();
-  if (replay_left_ > 0) --replay_left_;
-  last_popped_seq_ = event->seq();
-  return event;
+  std::vector<FleetEventRecordPtr> one = popRecordsUpTo(1);
+  return one.empty() ? nullptr : eventOf(one.front());
 }
 
 std::vector<FleetEventPtr> FleetSubscription::popUpTo(size_t max) {
-  std::lock_guard lock(mutex_);
   std::vector<FleetEventPtr> out;
-  const size_t n = std::min(max, queue_.size());
-  out.reserve(n);
-  for (size_t i = 0; i < n; ++i) {
+  for (const FleetEventRecordPtr& record : popRecordsUpTo(max)) out.push_back(eventOf(record));
+  return out;
+}
+
+std::vector<FleetEventRecordPtr> FleetSubscription::popRecordsUpTo(size_t max, size_t max_bytes) {
+  std::lock_guard lock(mutex_);
+  std::vector<FleetEventRecordPtr> out;
+  size_t bytes = 0;
+  while (out.size() < max && !queue_.empty()) {
+    if (max_bytes != static_cast<size_t>(-1)) {
+      const size_t size = queue_.front()->wire().size();
+      if (!out.empty() && bytes + size > max_bytes) break;
+      bytes += size;
+    }
     out.push_back(std::move(queue_.front()));
     queue_.pop_front();
   }
-  replay_left_ -= std::min(replay_left_, n);
-  if (!out.empty()) last_popped_seq_ = out.back()->seq();
+  replay_left_ -= std::min(replay_left_, out.size());
+  if (!out.empty()) last_popped_seq_ = out.back()->event().seq();
   return out;
 }
 
@@ -126,8 +141,8 @@ void FleetSubscription::cancel() {
   if (wake_) wake_->cancel();
 }
 
-bool FleetSubscription::deliver(const FleetEventPtr& event) {
-  if (!matchesFilter(*event, robot_ids_, behaviors_)) return false;
+bool FleetSubscription::deliver(const FleetEventRecordPtr& record) {
+  if (!matchesFilter(record->event(), robot_ids_, behaviors_)) return false;
   std::lock_guard lock(mutex_);
   if (cancelled_ || overflowed_) return false;
   if (queue_.size() - replay_left_ >= limit_) {
@@ -137,7 +152,7 @@ bool FleetSubscription::deliver(const FleetEventPtr& event) {
     return true;
   }
   const bool was_empty = queue_.empty();
-  queue_.push_back(event);
+  queue_.push_back(record);
   return was_empty;
 }
 
@@ -164,7 +179,7 @@ void FleetEventLog::appendAll(std::vector<v1::FleetEvent> events) {
 
 FleetEventPtr FleetEventLog::appendEvents(std::vector<v1::FleetEvent> events) {
   std::vector<std::shared_ptr<FleetSubscription::WakeSlot>> to_wake;
-  FleetEventPtr stored;
+  FleetEventRecordPtr stored;
   {
     std::lock_guard lock(mutex_);
     for (v1::FleetEvent& event : events) {
@@ -172,7 +187,7 @@ FleetEventPtr FleetEventLog::appendEvents(std::vector<v1::FleetEvent> events) {
       // Under the lock so that wall_time never goes backwards as seq grows.
       setNow(event.mutable_wall_time());
       event.set_seq(next_seq_++);
-      stored = std::make_shared<const v1::FleetEvent>(std::move(event));
+      stored = std::make_shared<const FleetEventRecord>(std::move(event));
       retained_.push_back(stored);
       while (retained_.size() > options_.capacity) retained_.pop_front();
       for (FleetSubscription* subscription : subscribers_) {
@@ -182,7 +197,7 @@ FleetEventPtr FleetEventLog::appendEvents(std::vector<v1::FleetEvent> events) {
   }
   // A subscriber's queue goes from empty to not empty once per batch.
   for (const auto& slot : to_wake) slot->fire();
-  return stored;
+  return stored ? eventOf(stored) : nullptr;
 }
 
 std::unique_ptr<FleetSubscription> FleetEventLog::subscribe(const FleetSubscribeOptions& options,
@@ -204,7 +219,7 @@ std::unique_ptr<FleetSubscription> FleetEventLog::subscribe(const FleetSubscribe
 
   std::lock_guard lock(mutex_);
   const uint64_t latest_seq = next_seq_ - 1;
-  const uint64_t oldest_retained_seq = retained_.empty() ? 0 : retained_.front()->seq();
+  const uint64_t oldest_retained_seq = retained_.empty() ? 0 : retained_.front()->event().seq();
   start.set_oldest_retained_seq(oldest_retained_seq);
   start.set_latest_seq(latest_seq);
   // Retained seqs are consecutive (eviction pops the front only), so the gap
@@ -218,10 +233,11 @@ std::unique_ptr<FleetSubscription> FleetEventLog::subscribe(const FleetSubscribe
   start.set_events_dropped(dropped > 0);
   start.set_dropped_count(dropped);
 
-  auto first = std::partition_point(retained_.begin(), retained_.end(),
-                                    [&](const FleetEventPtr& e) { return e->seq() <= since_seq; });
+  auto first = std::partition_point(
+      retained_.begin(), retained_.end(),
+      [&](const FleetEventRecordPtr& r) { return r->event().seq() <= since_seq; });
   for (auto it = first; it != retained_.end(); ++it) {
-    if (matchesFilter(**it, subscription->robot_ids_, subscription->behaviors_)) {
+    if (matchesFilter((*it)->event(), subscription->robot_ids_, subscription->behaviors_)) {
       subscription->queue_.push_back(*it);
     }
   }

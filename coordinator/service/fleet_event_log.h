@@ -31,6 +31,23 @@ namespace behaviorlib::coordinator {
 
 using FleetEventPtr = std::shared_ptr<const v1::FleetEvent>;
 
+/// A stored event and its wire form, serialized once on first use and shared
+/// by every subscriber that writes it (the WatchEvents streams write the
+/// bytes instead of copying the message into each subscriber's response).
+class FleetEventRecord {
+ public:
+  explicit FleetEventRecord(v1::FleetEvent event) : event_(std::move(event)) {}
+  const v1::FleetEvent& event() const { return event_; }
+  /// event() serialized (thread-safe; computed once).
+  const std::string& wire() const;
+
+ private:
+  const v1::FleetEvent event_;
+  mutable std::once_flag serialized_;
+  mutable std::string wire_;
+};
+using FleetEventRecordPtr = std::shared_ptr<const FleetEventRecord>;
+
 struct FleetEventLogOptions {
   /// Maximum retained events (oldest evicted first).
   size_t capacity = 10000;
@@ -72,6 +89,10 @@ class FleetSubscription {
   FleetEventPtr pop();
   /// Up to `max` queued events, oldest first (empty when none).
   std::vector<FleetEventPtr> popUpTo(size_t max);
+  /// popUpTo() with the events' wire forms, also stopping before the wire
+  /// forms' total would exceed `max_bytes` (at least one event is popped).
+  std::vector<FleetEventRecordPtr> popRecordsUpTo(size_t max,
+                                                  size_t max_bytes = static_cast<size_t>(-1));
   /// True once the queue overflowed; nothing more is delivered.
   bool overflowed() const;
   /// Seq of the last event handed out by pop(), or the since_seq the
@@ -87,7 +108,7 @@ class FleetSubscription {
 
   FleetSubscription() = default;
   // Under the log's lock; returns whether wake must be called afterwards.
-  bool deliver(const FleetEventPtr& event);
+  bool deliver(const FleetEventRecordPtr& record);
 
   std::atomic<FleetEventLog*> log_{nullptr};
   v1::WatchEventsStart start_;
@@ -96,7 +117,7 @@ class FleetSubscription {
   size_t limit_ = 0;
   std::shared_ptr<WakeSlot> wake_;
   mutable std::mutex mutex_;
-  std::deque<FleetEventPtr> queue_;
+  std::deque<FleetEventRecordPtr> queue_;
   size_t replay_left_ = 0;  // replayed events at the front of queue_
   bool overflowed_ = false;
   bool cancelled_ = false;
@@ -143,7 +164,7 @@ class FleetEventLog {
   FleetEventLogOptions options_;
   mutable std::mutex mutex_;
   uint64_t next_seq_ = 1;
-  std::deque<FleetEventPtr> retained_;
+  std::deque<FleetEventRecordPtr> retained_;
   std::vector<FleetSubscription*> subscribers_;
 };
 

@@ -178,3 +178,42 @@ TEST(FleetEventLogTest, WakeMayCancelItsOwnSubscriptionAndNothingArrivesAfterCan
 
 }  // namespace
 }  // namespace behaviorlib::coordinator
+
+namespace behaviorlib::coordinator {
+namespace {
+
+// The stored wire form is the event as appended (with its seq), and a batch
+// stops before its byte budget, but never pops nothing.
+TEST(FleetEventLogTest, RecordsCarryTheEventsWireFormAndBatchesKeepToTheirByteBudget) {
+  FleetEventLog log;
+  auto sub = log.subscribe({}, [] {});
+  for (int i = 0; i < 5; ++i) {
+    v1::FleetEvent event = behaviorEvent("drone1", "WAIT");
+    event.mutable_behavior_event()->set_activation_id(std::string(100, 'x'));
+    log.append(std::move(event));
+  }
+  const auto first = sub->popRecordsUpTo(1);
+  ASSERT_EQ(first.size(), 1u);
+  v1::FleetEvent parsed;
+  ASSERT_TRUE(parsed.ParseFromString(first[0]->wire()));
+  EXPECT_EQ(parsed.seq(), 1u);
+  EXPECT_EQ(parsed.incarnation(), log.incarnation());
+  EXPECT_EQ(parsed.SerializeAsString(), first[0]->event().SerializeAsString());
+
+  const size_t size = first[0]->wire().size();
+  ASSERT_GT(size, 100u);
+  // Room for two and a half events: two are popped.
+  auto two = sub->popRecordsUpTo(10, size * 5 / 2);
+  ASSERT_EQ(two.size(), 2u);
+  EXPECT_EQ(two[0]->event().seq(), 2u);
+  EXPECT_EQ(two[1]->event().seq(), 3u);
+  // A budget smaller than one event still pops one.
+  auto one = sub->popRecordsUpTo(10, 1);
+  ASSERT_EQ(one.size(), 1u);
+  EXPECT_EQ(one[0]->event().seq(), 4u);
+  EXPECT_EQ(sub->lastPoppedSeq(), 4u);
+  EXPECT_EQ(drain(*sub), std::vector<uint64_t>({5}));
+}
+
+}  // namespace
+}  // namespace behaviorlib::coordinator

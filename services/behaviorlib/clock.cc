@@ -14,6 +14,12 @@ void Clock::removeListener(ClockListener* listener) const {
   listeners_.erase(std::remove(listeners_.begin(), listeners_.end(), listener), listeners_.end());
 }
 
+bool Clock::listenersCaughtUp(TimePoint t) const {
+  std::lock_guard lock(listeners_mutex_);
+  return std::all_of(listeners_.begin(), listeners_.end(),
+                     [t](const ClockListener* listener) { return listener->caughtUp(t); });
+}
+
 void Clock::notifyListeners() {
   std::lock_guard lock(listeners_mutex_);
   for (auto* listener : listeners_) listener->onClockAdvanced();

@@ -30,6 +30,11 @@ class ClockListener {
   virtual ~ClockListener() = default;
   /// Called from the thread that advanced the clock; must not block.
   virtual void onClockAdvanced() = 0;
+  /// Work a listener does on this clock outside the behaviors' ticks (a
+  /// lease renewal): whether everything it had due up to `t` has run. The
+  /// deterministic mode reports a granted time only once every listener has
+  /// (Clock::listenersCaughtUp). Must not block.
+  virtual bool caughtUp(TimePoint /*t*/) const { return true; }
 };
 
 /// Source of time for behaviors. Thread-safe.
@@ -59,6 +64,9 @@ class Clock {
   /// registration.
   void addListener(ClockListener* listener) const;
   void removeListener(ClockListener* listener) const;
+  /// Whether every listener ran what it had due up to `t`
+  /// (ClockListener::caughtUp).
+  bool listenersCaughtUp(TimePoint t) const;
 
  protected:
   /// Subclasses call this after their time advanced.

@@ -13,6 +13,21 @@ absl::StatusOr<std::unique_ptr<LeaseKeeper>> LeaseKeeper::acquire(
       new LeaseKeeper(client, clock, std::move(holder), response->lease_id(), options));
 }
 
+// Wakes the renewal thread when the clock moves, and tells the clock whether
+// the renewals due are done.
+class LeaseKeeper::Listener final : public ClockListener {
+ public:
+  explicit Listener(LeaseKeeper* owner) : owner_(owner) {}
+  void onClockAdvanced() override {
+    { std::lock_guard lock(owner_->mutex_); }
+    owner_->cv_.notify_all();
+  }
+  bool caughtUp(TimePoint t) const override { return owner_->caughtUp(t); }
+
+ private:
+  LeaseKeeper* const owner_;
+};
+
 LeaseKeeper::LeaseKeeper(const FlightControllerClient& client, const Clock& clock,
                          std::string holder, std::string lease_id, LeaseOptions options)
     : client_(client),
@@ -21,7 +36,15 @@ LeaseKeeper::LeaseKeeper(const FlightControllerClient& client, const Clock& cloc
       lease_id_(std::move(lease_id)),
       options_(options),
       last_renewed_(clock.now()) {
+  next_ = last_renewed_ + std::max<Duration>(options_.ttl / 4, std::chrono::milliseconds(10));
+  listener_ = std::make_unique<Listener>(this);
+  clock_.addListener(listener_.get());
   thread_ = std::thread([this] { run(); });
+}
+
+bool LeaseKeeper::caughtUp(TimePoint t) const {
+  std::lock_guard lock(mutex_);
+  return stopping_ || !lost_.ok() || (!renewing_ && next_ > t);
 }
 
 LeaseKeeper::~LeaseKeeper() { release().IgnoreError(); }
@@ -33,6 +56,7 @@ void LeaseKeeper::stopThread() {
   }
   cv_.notify_all();
   if (thread_.joinable()) thread_.join();
+  if (listener_) clock_.removeListener(listener_.get());
 }
 
 absl::Status LeaseKeeper::release() {
@@ -65,31 +89,33 @@ void LeaseKeeper::run() {
   const Duration period = std::max<Duration>(options_.ttl / 4, std::chrono::milliseconds(10));
   // After a failed renewal, retry sooner (still on the clock).
   const Duration retry = std::max<Duration>(options_.ttl / 10, std::chrono::milliseconds(5));
-  TimePoint next = clock_.now() + period;
   std::unique_lock lock(mutex_);
   while (!stopping_) {
     const TimePoint now = clock_.now();
-    if (now < next) {
-      // Simulated time may jump: re-read it at least every 20 ms of wall time.
-      cv_.wait_for(lock, std::min<std::chrono::nanoseconds>(clock_.wallWaitFor(next - now),
+    if (now < next_) {
+      // Woken when simulated time moves (the listener); re-read it at least
+      // every 20 ms of wall time anyway.
+      cv_.wait_for(lock, std::min<std::chrono::nanoseconds>(clock_.wallWaitFor(next_ - now),
                                                             std::chrono::milliseconds(20)));
       continue;
     }
+    renewing_ = true;
     lock.unlock();
     auto renewed = client_.renewLease(lease_id_);
     lock.lock();
+    renewing_ = false;
     if (renewed.ok()) {
       last_renewed_ = clock_.now();
       last_failure_ = absl::OkStatus();
       ++renewals_;
-      next = last_renewed_ + period;
+      next_ = last_renewed_ + period;
     } else if (renewed.status().code() == absl::StatusCode::kFailedPrecondition) {
       lost_ = absl::FailedPreconditionError("lost the lease of " + client_.robotId() + ": " +
                                             std::string(renewed.status().message()));
       break;
     } else {
       last_failure_ = renewed.status();
-      next = clock_.now() + retry;
+      next_ = clock_.now() + retry;
     }
   }
 }

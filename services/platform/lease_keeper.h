@@ -4,7 +4,10 @@
 // lives. It acquires the lease, renews it from a thread of its own every
 // quarter of its ttl (on the behavior's clock, since the platform's lease
 // times are simulated time under a simulator), and releases it when
-// destroyed.
+// destroyed. It listens to the clock: woken when simulated time moves, and
+// in the deterministic mode a granted time is reported only once the
+// renewals due up to it are done (ClockListener::caughtUp), so a starved
+// renewal thread slows the simulation instead of losing the lease.
 //
 //   auto lease = LeaseKeeper::acquire(fc, clock, "drone1/TAKE_OFF", {.ttl = 2s});
 //   if (!lease.ok()) return lease.status();
@@ -63,8 +66,10 @@ class LeaseKeeper {
  private:
   LeaseKeeper(const FlightControllerClient& client, const Clock& clock, std::string holder,
               std::string lease_id, LeaseOptions options);
+  class Listener;
   void run();
   void stopThread();
+  bool caughtUp(TimePoint t) const;
 
   const FlightControllerClient& client_;
   const Clock& clock_;
@@ -79,7 +84,10 @@ class LeaseKeeper {
   absl::Status lost_;          // set once the lease is known lost
   absl::Status last_failure_;  // the last failed renewal
   TimePoint last_renewed_{};   // clock time of the last acquire/renew
+  TimePoint next_{};           // when the next renewal is due
+  bool renewing_ = false;      // a renewal call is under way
   uint64_t renewals_ = 0;
+  std::unique_ptr<Listener> listener_;
   std::thread thread_;
 };
 

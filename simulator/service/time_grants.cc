@@ -13,6 +13,11 @@ using google::protobuf::util::TimeUtil;
 
 // How often waits look at the stop flag.
 constexpr std::chrono::milliseconds kStopPoll(100);
+// An idle follower gets a grant when at least this much simulated time has
+// passed since the last one it was sent (or when it wakes): its clock is only
+// read by commands from outside, which first wake it and wait for a current
+// grant.
+constexpr int64_t kIdleGrantPeriodNs = 1'000'000'000;
 
 }  // namespace
 
@@ -29,7 +34,9 @@ class TimeGrants::Follower final
   std::string name;
   bool joined = false;
   bool silent = false;  // left out of the waits until it reports again
-  bool idle = false;    // said so in its last report: not waited for
+  // Said so in its last report (and no wake since): not waited for. Written
+  // under the owner's mutex; read when a grant is written.
+  std::atomic<bool> idle{false};
   // What it published, from its last report (FollowTimeRequest.topic_seqs).
   std::map<std::string, uint64_t> topic_seqs;
   int64_t caught_up_ns = -1;
@@ -40,13 +47,20 @@ class TimeGrants::Follower final
   // follower reported the previous one. A write completes when the message
   // is in the transport's buffers, not when the follower read it, so without
   // this an idle follower (not waited for) would fall behind by every grant
-  // buffered on its stream.
+  // buffered on its stream. An idle follower's grant waits as pending until
+  // a simulated second passed since its last one, or it wakes.
   void grant(const v1::FollowTimeResponse& grant) {
     std::lock_guard lock(mutex_);
     if (finished_) return;
     pending_ = grant;
     has_pending_ = true;
-    if (!writing_ && !awaiting_report_) writeLocked();
+    if (!writing_ && !awaiting_report_ && dueLocked()) writeLocked();
+  }
+
+  // A wake: the newest pending grant goes now (it says "awaited").
+  void woken() {
+    std::lock_guard lock(mutex_);
+    if (has_pending_ && !writing_ && !awaiting_report_ && !finished_) writeLocked();
   }
 
   void finish(const grpc::Status& status) {
@@ -62,11 +76,14 @@ class TimeGrants::Follower final
       return;
     }
     const bool report = request_.has_caught_up_to();
+    const bool wake = request_.wake();
     owner_->reported(this);
     if (report) {
       std::lock_guard lock(mutex_);
       awaiting_report_ = false;
-      if (has_pending_ && !writing_ && !finished_) writeLocked();
+      if (has_pending_ && !writing_ && !finished_ && dueLocked()) writeLocked();
+    } else if (wake) {
+      woken();
     }
     StartRead(&request_);
   }
@@ -81,7 +98,7 @@ class TimeGrants::Follower final
       }
       return;
     }
-    if (has_pending_ && !finished_ && !awaiting_report_) writeLocked();
+    if (has_pending_ && !finished_ && !awaiting_report_ && dueLocked()) writeLocked();
   }
 
   void OnDone() override {
@@ -90,8 +107,21 @@ class TimeGrants::Follower final
   }
 
  private:
+  // Whether the pending grant goes now: always to a busy follower, to an idle
+  // one a simulated second after its last grant.
+  bool dueLocked() const {
+    if (!idle.load()) return true;
+    return last_written_ns_ < 0 ||
+           TimeUtil::TimestampToNanoseconds(pending_.clock().time()) - last_written_ns_ >=
+               kIdleGrantPeriodNs;
+  }
+
   void writeLocked() {
     current_ = pending_;
+    // Read after the follower's last report or wake was applied: if it is
+    // busy now, the simulator waits for its report of this grant.
+    current_.set_awaited(!idle.load());
+    last_written_ns_ = TimeUtil::TimestampToNanoseconds(current_.clock().time());
     has_pending_ = false;
     writing_ = true;
     awaiting_report_ = true;
@@ -106,6 +136,7 @@ class TimeGrants::Follower final
   bool writing_ = false;
   bool awaiting_report_ = false;  // a grant was written, its report not read yet
   bool finished_ = false;
+  int64_t last_written_ns_ = -1;  // the time of the last grant written
 };
 
 TimeGrants::TimeGrants(std::chrono::nanoseconds follower_timeout)
@@ -140,7 +171,10 @@ void TimeGrants::reported(Follower* follower) {
                    follower->name.c_str(), followers_.size());
       catch_up = last_grant_;  // it starts from the current grant
     }
-    if (follower->request().has_caught_up_to()) {
+    if (follower->request().wake()) {
+      follower->idle = false;  // waited for from the next grant on
+      follower->silent = false;
+    } else if (follower->request().has_caught_up_to()) {
       follower->caught_up_ns = TimeUtil::TimestampToNanoseconds(follower->request().caught_up_to());
       follower->silent = false;
       follower->idle = follower->request().idle();

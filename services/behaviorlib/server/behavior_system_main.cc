@@ -190,8 +190,10 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
       startCoordinatorRegistration(coordinator, listen, runtime.grpcPort(), host, program);
   if (follower) {
     follower->start(
-        [&host, &builder](TimePoint t) {
+        [&host, &builder, &clock](TimePoint t) {
           if (!host.caughtUp(t)) return false;
+          // Work on the clock outside the ticks (lease renewals).
+          if (!clock->listenersCaughtUp(t)) return false;
           for (const auto& check : builder.catchUpChecks()) {
             if (!check()) return false;
           }

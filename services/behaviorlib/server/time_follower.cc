@@ -62,6 +62,14 @@ void TimeFollower::awaitTurn() {
   std::unique_lock lock(mutex_);
   const auto ready = [this] { return stopping_ || !streaming_ || awaited_; };
   if (ready()) return;
+  if (!wake_sent_ && send_wake_) {
+    // The simulator may not be sending us grants (idle): ask for one.
+    wake_sent_ = true;
+    const std::function<void()> send = send_wake_;
+    lock.unlock();
+    send();
+    lock.lock();
+  }
   if (!cv_.wait_for(lock, kTurnLimit, ready) && !told_turn_timeout_) {
     told_turn_timeout_ = true;
     std::fprintf(stderr,
@@ -98,19 +106,37 @@ void TimeFollower::run() {
       context_ = &context;
     }
     auto stream = stub->FollowTime(&context);
-    const auto set_streaming = [this](bool streaming) {
+    uint64_t generation = 0;
+    {
+      std::lock_guard write_lock(write_mutex_);
+      generation = ++open_stream_;
+    }
+    // Writes on this stream, one at a time; none once it is closed.
+    const auto write = [this, generation, raw = stream.get()](const v1::FollowTimeRequest& m) {
+      std::lock_guard write_lock(write_mutex_);
+      return open_stream_ == generation && raw->Write(m);
+    };
+    const auto set_streaming = [this, &write](bool streaming) {
       {
         std::lock_guard lock(mutex_);
         streaming_ = streaming;
-        reported_busy_ = false;
         awaited_ = false;
+        wake_sent_ = false;
+        send_wake_ = nullptr;
+        if (streaming) {
+          send_wake_ = [write] {
+            v1::FollowTimeRequest wake;
+            wake.set_wake(true);
+            write(wake);
+          };
+        }
       }
       cv_.notify_all();
     };
     v1::FollowTimeRequest join;
     join.set_participant(participant_);
     std::optional<v1::Clock> last_granted;
-    if (stream->Write(join)) {
+    if (write(join)) {
       v1::FollowTimeResponse grant;
       while (stream->Read(&grant)) {
         backoff = kInitialBackoff;
@@ -154,11 +180,11 @@ void TimeFollower::run() {
         if (!last_granted) set_streaming(true);
         last_granted = grant.clock();
         {
-          // Sent after our last report: if that said busy, the simulator
-          // waits for us from this grant on, and the clock is current; a
-          // command held in awaitTurn() may run.
+          // "Awaited": the simulator waits for our report of this grant, and
+          // the clock is current; a command held in awaitTurn() may run.
           std::lock_guard lock(mutex_);
-          awaited_ = reported_busy_;
+          awaited_ = grant.awaited();
+          wake_sent_ = false;
         }
         cv_.notify_all();
         const TimePoint granted = toTimePoint(grant.clock().time());
@@ -181,7 +207,6 @@ void TimeFollower::run() {
           // grant; one that checked before has made idle_() false.
           std::lock_guard lock(mutex_);
           idle = idle_();
-          reported_busy_ = !idle;
           if (idle) awaited_ = false;
         }
         v1::FollowTimeRequest report;
@@ -192,11 +217,16 @@ void TimeFollower::run() {
             (*report.mutable_topic_seqs())[topic] = seq;
           }
         }
-        if (!stream->Write(report)) break;
+        if (!write(report)) break;
         reported_.fetch_add(1, std::memory_order_relaxed);
       }
     }
     set_streaming(false);
+    {
+      // No wake is written once this returns.
+      std::lock_guard write_lock(write_mutex_);
+      ++open_stream_;
+    }
     stream->WritesDone();
     const grpc::Status status = stream->Finish();
     if (last_granted && !isStopping()) {

@@ -23,14 +23,15 @@
 //   follower.stop();   // leaves the barrier; awaitTurn() no longer waits
 //
 // A report also says whether the system is idle (no behavior active, no
-// command queued): the simulator does not wait for idle systems, so an idle
-// system's clock may lag the simulation by a few grants. A command from
-// outside (an activation) therefore first waits in awaitTurn(): the next
-// report says "busy", and the command runs once a grant sent after it has
-// moved the clock, so that it starts at the simulation's time and the
-// simulator waits for it from then on (without this an activation ran at the
-// lagging time, and the next grant jumped its behaviors forward by as much as
-// a second: stale-status and lost-lease failures under load).
+// command queued): the simulator does not wait for an idle system, and sends
+// it a grant only about once a simulated second, so its clock lags. A command
+// from outside (an activation, a CheckSituation) therefore first waits in
+// awaitTurn(): it wakes the system (FollowTimeRequest.wake), and runs once an
+// "awaited" grant (one the simulator waits for) has moved the clock, so that
+// it starts at the simulation's time and the simulator waits for the system
+// from then on (without this an activation ran at the lagging time, and the
+// next grant jumped its behaviors forward by as much as a second:
+// stale-status and lost-lease failures under load).
 //
 // It reconnects (100 ms .. 2 s) while it lives; a simulator that is not in
 // the deterministic mode refuses (FAILED_PRECONDITION) and is asked again.
@@ -72,10 +73,10 @@ class TimeFollower {
 
   /// The time gate of commands from outside (BehaviorContext::
   /// before_command): returns at once while the simulator waits for this
-  /// system (its last report said busy) or no grants are followed; otherwise
-  /// waits (at most kTurnLimit of wall time, told once) until a grant sent
-  /// after a "busy" report moved the clock. The caller must make idle()
-  /// false before it calls (BehaviorExecutionManager does).
+  /// system or no grants are followed; otherwise wakes the system (a
+  /// FollowTimeRequest.wake) and waits (at most kTurnLimit of wall time, told
+  /// once) until an "awaited" grant moved the clock. The caller must make
+  /// idle() false before it calls (BehaviorExecutionManager does).
   void awaitTurn();
 
   /// Grants reported back so far.
@@ -100,12 +101,18 @@ class TimeFollower {
   grpc::ClientContext* context_ = nullptr;
   bool stopping_ = false;
   // The gate (guarded by mutex_): a grant was applied on the current stream;
-  // the last report said busy; the applied grant was sent after a busy
-  // report, and no idle report went since (the simulator waits for us).
+  // the applied grant was "awaited" and no idle report went since (the
+  // simulator waits for us); a wake was sent since the last grant; how to
+  // send one on the current stream.
   bool streaming_ = false;
-  bool reported_busy_ = false;
   bool awaited_ = false;
+  bool wake_sent_ = false;
+  std::function<void()> send_wake_;
   bool told_turn_timeout_ = false;
+  // Serializes writes on the stream (reports from the thread, wakes from
+  // awaitTurn); the stream generation whose writes are open.
+  std::mutex write_mutex_;
+  uint64_t open_stream_ = 0;
   std::thread thread_;
 };
 

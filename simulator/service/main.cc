@@ -43,6 +43,7 @@ int main(int argc, char** argv) {
   double quantum_ms = 10.0;
   double min_followers_arg = 0;  // FlagSet has no integers
   double follower_timeout_s = 5.0;
+  double idle_time_scale = 20.0;
   bool fault_injection = false;
   std::string clock_publish = "line";
   bool gate_topics = true;
@@ -74,6 +75,11 @@ int main(int argc, char** argv) {
   flags.add("follower-timeout-s", &follower_timeout_s,
             "deterministic mode: wall seconds a follower may take to catch up before time goes "
             "on without it (0.1..600)");
+  flags.add("idle-time-scale", &idle_time_scale,
+            "deterministic mode: while no follower is busy, simulated time runs at most this "
+            "many times real time (1..1000; 0: no limit). Then only what is outside the "
+            "barrier acts (the coordinator, tools, tests), in wall time: a safety action's "
+            "lease renewals, a mission's next step");
   flags.add("clock-publish", &clock_publish,
             "free-running, how simulated time goes on the 'clock' topic: 'line' (its pace "
             "line when it changes and once a wall second; readers extrapolate) or "
@@ -105,10 +111,11 @@ int main(int argc, char** argv) {
   const int min_followers = static_cast<int>(min_followers_arg);
   if (!(quantum_ms >= 1.0 && quantum_ms <= 100.0) || !(min_followers_arg >= 0.0) ||
       min_followers_arg > 1000.0 || min_followers != min_followers_arg ||
-      !(follower_timeout_s >= 0.1 && follower_timeout_s <= 600.0)) {
+      !(follower_timeout_s >= 0.1 && follower_timeout_s <= 600.0) ||
+      !(idle_time_scale == 0.0 || (idle_time_scale >= 1.0 && idle_time_scale <= 1000.0))) {
     fatal(program,
           "--quantum-ms must be within [1, 100], --min-followers within [0, 1000], "
-          "--follower-timeout-s within [0.1, 600]");
+          "--follower-timeout-s within [0.1, 600], --idle-time-scale 0 or within [1, 1000]");
     return 2;
   }
 
@@ -239,6 +246,9 @@ int main(int argc, char** argv) {
       return;
     }
     grants.waitForFollowers(min_followers, stop);
+    const auto idle_period = std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+        quantum / (idle_time_scale > 0.0 ? idle_time_scale : 1.0));
+    auto idle_next = std::chrono::steady_clock::now();
     while (!stop.load()) {
       simulation.advance(quantum);
       behaviorlib::v1::FollowTimeResponse grant;
@@ -258,6 +268,16 @@ int main(int argc, char** argv) {
                 std::chrono::duration_cast<std::chrono::nanoseconds>(simulation.now()).count());
       }
       grants.grantAndWait(grant, stop);
+      if (idle_time_scale > 0.0 && !grants.anyBusy()) {
+        // Nobody in the barrier is busy: pace at --idle-time-scale, sleeping
+        // once a few milliseconds are owed (fewer wake-ups than a sleep per
+        // quantum).
+        const auto now = std::chrono::steady_clock::now();
+        if (idle_next < now - std::chrono::milliseconds(50)) idle_next = now;  // was busy
+        idle_next += idle_period;
+        if (idle_next - now >= std::chrono::milliseconds(2))
+          std::this_thread::sleep_until(idle_next);
+      }
     }
   });
   if (deterministic) {

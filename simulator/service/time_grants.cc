@@ -261,6 +261,12 @@ void TimeGrants::shutdown() {
   cv_.notify_all();
 }
 
+bool TimeGrants::anyBusy() const {
+  std::lock_guard lock(mutex_);
+  return std::any_of(followers_.begin(), followers_.end(),
+                     [](const Follower* f) { return !f->idle && !f->silent; });
+}
+
 int TimeGrants::followerCount() const {
   std::lock_guard lock(mutex_);
   return static_cast<int>(followers_.size());

@@ -52,6 +52,10 @@ class TimeGrants {
   /// number of followers that caught up.
   int grantAndWait(v1::FollowTimeResponse grant, const std::atomic<bool>& stop);
 
+  /// Whether a follower is busy now (its last report or wake said so, and
+  /// it is not left out for silence): the simulator waits for it.
+  bool anyBusy() const;
+
   /// Ends every FollowTime stream (UNAVAILABLE) and refuses new ones.
   void shutdown();
 

@@ -111,10 +111,15 @@ void TimeFollower::run() {
       std::lock_guard write_lock(write_mutex_);
       generation = ++open_stream_;
     }
-    // Writes on this stream, one at a time; none once it is closed.
-    const auto write = [this, generation, raw = stream.get()](const v1::FollowTimeRequest& m) {
-      std::lock_guard write_lock(write_mutex_);
+    // Writes on this stream, one at a time (write_mutex_ held); none once it
+    // is closed.
+    const auto write_locked = [this, generation,
+                               raw = stream.get()](const v1::FollowTimeRequest& m) {
       return open_stream_ == generation && raw->Write(m);
+    };
+    const auto write = [this, write_locked](const v1::FollowTimeRequest& m) {
+      std::lock_guard write_lock(write_mutex_);
+      return write_locked(m);
     };
     const auto set_streaming = [this, &write](bool streaming) {
       {
@@ -200,24 +205,29 @@ void TimeFollower::run() {
         }
         // Every grant is reported (the simulator sends the next one then);
         // an idle system's reports are not waited for.
-        bool idle = false;
-        {
-          // Decided together with the gate's state: a command that checks
-          // awaitTurn() after this sees awaited_ false and waits for the next
-          // grant; one that checked before has made idle_() false.
-          std::lock_guard lock(mutex_);
-          idle = idle_();
-          if (idle) awaited_ = false;
-        }
         v1::FollowTimeRequest report;
         *report.mutable_caught_up_to() = grant.clock().time();
-        report.set_idle(idle);
         if (data_ != nullptr) {
           for (const auto& [topic, seq] : data_->acceptedSeqs()) {
             (*report.mutable_topic_seqs())[topic] = seq;
           }
         }
-        if (!write(report)) break;
+        bool written = false;
+        {
+          // Decided and written as one with respect to the gate: a command
+          // that checks awaitTurn() after this sees awaited_ false and wakes
+          // the simulator, its wake written after this report; one that
+          // checked before has made idle_() false.
+          std::lock_guard write_lock(write_mutex_);
+          {
+            std::lock_guard lock(mutex_);
+            const bool idle = idle_();
+            if (idle) awaited_ = false;
+            report.set_idle(idle);
+          }
+          written = write_locked(report);
+        }
+        if (!written) break;
         reported_.fetch_add(1, std::memory_order_relaxed);
       }
     }

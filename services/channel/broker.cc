@@ -6,6 +6,7 @@
 #include <prometheus/family.h>
 #include <prometheus/gauge.h>
 #include <prometheus/registry.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <chrono>
@@ -19,6 +20,7 @@
 #include "absl/container/inlined_vector.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "channel/shm_ring.h"
 #include "channel/topic.h"
 
 namespace behaviorlib::channel {
@@ -44,6 +46,19 @@ google::protobuf::Timestamp wallNow() {
 // for a gated topic's next sample.
 constexpr std::chrono::seconds kTransientInterest(2);
 constexpr std::chrono::seconds kMaxGetLatestWait(1);
+
+// Ring sizing (decision 20): a slot holds twice the sample that sized it
+// (at least 256 bytes), and a ring at most kMaxRingBytes, however many
+// samples its subscribers' queues would keep.
+constexpr std::size_t kMinSlotBytes = 256;
+constexpr std::size_t kMaxRingBytes = 64u << 20;
+constexpr uint32_t kMinRingSlots = 4;
+
+// Whether a peer runs on this host, so that it shares our /dev/shm.
+bool localPeer(const std::string& peer) {
+  return absl::StartsWith(peer, "ipv4:127.") || absl::StartsWith(peer, "ipv6:[::1]") ||
+         absl::StartsWith(peer, "unix:");
+}
 
 grpc::Status shuttingDownStatus() {
   return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the channel broker is shutting down");
@@ -76,7 +91,17 @@ struct Broker::Metrics {
         subscribers(prometheus::BuildGauge()
                         .Name("behaviorlib_channel_subscribers")
                         .Help("Current subscriptions, per topic.")
-                        .Register(registry)) {
+                        .Register(registry)),
+        shm_samples(prometheus::BuildCounter()
+                        .Name("behaviorlib_channel_shm_samples_total")
+                        .Help("Samples written once to a topic's shared-memory ring, from which "
+                              "every subscriber on this host reads them, per topic.")
+                        .Register(registry)),
+        rings(prometheus::BuildGauge()
+                  .Name("behaviorlib_channel_shm_ring_bytes")
+                  .Help("Shared memory held by the topics' rings.")
+                  .Register(registry)
+                  .Add({})) {
     for (absl::string_view reason :
          {reject_reason::kInvalidTopic, reject_reason::kMissingSample, reject_reason::kUnknownType,
           reject_reason::kMalformedSample, reject_reason::kTypeMismatch}) {
@@ -90,6 +115,8 @@ struct Broker::Metrics {
   prometheus::Family<prometheus::Counter>& dropped;
   prometheus::Family<prometheus::Counter>& rejected;
   prometheus::Family<prometheus::Gauge>& subscribers;
+  prometheus::Family<prometheus::Counter>& shm_samples;
+  prometheus::Gauge& rings;
   // Filled in the constructor, read-only afterwards.
   std::map<std::string, prometheus::Counter*, std::less<>> rejected_by_reason;
 };
@@ -103,13 +130,15 @@ struct Broker::Topic {
         samples_in(metrics.samples_in.Add({{"topic", name}})),
         samples_out(metrics.samples_out.Add({{"topic", name}})),
         dropped(metrics.dropped.Add({{"topic", name}})),
-        subscriber_gauge(metrics.subscribers.Add({{"topic", name}})) {}
+        subscriber_gauge(metrics.subscribers.Add({{"topic", name}})),
+        shm_samples(metrics.shm_samples.Add({{"topic", name}})) {}
 
   void removeMetrics(Metrics& metrics) {
     metrics.samples_in.Remove(&samples_in);
     metrics.samples_out.Remove(&samples_out);
     metrics.dropped.Remove(&dropped);
     metrics.subscribers.Remove(&subscriber_gauge);
+    metrics.shm_samples.Remove(&shm_samples);
   }
 
   const std::string name;
@@ -118,6 +147,7 @@ struct Broker::Topic {
   prometheus::Counter& samples_out;
   prometheus::Counter& dropped;
   prometheus::Gauge& subscriber_gauge;
+  prometheus::Counter& shm_samples;
 
   std::mutex mutex;
   // Guarded by mutex. `type` is fixed by the first sample.
@@ -136,6 +166,11 @@ struct Broker::Topic {
     std::chrono::steady_clock::time_point deadline;
   };
   std::vector<WaitingGet> waiting;
+  // The shared-memory ring of the subscribers on this host, while there is
+  // one; written by publish() under `mutex`.
+  std::unique_ptr<ShmRing> ring;
+  uint32_t shm_subscribers = 0;
+  std::string ring_scratch;  // a sample's bytes, reused
 
   // Caller holds mutex.
   bool wantedLocked(std::chrono::steady_clock::time_point now) const {
@@ -241,6 +276,16 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   SubscribeReactor(grpc::CallbackServerContext* context, bool latest_only, std::size_t queue_size)
       : context_(context), latest_only_(latest_only), queue_size_(queue_size) {}
 
+  // How many samples the subscription keeps: what its ring must hold.
+  uint32_t keeps() const {
+    return latest_only_ ? kMinRingSlots
+                        : std::max(kMinRingSlots, static_cast<uint32_t>(queue_size_));
+  }
+  // Served through the topic's shared-memory ring: no sample is written to
+  // the stream. Set before the reactor is visible to publishers.
+  void useRing() { ring_ = true; }
+  bool usesRing() const { return ring_; }
+
   void setOwner(Broker* broker, std::shared_ptr<SubscribeReactor> self) {
     broker_ = broker;
     self_ = std::move(self);
@@ -255,8 +300,13 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   }
 
   // Tells the client that it is registered (see kSubscribedMetadataKey).
-  void sendSubscribedMetadata(uint64_t topic_seq) {
+  // With a ring, also its name and the first sample number to read there.
+  void sendSubscribedMetadata(uint64_t topic_seq, const std::string& ring, uint64_t ring_first) {
     context_->AddInitialMetadata(kSubscribedMetadataKey, std::to_string(topic_seq));
+    if (ring_) {
+      context_->AddInitialMetadata(kShmRingMetadataKey, ring);
+      context_->AddInitialMetadata(kShmFirstMetadataKey, std::to_string(ring_first));
+    }
     StartSendInitialMetadata();
   }
 
@@ -265,6 +315,7 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   // when the stream is idle: the caller must then call pump() once it has
   // released the topic's mutex.
   bool offer(const Sample& sample) {
+    if (ring_) return false;
     std::lock_guard lock(mutex_);
     if (finish_status_.has_value()) return false;
     // In QUEUE mode the sample being written counts against queue_size (it
@@ -356,6 +407,7 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   grpc::CallbackServerContext* const context_;
   const bool latest_only_;
   const std::size_t queue_size_;
+  bool ring_ = false;
   Broker* broker_ = nullptr;
   // Keeps the reactor alive until OnDone, while publishers may hold
   // references taken under the topic's mutex.
@@ -457,7 +509,10 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
 // ---------------------------------------------------------------------------
 // Broker
 
-Broker::Broker(prometheus::Registry& registry) : metrics_(std::make_unique<Metrics>(registry)) {
+Broker::Broker(prometheus::Registry& registry, BrokerOptions options)
+    : options_(options), metrics_(std::make_unique<Metrics>(registry)) {
+  // Rings a killed broker left behind (they are named after its pid).
+  if (options_.shared_memory) ShmRing::removeStale();
   housekeeper_ = std::thread([this] { housekeep(); });
 }
 
@@ -465,6 +520,10 @@ Broker::~Broker() {
   {
     std::lock_guard lock(mutex_);
     shutting_down_ = true;
+    for (auto& [name, topic] : topics_) {
+      std::lock_guard topic_lock(topic->mutex);
+      dropRingLocked(*topic);
+    }
   }
   housekeeping_cv_.notify_all();
   housekeeper_.join();
@@ -473,6 +532,59 @@ Broker::~Broker() {
 void Broker::countRejected(absl::string_view reason) {
   auto it = metrics_->rejected_by_reason.find(reason);
   if (it != metrics_->rejected_by_reason.end()) it->second->Increment();
+}
+
+bool Broker::ensureRingLocked(Topic& topic, uint32_t slots, std::size_t bytes) {
+  const std::size_t want_bytes = std::max(kMinSlotBytes, (2 * bytes + 63) & ~std::size_t{63});
+  if (topic.ring && topic.ring->slotBytes() >= bytes && topic.ring->slotBytes() > 0 &&
+      (topic.ring->slotCount() >= slots ||
+       topic.ring->slotCount() * topic.ring->slotBytes() >= kMaxRingBytes / 2)) {
+    return true;
+  }
+  std::size_t slot_bytes = want_bytes;
+  uint32_t slot_count = slots;
+  if (topic.ring) {
+    slot_bytes = std::max<std::size_t>(slot_bytes, topic.ring->slotBytes());
+    slot_count = std::max(slot_count, topic.ring->slotCount());
+  }
+  const auto fitting = static_cast<uint32_t>(
+      std::max<std::size_t>(kMinRingSlots, kMaxRingBytes / std::max<std::size_t>(slot_bytes, 1)));
+  slot_count = std::min(slot_count, fitting);
+  auto made = ShmRing::create(ShmRing::nameFor(getpid(), ++rings_made_), slot_count, slot_bytes);
+  if (!made.ok()) {
+    // Subscribers that asked for a ring get the stream instead; readers of
+    // the old ring see it closed and subscribe again.
+    dropRingLocked(topic);
+    return false;
+  }
+  if (topic.ring) {
+    metrics_->rings.Decrement(
+        static_cast<double>(topic.ring->slotCount() * topic.ring->slotBytes()));
+    topic.ring->supersede((*made)->name());
+    topic.ring->unlink();
+  }
+  topic.ring = std::move(*made);
+  metrics_->rings.Increment(static_cast<double>(slot_count * slot_bytes));
+  return true;
+}
+
+void Broker::writeRingLocked(Topic& topic, const v1::SubscribeResponse& sample) {
+  topic.ring_scratch.clear();
+  sample.AppendToString(&topic.ring_scratch);
+  if (!topic.ring->fits(topic.ring_scratch.size()) &&
+      !ensureRingLocked(topic, topic.ring->slotCount(), topic.ring_scratch.size())) {
+    return;
+  }
+  topic.ring->write(sample.topic_seq(), topic.ring_scratch);
+  topic.shm_samples.Increment();
+}
+
+void Broker::dropRingLocked(Topic& topic) {
+  if (!topic.ring) return;
+  metrics_->rings.Decrement(static_cast<double>(topic.ring->slotCount() * topic.ring->slotBytes()));
+  topic.ring->close();
+  topic.ring->unlink();
+  topic.ring.reset();
 }
 
 std::shared_ptr<Broker::Topic> Broker::topicLocked(const std::string& name) {
@@ -548,6 +660,7 @@ grpc::Status Broker::publish(PublishReactor& publisher, v1::PublishRequest& requ
   // one (its first, say) still made the topic and its type known.
   const bool keep = !topic->gated || topic->wantedLocked(std::chrono::steady_clock::now());
   topic->latest = keep ? sample : nullptr;
+  if (topic->ring) writeRingLocked(*topic, *sample);
   absl::InlinedVector<std::shared_ptr<SubscribeReactor>, 8> idle;
   for (const auto& subscriber : topic->subscribers) {
     if (subscriber->offer(topic->latest)) idle.push_back(subscriber);
@@ -596,6 +709,8 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
 
   auto reactor = std::make_shared<SubscribeReactor>(context, latest_only, queue_size);
   reactor->setOwner(this, reactor);
+  const bool wants_ring =
+      request->shared_memory() && options_.shared_memory && localPeer(context->peer());
   if (!invalid.ok()) {
     reactor->requestFinish(invalid);
     return reactor.get();
@@ -603,6 +718,8 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
 
   bool registered = false;
   uint64_t registered_seq = 0;
+  std::string ring_name;
+  uint64_t ring_first = 0;
   InterestReactors watchers;
   {
     std::lock_guard lock(mutex_);
@@ -612,6 +729,19 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
       {
         std::lock_guard topic_lock(topic->mutex);
         reactor->attach(topic);
+        const std::size_t latest_bytes = topic->latest ? topic->latest->ByteSizeLong() : 0;
+        if (wants_ring && ensureRingLocked(*topic, reactor->keeps(), latest_bytes)) {
+          reactor->useRing();
+          ++topic->shm_subscribers;
+          ring_name = topic->ring->name();
+          ring_first = topic->seq + 1;
+          if (topic->latest && topic->ring->written() < topic->latest->topic_seq()) {
+            writeRingLocked(*topic, *topic->latest);
+          }
+          if (request->send_latest_first() && topic->latest && topic->ring) {
+            ring_first = topic->latest->topic_seq();
+          }
+        }
         first = topic->subscribers.empty();
         topic->subscribers.push_back(reactor);
         topic->subscriber_gauge.Set(static_cast<double>(topic->subscribers.size()));
@@ -626,7 +756,7 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
   if (!registered) {
     reactor->requestFinish(shuttingDownStatus());
   } else {
-    reactor->sendSubscribedMetadata(registered_seq);
+    reactor->sendSubscribedMetadata(registered_seq, ring_name, ring_first);
   }
   return reactor.get();
 }
@@ -644,6 +774,9 @@ void Broker::removeSubscriber(const std::shared_ptr<Topic>& topic,
                                 [subscriber](const auto& s) { return s.get() == subscriber; }),
                  subs.end());
       topic->subscriber_gauge.Set(static_cast<double>(subs.size()));
+      if (subscriber->usesRing() && topic->shm_subscribers > 0 && --topic->shm_subscribers == 0) {
+        dropRingLocked(*topic);
+      }
       last = subs.empty();
       if (last) forgetIfUnwantedLocked(*topic, std::chrono::steady_clock::now());
       if (topic->seq == 0 && last && topic->waiting.empty()) {
@@ -870,6 +1003,7 @@ void Broker::shutdown() {
     for (auto& [name, topic] : topics_) {
       std::lock_guard topic_lock(topic->mutex);
       subscribers.insert(subscribers.end(), topic->subscribers.begin(), topic->subscribers.end());
+      dropRingLocked(*topic);
     }
     // Finish never runs a reaction inline (OnDone, which needs mutex_, is
     // dispatched to gRPC's threads), so this is safe under the lock, which

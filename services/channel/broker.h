@@ -15,6 +15,7 @@
 //   broker.shutdown();  // ends every stream, then
 //   server->Shutdown();
 
+#include <atomic>
 #include <condition_variable>
 #include <map>
 #include <memory>
@@ -39,13 +40,19 @@ class Registry;
 
 namespace behaviorlib::channel {
 
+struct BrokerOptions {
+  /// Offer delivery through shared-memory rings to subscribers on this host
+  /// that ask for it (SubscribeRequest.shared_memory; decision 20).
+  bool shared_memory = true;
+};
+
 /// Implements behaviorlib.v1.DataChannel. Thread-safe; register it on a
 /// grpc::ServerBuilder. It must outlive the server it is registered on.
 class Broker final : public v1::DataChannel::CallbackService {
  public:
   /// Metrics (behaviorlib_channel_*) are registered on `registry`, which must
   /// outlive the broker.
-  explicit Broker(prometheus::Registry& registry);
+  explicit Broker(prometheus::Registry& registry, BrokerOptions options = {});
   ~Broker() override;
   Broker(const Broker&) = delete;
   Broker& operator=(const Broker&) = delete;
@@ -83,6 +90,13 @@ class Broker final : public v1::DataChannel::CallbackService {
   void removeSubscriber(const std::shared_ptr<Topic>& topic, const SubscribeReactor* subscriber);
   void removePublisher(PublishReactor* publisher);
   void countRejected(absl::string_view reason);
+  // Shared-memory rings. Callers hold the topic's mutex.
+  // Makes the topic's ring hold at least `slots` samples of `bytes` each
+  // (a new ring supersedes a smaller one); false when none can be made.
+  bool ensureRingLocked(Topic& topic, uint32_t slots, std::size_t bytes);
+  // Writes `sample` into the topic's ring (growing it when it does not fit).
+  void writeRingLocked(Topic& topic, const v1::SubscribeResponse& sample);
+  void dropRingLocked(Topic& topic);
 
   // Interest (WatchInterest). Callers hold mutex_.
   // Sends every watcher whose wanted set changed its new set; the watchers
@@ -94,7 +108,9 @@ class Broker final : public v1::DataChannel::CallbackService {
   // Thread: expires GetLatest's transient interest and its waiting calls.
   void housekeep();
 
+  const BrokerOptions options_;
   std::unique_ptr<Metrics> metrics_;
+  std::atomic<uint64_t> rings_made_{0};  // names the next ring
 
   // Lock order: mutex_, then Topic::mutex, then a subscription's mutex.
   std::mutex mutex_;

@@ -17,6 +17,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
+#include "channel/shm_ring.h"
 #include "channel/topic.h"
 
 namespace behaviorlib::channel {
@@ -24,6 +25,9 @@ namespace {
 
 constexpr std::chrono::milliseconds kInitialBackoff(100);
 constexpr std::chrono::milliseconds kMaxBackoff(2000);
+// A ring reader's longest sleep without news: a safety net only, since the
+// writer and the stream's end wake it.
+constexpr int64_t kRingWaitNs = 2'000'000'000;
 
 absl::Status toAbsl(const grpc::Status& status) {
   return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
@@ -123,6 +127,9 @@ class Subscription::Impl {
  private:
   void run() {
     std::chrono::milliseconds backoff = kInitialBackoff;
+    // Cleared for good when the broker's ring cannot be opened here (the
+    // broker is on another host, or in another container).
+    bool use_ring = request_.shared_memory();
     while (true) {
       grpc::ClientContext context;
       {
@@ -130,13 +137,35 @@ class Subscription::Impl {
         if (stopping_) return;
         context_ = &context;
       }
+      v1::SubscribeRequest request = request_;
+      request.set_shared_memory(use_ring);
       std::unique_ptr<grpc::ClientReader<v1::SubscribeResponse>> reader =
-          stub_->Subscribe(&context, request_);
+          stub_->Subscribe(&context, request);
       // The broker sends its initial metadata once the subscription is
       // registered; a refused or failed call carries none of ours.
       reader->WaitForInitialMetadata();
       const auto& metadata = context.GetServerInitialMetadata();
+      std::unique_ptr<ShmRing> ring;
+      uint64_t ring_first = 0;
       if (auto it = metadata.find(kSubscribedMetadataKey); it != metadata.end()) {
+        if (auto r = metadata.find(kShmRingMetadataKey); r != metadata.end()) {
+          auto f = metadata.find(kShmFirstMetadataKey);
+          absl::StatusOr<std::unique_ptr<ShmRing>> opened =
+              ShmRing::open(std::string(r->second.data(), r->second.size()));
+          if (f != metadata.end() && opened.ok() &&
+              absl::SimpleAtoi(absl::string_view(f->second.data(), f->second.size()),
+                               &ring_first)) {
+            ring = std::move(*opened);
+          } else {
+            // Not sharing the broker's memory: subscribe again, on the stream.
+            use_ring = false;
+            context.TryCancel();
+            reader->Finish();
+            std::lock_guard lock(mutex_);
+            context_ = nullptr;
+            continue;
+          }
+        }
         // Samples published before the registration never come (unless the
         // latest is sent first): delivered() must not wait for them.
         uint64_t registered_seq = 0;
@@ -153,12 +182,11 @@ class Subscription::Impl {
         cv_.notify_all();
         progress_->notify();
       }
-      v1::SubscribeResponse response;
-      while (reader->Read(&response)) {
-        received_.fetch_add(1);
-        on_sample_(response);
-        processed_seq_.store(std::max(processed_seq_.load(), response.topic_seq()));
-        progress_->notify();
+      if (ring) {
+        readRing(*reader, context, std::move(ring), ring_first);
+      } else {
+        v1::SubscribeResponse response;
+        while (reader->Read(&response)) deliver(response);
       }
       const grpc::Status status = reader->Finish();
       progress_->notify();  // before connected_ goes: a waiter may look early
@@ -175,6 +203,73 @@ class Subscription::Impl {
     }
   }
 
+  void deliver(const v1::SubscribeResponse& response) {
+    received_.fetch_add(1);
+    on_sample_(response);
+    processed_seq_.store(std::max(processed_seq_.load(), response.topic_seq()));
+    progress_->notify();
+  }
+
+  // Reads the samples from the broker's shared-memory ring (decision 20)
+  // while the stream, which carries none, stays up. Returns with the stream
+  // ended or cancelled.
+  void readRing(grpc::ClientReader<v1::SubscribeResponse>& reader, grpc::ClientContext& context,
+                std::unique_ptr<ShmRing> first_ring, uint64_t next) {
+    std::shared_ptr<ShmRing> ring(std::move(first_ring));
+    {
+      std::lock_guard lock(mutex_);
+      ring_ = ring;
+    }
+    std::atomic<bool> stream_done{false};
+    // The stream ends when the broker goes away or the subscription is
+    // stopped (its context cancelled); either must wake the reader.
+    std::thread watcher([&] {
+      v1::SubscribeResponse ignored;
+      while (reader.Read(&ignored)) {
+      }
+      stream_done.store(true);
+      std::lock_guard lock(mutex_);
+      if (ring_) ring_->wake();
+    });
+    const bool latest_only = request_.mode() != v1::DELIVERY_MODE_QUEUE;
+    std::string bytes;
+    uint64_t dropped = 0;
+    v1::SubscribeResponse response;
+    bool reading = true;
+    while (reading && !stream_done.load()) {
+      const uint32_t token = ring->notifyToken();
+      switch (ring->read(&next, latest_only, &bytes, &dropped)) {
+        case ShmRing::Read::kSample:
+          if (response.ParseFromString(bytes)) {
+            response.set_dropped_count(dropped);
+            deliver(response);
+          }
+          break;
+        case ShmRing::Read::kEmpty:
+          if (!stream_done.load()) ring->wait(token, kRingWaitNs);
+          break;
+        case ShmRing::Read::kSuperseded: {
+          absl::StatusOr<std::unique_ptr<ShmRing>> successor = ShmRing::open(ring->successor());
+          if (!successor.ok()) {
+            reading = false;
+            break;
+          }
+          ring = std::move(*successor);
+          std::lock_guard lock(mutex_);
+          ring_ = ring;
+          break;
+        }
+        case ShmRing::Read::kClosed:
+          reading = false;
+          break;
+      }
+    }
+    context.TryCancel();
+    watcher.join();
+    std::lock_guard lock(mutex_);
+    ring_.reset();
+  }
+
   const std::shared_ptr<v1::DataChannel::Stub> stub_;
   const v1::SubscribeRequest request_;
   const std::function<void(const v1::SubscribeResponse&)> on_sample_;
@@ -186,6 +281,7 @@ class Subscription::Impl {
   mutable std::mutex mutex_;
   mutable std::condition_variable cv_;
   grpc::ClientContext* context_ = nullptr;  // of the stream in progress
+  std::shared_ptr<ShmRing> ring_;           // the ring being read, if any
   bool stopping_ = false;
   bool connected_ = false;
   uint64_t connect_count_ = 0;
@@ -429,6 +525,7 @@ class ChannelClient::Impl {
     request.set_mode(options.mode);
     request.set_queue_size(options.queue_size);
     request.set_send_latest_first(options.send_latest_first);
+    request.set_shared_memory(options.shared_memory);
     auto impl = std::make_shared<Subscription::Impl>(stub_, std::move(request),
                                                      std::move(on_sample), progress_);
     if (absl::Status status = validateTopicName(topic); !status.ok()) {

@@ -46,6 +46,11 @@ struct SubscribeOptions {
   /// Deliver the sample already on the topic first (also after every
   /// reconnection).
   bool send_latest_first = false;
+  /// Read the samples from the broker's shared-memory ring when the broker
+  /// offers one (it runs on this host): one copy for every subscriber on the
+  /// host instead of a stream each (decision 20). Otherwise, or when the
+  /// ring cannot be opened here, samples come on the stream.
+  bool shared_memory = true;
 };
 
 /// A running subscription, made by ChannelClient::subscribe. Its reader

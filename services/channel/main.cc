@@ -26,6 +26,7 @@ int main(int argc, char** argv) {
   std::string listen = "127.0.0.1:50051";
   std::string metrics_listen = "127.0.0.1:9100";
   std::string port_file;
+  behaviorlib::channel::BrokerOptions options;
   behaviorlib::server::FlagSet flags(
       "the common data channel broker (behaviorlib.v1.DataChannel): typed samples on named "
       "topics");
@@ -34,6 +35,9 @@ int main(int argc, char** argv) {
             "Prometheus /metrics address host:port (port 0: any free port; empty: disabled)");
   flags.add("port-file", &port_file,
             "write the bound ports here as grpc_port=N / metrics_port=M once serving");
+  flags.add("shared-memory", &options.shared_memory,
+            "deliver to subscribers on this host that ask for it through shared-memory rings "
+            "under /dev/shm (false: every sample on its gRPC stream)");
   int exit_code = 0;
   if (!flags.parse(argc, argv, &exit_code)) return exit_code;
 
@@ -43,7 +47,7 @@ int main(int argc, char** argv) {
 
   // Declared after `runtime` but shut down explicitly below on every path
   // where the server was started, so the server never outlives the broker.
-  behaviorlib::channel::Broker broker(runtime.registry());
+  behaviorlib::channel::Broker broker(runtime.registry(), options);
   grpc::ServerBuilder builder;
   builder.RegisterService(&broker);
   if (!runtime.startServer(builder, listen, {"behaviorlib.v1.DataChannel"}, &error)) {

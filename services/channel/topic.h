@@ -33,6 +33,12 @@ inline constexpr absl::string_view kClockTopic = "clock";
 /// at registration: samples up to it were published before.
 inline constexpr char kSubscribedMetadataKey[] = "behaviorlib-subscribed";
 
+/// Server-initial-metadata keys of a subscription served through a
+/// shared-memory ring (SubscribeRequest.shared_memory): the ring's name
+/// (ShmRing::open) and the first sample number to read from it.
+inline constexpr char kShmRingMetadataKey[] = "behaviorlib-shm";
+inline constexpr char kShmFirstMetadataKey[] = "behaviorlib-shm-first";
+
 /// Client-metadata key of a Publish stream whose publisher gates the topics
 /// under the value (a prefix) by interest (DataChannel.WatchInterest): it
 /// publishes them only while wanted, so the broker keeps no sample of one

@@ -1,6 +1,7 @@
 // Integration tests of the channel_broker binary: started as a real process on
 // free loopback ports, driven over gRPC (raw stubs and ChannelClient).
 
+#include <dirent.h>
 #include <fcntl.h>
 #include <gmock/gmock.h>
 #include <grpcpp/grpcpp.h>
@@ -671,6 +672,127 @@ TEST_F(ChannelBrokerTest, ChannelClientSubscriberReconnectsAfterBrokerRestart) {
   ASSERT_TRUE(eventually([&] { return client.publish("robots/d4/chat", text("after")).ok(); }));
   ASSERT_TRUE(eventually([&] { return received.load() >= 2; }));
   EXPECT_EQ(restarted.terminate(), 0);
+}
+
+// The rings of a broker (named after its pid) under /dev/shm.
+std::vector<std::string> ringsOf(pid_t broker) {
+  std::vector<std::string> found;
+  const std::string prefix = "behaviorlib-ch-" + std::to_string(broker) + "-";
+  if (DIR* dir = opendir("/dev/shm")) {
+    while (const dirent* entry = readdir(dir)) {
+      if (std::string(entry->d_name).rfind(prefix, 0) == 0) found.push_back(entry->d_name);
+    }
+    closedir(dir);
+  }
+  return found;
+}
+
+std::string metricLine(const std::string& metrics, const std::string& series) {
+  const auto at = metrics.find(series + " ");
+  if (at == std::string::npos) return "";
+  return metrics.substr(at, metrics.find('\n', at) - at);
+}
+
+// Subscribers on the broker's host read every sample from one shared-memory
+// ring (decision 20); one that opts out gets its samples on its stream. Both
+// see the same samples in the same order, also across a sample too big for
+// the ring's slots, which makes the broker open a bigger ring.
+TEST_F(ChannelBrokerTest, SubscribersOnThisHostReadOneCopyFromSharedMemory) {
+  const std::string topic = "robots/s1/chat";
+  ChannelClient client(broker_.address());
+  std::mutex mutex;
+  std::map<int, std::vector<std::string>> texts;
+  std::vector<std::unique_ptr<Subscription>> subs;
+  for (int i = 0; i < 4; ++i) {
+    subs.push_back(client.subscribeTyped<v1::Text>(
+        topic, {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 50, .shared_memory = i != 3},
+        [&, i](const v1::Text& t) {
+          std::lock_guard lock(mutex);
+          texts[i].push_back(t.text().size() > 100 ? "big" : t.text());
+        }));
+  }
+  for (const auto& sub : subs) ASSERT_TRUE(sub->waitConnected(seconds(10)));
+  EXPECT_EQ(ringsOf(broker_.pid()).size(), 1u);
+
+  std::vector<std::string> expected;
+  for (int i = 0; i < 20; ++i) {
+    expected.push_back(std::to_string(i));
+    ASSERT_TRUE(client.publish(topic, text(expected.back())).ok());
+  }
+  ASSERT_TRUE(client.publish(topic, text(std::string(200000, 'x'))).ok());
+  expected.push_back("big");
+  ASSERT_TRUE(client.publish(topic, text("after")).ok());
+  expected.push_back("after");
+  ASSERT_TRUE(eventually([&] {
+    std::lock_guard lock(mutex);
+    for (int i = 0; i < 4; ++i) {
+      if (texts[i].size() < expected.size()) return false;
+    }
+    return true;
+  }));
+  {
+    std::lock_guard lock(mutex);
+    for (int i = 0; i < 4; ++i) EXPECT_EQ(texts[i], expected) << "subscriber " << i;
+  }
+  for (const auto& sub : subs) EXPECT_EQ(sub->processedSeq(), expected.size());
+
+  // One copy into the ring per sample; the stream carried only the
+  // opted-out subscriber's.
+  const std::string metrics = support::httpGet(broker_.metricsPort(), "/metrics");
+  EXPECT_EQ(metricLine(metrics, "behaviorlib_channel_shm_samples_total{topic=\"" + topic + "\"}"),
+            "behaviorlib_channel_shm_samples_total{topic=\"" + topic + "\"} 22");
+  EXPECT_EQ(metricLine(metrics, "behaviorlib_channel_samples_out_total{topic=\"" + topic + "\"}"),
+            "behaviorlib_channel_samples_out_total{topic=\"" + topic + "\"} 22");
+  EXPECT_EQ(ringsOf(broker_.pid()).size(), 1u) << "the small ring was replaced, not kept";
+
+  // The ring goes with its last reader.
+  subs.clear();
+  EXPECT_TRUE(eventually([&] { return ringsOf(broker_.pid()).empty(); }));
+}
+
+// With --shared-memory=false the broker offers no ring: a client that asks
+// for one gets its samples on the stream.
+TEST_F(ChannelBrokerTest, BrokerWithoutSharedMemoryStreamsEverySample) {
+  support::ServerProcess broker(kBrokerPath, {"--shared-memory=false"});
+  ASSERT_TRUE(broker.start()) << broker.error();
+  ChannelClient client(broker.address());
+  std::atomic<int> received{0};
+  auto sub = client.subscribeTyped<v1::Text>("robots/s2/chat", {.mode = v1::DELIVERY_MODE_QUEUE},
+                                             [&](const v1::Text&) { ++received; });
+  ASSERT_TRUE(sub->waitConnected(seconds(10)));
+  for (int i = 0; i < 5; ++i) ASSERT_TRUE(client.publish("robots/s2/chat", text("x")).ok());
+  ASSERT_TRUE(eventually([&] { return received.load() == 5; }));
+  EXPECT_TRUE(ringsOf(broker.pid()).empty());
+  const std::string metrics = support::httpGet(broker.metricsPort(), "/metrics");
+  EXPECT_THAT(metrics,
+              HasSubstr("behaviorlib_channel_samples_out_total{topic=\"robots/s2/chat\"} 5"));
+}
+
+// A broker killed with SIGKILL cannot remove its rings; the next one does,
+// and the subscriber reads on from a ring of the new broker.
+TEST_F(ChannelBrokerTest, RingsOfAKilledBrokerAreRemovedByTheNext) {
+  const int port = broker_.grpcPort();
+  const pid_t old_pid = broker_.pid();
+  ChannelClient client(broker_.address());
+  std::atomic<int> received{0};
+  auto sub = client.subscribeTyped<v1::Text>("robots/s3/chat", {.mode = v1::DELIVERY_MODE_QUEUE},
+                                             [&](const v1::Text&) { ++received; });
+  ASSERT_TRUE(sub->waitConnected(seconds(10)));
+  ASSERT_EQ(ringsOf(old_pid).size(), 1u);
+  broker_.kill();
+  ASSERT_EQ(ringsOf(old_pid).size(), 1u) << "a killed broker leaves its ring";
+
+  support::ServerProcess restarted(kBrokerPath, {"--listen", "127.0.0.1:" + std::to_string(port)});
+  ASSERT_TRUE(restarted.start()) << restarted.error();
+  EXPECT_TRUE(ringsOf(old_pid).empty());
+  ASSERT_TRUE(eventually([&] { return sub->connected() && sub->connectCount() >= 2; }, seconds(15)))
+      << sub->status();
+  ASSERT_TRUE(eventually([&] { return client.publish("robots/s3/chat", text("after")).ok(); }));
+  ASSERT_TRUE(eventually([&] { return received.load() >= 1; }));
+  const pid_t new_pid = restarted.pid();
+  EXPECT_EQ(ringsOf(new_pid).size(), 1u);
+  EXPECT_EQ(restarted.terminate(), 0);
+  EXPECT_TRUE(ringsOf(new_pid).empty()) << "a broker that stops removes its rings";
 }
 
 TEST_F(ChannelBrokerTest, SimClockFollowsTheClockTopic) {

@@ -51,14 +51,17 @@ def rss_kib(pid):
 
 
 def samples_out(metrics_address):
-    """The broker's behaviorlib_channel_samples_out_total summed over topics."""
+    """Samples the broker handed out, summed over topics: writes to subscribers' streams
+    (behaviorlib_channel_samples_out_total) plus writes into the shared-memory rings that the
+    subscribers on its host read (behaviorlib_channel_shm_samples_total, one per sample)."""
     try:
         with urllib.request.urlopen(f"http://{metrics_address}/metrics", timeout=2) as r:
             text = r.read().decode()
     except OSError:
         return None
     return sum(float(m.group(1)) for m in
-               re.finditer(r"^behaviorlib_channel_samples_out_total\{[^}]*\} (\S+)$", text, re.M))
+               re.finditer(r"^behaviorlib_channel_(?:samples_out|shm_samples)_total\{[^}]*\} (\S+)$",
+                           text, re.M))
 
 
 class Stack:
@@ -165,7 +168,8 @@ def main():
         print(f"| **total** | **{statistics.median(totals):.2f}** | "
               f"{', '.join(f'{t:.2f}' for t in totals)} | {rss_total:.1f} |")
         rates = [rate for _, rate in runs]
-        print(f"\nbroker deliveries: {statistics.median(rates):.0f} samples/s "
+        print(f"\nbroker deliveries (stream writes + ring writes): "
+              f"{statistics.median(rates):.0f} samples/s "
               f"(runs: {', '.join(f'{r:.0f}' for r in rates)})")
         if args.smoke:
             missing = {"channel_broker", "simulator", "coordinator"} - set(names)

@@ -461,20 +461,37 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
       requestFinish(grpc::Status::OK);
       return;
     }
-    const grpc::Status status = broker_->publish(*this, request_);
+    grpc::Status status = take(request_);
+    for (v1::PublishRequest& next : *request_.mutable_more()) {
+      if (!status.ok()) break;
+      if (!next.more().empty()) {
+        status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                              "a sample in a batch ('more') has a batch of its own");
+        break;
+      }
+      status = take(next);
+    }
     std::lock_guard lock(mutex_);
     if (!status.ok()) {
       finishLocked(status);
       return;
     }
-    ++accepted_;
-    published_seqs_[cached_topic.get()] = {cached_topic, published_seq};
     if (!finished_) StartRead(&request_);
   }
 
   void OnDone() override {
     broker_->removePublisher(this);
     delete this;
+  }
+
+  // Publishes one sample of the stream and counts it.
+  grpc::Status take(v1::PublishRequest& request) {
+    const grpc::Status status = broker_->publish(*this, request);
+    if (!status.ok()) return status;
+    std::lock_guard lock(mutex_);
+    ++accepted_;
+    published_seqs_[cached_topic.get()] = {cached_topic, published_seq};
+    return status;
   }
 
   // The topic of the previous sample on this stream (a stream usually

@@ -424,6 +424,24 @@ class ChannelClient::Impl {
     v1::PublishRequest request;
     request.set_topic(topic);
     request.mutable_sample()->PackFrom(sample);
+    return write(request);
+  }
+
+  absl::Status publishAll(const std::vector<ChannelClient::TopicSample>& samples) {
+    if (samples.empty()) return absl::OkStatus();
+    v1::PublishRequest request;
+    for (std::size_t i = 0; i < samples.size(); ++i) {
+      const auto& [topic, sample] = samples[i];
+      if (absl::Status status = validateTopicName(topic); !status.ok()) return status;
+      v1::PublishRequest* part = i == 0 ? &request : request.add_more();
+      part->set_topic(topic);
+      part->mutable_sample()->PackFrom(*sample);
+    }
+    return write(request);
+  }
+
+  // Writes one message on the publish stream.
+  absl::Status write(const v1::PublishRequest& request) {
     std::lock_guard lock(publish_mutex_);
     while (true) {
       const bool fresh = !writer_;
@@ -603,6 +621,10 @@ ChannelClient::ChannelClient(const std::string& address) : impl_(std::make_uniqu
 ChannelClient::~ChannelClient() = default;
 
 const std::string& ChannelClient::address() const { return impl_->address_; }
+
+absl::Status ChannelClient::publishAll(const std::vector<TopicSample>& samples) {
+  return impl_->publishAll(samples);
+}
 
 absl::Status ChannelClient::publish(const std::string& topic,
                                     const google::protobuf::Message& sample) {

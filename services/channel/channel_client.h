@@ -142,6 +142,17 @@ class ChannelClient {
   /// broker went away, the sample is retried once on a new stream.
   absl::Status publish(const std::string& topic, const google::protobuf::Message& sample);
 
+  /// One sample of publishAll(); `sample` must stay valid during the call.
+  struct TopicSample {
+    std::string topic;
+    const google::protobuf::Message* sample = nullptr;
+  };
+  /// Publishes `samples` in order as one batch (one message on the publish
+  /// stream, PublishRequest.more): one write and one broker read for all of
+  /// them. Each sample is numbered, checked and delivered as if published
+  /// alone; otherwise as publish(). An empty batch does nothing.
+  absl::Status publishAll(const std::vector<TopicSample>& samples);
+
   /// Closes the publish stream and returns the number of samples the broker
   /// accepted on it, or the status it ended with. The next publish() opens
   /// a new stream.

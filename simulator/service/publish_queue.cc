@@ -1,6 +1,7 @@
 #include "simulator/service/publish_queue.h"
 
 #include <utility>
+#include <vector>
 
 namespace behaviorlib::sim {
 
@@ -97,36 +98,49 @@ void PublishQueue::interestChanged() {
 }
 
 void PublishQueue::run() {
+  std::vector<Entry> batch;
+  std::vector<channel::ChannelClient::TopicSample> samples;
   std::unique_lock lock(mutex_);
   while (true) {
     cv_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
     if (stopping_) return;
-    Entry entry = std::move(queue_.front());
-    queue_.pop_front();
-    queued_bytes_ -= entry.bytes;
+    // Everything queued goes in one batch (one write, one broker read),
+    // bounded so that a message stays far below gRPC's 4 MiB limit; a
+    // larger sample goes alone.
+    std::size_t bytes = 0;
+    while (!queue_.empty() && batch.size() < kMaxBatchSamples &&
+           (batch.empty() || bytes + queue_.front().bytes <= kMaxBatchBytes)) {
+      bytes += queue_.front().bytes;
+      queued_bytes_ -= queue_.front().bytes;
+      batch.push_back(std::move(queue_.front()));
+      queue_.pop_front();
+    }
     publishing_ = true;
     lock.unlock();
-    if (client_.publish(entry.topic, *entry.sample).ok()) {
-      ++published_;
+    samples.clear();
+    for (const Entry& entry : batch) samples.push_back({entry.topic, entry.sample.get()});
+    if (client_.publishAll(samples).ok()) {
+      published_ += batch.size();
     } else {
-      ++dropped_;
+      dropped_ += batch.size();
     }
     lock.lock();
     publishing_ = false;
     if (queue_.empty()) drained_cv_.notify_all();
     if (interest_ != nullptr) {
-      // Kept as the topic's newest unless a newer one is held already.
-      Newest& newest = newest_[entry.topic];
-      if (newest.published || !newest.sample) {
-        newest.sample = std::move(entry.sample);
-        newest.published = true;
+      // Each kept as its topic's newest unless a newer one is held already
+      // (in order: a later sample of the same topic replaces an earlier one).
+      for (Entry& entry : batch) {
+        Newest& newest = newest_[entry.topic];
+        if (newest.published || !newest.sample) {
+          newest.sample = std::move(entry.sample);
+          newest.published = true;
+        }
       }
     }
-    if (entry.sample) {  // freed outside the lock
-      lock.unlock();
-      entry.sample.reset();
-      lock.lock();
-    }
+    lock.unlock();
+    batch.clear();  // the samples not kept are freed outside the lock
+    lock.lock();
   }
 }
 

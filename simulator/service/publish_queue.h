@@ -1,7 +1,8 @@
 #pragma once
 
 // PublishQueue: samples waiting to go to the data channel, and the thread
-// that publishes them, so that the physics never waits for the broker. The
+// that publishes them, so that the physics never waits for the broker; what
+// is queued when the thread comes round goes in one batch. The
 // queue is bounded in messages and in bytes; when full, the oldest samples
 // are dropped and counted.
 //
@@ -72,6 +73,9 @@ class PublishQueue {
     std::size_t bytes;
   };
   void run();
+  // One batch's bounds (ChannelClient::publishAll).
+  static constexpr std::size_t kMaxBatchSamples = 256;
+  static constexpr std::size_t kMaxBatchBytes = std::size_t{1} << 20;
 
   channel::ChannelClient& client_;
   const PublishQueueLimits limits_;

@@ -2,7 +2,7 @@
 // over every process (issue 14 goal 2; docs/benchmarks.md).
 //
 //   channel_bench [--rate-hz 1000] [--subscribers 10] [--window-s 10] [--runs 3]
-//                 [--modes pace,floor,stream,ring] [--smoke]
+//                 [--modes pace,floor,stream,ring] [--topics 1] [--smoke]
 //
 // Each run starts a real channel_broker, one publisher process and N
 // subscriber processes (forked before any gRPC object exists), and publishes
@@ -17,6 +17,10 @@
 //   pace    the publisher's loop alone (it wakes at the rate and publishes
 //           nothing): the part of every mode's publisher figure that is not
 //           delivery
+// With --topics K (stream and ring modes), the publisher publishes one sample
+// on each of K topics per period, in one batch (ChannelClient::publishAll, as
+// the simulator does with what it has ready), and every subscriber process
+// subscribes to all K.
 // Prints a markdown table: medians over the runs, and each run's total.
 
 #include <signal.h>
@@ -31,6 +35,7 @@
 #include <cstdio>
 #include <cstdlib>
 #include <fstream>
+#include <mutex>
 #include <sstream>
 #include <stdexcept>
 #include <string>
@@ -51,11 +56,14 @@ namespace v1 = behaviorlib::v1;
 const char* const kBrokerPath = BEHAVIORLIB_CHANNEL_BROKER_PATH;
 constexpr char kTopic[] = "robots/bench/imu";
 
+std::string topicName(int k) { return k == 0 ? kTopic : std::string(kTopic) + std::to_string(k); }
+
 struct Options {
   double rate_hz = 1000;
   int subscribers = 10;
   double window_s = 10;
   int runs = 3;
+  int topics = 1;
   std::vector<std::string> modes = {"pace", "floor", "stream", "ring"};
 };
 
@@ -189,34 +197,50 @@ struct RunResult {
 
 // A subscriber in a child process: reads `total` samples or until the
 // deadline, measuring its CPU and each sample's latency from its stamp.
-void subscriberChild(const std::string& address, bool ring, uint64_t total, double deadline_s,
-                     int report_fd, int ready_fd) {
+void subscriberChild(const std::string& address, bool ring, int topics, uint64_t total,
+                     double deadline_s, int report_fd, int ready_fd) {
   behaviorlib::channel::ChannelClient client(address);
   std::vector<double> latency;
   latency.reserve(total);
+  std::mutex mutex;  // the subscriptions' threads share `latency`
   std::atomic<uint64_t> received{0};
-  std::atomic<uint64_t> dropped{0};
-  auto sub = client.subscribe(
-      kTopic, {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 1000, .shared_memory = ring},
-      [&](const v1::SubscribeResponse& response) {
-        v1::Imu imu;
-        if (!response.sample().UnpackTo(&imu) || imu.header().frame_id() == "bench/warmup") return;
-        const int64_t stamp =
-            imu.header().stamp().seconds() * 1'000'000'000LL + imu.header().stamp().nanos();
-        latency.push_back(static_cast<double>(monotonicNs() - stamp) / 1e6);
-        dropped.store(response.dropped_count());
-        received.fetch_add(1);
-      });
-  if (!sub->waitConnected(std::chrono::seconds(10))) _exit(4);
+  std::vector<std::atomic<uint64_t>> dropped(static_cast<size_t>(topics));
+  std::vector<std::unique_ptr<behaviorlib::channel::Subscription>> subs;
+  for (int k = 0; k < topics; ++k) {
+    subs.push_back(client.subscribe(
+        topicName(k), {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 1000, .shared_memory = ring},
+        [&, k](const v1::SubscribeResponse& response) {
+          v1::Imu imu;
+          if (!response.sample().UnpackTo(&imu) || imu.header().frame_id() == "bench/warmup")
+            return;
+          const int64_t stamp =
+              imu.header().stamp().seconds() * 1'000'000'000LL + imu.header().stamp().nanos();
+          {
+            std::lock_guard lock(mutex);
+            latency.push_back(static_cast<double>(monotonicNs() - stamp) / 1e6);
+          }
+          dropped[static_cast<size_t>(k)].store(response.dropped_count());
+          received.fetch_add(1);
+        }));
+  }
+  const auto dropped_sum = [&] {
+    uint64_t sum = 0;
+    for (const auto& d : dropped) sum += d.load();
+    return sum;
+  };
+  for (const auto& sub : subs) {
+    if (!sub->waitConnected(std::chrono::seconds(10))) _exit(4);
+  }
   const double cpu0 = cpuUs();
   if (write(ready_fd, "r", 1) != 1) _exit(5);
   const int64_t deadline = monotonicNs() + static_cast<int64_t>(deadline_s * 1e9);
-  while (received.load() + dropped.load() < total && monotonicNs() < deadline) {
+  const uint64_t expected = total * static_cast<uint64_t>(topics);
+  while (received.load() + dropped_sum() < expected && monotonicNs() < deadline) {
     std::this_thread::sleep_for(std::chrono::milliseconds(20));
   }
   const double cpu = cpuUs() - cpu0;
-  sub.reset();
-  writeReport(report_fd, {cpu, received.load(), dropped.load(), percentile(latency, 0.5),
+  subs.clear();
+  writeReport(report_fd, {cpu, received.load(), dropped_sum(), percentile(latency, 0.5),
                           percentile(latency, 0.99)});
 }
 
@@ -255,6 +279,8 @@ RunResult runOnce(const Options& o, const std::string& mode) {
   const auto total = static_cast<uint64_t>(o.window_s * o.rate_hz);
   const auto period_ns = static_cast<int64_t>(1e9 / o.rate_hz);
   const double deadline_s = o.window_s * 3 + 10;
+  // Several topics only through the broker (the floor writes one ring).
+  const int topics = mode == "stream" || mode == "ring" ? o.topics : 1;
   support::ServerProcess broker(kBrokerPath, {});
   std::unique_ptr<ShmRing> floor_ring;
   const int subscriber_count = mode == "pace" ? 0 : o.subscribers;
@@ -277,7 +303,8 @@ RunResult runOnce(const Options& o, const std::string& mode) {
       if (mode == "floor") {
         floorReaderChild(floor_ring->name(), total, deadline_s, report_fd, ready[1]);
       } else {
-        subscriberChild(broker.address(), mode == "ring", total, deadline_s, report_fd, ready[1]);
+        subscriberChild(broker.address(), mode == "ring", topics, total, deadline_s, report_fd,
+                        ready[1]);
       }
     }));
   }
@@ -293,7 +320,10 @@ RunResult runOnce(const Options& o, const std::string& mode) {
       // Opens the stream and fixes the topic's type before the window.
       v1::Imu warmup = sample(0);
       warmup.mutable_header()->set_frame_id("bench/warmup");
-      if (!client->publish(kTopic, warmup).ok() || !client->sync().ok()) _exit(8);
+      for (int k = 0; k < topics; ++k) {
+        if (!client->publish(topicName(k), warmup).ok()) _exit(8);
+      }
+      if (!client->sync().ok()) _exit(8);
     }
     awaitGo(go_fd);
     const double cpu0 = cpuUs();
@@ -301,8 +331,14 @@ RunResult runOnce(const Options& o, const std::string& mode) {
     std::string bytes;
     for (uint64_t i = 1; i <= total; ++i) {
       pace(start, i, period_ns);
-      if (client) {
+      if (client && topics == 1) {
         if (!client->publish(kTopic, sample(i)).ok()) _exit(9);
+      } else if (client) {
+        std::vector<v1::Imu> imus(static_cast<size_t>(topics), sample(i));
+        std::vector<behaviorlib::channel::ChannelClient::TopicSample> batch;
+        for (int k = 0; k < topics; ++k)
+          batch.push_back({topicName(k), &imus[static_cast<size_t>(k)]});
+        if (!client->publishAll(batch).ok()) _exit(9);
       } else if (floor_ring) {
         v1::SubscribeResponse response;
         response.set_topic(kTopic);
@@ -314,7 +350,7 @@ RunResult runOnce(const Options& o, const std::string& mode) {
       }
     }
     if (client && !client->sync().ok()) _exit(10);
-    writeReport(report_fd, {cpuUs() - cpu0, total, 0, 0, 0});
+    writeReport(report_fd, {cpuUs() - cpu0, total * static_cast<uint64_t>(topics), 0, 0, 0});
   });
   const bool with_broker = mode == "stream" || mode == "ring";
   const double broker0 = with_broker ? procCpuUs(broker.pid()) : 0;
@@ -372,6 +408,8 @@ int main(int argc, char** argv) {
       o.modes.clear();
       std::stringstream list(value());
       for (std::string m; std::getline(list, m, ',');) o.modes.push_back(m);
+    } else if (a == "--topics") {
+      o.topics = std::stoi(value());
     } else if (a == "--smoke") {
       o.rate_hz = 200;
       o.subscribers = 2;
@@ -380,12 +418,13 @@ int main(int argc, char** argv) {
     } else {
       std::fprintf(stderr,
                    "usage: channel_bench [--rate-hz 1000] [--subscribers 10] [--window-s 10] "
-                   "[--runs 3] [--modes pace,floor,stream,ring] [--smoke]\n");
+                   "[--runs 3] [--modes pace,floor,stream,ring] [--topics 1] [--smoke]\n");
       return 2;
     }
   }
   if (o.rate_hz <= 0 || o.rate_hz > 100000 || o.subscribers < 1 || o.subscribers > 64 ||
-      o.window_s <= 0 || o.window_s > 600 || o.runs < 1 || o.runs > 20) {
+      o.window_s <= 0 || o.window_s > 600 || o.runs < 1 || o.runs > 20 || o.topics < 1 ||
+      o.topics > 32) {
     std::fprintf(stderr, "channel_bench: an option is out of range\n");
     return 2;
   }
@@ -396,9 +435,9 @@ int main(int argc, char** argv) {
     }
   }
   std::printf(
-      "## channel_bench: 1 publisher at %.0f Hz -> %d subscriber processes, window %.0f s, "
-      "%d run(s)\n\n",
-      o.rate_hz, o.subscribers, o.window_s, o.runs);
+      "## channel_bench: 1 publisher at %.0f Hz on %d topic(s) -> %d subscriber processes, "
+      "window %.0f s, %d run(s)\n\n",
+      o.rate_hz, o.topics, o.subscribers, o.window_s, o.runs);
   std::printf(
       "| mode | delivered / expected | dropped | publisher µs / sample | broker µs / sample | "
       "a subscriber µs / delivery | **total µs / delivery** (each run) | latency p50 / "
@@ -440,8 +479,9 @@ int main(int argc, char** argv) {
       std::printf("| pace | - | - | %.2f | - | - | - | - |\n", median(pub));
       continue;
     }
-    const uint64_t expected = static_cast<uint64_t>(o.window_s * o.rate_hz) *
-                              static_cast<uint64_t>(o.subscribers) * static_cast<uint64_t>(o.runs);
+    const uint64_t expected =
+        static_cast<uint64_t>(o.window_s * o.rate_hz) * static_cast<uint64_t>(o.subscribers) *
+        static_cast<uint64_t>(mode == "floor" ? 1 : o.topics) * static_cast<uint64_t>(o.runs);
     std::printf("| %s | %llu / %llu | %llu | %.2f | %.2f | %.2f | **%.2f** (%s) | %.3f / %.3f |\n",
                 mode.c_str(), static_cast<unsigned long long>(delivered),
                 static_cast<unsigned long long>(expected), static_cast<unsigned long long>(dropped),

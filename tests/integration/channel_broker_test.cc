@@ -11,6 +11,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <fstream>
@@ -590,6 +591,68 @@ TEST_F(ChannelBrokerTest, ChannelClientPublishSubscribeAndQueries) {
   auto bad = client.subscribe("robots/x", {}, [](const v1::SubscribeResponse&) {});
   EXPECT_EQ(bad->status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_FALSE(bad->connected());
+}
+
+// A batch (PublishRequest.more) is one message: every sample in it is
+// numbered, checked and delivered as if published alone, and a refused one
+// ends the stream with the samples before it taken.
+TEST_F(ChannelBrokerTest, BatchesArePublishedSampleBySample) {
+  ChannelClient client(broker_.address());
+  std::mutex mutex;
+  std::vector<std::pair<std::string, uint64_t>> got;
+  std::vector<std::unique_ptr<Subscription>> subs;
+  for (const std::string topic : {"robots/b1/a", "robots/b1/b"}) {
+    subs.push_back(client.subscribe(topic, {.mode = v1::DELIVERY_MODE_QUEUE},
+                                    [&](const v1::SubscribeResponse& r) {
+                                      v1::Text t;
+                                      r.sample().UnpackTo(&t);
+                                      std::lock_guard lock(mutex);
+                                      got.emplace_back(t.text(), r.topic_seq());
+                                    }));
+  }
+  for (const auto& sub : subs) ASSERT_TRUE(sub->waitConnected(seconds(10)));
+  const v1::Text a1 = text("a1"), b1 = text("b1"), a2 = text("a2");
+  ASSERT_TRUE(
+      client.publishAll({{"robots/b1/a", &a1}, {"robots/b1/b", &b1}, {"robots/b1/a", &a2}}).ok());
+  ASSERT_TRUE(client.publishAll({}).ok());
+  auto accepted = client.flush();
+  ASSERT_TRUE(accepted.ok()) << accepted.status();
+  EXPECT_EQ(*accepted, 3u);
+  EXPECT_EQ(client.acceptedSeqs(),
+            (std::map<std::string, uint64_t>{{"robots/b1/a", 2}, {"robots/b1/b", 1}}));
+  ASSERT_TRUE(eventually([&] {
+    std::lock_guard lock(mutex);
+    return got.size() == 3;
+  }));
+  {
+    std::lock_guard lock(mutex);
+    std::sort(got.begin(), got.end());
+    EXPECT_THAT(got, ::testing::ElementsAre(std::pair<std::string, uint64_t>{"a1", 1},
+                                            std::pair<std::string, uint64_t>{"a2", 2},
+                                            std::pair<std::string, uint64_t>{"b1", 1}));
+  }
+
+  // A bad topic name is refused before anything is sent.
+  EXPECT_EQ(client.publishAll({{"robots/b1/a", &a1}, {"bad topic", &a1}}).code(),
+            absl::StatusCode::kInvalidArgument);
+  // A sample of the wrong type in the middle: the one before it is taken.
+  const v1::Clock wrong = clockSample(1);
+  ASSERT_TRUE(
+      client.publishAll({{"robots/b1/a", &a1}, {"robots/b1/b", &wrong}, {"robots/b1/a", &a2}})
+          .ok());
+  auto refused = client.flush();
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  auto latest = client.getLatest("robots/b1/a");
+  ASSERT_TRUE(latest.ok());
+  EXPECT_EQ(latest->topic_seq(), 3u) << "a1 of the refused batch was taken, a2 was not";
+
+  // A batch nested in a batch is refused.
+  v1::PublishRequest nested = publishRequest("robots/b1/a", text("x"));
+  *nested.add_more() = publishRequest("robots/b1/a", text("y"));
+  *nested.mutable_more(0)->add_more() = publishRequest("robots/b1/a", text("z"));
+  const grpc::Status status = publishOnce(channel_, nested);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(), HasSubstr("batch of its own"));
 }
 
 // The deterministic mode's barrier: sync() returns once the broker accepted

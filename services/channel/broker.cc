@@ -51,10 +51,11 @@ constexpr std::chrono::seconds kMaxGetLatestWait(1);
 // (at least 256 bytes), and a ring at most kMaxRingBytes, however many
 // samples its subscribers' queues would keep.
 constexpr std::size_t kMinSlotBytes = 256;
-constexpr std::size_t kMaxRingBytes = 64u << 20;
+constexpr std::size_t kMaxRingBytes = 32u << 20;
 constexpr uint32_t kMinRingSlots = 4;
 
-// Whether a peer runs on this host, so that it shares our /dev/shm.
+// Whether a peer runs on this host, so that it probably shares our /dev/shm
+// (for a client that does not name its shm_domain).
 bool localPeer(const std::string& peer) {
   return absl::StartsWith(peer, "ipv4:127.") || absl::StartsWith(peer, "ipv6:[::1]") ||
          absl::StartsWith(peer, "unix:");
@@ -727,7 +728,9 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
   auto reactor = std::make_shared<SubscribeReactor>(context, latest_only, queue_size);
   reactor->setOwner(this, reactor);
   const bool wants_ring =
-      request->shared_memory() && options_.shared_memory && localPeer(context->peer());
+      request->shared_memory() && options_.shared_memory &&
+      (request->shm_domain().empty() ? localPeer(context->peer())
+                                     : request->shm_domain() == ShmRing::domain());
   if (!invalid.ok()) {
     reactor->requestFinish(invalid);
     return reactor.get();

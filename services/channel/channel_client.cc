@@ -139,6 +139,7 @@ class Subscription::Impl {
       }
       v1::SubscribeRequest request = request_;
       request.set_shared_memory(use_ring);
+      if (use_ring) request.set_shm_domain(ShmRing::domain());
       std::unique_ptr<grpc::ClientReader<v1::SubscribeResponse>> reader =
           stub_->Subscribe(&context, request);
       // The broker sends its initial metadata once the subscription is

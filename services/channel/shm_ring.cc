@@ -13,6 +13,7 @@
 #include <cerrno>
 #include <climits>
 #include <cstring>
+#include <fstream>
 #include <new>
 
 #include "absl/strings/match.h"
@@ -104,8 +105,11 @@ absl::StatusOr<std::unique_ptr<ShmRing>> ShmRing::create(const std::string& name
   shm_unlink(name.c_str());
   const int fd = shm_open(name.c_str(), O_CREAT | O_EXCL | O_RDWR, 0600);
   if (fd < 0) return errnoStatus("cannot create the shared-memory ring", name);
-  if (ftruncate(fd, static_cast<off_t>(size)) != 0) {
-    absl::Status status = errnoStatus("cannot size the shared-memory ring", name);
+  // Reserved now: a full /dev/shm must fail here, not with SIGBUS at the
+  // first write into a page it could not supply.
+  if (const int error = posix_fallocate(fd, 0, static_cast<off_t>(size)); error != 0) {
+    errno = error;
+    absl::Status status = errnoStatus("cannot reserve the shared-memory ring", name);
     ::close(fd);
     shm_unlink(name.c_str());
     return status;
@@ -117,7 +121,7 @@ absl::StatusOr<std::unique_ptr<ShmRing>> ShmRing::create(const std::string& name
     shm_unlink(name.c_str());
     return status;
   }
-  // ftruncate zero-filled it: every slot's stamp is 0 (no sample).
+  // Reserved zero-filled: every slot's stamp is 0 (no sample).
   auto* h = new (base) Header{};
   h->slot_count = slot_count;
   h->slot_bytes = slot_bytes;
@@ -173,6 +177,18 @@ int ShmRing::removeStale() {
   }
   closedir(dir);
   return removed;
+}
+
+const std::string& ShmRing::domain() {
+  static const std::string domain = [] {
+    std::ifstream in("/proc/sys/kernel/random/boot_id");
+    std::string boot_id;
+    std::getline(in, boot_id);
+    struct stat ns {};
+    if (boot_id.empty() || stat("/proc/self/ns/ipc", &ns) != 0) return std::string();
+    return absl::StrCat(boot_id, "/", static_cast<uint64_t>(ns.st_ino));
+  }();
+  return domain;
 }
 
 void ShmRing::write(uint64_t seq, absl::string_view bytes) {

@@ -58,6 +58,11 @@ class ShmRing {
   /// Unlinks the rings under /dev/shm whose writer pid no longer runs.
   /// Returns how many were removed.
   static int removeStale();
+  /// Where this process's shared memory lives: "<boot id>/<IPC namespace
+  /// inode>". Two processes can share a ring when their domains are equal
+  /// (same host, same IPC namespace: containers included). Empty when it
+  /// cannot be read.
+  static const std::string& domain();
 
   ~ShmRing();
   ShmRing(const ShmRing&) = delete;

@@ -25,6 +25,7 @@
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
+#include "channel/shm_ring.h"
 #include "channel/sim_clock.h"
 #include "channel/topic.h"
 #include "support/server_process.h"
@@ -811,6 +812,29 @@ TEST_F(ChannelBrokerTest, SubscribersOnThisHostReadOneCopyFromSharedMemory) {
   // The ring goes with its last reader.
   subs.clear();
   EXPECT_TRUE(eventually([&] { return ringsOf(broker_.pid()).empty(); }));
+}
+
+// The broker offers a ring only to a client whose shared memory is its own
+// (same host and IPC namespace, SubscribeRequest.shm_domain); a client that
+// names none gets one only on the loopback.
+TEST_F(ChannelBrokerTest, RingsAreOfferedOnlyInTheBrokersSharedMemoryDomain) {
+  const auto offered = [&](const std::string& domain) {
+    v1::SubscribeRequest request = subscribeRequest("robots/s4/chat");
+    request.set_shared_memory(true);
+    request.set_shm_domain(domain);
+    auto stub = v1::DataChannel::NewStub(channel_);
+    grpc::ClientContext context;
+    auto reader = stub->Subscribe(&context, request);
+    reader->WaitForInitialMetadata();
+    const bool ring = context.GetServerInitialMetadata().count(kShmRingMetadataKey) > 0;
+    context.TryCancel();
+    reader->Finish();
+    return ring;
+  };
+  ASSERT_FALSE(ShmRing::domain().empty());
+  EXPECT_TRUE(offered(ShmRing::domain()));
+  EXPECT_TRUE(offered("")) << "a loopback client naming no domain";
+  EXPECT_FALSE(offered("another-host/4026531839"));
 }
 
 // With --shared-memory=false the broker offers no ring: a client that asks

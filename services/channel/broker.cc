@@ -427,18 +427,22 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
 };
 
 // ---------------------------------------------------------------------------
-// Publish: one read at a time; each sample is validated and fanned out on
-// gRPC's callback thread, which never waits for subscribers.
+// Publish and PublishAcked: one read at a time; each sample is validated and
+// fanned out on gRPC's callback thread, which never waits for subscribers.
 
-class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishRequest> {
+// What both kinds of publish stream keep: the gating prefix, the samples
+// taken and the last topic_seq of each topic.
+class Broker::Publisher {
  public:
-  PublishReactor(Broker* broker, grpc::CallbackServerContext* context,
-                 v1::PublishResponse* response)
-      : broker_(broker), response_(response) {
+  Publisher(Broker* broker, grpc::CallbackServerContext* context) : broker_(broker) {
     const auto& metadata = context->client_metadata();
     auto it = metadata.find(kGatedPrefixMetadataKey);
     if (it != metadata.end()) gated_prefix_ = std::string(it->second.data(), it->second.size());
   }
+  virtual ~Publisher() = default;
+
+  // Ends the stream with `status` (the first requested status wins).
+  virtual void requestFinish(const grpc::Status& status) = 0;
 
   // Whether this stream's publisher gates `topic` by interest (it said so
   // in its metadata, kGatedPrefixMetadataKey).
@@ -446,12 +450,70 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
     return gated_prefix_.has_value() && absl::StartsWith(topic, *gated_prefix_);
   }
 
+  // The topic of the previous sample on this stream (a stream usually
+  // publishes one topic), so that the common case skips the topic map and
+  // name validation, and that sample's topic_seq. Only used from
+  // OnReadDone, one read at a time.
+  std::shared_ptr<Topic> cached_topic;
+  uint64_t published_seq = 0;
+
+ protected:
+  // Publishes the request's sample and those of its batch, in order,
+  // stopping at the first refused one.
+  grpc::Status takeAll(v1::PublishRequest& request) {
+    grpc::Status status = take(request);
+    for (v1::PublishRequest& next : *request.mutable_more()) {
+      if (!status.ok()) break;
+      if (!next.more().empty()) {
+        status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
+                              "a sample in a batch ('more') has a batch of its own");
+        break;
+      }
+      status = take(next);
+    }
+    return status;
+  }
+
+  // What was taken so far. Caller holds mutex_.
+  void reportLocked(v1::PublishResponse* response) const {
+    response->set_accepted_count(accepted_);
+    for (const auto& [key, topic_seq] : published_seqs_) {
+      (*response->mutable_topic_seqs())[topic_seq.first->name] = topic_seq.second;
+    }
+  }
+
+  Broker* const broker_;
+  std::mutex mutex_;
+
+ private:
+  grpc::Status take(v1::PublishRequest& request) {
+    const grpc::Status status = broker_->publish(*this, request);
+    if (!status.ok()) return status;
+    std::lock_guard lock(mutex_);
+    ++accepted_;
+    published_seqs_[cached_topic.get()] = {cached_topic, published_seq};
+    return status;
+  }
+
+  std::optional<std::string> gated_prefix_;
+  uint64_t accepted_ = 0;
+  // The last seq published on each topic (PublishResponse.topic_seqs).
+  absl::flat_hash_map<const Topic*, std::pair<std::shared_ptr<Topic>, uint64_t>> published_seqs_;
+};
+
+class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishRequest>,
+                                     public Broker::Publisher {
+ public:
+  PublishReactor(Broker* broker, grpc::CallbackServerContext* context,
+                 v1::PublishResponse* response)
+      : Publisher(broker, context), response_(response) {}
+
   void start() {
     std::lock_guard lock(mutex_);
     if (!finished_) StartRead(&request_);
   }
 
-  void requestFinish(const grpc::Status& status) {
+  void requestFinish(const grpc::Status& status) override {
     std::lock_guard lock(mutex_);
     finishLocked(status);
   }
@@ -462,16 +524,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
       requestFinish(grpc::Status::OK);
       return;
     }
-    grpc::Status status = take(request_);
-    for (v1::PublishRequest& next : *request_.mutable_more()) {
-      if (!status.ok()) break;
-      if (!next.more().empty()) {
-        status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                              "a sample in a batch ('more') has a batch of its own");
-        break;
-      }
-      status = take(next);
-    }
+    const grpc::Status status = takeAll(request_);
     std::lock_guard lock(mutex_);
     if (!status.ok()) {
       finishLocked(status);
@@ -485,43 +538,110 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
     delete this;
   }
 
-  // Publishes one sample of the stream and counts it.
-  grpc::Status take(v1::PublishRequest& request) {
-    const grpc::Status status = broker_->publish(*this, request);
-    if (!status.ok()) return status;
-    std::lock_guard lock(mutex_);
-    ++accepted_;
-    published_seqs_[cached_topic.get()] = {cached_topic, published_seq};
-    return status;
-  }
-
-  // The topic of the previous sample on this stream (a stream usually
-  // publishes one topic), so that the common case skips the topic map and
-  // name validation, and that sample's topic_seq. Only used from
-  // OnReadDone, one read at a time.
-  std::shared_ptr<Topic> cached_topic;
-  uint64_t published_seq = 0;
-
  private:
   void finishLocked(const grpc::Status& status) {
     if (finished_) return;
     finished_ = true;
-    response_->set_accepted_count(accepted_);
-    for (const auto& [key, topic_seq] : published_seqs_) {
-      (*response_->mutable_topic_seqs())[topic_seq.first->name] = topic_seq.second;
-    }
+    reportLocked(response_);
     Finish(status);
   }
 
-  Broker* const broker_;
   v1::PublishResponse* const response_;
-  std::optional<std::string> gated_prefix_;
   v1::PublishRequest request_;  // used by one read at a time
-  std::mutex mutex_;
-  uint64_t accepted_ = 0;
-  // The last seq published on each topic (PublishResponse.topic_seqs).
-  absl::flat_hash_map<const Topic*, std::pair<std::shared_ptr<Topic>, uint64_t>> published_seqs_;
   bool finished_ = false;
+};
+
+// PublishAcked: as Publish, and every request marked `sync` is answered, in
+// order, once the samples before it are taken; the deterministic mode's
+// barrier then costs one round trip instead of a stream closed and opened.
+class Broker::AckedPublishReactor final
+    : public grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>,
+      public Broker::Publisher {
+ public:
+  AckedPublishReactor(Broker* broker, grpc::CallbackServerContext* context)
+      : Publisher(broker, context) {}
+
+  void start() {
+    std::lock_guard lock(mutex_);
+    if (!finish_status_.has_value()) {
+      StartRead(&request_);
+    }
+  }
+
+  void requestFinish(const grpc::Status& status) override {
+    std::lock_guard lock(mutex_);
+    if (!finish_status_.has_value()) finish_status_ = status;
+    pumpLocked();
+  }
+
+  void OnReadDone(bool ok) override {
+    if (!ok) {
+      // The client half-closed (or the call ended): answer what was asked,
+      // then end.
+      std::lock_guard lock(mutex_);
+      if (!finish_status_.has_value()) finish_status_ = grpc::Status::OK;
+      pumpLocked();
+      return;
+    }
+    grpc::Status status = grpc::Status::OK;
+    if (request_.has_sample() || !request_.topic().empty() || !request_.more().empty()) {
+      status = takeAll(request_);
+    }
+    std::lock_guard lock(mutex_);
+    if (!status.ok()) {
+      if (!finish_status_.has_value()) finish_status_ = status;
+      acks_.clear();  // the client learns of the refusal from the stream's end
+      pumpLocked();
+      return;
+    }
+    if (request_.sync()) {
+      acks_.emplace_back();
+      reportLocked(&acks_.back());
+    }
+    if (!finish_status_.has_value()) {
+      StartRead(&request_);
+    }
+    pumpLocked();
+  }
+
+  void OnWriteDone(bool ok) override {
+    std::lock_guard lock(mutex_);
+    writing_ = false;
+    if (!ok && !finish_status_.has_value()) {
+      finish_status_ = grpc::Status(grpc::StatusCode::CANCELLED, "publisher stream broken");
+    }
+    pumpLocked();
+  }
+
+  void OnDone() override {
+    broker_->removePublisher(this);
+    delete this;
+  }
+
+ private:
+  // Writes the next answer, or finishes once nothing is in flight.
+  void pumpLocked() {
+    if (writing_ || finished_) return;
+    if (!acks_.empty() && (!finish_status_.has_value() || finish_status_->ok())) {
+      current_ = std::move(acks_.front());
+      acks_.pop_front();
+      writing_ = true;
+      StartWrite(&current_);
+      return;
+    }
+    // A read may still be pending: it then completes, not ok.
+    if (finish_status_.has_value()) {
+      finished_ = true;
+      Finish(*finish_status_);
+    }
+  }
+
+  v1::PublishRequest request_;  // used by one read at a time
+  std::deque<v1::PublishResponse> acks_;
+  v1::PublishResponse current_;  // the answer being written
+  bool writing_ = false;
+  bool finished_ = false;
+  std::optional<grpc::Status> finish_status_;
 };
 
 // ---------------------------------------------------------------------------
@@ -616,21 +736,32 @@ std::shared_ptr<Broker::Topic> Broker::topicLocked(const std::string& name) {
 grpc::ServerReadReactor<v1::PublishRequest>* Broker::Publish(grpc::CallbackServerContext* context,
                                                              v1::PublishResponse* response) {
   auto* reactor = new PublishReactor(this, context, response);
-  bool refuse = false;
-  {
-    std::lock_guard lock(mutex_);
-    refuse = shutting_down_;
-    publishers_.insert(reactor);
-  }
-  if (refuse) {
-    reactor->requestFinish(shuttingDownStatus());
-  } else {
+  if (addPublisher(reactor)) {
     reactor->start();
+  } else {
+    reactor->requestFinish(shuttingDownStatus());
   }
   return reactor;
 }
 
-grpc::Status Broker::publish(PublishReactor& publisher, v1::PublishRequest& request) {
+grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>* Broker::PublishAcked(
+    grpc::CallbackServerContext* context) {
+  auto* reactor = new AckedPublishReactor(this, context);
+  if (addPublisher(reactor)) {
+    reactor->start();
+  } else {
+    reactor->requestFinish(shuttingDownStatus());
+  }
+  return reactor;
+}
+
+bool Broker::addPublisher(Publisher* publisher) {
+  std::lock_guard lock(mutex_);
+  publishers_.insert(publisher);
+  return !shutting_down_;
+}
+
+grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) {
   std::shared_ptr<Topic> topic = publisher.cached_topic;
   if (!topic || topic->name != request.topic()) {
     topic.reset();
@@ -697,7 +828,7 @@ grpc::Status Broker::publish(PublishReactor& publisher, v1::PublishRequest& requ
   return grpc::Status::OK;
 }
 
-void Broker::removePublisher(PublishReactor* publisher) {
+void Broker::removePublisher(Publisher* publisher) {
   std::lock_guard lock(mutex_);
   publishers_.erase(publisher);
 }
@@ -1028,7 +1159,7 @@ void Broker::shutdown() {
     // Finish never runs a reaction inline (OnDone, which needs mutex_, is
     // dispatched to gRPC's threads), so this is safe under the lock, which
     // keeps the reactors alive meanwhile.
-    for (PublishReactor* publisher : publishers_) publisher->requestFinish(shuttingDownStatus());
+    for (Publisher* publisher : publishers_) publisher->requestFinish(shuttingDownStatus());
     watchers = interest_watchers_;
   }
   housekeeping_cv_.notify_all();  // answers the waiting GetLatest calls

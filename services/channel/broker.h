@@ -59,6 +59,8 @@ class Broker final : public v1::DataChannel::CallbackService {
 
   grpc::ServerReadReactor<v1::PublishRequest>* Publish(grpc::CallbackServerContext* context,
                                                        v1::PublishResponse* response) override;
+  grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>* PublishAcked(
+      grpc::CallbackServerContext* context) override;
   grpc::ServerWriteReactor<v1::SubscribeResponse>* Subscribe(
       grpc::CallbackServerContext* context, const v1::SubscribeRequest* request) override;
   grpc::ServerUnaryReactor* GetLatest(grpc::CallbackServerContext* context,
@@ -76,7 +78,9 @@ class Broker final : public v1::DataChannel::CallbackService {
   void shutdown();
 
  private:
+  class Publisher;
   class PublishReactor;
+  class AckedPublishReactor;
   class SubscribeReactor;
   class InterestReactor;
   struct Topic;
@@ -84,11 +88,13 @@ class Broker final : public v1::DataChannel::CallbackService {
   using InterestReactors = std::vector<std::shared_ptr<InterestReactor>>;
 
   // Validates and stores one sample; fans it out to the subscribers.
-  grpc::Status publish(PublishReactor& publisher, v1::PublishRequest& request);
+  grpc::Status publish(Publisher& publisher, v1::PublishRequest& request);
+  // Registers a publish stream; false when the broker is shutting down.
+  bool addPublisher(Publisher* publisher);
   // Caller holds mutex_.
   std::shared_ptr<Topic> topicLocked(const std::string& name);
   void removeSubscriber(const std::shared_ptr<Topic>& topic, const SubscribeReactor* subscriber);
-  void removePublisher(PublishReactor* publisher);
+  void removePublisher(Publisher* publisher);
   void countRejected(absl::string_view reason);
   // Shared-memory rings. Callers hold the topic's mutex.
   // Makes the topic's ring hold at least `slots` samples of `bytes` each
@@ -117,7 +123,7 @@ class Broker final : public v1::DataChannel::CallbackService {
   // Sorted, for ListTopics. A topic stays once something was published on
   // it; a topic that only had waiting subscribers goes away with them.
   std::map<std::string, std::shared_ptr<Topic>, std::less<>> topics_;
-  std::unordered_set<PublishReactor*> publishers_;
+  std::unordered_set<Publisher*> publishers_;
   InterestReactors interest_watchers_;
   // Topics with a transient interest or waiting GetLatest calls.
   std::set<std::shared_ptr<Topic>> timed_topics_;

@@ -417,7 +417,7 @@ class ChannelClient::Impl {
 
   ~Impl() {
     std::lock_guard lock(publish_mutex_);
-    if (writer_) closeLocked(nullptr).IgnoreError();
+    if (writer_) closeLocked().IgnoreError();
   }
 
   absl::Status publish(const std::string& topic, const google::protobuf::Message& sample) {
@@ -451,7 +451,7 @@ class ChannelClient::Impl {
         unsynced_ = true;
         return absl::OkStatus();
       }
-      absl::Status status = closeLocked(nullptr);
+      absl::Status status = closeLocked();
       // A stream that worked before and broke because the broker went away
       // (restart) deserves one retry on a new stream; anything else, or a
       // fresh stream failing, is reported.
@@ -468,15 +468,15 @@ class ChannelClient::Impl {
     std::lock_guard lock(publish_mutex_);
     if (!writer_) return 0;
     uint64_t accepted = 0;
-    absl::Status status = closeLocked(&accepted);
-    if (!status.ok()) return status;
+    if (absl::Status status = askLocked(&accepted); !status.ok()) return status;
+    if (absl::Status status = closeLocked(); !status.ok()) return status;
     return accepted;
   }
 
   absl::Status sync() {
     std::lock_guard lock(publish_mutex_);
     if (!writer_ || !unsynced_) return absl::OkStatus();
-    return closeLocked(nullptr);
+    return askLocked(nullptr);
   }
 
   bool delivered(const std::function<uint64_t(const std::string&)>& topic_seq) const {
@@ -561,7 +561,7 @@ class ChannelClient::Impl {
   void gatePublishing(const std::string& prefix) {
     std::lock_guard lock(publish_mutex_);
     gated_prefix_ = prefix;
-    if (writer_) closeLocked(nullptr).IgnoreError();
+    if (writer_) closeLocked().IgnoreError();
   }
 
   std::unique_ptr<InterestWatch> watchInterest(const std::string& prefix,
@@ -576,24 +576,43 @@ class ChannelClient::Impl {
   void openLocked() {
     publish_context_ = std::make_unique<grpc::ClientContext>();
     if (gated_prefix_) publish_context_->AddMetadata(kGatedPrefixMetadataKey, *gated_prefix_);
-    publish_response_.Clear();
-    writer_ = stub_->Publish(publish_context_.get(), &publish_response_);
+    writer_ = stub_->PublishAcked(publish_context_.get());
   }
 
-  absl::Status closeLocked(uint64_t* accepted) {
-    writer_->WritesDone();
-    const grpc::Status status = writer_->Finish();
-    if (accepted != nullptr) *accepted = publish_response_.accepted_count();
+  // Asks the broker what the stream has taken so far (PublishRequest.sync):
+  // one round trip, the stream stays open. A refusal or a broker gone ends
+  // the stream, and its status is returned.
+  absl::Status askLocked(uint64_t* accepted) {
+    v1::PublishRequest marker;
+    marker.set_sync(true);
+    v1::PublishResponse answer;
+    if (!writer_->Write(marker) || !writer_->Read(&answer)) {
+      absl::Status status = closeLocked();
+      return status.ok() ? absl::UnavailableError(absl::StrCat("publish stream to ", address_,
+                                                               " was closed by the broker"))
+                         : status;
+    }
+    if (accepted != nullptr) *accepted = answer.accepted_count();
     {
       std::lock_guard lock(accepted_mutex_);
-      if (status.ok()) {
-        for (const auto& [topic, seq] : publish_response_.topic_seqs()) {
-          uint64_t& known = accepted_seqs_[topic];
-          known = std::max(known, seq);
-        }
-      } else {
-        accepted_seqs_.clear();  // a broker restart numbers topics anew
+      for (const auto& [topic, seq] : answer.topic_seqs()) {
+        uint64_t& known = accepted_seqs_[topic];
+        known = std::max(known, seq);
       }
+    }
+    unsynced_ = false;
+    return absl::OkStatus();
+  }
+
+  absl::Status closeLocked() {
+    writer_->WritesDone();
+    v1::PublishResponse unread;
+    while (writer_->Read(&unread)) {
+    }
+    const grpc::Status status = writer_->Finish();
+    if (!status.ok()) {
+      std::lock_guard lock(accepted_mutex_);
+      accepted_seqs_.clear();  // a broker restart numbers topics anew
     }
     writer_.reset();
     publish_context_.reset();
@@ -606,8 +625,7 @@ class ChannelClient::Impl {
 
   std::mutex publish_mutex_;  // guards the publish stream below
   std::unique_ptr<grpc::ClientContext> publish_context_;
-  v1::PublishResponse publish_response_;
-  std::unique_ptr<grpc::ClientWriter<v1::PublishRequest>> writer_;
+  std::unique_ptr<grpc::ClientReaderWriter<v1::PublishRequest, v1::PublishResponse>> writer_;
   std::optional<std::string> gated_prefix_;
   bool unsynced_ = false;  // written on the stream since it opened
   mutable std::mutex accepted_mutex_;

@@ -159,13 +159,15 @@ class ChannelClient {
   absl::StatusOr<uint64_t> flush();
 
   /// Returns once every sample published by this client so far has been
-  /// accepted by the broker (a flush(), skipped when nothing was published
-  /// since the last one); the deterministic mode's barrier.
+  /// accepted by the broker (one round trip on the open stream,
+  /// DataChannel.PublishAcked; skipped when nothing was published since the
+  /// last one); the deterministic mode's barrier. A refused sample or a
+  /// broker gone ends the stream, and sync() returns why.
   absl::Status sync();
 
   /// The topic_seq of the last sample this client published on each topic,
-  /// as the broker reported when a stream closed (flush(), sync()); emptied
-  /// when a stream failed (a restarted broker numbers anew).
+  /// as the broker reported at the last sync() or flush(); emptied when a
+  /// stream failed (a restarted broker numbers anew).
   std::map<std::string, uint64_t> acceptedSeqs() const;
 
   /// Whether every connected subscription made by this client has processed

@@ -656,6 +656,40 @@ TEST_F(ChannelBrokerTest, BatchesArePublishedSampleBySample) {
   EXPECT_THAT(status.error_message(), HasSubstr("batch of its own"));
 }
 
+// PublishAcked answers each `sync` request with what the stream has taken,
+// in order, and keeps the stream open; a refused sample still ends it.
+TEST_F(ChannelBrokerTest, PublishAckedAnswersEverySyncOnTheOpenStream) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + seconds(30));
+  auto stream = stub_->PublishAcked(&context);
+  v1::PublishRequest sync;
+  sync.set_sync(true);
+  v1::PublishResponse answer;
+  ASSERT_TRUE(stream->Write(publishRequest("robots/k1/a", text("1"))));
+  v1::PublishRequest second = publishRequest("robots/k1/b", text("2"));
+  second.set_sync(true);  // a sample and the question in one request
+  ASSERT_TRUE(stream->Write(second));
+  ASSERT_TRUE(stream->Read(&answer));
+  EXPECT_EQ(answer.accepted_count(), 2u);
+  EXPECT_EQ(answer.topic_seqs().at("robots/k1/a"), 1u);
+  EXPECT_EQ(answer.topic_seqs().at("robots/k1/b"), 1u);
+  ASSERT_TRUE(stream->Write(publishRequest("robots/k1/a", text("3"))));
+  ASSERT_TRUE(stream->Write(sync));
+  ASSERT_TRUE(stream->Write(sync));
+  ASSERT_TRUE(stream->Read(&answer));
+  EXPECT_EQ(answer.accepted_count(), 3u);
+  EXPECT_EQ(answer.topic_seqs().at("robots/k1/a"), 2u);
+  ASSERT_TRUE(stream->Read(&answer));
+  EXPECT_EQ(answer.accepted_count(), 3u) << "a question alone takes nothing";
+  // A sample of another type than the topic's ends the stream, unanswered.
+  ASSERT_TRUE(stream->Write(publishRequest("robots/k1/a", clockSample(1))));
+  stream->Write(sync);
+  EXPECT_FALSE(stream->Read(&answer));
+  const grpc::Status status = stream->Finish();
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  EXPECT_THAT(status.error_message(), HasSubstr("carries behaviorlib.v1.Text"));
+}
+
 // The deterministic mode's barrier: sync() returns once the broker accepted
 // everything published, and delivered() tells whether each subscription has
 // processed the sample a topic_seq names (samples published before it

@@ -674,7 +674,7 @@ void Broker::countRejected(absl::string_view reason) {
 
 bool Broker::ensureRingLocked(Topic& topic, uint32_t slots, std::size_t bytes) {
   const std::size_t want_bytes = std::max(kMinSlotBytes, (2 * bytes + 63) & ~std::size_t{63});
-  if (topic.ring && topic.ring->slotBytes() >= bytes && topic.ring->slotBytes() > 0 &&
+  if (topic.ring && topic.ring->slotBytes() >= bytes &&
       (topic.ring->slotCount() >= slots ||
        topic.ring->slotCount() * topic.ring->slotBytes() >= kMaxRingBytes / 2)) {
     return true;
@@ -733,10 +733,13 @@ std::shared_ptr<Broker::Topic> Broker::topicLocked(const std::string& name) {
   return topic;
 }
 
-grpc::ServerReadReactor<v1::PublishRequest>* Broker::Publish(grpc::CallbackServerContext* context,
-                                                             v1::PublishResponse* response) {
-  auto* reactor = new PublishReactor(this, context, response);
-  if (addPublisher(reactor)) {
+namespace {
+
+// Starts a publish stream's reactor, or ends it at once when the broker is
+// shutting down.
+template <class Reactor>
+Reactor* startPublisher(Reactor* reactor, bool registered) {
+  if (registered) {
     reactor->start();
   } else {
     reactor->requestFinish(shuttingDownStatus());
@@ -744,15 +747,18 @@ grpc::ServerReadReactor<v1::PublishRequest>* Broker::Publish(grpc::CallbackServe
   return reactor;
 }
 
+}  // namespace
+
+grpc::ServerReadReactor<v1::PublishRequest>* Broker::Publish(grpc::CallbackServerContext* context,
+                                                             v1::PublishResponse* response) {
+  auto* reactor = new PublishReactor(this, context, response);
+  return startPublisher(reactor, addPublisher(reactor));
+}
+
 grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>* Broker::PublishAcked(
     grpc::CallbackServerContext* context) {
   auto* reactor = new AckedPublishReactor(this, context);
-  if (addPublisher(reactor)) {
-    reactor->start();
-  } else {
-    reactor->requestFinish(shuttingDownStatus());
-  }
-  return reactor;
+  return startPublisher(reactor, addPublisher(reactor));
 }
 
 bool Broker::addPublisher(Publisher* publisher) {

@@ -83,8 +83,7 @@ absl::StatusOr<QrAttentionBehavior::Settings> QrAttentionBehavior::settingsFrom(
   s.min_sightings = static_cast<unsigned>(p.min_sightings());
   s.max_range_m = p.max_range_m();
   s.max_reprojection_error_px = p.max_reprojection_error_px();
-  s.image_timeout =
-      std::chrono::duration_cast<Duration>(std::chrono::duration<double>(p.image_timeout_s()));
+  s.image_timeout = seconds(p.image_timeout_s());
   return s;
 }
 

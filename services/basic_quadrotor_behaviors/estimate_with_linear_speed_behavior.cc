@@ -162,8 +162,7 @@ absl::Status EstimatePositionWithLinearSpeedBehavior::onActivate() {
     publish_error_ = absl::OkStatus();
     running_ = publishing_ = true;
   }
-  setMaximumExecutionTime(std::chrono::duration_cast<Duration>(
-      std::chrono::duration<double>(parameters().max_duration_s())));
+  setMaximumExecutionTime(seconds(parameters().max_duration_s()));
   activated_at_ = start;
   active_ = true;
   // The orientation is read at the speed samples' rate: the newest is enough.
@@ -218,8 +217,7 @@ absl::Status EstimatePositionWithLinearSpeedBehavior::onModify(
     std::lock_guard lock(mutex_);
     max_speed_m_s_ = p.max_speed_m_s();
   }
-  setMaximumExecutionTime(
-      std::chrono::duration_cast<Duration>(std::chrono::duration<double>(p.max_duration_s())));
+  setMaximumExecutionTime(seconds(p.max_duration_s()));
   return absl::OkStatus();
 }
 

@@ -49,8 +49,7 @@ std::optional<std::string> SensorStream::problem(TimePoint now, TimePoint activa
            flight::secondsText(now - *last_) + " ago (limit " + flight::secondsText(timeout_) + ")";
   }
   if (frozen_timeout_ > Duration::zero()) {
-    const auto frozen =
-        std::chrono::duration_cast<Duration>(std::chrono::duration<double>(frozen_.frozenForS()));
+    const auto frozen = seconds(frozen_.frozenForS());
     if (frozen > frozen_timeout_) {
       return "the sensor on " + topic_ + " is frozen: the same value for " +
              flight::secondsText(frozen) + " (limit " + flight::secondsText(frozen_timeout_) + ")";

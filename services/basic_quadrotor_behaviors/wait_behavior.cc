@@ -5,8 +5,7 @@
 namespace behaviorlib::basic {
 
 Verdict WaitBehavior::checkGoal() {
-  const auto wanted = std::chrono::duration_cast<Duration>(
-      std::chrono::duration<double>(parameters().duration_s()));
+  const auto wanted = seconds(parameters().duration_s());
   if (activeTime() >= wanted) {
     char message[64];
     std::snprintf(message, sizeof(message), "waited %g s", parameters().duration_s());

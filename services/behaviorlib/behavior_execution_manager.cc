@@ -27,7 +27,7 @@ google::protobuf::Duration toProtoDuration(Duration d) {
   return TimeUtil::NanosecondsToDuration(d.count());
 }
 
-std::string seconds(Duration d) {
+std::string secondsText(Duration d) {
   std::ostringstream out;
   out << std::chrono::duration<double>(d).count() << " s";
   return out.str();
@@ -112,8 +112,7 @@ absl::Status BehaviorExecutionManager::start(BehaviorContext context) {
     if (context_.config && context_.config.IsMap()) {
       if (auto f = context_.config["frequency_hz"]) options_.frequency_hz = f.as<double>();
       if (auto m = context_.config["maximum_execution_time_s"]) {
-        options_.maximum_execution_time =
-            std::chrono::duration_cast<Duration>(std::chrono::duration<double>(m.as<double>()));
+        options_.maximum_execution_time = seconds(m.as<double>());
       }
       if (auto w = context_.config["watchdog_timeout_s"]) {
         options_.watchdog_timeout =
@@ -331,7 +330,7 @@ void BehaviorExecutionManager::watchdogCheck(std::chrono::steady_clock::time_poi
   const char* function = call_function_.load(std::memory_order_relaxed);
   recordFinishedLocked(v1::TERMINATION_CAUSE_PROCESS_FAILURE,
                        std::string(function ? function : "user code") + " did not return within " +
-                           seconds(limit) + " (watchdog); " + name_ +
+                           secondsText(limit) + " (watchdog); " + name_ +
                            " accepts activations again once it returns");
   state_ = State::kBlocked;
   if (context_.observer) context_.observer->onBlocked(true);
@@ -385,9 +384,10 @@ void BehaviorExecutionManager::execute() {
   if (cause == v1::TERMINATION_CAUSE_UNSPECIFIED && maximum_execution_time_ > Duration::zero() &&
       activeTime() >= maximum_execution_time_) {
     cause = v1::TERMINATION_CAUSE_TIME_OUT;
-    message = !time_out_reason_.empty() ? time_out_reason_
-                                        : "not finished within maximum_execution_time " +
-                                              seconds(maximum_execution_time_) + " of active time";
+    message = !time_out_reason_.empty()
+                  ? time_out_reason_
+                  : "not finished within maximum_execution_time " +
+                        secondsText(maximum_execution_time_) + " of active time";
   }
   if (context_.observer) context_.observer->onMonitoring(std::chrono::steady_clock::now() - t0);
   if (cause != v1::TERMINATION_CAUSE_UNSPECIFIED) {

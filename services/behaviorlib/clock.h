@@ -23,6 +23,15 @@ namespace behaviorlib {
 using Duration = std::chrono::nanoseconds;
 using TimePoint = std::chrono::time_point<std::chrono::system_clock, Duration>;
 
+/// A Duration from seconds given as a double (a parameter such as
+/// `duration_s`), rounded toward zero to the nanosecond: `seconds(1.5)`.
+constexpr Duration seconds(double s) {
+  return std::chrono::duration_cast<Duration>(std::chrono::duration<double>(s));
+}
+
+/// The inverse: a Duration in seconds, as a double.
+constexpr double toSeconds(Duration d) { return std::chrono::duration<double>(d).count(); }
+
 /// Notified when a non-wall clock's time jumps forward, so that threads
 /// waiting for a deadline on that clock re-check it at once.
 class ClockListener {

@@ -24,9 +24,9 @@ absl::Status readNumber(const YAML::Node& config, const char* key, double min, d
 
 absl::Status readSeconds(const YAML::Node& config, const char* key, double min, double max,
                          Duration* value) {
-  double seconds = std::chrono::duration<double>(*value).count();
-  if (absl::Status s = readNumber(config, key, min, max, &seconds); !s.ok()) return s;
-  *value = std::chrono::duration_cast<Duration>(std::chrono::duration<double>(seconds));
+  double value_s = std::chrono::duration<double>(*value).count();
+  if (absl::Status s = readNumber(config, key, min, max, &value_s); !s.ok()) return s;
+  *value = seconds(value_s);
   return absl::OkStatus();
 }
 

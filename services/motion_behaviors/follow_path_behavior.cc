@@ -109,8 +109,7 @@ absl::Status FollowPathBehavior<Params>::onActivate() {
   tracker_->start(support_.state().position_m, support_.yawRad());
   tolerance_m_ = p.tolerance_m();
   if (this->options().maximum_execution_time == Duration::zero()) {
-    this->setMaximumExecutionTime(std::chrono::duration_cast<Duration>(
-        std::chrono::duration<double>(3.0 * tracker_->totalTimeS() + 10.0)));
+    this->setMaximumExecutionTime(seconds(3.0 * tracker_->totalTimeS() + 10.0));
   }
   cross_track_sum_sq_ = cross_track_max_ = 0.0;
   cross_track_samples_ = 0;

@@ -30,8 +30,6 @@ void applyLimits(const v1::QuadrotorMpcMotionControlParameters& p, motion::Vehic
   model->max_tilt_rad = p.max_tilt_rad();
 }
 
-double seconds(Duration d) { return std::chrono::duration<double>(d).count(); }
-
 }  // namespace
 
 BehaviorOptions controllerBehaviorOptions() {
@@ -57,12 +55,11 @@ absl::Status MotionControlBehavior<Params>::onConfigure(const YAML::Node& config
       !s.ok()) {
     return s;
   }
-  double status_hz = 1.0 / seconds(status_period_);
+  double status_hz = 1.0 / toSeconds(status_period_);
   if (auto s = flight::readNumber(config, "status_frequency_hz", 0, 1000, &status_hz); !s.ok()) {
     return s;
   }
-  status_period_ =
-      std::chrono::duration_cast<Duration>(std::chrono::duration<double>(1.0 / status_hz));
+  status_period_ = seconds(1.0 / status_hz);
   if (auto s = flight::readSeconds(config, "saturation_timeout_s", 0, 600, &saturation_timeout_);
       !s.ok()) {
     return s;
@@ -112,7 +109,7 @@ motion::MotionReference MotionControlBehavior<Params>::currentReference(TimePoin
   const auto latest = link_.latestReference();
   if (latest && latest->mode() != v1::MOTION_REFERENCE_MODE_UNSPECIFIED) {
     const double age = ageSeconds(latest->header(), now);
-    if (age <= seconds(reference_timeout_)) {
+    if (age <= toSeconds(reference_timeout_)) {
       motion::MotionReference reference = advance(fromProto(*latest), std::max(age, 0.0));
       if (reference.mode == motion::MotionReference::Mode::kVelocity) {
         hold_where_stopped_ = true;
@@ -139,7 +136,7 @@ motion::MotionReference MotionControlBehavior<Params>::currentReference(TimePoin
 template <class Params>
 void MotionControlBehavior<Params>::onExecute() {
   const TimePoint t = this->now();
-  const double dt = std::clamp(seconds(t - last_step_), 0.001, 0.1);
+  const double dt = std::clamp(toSeconds(t - last_step_), 0.001, 0.1);
   last_step_ = t;
   motion::StateEstimate state = support_.state();
   // The estimate is a few hops old: advance it by its age.

@@ -9,10 +9,6 @@
 namespace behaviorlib::operator_interaction {
 namespace {
 
-Duration secondsOf(double s) {
-  return std::chrono::duration_cast<Duration>(std::chrono::duration<double>(s));
-}
-
 BehaviorOptions requestOptions() {
   BehaviorOptions o;
   o.frequency_hz = 20.0;
@@ -72,7 +68,7 @@ absl::Status RequestOperatorAssistanceBehavior::onActivate() {
         "parameter 'answer_key': '" + answer_key_ +
         "' is not a belief key (letters, digits, '_', '-', '.', segments separated by '/')");
   }
-  setMaximumExecutionTime(secondsOf(p.timeout_s()));
+  setMaximumExecutionTime(seconds(p.timeout_s()));
   asked_at_ = now();
   failing_since_.reset();
   watch_ = std::make_unique<AnswerWatch>(
@@ -94,9 +90,9 @@ void RequestOperatorAssistanceBehavior::onDeactivate() {
   const bool answered = watch_->state() == AnswerWatch::State::kAnswered;
   watch_.reset();
   if (!asked) return;
-  const std::string state = answered                                              ? "answered"
-                            : activeTime() >= secondsOf(parameters().timeout_s()) ? "timed_out"
-                                                                                  : "withdrawn";
+  const std::string state = answered                                            ? "answered"
+                            : activeTime() >= seconds(parameters().timeout_s()) ? "timed_out"
+                                                                                : "withdrawn";
   // Best effort: the operator's view of the request; the outcome is the
   // behavior's event either way.
   (void)beliefs_->write("operator/requests/" + request_id_, requestValue(state),
@@ -111,7 +107,7 @@ absl::Status RequestOperatorAssistanceBehavior::onModify(
     return absl::InvalidArgumentError(
         "only timeout_s can change while the question is open; deactivate and ask again");
   }
-  setMaximumExecutionTime(secondsOf(p.timeout_s()));
+  setMaximumExecutionTime(seconds(p.timeout_s()));
   return absl::OkStatus();
 }
 

@@ -24,8 +24,6 @@ BehaviorOptions platformBehaviorOptions(Duration maximum_execution_time) {
   return options;
 }
 
-double seconds(Duration d) { return std::chrono::duration<double>(d).count(); }
-
 std::string degrees(double rad) { return fixed2(rad * 180.0 / std::numbers::pi) + " deg"; }
 
 }  // namespace
@@ -103,7 +101,7 @@ absl::Status MoveVerticalBehavior::onActivate() {
 
 void MoveVerticalBehavior::onExecute() {
   const TimePoint t = now();
-  const double step = parameters().speed_m_s() * std::max(seconds(t - last_update_), 0.0);
+  const double step = parameters().speed_m_s() * std::max(toSeconds(t - last_update_), 0.0);
   last_update_ = t;
   const double to_go = target_z_m_ - reference_z_m_;
   reference_z_m_ =
@@ -226,7 +224,7 @@ Situation MoveAtSpeedBehavior::checkSituation() {
 
 Verdict MoveAtSpeedBehavior::checkGoal() {
   const double duration = parameters().duration_s();
-  if (duration <= 0.0 || seconds(activeTime()) < duration) return Verdict::keepGoing();
+  if (duration <= 0.0 || toSeconds(activeTime()) < duration) return Verdict::keepGoing();
   return Verdict::finish("moved at " + pointText(requested()) + " m/s for " +
                          secondsText(activeTime()));
 }
@@ -280,7 +278,7 @@ absl::Status RotateWithPlatformControlBehavior::onActivate() {
 
 void RotateWithPlatformControlBehavior::onExecute() {
   const TimePoint t = now();
-  const double step = parameters().yaw_rate_rad_s() * std::max(seconds(t - last_update_), 0.0);
+  const double step = parameters().yaw_rate_rad_s() * std::max(toSeconds(t - last_update_), 0.0);
   last_update_ = t;
   reference_yaw_rad_ = motion_behaviors::turnTowards(reference_yaw_rad_, target_yaw_rad_, step);
   support_.goTo(hold_m_, reference_yaw_rad_);

@@ -15,9 +15,7 @@ BehaviorOptions positionOptions() {
   return o;
 }
 
-Duration periodOf(double rate_hz) {
-  return std::chrono::duration_cast<Duration>(std::chrono::duration<double>(1.0 / rate_hz));
-}
+Duration periodOf(double rate_hz) { return seconds(1.0 / rate_hz); }
 
 absl::Status checkRecipients(const google::protobuf::RepeatedPtrField<std::string>& ids) {
   for (int i = 0; i < ids.size(); ++i) {

@@ -33,8 +33,7 @@ class ProbeBehavior final : public Behavior<v1::WaitParameters> {
  protected:
   absl::Status onActivate() override {
     first_execute_pending_ = true;
-    wanted_ = std::chrono::duration_cast<Duration>(
-        std::chrono::duration<double>(parameters().duration_s()));
+    wanted_ = seconds(parameters().duration_s());
     return absl::OkStatus();
   }
 

@@ -55,8 +55,7 @@ class WaitLikeBehavior final : public Behavior<v1::WaitParameters> {
 
  protected:
   Verdict checkGoal() override {
-    const auto wanted = std::chrono::duration_cast<Duration>(
-        std::chrono::duration<double>(parameters().duration_s()));
+    const auto wanted = seconds(parameters().duration_s());
     return activeTime() >= wanted ? Verdict::finish("waited") : Verdict::keepGoing();
   }
 };

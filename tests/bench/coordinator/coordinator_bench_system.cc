@@ -36,8 +36,7 @@ class BenchBehavior final : public Behavior<v1::WaitParameters> {
 
  protected:
   absl::Status onActivate() override {
-    wanted_ = std::chrono::duration_cast<Duration>(
-        std::chrono::duration<double>(parameters().duration_s()));
+    wanted_ = seconds(parameters().duration_s());
     return absl::OkStatus();
   }
 

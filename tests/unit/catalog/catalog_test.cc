@@ -3,6 +3,14 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <set>
+#include <string>
+#include <string_view>
+
+#include "behaviorlib/embedded_descriptors.h"
+#include "behaviorlib/v1/options.pb.h"
+#include "google/protobuf/descriptor.pb.h"
+
 namespace behaviorlib::coordinator {
 namespace {
 
@@ -121,42 +129,32 @@ TEST(Catalog, ADefaultOfTheWrongTypeIsAnError) {
   EXPECT_THAT(std::string(s.message()), HasSubstr("'speed_m_s' must be of type string"));
 }
 
-TEST(Catalog, TheShippedCatalogCoversEveryBehaviorOfThePapersTable) {
+// The behaviors the API declares: every typed service carrying the
+// (behaviorlib.v1.behavior) option in the embedded descriptor set.
+std::set<std::string> declaredBehaviors() {
+  google::protobuf::FileDescriptorSet files;
+  const std::string_view bytes = embedded::descriptorSet();
+  EXPECT_TRUE(files.ParseFromArray(bytes.data(), static_cast<int>(bytes.size())));
+  std::set<std::string> names;
+  for (const auto& file : files.file()) {
+    for (const auto& service : file.service()) {
+      if (service.options().HasExtension(v1::behavior)) {
+        names.insert(service.options().GetExtension(v1::behavior).name());
+      }
+    }
+  }
+  return names;
+}
+
+TEST(Catalog, TheShippedCatalogListsExactlyTheDeclaredBehaviors) {
   auto catalog = Catalog::load(BEHAVIORLIB_SHIPPED_CATALOG);
   ASSERT_TRUE(catalog.ok()) << catalog.status();
-  for (const char* name : {"LAND",
-                           "TAKE_OFF",
-                           "WAIT",
-                           "SELF_LOCALIZE_WITH_GROUND_TRUTH",
-                           "ESTIMATE_POSITION_WITH_SENSOR",
-                           "ESTIMATE_POSITION_WITH_LINEAR_SPEED",
-                           "HOVER_WITH_FLIGHT_ACTION_CONTROL",
-                           "SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION",
-                           "FOLLOW_PATH_WITH_MPC_CONTROL",
-                           "ROTATE_WITH_MPC_CONTROL",
-                           "HOVER_WITH_MPC_CONTROL",
-                           "QUADROTOR_MPC_MOTION_CONTROL",
-                           "FOLLOW_PATH",
-                           "ROTATE_WITH_PID_CONTROL",
-                           "KEEP_HOVERING_WITH_PID_CONTROL",
-                           "KEEP_MOVING_WITH_PID_CONTROL",
-                           "QUADROTOR_PID_MOTION_CONTROL",
-                           "QUADROTOR_PID_THRUST_CONTROL",
-                           "MOVE_VERTICAL_WITH_PLATFORM_CONTROL",
-                           "MOVE_AT_SPEED_WITH_PLATFORM_CONTROL",
-                           "ROTATE_WITH_PLATFORM_CONTROL",
-                           "GENERATE_PATH_WITH_OCCUPANCY_GRID",
-                           "CLEAR_OCCUPANCY_GRID",
-                           "SAVE_OCCUPANCY_GRID",
-                           "PAY_ATTENTION_TO_QR_CODES",
-                           "PAY_ATTENTION_TO_ROBOT_MESSAGES",
-                           "INFORM_ROBOTS",
-                           "INFORM_POSITION_TO_ROBOTS",
-                           "INFORM_OPERATOR",
-                           "REQUEST_OPERATOR_ASSISTANCE"}) {
-    EXPECT_NE(catalog->find(name), nullptr) << name;
-  }
-  EXPECT_EQ(catalog->behaviors().size(), 30u);
+  std::set<std::string> listed;
+  for (const auto& [name, behavior] : catalog->behaviors()) listed.insert(name);
+  const std::set<std::string> declared = declaredBehaviors();
+  // The paper's table has 30; the set itself comes from the protos.
+  EXPECT_GE(declared.size(), 30u);
+  EXPECT_EQ(listed, declared);
 }
 
 TEST(Catalog, AMissingFileIsNamed) {

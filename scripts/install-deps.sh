@@ -8,7 +8,7 @@
 set -eu
 
 BUILD_PACKAGES="g++ cmake ninja-build pkg-config libgtest-dev libgmock-dev libbenchmark-dev \
-  libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev protobuf-compiler libeigen3-dev \
+  libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev libprotoc-dev protobuf-compiler libeigen3-dev \
   libompl-dev libboost-serialization-dev libboost-filesystem-dev libboost-system-dev \
   liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev grpc-proto"
 # What the built binaries load (each package pulls in its own dependencies), for

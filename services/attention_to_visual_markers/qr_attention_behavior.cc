@@ -51,9 +51,7 @@ std::string number(double v) {
 
 QrAttentionBehavior::QrAttentionBehavior(channel::ChannelClient* channel,
                                          const server::BeliefClient* beliefs)
-    : Behavior("PAY_ATTENTION_TO_QR_CODES", attentionOptions()),
-      channel_(channel),
-      beliefs_(beliefs) {}
+    : Behavior(attentionOptions()), channel_(channel), beliefs_(beliefs) {}
 
 QrAttentionBehavior::~QrAttentionBehavior() { stop(); }
 

@@ -12,9 +12,7 @@
 namespace behaviorlib::basic {
 EstimatePositionWithLinearSpeedBehavior::EstimatePositionWithLinearSpeedBehavior(
     channel::ChannelClient* channel)
-    : Behavior("ESTIMATE_POSITION_WITH_LINEAR_SPEED",
-               flight::flightBehaviorOptions(Duration::zero())),
-      channel_(channel) {}
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())), channel_(channel) {}
 
 EstimatePositionWithLinearSpeedBehavior::~EstimatePositionWithLinearSpeedBehavior() {
   stopSubscriptions();

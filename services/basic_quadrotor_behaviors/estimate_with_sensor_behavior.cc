@@ -12,8 +12,7 @@ namespace behaviorlib::basic {
 
 EstimatePositionWithSensorBehavior::EstimatePositionWithSensorBehavior(
     channel::ChannelClient* channel)
-    : Behavior("ESTIMATE_POSITION_WITH_SENSOR", flight::flightBehaviorOptions(Duration::zero())),
-      channel_(channel) {}
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())), channel_(channel) {}
 
 EstimatePositionWithSensorBehavior::~EstimatePositionWithSensorBehavior() { stopSubscriptions(); }
 

@@ -8,8 +8,7 @@
 namespace behaviorlib::basic {
 
 HoverWithFlightActionControlBehavior::HoverWithFlightActionControlBehavior(flight::Vehicle& vehicle)
-    : Behavior("HOVER_WITH_FLIGHT_ACTION_CONTROL", flight::flightBehaviorOptions(Duration::zero())),
-      vehicle_(vehicle) {}
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())), vehicle_(vehicle) {}
 
 absl::Status HoverWithFlightActionControlBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = settings_.read(config); !s.ok()) return s;

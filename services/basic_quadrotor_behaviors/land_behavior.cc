@@ -5,8 +5,7 @@
 namespace behaviorlib::basic {
 
 LandBehavior::LandBehavior(flight::Vehicle& vehicle)
-    : Behavior("LAND", flight::flightBehaviorOptions(std::chrono::seconds(120))),
-      vehicle_(vehicle) {}
+    : Behavior(flight::flightBehaviorOptions(std::chrono::seconds(120))), vehicle_(vehicle) {}
 
 absl::Status LandBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = settings_.read(config); !s.ok()) return s;

@@ -14,7 +14,7 @@
 #include "basic_quadrotor_behaviors/take_off_behavior.h"
 #include "basic_quadrotor_behaviors/wait_behavior.h"
 #include "behaviorlib/server/behavior_system_main.h"
-#include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.behaviors.h"
 #include "flight_common/remote_vehicle.h"
 
 int main(int argc, char** argv) {
@@ -25,16 +25,12 @@ int main(int argc, char** argv) {
   return behaviorlib::server::runBehaviorSystem(
       argc, argv, "basic_quadrotor_behaviors", [](BehaviorSystemBuilder& builder) {
         auto& vehicle = builder.own(std::make_unique<flight::RemoteVehicle>(builder.context()));
-        builder.add<basic::WaitBehavior, v1::Wait>();
-        builder.add<basic::TakeOffBehavior, v1::TakeOff>(vehicle);
-        builder.add<basic::LandBehavior, v1::Land>(vehicle);
-        builder.add<basic::HoverWithFlightActionControlBehavior, v1::HoverWithFlightActionControl>(
-            vehicle);
-        builder.add<basic::SelfLocalizeWithGroundTruthBehavior, v1::SelfLocalizeWithGroundTruth>(
-            builder.context().channel);
-        builder.add<basic::EstimatePositionWithSensorBehavior, v1::EstimatePositionWithSensor>(
-            builder.context().channel);
-        builder.add<basic::EstimatePositionWithLinearSpeedBehavior,
-                    v1::EstimatePositionWithLinearSpeed>(builder.context().channel);
+        builder.add<basic::WaitBehavior>();
+        builder.add<basic::TakeOffBehavior>(vehicle);
+        builder.add<basic::LandBehavior>(vehicle);
+        builder.add<basic::HoverWithFlightActionControlBehavior>(vehicle);
+        builder.add<basic::SelfLocalizeWithGroundTruthBehavior>(builder.context().channel);
+        builder.add<basic::EstimatePositionWithSensorBehavior>(builder.context().channel);
+        builder.add<basic::EstimatePositionWithLinearSpeedBehavior>(builder.context().channel);
       });
 }

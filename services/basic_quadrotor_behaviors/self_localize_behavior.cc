@@ -10,8 +10,7 @@
 namespace behaviorlib::basic {
 SelfLocalizeWithGroundTruthBehavior::SelfLocalizeWithGroundTruthBehavior(
     channel::ChannelClient* channel)
-    : Behavior("SELF_LOCALIZE_WITH_GROUND_TRUTH", flight::flightBehaviorOptions(Duration::zero())),
-      channel_(channel) {}
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())), channel_(channel) {}
 
 SelfLocalizeWithGroundTruthBehavior::~SelfLocalizeWithGroundTruthBehavior() { stopSubscriptions(); }
 

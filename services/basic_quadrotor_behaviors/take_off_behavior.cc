@@ -13,8 +13,7 @@ double yawOf(const v1::Quaternion& q) {
 }
 
 TakeOffBehavior::TakeOffBehavior(flight::Vehicle& vehicle)
-    : Behavior("TAKE_OFF", flight::flightBehaviorOptions(std::chrono::seconds(60))),
-      vehicle_(vehicle) {}
+    : Behavior(flight::flightBehaviorOptions(std::chrono::seconds(60))), vehicle_(vehicle) {}
 
 absl::Status TakeOffBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = settings_.read(config); !s.ok()) return s;

@@ -4,17 +4,18 @@
 // finishes with GOAL_ACHIEVED. Paused time does not count; Modify may change
 // duration_s while it waits (time already waited still counts).
 
+#include "absl/strings/str_cat.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 
 namespace behaviorlib::basic {
 
 class WaitBehavior final : public Behavior<v1::WaitParameters> {
- public:
-  WaitBehavior() : Behavior("WAIT") {}
-
  protected:
-  Verdict checkGoal() override;
+  Verdict checkGoal() override {
+    if (activeTime() < seconds(parameters().duration_s())) return Verdict::keepGoing();
+    return Verdict::finish(absl::StrCat("waited ", parameters().duration_s(), " s"));
+  }
 };
 
 }  // namespace behaviorlib::basic

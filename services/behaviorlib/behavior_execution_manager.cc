@@ -6,8 +6,10 @@
 #include <future>
 #include <optional>
 #include <sstream>
+#include <stdexcept>
 
 #include "behaviorlib/parameters.h"
+#include "behaviorlib/v1/options.pb.h"
 
 namespace behaviorlib {
 namespace {
@@ -918,5 +920,24 @@ absl::StatusOr<v1::CheckSituationResponse> BehaviorExecutionManager::checkSituat
       [&](Done<v1::CheckSituationResponse> done) { checkSituationNow(std::move(done)); },
       std::chrono::seconds(5));
 }
+
+std::string declaredBehaviorName(const google::protobuf::Descriptor* parameters) {
+  if (parameters == nullptr || !parameters->options().HasExtension(v1::declare)) return {};
+  return parameters->options().GetExtension(v1::declare).name();
+}
+
+namespace detail {
+
+std::string requireDeclaredName(const google::protobuf::Descriptor* parameters) {
+  std::string name = declaredBehaviorName(parameters);
+  if (name.empty()) {
+    throw std::logic_error(parameters->full_name() +
+                           " declares no behavior: give it option (behaviorlib.v1.declare), or "
+                           "name the behavior in its constructor");
+  }
+  return name;
+}
+
+}  // namespace detail
 
 }  // namespace behaviorlib

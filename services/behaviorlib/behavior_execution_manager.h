@@ -6,11 +6,9 @@
 // paper's functions, and register the class in a behavior system:
 //
 //   class WaitBehavior final : public behaviorlib::Behavior<v1::WaitParameters> {
-//    public:
-//     WaitBehavior() : Behavior("WAIT") {}
 //    protected:
 //     behaviorlib::Verdict checkGoal() override {
-//       return activeTime() >= seconds(parameters().duration_s())
+//       return activeTime() >= behaviorlib::seconds(parameters().duration_s())
 //                  ? behaviorlib::Verdict::finish("waited")
 //                  : behaviorlib::Verdict::keepGoing();
 //     }
@@ -366,11 +364,28 @@ class BehaviorExecutionManager {
   std::deque<Finished> finished_;
 };
 
+/// The name of the behavior that `parameters` declares with the
+/// (behaviorlib.v1.declare) option, or "" when it declares none.
+std::string declaredBehaviorName(const google::protobuf::Descriptor* parameters);
+
+namespace detail {
+// The declared name; throws std::logic_error when there is none.
+std::string requireDeclaredName(const google::protobuf::Descriptor* parameters);
+}  // namespace detail
+
 /// A behavior with a typed parameter message.
 template <class Params>
 class Behavior : public BehaviorExecutionManager {
  public:
   using Parameters = Params;
+  /// The behavior that Params declares (its name comes from the proto).
+  /// Throws std::logic_error when Params declares none.
+  explicit Behavior(BehaviorOptions options = {})
+      : BehaviorExecutionManager(detail::requireDeclaredName(Params::descriptor()),
+                                 Params::descriptor(), options) {}
+  /// A behavior named here, served only through the generic BehaviorSystem
+  /// service (tests, tools: a test behavior may borrow WAIT's parameters).
+  /// BehaviorSystemBuilder::add<> refuses a typed service of another name.
   explicit Behavior(std::string name, BehaviorOptions options = {})
       : BehaviorExecutionManager(std::move(name), Params::descriptor(), options) {}
 

@@ -75,10 +75,8 @@ absl::StatusOr<motion::PathTracker> makePathTracker(
 }
 
 template <class Params>
-FollowPathBehavior<Params>::FollowPathBehavior(std::string name, flight::Vehicle& vehicle,
-                                               MotionLink& link)
-    : Behavior<Params>(std::move(name), referenceBehaviorOptions(Duration::zero())),
-      support_(vehicle, link) {}
+FollowPathBehavior<Params>::FollowPathBehavior(flight::Vehicle& vehicle, MotionLink& link)
+    : Behavior<Params>(referenceBehaviorOptions(Duration::zero())), support_(vehicle, link) {}
 
 template <class Params>
 absl::Status FollowPathBehavior<Params>::onConfigure(const YAML::Node& config) {

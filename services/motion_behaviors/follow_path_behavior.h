@@ -66,7 +66,7 @@ absl::StatusOr<motion::PathTracker> makePathTracker(
 template <class Params>
 class FollowPathBehavior final : public Behavior<Params> {
  public:
-  FollowPathBehavior(std::string name, flight::Vehicle& vehicle, MotionLink& link);
+  FollowPathBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
  protected:
   absl::Status onConfigure(const YAML::Node& config) override;

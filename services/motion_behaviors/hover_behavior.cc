@@ -8,9 +8,8 @@
 namespace behaviorlib::motion_behaviors {
 
 template <class Params>
-HoverBehavior<Params>::HoverBehavior(std::string name, flight::Vehicle& vehicle, MotionLink& link)
-    : Behavior<Params>(std::move(name), referenceBehaviorOptions(Duration::zero())),
-      support_(vehicle, link) {}
+HoverBehavior<Params>::HoverBehavior(flight::Vehicle& vehicle, MotionLink& link)
+    : Behavior<Params>(referenceBehaviorOptions(Duration::zero())), support_(vehicle, link) {}
 
 template <class Params>
 absl::Status HoverBehavior<Params>::onConfigure(const YAML::Node& config) {

@@ -24,7 +24,7 @@ namespace behaviorlib::motion_behaviors {
 template <class Params>
 class HoverBehavior final : public Behavior<Params> {
  public:
-  HoverBehavior(std::string name, flight::Vehicle& vehicle, MotionLink& link);
+  HoverBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
  protected:
   absl::Status onConfigure(const YAML::Node& config) override;

@@ -40,9 +40,9 @@ BehaviorOptions controllerBehaviorOptions() {
 }
 
 template <class Params>
-MotionControlBehavior<Params>::MotionControlBehavior(std::string name, flight::Vehicle& vehicle,
-                                                     MotionLink& link, ControllerFactory factory)
-    : Behavior<Params>(std::move(name), controllerBehaviorOptions()),
+MotionControlBehavior<Params>::MotionControlBehavior(flight::Vehicle& vehicle, MotionLink& link,
+                                                     ControllerFactory factory)
+    : Behavior<Params>(controllerBehaviorOptions()),
       link_(link),
       factory_(std::move(factory)),
       support_(vehicle) {}

@@ -66,8 +66,7 @@ BehaviorOptions controllerBehaviorOptions();
 template <class Params>
 class MotionControlBehavior final : public Behavior<Params> {
  public:
-  MotionControlBehavior(std::string name, flight::Vehicle& vehicle, MotionLink& link,
-                        ControllerFactory factory);
+  MotionControlBehavior(flight::Vehicle& vehicle, MotionLink& link, ControllerFactory factory);
 
  protected:
   absl::Status onConfigure(const YAML::Node& config) override;

@@ -25,8 +25,8 @@ double turnTowards(double current, double target, double step) {
 }
 
 template <class Params>
-RotateBehavior<Params>::RotateBehavior(std::string name, flight::Vehicle& vehicle, MotionLink& link)
-    : Behavior<Params>(std::move(name), referenceBehaviorOptions(std::chrono::seconds(60))),
+RotateBehavior<Params>::RotateBehavior(flight::Vehicle& vehicle, MotionLink& link)
+    : Behavior<Params>(referenceBehaviorOptions(std::chrono::seconds(60))),
       support_(vehicle, link) {}
 
 template <class Params>

@@ -32,7 +32,7 @@ namespace behaviorlib::motion_behaviors {
 template <class Params>
 class RotateBehavior final : public Behavior<Params> {
  public:
-  RotateBehavior(std::string name, flight::Vehicle& vehicle, MotionLink& link);
+  RotateBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
  protected:
   absl::Status onConfigure(const YAML::Node& config) override;

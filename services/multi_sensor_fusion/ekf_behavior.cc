@@ -36,7 +36,7 @@ BehaviorOptions ekfOptions() {
 }  // namespace
 
 EkfSelfLocalizationBehavior::EkfSelfLocalizationBehavior(channel::ChannelClient* channel)
-    : Behavior("SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION", ekfOptions()), channel_(channel) {}
+    : Behavior(ekfOptions()), channel_(channel) {}
 
 EkfSelfLocalizationBehavior::~EkfSelfLocalizationBehavior() { stopSubscriptions(); }
 

@@ -1,13 +1,12 @@
 // multi_sensor_fusion: the behavior system of SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION.
 
 #include "behaviorlib/server/behavior_system_main.h"
-#include "behaviorlib/v1/behaviors/multi_sensor_fusion.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/multi_sensor_fusion.behaviors.h"
 #include "multi_sensor_fusion/ekf_behavior.h"
 
 int main(int argc, char** argv) {
   return behaviorlib::server::runBehaviorSystem(
       argc, argv, "multi_sensor_fusion", [](behaviorlib::server::BehaviorSystemBuilder& b) {
-        b.add<behaviorlib::fusion::EkfSelfLocalizationBehavior,
-              behaviorlib::v1::SelfLocalizeWithEkfSensorFusion>(b.context().channel);
+        b.add<behaviorlib::fusion::EkfSelfLocalizationBehavior>(b.context().channel);
       });
 }

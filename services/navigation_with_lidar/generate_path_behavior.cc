@@ -86,9 +86,7 @@ bool freelyConnected(const InflatedGrid& grid, const Eigen::Vector3d& min_m,
 }
 
 GeneratePathBehavior::GeneratePathBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs)
-    : Behavior("GENERATE_PATH_WITH_OCCUPANCY_GRID", generatePathOptions()),
-      mapper_(mapper),
-      beliefs_(beliefs) {
+    : Behavior(generatePathOptions()), mapper_(mapper), beliefs_(beliefs) {
   planner_ = std::thread([this] { plannerLoop(); });
 }
 

@@ -7,7 +7,7 @@
 #include <memory>
 
 #include "behaviorlib/server/behavior_system_main.h"
-#include "behaviorlib/v1/behaviors/navigation_with_lidar.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/navigation_with_lidar.behaviors.h"
 #include "navigation_with_lidar/generate_path_behavior.h"
 #include "navigation_with_lidar/lidar_mapper.h"
 #include "navigation_with_lidar/map_behaviors.h"
@@ -28,10 +28,8 @@ int main(int argc, char** argv) {
         // Deterministic mode: the map holds every scan received before a grant
         // is reported, whatever the machine's load.
         b.addCatchUpCheck([&mapper] { return mapper.caughtUp(); });
-        b.add<nav::GeneratePathBehavior, behaviorlib::v1::GeneratePathWithOccupancyGrid>(
-            mapper, context.beliefs);
-        b.add<nav::ClearOccupancyGridBehavior, behaviorlib::v1::ClearOccupancyGrid>(mapper);
-        b.add<nav::SaveOccupancyGridBehavior, behaviorlib::v1::SaveOccupancyGrid>(mapper,
-                                                                                  context.beliefs);
+        b.add<nav::GeneratePathBehavior>(mapper, context.beliefs);
+        b.add<nav::ClearOccupancyGridBehavior>(mapper);
+        b.add<nav::SaveOccupancyGridBehavior>(mapper, context.beliefs);
       });
 }

@@ -18,7 +18,7 @@ BehaviorOptions mapBehaviorOptions() {
 }  // namespace
 
 ClearOccupancyGridBehavior::ClearOccupancyGridBehavior(LidarMapper& mapper)
-    : Behavior("CLEAR_OCCUPANCY_GRID", mapBehaviorOptions()), mapper_(mapper) {}
+    : Behavior(mapBehaviorOptions()), mapper_(mapper) {}
 
 absl::Status ClearOccupancyGridBehavior::onActivate() {
   mapper_.clear();
@@ -31,7 +31,7 @@ Verdict ClearOccupancyGridBehavior::checkGoal() {
 
 SaveOccupancyGridBehavior::SaveOccupancyGridBehavior(LidarMapper& mapper,
                                                      const server::BeliefClient* beliefs)
-    : Behavior("SAVE_OCCUPANCY_GRID", mapBehaviorOptions()), mapper_(mapper), beliefs_(beliefs) {}
+    : Behavior(mapBehaviorOptions()), mapper_(mapper), beliefs_(beliefs) {}
 
 absl::Status SaveOccupancyGridBehavior::onActivate() {
   const std::string& path = parameters().file_path();

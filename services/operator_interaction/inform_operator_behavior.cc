@@ -20,7 +20,7 @@ BehaviorOptions informOptions() {
 
 InformOperatorBehavior::InformOperatorBehavior(const server::BeliefClient* beliefs,
                                                channel::ChannelClient* channel)
-    : Behavior("INFORM_OPERATOR", informOptions()), beliefs_(beliefs), channel_(channel) {}
+    : Behavior(informOptions()), beliefs_(beliefs), channel_(channel) {}
 
 absl::Status InformOperatorBehavior::onActivate() {
   done_ = false;

@@ -5,7 +5,7 @@
 #include <memory>
 
 #include "behaviorlib/server/behavior_system_main.h"
-#include "behaviorlib/v1/behaviors/operator_interaction.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/operator_interaction.behaviors.h"
 #include "operator_interaction/inform_operator_behavior.h"
 #include "operator_interaction/request_assistance_behavior.h"
 
@@ -20,9 +20,8 @@ int main(int argc, char** argv) {
                 ? &b.own(std::make_unique<BeliefClient>(b.context().beliefs->address(),
                                                         std::chrono::milliseconds(500)))
                 : nullptr;
-        b.add<behaviorlib::operator_interaction::InformOperatorBehavior,
-              behaviorlib::v1::InformOperator>(beliefs, b.context().channel);
-        b.add<behaviorlib::operator_interaction::RequestOperatorAssistanceBehavior,
-              behaviorlib::v1::RequestOperatorAssistance>(beliefs);
+        b.add<behaviorlib::operator_interaction::InformOperatorBehavior>(beliefs,
+                                                                         b.context().channel);
+        b.add<behaviorlib::operator_interaction::RequestOperatorAssistanceBehavior>(beliefs);
       });
 }

@@ -21,7 +21,7 @@ BehaviorOptions requestOptions() {
 
 RequestOperatorAssistanceBehavior::RequestOperatorAssistanceBehavior(
     const server::BeliefClient* beliefs)
-    : Behavior("REQUEST_OPERATOR_ASSISTANCE", requestOptions()), beliefs_(beliefs) {}
+    : Behavior(requestOptions()), beliefs_(beliefs) {}
 
 RequestOperatorAssistanceBehavior::~RequestOperatorAssistanceBehavior() { watch_.reset(); }
 

@@ -8,7 +8,7 @@
 // simulator; topics in services/motion_behaviors/motion_topics.h.
 
 #include "behaviorlib/server/behavior_system_main.h"
-#include "behaviorlib/v1/behaviors/quadrotor_motion_with_mpc_control.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/quadrotor_motion_with_mpc_control.behaviors.h"
 #include "flight_common/remote_vehicle.h"
 #include "motion_behaviors/follow_path_behavior.h"
 #include "motion_behaviors/hover_behavior.h"
@@ -26,16 +26,11 @@ int main(int argc, char** argv) {
         auto& vehicle = builder.own(std::make_unique<behaviorlib::flight::RemoteVehicle>(context));
         auto& link =
             builder.own(std::make_unique<mb::RemoteMotionLink>(context.channel, context.robot_id));
-        builder.add<mb::FollowPathBehavior<v1::FollowPathWithMpcControlParameters>,
-                    v1::FollowPathWithMpcControl>("FOLLOW_PATH_WITH_MPC_CONTROL", vehicle, link);
-        builder
-            .add<mb::RotateBehavior<v1::RotateWithMpcControlParameters>, v1::RotateWithMpcControl>(
-                "ROTATE_WITH_MPC_CONTROL", vehicle, link);
-        builder.add<mb::HoverBehavior<v1::HoverWithMpcControlParameters>, v1::HoverWithMpcControl>(
-            "HOVER_WITH_MPC_CONTROL", vehicle, link);
-        builder.add<mb::MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters>,
-                    v1::QuadrotorMpcMotionControl>(
-            "QUADROTOR_MPC_MOTION_CONTROL", vehicle, link,
+        builder.add<mb::FollowPathBehavior<v1::FollowPathWithMpcControlParameters>>(vehicle, link);
+        builder.add<mb::RotateBehavior<v1::RotateWithMpcControlParameters>>(vehicle, link);
+        builder.add<mb::HoverBehavior<v1::HoverWithMpcControlParameters>>(vehicle, link);
+        builder.add<mb::MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters>>(
+            vehicle, link,
             [](const mb::ControllerConfig& config, const behaviorlib::motion::VehicleModel& model) {
               return mb::makeMpcController(model, config.mpc);
             });

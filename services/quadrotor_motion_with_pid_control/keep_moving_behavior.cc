@@ -6,8 +6,7 @@ namespace behaviorlib::motion_behaviors {
 
 KeepMovingWithPidControlBehavior::KeepMovingWithPidControlBehavior(flight::Vehicle& vehicle,
                                                                    MotionLink& link)
-    : Behavior("KEEP_MOVING_WITH_PID_CONTROL", referenceBehaviorOptions(Duration::zero())),
-      support_(vehicle, link) {}
+    : Behavior(referenceBehaviorOptions(Duration::zero())), support_(vehicle, link) {}
 
 absl::Status KeepMovingWithPidControlBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = support_.configure(config); !s.ok()) return s;

@@ -9,7 +9,7 @@
 // services/motion_behaviors/motion_topics.h.
 
 #include "behaviorlib/server/behavior_system_main.h"
-#include "behaviorlib/v1/behaviors/quadrotor_motion_with_pid_control.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/quadrotor_motion_with_pid_control.behaviors.h"
 #include "flight_common/remote_vehicle.h"
 #include "motion_behaviors/follow_path_behavior.h"
 #include "motion_behaviors/hover_behavior.h"
@@ -28,25 +28,17 @@ int main(int argc, char** argv) {
         auto& vehicle = builder.own(std::make_unique<behaviorlib::flight::RemoteVehicle>(context));
         auto& link =
             builder.own(std::make_unique<mb::RemoteMotionLink>(context.channel, context.robot_id));
-        builder.add<mb::FollowPathBehavior<v1::FollowPathParameters>, v1::FollowPath>(
-            "FOLLOW_PATH", vehicle, link);
-        builder
-            .add<mb::RotateBehavior<v1::RotateWithPidControlParameters>, v1::RotateWithPidControl>(
-                "ROTATE_WITH_PID_CONTROL", vehicle, link);
-        builder.add<mb::HoverBehavior<v1::KeepHoveringWithPidControlParameters>,
-                    v1::KeepHoveringWithPidControl>("KEEP_HOVERING_WITH_PID_CONTROL", vehicle,
-                                                    link);
-        builder.add<mb::KeepMovingWithPidControlBehavior, v1::KeepMovingWithPidControl>(vehicle,
-                                                                                        link);
-        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidMotionControlParameters>,
-                    v1::QuadrotorPidMotionControl>(
-            "QUADROTOR_PID_MOTION_CONTROL", vehicle, link,
+        builder.add<mb::FollowPathBehavior<v1::FollowPathParameters>>(vehicle, link);
+        builder.add<mb::RotateBehavior<v1::RotateWithPidControlParameters>>(vehicle, link);
+        builder.add<mb::HoverBehavior<v1::KeepHoveringWithPidControlParameters>>(vehicle, link);
+        builder.add<mb::KeepMovingWithPidControlBehavior>(vehicle, link);
+        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidMotionControlParameters>>(
+            vehicle, link,
             [](const mb::ControllerConfig& config, const behaviorlib::motion::VehicleModel& model) {
               return mb::makePidAttitudeController(model, config.pid);
             });
-        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidThrustControlParameters>,
-                    v1::QuadrotorPidThrustControl>(
-            "QUADROTOR_PID_THRUST_CONTROL", vehicle, link,
+        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidThrustControlParameters>>(
+            vehicle, link,
             [](const mb::ControllerConfig& config, const behaviorlib::motion::VehicleModel& model) {
               return mb::makePidThrustRatesController(model, config.pid, config.attitude_p,
                                                       config.max_rate_rad_s);

@@ -6,7 +6,7 @@
 // simulator.
 
 #include "behaviorlib/server/behavior_system_main.h"
-#include "behaviorlib/v1/behaviors/quadrotor_motion_with_platform_control.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/quadrotor_motion_with_platform_control.behaviors.h"
 #include "flight_common/remote_vehicle.h"
 #include "quadrotor_motion_with_platform_control/platform_behaviors.h"
 
@@ -18,8 +18,8 @@ int main(int argc, char** argv) {
       argc, argv, "quadrotor_motion_with_platform_control", [](BehaviorSystemBuilder& builder) {
         auto& vehicle =
             builder.own(std::make_unique<behaviorlib::flight::RemoteVehicle>(builder.context()));
-        builder.add<pm::MoveVerticalBehavior, v1::MoveVerticalWithPlatformControl>(vehicle);
-        builder.add<pm::MoveAtSpeedBehavior, v1::MoveAtSpeedWithPlatformControl>(vehicle);
-        builder.add<pm::RotateWithPlatformControlBehavior, v1::RotateWithPlatformControl>(vehicle);
+        builder.add<pm::MoveVerticalBehavior>(vehicle);
+        builder.add<pm::MoveAtSpeedBehavior>(vehicle);
+        builder.add<pm::RotateWithPlatformControlBehavior>(vehicle);
       });
 }

@@ -43,9 +43,7 @@ absl::Status PlatformMotionSettings::read(const YAML::Node& config) {
 // ---- MOVE_VERTICAL_WITH_PLATFORM_CONTROL ----------------------------------
 
 MoveVerticalBehavior::MoveVerticalBehavior(flight::Vehicle& vehicle)
-    : Behavior("MOVE_VERTICAL_WITH_PLATFORM_CONTROL",
-               platformBehaviorOptions(std::chrono::seconds(120))),
-      support_(vehicle) {}
+    : Behavior(platformBehaviorOptions(std::chrono::seconds(120))), support_(vehicle) {}
 
 absl::Status MoveVerticalBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = support_.configure(config); !s.ok()) return s;
@@ -169,8 +167,7 @@ Verdict MoveVerticalBehavior::checkProcesses() {
 // ---- MOVE_AT_SPEED_WITH_PLATFORM_CONTROL ----------------------------------
 
 MoveAtSpeedBehavior::MoveAtSpeedBehavior(flight::Vehicle& vehicle)
-    : Behavior("MOVE_AT_SPEED_WITH_PLATFORM_CONTROL", platformBehaviorOptions(Duration::zero())),
-      support_(vehicle) {}
+    : Behavior(platformBehaviorOptions(Duration::zero())), support_(vehicle) {}
 
 absl::Status MoveAtSpeedBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = support_.configure(config); !s.ok()) return s;
@@ -246,8 +243,7 @@ Verdict MoveAtSpeedBehavior::checkProcesses() {
 // ---- ROTATE_WITH_PLATFORM_CONTROL -----------------------------------------
 
 RotateWithPlatformControlBehavior::RotateWithPlatformControlBehavior(flight::Vehicle& vehicle)
-    : Behavior("ROTATE_WITH_PLATFORM_CONTROL", platformBehaviorOptions(std::chrono::seconds(60))),
-      support_(vehicle) {}
+    : Behavior(platformBehaviorOptions(std::chrono::seconds(60))), support_(vehicle) {}
 
 absl::Status RotateWithPlatformControlBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = support_.configure(config); !s.ok()) return s;

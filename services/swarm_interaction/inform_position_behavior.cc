@@ -31,7 +31,7 @@ absl::Status checkRecipients(const google::protobuf::RepeatedPtrField<std::strin
 }  // namespace
 
 InformPositionToRobotsBehavior::InformPositionToRobotsBehavior(channel::ChannelClient* channel)
-    : Behavior("INFORM_POSITION_TO_ROBOTS", positionOptions()), channel_(channel) {}
+    : Behavior(positionOptions()), channel_(channel) {}
 
 InformPositionToRobotsBehavior::~InformPositionToRobotsBehavior() { pose_sub_.reset(); }
 

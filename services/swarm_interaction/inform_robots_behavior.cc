@@ -25,8 +25,7 @@ absl::Status checkInformRobotsParameters(const v1::InformRobotsParameters& p) {
 }
 
 InformRobotsBehavior::InformRobotsBehavior(channel::ChannelClient* channel)
-    : Behavior("INFORM_ROBOTS", flight::flightBehaviorOptions(Duration::zero())),
-      channel_(channel) {}
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())), channel_(channel) {}
 
 absl::Status InformRobotsBehavior::onActivate() {
   sent_ = false;

@@ -5,7 +5,7 @@
 #include <memory>
 
 #include "behaviorlib/server/behavior_system_main.h"
-#include "behaviorlib/v1/behaviors/swarm_interaction.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/swarm_interaction.behaviors.h"
 #include "swarm_interaction/inform_position_behavior.h"
 #include "swarm_interaction/inform_robots_behavior.h"
 #include "swarm_interaction/pay_attention_behavior.h"
@@ -22,10 +22,8 @@ int main(int argc, char** argv) {
                 ? &b.own(std::make_unique<BeliefClient>(b.context().beliefs->address(),
                                                         std::chrono::milliseconds(500)))
                 : nullptr;
-        b.add<behaviorlib::swarm::InformRobotsBehavior, behaviorlib::v1::InformRobots>(channel);
-        b.add<behaviorlib::swarm::InformPositionToRobotsBehavior,
-              behaviorlib::v1::InformPositionToRobots>(channel);
-        b.add<behaviorlib::swarm::PayAttentionToRobotMessagesBehavior,
-              behaviorlib::v1::PayAttentionToRobotMessages>(channel, beliefs);
+        b.add<behaviorlib::swarm::InformRobotsBehavior>(channel);
+        b.add<behaviorlib::swarm::InformPositionToRobotsBehavior>(channel);
+        b.add<behaviorlib::swarm::PayAttentionToRobotMessagesBehavior>(channel, beliefs);
       });
 }

@@ -50,7 +50,7 @@ pb::Value messageValue(const v1::SwarmMessage& m) {
 
 PayAttentionToRobotMessagesBehavior::PayAttentionToRobotMessagesBehavior(
     channel::ChannelClient* channel, const server::BeliefClient* beliefs)
-    : Behavior("PAY_ATTENTION_TO_ROBOT_MESSAGES", flight::flightBehaviorOptions(Duration::zero())),
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())),
       channel_(channel),
       beliefs_(beliefs) {}
 

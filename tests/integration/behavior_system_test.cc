@@ -30,7 +30,7 @@
 #include <vector>
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
-#include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "channel/channel_client.h"
 #include "support/server_process.h"

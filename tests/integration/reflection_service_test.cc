@@ -203,8 +203,11 @@ TYPED_TEST(ReflectionServiceTest, FindsNestedAndNonServiceSymbols) {
   EXPECT_EQ(this->fileOf("behaviorlib.v1.BehaviorState"), behavior);
   EXPECT_EQ(this->fileOf("behaviorlib.v1.BEHAVIOR_STATE_INACTIVE"), behavior);
   EXPECT_EQ(this->fileOf("behaviorlib.v1.param"), "behaviorlib/v1/options.proto");
-  EXPECT_EQ(this->fileOf("behaviorlib.v1.Wait"),
+  // Declared in one file, its service generated into another (decision 21).
+  EXPECT_EQ(this->fileOf("behaviorlib.v1.WaitParameters"),
             "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.proto");
+  EXPECT_EQ(this->fileOf("behaviorlib.v1.Wait"),
+            "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.proto");
   EXPECT_EQ(this->fileOf("google.protobuf.FieldDescriptorProto.Type"),
             "google/protobuf/descriptor.proto");
   EXPECT_EQ(this->fileOf("google.protobuf.DescriptorProto.ExtensionRange"),

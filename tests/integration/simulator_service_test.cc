@@ -13,7 +13,7 @@
 #include <thread>
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
-#include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.grpc.pb.h"
+#include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.grpc.pb.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"

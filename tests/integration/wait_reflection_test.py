@@ -79,7 +79,12 @@ class WaitThroughReflectionTest(unittest.TestCase):
     # -- like `grpcurl ADDRESS describe behaviorlib.v1.Wait` ------------------
     def test_2_describes_wait_with_comments(self):
         files = rc.file_containing_symbol(self.address, "behaviorlib.v1.Wait")
-        self.assertEqual(files[0].name, "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.proto")
+        # The service is generated from WAIT's declaration (decision 21): its
+        # file imports the declaring file, which reflection serves with it.
+        self.assertEqual(files[0].name,
+                         "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.proto")
+        self.assertIn("behaviorlib/v1/behaviors/basic_quadrotor_behaviors.proto",
+                      [f.name for f in files])
         service_comment = rc.leading_comments(files, "behaviorlib.v1.Wait")
         self.assertIn("WAIT: stays active", service_comment)
         self.assertIn("GOAL_ACHIEVED", service_comment)

@@ -8,7 +8,7 @@
 //   int main(int argc, char** argv) {
 //     return behaviorlib::server::runBehaviorSystem(
 //         argc, argv, "basic_quadrotor_behaviors", [](BehaviorSystemBuilder& b) {
-//           b.add<WaitBehavior, behaviorlib::v1::Wait>();
+//           b.add<WaitBehavior>();
 //         });
 //   }
 //
@@ -23,7 +23,7 @@
 //
 //   [](BehaviorSystemBuilder& b) {
 //     auto& vehicle = b.own(std::make_unique<RemoteVehicle>(b.context()));
-//     b.add<TakeOffBehavior, behaviorlib::v1::TakeOff>(vehicle);
+//     b.add<TakeOffBehavior>(vehicle);
 //   }
 
 #include <grpcpp/grpcpp.h>
@@ -92,10 +92,14 @@ class BehaviorSystemBuilder {
   }
 
   /// Hosts BehaviorT (constructed from `args`) and serves it as the typed
-  /// service S. The behavior's name must equal S's
-  /// `(behaviorlib.v1.behavior).name` option.
-  template <class BehaviorT, class S, class... Args>
+  /// service generated for its parameters message. The caller includes the
+  /// generated X.behaviors.h of the proto file that declares the behavior;
+  /// it declares `behaviorServiceOf`, which maps the parameters to the
+  /// service.
+  template <class BehaviorT, class... Args>
   BehaviorSystemBuilder& add(Args&&... args) {
+    using Params = typename BehaviorT::Parameters;
+    using S = decltype(behaviorServiceOf(static_cast<const Params*>(nullptr)));
     auto behavior = std::make_unique<BehaviorT>(std::forward<Args>(args)...);
     checkServiceMatches(*behavior, S::service_full_name());
     services_.push_back(std::make_unique<TypedBehaviorService<S>>(*behavior, gate_));

@@ -1,11 +1,13 @@
 #include "behaviorlib/behavior_execution_manager.h"
 
 #include <gmock/gmock.h>
+#include <google/protobuf/struct.pb.h>
 #include <gtest/gtest.h>
 
 #include <condition_variable>
 #include <future>
 #include <mutex>
+#include <stdexcept>
 
 #include "behaviorlib/behavior_host.h"
 #include "behaviorlib/clock.h"
@@ -53,6 +55,22 @@ class BehaviorExecutionManagerTest : public ::testing::Test {
   EventCollector events_{host_.events()};
   ScriptedBehavior* behavior_ = nullptr;
 };
+
+// A behavior's name comes from its parameters' declaration in the proto.
+class DeclaredWait final : public Behavior<v1::WaitParameters> {};
+class Undeclared final : public Behavior<google::protobuf::Struct> {};
+
+TEST(BehaviorDeclarationTest, TheNameComesFromTheParametersDeclaration) {
+  EXPECT_EQ(DeclaredWait().name(), "WAIT");
+  EXPECT_EQ(declaredBehaviorName(v1::WaitParameters::descriptor()), "WAIT");
+  EXPECT_EQ(declaredBehaviorName(google::protobuf::Struct::descriptor()), "");
+  try {
+    Undeclared undeclared;
+    ADD_FAILURE() << "a behavior without a declaration was built as " << undeclared.name();
+  } catch (const std::logic_error& e) {
+    EXPECT_THAT(e.what(), ::testing::HasSubstr("google.protobuf.Struct declares no behavior"));
+  }
+}
 
 TEST_F(BehaviorExecutionManagerTest, FirstTickRunsAtActivationWithoutWaitingForTheClock) {
   auto& b = start();

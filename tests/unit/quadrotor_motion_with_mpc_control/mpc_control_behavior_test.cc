@@ -28,11 +28,9 @@ class MpcControlUnitTest : public ::testing::Test {
   void SetUp() override {
     vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
     vehicle_.setPosition(0, 0, 2);
-    host_.add(std::make_unique<HoverBehavior<v1::HoverWithMpcControlParameters>>(
-        "HOVER_WITH_MPC_CONTROL", vehicle_, link_));
+    host_.add(std::make_unique<HoverBehavior<v1::HoverWithMpcControlParameters>>(vehicle_, link_));
     host_.add(std::make_unique<MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters>>(
-        "QUADROTOR_MPC_MOTION_CONTROL", vehicle_, link_,
-        [](const ControllerConfig& config, const motion::VehicleModel& model) {
+        vehicle_, link_, [](const ControllerConfig& config, const motion::VehicleModel& model) {
           return makeMpcController(model, config.mpc);
         }));
     ASSERT_TRUE(host_.start().ok());

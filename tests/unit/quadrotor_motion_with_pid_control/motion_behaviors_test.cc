@@ -114,10 +114,9 @@ class MotionBehaviorsUnitTest : public ::testing::Test {
   void SetUp() override {
     vehicle_.setState(v1::FLIGHT_STATE_FLYING);
     vehicle_.setPosition(0, 0, 1);
-    host_.add(std::make_unique<FollowPath>("FOLLOW_PATH", vehicle_, link_));
+    host_.add(std::make_unique<FollowPath>(vehicle_, link_));
     host_.add(std::make_unique<Controller>(
-        "QUADROTOR_PID_MOTION_CONTROL", vehicle_, link_,
-        [](const ControllerConfig& config, const motion::VehicleModel& model) {
+        vehicle_, link_, [](const ControllerConfig& config, const motion::VehicleModel& model) {
           return makePidAttitudeController(model, config.pid);
         }));
     ASSERT_TRUE(host_.start().ok());

@@ -27,8 +27,8 @@
 #include <optional>
 #include <string>
 
-#include "behaviorlib/server/flags.h"
-#include "behaviorlib/server/server_runtime.h"
+#include "behaviorlib/server_kit/flags.h"
+#include "behaviorlib/server_kit/server_runtime.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/catalog/catalog.h"
 #include "coordinator/durable/journal.h"

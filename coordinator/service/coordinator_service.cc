@@ -8,7 +8,7 @@
 #include <memory>
 #include <utility>
 
-#include "behaviorlib/server/status.h"
+#include "behaviorlib/server_kit/status.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/fleet_control.h"
 #include "coordinator/service/systems_config.h"

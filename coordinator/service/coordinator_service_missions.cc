@@ -6,7 +6,7 @@
 #include <thread>
 #include <utility>
 
-#include "behaviorlib/server/status.h"
+#include "behaviorlib/server_kit/status.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/blocking_pool.h"
 #include "coordinator/service/coordinator_service.h"

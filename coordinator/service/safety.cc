@@ -6,11 +6,11 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/flight_common/topics.h"
+#include "behaviorlib/platform/flight_controller_client.h"
+#include "behaviorlib/platform/flight_state_watcher.h"
 #include "behaviorlib/v1/platform.pb.h"
-#include "channel/channel_client.h"
-#include "flight_common/topics.h"
-#include "platform/flight_controller_client.h"
-#include "platform/flight_state_watcher.h"
 
 namespace behaviorlib::coordinator {
 

@@ -45,7 +45,7 @@ the report lists what the behaviors left in the coordinator's belief memory
 for each robot: the QR markers found ({robot}/markers/...), the other
 robots' positions ({robot}/swarm/...), and the map saved by
 SAVE_OCCUPANCY_GRID ({robot}/map_file) with, when a world was given and
-build/services/navigation/map_coverage is built, the fraction of the world's
+build/bin/map_coverage is built, the fraction of the world's
 free space it covers.
 
 Every behavior system started costs CPU even idle (on a two-core machine
@@ -92,12 +92,12 @@ REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), 
 CONFIG_DIR = os.path.join(REPO, "deploy", "config")
 WORLDS_DIR = os.path.join(REPO, "simulator", "worlds")
 DEMO_MISSION = os.path.join(REPO, "deploy", "missions", "demo.yaml")
-# Measures how much of a world's free space a saved map covers (built with
-# services/navigation).
-MAP_COVERAGE = "services/navigation/map_coverage"
+# Measures how much of a world's free space a saved map covers
+# (simulator/tools).
+MAP_COVERAGE = "bin/map_coverage"
 
 # The behavior systems, started in this order when their binary is built
-# (services/<name>/<name>), each with deploy/config/<name>.yaml when present.
+# (bin/<name>), each with deploy/config/<name>.yaml when present.
 BEHAVIOR_SYSTEMS = [
     "basic_quadrotor_behaviors",
     "quadrotor_motion_with_pid_control",
@@ -191,10 +191,10 @@ def system_binaries(args, build_dir):
     for name in BEHAVIOR_SYSTEMS:
         if args.systems and name not in args.systems and name not in REQUIRED_SYSTEMS:
             continue
-        path = binary(build_dir, f"services/{name}/{name}",
+        path = binary(build_dir, f"bin/{name}",
                       required=name in REQUIRED_SYSTEMS or name in args.systems)
         if path is None:
-            say(f"  note: {name} is not built ({build_dir}/services/{name}/{name}); "
+            say(f"  note: {name} is not built ({build_dir}/bin/{name}); "
                 f"its behaviors are unavailable")
             continue
         found.append((name, path))
@@ -208,10 +208,10 @@ def start_stack(args, build_dir, stack):
     binaries = system_binaries(args, build_dir)
     listen = ["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"]
     broker = stack.start(Process("channel_broker",
-                                 [binary(build_dir, "services/channel/channel_broker"), *listen],
+                                 [binary(build_dir, "bin/channel_broker"), *listen],
                                  stack.run_dir, "channel_broker"))
 
-    simulator_argv = [binary(build_dir, "simulator/service/simulator"), *listen,
+    simulator_argv = [binary(build_dir, "bin/simulator"), *listen,
                       "--channel", broker.address, "--vehicles", ",".join(robots),
                       "--worlds-dir", WORLDS_DIR,
                       "--time-scale", str(args.time_scale), "--seed", str(args.seed)]
@@ -235,7 +235,7 @@ def start_stack(args, build_dir, stack):
         raise StartError(f"the simulator has no vehicle {missing} (its vehicles: "
                          f"{', '.join(flown)}; a world's start poses name them)")
 
-    coordinator_bin = binary(build_dir, "coordinator/coordinator")
+    coordinator_bin = binary(build_dir, "bin/coordinator")
     coordinator_argv = [coordinator_bin, *listen,
                         "--state-dir", os.path.join(stack.run_dir, "coordinator")]
     # One --flight-controller flag lists every robot (a repeated flag would

@@ -1,7 +1,7 @@
 """gRPC calls to the stack's servers through server reflection only.
 
 No generated Python code: message classes are built from the descriptors each
-server sends (tests/integration/reflection_client.py), requests and replies
+server sends (reflection_client.py), requests and replies
 are dicts in proto JSON form. Needs Debian's python3-grpcio and
 python3-protobuf.
 
@@ -12,15 +12,10 @@ python3-protobuf.
     health_status("127.0.0.1:50060")   # "SERVING", or raises grpc.RpcError
 """
 
-import os
-import sys
-
 import grpc
 from google.protobuf import json_format
 
-_REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
-sys.path.insert(0, os.path.join(_REPO, "tests", "integration"))
-import reflection_client as rc  # noqa: E402
+import reflection_client as rc
 
 DEFAULT_TIMEOUT_S = 10.0
 

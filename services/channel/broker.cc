@@ -1,4 +1,4 @@
-#include "channel/broker.h"
+#include "behaviorlib/channel/broker.h"
 
 #include <google/protobuf/descriptor.h>
 #include <google/protobuf/timestamp.pb.h>
@@ -20,8 +20,8 @@
 #include "absl/container/inlined_vector.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
-#include "channel/shm_ring.h"
-#include "channel/topic.h"
+#include "behaviorlib/channel/shm_ring.h"
+#include "behaviorlib/channel/topic.h"
 
 namespace behaviorlib::channel {
 namespace {

@@ -1,4 +1,4 @@
-#include "channel/channel_client.h"
+#include "behaviorlib/channel/channel_client.h"
 
 #include <google/protobuf/message.h>
 #include <grpcpp/grpcpp.h>
@@ -16,9 +16,9 @@
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "behaviorlib/channel/shm_ring.h"
+#include "behaviorlib/channel/topic.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
-#include "channel/shm_ring.h"
-#include "channel/topic.h"
 
 namespace behaviorlib::channel {
 namespace {

@@ -11,9 +11,9 @@
 #include <cstdio>
 #include <string>
 
-#include "behaviorlib/server/flags.h"
-#include "behaviorlib/server/server_runtime.h"
-#include "channel/broker.h"
+#include "behaviorlib/channel/broker.h"
+#include "behaviorlib/server_kit/flags.h"
+#include "behaviorlib/server_kit/server_runtime.h"
 
 int main(int argc, char** argv) {
   using behaviorlib::server::fatal;

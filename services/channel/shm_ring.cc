@@ -1,4 +1,4 @@
-#include "channel/shm_ring.h"
+#include "behaviorlib/channel/shm_ring.h"
 
 #include <dirent.h>
 #include <fcntl.h>

@@ -1,10 +1,10 @@
-#include "channel/sim_clock.h"
+#include "behaviorlib/channel/sim_clock.h"
 
 #include <algorithm>
 
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/channel/topic.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
-#include "channel/topic.h"
 
 namespace behaviorlib::channel {
 namespace {

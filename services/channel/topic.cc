@@ -1,4 +1,4 @@
-#include "channel/topic.h"
+#include "behaviorlib/channel/topic.h"
 
 #include <google/protobuf/any.pb.h>
 #include <google/protobuf/descriptor.h>

@@ -39,8 +39,8 @@
 #include <chrono>
 #include <memory>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
 #include "simulator/core/simulation.h"
 #include "simulator/service/publish_queue.h"
 #include "simulator/service/simulator_service.h"  // TimeControl

@@ -2,7 +2,7 @@
 
 #include <google/protobuf/util/time_util.h>
 
-#include "behaviorlib/server/status.h"
+#include "behaviorlib/server_kit/status.h"
 #include "simulator/service/latest_writer.h"
 #include "simulator/service/messages.h"
 

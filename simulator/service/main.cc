@@ -10,11 +10,11 @@
 #include <sstream>
 #include <thread>
 
-#include "behaviorlib/server/flags.h"
-#include "behaviorlib/server/server_runtime.h"
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/server_kit/flags.h"
+#include "behaviorlib/server_kit/server_runtime.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
-#include "channel/channel_client.h"
 #include "simulator/faults/fault_injector.h"
 #include "simulator/service/channel_publisher.h"
 #include "simulator/service/flight_controller_service.h"

@@ -24,7 +24,7 @@
 #include <unordered_map>
 #include <unordered_set>
 
-#include "channel/channel_client.h"
+#include "behaviorlib/channel/channel_client.h"
 
 namespace behaviorlib::sim {
 

@@ -19,7 +19,7 @@
 #include <mutex>
 #include <thread>
 
-#include "channel/channel_client.h"
+#include "behaviorlib/channel/channel_client.h"
 #include "simulator/core/simulation.h"
 #include "simulator/sensors/sensor_system.h"
 #include "simulator/service/publish_queue.h"

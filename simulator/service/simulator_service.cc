@@ -4,7 +4,7 @@
 
 #include <cmath>
 
-#include "behaviorlib/server/status.h"
+#include "behaviorlib/server_kit/status.h"
 #include "simulator/service/messages.h"
 #include "simulator/service/vehicle_models.h"
 

@@ -42,10 +42,10 @@
 #include <thread>
 #include <vector>
 
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/v1/channel.pb.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
-#include "channel/shm_ring.h"
 #include "support/server_process.h"
 
 namespace {

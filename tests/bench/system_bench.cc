@@ -47,10 +47,10 @@
 #include <thread>
 #include <vector>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "bench/bench_shm.h"
-#include "channel/channel_client.h"
 #include "support/server_process.h"
 
 namespace behaviorlib::bench {

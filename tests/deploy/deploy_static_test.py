@@ -2,7 +2,7 @@
 running anything:
 
 - docker-compose.yml and docker-compose.drone2.yml: every behavior system
-  built from services/* has a service per vehicle; only the coordinator,
+  built from services/systems/* has a service per vehicle; only the coordinator,
   Prometheus and Grafana are published (on the publish address); every
   service has a restart policy, resource limits and a health check (the gRPC
   health check of behaviorctl on its own --listen port); every address a
@@ -225,15 +225,16 @@ class DockerfileTest(unittest.TestCase):
             self.assertIn("scripts/install-deps.sh", f.read())
 
     def test_the_image_holds_every_binary_the_commands_run(self):
-        for name, path in ds.BUILD_PATHS.items():
-            self.assertIn(f"/build/{path} /opt/behaviorlib/bin/", self.text, name)
-        self.assertIn('cp "/build/services/$name/$name" /opt/behaviorlib/bin/', self.text)
+        self.assertIn("for name in " + " ".join(ds.INFRASTRUCTURE_PROGRAMS) + "; do", self.text)
+        self.assertIn("for dir in services/systems/*/; do", self.text)
+        self.assertEqual(self.text.count('cp "/build/bin/$name" /opt/behaviorlib/bin/'), 2)
         project = ds.load_compose(ds.COMPOSE_FILE, ds.DRONE2_FILE)
         systems = set(ds.behavior_systems_in_source())
         for name, service in behaviorlib_services(project).items():
             program = os.path.basename(service["command"][0])
             with self.subTest(service=name):
-                self.assertTrue(program in ds.BUILD_PATHS or program in systems, program)
+                self.assertTrue(program in ds.INFRASTRUCTURE_PROGRAMS or program in systems,
+                                program)
 
     def test_container_paths_are_in_the_image_or_a_volume(self):
         image = ds.image_directories()

@@ -31,15 +31,11 @@ DEFAULT_BUILD_DIR = os.environ.get("BEHAVIORLIB_BUILD_DIR", os.path.join(REPO, "
 # Exit code ctest reports as "skipped" (SKIP_RETURN_CODE in CMakeLists.txt).
 SKIP = 77
 
-# Where the image's binaries come from in a build tree (the Dockerfile copies
-# them from these paths; every other binary is services/<name>/<name>).
+# Where the image's binaries come from in a build tree: the Dockerfile copies
+# them from bin/.
 IMAGE_BIN = "/opt/behaviorlib/bin"
-BUILD_PATHS = {
-    "channel_broker": "services/channel/channel_broker",
-    "simulator": "simulator/service/simulator",
-    "coordinator": "coordinator/coordinator",
-    "behaviorctl": "coordinator/cli/behaviorctl",
-}
+# The programs of the image besides the behavior systems.
+INFRASTRUCTURE_PROGRAMS = ["channel_broker", "simulator", "coordinator", "behaviorctl"]
 # Upstream images whose commands run against Debian's package of the same
 # program.
 UPSTREAM_PROGRAMS = {"prom/prometheus": "/usr/bin/prometheus"}
@@ -159,11 +155,11 @@ def port_of(address):
 
 
 def behavior_systems_in_source():
-    """Every behavior system built from services/* (a main() that calls
-    runBehaviorSystem)."""
+    """Every behavior system built from services/systems/* (a main() that
+    calls runBehaviorSystem)."""
     systems = []
-    for name in sorted(os.listdir(os.path.join(REPO, "services"))):
-        main = os.path.join(REPO, "services", name, "main.cc")
+    for name in sorted(os.listdir(os.path.join(REPO, "services", "systems"))):
+        main = os.path.join(REPO, "services", "systems", name, "main.cc")
         if os.path.isfile(main):
             with open(main) as f:
                 if "runBehaviorSystem" in f.read():
@@ -181,7 +177,7 @@ def image_directories():
 
 
 def build_binary(build_dir, name):
-    return os.path.join(build_dir, BUILD_PATHS.get(name, f"services/{name}/{name}"))
+    return os.path.join(build_dir, "bin", name)
 
 
 # --- processes ------------------------------------------------------------------

@@ -65,7 +65,7 @@ def owning_packages(paths):
 
 class RuntimePackagesTest(unittest.TestCase):
     def binaries(self):
-        names = list(ds.BUILD_PATHS) + ds.behavior_systems_in_source()
+        names = ds.INFRASTRUCTURE_PROGRAMS + ds.behavior_systems_in_source()
         paths = {name: ds.build_binary(BUILD_DIR, name) for name in names}
         missing = [p for p in paths.values() if not os.access(p, os.X_OK)]
         self.assertEqual(missing, [], f"not built (build {BUILD_DIR} first)")

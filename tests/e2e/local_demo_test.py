@@ -231,7 +231,7 @@ class LocalDemoTest(unittest.TestCase):
             self.assertIn("Ctrl-C stops everything", "".join(output))
             running = {name for name, pid in self._pids().items() if alive(pid)}
             built = {name for name in launch.BEHAVIOR_SYSTEMS
-                     if os.access(os.path.join(BUILD_DIR, "services", name, name), os.X_OK)}
+                     if os.access(os.path.join(BUILD_DIR, "bin", name), os.X_OK)}
             self.assertIn("quadrotor_motion_with_pid_control", built)
             self.assertEqual(built - running, set(), "every built behavior system is started")
             launcher.send_signal(signal.SIGINT)

@@ -52,7 +52,6 @@ BUILD_DIR = os.environ.get("BEHAVIORLIB_BUILD_DIR", os.path.join(REPO, "build"))
 TIME_SCALE = "2"
 MARKER = "<!-- readme_grpcurl_test: {} -->"
 
-sys.path.insert(0, os.path.join(REPO, "tests", "integration"))
 sys.path.insert(0, os.path.join(REPO, "deploy", "local"))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 

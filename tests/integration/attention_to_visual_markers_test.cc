@@ -18,10 +18,10 @@
 #include <filesystem>
 #include <map>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/behaviors/attention_to_visual_markers.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
 #include "motion_test_support.h"
 #include "sim_faults.h"
 #include "simulator/world/world.h"

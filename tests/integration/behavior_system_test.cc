@@ -29,10 +29,10 @@
 #include <thread>
 #include <vector>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
 #include "support/server_process.h"
 
 namespace {

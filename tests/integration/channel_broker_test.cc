@@ -22,12 +22,12 @@
 #include <thread>
 #include <vector>
 
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/channel/shm_ring.h"
+#include "behaviorlib/channel/sim_clock.h"
+#include "behaviorlib/channel/topic.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
-#include "channel/shm_ring.h"
-#include "channel/sim_clock.h"
-#include "channel/topic.h"
 #include "support/server_process.h"
 
 extern char** environ;

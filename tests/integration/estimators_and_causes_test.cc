@@ -11,8 +11,8 @@
 #include <cstdlib>
 #include <map>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
 #include "motion_test_support.h"
 #include "support/deterministic.h"
 

@@ -5,7 +5,7 @@
 // (Clock::listenersCaughtUp), which is what the deterministic mode's follower
 // waits for before it reports a granted time.
 
-#include "platform/lease_keeper.h"
+#include "behaviorlib/platform/lease_keeper.h"
 
 #include <gtest/gtest.h>
 
@@ -13,7 +13,7 @@
 #include <thread>
 
 #include "behaviorlib/clock.h"
-#include "platform/flight_controller_client.h"
+#include "behaviorlib/platform/flight_controller_client.h"
 #include "support/server_process.h"
 
 namespace behaviorlib::platform {

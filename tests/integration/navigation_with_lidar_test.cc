@@ -15,9 +15,9 @@
 #include <filesystem>
 #include <fstream>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
 #include "motion_test_support.h"
 #include "sim_faults.h"
 #include "simulator/world/world.h"

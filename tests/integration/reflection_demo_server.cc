@@ -12,8 +12,8 @@
 #include <string>
 #include <vector>
 
+#include "behaviorlib/reflection/reflection_service.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
-#include "reflection/reflection_service.h"
 
 int main(int argc, char** argv) {
   sigset_t signals;

@@ -3,7 +3,7 @@
 // reflection services, and queries both grpc.reflection.v1alpha and
 // grpc.reflection.v1 like grpcurl does.
 
-#include "reflection/reflection_service.h"
+#include "behaviorlib/reflection/reflection_service.h"
 
 #include <gmock/gmock.h>
 #include <google/protobuf/descriptor.h>

@@ -14,7 +14,8 @@ import unittest
 import grpc
 from google.protobuf import json_format
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
+                                "deploy", "local"))
 import reflection_client as rc  # noqa: E402
 
 SERVER = os.environ.get("REFLECTION_DEMO_SERVER", "")

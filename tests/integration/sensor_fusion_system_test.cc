@@ -22,10 +22,10 @@
 #include <mutex>
 #include <thread>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
 #include "sim_faults.h"
 #include "support/deterministic.h"
 #include "support/server_process.h"

@@ -18,9 +18,9 @@
 #include <optional>
 #include <string>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
 #include "motion_test_support.h"
 #include "support/deterministic.h"
 #include "support/server_process.h"

@@ -3,7 +3,7 @@ only, as a grpcurl user would: no generated stubs, every message class comes
 from the descriptors the server sends (reflection_client.py).
 
     /usr/bin/python3 wait_reflection_test.py \
-        --binary build/services/basic_quadrotor_behaviors/basic_quadrotor_behaviors
+        --binary build/bin/basic_quadrotor_behaviors
 
 (or set BASIC_QUADROTOR_BEHAVIORS). Needs python3-grpcio and python3-protobuf.
 The tests run in name order against one process; the last one stops it.
@@ -22,7 +22,8 @@ import unittest
 import grpc
 from google.protobuf import json_format
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..",
+                                "deploy", "local"))
 import reflection_client as rc  # noqa: E402
 
 BINARY = os.environ.get("BASIC_QUADROTOR_BEHAVIORS", "")

@@ -7,16 +7,16 @@
 #include <iostream>
 
 #include "behaviorlib/behavior_host.h"
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/server/behavior_metrics.h"
 #include "behaviorlib/server/behavior_system_service.h"
 #include "behaviorlib/server/coordinator_registration.h"
-#include "behaviorlib/server/flags.h"
-#include "behaviorlib/server/server_runtime.h"
 #include "behaviorlib/server/time_follower.h"
+#include "behaviorlib/server_kit/flags.h"
+#include "behaviorlib/server_kit/server_runtime.h"
 #include "behaviorlib/v1/options.pb.h"
-#include "channel/channel_client.h"
-#include "channel/sim_clock.h"
 
 namespace behaviorlib::server {
 

@@ -6,7 +6,7 @@
 
 #include "behaviorlib/documentation.h"
 #include "behaviorlib/parameters.h"
-#include "behaviorlib/server/status.h"
+#include "behaviorlib/server_kit/status.h"
 #include "behaviorlib/v1/options.pb.h"
 
 namespace behaviorlib::server {

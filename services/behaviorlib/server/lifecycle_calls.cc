@@ -1,6 +1,6 @@
 #include "behaviorlib/server/lifecycle_calls.h"
 
-#include "behaviorlib/server/status.h"
+#include "behaviorlib/server_kit/status.h"
 
 namespace behaviorlib::server {
 namespace {

@@ -6,9 +6,9 @@
 #include <cstdio>
 #include <optional>
 
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
-#include "channel/channel_client.h"
-#include "channel/sim_clock.h"
 
 namespace behaviorlib::server {
 namespace {

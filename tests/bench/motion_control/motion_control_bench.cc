@@ -13,9 +13,9 @@
 #include <cstring>
 #include <vector>
 
-#include "motion_control/mpc_controller.h"
-#include "motion_control/path_tracker.h"
-#include "motion_control/pid_controller.h"
+#include "behaviorlib/motion_control/mpc_controller.h"
+#include "behaviorlib/motion_control/path_tracker.h"
+#include "behaviorlib/motion_control/pid_controller.h"
 #include "unit/motion_control/closed_loop.h"
 
 namespace {

@@ -18,14 +18,14 @@
 #include <random>
 #include <vector>
 
-#include "navigation/occupancy_map.h"
-#include "navigation/path_planner.h"
-#include "sensor_fusion/ekf.h"
+#include "behaviorlib/navigation/occupancy_map.h"
+#include "behaviorlib/navigation/path_planner.h"
+#include "behaviorlib/sensor_fusion/ekf.h"
+#include "behaviorlib/visual_markers/marker_locator.h"
 #include "simulator/world/camera.h"
 #include "simulator/world/lidar.h"
 #include "simulator/world/world.h"
 #include "unit/navigation/mapping.h"
-#include "visual_markers/marker_locator.h"
 
 namespace {
 

@@ -39,10 +39,10 @@
 #include <thread>
 #include <vector>
 
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
-#include "channel/channel_client.h"
 #include "support/server_process.h"
 
 namespace behaviorlib::bench {

@@ -1,4 +1,4 @@
-#include "attention_to_visual_markers/marker_map.h"
+#include "behaviorlib/attention_to_visual_markers/marker_map.h"
 
 #include <gtest/gtest.h>
 

@@ -12,7 +12,7 @@
 #include <vector>
 
 #include "behaviorlib/clock.h"
-#include "flight_common/vehicle.h"
+#include "behaviorlib/flight_common/vehicle.h"
 
 namespace behaviorlib::basic::testing {
 

@@ -7,9 +7,9 @@
 #include <cmath>
 #include <thread>
 
-#include "basic_quadrotor_behaviors/hover_behavior.h"
-#include "basic_quadrotor_behaviors/land_behavior.h"
-#include "basic_quadrotor_behaviors/take_off_behavior.h"
+#include "behaviorlib/basic_quadrotor_behaviors/hover_with_flight_action_behavior.h"
+#include "behaviorlib/basic_quadrotor_behaviors/land_behavior.h"
+#include "behaviorlib/basic_quadrotor_behaviors/take_off_behavior.h"
 #include "behaviorlib/behavior_host.h"
 #include "fake_vehicle.h"
 #include "test_behaviors.h"

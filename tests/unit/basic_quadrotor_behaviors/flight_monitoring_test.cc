@@ -1,6 +1,6 @@
 // The clock-driven helpers of the flight behaviors' monitoring, on fake times.
 
-#include "flight_common/flight_monitoring.h"
+#include "behaviorlib/flight_common/flight_monitoring.h"
 
 #include <gtest/gtest.h>
 

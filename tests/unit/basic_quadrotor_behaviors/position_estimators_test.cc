@@ -1,7 +1,7 @@
 // The estimation cores of ESTIMATE_POSITION_WITH_SENSOR and
 // ESTIMATE_POSITION_WITH_LINEAR_SPEED on synthetic samples (fixed seeds).
 
-#include "basic_quadrotor_behaviors/position_estimators.h"
+#include "behaviorlib/basic_quadrotor_behaviors/position_estimators.h"
 
 #include <gtest/gtest.h>
 

@@ -1,4 +1,4 @@
-#include "basic_quadrotor_behaviors/wait_behavior.h"
+#include "behaviorlib/basic_quadrotor_behaviors/wait_behavior.h"
 
 #include <gtest/gtest.h>
 

@@ -1,7 +1,7 @@
 // Unit tests of the shared-memory ring (channel/shm_ring.h): one writer,
 // readers in this process and in a forked child, under /dev/shm.
 
-#include "channel/shm_ring.h"
+#include "behaviorlib/channel/shm_ring.h"
 
 #include <fcntl.h>
 #include <gtest/gtest.h>

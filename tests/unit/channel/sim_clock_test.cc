@@ -3,7 +3,7 @@
 // epoch at once, stands still in lock-step or while paused, and runs on at
 // the last scale when the samples stop (a dead simulator).
 
-#include "channel/sim_clock.h"
+#include "behaviorlib/channel/sim_clock.h"
 
 #include <google/protobuf/util/time_util.h>
 #include <gtest/gtest.h>

@@ -9,8 +9,8 @@
 #include <functional>
 #include <vector>
 
-#include "motion_control/motion_types.h"
-#include "motion_control/path_tracker.h"
+#include "behaviorlib/motion_control/motion_types.h"
+#include "behaviorlib/motion_control/path_tracker.h"
 #include "simulator/dynamics/autopilot.h"
 #include "simulator/dynamics/quadrotor.h"
 

@@ -4,15 +4,15 @@
 // against the simulator's dynamics (PID hovering in wind, the square in calm
 // air). And windPerformance()'s mapping.
 
-#include "motion_control/wind_estimator.h"
+#include "behaviorlib/motion_control/wind_estimator.h"
 
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <numbers>
 
-#include "motion_control/path_tracker.h"
-#include "motion_control/pid_controller.h"
+#include "behaviorlib/motion_control/path_tracker.h"
+#include "behaviorlib/motion_control/pid_controller.h"
 #include "unit/motion_control/closed_loop.h"
 
 namespace behaviorlib::motion {

@@ -2,7 +2,7 @@
 // the building's free cells at the lidar's height, growing as rooms are
 // scanned, and blind to what is outside the building.
 
-#include "navigation/tools/map_coverage.h"
+#include "simulator/tools/map_coverage.h"
 
 #include <gtest/gtest.h>
 

@@ -6,7 +6,7 @@
 #include <cmath>
 #include <vector>
 
-#include "navigation/occupancy_map.h"
+#include "behaviorlib/navigation/occupancy_map.h"
 #include "simulator/world/lidar.h"
 #include "simulator/world/world.h"
 

@@ -3,8 +3,8 @@
 
 #include <cstdio>
 
-#include "navigation/occupancy_map.h"
-#include "navigation/path_planner.h"
+#include "behaviorlib/navigation/occupancy_map.h"
+#include "behaviorlib/navigation/path_planner.h"
 #include "unit/navigation/mapping.h"
 
 namespace behaviorlib::nav {

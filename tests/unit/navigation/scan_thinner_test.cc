@@ -1,4 +1,4 @@
-#include "navigation/scan_thinner.h"
+#include "behaviorlib/navigation/scan_thinner.h"
 
 #include <gtest/gtest.h>
 

@@ -1,8 +1,8 @@
-#include "navigation/wall_columns.h"
+#include "behaviorlib/navigation/wall_columns.h"
 
 #include <gtest/gtest.h>
 
-#include "navigation/occupancy_map.h"
+#include "behaviorlib/navigation/occupancy_map.h"
 
 namespace behaviorlib::nav {
 namespace {

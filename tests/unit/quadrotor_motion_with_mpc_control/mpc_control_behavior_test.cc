@@ -8,12 +8,12 @@
 #include <thread>
 
 #include "behaviorlib/behavior_host.h"
+#include "behaviorlib/motion_behaviors/hover_behavior.h"
+#include "behaviorlib/motion_behaviors/motion_control_behavior.h"
+#include "behaviorlib/motion_behaviors/motion_messages.h"
 #include "behaviorlib/v1/behaviors/quadrotor_motion_with_mpc_control.pb.h"
 #include "fake_motion_link.h"
 #include "fake_vehicle.h"
-#include "motion_behaviors/hover_behavior.h"
-#include "motion_behaviors/motion_control_behavior.h"
-#include "motion_behaviors/motion_messages.h"
 #include "test_behaviors.h"
 
 namespace behaviorlib::motion_behaviors {

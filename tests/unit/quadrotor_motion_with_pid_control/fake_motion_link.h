@@ -9,7 +9,7 @@
 #include <string>
 #include <vector>
 
-#include "motion_behaviors/motion_link.h"
+#include "behaviorlib/motion_behaviors/motion_link.h"
 
 namespace behaviorlib::motion_behaviors::testing {
 

@@ -10,13 +10,13 @@
 #include <thread>
 
 #include "behaviorlib/behavior_host.h"
+#include "behaviorlib/motion_behaviors/follow_path_behavior.h"
+#include "behaviorlib/motion_behaviors/motion_control_behavior.h"
+#include "behaviorlib/motion_behaviors/motion_messages.h"
+#include "behaviorlib/motion_behaviors/rotate_behavior.h"
 #include "behaviorlib/v1/behaviors/quadrotor_motion_with_pid_control.pb.h"
 #include "fake_motion_link.h"
 #include "fake_vehicle.h"
-#include "motion_behaviors/follow_path_behavior.h"
-#include "motion_behaviors/motion_control_behavior.h"
-#include "motion_behaviors/motion_messages.h"
-#include "motion_behaviors/rotate_behavior.h"
 #include "test_behaviors.h"
 
 namespace behaviorlib::motion_behaviors {

@@ -2,7 +2,7 @@
 // vehicle on a FakeClock: the setpoints they stream under the lease, their
 // goals, and bad parameters refused before anything is commanded.
 
-#include "quadrotor_motion_with_platform_control/platform_behaviors.h"
+#include "behaviorlib/quadrotor_motion_with_platform_control/platform_behaviors.h"
 
 #include <gtest/gtest.h>
 

@@ -1,4 +1,4 @@
-#include "sensor_fusion/ekf.h"
+#include "behaviorlib/sensor_fusion/ekf.h"
 
 #include <gtest/gtest.h>
 

@@ -1,4 +1,4 @@
-#include "visual_markers/marker_locator.h"
+#include "behaviorlib/visual_markers/marker_locator.h"
 
 #include <gtest/gtest.h>
 
@@ -10,9 +10,9 @@
 #include <opencv2/imgproc.hpp>
 #include <opencv2/objdetect.hpp>
 
+#include "behaviorlib/visual_markers/qr_finder.h"
 #include "simulator/world/camera.h"
 #include "simulator/world/world.h"
-#include "visual_markers/qr_finder.h"
 
 namespace behaviorlib::markers {
 namespace {

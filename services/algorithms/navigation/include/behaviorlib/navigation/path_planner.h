@@ -1,0 +1,65 @@
+#pragma once
+
+// planPath(): GENERATE_PATH_WITH_OCCUPANCY_GRID's planner. OMPL's RRT-Connect
+// in the 3-D box of the planning volume, every state and motion checked
+// against the occupancy map for a sphere of the vehicle's radius; the path
+// is then shortened (OMPL's simplifier) and returned as waypoints.
+//
+//   PlanOptions options;
+//   options.bounds_min_m = {0, 0, 0.5};
+//   options.bounds_max_m = {18, 10, 2.5};
+//   absl::StatusOr<PlannedPath> path = planPath(map, start, goal, options);
+//
+// Errors: INVALID_ARGUMENT for a goal outside the planning volume or inside
+// an obstacle (too close to an occupied voxel for the vehicle's radius);
+// FAILED_PRECONDITION for a start in collision; NOT_FOUND when no path was
+// found within the time limit (the goal may be unreachable).
+
+#include <Eigen/Core>
+#include <cstdint>
+#include <vector>
+
+#include "absl/status/statusor.h"
+#include "behaviorlib/navigation/occupancy_map.h"
+
+namespace behaviorlib::nav {
+
+struct PlanOptions {
+  double vehicle_radius_m = 0.3;
+  double timeout_s = 0.5;
+  Eigen::Vector3d bounds_min_m{-50, -50, 0.3};
+  Eigen::Vector3d bounds_max_m{50, 50, 5.0};
+  /// Spacing of the collision checks along a motion (m).
+  double check_spacing_m = 0.05;
+  /// Shorten the planner's raw path: from each waypoint, straight to the
+  /// farthest point of the raw path that can be reached without passing
+  /// closer to an obstacle than the preferred clearance (or than the raw
+  /// path itself passed there, in a passage narrower than that). false keeps
+  /// the raw path.
+  bool shorten = true;
+  /// Distance beyond the vehicle's radius that the shortened path keeps from
+  /// occupied voxels where the space allows it (m). A shortcut that hugs a
+  /// wall or a corner at the bare radius leaves no room for the controller's
+  /// tracking error, nor for the unseen part of an obstacle seen from one
+  /// side (unknown space counts as free).
+  double preferred_clearance_m = 0.2;
+};
+
+struct PlannedPath {
+  std::vector<Eigen::Vector3d> waypoints_m;  ///< start first, goal last
+  double length_m = 0.0;
+  double planning_time_s = 0.0;   ///< all of it, wall time
+  double inflation_time_s = 0.0;  ///< of which building the inflated grid
+  /// Smallest distance beyond the vehicle's radius between the path and an
+  /// occupied voxel, sampled along it (m; infinity with none in reach).
+  double min_clearance_m = 0.0;
+};
+
+absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vector3d& start_m,
+                                     const Eigen::Vector3d& goal_m, const PlanOptions& options);
+
+/// Seeds OMPL's random generator (once, before the first plan) so that plans
+/// are reproducible in tests.
+void seedPlanner(std::uint32_t seed);
+
+}  // namespace behaviorlib::nav

@@ -1,0 +1,299 @@
+#include "behaviorlib/navigation/occupancy_map.h"
+
+#include <algorithm>
+#include <cmath>
+#include <functional>
+#include <limits>
+
+namespace behaviorlib::nav {
+namespace {
+
+octomap::point3d toOcto(const Eigen::Vector3d& p) {
+  return octomap::point3d(static_cast<float>(p.x()), static_cast<float>(p.y()),
+                          static_cast<float>(p.z()));
+}
+
+}  // namespace
+
+OccupancyMap::OccupancyMap(MapOptions options)
+    : options_(options), tree_(std::make_unique<octomap::OcTree>(options.resolution_m)) {
+  tree_->setProbHit(options.probability_hit);
+  tree_->setProbMiss(options.probability_miss);
+}
+
+void OccupancyMap::insertScan(const Eigen::Vector3d& origin_m,
+                              const std::vector<Eigen::Vector3d>& hits_m,
+                              const std::vector<Eigen::Vector3d>& misses_m) {
+  const octomap::point3d origin = toOcto(origin_m);
+  octomap::Pointcloud cloud;
+  cloud.reserve(hits_m.size());
+  for (const auto& p : hits_m) {
+    if (p.allFinite()) cloud.push_back(toOcto(p));
+  }
+  // Rays that hit nothing: free space only. computeUpdate marks the end
+  // voxel occupied, so trace them ourselves (discretised, no duplicates).
+  octomap::KeySet free_cells;
+  octomap::KeyRay ray;
+  for (const auto& p : misses_m) {
+    if (!p.allFinite()) continue;
+    if (tree_->computeRayKeys(origin, toOcto(p), ray)) free_cells.insert(ray.begin(), ray.end());
+  }
+  for (const auto& key : free_cells) tree_->updateNode(key, false, /*lazy_eval=*/false);
+  // Inner nodes are updated along the way (lazy_eval false): a full
+  // updateInnerOccupancy() would walk the whole tree on every scan.
+  tree_->insertPointCloud(cloud, origin, -1.0, /*lazy_eval=*/false, /*discretize=*/true);
+  ++revision_;
+}
+
+void OccupancyMap::clear() {
+  tree_->clear();
+  ++revision_;
+}
+
+bool OccupancyMap::certainlyFree(const Eigen::Vector3d& p) const {
+  const octomap::OcTreeNode* node = tree_->search(toOcto(p));
+  return node != nullptr && node->getLogOdds() <= tree_->getClampingThresMinLog() + 1e-3f;
+}
+
+void OccupancyMap::forgetVoxel(const Eigen::Vector3d& p) {
+  const octomap::OcTreeNode* node = tree_->search(toOcto(p));
+  if (node == nullptr || !tree_->isNodeOccupied(node)) return;
+  tree_->setNodeValue(toOcto(p), tree_->getOccupancyThresLog() - 0.01f, /*lazy_eval=*/false);
+  ++revision_;
+}
+
+bool OccupancyMap::occupied(const Eigen::Vector3d& p) const {
+  const octomap::OcTreeNode* node = tree_->search(toOcto(p));
+  return node != nullptr && tree_->isNodeOccupied(node);
+}
+
+bool OccupancyMap::known(const Eigen::Vector3d& p) const {
+  return tree_->search(toOcto(p)) != nullptr;
+}
+
+bool OccupancyMap::collides(const Eigen::Vector3d& p, double radius_m) const {
+  const octomap::point3d min = toOcto(p - Eigen::Vector3d::Constant(radius_m));
+  const octomap::point3d max = toOcto(p + Eigen::Vector3d::Constant(radius_m));
+  for (auto it = tree_->begin_leafs_bbx(min, max), end = tree_->end_leafs_bbx(); it != end; ++it) {
+    if (!tree_->isNodeOccupied(*it)) continue;
+    const double half = 0.5 * it.getSize();
+    const octomap::point3d c = it.getCoordinate();
+    const Eigen::Vector3d d(std::max(0.0, std::abs(p.x() - c.x()) - half),
+                            std::max(0.0, std::abs(p.y() - c.y()) - half),
+                            std::max(0.0, std::abs(p.z() - c.z()) - half));
+    if (d.norm() <= radius_m) return true;
+  }
+  return false;
+}
+
+absl::Status OccupancyMap::save(const std::string& path) const {
+  const bool full = path.size() > 3 && path.substr(path.size() - 3) == ".ot";
+  const bool ok = full ? tree_->write(path) : tree_->writeBinaryConst(path);
+  if (!ok) {
+    return absl::InvalidArgumentError("cannot write the map to '" + path +
+                                      "' (does its directory exist, and may it be written?)");
+  }
+  return absl::OkStatus();
+}
+
+size_t OccupancyMap::occupiedLeafCount() const {
+  size_t n = 0;
+  for (auto it = tree_->begin_leafs(), end = tree_->end_leafs(); it != end; ++it) {
+    if (tree_->isNodeOccupied(*it)) ++n;
+  }
+  return n;
+}
+
+double OccupancyMap::freeVolumeM3() const {
+  double v = 0;
+  for (auto it = tree_->begin_leafs(), end = tree_->end_leafs(); it != end; ++it) {
+    if (!tree_->isNodeOccupied(*it)) v += std::pow(it.getSize(), 3);
+  }
+  return v;
+}
+
+double OccupancyMap::freeVolumeM3(const Eigen::Vector3d& min_m,
+                                  const Eigen::Vector3d& max_m) const {
+  double v = 0;
+  for (auto it = tree_->begin_leafs_bbx(toOcto(min_m), toOcto(max_m)), end = tree_->end_leafs_bbx();
+       it != end; ++it) {
+    if (tree_->isNodeOccupied(*it)) continue;
+    // A pruned leaf may stick out of the box: count only its inside part.
+    const double half = 0.5 * it.getSize();
+    const octomap::point3d c = it.getCoordinate();
+    double part = 1.0;
+    for (int i = 0; i < 3; ++i) {
+      const double lo = std::max(static_cast<double>(c(i)) - half, min_m[i]);
+      const double hi = std::min(static_cast<double>(c(i)) + half, max_m[i]);
+      part *= std::max(0.0, hi - lo);
+    }
+    v += part;
+  }
+  return v;
+}
+
+}  // namespace behaviorlib::nav
+
+namespace behaviorlib::nav {
+
+namespace {
+
+// One pass of the exact 1-D squared Euclidean distance transform (Felzenszwalb
+// and Huttenlocher's lower envelope of parabolas) over n samples `f` spaced
+// `stride` apart in `data`.
+void distance1d(float* data, int n, size_t stride, std::vector<float>& f, std::vector<float>& d,
+                std::vector<int>& v, std::vector<float>& z) {
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  for (int i = 0; i < n; ++i) f[i] = data[i * stride];
+  int k = 0;
+  v[0] = 0;
+  z[0] = -kInf;
+  z[1] = kInf;
+  for (int q = 1; q < n; ++q) {
+    if (f[q] == kInf) continue;
+    if (f[v[k]] == kInf) {
+      v[k] = q;
+      continue;
+    }
+    float s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0f * (q - v[k]));
+    while (k > 0 && s <= z[k]) {
+      --k;
+      s = ((f[q] + q * q) - (f[v[k]] + v[k] * v[k])) / (2.0f * (q - v[k]));
+    }
+    ++k;
+    v[k] = q;
+    z[k] = s;
+    z[k + 1] = kInf;
+  }
+  k = 0;
+  for (int q = 0; q < n; ++q) {
+    while (z[k + 1] < q) ++k;
+    d[q] = f[v[k]] == kInf ? kInf : (q - v[k]) * (q - v[k]) + f[v[k]];
+  }
+  for (int i = 0; i < n; ++i) data[i * stride] = d[i];
+}
+
+}  // namespace
+
+InflatedGrid::InflatedGrid(const OccupancyMap& map, const Eigen::Vector3d& min_m,
+                           const Eigen::Vector3d& max_m, double radius_m)
+    : min_(min_m), resolution_(map.resolutionM()) {
+  // Occupied cells (pruned leaves cover several), padded by the radius so
+  // that obstacles just outside the box still count.
+  const int pad = static_cast<int>(std::ceil(radius_m / resolution_)) + 1;
+  for (int i = 0; i < 3; ++i) {
+    size_[i] = std::max(1, static_cast<int>(std::ceil((max_m[i] - min_m[i]) / resolution_)));
+  }
+  const Eigen::Vector3i full = size_ + Eigen::Vector3i::Constant(2 * pad);
+  const size_t count = static_cast<size_t>(full.x()) * full.y() * full.z();
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  std::vector<float> dist(count, kInf);
+  auto index = [&](int x, int y, int z) {
+    return (static_cast<size_t>(x) * full.y() + y) * full.z() + z;
+  };
+  const octomap::OcTree& tree = map.tree();
+  const Eigen::Vector3d origin = min_m - Eigen::Vector3d::Constant(pad * resolution_);
+  const Eigen::Vector3d top = origin + full.cast<double>() * resolution_;
+  auto mark = [&](const Eigen::Vector3d& c, double half) {
+    Eigen::Vector3i lo, hi;
+    for (int i = 0; i < 3; ++i) {
+      lo[i] =
+          std::max(0, static_cast<int>(std::floor((c[i] - half - origin[i]) / resolution_ + 1e-6)));
+      hi[i] =
+          std::min(full[i] - 1,
+                   static_cast<int>(std::ceil((c[i] + half - origin[i]) / resolution_ - 1e-6)) - 1);
+    }
+    for (int x = lo.x(); x <= hi.x(); ++x) {
+      for (int y = lo.y(); y <= hi.y(); ++y) {
+        for (int z = lo.z(); z <= hi.z(); ++z) dist[index(x, y, z)] = 0.0f;
+      }
+    }
+  };
+  // Depth-first over the octree, skipping every subtree whose node is not
+  // occupied: inner nodes hold the maximum of their children (the map is
+  // updated without lazy evaluation), so only branches leading to occupied
+  // voxels are visited, and only those that meet the box.
+  const unsigned max_depth = tree.getTreeDepth();
+  const octomap::OcTreeKey root_key = tree.coordToKey(octomap::point3d(0, 0, 0));
+  std::function<void(const octomap::OcTreeNode*, const octomap::OcTreeKey&, unsigned)> visit =
+      [&](const octomap::OcTreeNode* node, const octomap::OcTreeKey& key, unsigned depth) {
+        if (!tree.isNodeOccupied(node)) return;
+        const double size = resolution_ * static_cast<double>(1u << (max_depth - depth));
+        const octomap::point3d pc = tree.keyToCoord(key, depth);
+        const Eigen::Vector3d c(pc.x(), pc.y(), pc.z());
+        for (int i = 0; i < 3; ++i) {
+          if (c[i] + 0.5 * size < origin[i] || c[i] - 0.5 * size > top[i]) return;
+        }
+        if (depth == max_depth || !tree.nodeHasChildren(node)) {
+          mark(c, 0.5 * size);
+          return;
+        }
+        const unsigned short offset = static_cast<unsigned short>(root_key[0] >> (depth + 1));
+        for (unsigned i = 0; i < 8; ++i) {
+          if (!tree.nodeChildExists(node, i)) continue;
+          octomap::OcTreeKey child;
+          octomap::computeChildKey(i, offset, key, child);
+          visit(tree.getNodeChild(node, i), child, depth + 1);
+        }
+      };
+  if (tree.getRoot() != nullptr) visit(tree.getRoot(), root_key, 0);
+  // Squared distance (in cells) to the nearest occupied cell: three passes.
+  const int longest = full.maxCoeff();
+  std::vector<float> f(longest), d(longest), z(longest + 1);
+  std::vector<int> v(longest);
+  for (int x = 0; x < full.x(); ++x) {
+    for (int y = 0; y < full.y(); ++y) distance1d(&dist[index(x, y, 0)], full.z(), 1, f, d, v, z);
+  }
+  for (int x = 0; x < full.x(); ++x) {
+    for (int z0 = 0; z0 < full.z(); ++z0)
+      distance1d(&dist[index(x, 0, z0)], full.y(), full.z(), f, d, v, z);
+  }
+  for (int y = 0; y < full.y(); ++y) {
+    for (int z0 = 0; z0 < full.z(); ++z0) {
+      distance1d(&dist[index(0, y, z0)], full.x(), static_cast<size_t>(full.y()) * full.z(), f, d,
+                 v, z);
+    }
+  }
+  // Clearance of a cell: from its centre to the nearest occupied cell's
+  // cube (centre distance minus half a cell); blocked within the radius.
+  radius_ = static_cast<float>(radius_m);
+  clearance_.assign(static_cast<size_t>(size_.x()) * size_.y() * size_.z(), kInf);
+  const float half = static_cast<float>(0.5 * resolution_);
+  for (int x = 0; x < size_.x(); ++x) {
+    for (int y = 0; y < size_.y(); ++y) {
+      for (int z0 = 0; z0 < size_.z(); ++z0) {
+        const float d2 = dist[index(x + pad, y + pad, z0 + pad)];
+        if (d2 == kInf) continue;
+        clearance_[(static_cast<size_t>(x) * size_.y() + y) * size_.z() + z0] =
+            std::max(0.0f, std::sqrt(d2) * static_cast<float>(resolution_) - half);
+      }
+    }
+  }
+}
+
+std::optional<size_t> InflatedGrid::cellOf(const Eigen::Vector3d& p) const {
+  Eigen::Vector3i cell;
+  for (int i = 0; i < 3; ++i) {
+    const double f = std::floor((p[i] - min_[i]) / resolution_);
+    if (!(f >= 0 && f < size_[i])) return std::nullopt;
+    cell[i] = static_cast<int>(f);
+  }
+  return (static_cast<size_t>(cell.x()) * size_.y() + cell.y()) * size_.z() + cell.z();
+}
+
+bool InflatedGrid::blocked(const Eigen::Vector3d& p) const {
+  const std::optional<size_t> cell = cellOf(p);
+  return !cell || clearance_[*cell] <= radius_;
+}
+
+double InflatedGrid::clearanceM(const Eigen::Vector3d& p) const {
+  const std::optional<size_t> cell = cellOf(p);
+  return cell ? static_cast<double>(clearance_[*cell]) : 0.0;
+}
+
+size_t InflatedGrid::blockedCount() const {
+  return static_cast<size_t>(
+      std::count_if(clearance_.begin(), clearance_.end(), [&](float c) { return c <= radius_; }));
+}
+
+}  // namespace behaviorlib::nav

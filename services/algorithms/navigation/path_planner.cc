@@ -1,0 +1,228 @@
+#include "behaviorlib/navigation/path_planner.h"
+
+#include <ompl/base/spaces/RealVectorStateSpace.h>
+#include <ompl/geometric/SimpleSetup.h>
+#include <ompl/geometric/planners/rrt/RRTConnect.h>
+#include <ompl/util/Console.h>
+#include <ompl/util/RandomNumbers.h>
+
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <mutex>
+#include <sstream>
+
+namespace behaviorlib::nav {
+namespace {
+
+namespace ob = ompl::base;
+namespace og = ompl::geometric;
+
+std::string text(const Eigen::Vector3d& p) {
+  std::ostringstream out;
+  out.precision(3);
+  out << "(" << p.x() << ", " << p.y() << ", " << p.z() << ")";
+  return out.str();
+}
+
+bool inside(const Eigen::Vector3d& p, const PlanOptions& o) {
+  return (p.array() >= o.bounds_min_m.array()).all() && (p.array() <= o.bounds_max_m.array()).all();
+}
+
+// Points along the polyline, at most `step` apart, every vertex kept.
+std::vector<Eigen::Vector3d> densify(const std::vector<Eigen::Vector3d>& path, double step) {
+  std::vector<Eigen::Vector3d> out;
+  if (path.empty()) return out;
+  out.push_back(path.front());
+  for (size_t i = 1; i < path.size(); ++i) {
+    const Eigen::Vector3d d = path[i] - path[i - 1];
+    const int n = std::max(1, static_cast<int>(std::ceil(d.norm() / step)));
+    for (int k = 1; k <= n; ++k) out.push_back(path[i - 1] + d * (static_cast<double>(k) / n));
+  }
+  return out;
+}
+
+// Smallest clearance along the straight segment a-b, sampled every
+// `spacing`; below `floor_m` (or blocked) it stops early and returns -1.
+double segmentClearance(const InflatedGrid& grid, const Eigen::Vector3d& a,
+                        const Eigen::Vector3d& b, double spacing, double floor_m) {
+  const int n = std::max(1, static_cast<int>(std::ceil((b - a).norm() / spacing)));
+  double least = std::numeric_limits<double>::infinity();
+  for (int k = 0; k <= n; ++k) {
+    const Eigen::Vector3d p = a + (b - a) * (static_cast<double>(k) / n);
+    const double c = grid.clearanceM(p);
+    if (grid.blocked(p) || c < floor_m) return -1.0;
+    least = std::min(least, c);
+  }
+  return least;
+}
+
+// Moves each interior point up the clearance field, a cell at a time,
+// until it has `target_m` of clearance or can gain no more: in open space a
+// point near an obstacle moves out to the target, in a passage narrower
+// than that it moves to the passage's middle. A move that would leave a
+// blocked segment to a neighbour is not made.
+void pushAway(const InflatedGrid& grid, std::vector<Eigen::Vector3d>& points, double target_m,
+              double resolution, double spacing) {
+  const double h = resolution;
+  const double step = resolution;
+  for (size_t i = 1; i + 1 < points.size(); ++i) {
+    Eigen::Vector3d p = points[i];
+    double c = grid.clearanceM(p);
+    for (int iteration = 0; iteration < 20 && c < target_m; ++iteration) {
+      Eigen::Vector3d gradient;
+      for (int axis = 0; axis < 3; ++axis) {
+        Eigen::Vector3d d = Eigen::Vector3d::Zero();
+        d[axis] = h;
+        gradient[axis] = grid.clearanceM(p + d) - grid.clearanceM(p - d);
+      }
+      if (gradient.norm() < 1e-9) break;
+      const Eigen::Vector3d next = p + gradient.normalized() * step;
+      const double cn = grid.clearanceM(next);
+      if (cn < c || grid.blocked(next)) break;
+      p = next;
+      c = cn;
+    }
+    if (p == points[i]) continue;
+    if (segmentClearance(grid, points[i - 1], p, spacing, 0.0) >= 0.0 &&
+        segmentClearance(grid, p, points[i + 1], spacing, 0.0) >= 0.0) {
+      points[i] = p;
+    }
+  }
+}
+
+// From each point, straight to the farthest later point whose segment
+// keeps min(target, the least clearance of the points it replaces): the
+// path is shortened without being pulled against a wall or a corner where
+// the space allows more room.
+std::vector<Eigen::Vector3d> pullString(const InflatedGrid& grid,
+                                        const std::vector<Eigen::Vector3d>& points, double target_m,
+                                        double spacing) {
+  std::vector<Eigen::Vector3d> out;
+  if (points.empty()) return out;
+  std::vector<double> clearance(points.size());
+  for (size_t k = 0; k < points.size(); ++k) clearance[k] = grid.clearanceM(points[k]);
+  out.push_back(points.front());
+  size_t i = 0;
+  std::vector<double> least(points.size());
+  while (i + 1 < points.size()) {
+    least[i] = clearance[i];
+    for (size_t j = i + 1; j < points.size(); ++j) least[j] = std::min(least[j - 1], clearance[j]);
+    size_t chosen = i + 1;
+    for (size_t j = points.size() - 1; j > i + 1; --j) {
+      const double required = std::min(target_m, least[j]);
+      if (segmentClearance(grid, points[i], points[j], spacing, required - 1e-6) >= 0.0) {
+        chosen = j;
+        break;
+      }
+    }
+    out.push_back(points[chosen]);
+    i = chosen;
+  }
+  return out;
+}
+
+void quietOmpl() {
+  static std::once_flag once;
+  std::call_once(once, [] { ompl::msg::setLogLevel(ompl::msg::LOG_WARN); });
+}
+
+}  // namespace
+
+void seedPlanner(std::uint32_t seed) {
+  quietOmpl();
+  ompl::RNG::setSeed(seed);
+}
+
+absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vector3d& start_m,
+                                     const Eigen::Vector3d& goal_m, const PlanOptions& options) {
+  quietOmpl();
+  if (!start_m.allFinite() || !goal_m.allFinite()) {
+    return absl::InvalidArgumentError("start and goal must be finite coordinates");
+  }
+  if (!inside(goal_m, options)) {
+    return absl::InvalidArgumentError("goal " + text(goal_m) + " is outside the planning volume " +
+                                      text(options.bounds_min_m) + " .. " +
+                                      text(options.bounds_max_m));
+  }
+  const auto t0 = std::chrono::steady_clock::now();
+  // One dense inflated grid per plan: thousands of checks, one lookup each.
+  // Cells are judged by their centre: add half a cell diagonal of margin.
+  const double margin = 0.5 * std::sqrt(3.0) * map.resolutionM();
+  const InflatedGrid grid(map, options.bounds_min_m, options.bounds_max_m,
+                          options.vehicle_radius_m + margin);
+  const auto t_grid = std::chrono::steady_clock::now();
+  if (grid.blocked(goal_m)) {
+    return absl::InvalidArgumentError(
+        "goal " + text(goal_m) + " is inside an obstacle: an occupied voxel is within " +
+        std::to_string(options.vehicle_radius_m) + " m (the vehicle's radius)");
+  }
+  if (!inside(start_m, options)) {
+    return absl::FailedPreconditionError("the vehicle at " + text(start_m) +
+                                         " is outside the planning volume");
+  }
+  if (grid.blocked(start_m)) {
+    return absl::FailedPreconditionError(
+        "the vehicle at " + text(start_m) +
+        " is closer to an obstacle than its radius: move it away first");
+  }
+
+  auto space = std::make_shared<ob::RealVectorStateSpace>(3);
+  ob::RealVectorBounds bounds(3);
+  for (int i = 0; i < 3; ++i) {
+    bounds.setLow(i, options.bounds_min_m[i]);
+    bounds.setHigh(i, options.bounds_max_m[i]);
+  }
+  space->setBounds(bounds);
+  og::SimpleSetup setup(space);
+  setup.setStateValidityChecker([&grid](const ob::State* state) {
+    const double* v = state->as<ob::RealVectorStateSpace::StateType>()->values;
+    return !grid.blocked(Eigen::Vector3d(v[0], v[1], v[2]));
+  });
+  const double extent = space->getMaximumExtent();
+  setup.getSpaceInformation()->setStateValidityCheckingResolution(
+      std::clamp(options.check_spacing_m / extent, 1e-4, 0.05));
+  ob::ScopedState<> start(space), goal(space);
+  for (int i = 0; i < 3; ++i) {
+    start[i] = start_m[i];
+    goal[i] = goal_m[i];
+  }
+  setup.setStartAndGoalStates(start, goal, 1e-3);
+  setup.setPlanner(std::make_shared<og::RRTConnect>(setup.getSpaceInformation()));
+
+  const ob::PlannerStatus solved = setup.solve(options.timeout_s);
+  if (solved != ob::PlannerStatus::EXACT_SOLUTION) {
+    return absl::NotFoundError("no path from " + text(start_m) + " to " + text(goal_m) +
+                               " found within " + std::to_string(options.timeout_s) +
+                               " s (the goal may be unreachable)");
+  }
+  std::vector<Eigen::Vector3d> raw;
+  for (const ob::State* s : setup.getSolutionPath().getStates()) {
+    const double* v = s->as<ob::RealVectorStateSpace::StateType>()->values;
+    raw.emplace_back(v[0], v[1], v[2]);
+  }
+  const double spacing = options.check_spacing_m;
+  PlannedPath path;
+  if (options.shorten) {
+    const double target = grid.radiusM() + std::max(0.0, options.preferred_clearance_m);
+    std::vector<Eigen::Vector3d> dense = densify(raw, map.resolutionM());
+    pushAway(grid, dense, target, map.resolutionM(), spacing);
+    path.waypoints_m = pullString(grid, dense, target, spacing);
+  } else {
+    path.waypoints_m = std::move(raw);
+  }
+  const auto t1 = std::chrono::steady_clock::now();
+
+  path.min_clearance_m = std::numeric_limits<double>::infinity();
+  for (size_t i = 1; i < path.waypoints_m.size(); ++i) {
+    path.length_m += (path.waypoints_m[i] - path.waypoints_m[i - 1]).norm();
+    const double c =
+        segmentClearance(grid, path.waypoints_m[i - 1], path.waypoints_m[i], spacing, 0.0);
+    path.min_clearance_m = std::min(path.min_clearance_m, c - grid.radiusM());
+  }
+  path.planning_time_s = std::chrono::duration<double>(t1 - t0).count();
+  path.inflation_time_s = std::chrono::duration<double>(t_grid - t0).count();
+  return path;
+}
+
+}  // namespace behaviorlib::nav

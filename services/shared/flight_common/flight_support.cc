@@ -1,0 +1,196 @@
+#include "behaviorlib/flight_common/flight_support.h"
+
+#include "behaviorlib/flight_common/flight_monitoring.h"
+#include "behaviorlib/platform/flight_controller_client.h"
+
+namespace behaviorlib::flight {
+
+absl::Status readNumber(const YAML::Node& config, const char* key, double min, double max,
+                        double* value) {
+  if (!config || !config.IsMap() || !config[key]) return absl::OkStatus();
+  double v = 0;
+  try {
+    v = config[key].as<double>();
+  } catch (const YAML::Exception&) {
+    return absl::InvalidArgumentError(std::string(key) + " must be a number");
+  }
+  if (!(v > min && v <= max)) {
+    return absl::InvalidArgumentError(std::string(key) + " must be within (" + std::to_string(min) +
+                                      ", " + std::to_string(max) + "], got " + std::to_string(v));
+  }
+  *value = v;
+  return absl::OkStatus();
+}
+
+absl::Status readSeconds(const YAML::Node& config, const char* key, double min, double max,
+                         Duration* value) {
+  double value_s = std::chrono::duration<double>(*value).count();
+  if (absl::Status s = readNumber(config, key, min, max, &value_s); !s.ok()) return s;
+  *value = seconds(value_s);
+  return absl::OkStatus();
+}
+
+absl::Status FlightSettings::read(const YAML::Node& config) {
+  if (auto s = readSeconds(config, "pose_timeout_s", 0, 60, &pose_timeout); !s.ok()) return s;
+  if (auto s = readSeconds(config, "lease_ttl_s", 0.05 - 1e-9, 10, &lease_ttl); !s.ok()) return s;
+  if (auto s = readNumber(config, "min_battery_ratio", -1e-9, 1, &min_battery_ratio); !s.ok()) {
+    return s;
+  }
+  if (auto s = readNumber(config, "full_battery_ratio", -1e-9, 1, &full_battery_ratio); !s.ok()) {
+    return s;
+  }
+  if (auto s = readSeconds(config, "progress_window_s", 0, 600, &progress_window); !s.ok()) {
+    return s;
+  }
+  if (auto s = readNumber(config, "mass_kg", 0.01, 1000, &wind.mass_kg); !s.ok()) return s;
+  if (auto s = readNumber(config, "linear_drag_n_s_m", -1e-9, 1000, &wind.linear_drag_n_s_m);
+      !s.ok()) {
+    return s;
+  }
+  if (auto s =
+          readNumber(config, "quadratic_drag_n_s2_m2", -1e-9, 1000, &wind.quadratic_drag_n_s2_m2);
+      !s.ok()) {
+    return s;
+  }
+  if (wind.linear_drag_n_s_m <= 0.0 && wind.quadratic_drag_n_s2_m2 <= 0.0) {
+    return absl::InvalidArgumentError(
+        "linear_drag_n_s_m and quadratic_drag_n_s2_m2 cannot both be 0");
+  }
+  if (auto s = readNumber(config, "wind_time_constant_s", 0, 60, &wind.time_constant_s); !s.ok()) {
+    return s;
+  }
+  if (auto s = readNumber(config, "calm_wind_m_s", -1e-9, 100, &calm_wind_m_s); !s.ok()) return s;
+  if (auto s = readNumber(config, "max_wind_m_s", 0, 100, &max_wind_m_s); !s.ok()) return s;
+  if (max_wind_m_s <= calm_wind_m_s) {
+    return absl::InvalidArgumentError("max_wind_m_s must be above calm_wind_m_s");
+  }
+  if (config && config.IsMap() && config["preempt_lease"]) {
+    try {
+      preempt_lease = config["preempt_lease"].as<bool>();
+    } catch (const YAML::Exception&) {
+      return absl::InvalidArgumentError("preempt_lease must be true or false");
+    }
+  }
+  return absl::OkStatus();
+}
+
+BehaviorOptions flightBehaviorOptions(Duration maximum_execution_time) {
+  BehaviorOptions options;
+  options.frequency_hz = 20.0;
+  options.maximum_execution_time = maximum_execution_time;
+  options.watchdog_timeout = std::chrono::seconds(2);
+  return options;
+}
+
+bool airborne(v1::FlightState state) {
+  return state == v1::FLIGHT_STATE_TAKING_OFF || state == v1::FLIGHT_STATE_FLYING ||
+         state == v1::FLIGHT_STATE_HOVERING || state == v1::FLIGHT_STATE_LANDING;
+}
+
+bool flying(v1::FlightState state) {
+  return state == v1::FLIGHT_STATE_FLYING || state == v1::FLIGHT_STATE_HOVERING;
+}
+
+std::optional<std::string> staleness(const std::string& what, const v1::Header& header,
+                                     TimePoint now, Duration limit) {
+  const Duration age = now - stampTime(header);
+  if (age <= limit) return std::nullopt;
+  return what + " is " + secondsText(age) + " old (limit " + secondsText(limit) + ")";
+}
+
+std::optional<std::string> checkFlightInputs(Vehicle& vehicle, TimePoint now,
+                                             const FlightSettings& settings,
+                                             const VehicleLease* lease, bool need_twist,
+                                             v1::FlightStatus* status, v1::PoseStamped* pose,
+                                             v1::TwistStamped* twist) {
+  auto flight = vehicle.flightStatus();
+  if (!flight.ok()) return std::string(flight.status().message());
+  *status = *flight;
+  if (lease) {
+    if (absl::Status s = lease->status();
+        !s.ok() && s.code() != absl::StatusCode::kFailedPrecondition) {
+      return std::string(s.message());
+    }
+  }
+  auto p = vehicle.poseEstimate();
+  if (!p.ok()) return "pose estimate: " + std::string(p.status().message());
+  if (auto stale = staleness("the pose estimate on " + vehicle.poseTopic(), p->header(), now,
+                             settings.pose_timeout)) {
+    return stale;
+  }
+  *pose = *p;
+  if (need_twist) {
+    auto t = vehicle.twistEstimate();
+    if (!t.ok()) return "velocity estimate: " + std::string(t.status().message());
+    if (auto stale = staleness("the velocity estimate", t->header(), now, settings.pose_timeout)) {
+      return stale;
+    }
+    *twist = *t;
+  }
+  return std::nullopt;
+}
+
+std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimePoint now,
+                                                         const FlightSettings& settings,
+                                                         bool check_battery, bool need_twist,
+                                                         Situation* situation) {
+  auto add = [&](std::string reason) {
+    situation->feasible = false;
+    situation->performance_ratio = 0.0;
+    situation->reasons.push_back(std::move(reason));
+  };
+  std::optional<v1::FlightStatus> result;
+  auto flight = vehicle.flightStatus();
+  if (!flight.ok()) {
+    add(std::string(flight.status().message()));
+  } else {
+    result = *flight;
+    if (check_battery && flight->battery_ratio() < settings.min_battery_ratio) {
+      add("battery at " + fixed2(flight->battery_ratio()) + ", below the minimum " +
+          fixed2(settings.min_battery_ratio));
+    } else if (situation->feasible) {
+      situation->performance_ratio = batteryPerformance(
+          flight->battery_ratio(), check_battery ? settings.min_battery_ratio : 0.0,
+          settings.full_battery_ratio);
+    }
+  }
+  auto pose = vehicle.poseEstimate();
+  if (!pose.ok()) {
+    add("no pose estimate: " + std::string(pose.status().message()));
+  } else if (auto stale = staleness("the pose estimate on " + vehicle.poseTopic(), pose->header(),
+                                    now, settings.pose_timeout)) {
+    add(*stale + "; is a localization behavior active?");
+  }
+  if (need_twist) {
+    auto twist = vehicle.twistEstimate();
+    if (!twist.ok()) {
+      add("no velocity estimate: " + std::string(twist.status().message()));
+    } else if (auto stale = staleness("the velocity estimate", twist->header(), now,
+                                      settings.pose_timeout)) {
+      add(*stale + "; is a localization behavior active?");
+    }
+  }
+  return result;
+}
+
+Situation activeFlightSituation(const v1::FlightStatus& status, const VehicleLease* lease,
+                                const FlightSettings& settings, bool check_battery) {
+  if (status.state() == v1::FLIGHT_STATE_EMERGENCY || status.state() == v1::FLIGHT_STATE_CRASHED) {
+    return Situation::infeasible("the platform reports " +
+                                 platform::flightStateName(status.state()));
+  }
+  if (lease) {
+    if (absl::Status s = lease->status(); s.code() == absl::StatusCode::kFailedPrecondition) {
+      return Situation::infeasible(std::string(s.message()));
+    }
+  }
+  if (check_battery && status.battery_ratio() < settings.min_battery_ratio) {
+    return Situation::infeasible("battery at " + fixed2(status.battery_ratio()) +
+                                 ", below the minimum " + fixed2(settings.min_battery_ratio));
+  }
+  return Situation::ok(batteryPerformance(status.battery_ratio(),
+                                          check_battery ? settings.min_battery_ratio : 0.0,
+                                          settings.full_battery_ratio));
+}
+
+}  // namespace behaviorlib::flight

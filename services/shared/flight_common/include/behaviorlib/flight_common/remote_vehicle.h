@@ -1,0 +1,55 @@
+#pragma once
+
+// RemoteVehicle: the Vehicle of a behavior-system process — the platform
+// through behaviorlib::platform_client (--flight-controller; its flight state
+// followed by a WatchFlightState stream for the process's whole life) and the
+// pose estimate through the data channel (--channel).
+//
+//   auto& vehicle = builder.own(std::make_unique<RemoteVehicle>(builder.context()));
+
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/flight_common/vehicle.h"
+#include "behaviorlib/platform/flight_controller_client.h"
+#include "behaviorlib/platform/flight_state_watcher.h"
+#include "behaviorlib/server/behavior_system_main.h"
+
+namespace behaviorlib::flight {
+
+class RemoteVehicle final : public Vehicle {
+ public:
+  explicit RemoteVehicle(const server::SystemContext& context);
+  ~RemoteVehicle() override;
+
+  const std::string& robotId() const override { return robot_id_; }
+  absl::StatusOr<v1::FlightStatus> flightStatus() const override;
+  absl::StatusOr<std::unique_ptr<VehicleLease>> acquireLease(const std::string& holder,
+                                                             Duration ttl, bool preempt) override;
+  void followEstimate(bool follow) override;
+  absl::StatusOr<v1::PoseStamped> poseEstimate() override;
+  absl::StatusOr<v1::TwistStamped> twistEstimate() override;
+  std::string poseTopic() const override;
+
+ private:
+  template <class T>
+  absl::StatusOr<T> latest(const std::string& topic, std::optional<T>* cache);
+
+  const std::string robot_id_;
+  const Clock& clock_;
+  channel::ChannelClient* channel_;
+  std::unique_ptr<platform::FlightControllerClient> flight_controller_;
+  std::unique_ptr<platform::FlightStateWatcher> watcher_;
+
+  std::mutex mutex_;
+  int followers_ = 0;
+  std::optional<v1::PoseStamped> pose_;
+  std::optional<v1::TwistStamped> twist_;
+  std::unique_ptr<channel::Subscription> pose_subscription_;
+  std::unique_ptr<channel::Subscription> twist_subscription_;
+};
+
+}  // namespace behaviorlib::flight

@@ -1,0 +1,82 @@
+#pragma once
+
+// MotionLink: the motion behaviors' side of the data channel — motion
+// references one way, the motion controller's status the other (topics in
+// motion_topics.h) — behind an interface, so that the behaviors' monitoring is
+// unit-tested against an in-memory link on a FakeClock. RemoteMotionLink is
+// the real one, over a ChannelClient.
+//
+//   RemoteMotionLink link(context.channel, context.robot_id);
+//   link.followReferences(true);                 // while a controller is active
+//   std::optional<v1::MotionReference> r = link.latestReference();
+//   link.publishStatus(status);
+
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "absl/status/status.h"
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/v1/motion.pb.h"
+
+namespace behaviorlib::motion_behaviors {
+
+class MotionLink {
+ public:
+  virtual ~MotionLink() = default;
+
+  /// Publishes on robots/{id}/motion_reference.
+  virtual absl::Status publishReference(const v1::MotionReference& reference) = 0;
+  /// Publishes on robots/{id}/motion_control/status.
+  virtual absl::Status publishStatus(const v1::MotionControlStatus& status) = 0;
+
+  /// While at least one caller follows them, the newest reference (status)
+  /// is kept by a subscription; latestReference() (latestStatus()) returns it.
+  virtual void followReferences(bool follow) = 0;
+  virtual void followStatus(bool follow) = 0;
+  /// The newest sample seen since following began; nullopt before any.
+  virtual std::optional<v1::MotionReference> latestReference() = 0;
+  virtual std::optional<v1::MotionControlStatus> latestStatus() = 0;
+
+  virtual std::string referenceTopic() const = 0;
+  virtual std::string statusTopic() const = 0;
+};
+
+class RemoteMotionLink final : public MotionLink {
+ public:
+  /// `channel` may be null (no --channel): publishing then fails with
+  /// FAILED_PRECONDITION and nothing is ever received.
+  RemoteMotionLink(channel::ChannelClient* channel, std::string robot_id);
+  ~RemoteMotionLink() override;
+
+  absl::Status publishReference(const v1::MotionReference& reference) override;
+  absl::Status publishStatus(const v1::MotionControlStatus& status) override;
+  void followReferences(bool follow) override;
+  void followStatus(bool follow) override;
+  std::optional<v1::MotionReference> latestReference() override;
+  std::optional<v1::MotionControlStatus> latestStatus() override;
+  std::string referenceTopic() const override;
+  std::string statusTopic() const override;
+
+ private:
+  // One followed topic: its subscription while followed, and the newest
+  // sample.
+  template <class T>
+  struct Followed {
+    int followers = 0;
+    std::optional<T> latest;
+    std::unique_ptr<channel::Subscription> subscription;
+  };
+  template <class T>
+  void follow(bool follow, const std::string& topic, Followed<T>* followed);
+  absl::Status publish(const std::string& topic, const google::protobuf::Message& message);
+
+  channel::ChannelClient* channel_;
+  const std::string robot_id_;
+  std::mutex mutex_;
+  Followed<v1::MotionReference> references_;
+  Followed<v1::MotionControlStatus> status_;
+};
+
+}  // namespace behaviorlib::motion_behaviors

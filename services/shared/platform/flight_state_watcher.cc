@@ -1,0 +1,82 @@
+#include "behaviorlib/platform/flight_state_watcher.h"
+
+#include <algorithm>
+
+namespace behaviorlib::platform {
+
+FlightStateWatcher::FlightStateWatcher(const FlightControllerClient& client)
+    : client_(client),
+      error_(absl::UnavailableError("no flight state yet from the flight controller at " +
+                                    client.address() + " (connecting)")) {
+  thread_ = std::thread([this] { run(); });
+}
+
+FlightStateWatcher::~FlightStateWatcher() {
+  {
+    std::lock_guard lock(mutex_);
+    stopping_ = true;
+    if (context_) context_->TryCancel();
+  }
+  cv_.notify_all();
+  thread_.join();
+}
+
+absl::StatusOr<v1::FlightStatus> FlightStateWatcher::latest() const {
+  std::lock_guard lock(mutex_);
+  if (connected_ && latest_) return *latest_;
+  return error_;
+}
+
+bool FlightStateWatcher::connected() const {
+  std::lock_guard lock(mutex_);
+  return connected_ && latest_.has_value();
+}
+
+uint64_t FlightStateWatcher::receivedCount() const {
+  std::lock_guard lock(mutex_);
+  return received_;
+}
+
+bool FlightStateWatcher::waitConnected(std::chrono::milliseconds timeout) const {
+  std::unique_lock lock(mutex_);
+  return cv_.wait_for(lock, timeout, [this] { return connected_ && latest_.has_value(); });
+}
+
+void FlightStateWatcher::run() {
+  constexpr std::chrono::milliseconds kInitialBackoff(100);
+  constexpr std::chrono::milliseconds kMaxBackoff(1000);
+  std::chrono::milliseconds backoff = kInitialBackoff;
+  while (true) {
+    grpc::ClientContext context;
+    {
+      std::lock_guard lock(mutex_);
+      if (stopping_) return;
+      context_ = &context;
+    }
+    v1::WatchFlightStateRequest request;
+    request.set_robot_id(client_.robotId());
+    auto reader = client_.stub().WatchFlightState(&context, request);
+    v1::WatchFlightStateResponse message;
+    while (reader->Read(&message)) {
+      std::lock_guard lock(mutex_);
+      latest_ = message.status();
+      connected_ = true;
+      ++received_;
+      backoff = kInitialBackoff;
+      cv_.notify_all();
+    }
+    const grpc::Status status = reader->Finish();
+    std::unique_lock lock(mutex_);
+    context_ = nullptr;
+    connected_ = false;
+    if (stopping_) return;
+    error_ = client_.describe(
+        status.ok() ? grpc::Status(grpc::StatusCode::UNAVAILABLE, "the flight-state stream ended")
+                    : status,
+        "WatchFlightState");
+    cv_.wait_for(lock, backoff, [this] { return stopping_; });
+    backoff = std::min(backoff * 2, kMaxBackoff);
+  }
+}
+
+}  // namespace behaviorlib::platform

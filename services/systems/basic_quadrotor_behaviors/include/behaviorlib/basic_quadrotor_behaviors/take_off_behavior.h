@@ -1,0 +1,83 @@
+#pragma once
+
+// TAKE_OFF (goal-based): takes off through the platform's TAKE_OFF flight
+// action to altitude_m above the take-off point, holding the vehicle's
+// command lease while active, and finishes GOAL_ACHIEVED when the pose
+// estimate has stayed within altitude_tolerance_m of the target with a
+// vertical speed below max_vertical_speed_m_s for goal_dwell_s.
+//
+//   checkSituation  before: flight controller answers, LANDED, battery >=
+//                   min_battery_ratio, fresh pose estimate; while active: no
+//                   emergency, lease not taken; performance follows the battery
+//                   and, once airborne, the wind (flight::WindWatch)
+//   checkGoal       altitude within tolerance, small vertical speed, for a dwell
+//   checkProgress   no climb towards the target over progress_window_s, or an
+//                   unexpected landing: WRONG_PROGRESS
+//   checkProcesses  stale pose/velocity estimate, unreachable flight controller,
+//                   lease renewals failing: PROCESS_FAILURE
+//   onDeactivate    leaves the vehicle hovering and releases the lease
+//
+// Config (its section of --config): the flight::FlightSettings keys plus
+// altitude_tolerance_m [0.1], max_vertical_speed_m_s [0.1], goal_dwell_s [1],
+// min_climb_m [0.1] (per progress window).
+
+#include <cmath>
+#include <limits>
+#include <memory>
+
+#include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/flight_common/flight_monitoring.h"
+#include "behaviorlib/flight_common/flight_support.h"
+#include "behaviorlib/flight_common/vehicle.h"
+#include "behaviorlib/flight_common/wind_watch.h"
+#include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
+
+namespace behaviorlib::basic {
+
+class TakeOffBehavior final : public Behavior<v1::TakeOffParameters> {
+ public:
+  explicit TakeOffBehavior(flight::Vehicle& vehicle);
+
+ protected:
+  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onActivate() override;
+  void onExecute() override;
+  void onDeactivate() override;
+  void onPause() override;
+  void onResume() override;
+  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+
+  Situation checkSituation() override;
+  Verdict checkGoal() override;
+  Verdict checkProgress() override;
+  Verdict checkProcesses() override;
+
+ private:
+  flight::Vehicle& vehicle_;
+  flight::FlightSettings settings_;
+  flight::WindWatch wind_;
+  double altitude_tolerance_m_ = 0.1;
+  double max_vertical_speed_m_s_ = 0.1;
+  double min_climb_m_ = 0.1;
+  flight::DwellTracker dwell_{std::chrono::seconds(1)};
+  flight::ProgressWindow climb_{std::chrono::seconds(3)};
+
+  // Activation state (worker thread only).
+  bool active_ = false;
+  std::unique_ptr<flight::VehicleLease> lease_;
+  double origin_x_ = 0, origin_y_ = 0, origin_z_ = 0, origin_yaw_ = 0;
+  double target_z_ = 0;
+  // Altitude last commanded to the platform (NaN: a setpoint must be sent).
+  double commanded_z_ = std::numeric_limits<double>::quiet_NaN();
+  bool seen_airborne_ = false;
+  std::string command_error_;
+  // Inputs read by checkProcesses() for the checks after it.
+  v1::FlightStatus status_;
+  v1::PoseStamped pose_;
+  v1::TwistStamped twist_;
+};
+
+/// Yaw (rad, CCW from +x) of a quaternion (w, x, y, z).
+double yawOf(const v1::Quaternion& q);
+
+}  // namespace behaviorlib::basic

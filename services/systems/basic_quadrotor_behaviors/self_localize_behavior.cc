@@ -1,0 +1,173 @@
+#include "behaviorlib/basic_quadrotor_behaviors/self_localize_behavior.h"
+
+#include <cmath>
+
+#include "behaviorlib/flight_common/flight_monitoring.h"
+#include "behaviorlib/flight_common/flight_support.h"
+#include "behaviorlib/flight_common/topics.h"
+#include "behaviorlib/flight_common/vehicle.h"
+
+namespace behaviorlib::basic {
+SelfLocalizeWithGroundTruthBehavior::SelfLocalizeWithGroundTruthBehavior(
+    channel::ChannelClient* channel)
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())), channel_(channel) {}
+
+SelfLocalizeWithGroundTruthBehavior::~SelfLocalizeWithGroundTruthBehavior() { stopSubscriptions(); }
+
+absl::Status SelfLocalizeWithGroundTruthBehavior::onConfigure(const YAML::Node& config) {
+  if (auto s = flight::readSeconds(config, "ground_truth_timeout_s", 0, 60, &timeout_); !s.ok())
+    return s;
+  return flight::readNumber(config, "max_jump_m", 0, 1e6, &max_jump_m_);
+}
+
+void SelfLocalizeWithGroundTruthBehavior::onPose(const v1::PoseStamped& pose) {
+  v1::PoseStamped estimate = pose;
+  {
+    std::lock_guard lock(mutex_);
+    if (last_pose_ && jump_.empty()) {
+      const auto& a = last_pose_->pose().position_m();
+      const auto& b = pose.pose().position_m();
+      const double jump =
+          std::sqrt((a.x() - b.x()) * (a.x() - b.x()) + (a.y() - b.y()) * (a.y() - b.y()) +
+                    (a.z() - b.z()) * (a.z() - b.z()));
+      if (!(jump <= max_jump_m_)) {
+        jump_ = "the ground truth jumped " + flight::fixed2(jump) + " m in " +
+                flight::secondsText(flight::stampTime(pose.header()) -
+                                    flight::stampTime(last_pose_->header())) +
+                " (limit " + flight::fixed2(max_jump_m_) + " m between samples)";
+      }
+    }
+    last_pose_ = pose;
+    if (!publishing_) return;
+    estimate.mutable_header()->set_seq(++seq_);
+  }
+  estimate.mutable_header()->set_frame_id("world");
+  estimate.mutable_header()->set_robot_id(robotId());
+  // Published outside the lock: a slow broker must not hold up the monitoring.
+  if (absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), estimate); !s.ok()) {
+    std::lock_guard lock(mutex_);
+    if (publish_error_.ok()) publish_error_ = s;
+  }
+}
+
+void SelfLocalizeWithGroundTruthBehavior::onTwist(const v1::TwistStamped& twist) {
+  v1::TwistStamped estimate = twist;
+  {
+    std::lock_guard lock(mutex_);
+    if (!publishing_) return;
+    estimate.mutable_header()->set_seq(++twist_seq_);
+  }
+  estimate.mutable_header()->set_robot_id(robotId());
+  if (absl::Status s = channel_->publish(flight::twistEstimateTopic(robotId()), estimate);
+      !s.ok()) {
+    std::lock_guard lock(mutex_);
+    if (publish_error_.ok()) publish_error_ = s;
+  }
+}
+
+absl::Status SelfLocalizeWithGroundTruthBehavior::onActivate() {
+  {
+    std::lock_guard lock(mutex_);
+    last_pose_.reset();
+    jump_.clear();
+    publish_error_ = absl::OkStatus();
+    publishing_ = true;
+  }
+  const channel::SubscribeOptions options{.mode = v1::DELIVERY_MODE_LATEST,
+                                          .send_latest_first = true};
+  pose_subscription_ = channel_->subscribeTyped<v1::PoseStamped>(
+      flight::groundTruthPoseTopic(robotId()), options,
+      [this](const v1::PoseStamped& pose) { onPose(pose); });
+  twist_subscription_ = channel_->subscribeTyped<v1::TwistStamped>(
+      flight::groundTruthTwistTopic(robotId()), options,
+      [this](const v1::TwistStamped& twist) { onTwist(twist); });
+  activated_at_ = now();
+  active_ = true;
+  return absl::OkStatus();
+}
+
+void SelfLocalizeWithGroundTruthBehavior::stopSubscriptions() {
+  {
+    std::lock_guard lock(mutex_);
+    publishing_ = false;
+  }
+  // Joins the readers; never under mutex_ (their callbacks take it).
+  pose_subscription_.reset();
+  twist_subscription_.reset();
+}
+
+void SelfLocalizeWithGroundTruthBehavior::onDeactivate() {
+  active_ = false;
+  stopSubscriptions();
+}
+
+void SelfLocalizeWithGroundTruthBehavior::onPause() {
+  std::lock_guard lock(mutex_);
+  publishing_ = false;
+}
+
+void SelfLocalizeWithGroundTruthBehavior::onResume() {
+  std::lock_guard lock(mutex_);
+  publishing_ = true;
+}
+
+Situation SelfLocalizeWithGroundTruthBehavior::checkSituation() {
+  if (!channel_) {
+    return Situation::infeasible(
+        "no data channel configured: start the behavior system with --channel HOST:PORT");
+  }
+  if (active_) return Situation::ok();
+  const std::string topic = flight::groundTruthPoseTopic(robotId());
+  auto sample = channel_->getLatest(topic, flight::kChannelReadTimeout);
+  if (!sample.ok()) {
+    return Situation::infeasible(sample.status().code() == absl::StatusCode::kNotFound
+                                     ? "no ground truth on " + topic +
+                                           ": is the simulator running with --channel and a "
+                                           "vehicle " +
+                                           robotId() + "?"
+                                     : "cannot read " + topic + " from the channel at " +
+                                           channel_->address() + ": " +
+                                           std::string(sample.status().message()));
+  }
+  v1::PoseStamped pose;
+  if (!sample->sample().UnpackTo(&pose)) {
+    return Situation::infeasible(topic + " does not carry behaviorlib.v1.PoseStamped");
+  }
+  if (auto stale =
+          flight::staleness("the ground truth on " + topic, pose.header(), now(), timeout_)) {
+    return Situation::infeasible(*stale + "; is the simulator running?");
+  }
+  return Situation::ok();
+}
+
+Verdict SelfLocalizeWithGroundTruthBehavior::checkProgress() {
+  std::lock_guard lock(mutex_);
+  if (!jump_.empty()) return Verdict::finish(jump_);
+  return Verdict::keepGoing();
+}
+
+Verdict SelfLocalizeWithGroundTruthBehavior::checkProcesses() {
+  std::lock_guard lock(mutex_);
+  if (!publish_error_.ok()) {
+    return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
+  }
+  const TimePoint t = now();
+  if (!last_pose_) {
+    // The subscription delivers the latest sample first: allow it the
+    // timeout to arrive.
+    if (t - activated_at_ > timeout_) {
+      return Verdict::finish("no ground truth received on " +
+                             flight::groundTruthPoseTopic(robotId()) + " within " +
+                             flight::secondsText(timeout_));
+    }
+    return Verdict::keepGoing();
+  }
+  if (auto stale =
+          flight::staleness("the ground truth on " + flight::groundTruthPoseTopic(robotId()),
+                            last_pose_->header(), t, timeout_)) {
+    return Verdict::finish(*stale);
+  }
+  return Verdict::keepGoing();
+}
+
+}  // namespace behaviorlib::basic

@@ -1,0 +1,299 @@
+#include "behaviorlib/multi_sensor_fusion/ekf_behavior.h"
+
+#include <cmath>
+
+#include "behaviorlib/flight_common/flight_monitoring.h"
+#include "behaviorlib/flight_common/flight_support.h"
+#include "behaviorlib/flight_common/topics.h"
+#include "behaviorlib/flight_common/vehicle.h"
+
+namespace behaviorlib::fusion {
+namespace {
+
+std::string topic(const std::string& robot, const char* name) {
+  return "robots/" + robot + "/" + name;
+}
+
+Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
+
+void setVec(v1::Vector3* out, const Eigen::Vector3d& v) {
+  out->set_x(v.x());
+  out->set_y(v.y());
+  out->set_z(v.z());
+}
+
+double yawOf(const Eigen::Quaterniond& q) {
+  const Eigen::Vector3d forward = q * Eigen::Vector3d::UnitX();
+  return std::atan2(forward.y(), forward.x());
+}
+
+BehaviorOptions ekfOptions() {
+  BehaviorOptions o = flight::flightBehaviorOptions(Duration::zero());
+  o.frequency_hz = 10.0;
+  return o;
+}
+
+}  // namespace
+
+EkfSelfLocalizationBehavior::EkfSelfLocalizationBehavior(channel::ChannelClient* channel)
+    : Behavior(ekfOptions()), channel_(channel) {}
+
+EkfSelfLocalizationBehavior::~EkfSelfLocalizationBehavior() { stopSubscriptions(); }
+
+absl::Status EkfSelfLocalizationBehavior::onConfigure(const YAML::Node& config) {
+  using flight::readNumber;
+  using flight::readSeconds;
+  for (auto [key, value] :
+       {std::pair{"imu_timeout_s", &imu_timeout_}, std::pair{"gps_timeout_s", &gps_timeout_},
+        std::pair{"start_timeout_s", &start_timeout_}}) {
+    if (auto s = readSeconds(config, key, 0, 60, value); !s.ok()) return s;
+  }
+  for (auto [key, value, max] :
+       {std::tuple{"max_horizontal_stddev_m", &max_horizontal_stddev_m_, 1000.0},
+        std::tuple{"max_rejected_ratio", &max_rejected_ratio_, 1.0},
+        std::tuple{"gps_window", &gps_window_, 1000.0},
+        std::tuple{"baro_stddev_m", &baro_stddev_m_, 100.0},
+        std::tuple{"linear_speed_stddev_m_s", &linear_speed_stddev_m_s_, 100.0},
+        std::tuple{"yaw_stddev_rad", &yaw_stddev_rad_, 10.0},
+        std::tuple{"gyro_noise_rad_s", &noise_.gyro_noise_rad_s, 10.0},
+        std::tuple{"accel_noise_m_s2", &noise_.accel_noise_m_s2, 100.0}}) {
+    if (auto s = readNumber(config, key, 0, max, value); !s.ok()) return s;
+  }
+  return absl::OkStatus();
+}
+
+void EkfSelfLocalizationBehavior::fillEstimateLocked(const v1::Header& imu_header,
+                                                     v1::PoseStamped* pose,
+                                                     v1::TwistStamped* twist) {
+  v1::Header header = imu_header;
+  header.set_frame_id("world");
+  header.set_robot_id(robotId());
+  header.set_seq(++seq_);
+  *pose->mutable_header() = header;
+  setVec(pose->mutable_pose()->mutable_position_m(), ekf_.position());
+  const Eigen::Quaterniond& q = ekf_.orientation();
+  auto* o = pose->mutable_pose()->mutable_orientation();
+  o->set_w(q.w());
+  o->set_x(q.x());
+  o->set_y(q.y());
+  o->set_z(q.z());
+  *twist->mutable_header() = header;
+  setVec(twist->mutable_twist()->mutable_linear_m_s(), ekf_.velocity());
+  setVec(twist->mutable_twist()->mutable_angular_rad_s(), last_gyro_ - ekf_.gyroBias());
+}
+
+void EkfSelfLocalizationBehavior::onImu(const v1::Imu& imu) {
+  v1::PoseStamped pose;
+  v1::TwistStamped twist;
+  bool publish = false;
+  {
+    std::lock_guard lock(mutex_);
+    if (!running_) return;
+    const TimePoint stamp = flight::stampTime(imu.header());
+    const auto& qo = imu.orientation();
+    imu_orientation_ = Eigen::Quaterniond(qo.w(), qo.x(), qo.y(), qo.z()).normalized();
+    last_gyro_ = vec(imu.angular_velocity_rad_s());
+    if (ekf_.initialized() && last_imu_) {
+      const double dt = std::chrono::duration<double>(stamp - *last_imu_).count();
+      ekf_.predict(last_gyro_, vec(imu.linear_acceleration_m_s2()), dt);
+      if (use_imu_yaw_ && imu_count_ % 20 == 0)
+        ekf_.updateYaw(yawOf(*imu_orientation_), yaw_stddev_rad_);
+      publish = publishing_ && imu_count_ % 2 == 0;
+      if (publish) fillEstimateLocked(imu.header(), &pose, &twist);
+    }
+    last_imu_ = stamp;
+    ++imu_count_;
+  }
+  if (!publish) return;
+  // Published outside the lock: a slow broker must not stall the filter.
+  absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
+  if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
+  if (!s.ok()) {
+    std::lock_guard lock(mutex_);
+    if (publish_error_.ok()) publish_error_ = s;
+  }
+}
+
+void EkfSelfLocalizationBehavior::onGps(const v1::PositionFix& fix) {
+  std::lock_guard lock(mutex_);
+  if (!running_) return;
+  last_gps_ = flight::stampTime(fix.header());
+  const Eigen::Vector3d position = vec(fix.position_m());
+  if (!ekf_.initialized()) {
+    if (imu_orientation_ && position.allFinite())
+      ekf_.initialize(position, Eigen::Vector3d::Zero(), *imu_orientation_);
+    return;
+  }
+  const UpdateResult r = ekf_.updatePosition(position, std::max(fix.horizontal_stddev_m(), 0.05),
+                                             std::max(fix.vertical_stddev_m(), 0.05));
+  gps_accepted_.push_back(r.accepted);
+  while (gps_accepted_.size() > static_cast<size_t>(gps_window_)) gps_accepted_.pop_front();
+}
+
+void EkfSelfLocalizationBehavior::onBaro(const v1::Altitude& altitude) {
+  std::lock_guard lock(mutex_);
+  if (!running_ || !use_barometer_ || !ekf_.initialized()) return;
+  ekf_.updateAltitude(altitude.altitude_m(), std::max(altitude.stddev_m(), baro_stddev_m_));
+}
+
+void EkfSelfLocalizationBehavior::onLinearSpeed(const v1::TwistStamped& twist) {
+  std::lock_guard lock(mutex_);
+  if (!running_ || !use_linear_speed_ || !ekf_.initialized()) return;
+  ekf_.updateBodyVelocity(vec(twist.twist().linear_m_s()), linear_speed_stddev_m_s_);
+}
+
+absl::Status EkfSelfLocalizationBehavior::onActivate() {
+  {
+    std::lock_guard lock(mutex_);
+    ekf_ = InsEkf(noise_);
+    last_imu_.reset();
+    last_gps_.reset();
+    imu_orientation_.reset();
+    gps_accepted_.clear();
+    imu_count_ = 0;
+    publish_error_ = absl::OkStatus();
+    use_linear_speed_ = parameters().use_linear_speed();
+    use_barometer_ = parameters().use_barometer();
+    use_imu_yaw_ = parameters().use_imu_yaw();
+    running_ = publishing_ = true;
+  }
+  const std::string robot = robotId();
+  // Every IMU sample predicts: a queue, not latest-only.
+  imu_sub_ = channel_->subscribeTyped<v1::Imu>(
+      topic(robot, "imu"), {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 2000},
+      [this](const v1::Imu& m) { onImu(m); });
+  const channel::SubscribeOptions queued{.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 200};
+  gps_sub_ = channel_->subscribeTyped<v1::PositionFix>(
+      topic(robot, "gps"), queued, [this](const v1::PositionFix& m) { onGps(m); });
+  baro_sub_ = channel_->subscribeTyped<v1::Altitude>(topic(robot, "baro"), queued,
+                                                     [this](const v1::Altitude& m) { onBaro(m); });
+  speed_sub_ = channel_->subscribeTyped<v1::TwistStamped>(
+      topic(robot, "linear_speed"), queued,
+      [this](const v1::TwistStamped& m) { onLinearSpeed(m); });
+  activated_at_ = now();
+  active_ = true;
+  return absl::OkStatus();
+}
+
+void EkfSelfLocalizationBehavior::stopSubscriptions() {
+  {
+    std::lock_guard lock(mutex_);
+    running_ = publishing_ = false;
+  }
+  // Joins the readers; never under mutex_ (their callbacks take it).
+  imu_sub_.reset();
+  gps_sub_.reset();
+  baro_sub_.reset();
+  speed_sub_.reset();
+}
+
+void EkfSelfLocalizationBehavior::onDeactivate() {
+  active_ = false;
+  stopSubscriptions();
+}
+
+void EkfSelfLocalizationBehavior::onPause() {
+  std::lock_guard lock(mutex_);
+  publishing_ = false;
+}
+
+void EkfSelfLocalizationBehavior::onResume() {
+  std::lock_guard lock(mutex_);
+  publishing_ = true;
+}
+
+absl::Status EkfSelfLocalizationBehavior::onModify(
+    const google::protobuf::Message& new_parameters) {
+  const auto& p = static_cast<const v1::SelfLocalizeWithEkfSensorFusionParameters&>(new_parameters);
+  std::lock_guard lock(mutex_);
+  use_linear_speed_ = p.use_linear_speed();
+  use_barometer_ = p.use_barometer();
+  use_imu_yaw_ = p.use_imu_yaw();
+  return absl::OkStatus();
+}
+
+Situation EkfSelfLocalizationBehavior::checkSituation() {
+  if (!channel_) {
+    return Situation::infeasible(
+        "no data channel configured: start the behavior system with --channel HOST:PORT");
+  }
+  if (active_) return Situation::ok();
+  for (const auto& [name, limit] :
+       {std::pair{"imu", imu_timeout_}, std::pair{"gps", gps_timeout_}}) {
+    const std::string t = topic(robotId(), name);
+    auto sample = channel_->getLatest(t, flight::kChannelReadTimeout);
+    if (!sample.ok()) {
+      return Situation::infeasible(
+          sample.status().code() == absl::StatusCode::kNotFound
+              ? "nothing on " + t + ": is the simulator (or the sensor driver) publishing?"
+              : "cannot read " + t + " from the channel at " + channel_->address() + ": " +
+                    std::string(sample.status().message()));
+    }
+    v1::Header header;
+    v1::Imu imu;
+    v1::PositionFix fix;
+    if (sample->sample().UnpackTo(&imu)) {
+      header = imu.header();
+    } else if (sample->sample().UnpackTo(&fix)) {
+      header = fix.header();
+    }
+    // A sensor sampling at its rate: a little older than its timeout is fine
+    // before activation, where the channel read itself takes time.
+    if (auto stale = flight::staleness("the latest sample on " + t, header, now(), 2 * limit)) {
+      return Situation::infeasible(*stale);
+    }
+  }
+  return Situation::ok();
+}
+
+Verdict EkfSelfLocalizationBehavior::checkProgress() {
+  std::lock_guard lock(mutex_);
+  if (!ekf_.initialized()) return Verdict::keepGoing();
+  if (ekf_.horizontalStddevM() > max_horizontal_stddev_m_) {
+    return Verdict::finish("the filter is diverging: horizontal standard deviation " +
+                           flight::fixed2(ekf_.horizontalStddevM()) + " m (limit " +
+                           flight::fixed2(max_horizontal_stddev_m_) + " m)");
+  }
+  if (gps_accepted_.size() >= static_cast<size_t>(gps_window_)) {
+    const auto rejected = std::count(gps_accepted_.begin(), gps_accepted_.end(), false);
+    if (static_cast<double>(rejected) >
+        max_rejected_ratio_ * static_cast<double>(gps_accepted_.size())) {
+      return Verdict::finish(
+          "the filter rejects the GPS: " + std::to_string(rejected) + " of the last " +
+          std::to_string(gps_accepted_.size()) +
+          " fixes disagree with the prediction (garbage GPS, or a diverged filter)");
+    }
+  }
+  return Verdict::keepGoing();
+}
+
+Verdict EkfSelfLocalizationBehavior::checkProcesses() {
+  const TimePoint t = now();
+  std::lock_guard lock(mutex_);
+  if (!publish_error_.ok()) {
+    return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
+  }
+  if (!ekf_.finite()) return Verdict::finish("the filter's state is no longer a finite number");
+  if (!ekf_.initialized()) {
+    if (t - activated_at_ > start_timeout_) {
+      return Verdict::finish(std::string("the filter did not start within ") +
+                             flight::secondsText(start_timeout_) +
+                             (last_imu_ ? ": no GPS fix arrived" : ": no IMU sample arrived"));
+    }
+    return Verdict::keepGoing();
+  }
+  const std::string robot = robotId();
+  if (last_imu_ && t - *last_imu_ > imu_timeout_) {
+    return Verdict::finish("the IMU on " + topic(robot, "imu") + " is silent: last sample " +
+                           flight::secondsText(t - *last_imu_) + " ago (limit " +
+                           flight::secondsText(imu_timeout_) + ")");
+  }
+  if (last_gps_ && t - *last_gps_ > gps_timeout_) {
+    return Verdict::finish("the GPS on " + topic(robot, "gps") + " is silent: last fix " +
+                           flight::secondsText(t - *last_gps_) + " ago (limit " +
+                           flight::secondsText(gps_timeout_) + ")");
+  }
+  return Verdict::keepGoing();
+}
+
+}  // namespace behaviorlib::fusion

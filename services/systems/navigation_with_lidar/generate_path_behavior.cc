@@ -1,0 +1,445 @@
+#include "behaviorlib/navigation_with_lidar/generate_path_behavior.h"
+
+#include <google/protobuf/struct.pb.h>
+#include <google/protobuf/util/time_util.h>
+
+#include <cmath>
+#include <iostream>
+#include <sstream>
+#include <string>
+#include <vector>
+
+#include "behaviorlib/flight_common/flight_monitoring.h"
+#include "behaviorlib/flight_common/flight_support.h"
+#include "behaviorlib/flight_common/vehicle.h"
+
+namespace behaviorlib::nav {
+namespace {
+
+std::string text(const Eigen::Vector3d& p) {
+  std::ostringstream out;
+  out.precision(3);
+  out << "(" << p.x() << ", " << p.y() << ", " << p.z() << ")";
+  return out.str();
+}
+
+Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
+
+// Half a voxel diagonal: planPath's inflation margin (cells are judged by
+// their centres), so that the checks here agree with the planner's.
+double margin(double resolution_m) { return 0.5 * std::sqrt(3.0) * resolution_m; }
+
+BehaviorOptions generatePathOptions() {
+  BehaviorOptions o;
+  o.frequency_hz = 20.0;
+  // onActivate builds an inflated grid under the map's lock.
+  o.watchdog_timeout = std::chrono::seconds(3);
+  return o;
+}
+
+}  // namespace
+
+std::string pathTopic(const std::string& robot_id) {
+  return "robots/" + robot_id + "/navigation/path";
+}
+
+bool freelyConnected(const InflatedGrid& grid, const Eigen::Vector3d& min_m,
+                     const Eigen::Vector3d& max_m, double resolution_m, const Eigen::Vector3d& from,
+                     const Eigen::Vector3d& to) {
+  Eigen::Vector3i size, a, b;
+  for (int i = 0; i < 3; ++i) {
+    size[i] = std::max(1, static_cast<int>(std::ceil((max_m[i] - min_m[i]) / resolution_m)));
+    a[i] = std::clamp(static_cast<int>(std::floor((from[i] - min_m[i]) / resolution_m)), 0,
+                      size[i] - 1);
+    b[i] =
+        std::clamp(static_cast<int>(std::floor((to[i] - min_m[i]) / resolution_m)), 0, size[i] - 1);
+  }
+  auto centre = [&](const Eigen::Vector3i& c) {
+    return Eigen::Vector3d(min_m +
+                           (c.cast<double>() + Eigen::Vector3d::Constant(0.5)) * resolution_m);
+  };
+  auto index = [&](const Eigen::Vector3i& c) {
+    return (static_cast<size_t>(c.x()) * size.y() + c.y()) * size.z() + c.z();
+  };
+  std::vector<uint8_t> seen(static_cast<size_t>(size.x()) * size.y() * size.z(), 0);
+  std::vector<Eigen::Vector3i> frontier{a};
+  seen[index(a)] = 1;
+  while (!frontier.empty()) {
+    const Eigen::Vector3i c = frontier.back();
+    frontier.pop_back();
+    if (c == b) return true;
+    for (int dx = -1; dx <= 1; ++dx) {
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dz = -1; dz <= 1; ++dz) {
+          const Eigen::Vector3i n = c + Eigen::Vector3i(dx, dy, dz);
+          if ((n.array() < 0).any() || (n.array() >= size.array()).any()) continue;
+          uint8_t& s = seen[index(n)];
+          if (s) continue;
+          s = 1;
+          if (n != b && grid.blocked(centre(n))) continue;
+          frontier.push_back(n);
+        }
+      }
+    }
+  }
+  return false;
+}
+
+GeneratePathBehavior::GeneratePathBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs)
+    : Behavior(generatePathOptions()), mapper_(mapper), beliefs_(beliefs) {
+  planner_ = std::thread([this] { plannerLoop(); });
+}
+
+GeneratePathBehavior::~GeneratePathBehavior() {
+  {
+    std::lock_guard lock(mutex_);
+    stopping_ = true;
+  }
+  cv_.notify_all();
+  planner_.join();
+}
+
+absl::Status GeneratePathBehavior::onConfigure(const YAML::Node& config) {
+  if (auto s = flight::readSeconds(config, "pose_timeout_s", 0, 60, &pose_timeout_); !s.ok()) {
+    return s;
+  }
+  if (auto s = flight::readNumber(config, "timeout_grace_s", -1e-9, 60, &timeout_grace_s_);
+      !s.ok()) {
+    return s;
+  }
+  return flight::readNumber(config, "preferred_clearance_m", -1e-9, 5, &preferred_clearance_m_);
+}
+
+std::string GeneratePathBehavior::beliefKey() const {
+  return parameters().belief_key().empty() ? robotId() + "/path" : parameters().belief_key();
+}
+
+std::optional<std::string> GeneratePathBehavior::poseProblem() const {
+  const std::optional<v1::PoseStamped> pose = mapper_.latestPose();
+  if (!pose) {
+    return "no pose estimate on " + mapper_.poseTopic() +
+           ": activate a self-localization behavior (SELF_LOCALIZE_WITH_GROUND_TRUTH, ...)";
+  }
+  return flight::staleness("the pose estimate on " + mapper_.poseTopic(), pose->header(), now(),
+                           pose_timeout_);
+}
+
+Situation GeneratePathBehavior::checkSituation() {
+  if (!mapper_.channel()) {
+    return Situation::infeasible(
+        "no data channel configured: start the behavior system with --channel HOST:PORT");
+  }
+  if (activationId().empty()) {
+    if (auto problem = poseProblem()) return Situation::infeasible(*problem);
+    const bool empty =
+        mapper_.withMap([](const OccupancyMap& map) { return map.tree().size() == 0; });
+    if (empty) {
+      const MapperStats stats = mapper_.stats();
+      return Situation::infeasible(
+          "the map is empty: no lidar scan on " + mapper_.scanTopic() +
+          " has been mapped yet (is the simulator's lidar publishing?): " +
+          std::to_string(stats.scans_received) + " scans received, " +
+          std::to_string(stats.scans_without_pose) + " without a pose estimate within " +
+          "pose_match_s of their stamp, " + std::to_string(stats.scans_dropped) + " dropped");
+    }
+  }
+  return Situation::ok();
+}
+
+std::optional<GeneratePathBehavior::Box> GeneratePathBehavior::planningVolume(
+    const OccupancyMap& map, const std::optional<Box>& bounds) const {
+  auto volume = mapper_.planningVolumeLocked(map);
+  if (volume && bounds) {
+    volume->first = volume->first.cwiseMax(bounds->first);
+    volume->second = volume->second.cwiseMin(bounds->second);
+  }
+  return volume;
+}
+
+std::optional<GeneratePathBehavior::Box> GeneratePathBehavior::boundsParameter() const {
+  const auto& p = parameters();
+  if (!p.has_bounds_min_m() || !p.has_bounds_max_m()) return std::nullopt;
+  return Box{vec(p.bounds_min_m()), vec(p.bounds_max_m())};
+}
+
+absl::Status GeneratePathBehavior::onActivate() {
+  const auto& p = parameters();
+  const Eigen::Vector3d goal = vec(p.goal_m());
+  if (!goal.allFinite()) return absl::InvalidArgumentError("goal_m must be finite coordinates");
+  if (p.has_bounds_min_m() != p.has_bounds_max_m()) {
+    return absl::InvalidArgumentError(
+        "bounds_min_m and bounds_max_m go together: give both corners of the box, or neither");
+  }
+  if (p.has_bounds_min_m()) {
+    const Eigen::Vector3d lo = vec(p.bounds_min_m()), hi = vec(p.bounds_max_m());
+    if (!lo.allFinite() || !hi.allFinite() || (lo.array() >= hi.array()).any()) {
+      return absl::InvalidArgumentError("bounds_min_m " + text(lo) +
+                                        " must be below bounds_max_m " + text(hi) +
+                                        " in every coordinate (finite, metres)");
+    }
+  }
+  const std::optional<v1::PoseStamped> pose = mapper_.latestPose();
+  if (!pose) return absl::FailedPreconditionError("no pose estimate on " + mapper_.poseTopic());
+  start_m_ = vec(pose->pose().position_m());
+  const double radius = p.vehicle_radius_m();
+  absl::Status status = mapper_.withMap([&](const OccupancyMap& map) -> absl::Status {
+    const auto volume = planningVolume(map, boundsParameter());
+    if (!volume) return absl::FailedPreconditionError("the map is empty: nothing mapped yet");
+    const auto& [lo, hi] = *volume;
+    if ((goal.array() < lo.array()).any() || (goal.array() > hi.array()).any()) {
+      std::ostringstream out;
+      out.precision(3);
+      out << "goal_m " << text(goal) << " is outside the map: it spans x " << lo.x() << " .. "
+          << hi.x() << " m and y " << lo.y() << " .. " << hi.y()
+          << " m so far, and paths keep between z " << lo.z() << " and " << hi.z() << " m";
+      return absl::InvalidArgumentError(out.str());
+    }
+    const InflatedGrid grid(map, lo, hi, radius + margin(map.resolutionM()));
+    if (grid.blocked(goal)) {
+      return absl::InvalidArgumentError("goal_m " + text(goal) +
+                                        " is inside an obstacle: an occupied voxel is within " +
+                                        flight::fixed2(radius) + " m (vehicle_radius_m)");
+    }
+    if ((start_m_.array() < lo.array()).any() || (start_m_.array() > hi.array()).any()) {
+      return absl::FailedPreconditionError(
+          "the vehicle at " + text(start_m_) + " is outside the planning volume (z " +
+          flight::fixed2(lo.z()) + " .. " + flight::fixed2(hi.z()) + " m): take off first");
+    }
+    if (grid.blocked(start_m_)) {
+      return absl::FailedPreconditionError(
+          "the vehicle at " + text(start_m_) + " is closer than vehicle_radius_m (" +
+          flight::fixed2(radius) + " m) to an obstacle: move it away first");
+    }
+    return absl::OkStatus();
+  });
+  if (!status.ok()) return status;
+  replans_ = 0;
+  paused_ = waiting_ = false;
+  startAttempt();
+  return absl::OkStatus();
+}
+
+void GeneratePathBehavior::startAttempt() {
+  const auto& p = parameters();
+  Attempt a;
+  a.start_m = start_m_;
+  a.goal_m = vec(p.goal_m());
+  a.options.vehicle_radius_m = p.vehicle_radius_m();
+  a.options.timeout_s = p.planning_time_limit_s();
+  a.options.preferred_clearance_m = preferred_clearance_m_;
+  a.belief_key = beliefKey();
+  a.bounds = boundsParameter();
+  {
+    std::lock_guard lock(mutex_);
+    a.id = ++current_id_;
+    result_ = Result();
+    result_.id = a.id;
+    pending_ = a;
+  }
+  attempt_started_ = std::chrono::steady_clock::now();
+  cv_.notify_all();
+}
+
+void GeneratePathBehavior::plannerLoop() {
+  std::unique_lock lock(mutex_);
+  while (true) {
+    cv_.wait(lock, [&] { return stopping_ || pending_.has_value(); });
+    if (stopping_) return;
+    const Attempt attempt = std::move(*pending_);
+    pending_.reset();
+    lock.unlock();
+    Result r = plan(attempt);
+    lock.lock();
+    if (r.id == current_id_) result_ = std::move(r);
+  }
+}
+
+GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) {
+  Result r;
+  r.id = attempt.id;
+  std::optional<absl::StatusOr<PlannedPath>> planned;
+  mapper_.withMap([&](const OccupancyMap& map) {
+    const auto volume = planningVolume(map, attempt.bounds);
+    if (!volume) {
+      r.outcome = Outcome::kInvalid;
+      r.message = "the map was cleared while planning";
+      return;
+    }
+    PlanOptions options = attempt.options;
+    options.bounds_min_m = volume->first;
+    options.bounds_max_m = volume->second;
+    {
+      const InflatedGrid grid(map, options.bounds_min_m, options.bounds_max_m,
+                              options.vehicle_radius_m + margin(map.resolutionM()));
+      if (!grid.blocked(attempt.goal_m) && !grid.blocked(attempt.start_m) &&
+          !freelyConnected(grid, options.bounds_min_m, options.bounds_max_m, map.resolutionM(),
+                           attempt.start_m, attempt.goal_m)) {
+        r.outcome = Outcome::kUnreachable;
+        r.message = "the goal " + text(attempt.goal_m) +
+                    " is unreachable: no free passage for a vehicle of radius " +
+                    flight::fixed2(options.vehicle_radius_m) + " m joins it to the vehicle at " +
+                    text(attempt.start_m) + " in the map (a door narrower than the vehicle, or " +
+                    "a closed space)";
+        return;
+      }
+    }
+    planned = planPath(map, attempt.start_m, attempt.goal_m, options);
+  });
+  if (!planned) return r;
+  if (!planned->ok()) {
+    const absl::Status& s = planned->status();
+    r.outcome = s.code() == absl::StatusCode::kNotFound ? Outcome::kTimedOut : Outcome::kInvalid;
+    r.message = std::string(s.message());
+    return r;
+  }
+  const PlannedPath& path = **planned;
+  {
+    std::lock_guard lock(mutex_);
+    if (attempt.id != current_id_) return r;  // abandoned: write nothing
+  }
+  // The channel's Path, and the belief FOLLOW_PATH takes as path_m.
+  v1::Path message;
+  auto* header = message.mutable_header();
+  *header->mutable_stamp() =
+      google::protobuf::util::TimeUtil::NanosecondsToTimestamp(now().time_since_epoch().count());
+  header->set_frame_id("world");
+  header->set_robot_id(robotId());
+  google::protobuf::Value belief;
+  auto* list = belief.mutable_list_value();
+  for (const Eigen::Vector3d& w : path.waypoints_m) {
+    auto* pose = message.add_poses();
+    pose->mutable_position_m()->set_x(w.x());
+    pose->mutable_position_m()->set_y(w.y());
+    pose->mutable_position_m()->set_z(w.z());
+    pose->mutable_orientation()->set_w(1.0);
+    auto& fields = *list->add_values()->mutable_struct_value()->mutable_fields();
+    fields["x"].set_number_value(w.x());
+    fields["y"].set_number_value(w.y());
+    fields["z"].set_number_value(w.z());
+  }
+  r.waypoints = path.waypoints_m.size();
+  r.length_m = path.length_m;
+  r.planning_time_s = path.planning_time_s;
+  r.min_clearance_m = path.min_clearance_m;
+  if (absl::Status s = mapper_.channel()->publish(pathTopic(robotId()), message); !s.ok()) {
+    r.outcome = Outcome::kOutputFailed;
+    r.message =
+        "cannot publish the path on " + pathTopic(robotId()) + ": " + std::string(s.message());
+    return r;
+  }
+  if (beliefs_) {
+    auto written = beliefs_->write(attempt.belief_key, belief,
+                                   robotId() + "/GENERATE_PATH_WITH_OCCUPANCY_GRID");
+    if (!written.ok()) {
+      r.outcome = Outcome::kOutputFailed;
+      r.message = "cannot write the path to belief '" + attempt.belief_key +
+                  "': " + std::string(written.status().message());
+      return r;
+    }
+  }
+  r.outcome = Outcome::kWritten;
+  std::ostringstream out;
+  out.precision(3);
+  out << "path of " << r.waypoints << " waypoints, " << r.length_m << " m, planned in "
+      << r.planning_time_s << " s, ";
+  if (std::isfinite(r.min_clearance_m)) {
+    out << "at least " << flight::fixed2(r.min_clearance_m)
+        << " m of clearance beyond the vehicle's radius";
+  } else {
+    out << "no obstacle in reach";
+  }
+  out << "; on " << pathTopic(robotId())
+      << (beliefs_ ? " and in belief '" + attempt.belief_key + "'"
+                   : " (no coordinator: not in belief memory)");
+  r.message = out.str();
+  return r;
+}
+
+void GeneratePathBehavior::onDeactivate() {
+  std::lock_guard lock(mutex_);
+  ++current_id_;  // the running attempt's result is discarded
+  pending_.reset();
+}
+
+void GeneratePathBehavior::onPause() { paused_ = true; }
+
+void GeneratePathBehavior::onResume() {
+  paused_ = false;
+  if (waiting_) {
+    waiting_ = false;
+    startAttempt();
+  }
+}
+
+absl::Status GeneratePathBehavior::onModify(const google::protobuf::Message& new_parameters) {
+  const auto& n = static_cast<const v1::GeneratePathWithOccupancyGridParameters&>(new_parameters);
+  const auto& p = parameters();
+  if (vec(n.goal_m()) != vec(p.goal_m()) || n.vehicle_radius_m() != p.vehicle_radius_m() ||
+      n.belief_key() != p.belief_key()) {
+    return absl::InvalidArgumentError(
+        "only planning_time_limit_s and max_replans can change while planning: deactivate and "
+        "activate again for another goal, radius or belief_key");
+  }
+  return absl::OkStatus();
+}
+
+Verdict GeneratePathBehavior::checkProcesses() {
+  if (auto problem = poseProblem()) return Verdict::finish(*problem);
+  std::lock_guard lock(mutex_);
+  if (result_.outcome == Outcome::kOutputFailed) return Verdict::finish(result_.message);
+  return Verdict::keepGoing();
+}
+
+Verdict GeneratePathBehavior::checkGoal() {
+  std::lock_guard lock(mutex_);
+  if (result_.outcome == Outcome::kWritten) return Verdict::finish(result_.message);
+  return Verdict::keepGoing();
+}
+
+Verdict GeneratePathBehavior::checkProgress() {
+  Outcome outcome;
+  std::string message;
+  {
+    std::lock_guard lock(mutex_);
+    outcome = result_.outcome;
+    message = result_.message;
+  }
+  if (outcome == Outcome::kUnreachable) return Verdict::finish(message);
+  if (outcome == Outcome::kInvalid) {
+    return Verdict::finish("the plan is no longer possible on the updated map: " + message);
+  }
+  const double limit = parameters().planning_time_limit_s();
+  const double elapsed =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - attempt_started_).count();
+  const bool timed_out =
+      outcome == Outcome::kTimedOut ||
+      (outcome == Outcome::kRunning && !waiting_ && elapsed > limit + timeout_grace_s_);
+  if (!timed_out) return Verdict::keepGoing();
+  const std::string why = outcome == Outcome::kTimedOut
+                              ? message
+                              : "planning attempt still running after " + flight::fixed2(elapsed) +
+                                    " s (limit " + flight::fixed2(limit) + " s)";
+  if (replans_ >= parameters().max_replans()) {
+    // TIME_OUT is the library's to give: end now through the time-out.
+    const std::string reason = "planning timed out on each of " + std::to_string(replans_ + 1) +
+                               " attempt(s) (max_replans " +
+                               std::to_string(parameters().max_replans()) + "); the last: " + why;
+    std::cerr << robotId() << "/GENERATE_PATH_WITH_OCCUPANCY_GRID: " << reason << std::endl;
+    setMaximumExecutionTime(std::max(activeTime(), Duration(1)), reason);
+    return Verdict::keepGoing();
+  }
+  ++replans_;
+  std::cerr << robotId() << "/GENERATE_PATH_WITH_OCCUPANCY_GRID: re-planning (" << replans_
+            << " of " << parameters().max_replans() << "): " << why << std::endl;
+  if (paused_) {
+    waiting_ = true;
+    std::lock_guard lock(mutex_);
+    result_ = Result();
+    result_.id = current_id_;
+  } else {
+    startAttempt();
+  }
+  return Verdict::keepGoing();
+}
+
+}  // namespace behaviorlib::nav

@@ -1,0 +1,299 @@
+#include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
+
+#include <google/protobuf/util/time_util.h>
+#include <yaml-cpp/yaml.h>
+
+#include <cmath>
+#include <vector>
+
+#include "behaviorlib/flight_common/flight_support.h"
+#include "behaviorlib/flight_common/topics.h"
+
+namespace behaviorlib::nav {
+namespace {
+
+constexpr int64_t kPoseHistoryNs = 1'000'000'000;
+/// A scan newer than the newest pose by less than this waits for its pose
+/// (on its way); a pose stream that stopped longer ago is not waited for.
+constexpr int64_t kPoseWaitWindowNs = 200'000'000;
+
+Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
+
+Eigen::Quaterniond quat(const v1::Quaternion& q) {
+  return Eigen::Quaterniond(q.w(), q.x(), q.y(), q.z()).normalized();
+}
+
+}  // namespace
+
+int64_t stampNs(const v1::Header& header) {
+  return google::protobuf::util::TimeUtil::TimestampToNanoseconds(header.stamp());
+}
+
+absl::Status MapperSettings::read(const YAML::Node& mapping) {
+  if (!mapping) return absl::OkStatus();
+  if (!mapping.IsMap()) return absl::InvalidArgumentError("mapping: must be a mapping of keys");
+  using flight::readNumber;
+  for (auto [key, value, min, max] :
+       {std::tuple{"resolution_m", &resolution_m, 0.01, 1.0},
+        std::tuple{"max_range_m", &max_range_m, 0.5, 100.0},
+        std::tuple{"ground_max_z_m", &ground_max_z_m, -10.0, 10.0},
+        std::tuple{"hit_depth_m", &hit_depth_m, 0.0, 0.5},
+        std::tuple{"column_min_z_m", &column_min_z_m, -10.0, 50.0},
+        std::tuple{"column_max_z_m", &column_max_z_m, -10.0, 50.0},
+        std::tuple{"planning_min_z_m", &planning_min_z_m, -10.0, 50.0},
+        std::tuple{"planning_max_z_m", &planning_max_z_m, -10.0, 50.0},
+        std::tuple{"pose_match_s", &pose_match_s, 0.0, 1.0}}) {
+    if (auto s = readNumber(mapping, key, min, max, value); !s.ok()) {
+      return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
+    }
+  }
+  double queue = scan_queue_size;
+  if (auto s = readNumber(mapping, "scan_queue_size", 0, 10000, &queue); !s.ok()) {
+    return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
+  }
+  scan_queue_size = static_cast<int>(queue);
+  for (auto [key, value, max] :
+       {std::tuple{"min_scan_interval_s", &thinning.min_interval_s, 60.0},
+        std::tuple{"still_distance_m", &thinning.still_distance_m, 100.0},
+        std::tuple{"still_angle_rad", &thinning.still_angle_rad, 3.15},
+        std::tuple{"still_scan_interval_s", &thinning.still_interval_s, 3600.0}}) {
+    if (auto s = readNumber(mapping, key, 0.0, max, value); !s.ok()) {
+      return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
+    }
+  }
+  if (const YAML::Node mount = mapping["lidar_mount_m"]) {
+    if (!mount.IsSequence() || mount.size() != 3) {
+      return absl::InvalidArgumentError(
+          "mapping: lidar_mount_m must be a list of 3 numbers [x, y, z] (body frame, metres)");
+    }
+    try {
+      for (int i = 0; i < 3; ++i) lidar_mount_m[i] = mount[i].as<double>();
+    } catch (const YAML::Exception&) {
+      return absl::InvalidArgumentError("mapping: lidar_mount_m must be a list of 3 numbers");
+    }
+  }
+  if (planning_max_z_m <= planning_min_z_m) {
+    return absl::InvalidArgumentError(
+        "mapping: planning_max_z_m must be greater than planning_min_z_m");
+  }
+  if (column_max_z_m <= column_min_z_m) {
+    return absl::InvalidArgumentError(
+        "mapping: column_max_z_m must be greater than column_min_z_m");
+  }
+  return absl::OkStatus();
+}
+
+LidarMapper::LidarMapper(channel::ChannelClient* channel, std::string robot_id,
+                         MapperSettings settings)
+    : channel_(channel),
+      robot_id_(std::move(robot_id)),
+      settings_(settings),
+      map_(MapOptions{.resolution_m = settings.resolution_m}),
+      columns_(WallColumnSettings{.resolution_m = settings.resolution_m,
+                                  .min_z_m = settings.column_min_z_m,
+                                  .max_z_m = settings.column_max_z_m,
+                                  .max_hit_z_m = settings.planning_max_z_m}),
+      thinner_(settings.thinning) {
+  if (!channel_) return;
+  thread_ = std::thread([this] { run(); });
+  pose_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
+      poseTopic(), {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 200},
+      [this](const v1::PoseStamped& p) { onPose(p); });
+  // The scans are subscribed to only while pose estimates come (see
+  // followScans): without a pose no scan can be mapped, and an idle stack
+  // then carries no lidar data at all.
+}
+
+LidarMapper::~LidarMapper() {
+  // The mapping thread first (it makes and drops the scan subscription),
+  // then the readers (their callbacks take mutex_).
+  {
+    std::lock_guard lock(mutex_);
+    stopping_ = true;
+  }
+  cv_.notify_all();
+  if (thread_.joinable()) thread_.join();
+  scan_sub_.reset();
+  pose_sub_.reset();
+}
+
+void LidarMapper::followScans(bool want) {
+  if (want == (scan_sub_ != nullptr)) return;
+  if (!want) {
+    scan_sub_.reset();
+    return;
+  }
+  scan_sub_ = channel_->subscribeTyped<v1::LaserScan>(
+      scanTopic(),
+      {.mode = v1::DELIVERY_MODE_QUEUE,
+       .queue_size = static_cast<uint32_t>(std::max(1, settings_.scan_queue_size))},
+      [this](const v1::LaserScan& s) { onScan(s); });
+}
+
+std::string LidarMapper::scanTopic() const { return "robots/" + robot_id_ + "/lidar/scan"; }
+
+std::string LidarMapper::poseTopic() const { return flight::poseEstimateTopic(robot_id_); }
+
+void LidarMapper::onPose(const v1::PoseStamped& pose) {
+  std::lock_guard lock(mutex_);
+  const int64_t t = stampNs(pose.header());
+  if (!poses_.empty() && t < stampNs(poses_.back().header())) poses_.clear();  // a reset
+  poses_.push_back(pose);
+  while (!poses_.empty() && stampNs(poses_.front().header()) < t - kPoseHistoryNs) {
+    poses_.pop_front();
+  }
+  last_pose_arrival_ = std::chrono::steady_clock::now();
+  ++poses_received_;
+  cv_.notify_all();  // a scan may be waiting for this pose (or the scans for poses)
+}
+
+void LidarMapper::onScan(const v1::LaserScan& scan) {
+  {
+    std::lock_guard lock(mutex_);
+    ++stats_.scans_received;
+    queue_.push_back(scan);
+    while (queue_.size() > static_cast<size_t>(std::max(1, settings_.scan_queue_size))) {
+      queue_.pop_front();
+      ++stats_.scans_dropped;
+    }
+  }
+  cv_.notify_all();
+}
+
+std::optional<v1::PoseStamped> LidarMapper::poseAt(int64_t stamp_ns) const {
+  std::optional<v1::PoseStamped> best;
+  int64_t best_dt = 0;
+  for (const auto& p : poses_) {
+    const int64_t dt = std::abs(stampNs(p.header()) - stamp_ns);
+    if (!best || dt < best_dt) {
+      best = p;
+      best_dt = dt;
+    }
+  }
+  if (!best || static_cast<double>(best_dt) * 1e-9 > settings_.pose_match_s) return std::nullopt;
+  return best;
+}
+
+void LidarMapper::run() {
+  std::unique_lock lock(mutex_);
+  while (true) {
+    // Scans are followed while pose estimates arrive (host time: this is
+    // about the data flowing, not about simulated time).
+    const auto now = std::chrono::steady_clock::now();
+    const bool posed = last_pose_arrival_ && now - *last_pose_arrival_ < kScanFollowAfterPose;
+    if (posed != (scan_sub_ != nullptr)) {
+      lock.unlock();  // the scan callback takes mutex_
+      followScans(posed);
+      lock.lock();
+      continue;
+    }
+    const uint64_t poses_seen = poses_received_;
+    if (posed) {
+      cv_.wait_until(lock, *last_pose_arrival_ + kScanFollowAfterPose,
+                     [&] { return stopping_ || !queue_.empty(); });
+    } else {
+      cv_.wait(lock, [&] { return stopping_ || !queue_.empty() || poses_received_ != poses_seen; });
+    }
+    if (stopping_) return;
+    if (queue_.empty()) continue;
+    v1::LaserScan scan = std::move(queue_.front());
+    queue_.pop_front();
+    const int64_t stamp = stampNs(scan.header());
+    std::optional<v1::PoseStamped> pose = poseAt(stamp);
+    // The pose of a fresh scan may still be on its way (the newest pose is
+    // older than the scan): wait a little. Otherwise, with no pose estimate
+    // at all or only newer ones, none will come: skip at once, or a backlog
+    // of scans taken before localization started (10 Hz at a 5x time scale
+    // is 50 a second) would hold the mapping thread for seconds each.
+    if (!pose && !poses_.empty() && stampNs(poses_.back().header()) < stamp &&
+        stamp - stampNs(poses_.back().header()) < kPoseWaitWindowNs) {
+      waiting_for_pose_ = true;  // caught up: the pose comes with later data
+      cv_.wait_for(lock, std::chrono::milliseconds(50),
+                   [&] { return stopping_ || stampNs(poses_.back().header()) >= stamp; });
+      waiting_for_pose_ = false;
+      if (stopping_) return;
+      pose = poseAt(stamp);
+    }
+    if (!pose) {
+      ++stats_.scans_without_pose;
+      continue;
+    }
+    if (!thinner_.admit(stamp, vec(pose->pose().position_m()), quat(pose->pose().orientation()))) {
+      ++stats_.scans_thinned;
+      continue;
+    }
+    inserting_ = true;
+    lock.unlock();
+    insert(scan, *pose);
+    lock.lock();
+    inserting_ = false;
+    ++stats_.scans_inserted;
+  }
+}
+
+bool LidarMapper::caughtUp() const {
+  std::lock_guard lock(mutex_);
+  return !inserting_ && (queue_.empty() || waiting_for_pose_);
+}
+
+void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose) {
+  const Eigen::Quaterniond q = quat(pose.pose().orientation());
+  const Eigen::Vector3d body = vec(pose.pose().position_m());
+  const Eigen::Vector3d origin = body + q * settings_.lidar_mount_m;
+  if (!origin.allFinite()) return;
+  const double max_range = std::min(settings_.max_range_m, scan.range_max_m());
+  std::vector<Eigen::Vector3d> hits, misses;
+  hits.reserve(static_cast<size_t>(scan.ranges_m_size()));
+  for (int i = 0; i < scan.ranges_m_size(); ++i) {
+    const double r = scan.ranges_m(i);
+    if (std::isnan(r) || r < scan.range_min_m()) continue;
+    const double a = scan.angle_min_rad() + i * scan.angle_increment_rad();
+    const Eigen::Vector3d dir = q * Eigen::Vector3d(std::cos(a), std::sin(a), 0.0);
+    if (std::isinf(r) || r > max_range) {
+      misses.push_back(origin + dir * max_range);
+      continue;
+    }
+    const Eigen::Vector3d hit = origin + dir * (r + settings_.hit_depth_m);
+    if (hit.z() <= settings_.ground_max_z_m) continue;  // the ground, seen tilted
+    hits.push_back(hit);
+  }
+  std::lock_guard lock(map_mutex_);
+  map_.insertScan(origin, hits, misses);
+  columns_.afterScan(map_, hits);
+}
+
+void LidarMapper::clear() {
+  {
+    std::lock_guard lock(map_mutex_);
+    map_.clear();
+    columns_.clear();
+  }
+  // Then the next scan is mapped whatever it is (reset before the map was
+  // cleared, a scan mapped in between would be lost and the next thinned).
+  std::lock_guard lock(mutex_);
+  thinner_.reset();
+}
+
+std::optional<v1::PoseStamped> LidarMapper::latestPose() const {
+  std::lock_guard lock(mutex_);
+  if (poses_.empty()) return std::nullopt;
+  return poses_.back();
+}
+
+MapperStats LidarMapper::stats() const {
+  std::lock_guard lock(mutex_);
+  return stats_;
+}
+
+std::optional<std::pair<Eigen::Vector3d, Eigen::Vector3d>> LidarMapper::planningVolumeLocked(
+    const OccupancyMap& map) const {
+  const octomap::OcTree& tree = map.tree();
+  if (tree.size() == 0) return std::nullopt;
+  double x0, y0, z0, x1, y1, z1;
+  tree.getMetricMin(x0, y0, z0);
+  tree.getMetricMax(x1, y1, z1);
+  return std::pair{Eigen::Vector3d(x0, y0, settings_.planning_min_z_m),
+                   Eigen::Vector3d(x1, y1, settings_.planning_max_z_m)};
+}
+
+}  // namespace behaviorlib::nav

@@ -1,0 +1,35 @@
+// navigation_with_lidar: the behavior system that maps with the lidar while
+// it runs and plans paths on that map (GENERATE_PATH_WITH_OCCUPANCY_GRID,
+// CLEAR_OCCUPANCY_GRID, SAVE_OCCUPANCY_GRID).
+
+#include <cstdlib>
+#include <iostream>
+#include <memory>
+
+#include "behaviorlib/navigation_with_lidar/generate_path_behavior.h"
+#include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
+#include "behaviorlib/navigation_with_lidar/map_behaviors.h"
+#include "behaviorlib/server/behavior_system_main.h"
+#include "behaviorlib/v1/behaviors/navigation_with_lidar.behaviors.h"
+
+int main(int argc, char** argv) {
+  return behaviorlib::server::runBehaviorSystem(
+      argc, argv, "navigation_with_lidar", [](behaviorlib::server::BehaviorSystemBuilder& b) {
+        namespace nav = behaviorlib::nav;
+        const auto& context = b.context();
+        nav::MapperSettings settings;
+        const YAML::Node mapping = context.config ? context.config["mapping"] : YAML::Node();
+        if (absl::Status s = settings.read(mapping); !s.ok()) {
+          std::cerr << "navigation_with_lidar: --config: " << s.message() << std::endl;
+          std::exit(2);
+        }
+        auto& mapper =
+            b.own(std::make_unique<nav::LidarMapper>(context.channel, context.robot_id, settings));
+        // Deterministic mode: the map holds every scan received before a grant
+        // is reported, whatever the machine's load.
+        b.addCatchUpCheck([&mapper] { return mapper.caughtUp(); });
+        b.add<nav::GeneratePathBehavior>(mapper, context.beliefs);
+        b.add<nav::ClearOccupancyGridBehavior>(mapper);
+        b.add<nav::SaveOccupancyGridBehavior>(mapper, context.beliefs);
+      });
+}

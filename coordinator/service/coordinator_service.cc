@@ -8,6 +8,7 @@
 #include <memory>
 #include <utility>
 
+#include "behaviorlib/server_kit/log_stream.h"
 #include "behaviorlib/server_kit/status.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/fleet_control.h"
@@ -75,7 +76,7 @@ uint8_t* writeEmbeddedHeader(uint32_t tag, size_t size, uint8_t* out) {
 
 // One WatchEvents message carrying `records`: a FleetEventBatch, or the single
 // `event` field when `batch` is false (then records has one element).
-grpc::ByteBuffer eventsMessage(const std::vector<FleetEventRecordPtr>& records, bool batch) {
+grpc::ByteBuffer fleetEventsMessage(const std::vector<FleetEventRecordPtr>& records, bool batch) {
   size_t inner = 0;
   if (batch) {
     for (const auto& record : records) inner += embeddedSize(kBatchEventTag, record->wire().size());
@@ -122,113 +123,46 @@ struct ForwardedCall {
 
 }  // namespace
 
-// One WatchEvents stream: the start message, then the subscription's events,
-// one write at a time; woken by the log when events arrive, never blocking
-// the appending intake thread.
-class FleetStreamReactor final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
+// One WatchEvents stream (LogStreamWriter). Each event's wire form is
+// serialized once and shared by every subscriber: messages are written as
+// bytes.
+class FleetStreamReactor final
+    : public server::LogStreamWriter<FleetSubscription, grpc::ByteBuffer> {
  public:
   FleetStreamReactor(CoordinatorService* service, const v1::WatchFleetEventsRequest& request)
-      : service_(service) {
+      : LogStreamWriter("the coordinator"), service_(service) {
     FleetSubscribeOptions options;
     options.since_seq = request.since_seq();
     options.incarnation = request.incarnation();
     options.robot_ids.assign(request.robot_ids().begin(), request.robot_ids().end());
     options.behaviors.assign(request.behaviors().begin(), request.behaviors().end());
     max_batch_ = std::clamp<uint32_t>(request.max_events_per_message(), 1, kMaxEventsPerMessage);
-    // writing_ starts true so that a wake before the start message is
-    // written cannot send an event first.
-    subscription_ = service_->log_.subscribe(options, [this] { onWake(); });
     service_->metrics_.subscribers.Increment();
-    std::lock_guard lock(mutex_);
-    v1::WatchFleetEventsResponse start;
-    *start.mutable_start() = subscription_->start();
-    message_ = serialized(start);
-    StartWrite(&message_);
-  }
-
-  void shutdown() {
-    std::lock_guard lock(mutex_);
-    shutting_down_ = true;
-    if (!writing_) writeNextLocked();
-  }
-
-  void OnWriteDone(bool ok) override {
-    std::lock_guard lock(mutex_);
-    writing_ = false;
-    if (!ok) {
-      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "stream broken"));
-      return;
-    }
-    writeNextLocked();
-  }
-
-  void OnCancel() override {
-    std::lock_guard lock(mutex_);
-    cancelled_ = true;
-    if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
-  }
-
-  void OnDone() override {
-    subscription_->cancel();
-    service_->metrics_.subscribers.Decrement();
-    service_->removeStream(this);
-    delete this;
+    begin(service_->log_.subscribe(options, [this] { wake(); }));
   }
 
  private:
-  void onWake() {
-    std::lock_guard lock(mutex_);
-    if (!writing_) writeNextLocked();
+  void startMessage(const FleetSubscription& subscription, grpc::ByteBuffer* out) override {
+    v1::WatchFleetEventsResponse start;
+    *start.mutable_start() = subscription.start();
+    *out = serialized(start);
   }
 
-  std::string resumeHint() const {
-    return "resume with since_seq=" + std::to_string(subscription_->lastPoppedSeq()) +
-           " and incarnation=" + subscription_->start().incarnation();
-  }
-
-  void writeNextLocked() {
-    if (finished_) return;
-    if (cancelled_) {
-      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
-      return;
-    }
-    // Each event's wire form is serialized once and shared by every
-    // subscriber (no per-subscriber copy of the message).
+  bool eventsMessage(FleetSubscription& subscription, grpc::ByteBuffer* out) override {
     const std::vector<FleetEventRecordPtr> records =
-        subscription_->popRecordsUpTo(max_batch_, kMaxBatchBytes);
-    if (!records.empty()) {
-      message_ = eventsMessage(records, max_batch_ > 1);
-      writing_ = true;
-      StartWrite(&message_);
-      return;
-    }
-    if (subscription_->overflowed()) {
-      finishLocked(grpc::Status(
-          grpc::StatusCode::RESOURCE_EXHAUSTED,
-          "subscriber too slow: events were produced faster than it read them; " + resumeHint()));
-      return;
-    }
-    if (shutting_down_) {
-      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                                "the coordinator is shutting down; " + resumeHint()));
-    }
+        subscription.popRecordsUpTo(max_batch_, kMaxBatchBytes);
+    if (records.empty()) return false;
+    *out = fleetEventsMessage(records, max_batch_ > 1);
+    return true;
   }
 
-  void finishLocked(const grpc::Status& status) {
-    if (finished_) return;
-    finished_ = true;
-    Finish(status);
+  void streamDone() override {
+    service_->metrics_.subscribers.Decrement();
+    service_->removeStream(this);
   }
 
   CoordinatorService* service_;
-  std::unique_ptr<FleetSubscription> subscription_;
-  std::mutex mutex_;
-  grpc::ByteBuffer message_;
   uint32_t max_batch_ = 1;
-  bool writing_ = true;
-  bool finished_ = false;
-  bool cancelled_ = false;
-  bool shutting_down_ = false;
 };
 
 CoordinatorService::CoordinatorService(Registry& registry, FleetEventLog& log,

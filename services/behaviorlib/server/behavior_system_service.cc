@@ -6,6 +6,7 @@
 
 #include "behaviorlib/documentation.h"
 #include "behaviorlib/parameters.h"
+#include "behaviorlib/server_kit/log_stream.h"
 #include "behaviorlib/server_kit/status.h"
 #include "behaviorlib/v1/options.pb.h"
 
@@ -16,114 +17,45 @@ namespace {
 constexpr uint32_t kMaxEventsPerMessage = 1024;
 }  // namespace
 
-// One WatchEvents stream: the start message, then the subscription's events,
-// one write at a time. Woken by the event log when events arrive; never
-// blocks the appending behavior.
-class EventStreamReactor final : public grpc::ServerWriteReactor<v1::WatchEventsResponse> {
+// One WatchEvents stream (LogStreamWriter): the start message, then the
+// subscription's events, one or a batch per message.
+class EventStreamReactor final
+    : public LogStreamWriter<EventSubscription, v1::WatchEventsResponse> {
  public:
   EventStreamReactor(BehaviorSystemService* service, const v1::WatchEventsRequest& request)
-      : service_(service) {
+      : LogStreamWriter("the behavior system"), service_(service) {
     SubscribeOptions options;
     options.since_seq = request.since_seq();
     options.incarnation = request.incarnation();
     options.behaviors.assign(request.behaviors().begin(), request.behaviors().end());
     max_batch_ = std::min<uint32_t>(request.max_events_per_message(), kMaxEventsPerMessage);
-    // writing_ starts true so that a wake before the start message is written
-    // cannot send an event first.
-    subscription_ = service_->host_.events().subscribe(options, [this] { onWake(); });
-    std::lock_guard lock(mutex_);
-    *message_.mutable_start() = subscription_->start();
-    StartWrite(&message_);
-  }
-
-  // Called when the service shuts down: finish once the queue is drained.
-  void shutdown() {
-    std::lock_guard lock(mutex_);
-    shutting_down_ = true;
-    if (!writing_) writeNextLocked();
-  }
-
-  void OnWriteDone(bool ok) override {
-    std::lock_guard lock(mutex_);
-    writing_ = false;
-    if (!ok) {
-      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "stream broken"));
-      return;
-    }
-    writeNextLocked();
-  }
-
-  void OnCancel() override {
-    std::lock_guard lock(mutex_);
-    cancelled_ = true;
-    if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
-  }
-
-  void OnDone() override {
-    subscription_->cancel();
-    service_->removeStream(this);
-    delete this;
+    begin(service_->host_.events().subscribe(options, [this] { wake(); }));
   }
 
  private:
-  void onWake() {
-    std::lock_guard lock(mutex_);
-    if (!writing_) writeNextLocked();
+  void startMessage(const EventSubscription& subscription, v1::WatchEventsResponse* out) override {
+    *out->mutable_start() = subscription.start();
   }
 
-  void writeNextLocked() {
-    if (finished_) return;
-    if (cancelled_) {
-      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
-      return;
-    }
+  bool eventsMessage(EventSubscription& subscription, v1::WatchEventsResponse* out) override {
     if (max_batch_ > 1) {
-      const std::vector<EventPtr> events = subscription_->popUpTo(max_batch_);
-      if (!events.empty()) {
-        auto* batch = message_.mutable_events();
-        batch->mutable_events()->Clear();
-        for (const EventPtr& event : events) *batch->add_events() = *event;
-        writing_ = true;
-        StartWrite(&message_);
-        return;
-      }
-    } else if (EventPtr event = subscription_->pop()) {
-      *message_.mutable_event() = *event;
-      writing_ = true;
-      StartWrite(&message_);
-      return;
+      const std::vector<EventPtr> events = subscription.popUpTo(max_batch_);
+      if (events.empty()) return false;
+      auto* batch = out->mutable_events();
+      batch->mutable_events()->Clear();
+      for (const EventPtr& event : events) *batch->add_events() = *event;
+      return true;
     }
-    if (subscription_->overflowed()) {
-      finishLocked(grpc::Status(
-          grpc::StatusCode::RESOURCE_EXHAUSTED,
-          "subscriber too slow: events were produced faster than it read them; resume with "
-          "since_seq=" +
-              std::to_string(subscription_->lastPoppedSeq()) +
-              " and incarnation=" + subscription_->start().incarnation()));
-      return;
-    }
-    if (shutting_down_) {
-      finishLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                                "the behavior system is shutting down; resume with since_seq=" +
-                                    std::to_string(subscription_->lastPoppedSeq())));
-    }
+    EventPtr event = subscription.pop();
+    if (!event) return false;
+    *out->mutable_event() = *event;
+    return true;
   }
 
-  void finishLocked(const grpc::Status& status) {
-    if (finished_) return;
-    finished_ = true;
-    Finish(status);
-  }
+  void streamDone() override { service_->removeStream(this); }
 
   BehaviorSystemService* service_;
-  std::unique_ptr<EventSubscription> subscription_;
-  std::mutex mutex_;
-  v1::WatchEventsResponse message_;
   uint32_t max_batch_ = 1;
-  bool writing_ = true;
-  bool finished_ = false;
-  bool cancelled_ = false;
-  bool shutting_down_ = false;
 };
 
 BehaviorSystemService::BehaviorSystemService(BehaviorHost& host, const AcceptGate& gate,

@@ -1,37 +1,76 @@
 #pragma once
 
 // The per-process log of behavior lifecycle events, with resumable
-// subscriptions (BehaviorSystem.WatchEvents).
+// subscriptions (BehaviorSystem.WatchEvents): a ResumableLog of
+// BehaviorEvents (resumable_log.h) that stamps the robot and the system and
+// keeps each event until `retention` after its activation finished.
 //
 //   EventLog log({.robot_id = "drone1", .system = "basic_quadrotor_behaviors"});
 //   auto sub = log.subscribe({.since_seq = 0}, [&] { /* events available */ });
 //   log.append(event);                  // assigns seq, incarnation, robot, system, wall_time
 //   while (auto e = sub->pop()) { ... }
 //
-// Events are numbered 1, 2, 3... per process run; each run has a new random
-// incarnation id. Retained events are replayed to new subscribers: an event is
-// kept until `retention` (wall time) after the activation it belongs to
-// finished, and at most `capacity` events are kept (oldest evicted first).
-// A subscriber's queue is bounded: when it overflows the subscription is
-// marked overflowed and stops receiving, so a slow subscriber never blocks
-// behaviors or other subscribers; it resumes with since_seq.
+// An event is kept until `retention` (wall time) after the activation it
+// belongs to finished, and at most `capacity` events are kept (oldest evicted
+// first). A subscriber's queue is bounded: when it overflows the
+// subscription is marked overflowed and stops receiving, so a slow
+// subscriber never blocks behaviors or other subscribers; it resumes with
+// since_seq.
 
-#include <atomic>
 #include <chrono>
 #include <cstdint>
-#include <deque>
 #include <functional>
 #include <memory>
-#include <mutex>
-#include <optional>
 #include <string>
 #include <vector>
 
+#include "behaviorlib/resumable_log.h"
 #include "behaviorlib/v1/behavior.pb.h"
 
 namespace behaviorlib {
 
-using EventPtr = std::shared_ptr<const v1::BehaviorEvent>;
+/// Behavior events of the listed behaviors (all when empty).
+struct BehaviorEventFilter {
+  std::vector<std::string> behaviors;
+  bool matches(const v1::BehaviorEvent& event) const;
+};
+
+/// An event is kept while its activation runs and `retention` after it
+/// finished; an event of no activation `retention` after it was appended.
+struct ActivationRetention {
+  std::chrono::nanoseconds retention;
+
+  template <class Older>
+  std::chrono::nanoseconds onAppend(const v1::BehaviorEvent& event, std::chrono::nanoseconds now,
+                                    Older& older) const {
+    if (event.activation_id().empty()) return expiry(now);  // no `finished` would release it
+    if (!event.has_finished()) return log_internal::kKeepForever;
+    const std::chrono::nanoseconds expires_at = expiry(now);
+    older.forEach([&](const v1::BehaviorEvent& e, std::chrono::nanoseconds& e_expires_at) {
+      // Events already counting down keep their expiry, so a duplicate
+      // `finished` cannot extend it.
+      if (e_expires_at == log_internal::kKeepForever &&
+          e.activation_id() == event.activation_id() && e.behavior() == event.behavior()) {
+        e_expires_at = expires_at;
+      }
+    });
+    return expires_at;
+  }
+
+ private:
+  // Saturates so that a huge retention means "forever" instead of overflowing.
+  std::chrono::nanoseconds expiry(std::chrono::nanoseconds now) const {
+    if (retention > std::chrono::nanoseconds::zero() &&
+        now > log_internal::kKeepForever - retention) {
+      return log_internal::kKeepForever;
+    }
+    return now + retention;
+  }
+};
+
+using BehaviorEventLog = ResumableLog<v1::BehaviorEvent, BehaviorEventFilter, ActivationRetention>;
+using EventPtr = BehaviorEventLog::EventPtr;
+using EventSubscription = BehaviorEventLog::Subscription;
 
 struct EventLogOptions {
   std::string robot_id;
@@ -56,124 +95,40 @@ struct SubscribeOptions {
   std::vector<std::string> behaviors;
 };
 
-class EventLog;
-
-/// One subscriber's view: the replay summary, then a queue of events.
-/// Thread-safe; destroy it (or call cancel()) to unsubscribe.
-class EventSubscription {
- public:
-  ~EventSubscription();
-  EventSubscription(const EventSubscription&) = delete;
-  EventSubscription& operator=(const EventSubscription&) = delete;
-
-  /// What the replay covers (the first WatchEvents message).
-  const v1::WatchEventsStart& start() const { return start_; }
-  /// Next queued event, or nullptr when none is queued.
-  EventPtr pop();
-  /// Up to `max` queued events, oldest first (empty when none).
-  std::vector<EventPtr> popUpTo(size_t max);
-  /// True once the queue overflowed; no further events are delivered.
-  bool overflowed() const;
-  /// Seq of the last event handed out by pop() (0 if none).
-  uint64_t lastPoppedSeq() const;
-  /// Stops delivery; the wake callback is never called after this returns.
-  /// Waits for a wake running on another thread to return, so do not call it
-  /// (or destroy the subscription) while holding a lock that wake takes. It
-  /// may be called from inside wake itself.
-  void cancel();
-
- private:
-  friend class EventLog;
-  // The wake callback lives apart from the subscription so that an appender
-  // that is about to call it keeps it alive even if the subscription is
-  // destroyed meanwhile (or from inside the callback); see event_log.cc.
-  struct WakeSlot;
-
-  EventSubscription() = default;
-  // Called by EventLog under its lock; returns whether wake must be called
-  // (after the lock is released).
-  bool deliver(const EventPtr& event);
-
-  // Cleared by cancel() or by the log's destructor (detach).
-  std::atomic<EventLog*> log_{nullptr};
-  v1::WatchEventsStart start_;
-  std::vector<std::string> behaviors_;
-  size_t limit_ = 0;
-  std::shared_ptr<WakeSlot> wake_;
-  mutable std::mutex mutex_;
-  std::deque<EventPtr> queue_;
-  // Replayed events still at the front of queue_: they do not count against
-  // limit_, which bounds how far the subscriber lags behind live events.
-  size_t replay_left_ = 0;
-  bool overflowed_ = false;
-  bool cancelled_ = false;
-  uint64_t last_popped_seq_ = 0;
-};
-
 class EventLog {
  public:
   explicit EventLog(EventLogOptions options);
-  EventLog(const EventLog&) = delete;
-  EventLog& operator=(const EventLog&) = delete;
-  /// Detaches live subscriptions: they keep their queued events and may be
-  /// destroyed later, but receive nothing more. Must not run concurrently
-  /// with append() or with cancel()/destruction of one of its subscriptions.
-  ~EventLog();
 
-  const std::string& incarnation() const { return options_.incarnation; }
-  const std::string& robotId() const { return options_.robot_id; }
-  const std::string& system() const { return options_.system; }
+  const std::string& incarnation() const { return log_.incarnation(); }
+  const std::string& robotId() const { return robot_id_; }
+  const std::string& system() const { return system_; }
 
   /// Appends an event: fills seq, incarnation, robot_id, system and
-  /// wall_time, retains it and hands it to every matching subscriber.
-  /// A `finished` event starts the retention countdown of every retained
-  /// event of its activation. Never blocks on subscribers. Returns the stored
-  /// event.
+  /// wall_time, retains it and hands it to every matching subscriber. A
+  /// `finished` event starts the retention countdown of every retained
+  /// event of its activation. Never blocks on subscribers.
   EventPtr append(v1::BehaviorEvent event);
 
-  /// Subscribes: computes the replay summary, queues the retained events
-  /// after since_seq (all retained ones if the incarnation differs), then
-  /// queues each new event. `wake` is called (from the appending thread, never
-  /// under the subscription's lock) when the queue goes from empty to
-  /// non-empty or the subscription overflows; it must not block.
-  ///
-  /// The replay is queued before subscribe returns without a wake, so drain
-  /// the queue once after subscribing. wake may run on an appending thread
-  /// before subscribe returns, and may be spurious (pop() returns nullptr).
-  /// It runs under neither the log's nor the subscription's lock: it may call
-  /// pop(), overflowed(), lastPoppedSeq(), cancel() and even destroy the
-  /// subscription. Replayed events do not count against
-  /// subscriber_queue_limit.
+  /// Subscribes (ResumableLog::subscribe): the replay is queued before this
+  /// returns, without a wake, so drain the queue once after subscribing.
   std::unique_ptr<EventSubscription> subscribe(const SubscribeOptions& options,
                                                std::function<void()> wake);
 
   /// Seq of the newest event (0 if none).
-  uint64_t latestSeq() const;
+  uint64_t latestSeq() const { return log_.latestSeq(); }
   /// Number of retained events (as a subscriber would see them now).
-  size_t retainedCount() const;
+  size_t retainedCount() const { return log_.retainedCount(); }
 
   /// For tests: the wall clock used for retention (defaults to steady time).
   /// Set it before appending: expiry times already computed are kept.
-  void setWallClockForTesting(std::function<std::chrono::nanoseconds()> now);
+  void setWallClockForTesting(std::function<std::chrono::nanoseconds()> now) {
+    log_.setWallClockForTesting(std::move(now));
+  }
 
  private:
-  friend class EventSubscription;
-  struct Retained {
-    EventPtr event;
-    std::chrono::nanoseconds expires_at;  // max() while the activation runs
-  };
-  void evictLocked(std::chrono::nanoseconds now);
-  void unsubscribe(EventSubscription* subscription);
-
-  EventLogOptions options_;
-  std::function<std::chrono::nanoseconds()> wall_now_;
-  mutable std::mutex mutex_;
-  uint64_t next_seq_ = 1;
-  std::deque<Retained> retained_;
-  std::vector<EventSubscription*> subscribers_;
+  const std::string robot_id_;
+  const std::string system_;
+  BehaviorEventLog log_;
 };
-
-/// A fresh random 128-bit id as 32 lowercase hex digits.
-std::string newIncarnationId();
 
 }  // namespace behaviorlib

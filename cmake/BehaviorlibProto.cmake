@@ -2,6 +2,8 @@
 # descriptor set with source info (comments) into a binary.
 
 get_target_property(BEHAVIORLIB_GRPC_CPP_PLUGIN gRPC::grpc_cpp_plugin LOCATION)
+# Where this file is (the source tree, or an installed package's cmake dir).
+set(_BEHAVIORLIB_CMAKE_DIR ${CMAKE_CURRENT_LIST_DIR})
 
 # _behaviorlib_protoc(<out_var> ROOT <dir> GEN_DIR <dir> [INCLUDES <dirs>] PROTOS <files>
 #                     OUTPUTS <suffixes> RESULTS <suffixes> ARGS <protoc args>
@@ -110,8 +112,8 @@ function(behaviorlib_embed_descriptor_set out_cc)
     OUTPUT ${_cc}
     COMMAND ${CMAKE_COMMAND} -DINPUT=${_desc} -DOUTPUT=${_cc}
       -DNAMESPACE=${E_NAMESPACE} -DFUNCTION=${E_FUNCTION} -DHEADER=${E_HEADER}
-      -P ${PROJECT_SOURCE_DIR}/cmake/embed_file.cmake
-    DEPENDS ${_desc} ${PROJECT_SOURCE_DIR}/cmake/embed_file.cmake
+      -P ${_BEHAVIORLIB_CMAKE_DIR}/embed_file.cmake
+    DEPENDS ${_desc} ${_BEHAVIORLIB_CMAKE_DIR}/embed_file.cmake
     COMMENT "embedding descriptor set ${E_NAME}"
     VERBATIM)
   set(${out_cc} ${_cc} PARENT_SCOPE)

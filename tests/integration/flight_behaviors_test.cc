@@ -113,7 +113,7 @@ class FlightBehaviorsTest : public ::testing::Test {
         BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH,
         support::followTimeArgs(
             {"--robot-id", kRobot, "--channel", broker_.address(), "--clock", "sim",
-             "--flight-controller", simulator_->address(), "--config", BEHAVIORLIB_CONFIG_PATH},
+             "--flight-controller", simulator_->address(), "--config", BEHAVIORLIB_BASIC_CONFIG_PATH},
             simulator_->address()));
     ASSERT_TRUE(system_->start()) << system_->error();
     auto channel = grpc::CreateChannel(system_->address(), grpc::InsecureChannelCredentials());
@@ -403,7 +403,7 @@ TEST(FlightBehaviorsWithoutSimulatorTest, TheSystemServesAndCheckSituationSaysWh
   support::ServerProcess system(
       BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH,
       {"--robot-id", kRobot, "--channel", broker.address(), "--clock", "sim", "--flight-controller",
-       nowhere, "--config", BEHAVIORLIB_CONFIG_PATH});
+       nowhere, "--config", BEHAVIORLIB_BASIC_CONFIG_PATH});
   ASSERT_TRUE(system.start()) << system.error();
   auto stub = v1::BehaviorSystem::NewStub(
       grpc::CreateChannel(system.address(), grpc::InsecureChannelCredentials()));

@@ -84,7 +84,7 @@ class SensorFusionSystemTest : public ::testing::Test {
     system_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_MULTI_SENSOR_FUSION_PATH,
         support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
-                                 "sim", "--config", BEHAVIORLIB_CONFIG_PATH},
+                                 "sim", "--config", BEHAVIORLIB_FUSION_CONFIG_PATH},
                                 simulator_->address()));
     ASSERT_TRUE(system_->start()) << system_->error();
     behaviors_ = v1::BehaviorSystem::NewStub(

@@ -13,34 +13,20 @@
 // Exits 0 after SIGTERM/SIGINT, 1 when it cannot bind, 2 on bad flags or a
 // bad --systems file.
 
-#include <grpcpp/grpcpp.h>
-
 #include <algorithm>
-#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
-#include <filesystem>
-#include <map>
 #include <memory>
 #include <optional>
 #include <string>
+#include <vector>
 
+#include "behaviorlib/clock.h"
 #include "behaviorlib/server_kit/flags.h"
 #include "behaviorlib/server_kit/server_runtime.h"
-#include "coordinator/belief/belief_store.h"
-#include "coordinator/catalog/catalog.h"
-#include "coordinator/durable/journal.h"
-#include "coordinator/service/blocking_pool.h"
-#include "coordinator/service/coordinator_metrics.h"
-#include "coordinator/service/coordinator_service.h"
-#include "coordinator/service/fleet_control.h"
-#include "coordinator/service/fleet_event_log.h"
-#include "coordinator/service/mission_manager.h"
-#include "coordinator/service/registry.h"
-#include "coordinator/service/safety.h"
-#include "coordinator/service/systems_config.h"
+#include "coordinator/process/coordinator_process.h"
 
 namespace {
 
@@ -73,14 +59,14 @@ int main(int argc, char** argv) {
   std::string state_dir;
   double grace_s = 1.0;
   double heartbeat_s = 1.0;
-  double event_buffer = 10000;
+  int event_buffer = 10000;
   std::string catalog_path;
   std::string flight_controllers;
   std::string channel_address;
   std::string geofence_text;
   double critical_battery = 0.10;
   double hover_before_land_s = 1.0;
-  double workers = 4;
+  int workers = 4;
   double resume_wait_s = 60;
   behaviorlib::server::FlagSet flags(
       "the coordinator (behaviorlib.v1.Coordinator): registry of behavior systems, one "
@@ -190,170 +176,53 @@ int main(int argc, char** argv) {
     fatal(program, "--heartbeat-interval-s must be within [0.05, 600]");
     return 2;
   }
-  if (!(event_buffer >= 1 && event_buffer <= 1e7)) {
+  if (!(event_buffer >= 1 && event_buffer <= 10000000)) {
     fatal(program, "--event-buffer must be within [1, 10000000]");
     return 2;
   }
-  std::vector<coord::ConfiguredSystem> configured;
+  coord::CoordinatorOptions options;
+  options.listen = listen;
+  options.metrics_listen = metrics_listen;
   if (!systems_path.empty()) {
     auto loaded = coord::loadSystemsConfig(systems_path);
     if (!loaded.ok()) {
       fatal(program, "--systems: " + std::string(loaded.status().message()));
       return 2;
     }
-    configured = std::move(*loaded);
+    options.systems = std::move(*loaded);
   }
+  options.state_dir = state_dir;
+  options.grace_period = behaviorlib::seconds(grace_s);
+  options.heartbeat_interval = behaviorlib::seconds(heartbeat_s);
+  options.event_buffer = static_cast<size_t>(event_buffer);
+  options.catalog = catalog;
+  options.flight_controllers = robot_fcs;
+  options.channel_address = channel_address;
+  options.geofence = geofence;
+  options.critical_battery = critical_battery;
+  options.hover_before_land = behaviorlib::seconds(hover_before_land_s);
+  options.workers = workers;
+  options.resume_wait = behaviorlib::seconds(resume_wait_s);
+  const size_t configured = options.systems.size();
 
-  ServerRuntime runtime;
+  auto coordinator = coord::Coordinator::start(std::move(options));
+  if (!coordinator.ok()) {
+    fatal(program, std::string(coordinator.status().message()));
+    return coordinator.status().code() == absl::StatusCode::kInvalidArgument ? 2 : 1;
+  }
   std::string error;
-  if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
-
-  coord::CoordinatorMetrics metrics(runtime.registry());
-  coord::FleetEventLogOptions log_options;
-  log_options.capacity = static_cast<size_t>(event_buffer);
-  coord::FleetEventLog log(log_options);
-  // Registrations are journaled (once the journal is open) so that a
-  // restarted coordinator knows where its systems are.
-  std::atomic<coord::Journal*> registry_journal{nullptr};
-  coord::RegistryOptions registry_options;
-  registry_options.on_membership = [&registry_journal](const behaviorlib::v1::SystemRecord& r) {
-    coord::Journal* j = registry_journal.load();
-    if (j == nullptr) return;
-    behaviorlib::v1::JournalRecord record;
-    *record.mutable_system() = r;
-    if (auto s = j->append(record); !s.ok()) {
-      std::fprintf(stderr, "coordinator: cannot journal the registration of %s/%s: %s\n",
-                   r.robot_id().c_str(), r.system().c_str(), std::string(s.message()).c_str());
-    }
-  };
-  registry_options.link.grace =
-      std::chrono::duration_cast<std::chrono::nanoseconds>(std::chrono::duration<double>(grace_s));
-  // Missed heartbeats make the links probe a system whose stream stays open.
-  registry_options.link.heartbeat_interval =
-      std::chrono::milliseconds(static_cast<int64_t>(heartbeat_s * 1000.0));
-  coord::Registry registry(log, metrics, registry_options);
-  // Belief memory, restored from the journal.
-  std::unique_ptr<coord::Journal> journal;
-  coord::BeliefStore beliefs_restore;  // replay target before the journal is attached
-  std::vector<behaviorlib::v1::MissionStatus> missions_restore;
-  // Systems known before the restart, by robot and system name.
-  std::map<std::pair<std::string, std::string>, behaviorlib::v1::SystemRecord> systems_restore;
-  if (!state_dir.empty()) {
-    std::error_code ec;
-    std::filesystem::create_directories(state_dir, ec);
-    auto opened = coord::Journal::open(
-        state_dir + "/coordinator.journal", [&](const behaviorlib::v1::JournalRecord& record) {
-          if (record.has_belief()) beliefs_restore.restore(record.belief());
-          if (record.has_mission()) missions_restore.push_back(record.mission());
-          if (record.has_system()) {
-            const auto& r = record.system();
-            const auto key = std::make_pair(r.robot_id(), r.system());
-            if (r.unregistered()) {
-              systems_restore.erase(key);
-            } else {
-              systems_restore[key] = r;
-            }
-          }
-        });
-    if (!opened.ok()) {
-      fatal(program, "--state-dir: " + std::string(opened.status().message()));
-      return 2;
-    }
-    journal = std::move(*opened);
-  } else {
-    std::fprintf(stderr, "%s: no --state-dir: belief memory is lost when the coordinator stops\n",
-                 program.c_str());
-  }
-  coord::BeliefStore beliefs(journal.get());
-  for (const auto& belief : beliefs_restore.snapshot()) beliefs.restore(belief);
-  coord::BlockingPool pool(static_cast<int>(workers));
-  coord::FleetControl fleet(registry, log, catalog);
-  coord::MissionManagerOptions mission_options;
-  mission_options.resume_wait =
-      std::chrono::milliseconds(static_cast<int64_t>(resume_wait_s * 1000.0));
-  coord::MissionManager missions(fleet, registry, beliefs, journal.get(), mission_options);
-  for (const auto& status : missions_restore) missions.restore(status);
-  if (journal) {
-    // Start from a compact journal: the current beliefs and missions.
-    std::vector<behaviorlib::v1::JournalRecord> snapshot = missions.snapshot();
-    for (const auto& [key, system] : systems_restore) {
-      behaviorlib::v1::JournalRecord record;
-      *record.mutable_system() = system;
-      snapshot.push_back(std::move(record));
-    }
-    for (const auto& belief : beliefs.snapshot()) {
-      behaviorlib::v1::JournalRecord record;
-      *record.mutable_belief() = belief;
-      snapshot.push_back(std::move(record));
-    }
-    if (auto s = journal->compact(snapshot); !s.ok()) {
-      fatal(program, "--state-dir: cannot compact the journal: " + std::string(s.message()));
-      return 2;
-    }
-  }
-  registry_journal.store(journal.get());
-  coord::SafetyOptions safety_options;
-  safety_options.critical_battery_ratio = critical_battery;
-  safety_options.hover_before_land =
-      std::chrono::milliseconds(static_cast<int64_t>(hover_before_land_s * 1000.0));
-  safety_options.geofence = geofence;
-  safety_options.channel_address = channel_address;
-  std::unique_ptr<coord::SafetyController> safety;
-  if (!robot_fcs.empty()) {
-    safety = std::make_unique<coord::SafetyController>(fleet, missions, log, safety_options);
-    for (const auto& [robot, address] : robot_fcs) safety->addRobot(robot, address);
-  }
-  coord::CoordinatorServiceOptions service_options;
-  service_options.beliefs = &beliefs;
-  service_options.fleet = &fleet;
-  service_options.missions = &missions;
-  service_options.safety = safety.get();
-  service_options.pool = &pool;
-  service_options.heartbeat_interval =
-      std::chrono::milliseconds(static_cast<int64_t>(heartbeat_s * 1000.0));
-  coord::CoordinatorService service(registry, log, metrics, service_options);
-
-  grpc::ServerBuilder builder;
-  builder.RegisterService(&service);
-  if (!runtime.startServer(builder, listen, {behaviorlib::v1::Coordinator::service_full_name()},
-                           &error)) {
+  if (!(*coordinator)->writePortFile(port_file, &error)) {
+    (*coordinator)->shutdown();
     return fatal(program, error);
   }
-  if (!runtime.writePortFile(port_file, &error)) {
-    runtime.shutdown(std::chrono::milliseconds(0));
-    return fatal(program, error);
-  }
-  for (const auto& system : configured) registry.addConfigured(system);
-  // Systems registered before a restart are contacted at once (they also
-  // register again at their next heartbeat).
-  for (const auto& [key, system] : systems_restore) {
-    const bool listed = std::any_of(configured.begin(), configured.end(),
-                                    [&](const auto& c) { return c.address == system.address(); });
-    if (listed) continue;
-    coord::ConfiguredSystem known;
-    known.robot_id = system.robot_id();
-    known.address = system.address();
-    registry.addConfigured(known);
-  }
-  if (safety) safety->start();
-  missions.resumeRestored();
   std::fprintf(stderr,
                "%s: serving behaviorlib.v1.Coordinator on port %d (metrics port %d), "
                "incarnation %s, %zu configured systems, grace period %.2f s\n",
-               program.c_str(), runtime.grpcPort(), runtime.metricsPort(),
-               log.incarnation().c_str(), configured.size(), grace_s);
+               program.c_str(), (*coordinator)->grpcPort(), (*coordinator)->metricsPort(),
+               (*coordinator)->incarnation().c_str(), configured, grace_s);
 
   const int sig = ServerRuntime::waitForShutdownSignal();
   std::fprintf(stderr, "%s: signal %d, shutting down\n", program.c_str(), sig);
-  // Subscribers first (they get what is queued, then UNAVAILABLE with their
-  // resume point), then the links to the systems, then the server: in-flight
-  // calls forwarded to systems are cancelled along with their server call.
-  service.shutdownStreams();
-  if (safety) safety->stop();
-  missions.stop();  // running missions stay RUNNING in the journal
-  fleet.stop();
-  pool.stop();
-  registry.stop();
-  runtime.shutdown(std::chrono::milliseconds(1000));
+  (*coordinator)->shutdown();
   return 0;
 }

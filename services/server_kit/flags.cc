@@ -1,5 +1,6 @@
 #include "behaviorlib/server_kit/flags.h"
 
+#include <charconv>
 #include <cstdio>
 #include <cstdlib>
 #include <sstream>
@@ -26,6 +27,19 @@ void FlagSet::add(std::string name, double* value, std::string help) {
                       double d = std::strtod(v.c_str(), &end);
                       if (v.empty() || *end != '\0') return false;
                       *value = d;
+                      return true;
+                    },
+                    false});
+}
+
+void FlagSet::add(std::string name, int* value, std::string help) {
+  flags_.push_back({std::move(name), std::move(help), std::to_string(*value),
+                    [value](const std::string& v) {
+                      int n = 0;
+                      const char* end = v.data() + v.size();
+                      const auto [at, ec] = std::from_chars(v.data(), end, n);
+                      if (v.empty() || ec != std::errc() || at != end) return false;
+                      *value = n;
                       return true;
                     },
                     false});

@@ -20,6 +20,8 @@ class FlagSet {
   explicit FlagSet(std::string program_description);
   void add(std::string name, std::string* value, std::string help);
   void add(std::string name, double* value, std::string help);
+  /// An integer flag: "4" is accepted, "4.5" and "four" are refused.
+  void add(std::string name, int* value, std::string help);
   void add(std::string name, bool* value, std::string help);
 
   /// False after printing an actionable message (unknown flag, missing or

@@ -1,0 +1,213 @@
+#include "coordinator/process/coordinator_process.h"
+
+#include <grpcpp/grpcpp.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+
+#include "absl/status/status.h"
+#include "behaviorlib/server_kit/server_runtime.h"
+#include "coordinator/belief/belief_store.h"
+#include "coordinator/durable/journal.h"
+#include "coordinator/service/blocking_pool.h"
+#include "coordinator/service/coordinator_metrics.h"
+#include "coordinator/service/coordinator_service.h"
+#include "coordinator/service/fleet_control.h"
+#include "coordinator/service/fleet_event_log.h"
+#include "coordinator/service/registry.h"
+#include "coordinator/service/safety.h"
+
+namespace behaviorlib::coordinator {
+
+namespace {
+
+template <class D>
+std::chrono::milliseconds millis(D d) {
+  return std::chrono::duration_cast<std::chrono::milliseconds>(d);
+}
+
+}  // namespace
+
+// Declared in construction order: destroyed in reverse, after shutdown().
+struct Coordinator::Parts {
+  server::ServerRuntime runtime;
+  std::unique_ptr<CoordinatorMetrics> metrics;
+  std::unique_ptr<FleetEventLog> log;
+  // Registrations are journaled once the journal is open, so that a
+  // restarted coordinator knows where its systems are.
+  std::atomic<Journal*> registry_journal{nullptr};
+  std::unique_ptr<Registry> registry;
+  std::unique_ptr<Journal> journal;
+  std::unique_ptr<BeliefStore> beliefs;
+  std::unique_ptr<BlockingPool> pool;
+  std::unique_ptr<FleetControl> fleet;
+  std::unique_ptr<MissionManager> missions;
+  std::unique_ptr<SafetyController> safety;
+  std::unique_ptr<CoordinatorService> service;
+  bool stopped = false;
+};
+
+absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptions options) {
+  auto p = std::make_unique<Parts>();
+  std::string error;
+  if (!p->runtime.startMetrics(options.metrics_listen, &error)) {
+    return absl::UnavailableError(error);
+  }
+  p->metrics = std::make_unique<CoordinatorMetrics>(p->runtime.registry());
+  FleetEventLogOptions log_options;
+  log_options.capacity = options.event_buffer;
+  p->log = std::make_unique<FleetEventLog>(log_options);
+
+  RegistryOptions registry_options;
+  Parts* parts = p.get();
+  registry_options.on_membership = [parts](const v1::SystemRecord& r) {
+    Journal* j = parts->registry_journal.load();
+    if (j == nullptr) return;
+    v1::JournalRecord record;
+    *record.mutable_system() = r;
+    if (auto s = j->append(record); !s.ok()) {
+      std::fprintf(stderr, "coordinator: cannot journal the registration of %s/%s: %s\n",
+                   r.robot_id().c_str(), r.system().c_str(), std::string(s.message()).c_str());
+    }
+  };
+  registry_options.link.grace = options.grace_period;
+  // Missed heartbeats make the links probe a system whose stream stays open.
+  registry_options.link.heartbeat_interval = millis(options.heartbeat_interval);
+  p->registry = std::make_unique<Registry>(*p->log, *p->metrics, registry_options);
+
+  // Belief memory, missions and registrations, restored from the journal.
+  BeliefStore beliefs_restore;  // replay target before the journal is attached
+  std::vector<v1::MissionStatus> missions_restore;
+  std::map<std::pair<std::string, std::string>, v1::SystemRecord> systems_restore;
+  if (!options.state_dir.empty()) {
+    std::error_code ec;
+    std::filesystem::create_directories(options.state_dir, ec);
+    auto opened = Journal::open(options.state_dir + "/coordinator.journal",
+                                [&](const v1::JournalRecord& record) {
+                                  if (record.has_belief()) beliefs_restore.restore(record.belief());
+                                  if (record.has_mission())
+                                    missions_restore.push_back(record.mission());
+                                  if (record.has_system()) {
+                                    const auto& r = record.system();
+                                    const auto key = std::make_pair(r.robot_id(), r.system());
+                                    if (r.unregistered()) {
+                                      systems_restore.erase(key);
+                                    } else {
+                                      systems_restore[key] = r;
+                                    }
+                                  }
+                                });
+    if (!opened.ok()) {
+      return absl::InvalidArgumentError("--state-dir: " + std::string(opened.status().message()));
+    }
+    p->journal = std::move(*opened);
+  } else {
+    std::fprintf(stderr,
+                 "coordinator: no --state-dir: belief memory is lost when the coordinator stops\n");
+  }
+  p->beliefs = std::make_unique<BeliefStore>(p->journal.get());
+  for (const auto& belief : beliefs_restore.snapshot()) p->beliefs->restore(belief);
+  p->pool = std::make_unique<BlockingPool>(options.workers);
+  p->fleet = std::make_unique<FleetControl>(*p->registry, *p->log, options.catalog);
+  MissionManagerOptions mission_options;
+  mission_options.resume_wait = millis(options.resume_wait);
+  p->missions = std::make_unique<MissionManager>(*p->fleet, *p->registry, *p->beliefs,
+                                                 p->journal.get(), mission_options);
+  for (const auto& status : missions_restore) p->missions->restore(status);
+  if (p->journal) {
+    // Start from a compact journal: the current beliefs, missions and systems.
+    std::vector<v1::JournalRecord> snapshot = p->missions->snapshot();
+    for (const auto& [key, system] : systems_restore) {
+      v1::JournalRecord record;
+      *record.mutable_system() = system;
+      snapshot.push_back(std::move(record));
+    }
+    for (const auto& belief : p->beliefs->snapshot()) {
+      v1::JournalRecord record;
+      *record.mutable_belief() = belief;
+      snapshot.push_back(std::move(record));
+    }
+    if (auto s = p->journal->compact(snapshot); !s.ok()) {
+      return absl::InvalidArgumentError("--state-dir: cannot compact the journal: " +
+                                        std::string(s.message()));
+    }
+  }
+  p->registry_journal.store(p->journal.get());
+
+  SafetyOptions safety_options;
+  safety_options.critical_battery_ratio = options.critical_battery;
+  safety_options.hover_before_land = millis(options.hover_before_land);
+  safety_options.geofence = options.geofence;
+  safety_options.channel_address = options.channel_address;
+  if (!options.flight_controllers.empty()) {
+    p->safety =
+        std::make_unique<SafetyController>(*p->fleet, *p->missions, *p->log, safety_options);
+    for (const auto& [robot, address] : options.flight_controllers) {
+      p->safety->addRobot(robot, address);
+    }
+  }
+  CoordinatorServiceOptions service_options;
+  service_options.beliefs = p->beliefs.get();
+  service_options.fleet = p->fleet.get();
+  service_options.missions = p->missions.get();
+  service_options.safety = p->safety.get();
+  service_options.pool = p->pool.get();
+  service_options.heartbeat_interval = millis(options.heartbeat_interval);
+  p->service =
+      std::make_unique<CoordinatorService>(*p->registry, *p->log, *p->metrics, service_options);
+
+  grpc::ServerBuilder builder;
+  builder.RegisterService(p->service.get());
+  if (!p->runtime.startServer(builder, options.listen, {v1::Coordinator::service_full_name()},
+                              &error)) {
+    return absl::UnavailableError(error);
+  }
+  for (const auto& system : options.systems) p->registry->addConfigured(system);
+  // Systems registered before a restart are contacted at once (they also
+  // register again at their next heartbeat).
+  for (const auto& [key, system] : systems_restore) {
+    const bool listed =
+        std::any_of(options.systems.begin(), options.systems.end(),
+                    [&](const ConfiguredSystem& c) { return c.address == system.address(); });
+    if (listed) continue;
+    ConfiguredSystem known;
+    known.robot_id = system.robot_id();
+    known.address = system.address();
+    p->registry->addConfigured(known);
+  }
+  if (p->safety) p->safety->start();
+  p->missions->resumeRestored();
+  return std::unique_ptr<Coordinator>(new Coordinator(std::move(p)));
+}
+
+Coordinator::Coordinator(std::unique_ptr<Parts> parts) : parts_(std::move(parts)) {}
+
+Coordinator::~Coordinator() { shutdown(); }
+
+int Coordinator::grpcPort() const { return parts_->runtime.grpcPort(); }
+int Coordinator::metricsPort() const { return parts_->runtime.metricsPort(); }
+const std::string& Coordinator::incarnation() const { return parts_->log->incarnation(); }
+
+bool Coordinator::writePortFile(const std::string& path, std::string* error) const {
+  return parts_->runtime.writePortFile(path, error);
+}
+
+void Coordinator::shutdown() {
+  Parts& p = *parts_;
+  if (p.stopped) return;
+  p.stopped = true;
+  // Subscribers first, then the links to the systems, then the server:
+  // in-flight calls forwarded to systems are cancelled with their server call.
+  p.service->shutdownStreams();
+  if (p.safety) p.safety->stop();
+  p.missions->stop();  // running missions stay RUNNING in the journal
+  p.fleet->stop();
+  p.pool->stop();
+  p.registry->stop();
+  p.runtime.shutdown(std::chrono::milliseconds(1000));
+}
+
+}  // namespace behaviorlib::coordinator

@@ -168,7 +168,8 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   for (const auto& system : options.systems) p->registry->addConfigured(system);
   // Systems registered before a restart are contacted at once (they also
   // register again at their next heartbeat).
-  for (const auto& [key, system] : systems_restore) {
+  for (const auto& entry : systems_restore) {
+    const v1::SystemRecord& system = entry.second;
     const bool listed =
         std::any_of(options.systems.begin(), options.systems.end(),
                     [&](const ConfiguredSystem& c) { return c.address == system.address(); });

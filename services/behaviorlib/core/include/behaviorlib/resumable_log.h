@@ -41,6 +41,8 @@
 #include <utility>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/behavior.pb.h"
 
 namespace behaviorlib {
@@ -154,7 +156,7 @@ class ResumableLog {
     /// popUpTo() with the events' wire forms, also stopping before the wire
     /// forms' total would exceed `max_bytes` (at least one event is popped).
     std::vector<RecordPtr> popRecordsUpTo(size_t max, size_t max_bytes = SIZE_MAX) {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       std::vector<RecordPtr> out;
       size_t bytes = 0;
       while (out.size() < max && !queue_.empty()) {
@@ -172,13 +174,13 @@ class ResumableLog {
     }
     /// True once the queue overflowed; nothing more is delivered.
     bool overflowed() const {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       return overflowed_;
     }
     /// Seq of the last event handed out, or the since_seq the subscription
     /// started from (so it is always a valid resume point).
     uint64_t lastPoppedSeq() const {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       return last_popped_seq_;
     }
     /// Stops delivery; the wake callback is never called after this returns.
@@ -187,7 +189,7 @@ class ResumableLog {
     void cancel() {
       {
         // Ignore deliveries racing with the unregistration below.
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         cancelled_ = true;
       }
       if (ResumableLog* log = log_.exchange(nullptr)) log->unsubscribe(this);
@@ -203,7 +205,7 @@ class ResumableLog {
     // Under the log's lock; returns whether wake must be called afterwards.
     bool deliver(const RecordPtr& record) {
       if (!filter_.matches(record->event())) return false;
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (cancelled_ || overflowed_) return false;
       if (queue_.size() - replay_left_ >= limit_) {
         // Keep what is queued so the reader drains it and resumes after the
@@ -222,14 +224,14 @@ class ResumableLog {
     Filter filter_;
     size_t limit_ = 0;
     std::shared_ptr<log_internal::WakeSlot> wake_;
-    mutable std::mutex mutex_;
-    std::deque<RecordPtr> queue_;  // Guarded by mutex_, as are the fields below.
+    mutable absl::Mutex mutex_;
+    std::deque<RecordPtr> queue_ ABSL_GUARDED_BY(mutex_);
     // Replayed events still at the front of queue_: they do not count against
     // limit_, which bounds how far the subscriber lags behind live events.
-    size_t replay_left_ = 0;
-    bool overflowed_ = false;
-    bool cancelled_ = false;
-    uint64_t last_popped_seq_ = 0;
+    size_t replay_left_ ABSL_GUARDED_BY(mutex_) = 0;
+    bool overflowed_ ABSL_GUARDED_BY(mutex_) = false;
+    bool cancelled_ ABSL_GUARDED_BY(mutex_) = false;
+    uint64_t last_popped_seq_ ABSL_GUARDED_BY(mutex_) = 0;
   };
 
   /// The retained events older than the one being appended, for
@@ -262,7 +264,7 @@ class ResumableLog {
   /// destroyed later, but receive nothing more. Must not run concurrently
   /// with append() or with cancel()/destruction of one of its subscriptions.
   ~ResumableLog() {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     for (Subscription* subscription : subscribers_) subscription->log_.store(nullptr);
     subscribers_.clear();
   }
@@ -304,7 +306,10 @@ class ResumableLog {
     // A since_seq of another run says nothing about this one.
     const uint64_t since_seq = incarnation_changed ? 0 : options.since_seq;
 
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
+    // Not yet visible to anyone else; locked for the analysis (and in the
+    // order log -> subscription, as in deliver()).
+    absl::MutexLock subscription_lock(&subscription->mutex_);
     evictLocked(wall_now_());
     const uint64_t latest_seq = next_seq_ - 1;
     const uint64_t oldest_retained_seq =
@@ -339,12 +344,12 @@ class ResumableLog {
 
   /// Seq of the newest event (0 if none).
   uint64_t latestSeq() const {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     return next_seq_ - 1;
   }
   /// Number of retained events (as a subscriber would see them now).
   size_t retainedCount() const {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     // What evictLocked would leave now, without mutating in a const call.
     const std::chrono::nanoseconds now = wall_now_();
     size_t expired = 0;
@@ -355,7 +360,7 @@ class ResumableLog {
   /// For tests: the clock that retention expiries are on (defaults to steady
   /// time). Set it before appending: expiries already computed are kept.
   void setWallClockForTesting(std::function<std::chrono::nanoseconds()> now) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     wall_now_ = std::move(now);
   }
 
@@ -369,7 +374,7 @@ class ResumableLog {
     std::vector<std::shared_ptr<log_internal::WakeSlot>> to_wake;
     RecordPtr stored;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       const std::chrono::nanoseconds now = wall_now_();
       for (Event& event : events) {
         event.set_incarnation(options_.incarnation);
@@ -393,7 +398,7 @@ class ResumableLog {
     return stored ? Subscription::eventOf(stored) : nullptr;
   }
 
-  void evictLocked(std::chrono::nanoseconds now) {
+  void evictLocked(std::chrono::nanoseconds now) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
     // Only from the front, so that retained seqs stay consecutive: an expired
     // event behind a longer-lived one waits for it.
     while (!retained_.empty() &&
@@ -403,18 +408,18 @@ class ResumableLog {
   }
 
   void unsubscribe(Subscription* subscription) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     subscribers_.erase(std::remove(subscribers_.begin(), subscribers_.end(), subscription),
                        subscribers_.end());
   }
 
   ResumableLogOptions options_;
   Retention retention_;
-  std::function<std::chrono::nanoseconds()> wall_now_;
-  mutable std::mutex mutex_;
-  uint64_t next_seq_ = 1;                   // Guarded by mutex_.
-  std::deque<Retained> retained_;           // Guarded by mutex_.
-  std::vector<Subscription*> subscribers_;  // Guarded by mutex_.
+  mutable absl::Mutex mutex_;
+  std::function<std::chrono::nanoseconds()> wall_now_ ABSL_GUARDED_BY(mutex_);
+  uint64_t next_seq_ ABSL_GUARDED_BY(mutex_) = 1;
+  std::deque<Retained> retained_ ABSL_GUARDED_BY(mutex_);
+  std::vector<Subscription*> subscribers_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib

@@ -22,8 +22,10 @@
 #include <grpcpp/grpcpp.h>
 
 #include <memory>
-#include <mutex>
 #include <string>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 
 namespace behaviorlib::server {
 
@@ -33,13 +35,13 @@ class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
   /// Ends the stream UNAVAILABLE (with the resume point) once what is queued
   /// has been written.
   void shutdown() {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     shutting_down_ = true;
     if (!writing_) writeNextLocked();
   }
 
   void OnWriteDone(bool ok) override {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     writing_ = false;
     if (!ok) {
       finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "stream broken"));
@@ -49,13 +51,19 @@ class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
   }
 
   void OnCancel() override {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     cancelled_ = true;
     if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
   }
 
   void OnDone() override {
-    if (subscription_) subscription_->cancel();
+    Subscription* subscription = nullptr;
+    {
+      absl::MutexLock lock(&mutex_);
+      subscription = subscription_.get();
+    }
+    // Outside the lock: cancel() waits for a running wake, which takes it.
+    if (subscription) subscription->cancel();
     streamDone();
     delete this;
   }
@@ -67,7 +75,7 @@ class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
   /// Starts the stream with a subscription whose wake callback calls wake().
   /// A wake before this has written the start message does nothing.
   void begin(std::unique_ptr<Subscription> subscription) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     subscription_ = std::move(subscription);
     startMessage(*subscription_, &message_);
     this->StartWrite(&message_);
@@ -76,7 +84,7 @@ class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
   /// The log's wake callback: writes the next message unless one is being
   /// written.
   void wake() {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!writing_ && subscription_) writeNextLocked();
   }
 
@@ -85,12 +93,12 @@ class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
   virtual void streamDone() = 0;
 
  private:
-  std::string resumeHint() const {
+  std::string resumeHint() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
     return "resume with since_seq=" + std::to_string(subscription_->lastPoppedSeq()) +
            " and incarnation=" + subscription_->start().incarnation();
   }
 
-  void writeNextLocked() {
+  void writeNextLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
     if (finished_) return;
     if (cancelled_) {
       finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
@@ -113,20 +121,20 @@ class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
     }
   }
 
-  void finishLocked(const grpc::Status& status) {
+  void finishLocked(const grpc::Status& status) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
     if (finished_) return;
     finished_ = true;
     this->Finish(status);
   }
 
   const std::string who_;
-  std::unique_ptr<Subscription> subscription_;
-  std::mutex mutex_;
-  Message message_;      // Guarded by mutex_, as are the flags below.
-  bool writing_ = true;  // true until the start message is written
-  bool finished_ = false;
-  bool cancelled_ = false;
-  bool shutting_down_ = false;
+  absl::Mutex mutex_;
+  std::unique_ptr<Subscription> subscription_ ABSL_GUARDED_BY(mutex_);
+  Message message_ ABSL_GUARDED_BY(mutex_);
+  bool writing_ ABSL_GUARDED_BY(mutex_) = true;  // true until the start message is written
+  bool finished_ ABSL_GUARDED_BY(mutex_) = false;
+  bool cancelled_ ABSL_GUARDED_BY(mutex_) = false;
+  bool shutting_down_ ABSL_GUARDED_BY(mutex_) = false;
 };
 
 }  // namespace behaviorlib::server

@@ -23,7 +23,7 @@ namespace behaviorlib::sim {
 
 // Declared in construction order: destroyed in reverse, after shutdown().
 struct SimulatorProcess::Parts {
-  explicit Parts(const SimulatorOptions& o) : options(o), simulation(SimulationOptions{}) {}
+  explicit Parts(SimulatorOptions o) : options(std::move(o)), simulation(SimulationOptions{}) {}
 
   const SimulatorOptions options;
   Simulation simulation;
@@ -94,7 +94,7 @@ struct SimulatorProcess::Parts {
 absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
     SimulatorOptions options) {
   if (options.vehicles.empty()) return absl::InvalidArgumentError("--vehicles names no vehicle");
-  auto p = std::make_unique<Parts>(options);
+  auto p = std::make_unique<Parts>(std::move(options));
   const SimulatorOptions& o = p->options;
   p->time.time_scale.store(o.time_scale);
   // The deterministic mode steps in lock-step itself, under time grants.

@@ -97,6 +97,59 @@ class BehaviorExecutionManager::WakeOnClock final : public ClockListener {
   BehaviorExecutionManager* owner_;
 };
 
+// The background thread of inBackground(): runs queued tasks in order.
+class BehaviorExecutionManager::Background {
+ public:
+  Background() : thread_([this] { run(); }) {}
+  ~Background() { stop(); }
+  void post(std::function<void()> task) {
+    absl::MutexLock lock(&mutex_);
+    if (stopping_) return;
+    tasks_.push_back(std::move(task));
+    wake_.Signal();
+  }
+  // Waits for the running task; drops the queued ones.
+  void stop() {
+    {
+      absl::MutexLock lock(&mutex_);
+      stopping_ = true;
+      wake_.Signal();
+    }
+    if (thread_.joinable()) thread_.join();
+  }
+
+ private:
+  void run() {
+    while (true) {
+      std::function<void()> task;
+      {
+        absl::MutexLock lock(&mutex_);
+        while (!stopping_ && tasks_.empty()) wake_.Wait(&mutex_);
+        if (stopping_) return;
+        task = std::move(tasks_.front());
+        tasks_.pop_front();
+      }
+      task();
+    }
+  }
+
+  absl::Mutex mutex_;
+  absl::CondVar wake_;
+  std::deque<std::function<void()>> tasks_ ABSL_GUARDED_BY(mutex_);
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  std::thread thread_;
+};
+
+void BehaviorExecutionManager::runInBackground(std::function<void()> task) {
+  Background* background;
+  {
+    std::lock_guard lock(mutex_);
+    if (!background_) background_ = std::make_unique<Background>();
+    background = background_.get();
+  }
+  background->post(std::move(task));
+}
+
 BehaviorExecutionManager::BehaviorExecutionManager(
     std::string name, const google::protobuf::Descriptor* parameters_type, BehaviorOptions options)
     : name_(std::move(name)), parameters_type_(parameters_type), options_(options) {}
@@ -188,6 +241,14 @@ void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
     // Stuck in user code: the process is going away; do not hang it.
     worker_.detach();
   }
+  // A running background job may use the behavior: it ends before the
+  // behavior is destroyed.
+  Background* background;
+  {
+    std::lock_guard lock(mutex_);
+    background = background_.get();
+  }
+  if (background) background->stop();
   if (clock_listener_) context_.clock->removeListener(clock_listener_.get());
 }
 
@@ -201,6 +262,36 @@ void BehaviorExecutionManager::post(std::function<void()> command, std::function
     }
   }
   if (cancel) cancel();
+}
+
+void BehaviorExecutionManager::schedule(std::shared_ptr<detail::Inbox> inbox) {
+  std::lock_guard lock(mutex_);
+  if (exited_ || stopping_) return;
+  ready_.push_back(std::move(inbox));
+  cv_.notify_one();
+}
+
+uint64_t BehaviorExecutionManager::inboxGeneration() const {
+  std::lock_guard lock(mutex_);
+  return activation_id_.empty() ? 0 : generation_;
+}
+
+void BehaviorExecutionManager::deliver(const std::shared_ptr<detail::Inbox>& inbox) {
+  bool stale;
+  bool active;
+  {
+    std::lock_guard lock(mutex_);
+    stale = inbox->generation() != 0 && inbox->generation() != generation_;
+    active = state_ == State::kActive || state_ == State::kPaused;
+  }
+  if (stale) {
+    inbox->discard();
+    return;
+  }
+  if (guarded("a sample handler (onWorker)", [&] { inbox->drain(); })) return;
+  if (active && !stopped_by_watchdog_) {
+    finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, failure_message_);
+  }
 }
 
 template <class T>
@@ -230,6 +321,14 @@ void BehaviorExecutionManager::run() {
       commanding_ = false;
       continue;
     }
+    if (!ready_.empty()) {
+      auto inbox = std::move(ready_.front());
+      ready_.pop_front();
+      lock.unlock();
+      deliver(inbox);
+      lock.lock();
+      continue;
+    }
     if (state_ == State::kActive) {
       if (!context_.clock->valid()) {
         cv_.wait_for(lock, std::chrono::milliseconds(50));
@@ -253,6 +352,7 @@ void BehaviorExecutionManager::run() {
     }
   }
   exited_ = true;
+  ready_.clear();
   std::deque<Command> left = std::move(commands_);
   commands_.clear();
   exited_cv_.notify_all();
@@ -296,6 +396,7 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
       state_ = State::kInactive;
       activation_id_.clear();
       parameters_.reset();
+      ++generation_;
     }
     reportActive(false);
     if (context_.observer) context_.observer->onBlocked(false);
@@ -435,6 +536,7 @@ void BehaviorExecutionManager::finish(v1::TerminationCause cause, const std::str
     state_ = State::kInactive;
     activation_id_.clear();
     parameters_.reset();
+    ++generation_;
   }
   reportActive(false);
 }
@@ -578,6 +680,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     parameters_ = std::move(parameters);
     activation_id_ = name_ + "-" + context_.events->incarnation().substr(0, 8) + "-" +
                      std::to_string(++activation_counter_);
+    ++generation_;
     maximum_execution_time_ = options_.maximum_execution_time;
     time_out_reason_.clear();
     activation_time_ = now;
@@ -593,6 +696,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
       std::lock_guard lock(mutex_);
       parameters_.reset();
       activation_id_.clear();
+      ++generation_;
     }
     done(absl::Status(status.code(),
                       name_ + " refused activation: " + std::string(status.message())));

@@ -63,10 +63,10 @@ absl::Status BehaviorHost::start(const YAML::Node& config) {
 void BehaviorHost::stop() {
   for (auto& behavior : behaviors_) behavior->stop();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopping_ = true;
+    cv_.SignalAll();
   }
-  cv_.notify_all();
   if (watchdog_.joinable()) watchdog_.join();
   started_ = false;
 }
@@ -79,16 +79,14 @@ BehaviorExecutionManager* BehaviorHost::find(const std::string& name) const {
 }
 
 int BehaviorHost::activeCount() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return active_count_;
 }
 
 void BehaviorHost::onActiveChanged(bool active) {
-  {
-    std::lock_guard lock(mutex_);
-    active_count_ += active ? 1 : -1;
-  }
-  if (active) cv_.notify_all();
+  absl::MutexLock lock(&mutex_);
+  active_count_ += active ? 1 : -1;
+  if (active) cv_.SignalAll();
 }
 
 void BehaviorHost::watchdogLoop() {
@@ -99,18 +97,22 @@ void BehaviorHost::watchdogLoop() {
     period = std::min(period, behavior->options().watchdog_timeout / 4);
   }
   period = std::max(period, std::chrono::milliseconds(5));
-  std::unique_lock lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   while (!stopping_) {
     if (active_count_ <= 0) {
-      cv_.wait(lock, [this] { return stopping_ || active_count_ > 0; });
+      cv_.Wait(&mutex_);
       continue;
     }
-    cv_.wait_for(lock, period, [this] { return stopping_; });
+    // Waits out the period unless stopped meanwhile (a spurious or
+    // activation wake-up waits again for the rest).
+    const absl::Time deadline = absl::Now() + absl::FromChrono(period);
+    while (!stopping_ && !cv_.WaitWithDeadline(&mutex_, deadline)) {
+    }
     if (stopping_) break;
-    lock.unlock();
+    mutex_.Unlock();
     const auto now = std::chrono::steady_clock::now();
     for (auto& behavior : behaviors_) behavior->watchdogCheck(now);
-    lock.lock();
+    mutex_.Lock();
   }
 }
 

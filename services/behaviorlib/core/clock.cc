@@ -5,23 +5,23 @@
 namespace behaviorlib {
 
 void Clock::addListener(ClockListener* listener) const {
-  std::lock_guard lock(listeners_mutex_);
+  absl::MutexLock lock(&listeners_mutex_);
   listeners_.push_back(listener);
 }
 
 void Clock::removeListener(ClockListener* listener) const {
-  std::lock_guard lock(listeners_mutex_);
+  absl::MutexLock lock(&listeners_mutex_);
   listeners_.erase(std::remove(listeners_.begin(), listeners_.end(), listener), listeners_.end());
 }
 
 bool Clock::listenersCaughtUp(TimePoint t) const {
-  std::lock_guard lock(listeners_mutex_);
+  absl::MutexLock lock(&listeners_mutex_);
   return std::all_of(listeners_.begin(), listeners_.end(),
                      [t](const ClockListener* listener) { return listener->caughtUp(t); });
 }
 
 void Clock::notifyListeners() {
-  std::lock_guard lock(listeners_mutex_);
+  absl::MutexLock lock(&listeners_mutex_);
   for (auto* listener : listeners_) listener->onClockAdvanced();
 }
 
@@ -42,7 +42,7 @@ TimePoint SteadyClock::now() const {
 FakeClock::FakeClock(TimePoint start) : now_(start) {}
 
 TimePoint FakeClock::now() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return now_;
 }
 
@@ -54,7 +54,7 @@ std::chrono::nanoseconds FakeClock::wallWaitFor(Duration /*remaining*/) const {
 
 void FakeClock::advance(Duration delta) {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     now_ += delta;
   }
   notifyListeners();
@@ -62,7 +62,7 @@ void FakeClock::advance(Duration delta) {
 
 void FakeClock::set(TimePoint t) {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (t > now_) now_ = t;
   }
   notifyListeners();

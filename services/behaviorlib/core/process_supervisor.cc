@@ -84,7 +84,7 @@ SupervisedThread::SupervisedThread(Body body, std::chrono::milliseconds max_sile
       failure = "worker thread threw a non-standard exception";
     }
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       failure_ = failure;
     }
     exited_.store(true);
@@ -100,7 +100,7 @@ void SupervisedThread::stop() {
 
 Verdict SupervisedThread::check() const {
   if (exited_.load()) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     return Verdict::finish(failure_.empty() ? "worker thread stopped" : failure_);
   }
   const auto silence = std::chrono::steady_clock::now() - heartbeat_.last();

@@ -90,56 +90,47 @@ absl::Status QrAttentionBehavior::onActivate() {
   absl::StatusOr<Settings> settings = settingsFrom(parameters());
   if (!settings.ok()) return settings.status();
   stop();
-  {
-    std::lock_guard lock(mutex_);
-    settings_ = std::move(*settings);
-    pending_.reset();
-    last_image_.reset();
-    last_pose_stamp_.reset();
-    camera_.reset();
-    poses_ = PoseHistory(pose_history_);
-    counters_ = {};
-    publish_error_ = absl::OkStatus();
-    running_ = decoding_ = true;
-  }
-  locator_.reset();
-  map_.clear();
-  remembered_.clear();
+  settings_ = std::move(*settings);
+  pending_.reset();
+  busy_ = false;
+  last_image_.reset();
+  last_pose_stamp_.reset();
+  camera_.reset();
+  poses_ = PoseHistory(pose_history_);
+  counters_ = {};
+  codes_ = 0;
+  publish_error_ = absl::OkStatus();
+  running_ = decoding_ = true;
+  // A new map; a job of an earlier activation keeps its own.
+  locating_ = std::make_shared<Locating>();
   activated_at_ = now();
   active_ = true;
-  worker_ = std::thread([this] { workerLoop(); });
   const std::string robot = robotId();
   info_sub_ = channel_->subscribeTyped<v1::CameraInfo>(
       topic(robot, "camera/info"), {.send_latest_first = true},
-      [this](const v1::CameraInfo& m) { onCameraInfo(m); });
+      onWorker<v1::CameraInfo>([this](const v1::CameraInfo& m) { onCameraInfo(m); },
+                               Delivery::kLatest));
   // Every pose sample goes into the history: a queue.
   pose_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
       flight::poseEstimateTopic(robot),
       {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 1000, .send_latest_first = true},
-      [this](const v1::PoseStamped& m) { onPose(m); });
-  image_sub_ = channel_->subscribeTyped<v1::Image>(topic(robot, "camera/image"),
-                                                   {.mode = v1::DELIVERY_MODE_LATEST},
-                                                   [this](const v1::Image& m) { onImage(m); });
+      onWorker<v1::PoseStamped>([this](const v1::PoseStamped& m) { onPose(m); }));
+  image_sub_ = channel_->subscribeTyped<v1::Image>(
+      topic(robot, "camera/image"), {.mode = v1::DELIVERY_MODE_LATEST},
+      onWorker<v1::Image>([this](const v1::Image& m) { onImage(m); }, Delivery::kLatest));
   return absl::OkStatus();
 }
 
 void QrAttentionBehavior::stop() {
-  {
-    std::lock_guard lock(mutex_);
-    running_ = false;
-    cv_.notify_all();
-  }
-  // Joins the readers and the worker; never under mutex_ (they take it).
+  running_ = false;
   image_sub_.reset();
   pose_sub_.reset();
   info_sub_.reset();
-  if (worker_.joinable()) worker_.join();
 }
 
 void QrAttentionBehavior::onDeactivate() {
   active_ = false;
   stop();
-  std::lock_guard lock(mutex_);
   std::fprintf(stderr,
                "PAY_ATTENTION_TO_QR_CODES: %llu images (%llu decoded, %llu malformed, %llu "
                "dropped, %llu without a pose), %llu sightings (%llu rejected), %zu codes\n",
@@ -149,38 +140,32 @@ void QrAttentionBehavior::onDeactivate() {
                static_cast<unsigned long long>(counters_.dropped),
                static_cast<unsigned long long>(counters_.without_pose),
                static_cast<unsigned long long>(counters_.sightings),
-               static_cast<unsigned long long>(counters_.rejected), map_.published().size());
+               static_cast<unsigned long long>(counters_.rejected), codes_);
 }
 
-void QrAttentionBehavior::onPause() {
-  std::lock_guard lock(mutex_);
-  decoding_ = false;
-}
+void QrAttentionBehavior::onPause() { decoding_ = false; }
 
-void QrAttentionBehavior::onResume() {
-  std::lock_guard lock(mutex_);
-  decoding_ = true;
-}
+void QrAttentionBehavior::onResume() { decoding_ = true; }
 
 absl::Status QrAttentionBehavior::onModify(const google::protobuf::Message& new_parameters) {
   absl::StatusOr<Settings> settings =
       settingsFrom(static_cast<const v1::PayAttentionToQrCodesParameters&>(new_parameters));
   if (!settings.ok()) return settings.status();
-  std::lock_guard lock(mutex_);
   settings_ = std::move(*settings);
   return absl::OkStatus();
 }
 
 void QrAttentionBehavior::onImage(const v1::Image& image) {
-  const TimePoint arrival = clock().now();
-  std::lock_guard lock(mutex_);
   if (!running_) return;
-  last_image_ = arrival;
+  last_image_ = now();
   ++counters_.images;
   if (!decoding_) return;
-  if (pending_) ++counters_.dropped;
-  pending_ = image;
-  cv_.notify_all();
+  if (busy_) {
+    if (pending_) ++counters_.dropped;
+    pending_ = image;
+    return;
+  }
+  decode(image);
 }
 
 void QrAttentionBehavior::onPose(const v1::PoseStamped& pose) {
@@ -195,7 +180,6 @@ void QrAttentionBehavior::onPose(const v1::PoseStamped& pose) {
   }
   body.world_from_body.normalize();
   const TimePoint stamp = flight::stampTime(pose.header());
-  std::lock_guard lock(mutex_);
   if (!running_) return;
   poses_.add(stamp, body);
   last_pose_stamp_ = stamp;
@@ -204,73 +188,92 @@ void QrAttentionBehavior::onPose(const v1::PoseStamped& pose) {
 void QrAttentionBehavior::onCameraInfo(const v1::CameraInfo& info) {
   absl::StatusOr<CameraModel> model = cameraModel(info);
   if (!model.ok()) return;  // checkProcesses reports a camera without a model
-  std::lock_guard lock(mutex_);
   camera_ = *model;
 }
 
-void QrAttentionBehavior::workerLoop() {
-  for (;;) {
-    v1::Image image;
-    {
-      std::unique_lock lock(mutex_);
-      cv_.wait(lock, [&] { return !running_ || pending_.has_value(); });
-      if (!running_) return;
-      image = std::move(*pending_);
-      pending_.reset();
-    }
-    process(image);
-  }
+void QrAttentionBehavior::decode(const v1::Image& image) {
+  busy_ = true;
+  // Decoded in the background; the pose is looked up once the pixels are
+  // back, so that the estimate for the image's stamp has had time to come.
+  inBackground<Decoded>(
+      [image] {
+        return Decoded{image.header(), decodeImage(image)};
+      },
+      [this](const Decoded& decoded) { onDecoded(decoded); });
 }
 
-void QrAttentionBehavior::process(const v1::Image& image) {
-  absl::StatusOr<cv::Mat> pixels = decodeImage(image);
-  std::optional<CameraModel> camera;
-  std::optional<BodyPose> pose;
-  Settings settings;
-  const TimePoint stamp = flight::stampTime(image.header());
-  {
-    std::lock_guard lock(mutex_);
-    if (!pixels.ok()) {
-      if (counters_.malformed++ == 0) {
-        std::fprintf(stderr, "PAY_ATTENTION_TO_QR_CODES: skipping a malformed image: %s\n",
-                     std::string(pixels.status().message()).c_str());
-      }
-      return;
+void QrAttentionBehavior::onDecoded(const Decoded& decoded) {
+  if (!decoded.pixels.ok()) {
+    if (counters_.malformed++ == 0) {
+      std::fprintf(stderr, "PAY_ATTENTION_TO_QR_CODES: skipping a malformed image: %s\n",
+                   std::string(decoded.pixels.status().message()).c_str());
     }
-    ++counters_.decoded;
-    camera = camera_;
-    pose = poses_.at(stamp, pose_tolerance_);
-    if (!pose) ++counters_.without_pose;
-    settings = settings_;
+    return nextImage();
   }
-  if (!camera || !pose) return;
-  if (pixels->cols != camera->width_px || pixels->rows != camera->height_px) {
-    std::lock_guard lock(mutex_);
+  ++counters_.decoded;
+  const TimePoint stamp = flight::stampTime(decoded.header);
+  const std::optional<BodyPose> pose = poses_.at(stamp, pose_tolerance_);
+  if (!pose) ++counters_.without_pose;
+  if (!camera_ || !pose) return nextImage();
+  if (decoded.pixels->cols != camera_->width_px || decoded.pixels->rows != camera_->height_px) {
     ++counters_.malformed;
-    return;
+    return nextImage();
   }
-  if (!locator_ || locator_->camera().fx_px != camera->fx_px ||
-      locator_->camera().fy_px != camera->fy_px || locator_->camera().cx_px != camera->cx_px ||
-      locator_->camera().cy_px != camera->cy_px ||
-      !locator_->camera().position_in_body_m.isApprox(camera->position_in_body_m) ||
-      !locator_->camera().body_from_optical.isApprox(camera->body_from_optical)) {
-    locator_ = std::make_unique<MarkerLocator>(*camera, kNominalSizeM);
+  inBackground<Located>(
+      [this, state = locating_, decoded, camera = *camera_, pose = *pose, settings = settings_] {
+        return locate(*state, *decoded.pixels, decoded.header, camera, pose, settings);
+      },
+      [this](const Located& located) {
+        counters_.sightings += located.sightings;
+        counters_.rejected += located.rejected;
+        if (located.belief_errors > 0 && counters_.belief_errors == 0) {
+          std::fprintf(stderr, "PAY_ATTENTION_TO_QR_CODES: cannot write belief memory: %s\n",
+                       located.belief_error.c_str());
+        }
+        counters_.belief_errors += located.belief_errors;
+        codes_ = located.codes;
+        if (!located.publish_error.ok() && publish_error_.ok()) {
+          publish_error_ = located.publish_error;
+        }
+        nextImage();
+      });
+}
+
+void QrAttentionBehavior::nextImage() {
+  busy_ = false;
+  if (!pending_ || !decoding_) return;
+  const v1::Image image = std::move(*pending_);
+  pending_.reset();
+  decode(image);
+}
+
+QrAttentionBehavior::Located QrAttentionBehavior::locate(Locating& state, const cv::Mat& pixels,
+                                                         const v1::Header& header,
+                                                         const CameraModel& camera,
+                                                         const BodyPose& pose,
+                                                         const Settings& settings) const {
+  Located result;
+  const TimePoint stamp = flight::stampTime(header);
+  if (!state.locator || state.locator->camera().fx_px != camera.fx_px ||
+      state.locator->camera().fy_px != camera.fy_px ||
+      state.locator->camera().cx_px != camera.cx_px ||
+      state.locator->camera().cy_px != camera.cy_px ||
+      !state.locator->camera().position_in_body_m.isApprox(camera.position_in_body_m) ||
+      !state.locator->camera().body_from_optical.isApprox(camera.body_from_optical)) {
+    state.locator = std::make_unique<MarkerLocator>(camera, kNominalSizeM);
   }
   v1::MarkerDetections detections;
   for (const LocatedMarker& nominal :
-       locator_->locate(*pixels, pose->world_from_body, pose->position_m)) {
+       state.locator->locate(pixels, pose.world_from_body, pose.position_m)) {
     auto it = settings.marker_sizes_m.find(nominal.text);
     const double size = it != settings.marker_sizes_m.end() ? it->second : settings.marker_size_m;
-    const LocatedMarker m = rescaled(nominal, kNominalSizeM, size, *camera, *pose);
+    const LocatedMarker m = rescaled(nominal, kNominalSizeM, size, camera, pose);
     const bool accepted = m.position_world_m.allFinite() && m.range_m <= settings.max_range_m &&
                           m.reprojection_error_px <= settings.max_reprojection_error_px;
-    {
-      std::lock_guard lock(mutex_);
-      ++(accepted ? counters_.sightings : counters_.rejected);
-    }
+    ++(accepted ? result.sightings : result.rejected);
     if (!accepted) continue;
     const auto update =
-        map_.add(m.text, m.position_world_m, m.range_m, stamp, settings.min_sightings);
+        state.map.add(m.text, m.position_world_m, m.range_m, stamp, settings.min_sightings);
     if (!update) continue;
     if (update->first_time) {
       v1::MarkerDetection* d = detections.add_detections();
@@ -280,27 +283,27 @@ void QrAttentionBehavior::process(const v1::Image& image) {
       *d->mutable_pose()->mutable_position_m() = toVector(update->estimate.position_m);
       d->mutable_pose()->mutable_orientation()->set_w(1.0);
     }
-    remember(update->estimate, size, update->first_time);
+    if (absl::Status s = remember(state, update->estimate, size, update->first_time); !s.ok()) {
+      if (result.belief_errors++ == 0) result.belief_error = std::string(s.message());
+    }
   }
-  if (detections.detections_size() == 0) return;
-  *detections.mutable_header() = image.header();
+  result.codes = state.map.published().size();
+  if (detections.detections_size() == 0) return result;
+  *detections.mutable_header() = header;
   detections.mutable_header()->set_frame_id("world");
   detections.mutable_header()->set_robot_id(robotId());
-  detections.mutable_header()->set_seq(++seq_);
-  if (absl::Status s = channel_->publish(topic(robotId(), "markers/detections"), detections);
-      !s.ok()) {
-    std::lock_guard lock(mutex_);
-    if (publish_error_.ok()) publish_error_ = s;
-  }
+  detections.mutable_header()->set_seq(++state.seq);
+  result.publish_error = channel_->publish(topic(robotId(), "markers/detections"), detections);
+  return result;
 }
 
-void QrAttentionBehavior::remember(const MarkerEstimate& estimate, double size_m,
-                                   bool list_changed) {
-  if (!beliefs_) return;
-  auto known = remembered_.find(estimate.text);
-  if (!list_changed && known != remembered_.end() &&
+absl::Status QrAttentionBehavior::remember(Locating& state, const MarkerEstimate& estimate,
+                                           double size_m, bool list_changed) const {
+  if (!beliefs_) return absl::OkStatus();
+  auto known = state.remembered.find(estimate.text);
+  if (!list_changed && known != state.remembered.end() &&
       (known->second - estimate.position_m).norm() < belief_refresh_m_) {
-    return;
+    return absl::OkStatus();
   }
   const std::string prefix = beliefKeySegment(robotId()) + "/markers";
   const std::string writer = robotId() + "/PAY_ATTENTION_TO_QR_CODES";
@@ -314,21 +317,15 @@ void QrAttentionBehavior::remember(const MarkerEstimate& estimate, double size_m
   absl::Status status =
       beliefs_->writeMessage(prefix + "/" + beliefKeySegment(estimate.text), belief, writer)
           .status();
-  if (status.ok() && (list_changed || known == remembered_.end())) {
+  if (status.ok() && (list_changed || known == state.remembered.end())) {
     v1::QrCodeList list;
-    for (const std::string& text : map_.published()) list.add_texts(text);
+    for (const std::string& text : state.map.published()) list.add_texts(text);
     list.set_count(static_cast<uint32_t>(list.texts_size()));
     status = beliefs_->writeMessage(prefix, list, writer).status();
   }
-  if (!status.ok()) {
-    std::lock_guard lock(mutex_);
-    if (counters_.belief_errors++ == 0) {
-      std::fprintf(stderr, "PAY_ATTENTION_TO_QR_CODES: cannot write belief memory: %s\n",
-                   std::string(status.message()).c_str());
-    }
-    return;  // retried with the next sighting
-  }
-  remembered_[estimate.text] = estimate.position_m;
+  if (!status.ok()) return status;  // retried with the next sighting
+  state.remembered[estimate.text] = estimate.position_m;
+  return absl::OkStatus();
 }
 
 Situation QrAttentionBehavior::checkSituation() {
@@ -378,7 +375,6 @@ Situation QrAttentionBehavior::checkSituation() {
 
 Verdict QrAttentionBehavior::checkProcesses() {
   const TimePoint t = now();
-  std::lock_guard lock(mutex_);
   if (!publish_error_.ok()) {
     return Verdict::finish("cannot publish detections: " + std::string(publish_error_.message()));
   }

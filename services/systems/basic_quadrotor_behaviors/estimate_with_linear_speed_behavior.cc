@@ -33,14 +33,13 @@ absl::Status EstimatePositionWithLinearSpeedBehavior::onConfigure(const YAML::No
   return readNumber(config, "drift_rate_m_s", -1e-9, 10, &drift_rate_m_s_);
 }
 
-double EstimatePositionWithLinearSpeedBehavior::driftBoundLocked() const {
+double EstimatePositionWithLinearSpeedBehavior::driftBound() const {
   if (!reckoning_) return 0.0;
   return drift_ratio_ * reckoning_->distanceM() +
          drift_rate_m_s_ * std::max(reckoning_->lastTimeS() - start_s_, 0.0);
 }
 
 void EstimatePositionWithLinearSpeedBehavior::onImu(const v1::Imu& imu) {
-  std::lock_guard lock(mutex_);
   if (!running_) return;
   const Eigen::Vector3d gyro = toEigen(imu.angular_velocity_rad_s());
   Eigen::VectorXd value(6);
@@ -55,33 +54,28 @@ void EstimatePositionWithLinearSpeedBehavior::onImu(const v1::Imu& imu) {
 void EstimatePositionWithLinearSpeedBehavior::onSpeed(const v1::TwistStamped& speed) {
   v1::PoseStamped pose;
   v1::TwistStamped twist;
-  {
-    std::lock_guard lock(mutex_);
-    if (!running_) return;
-    const TimePoint stamp = flight::stampTime(speed.header());
-    const Eigen::Vector3d velocity = toEigen(speed.twist().linear_m_s());
-    speed_->add(stamp, velocity);
-    if (!(velocity.norm() <= max_speed_m_s_)) {
-      // Not integrated: one such sample would carry the estimate away.
-      if (implausible_.empty()) {
-        implausible_ = "the linear speed on " + speed_->topic() + " reads " +
-                       flight::fixed2(velocity.norm()) + " m/s, beyond max_speed_m_s " +
-                       flight::fixed2(max_speed_m_s_) + ": a faulty sensor";
-      }
-      return;
+  if (!running_) return;
+  const TimePoint stamp = flight::stampTime(speed.header());
+  const Eigen::Vector3d velocity = toEigen(speed.twist().linear_m_s());
+  speed_->add(stamp, velocity);
+  if (!(velocity.norm() <= max_speed_m_s_)) {
+    // Not integrated: one such sample would carry the estimate away.
+    if (implausible_.empty()) {
+      implausible_ = "the linear speed on " + speed_->topic() + " reads " +
+                     flight::fixed2(velocity.norm()) + " m/s, beyond max_speed_m_s " +
+                     flight::fixed2(max_speed_m_s_) + ": a faulty sensor";
     }
-    if (!orientation_ || !reckoning_) return;  // the IMU's monitoring tells
-    const double max_gap_s = std::chrono::duration<double>(speed_timeout_).count();
-    if (!reckoning_->add(toSeconds(stamp), velocity, *orientation_, max_gap_s)) return;
-    if (!publishing_) return;
-    fillEstimate(speed.header().stamp(), robotId(), ++seq_, reckoning_->position(), *orientation_,
-                 reckoning_->velocity(), gyro_, &pose, &twist);
+    return;
   }
-  // Published outside the lock: a slow broker must not hold up the readers.
+  if (!orientation_ || !reckoning_) return;  // the IMU's monitoring tells
+  const double max_gap_s = std::chrono::duration<double>(speed_timeout_).count();
+  if (!reckoning_->add(toSeconds(stamp), velocity, *orientation_, max_gap_s)) return;
+  if (!publishing_) return;
+  fillEstimate(speed.header().stamp(), robotId(), ++seq_, reckoning_->position(), *orientation_,
+               reckoning_->velocity(), gyro_, &pose, &twist);
   absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
   if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
   if (!s.ok()) {
-    std::lock_guard lock(mutex_);
     if (publish_error_.ok()) publish_error_ = s;
   }
 }
@@ -147,38 +141,31 @@ absl::Status EstimatePositionWithLinearSpeedBehavior::onActivate() {
   auto initial = initialPosition(start);
   if (!initial.ok()) return initial.status();
   const std::string robot = robotId();
-  {
-    std::lock_guard lock(mutex_);
-    start_s_ = toSeconds(start);
-    reckoning_.emplace(*initial, start_s_);
-    max_speed_m_s_ = parameters().max_speed_m_s();
-    orientation_.reset();
-    gyro_.setZero();
-    speed_.emplace(sensorTopic(robot, "linear_speed"), speed_timeout_, frozen_timeout_);
-    imu_.emplace(sensorTopic(robot, "imu"), imu_timeout_, frozen_timeout_);
-    implausible_.clear();
-    publish_error_ = absl::OkStatus();
-    running_ = publishing_ = true;
-  }
+  start_s_ = toSeconds(start);
+  reckoning_.emplace(*initial, start_s_);
+  max_speed_m_s_ = parameters().max_speed_m_s();
+  orientation_.reset();
+  gyro_.setZero();
+  speed_.emplace(sensorTopic(robot, "linear_speed"), speed_timeout_, frozen_timeout_);
+  imu_.emplace(sensorTopic(robot, "imu"), imu_timeout_, frozen_timeout_);
+  implausible_.clear();
+  publish_error_ = absl::OkStatus();
+  running_ = publishing_ = true;
   setMaximumExecutionTime(seconds(parameters().max_duration_s()));
   activated_at_ = start;
   active_ = true;
   // The orientation is read at the speed samples' rate: the newest is enough.
   imu_sub_ = channel_->subscribeTyped<v1::Imu>(
       sensorTopic(robot, "imu"), {.mode = v1::DELIVERY_MODE_LATEST, .send_latest_first = true},
-      [this](const v1::Imu& m) { onImu(m); });
+      onWorker<v1::Imu>([this](const v1::Imu& m) { onImu(m); }, Delivery::kLatest));
   speed_sub_ = channel_->subscribeTyped<v1::TwistStamped>(
       sensorTopic(robot, "linear_speed"), {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 500},
-      [this](const v1::TwistStamped& m) { onSpeed(m); });
+      onWorker<v1::TwistStamped>([this](const v1::TwistStamped& m) { onSpeed(m); }));
   return absl::OkStatus();
 }
 
 void EstimatePositionWithLinearSpeedBehavior::stopSubscriptions() {
-  {
-    std::lock_guard lock(mutex_);
-    running_ = publishing_ = false;
-  }
-  // Joins the readers; never under mutex_ (their callbacks take it).
+  running_ = publishing_ = false;
   imu_sub_.reset();
   speed_sub_.reset();
 }
@@ -188,15 +175,9 @@ void EstimatePositionWithLinearSpeedBehavior::onDeactivate() {
   stopSubscriptions();
 }
 
-void EstimatePositionWithLinearSpeedBehavior::onPause() {
-  std::lock_guard lock(mutex_);
-  publishing_ = false;
-}
+void EstimatePositionWithLinearSpeedBehavior::onPause() { publishing_ = false; }
 
-void EstimatePositionWithLinearSpeedBehavior::onResume() {
-  std::lock_guard lock(mutex_);
-  publishing_ = true;
-}
+void EstimatePositionWithLinearSpeedBehavior::onResume() { publishing_ = true; }
 
 absl::Status EstimatePositionWithLinearSpeedBehavior::onModify(
     const google::protobuf::Message& new_parameters) {
@@ -211,10 +192,7 @@ absl::Status EstimatePositionWithLinearSpeedBehavior::onModify(
         "parameters 'initial_x_m', 'initial_y_m', 'initial_z_m' cannot change while active "
         "(deactivate and activate again to restart the dead reckoning)");
   }
-  {
-    std::lock_guard lock(mutex_);
-    max_speed_m_s_ = p.max_speed_m_s();
-  }
+  { max_speed_m_s_ = p.max_speed_m_s(); }
   setMaximumExecutionTime(seconds(p.max_duration_s()));
   return absl::OkStatus();
 }
@@ -225,8 +203,7 @@ Situation EstimatePositionWithLinearSpeedBehavior::checkSituation() {
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) {
-    std::lock_guard lock(mutex_);
-    const double ratio = driftBoundLocked() / parameters().max_drift_m();
+    const double ratio = driftBound() / parameters().max_drift_m();
     return Situation::ok(std::clamp(1.0 - ratio, 0.0, 1.0));
   }
   const TimePoint t = now();
@@ -243,9 +220,8 @@ Situation EstimatePositionWithLinearSpeedBehavior::checkSituation() {
 }
 
 Verdict EstimatePositionWithLinearSpeedBehavior::checkProgress() {
-  std::lock_guard lock(mutex_);
   if (!implausible_.empty()) return Verdict::finish(implausible_);
-  const double bound = driftBoundLocked();
+  const double bound = driftBound();
   if (bound > parameters().max_drift_m()) {
     return Verdict::finish("the dead-reckoning drift bound reached " + flight::fixed2(bound) +
                            " m (" + flight::fixed2(drift_ratio_ * 100) + " % of " +
@@ -259,7 +235,6 @@ Verdict EstimatePositionWithLinearSpeedBehavior::checkProgress() {
 
 Verdict EstimatePositionWithLinearSpeedBehavior::checkProcesses() {
   const TimePoint t = now();
-  std::lock_guard lock(mutex_);
   if (!publish_error_.ok()) {
     return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
   }

@@ -40,31 +40,26 @@ absl::Status EstimatePositionWithSensorBehavior::onConfigure(const YAML::Node& c
 void EstimatePositionWithSensorBehavior::onImu(const v1::Imu& imu) {
   v1::PoseStamped pose;
   v1::TwistStamped twist;
-  {
-    std::lock_guard lock(mutex_);
-    if (!running_) return;
-    const TimePoint stamp = flight::stampTime(imu.header());
-    const Eigen::Vector3d gyro = toEigen(imu.angular_velocity_rad_s());
-    const Eigen::Vector3d force = toEigen(imu.linear_acceleration_m_s2());
-    Eigen::VectorXd value(6);
-    value << gyro, force;
-    imu_->add(stamp, value);
-    const auto orientation = toOrientation(imu.orientation());
-    if (!orientation) return;
-    const double t = toSeconds(stamp);
-    if (last_imu_s_ && !(t > *last_imu_s_)) return;  // a repeated or older sample
-    if (last_imu_s_) filter_.predict(*orientation, force, t - *last_imu_s_);
-    last_imu_s_ = t;
-    last_gyro_ = gyro;
-    if (!filter_.initialized() || !publishing_ || imu_count_++ % 2 != 0) return;
-    fillEstimate(imu.header().stamp(), robotId(), ++seq_, filter_.position(), *orientation,
-                 filter_.velocity(), gyro, &pose, &twist);
-  }
-  // Published outside the lock: a slow broker must not stall the filter.
+  if (!running_) return;
+  const TimePoint stamp = flight::stampTime(imu.header());
+  const Eigen::Vector3d gyro = toEigen(imu.angular_velocity_rad_s());
+  const Eigen::Vector3d force = toEigen(imu.linear_acceleration_m_s2());
+  Eigen::VectorXd value(6);
+  value << gyro, force;
+  imu_->add(stamp, value);
+  const auto orientation = toOrientation(imu.orientation());
+  if (!orientation) return;
+  const double t = toSeconds(stamp);
+  if (last_imu_s_ && !(t > *last_imu_s_)) return;  // a repeated or older sample
+  if (last_imu_s_) filter_.predict(*orientation, force, t - *last_imu_s_);
+  last_imu_s_ = t;
+  last_gyro_ = gyro;
+  if (!filter_.initialized() || !publishing_ || imu_count_++ % 2 != 0) return;
+  fillEstimate(imu.header().stamp(), robotId(), ++seq_, filter_.position(), *orientation,
+               filter_.velocity(), gyro, &pose, &twist);
   absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
   if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
   if (!s.ok()) {
-    std::lock_guard lock(mutex_);
     if (publish_error_.ok()) publish_error_ = s;
   }
 }
@@ -84,7 +79,6 @@ void EstimatePositionWithSensorBehavior::countRejection(bool accepted, double in
 }
 
 void EstimatePositionWithSensorBehavior::onFix(const v1::PositionFix& fix) {
-  std::lock_guard lock(mutex_);
   if (!running_) return;
   const TimePoint stamp = flight::stampTime(fix.header());
   const Eigen::Vector3d position = toEigen(fix.position_m());
@@ -97,7 +91,6 @@ void EstimatePositionWithSensorBehavior::onFix(const v1::PositionFix& fix) {
 }
 
 void EstimatePositionWithSensorBehavior::onAltitude(const v1::Altitude& altitude) {
-  std::lock_guard lock(mutex_);
   if (!running_ || !use_barometer_) return;
   baro_->add(flight::stampTime(altitude.header()),
              Eigen::VectorXd::Constant(1, altitude.altitude_m()));
@@ -110,44 +103,39 @@ void EstimatePositionWithSensorBehavior::onAltitude(const v1::Altitude& altitude
 
 absl::Status EstimatePositionWithSensorBehavior::onActivate() {
   const std::string robot = robotId();
-  {
-    std::lock_guard lock(mutex_);
-    filter_ = SensorPositionFilter(noise_);
-    use_barometer_ = parameters().use_barometer();
-    max_innovation_m_ = parameters().max_innovation_m();
-    max_rejected_ = parameters().max_rejected_samples();
-    rejected_fixes_ = rejected_altitudes_ = 0;
-    last_imu_s_.reset();
-    imu_count_ = 0;
-    imu_.emplace(sensorTopic(robot, "imu"), imu_timeout_, frozen_timeout_);
-    gps_.emplace(sensorTopic(robot, "gps"), gps_timeout_, frozen_timeout_);
-    baro_.emplace(sensorTopic(robot, "baro"), baro_timeout_, frozen_timeout_);
-    jump_.clear();
-    publish_error_ = absl::OkStatus();
-    running_ = publishing_ = true;
-  }
+  filter_ = SensorPositionFilter(noise_);
+  use_barometer_ = parameters().use_barometer();
+  max_innovation_m_ = parameters().max_innovation_m();
+  max_rejected_ = parameters().max_rejected_samples();
+  rejected_fixes_ = rejected_altitudes_ = 0;
+  last_imu_s_.reset();
+  imu_count_ = 0;
+  imu_.emplace(sensorTopic(robot, "imu"), imu_timeout_, frozen_timeout_);
+  gps_.emplace(sensorTopic(robot, "gps"), gps_timeout_, frozen_timeout_);
+  baro_.emplace(sensorTopic(robot, "baro"), baro_timeout_, frozen_timeout_);
+  jump_.clear();
+  publish_error_ = absl::OkStatus();
+  running_ = publishing_ = true;
   activated_at_ = now();
   active_ = true;
   // Every IMU sample predicts: a queue, not latest-only.
   imu_sub_ = channel_->subscribeTyped<v1::Imu>(
       sensorTopic(robot, "imu"), {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 2000},
-      [this](const v1::Imu& m) { onImu(m); });
+      onWorker<v1::Imu>([this](const v1::Imu& m) { onImu(m); }, Delivery::kEvery, 2000));
   const channel::SubscribeOptions queued{.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 200};
   gps_sub_ = channel_->subscribeTyped<v1::PositionFix>(
-      sensorTopic(robot, "gps"), queued, [this](const v1::PositionFix& m) { onFix(m); });
+      sensorTopic(robot, "gps"), queued,
+      onWorker<v1::PositionFix>([this](const v1::PositionFix& m) { onFix(m); }));
   if (parameters().use_barometer()) {
     baro_sub_ = channel_->subscribeTyped<v1::Altitude>(
-        sensorTopic(robot, "baro"), queued, [this](const v1::Altitude& m) { onAltitude(m); });
+        sensorTopic(robot, "baro"), queued,
+        onWorker<v1::Altitude>([this](const v1::Altitude& m) { onAltitude(m); }));
   }
   return absl::OkStatus();
 }
 
 void EstimatePositionWithSensorBehavior::stopSubscriptions() {
-  {
-    std::lock_guard lock(mutex_);
-    running_ = publishing_ = false;
-  }
-  // Joins the readers; never under mutex_ (their callbacks take it).
+  running_ = publishing_ = false;
   imu_sub_.reset();
   gps_sub_.reset();
   baro_sub_.reset();
@@ -158,20 +146,13 @@ void EstimatePositionWithSensorBehavior::onDeactivate() {
   stopSubscriptions();
 }
 
-void EstimatePositionWithSensorBehavior::onPause() {
-  std::lock_guard lock(mutex_);
-  publishing_ = false;
-}
+void EstimatePositionWithSensorBehavior::onPause() { publishing_ = false; }
 
-void EstimatePositionWithSensorBehavior::onResume() {
-  std::lock_guard lock(mutex_);
-  publishing_ = true;
-}
+void EstimatePositionWithSensorBehavior::onResume() { publishing_ = true; }
 
 absl::Status EstimatePositionWithSensorBehavior::onModify(
     const google::protobuf::Message& new_parameters) {
   const auto& p = static_cast<const v1::EstimatePositionWithSensorParameters&>(new_parameters);
-  std::lock_guard lock(mutex_);
   if (p.use_barometer() != use_barometer_) {
     return absl::InvalidArgumentError(
         "parameter 'use_barometer' cannot change while active (deactivate and activate again)");
@@ -212,14 +193,12 @@ Situation EstimatePositionWithSensorBehavior::checkSituation() {
 }
 
 Verdict EstimatePositionWithSensorBehavior::checkProgress() {
-  std::lock_guard lock(mutex_);
   if (!jump_.empty()) return Verdict::finish(jump_);
   return Verdict::keepGoing();
 }
 
 Verdict EstimatePositionWithSensorBehavior::checkProcesses() {
   const TimePoint t = now();
-  std::lock_guard lock(mutex_);
   if (!publish_error_.ok()) {
     return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
   }

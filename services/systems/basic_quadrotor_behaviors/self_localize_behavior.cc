@@ -21,77 +21,63 @@ absl::Status SelfLocalizeWithGroundTruthBehavior::onConfigure(const YAML::Node& 
 }
 
 void SelfLocalizeWithGroundTruthBehavior::onPose(const v1::PoseStamped& pose) {
-  v1::PoseStamped estimate = pose;
-  {
-    std::lock_guard lock(mutex_);
-    if (last_pose_ && jump_.empty()) {
-      const auto& a = last_pose_->pose().position_m();
-      const auto& b = pose.pose().position_m();
-      const double jump =
-          std::sqrt((a.x() - b.x()) * (a.x() - b.x()) + (a.y() - b.y()) * (a.y() - b.y()) +
-                    (a.z() - b.z()) * (a.z() - b.z()));
-      if (!(jump <= max_jump_m_)) {
-        jump_ = "the ground truth jumped " + flight::fixed2(jump) + " m in " +
-                flight::secondsText(flight::stampTime(pose.header()) -
-                                    flight::stampTime(last_pose_->header())) +
-                " (limit " + flight::fixed2(max_jump_m_) + " m between samples)";
-      }
+  if (last_pose_ && jump_.empty()) {
+    const auto& a = last_pose_->pose().position_m();
+    const auto& b = pose.pose().position_m();
+    const double jump =
+        std::sqrt((a.x() - b.x()) * (a.x() - b.x()) + (a.y() - b.y()) * (a.y() - b.y()) +
+                  (a.z() - b.z()) * (a.z() - b.z()));
+    if (!(jump <= max_jump_m_)) {
+      jump_ = "the ground truth jumped " + flight::fixed2(jump) + " m in " +
+              flight::secondsText(flight::stampTime(pose.header()) -
+                                  flight::stampTime(last_pose_->header())) +
+              " (limit " + flight::fixed2(max_jump_m_) + " m between samples)";
     }
-    last_pose_ = pose;
-    if (!publishing_) return;
-    estimate.mutable_header()->set_seq(++seq_);
   }
+  last_pose_ = pose;
+  if (!publishing_) return;
+  v1::PoseStamped estimate = pose;
+  estimate.mutable_header()->set_seq(++seq_);
   estimate.mutable_header()->set_frame_id("world");
   estimate.mutable_header()->set_robot_id(robotId());
-  // Published outside the lock: a slow broker must not hold up the monitoring.
   if (absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), estimate); !s.ok()) {
-    std::lock_guard lock(mutex_);
     if (publish_error_.ok()) publish_error_ = s;
   }
 }
 
 void SelfLocalizeWithGroundTruthBehavior::onTwist(const v1::TwistStamped& twist) {
+  if (!publishing_) return;
   v1::TwistStamped estimate = twist;
-  {
-    std::lock_guard lock(mutex_);
-    if (!publishing_) return;
-    estimate.mutable_header()->set_seq(++twist_seq_);
-  }
+  estimate.mutable_header()->set_seq(++twist_seq_);
   estimate.mutable_header()->set_robot_id(robotId());
   if (absl::Status s = channel_->publish(flight::twistEstimateTopic(robotId()), estimate);
       !s.ok()) {
-    std::lock_guard lock(mutex_);
     if (publish_error_.ok()) publish_error_ = s;
   }
 }
 
 absl::Status SelfLocalizeWithGroundTruthBehavior::onActivate() {
-  {
-    std::lock_guard lock(mutex_);
-    last_pose_.reset();
-    jump_.clear();
-    publish_error_ = absl::OkStatus();
-    publishing_ = true;
-  }
+  last_pose_.reset();
+  jump_.clear();
+  publish_error_ = absl::OkStatus();
+  publishing_ = true;
   const channel::SubscribeOptions options{.mode = v1::DELIVERY_MODE_LATEST,
                                           .send_latest_first = true};
   pose_subscription_ = channel_->subscribeTyped<v1::PoseStamped>(
       flight::groundTruthPoseTopic(robotId()), options,
-      [this](const v1::PoseStamped& pose) { onPose(pose); });
+      onWorker<v1::PoseStamped>([this](const v1::PoseStamped& pose) { onPose(pose); },
+                                Delivery::kLatest));
   twist_subscription_ = channel_->subscribeTyped<v1::TwistStamped>(
       flight::groundTruthTwistTopic(robotId()), options,
-      [this](const v1::TwistStamped& twist) { onTwist(twist); });
+      onWorker<v1::TwistStamped>([this](const v1::TwistStamped& twist) { onTwist(twist); },
+                                 Delivery::kLatest));
   activated_at_ = now();
   active_ = true;
   return absl::OkStatus();
 }
 
 void SelfLocalizeWithGroundTruthBehavior::stopSubscriptions() {
-  {
-    std::lock_guard lock(mutex_);
-    publishing_ = false;
-  }
-  // Joins the readers; never under mutex_ (their callbacks take it).
+  publishing_ = false;
   pose_subscription_.reset();
   twist_subscription_.reset();
 }
@@ -101,15 +87,9 @@ void SelfLocalizeWithGroundTruthBehavior::onDeactivate() {
   stopSubscriptions();
 }
 
-void SelfLocalizeWithGroundTruthBehavior::onPause() {
-  std::lock_guard lock(mutex_);
-  publishing_ = false;
-}
+void SelfLocalizeWithGroundTruthBehavior::onPause() { publishing_ = false; }
 
-void SelfLocalizeWithGroundTruthBehavior::onResume() {
-  std::lock_guard lock(mutex_);
-  publishing_ = true;
-}
+void SelfLocalizeWithGroundTruthBehavior::onResume() { publishing_ = true; }
 
 Situation SelfLocalizeWithGroundTruthBehavior::checkSituation() {
   if (!channel_) {
@@ -141,13 +121,11 @@ Situation SelfLocalizeWithGroundTruthBehavior::checkSituation() {
 }
 
 Verdict SelfLocalizeWithGroundTruthBehavior::checkProgress() {
-  std::lock_guard lock(mutex_);
   if (!jump_.empty()) return Verdict::finish(jump_);
   return Verdict::keepGoing();
 }
 
 Verdict SelfLocalizeWithGroundTruthBehavior::checkProcesses() {
-  std::lock_guard lock(mutex_);
   if (!publish_error_.ok()) {
     return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
   }

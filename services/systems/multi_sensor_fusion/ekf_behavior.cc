@@ -62,9 +62,8 @@ absl::Status EkfSelfLocalizationBehavior::onConfigure(const YAML::Node& config) 
   return absl::OkStatus();
 }
 
-void EkfSelfLocalizationBehavior::fillEstimateLocked(const v1::Header& imu_header,
-                                                     v1::PoseStamped* pose,
-                                                     v1::TwistStamped* twist) {
+void EkfSelfLocalizationBehavior::fillEstimate(const v1::Header& imu_header, v1::PoseStamped* pose,
+                                               v1::TwistStamped* twist) {
   v1::Header header = imu_header;
   header.set_frame_id("world");
   header.set_robot_id(robotId());
@@ -83,39 +82,33 @@ void EkfSelfLocalizationBehavior::fillEstimateLocked(const v1::Header& imu_heade
 }
 
 void EkfSelfLocalizationBehavior::onImu(const v1::Imu& imu) {
+  if (!running_) return;
   v1::PoseStamped pose;
   v1::TwistStamped twist;
   bool publish = false;
-  {
-    std::lock_guard lock(mutex_);
-    if (!running_) return;
-    const TimePoint stamp = flight::stampTime(imu.header());
-    const auto& qo = imu.orientation();
-    imu_orientation_ = Eigen::Quaterniond(qo.w(), qo.x(), qo.y(), qo.z()).normalized();
-    last_gyro_ = vec(imu.angular_velocity_rad_s());
-    if (ekf_.initialized() && last_imu_) {
-      const double dt = std::chrono::duration<double>(stamp - *last_imu_).count();
-      ekf_.predict(last_gyro_, vec(imu.linear_acceleration_m_s2()), dt);
-      if (use_imu_yaw_ && imu_count_ % 20 == 0)
-        ekf_.updateYaw(yawOf(*imu_orientation_), yaw_stddev_rad_);
-      publish = publishing_ && imu_count_ % 2 == 0;
-      if (publish) fillEstimateLocked(imu.header(), &pose, &twist);
-    }
-    last_imu_ = stamp;
-    ++imu_count_;
+  const TimePoint stamp = flight::stampTime(imu.header());
+  const auto& qo = imu.orientation();
+  imu_orientation_ = Eigen::Quaterniond(qo.w(), qo.x(), qo.y(), qo.z()).normalized();
+  last_gyro_ = vec(imu.angular_velocity_rad_s());
+  if (ekf_.initialized() && last_imu_) {
+    const double dt = std::chrono::duration<double>(stamp - *last_imu_).count();
+    ekf_.predict(last_gyro_, vec(imu.linear_acceleration_m_s2()), dt);
+    if (use_imu_yaw_ && imu_count_ % 20 == 0)
+      ekf_.updateYaw(yawOf(*imu_orientation_), yaw_stddev_rad_);
+    publish = publishing_ && imu_count_ % 2 == 0;
+    if (publish) fillEstimate(imu.header(), &pose, &twist);
   }
+  last_imu_ = stamp;
+  ++imu_count_;
   if (!publish) return;
-  // Published outside the lock: a slow broker must not stall the filter.
   absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
   if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
   if (!s.ok()) {
-    std::lock_guard lock(mutex_);
     if (publish_error_.ok()) publish_error_ = s;
   }
 }
 
 void EkfSelfLocalizationBehavior::onGps(const v1::PositionFix& fix) {
-  std::lock_guard lock(mutex_);
   if (!running_) return;
   last_gps_ = flight::stampTime(fix.header());
   const Eigen::Vector3d position = vec(fix.position_m());
@@ -131,56 +124,49 @@ void EkfSelfLocalizationBehavior::onGps(const v1::PositionFix& fix) {
 }
 
 void EkfSelfLocalizationBehavior::onBaro(const v1::Altitude& altitude) {
-  std::lock_guard lock(mutex_);
   if (!running_ || !use_barometer_ || !ekf_.initialized()) return;
   ekf_.updateAltitude(altitude.altitude_m(), std::max(altitude.stddev_m(), baro_stddev_m_));
 }
 
 void EkfSelfLocalizationBehavior::onLinearSpeed(const v1::TwistStamped& twist) {
-  std::lock_guard lock(mutex_);
   if (!running_ || !use_linear_speed_ || !ekf_.initialized()) return;
   ekf_.updateBodyVelocity(vec(twist.twist().linear_m_s()), linear_speed_stddev_m_s_);
 }
 
 absl::Status EkfSelfLocalizationBehavior::onActivate() {
-  {
-    std::lock_guard lock(mutex_);
-    ekf_ = InsEkf(noise_);
-    last_imu_.reset();
-    last_gps_.reset();
-    imu_orientation_.reset();
-    gps_accepted_.clear();
-    imu_count_ = 0;
-    publish_error_ = absl::OkStatus();
-    use_linear_speed_ = parameters().use_linear_speed();
-    use_barometer_ = parameters().use_barometer();
-    use_imu_yaw_ = parameters().use_imu_yaw();
-    running_ = publishing_ = true;
-  }
+  ekf_ = InsEkf(noise_);
+  last_imu_.reset();
+  last_gps_.reset();
+  imu_orientation_.reset();
+  gps_accepted_.clear();
+  imu_count_ = 0;
+  publish_error_ = absl::OkStatus();
+  use_linear_speed_ = parameters().use_linear_speed();
+  use_barometer_ = parameters().use_barometer();
+  use_imu_yaw_ = parameters().use_imu_yaw();
+  running_ = publishing_ = true;
   const std::string robot = robotId();
   // Every IMU sample predicts: a queue, not latest-only.
   imu_sub_ = channel_->subscribeTyped<v1::Imu>(
       topic(robot, "imu"), {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 2000},
-      [this](const v1::Imu& m) { onImu(m); });
+      onWorker<v1::Imu>([this](const v1::Imu& m) { onImu(m); }, Delivery::kEvery, 2000));
   const channel::SubscribeOptions queued{.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 200};
   gps_sub_ = channel_->subscribeTyped<v1::PositionFix>(
-      topic(robot, "gps"), queued, [this](const v1::PositionFix& m) { onGps(m); });
-  baro_sub_ = channel_->subscribeTyped<v1::Altitude>(topic(robot, "baro"), queued,
-                                                     [this](const v1::Altitude& m) { onBaro(m); });
+      topic(robot, "gps"), queued,
+      onWorker<v1::PositionFix>([this](const v1::PositionFix& m) { onGps(m); }));
+  baro_sub_ = channel_->subscribeTyped<v1::Altitude>(
+      topic(robot, "baro"), queued,
+      onWorker<v1::Altitude>([this](const v1::Altitude& m) { onBaro(m); }));
   speed_sub_ = channel_->subscribeTyped<v1::TwistStamped>(
       topic(robot, "linear_speed"), queued,
-      [this](const v1::TwistStamped& m) { onLinearSpeed(m); });
+      onWorker<v1::TwistStamped>([this](const v1::TwistStamped& m) { onLinearSpeed(m); }));
   activated_at_ = now();
   active_ = true;
   return absl::OkStatus();
 }
 
 void EkfSelfLocalizationBehavior::stopSubscriptions() {
-  {
-    std::lock_guard lock(mutex_);
-    running_ = publishing_ = false;
-  }
-  // Joins the readers; never under mutex_ (their callbacks take it).
+  running_ = publishing_ = false;
   imu_sub_.reset();
   gps_sub_.reset();
   baro_sub_.reset();
@@ -192,20 +178,13 @@ void EkfSelfLocalizationBehavior::onDeactivate() {
   stopSubscriptions();
 }
 
-void EkfSelfLocalizationBehavior::onPause() {
-  std::lock_guard lock(mutex_);
-  publishing_ = false;
-}
+void EkfSelfLocalizationBehavior::onPause() { publishing_ = false; }
 
-void EkfSelfLocalizationBehavior::onResume() {
-  std::lock_guard lock(mutex_);
-  publishing_ = true;
-}
+void EkfSelfLocalizationBehavior::onResume() { publishing_ = true; }
 
 absl::Status EkfSelfLocalizationBehavior::onModify(
     const google::protobuf::Message& new_parameters) {
   const auto& p = static_cast<const v1::SelfLocalizeWithEkfSensorFusionParameters&>(new_parameters);
-  std::lock_guard lock(mutex_);
   use_linear_speed_ = p.use_linear_speed();
   use_barometer_ = p.use_barometer();
   use_imu_yaw_ = p.use_imu_yaw();
@@ -247,7 +226,6 @@ Situation EkfSelfLocalizationBehavior::checkSituation() {
 }
 
 Verdict EkfSelfLocalizationBehavior::checkProgress() {
-  std::lock_guard lock(mutex_);
   if (!ekf_.initialized()) return Verdict::keepGoing();
   if (ekf_.horizontalStddevM() > max_horizontal_stddev_m_) {
     return Verdict::finish("the filter is diverging: horizontal standard deviation " +
@@ -269,7 +247,6 @@ Verdict EkfSelfLocalizationBehavior::checkProgress() {
 
 Verdict EkfSelfLocalizationBehavior::checkProcesses() {
   const TimePoint t = now();
-  std::lock_guard lock(mutex_);
   if (!publish_error_.ok()) {
     return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
   }

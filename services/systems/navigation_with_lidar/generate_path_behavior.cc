@@ -86,18 +86,7 @@ bool freelyConnected(const InflatedGrid& grid, const Eigen::Vector3d& min_m,
 }
 
 GeneratePathBehavior::GeneratePathBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs)
-    : Behavior(generatePathOptions()), mapper_(mapper), beliefs_(beliefs) {
-  planner_ = std::thread([this] { plannerLoop(); });
-}
-
-GeneratePathBehavior::~GeneratePathBehavior() {
-  {
-    std::lock_guard lock(mutex_);
-    stopping_ = true;
-  }
-  cv_.notify_all();
-  planner_.join();
-}
+    : Behavior(generatePathOptions()), mapper_(mapper), beliefs_(beliefs) {}
 
 absl::Status GeneratePathBehavior::onConfigure(const YAML::Node& config) {
   if (auto s = flight::readSeconds(config, "pose_timeout_s", 0, 60, &pose_timeout_); !s.ok()) {
@@ -229,34 +218,22 @@ void GeneratePathBehavior::startAttempt() {
   a.options.preferred_clearance_m = preferred_clearance_m_;
   a.belief_key = beliefKey();
   a.bounds = boundsParameter();
-  {
-    std::lock_guard lock(mutex_);
-    a.id = ++current_id_;
-    result_ = Result();
-    result_.id = a.id;
-    pending_ = a;
-  }
+  a.id = current_id_.fetch_add(1) + 1;
+  result_ = Result();
+  result_.id = a.id;
   attempt_started_ = std::chrono::steady_clock::now();
-  cv_.notify_all();
+  // Planned on the behavior's background thread; the result comes back on
+  // the worker, where only the current attempt's counts.
+  inBackground<Result>([this, a] { return plan(a); },
+                       [this](const Result& r) {
+                         if (r.id == current_id_.load()) result_ = r;
+                       });
 }
 
-void GeneratePathBehavior::plannerLoop() {
-  std::unique_lock lock(mutex_);
-  while (true) {
-    cv_.wait(lock, [&] { return stopping_ || pending_.has_value(); });
-    if (stopping_) return;
-    const Attempt attempt = std::move(*pending_);
-    pending_.reset();
-    lock.unlock();
-    Result r = plan(attempt);
-    lock.lock();
-    if (r.id == current_id_) result_ = std::move(r);
-  }
-}
-
-GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) {
+GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) const {
   Result r;
   r.id = attempt.id;
+  if (attempt.id != current_id_.load()) return r;  // superseded while it waited
   std::optional<absl::StatusOr<PlannedPath>> planned;
   mapper_.withMap([&](const OccupancyMap& map) {
     const auto volume = planningVolume(map, attempt.bounds);
@@ -293,10 +270,7 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
     return r;
   }
   const PlannedPath& path = **planned;
-  {
-    std::lock_guard lock(mutex_);
-    if (attempt.id != current_id_) return r;  // abandoned: write nothing
-  }
+  if (attempt.id != current_id_.load()) return r;  // abandoned: write nothing
   // The channel's Path, and the belief FOLLOW_PATH takes as path_m.
   v1::Path message;
   auto* header = message.mutable_header();
@@ -356,9 +330,7 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
 }
 
 void GeneratePathBehavior::onDeactivate() {
-  std::lock_guard lock(mutex_);
-  ++current_id_;  // the running attempt's result is discarded
-  pending_.reset();
+  ++current_id_;  // the running attempt writes nothing
 }
 
 void GeneratePathBehavior::onPause() { paused_ = true; }
@@ -385,25 +357,18 @@ absl::Status GeneratePathBehavior::onModify(const google::protobuf::Message& new
 
 Verdict GeneratePathBehavior::checkProcesses() {
   if (auto problem = poseProblem()) return Verdict::finish(*problem);
-  std::lock_guard lock(mutex_);
   if (result_.outcome == Outcome::kOutputFailed) return Verdict::finish(result_.message);
   return Verdict::keepGoing();
 }
 
 Verdict GeneratePathBehavior::checkGoal() {
-  std::lock_guard lock(mutex_);
   if (result_.outcome == Outcome::kWritten) return Verdict::finish(result_.message);
   return Verdict::keepGoing();
 }
 
 Verdict GeneratePathBehavior::checkProgress() {
-  Outcome outcome;
-  std::string message;
-  {
-    std::lock_guard lock(mutex_);
-    outcome = result_.outcome;
-    message = result_.message;
-  }
+  const Outcome outcome = result_.outcome;
+  const std::string message = result_.message;
   if (outcome == Outcome::kUnreachable) return Verdict::finish(message);
   if (outcome == Outcome::kInvalid) {
     return Verdict::finish("the plan is no longer possible on the updated map: " + message);
@@ -433,9 +398,8 @@ Verdict GeneratePathBehavior::checkProgress() {
             << " of " << parameters().max_replans() << "): " << why << std::endl;
   if (paused_) {
     waiting_ = true;
-    std::lock_guard lock(mutex_);
     result_ = Result();
-    result_.id = current_id_;
+    result_.id = current_id_.load();
   } else {
     startAttempt();
   }

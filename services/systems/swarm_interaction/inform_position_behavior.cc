@@ -41,19 +41,14 @@ absl::Status InformPositionToRobotsBehavior::onConfigure(const YAML::Node& confi
 
 absl::Status InformPositionToRobotsBehavior::onActivate() {
   if (auto s = checkRecipients(parameters().robot_ids()); !s.ok()) return s;
-  {
-    std::lock_guard lock(mutex_);
-    latest_.reset();
-  }
+  latest_.reset();
   error_ = absl::OkStatus();
   next_publish_.reset();
   pose_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
       flight::poseEstimateTopic(robotId()),
       {.mode = v1::DELIVERY_MODE_LATEST, .send_latest_first = true},
-      [this](const v1::PoseStamped& pose) {
-        std::lock_guard lock(mutex_);
-        latest_ = pose;
-      });
+      onWorker<v1::PoseStamped>([this](const v1::PoseStamped& pose) { latest_ = pose; },
+                                Delivery::kLatest));
   activated_at_ = now();
   active_ = true;
   return absl::OkStatus();
@@ -61,7 +56,7 @@ absl::Status InformPositionToRobotsBehavior::onActivate() {
 
 void InformPositionToRobotsBehavior::onDeactivate() {
   active_ = false;
-  pose_sub_.reset();  // joins the reader; its callback takes mutex_
+  pose_sub_.reset();
 }
 
 absl::Status InformPositionToRobotsBehavior::onModify(
@@ -75,11 +70,7 @@ absl::Status InformPositionToRobotsBehavior::onModify(
 void InformPositionToRobotsBehavior::onExecute() {
   const TimePoint t = now();
   if (next_publish_ && t < *next_publish_) return;
-  std::optional<v1::PoseStamped> pose;
-  {
-    std::lock_guard lock(mutex_);
-    pose = latest_;
-  }
+  const std::optional<v1::PoseStamped>& pose = latest_;
   if (!pose) return;
   v1::SwarmPosition position;
   *position.mutable_header() = pose->header();
@@ -128,7 +119,6 @@ Verdict InformPositionToRobotsBehavior::checkProcesses() {
   }
   const TimePoint t = now();
   const std::string topic = flight::poseEstimateTopic(robotId());
-  std::lock_guard lock(mutex_);
   if (!latest_) {
     if (t - activated_at_ > pose_timeout_) {
       return Verdict::finish("no pose estimate received on " + topic + " within " +

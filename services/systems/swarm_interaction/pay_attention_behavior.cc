@@ -65,11 +65,9 @@ absl::Status PayAttentionToRobotMessagesBehavior::onConfigure(const YAML::Node& 
 }
 
 void PayAttentionToRobotMessagesBehavior::countMalformed(const std::string& why) {
-  std::lock_guard lock(mutex_);
   if (!recording_) return;
   ++malformed_;
   last_malformed_ = why;
-  wake_.notify_all();
 }
 
 void PayAttentionToRobotMessagesBehavior::onMessage(const v1::SubscribeResponse& sample) {
@@ -83,10 +81,8 @@ void PayAttentionToRobotMessagesBehavior::onMessage(const v1::SubscribeResponse&
       !addressedTo(message.recipient_ids(), robotId())) {
     return;
   }
-  std::lock_guard lock(mutex_);
   if (!recording_) return;
   pending_messages_.push_back(std::move(message));
-  wake_.notify_all();
 }
 
 void PayAttentionToRobotMessagesBehavior::onPosition(const v1::SubscribeResponse& sample) {
@@ -98,135 +94,146 @@ void PayAttentionToRobotMessagesBehavior::onPosition(const v1::SubscribeResponse
   if (auto why = malformedPosition(position)) return countMalformed(*why);
   const std::string sender = position.header().robot_id();
   if (sender == robotId() || !addressedTo(position.recipient_ids(), robotId())) return;
-  std::lock_guard lock(mutex_);
   if (!recording_) return;
   ++positions_received_;
   pending_positions_[sender] = std::move(position);
-  wake_.notify_all();
 }
 
-bool PayAttentionToRobotMessagesBehavior::writeBelief(const std::string& key,
-                                                      const pb::Value& value,
-                                                      const std::string& type) {
-  const std::string writer = robotId() + "/PAY_ATTENTION_TO_ROBOT_MESSAGES";
-  auto written = beliefs_->write(key, value, writer, type);
-  std::lock_guard lock(mutex_);
-  if (written.ok()) {
+void PayAttentionToRobotMessagesBehavior::recordWrites(const WriteOutcome& outcome) {
+  if (!outcome.failing) {
     write_failing_ = false;
     write_error_.reset();
-    return true;
+    return;
   }
-  if (!write_failing_) write_error_ = std::string(written.status().message());
+  if (!write_failing_) write_error_ = outcome.error;
   write_failing_ = true;
-  return false;
 }
 
-void PayAttentionToRobotMessagesBehavior::writerLoop() {
+PayAttentionToRobotMessagesBehavior::BatchResult PayAttentionToRobotMessagesBehavior::writeBatch(
+    const server::BeliefClient& beliefs, Batch batch) {
+  BatchResult result;
+  result.count = batch.count;
+  auto write = [&](const std::string& key, const pb::Value& value, const std::string& type) {
+    auto written = beliefs.write(key, value, batch.writer, type);
+    if (written.ok()) {
+      result.outcome = {};
+      return true;
+    }
+    if (!result.outcome.failing) result.outcome.error = std::string(written.status().message());
+    result.outcome.failing = true;
+    return false;
+  };
+  for (const auto& [sender, position] : batch.positions) {
+    std::string json;
+    pb::util::JsonPrintOptions print;
+    print.preserve_proto_field_names = true;
+    pb::Value value;
+    if (pb::util::MessageToJsonString(position, &json, print).ok() &&
+        pb::util::JsonStringToMessage(json, &value).ok()) {
+      write(batch.prefix + sender + "/position", value, position.GetTypeName());
+    }
+  }
+  while (!batch.messages.empty()) {
+    if (!write(batch.prefix + "messages/" + std::to_string(result.count + 1),
+               messageValue(batch.messages.front()), "")) {
+      break;  // kept for the next round, in order
+    }
+    ++result.count;
+    batch.messages.pop_front();
+    write(batch.prefix + "message_count", numberValue(static_cast<double>(result.count)), "");
+  }
+  result.unwritten = std::move(batch.messages);
+  result.malformed_written =
+      batch.malformed_changed && write(batch.prefix + "malformed_count",
+                                       numberValue(static_cast<double>(batch.malformed)), "");
+  result.malformed = batch.malformed;
+  return result;
+}
+
+void PayAttentionToRobotMessagesBehavior::startWrites() {
+  const auto wall = std::chrono::steady_clock::now();
+  if (writing_ || wall < next_write_) return;
   const std::string prefix = robotId() + "/swarm/";
-  const std::string count_key = prefix + "message_count";
-  // Numbering goes on from an earlier activation (or process).
-  uint64_t count = 0;
-  for (;;) {
-    auto previous = beliefs_->read(count_key);
-    if (previous.ok() || previous.status().code() == absl::StatusCode::kNotFound) {
-      if (previous.ok()) count = static_cast<uint64_t>(previous->value().number_value());
-      std::lock_guard lock(mutex_);
-      write_failing_ = false;
-      write_error_.reset();
-      break;
-    }
-    std::unique_lock lock(mutex_);
-    if (!write_failing_) write_error_ = std::string(previous.status().message());
-    write_failing_ = true;
-    if (wake_.wait_for(lock, std::chrono::milliseconds(200), [&] { return !running_; })) return;
+  if (!count_) {
+    // Numbering goes on from an earlier activation (or process).
+    writing_ = true;
+    const server::BeliefClient* beliefs = beliefs_;
+    inBackground<absl::StatusOr<v1::Belief>>(
+        [beliefs, key = prefix + "message_count"] { return beliefs->read(key); },
+        [this](const absl::StatusOr<v1::Belief>& previous) {
+          writing_ = false;
+          if (previous.ok() || previous.status().code() == absl::StatusCode::kNotFound) {
+            count_ = previous.ok() ? static_cast<uint64_t>(previous->value().number_value()) : 0;
+            recordWrites({});
+            startWrites();
+            return;
+          }
+          recordWrites({true, std::string(previous.status().message())});
+          next_write_ = std::chrono::steady_clock::now() + std::chrono::milliseconds(200);
+        });
+    return;
   }
-  const auto period = std::chrono::duration_cast<std::chrono::steady_clock::duration>(
-      std::chrono::duration<double>(write_period_s_));
-  for (;;) {
-    std::map<std::string, v1::SwarmPosition> positions;
-    std::deque<v1::SwarmMessage> messages;
-    uint64_t malformed = 0;
-    bool malformed_changed = false;
-    {
-      std::unique_lock lock(mutex_);
-      wake_.wait(lock, [&] {
-        return !running_ || !pending_positions_.empty() || !pending_messages_.empty() ||
-               malformed_ != malformed_written_;
+  const bool malformed_changed = malformed_ != malformed_written_;
+  if (pending_positions_.empty() && pending_messages_.empty() && !malformed_changed) return;
+  Batch batch;
+  batch.prefix = prefix;
+  batch.writer = robotId() + "/PAY_ATTENTION_TO_ROBOT_MESSAGES";
+  batch.positions.swap(pending_positions_);
+  batch.messages.swap(pending_messages_);
+  batch.malformed = malformed_;
+  batch.malformed_changed = malformed_changed;
+  batch.count = *count_;
+  writing_ = true;
+  const server::BeliefClient* beliefs = beliefs_;
+  inBackground<BatchResult>(
+      [beliefs, batch = std::move(batch)] { return writeBatch(*beliefs, batch); },
+      [this](const BatchResult& result) {
+        writing_ = false;
+        count_ = result.count;
+        if (result.malformed_written) malformed_written_ = result.malformed;
+        // Unwritten messages go back in front of newer ones.
+        for (auto it = result.unwritten.rbegin(); it != result.unwritten.rend(); ++it) {
+          pending_messages_.push_front(*it);
+        }
+        recordWrites(result.outcome);
+        next_write_ = std::chrono::steady_clock::now() +
+                      std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                          std::chrono::duration<double>(write_period_s_));
       });
-      if (!running_) return;
-      positions.swap(pending_positions_);
-      messages.swap(pending_messages_);
-      malformed = malformed_;
-      malformed_changed = malformed_ != malformed_written_;
-    }
-    for (const auto& [sender, position] : positions) {
-      std::string json;
-      pb::util::JsonPrintOptions print;
-      print.preserve_proto_field_names = true;
-      pb::Value value;
-      if (pb::util::MessageToJsonString(position, &json, print).ok() &&
-          pb::util::JsonStringToMessage(json, &value).ok()) {
-        writeBelief(prefix + sender + "/position", value, position.GetTypeName());
-      }
-    }
-    while (!messages.empty()) {
-      if (!writeBelief(prefix + "messages/" + std::to_string(count + 1),
-                       messageValue(messages.front()), "")) {
-        break;  // kept for the next round, in order
-      }
-      ++count;
-      messages.pop_front();
-      writeBelief(count_key, numberValue(static_cast<double>(count)), "");
-    }
-    if (malformed_changed &&
-        writeBelief(prefix + "malformed_count", numberValue(static_cast<double>(malformed)), "")) {
-      std::lock_guard lock(mutex_);
-      malformed_written_ = malformed;
-    }
-    std::unique_lock lock(mutex_);
-    // Unwritten messages go back in front of newer ones.
-    for (auto it = messages.rbegin(); it != messages.rend(); ++it) {
-      pending_messages_.push_front(std::move(*it));
-    }
-    if (wake_.wait_for(lock, period, [&] { return !running_; })) return;
-  }
 }
 
 absl::Status PayAttentionToRobotMessagesBehavior::onActivate() {
-  stop();  // a writer of an earlier activation
-  {
-    std::lock_guard lock(mutex_);
-    pending_positions_.clear();
-    pending_messages_.clear();
-    malformed_written_ = malformed_;
-    positions_received_ = 0;
-    write_failing_ = false;
-    write_error_.reset();
-    running_ = recording_ = true;
-  }
-  writer_ = std::thread([this] { writerLoop(); });
-  messages_sub_ = channel_->subscribe(kMessagesTopic, kQueued,
-                                      [this](const v1::SubscribeResponse& s) { onMessage(s); });
-  positions_sub_ = channel_->subscribe(kPositionsTopic, kQueued,
-                                       [this](const v1::SubscribeResponse& s) { onPosition(s); });
+  pending_positions_.clear();
+  pending_messages_.clear();
+  malformed_written_ = malformed_;
+  positions_received_ = 0;
+  write_failing_ = false;
+  write_error_.reset();
+  count_.reset();
+  writing_ = false;
+  next_write_ = {};
+  recording_ = true;
+  messages_sub_ = channel_->subscribe(
+      kMessagesTopic, kQueued,
+      onWorker<v1::SubscribeResponse>([this](const v1::SubscribeResponse& s) { onMessage(s); }));
+  positions_sub_ = channel_->subscribe(
+      kPositionsTopic, kQueued,
+      onWorker<v1::SubscribeResponse>([this](const v1::SubscribeResponse& s) { onPosition(s); }));
   activated_at_ = last_position_at_ = now();
   positions_seen_ = 0;
   disconnected_since_.reset();
   failing_since_.reset();
   active_ = true;
+  startWrites();
   return absl::OkStatus();
 }
 
+void PayAttentionToRobotMessagesBehavior::onExecute() { startWrites(); }
+
 void PayAttentionToRobotMessagesBehavior::stop() {
-  {
-    std::lock_guard lock(mutex_);
-    running_ = recording_ = false;
-    wake_.notify_all();
-  }
-  // Joins the readers and the writer; never under mutex_.
+  recording_ = false;
   messages_sub_.reset();
   positions_sub_.reset();
-  if (writer_.joinable()) writer_.join();
 }
 
 void PayAttentionToRobotMessagesBehavior::onDeactivate() {
@@ -234,15 +241,9 @@ void PayAttentionToRobotMessagesBehavior::onDeactivate() {
   stop();
 }
 
-void PayAttentionToRobotMessagesBehavior::onPause() {
-  std::lock_guard lock(mutex_);
-  recording_ = false;
-}
+void PayAttentionToRobotMessagesBehavior::onPause() { recording_ = false; }
 
-void PayAttentionToRobotMessagesBehavior::onResume() {
-  std::lock_guard lock(mutex_);
-  recording_ = true;
-}
+void PayAttentionToRobotMessagesBehavior::onResume() { recording_ = true; }
 
 Situation PayAttentionToRobotMessagesBehavior::checkSituation() {
   if (!channel_) {
@@ -273,13 +274,9 @@ Verdict PayAttentionToRobotMessagesBehavior::checkProcesses() {
                            flight::secondsText(t - *disconnected_since_) + " (" +
                            std::string(sub->status().message()) + ")");
   }
-  uint64_t received = 0;
+  const uint64_t received = positions_received_;
   std::optional<std::string> write_error;
-  {
-    std::lock_guard lock(mutex_);
-    received = positions_received_;
-    if (write_failing_) write_error = write_error_.value_or("unknown error");
-  }
+  if (write_failing_) write_error = write_error_.value_or("unknown error");
   if (received != positions_seen_) {
     positions_seen_ = received;
     last_position_at_ = t;

@@ -17,7 +17,10 @@
 // Threading: every user function of one behavior is called on that behavior's
 // own worker thread, one at a time, so user code needs no locking of its own
 // state. Lifecycle calls (activate, deactivate, ...) may come from any thread;
-// they are queued to the worker and complete through a callback.
+// they are queued to the worker and complete through a callback. Data from
+// other threads (channel samples, belief updates, a helper thread's result)
+// reaches the behavior through onWorker(): the sample is handed over and the
+// handler runs on the worker, between ticks.
 //
 // The tick (execute(), not overridable) runs, in this order:
 //   1. checkProcesses()  -> PROCESS_FAILURE   (other checks rely on the processes)
@@ -43,12 +46,17 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
+#include <stdexcept>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/event_log.h"
 #include "behaviorlib/v1/behavior.pb.h"
@@ -139,6 +147,36 @@ struct BehaviorContext {
 
 template <class T>
 using Done = std::function<void(absl::StatusOr<T>)>;
+
+/// How samples handed to a behavior's worker wait (onWorker()).
+enum class Delivery {
+  /// Only the newest undelivered sample waits (a pose, an image): a busy
+  /// worker skips stale ones.
+  kLatest,
+  /// Every sample, in order (an IMU stream, messages), up to a capacity;
+  /// beyond it the oldest waiting sample is dropped and counted.
+  kEvery,
+};
+
+class BehaviorExecutionManager;
+
+namespace detail {
+/// Samples waiting for one onWorker() handler: any thread pushes, the
+/// behavior's worker drains.
+class Inbox {
+ public:
+  virtual ~Inbox() = default;
+  /// Worker: calls the handler with every waiting sample.
+  virtual void drain() = 0;
+  /// Worker: drops what waits (its activation has ended).
+  virtual void discard() = 0;
+  /// The activation generation it belongs to; 0 for none (it outlives
+  /// activations).
+  virtual uint64_t generation() const = 0;
+  /// Samples dropped because the inbox was full (Delivery::kEvery).
+  virtual uint64_t dropped() const = 0;
+};
+}  // namespace detail
 
 class BehaviorExecutionManager {
  public:
@@ -260,6 +298,31 @@ class BehaviorExecutionManager {
   Duration activeTime() const;
   const google::protobuf::Message& parametersMessage() const { return *parameters_; }
   const std::string& activationId() const { return activation_id_; }
+
+  /// A callback that any thread may call (a channel subscription's reader, a
+  /// belief watch, a helper thread): it copies the sample, and `handler` runs
+  /// with it on this behavior's worker, between ticks, like every other user
+  /// function. Behavior state therefore needs no lock. Made during an
+  /// activation (onActivate, a tick), its samples that are still waiting when
+  /// that activation ends are dropped; made outside one (onConfigure), it
+  /// delivers whenever. An exception from `handler` ends an activation with
+  /// PROCESS_FAILURE; the watchdog watches it as any user function.
+  /// `capacity` bounds the waiting samples of Delivery::kEvery.
+  template <class T>
+  std::function<void(const T&)> onWorker(std::function<void(const T&)> handler,
+                                         Delivery delivery = Delivery::kEvery,
+                                         size_t capacity = 1024);
+
+  /// Runs `job` on this behavior's background thread (one per behavior,
+  /// started on first use; jobs run one at a time, in order), then `done`
+  /// with its result on the worker, as onWorker() delivers. For work too
+  /// long for a tick: decoding an image, planning, a slow remote call. The
+  /// job gets copies (or sole ownership) of what it reads and writes, and
+  /// leaves the behavior's state alone. The result of an ended activation is
+  /// dropped; an exception from the job ends the activation with
+  /// PROCESS_FAILURE. stop() waits for the running job. Worker thread.
+  template <class R>
+  void inBackground(std::function<R()> job, std::function<void(const R&)> done);
   const std::string& robotId() const { return context_.robot_id; }
   /// Overrides maximum_execution_time for the current activation (e.g. from
   /// its parameters, in onActivate()); zero means none. `reason`, when not
@@ -278,7 +341,19 @@ class BehaviorExecutionManager {
   };
 
   class WakeOnClock;
+  class Background;
+  template <class T>
+  class SampleInbox;
+  // Queues `task` for the background thread (started on first use).
+  void runInBackground(std::function<void()> task);
   void run();
+  // Any thread: queues `inbox` for the worker to drain (once per push
+  // burst; the inbox keeps its own scheduled flag).
+  void schedule(std::shared_ptr<detail::Inbox> inbox);
+  // The generation an inbox made now belongs to (0 outside activations).
+  uint64_t inboxGeneration() const;
+  // Worker: drains one ready inbox (lock not held).
+  void deliver(const std::shared_ptr<detail::Inbox>& inbox);
   // Queues `command` for the worker; if the worker has stopped (or stops
   // before running it), `cancel` runs instead so that every caller gets an
   // answer.
@@ -310,6 +385,7 @@ class BehaviorExecutionManager {
   BehaviorOptions options_;
   BehaviorContext context_;
   std::unique_ptr<WakeOnClock> clock_listener_;
+  std::unique_ptr<Background> background_;  // created on first use (guarded by mutex_)
 
   mutable std::mutex mutex_;
   std::condition_variable cv_;
@@ -318,6 +394,11 @@ class BehaviorExecutionManager {
     std::function<void()> cancel;
   };
   std::deque<Command> commands_;
+  // Inboxes with samples for the worker (guarded by mutex_).
+  std::deque<std::shared_ptr<detail::Inbox>> ready_;
+  // Changes when an activation starts or ends; onWorker() inboxes of an
+  // ended activation are discarded (guarded by mutex_).
+  uint64_t generation_ = 1;
   bool stopping_ = false;
   bool exited_ = false;
   std::condition_variable exited_cv_;
@@ -363,6 +444,92 @@ class BehaviorExecutionManager {
   std::deque<std::pair<std::chrono::steady_clock::time_point, std::string>> request_id_order_;
   std::deque<Finished> finished_;
 };
+
+template <class T>
+class BehaviorExecutionManager::SampleInbox final
+    : public detail::Inbox,
+      public std::enable_shared_from_this<SampleInbox<T>> {
+ public:
+  SampleInbox(BehaviorExecutionManager* owner, std::function<void(const T&)> handler,
+              Delivery delivery, size_t capacity, uint64_t generation)
+      : owner_(owner),
+        handler_(std::move(handler)),
+        delivery_(delivery),
+        capacity_(capacity == 0 ? 1 : capacity),
+        generation_(generation) {}
+
+  void push(const T& sample) {
+    bool schedule = false;
+    {
+      absl::MutexLock lock(&mutex_);
+      if (delivery_ == Delivery::kLatest) {
+        waiting_.clear();
+      } else if (waiting_.size() >= capacity_) {
+        waiting_.pop_front();
+        ++dropped_;
+      }
+      waiting_.push_back(sample);
+      schedule = !scheduled_;
+      scheduled_ = true;
+    }
+    if (schedule) owner_->schedule(this->shared_from_this());
+  }
+  void drain() override {
+    for (const T& sample : take()) handler_(sample);
+  }
+  void discard() override { take(); }
+  uint64_t generation() const override { return generation_; }
+  uint64_t dropped() const override {
+    absl::MutexLock lock(&mutex_);
+    return dropped_;
+  }
+
+ private:
+  std::deque<T> take() {
+    absl::MutexLock lock(&mutex_);
+    scheduled_ = false;
+    return std::exchange(waiting_, {});
+  }
+
+  BehaviorExecutionManager* const owner_;
+  const std::function<void(const T&)> handler_;
+  const Delivery delivery_;
+  const size_t capacity_;
+  const uint64_t generation_;
+  mutable absl::Mutex mutex_;
+  std::deque<T> waiting_ ABSL_GUARDED_BY(mutex_);
+  bool scheduled_ ABSL_GUARDED_BY(mutex_) = false;
+  uint64_t dropped_ ABSL_GUARDED_BY(mutex_) = 0;
+};
+
+template <class T>
+std::function<void(const T&)> BehaviorExecutionManager::onWorker(
+    std::function<void(const T&)> handler, Delivery delivery, size_t capacity) {
+  auto inbox = std::make_shared<SampleInbox<T>>(this, std::move(handler), delivery, capacity,
+                                                inboxGeneration());
+  return [inbox](const T& sample) { inbox->push(sample); };
+}
+
+template <class R>
+void BehaviorExecutionManager::inBackground(std::function<R()> job,
+                                            std::function<void(const R&)> done) {
+  auto deliver = onWorker<R>(std::move(done));
+  auto fail =
+      onWorker<std::string>([](const std::string& what) { throw std::runtime_error(what); });
+  runInBackground([job = std::move(job), deliver = std::move(deliver), fail = std::move(fail)] {
+    std::optional<R> result;
+    try {
+      result.emplace(job());
+    } catch (const std::exception& e) {
+      fail(std::string("a background job threw: ") + e.what());
+      return;
+    } catch (...) {
+      fail("a background job threw a non-standard exception");
+      return;
+    }
+    deliver(*result);
+  });
+}
 
 /// The name of the behavior that `parameters` declares with the
 /// (behaviorlib.v1.declare) option, or "" when it declares none.

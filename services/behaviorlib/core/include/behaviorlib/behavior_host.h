@@ -13,7 +13,6 @@
 
 #include <yaml-cpp/yaml.h>
 
-#include <condition_variable>
 #include <functional>
 #include <memory>
 #include <mutex>
@@ -21,7 +20,9 @@
 #include <thread>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/status.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/event_log.h"
@@ -87,10 +88,10 @@ class BehaviorHost {
   ObserverFactory observer_factory_;
   bool started_ = false;
 
-  mutable std::mutex mutex_;
-  std::condition_variable cv_;
-  int active_count_ = 0;
-  bool stopping_ = false;
+  mutable absl::Mutex mutex_;
+  absl::CondVar cv_;
+  int active_count_ ABSL_GUARDED_BY(mutex_) = 0;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   std::thread watchdog_;
 };
 

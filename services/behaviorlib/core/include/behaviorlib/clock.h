@@ -16,6 +16,9 @@
 #include <mutex>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
+
 namespace behaviorlib {
 
 /// Time on a behavior's clock: nanoseconds since the Unix epoch (simulated
@@ -82,8 +85,8 @@ class Clock {
   void notifyListeners();
 
  private:
-  mutable std::mutex listeners_mutex_;
-  mutable std::vector<ClockListener*> listeners_;
+  mutable absl::Mutex listeners_mutex_;
+  mutable std::vector<ClockListener*> listeners_ ABSL_GUARDED_BY(listeners_mutex_);
 };
 
 /// Host monotonic time, offset once at construction so that it reads as Unix
@@ -112,8 +115,8 @@ class FakeClock final : public Clock {
   void set(TimePoint t);
 
  private:
-  mutable std::mutex mutex_;
-  TimePoint now_;
+  mutable absl::Mutex mutex_;
+  TimePoint now_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib

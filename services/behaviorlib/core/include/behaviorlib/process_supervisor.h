@@ -23,7 +23,9 @@
 #include <thread>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/status.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/behavior_execution_manager.h"
 
 namespace behaviorlib {
@@ -89,8 +91,8 @@ class SupervisedThread {
   std::atomic<bool> exited_{false};
   Heartbeat heartbeat_;
   std::chrono::milliseconds max_silence_;
-  mutable std::mutex mutex_;
-  std::string failure_;
+  mutable absl::Mutex mutex_;
+  std::string failure_ ABSL_GUARDED_BY(mutex_);
   std::thread thread_;
 };
 

@@ -3,9 +3,10 @@
 // PAY_ATTENTION_TO_QR_CODES (recurrent): QR codes found in the camera
 // images, located in the world, published once and remembered.
 //
-//   robots/{id}/camera/image            Image, latest only: decoded on a worker
-//                                       thread; a frame arriving while one is
-//                                       decoded replaces the waiting one (counted)
+//   robots/{id}/camera/image            Image, latest only: decoded and located
+//                                       by background jobs (inBackground); a
+//                                       frame arriving while one is processed
+//                                       replaces the waiting one (counted)
 //   robots/{id}/camera/info             CameraInfo, the camera model
 //   robots/{id}/self_localization/pose  PoseStamped, queued: the pose at each
 //                                       image's stamp is interpolated
@@ -31,12 +32,9 @@
 // pose), belief_refresh_m [0.02] (a remembered position is rewritten when
 // the estimate moves this far).
 
-#include <condition_variable>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
-#include <thread>
 
 #include "behaviorlib/attention_to_visual_markers/marker_map.h"
 #include "behaviorlib/behavior_execution_manager.h"
@@ -88,12 +86,40 @@ class QrAttentionBehavior final : public Behavior<v1::PayAttentionToQrCodesParam
   };
   static absl::StatusOr<Settings> settingsFrom(const v1::PayAttentionToQrCodesParameters& p);
 
+  // What the locating jobs own: the locator, the map of codes and what was
+  // written to belief memory. One job runs at a time (the background
+  // thread); the worker only hands the pointer on.
+  struct Locating {
+    std::unique_ptr<MarkerLocator> locator;
+    MarkerMap map;
+    std::map<std::string, Eigen::Vector3d> remembered;  // text -> position written
+    uint64_t seq = 0;
+  };
+  struct Decoded {
+    v1::Header header;
+    absl::StatusOr<cv::Mat> pixels;
+  };
+  struct Located {
+    uint64_t sightings = 0, rejected = 0, belief_errors = 0;
+    std::string belief_error;  // the first
+    size_t codes = 0;
+    absl::Status publish_error;
+  };
+
   void onImage(const v1::Image& image);
   void onPose(const v1::PoseStamped& pose);
   void onCameraInfo(const v1::CameraInfo& info);
-  void workerLoop();
-  void process(const v1::Image& image);
-  void remember(const MarkerEstimate& estimate, double size_m, bool list_changed);
+  // Worker: starts the background decoding of `image`.
+  void decode(const v1::Image& image);
+  void onDecoded(const Decoded& decoded);
+  // Worker: the image is done with; the waiting one (if any) is next.
+  void nextImage();
+  // Background jobs: read only `state`, their arguments and the
+  // configuration.
+  Located locate(Locating& state, const cv::Mat& pixels, const v1::Header& header,
+                 const CameraModel& camera, const BodyPose& pose, const Settings& settings) const;
+  absl::Status remember(Locating& state, const MarkerEstimate& estimate, double size_m,
+                        bool list_changed) const;
   void stop();
 
   channel::ChannelClient* channel_;
@@ -104,10 +130,10 @@ class QrAttentionBehavior final : public Behavior<v1::PayAttentionToQrCodesParam
   Duration pose_tolerance_ = std::chrono::milliseconds(100);
   double belief_refresh_m_ = 0.02;
 
-  // Shared with the subscriptions' threads and the worker.
-  std::mutex mutex_;
-  std::condition_variable cv_;
+  // Worker only: samples and job results arrive there (onWorker,
+  // inBackground).
   bool running_ = false, decoding_ = false;
+  bool busy_ = false;  // an image is in the background jobs
   Settings settings_;
   std::optional<v1::Image> pending_;
   std::optional<TimePoint> last_image_;  // behavior clock, at arrival
@@ -115,17 +141,12 @@ class QrAttentionBehavior final : public Behavior<v1::PayAttentionToQrCodesParam
   std::optional<CameraModel> camera_;
   PoseHistory poses_{std::chrono::seconds(3)};
   Counters counters_;
+  size_t codes_ = 0;
   absl::Status publish_error_;
-
-  // Worker only.
-  std::unique_ptr<MarkerLocator> locator_;
-  MarkerMap map_;
-  std::map<std::string, Eigen::Vector3d> remembered_;  // text -> position written
-  uint64_t seq_ = 0;
+  std::shared_ptr<Locating> locating_;
 
   TimePoint activated_at_{};
   bool active_ = false;
-  std::thread worker_;
   std::unique_ptr<channel::Subscription> image_sub_, pose_sub_, info_sub_;
 };
 

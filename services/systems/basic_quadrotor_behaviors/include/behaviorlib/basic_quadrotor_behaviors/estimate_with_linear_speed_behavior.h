@@ -39,7 +39,6 @@
 // stamps.
 
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 
@@ -77,8 +76,8 @@ class EstimatePositionWithLinearSpeedBehavior final
   absl::StatusOr<Eigen::Vector3d> initialPosition(TimePoint at);
   void onSpeed(const v1::TwistStamped& speed);
   void onImu(const v1::Imu& imu);
-  /// The drift bound, metres. Under mutex_.
-  double driftBoundLocked() const;
+  /// The drift bound, metres.
+  double driftBound() const;
   void stopSubscriptions();
 
   channel::ChannelClient* channel_;
@@ -90,8 +89,7 @@ class EstimatePositionWithLinearSpeedBehavior final
   double drift_ratio_ = 0.03;
   double drift_rate_m_s_ = 0.005;
 
-  // Shared with the subscriptions' threads.
-  std::mutex mutex_;
+  // Dead reckoning: samples arrive on the worker (onWorker), so no lock.
   std::optional<LinearSpeedDeadReckoning> reckoning_;
   double start_s_ = 0.0;
   bool running_ = false, publishing_ = false;

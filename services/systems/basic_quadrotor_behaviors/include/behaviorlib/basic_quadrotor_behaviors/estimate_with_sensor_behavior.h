@@ -35,7 +35,6 @@
 // are on the behavior clock, compared with the samples' stamps.
 
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 
@@ -73,7 +72,7 @@ class EstimatePositionWithSensorBehavior final
   void onFix(const v1::PositionFix& fix);
   void onAltitude(const v1::Altitude& altitude);
   /// Counts a gated measurement; records the jump once the run of rejected
-  /// ones passes the limit. Under mutex_.
+  /// ones passes the limit.
   void countRejection(bool accepted, double innovation_m, const std::string& what, uint32_t* run);
   void stopSubscriptions();
 
@@ -85,8 +84,7 @@ class EstimatePositionWithSensorBehavior final
   Duration frozen_timeout_ = std::chrono::milliseconds(500);
   SensorFilterNoise noise_;
 
-  // Shared with the subscriptions' threads.
-  std::mutex mutex_;
+  // Filter state: samples arrive on the worker (onWorker), so no lock.
   SensorPositionFilter filter_;
   bool running_ = false, publishing_ = false;
   bool use_barometer_ = true;

@@ -2,7 +2,7 @@
 
 // SELF_LOCALIZE_WITH_GROUND_TRUTH (recurrent): republishes the simulator's
 // ground truth as the robot's estimate, one estimate per ground-truth sample
-// (100 Hz from the simulator), from the subscriptions' threads:
+// (100 Hz from the simulator), on the behavior's worker:
 //   robots/{id}/ground_truth/pose  -> robots/{id}/self_localization/pose
 //   robots/{id}/ground_truth/twist -> robots/{id}/self_localization/twist
 // Stamps are kept (simulated time of the ground truth); frame "world".
@@ -19,7 +19,6 @@
 // Config: ground_truth_timeout_s [0.5], max_jump_m [1].
 
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 
@@ -58,8 +57,7 @@ class SelfLocalizeWithGroundTruthBehavior final
   Duration timeout_ = std::chrono::milliseconds(500);
   double max_jump_m_ = 1.0;
 
-  // Shared with the subscriptions' threads.
-  std::mutex mutex_;
+  // Samples arrive on the worker (onWorker), so no lock.
   bool publishing_ = false;
   std::optional<v1::PoseStamped> last_pose_;
   std::string jump_;

@@ -37,7 +37,6 @@
 
 #include <deque>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 
@@ -73,8 +72,7 @@ class EkfSelfLocalizationBehavior final
   void onGps(const v1::PositionFix& fix);
   void onBaro(const v1::Altitude& altitude);
   void onLinearSpeed(const v1::TwistStamped& twist);
-  void fillEstimateLocked(const v1::Header& imu_header, v1::PoseStamped* pose,
-                          v1::TwistStamped* twist);
+  void fillEstimate(const v1::Header& imu_header, v1::PoseStamped* pose, v1::TwistStamped* twist);
   void stopSubscriptions();
 
   channel::ChannelClient* channel_;
@@ -90,8 +88,7 @@ class EkfSelfLocalizationBehavior final
   double yaw_stddev_rad_ = 0.05;
   EkfNoise noise_;
 
-  // Shared with the subscriptions' threads.
-  std::mutex mutex_;
+  // Filter state: samples arrive on the worker (onWorker), so no lock.
   InsEkf ekf_;
   bool running_ = false, publishing_ = false;
   bool use_linear_speed_ = true, use_barometer_ = true, use_imu_yaw_ = true;

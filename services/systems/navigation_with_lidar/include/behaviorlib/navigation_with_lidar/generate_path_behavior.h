@@ -8,8 +8,9 @@
 //   onActivate      the goal inside the map's box (else INVALID_ARGUMENT), at
 //                   least the radius from occupied voxels (INVALID_ARGUMENT),
 //                   the vehicle itself clear of them (FAILED_PRECONDITION);
-//                   hands the first attempt to the planning thread
-//   planning thread per attempt: a 26-connected flood fill of the inflated
+//                   hands the first attempt to the behavior's background
+//                   thread (inBackground; the result returns on the worker)
+//   background job per attempt: a 26-connected flood fill of the inflated
 //                   grid from the vehicle (no passage to the goal: the goal is
 //                   unreachable), then planPath() with the attempt's time
 //                   limit, then the path is published on
@@ -35,13 +36,11 @@
 // shortened path keeps from obstacles where the space allows it; see
 // PlanOptions).
 
+#include <atomic>
 #include <chrono>
-#include <condition_variable>
 #include <cstdint>
-#include <mutex>
 #include <optional>
 #include <string>
-#include <thread>
 #include <utility>
 
 #include "behaviorlib/behavior_execution_manager.h"
@@ -66,7 +65,6 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   /// `beliefs` may be null (no coordinator): the path then goes to the
   /// channel only.
   GeneratePathBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs);
-  ~GeneratePathBehavior() override;
 
  protected:
   absl::Status onConfigure(const YAML::Node& config) override;
@@ -108,8 +106,8 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   };
 
   void startAttempt();
-  void plannerLoop();
-  Result plan(const Attempt& attempt);
+  // The background job: reads only the attempt, the map, and current_id_.
+  Result plan(const Attempt& attempt) const;
   std::string beliefKey() const;
   std::optional<std::string> poseProblem() const;
 
@@ -126,14 +124,10 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   bool waiting_ = false;  // an attempt is due once resumed
   std::chrono::steady_clock::time_point attempt_started_{};
 
-  // Shared with the planning thread.
-  std::mutex mutex_;
-  std::condition_variable cv_;
-  std::optional<Attempt> pending_;
-  uint64_t current_id_ = 0;  // results of other attempts are discarded
-  Result result_;
-  bool stopping_ = false;
-  std::thread planner_;
+  Result result_;  // of the current attempt
+  // The current attempt; the background job reads it to drop a superseded
+  // or abandoned attempt's output.
+  std::atomic<uint64_t> current_id_{0};
 };
 
 }  // namespace behaviorlib::nav

@@ -15,7 +15,6 @@
 // Config (defaults): pose_timeout_s [1].
 
 #include <memory>
-#include <mutex>
 #include <optional>
 
 #include "behaviorlib/behavior_execution_manager.h"
@@ -45,8 +44,7 @@ class InformPositionToRobotsBehavior final : public Behavior<v1::InformPositionT
   channel::ChannelClient* channel_;
   Duration pose_timeout_ = std::chrono::seconds(1);
 
-  std::mutex mutex_;  // latest_ is written by the subscription's thread
-  std::optional<v1::PoseStamped> latest_;
+  std::optional<v1::PoseStamped> latest_;  // delivered on the worker (onWorker)
 
   std::unique_ptr<channel::Subscription> pose_sub_;
   TimePoint activated_at_{};

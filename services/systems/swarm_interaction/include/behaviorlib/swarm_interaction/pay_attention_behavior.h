@@ -9,9 +9,10 @@
 //   malformed samples (counted, skipped)          -> {id}/swarm/malformed_count
 //
 // Only samples of other robots addressed to this robot (or to all) count.
-// The subscriptions' callbacks only queue; a writer thread of the behavior
-// writes belief memory (a slow coordinator never blocks the channel or the
-// monitoring). Positions are written at most every write_period_s (wall
+// Samples arrive on the behavior's worker (onWorker) and are queued there;
+// the writes to belief memory run as background jobs (inBackground), one
+// batch at a time, so a slow coordinator never blocks the channel or the
+// monitoring. Positions are written at most every write_period_s (wall
 // time; the latest of each robot wins); messages all, in order. n goes on
 // from the message_count found in belief memory at activation.
 //
@@ -23,14 +24,12 @@
 //
 // Config (defaults): channel_timeout_s [2], write_period_s [0.1].
 
-#include <condition_variable>
+#include <chrono>
 #include <deque>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
-#include <thread>
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
@@ -55,18 +54,41 @@ class PayAttentionToRobotMessagesBehavior final
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
+  void onExecute() override;
 
   Situation checkSituation() override;
   Verdict checkProcesses() override;
 
  private:
+  // What one background job writes, and what it did.
+  struct Batch {
+    std::string prefix, writer;
+    std::map<std::string, v1::SwarmPosition> positions;
+    std::deque<v1::SwarmMessage> messages;
+    uint64_t malformed = 0;
+    bool malformed_changed = false;
+    uint64_t count = 0;  // messages numbered so far
+  };
+  struct WriteOutcome {
+    bool failing = false;  // the last write failed
+    std::string error;     // the first failure of the last run of failures
+  };
+  struct BatchResult {
+    uint64_t count = 0;
+    std::deque<v1::SwarmMessage> unwritten;
+    uint64_t malformed = 0;
+    bool malformed_written = false;
+    WriteOutcome outcome;
+  };
+
   void onMessage(const v1::SubscribeResponse& sample);
   void onPosition(const v1::SubscribeResponse& sample);
   void countMalformed(const std::string& why);
-  void writerLoop();
-  // Writes one belief; records the outcome (writer thread).
-  bool writeBelief(const std::string& key, const google::protobuf::Value& value,
-                   const std::string& type);
+  // Starts the next background job when none runs and one is due.
+  void startWrites();
+  void recordWrites(const WriteOutcome& outcome);
+  // The background job: writes a batch to belief memory.
+  static BatchResult writeBatch(const server::BeliefClient& beliefs, Batch batch);
   void stop();
 
   channel::ChannelClient* channel_;
@@ -74,10 +96,10 @@ class PayAttentionToRobotMessagesBehavior final
   Duration channel_timeout_ = std::chrono::seconds(2);
   double write_period_s_ = 0.1;
 
-  // Shared with the subscriptions' threads and the writer thread.
-  std::mutex mutex_;
-  std::condition_variable wake_;
-  bool running_ = false, recording_ = false;
+  std::unique_ptr<channel::Subscription> messages_sub_, positions_sub_;
+
+  // Worker thread only (samples and job results arrive there).
+  bool recording_ = false;
   std::map<std::string, v1::SwarmPosition> pending_positions_;
   std::deque<v1::SwarmMessage> pending_messages_;
   uint64_t malformed_ = 0, malformed_written_ = 0;
@@ -86,11 +108,9 @@ class PayAttentionToRobotMessagesBehavior final
   // Belief memory: the first failure of the current run of failures.
   std::optional<std::string> write_error_;
   bool write_failing_ = false;
-
-  std::unique_ptr<channel::Subscription> messages_sub_, positions_sub_;
-  std::thread writer_;
-
-  // Worker thread only.
+  std::optional<uint64_t> count_;  // message_count, once read
+  bool writing_ = false;           // a background job runs
+  std::chrono::steady_clock::time_point next_write_{};
   bool active_ = false;
   TimePoint activated_at_{};
   std::optional<TimePoint> disconnected_since_, failing_since_;

@@ -16,10 +16,13 @@
 #include <utility>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/container/flat_hash_map.h"
 #include "absl/container/inlined_vector.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
+#include "absl/time/time.h"
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/topic.h"
 
@@ -150,31 +153,32 @@ struct Broker::Topic {
   prometheus::Gauge& subscriber_gauge;
   prometheus::Counter& shm_samples;
 
-  std::mutex mutex;
+  absl::Mutex mutex;
   // Guarded by mutex. `type` is fixed by the first sample.
-  const google::protobuf::Descriptor* type = nullptr;
-  Sample latest;
-  uint64_t seq = 0;  // also the number of samples published
-  std::vector<std::shared_ptr<SubscribeReactor>> subscribers;
+  const google::protobuf::Descriptor* type ABSL_GUARDED_BY(mutex) = nullptr;
+  Sample latest ABSL_GUARDED_BY(mutex);
+  uint64_t seq ABSL_GUARDED_BY(mutex) = 0;  // also the number of samples published
+  std::vector<std::shared_ptr<SubscribeReactor>> subscribers ABSL_GUARDED_BY(mutex);
   // Until when a GetLatest keeps the topic wanted (WatchInterest).
-  std::chrono::steady_clock::time_point wanted_until{};
+  std::chrono::steady_clock::time_point wanted_until ABSL_GUARDED_BY(mutex) = {};
   // Its last publisher gates it by interest (kGatedPrefixMetadataKey).
-  bool gated = false;
+  bool gated ABSL_GUARDED_BY(mutex) = false;
   // GetLatest calls waiting for the topic's next sample (a gated topic).
   struct WaitingGet {
     grpc::ServerUnaryReactor* reactor;
     v1::GetLatestResponse* response;
     std::chrono::steady_clock::time_point deadline;
   };
-  std::vector<WaitingGet> waiting;
+  std::vector<WaitingGet> waiting ABSL_GUARDED_BY(mutex);
   // The shared-memory ring of the subscribers on this host, while there is
   // one; written by publish() under `mutex`.
-  std::unique_ptr<ShmRing> ring;
-  uint32_t shm_subscribers = 0;
-  std::string ring_scratch;  // a sample's bytes, reused
+  std::unique_ptr<ShmRing> ring ABSL_GUARDED_BY(mutex);
+  uint32_t shm_subscribers ABSL_GUARDED_BY(mutex) = 0;
+  std::string ring_scratch ABSL_GUARDED_BY(mutex);  // a sample's bytes, reused
 
   // Caller holds mutex.
-  bool wantedLocked(std::chrono::steady_clock::time_point now) const {
+  bool wantedLocked(std::chrono::steady_clock::time_point now) const
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex) {
     return !subscribers.empty() || wanted_until > now;
   }
 };
@@ -195,7 +199,7 @@ class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchI
   // `wanted` differs from the last one offered. True when the caller must
   // pump() after releasing the mutex.
   bool offer(std::vector<std::string> wanted) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (finish_status_.has_value() || (offered_once_ && wanted == last_offered_)) return false;
     offered_once_ = true;
     last_offered_ = wanted;
@@ -204,12 +208,12 @@ class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchI
   }
 
   void pump() {
-    std::unique_lock lock(mutex_);
+    absl::ReleasableMutexLock lock(&mutex_);
     if (busy_ || finished_) return;
     if (finish_status_.has_value()) {
       finished_ = true;
       const grpc::Status status = *finish_status_;
-      lock.unlock();
+      lock.Release();
       Finish(status);
       return;
     }
@@ -218,13 +222,13 @@ class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchI
     for (auto& name : *pending_) current_.add_wanted_topics(std::move(name));
     pending_.reset();
     busy_ = true;
-    lock.unlock();
+    lock.Release();
     StartWrite(&current_);
   }
 
   void requestFinish(grpc::Status status) {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (!finish_status_.has_value()) finish_status_ = std::move(status);
       pending_.reset();
     }
@@ -233,7 +237,7 @@ class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchI
 
   void OnWriteDone(bool ok) override {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       busy_ = false;
       if (!ok && !finish_status_.has_value()) {
         finish_status_ = grpc::Status(grpc::StatusCode::CANCELLED, "interest stream broken");
@@ -255,13 +259,13 @@ class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchI
   Broker* const broker_;
   const std::string prefix_;
   std::shared_ptr<InterestReactor> self_;  // alive until OnDone
-  std::mutex mutex_;
-  bool offered_once_ = false;
-  std::vector<std::string> last_offered_;
-  std::optional<std::vector<std::string>> pending_;
-  bool busy_ = false;
-  std::optional<grpc::Status> finish_status_;
-  bool finished_ = false;
+  absl::Mutex mutex_;
+  bool offered_once_ ABSL_GUARDED_BY(mutex_) = false;
+  std::vector<std::string> last_offered_ ABSL_GUARDED_BY(mutex_);
+  std::optional<std::vector<std::string>> pending_ ABSL_GUARDED_BY(mutex_);
+  bool busy_ ABSL_GUARDED_BY(mutex_) = false;
+  std::optional<grpc::Status> finish_status_ ABSL_GUARDED_BY(mutex_);
+  bool finished_ ABSL_GUARDED_BY(mutex_) = false;
   v1::WatchInterestResponse current_;  // owned by whoever set busy_
 };
 
@@ -295,7 +299,7 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   // Called with topic->mutex held, before the reactor is visible to
   // publishers; the initial metadata is the first operation on the stream.
   void attach(std::shared_ptr<Topic> topic) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     topic_ = std::move(topic);
     busy_ = true;
   }
@@ -317,7 +321,7 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   // released the topic's mutex.
   bool offer(const Sample& sample) {
     if (ring_) return false;
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (finish_status_.has_value()) return false;
     // In QUEUE mode the sample being written counts against queue_size (it
     // is not delivered yet), but one new sample is always kept.
@@ -334,12 +338,12 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
 
   // Starts the next operation if none is in flight.
   void pump() {
-    std::unique_lock lock(mutex_);
+    absl::ReleasableMutexLock lock(&mutex_);
     if (busy_ || finished_) return;
     if (finish_status_.has_value()) {
       finished_ = true;
       const grpc::Status status = *finish_status_;
-      lock.unlock();
+      lock.Release();
       Finish(status);
       return;
     }
@@ -349,7 +353,7 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
     busy_ = true;
     writing_sample_ = true;
     const uint64_t dropped = dropped_;
-    lock.unlock();
+    lock.Release();
     // busy_ gives this thread sole use of current_ until OnWriteDone; the
     // copy happens outside the lock so publishers never wait for it.
     current_.CopyFrom(*next);
@@ -361,7 +365,7 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   // The first requested status wins.
   void requestFinish(grpc::Status status) {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (!finish_status_.has_value()) finish_status_ = std::move(status);
       pending_.clear();
     }
@@ -382,7 +386,7 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   void OnDone() override {
     std::shared_ptr<Topic> topic;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       topic = topic_;
     }
     if (topic) broker_->removeSubscriber(topic, this);
@@ -393,7 +397,7 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
  private:
   void operationDone(bool ok) {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       busy_ = false;
       writing_sample_ = false;
       if (!ok && !finish_status_.has_value()) {
@@ -414,14 +418,16 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
   // references taken under the topic's mutex.
   std::shared_ptr<SubscribeReactor> self_;
 
-  std::mutex mutex_;
-  std::shared_ptr<Topic> topic_;  // null when the request was refused
-  std::deque<Sample> pending_;
-  uint64_t dropped_ = 0;
-  bool busy_ = false;            // an operation is in flight
-  bool writing_sample_ = false;  // ... and it is a sample write
-  std::optional<grpc::Status> finish_status_;
-  bool finished_ = false;  // Finish was called
+  absl::Mutex mutex_;
+  // Null when the request was refused. Set by attach() before any operation
+  // on the stream starts; OnWriteDone reads it without mutex_.
+  std::shared_ptr<Topic> topic_;
+  std::deque<Sample> pending_ ABSL_GUARDED_BY(mutex_);
+  uint64_t dropped_ ABSL_GUARDED_BY(mutex_) = 0;
+  bool busy_ ABSL_GUARDED_BY(mutex_) = false;            // an operation is in flight
+  bool writing_sample_ ABSL_GUARDED_BY(mutex_) = false;  // ... and it is a sample write
+  std::optional<grpc::Status> finish_status_ ABSL_GUARDED_BY(mutex_);
+  bool finished_ ABSL_GUARDED_BY(mutex_) = false;  // Finish was called
   // The message of the write in flight (owned by whoever set busy_).
   v1::SubscribeResponse current_;
 };
@@ -475,7 +481,7 @@ class Broker::Publisher {
   }
 
   // What was taken so far. Caller holds mutex_.
-  void reportLocked(v1::PublishResponse* response) const {
+  void reportLocked(v1::PublishResponse* response) const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
     response->set_accepted_count(accepted_);
     for (const auto& [key, topic_seq] : published_seqs_) {
       (*response->mutable_topic_seqs())[topic_seq.first->name] = topic_seq.second;
@@ -483,22 +489,23 @@ class Broker::Publisher {
   }
 
   Broker* const broker_;
-  std::mutex mutex_;
+  absl::Mutex mutex_;
 
  private:
   grpc::Status take(v1::PublishRequest& request) {
     const grpc::Status status = broker_->publish(*this, request);
     if (!status.ok()) return status;
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     ++accepted_;
     published_seqs_[cached_topic.get()] = {cached_topic, published_seq};
     return status;
   }
 
   std::optional<std::string> gated_prefix_;
-  uint64_t accepted_ = 0;
+  uint64_t accepted_ ABSL_GUARDED_BY(mutex_) = 0;
   // The last seq published on each topic (PublishResponse.topic_seqs).
-  absl::flat_hash_map<const Topic*, std::pair<std::shared_ptr<Topic>, uint64_t>> published_seqs_;
+  absl::flat_hash_map<const Topic*, std::pair<std::shared_ptr<Topic>, uint64_t>> published_seqs_
+      ABSL_GUARDED_BY(mutex_);
 };
 
 class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishRequest>,
@@ -509,12 +516,12 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
       : Publisher(broker, context), response_(response) {}
 
   void start() {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!finished_) StartRead(&request_);
   }
 
   void requestFinish(const grpc::Status& status) override {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     finishLocked(status);
   }
 
@@ -525,7 +532,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
       return;
     }
     const grpc::Status status = takeAll(request_);
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!status.ok()) {
       finishLocked(status);
       return;
@@ -539,7 +546,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
   }
 
  private:
-  void finishLocked(const grpc::Status& status) {
+  void finishLocked(const grpc::Status& status) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
     if (finished_) return;
     finished_ = true;
     reportLocked(response_);
@@ -548,7 +555,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
 
   v1::PublishResponse* const response_;
   v1::PublishRequest request_;  // used by one read at a time
-  bool finished_ = false;
+  bool finished_ ABSL_GUARDED_BY(mutex_) = false;
 };
 
 // PublishAcked: as Publish, and every request marked `sync` is answered, in
@@ -562,14 +569,14 @@ class Broker::AckedPublishReactor final
       : Publisher(broker, context) {}
 
   void start() {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!finish_status_.has_value()) {
       StartRead(&request_);
     }
   }
 
   void requestFinish(const grpc::Status& status) override {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!finish_status_.has_value()) finish_status_ = status;
     pumpLocked();
   }
@@ -578,7 +585,7 @@ class Broker::AckedPublishReactor final
     if (!ok) {
       // The client half-closed (or the call ended): answer what was asked,
       // then end.
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (!finish_status_.has_value()) finish_status_ = grpc::Status::OK;
       pumpLocked();
       return;
@@ -587,7 +594,7 @@ class Broker::AckedPublishReactor final
     if (request_.has_sample() || !request_.topic().empty() || !request_.more().empty()) {
       status = takeAll(request_);
     }
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!status.ok()) {
       if (!finish_status_.has_value()) finish_status_ = status;
       acks_.clear();  // the client learns of the refusal from the stream's end
@@ -605,7 +612,7 @@ class Broker::AckedPublishReactor final
   }
 
   void OnWriteDone(bool ok) override {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     writing_ = false;
     if (!ok && !finish_status_.has_value()) {
       finish_status_ = grpc::Status(grpc::StatusCode::CANCELLED, "publisher stream broken");
@@ -620,7 +627,7 @@ class Broker::AckedPublishReactor final
 
  private:
   // Writes the next answer, or finishes once nothing is in flight.
-  void pumpLocked() {
+  void pumpLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
     if (writing_ || finished_) return;
     if (!acks_.empty() && (!finish_status_.has_value() || finish_status_->ok())) {
       current_ = std::move(acks_.front());
@@ -637,11 +644,11 @@ class Broker::AckedPublishReactor final
   }
 
   v1::PublishRequest request_;  // used by one read at a time
-  std::deque<v1::PublishResponse> acks_;
-  v1::PublishResponse current_;  // the answer being written
-  bool writing_ = false;
-  bool finished_ = false;
-  std::optional<grpc::Status> finish_status_;
+  std::deque<v1::PublishResponse> acks_ ABSL_GUARDED_BY(mutex_);
+  v1::PublishResponse current_ ABSL_GUARDED_BY(mutex_);  // the answer being written
+  bool writing_ ABSL_GUARDED_BY(mutex_) = false;
+  bool finished_ ABSL_GUARDED_BY(mutex_) = false;
+  std::optional<grpc::Status> finish_status_ ABSL_GUARDED_BY(mutex_);
 };
 
 // ---------------------------------------------------------------------------
@@ -656,14 +663,14 @@ Broker::Broker(prometheus::Registry& registry, BrokerOptions options)
 
 Broker::~Broker() {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     shutting_down_ = true;
     for (auto& [name, topic] : topics_) {
-      std::lock_guard topic_lock(topic->mutex);
+      absl::MutexLock topic_lock(&topic->mutex);
       dropRingLocked(*topic);
     }
   }
-  housekeeping_cv_.notify_all();
+  housekeeping_cv_.SignalAll();
   housekeeper_.join();
 }
 
@@ -672,7 +679,8 @@ void Broker::countRejected(absl::string_view reason) {
   if (it != metrics_->rejected_by_reason.end()) it->second->Increment();
 }
 
-bool Broker::ensureRingLocked(Topic& topic, uint32_t slots, std::size_t bytes) {
+bool Broker::ensureRingLocked(Topic& topic, uint32_t slots, std::size_t bytes)
+    ABSL_EXCLUSIVE_LOCKS_REQUIRED(topic.mutex) {
   const std::size_t want_bytes = std::max(kMinSlotBytes, (2 * bytes + 63) & ~std::size_t{63});
   if (topic.ring && topic.ring->slotBytes() >= bytes &&
       (topic.ring->slotCount() >= slots ||
@@ -706,7 +714,8 @@ bool Broker::ensureRingLocked(Topic& topic, uint32_t slots, std::size_t bytes) {
   return true;
 }
 
-void Broker::writeRingLocked(Topic& topic, const v1::SubscribeResponse& sample) {
+void Broker::writeRingLocked(Topic& topic, const v1::SubscribeResponse& sample)
+    ABSL_EXCLUSIVE_LOCKS_REQUIRED(topic.mutex) {
   topic.ring_scratch.clear();
   sample.AppendToString(&topic.ring_scratch);
   if (!topic.ring->fits(topic.ring_scratch.size()) &&
@@ -717,7 +726,7 @@ void Broker::writeRingLocked(Topic& topic, const v1::SubscribeResponse& sample) 
   topic.shm_samples.Increment();
 }
 
-void Broker::dropRingLocked(Topic& topic) {
+void Broker::dropRingLocked(Topic& topic) ABSL_EXCLUSIVE_LOCKS_REQUIRED(topic.mutex) {
   if (!topic.ring) return;
   metrics_->rings.Decrement(static_cast<double>(topic.ring->slotCount() * topic.ring->slotBytes()));
   topic.ring->close();
@@ -762,7 +771,7 @@ grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>* Broker::Publis
 }
 
 bool Broker::addPublisher(Publisher* publisher) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   publishers_.insert(publisher);
   return !shutting_down_;
 }
@@ -789,20 +798,19 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
   sample->mutable_sample()->Swap(request.mutable_sample());
   *sample->mutable_receive_time() = wallNow();
 
-  std::unique_lock<std::mutex> topic_lock;
   if (topic) {
-    topic_lock = std::unique_lock(topic->mutex);
+    topic->mutex.Lock();
   } else {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (shutting_down_) return shuttingDownStatus();
     topic = topicLocked(request.topic());
     // Locked before mutex_ is released, so that removeSubscriber cannot drop
     // a topic that so far only had waiting subscribers under our feet.
-    topic_lock = std::unique_lock(topic->mutex);
+    topic->mutex.Lock();
   }
   if (topic->type != nullptr && topic->type != type) {
     const std::string carried = topic->type->full_name();
-    topic_lock.unlock();
+    topic->mutex.Unlock();
     countRejected(reject_reason::kTypeMismatch);
     return grpc::Status(
         grpc::StatusCode::INVALID_ARGUMENT,
@@ -822,7 +830,7 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
   }
   std::vector<Topic::WaitingGet> answered;
   answered.swap(topic->waiting);
-  topic_lock.unlock();
+  topic->mutex.Unlock();
   topic->samples_in.Increment();
   publisher.published_seq = sample->topic_seq();
   publisher.cached_topic = std::move(topic);
@@ -835,7 +843,7 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
 }
 
 void Broker::removePublisher(Publisher* publisher) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   publishers_.erase(publisher);
 }
 
@@ -879,12 +887,12 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
   uint64_t ring_first = 0;
   InterestReactors watchers;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!shutting_down_) {
       std::shared_ptr<Topic> topic = topicLocked(request->topic());
       bool first = false;
       {
-        std::lock_guard topic_lock(topic->mutex);
+        absl::MutexLock topic_lock(&topic->mutex);
         reactor->attach(topic);
         const std::size_t latest_bytes = topic->latest ? topic->latest->ByteSizeLong() : 0;
         if (wants_ring && ensureRingLocked(*topic, reactor->keeps(), latest_bytes)) {
@@ -922,10 +930,10 @@ void Broker::removeSubscriber(const std::shared_ptr<Topic>& topic,
                               const SubscribeReactor* subscriber) {
   InterestReactors watchers;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     bool last = false;
     {
-      std::lock_guard topic_lock(topic->mutex);
+      absl::MutexLock topic_lock(&topic->mutex);
       auto& subs = topic->subscribers;
       subs.erase(std::remove_if(subs.begin(), subs.end(),
                                 [subscriber](const auto& s) { return s.get() == subscriber; }),
@@ -952,7 +960,8 @@ void Broker::removeSubscriber(const std::shared_ptr<Topic>& topic,
   for (const auto& watcher : watchers) watcher->pump();
 }
 
-void Broker::forgetIfUnwantedLocked(Topic& topic, std::chrono::steady_clock::time_point now) {
+void Broker::forgetIfUnwantedLocked(Topic& topic, std::chrono::steady_clock::time_point now)
+    ABSL_EXCLUSIVE_LOCKS_REQUIRED(topic.mutex) {
   if (topic.latest && topic.gated && !topic.wantedLocked(now)) topic.latest.reset();
 }
 
@@ -964,7 +973,7 @@ void Broker::interestChangedLocked(InterestReactors* idle) {
     const std::string& prefix = watcher->prefix();
     for (auto it = topics_.lower_bound(prefix);
          it != topics_.end() && absl::StartsWith(it->first, prefix); ++it) {
-      std::lock_guard topic_lock(it->second->mutex);
+      absl::MutexLock topic_lock(&it->second->mutex);
       if (it->second->wantedLocked(now)) wanted.push_back(it->first);
     }
     if (watcher->offer(std::move(wanted))) idle->push_back(watcher);
@@ -972,7 +981,7 @@ void Broker::interestChangedLocked(InterestReactors* idle) {
 }
 
 void Broker::removeInterestWatcher(const InterestReactor* watcher) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   interest_watchers_.erase(std::remove_if(interest_watchers_.begin(), interest_watchers_.end(),
                                           [watcher](const auto& w) { return w.get() == watcher; }),
                            interest_watchers_.end());
@@ -984,7 +993,7 @@ grpc::ServerWriteReactor<v1::WatchInterestResponse>* Broker::WatchInterest(
   reactor->setSelf(reactor);
   bool refused = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     refused = shutting_down_;
     if (!refused) {
       interest_watchers_.push_back(reactor);
@@ -1001,68 +1010,70 @@ grpc::ServerWriteReactor<v1::WatchInterestResponse>* Broker::WatchInterest(
 }
 
 void Broker::housekeep() {
-  std::unique_lock lock(mutex_);
-  while (!shutting_down_) {
-    const auto now = std::chrono::steady_clock::now();
-    auto next = std::chrono::steady_clock::time_point::max();
-    std::vector<Topic::WaitingGet> expired;
-    bool interest_changed = false;
-    for (auto it = timed_topics_.begin(); it != timed_topics_.end();) {
-      const std::shared_ptr<Topic> keep = *it;  // outlives topic_lock
-      Topic& topic = *keep;
-      std::lock_guard topic_lock(topic.mutex);
-      auto& waiting = topic.waiting;
-      for (auto w = waiting.begin(); w != waiting.end();) {
-        if (w->deadline <= now) {
-          expired.push_back(*w);
-          w = waiting.erase(w);
-        } else {
-          next = std::min(next, w->deadline);
-          ++w;
-        }
-      }
-      if (topic.wanted_until != std::chrono::steady_clock::time_point{} &&
-          topic.wanted_until <= now) {
-        topic.wanted_until = {};
-        if (topic.subscribers.empty()) {
-          forgetIfUnwantedLocked(topic, now);
-          interest_changed = true;
-        }
-      } else if (topic.wanted_until != std::chrono::steady_clock::time_point{}) {
-        next = std::min(next, topic.wanted_until);
-      }
-      const bool timed =
-          !waiting.empty() || topic.wanted_until != std::chrono::steady_clock::time_point{};
-      it = timed ? std::next(it) : timed_topics_.erase(it);
-    }
-    InterestReactors watchers;
-    if (interest_changed) interestChangedLocked(&watchers);
-    if (!expired.empty() || !watchers.empty()) {
-      lock.unlock();
-      for (const auto& watcher : watchers) watcher->pump();
-      for (auto& get : expired) {
-        get.reactor->Finish(grpc::Status(
-            grpc::StatusCode::NOT_FOUND,
-            "no sample on the gated topic within the wait: its publisher did not resume it"));
-      }
-      lock.lock();
-      continue;
-    }
-    if (next == std::chrono::steady_clock::time_point::max()) {
-      housekeeping_cv_.wait(lock);
-    } else {
-      housekeeping_cv_.wait_until(lock, next);
-    }
-  }
-  // Shutting down: answer whoever still waits.
   std::vector<Topic::WaitingGet> left;
-  for (const auto& topic : timed_topics_) {
-    std::lock_guard topic_lock(topic->mutex);
-    left.insert(left.end(), topic->waiting.begin(), topic->waiting.end());
-    topic->waiting.clear();
+  {
+    absl::MutexLock lock(&mutex_);
+    while (!shutting_down_) {
+      const auto now = std::chrono::steady_clock::now();
+      auto next = std::chrono::steady_clock::time_point::max();
+      std::vector<Topic::WaitingGet> expired;
+      bool interest_changed = false;
+      for (auto it = timed_topics_.begin(); it != timed_topics_.end();) {
+        const std::shared_ptr<Topic> keep = *it;  // outlives topic_lock
+        Topic& topic = *keep;
+        absl::MutexLock topic_lock(&topic.mutex);
+        auto& waiting = topic.waiting;
+        for (auto w = waiting.begin(); w != waiting.end();) {
+          if (w->deadline <= now) {
+            expired.push_back(*w);
+            w = waiting.erase(w);
+          } else {
+            next = std::min(next, w->deadline);
+            ++w;
+          }
+        }
+        if (topic.wanted_until != std::chrono::steady_clock::time_point{} &&
+            topic.wanted_until <= now) {
+          topic.wanted_until = {};
+          if (topic.subscribers.empty()) {
+            forgetIfUnwantedLocked(topic, now);
+            interest_changed = true;
+          }
+        } else if (topic.wanted_until != std::chrono::steady_clock::time_point{}) {
+          next = std::min(next, topic.wanted_until);
+        }
+        const bool timed =
+            !waiting.empty() || topic.wanted_until != std::chrono::steady_clock::time_point{};
+        it = timed ? std::next(it) : timed_topics_.erase(it);
+      }
+      InterestReactors watchers;
+      if (interest_changed) interestChangedLocked(&watchers);
+      if (!expired.empty() || !watchers.empty()) {
+        mutex_.Unlock();
+        for (const auto& watcher : watchers) watcher->pump();
+        for (auto& get : expired) {
+          get.reactor->Finish(grpc::Status(
+              grpc::StatusCode::NOT_FOUND,
+              "no sample on the gated topic within the wait: its publisher did not resume it"));
+        }
+        mutex_.Lock();
+        continue;
+      }
+      if (next == std::chrono::steady_clock::time_point::max()) {
+        housekeeping_cv_.Wait(&mutex_);
+      } else {
+        housekeeping_cv_.WaitWithTimeout(&mutex_,
+                                         absl::FromChrono(next - std::chrono::steady_clock::now()));
+      }
+    }
+    // Shutting down: answer whoever still waits.
+    for (const auto& topic : timed_topics_) {
+      absl::MutexLock topic_lock(&topic->mutex);
+      left.insert(left.end(), topic->waiting.begin(), topic->waiting.end());
+      topic->waiting.clear();
+    }
+    timed_topics_.clear();
   }
-  timed_topics_.clear();
-  lock.unlock();
   for (auto& get : left) get.reactor->Finish(shuttingDownStatus());
 }
 
@@ -1078,11 +1089,11 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
   InterestReactors watchers;
   bool waits = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     auto it = topics_.find(request->topic());
     bool gated = false;
     if (it != topics_.end() && !shutting_down_) {
-      std::lock_guard topic_lock(it->second->mutex);
+      absl::MutexLock topic_lock(&it->second->mutex);
       gated = it->second->gated;
     }
     if (gated) {
@@ -1092,7 +1103,7 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
       const auto now = std::chrono::steady_clock::now();
       bool was_wanted = false;
       {
-        std::lock_guard topic_lock(topic->mutex);
+        absl::MutexLock topic_lock(&topic->mutex);
         was_wanted = topic->wantedLocked(now);
         topic->wanted_until = now + kTransientInterest;
         latest = topic->latest;
@@ -1108,10 +1119,10 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
         }
       }
       timed_topics_.insert(topic);
-      housekeeping_cv_.notify_all();
+      housekeeping_cv_.SignalAll();
       if (!was_wanted) interestChangedLocked(&watchers);
     } else if (it != topics_.end()) {
-      std::lock_guard topic_lock(it->second->mutex);
+      absl::MutexLock topic_lock(&it->second->mutex);
       latest = it->second->latest;
     }
   }
@@ -1133,11 +1144,11 @@ grpc::ServerUnaryReactor* Broker::ListTopics(grpc::CallbackServerContext* contex
                                              v1::ListTopicsResponse* response) {
   const std::string& prefix = request->prefix();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     for (auto it = topics_.lower_bound(prefix);
          it != topics_.end() && absl::StartsWith(it->first, prefix); ++it) {
       Topic& topic = *it->second;
-      std::lock_guard topic_lock(topic.mutex);
+      absl::MutexLock topic_lock(&topic.mutex);
       v1::TopicInfo* info = response->add_topics();
       info->set_name(topic.name);
       if (topic.type != nullptr) info->set_type(topic.type->full_name());
@@ -1155,10 +1166,10 @@ void Broker::shutdown() {
   std::vector<std::shared_ptr<SubscribeReactor>> subscribers;
   InterestReactors watchers;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     shutting_down_ = true;
     for (auto& [name, topic] : topics_) {
-      std::lock_guard topic_lock(topic->mutex);
+      absl::MutexLock topic_lock(&topic->mutex);
       subscribers.insert(subscribers.end(), topic->subscribers.begin(), topic->subscribers.end());
       dropRingLocked(*topic);
     }
@@ -1168,7 +1179,7 @@ void Broker::shutdown() {
     for (Publisher* publisher : publishers_) publisher->requestFinish(shuttingDownStatus());
     watchers = interest_watchers_;
   }
-  housekeeping_cv_.notify_all();  // answers the waiting GetLatest calls
+  housekeeping_cv_.SignalAll();  // answers the waiting GetLatest calls
   for (const auto& subscriber : subscribers) subscriber->requestFinish(shuttingDownStatus());
   for (const auto& watcher : watchers) watcher->requestFinish(shuttingDownStatus());
 }

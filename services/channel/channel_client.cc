@@ -5,17 +5,18 @@
 
 #include <algorithm>
 #include <atomic>
-#include <condition_variable>
 #include <map>
-#include <mutex>
 #include <optional>
 #include <thread>
 #include <utility>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/container/flat_hash_set.h"
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
+#include "absl/synchronization/mutex.h"
+#include "absl/time/time.h"
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/topic.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
@@ -55,14 +56,14 @@ grpc::ChannelArguments channelArguments() {
 struct ProgressSignal {
   void notify() {
     {
-      std::lock_guard lock(mutex);
+      absl::MutexLock lock(&mutex);
       ++generation;
     }
-    cv.notify_all();
+    cv.SignalAll();
   }
-  std::mutex mutex;
-  std::condition_variable cv;
-  uint64_t generation = 0;
+  absl::Mutex mutex;
+  absl::CondVar cv;
+  uint64_t generation ABSL_GUARDED_BY(mutex) = 0;
 };
 
 // ---------------------------------------------------------------------------
@@ -82,7 +83,7 @@ class Subscription::Impl {
 
   // A subscription refused before it started (e.g. invalid topic name).
   void fail(absl::Status status) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     status_ = std::move(status);
   }
 
@@ -92,26 +93,33 @@ class Subscription::Impl {
 
   void stop() {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       stopping_ = true;
       if (context_ != nullptr) context_->TryCancel();
     }
-    cv_.notify_all();
+    cv_.SignalAll();
     if (thread_.joinable()) thread_.join();
   }
 
   bool connected() const {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     return connected_;
   }
 
   bool waitConnected(std::chrono::milliseconds timeout) const {
-    std::unique_lock lock(mutex_);
-    return cv_.wait_for(lock, timeout, [this] { return connected_; });
+    absl::MutexLock lock(&mutex_);
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    while (!connected_) {
+      if (cv_.WaitWithTimeout(&mutex_,
+                              absl::FromChrono(deadline - std::chrono::steady_clock::now()))) {
+        return connected_;
+      }
+    }
+    return true;
   }
 
   uint64_t connectCount() const {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     return connect_count_;
   }
 
@@ -120,7 +128,7 @@ class Subscription::Impl {
   const std::string& topic() const { return request_.topic(); }
 
   absl::Status status() const {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     return status_;
   }
 
@@ -133,7 +141,7 @@ class Subscription::Impl {
     while (true) {
       grpc::ClientContext context;
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         if (stopping_) return;
         context_ = &context;
       }
@@ -162,7 +170,7 @@ class Subscription::Impl {
             use_ring = false;
             context.TryCancel();
             reader->Finish();
-            std::lock_guard lock(mutex_);
+            absl::MutexLock lock(&mutex_);
             context_ = nullptr;
             continue;
           }
@@ -175,12 +183,12 @@ class Subscription::Impl {
           processed_seq_.store(std::max(processed_seq_.load(), registered_seq));
         }
         {
-          std::lock_guard lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           connected_ = true;
           ++connect_count_;
           backoff = kInitialBackoff;
         }
-        cv_.notify_all();
+        cv_.SignalAll();
         progress_->notify();
       }
       if (ring) {
@@ -191,14 +199,15 @@ class Subscription::Impl {
       }
       const grpc::Status status = reader->Finish();
       progress_->notify();  // before connected_ goes: a waiter may look early
-      std::unique_lock lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       context_ = nullptr;
       connected_ = false;
       status_ = toAbsl(status);
-      cv_.notify_all();
+      cv_.SignalAll();
       // A request the broker itself refuses will be refused again.
       if (stopping_ || status.error_code() == grpc::StatusCode::INVALID_ARGUMENT) return;
-      cv_.wait_for(lock, backoff, [this] { return stopping_; });
+      // Until stopped, at most backoff.
+      mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(backoff));
       if (stopping_) return;
       backoff = std::min(backoff * 2, kMaxBackoff);
     }
@@ -218,7 +227,7 @@ class Subscription::Impl {
                 std::unique_ptr<ShmRing> first_ring, uint64_t next) {
     std::shared_ptr<ShmRing> ring(std::move(first_ring));
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       ring_ = ring;
     }
     std::atomic<bool> stream_done{false};
@@ -229,7 +238,7 @@ class Subscription::Impl {
       while (reader.Read(&ignored)) {
       }
       stream_done.store(true);
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (ring_) ring_->wake();
     });
     const bool latest_only = request_.mode() != v1::DELIVERY_MODE_QUEUE;
@@ -256,7 +265,7 @@ class Subscription::Impl {
             break;
           }
           ring = std::move(*successor);
-          std::lock_guard lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           ring_ = ring;
           break;
         }
@@ -267,7 +276,7 @@ class Subscription::Impl {
     }
     context.TryCancel();
     watcher.join();
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     ring_.reset();
   }
 
@@ -279,14 +288,14 @@ class Subscription::Impl {
   std::atomic<uint64_t> received_{0};
   std::atomic<uint64_t> processed_seq_{0};
 
-  mutable std::mutex mutex_;
-  mutable std::condition_variable cv_;
-  grpc::ClientContext* context_ = nullptr;  // of the stream in progress
-  std::shared_ptr<ShmRing> ring_;           // the ring being read, if any
-  bool stopping_ = false;
-  bool connected_ = false;
-  uint64_t connect_count_ = 0;
-  absl::Status status_;
+  mutable absl::Mutex mutex_;
+  mutable absl::CondVar cv_;
+  grpc::ClientContext* context_ ABSL_GUARDED_BY(mutex_) = nullptr;  // of the stream in progress
+  std::shared_ptr<ShmRing> ring_ ABSL_GUARDED_BY(mutex_);           // the ring being read, if any
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool connected_ ABSL_GUARDED_BY(mutex_) = false;
+  uint64_t connect_count_ ABSL_GUARDED_BY(mutex_) = 0;
+  absl::Status status_ ABSL_GUARDED_BY(mutex_);
 };
 
 Subscription::Subscription(std::shared_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -316,29 +325,29 @@ class InterestWatch::Impl {
 
   void stop() {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       stopping_ = true;
       if (context_ != nullptr) context_->TryCancel();
     }
-    cv_.notify_all();
+    cv_.SignalAll();
     if (thread_.joinable()) thread_.join();
   }
 
   bool wanted(const std::string& topic) const {
     if (!absl::StartsWith(topic, prefix_)) return true;  // not gated
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     return !known_ || wanted_.contains(topic);
   }
 
   bool known() const {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     return known_;
   }
 
   std::vector<std::string> wantedTopics() const {
     std::vector<std::string> topics;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (known_) topics.assign(wanted_.begin(), wanted_.end());
     }
     std::sort(topics.begin(), topics.end());
@@ -351,7 +360,7 @@ class InterestWatch::Impl {
     while (true) {
       grpc::ClientContext context;
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         if (stopping_) return;
         context_ = &context;
       }
@@ -361,7 +370,7 @@ class InterestWatch::Impl {
       v1::WatchInterestResponse response;
       while (reader->Read(&response)) {
         {
-          std::lock_guard lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           known_ = true;
           wanted_ = absl::flat_hash_set<std::string>(response.wanted_topics().begin(),
                                                      response.wanted_topics().end());
@@ -372,14 +381,15 @@ class InterestWatch::Impl {
       reader->Finish().IgnoreError();
       bool was_known = false;
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         context_ = nullptr;
         was_known = known_;
         known_ = false;  // everything wanted until the broker answers again
       }
       if (was_known) on_change_();
-      std::unique_lock lock(mutex_);
-      cv_.wait_for(lock, backoff, [this] { return stopping_; });
+      absl::MutexLock lock(&mutex_);
+      // Until stopped, at most backoff.
+      mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(backoff));
       if (stopping_) return;
       backoff = std::min(backoff * 2, kMaxBackoff);
     }
@@ -390,12 +400,12 @@ class InterestWatch::Impl {
   const std::function<void()> on_change_;
   std::thread thread_;
 
-  mutable std::mutex mutex_;
-  std::condition_variable cv_;
-  grpc::ClientContext* context_ = nullptr;
-  bool stopping_ = false;
-  bool known_ = false;
-  absl::flat_hash_set<std::string> wanted_;
+  mutable absl::Mutex mutex_;
+  absl::CondVar cv_;
+  grpc::ClientContext* context_ ABSL_GUARDED_BY(mutex_) = nullptr;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool known_ ABSL_GUARDED_BY(mutex_) = false;
+  absl::flat_hash_set<std::string> wanted_ ABSL_GUARDED_BY(mutex_);
 };
 
 InterestWatch::InterestWatch(std::shared_ptr<Impl> impl) : impl_(std::move(impl)) {}
@@ -416,7 +426,7 @@ class ChannelClient::Impl {
         stub_(v1::DataChannel::NewStub(channel_)) {}
 
   ~Impl() {
-    std::lock_guard lock(publish_mutex_);
+    absl::MutexLock lock(&publish_mutex_);
     if (writer_) closeLocked().IgnoreError();
   }
 
@@ -443,7 +453,7 @@ class ChannelClient::Impl {
 
   // Writes one message on the publish stream.
   absl::Status write(const v1::PublishRequest& request) {
-    std::lock_guard lock(publish_mutex_);
+    absl::MutexLock lock(&publish_mutex_);
     while (true) {
       const bool fresh = !writer_;
       if (fresh) openLocked();
@@ -465,7 +475,7 @@ class ChannelClient::Impl {
   }
 
   absl::StatusOr<uint64_t> flush() {
-    std::lock_guard lock(publish_mutex_);
+    absl::MutexLock lock(&publish_mutex_);
     if (!writer_) return 0;
     uint64_t accepted = 0;
     if (absl::Status status = askLocked(&accepted); !status.ok()) return status;
@@ -474,13 +484,13 @@ class ChannelClient::Impl {
   }
 
   absl::Status sync() {
-    std::lock_guard lock(publish_mutex_);
+    absl::MutexLock lock(&publish_mutex_);
     if (!writer_ || !unsynced_) return absl::OkStatus();
     return askLocked(nullptr);
   }
 
   bool delivered(const std::function<uint64_t(const std::string&)>& topic_seq) const {
-    std::lock_guard lock(subscriptions_mutex_);
+    absl::MutexLock lock(&subscriptions_mutex_);
     for (const auto& weak : subscriptions_) {
       const std::shared_ptr<Subscription::Impl> sub = weak.lock();
       if (!sub || !sub->connected()) continue;
@@ -490,7 +500,7 @@ class ChannelClient::Impl {
   }
 
   std::map<std::string, uint64_t> acceptedSeqs() const {
-    std::lock_guard lock(accepted_mutex_);
+    absl::MutexLock lock(&accepted_mutex_);
     return accepted_seqs_;
   }
 
@@ -500,14 +510,17 @@ class ChannelClient::Impl {
     while (true) {
       uint64_t generation = 0;
       {
-        std::lock_guard lock(progress_->mutex);
+        absl::MutexLock lock(&progress_->mutex);
         generation = progress_->generation;
       }
       if (delivered(topic_seq)) return true;
-      std::unique_lock lock(progress_->mutex);
-      if (!progress_->cv.wait_until(lock, deadline,
-                                    [&] { return progress_->generation != generation; })) {
-        return false;
+      absl::MutexLock lock(&progress_->mutex);
+      while (progress_->generation == generation) {
+        if (progress_->cv.WaitWithTimeout(
+                &progress_->mutex, absl::FromChrono(deadline - std::chrono::steady_clock::now()))) {
+          if (progress_->generation == generation) return false;
+          break;
+        }
       }
     }
   }
@@ -551,7 +564,7 @@ class ChannelClient::Impl {
       impl->fail(std::move(status));
     } else {
       impl->start();
-      std::lock_guard lock(subscriptions_mutex_);
+      absl::MutexLock lock(&subscriptions_mutex_);
       std::erase_if(subscriptions_, [](const auto& weak) { return weak.expired(); });
       subscriptions_.push_back(impl);
     }
@@ -559,7 +572,7 @@ class ChannelClient::Impl {
   }
 
   void gatePublishing(const std::string& prefix) {
-    std::lock_guard lock(publish_mutex_);
+    absl::MutexLock lock(&publish_mutex_);
     gated_prefix_ = prefix;
     if (writer_) closeLocked().IgnoreError();
   }
@@ -573,7 +586,7 @@ class ChannelClient::Impl {
   const std::string address_;
 
  private:
-  void openLocked() {
+  void openLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     publish_context_ = std::make_unique<grpc::ClientContext>();
     if (gated_prefix_) publish_context_->AddMetadata(kGatedPrefixMetadataKey, *gated_prefix_);
     writer_ = stub_->PublishAcked(publish_context_.get());
@@ -582,7 +595,7 @@ class ChannelClient::Impl {
   // Asks the broker what the stream has taken so far (PublishRequest.sync):
   // one round trip, the stream stays open. A refusal or a broker gone ends
   // the stream, and its status is returned.
-  absl::Status askLocked(uint64_t* accepted) {
+  absl::Status askLocked(uint64_t* accepted) ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     v1::PublishRequest marker;
     marker.set_sync(true);
     v1::PublishResponse answer;
@@ -594,7 +607,7 @@ class ChannelClient::Impl {
     }
     if (accepted != nullptr) *accepted = answer.accepted_count();
     {
-      std::lock_guard lock(accepted_mutex_);
+      absl::MutexLock lock(&accepted_mutex_);
       for (const auto& [topic, seq] : answer.topic_seqs()) {
         uint64_t& known = accepted_seqs_[topic];
         known = std::max(known, seq);
@@ -604,14 +617,14 @@ class ChannelClient::Impl {
     return absl::OkStatus();
   }
 
-  absl::Status closeLocked() {
+  absl::Status closeLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     writer_->WritesDone();
     v1::PublishResponse unread;
     while (writer_->Read(&unread)) {
     }
     const grpc::Status status = writer_->Finish();
     if (!status.ok()) {
-      std::lock_guard lock(accepted_mutex_);
+      absl::MutexLock lock(&accepted_mutex_);
       accepted_seqs_.clear();  // a broker restart numbers topics anew
     }
     writer_.reset();
@@ -623,17 +636,22 @@ class ChannelClient::Impl {
   const std::shared_ptr<grpc::Channel> channel_;
   const std::shared_ptr<v1::DataChannel::Stub> stub_;
 
-  std::mutex publish_mutex_;  // guards the publish stream below
-  std::unique_ptr<grpc::ClientContext> publish_context_;
-  std::unique_ptr<grpc::ClientReaderWriter<v1::PublishRequest, v1::PublishResponse>> writer_;
-  std::optional<std::string> gated_prefix_;
-  bool unsynced_ = false;  // written on the stream since it opened
-  mutable std::mutex accepted_mutex_;
-  std::map<std::string, uint64_t> accepted_seqs_;  // PublishResponse.topic_seqs, merged
+  absl::Mutex publish_mutex_;  // guards the publish stream below
+  std::unique_ptr<grpc::ClientContext> publish_context_ ABSL_GUARDED_BY(publish_mutex_);
+  std::unique_ptr<grpc::ClientReaderWriter<v1::PublishRequest, v1::PublishResponse>> writer_
+      ABSL_GUARDED_BY(publish_mutex_);
+  std::optional<std::string> gated_prefix_ ABSL_GUARDED_BY(publish_mutex_);
+  // Written on the stream since it opened.
+  bool unsynced_ ABSL_GUARDED_BY(publish_mutex_) = false;
+  mutable absl::Mutex accepted_mutex_;
+  // PublishResponse.topic_seqs, merged.
+  std::map<std::string, uint64_t> accepted_seqs_ ABSL_GUARDED_BY(accepted_mutex_);
 
   const std::shared_ptr<ProgressSignal> progress_ = std::make_shared<ProgressSignal>();
-  mutable std::mutex subscriptions_mutex_;
-  std::vector<std::weak_ptr<Subscription::Impl>> subscriptions_;  // for delivered()
+  mutable absl::Mutex subscriptions_mutex_;
+  // For delivered().
+  std::vector<std::weak_ptr<Subscription::Impl>> subscriptions_
+      ABSL_GUARDED_BY(subscriptions_mutex_);
 };
 
 ChannelClient::ChannelClient(const std::string& address) : impl_(std::make_unique<Impl>(address)) {}

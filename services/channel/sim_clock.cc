@@ -58,7 +58,7 @@ TimePoint SimClock::lineAtLocked(std::chrono::steady_clock::time_point at) const
 }
 
 TimePoint SimClock::now() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (!valid_) return TimePoint{};
   floor_ = std::max(floor_, lineAtLocked(host_.steady()));
   return floor_;
@@ -68,7 +68,7 @@ std::chrono::nanoseconds SimClock::wallWaitFor(Duration remaining) const {
   if (remaining <= Duration::zero()) return std::chrono::nanoseconds::zero();
   double scale = 0;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     scale = paused_ ? 0.0 : time_scale_;
   }
   if (scale <= 0) return kMaxWallWait;  // lock-step: time moves only with samples
@@ -80,7 +80,7 @@ std::chrono::nanoseconds SimClock::wallWaitFor(Duration remaining) const {
 }
 
 bool SimClock::valid() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return valid_;
 }
 
@@ -101,7 +101,7 @@ void SimClock::onClockSample(const v1::Clock& sample) {
     }
   }
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!valid_ || sample.epoch() != epoch_) {
       floor_ = TimePoint{};  // time restarted
     } else {
@@ -126,28 +126,28 @@ void SimClock::onClockSample(const v1::Clock& sample) {
 }
 
 TimePoint SimClock::lastWallUpdate() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return last_wall_update_;
 }
 
 bool SimClock::stale(std::chrono::nanoseconds wall_limit) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (!valid_) return true;
   return host_.steady() - last_steady_update_ > wall_limit;
 }
 
 double SimClock::timeScale() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return time_scale_;
 }
 
 bool SimClock::paused() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return paused_;
 }
 
 uint64_t SimClock::sampleCount() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return samples_;
 }
 

@@ -7,7 +7,7 @@ compile_commands.json, so an access to a field marked ABSL_GUARDED_BY(mu)
 without holding mu fails the run. GCC builds everything else; this only
 checks. Exit code 0 when clean.
 
-  thread_safety_check.py --build-dir build [--jobs 2]
+  thread_safety_check.py --build-dir build [--jobs 2] [--only PREFIX ...]
 """
 
 import argparse
@@ -52,11 +52,14 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--build-dir", required=True)
     parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--only", nargs="*", default=[],
+                        help="check only the translation units under these repository paths")
     args = parser.parse_args()
     with open(os.path.join(args.build_dir, "compile_commands.json"), encoding="utf-8") as f:
         database = json.load(f)
     entries = [e for e in database
-               if os.path.relpath(e["file"], REPO).startswith(CHECKED)]
+               if os.path.relpath(e["file"], REPO).startswith(CHECKED)
+               and (not args.only or os.path.relpath(e["file"], REPO).startswith(tuple(args.only)))]
     if not entries:
         print("thread_safety_check: no translation unit to check (build first)", file=sys.stderr)
         return 2

@@ -67,13 +67,13 @@ BehaviorSystemService::~BehaviorSystemService() = default;
 void BehaviorSystemService::shutdownStreams() {
   // Reactors delete themselves only after removeStream(), which needs
   // streams_mutex_, so every stream in the set is alive while we hold it.
-  std::lock_guard lock(streams_mutex_);
+  absl::MutexLock lock(&streams_mutex_);
   shutting_down_ = true;
   for (auto* stream : streams_) stream->shutdown();
 }
 
 void BehaviorSystemService::removeStream(EventStreamReactor* stream) {
-  std::lock_guard lock(streams_mutex_);
+  absl::MutexLock lock(&streams_mutex_);
   streams_.erase(stream);
 }
 
@@ -132,7 +132,7 @@ grpc::ServerUnaryReactor* BehaviorSystemService::ListBehaviors(
 grpc::ServerWriteReactor<v1::WatchEventsResponse>* BehaviorSystemService::WatchEvents(
     grpc::CallbackServerContext* /*context*/, const v1::WatchEventsRequest* request) {
   auto* stream = new EventStreamReactor(this, *request);
-  std::lock_guard lock(streams_mutex_);
+  absl::MutexLock lock(&streams_mutex_);
   streams_.insert(stream);
   if (shutting_down_) stream->shutdown();
   return stream;

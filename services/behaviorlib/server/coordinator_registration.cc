@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cstdio>
 
+#include "absl/time/time.h"
 #include "behaviorlib/behavior_host.h"
 
 namespace behaviorlib::server {
@@ -52,12 +53,12 @@ void CoordinatorRegistration::start() {
 }
 
 bool CoordinatorRegistration::registered() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return registered_;
 }
 
 uint64_t CoordinatorRegistration::registrationCount() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return registrations_;
 }
 
@@ -66,8 +67,9 @@ void CoordinatorRegistration::log(const std::string& line) const {
 }
 
 void CoordinatorRegistration::waitFor(std::chrono::milliseconds duration) {
-  std::unique_lock lock(mutex_);
-  cv_.wait_for(lock, duration, [this] { return stopping_; });
+  absl::MutexLock lock(&mutex_);
+  // Until stopped, at most duration.
+  mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(duration));
 }
 
 template <class Request, class Response>
@@ -77,12 +79,12 @@ grpc::Status CoordinatorRegistration::call(
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + deadline);
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (stopping_) return grpc::Status(grpc::StatusCode::CANCELLED, "stopping");
     in_flight_ = &context;
   }
   const grpc::Status status = (stub_.get()->*method)(&context, request, response);
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   in_flight_ = nullptr;
   return status;
 }
@@ -96,7 +98,7 @@ void CoordinatorRegistration::run() {
   while (true) {
     bool registered = false;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (stopping_) return;
       registered = registered_;
     }
@@ -111,7 +113,7 @@ void CoordinatorRegistration::run() {
           call(&v1::Coordinator::Stub::RegisterSystem, request, &response, kRegisterDeadline);
       if (status.ok()) {
         {
-          std::lock_guard lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           registered_ = true;
           ++registrations_;
         }
@@ -162,7 +164,7 @@ void CoordinatorRegistration::run() {
     }
     if (!again.empty()) {
       log(again + "; registering again");
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       registered_ = false;
       backoff = kInitialBackoff;
     }
@@ -172,16 +174,16 @@ void CoordinatorRegistration::run() {
 void CoordinatorRegistration::stop(std::chrono::milliseconds timeout) {
   bool registered = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (stopped_) return;
     stopped_ = true;
     stopping_ = true;
     if (in_flight_ != nullptr) in_flight_->TryCancel();
   }
-  cv_.notify_all();
+  cv_.SignalAll();
   if (thread_.joinable()) thread_.join();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     registered = registered_;
     registered_ = false;
   }

@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <optional>
 
+#include "absl/time/time.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
@@ -41,7 +42,7 @@ TimeFollower::TimeFollower(const std::string& simulator_address, std::string par
 TimeFollower::~TimeFollower() { stop(); }
 
 void TimeFollower::start(std::function<bool(TimePoint)> caught_up, std::function<bool()> idle) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (thread_.joinable() || stopping_) return;
   caught_up_ = std::move(caught_up);
   idle_ = std::move(idle);
@@ -50,27 +51,38 @@ void TimeFollower::start(std::function<bool(TimePoint)> caught_up, std::function
 
 void TimeFollower::stop() {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopping_ = true;
     if (context_ != nullptr) context_->TryCancel();
   }
-  cv_.notify_all();
+  cv_.SignalAll();
   if (thread_.joinable()) thread_.join();
 }
 
 void TimeFollower::awaitTurn() {
-  std::unique_lock lock(mutex_);
-  const auto ready = [this] { return stopping_ || !streaming_ || awaited_; };
+  absl::MutexLock lock(&mutex_);
+  const auto ready = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return stopping_ || !streaming_ || awaited_;
+  };
   if (ready()) return;
   if (!wake_sent_ && send_wake_) {
     // The simulator may not be sending us grants (idle): ask for one.
     wake_sent_ = true;
     const std::function<void()> send = send_wake_;
-    lock.unlock();
+    mutex_.Unlock();
     send();
-    lock.lock();
+    mutex_.Lock();
   }
-  if (!cv_.wait_for(lock, kTurnLimit, ready) && !told_turn_timeout_) {
+  const auto deadline = std::chrono::steady_clock::now() + kTurnLimit;
+  bool turn = true;
+  while (!ready()) {
+    if (cv_.WaitWithTimeout(&mutex_,
+                            absl::FromChrono(deadline - std::chrono::steady_clock::now()))) {
+      turn = ready();
+      break;
+    }
+  }
+  if (!turn && !told_turn_timeout_) {
     told_turn_timeout_ = true;
     std::fprintf(stderr,
                  "%s: a command waited %lld ms for the simulator's next time grant; running it "
@@ -80,14 +92,16 @@ void TimeFollower::awaitTurn() {
 }
 
 bool TimeFollower::isStopping() {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return stopping_;
 }
 
 bool TimeFollower::awaitUntil(const std::function<bool()>& done) {
   while (!done()) {
-    std::unique_lock lock(mutex_);
-    if (cv_.wait_for(lock, kCatchUpPoll, [this] { return stopping_; })) return false;
+    absl::MutexLock lock(&mutex_);
+    // Until stopped, at most kCatchUpPoll.
+    mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(kCatchUpPoll));
+    if (stopping_) return false;
   }
   return true;
 }
@@ -101,29 +115,29 @@ void TimeFollower::run() {
   while (true) {
     grpc::ClientContext context;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (stopping_) return;
       context_ = &context;
     }
     auto stream = stub->FollowTime(&context);
     uint64_t generation = 0;
     {
-      std::lock_guard write_lock(write_mutex_);
+      absl::MutexLock write_lock(&write_mutex_);
       generation = ++open_stream_;
     }
     // Writes on this stream, one at a time (write_mutex_ held); none once it
     // is closed.
-    const auto write_locked = [this, generation,
-                               raw = stream.get()](const v1::FollowTimeRequest& m) {
+    const auto write_locked = [this, generation, raw = stream.get()](const v1::FollowTimeRequest& m)
+                                  ABSL_EXCLUSIVE_LOCKS_REQUIRED(write_mutex_) -> bool {
       return open_stream_ == generation && raw->Write(m);
     };
     const auto write = [this, write_locked](const v1::FollowTimeRequest& m) {
-      std::lock_guard write_lock(write_mutex_);
+      absl::MutexLock write_lock(&write_mutex_);
       return write_locked(m);
     };
     const auto set_streaming = [this, &write](bool streaming) {
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         streaming_ = streaming;
         awaited_ = false;
         wake_sent_ = false;
@@ -136,7 +150,7 @@ void TimeFollower::run() {
           };
         }
       }
-      cv_.notify_all();
+      cv_.SignalAll();
     };
     v1::FollowTimeRequest join;
     join.set_participant(participant_);
@@ -187,11 +201,11 @@ void TimeFollower::run() {
         {
           // "Awaited": the simulator waits for our report of this grant, and
           // the clock is current; a command held in awaitTurn() may run.
-          std::lock_guard lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           awaited_ = grant.awaited();
           wake_sent_ = false;
         }
-        cv_.notify_all();
+        cv_.SignalAll();
         const TimePoint granted = toTimePoint(grant.clock().time());
         if (!awaitUntil([&] { return caught_up_(granted); })) break;
         // What the behaviors published reaches the broker before the report,
@@ -218,9 +232,9 @@ void TimeFollower::run() {
           // that checks awaitTurn() after this sees awaited_ false and wakes
           // the simulator, its wake written after this report; one that
           // checked before has made idle_() false.
-          std::lock_guard write_lock(write_mutex_);
+          absl::MutexLock write_lock(&write_mutex_);
           {
-            std::lock_guard lock(mutex_);
+            absl::MutexLock lock(&mutex_);
             const bool idle = idle_();
             if (idle) awaited_ = false;
             report.set_idle(idle);
@@ -234,7 +248,7 @@ void TimeFollower::run() {
     set_streaming(false);
     {
       // No wake is written once this returns.
-      std::lock_guard write_lock(write_mutex_);
+      absl::MutexLock write_lock(&write_mutex_);
       ++open_stream_;
     }
     stream->WritesDone();
@@ -259,9 +273,11 @@ void TimeFollower::run() {
                    participant_.c_str(), status.error_message().c_str());
       told_refusal = true;
     }
-    std::unique_lock lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     context_ = nullptr;
-    if (cv_.wait_for(lock, backoff, [this] { return stopping_; })) return;
+    // Until stopped, at most backoff.
+    mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(backoff));
+    if (stopping_) return;
     backoff = std::min(backoff * 2, kMaxBackoff);
   }
 }

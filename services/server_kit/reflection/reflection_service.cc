@@ -9,11 +9,12 @@
 #include <cstdio>
 #include <deque>
 #include <map>
-#include <mutex>
 #include <set>
 #include <string_view>
 #include <utility>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/embedded_descriptors.h"
 #include "grpc/reflection/v1/reflection.grpc.pb.h"
 #include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
@@ -123,7 +124,7 @@ class DescriptorCatalog {
   // The file as stored in the database it was built from (so with
   // source_code_info when it comes from an embedded set), serialized.
   std::string serialized(const pb::FileDescriptor* file) const {
-    std::lock_guard<std::mutex> lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     auto it = serialized_.find(file->name());
     if (it != serialized_.end()) return it->second;
     pb::FileDescriptorProto proto;
@@ -143,8 +144,8 @@ class DescriptorCatalog {
   mutable pb::MergedDescriptorDatabase merged_db_;
   pb::DescriptorPool pool_;
   const std::vector<std::string> service_names_;
-  mutable std::mutex mutex_;
-  mutable std::map<std::string, std::string> serialized_;
+  mutable absl::Mutex mutex_;
+  mutable std::map<std::string, std::string> serialized_ ABSL_GUARDED_BY(mutex_);
 };
 
 template <typename Response>

@@ -28,9 +28,10 @@
 #include <chrono>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <string>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/clock.h"
 
 namespace behaviorlib::v1 {
@@ -99,24 +100,25 @@ class SimClock final : public behaviorlib::Clock {
 
  private:
   void subscribe(ChannelClient& client);
-  TimePoint lineAtLocked(std::chrono::steady_clock::time_point at) const;
+  TimePoint lineAtLocked(std::chrono::steady_clock::time_point at) const
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
 
   const HostClocks host_;
-  mutable std::mutex mutex_;
+  mutable absl::Mutex mutex_;
   // The line: anchor_time_ held at anchor_steady_, advancing time_scale_
   // (0 in lock-step or paused: standing).
-  TimePoint anchor_time_{};
-  std::chrono::steady_clock::time_point anchor_steady_{};
-  bool valid_ = false;
-  double time_scale_ = 0;
-  bool paused_ = false;
-  uint64_t epoch_ = 0;
-  uint64_t samples_ = 0;
+  TimePoint anchor_time_ ABSL_GUARDED_BY(mutex_) = {};
+  std::chrono::steady_clock::time_point anchor_steady_ ABSL_GUARDED_BY(mutex_) = {};
+  bool valid_ ABSL_GUARDED_BY(mutex_) = false;
+  double time_scale_ ABSL_GUARDED_BY(mutex_) = 0;
+  bool paused_ ABSL_GUARDED_BY(mutex_) = false;
+  uint64_t epoch_ ABSL_GUARDED_BY(mutex_) = 0;
+  uint64_t samples_ ABSL_GUARDED_BY(mutex_) = 0;
   // The latest reading: now() never returns less within an epoch.
-  mutable TimePoint floor_{};
-  TimePoint last_wall_update_{};
+  mutable TimePoint floor_ ABSL_GUARDED_BY(mutex_) = {};
+  TimePoint last_wall_update_ ABSL_GUARDED_BY(mutex_) = {};
   // Monotonic, so that staleness is immune to host clock jumps.
-  std::chrono::steady_clock::time_point last_steady_update_{};
+  std::chrono::steady_clock::time_point last_steady_update_ ABSL_GUARDED_BY(mutex_) = {};
 
   // Declared last: destroyed (stopping the reader thread that calls
   // onClockSample) before the state above.

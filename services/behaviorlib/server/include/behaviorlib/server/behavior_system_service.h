@@ -8,10 +8,11 @@
 #include <grpcpp/grpcpp.h>
 
 #include <map>
-#include <mutex>
 #include <set>
 #include <string>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/behavior_host.h"
 #include "behaviorlib/server/lifecycle_calls.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
@@ -72,9 +73,9 @@ class BehaviorSystemService final : public v1::BehaviorSystem::CallbackService {
   BehaviorHost& host_;
   const AcceptGate& gate_;
   std::map<std::string, std::string> typed_services_;
-  std::mutex streams_mutex_;
-  std::set<EventStreamReactor*> streams_;
-  bool shutting_down_ = false;
+  absl::Mutex streams_mutex_;
+  std::set<EventStreamReactor*> streams_ ABSL_GUARDED_BY(streams_mutex_);
+  bool shutting_down_ ABSL_GUARDED_BY(streams_mutex_) = false;
 };
 
 }  // namespace behaviorlib::server

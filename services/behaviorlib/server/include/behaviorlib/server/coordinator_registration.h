@@ -16,14 +16,14 @@
 #include <grpcpp/grpcpp.h>
 
 #include <chrono>
-#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <string>
 #include <thread>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 
 namespace behaviorlib {
@@ -82,13 +82,13 @@ class CoordinatorRegistration {
   std::unique_ptr<v1::Coordinator::Stub> stub_;
   std::thread thread_;
 
-  mutable std::mutex mutex_;
-  std::condition_variable cv_;
-  bool stopping_ = false;
-  bool stopped_ = false;
-  grpc::ClientContext* in_flight_ = nullptr;
-  bool registered_ = false;
-  uint64_t registrations_ = 0;
+  mutable absl::Mutex mutex_;
+  absl::CondVar cv_;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool stopped_ ABSL_GUARDED_BY(mutex_) = false;
+  grpc::ClientContext* in_flight_ ABSL_GUARDED_BY(mutex_) = nullptr;
+  bool registered_ ABSL_GUARDED_BY(mutex_) = false;
+  uint64_t registrations_ ABSL_GUARDED_BY(mutex_) = 0;
 };
 
 /// The "host:port" under which a server started with `--listen listen` and

@@ -39,13 +39,13 @@
 #include <grpcpp/grpcpp.h>
 
 #include <atomic>
-#include <condition_variable>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <string>
 #include <thread>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/clock.h"
 
 namespace behaviorlib::channel {
@@ -96,23 +96,23 @@ class TimeFollower {
   std::shared_ptr<grpc::Channel> channel_;
   std::atomic<uint64_t> reported_{0};
 
-  std::mutex mutex_;
-  std::condition_variable cv_;
-  grpc::ClientContext* context_ = nullptr;
-  bool stopping_ = false;
+  absl::Mutex mutex_;
+  absl::CondVar cv_;
+  grpc::ClientContext* context_ ABSL_GUARDED_BY(mutex_) = nullptr;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   // The gate (guarded by mutex_): a grant was applied on the current stream;
   // the applied grant was "awaited" and no idle report went since (the
   // simulator waits for us); a wake was sent since the last grant; how to
   // send one on the current stream.
-  bool streaming_ = false;
-  bool awaited_ = false;
-  bool wake_sent_ = false;
-  std::function<void()> send_wake_;
-  bool told_turn_timeout_ = false;
+  bool streaming_ ABSL_GUARDED_BY(mutex_) = false;
+  bool awaited_ ABSL_GUARDED_BY(mutex_) = false;
+  bool wake_sent_ ABSL_GUARDED_BY(mutex_) = false;
+  std::function<void()> send_wake_ ABSL_GUARDED_BY(mutex_);
+  bool told_turn_timeout_ ABSL_GUARDED_BY(mutex_) = false;
   // Serializes writes on the stream (reports from the thread, wakes from
   // awaitTurn); the stream generation whose writes are open.
-  std::mutex write_mutex_;
-  uint64_t open_stream_ = 0;
+  absl::Mutex write_mutex_;
+  uint64_t open_stream_ ABSL_GUARDED_BY(write_mutex_) = 0;
   std::thread thread_;
 };
 

@@ -89,7 +89,10 @@ import rpc  # noqa: E402
 from stack import Process, RestartPolicy, Stack, StartError, Supervisor  # noqa: E402
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
+# The coordinator's catalog and the simulator's sensor configurations; each
+# behavior system's configuration is in its own folder (SYSTEMS_DIR).
 CONFIG_DIR = os.path.join(REPO, "deploy", "config")
+SYSTEMS_DIR = os.path.join(REPO, "services", "systems")
 WORLDS_DIR = os.path.join(REPO, "simulator", "worlds")
 DEMO_MISSION = os.path.join(REPO, "deploy", "missions", "demo.yaml")
 # Measures how much of a world's free space a saved map covers
@@ -97,7 +100,7 @@ DEMO_MISSION = os.path.join(REPO, "deploy", "missions", "demo.yaml")
 MAP_COVERAGE = "bin/map_coverage"
 
 # The behavior systems, started in this order when their binary is built
-# (bin/<name>), each with deploy/config/<name>.yaml when present.
+# (bin/<name>), each with services/systems/<name>/config.yaml when present.
 BEHAVIOR_SYSTEMS = [
     "basic_quadrotor_behaviors",
     "quadrotor_motion_with_pid_control",
@@ -253,7 +256,7 @@ def start_stack(args, build_dir, stack):
 
     systems = []
     for name, path in binaries:
-        config = os.path.join(CONFIG_DIR, name + ".yaml")
+        config = os.path.join(SYSTEMS_DIR, name, "config.yaml")
         for robot in robots:
             argv = [path, *listen, "--robot-id", robot, "--channel", broker.address,
                     "--clock", "sim", "--flight-controller", simulator.address,

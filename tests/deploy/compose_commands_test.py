@@ -7,7 +7,7 @@ wrong value, a path missing from the image or a volume, or an address that
 does not name a service's port fails here.
 
 Translation from containers to this machine: each service gets a directory
-standing for its file system, with the image's directories (the
+standing for its file system, with the image's directories and files (the
 Dockerfile's install tree) and its volumes linked in; absolute container
 paths in a command point into it. Listen addresses become 127.0.0.1:0 (the
 port picked is read back), and `service:port` addresses become that
@@ -86,8 +86,10 @@ class ComposeCommandsTest(unittest.TestCase):
         directories and the service's volumes, linked in."""
         root = os.path.join(self.tmp, "containers", name)
         links = {}
+        files = {}
         if (spec.get("command") or [""])[0].startswith(ds.IMAGE_BIN + "/"):
             links.update(ds.image_directories())
+            files.update(ds.image_files())
         for volume in spec.get("volumes", []):
             source, target = volume.split(":")[:2]
             if source.startswith("."):
@@ -96,6 +98,19 @@ class ComposeCommandsTest(unittest.TestCase):
                 links[target] = os.path.join(self.tmp, "volumes", source)
                 os.makedirs(links[target], exist_ok=True)
         for target, source in links.items():
+            path = root + target
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            if any(f.startswith(target + "/") for f in files):
+                # A directory the image fills from several places (the
+                # behavior systems' configurations added to deploy/config):
+                # a real directory with each entry linked, never the
+                # repository's directory itself.
+                os.makedirs(path)
+                for entry in os.listdir(source):
+                    os.symlink(os.path.join(source, entry), os.path.join(path, entry))
+            else:
+                os.symlink(source, path)
+        for target, source in files.items():
             path = root + target
             os.makedirs(os.path.dirname(path), exist_ok=True)
             os.symlink(source, path)

@@ -73,10 +73,13 @@ class ComposeTest(unittest.TestCase):
                     for flag in ("--channel", "--flight-controller", "--coordinator",
                                  "--metrics-listen"):
                         self.assertTrue(ds.flag_value(command, flag), f"{name} lacks {flag}")
-                    config = os.path.join(ds.REPO, "deploy", "config", system + ".yaml")
+                    config = os.path.join(ds.REPO, "services", "systems", system,
+                                          "config.yaml")
                     if os.path.exists(config):
                         self.assertEqual(ds.flag_value(command, "--config"),
                                          f"/opt/behaviorlib/config/{system}.yaml")
+                        self.assertEqual(ds.image_files().get(
+                            f"/opt/behaviorlib/config/{system}.yaml"), config)
 
     def test_only_the_coordinator_prometheus_and_grafana_are_published(self):
         for label, project in self.projects().items():
@@ -240,6 +243,8 @@ class DockerfileTest(unittest.TestCase):
         image = ds.image_directories()
         self.assertEqual(set(image), {"/opt/behaviorlib/config", "/opt/behaviorlib/missions",
                                       "/opt/behaviorlib/worlds"})
+        files = ds.image_files()
+        self.assertIn("/opt/behaviorlib/config/basic_quadrotor_behaviors.yaml", files)
         project = ds.load_compose(ds.COMPOSE_FILE, ds.DRONE2_FILE)
         for name, service in behaviorlib_services(project).items():
             volumes = [ds._volume_target(v) for v in service.get("volumes", [])]
@@ -251,7 +256,10 @@ class DockerfileTest(unittest.TestCase):
                     in_image = [d for d in image if value.startswith(d + "/") or value == d]
                     in_volume = [v for v in volumes if value.startswith(v + "/") or value == v]
                     self.assertTrue(in_image or in_volume, f"{arg}: not in the image nor a volume")
-                    if in_image:
+                    if value in files:
+                        self.assertTrue(os.path.exists(files[value]),
+                                        f"{arg}: {files[value]} does not exist")
+                    elif in_image:
                         local = image[in_image[0]] + value[len(in_image[0]):]
                         self.assertTrue(os.path.exists(local), f"{arg}: {local} does not exist")
 

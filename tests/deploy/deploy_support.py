@@ -176,6 +176,27 @@ def image_directories():
             for src, dst in re.findall(r"cp -r (\S+) (/opt/behaviorlib/\S+)", text)}
 
 
+# How the Dockerfile puts each behavior system's configuration into the image.
+SYSTEM_CONFIG_COPY = 'cp "$dir/config.yaml" "/opt/behaviorlib/config/$name.yaml"'
+
+
+def image_files():
+    """{container file: repository file} of the files the Dockerfile copies
+    one by one into the image's directories: each behavior system's
+    services/systems/<name>/config.yaml as /opt/behaviorlib/config/<name>.yaml
+    ({} when the Dockerfile does not copy them)."""
+    with open(DOCKERFILE) as f:
+        if SYSTEM_CONFIG_COPY not in f.read():
+            return {}
+    systems_dir = os.path.join(REPO, "services", "systems")
+    files = {}
+    for name in sorted(os.listdir(systems_dir)):
+        config = os.path.join(systems_dir, name, "config.yaml")
+        if os.path.isfile(config):
+            files[f"/opt/behaviorlib/config/{name}.yaml"] = config
+    return files
+
+
 def build_binary(build_dir, name):
     return os.path.join(build_dir, "bin", name)
 

@@ -44,7 +44,7 @@ constexpr double kGraceS = 1.0;
 /// The coordinator's --hover-before-land-s.
 constexpr double kHoverBeforeLandS = 1.0;
 /// The coordinator's --critical-battery: above the behaviors' own limits (0.2
-/// to 0.3 in deploy/config), so that only the coordinator reacts.
+/// to 0.3 in the systems' config.yaml), so that only the coordinator reacts.
 constexpr double kCriticalBattery = 0.5;
 /// Who holds the lease while the coordinator's safety action commands.
 constexpr char kSafetyHolder[] = "drone1/coordinator-safety";

@@ -17,6 +17,7 @@ set(_exported
   behaviorlib_core:core
   behaviorlib_reflection_proto:reflection_proto
   behaviorlib_reflection:reflection
+  behaviorlib_flags:flags
   behaviorlib_server_runtime:server_runtime
   behaviorlib_channel_topic:channel_topic
   behaviorlib_channel_client:channel_client

@@ -71,7 +71,7 @@ absl::StatusOr<std::vector<std::string>> BeliefStore::bindingsIn(const std::stri
 }
 
 void BeliefStore::restore(const v1::Belief& belief) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   beliefs_[belief.key()] = belief;
   version_ = std::max(version_, belief.version());
 }
@@ -87,7 +87,7 @@ absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
   belief.set_writer(writer);
   *belief.mutable_update_time() = google::protobuf::util::TimeUtil::GetCurrentTime();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     belief.set_version(version_ + 1);
     if (journal_ != nullptr) {
       v1::JournalRecord record;
@@ -97,7 +97,7 @@ absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
     version_ = belief.version();
     beliefs_[key] = belief;
   }
-  changed_.notify_all();
+  changed_.SignalAll();
   return belief;
 }
 
@@ -119,7 +119,7 @@ absl::StatusOr<v1::Belief> BeliefStore::writeMessage(const std::string& key,
 
 absl::Status BeliefStore::erase(const std::string& key, const std::string& writer) {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     auto it = beliefs_.find(key);
     if (it == beliefs_.end() || it->second.deleted()) {
       return absl::NotFoundError("no belief '" + key + "' in memory");
@@ -138,19 +138,19 @@ absl::Status BeliefStore::erase(const std::string& key, const std::string& write
     version_ = tombstone.version();
     it->second = tombstone;
   }
-  changed_.notify_all();
+  changed_.SignalAll();
   return absl::OkStatus();
 }
 
 std::optional<v1::Belief> BeliefStore::get(const std::string& key) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   auto it = beliefs_.find(key);
   if (it == beliefs_.end() || it->second.deleted()) return std::nullopt;
   return it->second;
 }
 
 std::vector<v1::Belief> BeliefStore::list(const std::string& prefix) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   std::vector<v1::Belief> out;
   for (auto it = beliefs_.lower_bound(prefix); it != beliefs_.end(); ++it) {
     if (it->first.compare(0, prefix.size(), prefix) != 0) break;
@@ -160,15 +160,15 @@ std::vector<v1::Belief> BeliefStore::list(const std::string& prefix) const {
 }
 
 uint64_t BeliefStore::version() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return version_;
 }
 
 std::vector<v1::Belief> BeliefStore::waitForChanges(uint64_t since_version,
                                                     const std::string& prefix,
                                                     std::chrono::milliseconds timeout) const {
-  std::unique_lock lock(mutex_);
-  auto collect = [&] {
+  absl::MutexLock lock(&mutex_);
+  auto collect = [&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
     std::vector<v1::Belief> out;
     for (const auto& [key, belief] : beliefs_) {
       if (belief.version() > since_version && key.compare(0, prefix.size(), prefix) == 0) {
@@ -182,7 +182,9 @@ std::vector<v1::Belief> BeliefStore::waitForChanges(uint64_t since_version,
   std::vector<v1::Belief> out = collect();
   const auto deadline = std::chrono::steady_clock::now() + timeout;
   while (out.empty() && !woken_) {
-    if (changed_.wait_until(lock, deadline) == std::cv_status::timeout) break;
+    changed_.WaitWithTimeout(&mutex_,
+                             absl::FromChrono(deadline - std::chrono::steady_clock::now()));
+    if (std::chrono::steady_clock::now() >= deadline) break;  // as wait_until's timeout
     out = collect();
   }
   return out;
@@ -190,10 +192,10 @@ std::vector<v1::Belief> BeliefStore::waitForChanges(uint64_t since_version,
 
 void BeliefStore::wakeAll() {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     woken_ = true;
   }
-  changed_.notify_all();
+  changed_.SignalAll();
 }
 
 absl::StatusOr<google::protobuf::Value> BeliefStore::resolveValue(
@@ -204,8 +206,9 @@ absl::StatusOr<google::protobuf::Value> BeliefStore::resolveValue(
     auto keys = bindingsIn(text);
     if (!keys.ok()) return keys.status();
     if (keys->empty()) return out;
-    std::lock_guard lock(mutex_);
-    auto lookup = [&](const std::string& key) -> absl::StatusOr<google::protobuf::Value> {
+    absl::MutexLock lock(&mutex_);
+    auto lookup = [&](const std::string& key) ABSL_EXCLUSIVE_LOCKS_REQUIRED(
+                      mutex_) -> absl::StatusOr<google::protobuf::Value> {
       auto it = beliefs_.find(key);
       if (it == beliefs_.end() || it->second.deleted()) {
         return absl::FailedPreconditionError("belief '" + key + "' is not in memory (bound by '" +
@@ -251,7 +254,7 @@ absl::StatusOr<google::protobuf::Struct> BeliefStore::resolve(
 }
 
 std::vector<v1::Belief> BeliefStore::snapshot() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   std::vector<v1::Belief> out;
   for (const auto& [key, belief] : beliefs_) out.push_back(belief);
   return out;

@@ -18,14 +18,14 @@
 #include <google/protobuf/struct.pb.h>
 
 #include <chrono>
-#include <condition_variable>
 #include <map>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/mission.pb.h"
 
 namespace behaviorlib::coordinator {
@@ -83,11 +83,11 @@ class BeliefStore {
   absl::StatusOr<google::protobuf::Value> resolveValue(const google::protobuf::Value& value) const;
 
   Journal* journal_;
-  mutable std::mutex mutex_;
-  mutable std::condition_variable changed_;
-  std::map<std::string, v1::Belief> beliefs_;  // tombstones included
-  uint64_t version_ = 0;
-  bool woken_ = false;
+  mutable absl::Mutex mutex_;
+  mutable absl::CondVar changed_;
+  std::map<std::string, v1::Belief> beliefs_ ABSL_GUARDED_BY(mutex_);  // tombstones included
+  uint64_t version_ ABSL_GUARDED_BY(mutex_) = 0;
+  bool woken_ ABSL_GUARDED_BY(mutex_) = false;
 };
 
 }  // namespace behaviorlib::coordinator

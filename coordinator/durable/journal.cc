@@ -47,7 +47,7 @@ absl::Status errnoError(const std::string& what, const std::string& path) {
 }  // namespace
 
 Journal::Journal(std::string path, int fd, JournalOptions options)
-    : path_(std::move(path)), fd_(fd), options_(options) {}
+    : path_(std::move(path)), options_(options), fd_(fd) {}
 
 Journal::~Journal() {
   if (fd_ >= 0) ::close(fd_);
@@ -68,6 +68,7 @@ absl::StatusOr<std::unique_ptr<Journal>> Journal::open(const std::string& path,
     content.append(buffer, static_cast<size_t>(n));
   }
   size_t offset = 0;
+  uint64_t records = 0;
   while (content.size() - offset >= 8) {
     const uint32_t length = getU32(content.data() + offset);
     const uint32_t crc = getU32(content.data() + offset + 4);
@@ -77,7 +78,7 @@ absl::StatusOr<std::unique_ptr<Journal>> Journal::open(const std::string& path,
     if (crcOf(payload) != crc || !record.ParseFromString(payload)) break;
     replay(record);
     offset += 8 + length;
-    ++journal->records_;
+    ++records;
   }
   if (offset < content.size()) {
     journal->truncated_bytes_ = content.size() - offset;
@@ -88,7 +89,12 @@ absl::StatusOr<std::unique_ptr<Journal>> Journal::open(const std::string& path,
   if (::lseek(fd, static_cast<off_t>(offset), SEEK_SET) < 0) {
     return errnoError("cannot seek in the journal", path);
   }
-  journal->size_ = offset;
+  {
+    // Not shared yet: the lock only tells the thread-safety analysis so.
+    absl::MutexLock lock(&journal->mutex_);
+    journal->records_ = records;
+    journal->size_ = offset;
+  }
   return journal;
 }
 
@@ -107,7 +113,7 @@ absl::Status Journal::writeAll(int fd, const std::string& bytes) {
 
 absl::Status Journal::append(const v1::JournalRecord& record) {
   const std::string bytes = frame(record);
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (absl::Status s = writeAll(fd_, bytes); !s.ok()) {
     // Do not leave a partial record in front of the next one.
     if (::ftruncate(fd_, static_cast<off_t>(size_)) == 0)
@@ -125,7 +131,7 @@ absl::Status Journal::append(const v1::JournalRecord& record) {
 absl::Status Journal::compact(const std::vector<v1::JournalRecord>& snapshot) {
   std::string bytes;
   for (const auto& record : snapshot) bytes += frame(record);
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   const std::string tmp = path_ + ".compact";
   const int fd = ::open(tmp.c_str(), O_RDWR | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
   if (fd < 0) return errnoError("cannot create", tmp);
@@ -149,12 +155,12 @@ absl::Status Journal::compact(const std::vector<v1::JournalRecord>& snapshot) {
 }
 
 uint64_t Journal::recordCount() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return records_;
 }
 
 uint64_t Journal::sizeBytes() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return size_;
 }
 

@@ -21,11 +21,12 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <string>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/mission.pb.h"
 
 namespace behaviorlib::coordinator {
@@ -64,11 +65,12 @@ class Journal {
   absl::Status writeAll(int fd, const std::string& bytes);
 
   std::string path_;
-  int fd_ = -1;
   JournalOptions options_;
-  mutable std::mutex mutex_;
-  uint64_t records_ = 0;
-  uint64_t size_ = 0;
+  mutable absl::Mutex mutex_;
+  int fd_ ABSL_GUARDED_BY(mutex_) = -1;
+  uint64_t records_ ABSL_GUARDED_BY(mutex_) = 0;
+  uint64_t size_ ABSL_GUARDED_BY(mutex_) = 0;
+  // Written by open() only, before the journal is shared.
   uint64_t truncated_bytes_ = 0;
 };
 

@@ -58,10 +58,10 @@ MissionRunner::MissionRunner(MissionSpec spec, const v1::MissionStatus& status,
 
 MissionRunner::~MissionRunner() {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     quit_ = true;
   }
-  cv_.notify_all();
+  cv_.SignalAll();
   if (thread_.joinable()) thread_.join();
 }
 
@@ -70,7 +70,7 @@ void MissionRunner::start() {
 }
 
 absl::Status MissionRunner::pause() {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (done_ || status_.state() != v1::MISSION_STATE_RUNNING || status_.in_safety_steps()) {
     return absl::FailedPreconditionError("mission '" + status_.mission_id() + "' is " +
                                          v1::MissionState_Name(status_.state()) +
@@ -80,22 +80,22 @@ absl::Status MissionRunner::pause() {
     return absl::FailedPreconditionError("mission '" + status_.mission_id() +
                                          "' is already pausing");
   pause_requested_ = true;
-  cv_.notify_all();
+  cv_.SignalAll();
   return absl::OkStatus();
 }
 
 absl::Status MissionRunner::resume() {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (done_ || !pause_requested_) {
     return absl::FailedPreconditionError("mission '" + status_.mission_id() + "' is not paused");
   }
   pause_requested_ = false;
-  cv_.notify_all();
+  cv_.SignalAll();
   return absl::OkStatus();
 }
 
 absl::Status MissionRunner::abort(const std::string& reason, bool run_safety) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (done_ || status_.state() == v1::MISSION_STATE_FAILED ||
       status_.state() == v1::MISSION_STATE_ABORTED) {
     return absl::FailedPreconditionError("mission '" + status_.mission_id() + "' already ended (" +
@@ -104,39 +104,39 @@ absl::Status MissionRunner::abort(const std::string& reason, bool run_safety) {
   abort_requested_ = true;
   abort_reason_ = reason.empty() ? "aborted by request" : reason;
   if (!run_safety) skip_safety_ = true;
-  cv_.notify_all();
+  cv_.SignalAll();
   return absl::OkStatus();
 }
 
 v1::MissionStatus MissionRunner::status() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return status_;
 }
 
 bool MissionRunner::finished() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return done_;
 }
 
 bool MissionRunner::waitFinished(std::chrono::milliseconds timeout) const {
-  std::unique_lock lock(mutex_);
-  return cv_.wait_for(lock, timeout, [this] { return done_; });
+  absl::MutexLock lock(&mutex_);
+  return mutex_.AwaitWithTimeout(absl::Condition(&done_), absl::FromChrono(timeout));
 }
 
 void MissionRunner::publish() {
   v1::MissionStatus copy;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     copy = status_;
   }
   if (on_change_) on_change_(copy);
-  cv_.notify_all();
+  cv_.SignalAll();
 }
 
 int MissionRunner::addRecord(v1::MissionStepRecord record) {
   int index = 0;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     *status_.add_steps() = std::move(record);
     index = status_.steps_size() - 1;
   }
@@ -147,7 +147,7 @@ int MissionRunner::addRecord(v1::MissionStepRecord record) {
 void MissionRunner::updateRecord(int index,
                                  const std::function<void(v1::MissionStepRecord&)>& change) {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     change(*status_.mutable_steps(index));
   }
   publish();
@@ -155,7 +155,7 @@ void MissionRunner::updateRecord(int index,
 
 void MissionRunner::setState(v1::MissionState state, const std::string& message) {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     status_.set_state(state);
     if (!message.empty()) status_.set_message(message);
   }
@@ -208,7 +208,7 @@ void MissionRunner::run() {
       deactivateRecurrent();
       {
         // One step: a waiter that sees done_ sees the final state too.
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         *status_.mutable_end_time() = TimeUtil::GetCurrentTime();
         status_.set_state(v1::MISSION_STATE_SUCCEEDED);
         done_ = true;
@@ -217,11 +217,11 @@ void MissionRunner::run() {
       return;
     case Flow::kAbortRequested:
       if (failure_.empty()) {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         failure_ = abort_reason_;
       }
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         status_.set_state(v1::MISSION_STATE_ABORTED);
       }
       runSafety();
@@ -239,7 +239,7 @@ void MissionRunner::runSafety() {
   // What the safety steps did (or that they were skipped), after the failure.
   std::string notes;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (status_.state() != v1::MISSION_STATE_ABORTED) status_.set_state(v1::MISSION_STATE_FAILED);
     status_.set_in_safety_steps(true);
     skip = skip_safety_;
@@ -265,7 +265,7 @@ void MissionRunner::runSafety() {
     }
     for (;;) {
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         if (quit_) return;  // resumed by the next coordinator
       }
       auto finished = actions_.awaitFinished(robot, *activation, kPoll);
@@ -279,7 +279,7 @@ void MissionRunner::runSafety() {
   }
   deactivateRecurrent();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     status_.set_in_safety_steps(false);
     status_.set_message(failure_ + notes);
     *status_.mutable_end_time() = TimeUtil::GetCurrentTime();
@@ -351,22 +351,27 @@ const MissionAction* MissionRunner::actionFor(const MissionStep& step,
 }
 
 MissionRunner::Flow MissionRunner::waitWhilePaused() {
-  std::unique_lock lock(mutex_);
+  mutex_.Lock();
   if (pause_requested_ && status_.state() == v1::MISSION_STATE_RUNNING) {
     status_.set_state(v1::MISSION_STATE_PAUSED);
-    lock.unlock();
+    mutex_.Unlock();
     publish();
-    lock.lock();
+    mutex_.Lock();
   }
-  cv_.wait(lock, [this] { return quit_ || abort_requested_ || !pause_requested_; });
-  if (quit_) return Flow::kQuit;
-  if (abort_requested_) return Flow::kAbortRequested;
-  if (status_.state() == v1::MISSION_STATE_PAUSED) {
+  while (!quit_ && !abort_requested_ && pause_requested_) cv_.Wait(&mutex_);
+  Flow flow = Flow::kDone;
+  bool resumed = false;
+  if (quit_) {
+    flow = Flow::kQuit;
+  } else if (abort_requested_) {
+    flow = Flow::kAbortRequested;
+  } else if (status_.state() == v1::MISSION_STATE_PAUSED) {
     status_.set_state(v1::MISSION_STATE_RUNNING);
-    lock.unlock();
-    publish();
+    resumed = true;
   }
-  return Flow::kDone;
+  mutex_.Unlock();
+  if (resumed) publish();
+  return flow;
 }
 
 MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
@@ -377,7 +382,7 @@ MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
   for (;;) {
     bool quit, abort, pause;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       quit = quit_;
       abort = abort_requested_;
       pause = pause_requested_;
@@ -392,7 +397,7 @@ MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
           pause ? actions_.pause(robot, step.behavior) : actions_.resume(robot, step.behavior);
       paused_behavior = pause;
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         status_.set_state(pause ? v1::MISSION_STATE_PAUSED : v1::MISSION_STATE_RUNNING);
         if (!s.ok())
           status_.set_message(std::string(pause ? "pausing " : "resuming ") + step.behavior + ": " +
@@ -480,7 +485,7 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
       finished.cause = recorded->cause();
     } else {
       if (reuse) {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         for (int i = status_.steps_size() - 1; i >= 0; --i) {
           if (status_.steps(i).request_id() == request_id) {
             index = i;
@@ -533,7 +538,7 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
         // step's own outcome; the record keeps the real cause.
         bool aborting = false;
         {
-          std::lock_guard lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           aborting = abort_requested_;
         }
         if (aborting) return Flow::kAbortRequested;

@@ -23,16 +23,16 @@
 
 #include <atomic>
 #include <chrono>
-#include <condition_variable>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/mission/mission_file.h"
@@ -131,12 +131,16 @@ class MissionRunner {
   BeliefStore& beliefs_;
   OnChange on_change_;
 
-  mutable std::mutex mutex_;
-  mutable std::condition_variable cv_;
-  v1::MissionStatus status_;
-  bool quit_ = false, abort_requested_ = false, pause_requested_ = false, done_ = false;
-  bool skip_safety_ = false;
-  std::string abort_reason_;
+  mutable absl::Mutex mutex_;
+  mutable absl::CondVar cv_;
+  v1::MissionStatus status_ ABSL_GUARDED_BY(mutex_);
+  bool quit_ ABSL_GUARDED_BY(mutex_) = false;
+  bool abort_requested_ ABSL_GUARDED_BY(mutex_) = false;
+  bool pause_requested_ ABSL_GUARDED_BY(mutex_) = false;
+  bool done_ ABSL_GUARDED_BY(mutex_) = false;
+  bool skip_safety_ ABSL_GUARDED_BY(mutex_) = false;
+  std::string abort_reason_ ABSL_GUARDED_BY(mutex_);
+  // The runner thread's own (not guarded):
   std::string failure_;  // why the mission is failing (set before the safety steps)
   std::vector<std::pair<std::string, std::string>> recurrent_;  // behavior, activation id
   std::vector<v1::MissionStepRecord> resume_from_;              // history when resuming

@@ -4,9 +4,12 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <map>
+#include <sstream>
 
 #include "absl/status/status.h"
 #include "behaviorlib/server_kit/server_runtime.h"
@@ -29,7 +32,80 @@ std::chrono::milliseconds millis(D d) {
   return std::chrono::duration_cast<std::chrono::milliseconds>(d);
 }
 
+double secondsOf(std::chrono::nanoseconds d) { return std::chrono::duration<double>(d).count(); }
+
+// "a,b,,c" -> {"a", "b", "c"}.
+std::vector<std::string> splitList(const std::string& text) {
+  std::vector<std::string> out;
+  size_t start = 0;
+  while (start <= text.size()) {
+    const size_t comma = std::min(text.find(',', start), text.size());
+    if (comma > start) out.push_back(text.substr(start, comma - start));
+    start = comma + 1;
+  }
+  return out;
+}
+
 }  // namespace
+
+absl::Status CoordinatorOptions::validate() const {
+  struct Range {
+    const char* flag;
+    double value, min, max;
+  };
+  const Range ranges[] = {
+      {"--critical-battery", critical_battery, 0, 1},
+      {"--hover-before-land-s", secondsOf(hover_before_land), 0, 60},
+      {"--workers", static_cast<double>(workers), 1, 64},
+      {"--resume-wait-s", secondsOf(resume_wait), 0, 3600},
+      {"--grace-period-s", secondsOf(grace_period), 0.05, 600},
+      {"--heartbeat-interval-s", secondsOf(heartbeat_interval), 0.05, 600},
+      {"--event-buffer", static_cast<double>(event_buffer), 1, 10000000},
+  };
+  for (const Range& r : ranges) {
+    if (!(r.value >= r.min && r.value <= r.max)) {
+      std::ostringstream out;
+      out << r.flag << " must be within [" << r.min << ", " << r.max << "], got " << r.value;
+      return absl::InvalidArgumentError(out.str());
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::StatusOr<std::vector<std::pair<std::string, std::string>>> parseFlightControllers(
+    const std::string& text) {
+  std::vector<std::pair<std::string, std::string>> out;
+  for (const std::string& item : splitList(text)) {
+    const auto eq = item.find('=');
+    if (eq == std::string::npos || eq == 0 || eq + 1 == item.size()) {
+      return absl::InvalidArgumentError("--flight-controller: '" + item +
+                                        "' is not robot=host:port (e.g. drone1=127.0.0.1:50070)");
+    }
+    out.emplace_back(item.substr(0, eq), item.substr(eq + 1));
+  }
+  return out;
+}
+
+absl::StatusOr<std::optional<Geofence>> parseGeofence(const std::string& text) {
+  if (text.empty()) return std::optional<Geofence>();
+  const std::vector<std::string> parts = splitList(text);
+  Geofence fence;
+  bool ok = parts.size() == 6;
+  for (size_t i = 0; ok && i < 6; ++i) {
+    char* end = nullptr;
+    const double v = std::strtod(parts[i].c_str(), &end);
+    ok = end != parts[i].c_str() && *end == '\0' && std::isfinite(v);
+    (i < 3 ? fence.min_m[i] : fence.max_m[i - 3]) = v;
+  }
+  for (size_t i = 0; ok && i < 3; ++i) ok = fence.min_m[i] < fence.max_m[i];
+  if (!ok) {
+    return absl::InvalidArgumentError(
+        "--geofence: expected min_x,min_y,min_z,max_x,max_y,max_z in metres with each min "
+        "below its max, got '" +
+        text + "'");
+  }
+  return std::optional<Geofence>(fence);
+}
 
 // Declared in construction order: destroyed in reverse, after shutdown().
 struct Coordinator::Parts {
@@ -51,6 +127,7 @@ struct Coordinator::Parts {
 };
 
 absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptions options) {
+  if (absl::Status s = options.validate(); !s.ok()) return s;
   auto p = std::make_unique<Parts>();
   std::string error;
   if (!p->runtime.startMetrics(options.metrics_listen, &error)) {

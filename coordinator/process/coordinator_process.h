@@ -21,6 +21,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "coordinator/catalog/catalog.h"
 #include "coordinator/service/mission_manager.h"
@@ -64,13 +65,23 @@ struct CoordinatorOptions {
   /// After a restart, how long a journaled mission waits for its robot's
   /// systems before it is marked FAILED.
   std::chrono::nanoseconds resume_wait = std::chrono::seconds(60);
+
+  /// INVALID_ARGUMENT naming the flag of the first setting out of its range.
+  absl::Status validate() const;
 };
+
+/// --flight-controller: "robot=host:port[,robot=host:port...]".
+absl::StatusOr<std::vector<std::pair<std::string, std::string>>> parseFlightControllers(
+    const std::string& text);
+/// --geofence: "min_x,min_y,min_z,max_x,max_y,max_z" in metres, each min
+/// below its max; empty: none.
+absl::StatusOr<std::optional<Geofence>> parseGeofence(const std::string& text);
 
 class Coordinator {
  public:
-  /// Opens and compacts the journal (INVALID_ARGUMENT naming it when it
-  /// cannot), restores beliefs, missions and registrations, binds the ports
-  /// (UNAVAILABLE when it cannot) and serves.
+  /// Validates the options (INVALID_ARGUMENT), opens and compacts the
+  /// journal (INVALID_ARGUMENT naming it when it cannot), restores beliefs, missions and
+  /// registrations, binds the ports (UNAVAILABLE when it cannot) and serves.
   static absl::StatusOr<std::unique_ptr<Coordinator>> start(CoordinatorOptions options);
   /// shutdown(), if not done yet.
   ~Coordinator();

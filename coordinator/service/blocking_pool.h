@@ -8,12 +8,13 @@
 //   pool.post([reactor] { ...; reactor->Finish(status); });
 //   pool.stop();   // runs what is queued, then joins
 
-#include <condition_variable>
 #include <deque>
 #include <functional>
-#include <mutex>
 #include <thread>
 #include <vector>
+
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 
 namespace behaviorlib::coordinator {
 
@@ -29,21 +30,21 @@ class BlockingPool {
   /// Queues `task`; false after stop() (the task is not run).
   bool post(std::function<void()> task) {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (stopping_) return false;
       tasks_.push_back(std::move(task));
     }
-    cv_.notify_one();
+    cv_.Signal();
     return true;
   }
 
   /// Refuses new tasks, runs the queued ones, joins the threads.
   void stop() {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       stopping_ = true;
     }
-    cv_.notify_all();
+    cv_.SignalAll();
     for (auto& t : threads_) {
       if (t.joinable()) t.join();
     }
@@ -54,8 +55,8 @@ class BlockingPool {
     for (;;) {
       std::function<void()> task;
       {
-        std::unique_lock lock(mutex_);
-        cv_.wait(lock, [&] { return stopping_ || !tasks_.empty(); });
+        absl::MutexLock lock(&mutex_);
+        while (!stopping_ && tasks_.empty()) cv_.Wait(&mutex_);
         if (tasks_.empty()) return;
         task = std::move(tasks_.front());
         tasks_.pop_front();
@@ -64,10 +65,10 @@ class BlockingPool {
     }
   }
 
-  std::mutex mutex_;
-  std::condition_variable cv_;
-  std::deque<std::function<void()>> tasks_;
-  bool stopping_ = false;
+  absl::Mutex mutex_;
+  absl::CondVar cv_;
+  std::deque<std::function<void()>> tasks_ ABSL_GUARDED_BY(mutex_);
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   std::vector<std::thread> threads_;
 };
 

@@ -177,7 +177,7 @@ void CoordinatorService::shutdownStreams() {
   // streams_mutex_, so every stream in the set is alive while we hold it.
   std::map<uint64_t, std::function<void()>> hooks;
   {
-    std::lock_guard lock(streams_mutex_);
+    absl::MutexLock lock(&streams_mutex_);
     shutting_down_ = true;
     for (auto* stream : streams_) stream->shutdown();
     hooks.swap(shutdown_hooks_);
@@ -186,24 +186,24 @@ void CoordinatorService::shutdownStreams() {
 }
 
 uint64_t CoordinatorService::newHookId() {
-  std::lock_guard lock(streams_mutex_);
+  absl::MutexLock lock(&streams_mutex_);
   return next_hook_++;
 }
 
 bool CoordinatorService::addShutdownHook(uint64_t id, std::function<void()> hook) {
-  std::lock_guard lock(streams_mutex_);
+  absl::MutexLock lock(&streams_mutex_);
   if (shutting_down_) return false;
   shutdown_hooks_[id] = std::move(hook);
   return true;
 }
 
 void CoordinatorService::removeShutdownHook(uint64_t id) {
-  std::lock_guard lock(streams_mutex_);
+  absl::MutexLock lock(&streams_mutex_);
   shutdown_hooks_.erase(id);
 }
 
 void CoordinatorService::removeStream(FleetStreamReactor* stream) {
-  std::lock_guard lock(streams_mutex_);
+  absl::MutexLock lock(&streams_mutex_);
   streams_.erase(stream);
 }
 
@@ -327,7 +327,7 @@ grpc::ServerWriteReactor<grpc::ByteBuffer>* CoordinatorService::WatchEvents(
         "WatchEvents: the request is not a WatchFleetEventsRequest: " + parsed.error_message()));
   }
   auto* stream = new FleetStreamReactor(this, request);
-  std::lock_guard lock(streams_mutex_);
+  absl::MutexLock lock(&streams_mutex_);
   streams_.insert(stream);
   if (shutting_down_) stream->shutdown();
   return stream;

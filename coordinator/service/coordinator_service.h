@@ -17,9 +17,10 @@
 #include <chrono>
 #include <functional>
 #include <map>
-#include <mutex>
 #include <set>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "coordinator/service/coordinator_metrics.h"
 #include "coordinator/service/fleet_event_log.h"
@@ -155,11 +156,11 @@ class CoordinatorService final
   FleetEventLog& log_;
   CoordinatorMetrics& metrics_;
   const CoordinatorServiceOptions options_;
-  std::mutex streams_mutex_;
-  std::set<FleetStreamReactor*> streams_;
-  bool shutting_down_ = false;
-  uint64_t next_hook_ = 1;
-  std::map<uint64_t, std::function<void()>> shutdown_hooks_;
+  absl::Mutex streams_mutex_;
+  std::set<FleetStreamReactor*> streams_ ABSL_GUARDED_BY(streams_mutex_);
+  bool shutting_down_ ABSL_GUARDED_BY(streams_mutex_) = false;
+  uint64_t next_hook_ ABSL_GUARDED_BY(streams_mutex_) = 1;
+  std::map<uint64_t, std::function<void()>> shutdown_hooks_ ABSL_GUARDED_BY(streams_mutex_);
 };
 
 }  // namespace behaviorlib::coordinator

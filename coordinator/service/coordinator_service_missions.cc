@@ -6,6 +6,8 @@
 #include <thread>
 #include <utility>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/server_kit/status.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/blocking_pool.h"
@@ -42,8 +44,8 @@ template <class Response>
 class QueuedStream : public grpc::ServerWriteReactor<Response> {
  public:
   struct Core {
-    std::mutex mutex;
-    QueuedStream* stream = nullptr;  // null once the call is done
+    absl::Mutex mutex;
+    QueuedStream* stream ABSL_GUARDED_BY(mutex) = nullptr;  // null once the call is done
   };
 
   QueuedStream() : core_(std::make_shared<Core>()) { core_->stream = this; }
@@ -52,22 +54,26 @@ class QueuedStream : public grpc::ServerWriteReactor<Response> {
 
   /// Queues `message`; with `last`, finishes OK after it. Call with
   /// core()->mutex held and core()->stream non-null.
-  void pushLocked(Response message, bool last) {
+  void pushLocked(Response message, bool last) ABSL_EXCLUSIVE_LOCKS_REQUIRED(core_->mutex) {
     if (ending_) return;
     queue_.push_back(std::move(message));
     if (last) end_status_ = grpc::Status::OK, ending_ = true;
     if (!writing_) writeNextLocked();
   }
   /// Finishes with `status` once the queue is written (core mutex held).
-  void endLocked(const grpc::Status& status) {
+  void endLocked(const grpc::Status& status) ABSL_EXCLUSIVE_LOCKS_REQUIRED(core_->mutex) {
     if (ending_) return;
     ending_ = true;
     end_status_ = status;
     if (!writing_) writeNextLocked();
   }
+  /// For a producer that holds core()->mutex and reached this stream through
+  /// core()->stream: tells the thread-safety analysis, which cannot see that
+  /// it is this stream's core mutex, that it is held (and checks it).
+  void assertLocked() const ABSL_ASSERT_EXCLUSIVE_LOCK(core_->mutex) { core_->mutex.AssertHeld(); }
 
   void OnWriteDone(bool ok) override {
-    std::lock_guard lock(core_->mutex);
+    absl::MutexLock lock(&core_->mutex);
     writing_ = false;
     if (!ok) {
       finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "stream broken"));
@@ -76,13 +82,13 @@ class QueuedStream : public grpc::ServerWriteReactor<Response> {
     writeNextLocked();
   }
   void OnCancel() override {
-    std::lock_guard lock(core_->mutex);
+    absl::MutexLock lock(&core_->mutex);
     cancelled_ = true;
     if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
   }
   void OnDone() override {
     {
-      std::lock_guard lock(core_->mutex);
+      absl::MutexLock lock(&core_->mutex);
       core_->stream = nullptr;
     }
     onDone();
@@ -93,7 +99,7 @@ class QueuedStream : public grpc::ServerWriteReactor<Response> {
   virtual void onDone() {}
 
  private:
-  void writeNextLocked() {
+  void writeNextLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(core_->mutex) {
     if (finished_) return;
     if (cancelled_) {
       finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
@@ -108,17 +114,20 @@ class QueuedStream : public grpc::ServerWriteReactor<Response> {
     }
     if (ending_) finishLocked(end_status_);
   }
-  void finishLocked(const grpc::Status& status) {
+  void finishLocked(const grpc::Status& status) ABSL_EXCLUSIVE_LOCKS_REQUIRED(core_->mutex) {
     if (finished_) return;
     finished_ = true;
     this->Finish(status);
   }
 
   std::shared_ptr<Core> core_;
-  std::deque<Response> queue_;
-  Response current_;
-  bool writing_ = false, finished_ = false, cancelled_ = false, ending_ = false;
-  grpc::Status end_status_;
+  std::deque<Response> queue_ ABSL_GUARDED_BY(core_->mutex);
+  Response current_ ABSL_GUARDED_BY(core_->mutex);
+  bool writing_ ABSL_GUARDED_BY(core_->mutex) = false;
+  bool finished_ ABSL_GUARDED_BY(core_->mutex) = false;
+  bool cancelled_ ABSL_GUARDED_BY(core_->mutex) = false;
+  bool ending_ ABSL_GUARDED_BY(core_->mutex) = false;
+  grpc::Status end_status_ ABSL_GUARDED_BY(core_->mutex);
 };
 
 }  // namespace
@@ -132,34 +141,37 @@ class MissionStreamReactor final : public QueuedStream<v1::WatchMissionResponse>
     auto core = this->core();
     MissionManager* missions = service_->options_.missions;
     if (missions == nullptr) {
-      std::lock_guard lock(core->mutex);
+      absl::MutexLock lock(&core->mutex);
       endLocked(notServed("missions", "started without missions"));
       return;
     }
     auto token = missions->watch(mission_id, [core](const v1::MissionStatus& status) {
-      std::lock_guard lock(core->mutex);
+      absl::MutexLock lock(&core->mutex);
       if (core->stream == nullptr) return;
       v1::WatchMissionResponse message;
       *message.mutable_status() = status;
-      static_cast<MissionStreamReactor*>(core->stream)
-          ->pushLocked(std::move(message), missionEnded(status));
+      auto* stream = static_cast<MissionStreamReactor*>(core->stream);
+      stream->assertLocked();
+      stream->pushLocked(std::move(message), missionEnded(status));
     });
     if (!token.ok()) {
-      std::lock_guard lock(core->mutex);
+      absl::MutexLock lock(&core->mutex);
       endLocked(server::toGrpc(token.status()));
       return;
     }
     token_ = *token;
     const bool added = service_->addShutdownHook(hook_, [core] {
-      std::lock_guard lock(core->mutex);
+      absl::MutexLock lock(&core->mutex);
       if (core->stream != nullptr) {
-        static_cast<MissionStreamReactor*>(core->stream)
-            ->endLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                                     "the coordinator is shutting down; watch the mission again"));
+        auto* stream = static_cast<MissionStreamReactor*>(core->stream);
+        stream->assertLocked();
+        stream->endLocked(
+            grpc::Status(grpc::StatusCode::UNAVAILABLE,
+                         "the coordinator is shutting down; watch the mission again"));
       }
     });
     if (!added) {
-      std::lock_guard lock(core->mutex);
+      absl::MutexLock lock(&core->mutex);
       endLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down"));
     }
   }
@@ -184,21 +196,22 @@ class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> 
     auto core = this->core();
     BeliefStore* beliefs = service_->options_.beliefs;
     if (beliefs == nullptr) {
-      std::lock_guard lock(core->mutex);
+      absl::MutexLock lock(&core->mutex);
       endLocked(notServed("belief memory", "started without it"));
       return;
     }
     const bool added = service_->addShutdownHook(hook_, [core] {
-      std::lock_guard lock(core->mutex);
+      absl::MutexLock lock(&core->mutex);
       if (core->stream != nullptr) {
-        static_cast<BeliefStreamReactor*>(core->stream)
-            ->endLocked(
-                grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                             "the coordinator is shutting down; resume with since_version"));
+        auto* stream = static_cast<BeliefStreamReactor*>(core->stream);
+        stream->assertLocked();
+        stream->endLocked(
+            grpc::Status(grpc::StatusCode::UNAVAILABLE,
+                         "the coordinator is shutting down; resume with since_version"));
       }
     });
     if (!added) {
-      std::lock_guard lock(core->mutex);
+      absl::MutexLock lock(&core->mutex);
       endLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down"));
       return;
     }
@@ -207,8 +220,9 @@ class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> 
       // since_version 0: the current beliefs first (no tombstones).
       if (since == 0) {
         const uint64_t now = beliefs->version();
-        std::lock_guard lock(core->mutex);
+        absl::MutexLock lock(&core->mutex);
         if (core->stream == nullptr) return;
+        assertLocked();  // core->stream is this stream
         for (auto& belief : beliefs->list(prefix)) {
           v1::WatchBeliefsResponse message;
           *message.mutable_belief() = std::move(belief);
@@ -218,8 +232,9 @@ class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> 
       }
       while (!stop_.load()) {
         auto changes = beliefs->waitForChanges(since, prefix, std::chrono::milliseconds(100));
-        std::lock_guard lock(core->mutex);
+        absl::MutexLock lock(&core->mutex);
         if (core->stream == nullptr) return;
+        assertLocked();  // core->stream is this stream
         for (auto& belief : changes) {
           since = std::max<uint64_t>(since, belief.version());
           v1::WatchBeliefsResponse message;

@@ -87,7 +87,7 @@ FleetControl::FleetControl(Registry& registry, FleetEventLog& log,
   if (!catalog_) catalog_ = std::make_shared<Catalog>();
   auto subscription = log_.subscribe({}, [this] { drainEvents(); });
   {
-    std::lock_guard lock(index_mutex_);
+    absl::MutexLock lock(&index_mutex_);
     subscription_ = std::move(subscription);
   }
   drainEvents();  // the replay is queued without a wake (and wakes before now found none)
@@ -99,14 +99,12 @@ FleetControl::~FleetControl() {
 }
 
 void FleetControl::stop() {
-  std::lock_guard lock(index_mutex_);
-  stopped_ = true;
-  index_changed_.notify_all();
+  absl::MutexLock lock(&index_mutex_);
+  stopped_ = true;  // wakes the awaits (absl re-checks their conditions)
 }
 
 void FleetControl::drainEvents() {
-  bool changed = false;
-  std::lock_guard lock(index_mutex_);
+  absl::MutexLock lock(&index_mutex_);
   if (!subscription_) return;
   while (FleetEventPtr event = subscription_->pop()) {
     if (!event->has_behavior_event()) continue;
@@ -114,13 +112,11 @@ void FleetControl::drainEvents() {
     if (e.activation_id().empty()) continue;
     if (e.has_activated() || e.has_finished()) {
       rememberLocked(e.activation_id());
-      changed = true;
     }
     if (e.has_finished()) {
       finished_[e.activation_id()] = {e.finished().cause(), e.finished().message()};
     }
   }
-  if (changed) index_changed_.notify_all();
 }
 
 void FleetControl::rememberLocked(const std::string& activation_id) {
@@ -135,14 +131,14 @@ void FleetControl::rememberLocked(const std::string& activation_id) {
 }
 
 void FleetControl::noteDeactivated(const std::string& activation_id) {
-  std::lock_guard lock(index_mutex_);
+  absl::MutexLock lock(&index_mutex_);
   rememberLocked(activation_id);
   deactivated_.insert(activation_id);
 }
 
 std::vector<SystemLink::BehaviorView> FleetControl::robotView(const std::string& robot_id) const {
   std::vector<SystemLink::BehaviorView> view = registry_.robotBehaviors(robot_id);
-  std::lock_guard lock(index_mutex_);
+  absl::MutexLock lock(&index_mutex_);
   for (auto& b : view) {
     const bool running =
         b.state == v1::BEHAVIOR_STATE_ACTIVE || b.state == v1::BEHAVIOR_STATE_PAUSED;
@@ -154,34 +150,45 @@ std::vector<SystemLink::BehaviorView> FleetControl::robotView(const std::string&
   return view;
 }
 
+void FleetControl::awaitIndexLocked(const std::function<bool()>& found,
+                                    std::chrono::milliseconds timeout) {
+  auto ready = [&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(index_mutex_) { return stopped_ || found(); };
+  index_mutex_.AwaitWithTimeout(absl::Condition(&ready), absl::FromChrono(timeout));
+}
+
 bool FleetControl::awaitSeen(const std::string& activation_id, std::chrono::milliseconds timeout) {
-  std::unique_lock lock(index_mutex_);
-  return index_changed_.wait_for(lock, timeout, [&] {
-    return stopped_ || seen_.contains(activation_id);
-  }) && !stopped_;
+  absl::MutexLock lock(&index_mutex_);
+  auto seen = [&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(index_mutex_) {
+    return seen_.contains(activation_id);
+  };
+  awaitIndexLocked(seen, timeout);
+  return !stopped_ && seen();
 }
 
 bool FleetControl::awaitFinishedSeen(const std::string& activation_id,
                                      std::chrono::milliseconds timeout) {
-  std::unique_lock lock(index_mutex_);
-  return index_changed_.wait_for(lock, timeout, [&] {
-    return stopped_ || finished_.contains(activation_id);
-  }) && !stopped_;
+  absl::MutexLock lock(&index_mutex_);
+  auto finished = [&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(index_mutex_) {
+    return finished_.contains(activation_id);
+  };
+  awaitIndexLocked(finished, timeout);
+  return !stopped_ && finished();
 }
 
 std::optional<FinishedActivation> FleetControl::awaitFinished(const std::string& /*robot*/,
                                                               const std::string& activation_id,
                                                               std::chrono::milliseconds timeout) {
-  std::unique_lock lock(index_mutex_);
-  index_changed_.wait_for(lock, timeout,
-                          [&] { return stopped_ || finished_.contains(activation_id); });
+  absl::MutexLock lock(&index_mutex_);
+  awaitIndexLocked([&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(
+                       index_mutex_) { return finished_.contains(activation_id); },
+                   timeout);
   auto it = finished_.find(activation_id);
   if (it == finished_.end()) return std::nullopt;
   return it->second;
 }
 
 std::recursive_mutex& FleetControl::robotLock(const std::string& robot_id) {
-  std::lock_guard lock(locks_mutex_);
+  absl::MutexLock lock(&locks_mutex_);
   auto& slot = robot_locks_[robot_id];
   if (!slot) slot = std::make_unique<std::recursive_mutex>();
   return *slot;
@@ -190,7 +197,7 @@ std::recursive_mutex& FleetControl::robotLock(const std::string& robot_id) {
 absl::Status FleetControl::route(const std::string& robot_id, const std::string& behavior,
                                  Registry::Route* out) const {
   {
-    std::lock_guard lock(index_mutex_);
+    absl::MutexLock lock(&index_mutex_);
     if (stopped_) return absl::CancelledError("the coordinator is shutting down");
   }
   return toAbsl(registry_.route(robot_id, behavior, out));

@@ -26,8 +26,8 @@
 #include <grpcpp/grpcpp.h>
 
 #include <chrono>
-#include <condition_variable>
 #include <deque>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -36,8 +36,10 @@
 #include <string>
 #include <unordered_map>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/behavior.pb.h"
 #include "coordinator/catalog/catalog.h"
 #include "coordinator/catalog/planner.h"
@@ -150,8 +152,12 @@ class FleetControl final : public MissionActions {
   /// the log; false on timeout or stop.
   bool awaitSeen(const std::string& activation_id, std::chrono::milliseconds timeout);
   bool awaitFinishedSeen(const std::string& activation_id, std::chrono::milliseconds timeout);
+  /// Waits (index_mutex_ held) until `found` holds or the fleet stops, at
+  /// most `timeout`.
+  void awaitIndexLocked(const std::function<bool()>& found, std::chrono::milliseconds timeout)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(index_mutex_);
   /// Remembers `activation_id` (index_mutex_ held), evicting the oldest.
-  void rememberLocked(const std::string& activation_id);
+  void rememberLocked(const std::string& activation_id) ABSL_EXCLUSIVE_LOCKS_REQUIRED(index_mutex_);
   /// Records that a Deactivate of `activation_id` returned OK: until its
   /// finished event arrives, the registry's view may still call it active.
   void noteDeactivated(const std::string& activation_id);
@@ -165,17 +171,23 @@ class FleetControl final : public MissionActions {
   std::shared_ptr<const Catalog> catalog_;
   const FleetControlOptions options_;
 
-  std::mutex locks_mutex_;
-  std::map<std::string, std::unique_ptr<std::recursive_mutex>> robot_locks_;
+  absl::Mutex locks_mutex_;
+  // Recursive (a plan's steps deactivate under the robot's lock already
+  // held), which absl::Mutex is not: these stay std::recursive_mutex.
+  std::map<std::string, std::unique_ptr<std::recursive_mutex>> robot_locks_
+      ABSL_GUARDED_BY(locks_mutex_);
 
-  mutable std::mutex index_mutex_;
-  std::condition_variable index_changed_;
-  bool stopped_ = false;
-  std::unordered_map<std::string, FinishedActivation> finished_;  // by activation id
-  std::set<std::string> seen_;                                    // activated or finished
-  std::set<std::string> deactivated_;   // Deactivate returned OK; finished event maybe not seen
-  std::deque<std::string> seen_order_;  // eviction order
-  std::unique_ptr<FleetSubscription> subscription_;
+  mutable absl::Mutex index_mutex_;
+  bool stopped_ ABSL_GUARDED_BY(index_mutex_) = false;
+  // By activation id.
+  std::unordered_map<std::string, FinishedActivation> finished_ ABSL_GUARDED_BY(index_mutex_);
+  // Activated or finished.
+  std::set<std::string> seen_ ABSL_GUARDED_BY(index_mutex_);
+  // Deactivate returned OK; finished event maybe not seen.
+  std::set<std::string> deactivated_ ABSL_GUARDED_BY(index_mutex_);
+  // Eviction order.
+  std::deque<std::string> seen_order_ ABSL_GUARDED_BY(index_mutex_);
+  std::unique_ptr<FleetSubscription> subscription_ ABSL_GUARDED_BY(index_mutex_);
 };
 
 }  // namespace behaviorlib::coordinator

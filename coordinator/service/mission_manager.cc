@@ -17,9 +17,9 @@ namespace behaviorlib::coordinator {
 namespace {
 
 std::string newMissionId(const std::string& name) {
-  static std::mutex mutex;
-  static std::mt19937_64 rng{std::random_device{}()};
-  std::lock_guard lock(mutex);
+  ABSL_CONST_INIT static absl::Mutex mutex(absl::kConstInit);
+  static std::mt19937_64 rng ABSL_GUARDED_BY(mutex){std::random_device{}()};
+  absl::MutexLock lock(&mutex);
   char suffix[9];
   std::snprintf(suffix, sizeof(suffix), "%08x", static_cast<unsigned>(rng() & 0xffffffffu));
   return absl::StrCat(name.empty() ? "mission" : name, "-", suffix);
@@ -111,27 +111,26 @@ void MissionManager::stop() {
   std::vector<std::unique_ptr<MissionRunner>> runners;
   std::vector<std::thread> resumers;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopped_ = true;
     for (auto& [id, entry] : missions_) {
       if (entry.runner) runners.push_back(std::move(entry.runner));
     }
     resumers.swap(resumers_);
   }
-  stop_cv_.notify_all();
   for (auto& t : resumers) t.join();
   runners.clear();  // joins their threads; onChange may still run meanwhile
 }
 
 void MissionManager::restore(const v1::MissionStatus& status) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   Entry& entry = missions_[status.mission_id()];
   if (entry.order == 0) entry.order = next_order_++;
   entry.status = status;
 }
 
 void MissionManager::resumeRestored() {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   for (const auto& [id, entry] : missions_) {
     if (ended(entry.status) || entry.runner) continue;
     resumers_.emplace_back([this, id = id] { resumeOne(id); });
@@ -153,7 +152,7 @@ bool MissionManager::behaviorsRoutable(const MissionSpec& spec, const std::strin
 void MissionManager::resumeOne(const std::string& mission_id) {
   v1::MissionStatus status;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     status = missions_.at(mission_id).status;
   }
   auto fail = [&](const std::string& why) {
@@ -176,17 +175,20 @@ void MissionManager::resumeOne(const std::string& mission_id) {
         systemsCaughtUp(registry_, behaviorsOf(*spec), status.robot_id(), &missing)) {
       break;
     }
-    std::unique_lock lock(mutex_);
-    if (stop_cv_.wait_for(lock, std::chrono::milliseconds(100), [&] { return stopped_; })) return;
+    {
+      absl::MutexLock lock(&mutex_);
+      mutex_.AwaitWithTimeout(absl::Condition(&stopped_),
+                              absl::FromChrono(std::chrono::milliseconds(100)));
+      if (stopped_) return;
+    }
     if (std::chrono::steady_clock::now() > deadline) {
-      lock.unlock();
       fail(absl::StrCat("cannot resume after a coordinator restart: ", missing, " on robot '",
                         status.robot_id(), "' was not served again within ",
                         options_.resume_wait.count(), " ms"));
       return;
     }
   }
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (stopped_) return;
   std::fprintf(stderr, "coordinator: resuming mission %s (%s) on robot %s\n", mission_id.c_str(),
                v1::MissionState_Name(status.state()).c_str(), status.robot_id().c_str());
@@ -209,7 +211,7 @@ void MissionManager::onChange(const v1::MissionStatus& status) {
   }
   std::vector<Listener> listeners;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     auto it = missions_.find(status.mission_id());
     if (it != missions_.end()) it->second.status = status;
     for (const auto& [token, listener] : listeners_) {
@@ -269,7 +271,7 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   }
   if (auto s = checkAgainstRegistry(*spec, robot_id); !s.ok()) return s;
 
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (stopped_) return absl::UnavailableError("the coordinator is shutting down");
   for (const auto& [id, entry] : missions_) {
     if (entry.status.robot_id() == robot_id && !ended(entry.status)) {
@@ -292,7 +294,7 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
 }
 
 absl::StatusOr<v1::MissionStatus> MissionManager::get(const std::string& mission_id) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   auto it = missions_.find(mission_id);
   if (it == missions_.end()) {
     return absl::NotFoundError(
@@ -304,7 +306,7 @@ absl::StatusOr<v1::MissionStatus> MissionManager::get(const std::string& mission
 std::vector<v1::MissionStatus> MissionManager::list() const {
   std::vector<std::pair<uint64_t, v1::MissionStatus>> all;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     for (const auto& [id, entry] : missions_) {
       all.emplace_back(entry.order, entry.runner ? entry.runner->status() : entry.status);
     }
@@ -316,7 +318,7 @@ std::vector<v1::MissionStatus> MissionManager::list() const {
 }
 
 std::optional<std::string> MissionManager::runningMissionOf(const std::string& robot_id) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   for (const auto& [id, entry] : missions_) {
     if (entry.status.robot_id() == robot_id && !ended(entry.status)) return id;
   }
@@ -325,7 +327,7 @@ std::optional<std::string> MissionManager::runningMissionOf(const std::string& r
 
 std::optional<std::pair<std::string, Geofence>> MissionManager::geofenceOf(
     const std::string& robot_id) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   for (const auto& [id, entry] : missions_) {
     if (entry.status.robot_id() == robot_id && !ended(entry.status) && entry.geofence) {
       return std::make_pair(id, *entry.geofence);
@@ -338,7 +340,7 @@ absl::StatusOr<v1::MissionStatus> MissionManager::control(
     const std::string& mission_id, const std::function<absl::Status(MissionRunner&)>& request) {
   MissionRunner* runner = nullptr;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     auto it = missions_.find(mission_id);
     if (it == missions_.end()) return unknownMission(mission_id);  // mutex_ is held
     runner = it->second.runner.get();
@@ -371,7 +373,7 @@ absl::StatusOr<uint64_t> MissionManager::watch(const std::string& mission_id, Li
   v1::MissionStatus now;
   uint64_t token = 0;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     auto it = missions_.find(mission_id);
     if (it == missions_.end()) {
       return absl::NotFoundError(
@@ -386,13 +388,13 @@ absl::StatusOr<uint64_t> MissionManager::watch(const std::string& mission_id, Li
 }
 
 void MissionManager::unwatch(uint64_t token) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   listeners_.erase(token);
 }
 
 std::vector<v1::JournalRecord> MissionManager::snapshot() const {
   std::vector<v1::JournalRecord> records;
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   for (const auto& [id, entry] : missions_) {
     v1::JournalRecord record;
     *record.mutable_mission() = entry.runner ? entry.runner->status() : entry.status;

@@ -18,18 +18,18 @@
 // Thread-safe.
 
 #include <chrono>
-#include <condition_variable>
 #include <cstdint>
 #include <functional>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
@@ -118,14 +118,13 @@ class MissionManager {
   Journal* journal_;
   const MissionManagerOptions options_;
 
-  mutable std::mutex mutex_;
-  std::condition_variable stop_cv_;
-  bool stopped_ = false;
-  std::map<std::string, Entry> missions_;
-  uint64_t next_order_ = 1;
-  uint64_t next_token_ = 1;
-  std::map<uint64_t, std::pair<std::string, Listener>> listeners_;
-  std::vector<std::thread> resumers_;
+  mutable absl::Mutex mutex_;
+  bool stopped_ ABSL_GUARDED_BY(mutex_) = false;
+  std::map<std::string, Entry> missions_ ABSL_GUARDED_BY(mutex_);
+  uint64_t next_order_ ABSL_GUARDED_BY(mutex_) = 1;
+  uint64_t next_token_ ABSL_GUARDED_BY(mutex_) = 1;
+  std::map<uint64_t, std::pair<std::string, Listener>> listeners_ ABSL_GUARDED_BY(mutex_);
+  std::vector<std::thread> resumers_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib::coordinator

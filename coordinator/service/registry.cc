@@ -28,7 +28,7 @@ Registry::~Registry() { stop(); }
 void Registry::stop() {
   std::vector<std::shared_ptr<SystemLink>> links;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopped_ = true;
     links = std::move(links_);
     links.insert(links.end(), retired_.begin(), retired_.end());
@@ -46,7 +46,7 @@ void Registry::addConfigured(const ConfiguredSystem& system) {
   identity.source = v1::SYSTEM_SOURCE_CONFIG;
   auto link = std::make_shared<SystemLink>(std::move(identity), log_, metrics_, options_.link,
                                            [this](SystemLink* l) { onRetired(l); });
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (stopped_) return;
   link->start();
   links_.push_back(std::move(link));
@@ -74,7 +74,7 @@ grpc::Status Registry::registerSystem(const v1::RegisterSystemRequest& request,
   std::vector<std::shared_ptr<SystemLink>> reaped;
   grpc::Status status;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     // Links that ended are joined below, outside the lock.
     reaped = std::move(retired_);
     retired_.clear();
@@ -127,7 +127,7 @@ grpc::Status Registry::registerSystem(const v1::RegisterSystemRequest& request,
 }
 
 grpc::Status Registry::heartbeat(const v1::HeartbeatRequest& request) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   auto link = findLocked(request.robot_id(), request.system(), "");
   const std::string who = "robot " + request.robot_id() + " system " + request.system();
   if (!link) {
@@ -152,7 +152,7 @@ grpc::Status Registry::heartbeat(const v1::HeartbeatRequest& request) {
 grpc::Status Registry::unregister(const v1::UnregisterSystemRequest& request) {
   v1::SystemRecord record;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     auto link = findLocked(request.robot_id(), request.system(), "");
     if (!link || !link->unregister(request.incarnation(), request.final_seq())) {
       return grpc::Status(grpc::StatusCode::NOT_FOUND, "incarnation " + request.incarnation() +
@@ -172,7 +172,7 @@ grpc::Status Registry::unregister(const v1::UnregisterSystemRequest& request) {
 }
 
 void Registry::onRetired(SystemLink* link) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   auto it = std::find_if(links_.begin(), links_.end(),
                          [link](const std::shared_ptr<SystemLink>& l) { return l.get() == link; });
   if (it == links_.end()) return;
@@ -188,7 +188,7 @@ void Registry::updateGaugeLocked() {
 void Registry::listSystems(const std::string& robot_id, v1::ListSystemsResponse* response) const {
   std::vector<v1::SystemInfo> infos;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     for (const auto& link : links_) {
       if (link->retired() || (!robot_id.empty() && link->robotId() != robot_id)) continue;
       infos.push_back(link->info());
@@ -204,7 +204,7 @@ void Registry::listSystems(const std::string& robot_id, v1::ListSystemsResponse*
 void Registry::listBehaviors(const std::string& robot_id, const std::string& behavior,
                              v1::ListFleetBehaviorsResponse* response) const {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     for (const auto& link : links_) {
       if (link->retired() || (!robot_id.empty() && link->robotId() != robot_id)) continue;
       link->describeBehaviors(behavior, response->mutable_behaviors());
@@ -220,7 +220,7 @@ void Registry::listBehaviors(const std::string& robot_id, const std::string& beh
 
 std::vector<SystemLink::BehaviorView> Registry::robotBehaviors(const std::string& robot_id) const {
   std::vector<SystemLink::BehaviorView> views;
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   for (const auto& link : links_) {
     if (link->retired() || link->robotId() != robot_id) continue;
     link->viewBehaviors(&views);
@@ -237,7 +237,7 @@ grpc::Status Registry::route(const std::string& robot_id, const std::string& beh
     return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                         "behavior is empty: name the behavior, e.g. WAIT");
   }
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   std::set<std::string> robots;
   std::set<std::string> hosted;
   std::vector<std::shared_ptr<SystemLink>> candidates;

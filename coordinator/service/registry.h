@@ -15,10 +15,11 @@
 
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <string>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
@@ -84,18 +85,19 @@ class Registry {
   // leaving) matching robot and system, or the address of a not yet reached
   // configured entry.
   std::shared_ptr<SystemLink> findLocked(const std::string& robot_id, const std::string& system,
-                                         const std::string& address) const;
+                                         const std::string& address) const
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
   void onRetired(SystemLink* link);
-  void updateGaugeLocked();
+  void updateGaugeLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
 
   FleetEventLog& log_;
   CoordinatorMetrics& metrics_;
   RegistryOptions options_;
-  mutable std::mutex mutex_;
-  bool stopped_ = false;
-  std::vector<std::shared_ptr<SystemLink>> links_;
+  mutable absl::Mutex mutex_;
+  bool stopped_ ABSL_GUARDED_BY(mutex_) = false;
+  std::vector<std::shared_ptr<SystemLink>> links_ ABSL_GUARDED_BY(mutex_);
   // Links that ended (unregistered); joined at stop().
-  std::vector<std::shared_ptr<SystemLink>> retired_;
+  std::vector<std::shared_ptr<SystemLink>> retired_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib::coordinator

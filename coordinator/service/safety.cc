@@ -37,7 +37,8 @@ struct SafetyController::Robot {
   std::unique_ptr<platform::FlightStateWatcher> watcher;
   std::unique_ptr<channel::Subscription> pose_subscription;
 
-  // Guarded by SafetyController::mutex_.
+  // Guarded by SafetyController::mutex_ (not annotated: a nested struct's
+  // field cannot name its controller's mutex to the thread-safety analysis).
   bool acting = false;  // an action thread is running for this robot
   bool failure_fired = false, battery_fired = false, geofence_fired = false;
   // Motion controllers active when the coordinator took the lease: they fail
@@ -63,12 +64,12 @@ void SafetyController::addRobot(const std::string& robot_id, const std::string& 
   if (channel_) {
     raw->pose_subscription = channel_->subscribeTyped<v1::PoseStamped>(
         flight::poseEstimateTopic(robot_id), {}, [this, raw](const v1::PoseStamped& pose) {
-          std::lock_guard lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           raw->pose = pose;
           raw->pose_received = std::chrono::steady_clock::now();
         });
   }
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   robots_[robot_id] = std::move(robot);
 }
 
@@ -77,7 +78,7 @@ void SafetyController::start() {
   from_now.since_seq = log_.latestSeq();
   auto subscription = log_.subscribe(from_now, [this] { onEvents(); });
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     subscription_ = std::move(subscription);
   }
   onEvents();
@@ -87,40 +88,40 @@ void SafetyController::start() {
 void SafetyController::stop() {
   std::vector<std::thread> actions;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (stopping_ && !policy_.joinable() && actions_.empty()) return;
     stopping_ = true;
   }
-  cv_.notify_all();
+  cv_.SignalAll();
   if (policy_.joinable()) policy_.join();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     actions.swap(actions_);
   }
   for (auto& t : actions) t.join();
   std::unique_ptr<FleetSubscription> subscription;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     subscription.swap(subscription_);
   }
   if (subscription) subscription->cancel();
 }
 
 SafetyController::Robot* SafetyController::find(const std::string& robot_id) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   auto it = robots_.find(robot_id);
   return it == robots_.end() ? nullptr : it->second.get();
 }
 
 std::vector<std::string> SafetyController::firedRules() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return fired_;
 }
 
 void SafetyController::onEvents() {
   // Runs on the log's appending thread: only note what happened.
   bool noted = false;
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (!subscription_) return;
   while (FleetEventPtr event = subscription_->pop()) {
     if (!event->has_behavior_event()) continue;
@@ -138,7 +139,7 @@ void SafetyController::onEvents() {
     pending_failures_.push_back(e.robot_id() + "\n" + e.behavior() + ": " + e.finished().message());
     noted = true;
   }
-  if (noted) cv_.notify_all();
+  if (noted) cv_.SignalAll();
 }
 
 void SafetyController::policyLoop() {
@@ -146,8 +147,11 @@ void SafetyController::policyLoop() {
     std::vector<Robot*> robots;
     std::vector<std::string> failures;
     {
-      std::unique_lock lock(mutex_);
-      cv_.wait_for(lock, options_.poll, [&] { return stopping_ || !pending_failures_.empty(); });
+      absl::MutexLock lock(&mutex_);
+      auto ready = [&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+        return stopping_ || !pending_failures_.empty();
+      };
+      mutex_.AwaitWithTimeout(absl::Condition(&ready), absl::FromChrono(options_.poll));
       if (stopping_) return;
       failures.swap(pending_failures_);
       for (auto& [id, robot] : robots_) robots.push_back(robot.get());
@@ -160,7 +164,7 @@ void SafetyController::policyLoop() {
       if (status.ok() && !airborne(status->state())) continue;
       bool fire_now = false;
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         fire_now = !robot->failure_fired && !robot->acting;
         robot->failure_fired = true;
       }
@@ -182,7 +186,7 @@ void SafetyController::checkRobot(Robot& robot) {
   std::string rule;
   bool hover_first = false, land = false, with_safety_steps = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!flying) {
       if (status->state() == v1::FLIGHT_STATE_LANDED && !robot.acting) {
         robot.failure_fired = robot.battery_fired = robot.geofence_fired = false;
@@ -227,7 +231,7 @@ void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_fi
                             bool abort_with_safety_steps) {
   const std::string said = robot.robot_id + ": " + rule;
   std::fprintf(stderr, "coordinator: safety: %s\n", said.c_str());
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (stopping_) return;
   fired_.push_back(said);
   robot.acting = true;
@@ -255,16 +259,16 @@ void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_fi
       // meanwhile.
       auto stood_down = std::make_shared<bool>(false);  // guarded by mutex_
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         if (stopping_) {
           *stood_down = true;
         } else {
           actions_.emplace_back(
               [this, stood_down, robot_id = robot.robot_id, rule, abort_with_safety_steps] {
                 standDown(robot_id, "safety: " + rule, abort_with_safety_steps);
-                std::lock_guard lock(mutex_);
+                absl::MutexLock lock(&mutex_);
                 *stood_down = true;
-                cv_.notify_all();
+                cv_.SignalAll();
               });
         }
       }
@@ -274,7 +278,7 @@ void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_fi
       const auto stand_down_until = started + options_.stand_down_budget;
       for (;;) {
         {
-          std::unique_lock lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           const auto now = std::chrono::steady_clock::now();
           if (stopping_ || (now >= hover_until && (*stood_down || now >= stand_down_until))) {
             if (!*stood_down && !stopping_) {
@@ -286,7 +290,7 @@ void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_fi
             }
             break;
           }
-          cv_.wait_for(lock, std::chrono::milliseconds(100));
+          cv_.WaitWithTimeout(&mutex_, absl::Milliseconds(100));
         }
         if (lease.ok()) (void)robot.fc->renewLease(lease_id);
       }
@@ -322,13 +326,15 @@ void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_fi
             break;
           }
           if (!robot.fc->renewLease(lease_id).ok()) break;  // taken over, or gone
-          std::unique_lock lock(mutex_);
-          if (cv_.wait_for(lock, std::chrono::milliseconds(100), [&] { return stopping_; })) break;
+          absl::MutexLock lock(&mutex_);
+          mutex_.AwaitWithTimeout(absl::Condition(&stopping_),
+                                  absl::FromChrono(std::chrono::milliseconds(100)));
+          if (stopping_) break;
         }
         (void)robot.fc->releaseLease(lease_id);
       }
     }
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     robot.acting = false;
   });
 }
@@ -359,8 +365,10 @@ std::string SafetyController::standDown(const std::string& robot_id, const std::
                           options_.mission_ack_timeout.count(), " ms)");
           break;
         }
-        std::unique_lock lock(mutex_);
-        if (cv_.wait_for(lock, std::chrono::milliseconds(5), [&] { return stopping_; })) break;
+        absl::MutexLock lock(&mutex_);
+        mutex_.AwaitWithTimeout(absl::Condition(&stopping_),
+                                absl::FromChrono(std::chrono::milliseconds(5)));
+        if (stopping_) break;
       }
     }
   }
@@ -388,7 +396,7 @@ absl::StatusOr<v1::AcquireLeaseResponse> SafetyController::takeLease(Robot& robo
     }
   }
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     robot.preempted_controllers.insert(controllers.begin(), controllers.end());
   }
   return robot.fc->acquireLease(robot.robot_id + kSafetyHolderSuffix, kSafetyLeaseTtl,
@@ -421,29 +429,29 @@ absl::StatusOr<std::string> SafetyController::emergencyLand(const std::string& r
   // Stand down first, within the budget, then land whatever the stand-down
   // got done (it goes on in the background).
   struct StandDown {
-    std::mutex mutex;
-    std::condition_variable cv;
-    bool done = false;
-    std::string result;
+    absl::Mutex mutex;
+    bool done ABSL_GUARDED_BY(mutex) = false;
+    std::string result ABSL_GUARDED_BY(mutex);
   };
   auto shared = std::make_shared<StandDown>();
   const std::string why = "emergency land" + (reason.empty() ? "" : ": " + reason);
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (stopping_) return absl::UnavailableError("the coordinator is shutting down");
     fired_.push_back(robot_id + ": EmergencyLand requested: " + reason);
     actions_.emplace_back([this, shared, robot_id, why] {
       std::string result = standDown(robot_id, why, false);
-      std::lock_guard lock(shared->mutex);
+      absl::MutexLock lock(&shared->mutex);
       shared->result = std::move(result);
       shared->done = true;
-      shared->cv.notify_all();
     });
   }
   std::string stood_down;
   {
-    std::unique_lock lock(shared->mutex);
-    if (shared->cv.wait_for(lock, options_.stand_down_budget, [&] { return shared->done; })) {
+    absl::MutexLock lock(&shared->mutex);
+    shared->mutex.AwaitWithTimeout(absl::Condition(&shared->done),
+                                   absl::FromChrono(options_.stand_down_budget));
+    if (shared->done) {
       stood_down = shared->result;
     } else {
       stood_down = absl::StrCat("; standing down (mission abort, deactivations) took longer than ",
@@ -476,7 +484,7 @@ absl::StatusOr<std::string> SafetyController::kill(const std::string& robot_id, 
   auto done = flightAction(*robot, v1::FLIGHT_ACTION_KILL, true);
   if (!done.ok()) return done.status();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     fired_.push_back(robot_id + ": Kill requested: " + reason);
   }
   return *done + standDown(robot_id, why, false);

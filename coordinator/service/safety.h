@@ -41,16 +41,16 @@
 
 #include <atomic>
 #include <chrono>
-#include <condition_variable>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/platform.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "coordinator/mission/mission_file.h"
@@ -148,15 +148,17 @@ class SafetyController {
   const SafetyOptions options_;
   std::unique_ptr<channel::ChannelClient> channel_;
 
-  mutable std::mutex mutex_;
-  std::condition_variable cv_;
-  bool stopping_ = false;
-  std::map<std::string, std::unique_ptr<Robot>> robots_;
-  std::vector<std::string> fired_;
-  std::vector<std::thread> actions_;
+  mutable absl::Mutex mutex_;
+  absl::CondVar cv_;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  std::map<std::string, std::unique_ptr<Robot>> robots_ ABSL_GUARDED_BY(mutex_);
+  std::vector<std::string> fired_ ABSL_GUARDED_BY(mutex_);
+  std::vector<std::thread> actions_ ABSL_GUARDED_BY(mutex_);
+  // Started by start() and joined by stop() (the caller's thread).
   std::thread policy_;
-  std::unique_ptr<FleetSubscription> subscription_;
-  std::vector<std::string> pending_failures_;  // robots whose motion controller failed
+  std::unique_ptr<FleetSubscription> subscription_ ABSL_GUARDED_BY(mutex_);
+  // Robots whose motion controller failed.
+  std::vector<std::string> pending_failures_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib::coordinator

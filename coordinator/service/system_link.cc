@@ -65,6 +65,8 @@ grpc::ChannelArguments fastReconnectArguments() {
 SystemLink::SystemLink(LinkIdentity identity, FleetEventLog& log, CoordinatorMetrics& metrics,
                        LinkOptions options, std::function<void(SystemLink*)> on_retired)
     : identity_(std::move(identity)),
+      robot_id_(identity_.robot_id),
+      source_(identity_.source),
       log_(log),
       metrics_(metrics),
       options_(options),
@@ -83,13 +85,12 @@ void SystemLink::start() {
 
 void SystemLink::stop() {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopping_ = true;
     if (stream_call_ != nullptr) stream_call_->TryCancel();
     if (call_ != nullptr) call_->TryCancel();
     if (watch_call_ != nullptr) watch_call_->TryCancel();
   }
-  cv_.notify_all();
   if (thread_.joinable() && thread_.get_id() != std::this_thread::get_id()) thread_.join();
   if (watch_thread_.joinable() && watch_thread_.get_id() != std::this_thread::get_id()) {
     watch_thread_.join();
@@ -103,19 +104,19 @@ void SystemLink::rebuildChannelLocked() {
 }
 
 void SystemLink::setStreamCall(grpc::ClientContext* context) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   stream_call_ = context;
   if (context != nullptr && (stopping_ || poked_)) context->TryCancel();
 }
 
 void SystemLink::setCall(grpc::ClientContext* context) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   call_ = context;
   if (context != nullptr && (stopping_ || poked_)) context->TryCancel();
 }
 
 void SystemLink::setWatchCall(grpc::ClientContext* context) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   watch_call_ = context;
   if (context != nullptr && stopping_) context->TryCancel();
 }
@@ -124,12 +125,12 @@ void SystemLink::pokeLocked() {
   poked_ = true;
   if (stream_call_ != nullptr) stream_call_->TryCancel();
   if (call_ != nullptr) call_->TryCancel();
-  cv_.notify_all();
 }
 
 void SystemLink::waitFor(std::chrono::milliseconds duration) {
-  std::unique_lock lock(mutex_);
-  cv_.wait_for(lock, duration, [this] { return stopping_ || poked_; });
+  absl::MutexLock lock(&mutex_);
+  auto ready = [&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) { return stopping_ || poked_; };
+  mutex_.AwaitWithTimeout(absl::Condition(&ready), absl::FromChrono(duration));
 }
 
 std::string SystemLink::nameLocked() const {
@@ -163,12 +164,14 @@ void SystemLink::append(std::vector<v1::FleetEvent> events) {
 
 void SystemLink::run() {
   {
-    std::unique_lock lock(mutex_);
-    auto event =
-        setStateLocked(v1::SYSTEM_STATE_CONNECTING, identity_.source == v1::SYSTEM_SOURCE_CONFIG
-                                                        ? "listed in --systems; contacting it"
-                                                        : "registered; opening its event stream");
-    lock.unlock();
+    std::optional<v1::FleetEvent> event;
+    {
+      absl::MutexLock lock(&mutex_);
+      event =
+          setStateLocked(v1::SYSTEM_STATE_CONNECTING, identity_.source == v1::SYSTEM_SOURCE_CONFIG
+                                                          ? "listed in --systems; contacting it"
+                                                          : "registered; opening its event stream");
+    }
     if (event) log_.append(std::move(*event));
   }
   std::chrono::milliseconds backoff = kInitialBackoff;
@@ -178,7 +181,7 @@ void SystemLink::run() {
     v1::WatchEventsRequest request;
     bool leaving = false;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (stopping_) return;
       poked_ = false;
       leaving = leaving_;
@@ -198,7 +201,7 @@ void SystemLink::run() {
     if (end.got_start) backoff = kInitialBackoff;
     bool poked = false;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (stopping_) return;
       if (leaving_) continue;
       // A stream the watchdog broke is handled as broken even if poked.
@@ -216,7 +219,7 @@ void SystemLink::run() {
     // the coordinator stops.
     while (true) {
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         if (stopping_ || poked_ || leaving_) break;
       }
       const HealthResult health = checkHealth(channel, "", options_.health_timeout,
@@ -229,7 +232,7 @@ void SystemLink::run() {
       declareDown(health.detail);
       bool idle = false;
       {
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         idle = supervision_.down() || state_ == v1::SYSTEM_STATE_UNREGISTERED;
       }
       waitFor(idle ? options_.idle_probe_interval : options_.probe_interval);
@@ -243,13 +246,13 @@ void SystemLink::watch() {
     uint64_t generation = 0;
     std::string trigger;
     {
-      std::unique_lock lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       // While probes fail, probe again soon: a failed probe already took its
       // whole deadline, and the grace period counts from the first one.
       const auto pause = supervision_.streamIsUp() && supervision_.failingSince()
                              ? std::min(options_.stall_probe_interval, kFailingProbePause)
                              : options_.stall_probe_interval;
-      cv_.wait_for(lock, pause, [this] { return stopping_; });
+      mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(pause));
       if (stopping_) return;
       // Only a stream that is up can hide a frozen process; otherwise the
       // intake thread probes health itself.
@@ -285,7 +288,7 @@ void SystemLink::watch() {
     const auto probed = std::chrono::steady_clock::now();
     const HealthResult health = checkHealth(channel, "", options_.stall_probe_timeout,
                                             [this](grpc::ClientContext* c) { setWatchCall(c); });
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (stopping_) return;
     // The stream changed meanwhile: this probe says nothing about it.
     if (generation != stream_generation_ || state_ != v1::SYSTEM_STATE_UP ||
@@ -315,7 +318,7 @@ SystemLink::StreamEnd SystemLink::readStream(v1::BehaviorSystem::Stub& stub,
     if (onStart(message.start(), stub)) {
       while (reader->Read(&message)) {
         {
-          std::lock_guard lock(mutex_);
+          absl::MutexLock lock(&mutex_);
           last_activity_ = std::chrono::steady_clock::now();
         }
         if (message.has_event()) {
@@ -337,7 +340,7 @@ SystemLink::StreamEnd SystemLink::readStream(v1::BehaviorSystem::Stub& stub,
   const grpc::Status status = reader->Finish();
   setStreamCall(nullptr);
   if (refused) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     end.reason = start_failure_;
   } else {
     end.reason = describeStatus(status);
@@ -348,7 +351,7 @@ SystemLink::StreamEnd SystemLink::readStream(v1::BehaviorSystem::Stub& stub,
 bool SystemLink::onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::Stub& stub) {
   bool need_description = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     // After a clean exit, only a new run of the system brings it back.
     if (state_ == v1::SYSTEM_STATE_UNREGISTERED && start.incarnation() == tracker_.incarnation()) {
       start_failure_ = "the unregistered run is still serving";
@@ -364,7 +367,7 @@ bool SystemLink::onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::
     const grpc::Status status =
         stub.ListBehaviors(&context, v1::ListBehaviorsRequest(), &description);
     setCall(nullptr);
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!status.ok()) {
       start_failure_ = "ListBehaviors failed: " + describeStatus(status);
       return false;
@@ -389,7 +392,7 @@ bool SystemLink::onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::
   std::vector<v1::FleetEvent> out;
   bool fence_now = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     const std::string previous = tracker_.incarnation();
     if (!previous.empty() && previous != start.incarnation()) {
       // The process restarted: what ran in the old one ended with it.
@@ -434,7 +437,7 @@ void SystemLink::onEvents(const std::vector<const v1::BehaviorEvent*>& events,
   bool fence_now = false;
   bool leaving_done = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     for (const v1::BehaviorEvent* event : events) {
       if (tracker_.accept(*event) == ActivationTracker::Verdict::kForward) {
         forward.push_back(behaviorFleetEvent(*event, /*synthesized=*/false));
@@ -458,7 +461,7 @@ bool SystemLink::onBroken(const std::string& reason, std::string* detail) {
   std::optional<v1::FleetEvent> event;
   bool stalled = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stalled = stalled_;
     stalled_ = false;
     if (stalled) *detail = stall_detail_;
@@ -478,7 +481,7 @@ bool SystemLink::onBroken(const std::string& reason, std::string* detail) {
 void SystemLink::declareDown(const std::string& health_detail, bool stopped_answering) {
   std::vector<v1::FleetEvent> out;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!supervision_.healthChecked(false, std::chrono::steady_clock::now())) return;
     if (state_ == v1::SYSTEM_STATE_UNREGISTERED) return;
     const std::string reason =
@@ -505,7 +508,7 @@ bool SystemLink::finishLeaving() {
   std::vector<v1::FleetEvent> out;
   bool retire = false;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     for (auto& e :
          tracker_.finishAll(nameLocked() + " unregistered before the coordinator received the "
                                            "end of this activation",
@@ -534,7 +537,7 @@ void SystemLink::deactivateFenced() {
   std::string name;
   std::shared_ptr<v1::BehaviorSystem::Stub> stub;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     fence_check_pending_ = false;
     running = tracker_.fencedStillRunning();
     name = nameLocked();
@@ -574,7 +577,7 @@ void SystemLink::deactivateFenced() {
 
 void SystemLink::registered(const std::string& address,
                             const v1::ListBehaviorsResponse& description) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   bool poke = false;
   if (address != identity_.address) {
     identity_.address = address;
@@ -596,14 +599,14 @@ void SystemLink::registered(const std::string& address,
 }
 
 bool SystemLink::heartbeat(const std::string& incarnation) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (incarnation != registered_incarnation_) return false;
   last_heartbeat_ = WallClock::now();
   return true;
 }
 
 bool SystemLink::unregister(const std::string& incarnation, uint64_t final_seq) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (incarnation != registered_incarnation_) return false;
   leaving_ = true;
   final_seq_ = final_seq;
@@ -615,37 +618,37 @@ bool SystemLink::unregister(const std::string& incarnation, uint64_t final_seq) 
 }
 
 std::string SystemLink::system() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return identity_.system;
 }
 
 std::string SystemLink::address() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return identity_.address;
 }
 
 std::string SystemLink::registeredIncarnation() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return registered_incarnation_;
 }
 
 v1::SystemState SystemLink::state() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return state_;
 }
 
 bool SystemLink::retired() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return retired_;
 }
 
 bool SystemLink::leaving() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return leaving_;
 }
 
 v1::SystemInfo SystemLink::info() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return infoLocked();
 }
 
@@ -667,20 +670,20 @@ v1::SystemInfo SystemLink::infoLocked() const {
 }
 
 std::vector<std::string> SystemLink::behaviorNames() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   std::vector<std::string> names;
   for (const auto& b : description_.behaviors()) names.push_back(b.name());
   return names;
 }
 
 bool SystemLink::hosts(const std::string& behavior) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return std::any_of(description_.behaviors().begin(), description_.behaviors().end(),
                      [&](const v1::BehaviorDescription& b) { return b.name() == behavior; });
 }
 
 void SystemLink::viewBehaviors(std::vector<BehaviorView>* out) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   const bool tracked = state_ == v1::SYSTEM_STATE_UP || state_ == v1::SYSTEM_STATE_RECONNECTING;
   const auto& active = tracker_.active();
   for (const auto& description : description_.behaviors()) {
@@ -700,7 +703,7 @@ void SystemLink::viewBehaviors(std::vector<BehaviorView>* out) const {
 
 void SystemLink::describeBehaviors(
     const std::string& behavior, google::protobuf::RepeatedPtrField<v1::FleetBehavior>* out) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   const bool tracked = state_ == v1::SYSTEM_STATE_UP || state_ == v1::SYSTEM_STATE_RECONNECTING;
   for (const auto& description : description_.behaviors()) {
     if (!behavior.empty() && description.name() != behavior) continue;
@@ -723,7 +726,7 @@ void SystemLink::describeBehaviors(
 }
 
 std::shared_ptr<v1::BehaviorSystem::Stub> SystemLink::stubForCall(grpc::Status* status) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (state_ == v1::SYSTEM_STATE_DOWN || state_ == v1::SYSTEM_STATE_UNREGISTERED) {
     *status = grpc::Status(grpc::StatusCode::UNAVAILABLE,
                            nameLocked() + " is " +

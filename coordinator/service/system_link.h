@@ -30,15 +30,15 @@
 #include <grpcpp/grpcpp.h>
 
 #include <chrono>
-#include <condition_variable>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <thread>
 #include <vector>
 
+#include "absl/base/thread_annotations.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "coordinator/service/activation_tracker.h"
@@ -113,8 +113,8 @@ class SystemLink {
   /// are contacted again). False if `incarnation` is not the registered one.
   bool unregister(const std::string& incarnation, uint64_t final_seq);
 
-  const std::string& robotId() const { return identity_.robot_id; }
-  v1::SystemSource source() const { return identity_.source; }
+  const std::string& robotId() const { return robot_id_; }
+  v1::SystemSource source() const { return source_; }
   std::string system() const;
   std::string address() const;
   std::string registeredIncarnation() const;
@@ -175,56 +175,67 @@ class SystemLink {
   void setCall(grpc::ClientContext* context);
   void setWatchCall(grpc::ClientContext* context);
   // Wakes the thread and cancels its call: something changed.
-  void pokeLocked();
+  void pokeLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
   // Waits up to `duration` unless stopped or poked.
   void waitFor(std::chrono::milliseconds duration);
-  void rebuildChannelLocked();
+  void rebuildChannelLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
   // Changes the state; returns the SystemStateChangedEvent to append (after
   // unlocking), if it changed.
-  std::optional<v1::FleetEvent> setStateLocked(v1::SystemState state, std::string message);
-  v1::SystemInfo infoLocked() const;
+  std::optional<v1::FleetEvent> setStateLocked(v1::SystemState state, std::string message)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
+  v1::SystemInfo infoLocked() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
   void append(std::vector<v1::FleetEvent> events);
-  std::string nameLocked() const;
+  std::string nameLocked() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
 
-  LinkIdentity identity_;
+  mutable absl::Mutex mutex_;
+  // system and address change at (re)registration and first contact.
+  LinkIdentity identity_ ABSL_GUARDED_BY(mutex_);
+  // identity_'s robot_id and source, which never change (read without the lock).
+  const std::string robot_id_;
+  const v1::SystemSource source_;
   FleetEventLog& log_;
   CoordinatorMetrics& metrics_;
   const LinkOptions options_;
   std::function<void(SystemLink*)> on_retired_;
   std::thread thread_;
   std::thread watch_thread_;
-
-  mutable std::mutex mutex_;
-  std::condition_variable cv_;
-  bool stopping_ = false;
-  bool poked_ = false;
-  grpc::ClientContext* stream_call_ = nullptr;
-  grpc::ClientContext* call_ = nullptr;
-  grpc::ClientContext* watch_call_ = nullptr;
-  std::shared_ptr<grpc::Channel> channel_;
-  std::shared_ptr<v1::BehaviorSystem::Stub> stub_;
-  v1::ListBehaviorsResponse description_;
-  std::string registered_incarnation_;
-  v1::SystemState state_ = v1::SYSTEM_STATE_UNSPECIFIED;
-  std::string state_message_;
-  std::chrono::system_clock::time_point state_time_;
-  std::optional<std::chrono::system_clock::time_point> last_heartbeat_;
-  ActivationTracker tracker_;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool poked_ ABSL_GUARDED_BY(mutex_) = false;
+  grpc::ClientContext* stream_call_ ABSL_GUARDED_BY(mutex_) = nullptr;
+  grpc::ClientContext* call_ ABSL_GUARDED_BY(mutex_) = nullptr;
+  grpc::ClientContext* watch_call_ ABSL_GUARDED_BY(mutex_) = nullptr;
+  std::shared_ptr<grpc::Channel> channel_ ABSL_GUARDED_BY(mutex_);
+  std::shared_ptr<v1::BehaviorSystem::Stub> stub_ ABSL_GUARDED_BY(mutex_);
+  v1::ListBehaviorsResponse description_ ABSL_GUARDED_BY(mutex_);
+  std::string registered_incarnation_ ABSL_GUARDED_BY(mutex_);
+  v1::SystemState state_ ABSL_GUARDED_BY(mutex_) = v1::SYSTEM_STATE_UNSPECIFIED;
+  std::string state_message_ ABSL_GUARDED_BY(mutex_);
+  std::chrono::system_clock::time_point state_time_ ABSL_GUARDED_BY(mutex_);
+  std::optional<std::chrono::system_clock::time_point> last_heartbeat_ ABSL_GUARDED_BY(mutex_);
+  ActivationTracker tracker_ ABSL_GUARDED_BY(mutex_);
   // When the watchdog last probed an idle system for a silent stream.
-  std::chrono::steady_clock::time_point last_silence_probe_{};
-  Supervision supervision_;
-  std::string last_break_;                               // why the stream last ended, for messages
-  std::string start_failure_;                            // why onStart refused the stream
-  bool had_stream_ = false;                              // a stream was established before
-  uint64_t stream_generation_ = 0;                       // counts established streams
-  std::chrono::steady_clock::time_point last_activity_;  // last message on the stream
-  bool stalled_ = false;                                 // the watchdog broke the stream: no answer
-  std::string stall_detail_;                             // why, for messages
-  uint64_t replay_end_seq_ = 0;  // the fence check runs once the replay is through
-  bool fence_check_pending_ = false;
-  bool leaving_ = false;
-  uint64_t final_seq_ = 0;
-  bool retired_ = false;
+  std::chrono::steady_clock::time_point last_silence_probe_ ABSL_GUARDED_BY(mutex_) = {};
+  Supervision supervision_ ABSL_GUARDED_BY(mutex_);
+  // Why the stream last ended, for messages.
+  std::string last_break_ ABSL_GUARDED_BY(mutex_);
+  // Why onStart refused the stream.
+  std::string start_failure_ ABSL_GUARDED_BY(mutex_);
+  // A stream was established before.
+  bool had_stream_ ABSL_GUARDED_BY(mutex_) = false;
+  // Counts established streams.
+  uint64_t stream_generation_ ABSL_GUARDED_BY(mutex_) = 0;
+  // Last message on the stream.
+  std::chrono::steady_clock::time_point last_activity_ ABSL_GUARDED_BY(mutex_);
+  // The watchdog broke the stream: no answer.
+  bool stalled_ ABSL_GUARDED_BY(mutex_) = false;
+  // Why, for messages.
+  std::string stall_detail_ ABSL_GUARDED_BY(mutex_);
+  // The fence check runs once the replay is through.
+  uint64_t replay_end_seq_ ABSL_GUARDED_BY(mutex_) = 0;
+  bool fence_check_pending_ ABSL_GUARDED_BY(mutex_) = false;
+  bool leaving_ ABSL_GUARDED_BY(mutex_) = false;
+  uint64_t final_seq_ ABSL_GUARDED_BY(mutex_) = 0;
+  bool retired_ ABSL_GUARDED_BY(mutex_) = false;
 };
 
 }  // namespace behaviorlib::coordinator

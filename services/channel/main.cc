@@ -2,8 +2,8 @@
 //
 //   channel_broker --listen 127.0.0.1:50051 --metrics-listen 127.0.0.1:9100
 //
-// Exits 0 after SIGTERM/SIGINT (every stream ended), 1 when it cannot bind,
-// 2 on bad flags.
+// Exits 0 after SIGTERM/SIGINT (every stream ended), 1 when it cannot bind
+// or on a bad flag.
 
 #include <grpcpp/grpcpp.h>
 
@@ -11,9 +11,19 @@
 #include <cstdio>
 #include <string>
 
+#include "absl/flags/flag.h"
 #include "behaviorlib/channel/broker.h"
 #include "behaviorlib/server_kit/flags.h"
 #include "behaviorlib/server_kit/server_runtime.h"
+
+ABSL_FLAG(std::string, listen, "127.0.0.1:50051", "gRPC address host:port (port 0: any free port)");
+ABSL_FLAG(std::string, metrics_listen, "127.0.0.1:9100",
+          "Prometheus /metrics address host:port (port 0: any free port; empty: disabled)");
+ABSL_FLAG(std::string, port_file, "",
+          "write the bound ports here as grpc_port=N / metrics_port=M once serving");
+ABSL_FLAG(bool, shared_memory, behaviorlib::channel::BrokerOptions().shared_memory,
+          "deliver to subscribers on this host that ask for it through shared-memory rings "
+          "under /dev/shm (false: every sample on its gRPC stream)");
 
 int main(int argc, char** argv) {
   using behaviorlib::server::fatal;
@@ -23,23 +33,15 @@ int main(int argc, char** argv) {
   ServerRuntime::blockShutdownSignals();
   const std::string program = "channel_broker";
 
-  std::string listen = "127.0.0.1:50051";
-  std::string metrics_listen = "127.0.0.1:9100";
-  std::string port_file;
-  behaviorlib::channel::BrokerOptions options;
-  behaviorlib::server::FlagSet flags(
+  behaviorlib::server::parseFlags(
+      argc, argv,
       "the common data channel broker (behaviorlib.v1.DataChannel): typed samples on named "
       "topics");
-  flags.add("listen", &listen, "gRPC address host:port (port 0: any free port)");
-  flags.add("metrics-listen", &metrics_listen,
-            "Prometheus /metrics address host:port (port 0: any free port; empty: disabled)");
-  flags.add("port-file", &port_file,
-            "write the bound ports here as grpc_port=N / metrics_port=M once serving");
-  flags.add("shared-memory", &options.shared_memory,
-            "deliver to subscribers on this host that ask for it through shared-memory rings "
-            "under /dev/shm (false: every sample on its gRPC stream)");
-  int exit_code = 0;
-  if (!flags.parse(argc, argv, &exit_code)) return exit_code;
+  const std::string listen = absl::GetFlag(FLAGS_listen);
+  const std::string metrics_listen = absl::GetFlag(FLAGS_metrics_listen);
+  const std::string port_file = absl::GetFlag(FLAGS_port_file);
+  behaviorlib::channel::BrokerOptions options;
+  options.shared_memory = absl::GetFlag(FLAGS_shared_memory);
 
   ServerRuntime runtime;
   std::string error;

@@ -1,112 +1,66 @@
 #include "behaviorlib/server_kit/flags.h"
 
-#include <charconv>
+#include <algorithm>
 #include <cstdio>
 #include <cstdlib>
-#include <sstream>
+#include <mutex>
+
+#include "absl/flags/parse.h"
+#include "absl/flags/usage.h"
+#include "absl/flags/usage_config.h"
+#include "absl/strings/match.h"
 
 namespace behaviorlib::server {
 
-FlagSet::FlagSet(std::string program_description) : description_(std::move(program_description)) {}
-
-void FlagSet::add(std::string name, std::string* value, std::string help) {
-  flags_.push_back({std::move(name), std::move(help), *value,
-                    [value](const std::string& v) {
-                      *value = v;
-                      return true;
-                    },
-                    false});
-}
-
-void FlagSet::add(std::string name, double* value, std::string help) {
-  std::ostringstream def;
-  def << *value;
-  flags_.push_back({std::move(name), std::move(help), def.str(),
-                    [value](const std::string& v) {
-                      char* end = nullptr;
-                      double d = std::strtod(v.c_str(), &end);
-                      if (v.empty() || *end != '\0') return false;
-                      *value = d;
-                      return true;
-                    },
-                    false});
-}
-
-void FlagSet::add(std::string name, int* value, std::string help) {
-  flags_.push_back({std::move(name), std::move(help), std::to_string(*value),
-                    [value](const std::string& v) {
-                      int n = 0;
-                      const char* end = v.data() + v.size();
-                      const auto [at, ec] = std::from_chars(v.data(), end, n);
-                      if (v.empty() || ec != std::errc() || at != end) return false;
-                      *value = n;
-                      return true;
-                    },
-                    false});
-}
-
-void FlagSet::add(std::string name, bool* value, std::string help) {
-  flags_.push_back({std::move(name), std::move(help), *value ? "true" : "false",
-                    [value](const std::string& v) {
-                      if (v == "true" || v == "1" || v.empty()) {
-                        *value = true;
-                      } else if (v == "false" || v == "0") {
-                        *value = false;
-                      } else {
-                        return false;
-                      }
-                      return true;
-                    },
-                    true});
-}
-
-std::string FlagSet::usage(const std::string& program) const {
-  std::ostringstream out;
-  out << program << ": " << description_ << "\n\nFlags:\n";
-  for (const auto& f : flags_) {
-    out << "  --" << f.name << (f.is_bool ? "" : " VALUE") << "\n      " << f.help;
-    if (!f.default_text.empty()) out << " (default: " << f.default_text << ")";
-    out << "\n";
+std::vector<std::string> abslFlagNames(int argc, char** argv) {
+  std::vector<std::string> out(argv, argv + argc);
+  for (size_t i = 1; i < out.size(); ++i) {
+    std::string& arg = out[i];
+    if (arg == "--") break;  // the end of the flags
+    if (arg.size() <= 2 || arg.rfind("--", 0) != 0) continue;
+    const size_t end = std::min(arg.find('='), arg.size());
+    std::replace(arg.begin() + 2, arg.begin() + static_cast<std::ptrdiff_t>(end), '-', '_');
   }
-  return out.str();
+  return out;
 }
 
-bool FlagSet::parse(int argc, char** argv, int* exit_code) {
-  const std::string program = argc > 0 ? argv[0] : "program";
-  auto fail = [&](const std::string& message) {
-    std::fprintf(stderr, "%s: %s\nRun with --help for the list of flags.\n", program.c_str(),
-                 message.c_str());
-    if (exit_code) *exit_code = 2;
-    return false;
-  };
-  for (int i = 1; i < argc; ++i) {
-    std::string arg = argv[i];
-    if (arg == "--help" || arg == "-h") {
-      std::fputs(usage(program).c_str(), stdout);
-      if (exit_code) *exit_code = 0;
-      return false;
-    }
-    if (arg.rfind("--", 0) != 0) return fail("unexpected argument '" + arg + "'");
-    std::string name = arg.substr(2);
-    std::string value;
-    bool has_value = false;
-    if (auto eq = name.find('='); eq != std::string::npos) {
-      value = name.substr(eq + 1);
-      name = name.substr(0, eq);
-      has_value = true;
-    }
-    const Flag* flag = nullptr;
-    for (const auto& f : flags_) {
-      if (f.name == name) flag = &f;
-    }
-    if (!flag) return fail("unknown flag --" + name);
-    if (!has_value && !flag->is_bool) {
-      if (i + 1 >= argc) return fail("flag --" + name + " needs a value");
-      value = argv[++i];
-    }
-    if (!flag->set(value)) return fail("bad value '" + value + "' for --" + name);
+std::vector<std::string> parseCommandLine(int argc, char** argv, const std::string& usage) {
+  // absl takes the usage once per process (a test may parse twice).
+  static std::once_flag once;
+  std::call_once(once, [&] {
+    absl::SetProgramUsageMessage(usage +
+                                 "\n\nFlag names are written with hyphens or underscores alike "
+                                 "(--robot-id or --robot_id).");
+    // --help lists the program's flags (absl's own, such as --flagfile, are
+    // left to --helpfull), wherever they are defined.
+    absl::FlagsUsageConfig config;
+    config.contains_help_flags = [](absl::string_view file) {
+      return !absl::StrContains(file, "absl/");
+    };
+    config.contains_helpshort_flags = config.contains_help_flags;
+    config.normalize_filename = [](absl::string_view file) {
+      const size_t slash = file.rfind('/');
+      return std::string(slash == absl::string_view::npos ? file : file.substr(slash + 1));
+    };
+    absl::SetFlagsUsageConfig(config);
+  });
+  std::vector<std::string> names = abslFlagNames(argc, argv);
+  std::vector<char*> args;
+  args.reserve(names.size() + 1);
+  for (std::string& a : names) args.push_back(a.data());
+  args.push_back(nullptr);
+  const std::vector<char*> rest =
+      absl::ParseCommandLine(static_cast<int>(names.size()), args.data());
+  return std::vector<std::string>(rest.begin() + 1, rest.end());
+}
+
+void parseFlags(int argc, char** argv, const std::string& usage) {
+  const std::vector<std::string> rest = parseCommandLine(argc, argv, usage);
+  if (!rest.empty()) {
+    std::fprintf(stderr, "%s: unexpected argument '%s'\nRun with --help for the list of flags.\n",
+                 argc > 0 ? argv[0] : "program", rest[0].c_str());
+    std::exit(2);
   }
-  return true;
 }
 
 }  // namespace behaviorlib::server

@@ -4,91 +4,81 @@
 // (topics in simulator/service/channel_publisher.h).
 
 #include <chrono>
+#include <cstdint>
 #include <cstdio>
 #include <cstdlib>
 #include <sstream>
 #include <string>
 
+#include "absl/flags/flag.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/server_kit/flags.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "simulator/sensors/sensor_config.h"
 #include "simulator/service/simulator_process.h"
 
+ABSL_FLAG(std::string, listen, "127.0.0.1:50070",
+          "gRPC address host:port (port 0 picks a free port)");
+ABSL_FLAG(std::string, metrics_listen, "127.0.0.1:0",
+          "Prometheus /metrics address (empty disables)");
+ABSL_FLAG(std::string, port_file, "", "write the bound ports here (grpc_port=, metrics_port=)");
+ABSL_FLAG(std::string, channel, "", "data channel broker address; empty: publish nothing");
+ABSL_FLAG(std::string, world, "",
+          "world file, or the name of a shipped world (empty_field, rooms, aircraft); empty: an "
+          "empty field");
+ABSL_FLAG(std::string, worlds_dir, BEHAVIORLIB_WORLDS_DIR, "where the shipped worlds are");
+ABSL_FLAG(std::string, vehicles, "drone1",
+          "comma-separated robot ids for a world without start poses; vehicle i starts landed at "
+          "x = 2 i m");
+ABSL_FLAG(std::string, time_scale, "1",
+          "simulated seconds per wall second (0.1..1000), or 'max': the deterministic mode, time "
+          "advanced by quanta as fast as every follower (Simulator.FollowTime) keeps up");
+ABSL_FLAG(bool, lock_step, false, "advance time only through Simulator.Step");
+ABSL_FLAG(double, quantum_ms, 10.0,
+          "deterministic mode: simulated milliseconds per grant (1..100; at most the shortest "
+          "behavior tick period)");
+ABSL_FLAG(int, min_followers, 0,
+          "deterministic mode: time starts once this many followers joined (0..1000)");
+ABSL_FLAG(double, follower_timeout_s, 5.0,
+          "deterministic mode: wall seconds a follower may take to catch up before time goes on "
+          "without it (0.1..600)");
+ABSL_FLAG(double, idle_time_scale, 20.0,
+          "deterministic mode: while no follower is busy, simulated time runs at most this many "
+          "times real time (1..1000; 0: no limit). Then only what is outside the barrier acts "
+          "(the coordinator, tools, tests), in wall time: a safety action's lease renewals, a "
+          "mission's next step");
+ABSL_FLAG(std::string, clock_publish, "line",
+          "free-running, how simulated time goes on the 'clock' topic: 'line' (its pace line "
+          "when it changes and once a wall second; readers extrapolate) or 'every-tick' (a "
+          "sample every 5 ms of simulated time)");
+ABSL_FLAG(bool, gate_topics, true,
+          "publish a vehicle's topic only while the broker says someone wants it "
+          "(DataChannel.WatchInterest); false: publish every sample");
+ABSL_FLAG(bool, enable_fault_injection, false,
+          "accept Simulator.InjectFailure (sensor, motor, battery and wind faults; see "
+          "simulator.proto)");
+ABSL_FLAG(std::string, sensor_config, "",
+          "YAML file of sensor rates, noise, lidar and camera settings (see "
+          "simulator/sensors/README.md); empty: the defaults");
+ABSL_FLAG(uint64_t, seed, 1, "seed of the sensor noise (a positive integer; Reset can change it)");
+
 int main(int argc, char** argv) {
   using behaviorlib::server::fatal;
-  using behaviorlib::server::FlagSet;
   using behaviorlib::server::ServerRuntime;
   namespace sim = behaviorlib::sim;
   ServerRuntime::blockShutdownSignals();
   const std::string program = "simulator";
-
-  std::string listen = "127.0.0.1:50070";
-  std::string metrics_listen = "127.0.0.1:0";
-  std::string port_file;
-  std::string channel;
-  std::string vehicles = "drone1";
-  std::string world_arg;
-  std::string worlds_dir = BEHAVIORLIB_WORLDS_DIR;
-  std::string time_scale_arg = "1";
-  bool lock_step = false;
-  double quantum_ms = 10.0;
-  int min_followers = 0;
-  double follower_timeout_s = 5.0;
-  double idle_time_scale = 20.0;
-  bool fault_injection = false;
-  std::string clock_publish = "line";
-  bool gate_topics = true;
-  std::string sensor_config_path;
-  std::string seed_arg = "1";
-  FlagSet flags(
-      "quadrotor simulator: FlightController + Simulator services, state and time on "
-      "the data channel");
-  flags.add("listen", &listen, "gRPC address host:port (port 0 picks a free port)");
-  flags.add("metrics-listen", &metrics_listen, "Prometheus /metrics address (empty disables)");
-  flags.add("port-file", &port_file, "write the bound ports here (grpc_port=, metrics_port=)");
-  flags.add("channel", &channel, "data channel broker address; empty: publish nothing");
-  flags.add("world", &world_arg,
-            "world file, or the name of a shipped world (empty_field, rooms, aircraft); empty: "
-            "an empty field");
-  flags.add("worlds-dir", &worlds_dir, "where the shipped worlds are");
-  flags.add("vehicles", &vehicles,
-            "comma-separated robot ids for a world without start poses; vehicle i starts "
-            "landed at x = 2 i m");
-  flags.add("time-scale", &time_scale_arg,
-            "simulated seconds per wall second (0.1..1000), or 'max': the deterministic mode, "
-            "time advanced by quanta as fast as every follower (Simulator.FollowTime) keeps up");
-  flags.add("lock-step", &lock_step, "advance time only through Simulator.Step");
-  flags.add("quantum-ms", &quantum_ms,
-            "deterministic mode: simulated milliseconds per grant (1..100; at most the shortest "
-            "behavior tick period)");
-  flags.add("min-followers", &min_followers,
-            "deterministic mode: time starts once this many followers joined (0..1000)");
-  flags.add("follower-timeout-s", &follower_timeout_s,
-            "deterministic mode: wall seconds a follower may take to catch up before time goes "
-            "on without it (0.1..600)");
-  flags.add("idle-time-scale", &idle_time_scale,
-            "deterministic mode: while no follower is busy, simulated time runs at most this "
-            "many times real time (1..1000; 0: no limit). Then only what is outside the "
-            "barrier acts (the coordinator, tools, tests), in wall time: a safety action's "
-            "lease renewals, a mission's next step");
-  flags.add("clock-publish", &clock_publish,
-            "free-running, how simulated time goes on the 'clock' topic: 'line' (its pace "
-            "line when it changes and once a wall second; readers extrapolate) or "
-            "'every-tick' (a sample every 5 ms of simulated time)");
-  flags.add("gate-topics", &gate_topics,
-            "publish a vehicle's topic only while the broker says someone wants it "
-            "(DataChannel.WatchInterest); false: publish every sample");
-  flags.add("enable-fault-injection", &fault_injection,
-            "accept Simulator.InjectFailure (sensor, motor, battery and wind faults; see "
-            "simulator.proto)");
-  flags.add("sensor-config", &sensor_config_path,
-            "YAML file of sensor rates, noise, lidar and camera settings (see "
-            "simulator/sensors/README.md); empty: the defaults");
-  flags.add("seed", &seed_arg,
-            "seed of the sensor noise (a positive integer; Reset can change it)");
-  int exit_code = 0;
-  if (!flags.parse(argc, argv, &exit_code)) return exit_code;
+  behaviorlib::server::parseFlags(
+      argc, argv,
+      "quadrotor simulator: FlightController + Simulator services, state and time on the data "
+      "channel");
+  const std::string time_scale_arg = absl::GetFlag(FLAGS_time_scale);
+  const bool lock_step = absl::GetFlag(FLAGS_lock_step);
+  const double quantum_ms = absl::GetFlag(FLAGS_quantum_ms);
+  const int min_followers = absl::GetFlag(FLAGS_min_followers);
+  const double follower_timeout_s = absl::GetFlag(FLAGS_follower_timeout_s);
+  const double idle_time_scale = absl::GetFlag(FLAGS_idle_time_scale);
+  const std::string clock_publish = absl::GetFlag(FLAGS_clock_publish);
   const bool deterministic = time_scale_arg == "max";
   double time_scale = 1.0;
   if (!deterministic) {
@@ -113,17 +103,14 @@ int main(int argc, char** argv) {
     fatal(program, "--clock-publish must be 'line' or 'every-tick', not '" + clock_publish + "'");
     return 2;
   }
-  uint64_t seed = 0;
-  {
-    char* end = nullptr;
-    seed = std::strtoull(seed_arg.c_str(), &end, 10);
-    if (seed_arg.empty() || *end != '\0' || seed == 0 || seed_arg[0] == '-') {
-      fatal(program, "--seed must be a positive integer, got '" + seed_arg + "'");
-      return 2;
-    }
+  const uint64_t seed = absl::GetFlag(FLAGS_seed);
+  if (seed == 0) {
+    fatal(program, "--seed must be a positive integer, got 0");
+    return 2;
   }
   sim::SensorConfig sensor_config;
-  if (!sensor_config_path.empty()) {
+  if (const std::string sensor_config_path = absl::GetFlag(FLAGS_sensor_config);
+      !sensor_config_path.empty()) {
     absl::StatusOr<sim::SensorConfig> loaded = sim::loadSensorConfig(sensor_config_path);
     if (!loaded.ok()) {
       fatal(program, "--sensor-config: " + std::string(loaded.status().message()));
@@ -133,13 +120,13 @@ int main(int argc, char** argv) {
   }
 
   sim::SimulatorOptions options;
-  options.listen = listen;
-  options.metrics_listen = metrics_listen;
-  options.channel = channel;
-  options.world = world_arg;
-  options.worlds_dir = worlds_dir;
+  options.listen = absl::GetFlag(FLAGS_listen);
+  options.metrics_listen = absl::GetFlag(FLAGS_metrics_listen);
+  options.channel = absl::GetFlag(FLAGS_channel);
+  options.world = absl::GetFlag(FLAGS_world);
+  options.worlds_dir = absl::GetFlag(FLAGS_worlds_dir);
   options.vehicles.clear();
-  std::istringstream ids(vehicles);
+  std::istringstream ids(absl::GetFlag(FLAGS_vehicles));
   for (std::string id; std::getline(ids, id, ',');) {
     if (!id.empty()) options.vehicles.push_back(id);
   }
@@ -151,9 +138,9 @@ int main(int argc, char** argv) {
   options.min_followers = min_followers;
   options.follower_timeout = behaviorlib::seconds(follower_timeout_s);
   options.idle_time_scale = idle_time_scale;
-  options.fault_injection = fault_injection;
+  options.fault_injection = absl::GetFlag(FLAGS_enable_fault_injection);
   options.clock_every_tick = clock_publish == "every-tick";
-  options.gate_topics = gate_topics;
+  options.gate_topics = absl::GetFlag(FLAGS_gate_topics);
   options.sensor_config = std::move(sensor_config);
   options.seed = seed;
 
@@ -163,7 +150,9 @@ int main(int argc, char** argv) {
     return simulator.status().code() == absl::StatusCode::kInvalidArgument ? 2 : 1;
   }
   std::string error;
-  if (!(*simulator)->writePortFile(port_file, &error)) return fatal(program, error);
+  if (!(*simulator)->writePortFile(absl::GetFlag(FLAGS_port_file), &error)) {
+    return fatal(program, error);
+  }
   std::string robot_ids;
   for (const auto& id : (*simulator)->robotIds()) {
     robot_ids += (robot_ids.empty() ? "" : ",") + id;

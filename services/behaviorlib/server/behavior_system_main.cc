@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <iostream>
 
+#include "absl/flags/flag.h"
 #include "behaviorlib/behavior_host.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/channel/sim_clock.h"
@@ -17,6 +18,32 @@
 #include "behaviorlib/server_kit/flags.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "behaviorlib/v1/options.pb.h"
+
+// The flags of every behavior-system process (runBehaviorSystem).
+ABSL_FLAG(std::string, robot_id, "drone1", "robot this process serves");
+ABSL_FLAG(std::string, listen, "127.0.0.1:50061",
+          "gRPC address host:port (port 0 picks a free port)");
+ABSL_FLAG(std::string, metrics_listen, "127.0.0.1:0",
+          "Prometheus /metrics address host:port (port 0 picks a free port; empty disables)");
+ABSL_FLAG(std::string, port_file, "", "write the bound ports here (grpc_port=, metrics_port=)");
+ABSL_FLAG(std::string, channel, "", "data channel broker address host:port");
+ABSL_FLAG(std::string, clock, "steady",
+          "behavior clock: 'steady' (host monotonic time) or 'sim' (the channel's 'clock' "
+          "topic, published by the simulator)");
+ABSL_FLAG(std::string, config, "",
+          "YAML file: behaviors: {NAME: {frequency_hz, maximum_execution_time_s, "
+          "watchdog_timeout_s, ...}}");
+ABSL_FLAG(std::string, coordinator, "",
+          "coordinator address host:port: register there (retrying until it is up) with this "
+          "process's real bound port, send heartbeats, register again after a coordinator "
+          "restart, unregister on SIGTERM; empty: no registration");
+ABSL_FLAG(std::string, flight_controller, "",
+          "FlightController address host:port (the simulator's, or an autopilot bridge's) for "
+          "flight behaviors; empty: they report that no flight controller is configured");
+ABSL_FLAG(std::string, follow_time, "",
+          "simulator address host:port: follow its time grants (deterministic mode, simulator "
+          "--time-scale max): each granted time is reported back once every behavior ran what "
+          "was due, and the simulator waits for it; needs --clock sim");
 
 namespace behaviorlib::server {
 
@@ -42,44 +69,20 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   ServerRuntime::blockShutdownSignals();
   const std::string program = system_name;
 
-  std::string robot_id = "drone1";
-  std::string listen = "127.0.0.1:50061";
-  std::string metrics_listen = "127.0.0.1:0";
-  std::string port_file;
-  std::string channel;
-  std::string clock_kind = "steady";
-  std::string config_path;
-  std::string coordinator;
-  std::string flight_controller;
-  std::string follow_time;
-  FlagSet flags("behavior system " + system_name +
-                ": hosts its behaviors as gRPC services (typed per behavior, plus "
-                "behaviorlib.v1.BehaviorSystem)");
-  flags.add("robot-id", &robot_id, "robot this process serves");
-  flags.add("listen", &listen, "gRPC address host:port (port 0 picks a free port)");
-  flags.add("metrics-listen", &metrics_listen,
-            "Prometheus /metrics address host:port (port 0 picks a free port; empty disables)");
-  flags.add("port-file", &port_file, "write the bound ports here (grpc_port=, metrics_port=)");
-  flags.add("channel", &channel, "data channel broker address host:port");
-  flags.add("clock", &clock_kind,
-            "behavior clock: 'steady' (host monotonic time) or 'sim' (the channel's 'clock' "
-            "topic, published by the simulator)");
-  flags.add("config", &config_path,
-            "YAML file: behaviors: {NAME: {frequency_hz, maximum_execution_time_s, "
-            "watchdog_timeout_s, ...}}");
-  flags.add("coordinator", &coordinator,
-            "coordinator address host:port: register there (retrying until it is up) with this "
-            "process's real bound port, send heartbeats, register again after a coordinator "
-            "restart, unregister on SIGTERM; empty: no registration");
-  flags.add("flight-controller", &flight_controller,
-            "FlightController address host:port (the simulator's, or an autopilot bridge's) for "
-            "flight behaviors; empty: they report that no flight controller is configured");
-  flags.add("follow-time", &follow_time,
-            "simulator address host:port: follow its time grants (deterministic mode, "
-            "simulator --time-scale max): each granted time is reported back once every "
-            "behavior ran what was due, and the simulator waits for it; needs --clock sim");
-  int exit_code = 0;
-  if (!flags.parse(argc, argv, &exit_code)) return exit_code;
+  parseFlags(argc, argv,
+             "behavior system " + system_name +
+                 ": hosts its behaviors as gRPC services (typed per behavior, plus "
+                 "behaviorlib.v1.BehaviorSystem)");
+  const std::string robot_id = absl::GetFlag(FLAGS_robot_id);
+  const std::string listen = absl::GetFlag(FLAGS_listen);
+  const std::string metrics_listen = absl::GetFlag(FLAGS_metrics_listen);
+  const std::string port_file = absl::GetFlag(FLAGS_port_file);
+  const std::string channel = absl::GetFlag(FLAGS_channel);
+  const std::string clock_kind = absl::GetFlag(FLAGS_clock);
+  const std::string config_path = absl::GetFlag(FLAGS_config);
+  const std::string coordinator = absl::GetFlag(FLAGS_coordinator);
+  const std::string flight_controller = absl::GetFlag(FLAGS_flight_controller);
+  const std::string follow_time = absl::GetFlag(FLAGS_follow_time);
   if (!follow_time.empty() && clock_kind != "sim") {
     fatal(program, "--follow-time needs --clock sim (the grants set simulated time)");
     return 2;

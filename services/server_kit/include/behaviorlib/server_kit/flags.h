@@ -1,45 +1,39 @@
 #pragma once
 
-// A small command-line flag parser for our server binaries:
+// Command-line flags of our programs are absl flags (ABSL_FLAG), read with
+// absl::GetFlag into the program's options struct:
 //
-//   FlagSet flags("behavior system");
-//   std::string robot_id = "drone1";
-//   flags.add("robot-id", &robot_id, "robot this process serves");
-//   if (!flags.parse(argc, argv)) return 2;   // prints the error and usage
+//   ABSL_FLAG(std::string, robot_id, "drone1", "robot this process serves");
+//   ABSL_FLAG(int, workers, 4, "threads for blocking calls");
 //
-// Accepts `--name value` and `--name=value`; `--help` prints the usage.
+//   int main(int argc, char** argv) {
+//     behaviorlib::server::parseFlags(argc, argv, "the coordinator: ...");
+//     options.workers = absl::GetFlag(FLAGS_workers);
+//
+// On the command line a flag's name is written with hyphens (--robot-id, the
+// names the launcher, the compose files and the docs use) or, as absl
+// spells it, with underscores (--robot_id). Accepts `--name value`,
+// `--name=value`, `--flag`/`--noflag` for booleans; an integer flag refuses
+// "4.5". --help lists the flags.
 
-#include <functional>
 #include <string>
 #include <vector>
 
 namespace behaviorlib::server {
 
-class FlagSet {
- public:
-  explicit FlagSet(std::string program_description);
-  void add(std::string name, std::string* value, std::string help);
-  void add(std::string name, double* value, std::string help);
-  /// An integer flag: "4" is accepted, "4.5" and "four" are refused.
-  void add(std::string name, int* value, std::string help);
-  void add(std::string name, bool* value, std::string help);
+/// Parses argv into the program's ABSL_FLAGs. Exits like absl does: 1 after
+/// printing an unknown flag or a bad value, or the usage for --help. A
+/// positional argument is refused with exit code 2 (our programs take none).
+void parseFlags(int argc, char** argv, const std::string& usage);
 
-  /// False after printing an actionable message (unknown flag, missing or
-  /// malformed value) or the usage for --help; `exit_code` tells main what
-  /// to return (0 for --help, 2 otherwise).
-  bool parse(int argc, char** argv, int* exit_code = nullptr);
-  std::string usage(const std::string& program) const;
+/// As parseFlags, for a program that takes arguments besides its flags (a
+/// command and its operands, anywhere among the flags): returns them in
+/// order, without the program's name.
+std::vector<std::string> parseCommandLine(int argc, char** argv, const std::string& usage);
 
- private:
-  struct Flag {
-    std::string name;
-    std::string help;
-    std::string default_text;
-    std::function<bool(const std::string&)> set;
-    bool is_bool = false;
-  };
-  std::string description_;
-  std::vector<Flag> flags_;
-};
+/// argv with the name (up to '=') of each argument that starts with "--"
+/// written with underscores instead of hyphens. A separate value that
+/// starts with "--" would be rewritten too; none of our flags takes one.
+std::vector<std::string> abslFlagNames(int argc, char** argv);
 
 }  // namespace behaviorlib::server

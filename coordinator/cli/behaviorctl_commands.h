@@ -1,0 +1,45 @@
+#pragma once
+
+// behaviorctl's commands: a client of one behavior system (the generic
+// behaviorlib.v1.BehaviorSystem service, --target) or of the coordinator
+// (behaviorlib.v1.Coordinator, --coordinator), which routes by robot and
+// behavior. main() parses the command line into CtlOptions and runs one.
+// Output is one JSON object per line on stdout; messages go to stderr.
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+namespace behaviorlib::coordinator {
+
+struct CtlOptions {
+  /// A behavior system's address; exactly one of target and coordinator.
+  std::string target;
+  std::string coordinator;
+  /// --robot: the robot (through the coordinator); a filter for list,
+  /// systems, watch.
+  std::string robot;
+  /// --behavior: watch only this behavior's events (coordinator).
+  std::string behavior_filter;
+  std::string request_id;
+  std::string incarnation;
+  /// watch: stop after this behavior's finished event.
+  std::string until_finished;
+  uint64_t since_seq = 0;
+  /// watch: give up after this many seconds; health: its deadline (0: 3 s).
+  double timeout_s = 0;
+  bool dry_run = false;
+  bool skip_plan = false;
+  bool detach = false;
+  bool confirm = false;
+  std::string mission_id;
+  /// The command and its arguments ("activate", "WAIT", "{...}").
+  std::vector<std::string> args;
+};
+
+/// Runs the command; the process's exit code: 0 done, 1 the call failed (or
+/// a mission did not succeed, or a health check found the server not
+/// serving), 2 a usage error.
+int runCtl(const CtlOptions& options);
+
+}  // namespace behaviorlib::coordinator

@@ -79,223 +79,261 @@ int followMission(v1::Coordinator::Stub& stub, const std::string& mission_id) {
   return last.state() == v1::MISSION_STATE_SUCCEEDED ? 0 : 1;
 }
 
+void printJson(const google::protobuf::Message& message) {
+  std::cout << toJson(message) << std::endl;
+}
+
+// One unary call under the command's deadline: `call(context, response)`
+// makes it; `print` shows the response. 1 when the call fails.
+template <class Response, class Call, class Print>
+int unary(Call call, Print print) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+  Response response;
+  if (grpc::Status s = call(&context, &response); !s.ok()) return fail(s);
+  print(response);
+  return 0;
+}
+
+template <class Response, class Call>
+int unary(Call call) {
+  return unary<Response>(call, [](const Response& r) { printJson(r); });
+}
+
+// Prints a stream's messages as they come, until `last` says one was the
+// last (0), the stream ends (0), or it fails (1). --timeout-s bounds it.
+template <class Message, class Open, class Last>
+int watch(const CtlOptions& c, Open open, Last last) {
+  grpc::ClientContext context;
+  if (c.timeout_s > 0) {
+    context.set_deadline(std::chrono::system_clock::now() +
+                         std::chrono::milliseconds(static_cast<int64_t>(c.timeout_s * 1e3)));
+  }
+  auto reader = open(&context);
+  Message message;
+  while (reader->Read(&message)) {
+    printJson(message);
+    if (last(message)) {
+      context.TryCancel();
+      reader->Finish();
+      return 0;
+    }
+  }
+  if (grpc::Status s = reader->Finish(); !s.ok()) return fail(s);
+  return 0;
+}
+
+// Parses args[index] (when given) as JSON into `out`; false after saying why.
+bool parseJson(const CtlOptions& c, size_t index, google::protobuf::Message* out,
+               const char* what) {
+  if (c.args.size() <= index) return true;
+  if (auto status = google::protobuf::util::JsonStringToMessage(c.args[index], out); !status.ok()) {
+    std::fprintf(stderr, "behaviorctl: %s: %s\n", what, std::string(status.message()).c_str());
+    return false;
+  }
+  return true;
+}
+
+constexpr const char* kNotAnObject = "parameters are not a JSON object";
+
+int beliefCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
+  // belief list [PREFIX] | get KEY | set KEY JSON | delete KEY
+  const std::string verb = c.args.size() > 1 ? c.args[1] : "";
+  const std::string key = c.args.size() > 2 ? c.args[2] : "";
+  if (verb == "list") {
+    v1::ListBeliefsRequest request;
+    request.set_prefix(key);
+    return unary<v1::ListBeliefsResponse>(
+        [&](auto* context, auto* r) { return stub.ListBeliefs(context, request, r); });
+  }
+  if (verb == "get" && !key.empty()) {
+    v1::ReadBeliefRequest request;
+    request.set_key(key);
+    return unary<v1::ReadBeliefResponse>(
+        [&](auto* context, auto* r) { return stub.ReadBelief(context, request, r); },
+        [](const v1::ReadBeliefResponse& r) { printJson(r.belief()); });
+  }
+  if (verb == "set" && c.args.size() > 3) {
+    v1::WriteBeliefRequest request;
+    request.set_key(key);
+    request.set_writer("operator");
+    if (!parseJson(c, 3, request.mutable_value(),
+                   "the value must be JSON (a string needs quotes: '\"yes\"')")) {
+      return 2;
+    }
+    return unary<v1::WriteBeliefResponse>(
+        [&](auto* context, auto* r) { return stub.WriteBelief(context, request, r); },
+        [](const v1::WriteBeliefResponse& r) { printJson(r.belief()); });
+  }
+  if (verb == "delete" && !key.empty()) {
+    v1::DeleteBeliefRequest request;
+    request.set_key(key);
+    request.set_writer("operator");
+    return unary<v1::DeleteBeliefResponse>(
+        [&](auto* context, auto* r) { return stub.DeleteBelief(context, request, r); },
+        [](const v1::DeleteBeliefResponse&) {});
+  }
+  std::fputs(
+      "usage: behaviorctl --coordinator ADDR belief list [PREFIX] | get KEY | set KEY JSON | "
+      "delete KEY\n",
+      stderr);
+  return 2;
+}
+
+int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
+  const std::string verb = c.args.size() > 1 ? c.args[1] : "";
+  const std::string arg = c.args.size() > 2 ? c.args[2] : "";
+  auto printStatus = [](const auto& r) { printJson(r.status()); };
+  if (verb == "run" && !arg.empty()) {
+    std::ifstream in(arg);
+    if (!in) {
+      std::fprintf(stderr, "behaviorctl: cannot read mission file %s\n", arg.c_str());
+      return 2;
+    }
+    std::stringstream text;
+    text << in.rdbuf();
+    v1::StartMissionRequest request;
+    request.set_text(text.str());
+    request.set_robot_id(c.robot);
+    request.set_mission_id(c.mission_id);
+    std::string started;
+    const int code = unary<v1::StartMissionResponse>(
+        [&](auto* context, auto* r) { return stub.StartMission(context, request, r); },
+        [&](const v1::StartMissionResponse& r) {
+          if (c.detach) printJson(r.status());
+          started = r.status().mission_id();
+        });
+    if (code != 0 || c.detach) return code;
+    return followMission(stub, started);
+  }
+  if (verb == "watch" && !arg.empty()) return followMission(stub, arg);
+  if (verb == "status" && !arg.empty()) {
+    v1::GetMissionRequest request;
+    request.set_mission_id(arg);
+    return unary<v1::GetMissionResponse>(
+        [&](auto* context, auto* r) { return stub.GetMission(context, request, r); }, printStatus);
+  }
+  if (verb == "list") {
+    return unary<v1::ListMissionsResponse>([&](auto* context, auto* r) {
+      return stub.ListMissions(context, v1::ListMissionsRequest(), r);
+    });
+  }
+  if ((verb == "pause" || verb == "resume" || verb == "abort") && !arg.empty()) {
+    v1::MissionControlRequest request;
+    request.set_mission_id(arg);
+    request.set_reason(c.args.size() > 3 ? c.args[3] : "requested with behaviorctl");
+    return unary<v1::MissionControlResponse>(
+        [&](auto* context, auto* r) {
+          return verb == "pause"    ? stub.PauseMission(context, request, r)
+                 : verb == "resume" ? stub.ResumeMission(context, request, r)
+                                    : stub.AbortMission(context, request, r);
+        },
+        printStatus);
+  }
+  std::fputs(
+      "usage: behaviorctl --coordinator ADDR mission run FILE [--robot ID] [--mission-id ID] "
+      "[--detach] | status ID | list | watch ID | pause ID | resume ID | abort ID [REASON]\n",
+      stderr);
+  return 2;
+}
+
 // The commands through the coordinator (behaviorlib.v1.Coordinator).
 int runCoordinator(const CtlOptions& c) {
   auto stub = v1::Coordinator::NewStub(
       grpc::CreateChannel(c.coordinator, grpc::InsecureChannelCredentials()));
   const std::string& command = c.args[0];
   const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
-  auto needRobot = [&]() -> bool {
-    if (!c.robot.empty()) return true;
+  const bool needs_robot = command == "status" || command == "activate" ||
+                           command == "deactivate" || command == "situation" ||
+                           command == "emergency-land" || command == "kill";
+  if (needs_robot && c.robot.empty()) {
     std::fprintf(stderr, "behaviorctl: '%s' through the coordinator needs --robot ID\n",
                  command.c_str());
-    return false;
-  };
-  grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
-
+    return 2;
+  }
   if (command == "list" || command == "status") {
-    if (command == "status" && !needRobot()) return 2;
     v1::ListFleetBehaviorsRequest request;
     request.set_robot_id(c.robot);
     if (command == "status") request.set_behavior(behavior);
-    v1::ListFleetBehaviorsResponse response;
-    auto s = stub->ListBehaviors(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    if (command == "status" && response.behaviors().empty()) {
+    bool missing = false;
+    const int code = unary<v1::ListFleetBehaviorsResponse>(
+        [&](auto* context, auto* r) { return stub->ListBehaviors(context, request, r); },
+        [&](const v1::ListFleetBehaviorsResponse& r) {
+          missing = command == "status" && r.behaviors().empty();
+          if (!missing) printJson(r);
+        });
+    if (missing) {
       std::fprintf(stderr, "behaviorctl: robot %s has no behavior '%s'\n", c.robot.c_str(),
                    behavior.c_str());
       return 1;
     }
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "systems") {
+    return code;
+  }
+  if (command == "systems") {
     v1::ListSystemsRequest request;
     request.set_robot_id(c.robot);
-    v1::ListSystemsResponse response;
-    auto s = stub->ListSystems(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "activate") {
-    if (!needRobot()) return 2;
+    return unary<v1::ListSystemsResponse>(
+        [&](auto* context, auto* r) { return stub->ListSystems(context, request, r); });
+  }
+  if (command == "activate") {
     v1::ActivateFleetBehaviorRequest request;
     request.set_robot_id(c.robot);
     request.set_behavior(behavior);
     request.set_request_id(c.request_id);
     request.set_dry_run(c.dry_run);
     request.set_skip_plan(c.skip_plan);
-    if (c.args.size() > 2) {
-      auto status =
-          google::protobuf::util::JsonStringToMessage(c.args[2], request.mutable_parameters());
-      if (!status.ok()) {
-        std::fprintf(stderr, "behaviorctl: parameters are not a JSON object: %s\n",
-                     std::string(status.message()).c_str());
-        return 2;
-      }
-    }
-    v1::ActivateFleetBehaviorResponse response;
-    auto s = stub->ActivateBehavior(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "deactivate") {
-    if (!needRobot()) return 2;
+    if (!parseJson(c, 2, request.mutable_parameters(), kNotAnObject)) return 2;
+    return unary<v1::ActivateFleetBehaviorResponse>(
+        [&](auto* context, auto* r) { return stub->ActivateBehavior(context, request, r); });
+  }
+  if (command == "deactivate") {
     v1::DeactivateFleetBehaviorRequest request;
     request.set_robot_id(c.robot);
     request.set_behavior(behavior);
     if (c.args.size() > 2) request.set_activation_id(c.args[2]);
-    v1::DeactivateFleetBehaviorResponse response;
-    auto s = stub->DeactivateBehavior(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "situation") {
-    if (!needRobot()) return 2;
+    return unary<v1::DeactivateFleetBehaviorResponse>(
+        [&](auto* context, auto* r) { return stub->DeactivateBehavior(context, request, r); });
+  }
+  if (command == "situation") {
     v1::CheckFleetBehaviorSituationRequest request;
     request.set_robot_id(c.robot);
     request.set_behavior(behavior);
-    v1::CheckFleetBehaviorSituationResponse response;
-    auto s = stub->CheckBehaviorSituation(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "watch") {
-    grpc::ClientContext watch_context;
-    if (c.timeout_s > 0) {
-      watch_context.set_deadline(
-          std::chrono::system_clock::now() +
-          std::chrono::milliseconds(static_cast<int64_t>(c.timeout_s * 1e3)));
-    }
+    return unary<v1::CheckFleetBehaviorSituationResponse>(
+        [&](auto* context, auto* r) { return stub->CheckBehaviorSituation(context, request, r); });
+  }
+  if (command == "watch") {
     v1::WatchFleetEventsRequest request;
     request.set_since_seq(c.since_seq);
     request.set_incarnation(c.incarnation);
     if (!c.robot.empty()) request.add_robot_ids(c.robot);
     if (!c.behavior_filter.empty()) request.add_behaviors(c.behavior_filter);
-    auto reader = stub->WatchEvents(&watch_context, request);
-    v1::WatchFleetEventsResponse message;
-    while (reader->Read(&message)) {
-      std::cout << toJson(message) << std::endl;
-      if (!c.until_finished.empty() && message.has_event() &&
-          message.event().has_behavior_event() && message.event().behavior_event().has_finished() &&
-          message.event().behavior_event().behavior() == c.until_finished) {
-        watch_context.TryCancel();
-        reader->Finish();
-        return 0;
-      }
-    }
-    auto s = reader->Finish();
-    if (!s.ok()) return fail(s);
-  } else if (command == "belief") {
-    // belief list [PREFIX] | get KEY | set KEY JSON | delete KEY
-    const std::string verb = c.args.size() > 1 ? c.args[1] : "";
-    const std::string key = c.args.size() > 2 ? c.args[2] : "";
-    if (verb == "list") {
-      v1::ListBeliefsRequest request;
-      request.set_prefix(key);
-      v1::ListBeliefsResponse response;
-      if (auto s = stub->ListBeliefs(&context, request, &response); !s.ok()) return fail(s);
-      std::cout << toJson(response) << std::endl;
-    } else if (verb == "get" && !key.empty()) {
-      v1::ReadBeliefRequest request;
-      request.set_key(key);
-      v1::ReadBeliefResponse response;
-      if (auto s = stub->ReadBelief(&context, request, &response); !s.ok()) return fail(s);
-      std::cout << toJson(response.belief()) << std::endl;
-    } else if (verb == "set" && c.args.size() > 3) {
-      v1::WriteBeliefRequest request;
-      request.set_key(key);
-      request.set_writer("operator");
-      if (!google::protobuf::util::JsonStringToMessage(c.args[3], request.mutable_value()).ok()) {
-        std::fprintf(stderr,
-                     "behaviorctl: the value must be JSON (a string needs quotes: '\"yes\"')\n");
-        return 2;
-      }
-      v1::WriteBeliefResponse response;
-      if (auto s = stub->WriteBelief(&context, request, &response); !s.ok()) return fail(s);
-      std::cout << toJson(response.belief()) << std::endl;
-    } else if (verb == "delete" && !key.empty()) {
-      v1::DeleteBeliefRequest request;
-      request.set_key(key);
-      request.set_writer("operator");
-      v1::DeleteBeliefResponse response;
-      if (auto s = stub->DeleteBelief(&context, request, &response); !s.ok()) return fail(s);
-    } else {
-      std::fputs(
-          "usage: behaviorctl --coordinator ADDR belief list [PREFIX] | get KEY | set KEY JSON | "
-          "delete KEY\n",
-          stderr);
-      return 2;
-    }
-  } else if (command == "mission") {
-    const std::string verb = c.args.size() > 1 ? c.args[1] : "";
-    const std::string arg = c.args.size() > 2 ? c.args[2] : "";
-    if (verb == "run" && !arg.empty()) {
-      std::ifstream in(arg);
-      if (!in) {
-        std::fprintf(stderr, "behaviorctl: cannot read mission file %s\n", arg.c_str());
-        return 2;
-      }
-      std::stringstream text;
-      text << in.rdbuf();
-      v1::StartMissionRequest request;
-      request.set_text(text.str());
-      request.set_robot_id(c.robot);
-      request.set_mission_id(c.mission_id);
-      v1::StartMissionResponse response;
-      if (auto s = stub->StartMission(&context, request, &response); !s.ok()) return fail(s);
-      if (c.detach) {
-        std::cout << toJson(response.status()) << std::endl;
-        return 0;
-      }
-      return followMission(*stub, response.status().mission_id());
-    } else if (verb == "watch" && !arg.empty()) {
-      return followMission(*stub, arg);
-    } else if (verb == "status" && !arg.empty()) {
-      v1::GetMissionRequest request;
-      request.set_mission_id(arg);
-      v1::GetMissionResponse response;
-      if (auto s = stub->GetMission(&context, request, &response); !s.ok()) return fail(s);
-      std::cout << toJson(response.status()) << std::endl;
-    } else if (verb == "list") {
-      v1::ListMissionsResponse response;
-      if (auto s = stub->ListMissions(&context, v1::ListMissionsRequest(), &response); !s.ok()) {
-        return fail(s);
-      }
-      std::cout << toJson(response) << std::endl;
-    } else if ((verb == "pause" || verb == "resume" || verb == "abort") && !arg.empty()) {
-      v1::MissionControlRequest request;
-      request.set_mission_id(arg);
-      request.set_reason(c.args.size() > 3 ? c.args[3] : "requested with behaviorctl");
-      v1::MissionControlResponse response;
-      grpc::Status s = verb == "pause"    ? stub->PauseMission(&context, request, &response)
-                       : verb == "resume" ? stub->ResumeMission(&context, request, &response)
-                                          : stub->AbortMission(&context, request, &response);
-      if (!s.ok()) return fail(s);
-      std::cout << toJson(response.status()) << std::endl;
-    } else {
-      std::fputs(
-          "usage: behaviorctl --coordinator ADDR mission run FILE [--robot ID] [--mission-id ID] "
-          "[--detach] | status ID | list | watch ID | pause ID | resume ID | abort ID [REASON]\n",
-          stderr);
-      return 2;
-    }
-  } else if (command == "emergency-land" || command == "kill") {
-    if (!needRobot()) return 2;
+    return watch<v1::WatchFleetEventsResponse>(
+        c, [&](auto* context) { return stub->WatchEvents(context, request); },
+        [&](const v1::WatchFleetEventsResponse& m) {
+          const auto& e = m.event().behavior_event();
+          return !c.until_finished.empty() && e.has_finished() && e.behavior() == c.until_finished;
+        });
+  }
+  if (command == "belief") return beliefCommand(*stub, c);
+  if (command == "mission") return missionCommand(*stub, c);
+  if (command == "emergency-land" || command == "kill") {
     v1::SafetyActionRequest request;
     request.set_robot_id(c.robot);
     request.set_confirm(c.confirm);
     request.set_reason(c.args.size() > 1 ? c.args[1] : "requested with behaviorctl");
-    v1::SafetyActionResponse response;
-    grpc::Status s = command == "kill" ? stub->Kill(&context, request, &response)
-                                       : stub->EmergencyLand(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "pause" || command == "resume" || command == "modify") {
+    return unary<v1::SafetyActionResponse>([&](auto* context, auto* r) {
+      return command == "kill" ? stub->Kill(context, request, r)
+                               : stub->EmergencyLand(context, request, r);
+    });
+  }
+  if (command == "pause" || command == "resume" || command == "modify") {
     std::fprintf(stderr,
                  "behaviorctl: '%s' is not routed by the coordinator; use --target with the "
                  "hosting system's address (see 'behaviorctl --coordinator ... list')\n",
                  command.c_str());
     return 2;
-  } else {
-    return usageError();
   }
-  return 0;
+  return usageError();
 }
 
 // The commands to one behavior system (behaviorlib.v1.BehaviorSystem).
@@ -303,109 +341,70 @@ int runSystem(const CtlOptions& c) {
   auto stub = v1::BehaviorSystem::NewStub(
       grpc::CreateChannel(c.target, grpc::InsecureChannelCredentials()));
   const std::string& command = c.args[0];
-  auto behavior = [&]() -> std::string { return c.args.size() > 1 ? c.args[1] : ""; };
-  auto parseStruct = [&](size_t index, google::protobuf::Struct* out) -> bool {
-    if (c.args.size() <= index) return true;
-    auto status = google::protobuf::util::JsonStringToMessage(c.args[index], out);
-    if (!status.ok()) {
-      std::fprintf(stderr, "behaviorctl: parameters are not a JSON object: %s\n",
-                   std::string(status.message()).c_str());
-      return false;
-    }
-    return true;
-  };
-  grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
-
+  const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
   if (command == "list") {
-    v1::ListBehaviorsResponse response;
-    auto s = stub->ListBehaviors(&context, v1::ListBehaviorsRequest(), &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "activate") {
+    return unary<v1::ListBehaviorsResponse>([&](auto* context, auto* r) {
+      return stub->ListBehaviors(context, v1::ListBehaviorsRequest(), r);
+    });
+  }
+  if (command == "activate") {
     v1::ActivateBehaviorRequest request;
-    request.set_behavior(behavior());
+    request.set_behavior(behavior);
     request.set_request_id(c.request_id);
-    if (!parseStruct(2, request.mutable_parameters())) return 2;
-    v1::ActivateResponse response;
-    auto s = stub->ActivateBehavior(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "deactivate") {
+    if (!parseJson(c, 2, request.mutable_parameters(), kNotAnObject)) return 2;
+    return unary<v1::ActivateResponse>(
+        [&](auto* context, auto* r) { return stub->ActivateBehavior(context, request, r); });
+  }
+  if (command == "deactivate") {
     v1::DeactivateBehaviorRequest request;
-    request.set_behavior(behavior());
+    request.set_behavior(behavior);
     if (c.args.size() > 2) request.set_activation_id(c.args[2]);
-    v1::DeactivateResponse response;
-    auto s = stub->DeactivateBehavior(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "pause" || command == "resume") {
-    grpc::Status s;
-    std::string out;
-    if (command == "pause") {
-      v1::PauseBehaviorRequest request;
-      request.set_behavior(behavior());
-      v1::PauseResponse response;
-      s = stub->PauseBehavior(&context, request, &response);
-      out = toJson(response);
-    } else {
-      v1::ResumeBehaviorRequest request;
-      request.set_behavior(behavior());
-      v1::ResumeResponse response;
-      s = stub->ResumeBehavior(&context, request, &response);
-      out = toJson(response);
-    }
-    if (!s.ok()) return fail(s);
-    std::cout << out << std::endl;
-  } else if (command == "modify") {
+    return unary<v1::DeactivateResponse>(
+        [&](auto* context, auto* r) { return stub->DeactivateBehavior(context, request, r); });
+  }
+  if (command == "pause") {
+    v1::PauseBehaviorRequest request;
+    request.set_behavior(behavior);
+    return unary<v1::PauseResponse>(
+        [&](auto* context, auto* r) { return stub->PauseBehavior(context, request, r); });
+  }
+  if (command == "resume") {
+    v1::ResumeBehaviorRequest request;
+    request.set_behavior(behavior);
+    return unary<v1::ResumeResponse>(
+        [&](auto* context, auto* r) { return stub->ResumeBehavior(context, request, r); });
+  }
+  if (command == "modify") {
     v1::ModifyBehaviorRequest request;
-    request.set_behavior(behavior());
-    if (!parseStruct(2, request.mutable_parameters())) return 2;
-    v1::ModifyResponse response;
-    auto s = stub->ModifyBehavior(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "status") {
+    request.set_behavior(behavior);
+    if (!parseJson(c, 2, request.mutable_parameters(), kNotAnObject)) return 2;
+    return unary<v1::ModifyResponse>(
+        [&](auto* context, auto* r) { return stub->ModifyBehavior(context, request, r); });
+  }
+  if (command == "status") {
     v1::CheckBehaviorActivationRequest request;
-    request.set_behavior(behavior());
-    v1::CheckActivationResponse response;
-    auto s = stub->CheckBehaviorActivation(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "situation") {
+    request.set_behavior(behavior);
+    return unary<v1::CheckActivationResponse>(
+        [&](auto* context, auto* r) { return stub->CheckBehaviorActivation(context, request, r); });
+  }
+  if (command == "situation") {
     v1::CheckBehaviorSituationRequest request;
-    request.set_behavior(behavior());
-    v1::CheckSituationResponse response;
-    auto s = stub->CheckBehaviorSituation(&context, request, &response);
-    if (!s.ok()) return fail(s);
-    std::cout << toJson(response) << std::endl;
-  } else if (command == "watch") {
-    grpc::ClientContext watch_context;
-    if (c.timeout_s > 0) {
-      watch_context.set_deadline(
-          std::chrono::system_clock::now() +
-          std::chrono::milliseconds(static_cast<int64_t>(c.timeout_s * 1e3)));
-    }
+    request.set_behavior(behavior);
+    return unary<v1::CheckSituationResponse>(
+        [&](auto* context, auto* r) { return stub->CheckBehaviorSituation(context, request, r); });
+  }
+  if (command == "watch") {
     v1::WatchEventsRequest request;
     request.set_since_seq(c.since_seq);
     request.set_incarnation(c.incarnation);
-    auto reader = stub->WatchEvents(&watch_context, request);
-    v1::WatchEventsResponse message;
-    while (reader->Read(&message)) {
-      std::cout << toJson(message) << std::endl;
-      if (!c.until_finished.empty() && message.has_event() && message.event().has_finished() &&
-          message.event().behavior() == c.until_finished) {
-        watch_context.TryCancel();
-        reader->Finish();
-        return 0;
-      }
-    }
-    auto s = reader->Finish();
-    if (!s.ok()) return fail(s);
-  } else {
-    return usageError();
+    return watch<v1::WatchEventsResponse>(
+        c, [&](auto* context) { return stub->WatchEvents(context, request); },
+        [&](const v1::WatchEventsResponse& m) {
+          return !c.until_finished.empty() && m.event().has_finished() &&
+                 m.event().behavior() == c.until_finished;
+        });
   }
-  return 0;
+  return usageError();
 }
 
 }  // namespace

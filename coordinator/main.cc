@@ -123,10 +123,7 @@ int main(int argc, char** argv) {
   const double grace_s = absl::GetFlag(FLAGS_grace_period_s);
 
   auto coordinator = coord::Coordinator::start(std::move(options));
-  if (!coordinator.ok()) {
-    fatal(program, std::string(coordinator.status().message()));
-    return coordinator.status().code() == absl::StatusCode::kInvalidArgument ? 2 : 1;
-  }
+  if (!coordinator.ok()) return fatal(program, coordinator.status());
   std::string error;
   if (!(*coordinator)->writePortFile(absl::GetFlag(FLAGS_port_file), &error)) {
     (*coordinator)->shutdown();

@@ -127,4 +127,9 @@ int fatal(const std::string& program, const std::string& message) {
   return 1;
 }
 
+int fatal(const std::string& program, const absl::Status& status) {
+  fatal(program, std::string(status.message()));
+  return status.code() == absl::StatusCode::kInvalidArgument ? 2 : 1;
+}
+
 }  // namespace behaviorlib::server

@@ -145,10 +145,7 @@ int main(int argc, char** argv) {
   options.seed = seed;
 
   auto simulator = sim::SimulatorProcess::start(std::move(options));
-  if (!simulator.ok()) {
-    fatal(program, std::string(simulator.status().message()));
-    return simulator.status().code() == absl::StatusCode::kInvalidArgument ? 2 : 1;
-  }
+  if (!simulator.ok()) return fatal(program, simulator.status());
   std::string error;
   if (!(*simulator)->writePortFile(absl::GetFlag(FLAGS_port_file), &error)) {
     return fatal(program, error);

@@ -64,165 +64,222 @@ void BehaviorSystemBuilder::checkServiceMatches(const BehaviorExecutionManager& 
   }
 }
 
-int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
-                      const std::function<void(BehaviorSystemBuilder&)>& register_behaviors) {
-  ServerRuntime::blockShutdownSignals();
-  const std::string program = system_name;
-
-  parseFlags(argc, argv,
-             "behavior system " + system_name +
-                 ": hosts its behaviors as gRPC services (typed per behavior, plus "
-                 "behaviorlib.v1.BehaviorSystem)");
-  const std::string robot_id = absl::GetFlag(FLAGS_robot_id);
-  const std::string listen = absl::GetFlag(FLAGS_listen);
-  const std::string metrics_listen = absl::GetFlag(FLAGS_metrics_listen);
-  const std::string port_file = absl::GetFlag(FLAGS_port_file);
-  const std::string channel = absl::GetFlag(FLAGS_channel);
-  const std::string clock_kind = absl::GetFlag(FLAGS_clock);
-  const std::string config_path = absl::GetFlag(FLAGS_config);
-  const std::string coordinator = absl::GetFlag(FLAGS_coordinator);
-  const std::string flight_controller = absl::GetFlag(FLAGS_flight_controller);
-  const std::string follow_time = absl::GetFlag(FLAGS_follow_time);
-  if (!follow_time.empty() && clock_kind != "sim") {
-    fatal(program, "--follow-time needs --clock sim (the grants set simulated time)");
-    return 2;
-  }
-
-  YAML::Node config;
-  if (!config_path.empty()) {
-    try {
-      config = YAML::LoadFile(config_path);
-    } catch (const YAML::Exception& e) {
-      fatal(program, "cannot read --config " + config_path + ": " + e.what());
-      return 2;
-    }
-  }
-
+// Declared in construction order: destroyed in reverse, after shutdown().
+struct BehaviorSystemProcess::Parts {
+  BehaviorSystemOptions options;
   std::unique_ptr<channel::ChannelClient> channel_client;
-  if (!channel.empty()) channel_client = std::make_unique<channel::ChannelClient>(channel);
   std::unique_ptr<Clock> clock;
   channel::SimClock* sim_clock = nullptr;
-  if (clock_kind == "steady") {
-    clock = std::make_unique<SteadyClock>();
-  } else if (clock_kind == "sim") {
-    if (!channel_client) {
-      fatal(program, "--clock sim needs --channel (simulated time comes from its 'clock' topic)");
-      return 2;
-    }
+  AcceptGate gate;
+  std::unique_ptr<BeliefClient> belief_client;
+  std::unique_ptr<BehaviorSystemBuilder> builder;
+  // Before the host, which calls its awaitTurn() until it stops.
+  std::unique_ptr<TimeFollower> follower;
+  std::unique_ptr<BehaviorHost> host;
+  ServerRuntime runtime;
+  std::unique_ptr<BehaviorMetrics> metrics;
+  std::unique_ptr<BehaviorSystemService> system_service;
+  std::unique_ptr<CoordinatorRegistration> registration;
+  bool host_started = false;
+  bool stopped = false;
+};
+
+absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::start(
+    BehaviorSystemOptions options,
+    const std::function<void(BehaviorSystemBuilder&)>& register_behaviors) {
+  if (options.log_prefix.empty()) options.log_prefix = options.system;
+  if (!options.follow_time.empty() && options.clock != "sim") {
+    return absl::InvalidArgumentError(
+        "--follow-time needs --clock sim (the grants set simulated time)");
+  }
+  if (options.clock != "steady" && options.clock != "sim") {
+    return absl::InvalidArgumentError("--clock must be 'steady' or 'sim', not '" + options.clock +
+                                      "'");
+  }
+  if (options.clock == "sim" && options.channel.empty()) {
+    return absl::InvalidArgumentError(
+        "--clock sim needs --channel (simulated time comes from its 'clock' topic)");
+  }
+  auto p = std::make_unique<Parts>();
+  p->options = std::move(options);
+  const BehaviorSystemOptions& o = p->options;
+  if (!o.channel.empty()) p->channel_client = std::make_unique<channel::ChannelClient>(o.channel);
+  if (o.clock == "steady") {
+    p->clock = std::make_unique<SteadyClock>();
+  } else {
     // Extrapolates the simulator's time line; runs on at the last time scale
     // when the simulator dies, so that staleness checks notice it.
     // Following the time grants, the grants are the time: the clock topic
     // would only repeat them.
-    auto simulated = follow_time.empty() ? std::make_unique<channel::SimClock>(*channel_client)
-                                         : std::make_unique<channel::SimClock>();
-    sim_clock = simulated.get();
-    clock = std::move(simulated);
-  } else {
-    fatal(program, "--clock must be 'steady' or 'sim', not '" + clock_kind + "'");
-    return 2;
+    auto simulated = o.follow_time.empty() ? std::make_unique<channel::SimClock>(*p->channel_client)
+                                           : std::make_unique<channel::SimClock>();
+    p->sim_clock = simulated.get();
+    p->clock = std::move(simulated);
   }
 
-  AcceptGate gate;
   SystemContext context;
-  context.system = system_name;
-  context.robot_id = robot_id;
-  context.clock = clock.get();
-  context.channel = channel_client.get();
-  context.flight_controller = flight_controller;
-  context.config = config;
-  std::unique_ptr<BeliefClient> belief_client;
-  if (!coordinator.empty()) {
-    belief_client = std::make_unique<BeliefClient>(coordinator);
-    context.beliefs = belief_client.get();
+  context.system = o.system;
+  context.robot_id = o.robot_id;
+  context.clock = p->clock.get();
+  context.channel = p->channel_client.get();
+  context.flight_controller = o.flight_controller;
+  context.config = o.config;
+  if (!o.coordinator.empty()) {
+    p->belief_client = std::make_unique<BeliefClient>(o.coordinator);
+    context.beliefs = p->belief_client.get();
   }
-  BehaviorSystemBuilder builder(gate, std::move(context));
-  register_behaviors(builder);
+  p->builder = std::make_unique<BehaviorSystemBuilder>(p->gate, std::move(context));
+  register_behaviors(*p->builder);
 
-  // Declared before the host, which calls its awaitTurn() until it stops.
-  std::unique_ptr<TimeFollower> follower;
-  if (!follow_time.empty()) {
-    follower = std::make_unique<TimeFollower>(follow_time, system_name + "/" + robot_id, *sim_clock,
-                                              channel_client.get());
+  if (!o.follow_time.empty()) {
+    p->follower = std::make_unique<TimeFollower>(o.follow_time, o.system + "/" + o.robot_id,
+                                                 *p->sim_clock, p->channel_client.get());
   }
   BehaviorHostOptions host_options;
-  host_options.robot_id = robot_id;
-  host_options.system = system_name;
-  if (follower) host_options.before_command = [&follower] { follower->awaitTurn(); };
-  BehaviorHost host(host_options, *clock);
-  for (auto& behavior : builder.behaviors()) host.add(std::move(behavior));
+  host_options.robot_id = o.robot_id;
+  host_options.system = o.system;
+  if (p->follower) {
+    host_options.before_command = [follower = p->follower.get()] { follower->awaitTurn(); };
+  }
+  p->host = std::make_unique<BehaviorHost>(host_options, *p->clock);
+  for (auto& behavior : p->builder->behaviors()) p->host->add(std::move(behavior));
 
-  ServerRuntime runtime;
-  BehaviorMetrics metrics(runtime.registry(), robot_id, system_name);
+  p->metrics = std::make_unique<BehaviorMetrics>(p->runtime.registry(), o.robot_id, o.system);
   // A behavior blocked by the watchdog reports its typed service NOT_SERVING.
-  const auto service_names = builder.serviceNames();
-  host.setObserverFactory(
-      metrics.observerFactory([&runtime, service_names](const std::string& behavior, bool blocked) {
+  p->host->setObserverFactory(p->metrics->observerFactory(
+      [runtime = &p->runtime, service_names = p->builder->serviceNames()](
+          const std::string& behavior, bool blocked) {
         if (auto it = service_names.find(behavior); it != service_names.end()) {
-          runtime.setServing(it->second, !blocked);
+          runtime->setServing(it->second, !blocked);
         }
       }));
   std::string error;
-  if (!runtime.startMetrics(metrics_listen, &error)) return fatal(program, error);
-  if (absl::Status s = host.start(config); !s.ok()) {
-    return fatal(program, "cannot start behaviors: " + std::string(s.message()));
+  if (!p->runtime.startMetrics(o.metrics_listen, &error)) return absl::UnavailableError(error);
+  if (absl::Status s = p->host->start(o.config); !s.ok()) {
+    return absl::InvalidArgumentError("cannot start behaviors: " + std::string(s.message()));
   }
+  p->host_started = true;
 
-  BehaviorSystemService system_service(host, gate, builder.serviceNames());
+  p->system_service =
+      std::make_unique<BehaviorSystemService>(*p->host, p->gate, p->builder->serviceNames());
   grpc::ServerBuilder server_builder;
   std::vector<std::string> names = {v1::BehaviorSystem::service_full_name()};
-  server_builder.RegisterService(&system_service);
-  for (auto& service : builder.services()) server_builder.RegisterService(service.get());
-  for (const auto& [behavior, service] : builder.serviceNames()) names.push_back(service);
-  if (!runtime.startServer(server_builder, listen, names, &error)) {
-    host.stop();
-    return fatal(program, error);
+  server_builder.RegisterService(p->system_service.get());
+  for (auto& service : p->builder->services()) server_builder.RegisterService(service.get());
+  for (const auto& [behavior, service] : p->builder->serviceNames()) names.push_back(service);
+  if (!p->runtime.startServer(server_builder, o.listen, names, &error)) {
+    p->host->stop();
+    p->stopped = true;
+    return absl::UnavailableError(error);
   }
-  if (!runtime.writePortFile(port_file, &error)) {
-    runtime.shutdown(std::chrono::seconds(1));
-    host.stop();
-    return fatal(program, error);
-  }
-  std::string hosted;
-  for (const auto& b : host.behaviors()) hosted += (hosted.empty() ? "" : ", ") + b->name();
-  std::fprintf(stderr,
-               "%s: robot %s, behaviors [%s], gRPC on port %d, metrics on port %d, clock %s, "
-               "incarnation %s\n",
-               program.c_str(), robot_id.c_str(), hosted.c_str(), runtime.grpcPort(),
-               runtime.metricsPort(), clock_kind.c_str(), host.events().incarnation().c_str());
-  auto registration =
-      startCoordinatorRegistration(coordinator, listen, runtime.grpcPort(), host, program);
-  if (follower) {
-    follower->start(
-        [&host, &builder, &clock](TimePoint t) {
-          if (!host.caughtUp(t)) return false;
+  p->registration = startCoordinatorRegistration(o.coordinator, o.listen, p->runtime.grpcPort(),
+                                                 *p->host, o.log_prefix);
+  if (p->follower) {
+    Parts* parts = p.get();
+    p->follower->start(
+        [parts](TimePoint t) {
+          if (!parts->host->caughtUp(t)) return false;
           // Work on the clock outside the ticks (lease renewals).
-          if (!clock->listenersCaughtUp(t)) return false;
-          for (const auto& check : builder.catchUpChecks()) {
+          if (!parts->clock->listenersCaughtUp(t)) return false;
+          for (const auto& check : parts->builder->catchUpChecks()) {
             if (!check()) return false;
           }
           return true;
         },
-        [&host] { return host.idle(); });
+        [parts] { return parts->host->idle(); });
   }
+  return std::unique_ptr<BehaviorSystemProcess>(new BehaviorSystemProcess(std::move(p)));
+}
 
-  const int sig = ServerRuntime::waitForShutdownSignal();
-  std::fprintf(stderr, "%s: signal %d, interrupting active behaviors and shutting down\n",
-               program.c_str(), sig);
+BehaviorSystemProcess::BehaviorSystemProcess(std::unique_ptr<Parts> parts)
+    : parts_(std::move(parts)) {}
+
+BehaviorSystemProcess::~BehaviorSystemProcess() { shutdown(); }
+
+int BehaviorSystemProcess::grpcPort() const { return parts_->runtime.grpcPort(); }
+int BehaviorSystemProcess::metricsPort() const { return parts_->runtime.metricsPort(); }
+const std::string& BehaviorSystemProcess::incarnation() const {
+  return parts_->host->events().incarnation();
+}
+
+std::vector<std::string> BehaviorSystemProcess::behaviorNames() const {
+  std::vector<std::string> names;
+  for (const auto& b : parts_->host->behaviors()) names.push_back(b->name());
+  return names;
+}
+
+bool BehaviorSystemProcess::writePortFile(const std::string& path, std::string* error) const {
+  return parts_->runtime.writePortFile(path, error);
+}
+
+void BehaviorSystemProcess::shutdown() {
+  Parts& p = *parts_;
+  if (p.stopped) return;
+  p.stopped = true;
   // Order matters: refuse new lifecycle calls, end activations (their
   // INTERRUPTED events go to subscribers), let the streams drain, then stop
   // serving.
-  if (follower) follower->stop();  // leaves the simulator's barrier first
-  gate.close();
-  host.stop();
+  if (p.follower) p.follower->stop();  // leaves the simulator's barrier first
+  p.gate.close();
+  p.host->stop();
   // Unregistering names the last event's seq: the coordinator reads the
   // stream up to it, so the INTERRUPTED events above still reach it.
-  if (registration) registration->stop();
-  system_service.shutdownStreams();
+  if (p.registration) p.registration->stop();
+  p.system_service->shutdownStreams();
   // Every call of ours has finished by now (the gate is closed, the host
   // stopped, the streams drained): the grace period only covers health and
   // reflection calls. Keep it short: gRPC waits for it in full while any
   // client merely keeps an idle connection open.
-  runtime.shutdown(std::chrono::milliseconds(500));
+  p.runtime.shutdown(std::chrono::milliseconds(500));
+}
+
+int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
+                      const std::function<void(BehaviorSystemBuilder&)>& register_behaviors) {
+  ServerRuntime::blockShutdownSignals();
+  const std::string program = system_name;
+  parseFlags(argc, argv,
+             "behavior system " + system_name +
+                 ": hosts its behaviors as gRPC services (typed per behavior, plus "
+                 "behaviorlib.v1.BehaviorSystem)");
+  BehaviorSystemOptions options;
+  options.system = system_name;
+  options.robot_id = absl::GetFlag(FLAGS_robot_id);
+  options.listen = absl::GetFlag(FLAGS_listen);
+  options.metrics_listen = absl::GetFlag(FLAGS_metrics_listen);
+  options.channel = absl::GetFlag(FLAGS_channel);
+  options.clock = absl::GetFlag(FLAGS_clock);
+  options.coordinator = absl::GetFlag(FLAGS_coordinator);
+  options.flight_controller = absl::GetFlag(FLAGS_flight_controller);
+  options.follow_time = absl::GetFlag(FLAGS_follow_time);
+  if (const std::string path = absl::GetFlag(FLAGS_config); !path.empty()) {
+    try {
+      options.config = YAML::LoadFile(path);
+    } catch (const YAML::Exception& e) {
+      fatal(program, "cannot read --config " + path + ": " + e.what());
+      return 2;
+    }
+  }
+
+  auto system = BehaviorSystemProcess::start(std::move(options), register_behaviors);
+  if (!system.ok()) return fatal(program, system.status());
+  std::string error;
+  if (!(*system)->writePortFile(absl::GetFlag(FLAGS_port_file), &error)) {
+    (*system)->shutdown();
+    return fatal(program, error);
+  }
+  std::string hosted;
+  for (const auto& name : (*system)->behaviorNames()) hosted += (hosted.empty() ? "" : ", ") + name;
+  std::fprintf(stderr,
+               "%s: robot %s, behaviors [%s], gRPC on port %d, metrics on port %d, clock %s, "
+               "incarnation %s\n",
+               program.c_str(), absl::GetFlag(FLAGS_robot_id).c_str(), hosted.c_str(),
+               (*system)->grpcPort(), (*system)->metricsPort(), absl::GetFlag(FLAGS_clock).c_str(),
+               (*system)->incarnation().c_str());
+
+  const int sig = ServerRuntime::waitForShutdownSignal();
+  std::fprintf(stderr, "%s: signal %d, interrupting active behaviors and shutting down\n",
+               program.c_str(), sig);
+  (*system)->shutdown();
   return 0;
 }
 

@@ -20,6 +20,8 @@
 #include <string>
 #include <vector>
 
+#include "absl/status/status.h"
+
 namespace grpc {
 class Server;
 class ServerBuilder;
@@ -91,5 +93,8 @@ class ServerRuntime {
 
 /// Prints "<program>: <message>" to stderr; returns 1 for use as an exit code.
 int fatal(const std::string& program, const std::string& message);
+/// Prints "<program>: <status message>"; returns the exit code for a start
+/// that failed with `status`: 2 for INVALID_ARGUMENT (bad options), else 1.
+int fatal(const std::string& program, const absl::Status& status);
 
 }  // namespace behaviorlib::server

@@ -38,6 +38,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/status/statusor.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/server/belief_client.h"
@@ -142,9 +143,71 @@ class BehaviorSystemBuilder {
   std::vector<std::function<bool()>> catch_up_checks_;
 };
 
-/// Parses flags, starts everything, serves until SIGTERM/SIGINT, then ends
-/// every active behavior with INTERRUPTED (the events reach subscribers) and
-/// exits 0. Returns the process exit code.
+/// A behavior system's settings: its command line, parsed.
+struct BehaviorSystemOptions {
+  /// The system's name ("basic_quadrotor_behaviors").
+  std::string system;
+  std::string robot_id = "drone1";
+  /// gRPC address host:port (port 0 picks a free port).
+  std::string listen = "127.0.0.1:50061";
+  /// Prometheus /metrics address (port 0 picks one; empty: no metrics).
+  std::string metrics_listen = "127.0.0.1:0";
+  /// The data channel broker; empty: none.
+  std::string channel;
+  /// "steady" (host monotonic time) or "sim" (the channel's clock topic).
+  std::string clock = "steady";
+  /// The --config document (may be null).
+  YAML::Node config;
+  /// Register with this coordinator; empty: no registration.
+  std::string coordinator;
+  /// The FlightController's address for flight behaviors; empty: none.
+  std::string flight_controller;
+  /// Follow this simulator's time grants (deterministic mode; needs clock
+  /// "sim"); empty: no.
+  std::string follow_time;
+  /// Prefix of the process's log lines (default: the system's name).
+  std::string log_prefix;
+};
+
+/// A behavior-system process as a class: its clock, channel, behaviors,
+/// services, metrics, registration and time following, serving on one port.
+/// runBehaviorSystem() runs one until a shutdown signal; a test builds one
+/// in-process.
+class BehaviorSystemProcess {
+ public:
+  /// INVALID_ARGUMENT for inconsistent options or behaviors that do not
+  /// start (onConfigure), UNAVAILABLE when a port cannot be bound.
+  static absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> start(
+      BehaviorSystemOptions options,
+      const std::function<void(BehaviorSystemBuilder&)>& register_behaviors);
+  /// shutdown(), if not done yet.
+  ~BehaviorSystemProcess();
+  BehaviorSystemProcess(const BehaviorSystemProcess&) = delete;
+  BehaviorSystemProcess& operator=(const BehaviorSystemProcess&) = delete;
+
+  int grpcPort() const;
+  int metricsPort() const;
+  /// The event log's incarnation (changes with every start).
+  const std::string& incarnation() const;
+  /// The hosted behaviors' names, in registration order.
+  std::vector<std::string> behaviorNames() const;
+  /// Writes grpc_port= and metrics_port= lines to `path` (nothing when empty).
+  bool writePortFile(const std::string& path, std::string* error) const;
+  /// In order: leaves the simulator's barrier, refuses new lifecycle calls,
+  /// ends active behaviors with INTERRUPTED (their events reach the
+  /// subscribers and the coordinator), unregisters, ends the event streams,
+  /// stops serving.
+  void shutdown();
+
+ private:
+  struct Parts;
+  explicit BehaviorSystemProcess(std::unique_ptr<Parts> parts);
+  std::unique_ptr<Parts> parts_;
+};
+
+/// Parses flags, starts a BehaviorSystemProcess, serves until SIGTERM/SIGINT,
+/// then shuts it down (every active behavior ends INTERRUPTED) and exits 0.
+/// Returns the process exit code.
 int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
                       const std::function<void(BehaviorSystemBuilder&)>& register_behaviors);
 

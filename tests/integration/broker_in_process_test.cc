@@ -1,0 +1,99 @@
+// The data channel's broker built in-process (channel::Broker on a gRPC
+// server of the test), driven by the real ChannelClient over loopback: a
+// sample published is the latest and reaches a subscriber; shutting the
+// broker down ends the subscription's stream UNAVAILABLE, which the client
+// reports.
+
+#include <gmock/gmock.h>
+#include <grpcpp/grpcpp.h>
+#include <gtest/gtest.h>
+#include <prometheus/registry.h>
+
+#include <chrono>
+#include <condition_variable>
+#include <mutex>
+#include <thread>
+
+#include "behaviorlib/channel/broker.h"
+#include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/v1/types.pb.h"
+
+namespace behaviorlib::channel {
+namespace {
+
+class BrokerInProcessTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    grpc::ServerBuilder builder;
+    builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port_);
+    builder.RegisterService(&broker_);
+    server_ = builder.BuildAndStart();
+    ASSERT_NE(server_, nullptr);
+    ASSERT_GT(port_, 0);
+    client_ = std::make_unique<ChannelClient>("127.0.0.1:" + std::to_string(port_));
+  }
+  void TearDown() override {
+    client_.reset();
+    broker_.shutdown();
+    server_->Shutdown(std::chrono::system_clock::now() + std::chrono::milliseconds(500));
+  }
+
+  prometheus::Registry registry_;
+  Broker broker_{registry_};
+  int port_ = 0;
+  std::unique_ptr<grpc::Server> server_;
+  std::unique_ptr<ChannelClient> client_;
+};
+
+v1::Altitude altitude(double metres) {
+  v1::Altitude sample;
+  sample.set_altitude_m(metres);
+  return sample;
+}
+
+TEST_F(BrokerInProcessTest, APublishedSampleIsTheLatestAndReachesASubscriber) {
+  EXPECT_EQ(client_->getLatest("robots/r/baro").status().code(), absl::StatusCode::kNotFound);
+
+  std::mutex mutex;
+  std::condition_variable arrived;
+  std::vector<double> received;
+  auto subscription = client_->subscribeTyped<v1::Altitude>(
+      "robots/r/baro", {.mode = v1::DELIVERY_MODE_QUEUE, .queue_size = 10},
+      [&](const v1::Altitude& a) {
+        std::lock_guard lock(mutex);
+        received.push_back(a.altitude_m());
+        arrived.notify_all();
+      });
+  // Once connected, every published sample reaches the subscription.
+  ASSERT_TRUE(subscription->waitConnected(std::chrono::seconds(10)));
+  ASSERT_TRUE(client_->publish("robots/r/baro", altitude(12.5)).ok());
+  std::unique_lock lock(mutex);
+  arrived.wait_for(lock, std::chrono::seconds(10), [&] { return !received.empty(); });
+  ASSERT_FALSE(received.empty());
+  EXPECT_EQ(received.front(), 12.5);
+  lock.unlock();
+
+  auto latest = client_->getLatest("robots/r/baro");
+  ASSERT_TRUE(latest.ok()) << latest.status();
+  v1::Altitude read;
+  ASSERT_TRUE(latest->sample().UnpackTo(&read));
+  EXPECT_EQ(read.altitude_m(), 12.5);
+}
+
+TEST_F(BrokerInProcessTest, ShutdownEndsTheSubscriptionsStream) {
+  // On a gRPC stream (a ring's reader sees its ring closed first and ends
+  // the stream itself, CANCELLED).
+  auto subscription = client_->subscribeTyped<v1::Altitude>(
+      "robots/r/baro", {.shared_memory = false}, [](const v1::Altitude&) {});
+  ASSERT_TRUE(subscription->waitConnected(std::chrono::seconds(10)));
+  broker_.shutdown();
+  for (int i = 0; i < 200 && subscription->connected(); ++i) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(20));
+  }
+  EXPECT_FALSE(subscription->connected());
+  EXPECT_EQ(subscription->status().code(), absl::StatusCode::kUnavailable)
+      << subscription->status();
+}
+
+}  // namespace
+}  // namespace behaviorlib::channel

@@ -28,7 +28,6 @@
 
 namespace {
 const behaviorlib::coordinator::CoordinatorOptions kDefaults;
-double secondsOf(std::chrono::nanoseconds d) { return std::chrono::duration<double>(d).count(); }
 }  // namespace
 
 ABSL_FLAG(std::string, listen, kDefaults.listen,
@@ -42,10 +41,10 @@ ABSL_FLAG(std::string, state_dir, "",
 ABSL_FLAG(std::string, systems, "",
           "YAML file of behavior systems to contact at start and whenever they come back: "
           "systems: [{robot_id, address}]");
-ABSL_FLAG(double, grace_period_s, secondsOf(kDefaults.grace_period),
+ABSL_FLAG(double, grace_period_s, behaviorlib::toSeconds(kDefaults.grace_period),
           "wall seconds a system's health check must keep failing after its event stream broke "
           "before its active behaviors are finished with PROCESS_FAILURE");
-ABSL_FLAG(double, heartbeat_interval_s, secondsOf(kDefaults.heartbeat_interval),
+ABSL_FLAG(double, heartbeat_interval_s, behaviorlib::toSeconds(kDefaults.heartbeat_interval),
           "how often registered systems are asked to send Heartbeat (wall seconds)");
 ABSL_FLAG(int, event_buffer, static_cast<int>(kDefaults.event_buffer),
           "events retained for WatchEvents replay (since_seq), oldest evicted first");
@@ -63,10 +62,10 @@ ABSL_FLAG(std::string, geofence, "",
           "has no geofence; empty: none");
 ABSL_FLAG(double, critical_battery, kDefaults.critical_battery,
           "battery state of charge (0..1) under which a flying robot is landed");
-ABSL_FLAG(double, hover_before_land_s, secondsOf(kDefaults.hover_before_land),
+ABSL_FLAG(double, hover_before_land_s, behaviorlib::toSeconds(kDefaults.hover_before_land),
           "wall seconds a robot hovers before the safety policy lands it");
 ABSL_FLAG(int, workers, kDefaults.workers, "threads for blocking calls (plans, safety actions)");
-ABSL_FLAG(double, resume_wait_s, secondsOf(kDefaults.resume_wait),
+ABSL_FLAG(double, resume_wait_s, behaviorlib::toSeconds(kDefaults.resume_wait),
           "after a restart, wall seconds a journaled mission waits for its robot's systems to "
           "register again before it is marked FAILED");
 

@@ -12,6 +12,7 @@
 #include <sstream>
 
 #include "absl/status/status.h"
+#include "behaviorlib/clock.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/durable/journal.h"
@@ -31,8 +32,6 @@ template <class D>
 std::chrono::milliseconds millis(D d) {
   return std::chrono::duration_cast<std::chrono::milliseconds>(d);
 }
-
-double secondsOf(std::chrono::nanoseconds d) { return std::chrono::duration<double>(d).count(); }
 
 // "a,b,,c" -> {"a", "b", "c"}.
 std::vector<std::string> splitList(const std::string& text) {
@@ -55,11 +54,11 @@ absl::Status CoordinatorOptions::validate() const {
   };
   const Range ranges[] = {
       {"--critical-battery", critical_battery, 0, 1},
-      {"--hover-before-land-s", secondsOf(hover_before_land), 0, 60},
+      {"--hover-before-land-s", behaviorlib::toSeconds(hover_before_land), 0, 60},
       {"--workers", static_cast<double>(workers), 1, 64},
-      {"--resume-wait-s", secondsOf(resume_wait), 0, 3600},
-      {"--grace-period-s", secondsOf(grace_period), 0.05, 600},
-      {"--heartbeat-interval-s", secondsOf(heartbeat_interval), 0.05, 600},
+      {"--resume-wait-s", behaviorlib::toSeconds(resume_wait), 0, 3600},
+      {"--grace-period-s", behaviorlib::toSeconds(grace_period), 0.05, 600},
+      {"--heartbeat-interval-s", behaviorlib::toSeconds(heartbeat_interval), 0.05, 600},
       {"--event-buffer", static_cast<double>(event_buffer), 1, 10000000},
   };
   for (const Range& r : ranges) {

@@ -18,6 +18,8 @@ set(_exported
   behaviorlib_reflection_proto:reflection_proto
   behaviorlib_reflection:reflection
   behaviorlib_flags:flags
+  behaviorlib_input_guard:input_guard
+  behaviorlib_transport:transport
   behaviorlib_server_runtime:server_runtime
   behaviorlib_channel_topic:channel_topic
   behaviorlib_channel_client:channel_client

@@ -69,6 +69,10 @@ ABSL_FLAG(double, resume_wait_s, behaviorlib::toSeconds(kDefaults.resume_wait),
           "after a restart, wall seconds a journaled mission waits for its robot's systems to "
           "register again before it is marked FAILED");
 
+ABSL_FLAG(std::string, mission_dir, "",
+          "directory whose mission files StartMission.file_path may name (no '..', no link "
+          "out of it); empty: file paths are refused and clients send the mission's text");
+
 int main(int argc, char** argv) {
   using behaviorlib::server::fatal;
   using behaviorlib::server::ServerRuntime;
@@ -118,6 +122,7 @@ int main(int argc, char** argv) {
   options.hover_before_land = behaviorlib::seconds(absl::GetFlag(FLAGS_hover_before_land_s));
   options.workers = absl::GetFlag(FLAGS_workers);
   options.resume_wait = behaviorlib::seconds(absl::GetFlag(FLAGS_resume_wait_s));
+  options.mission_dir = absl::GetFlag(FLAGS_mission_dir);
   const size_t configured = options.systems.size();
   const double grace_s = absl::GetFlag(FLAGS_grace_period_s);
 

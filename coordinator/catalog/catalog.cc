@@ -47,9 +47,19 @@ absl::StatusOr<Catalog> Catalog::load(const std::string& path) {
 }
 
 absl::StatusOr<Catalog> Catalog::parse(const std::string& yaml, const std::string& file_name) {
-  yaml::Reader p(file_name);
   YAML::Node root;
   if (auto s = yaml::load(yaml, file_name, &root); !s.ok()) return s;
+  absl::StatusOr<Catalog> catalog = absl::InternalError("not parsed");
+  const absl::Status guarded = server::guardYamlParse(file_name, [&] {
+    catalog = parseTree(root, file_name);
+    return absl::OkStatus();
+  });
+  if (!guarded.ok()) return guarded;
+  return catalog;
+}
+
+absl::StatusOr<Catalog> Catalog::parseTree(const YAML::Node& root, const std::string& file_name) {
+  yaml::Reader p(file_name);
   if (root.IsNull()) return absl::InvalidArgumentError(file_name + ":1: the catalog is empty");
   if (auto s = p.mapping(root, "catalog", {"capabilities", "resources", "behaviors"}); !s.ok()) {
     return s;

@@ -37,6 +37,10 @@
 #include "absl/status/statusor.h"
 #include "behaviorlib/v1/behavior.pb.h"
 
+namespace YAML {
+class Node;
+}
+
 namespace behaviorlib::coordinator {
 
 /// One behavior's rules.
@@ -83,6 +87,7 @@ class Catalog {
                                  const std::string& system) const;
 
  private:
+  static absl::StatusOr<Catalog> parseTree(const YAML::Node& root, const std::string& file_name);
   absl::Status validate() const;
   std::string where(int line) const;
 

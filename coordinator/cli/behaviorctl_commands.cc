@@ -10,6 +10,7 @@
 #include <iostream>
 #include <sstream>
 
+#include "behaviorlib/server_kit/transport_security.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "coordinator/service/health_check.h"
@@ -194,6 +195,7 @@ int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
     text << in.rdbuf();
     v1::StartMissionRequest request;
     request.set_text(text.str());
+    request.set_source_name(arg);
     request.set_robot_id(c.robot);
     request.set_mission_id(c.mission_id);
     std::string started;
@@ -239,8 +241,7 @@ int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
 
 // The commands through the coordinator (behaviorlib.v1.Coordinator).
 int runCoordinator(const CtlOptions& c) {
-  auto stub = v1::Coordinator::NewStub(
-      grpc::CreateChannel(c.coordinator, grpc::InsecureChannelCredentials()));
+  auto stub = v1::Coordinator::NewStub(behaviorlib::server::makeChannel(c.coordinator));
   const std::string& command = c.args[0];
   const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
   const bool needs_robot = command == "status" || command == "activate" ||
@@ -338,8 +339,7 @@ int runCoordinator(const CtlOptions& c) {
 
 // The commands to one behavior system (behaviorlib.v1.BehaviorSystem).
 int runSystem(const CtlOptions& c) {
-  auto stub = v1::BehaviorSystem::NewStub(
-      grpc::CreateChannel(c.target, grpc::InsecureChannelCredentials()));
+  auto stub = v1::BehaviorSystem::NewStub(behaviorlib::server::makeChannel(c.target));
   const std::string& command = c.args[0];
   const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
   if (command == "list") {
@@ -413,7 +413,7 @@ int runHealth(const CtlOptions& c) {
   // The standard gRPC health service, for docker-compose health checks.
   const std::string address = c.coordinator.empty() ? c.target : c.coordinator;
   auto result = behaviorlib::coordinator::checkHealth(
-      grpc::CreateChannel(address, grpc::InsecureChannelCredentials()), "",
+      behaviorlib::server::makeChannel(address), "",
       std::chrono::milliseconds(static_cast<int64_t>((c.timeout_s > 0 ? c.timeout_s : 3.0) * 1e3)));
   if (!result.serving) {
     std::fprintf(stderr, "behaviorctl: %s is not serving: %s\n", address.c_str(),
@@ -430,6 +430,10 @@ int runCtl(const CtlOptions& options) {
         "behaviorctl: give a command and one of --target (a behavior system) or --coordinator "
         "(the fleet); run with --help for the list\n",
         stderr);
+    return 2;
+  }
+  if (absl::Status s = server::checkProcessTransport(); !s.ok()) {
+    std::fprintf(stderr, "behaviorctl: %s\n", std::string(s.message()).c_str());
     return 2;
   }
   if (options.args[0] == "health") return runHealth(options);

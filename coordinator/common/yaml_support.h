@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "absl/status/status.h"
+#include "behaviorlib/server_kit/yaml_guard.h"
 
 namespace behaviorlib::coordinator::yaml {
 
@@ -35,14 +36,11 @@ inline std::string join(const std::vector<std::string>& items) {
   return out;
 }
 
-/// Parses YAML text, mapping a syntax error to "<file>:<line>: not valid YAML".
+/// Parses YAML text within the server kit's limits (bytes, nodes with
+/// aliases expanded, aliases, depth): "<file>:<line>: not valid YAML" or
+/// "<file>:<line>: refused: ...".
 inline absl::Status load(const std::string& text, const std::string& file, YAML::Node* out) {
-  try {
-    *out = YAML::Load(text);
-  } catch (const YAML::ParserException& e) {
-    return absl::InvalidArgumentError(cat(file, ":", e.mark.line + 1, ": not valid YAML: ", e.msg));
-  }
-  return absl::OkStatus();
+  return server::loadYaml(text, file, out);
 }
 
 class Reader {
@@ -61,7 +59,8 @@ class Reader {
     if (!node.IsMap()) return error(node, what + ": expected a mapping");
     std::set<std::string> seen;
     for (const auto& entry : node) {
-      const std::string key = entry.first.as<std::string>();
+      if (!entry.first.IsScalar()) return error(entry.first, what + ": a key must be a plain name");
+      const std::string key = entry.first.Scalar();
       if (!seen.insert(key).second)
         return error(entry.first, what + ": duplicate key '" + key + "'");
       bool known = allowed.empty();

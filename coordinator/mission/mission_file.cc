@@ -342,7 +342,13 @@ absl::Status checkSteps(const MissionSpec& mission, const std::vector<MissionSte
 absl::StatusOr<MissionSpec> parseMission(const std::string& text, const std::string& file) {
   YAML::Node root;
   if (auto s = yaml::load(text, file, &root); !s.ok()) return s;
-  return MissionParser(file).parse(root);
+  absl::StatusOr<MissionSpec> mission = absl::InternalError("not parsed");
+  const absl::Status guarded = server::guardYamlParse(file, [&] {
+    mission = MissionParser(file).parse(root);
+    return absl::OkStatus();
+  });
+  if (!guarded.ok()) return guarded;
+  return mission;
 }
 
 absl::StatusOr<MissionSpec> loadMission(const std::string& path) {

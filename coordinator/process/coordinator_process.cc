@@ -190,6 +190,10 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   p->fleet = std::make_unique<FleetControl>(*p->registry, *p->log, options.catalog);
   MissionManagerOptions mission_options;
   mission_options.resume_wait = millis(options.resume_wait);
+  auto mission_files = server::ConfinedDirectory::open("mission files", options.mission_dir,
+                                                       mission_options.max_mission_bytes);
+  if (!mission_files.ok()) return mission_files.status();
+  mission_options.mission_files = std::move(*mission_files);
   p->missions = std::make_unique<MissionManager>(*p->fleet, *p->registry, *p->beliefs,
                                                  p->journal.get(), mission_options);
   for (const auto& status : missions_restore) p->missions->restore(status);

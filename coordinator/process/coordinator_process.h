@@ -65,6 +65,9 @@ struct CoordinatorOptions {
   /// After a restart, how long a journaled mission waits for its robot's
   /// systems before it is marked FAILED.
   std::chrono::nanoseconds resume_wait = std::chrono::seconds(60);
+  /// Directory that StartMission.file_path may name files in; empty: no
+  /// path is accepted (clients send the mission's text).
+  std::string mission_dir;
 
   /// INVALID_ARGUMENT naming the flag of the first setting out of its range.
   absl::Status validate() const;

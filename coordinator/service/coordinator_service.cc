@@ -13,6 +13,7 @@
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/fleet_control.h"
 #include "coordinator/service/systems_config.h"
+#include "behaviorlib/server_kit/transport_security.h"
 
 namespace behaviorlib::coordinator {
 
@@ -234,8 +235,7 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
   };
   auto* reactor = context->DefaultReactor();
   auto* call = new Describe();
-  call->channel = grpc::CreateCustomChannel(request->address(), grpc::InsecureChannelCredentials(),
-                                            fastReconnectArguments());
+  call->channel = behaviorlib::server::makeChannel(request->address(), fastReconnectArguments());
   call->stub = v1::BehaviorSystem::NewStub(call->channel);
   call->context = childContext(context, options_.describe_timeout);
   call->stub->async()->ListBehaviors(

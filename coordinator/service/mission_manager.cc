@@ -11,10 +11,14 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "behaviorlib/server_kit/transport_security.h"
 
 namespace behaviorlib::coordinator {
 
 namespace {
+
+// A mission text's name (its file on the client) appears in every status.
+constexpr size_t kMaxSourceNameBytes = 256;
 
 std::string newMissionId(const std::string& name) {
   ABSL_CONST_INIT static absl::Mutex mutex(absl::kConstInit);
@@ -52,8 +56,7 @@ std::set<std::string> behaviorsOf(const MissionSpec& spec) {
 // message of its WatchEvents, asked for events after the largest seq: nothing
 // is replayed); nullopt when it cannot be asked.
 std::optional<uint64_t> latestSeqOf(const std::string& address) {
-  auto stub =
-      v1::BehaviorSystem::NewStub(grpc::CreateChannel(address, grpc::InsecureChannelCredentials()));
+  auto stub = v1::BehaviorSystem::NewStub(behaviorlib::server::makeChannel(address));
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(2));
   v1::WatchEventsRequest request;
@@ -241,22 +244,26 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   std::string text;
   std::string file;
   absl::StatusOr<MissionSpec> spec = absl::InvalidArgumentError(
-      "no mission: set file_path (a mission file the coordinator can read) or text");
+      "no mission: set file_path (a mission file in the coordinator's --mission-dir) or text");
   if (request.has_file_path()) {
     file = request.file_path();
-    spec = loadMission(file);
-    if (spec.ok()) {
-      // Keep the text so that a restarted coordinator can parse it again.
-      FILE* f = std::fopen(file.c_str(), "rb");
-      if (f != nullptr) {
-        char buffer[4096];
-        size_t n;
-        while ((n = std::fread(buffer, 1, sizeof(buffer), f)) > 0) text.append(buffer, n);
-        std::fclose(f);
-      }
-    }
+    // Read once: the text is kept so that a restarted coordinator can parse
+    // it again.
+    absl::StatusOr<std::string> read = options_.mission_files.read(file);
+    if (!read.ok()) return read.status();
+    text = std::move(*read);
+    spec = parseMission(text, file);
   } else if (request.has_text()) {
-    file = "<mission text>";
+    if (request.text().size() > options_.max_mission_bytes) {
+      return absl::InvalidArgumentError(absl::StrCat("the mission text is ", request.text().size(),
+                                                     " bytes, more than the ",
+                                                     options_.max_mission_bytes, " allowed"));
+    }
+    if (request.source_name().size() > kMaxSourceNameBytes) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("source_name is longer than ", kMaxSourceNameBytes, " bytes"));
+    }
+    file = request.source_name().empty() ? "<mission text>" : request.source_name();
     text = request.text();
     spec = parseMission(text, file);
   }

@@ -30,6 +30,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
@@ -44,6 +45,11 @@ struct MissionManagerOptions {
   /// How long a restored mission waits for its robot's systems to be back
   /// before it is marked FAILED.
   std::chrono::milliseconds resume_wait{60000};
+  /// Where StartMission.file_path may read (the default refuses every path:
+  /// clients send the text).
+  server::ConfinedDirectory mission_files;
+  /// Largest mission, as text or file.
+  size_t max_mission_bytes = 1 << 20;
 };
 
 class MissionManager {

@@ -5,6 +5,7 @@
 #include <utility>
 
 #include "coordinator/service/health_check.h"
+#include "behaviorlib/server_kit/transport_security.h"
 
 namespace behaviorlib::coordinator {
 
@@ -98,8 +99,7 @@ void SystemLink::stop() {
 }
 
 void SystemLink::rebuildChannelLocked() {
-  channel_ = grpc::CreateCustomChannel(identity_.address, grpc::InsecureChannelCredentials(),
-                                       fastReconnectArguments());
+  channel_ = behaviorlib::server::makeChannel(identity_.address, fastReconnectArguments());
   stub_ = v1::BehaviorSystem::NewStub(channel_);
 }
 

@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "absl/status/status.h"
+#include "behaviorlib/server_kit/yaml_guard.h"
 
 namespace behaviorlib::coordinator {
 
@@ -90,11 +91,15 @@ absl::StatusOr<std::vector<ConfiguredSystem>> parseRoot(const YAML::Node& root,
 
 absl::StatusOr<std::vector<ConfiguredSystem>> parseSystemsConfig(const std::string& text,
                                                                  const std::string& name) {
-  try {
-    return parseRoot(YAML::Load(text), name);
-  } catch (const YAML::Exception& e) {
-    return errorAt(name, e.mark, e.msg);
-  }
+  YAML::Node root;
+  if (absl::Status s = server::loadYaml(text, name, &root); !s.ok()) return s;
+  absl::StatusOr<std::vector<ConfiguredSystem>> systems = absl::InternalError("not parsed");
+  const absl::Status guarded = server::guardYamlParse(name, [&] {
+    systems = parseRoot(root, name);
+    return absl::OkStatus();
+  });
+  if (!guarded.ok()) return guarded;
+  return systems;
 }
 
 absl::StatusOr<std::vector<ConfiguredSystem>> loadSystemsConfig(const std::string& path) {

@@ -279,14 +279,22 @@ class ProgressPrinter:
 
 # --- the mission ---------------------------------------------------------------
 
+def mission_request(path, robot_id, mission_id):
+    """A StartMission request carrying the mission file's text: the
+    coordinator reads files only inside its --mission-dir, and this file is
+    the launcher's."""
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    return {"text": text, "source_name": path, "robot_id": robot_id, "mission_id": mission_id}
+
+
 def run_mission(coordinator, mission_path, robot_id, mission_id, timeout_s, out, on_status):
     """StartMission with the file, then WatchMission until it ends; returns
     the final MissionStatus (dict), also handing each status to on_status.
     On a wall-clock time-out the mission is aborted."""
     progress = ProgressPrinter(out)
     started = coordinator.call(COORDINATOR, "StartMission",
-                               {"file_path": mission_path, "robot_id": robot_id,
-                                "mission_id": mission_id})
+                               mission_request(mission_path, robot_id, mission_id))
     status = started.get("status", {})
     on_status(status)
     progress.update(status)
@@ -341,8 +349,7 @@ def run_missions(coordinator, missions, timeout_s, out, on_status):
     try:
         for robot, path, mission_id in missions:
             reply = coordinator.call(COORDINATOR, "StartMission",
-                                     {"file_path": path, "robot_id": robot,
-                                      "mission_id": mission_id})
+                                     mission_request(path, robot, mission_id))
             started_ids.append(mission_id)
             update(robot, reply.get("status", {}))
     except rpc.grpc.RpcError:

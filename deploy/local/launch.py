@@ -39,8 +39,9 @@ The paper's applications:
     deploy/local/launch.py --demo --world rooms --mission deploy/missions/room_exploration.yaml
 
 Before the missions start, belief {robot}/output_dir names the directory
-where a mission may write its files (e.g. SAVE_OCCUPANCY_GRID's map): the
-run directory, or <run-dir>/<robot> with several robots. After the missions,
+where a mission may write its files (e.g. SAVE_OCCUPANCY_GRID's map):
+<run-dir>/output, or <run-dir>/output/<robot> with several robots. It is the
+behavior systems' --map-dir, the only place where they write. After the missions,
 the report lists what the behaviors left in the coordinator's belief memory
 for each robot: the QR markers found ({robot}/markers/...), the other
 robots' positions ({robot}/swarm/...), and the map saved by
@@ -204,17 +205,50 @@ def system_binaries(args, build_dir):
     return found
 
 
+def output_root(run_dir):
+    """Where behaviors may write files (maps): --map-dir of the systems.
+    Apart from the coordinator's journal, which it must not reach."""
+    return os.path.join(run_dir, "output")
+
+
+def make_certs(run_dir, names):
+    """--tls: a CA and a certificate per process (scripts/make-dev-certs.sh)
+    in <run-dir>/certs; this launcher's own clients use "operator"."""
+    certs = os.path.join(run_dir, "certs")
+    result = subprocess.run([os.path.join(REPO, "scripts", "make-dev-certs.sh"), "--out", certs,
+                             "operator", *names], capture_output=True, text=True)
+    if result.returncode != 0:
+        raise StartError(f"cannot make the TLS certificates: {result.stderr.strip()}")
+    rpc.rc.use_tls(os.path.join(certs, "operator.pem"), os.path.join(certs, "operator.key"),
+                   os.path.join(certs, "ca.pem"))
+    return certs
+
+
 def start_stack(args, build_dir, stack):
     robots = args.vehicles
     several = len(robots) > 1
     deterministic = args.time_scale == "max"
     binaries = system_binaries(args, build_dir)
-    listen = ["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"]
+    system_processes = [f"{name}-{robot}" if several else name
+                        for name, _ in binaries for robot in robots]
+    certs = (make_certs(stack.run_dir,
+                        ["channel_broker", "simulator", "coordinator", *system_processes])
+             if args.tls else None)
+
+    def listen_as(process):
+        argv = ["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"]
+        if certs:
+            argv += ["--tls-cert", os.path.join(certs, f"{process}.pem"),
+                     "--tls-key", os.path.join(certs, f"{process}.key"),
+                     "--tls-ca", os.path.join(certs, "ca.pem")]
+        return argv
+
     broker = stack.start(Process("channel_broker",
-                                 [binary(build_dir, "bin/channel_broker"), *listen],
+                                 [binary(build_dir, "bin/channel_broker"),
+                                  *listen_as("channel_broker")],
                                  stack.run_dir, "channel_broker"))
 
-    simulator_argv = [binary(build_dir, "bin/simulator"), *listen,
+    simulator_argv = [binary(build_dir, "bin/simulator"), *listen_as("simulator"),
                       "--channel", broker.address, "--vehicles", ",".join(robots),
                       "--worlds-dir", WORLDS_DIR,
                       "--time-scale", str(args.time_scale), "--seed", str(args.seed)]
@@ -239,7 +273,7 @@ def start_stack(args, build_dir, stack):
                          f"{', '.join(flown)}; a world's start poses name them)")
 
     coordinator_bin = binary(build_dir, "bin/coordinator")
-    coordinator_argv = [coordinator_bin, *listen,
+    coordinator_argv = [coordinator_bin, *listen_as("coordinator"),
                         "--state-dir", os.path.join(stack.run_dir, "coordinator")]
     # One --flight-controller flag lists every robot (a repeated flag would
     # replace the previous one).
@@ -258,14 +292,17 @@ def start_stack(args, build_dir, stack):
     for name, path in binaries:
         config = os.path.join(SYSTEMS_DIR, name, "config.yaml")
         for robot in robots:
-            argv = [path, *listen, "--robot-id", robot, "--channel", broker.address,
+            process_name = f"{name}-{robot}" if several else name
+            argv = [path, *listen_as(process_name), "--robot-id", robot,
+                    "--channel", broker.address,
                     "--clock", "sim", "--flight-controller", simulator.address,
                     "--coordinator", coordinator.address]
             if deterministic:
                 argv += ["--follow-time", simulator.address]
             if os.path.exists(config):
                 argv += ["--config", config]
-            process_name = f"{name}-{robot}" if several else name
+            if name == "navigation_with_lidar":
+                argv += ["--map-dir", output_root(stack.run_dir)]
             systems.append(stack.start(Process(process_name, argv, stack.run_dir,
                                                "behavior_system", robot, system=name)))
     return simulator, coordinator, systems
@@ -294,7 +331,8 @@ def run_demo(args, run_dir, simulator, coordinator, systems, state):
                               [s.system for s in systems if s.robot_id == robot])
 
     for robot in args.missions:
-        output_dir = run_dir if len(args.vehicles) == 1 else os.path.join(run_dir, robot)
+        output_dir = output_root(run_dir) if len(args.vehicles) == 1 else os.path.join(
+            output_root(run_dir), robot)
         os.makedirs(output_dir, exist_ok=True)
         demo.write_belief(coordinator_client, f"{robot}/output_dir", output_dir)
 
@@ -443,6 +481,11 @@ def main():
                              "before decision 17 (benchmarks)")
     parser.add_argument("--enable-fault-injection", action="store_true",
                         help="let Simulator.InjectFailure inject faults")
+    parser.add_argument("--tls", action="store_true",
+                        help="mutual TLS between every process: a CA and a certificate per "
+                             "process are made in <run-dir>/certs (scripts/make-dev-certs.sh); "
+                             "gRPC and /metrics then need a client certificate from that CA "
+                             "(certs/operator.pem for grpcurl and behaviorctl)")
     parser.add_argument("--demo", action="store_true",
                         help="fly the demo mission (or the --mission files), write the report, "
                              "then stop everything")

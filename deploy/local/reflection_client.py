@@ -46,10 +46,40 @@ __all__ = [
     "message_class",
     "leading_comments",
     "unary_call",
+    "use_tls",
+    "open_channel",
 ]
 
 DEFAULT_TIMEOUT = 10.0
 VERSIONS = ("v1", "v1alpha")
+
+# Channel credentials of this process (use_tls); None: plaintext.
+_CREDENTIALS = None
+_TLS_FILES = None
+
+
+def use_tls(cert_file, key_file, ca_file):
+    """Every channel this process opens from now on uses mutual TLS with
+    this certificate, key and CA (PEM files), as the servers' --tls-cert,
+    --tls-key and --tls-ca."""
+    global _CREDENTIALS, _TLS_FILES
+    _TLS_FILES = (cert_file, key_file, ca_file)
+    with open(ca_file, "rb") as ca, open(key_file, "rb") as key, open(cert_file, "rb") as cert:
+        _CREDENTIALS = grpc.ssl_channel_credentials(root_certificates=ca.read(),
+                                                    private_key=key.read(),
+                                                    certificate_chain=cert.read())
+
+
+def tls_files():
+    """(cert, key, ca) given to use_tls(), or None."""
+    return _TLS_FILES
+
+
+def open_channel(address):
+    """A channel to `address`: TLS after use_tls(), plaintext otherwise."""
+    if _CREDENTIALS is not None:
+        return grpc.secure_channel(address, _CREDENTIALS)
+    return grpc.insecure_channel(address)
 
 
 class ReflectionError(Exception):
@@ -178,7 +208,7 @@ def _exchange_once(channel, version, request_fields, timeout):
 def _ask(address, request_fields, version, timeout):
     """One request on a fresh stream; returns the ServerReflectionResponse."""
     versions = (version,) if version else VERSIONS
-    with grpc.insecure_channel(address) as channel:
+    with open_channel(address) as channel:
         for i, v in enumerate(versions):
             try:
                 return _exchange_once(channel, v, request_fields, timeout)

@@ -42,7 +42,7 @@ def _decode_health_response(data):
 def health_status(address, service="", timeout=2.0):
     """grpc.health.v1.Health/Check of `service` ("" = the whole server):
     "SERVING", "NOT_SERVING", ...; raises grpc.RpcError when unreachable."""
-    with grpc.insecure_channel(address) as channel:
+    with rc.open_channel(address) as channel:
         check = channel.unary_unary("/grpc.health.v1.Health/Check",
                                     request_serializer=_encode_health_request,
                                     response_deserializer=_decode_health_response)
@@ -60,7 +60,7 @@ class Client:
 
     def __init__(self, address, services):
         self.address = address
-        self.channel = grpc.insecure_channel(address)
+        self.channel = rc.open_channel(address)
         self.pool = rc.pool_for_symbols(address, services)
 
     def close(self):

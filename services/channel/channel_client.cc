@@ -19,6 +19,7 @@
 #include "absl/time/time.h"
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/topic.h"
+#include "behaviorlib/server_kit/transport_security.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 
 namespace behaviorlib::channel {
@@ -421,8 +422,7 @@ class ChannelClient::Impl {
  public:
   explicit Impl(std::string address)
       : address_(std::move(address)),
-        channel_(grpc::CreateCustomChannel(address_, grpc::InsecureChannelCredentials(),
-                                           channelArguments())),
+        channel_(behaviorlib::server::makeChannel(address_, channelArguments())),
         stub_(v1::DataChannel::NewStub(channel_)) {}
 
   ~Impl() {

@@ -12,6 +12,7 @@
 
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/reflection/reflection_service.h"
+#include "behaviorlib/server_kit/transport_security.h"
 
 namespace behaviorlib::server {
 
@@ -47,6 +48,14 @@ int ServerRuntime::waitForShutdownSignal() {
 
 bool ServerRuntime::startMetrics(const std::string& address, std::string* error) {
   if (address.empty()) return true;
+  // Plain HTTP, with or without TLS for gRPC: Debian's civetweb (under
+  // prometheus-cpp) crashes serving HTTPS with OpenSSL 3 (decision 23).
+  // Metrics are read-only; off loopback they belong on a private network.
+  if (!isLoopbackAddress(address)) {
+    std::fprintf(stderr,
+                 "note: --metrics-listen %s serves plain HTTP: keep it on a private network\n",
+                 address.c_str());
+  }
   try {
     exposer_ = std::make_unique<prometheus::Exposer>(address);
   } catch (const std::exception& e) {
@@ -66,7 +75,27 @@ bool ServerRuntime::startServer(grpc::ServerBuilder& builder, const std::string&
   service_names.push_back("grpc.health.v1.Health");
   reflection_services_ = makeReflectionServices(service_names);
   for (auto& s : reflection_services_) builder.RegisterService(s.get());
-  builder.AddListeningPort(address, grpc::InsecureServerCredentials(), &grpc_port_);
+  const TransportSecurity& security = processTransport();
+  if (absl::Status s = checkListenAddress(address, security); !s.ok()) {
+    *error = std::string(s.message());
+    return false;
+  }
+  absl::StatusOr<std::shared_ptr<grpc::ServerCredentials>> credentials =
+      serverCredentials(security);
+  if (!credentials.ok()) {
+    *error = std::string(credentials.status().message());
+    return false;
+  }
+  builder.AddListeningPort(address, *credentials, &grpc_port_);
+  builder.SetMaxReceiveMessageSize(ServerLimits::kMaxReceiveBytes);
+  builder.SetMaxSendMessageSize(ServerLimits::kMaxSendBytes);
+  builder.AddChannelArgument(GRPC_ARG_MAX_CONCURRENT_STREAMS, ServerLimits::kMaxConcurrentStreams);
+  builder.AddChannelArgument(GRPC_ARG_MAX_METADATA_SIZE, ServerLimits::kMaxMetadataBytes);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIME_MS, ServerLimits::kKeepaliveTimeMs);
+  builder.AddChannelArgument(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, ServerLimits::kKeepaliveTimeoutMs);
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_MIN_RECV_PING_INTERVAL_WITHOUT_DATA_MS,
+                             ServerLimits::kMinClientPingIntervalMs);
+  builder.AddChannelArgument(GRPC_ARG_HTTP2_MAX_PING_STRIKES, ServerLimits::kMaxPingStrikes);
   // gRPC sets SO_REUSEPORT by default, which would let a second server bind a
   // port already in use and silently share it; we want a clear failure.
   builder.AddChannelArgument(GRPC_ARG_ALLOW_REUSEPORT, 0);

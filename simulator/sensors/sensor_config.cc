@@ -15,6 +15,8 @@
 #include <sstream>
 #include <vector>
 
+#include "behaviorlib/server_kit/confined_files.h"
+#include "behaviorlib/server_kit/yaml_guard.h"
 #include "simulator/world/str_cat.h"
 
 namespace behaviorlib::sim {
@@ -363,25 +365,22 @@ absl::StatusOr<SensorConfig> parseSensorConfig(std::string_view yaml_text,
                                                std::string_view source_name) {
   Parser parser{std::string(source_name)};
   SensorConfig config;
-  try {
-    const YAML::Node root = YAML::Load(std::string(yaml_text));
-    if (absl::Status s = parseRoot(parser, root, &config); !s.ok()) return s;
-  } catch (const YAML::Exception& e) {
-    const int line = e.mark.is_null() ? 1 : e.mark.line + 1;
-    return parser.errorAtLine(line, "", strCat("YAML syntax error: ", e.msg));
+  YAML::Node root;
+  if (absl::Status s = server::loadYaml(yaml_text, std::string(source_name), &root); !s.ok()) {
+    return s;
+  }
+  if (absl::Status s = server::guardYamlParse(std::string(source_name),
+                                              [&] { return parseRoot(parser, root, &config); });
+      !s.ok()) {
+    return s;
   }
   return config;
 }
 
 absl::StatusOr<SensorConfig> loadSensorConfig(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(strCat(path, ": cannot open the sensor configuration file"));
-  std::ostringstream content;
-  content << in.rdbuf();
-  if (in.bad()) {
-    return absl::InternalError(strCat(path, ": cannot read the sensor configuration file"));
-  }
-  return parseSensorConfig(content.str(), path);
+  absl::StatusOr<std::string> content = server::readFileCapped(path, 1 << 20);
+  if (!content.ok()) return content.status();
+  return parseSensorConfig(*content, path);
 }
 
 }  // namespace behaviorlib::sim

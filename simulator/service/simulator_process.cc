@@ -148,7 +148,9 @@ absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
     if (parts->sensors) parts->sensors->reset(world, world_seed);
     parts->faults->reset();
   };
-  if (absl::Status s = loadWorldInto(p->worlds, o.world, o.seed, p->simulation); !s.ok()) {
+  if (absl::Status s =
+          loadWorldInto(p->worlds, o.world, o.seed, WorldSource::kConfiguration, p->simulation);
+      !s.ok()) {
     return absl::InvalidArgumentError("--world: " + std::string(s.message()));
   }
 

@@ -22,10 +22,10 @@ grpc::ServerUnaryReactor* finish(grpc::CallbackServerContext* context, const grp
 }  // namespace
 
 absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg, uint64_t seed,
-                           Simulation& simulation) {
+                           WorldSource source, Simulation& simulation) {
   auto world = std::make_shared<World>();
   if (!world_arg.empty()) {
-    auto loaded = loadWorldByName(world_arg, control.worlds_dir);
+    auto loaded = loadWorldByName(world_arg, control.worlds_dir, source);
     if (!loaded.ok()) return loaded.status();
     *world = std::move(*loaded);
   }
@@ -78,9 +78,15 @@ grpc::ServerUnaryReactor* SimulatorService::Reset(grpc::CallbackServerContext* c
                                                   const v1::ResetRequest* request,
                                                   v1::ResetResponse* response) {
   std::lock_guard lock(worlds_.mutex);
-  const std::string world = request->world().empty() ? worlds_.world_arg : request->world();
+  // The current world came from the configuration; another is confined to
+  // --worlds-dir.
+  const bool same = request->world().empty();
+  const std::string world = same ? worlds_.world_arg : request->world();
   const uint64_t seed = request->seed() != 0 ? request->seed() : worlds_.seed;
-  if (absl::Status s = loadWorldInto(worlds_, world, seed, simulation_); !s.ok()) {
+  if (absl::Status s =
+          loadWorldInto(worlds_, world, seed,
+                        same ? WorldSource::kConfiguration : WorldSource::kRequest, simulation_);
+      !s.ok()) {
     return finish(context,
                   grpc::Status(static_cast<grpc::StatusCode>(s.code()), std::string(s.message())));
   }

@@ -19,6 +19,7 @@
 #include "simulator/faults/fault_injector.h"
 #include "simulator/service/latest_writer.h"
 #include "simulator/service/time_grants.h"
+#include "simulator/service/vehicle_models.h"
 #include "simulator/world/world.h"
 
 namespace behaviorlib::sim {
@@ -50,7 +51,7 @@ struct WorldControl {
 /// control.seed). INVALID_ARGUMENT/NOT_FOUND naming the file, line and
 /// problem for a bad world; then nothing changes.
 absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg, uint64_t seed,
-                           Simulation& simulation);
+                           WorldSource source, Simulation& simulation);
 
 using StateWatcher = LatestWriter<v1::WatchStateResponse>;
 

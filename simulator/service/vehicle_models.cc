@@ -2,6 +2,7 @@
 
 #include <cmath>
 
+#include "behaviorlib/server_kit/confined_files.h"
 #include "simulator/dynamics/autopilot.h"
 #include "simulator/dynamics/gust.h"
 #include "simulator/dynamics/quadrotor.h"
@@ -122,10 +123,19 @@ std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
   return vehicles;
 }
 
-absl::StatusOr<World> loadWorldByName(const std::string& world, const std::string& worlds_dir) {
+absl::StatusOr<World> loadWorldByName(const std::string& world, const std::string& worlds_dir,
+                                      WorldSource source) {
   const bool is_name = world.find('/') == std::string::npos &&
                        (world.size() < 5 || world.substr(world.size() - 5) != ".yaml");
-  return loadWorld(is_name ? worlds_dir + "/" + world + ".yaml" : world);
+  if (source == WorldSource::kConfiguration) {
+    return loadWorld(is_name ? worlds_dir + "/" + world + ".yaml" : world);
+  }
+  absl::StatusOr<server::ConfinedDirectory> dir =
+      server::ConfinedDirectory::open("worlds", worlds_dir, kMaxWorldFileBytes);
+  if (!dir.ok()) return dir.status();
+  absl::StatusOr<std::string> text = dir->read(is_name ? world + ".yaml" : world);
+  if (!text.ok()) return text.status();
+  return parseWorld(*text, world);
 }
 
 }  // namespace behaviorlib::sim

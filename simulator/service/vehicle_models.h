@@ -32,9 +32,19 @@ std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_po
 std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
     const World& world, const std::vector<std::string>& fallback_ids, uint64_t seed = 1);
 
+/// Where a world's name comes from: the simulator's own configuration (its
+/// --world flag: any path the operator chose) or a request (Reset), which
+/// may name only files inside worlds_dir.
+enum class WorldSource { kConfiguration, kRequest };
+
+/// Largest world file read for a request.
+inline constexpr size_t kMaxWorldFileBytes = 4 << 20;
+
 /// Loads a world by path, or by the name of a shipped world ("rooms" ->
 /// `<worlds_dir>/rooms.yaml`). The error names the file, the line and the
-/// problem.
-absl::StatusOr<World> loadWorldByName(const std::string& world, const std::string& worlds_dir);
+/// problem; for a request, a path outside worlds_dir is PERMISSION_DENIED
+/// naming worlds_dir.
+absl::StatusOr<World> loadWorldByName(const std::string& world, const std::string& worlds_dir,
+                                      WorldSource source = WorldSource::kConfiguration);
 
 }  // namespace behaviorlib::sim

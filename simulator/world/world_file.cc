@@ -13,6 +13,8 @@
 #include <utility>
 
 #include "absl/status/status.h"
+#include "behaviorlib/server_kit/confined_files.h"
+#include "behaviorlib/server_kit/yaml_guard.h"
 #include "simulator/world/str_cat.h"
 #include "simulator/world/world.h"
 
@@ -533,24 +535,23 @@ absl::StatusOr<World> parseRoot(const Parser& parser, const YAML::Node& root) {
 
 absl::StatusOr<World> parseWorld(std::string_view yaml_text, std::string_view source_name) {
   const Parser parser{std::string(source_name)};
-  try {
-    const YAML::Node root = YAML::Load(std::string(yaml_text));
-    absl::StatusOr<World> world = parseRoot(parser, root);
-    if (world.ok()) world->setSourcePath(std::string(source_name));
-    return world;
-  } catch (const YAML::Exception& e) {
-    const int line = e.mark.is_null() ? 1 : e.mark.line + 1;
-    return parser.errorAtLine(line, "", strCat("YAML syntax error: ", e.msg));
-  }
+  YAML::Node root;
+  BL_RETURN_IF_ERROR(server::loadYaml(yaml_text, std::string(source_name), &root));
+  absl::StatusOr<World> world = absl::InternalError("not parsed");
+  BL_RETURN_IF_ERROR(server::guardYamlParse(std::string(source_name), [&] {
+    world = parseRoot(parser, root);
+    return absl::OkStatus();
+  }));
+  if (world.ok()) world->setSourcePath(std::string(source_name));
+  return world;
 }
 
 absl::StatusOr<World> loadWorld(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) return absl::NotFoundError(strCat(path, ": cannot open the world file"));
-  std::ostringstream text;
-  text << in.rdbuf();
-  if (in.bad()) return absl::InternalError(strCat(path, ": cannot read the world file"));
-  return parseWorld(text.str(), path);
+  // A world file is a few kilobytes; the cap keeps a path such as /dev/zero
+  // or a huge file from being read whole.
+  absl::StatusOr<std::string> text = server::readFileCapped(path, 4 << 20);
+  if (!text.ok()) return text.status();
+  return parseWorld(*text, path);
 }
 
 #undef BL_RETURN_IF_ERROR

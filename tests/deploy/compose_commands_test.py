@@ -68,7 +68,16 @@ class Service:
 class ComposeCommandsTest(unittest.TestCase):
     def setUp(self):
         self.tmp = tempfile.mkdtemp(prefix="compose-commands-")
-        self.project = ds.load_compose(*FILES)
+        # The services' certificates, as `scripts/make-dev-certs.sh` makes
+        # them for the deployment (BEHAVIORLIB_CERTS_DIR), here in a fresh
+        # directory: every process then runs with mutual TLS, as in Compose.
+        certs = os.path.join(self.tmp, "certs")
+        subprocess.run([os.path.join(ds.REPO, "scripts", "make-dev-certs.sh"), "--out", certs],
+                       check=True, capture_output=True)
+        self.project = ds.load_compose(*FILES, env={"BEHAVIORLIB_CERTS_DIR": certs})
+        # This test's own calls (registrations) as the operator on the host.
+        rpc.rc.use_tls(os.path.join(certs, "operator.pem"), os.path.join(certs, "operator.key"),
+                       os.path.join(certs, "ca.pem"))
         self.services = {}
         self.started = []
 
@@ -92,7 +101,7 @@ class ComposeCommandsTest(unittest.TestCase):
             files.update(ds.image_files())
         for volume in spec.get("volumes", []):
             source, target = volume.split(":")[:2]
-            if source.startswith("."):
+            if source.startswith(".") or source.startswith("/"):  # a bind mount
                 links[target] = os.path.normpath(os.path.join(ds.COMPOSE_DIR, source))
             else:  # a named volume, shared by the services that mount it
                 links[target] = os.path.join(self.tmp, "volumes", source)
@@ -225,6 +234,9 @@ class ComposeCommandsTest(unittest.TestCase):
             self.assertEqual(test[1], f"{ds.IMAGE_BIN}/behaviorctl")
             argv = [ds.build_binary(BUILD_DIR, "behaviorctl")]
             for arg in test[2:]:
+                flag, eq, value = arg.partition("=")
+                if eq and value.startswith("/"):  # a file in the container
+                    arg = f"{flag}={service.root}{value}"
                 match = re.fullmatch(r"localhost:(\d+)", arg)
                 if match:
                     self.assertEqual(int(match.group(1)), service.declared["--listen"],

@@ -22,7 +22,9 @@ running anything:
 import json
 import os
 import re
+import subprocess
 import sys
+import tempfile
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -125,8 +127,12 @@ class ComposeTest(unittest.TestCase):
             for label, project in self.projects(env).items():
                 for name, service in behaviorlib_services(project).items():
                     with self.subTest(project=label, service=name, env=bool(env)):
+                        # With the service's own certificate, as its server requires.
+                        tls = [f"--tls-{part}=/etc/behaviorlib/tls/{file}"
+                               for part, file in (("cert", "cert.pem"), ("key", "key.pem"),
+                                                  ("ca", "ca.pem"))]
                         self.assertEqual(service["healthcheck"]["test"],
-                                         ["CMD", f"{ds.IMAGE_BIN}/behaviorctl", "--target",
+                                         ["CMD", f"{ds.IMAGE_BIN}/behaviorctl", *tls, "--target",
                                           f"localhost:{listen_port(service)}", "health"])
                         self.assertTrue(ds.flag_value(service["command"],
                                                       "--listen").startswith("0.0.0.0:"))
@@ -196,13 +202,33 @@ class ComposeTest(unittest.TestCase):
                     self.assertIn("behaviorlib-data:/var/lib/behaviorlib", service["volumes"])
 
     def test_bind_mounts_exist(self):
+        # The certificates are made by scripts/make-dev-certs.sh (into
+        # BEHAVIORLIB_CERTS_DIR, deploy/certs by default): its default names
+        # must cover every service that mounts one.
+        with tempfile.TemporaryDirectory() as tmp:
+            certs = os.path.join(tmp, "certs")
+            subprocess.run([os.path.join(ds.REPO, "scripts", "make-dev-certs.sh"), "--out", certs],
+                           check=True, capture_output=True)
+            for label, project in self.projects({"BEHAVIORLIB_CERTS_DIR": certs}).items():
+                for name, service in project["services"].items():
+                    for volume in service.get("volumes", []):
+                        source = volume.split(":")[0]
+                        if source.startswith(".") or source.startswith("/"):
+                            with self.subTest(project=label, service=name, volume=volume):
+                                self.assertTrue(
+                                    os.path.exists(os.path.join(ds.COMPOSE_DIR, source)))
+
+    def test_every_behaviorlib_server_runs_with_mutual_tls(self):
         for label, project in self.projects().items():
-            for name, service in project["services"].items():
-                for volume in service.get("volumes", []):
-                    source = volume.split(":")[0]
-                    if source.startswith("."):
-                        with self.subTest(project=label, service=name, volume=volume):
-                            self.assertTrue(os.path.exists(os.path.join(ds.COMPOSE_DIR, source)))
+            for name, service in behaviorlib_services(project).items():
+                with self.subTest(project=label, service=name):
+                    command = service["command"]
+                    self.assertNotIn("--insecure", command)
+                    for flag in ("--tls-cert", "--tls-key", "--tls-ca"):
+                        self.assertTrue(ds.flag_value(command, flag), f"{name}: no {flag}")
+                    test = service["healthcheck"]["test"]
+                    self.assertTrue(any(a.startswith("--tls-cert=") for a in test),
+                                    f"{name}: the health check has no certificate")
 
 
 class DockerfileTest(unittest.TestCase):

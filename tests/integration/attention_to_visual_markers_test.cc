@@ -108,8 +108,10 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     coordinator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_COORDINATOR_PATH,
-        std::vector<std::string>{"--catalog", BEHAVIORLIB_CATALOG_PATH, "--state-dir", state_dir_,
-                                 "--heartbeat-interval-s", "0.25"});
+        std::vector<std::string>{
+            "--catalog", BEHAVIORLIB_CATALOG_PATH, "--state-dir", state_dir_,
+            "--heartbeat-interval-s", "0.25", "--mission-dir",
+            std::filesystem::path(BEHAVIORLIB_INSPECTION_MISSION_PATH).parent_path().string()});
     ASSERT_TRUE(coordinator_->start()) << coordinator_->error();
     coordinator_stub_ = v1::Coordinator::NewStub(
         grpc::CreateChannel(coordinator_->address(), grpc::InsecureChannelCredentials()));

@@ -297,6 +297,12 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
     char dir[] = "/tmp/coordinator_plans_XXXXXX";
     ASSERT_NE(mkdtemp(dir), nullptr);
     state_dir_ = dir;
+    // The coordinator reads StartMission.file_path only in its --mission-dir.
+    char missions[] = "/tmp/coordinator_missions_XXXXXX";
+    ASSERT_NE(mkdtemp(missions), nullptr);
+    mission_dir_ = missions;
+    demo_mission_ = mission_dir_ + "/demo_square.yaml";
+    std::filesystem::copy_file(kDemoMission, demo_mission_);
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
@@ -321,11 +327,18 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
     }
     if (simulator_ && simulator_->running()) simulator_->kill();
     std::filesystem::remove_all(state_dir_);
+    std::filesystem::remove_all(mission_dir_);
   }
 
   void startCoordinator(std::vector<std::string> extra) {
-    std::vector<std::string> args = {
-        "--catalog", kCatalog, "--state-dir", state_dir_, "--heartbeat-interval-s", "0.25"};
+    std::vector<std::string> args = {"--catalog",
+                                     kCatalog,
+                                     "--state-dir",
+                                     state_dir_,
+                                     "--mission-dir",
+                                     mission_dir_,
+                                     "--heartbeat-interval-s",
+                                     "0.25"};
     args.insert(args.end(), extra.begin(), extra.end());
     coordinator_ = std::make_unique<support::ServerProcess>(BEHAVIORLIB_COORDINATOR_PATH, args);
     ASSERT_TRUE(coordinator_->start()) << coordinator_->error();
@@ -458,6 +471,8 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
   }
 
   std::string state_dir_;
+  std::string mission_dir_;
+  std::string demo_mission_;  // the shipped demo, copied into mission_dir_
   support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
   std::unique_ptr<support::ServerProcess> simulator_;
   std::unique_ptr<support::ServerProcess> coordinator_;
@@ -599,12 +614,12 @@ TEST_F(CoordinatorPlansMissionsTest, PlansActivateRequirementsRollBackAndInterru
 // StartMission + WatchMission: every step GOAL_ACHIEVED.
 TEST_F(CoordinatorPlansMissionsTest, TheDemoMissionSucceedsWithEveryStepGoalAchieved) {
   FleetRecorder& events = recorder();
-  auto started = startMissionFile(kDemoMission, "demo-1");
+  auto started = startMissionFile(demo_mission_, "demo-1");
   ASSERT_TRUE(started.status.ok()) << describe(started.status);
   EXPECT_EQ(started.response.status().mission_id(), "demo-1");
   EXPECT_EQ(started.response.status().name(), "demo_square");
   EXPECT_EQ(started.response.status().robot_id(), kRobot);
-  EXPECT_EQ(started.response.status().file(), kDemoMission);
+  EXPECT_EQ(started.response.status().file(), demo_mission_);
   MissionWatcher watcher(coordinator_->address(), "demo-1");
   const auto last = watcher.waitEnd(seconds(45));
   ASSERT_TRUE(last);
@@ -652,7 +667,7 @@ TEST_F(CoordinatorPlansMissionsTest, TheDemoMissionSucceedsWithEveryStepGoalAchi
   ASSERT_EQ(listed.response.missions_size(), 1);
   EXPECT_EQ(listed.response.missions(0).mission_id(), "demo-1");
   // Starting the same id again returns that mission (idempotent).
-  auto again = startMissionFile(kDemoMission, "demo-1");
+  auto again = startMissionFile(demo_mission_, "demo-1");
   ASSERT_TRUE(again.status.ok()) << describe(again.status);
   EXPECT_EQ(again.response.status().state(), v1::MISSION_STATE_SUCCEEDED);
 }
@@ -679,8 +694,20 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
       << bad.status.error_message();
   EXPECT_NE(bad.status.error_message().find("duration_s"), std::string::npos)
       << "names the parameters it has: " << bad.status.error_message();
+  // A mission file outside --mission-dir, by its path or through "..": refused
+  // naming the directory, before it is read.
+  const std::string outside = state_dir_ + "/outside.yaml";
+  std::ofstream(outside) << "name: outside\nrobot: drone1\nsteps: [{behavior: LAND}]\n";
+  for (const std::string& path :
+       {outside, "../" + std::filesystem::path(state_dir_).filename().string() + "/outside.yaml",
+        std::string("/dev/zero")}) {
+    bad = startMissionFile(path);
+    ASSERT_EQ(bad.status.error_code(), grpc::StatusCode::PERMISSION_DENIED) << describe(bad.status);
+    EXPECT_NE(bad.status.error_message().find(mission_dir_), std::string::npos)
+        << bad.status.error_message();
+  }
   // A bad mission file: its path and line.
-  const std::string bad_file = state_dir_ + "/bad_mission.yaml";
+  const std::string bad_file = mission_dir_ + "/bad_mission.yaml";
   std::ofstream(bad_file) << "name: bad_file\n"
                              "robot: drone1\n"
                              "steps:\n"
@@ -993,7 +1020,7 @@ TEST_F(CoordinatorPlansMissionsTest, PauseResumeAndAbortWhichRunsTheSafetyStepLa
 // event histories show every behavior activated exactly once.
 TEST_F(CoordinatorPlansMissionsTest,
        AKilledCoordinatorResumesTheMissionWithoutDoublingActivations) {
-  auto started = startMissionFile(kDemoMission, "demo-crash");
+  auto started = startMissionFile(demo_mission_, "demo-crash");
   ASSERT_TRUE(started.status.ok()) << describe(started.status);
   std::string follow_id;
   {

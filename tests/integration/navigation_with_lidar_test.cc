@@ -61,7 +61,7 @@ class NavigationWithLidarTest : public ::testing::Test {
     ASSERT_TRUE(basic_->start()) << basic_->error();
     args = common;
     args.insert(args.end(), {"--config", BEHAVIORLIB_NAVIGATION_CONFIG_PATH, "--coordinator",
-                             coordinator_->address()});
+                             coordinator_->address(), "--map-dir", *dir_});
     navigation_ = new support::ServerProcess(BEHAVIORLIB_NAVIGATION_WITH_LIDAR_PATH, args);
     ASSERT_TRUE(navigation_->start()) << navigation_->error();
     basic_client_ = new SystemClient(basic_->address());
@@ -383,12 +383,23 @@ TEST_F(NavigationWithLidarTest, SavesAMapOctoMapReadsBackAndNamesItInBeliefMemor
   EXPECT_EQ(belief.value().string_value(), file);
 }
 
-TEST_F(NavigationWithLidarTest, AnUnwritableSavePathIsRefusedNamingIt) {
+TEST_F(NavigationWithLidarTest, ASavePathOutsideTheMapDirectoryIsRefusedNamingIt) {
   v1::ActivateResponse response;
+  // Outside --map-dir: absolute, through "..", or through a link.
+  std::filesystem::create_directory_symlink("/tmp", *dir_ + "/out");
+  for (const std::string& path :
+       {std::string("/tmp/map.bt"), std::string("../map.bt"), std::string("out/map.bt")}) {
+    grpc::Status status = nav_client_->activate("SAVE_OCCUPANCY_GRID",
+                                                "{\"file_path\": \"" + path + "\"}", &response);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::PERMISSION_DENIED) << describe(status);
+    EXPECT_NE(status.error_message().find("maps must be inside " + *dir_), std::string::npos)
+        << status.error_message();
+  }
+  // Inside, in a directory that does not exist.
   grpc::Status status = nav_client_->activate(
-      "SAVE_OCCUPANCY_GRID", "{\"file_path\": \"/nonexistent-dir/map.bt\"}", &response);
-  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(status);
-  EXPECT_NE(status.error_message().find("/nonexistent-dir/map.bt"), std::string::npos)
+      "SAVE_OCCUPANCY_GRID", "{\"file_path\": \"nonexistent-dir/map.bt\"}", &response);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::NOT_FOUND) << describe(status);
+  EXPECT_NE(status.error_message().find("nonexistent-dir/map.bt"), std::string::npos)
       << status.error_message();
   // The system keeps working.
   EXPECT_TRUE(nav_client_->checkSituation("GENERATE_PATH_WITH_OCCUPANCY_GRID").feasible());

@@ -415,13 +415,20 @@ TEST_F(SimulatorServiceTest, ResetLoadsWorldsAndReportsBadWorldFiles) {
     std::ofstream out(bad);
     out << "name: bad\nboxes:\n  - name: crate\n    center_m: [0, 0, 1]\n    size_m: [1, -1, 1]\n";
   }
-  reset.set_world(bad);
-  status = sim_->Reset(deadline().get(), reset, &response);
-  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
-  EXPECT_NE(status.error_message().find("bad_world.yaml:"), std::string::npos)
-      << status.error_message();
+  // A request names worlds inside --worlds-dir only (a bad world's file and
+  // line are world_file_test's): a file elsewhere, a way out through "..",
+  // and a device are refused naming the directory, before anything is read.
+  for (const std::string& outside :
+       {bad, std::string("../worlds/rooms.yaml"), std::string("/dev/zero")}) {
+    reset.set_world(outside);
+    status = sim_->Reset(deadline().get(), reset, &response);
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::PERMISSION_DENIED) << outside;
+    EXPECT_NE(status.error_message().find("worlds must be inside"), std::string::npos)
+        << status.error_message();
+  }
   reset.set_world("no_such_world");
-  EXPECT_NE(sim_->Reset(deadline().get(), reset, &response).error_code(), grpc::StatusCode::OK);
+  EXPECT_EQ(sim_->Reset(deadline().get(), reset, &response).error_code(),
+            grpc::StatusCode::NOT_FOUND);
   // A failed reset leaves the running world alone.
   v1::WatchFlightStateRequest watch;
   watch.set_robot_id("drone2");

@@ -196,8 +196,18 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
                                " found within " + std::to_string(options.timeout_s) +
                                " s (the goal may be unreachable)");
   }
+  og::PathGeometric& solution = setup.getSolutionPath();
+  if (options.shorten) {
+    // RRT-Connect's path wanders: it can pass the goal and come back through
+    // space the map has not seen (which counts as free). The string pulling
+    // below keeps a path's detours, since it only drops points it can see
+    // past; OMPL's simplifier first joins vertices that see each other.
+    const og::PathSimplifierPtr& simplifier = setup.getPathSimplifier();
+    simplifier->reduceVertices(solution);
+    simplifier->shortcutPath(solution);
+  }
   std::vector<Eigen::Vector3d> raw;
-  for (const ob::State* s : setup.getSolutionPath().getStates()) {
+  for (const ob::State* s : solution.getStates()) {
     const double* v = s->as<ob::RealVectorStateSpace::StateType>()->values;
     raw.emplace_back(v[0], v[1], v[2]);
   }

@@ -15,8 +15,10 @@
 #include "behaviorlib/server/behavior_system_service.h"
 #include "behaviorlib/server/coordinator_registration.h"
 #include "behaviorlib/server/time_follower.h"
+#include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/server_kit/flags.h"
 #include "behaviorlib/server_kit/server_runtime.h"
+#include "behaviorlib/server_kit/yaml_guard.h"
 #include "behaviorlib/v1/options.pb.h"
 
 // The flags of every behavior-system process (runBehaviorSystem).
@@ -46,6 +48,10 @@ ABSL_FLAG(std::string, follow_time, "",
           "was due, and the simulator waits for it; needs --clock sim");
 
 namespace behaviorlib::server {
+
+namespace {
+constexpr size_t kMaxConfigBytes = 1 << 20;
+}  // namespace
 
 void BehaviorSystemBuilder::checkServiceMatches(const BehaviorExecutionManager& behavior,
                                                 const char* service_full_name) {
@@ -252,10 +258,10 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   options.flight_controller = absl::GetFlag(FLAGS_flight_controller);
   options.follow_time = absl::GetFlag(FLAGS_follow_time);
   if (const std::string path = absl::GetFlag(FLAGS_config); !path.empty()) {
-    try {
-      options.config = YAML::LoadFile(path);
-    } catch (const YAML::Exception& e) {
-      fatal(program, "cannot read --config " + path + ": " + e.what());
+    absl::StatusOr<std::string> text = readFileCapped(path, kMaxConfigBytes);
+    absl::Status loaded = text.ok() ? loadYaml(*text, path, &options.config) : text.status();
+    if (!loaded.ok()) {
+      fatal(program, "cannot read --config " + path + ": " + std::string(loaded.message()));
       return 2;
     }
   }

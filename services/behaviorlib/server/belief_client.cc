@@ -2,6 +2,8 @@
 
 #include <google/protobuf/util/json_util.h>
 
+#include "behaviorlib/server_kit/transport_security.h"
+
 namespace behaviorlib::server {
 
 namespace {
@@ -17,8 +19,7 @@ absl::Status fromGrpc(const grpc::Status& status, const std::string& address,
 BeliefClient::BeliefClient(std::string coordinator_address, std::chrono::milliseconds timeout)
     : address_(std::move(coordinator_address)),
       timeout_(timeout),
-      stub_(v1::Coordinator::NewStub(
-          grpc::CreateChannel(address_, grpc::InsecureChannelCredentials()))) {}
+      stub_(v1::Coordinator::NewStub(behaviorlib::server::makeChannel(address_))) {}
 
 absl::StatusOr<v1::Belief> BeliefClient::write(const std::string& key,
                                                const google::protobuf::Value& value,

@@ -8,6 +8,7 @@
 
 #include "absl/time/time.h"
 #include "behaviorlib/behavior_host.h"
+#include "behaviorlib/server_kit/transport_security.h"
 
 namespace behaviorlib::server {
 
@@ -42,8 +43,7 @@ std::string describe(const grpc::Status& status) {
 
 CoordinatorRegistration::CoordinatorRegistration(CoordinatorRegistrationOptions options)
     : options_(std::move(options)),
-      channel_(grpc::CreateCustomChannel(options_.coordinator, grpc::InsecureChannelCredentials(),
-                                         channelArguments())),
+      channel_(behaviorlib::server::makeChannel(options_.coordinator, channelArguments())),
       stub_(v1::Coordinator::NewStub(channel_)) {}
 
 CoordinatorRegistration::~CoordinatorRegistration() { stop(std::chrono::milliseconds(500)); }

@@ -9,6 +9,7 @@
 #include "absl/time/time.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/channel/sim_clock.h"
+#include "behaviorlib/server_kit/transport_security.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 
 namespace behaviorlib::server {
@@ -37,7 +38,7 @@ TimeFollower::TimeFollower(const std::string& simulator_address, std::string par
     : participant_(std::move(participant)),
       clock_(clock),
       data_(channel),
-      channel_(grpc::CreateChannel(simulator_address, grpc::InsecureChannelCredentials())) {}
+      channel_(behaviorlib::server::makeChannel(simulator_address)) {}
 
 TimeFollower::~TimeFollower() { stop(); }
 

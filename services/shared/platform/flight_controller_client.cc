@@ -2,6 +2,8 @@
 
 #include <google/protobuf/util/time_util.h>
 
+#include "behaviorlib/server_kit/transport_security.h"
+
 namespace behaviorlib::platform {
 namespace {
 
@@ -32,8 +34,7 @@ FlightControllerClient::FlightControllerClient(std::string address, std::string 
     : address_(std::move(address)),
       robot_id_(std::move(robot_id)),
       options_(options),
-      channel_(grpc::CreateCustomChannel(address_, grpc::InsecureChannelCredentials(),
-                                         channelArguments())),
+      channel_(behaviorlib::server::makeChannel(address_, channelArguments())),
       stub_(v1::FlightController::NewStub(channel_)) {}
 
 std::unique_ptr<grpc::ClientContext> FlightControllerClient::context() const {

@@ -3,14 +3,21 @@
 // CLEAR_OCCUPANCY_GRID, SAVE_OCCUPANCY_GRID).
 
 #include <cstdlib>
+#include <filesystem>
 #include <iostream>
 #include <memory>
 
+#include "absl/flags/flag.h"
 #include "behaviorlib/navigation_with_lidar/generate_path_behavior.h"
 #include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
 #include "behaviorlib/navigation_with_lidar/map_behaviors.h"
 #include "behaviorlib/server/behavior_system_main.h"
+#include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/v1/behaviors/navigation_with_lidar.behaviors.h"
+
+ABSL_FLAG(std::string, map_dir, "",
+          "directory SAVE_OCCUPANCY_GRID writes maps in (file_path relative to it, or inside "
+          "it; no '..', no link out of it); made if missing; empty: maps cannot be saved");
 
 int main(int argc, char** argv) {
   return behaviorlib::server::runBehaviorSystem(
@@ -30,6 +37,15 @@ int main(int argc, char** argv) {
         b.addCatchUpCheck([&mapper] { return mapper.caughtUp(); });
         b.add<nav::GeneratePathBehavior>(mapper, context.beliefs);
         b.add<nav::ClearOccupancyGridBehavior>(mapper);
-        b.add<nav::SaveOccupancyGridBehavior>(mapper, context.beliefs);
+        const std::string map_dir = absl::GetFlag(FLAGS_map_dir);
+        std::error_code made;
+        if (!map_dir.empty()) std::filesystem::create_directories(map_dir, made);
+        auto maps = behaviorlib::server::ConfinedDirectory::open("maps", map_dir, 0);
+        if (!maps.ok()) {
+          std::cerr << "navigation_with_lidar: --map-dir: " << maps.status().message()
+                    << (made ? " (" + made.message() + ")" : "") << std::endl;
+          std::exit(2);
+        }
+        b.add<nav::SaveOccupancyGridBehavior>(mapper, context.beliefs, std::move(*maps));
       });
 }

@@ -2,7 +2,7 @@
 
 #include <google/protobuf/struct.pb.h>
 
-#include <filesystem>
+#include <utility>
 
 namespace behaviorlib::nav {
 namespace {
@@ -30,21 +30,23 @@ Verdict ClearOccupancyGridBehavior::checkGoal() {
 }
 
 SaveOccupancyGridBehavior::SaveOccupancyGridBehavior(LidarMapper& mapper,
-                                                     const server::BeliefClient* beliefs)
-    : Behavior(mapBehaviorOptions()), mapper_(mapper), beliefs_(beliefs) {}
+                                                     const server::BeliefClient* beliefs,
+                                                     server::ConfinedDirectory maps)
+    : Behavior(mapBehaviorOptions()), mapper_(mapper), beliefs_(beliefs), maps_(std::move(maps)) {}
 
 absl::Status SaveOccupancyGridBehavior::onActivate() {
   const std::string& path = parameters().file_path();
   if (path.empty()) {
     return absl::InvalidArgumentError("file_path is empty: give the file to write the map to");
   }
-  std::error_code error;
-  const std::filesystem::path absolute = std::filesystem::absolute(path, error);
-  saved_path_ = error ? path : absolute.lexically_normal().string();
-  if (std::filesystem::is_directory(saved_path_, error)) {
-    return absl::InvalidArgumentError("file_path '" + saved_path_ +
-                                      "' is a directory: give a file name (e.g. map.bt)");
+  // Inside the system's --map-dir only: no "..", no link out of it, no
+  // device or link at the file's place.
+  absl::StatusOr<std::string> target = maps_.resolveForWrite(path);
+  if (!target.ok()) {
+    return absl::Status(target.status().code(),
+                        "file_path: " + std::string(target.status().message()));
   }
+  saved_path_ = *target;
   belief_error_.reset();
   absl::Status status = mapper_.withMap([&](const OccupancyMap& map) {
     occupied_ = map.occupiedLeafCount();

@@ -132,7 +132,7 @@ INSTANTIATE_TEST_SUITE_P(
                 "1: unknown key 'sonar' (allowed: worker_threads, imu, gps, baro, linear_speed, "
                 "battery, lidar, camera)"},
         BadFile{"worker_threads: 0\n", "1: worker_threads must be within 1..16"},
-        BadFile{"imu: [1\n", "2: YAML syntax error: end of sequence flow not found"}));
+        BadFile{"imu: [1\n", "2: not valid YAML: end of sequence flow not found"}));
 
 TEST(SensorConfig, AMissingFileIsNotFound) {
   absl::StatusOr<SensorConfig> config = loadSensorConfig("/nonexistent/sensors.yaml");

@@ -199,7 +199,7 @@ TEST(WorldFile, NegativeSize) {
 }
 
 TEST(WorldFile, OtherProblems) {
-  expectError("syntax", "name: t\nboxes: [\n  - name: a\n", 3, "YAML syntax error");
+  expectError("syntax", "name: t\nboxes: [\n  - name: a\n", 3, "not valid YAML");
   expectError("empty", "", 1, "the world file is empty");
   expectError("duplicate_key", "name: t\nname: u\n", 2, "duplicate key 'name'");
   expectError("duplicate_box",

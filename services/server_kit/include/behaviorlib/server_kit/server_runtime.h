@@ -35,6 +35,27 @@ class Registry;
 
 namespace behaviorlib::server {
 
+/// Limits every server sets explicitly rather than inheriting gRPC's
+/// defaults (some of which are unlimited).
+struct ServerLimits {
+  /// A request larger is RESOURCE_EXHAUSTED before any handler runs.
+  static constexpr int kMaxReceiveBytes = 4 << 20;
+  /// A reply larger fails instead of being sent (List* RPCs paginate).
+  static constexpr int kMaxSendBytes = 16 << 20;
+  /// Concurrent streams on one client connection.
+  static constexpr int kMaxConcurrentStreams = 256;
+  /// Request metadata (headers) per call.
+  static constexpr int kMaxMetadataBytes = 16 << 10;
+  /// The server pings an idle connection this often and closes it when the
+  /// ping is not answered within the timeout: a vanished peer's streams end.
+  static constexpr int kKeepaliveTimeMs = 30'000;
+  static constexpr int kKeepaliveTimeoutMs = 10'000;
+  /// A client may ping at most this often; more is a strike, and two strikes
+  /// close its connection (GOAWAY too_many_pings).
+  static constexpr int kMinClientPingIntervalMs = 10'000;
+  static constexpr int kMaxPingStrikes = 2;
+};
+
 class ServerRuntime {
  public:
   ServerRuntime();
@@ -57,11 +78,13 @@ class ServerRuntime {
   /// no metrics endpoint). False with an actionable `error` if it cannot bind.
   bool startMetrics(const std::string& address, std::string* error);
 
-  /// Enables the health service and reflection, listens on `address`
-  /// (insecure, port 0 allowed) and starts the server. `service_names` are
-  /// the fully-qualified services registered on `builder`; each is reported
+  /// Enables the health service and reflection, listens on `address` (port 0
+  /// allowed) with the process's transport security (transport_security.h:
+  /// mutual TLS, or plaintext on loopback unless --insecure) and the limits
+  /// of ServerLimits, and starts the server. `service_names` are the
+  /// fully-qualified services registered on `builder`; each is reported
   /// SERVING by the health service, as is the overall "" service. False with
-  /// an actionable `error` when the address cannot be bound.
+  /// an actionable `error` when the address cannot be bound or is refused.
   bool startServer(grpc::ServerBuilder& builder, const std::string& address,
                    std::vector<std::string> service_names, std::string* error);
 

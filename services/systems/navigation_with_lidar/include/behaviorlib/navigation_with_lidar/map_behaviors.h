@@ -6,9 +6,11 @@
 //
 //   CLEAR_OCCUPANCY_GRID  onActivate clears the map (mapping goes on).
 //   SAVE_OCCUPANCY_GRID   onActivate writes the map to file_path (.bt, or
-//                         .ot for OctoMap's full format); a path that cannot
-//                         be written refuses the activation with
-//                         INVALID_ARGUMENT naming it. The file's absolute path
+//                         .ot for OctoMap's full format), relative to the
+//                         system's --map-dir or inside it; a path outside
+//                         refuses the activation with PERMISSION_DENIED
+//                         naming the directory, a path that cannot be
+//                         written with INVALID_ARGUMENT naming it. The file's absolute path
 //                         then goes to belief memory (belief_key, default
 //                         {robot_id}/map_file) from checkGoal;
 //                         checkProcesses -> PROCESS_FAILURE when that write
@@ -20,6 +22,7 @@
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
 #include "behaviorlib/server/belief_client.h"
+#include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/v1/behaviors/navigation_with_lidar.pb.h"
 
 namespace behaviorlib::nav {
@@ -39,8 +42,9 @@ class ClearOccupancyGridBehavior final : public Behavior<v1::ClearOccupancyGridP
 class SaveOccupancyGridBehavior final : public Behavior<v1::SaveOccupancyGridParameters> {
  public:
   /// `beliefs` may be null (no coordinator): the file is saved, no belief
-  /// written.
-  SaveOccupancyGridBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs);
+  /// written. Files are written inside `maps` only.
+  SaveOccupancyGridBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs,
+                            server::ConfinedDirectory maps);
 
  protected:
   absl::Status onActivate() override;
@@ -50,6 +54,7 @@ class SaveOccupancyGridBehavior final : public Behavior<v1::SaveOccupancyGridPar
  private:
   LidarMapper& mapper_;
   const server::BeliefClient* beliefs_;
+  const server::ConfinedDirectory maps_;
   std::string saved_path_;
   size_t occupied_ = 0;
   std::optional<std::string> belief_error_;

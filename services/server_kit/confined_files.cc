@@ -1,0 +1,169 @@
+#include "behaviorlib/server_kit/confined_files.h"
+
+#include <fcntl.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <climits>
+#include <cstdlib>
+#include <cstring>
+
+#include "absl/strings/str_cat.h"
+#include "absl/strings/str_split.h"
+
+namespace behaviorlib::server {
+namespace {
+
+// realpath(3), or empty when the path does not resolve.
+std::string realPath(const std::string& path) {
+  char buffer[PATH_MAX];
+  if (::realpath(path.c_str(), buffer) == nullptr) return {};
+  return buffer;
+}
+
+class Fd {
+ public:
+  explicit Fd(int fd) : fd_(fd) {}
+  ~Fd() {
+    if (fd_ >= 0) ::close(fd_);
+  }
+  Fd(const Fd&) = delete;
+  Fd& operator=(const Fd&) = delete;
+  int get() const { return fd_; }
+
+ private:
+  int fd_;
+};
+
+// Reads an open descriptor of a regular file, at most max_bytes.
+absl::StatusOr<std::string> readCapped(int fd, const std::string& path, size_t max_bytes) {
+  struct stat st {};
+  if (::fstat(fd, &st) != 0) {
+    return absl::InternalError(absl::StrCat(path, ": cannot stat: ", std::strerror(errno)));
+  }
+  if (!S_ISREG(st.st_mode)) {
+    return absl::InvalidArgumentError(absl::StrCat(path, ": not a regular file"));
+  }
+  if (static_cast<size_t>(st.st_size) > max_bytes) {
+    return absl::ResourceExhaustedError(
+        absl::StrCat(path, ": ", st.st_size, " bytes, more than the ", max_bytes, " allowed"));
+  }
+  std::string out;
+  char chunk[65536];
+  for (;;) {
+    const ssize_t n = ::read(fd, chunk, sizeof chunk);
+    if (n < 0 && errno == EINTR) continue;
+    if (n < 0) {
+      return absl::InternalError(absl::StrCat(path, ": cannot read: ", std::strerror(errno)));
+    }
+    if (n == 0) break;
+    out.append(chunk, static_cast<size_t>(n));
+    // The file grew after the stat.
+    if (out.size() > max_bytes) {
+      return absl::ResourceExhaustedError(
+          absl::StrCat(path, ": more than the ", max_bytes, " bytes allowed"));
+    }
+  }
+  return out;
+}
+
+}  // namespace
+
+absl::StatusOr<ConfinedDirectory> ConfinedDirectory::open(std::string purpose,
+                                                          const std::string& root,
+                                                          size_t max_read_bytes) {
+  if (root.empty()) return ConfinedDirectory(std::move(purpose), "", max_read_bytes);
+  const std::string resolved = realPath(root);
+  struct stat st {};
+  if (resolved.empty() || ::stat(resolved.c_str(), &st) != 0 || !S_ISDIR(st.st_mode)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the directory for ", purpose, " '", root, "' does not exist"));
+  }
+  return ConfinedDirectory(std::move(purpose), resolved, max_read_bytes);
+}
+
+absl::Status ConfinedDirectory::refuse(const std::string& requested, const std::string& why) const {
+  if (root_.empty()) {
+    return absl::PermissionDeniedError(
+        absl::StrCat("'", requested, "' refused: no directory is configured for ", purpose_));
+  }
+  return absl::PermissionDeniedError(
+      absl::StrCat(purpose_, " must be inside ", root_, ": '", requested, "' ", why));
+}
+
+absl::StatusOr<std::string> ConfinedDirectory::lexical(const std::string& requested) const {
+  if (root_.empty()) return refuse(requested, "");
+  if (requested.empty()) return absl::InvalidArgumentError("the path is empty");
+  if (requested.find('\0') != std::string::npos) {
+    return absl::InvalidArgumentError("the path contains a NUL character");
+  }
+  if (requested.size() > PATH_MAX) {
+    return absl::InvalidArgumentError(absl::StrCat("the path is longer than ", PATH_MAX, " bytes"));
+  }
+  for (absl::string_view part : absl::StrSplit(requested, '/')) {
+    if (part == "..") return refuse(requested, "has a '..' component");
+  }
+  return requested.front() == '/' ? requested : root_ + "/" + requested;
+}
+
+bool ConfinedDirectory::inside(const std::string& resolved) const {
+  return resolved == root_ ||
+         (resolved.size() > root_.size() && resolved.compare(0, root_.size(), root_) == 0 &&
+          (root_ == "/" || resolved[root_.size()] == '/'));
+}
+
+absl::StatusOr<std::string> ConfinedDirectory::resolveExisting(const std::string& requested) const {
+  absl::StatusOr<std::string> full = lexical(requested);
+  if (!full.ok()) return full.status();
+  const std::string resolved = realPath(*full);
+  if (resolved.empty()) {
+    if (!inside(*full)) return refuse(requested, "is outside it");
+    return absl::NotFoundError(
+        absl::StrCat(purpose_, ": '", requested, "' does not exist in ", root_));
+  }
+  if (!inside(resolved)) return refuse(requested, "resolves outside it");
+  return resolved;
+}
+
+absl::StatusOr<std::string> ConfinedDirectory::resolveForWrite(const std::string& requested) const {
+  absl::StatusOr<std::string> full = lexical(requested);
+  if (!full.ok()) return full.status();
+  const size_t slash = full->find_last_of('/');
+  const std::string name = full->substr(slash + 1);
+  if (name.empty() || name == ".") return refuse(requested, "names no file");
+  const std::string parent = realPath(slash == 0 ? "/" : full->substr(0, slash));
+  if (parent.empty()) {
+    return absl::NotFoundError(
+        absl::StrCat(purpose_, ": the directory of '", requested, "' does not exist"));
+  }
+  const std::string target = (parent == "/" ? "" : parent) + "/" + name;
+  if (!inside(parent) || target == root_) return refuse(requested, "is outside it");
+  struct stat st {};
+  if (::lstat(target.c_str(), &st) == 0 && !S_ISREG(st.st_mode)) {
+    return refuse(requested, "exists and is not a regular file (a link, a device or a directory)");
+  }
+  return target;
+}
+
+absl::StatusOr<std::string> ConfinedDirectory::read(const std::string& requested) const {
+  absl::StatusOr<std::string> path = resolveExisting(requested);
+  if (!path.ok()) return path.status();
+  // O_NOFOLLOW: the resolved path has no link left; one appearing since is refused.
+  Fd fd(::open(path->c_str(), O_RDONLY | O_NOFOLLOW | O_NONBLOCK | O_CLOEXEC));
+  if (fd.get() < 0) {
+    return absl::PermissionDeniedError(
+        absl::StrCat(purpose_, ": cannot open '", requested, "': ", std::strerror(errno)));
+  }
+  return readCapped(fd.get(), requested, max_read_bytes_);
+}
+
+absl::StatusOr<std::string> readFileCapped(const std::string& path, size_t max_bytes) {
+  Fd fd(::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC));
+  if (fd.get() < 0) {
+    return absl::NotFoundError(absl::StrCat(path, ": cannot open: ", std::strerror(errno)));
+  }
+  return readCapped(fd.get(), path, max_bytes);
+}
+
+}  // namespace behaviorlib::server

@@ -10,16 +10,17 @@ set -eu
 BUILD_PACKAGES="g++ cmake ninja-build pkg-config libgtest-dev libgmock-dev libbenchmark-dev \
   libgrpc++-dev protobuf-compiler-grpc libprotobuf-dev libprotoc-dev protobuf-compiler libeigen3-dev \
   libompl-dev libboost-serialization-dev libboost-filesystem-dev libboost-system-dev \
-  liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev grpc-proto"
+  liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev grpc-proto \
+  libssl-dev"
 # What the built binaries load (each package pulls in its own dependencies), for
 # a machine that only runs them (Docker runtime stage). When a binary comes to
 # need another library, tests/deploy/runtime_packages_test.py names the package
 # to add here.
-RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libgrpc++1.51 libgrpc29 libprotobuf32 \
+RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libssl3 libgrpc++1.51 libgrpc29 libprotobuf32 \
   libabsl20220623 libprometheus-cpp-core1.0 libprometheus-cpp-pull1.0 libyaml-cpp0.7 \
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-objdetect406 \
   libopencv-contrib406 libopencv-calib3d406 liboctomap1.9 libompl16"
-TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml prometheus docker-compose procps \
+TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml prometheus docker-compose procps openssl \
   clang-14"
 
 case "${1:-}" in

@@ -241,6 +241,8 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
 
   grpc::ServerBuilder builder;
   builder.RegisterService(p->service.get());
+  // Control calls are audited beside the journal.
+  if (!options.state_dir.empty()) p->runtime.setDefaultAuditLog(options.state_dir + "/audit.jsonl");
   if (!p->runtime.startServer(builder, options.listen, {v1::Coordinator::service_full_name()},
                               &error)) {
     return absl::UnavailableError(error);

@@ -8,12 +8,13 @@
 #include <memory>
 #include <utility>
 
+#include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/log_stream.h"
 #include "behaviorlib/server_kit/status.h"
+#include "behaviorlib/server_kit/transport_security.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/fleet_control.h"
 #include "coordinator/service/systems_config.h"
-#include "behaviorlib/server_kit/transport_security.h"
 
 namespace behaviorlib::coordinator {
 
@@ -218,6 +219,14 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
   if (request->incarnation().empty()) {
     return finishNow(context, missing("incarnation", "send the system's incarnation id"));
   }
+  // Under an access policy, a system registers only as the system and robot
+  // its certificate names: no one else can take its place.
+  if (absl::Status s =
+          server::checkSystemIdentity(*context, request->robot_id(), request->system());
+      !s.ok()) {
+    return finishNow(context,
+                     grpc::Status(grpc::StatusCode::PERMISSION_DENIED, std::string(s.message())));
+  }
   if (!isHostPort(request->address())) {
     return finishNow(context, grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
                                            "address '" + request->address() +
@@ -289,6 +298,12 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
 grpc::ServerUnaryReactor* CoordinatorService::Heartbeat(grpc::CallbackServerContext* context,
                                                         const v1::HeartbeatRequest* request,
                                                         v1::HeartbeatResponse* response) {
+  if (absl::Status s =
+          server::checkSystemIdentity(*context, request->robot_id(), request->system());
+      !s.ok()) {
+    return finishNow(context,
+                     grpc::Status(grpc::StatusCode::PERMISSION_DENIED, std::string(s.message())));
+  }
   const grpc::Status status = registry_.heartbeat(*request);
   if (status.ok()) response->set_coordinator_incarnation(log_.incarnation());
   return finishNow(context, status);
@@ -297,6 +312,12 @@ grpc::ServerUnaryReactor* CoordinatorService::Heartbeat(grpc::CallbackServerCont
 grpc::ServerUnaryReactor* CoordinatorService::UnregisterSystem(
     grpc::CallbackServerContext* context, const v1::UnregisterSystemRequest* request,
     v1::UnregisterSystemResponse* /*response*/) {
+  if (absl::Status s =
+          server::checkSystemIdentity(*context, request->robot_id(), request->system());
+      !s.ok()) {
+    return finishNow(context,
+                     grpc::Status(grpc::StatusCode::PERMISSION_DENIED, std::string(s.message())));
+  }
   return finishNow(context, registry_.unregister(*request));
 }
 

@@ -211,14 +211,28 @@ def output_root(run_dir):
     return os.path.join(run_dir, "output")
 
 
-def make_certs(run_dir, names):
+def make_certs(run_dir, names, systems):
     """--tls: a CA and a certificate per process (scripts/make-dev-certs.sh)
-    in <run-dir>/certs; this launcher's own clients use "operator"."""
+    in <run-dir>/certs, and the access policy that gives each its roles
+    (certs/policy.yaml; deploy/config/access_policy.yaml is the compose
+    deployment's); this launcher's own clients use "operator". `systems`
+    maps a system process's name to (robot, system)."""
     certs = os.path.join(run_dir, "certs")
     result = subprocess.run([os.path.join(REPO, "scripts", "make-dev-certs.sh"), "--out", certs,
                              "operator", *names], capture_output=True, text=True)
     if result.returncode != 0:
         raise StartError(f"cannot make the TLS certificates: {result.stderr.strip()}")
+    roles = {"operator": "[viewer, operator, safety]", "coordinator": "[viewer, operator, safety]",
+             "simulator": "[viewer, operator]", "channel_broker": "[viewer]"}
+    lines = ["# Made by deploy/local/launch.py --tls for this run.", "identities:"]
+    for name, role_list in roles.items():
+        lines += [f"  - certificate: behaviorlib:{name}", f"    roles: {role_list}"]
+    for process, (robot, system) in systems.items():
+        lines += [f"  - certificate: behaviorlib:{process}",
+                  "    roles: [viewer, operator, system]",
+                  f"    system: {{robot: {robot}, name: {system}}}"]
+    with open(os.path.join(certs, "policy.yaml"), "w") as f:
+        f.write("\n".join(lines) + "\n")
     rpc.rc.use_tls(os.path.join(certs, "operator.pem"), os.path.join(certs, "operator.key"),
                    os.path.join(certs, "ca.pem"))
     return certs
@@ -229,10 +243,11 @@ def start_stack(args, build_dir, stack):
     several = len(robots) > 1
     deterministic = args.time_scale == "max"
     binaries = system_binaries(args, build_dir)
-    system_processes = [f"{name}-{robot}" if several else name
-                        for name, _ in binaries for robot in robots]
+    system_processes = {(f"{name}-{robot}" if several else name): (robot, name)
+                        for name, _ in binaries for robot in robots}
     certs = (make_certs(stack.run_dir,
-                        ["channel_broker", "simulator", "coordinator", *system_processes])
+                        ["channel_broker", "simulator", "coordinator", *system_processes],
+                        system_processes)
              if args.tls else None)
 
     def listen_as(process):
@@ -240,7 +255,8 @@ def start_stack(args, build_dir, stack):
         if certs:
             argv += ["--tls-cert", os.path.join(certs, f"{process}.pem"),
                      "--tls-key", os.path.join(certs, f"{process}.key"),
-                     "--tls-ca", os.path.join(certs, "ca.pem")]
+                     "--tls-ca", os.path.join(certs, "ca.pem"),
+                     "--access-policy", os.path.join(certs, "policy.yaml")]
         return argv
 
     broker = stack.start(Process("channel_broker",
@@ -482,10 +498,10 @@ def main():
     parser.add_argument("--enable-fault-injection", action="store_true",
                         help="let Simulator.InjectFailure inject faults")
     parser.add_argument("--tls", action="store_true",
-                        help="mutual TLS between every process: a CA and a certificate per "
-                             "process are made in <run-dir>/certs (scripts/make-dev-certs.sh); "
-                             "gRPC and /metrics then need a client certificate from that CA "
-                             "(certs/operator.pem for grpcurl and behaviorctl)")
+                        help="mutual TLS and roles between every process: a CA, a certificate "
+                             "per process and an access policy are made in <run-dir>/certs "
+                             "(scripts/make-dev-certs.sh); gRPC then needs a client certificate "
+                             "from that CA (certs/operator.pem for grpcurl and behaviorctl)")
     parser.add_argument("--demo", action="store_true",
                         help="fly the demo mission (or the --mission files), write the report, "
                              "then stop everything")

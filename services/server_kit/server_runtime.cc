@@ -10,9 +10,19 @@
 #include <cstdio>
 #include <fstream>
 
+#include "absl/flags/flag.h"
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/reflection/reflection_service.h"
+#include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/transport_security.h"
+
+ABSL_FLAG(std::string, access_policy, "",
+          "YAML file mapping certificate names and bearer tokens to roles (viewer, operator, "
+          "safety, system, admin); needs TLS; empty: every peer with a certificate from the CA "
+          "may call anything");
+ABSL_FLAG(std::string, audit_log, "",
+          "file that every control call and every refused call is appended to (JSON lines); "
+          "the coordinator's default is <state-dir>/audit.jsonl");
 
 namespace behaviorlib::server {
 
@@ -86,6 +96,39 @@ bool ServerRuntime::startServer(grpc::ServerBuilder& builder, const std::string&
     *error = std::string(credentials.status().message());
     return false;
   }
+  // Roles and the audit log.
+  std::shared_ptr<const AccessPolicy> policy;
+  if (const std::string path = absl::GetFlag(FLAGS_access_policy); !path.empty()) {
+    if (!security.tls()) {
+      *error =
+          "--access-policy needs TLS (--tls-cert, --tls-key, --tls-ca): roles are given to "
+          "certificates and to bearer tokens sent over TLS";
+      return false;
+    }
+    absl::StatusOr<AccessPolicy> loaded = AccessPolicy::load(path);
+    if (!loaded.ok()) {
+      *error = "--access-policy: " + std::string(loaded.status().message());
+      return false;
+    }
+    policy = std::make_shared<const AccessPolicy>(std::move(*loaded));
+  }
+  const std::string audit_path =
+      absl::GetFlag(FLAGS_audit_log).empty() ? default_audit_log_ : absl::GetFlag(FLAGS_audit_log);
+  absl::StatusOr<std::unique_ptr<AuditLog>> audit = AuditLog::open(audit_path, *registry_);
+  if (!audit.ok()) {
+    *error = std::string(audit.status().message());
+    return false;
+  }
+  audit_ = std::move(*audit);
+  if (security.tls()) {
+    AuditLog* log = audit_.get();
+    (*credentials)
+        ->SetAuthMetadataProcessor(
+            makeAuthorizer(policy, [log](const AuditRecord& record) { log->record(record); }));
+  }
+  std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
+  interceptors.push_back(makeAuditInterceptor(audit_.get()));
+  builder.experimental().SetInterceptorCreators(std::move(interceptors));
   builder.AddListeningPort(address, *credentials, &grpc_port_);
   builder.SetMaxReceiveMessageSize(ServerLimits::kMaxReceiveBytes);
   builder.SetMaxSendMessageSize(ServerLimits::kMaxSendBytes);

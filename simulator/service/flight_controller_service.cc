@@ -2,6 +2,7 @@
 
 #include <google/protobuf/util/time_util.h>
 
+#include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/status.h"
 #include "simulator/service/latest_writer.h"
 #include "simulator/service/messages.h"
@@ -102,6 +103,20 @@ void FlightControllerService::removeWatcher(FlightStatusWatcher* watcher) {
 grpc::ServerUnaryReactor* FlightControllerService::AcquireLease(
     grpc::CallbackServerContext* context, const v1::AcquireLeaseRequest* request,
     v1::AcquireLeaseResponse* response) {
+  // Taking the vehicle from its holder is for the safety policy and the
+  // behavior systems (LAND), not for any operator, under an access policy.
+  if (request->preempt()) {
+    const std::optional<server::Caller> caller = server::callerOf(*context);
+    if (caller && caller->policy && caller->roles.count(server::Role::kSafety) == 0 &&
+        caller->roles.count(server::Role::kSystem) == 0 &&
+        caller->roles.count(server::Role::kAdmin) == 0) {
+      auto* reactor = context->DefaultReactor();
+      reactor->Finish(grpc::Status(grpc::StatusCode::PERMISSION_DENIED,
+                                   "a preempting AcquireLease needs the role safety or system; '" +
+                                       caller->identity + "' has neither"));
+      return reactor;
+    }
+  }
   const auto ttl = std::chrono::nanoseconds(
       google::protobuf::util::TimeUtil::DurationToNanoseconds(request->ttl()));
   return platformCall(

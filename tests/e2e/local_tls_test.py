@@ -5,7 +5,8 @@ its own certificate from a fresh CA. While it serves:
   coordinator and was dialed back over mTLS;
 - behaviorctl with the operator's certificate flies the demo mission to
   SUCCEEDED (coordinator -> systems -> simulator and broker, all over TLS);
-- plaintext and a client without a certificate are refused by every server.
+- plaintext and a client without a certificate are refused by every server;
+- the run's access policy holds (the operator may not drive the simulator).
 Then SIGINT stops it cleanly.
 
     /usr/bin/python3 tests/e2e/local_tls_test.py --build-dir build
@@ -93,7 +94,19 @@ class LocalTlsTest(unittest.TestCase):
                                             response_deserializer=rpc._decode_health_response)
                 with self.assertRaises(grpc.RpcError, msg=name):
                     check("", timeout=5.0)
-        # The systems registered over mTLS and are up.
+        # The run's access policy: the operator may not drive the simulator.
+        certs = os.path.join(self.run_dir, "certs")
+        operator = grpc.ssl_channel_credentials(
+            root_certificates=open(os.path.join(certs, "ca.pem"), "rb").read(),
+            private_key=open(os.path.join(certs, "operator.key"), "rb").read(),
+            certificate_chain=open(os.path.join(certs, "operator.pem"), "rb").read())
+        with grpc.secure_channel(servers["simulator"], operator) as channel:
+            reset = channel.unary_unary("/behaviorlib.v1.Simulator/SetTimeScale")
+            with self.assertRaises(grpc.RpcError) as refused:
+                reset(b"", timeout=5.0)
+            self.assertEqual(refused.exception.code(), grpc.StatusCode.PERMISSION_DENIED)
+            self.assertIn("needs the role admin", refused.exception.details())
+        # The systems registered over mTLS (as themselves) and are up.
         deadline = time.monotonic() + 30
         while True:
             systems = self.ctl("--coordinator", coordinator, "systems", timeout=20)

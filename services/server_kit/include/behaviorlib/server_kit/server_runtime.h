@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "absl/status/status.h"
+#include "behaviorlib/server_kit/audit_log.h"
 
 namespace grpc {
 class Server;
@@ -88,6 +89,12 @@ class ServerRuntime {
   bool startServer(grpc::ServerBuilder& builder, const std::string& address,
                    std::vector<std::string> service_names, std::string* error);
 
+  /// The audit log's file when --audit-log is not given (the coordinator:
+  /// beside its journal); call before startServer.
+  void setDefaultAuditLog(std::string path) { default_audit_log_ = std::move(path); }
+  /// The audit log (after startServer).
+  AuditLog* auditLog() { return audit_.get(); }
+
   grpc::Server* server() { return server_.get(); }
   int grpcPort() const { return grpc_port_; }
   int metricsPort() const { return metrics_port_; }
@@ -108,6 +115,9 @@ class ServerRuntime {
   std::shared_ptr<prometheus::Registry> registry_;
   std::unique_ptr<prometheus::Exposer> exposer_;
   std::vector<std::unique_ptr<grpc::Service>> reflection_services_;
+  std::string default_audit_log_;
+  // Outlives the server, whose interceptors and authorizer write to it.
+  std::unique_ptr<AuditLog> audit_;
   std::unique_ptr<grpc::Server> server_;
   std::vector<std::string> service_names_;
   int grpc_port_ = 0;

@@ -1,0 +1,114 @@
+#pragma once
+
+// Roles: who may call what, on every server of behaviorlib.
+//
+// A policy file (--access-policy FILE, YAML) maps identities to roles:
+//
+//   identities:
+//     - certificate: behaviorlib:operator        # a client certificate's name:
+//       roles: [viewer, operator, safety]        #   URI or DNS SAN, or its CN
+//     - certificate: behaviorlib:drone1-navigation-with-lidar
+//       roles: [viewer, operator, system]
+//       system: {robot: drone1, name: navigation_with_lidar}
+//     - token_sha256: 5e884898da28...            # a bearer token, by its SHA-256
+//       name: dashboard                          #   (authorization: Bearer <token>)
+//       roles: [viewer]
+//
+// Each method needs one role (requiredRole): viewer for List, Watch, Check,
+// Get, Read, Subscribe, health and reflection; safety for EmergencyLand and
+// Kill; system for RegisterSystem, Heartbeat, UnregisterSystem and FollowTime;
+// admin for the simulator's Reset, SetTimeScale, Step and InjectFailure;
+// operator for everything else (activate, deactivate, missions, beliefs,
+// publishing, flight commands). A call from an identity without that role,
+// or from no known identity, is PERMISSION_DENIED naming the role.
+//
+// The policy is enforced by gRPC's AuthMetadataProcessor on the TLS
+// credentials (transport_security.h), before any handler runs; it needs
+// TLS. It records who called in the call's auth context, where a handler
+// finds it with callerOf() (RegisterSystem checks that a system registers as
+// itself).
+
+#include <grpcpp/grpcpp.h>
+#include <grpcpp/security/auth_metadata_processor.h>
+
+#include <functional>
+#include <memory>
+#include <optional>
+#include <set>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/status/statusor.h"
+
+namespace behaviorlib::server {
+
+enum class Role { kViewer, kOperator, kSafety, kSystem, kAdmin };
+
+std::string_view roleName(Role role);
+/// The role that `method` ("/package.Service/Method") needs.
+Role requiredRole(std::string_view method);
+
+struct Identity {
+  std::string name;  ///< the certificate name or the token's name, for logs
+  std::set<Role> roles;
+  /// For the system role: the only robot and system it may register as.
+  std::string robot_id;
+  std::string system;
+};
+
+class AccessPolicy {
+ public:
+  /// INVALID_ARGUMENT naming the file and line.
+  static absl::StatusOr<AccessPolicy> parse(std::string_view yaml, const std::string& file);
+  static absl::StatusOr<AccessPolicy> load(const std::string& path);
+
+  /// The identity of a caller from its bearer token (when it sends one) or
+  /// the names of its certificate (URI and DNS SANs, then CN); null when
+  /// the policy knows none of them.
+  const Identity* identify(const std::vector<std::string>& certificate_names,
+                           std::string_view bearer_token) const;
+  size_t size() const { return identities_.size(); }
+
+ private:
+  struct Entry {
+    std::string certificate;   // or
+    std::string token_sha256;  // lower-case hex
+    Identity identity;
+  };
+  std::vector<Entry> identities_;
+};
+
+/// One control call, or a refusal, for the audit log.
+struct AuditRecord {
+  std::string identity;  ///< who ("anonymous" without one)
+  std::string method;    ///< "/package.Service/Method"
+  std::string outcome;   ///< "OK", "PERMISSION_DENIED", ... (the gRPC code)
+  std::string message;   ///< the status message, if any
+};
+using AuditSink = std::function<void(const AuditRecord&)>;
+
+/// The processor that enforces `policy` (null: every authenticated peer may
+/// call anything, and only its identity is recorded). Refusals go to
+/// `audit` when set.
+std::shared_ptr<grpc::AuthMetadataProcessor> makeAuthorizer(
+    std::shared_ptr<const AccessPolicy> policy, AuditSink audit);
+
+/// The caller of a call, as the authorizer recorded it.
+struct Caller {
+  std::string identity;
+  std::set<Role> roles;
+  std::string robot_id;  ///< for the system role
+  std::string system;
+  bool policy = false;  ///< roles come from an access policy
+};
+/// Null when no authorizer ran (plaintext, or a server without TLS).
+std::optional<Caller> callerOf(const grpc::ServerContextBase& context);
+
+/// For RegisterSystem and Heartbeat: PERMISSION_DENIED when a policy is in
+/// force and the caller's identity does not name this robot and system.
+absl::Status checkSystemIdentity(const grpc::ServerContextBase& context,
+                                 const std::string& robot_id, const std::string& system);
+
+}  // namespace behaviorlib::server

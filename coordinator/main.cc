@@ -73,6 +73,17 @@ ABSL_FLAG(std::string, mission_dir, "",
           "directory whose mission files StartMission.file_path may name (no '..', no link "
           "out of it); empty: file paths are refused and clients send the mission's text");
 
+ABSL_FLAG(int, max_beliefs, static_cast<int>(kDefaults.belief_limits.max_beliefs),
+          "current beliefs belief memory may hold; a write of a new key beyond is "
+          "RESOURCE_EXHAUSTED");
+ABSL_FLAG(int, max_belief_bytes, static_cast<int>(kDefaults.belief_limits.max_value_bytes),
+          "largest value of one belief, in bytes (serialized)");
+
+ABSL_FLAG(int, max_ended_missions, static_cast<int>(kDefaults.max_ended_missions),
+          "ended missions kept for GetMission and ListMissions (the most recent)");
+ABSL_FLAG(int64_t, max_ended_mission_age_s, kDefaults.max_ended_mission_age.count(),
+          "ended missions older than this many seconds are forgotten");
+
 int main(int argc, char** argv) {
   using behaviorlib::server::fatal;
   using behaviorlib::server::ServerRuntime;
@@ -123,6 +134,13 @@ int main(int argc, char** argv) {
   options.workers = absl::GetFlag(FLAGS_workers);
   options.resume_wait = behaviorlib::seconds(absl::GetFlag(FLAGS_resume_wait_s));
   options.mission_dir = absl::GetFlag(FLAGS_mission_dir);
+  options.max_ended_missions = static_cast<size_t>(absl::GetFlag(FLAGS_max_ended_missions));
+  options.max_ended_mission_age =
+      std::chrono::seconds(absl::GetFlag(FLAGS_max_ended_mission_age_s));
+  // Negative values become huge and are refused by validate().
+  options.belief_limits.max_beliefs = static_cast<size_t>(absl::GetFlag(FLAGS_max_beliefs));
+  options.belief_limits.max_value_bytes =
+      static_cast<size_t>(absl::GetFlag(FLAGS_max_belief_bytes));
   const size_t configured = options.systems.size();
   const double grace_s = absl::GetFlag(FLAGS_grace_period_s);
 

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 
+#include "absl/strings/str_cat.h"
 #include "coordinator/durable/journal.h"
 
 namespace behaviorlib::coordinator {
@@ -30,7 +31,35 @@ std::string valueText(const google::protobuf::Value& value) {
 
 }  // namespace
 
-BeliefStore::BeliefStore(Journal* journal) : journal_(journal) {}
+BeliefStore::BeliefStore(Journal* journal, BeliefLimits limits)
+    : journal_(journal), limits_(limits) {}
+
+void BeliefStore::account(const v1::Belief* before, const v1::Belief* now) {
+  if (before != nullptr) {
+    if (before->deleted()) {
+      tombstones_.erase({before->version(), before->key()});
+    } else {
+      --live_count_;
+      live_bytes_ -= before->value().ByteSizeLong();
+    }
+  }
+  if (now != nullptr) {
+    if (now->deleted()) {
+      tombstones_.insert({now->version(), now->key()});
+    } else {
+      ++live_count_;
+      live_bytes_ += now->value().ByteSizeLong();
+    }
+  }
+}
+
+void BeliefStore::forgetOldTombstones() {
+  while (tombstones_.size() > limits_.max_tombstones) {
+    const auto oldest = tombstones_.begin();
+    beliefs_.erase(oldest->second);
+    tombstones_.erase(oldest);
+  }
+}
 
 absl::Status BeliefStore::checkKey(const std::string& key) {
   auto bad = [&](const std::string& why) {
@@ -72,8 +101,11 @@ absl::StatusOr<std::vector<std::string>> BeliefStore::bindingsIn(const std::stri
 
 void BeliefStore::restore(const v1::Belief& belief) {
   absl::MutexLock lock(&mutex_);
+  auto it = beliefs_.find(belief.key());
+  account(it == beliefs_.end() ? nullptr : &it->second, &belief);
   beliefs_[belief.key()] = belief;
   version_ = std::max(version_, belief.version());
+  forgetOldTombstones();
 }
 
 absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
@@ -86,8 +118,28 @@ absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
   belief.set_type(type);
   belief.set_writer(writer);
   *belief.mutable_update_time() = google::protobuf::util::TimeUtil::GetCurrentTime();
+  const size_t bytes = value.ByteSizeLong();
+  if (bytes > limits_.max_value_bytes) {
+    return absl::ResourceExhaustedError(absl::StrCat("belief '", key, "': its value is ", bytes,
+                                                     " bytes, more than the ",
+                                                     limits_.max_value_bytes, " allowed"));
+  }
   {
     absl::MutexLock lock(&mutex_);
+    auto existing = beliefs_.find(key);
+    const bool replaces = existing != beliefs_.end() && !existing->second.deleted();
+    if (!replaces && live_count_ >= limits_.max_beliefs) {
+      return absl::ResourceExhaustedError(absl::StrCat("belief memory holds ", live_count_,
+                                                       " beliefs, the most allowed; "
+                                                       "delete some before writing '",
+                                                       key, "'"));
+    }
+    const size_t freed = replaces ? existing->second.value().ByteSizeLong() : 0;
+    if (live_bytes_ - freed + bytes > limits_.max_total_bytes) {
+      return absl::ResourceExhaustedError(
+          absl::StrCat("belief memory holds ", live_bytes_, " bytes of values; writing '", key,
+                       "' would pass the ", limits_.max_total_bytes, " allowed"));
+    }
     belief.set_version(version_ + 1);
     if (journal_ != nullptr) {
       v1::JournalRecord record;
@@ -95,6 +147,7 @@ absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
       if (absl::Status s = journal_->append(record); !s.ok()) return s;
     }
     version_ = belief.version();
+    account(existing == beliefs_.end() ? nullptr : &existing->second, &belief);
     beliefs_[key] = belief;
   }
   changed_.SignalAll();
@@ -136,7 +189,9 @@ absl::Status BeliefStore::erase(const std::string& key, const std::string& write
       if (absl::Status s = journal_->append(record); !s.ok()) return s;
     }
     version_ = tombstone.version();
+    account(&it->second, &tombstone);
     it->second = tombstone;
+    forgetOldTombstones();
   }
   changed_.SignalAll();
   return absl::OkStatus();

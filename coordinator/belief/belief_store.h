@@ -20,6 +20,7 @@
 #include <chrono>
 #include <map>
 #include <optional>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -32,16 +33,28 @@ namespace behaviorlib::coordinator {
 
 class Journal;
 
+/// What belief memory may hold: a write beyond is RESOURCE_EXHAUSTED and
+/// changes nothing.
+struct BeliefLimits {
+  size_t max_beliefs = 10'000;         ///< current beliefs
+  size_t max_value_bytes = 256 << 10;  ///< one belief's value, serialized
+  size_t max_total_bytes = 64 << 20;   ///< every current belief's value
+  /// Deletions remembered for watchers; beyond, the oldest is forgotten (a
+  /// watcher that far behind sees the key absent instead of deleted).
+  size_t max_tombstones = 10'000;
+};
+
 class BeliefStore {
  public:
   /// `journal` may be null (memory only); it must outlive the store.
-  explicit BeliefStore(Journal* journal = nullptr);
+  explicit BeliefStore(Journal* journal = nullptr, BeliefLimits limits = {});
 
   /// Restores one journal record's belief (replay at start; no new version).
   void restore(const v1::Belief& belief);
 
-  /// Writes `key`. INVALID_ARGUMENT for a bad key; the journal's error when
-  /// it cannot be recorded (then nothing changes).
+  /// Writes `key`. INVALID_ARGUMENT for a bad key; RESOURCE_EXHAUSTED past
+  /// the limits; the journal's error when it cannot be recorded (then
+  /// nothing changes).
   absl::StatusOr<v1::Belief> write(const std::string& key, const google::protobuf::Value& value,
                                    const std::string& writer, const std::string& type = "");
   /// Writes a typed message as its JSON form, keeping its type name.
@@ -82,8 +95,17 @@ class BeliefStore {
  private:
   absl::StatusOr<google::protobuf::Value> resolveValue(const google::protobuf::Value& value) const;
 
+  // Keeps the counts below when `key`'s entry becomes `now` (null: removed).
+  void account(const v1::Belief* before, const v1::Belief* now)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
+  void forgetOldTombstones() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
+
   Journal* journal_;
+  const BeliefLimits limits_;
   mutable absl::Mutex mutex_;
+  size_t live_count_ ABSL_GUARDED_BY(mutex_) = 0;
+  size_t live_bytes_ ABSL_GUARDED_BY(mutex_) = 0;
+  std::set<std::pair<uint64_t, std::string>> tombstones_ ABSL_GUARDED_BY(mutex_);  // by version
   mutable absl::CondVar changed_;
   std::map<std::string, v1::Belief> beliefs_ ABSL_GUARDED_BY(mutex_);  // tombstones included
   uint64_t version_ ABSL_GUARDED_BY(mutex_) = 0;

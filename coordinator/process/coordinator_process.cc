@@ -60,6 +60,11 @@ absl::Status CoordinatorOptions::validate() const {
       {"--grace-period-s", behaviorlib::toSeconds(grace_period), 0.05, 600},
       {"--heartbeat-interval-s", behaviorlib::toSeconds(heartbeat_interval), 0.05, 600},
       {"--event-buffer", static_cast<double>(event_buffer), 1, 10000000},
+      {"--max-beliefs", static_cast<double>(belief_limits.max_beliefs), 1, 10000000},
+      {"--max-ended-missions", static_cast<double>(max_ended_missions), 0, 1000000},
+      {"--max-ended-mission-age-s", static_cast<double>(max_ended_mission_age.count()), 1,
+       10 * 365 * 24 * 3600.0},
+      {"--max-belief-bytes", static_cast<double>(belief_limits.max_value_bytes), 16, 4 << 20},
   };
   for (const Range& r : ranges) {
     if (!(r.value >= r.min && r.value <= r.max)) {
@@ -184,12 +189,14 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
     std::fprintf(stderr,
                  "coordinator: no --state-dir: belief memory is lost when the coordinator stops\n");
   }
-  p->beliefs = std::make_unique<BeliefStore>(p->journal.get());
+  p->beliefs = std::make_unique<BeliefStore>(p->journal.get(), options.belief_limits);
   for (const auto& belief : beliefs_restore.snapshot()) p->beliefs->restore(belief);
   p->pool = std::make_unique<BlockingPool>(options.workers);
   p->fleet = std::make_unique<FleetControl>(*p->registry, *p->log, options.catalog);
   MissionManagerOptions mission_options;
   mission_options.resume_wait = millis(options.resume_wait);
+  mission_options.max_ended_missions = options.max_ended_missions;
+  mission_options.max_ended_age = options.max_ended_mission_age;
   auto mission_files = server::ConfinedDirectory::open("mission files", options.mission_dir,
                                                        mission_options.max_mission_bytes);
   if (!mission_files.ok()) return mission_files.status();

@@ -68,6 +68,11 @@ struct CoordinatorOptions {
   /// Directory that StartMission.file_path may name files in; empty: no
   /// path is accepted (clients send the mission's text).
   std::string mission_dir;
+  /// What belief memory may hold (RESOURCE_EXHAUSTED beyond).
+  BeliefLimits belief_limits;
+  /// Ended missions kept: the most recent this many, none older than the age.
+  size_t max_ended_missions = 1000;
+  std::chrono::seconds max_ended_mission_age{7 * 24 * 3600};
 
   /// INVALID_ARGUMENT naming the flag of the first setting out of its range.
   absl::Status validate() const;

@@ -10,6 +10,7 @@
 
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/log_stream.h"
+#include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/status.h"
 #include "behaviorlib/server_kit/transport_security.h"
 #include "coordinator/belief/belief_store.h"
@@ -325,14 +326,26 @@ grpc::ServerUnaryReactor* CoordinatorService::ListSystems(grpc::CallbackServerCo
                                                           const v1::ListSystemsRequest* request,
                                                           v1::ListSystemsResponse* response) {
   registry_.listSystems(request->robot_id(), response);
-  return finishNow(context, grpc::Status::OK);
+  return finishNow(context, server::paginate<v1::SystemInfo>(
+                                response->mutable_systems(),
+                                [](const v1::SystemInfo& s) {
+                                  return absl::StrCat(s.robot_id(), "\x1f", s.system(), "\x1f",
+                                                      s.address());
+                                },
+                                *request, response->mutable_next_page_token()));
 }
 
 grpc::ServerUnaryReactor* CoordinatorService::ListBehaviors(
     grpc::CallbackServerContext* context, const v1::ListFleetBehaviorsRequest* request,
     v1::ListFleetBehaviorsResponse* response) {
   registry_.listBehaviors(request->robot_id(), request->behavior(), response);
-  return finishNow(context, grpc::Status::OK);
+  return finishNow(context, server::paginate<v1::FleetBehavior>(
+                                response->mutable_behaviors(),
+                                [](const v1::FleetBehavior& b) {
+                                  return absl::StrCat(b.robot_id(), "\x1f", b.description().name(),
+                                                      "\x1f", b.system());
+                                },
+                                *request, response->mutable_next_page_token()));
 }
 
 grpc::ServerWriteReactor<grpc::ByteBuffer>* CoordinatorService::WatchEvents(
@@ -527,7 +540,10 @@ grpc::ServerUnaryReactor* CoordinatorService::ListBeliefs(grpc::CallbackServerCo
   for (auto& belief : options_.beliefs->list(request->prefix())) {
     *response->add_beliefs() = std::move(belief);
   }
-  return finishNow(context, grpc::Status::OK);
+  return finishNow(context,
+                   server::paginate<v1::Belief>(
+                       response->mutable_beliefs(), [](const v1::Belief& b) { return b.key(); },
+                       *request, response->mutable_next_page_token()));
 }
 
 grpc::ServerUnaryReactor* CoordinatorService::DeleteBelief(grpc::CallbackServerContext* context,

@@ -2,12 +2,15 @@
 // RPCs (the rest of CoordinatorService is in coordinator_service.cc).
 
 #include <deque>
+#include <limits>
 #include <memory>
 #include <thread>
 #include <utility>
 
 #include "absl/base/thread_annotations.h"
+#include "absl/strings/str_format.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/status.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/blocking_pool.h"
@@ -298,13 +301,23 @@ grpc::ServerUnaryReactor* CoordinatorService::GetMission(grpc::CallbackServerCon
   return finishWith(context, grpc::Status::OK);
 }
 
-grpc::ServerUnaryReactor* CoordinatorService::ListMissions(
-    grpc::CallbackServerContext* context, const v1::ListMissionsRequest* /*request*/,
-    v1::ListMissionsResponse* response) {
+grpc::ServerUnaryReactor* CoordinatorService::ListMissions(grpc::CallbackServerContext* context,
+                                                           const v1::ListMissionsRequest* request,
+                                                           v1::ListMissionsResponse* response) {
   if (options_.missions == nullptr)
     return finishWith(context, notServed("missions", "no missions"));
   for (auto& status : options_.missions->list()) *response->add_missions() = std::move(status);
-  return finishWith(context, grpc::Status::OK);
+  // Newest first: the key runs backwards in start time.
+  return finishWith(context, server::paginate<v1::MissionStatus>(
+                                 response->mutable_missions(),
+                                 [](const v1::MissionStatus& m) {
+                                   return absl::StrFormat("%020d.%09d/%s",
+                                                          std::numeric_limits<int64_t>::max() -
+                                                              m.start_time().seconds(),
+                                                          999999999 - m.start_time().nanos(),
+                                                          m.mission_id());
+                                 },
+                                 *request, response->mutable_next_page_token()));
 }
 
 grpc::ServerWriteReactor<v1::WatchMissionResponse>* CoordinatorService::WatchMission(

@@ -132,8 +132,38 @@ void MissionManager::restore(const v1::MissionStatus& status) {
   entry.status = status;
 }
 
+void MissionManager::pruneLocked(std::vector<Entry>* pruned) {
+  const google::protobuf::Timestamp now =
+      options_.now ? options_.now() : google::protobuf::util::TimeUtil::GetCurrentTime();
+  const int64_t oldest_end_s = now.seconds() - options_.max_ended_age.count();
+  std::vector<std::pair<uint64_t, std::string>> kept;  // ended, by start order
+  for (auto it = missions_.begin(); it != missions_.end();) {
+    const Entry& entry = it->second;
+    if (!ended(entry.status)) {
+      ++it;
+      continue;
+    }
+    if (entry.status.has_end_time() && entry.status.end_time().seconds() < oldest_end_s) {
+      pruned->push_back(std::move(it->second));
+      it = missions_.erase(it);
+      continue;
+    }
+    kept.emplace_back(entry.order, it->first);
+    ++it;
+  }
+  if (kept.size() <= options_.max_ended_missions) return;
+  std::sort(kept.begin(), kept.end());
+  for (size_t i = 0; i + options_.max_ended_missions < kept.size(); ++i) {
+    auto it = missions_.find(kept[i].second);
+    pruned->push_back(std::move(it->second));
+    missions_.erase(it);
+  }
+}
+
 void MissionManager::resumeRestored() {
+  std::vector<Entry> pruned;
   absl::MutexLock lock(&mutex_);
+  pruneLocked(&pruned);
   for (const auto& [id, entry] : missions_) {
     if (ended(entry.status) || entry.runner) continue;
     resumers_.emplace_back([this, id = id] { resumeOne(id); });
@@ -278,7 +308,9 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   }
   if (auto s = checkAgainstRegistry(*spec, robot_id); !s.ok()) return s;
 
+  std::vector<Entry> pruned;  // destroyed after the lock is released
   absl::MutexLock lock(&mutex_);
+  pruneLocked(&pruned);
   if (stopped_) return absl::UnavailableError("the coordinator is shutting down");
   for (const auto& [id, entry] : missions_) {
     if (entry.status.robot_id() == robot_id && !ended(entry.status)) {

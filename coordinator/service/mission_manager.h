@@ -50,6 +50,14 @@ struct MissionManagerOptions {
   server::ConfinedDirectory mission_files;
   /// Largest mission, as text or file.
   size_t max_mission_bytes = 1 << 20;
+  /// Ended missions kept (GetMission, ListMissions, the journal): at most
+  /// this many, the most recent, and none that ended longer ago than
+  /// `max_ended_age`. Pruned when a mission starts and after a restart.
+  size_t max_ended_missions = 1000;
+  std::chrono::seconds max_ended_age{7 * 24 * 3600};
+  /// The clock that end times are compared with (missions' times are wall
+  /// times); a test gives its own.
+  std::function<google::protobuf::Timestamp()> now;
 };
 
 class MissionManager {
@@ -117,6 +125,9 @@ class MissionManager {
                          std::string* missing) const;
   void resumeOne(const std::string& mission_id);
   static bool ended(const v1::MissionStatus& status);
+  /// Moves the ended missions beyond the retention limits into `pruned`
+  /// (destroyed by the caller, outside the lock).
+  void pruneLocked(std::vector<Entry>* pruned) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
 
   FleetControl& fleet_;
   Registry& registry_;

@@ -4,8 +4,8 @@
 #include <cstdio>
 #include <utility>
 
-#include "coordinator/service/health_check.h"
 #include "behaviorlib/server_kit/transport_security.h"
+#include "coordinator/service/health_check.h"
 
 namespace behaviorlib::coordinator {
 

@@ -25,6 +25,7 @@
 #include "absl/time/time.h"
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/topic.h"
+#include "behaviorlib/server_kit/pagination.h"
 
 namespace behaviorlib::channel {
 namespace {
@@ -106,9 +107,9 @@ struct Broker::Metrics {
                   .Help("Shared memory held by the topics' rings.")
                   .Register(registry)
                   .Add({})) {
-    for (absl::string_view reason :
-         {reject_reason::kInvalidTopic, reject_reason::kMissingSample, reject_reason::kUnknownType,
-          reject_reason::kMalformedSample, reject_reason::kTypeMismatch}) {
+    for (absl::string_view reason : {reject_reason::kInvalidTopic, reject_reason::kMissingSample,
+                                     reject_reason::kUnknownType, reject_reason::kMalformedSample,
+                                     reject_reason::kTypeMismatch, reject_reason::kTooManyTopics}) {
       rejected_by_reason.emplace(std::string(reason),
                                  &rejected.Add({{"reason", std::string(reason)}}));
     }
@@ -734,9 +735,16 @@ void Broker::dropRingLocked(Topic& topic) ABSL_EXCLUSIVE_LOCKS_REQUIRED(topic.mu
   topic.ring.reset();
 }
 
+grpc::Status Broker::tooManyTopics(const std::string& name) const {
+  return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                      absl::StrCat("the broker keeps ", options_.max_topics,
+                                   " topics, the most allowed: no new topic '", name, "'"));
+}
+
 std::shared_ptr<Broker::Topic> Broker::topicLocked(const std::string& name) {
   auto it = topics_.find(name);
   if (it != topics_.end()) return it->second;
+  if (topics_.size() >= options_.max_topics) return nullptr;
   auto topic = std::make_shared<Topic>(name, *metrics_);
   topics_.emplace(name, topic);
   return topic;
@@ -804,6 +812,10 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
     absl::MutexLock lock(&mutex_);
     if (shutting_down_) return shuttingDownStatus();
     topic = topicLocked(request.topic());
+    if (!topic) {
+      countRejected(reject_reason::kTooManyTopics);
+      return tooManyTopics(request.topic());
+    }
     // Locked before mutex_ is released, so that removeSubscriber cannot drop
     // a topic that so far only had waiting subscribers under our feet.
     topic->mutex.Lock();
@@ -886,10 +898,12 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
   std::string ring_name;
   uint64_t ring_first = 0;
   InterestReactors watchers;
+  bool too_many = false;
   {
     absl::MutexLock lock(&mutex_);
-    if (!shutting_down_) {
-      std::shared_ptr<Topic> topic = topicLocked(request->topic());
+    std::shared_ptr<Topic> topic = shutting_down_ ? nullptr : topicLocked(request->topic());
+    too_many = !shutting_down_ && !topic;
+    if (topic) {
       bool first = false;
       {
         absl::MutexLock topic_lock(&topic->mutex);
@@ -918,7 +932,9 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
     }
   }
   for (const auto& watcher : watchers) watcher->pump();
-  if (!registered) {
+  if (too_many) {
+    reactor->requestFinish(tooManyTopics(request->topic()));
+  } else if (!registered) {
     reactor->requestFinish(shuttingDownStatus());
   } else {
     reactor->sendSubscribedMetadata(registered_seq, ring_name, ring_first);
@@ -1157,8 +1173,11 @@ grpc::ServerUnaryReactor* Broker::ListTopics(grpc::CallbackServerContext* contex
       if (topic.latest) *info->mutable_last_receive_time() = topic.latest->receive_time();
     }
   }
+  const grpc::Status paged = server::paginate<v1::TopicInfo>(
+      response->mutable_topics(), [](const v1::TopicInfo& t) { return t.name(); }, *request,
+      response->mutable_next_page_token());
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();
-  reactor->Finish(grpc::Status::OK);
+  reactor->Finish(paged);
   return reactor;
 }
 

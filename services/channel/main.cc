@@ -25,6 +25,9 @@ ABSL_FLAG(bool, shared_memory, behaviorlib::channel::BrokerOptions().shared_memo
           "deliver to subscribers on this host that ask for it through shared-memory rings "
           "under /dev/shm (false: every sample on its gRPC stream)");
 
+ABSL_FLAG(int, max_topics, static_cast<int>(behaviorlib::channel::BrokerOptions().max_topics),
+          "topics the broker keeps; a new topic beyond is RESOURCE_EXHAUSTED (1..1000000)");
+
 int main(int argc, char** argv) {
   using behaviorlib::server::fatal;
   using behaviorlib::server::ServerRuntime;
@@ -42,6 +45,13 @@ int main(int argc, char** argv) {
   const std::string port_file = absl::GetFlag(FLAGS_port_file);
   behaviorlib::channel::BrokerOptions options;
   options.shared_memory = absl::GetFlag(FLAGS_shared_memory);
+  if (const int topics = absl::GetFlag(FLAGS_max_topics); topics < 1 || topics > 1000000) {
+    return fatal(program,
+                 absl::InvalidArgumentError("--max-topics must be within [1, 1000000], got " +
+                                            std::to_string(topics)));
+  } else {
+    options.max_topics = static_cast<std::size_t>(topics);
+  }
 
   ServerRuntime runtime;
   std::string error;

@@ -2,7 +2,7 @@
 // server of the test), driven by the real ChannelClient over loopback: a
 // sample published is the latest and reaches a subscriber; shutting the
 // broker down ends the subscription's stream UNAVAILABLE, which the client
-// reports.
+// reports; a new topic beyond the broker's cap is RESOURCE_EXHAUSTED.
 
 #include <gmock/gmock.h>
 #include <grpcpp/grpcpp.h>
@@ -93,6 +93,33 @@ TEST_F(BrokerInProcessTest, ShutdownEndsTheSubscriptionsStream) {
   EXPECT_FALSE(subscription->connected());
   EXPECT_EQ(subscription->status().code(), absl::StatusCode::kUnavailable)
       << subscription->status();
+}
+
+TEST(BrokerLimitsTest, ANewTopicBeyondTheCapIsResourceExhausted) {
+  prometheus::Registry registry;
+  Broker broker(registry, {.shared_memory = false, .max_topics = 2});
+  grpc::ServerBuilder builder;
+  int port = 0;
+  builder.AddListeningPort("127.0.0.1:0", grpc::InsecureServerCredentials(), &port);
+  builder.RegisterService(&broker);
+  std::unique_ptr<grpc::Server> server = builder.BuildAndStart();
+  ASSERT_NE(server, nullptr);
+  {
+    ChannelClient client("127.0.0.1:" + std::to_string(port));
+    ASSERT_TRUE(client.publish("robots/r/a", altitude(1)).ok());
+    ASSERT_TRUE(client.publish("robots/r/b", altitude(2)).ok());
+    // The publish stream is asynchronous: the refusal ends it, and flush()
+    // (or the next publish) returns it.
+    absl::Status third = client.publish("robots/r/c", altitude(3));
+    if (third.ok()) third = client.flush().status();
+    EXPECT_EQ(third.code(), absl::StatusCode::kResourceExhausted) << third;
+    EXPECT_NE(third.message().find("2 topics"), absl::string_view::npos) << third;
+    // The topics it keeps still take samples.
+    EXPECT_TRUE(client.publish("robots/r/a", altitude(4)).ok());
+    EXPECT_EQ(client.getLatest("robots/r/c").status().code(), absl::StatusCode::kNotFound);
+  }
+  broker.shutdown();
+  server->Shutdown(std::chrono::system_clock::now() + std::chrono::milliseconds(500));
 }
 
 }  // namespace

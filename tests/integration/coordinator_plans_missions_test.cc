@@ -1092,6 +1092,35 @@ TEST_F(CoordinatorPlansMissionsTest,
 
 // behaviorctl against the coordinator: health, a dry run, and `mission run`
 // of the demo (exit 0 when it SUCCEEDED).
+// Ended missions are kept by count (--max-ended-missions): starting a mission
+// forgets the oldest ended ones beyond it.
+TEST_F(CoordinatorPlansMissionsTest, EndedMissionsBeyondTheRetentionCountAreForgotten) {
+  const int port = coordinator_->grpcPort();
+  ASSERT_EQ(coordinator_->terminate(), 0);
+  ASSERT_NO_FATAL_FAILURE(startCoordinator(
+      {"--listen", "127.0.0.1:" + std::to_string(port), "--max-ended-missions", "1"}));
+  ASSERT_NO_FATAL_FAILURE(waitForSystems());
+  const std::string quick =
+      "name: quick\nrobot: drone1\nsteps:\n  - behavior: WAIT\n    parameters: {duration_s: 0.1}\n";
+  for (const std::string id : {"quick-1", "quick-2", "quick-3"}) {
+    auto started = startMissionText(quick, id);
+    ASSERT_TRUE(started.status.ok()) << describe(started.status);
+    MissionWatcher watcher(coordinator_->address(), id);
+    const auto last = watcher.waitEnd(seconds(30));
+    ASSERT_TRUE(last);
+    ASSERT_EQ(last->state(), v1::MISSION_STATE_SUCCEEDED) << json(*last);
+  }
+  // quick-3's start found two ended missions: quick-1, the older, went.
+  v1::GetMissionRequest get;
+  get.set_mission_id("quick-1");
+  EXPECT_EQ(unary(*stub_, &v1::Coordinator::Stub::GetMission, get).status.error_code(),
+            grpc::StatusCode::NOT_FOUND);
+  for (const std::string id : {"quick-2", "quick-3"}) {
+    get.set_mission_id(id);
+    EXPECT_TRUE(unary(*stub_, &v1::Coordinator::Stub::GetMission, get).status.ok()) << id;
+  }
+}
+
 TEST_F(CoordinatorPlansMissionsTest, BehaviorctlRunsTheDemoMissionAndChecksHealth) {
   const std::string ctl =
       std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " + coordinator_->address();

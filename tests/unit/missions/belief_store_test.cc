@@ -27,6 +27,39 @@ google::protobuf::Value text(const std::string& s) {
   return value;
 }
 
+TEST(BeliefStore, CountAndSizeCapsAreResourceExhaustedAndChangeNothing) {
+  BeliefLimits limits;
+  limits.max_beliefs = 2;
+  limits.max_value_bytes = 64;
+  limits.max_total_bytes = 100;
+  limits.max_tombstones = 1;
+  BeliefStore store(nullptr, limits);
+  ASSERT_TRUE(store.write("a", text("1"), "t").ok());
+  ASSERT_TRUE(store.write("b", text("2"), "t").ok());
+  auto third = store.write("c", text("3"), "t");
+  EXPECT_EQ(third.status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_THAT(third.status().message(), HasSubstr("2 beliefs"));
+  EXPECT_FALSE(store.get("c"));
+  // Replacing a key is not a new belief.
+  EXPECT_TRUE(store.write("a", text("one"), "t").ok());
+  // One value too large, and the total.
+  EXPECT_EQ(store.write("a", text(std::string(100, 'x')), "t").status().code(),
+            absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(store.get("a")->value().string_value(), "one");
+  EXPECT_TRUE(store.write("a", text(std::string(50, 'x')), "t").ok());
+  EXPECT_EQ(store.write("b", text(std::string(55, 'y')), "t").status().code(),
+            absl::StatusCode::kResourceExhausted)
+      << "52 + 57 bytes would pass the 100 allowed";
+  // Deleting frees room; one tombstone is remembered, the older forgotten.
+  ASSERT_TRUE(store.erase("a", "t").ok());
+  ASSERT_TRUE(store.write("c", text("3"), "t").ok());
+  ASSERT_TRUE(store.erase("b", "t").ok());
+  ASSERT_TRUE(store.erase("c", "t").ok());
+  size_t tombstones = 0;
+  for (const auto& belief : store.snapshot()) tombstones += belief.deleted() ? 1 : 0;
+  EXPECT_EQ(tombstones, 1u);
+}
+
 TEST(BeliefStore, WritesReadsListsAndDeletes) {
   BeliefStore store;
   ASSERT_TRUE(store.write("drone1/altitude_m", number(1.5), "mission:m1").ok());

@@ -45,6 +45,9 @@ struct BrokerOptions {
   /// Offer delivery through shared-memory rings to subscribers on this host
   /// that ask for it (SubscribeRequest.shared_memory; decision 20).
   bool shared_memory = true;
+  /// Topics the broker keeps; publishing or subscribing to a new topic
+  /// beyond is RESOURCE_EXHAUSTED (a fleet has some tens per vehicle).
+  std::size_t max_topics = 10'000;
 };
 
 /// Implements behaviorlib.v1.DataChannel. Thread-safe; register it on a
@@ -93,7 +96,9 @@ class Broker final : public v1::DataChannel::CallbackService {
   // Registers a publish stream; false when the broker is shutting down.
   bool addPublisher(Publisher* publisher);
   // Caller holds mutex_.
+  /// The topic, made if new; null when a new one would pass max_topics.
   std::shared_ptr<Topic> topicLocked(const std::string& name) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
+  grpc::Status tooManyTopics(const std::string& name) const;
   void removeSubscriber(const std::shared_ptr<Topic>& topic, const SubscribeReactor* subscriber);
   void removePublisher(Publisher* publisher);
   void countRejected(absl::string_view reason);

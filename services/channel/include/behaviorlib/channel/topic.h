@@ -69,6 +69,7 @@ inline constexpr absl::string_view kMissingSample = "missing_sample";
 inline constexpr absl::string_view kUnknownType = "unknown_type";
 inline constexpr absl::string_view kMalformedSample = "malformed_sample";
 inline constexpr absl::string_view kTypeMismatch = "type_mismatch";
+inline constexpr absl::string_view kTooManyTopics = "too_many_topics";
 }  // namespace reject_reason
 
 /// Checks a sample published on `topic` (only used in messages): its type_url

@@ -84,6 +84,10 @@ ABSL_FLAG(int, max_ended_missions, static_cast<int>(kDefaults.max_ended_missions
 ABSL_FLAG(int64_t, max_ended_mission_age_s, kDefaults.max_ended_mission_age.count(),
           "ended missions older than this many seconds are forgotten");
 
+ABSL_FLAG(int64_t, journal_compact_bytes, static_cast<int64_t>(kDefaults.journal_compact_bytes),
+          "the journal is compacted online (beliefs, missions and registrations rewritten) once "
+          "it grows past this many bytes");
+
 int main(int argc, char** argv) {
   using behaviorlib::server::fatal;
   using behaviorlib::server::ServerRuntime;
@@ -134,6 +138,7 @@ int main(int argc, char** argv) {
   options.workers = absl::GetFlag(FLAGS_workers);
   options.resume_wait = behaviorlib::seconds(absl::GetFlag(FLAGS_resume_wait_s));
   options.mission_dir = absl::GetFlag(FLAGS_mission_dir);
+  options.journal_compact_bytes = static_cast<uint64_t>(absl::GetFlag(FLAGS_journal_compact_bytes));
   options.max_ended_missions = static_cast<size_t>(absl::GetFlag(FLAGS_max_ended_missions));
   options.max_ended_mission_age =
       std::chrono::seconds(absl::GetFlag(FLAGS_max_ended_mission_age_s));

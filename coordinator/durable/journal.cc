@@ -125,13 +125,43 @@ absl::Status Journal::append(const v1::JournalRecord& record) {
   }
   size_ += bytes.size();
   ++records_;
+  if (capturing_) {
+    captured_ += bytes;
+    ++captured_records_;
+  }
   return absl::OkStatus();
 }
 
 absl::Status Journal::compact(const std::vector<v1::JournalRecord>& snapshot) {
   std::string bytes;
   for (const auto& record : snapshot) bytes += frame(record);
+  absl::MutexLock compaction(&compaction_mutex_);
   absl::MutexLock lock(&mutex_);
+  return replaceLocked(bytes, snapshot.size());
+}
+
+absl::Status Journal::compactOnline(
+    const std::function<std::vector<v1::JournalRecord>()>& snapshot) {
+  absl::MutexLock compaction(&compaction_mutex_);
+  {
+    absl::MutexLock lock(&mutex_);
+    capturing_ = true;
+    captured_.clear();
+    captured_records_ = 0;
+  }
+  const std::vector<v1::JournalRecord> records = snapshot();
+  std::string bytes;
+  for (const auto& record : records) bytes += frame(record);
+  absl::MutexLock lock(&mutex_);
+  bytes += captured_;
+  const uint64_t count = records.size() + captured_records_;
+  capturing_ = false;
+  captured_.clear();
+  captured_records_ = 0;
+  return replaceLocked(bytes, count);
+}
+
+absl::Status Journal::replaceLocked(const std::string& bytes, uint64_t records) {
   const std::string tmp = path_ + ".compact";
   const int fd = ::open(tmp.c_str(), O_RDWR | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
   if (fd < 0) return errnoError("cannot create", tmp);
@@ -150,7 +180,7 @@ absl::Status Journal::compact(const std::vector<v1::JournalRecord>& snapshot) {
   ::close(fd_);
   fd_ = fd;
   size_ = bytes.size();
-  records_ = snapshot.size();
+  records_ = records;
   return absl::OkStatus();
 }
 

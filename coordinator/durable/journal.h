@@ -52,6 +52,14 @@ class Journal {
   absl::Status append(const v1::JournalRecord& record);
   /// Replaces the journal's content with `snapshot` atomically.
   absl::Status compact(const std::vector<v1::JournalRecord>& snapshot);
+  /// Compaction while records keep being appended. The journal first starts
+  /// keeping a copy of every record appended; then `snapshot` is called (it
+  /// reads the stores, which may append meanwhile); the new journal is the
+  /// snapshot followed by the records appended since the copy began. Replay
+  /// is last-writer-wins per belief, mission and system, so a record both in
+  /// the snapshot and after it replays to the same state. The stores'
+  /// locks are never taken under the journal's.
+  absl::Status compactOnline(const std::function<std::vector<v1::JournalRecord>()>& snapshot);
 
   const std::string& path() const { return path_; }
   /// Records replayed at open plus appended since (reset by compact()).
@@ -63,6 +71,8 @@ class Journal {
  private:
   Journal(std::string path, int fd, JournalOptions options);
   absl::Status writeAll(int fd, const std::string& bytes);
+  absl::Status replaceLocked(const std::string& bytes, uint64_t records)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
 
   std::string path_;
   JournalOptions options_;
@@ -70,6 +80,12 @@ class Journal {
   int fd_ ABSL_GUARDED_BY(mutex_) = -1;
   uint64_t records_ ABSL_GUARDED_BY(mutex_) = 0;
   uint64_t size_ ABSL_GUARDED_BY(mutex_) = 0;
+  // While compactOnline() runs: a copy of each record appended.
+  bool capturing_ ABSL_GUARDED_BY(mutex_) = false;
+  std::string captured_ ABSL_GUARDED_BY(mutex_);
+  uint64_t captured_records_ ABSL_GUARDED_BY(mutex_) = 0;
+  // One compaction at a time.
+  absl::Mutex compaction_mutex_;
   // Written by open() only, before the journal is shared.
   uint64_t truncated_bytes_ = 0;
 };

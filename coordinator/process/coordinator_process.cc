@@ -10,8 +10,10 @@
 #include <filesystem>
 #include <map>
 #include <sstream>
+#include <thread>
 
 #include "absl/status/status.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "coordinator/belief/belief_store.h"
@@ -61,6 +63,8 @@ absl::Status CoordinatorOptions::validate() const {
       {"--heartbeat-interval-s", behaviorlib::toSeconds(heartbeat_interval), 0.05, 600},
       {"--event-buffer", static_cast<double>(event_buffer), 1, 10000000},
       {"--max-beliefs", static_cast<double>(belief_limits.max_beliefs), 1, 10000000},
+      {"--journal-compact-bytes", static_cast<double>(journal_compact_bytes), 4096,
+       static_cast<double>(1ull << 40)},
       {"--max-ended-missions", static_cast<double>(max_ended_missions), 0, 1000000},
       {"--max-ended-mission-age-s", static_cast<double>(max_ended_mission_age.count()), 1,
        10 * 365 * 24 * 3600.0},
@@ -128,6 +132,36 @@ struct Coordinator::Parts {
   std::unique_ptr<SafetyController> safety;
   std::unique_ptr<CoordinatorService> service;
   bool stopped = false;
+
+  // The current registrations, for the journal's snapshots.
+  absl::Mutex systems_mutex;
+  std::map<std::pair<std::string, std::string>, v1::SystemRecord> systems
+      ABSL_GUARDED_BY(systems_mutex);
+  // Online compaction: a thread that compacts the journal past a size.
+  absl::Mutex compactor_mutex;
+  bool compactor_stop ABSL_GUARDED_BY(compactor_mutex) = false;
+  std::thread compactor;
+
+  /// What the journal must hold: every mission, registration and belief.
+  std::vector<v1::JournalRecord> snapshot() {
+    std::vector<v1::JournalRecord> out = missions->snapshot();
+    {
+      absl::MutexLock lock(&systems_mutex);
+      for (const auto& [key, system] : systems) *out.emplace_back().mutable_system() = system;
+    }
+    for (const auto& belief : beliefs->snapshot()) *out.emplace_back().mutable_belief() = belief;
+    return out;
+  }
+  // A start() that fails after the compactor began still stops it.
+  ~Parts() { stopCompactor(); }
+
+  void stopCompactor() {
+    {
+      absl::MutexLock lock(&compactor_mutex);
+      compactor_stop = true;
+    }
+    if (compactor.joinable()) compactor.join();
+  }
 };
 
 absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptions options) {
@@ -145,6 +179,15 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   RegistryOptions registry_options;
   Parts* parts = p.get();
   registry_options.on_membership = [parts](const v1::SystemRecord& r) {
+    {
+      absl::MutexLock lock(&parts->systems_mutex);
+      const auto key = std::make_pair(r.robot_id(), r.system());
+      if (r.unregistered()) {
+        parts->systems.erase(key);
+      } else {
+        parts->systems[key] = r;
+      }
+    }
     Journal* j = parts->registry_journal.load();
     if (j == nullptr) return;
     v1::JournalRecord record;
@@ -204,23 +247,35 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   p->missions = std::make_unique<MissionManager>(*p->fleet, *p->registry, *p->beliefs,
                                                  p->journal.get(), mission_options);
   for (const auto& status : missions_restore) p->missions->restore(status);
+  {
+    absl::MutexLock lock(&p->systems_mutex);
+    for (const auto& [key, system] : systems_restore) p->systems.emplace(key, system);
+  }
   if (p->journal) {
     // Start from a compact journal: the current beliefs, missions and systems.
-    std::vector<v1::JournalRecord> snapshot = p->missions->snapshot();
-    for (const auto& [key, system] : systems_restore) {
-      v1::JournalRecord record;
-      *record.mutable_system() = system;
-      snapshot.push_back(std::move(record));
-    }
-    for (const auto& belief : p->beliefs->snapshot()) {
-      v1::JournalRecord record;
-      *record.mutable_belief() = belief;
-      snapshot.push_back(std::move(record));
-    }
-    if (auto s = p->journal->compact(snapshot); !s.ok()) {
+    if (auto s = p->journal->compact(p->snapshot()); !s.ok()) {
       return absl::InvalidArgumentError("--state-dir: cannot compact the journal: " +
                                         std::string(s.message()));
     }
+    // Then compact it whenever it has grown past the threshold.
+    p->compactor = std::thread([parts, threshold = options.journal_compact_bytes] {
+      for (;;) {
+        {
+          absl::MutexLock lock(&parts->compactor_mutex);
+          parts->compactor_mutex.AwaitWithTimeout(
+              absl::Condition(
+                  +[](bool* stop) { return *stop; }, &parts->compactor_stop),
+              absl::Seconds(1));
+          if (parts->compactor_stop) return;
+        }
+        if (parts->journal->sizeBytes() <= threshold) continue;
+        if (auto s = parts->journal->compactOnline([parts] { return parts->snapshot(); });
+            !s.ok()) {
+          std::fprintf(stderr, "coordinator: cannot compact the journal: %s\n",
+                       std::string(s.message()).c_str());
+        }
+      }
+    });
   }
   p->registry_journal.store(p->journal.get());
 
@@ -289,6 +344,7 @@ void Coordinator::shutdown() {
   Parts& p = *parts_;
   if (p.stopped) return;
   p.stopped = true;
+  p.stopCompactor();
   // Subscribers first, then the links to the systems, then the server:
   // in-flight calls forwarded to systems are cancelled with their server call.
   p.service->shutdownStreams();

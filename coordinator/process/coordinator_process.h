@@ -70,6 +70,8 @@ struct CoordinatorOptions {
   std::string mission_dir;
   /// What belief memory may hold (RESOURCE_EXHAUSTED beyond).
   BeliefLimits belief_limits;
+  /// The journal is compacted online once it grows past this many bytes.
+  uint64_t journal_compact_bytes = 64ull << 20;
   /// Ended missions kept: the most recent this many, none older than the age.
   size_t max_ended_missions = 1000;
   std::chrono::seconds max_ended_mission_age{7 * 24 * 3600};

@@ -10,6 +10,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <string>
+#include <thread>
 
 #include "behaviorlib/server/belief_client.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
@@ -38,9 +39,10 @@ class CoordinatorBeliefsTest : public ::testing::Test {
     coordinator_.reset();
     std::filesystem::remove_all(state_dir_);
   }
-  void start() {
-    coordinator_ = std::make_unique<support::ServerProcess>(
-        BEHAVIORLIB_COORDINATOR_PATH, std::vector<std::string>{"--state-dir", state_dir_});
+  void start(std::vector<std::string> extra = {}) {
+    std::vector<std::string> args = {"--state-dir", state_dir_};
+    args.insert(args.end(), extra.begin(), extra.end());
+    coordinator_ = std::make_unique<support::ServerProcess>(BEHAVIORLIB_COORDINATOR_PATH, args);
     ASSERT_TRUE(coordinator_->start()) << coordinator_->error();
     stub_ = v1::Coordinator::NewStub(
         grpc::CreateChannel(coordinator_->address(), grpc::InsecureChannelCredentials()));
@@ -131,6 +133,33 @@ TEST_F(CoordinatorBeliefsTest, BeliefsSurviveACrashOfTheCoordinator) {
   v1::Belief next;
   ASSERT_TRUE(write("after", "restart", &next).ok());
   EXPECT_EQ(next.version(), 4u);
+}
+
+// Past --journal-compact-bytes the journal is compacted while the
+// coordinator runs; what it held survives a crash after that.
+TEST_F(CoordinatorBeliefsTest, TheJournalIsCompactedOnlinePastItsThreshold) {
+  coordinator_->kill();
+  start({"--journal-compact-bytes", "4096"});
+  const std::string journal = state_dir_ + "/coordinator.journal";
+  const std::string padding(100, 'x');
+  for (int i = 0; i < 300; ++i) {
+    ASSERT_TRUE(write("drone1/counter", padding + std::to_string(i)).ok());
+  }
+  // About 40 kB appended; the compactor looks once a second.
+  bool compacted = false;
+  for (int i = 0; i < 100 && !compacted; ++i) {
+    compacted = std::filesystem::file_size(journal) < 4096;
+    if (!compacted) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  EXPECT_TRUE(compacted) << std::filesystem::file_size(journal) << " bytes";
+  ASSERT_TRUE(write("drone1/after", "compaction").ok());
+  coordinator_->kill();
+  start();
+  v1::Belief belief;
+  ASSERT_TRUE(read("drone1/counter", &belief).ok());
+  EXPECT_EQ(belief.value().string_value(), padding + "299");
+  ASSERT_TRUE(read("drone1/after", &belief).ok());
+  EXPECT_EQ(belief.version(), 301u) << "versions go on";
 }
 
 TEST_F(CoordinatorBeliefsTest, BehaviorSystemsWriteTypedBeliefsThroughTheLibraryClient) {

@@ -5,6 +5,7 @@
 
 #include <cstdio>
 #include <fstream>
+#include <map>
 
 namespace behaviorlib::coordinator {
 namespace {
@@ -108,6 +109,35 @@ TEST(Journal, CompactionReplacesTheContent) {
     ASSERT_TRUE((*journal)->append(belief("after", 1)).ok());
   }
   EXPECT_EQ(replayKeys(path), (std::vector<std::string>{"same", "after"}));
+  std::remove(path.c_str());
+}
+
+// Online: records appended while the snapshot is read are kept after it, so
+// that the last value of each key survives the compaction.
+TEST(Journal, OnlineCompactionKeepsWhatIsAppendedDuringTheSnapshot) {
+  const std::string path = tempPath();
+  {
+    auto journal = Journal::open(path, [](const v1::JournalRecord&) {});
+    for (int i = 0; i < 50; ++i) ASSERT_TRUE((*journal)->append(belief("a", i)).ok());
+    const uint64_t before = (*journal)->sizeBytes();
+    ASSERT_TRUE((*journal)
+                    ->compactOnline([&] {
+                      // The store's state as read, while a writer goes on.
+                      EXPECT_TRUE((*journal)->append(belief("a", 50)).ok());
+                      EXPECT_TRUE((*journal)->append(belief("b", 1)).ok());
+                      return std::vector<v1::JournalRecord>{belief("a", 49)};
+                    })
+                    .ok());
+    EXPECT_LT((*journal)->sizeBytes(), before / 10);
+    EXPECT_EQ((*journal)->recordCount(), 3u);
+    ASSERT_TRUE((*journal)->append(belief("c", 1)).ok());
+  }
+  std::map<std::string, double> last;
+  auto reopened = Journal::open(path, [&](const v1::JournalRecord& r) {
+    last[r.belief().key()] = r.belief().value().number_value();
+  });
+  ASSERT_TRUE(reopened.ok());
+  EXPECT_EQ(last, (std::map<std::string, double>{{"a", 50}, {"b", 1}, {"c", 1}}));
   std::remove(path.c_str());
 }
 

@@ -11,6 +11,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/server_kit/yaml_guard.h"
 
@@ -25,12 +26,32 @@ constexpr std::array<std::pair<Role, std::string_view>, 5> kRoleNames = {{
     {Role::kAdmin, "admin"},
 }};
 
-// Properties the authorizer adds to a call's auth context.
-constexpr char kIdentityProperty[] = "behaviorlib.identity";
-constexpr char kRoleProperty[] = "behaviorlib.role";
-constexpr char kRobotProperty[] = "behaviorlib.robot_id";
-constexpr char kSystemProperty[] = "behaviorlib.system";
-constexpr char kPolicyProperty[] = "behaviorlib.policy";
+// The policy callerOf() reads (ServerRuntime sets it with the authorizer's).
+absl::Mutex policy_mutex;
+std::shared_ptr<const AccessPolicy>& processPolicy() ABSL_EXCLUSIVE_LOCKS_REQUIRED(policy_mutex) {
+  static auto* policy = new std::shared_ptr<const AccessPolicy>();
+  return *policy;
+}
+
+// A client certificate's names, in the order identify() tries them. The
+// AuthContext belongs to the connection, not the call: nothing is added to
+// it (properties added per call would pile up for the connection's life).
+std::vector<std::string> certificateNames(const grpc::AuthContext& context) {
+  std::vector<std::string> names;
+  for (const char* property : {"peer_uri", "peer_dns", "x509_common_name"}) {
+    for (const auto& value : context.FindPropertyValues(property)) {
+      names.emplace_back(value.data(), value.size());
+    }
+  }
+  return names;
+}
+
+std::string bearerToken(std::string_view authorization) {
+  return absl::StartsWithIgnoreCase(absl::string_view(authorization.data(), authorization.size()),
+                                    "bearer ")
+             ? std::string(authorization.substr(7))
+             : std::string();
+}
 
 // Debian's absl::string_view is its own type, not std::string_view.
 absl::string_view av(std::string_view s) { return absl::string_view(s.data(), s.size()); }
@@ -54,11 +75,6 @@ std::string rolesText(const std::set<Role>& roles) {
   return names.empty() ? "no role" : absl::StrJoin(names, ", ");
 }
 
-std::string firstProperty(const grpc::AuthContext& context, const char* name) {
-  const std::vector<grpc::string_ref> values = context.FindPropertyValues(name);
-  return values.empty() ? "" : std::string(values.front().data(), values.front().size());
-}
-
 class Authorizer final : public grpc::AuthMetadataProcessor {
  public:
   Authorizer(std::shared_ptr<const AccessPolicy> policy, AuditSink audit)
@@ -66,32 +82,22 @@ class Authorizer final : public grpc::AuthMetadataProcessor {
 
   bool IsBlocking() const override { return false; }
 
-  grpc::Status Process(const InputMetadata& metadata, grpc::AuthContext* context,
-                       OutputMetadata* consumed, OutputMetadata*) override {
+  grpc::Status Process(const InputMetadata& metadata, grpc::AuthContext* context, OutputMetadata*,
+                       OutputMetadata*) override {
+    if (!policy_) return grpc::Status::OK;
     std::string method;
     std::string token;
     for (const auto& [key, value] : metadata) {
       const std::string_view k(key.data(), key.size());
       if (k == ":path") method.assign(value.data(), value.size());
-      if (k == "authorization") {
-        const std::string_view v(value.data(), value.size());
-        if (absl::StartsWithIgnoreCase(av(v), "bearer ")) token = std::string(v.substr(7));
-        // Handlers never see the token.
-        consumed->insert({std::string(key.data(), key.size()), std::string(v)});
-      }
+      // Left in the metadata: callerOf() identifies the caller again from it.
+      if (k == "authorization") token = bearerToken(std::string_view(value.data(), value.size()));
     }
-    std::vector<std::string> names;
-    for (const char* property : {"peer_uri", "peer_dns", "x509_common_name"}) {
-      for (const auto& value : context->FindPropertyValues(property)) {
-        names.emplace_back(value.data(), value.size());
-      }
-    }
-    const Identity* identity = policy_ ? policy_->identify(names, token) : nullptr;
+    const std::vector<std::string> names = certificateNames(*context);
+    const Identity* identity = policy_->identify(names, token);
     const std::string who = identity != nullptr ? identity->name
                             : names.empty()     ? std::string("anonymous")
                                                 : names.front();
-    context->AddProperty(kIdentityProperty, who);
-    if (!policy_) return grpc::Status::OK;
     const Role needed = requiredRole(method);
     if (identity == nullptr || identity->roles.count(needed) == 0) {
       const std::string message =
@@ -102,10 +108,6 @@ class Authorizer final : public grpc::AuthMetadataProcessor {
       if (audit_) audit_({who, method, "PERMISSION_DENIED", message});
       return grpc::Status(grpc::StatusCode::PERMISSION_DENIED, message);
     }
-    context->AddProperty(kPolicyProperty, "1");
-    for (Role r : identity->roles) context->AddProperty(kRoleProperty, std::string(roleName(r)));
-    if (!identity->robot_id.empty()) context->AddProperty(kRobotProperty, identity->robot_id);
-    if (!identity->system.empty()) context->AddProperty(kSystemProperty, identity->system);
     return grpc::Status::OK;
   }
 
@@ -256,21 +258,37 @@ std::shared_ptr<grpc::AuthMetadataProcessor> makeAuthorizer(
   return std::make_shared<Authorizer>(std::move(policy), std::move(audit));
 }
 
+void setProcessAccessPolicy(std::shared_ptr<const AccessPolicy> policy) {
+  absl::MutexLock lock(&policy_mutex);
+  processPolicy() = std::move(policy);
+}
+
 std::optional<Caller> callerOf(const grpc::ServerContextBase& context) {
-  const std::shared_ptr<const grpc::AuthContext> auth = context.auth_context();
-  if (!auth) return std::nullopt;
-  Caller caller;
-  caller.identity = firstProperty(*auth, kIdentityProperty);
-  if (caller.identity.empty()) return std::nullopt;
-  caller.policy = !firstProperty(*auth, kPolicyProperty).empty();
-  for (const auto& value : auth->FindPropertyValues(kRoleProperty)) {
-    const std::string_view name(value.data(), value.size());
-    for (const auto& [role, role_name] : kRoleNames) {
-      if (name == role_name) caller.roles.insert(role);
-    }
+  std::shared_ptr<const AccessPolicy> policy;
+  {
+    absl::MutexLock lock(&policy_mutex);
+    policy = processPolicy();
   }
-  caller.robot_id = firstProperty(*auth, kRobotProperty);
-  caller.system = firstProperty(*auth, kSystemProperty);
+  const std::shared_ptr<const grpc::AuthContext> auth = context.auth_context();
+  const std::vector<std::string> names =
+      auth ? certificateNames(*auth) : std::vector<std::string>();
+  if (!policy && names.empty()) return std::nullopt;
+  std::string token;
+  const auto& metadata = context.client_metadata();
+  if (auto it = metadata.find("authorization"); it != metadata.end()) {
+    token = bearerToken(std::string_view(it->second.data(), it->second.size()));
+  }
+  const Identity* identity = policy ? policy->identify(names, token) : nullptr;
+  Caller caller;
+  caller.identity = identity != nullptr ? identity->name
+                    : names.empty()     ? std::string("anonymous")
+                                        : names.front();
+  caller.policy = policy != nullptr;
+  if (identity != nullptr) {
+    caller.roles = identity->roles;
+    caller.robot_id = identity->robot_id;
+    caller.system = identity->system;
+  }
   return caller;
 }
 

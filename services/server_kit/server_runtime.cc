@@ -112,6 +112,7 @@ bool ServerRuntime::startServer(grpc::ServerBuilder& builder, const std::string&
     }
     policy = std::make_shared<const AccessPolicy>(std::move(*loaded));
   }
+  setProcessAccessPolicy(policy);
   const std::string audit_path =
       absl::GetFlag(FLAGS_audit_log).empty() ? default_audit_log_ : absl::GetFlag(FLAGS_audit_log);
   absl::StatusOr<std::unique_ptr<AuditLog>> audit = AuditLog::open(audit_path, *registry_);

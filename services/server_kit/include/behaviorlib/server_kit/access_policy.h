@@ -24,9 +24,10 @@
 //
 // The policy is enforced by gRPC's AuthMetadataProcessor on the TLS
 // credentials (transport_security.h), before any handler runs; it needs
-// TLS. It records who called in the call's auth context, where a handler
-// finds it with callerOf() (RegisterSystem checks that a system registers as
-// itself).
+// TLS. A handler finds who called with callerOf() (RegisterSystem checks
+// that a system registers as itself). The processor writes nothing into the
+// auth context: gRPC hands it the connection's, where a property added per
+// call would stay for the connection's life.
 
 #include <grpcpp/grpcpp.h>
 #include <grpcpp/security/auth_metadata_processor.h>
@@ -95,7 +96,12 @@ using AuditSink = std::function<void(const AuditRecord&)>;
 std::shared_ptr<grpc::AuthMetadataProcessor> makeAuthorizer(
     std::shared_ptr<const AccessPolicy> policy, AuditSink audit);
 
-/// The caller of a call, as the authorizer recorded it.
+/// The policy that callerOf() identifies callers with; ServerRuntime sets
+/// the one it enforces (null: none).
+void setProcessAccessPolicy(std::shared_ptr<const AccessPolicy> policy);
+
+/// The caller of a call, identified as the authorizer did (its certificate,
+/// or the bearer token it sends).
 struct Caller {
   std::string identity;
   std::set<Role> roles;
@@ -103,7 +109,7 @@ struct Caller {
   std::string system;
   bool policy = false;  ///< roles come from an access policy
 };
-/// Null when no authorizer ran (plaintext, or a server without TLS).
+/// Null for a plaintext call when no policy is in force.
 std::optional<Caller> callerOf(const grpc::ServerContextBase& context);
 
 /// For RegisterSystem and Heartbeat: PERMISSION_DENIED when a policy is in

@@ -55,24 +55,17 @@ VERSIONS = ("v1", "v1alpha")
 
 # Channel credentials of this process (use_tls); None: plaintext.
 _CREDENTIALS = None
-_TLS_FILES = None
 
 
 def use_tls(cert_file, key_file, ca_file):
     """Every channel this process opens from now on uses mutual TLS with
     this certificate, key and CA (PEM files), as the servers' --tls-cert,
     --tls-key and --tls-ca."""
-    global _CREDENTIALS, _TLS_FILES
-    _TLS_FILES = (cert_file, key_file, ca_file)
+    global _CREDENTIALS
     with open(ca_file, "rb") as ca, open(key_file, "rb") as key, open(cert_file, "rb") as cert:
         _CREDENTIALS = grpc.ssl_channel_credentials(root_certificates=ca.read(),
                                                     private_key=key.read(),
                                                     certificate_chain=cert.read())
-
-
-def tls_files():
-    """(cert, key, ca) given to use_tls(), or None."""
-    return _TLS_FILES
 
 
 def open_channel(address):

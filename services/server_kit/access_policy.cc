@@ -46,6 +46,12 @@ std::vector<std::string> certificateNames(const grpc::AuthContext& context) {
   return names;
 }
 
+// How logs and messages name a caller.
+std::string callerName(const Identity* identity, const std::vector<std::string>& names) {
+  if (identity != nullptr) return identity->name;
+  return names.empty() ? std::string("anonymous") : names.front();
+}
+
 std::string bearerToken(std::string_view authorization) {
   return absl::StartsWithIgnoreCase(absl::string_view(authorization.data(), authorization.size()),
                                     "bearer ")
@@ -95,9 +101,7 @@ class Authorizer final : public grpc::AuthMetadataProcessor {
     }
     const std::vector<std::string> names = certificateNames(*context);
     const Identity* identity = policy_->identify(names, token);
-    const std::string who = identity != nullptr ? identity->name
-                            : names.empty()     ? std::string("anonymous")
-                                                : names.front();
+    const std::string who = callerName(identity, names);
     const Role needed = requiredRole(method);
     if (identity == nullptr || identity->roles.count(needed) == 0) {
       const std::string message =
@@ -280,9 +284,7 @@ std::optional<Caller> callerOf(const grpc::ServerContextBase& context) {
   }
   const Identity* identity = policy ? policy->identify(names, token) : nullptr;
   Caller caller;
-  caller.identity = identity != nullptr ? identity->name
-                    : names.empty()     ? std::string("anonymous")
-                                        : names.front();
+  caller.identity = callerName(identity, names);
   caller.policy = policy != nullptr;
   if (identity != nullptr) {
     caller.roles = identity->roles;

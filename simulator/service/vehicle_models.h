@@ -37,9 +37,6 @@ std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
 /// may name only files inside worlds_dir.
 enum class WorldSource { kConfiguration, kRequest };
 
-/// Largest world file read for a request.
-inline constexpr size_t kMaxWorldFileBytes = 4 << 20;
-
 /// Loads a world by path, or by the name of a shipped world ("rooms" ->
 /// `<worlds_dir>/rooms.yaml`). The error names the file, the line and the
 /// problem; for a request, a path outside worlds_dir is PERMISSION_DENIED

@@ -19,6 +19,7 @@
 #include <Eigen/Core>
 #include <Eigen/Geometry>  // cross()
 #include <array>
+#include <cstddef>
 #include <cstdint>
 #include <string>
 #include <string_view>
@@ -174,8 +175,11 @@ class World : public CollisionWorld {
   std::vector<StartPose> start_poses_;
 };
 
-/// Loads a world file. Errors (kNotFound for a missing file, else
-/// kInvalidArgument) read "<path>:<line>: <what>: <problem>", e.g.
+/// Largest world file read (a world is a few kilobytes).
+inline constexpr size_t kMaxWorldFileBytes = 4 << 20;
+
+/// Loads a world file (at most kMaxWorldFileBytes). Errors (kNotFound for a
+/// missing file, else kInvalidArgument) read "<path>:<line>: <what>: <problem>", e.g.
 /// "worlds/x.yaml:12: box 'door': size_m must be a list of 3 positive numbers".
 absl::StatusOr<World> loadWorld(const std::string& path);
 

@@ -547,9 +547,8 @@ absl::StatusOr<World> parseWorld(std::string_view yaml_text, std::string_view so
 }
 
 absl::StatusOr<World> loadWorld(const std::string& path) {
-  // A world file is a few kilobytes; the cap keeps a path such as /dev/zero
-  // or a huge file from being read whole.
-  absl::StatusOr<std::string> text = server::readFileCapped(path, 4 << 20);
+  // The cap keeps a path such as /dev/zero or a huge file from being read whole.
+  absl::StatusOr<std::string> text = server::readFileCapped(path, kMaxWorldFileBytes);
   if (!text.ok()) return text.status();
   return parseWorld(*text, path);
 }

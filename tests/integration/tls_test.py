@@ -147,7 +147,6 @@ class TlsTest(unittest.TestCase):
             client.close()
         finally:
             rpc.rc._CREDENTIALS = None
-            rpc.rc._TLS_FILES = None
 
     def test_plaintext_is_refused(self):
         self.assert_refused(None)

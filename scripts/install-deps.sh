@@ -21,7 +21,7 @@ RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libssl3 libgrpc++1.51 libgrpc29 li
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-objdetect406 \
   libopencv-contrib406 libopencv-calib3d406 liboctomap1.9 libompl16"
 TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml prometheus docker-compose procps openssl \
-  clang-14"
+  clang-14 libclang-rt-14-dev libfuzzer-14-dev llvm-14"
 
 case "${1:-}" in
   "") packages="$BUILD_PACKAGES $TEST_PACKAGES" ;;

@@ -1,6 +1,7 @@
 #!/bin/sh
 # Every test on a fresh Debian 12 machine: installs the packages, builds, and
-# runs ctest (unit, integration, e2e, and a smoke run of the benchmarks).
+# runs ctest (unit, integration, e2e, and a smoke run of the benchmarks), then
+# the ASan+UBSan (with the fuzz targets) and TSan builds of their subsets.
 set -eu
 cd "$(dirname "$0")/.."
 scripts/install-deps.sh
@@ -9,3 +10,7 @@ scripts/build.sh
 # coordinator; GCC builds, clang only checks (about 35 s).
 /usr/bin/python3 tests/static/thread_safety_check.py --build-dir "${BUILD_DIR:-build}"
 ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j 2
+# Sanitizer builds of chosen subsets, and the fuzz targets' smoke runs
+# (docs/sanitizers.md): each builds its own tree with clang-14.
+scripts/sanitizer-tests.sh asan
+scripts/sanitizer-tests.sh tsan

@@ -13,7 +13,7 @@ namespace {
 
 constexpr uint32_t kMaxRecordBytes = 64u << 20;
 
-uint32_t crcOf(const std::string& payload) {
+uint32_t crcOf(std::string_view payload) {
   return static_cast<uint32_t>(
       crc32(0L, reinterpret_cast<const Bytef*>(payload.data()), static_cast<uInt>(payload.size())));
 }
@@ -46,6 +46,27 @@ absl::Status errnoError(const std::string& what, const std::string& path) {
 
 }  // namespace
 
+size_t decodeJournal(std::string_view content, const Journal::Replay& replay, uint64_t* records) {
+  size_t offset = 0;
+  uint64_t count = 0;
+  while (content.size() - offset >= 8) {
+    const uint32_t length = getU32(content.data() + offset);
+    const uint32_t crc = getU32(content.data() + offset + 4);
+    if (length > kMaxRecordBytes || content.size() - offset - 8 < length) break;
+    const std::string_view payload = content.substr(offset + 8, length);
+    v1::JournalRecord record;
+    if (crcOf(payload) != crc ||
+        !record.ParseFromArray(payload.data(), static_cast<int>(payload.size()))) {
+      break;
+    }
+    replay(record);
+    offset += 8 + length;
+    ++count;
+  }
+  if (records != nullptr) *records = count;
+  return offset;
+}
+
 Journal::Journal(std::string path, int fd, JournalOptions options)
     : path_(std::move(path)), options_(options), fd_(fd) {}
 
@@ -67,19 +88,8 @@ absl::StatusOr<std::unique_ptr<Journal>> Journal::open(const std::string& path,
     if (n == 0) break;
     content.append(buffer, static_cast<size_t>(n));
   }
-  size_t offset = 0;
   uint64_t records = 0;
-  while (content.size() - offset >= 8) {
-    const uint32_t length = getU32(content.data() + offset);
-    const uint32_t crc = getU32(content.data() + offset + 4);
-    if (length > kMaxRecordBytes || content.size() - offset - 8 < length) break;
-    const std::string payload = content.substr(offset + 8, length);
-    v1::JournalRecord record;
-    if (crcOf(payload) != crc || !record.ParseFromString(payload)) break;
-    replay(record);
-    offset += 8 + length;
-    ++records;
-  }
+  const size_t offset = decodeJournal(content, replay, &records);
   if (offset < content.size()) {
     journal->truncated_bytes_ = content.size() - offset;
     if (::ftruncate(fd, static_cast<off_t>(offset)) != 0) {

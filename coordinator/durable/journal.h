@@ -22,6 +22,7 @@
 #include <functional>
 #include <memory>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "absl/base/thread_annotations.h"
@@ -89,5 +90,14 @@ class Journal {
   // Written by open() only, before the journal is shared.
   uint64_t truncated_bytes_ = 0;
 };
+
+/// Decodes the records of a journal's content (the framing above) from its
+/// start and passes each to `replay`, in order, stopping at the first record
+/// that is torn (fewer bytes than its length), longer than the 64 MiB a
+/// record may be, fails its CRC or does not parse. Returns the length of the
+/// valid prefix (what Journal::open keeps) and, when `records` is not null,
+/// sets it to the number of records replayed. Reads nothing but `content`.
+size_t decodeJournal(std::string_view content, const Journal::Replay& replay,
+                     uint64_t* records = nullptr);
 
 }  // namespace behaviorlib::coordinator

@@ -83,6 +83,15 @@ absl::Status checkSample(absl::string_view topic, const google::protobuf::Any& s
     return absl::InvalidArgumentError(
         absl::StrCat("sample on topic '", topic, "' is missing (empty Any type_url)"));
   }
+  // Any::UnpackTo needs "<prefix>/<full name>": a sample without the '/'
+  // would be accepted here and then dropped by every typed subscriber.
+  if (sample.type_url().find('/') == std::string::npos) {
+    *reason = reject_reason::kUnknownType;
+    return absl::InvalidArgumentError(
+        absl::StrCat("sample on topic '", topic, "' has type_url '", sample.type_url(),
+                     "' without a '/': expected \"<prefix>/<full message name>\" as "
+                     "Any::PackFrom writes it (type.googleapis.com/behaviorlib.v1.Pose)"));
+  }
   const absl::string_view type_name = typeNameOfUrl(sample.type_url());
   const google::protobuf::Descriptor* descriptor =
       google::protobuf::DescriptorPool::generated_pool()->FindMessageTypeByName(

@@ -74,7 +74,7 @@ void reencode(CameraImageData& image, const cv::Mat& bgr, int jpeg_quality) {
 }
 
 template <class>
-inline constexpr bool kAlwaysFalse = false;
+[[maybe_unused]] inline constexpr bool kAlwaysFalse = false;
 
 }  // namespace
 

@@ -445,7 +445,11 @@ Duration BehaviorExecutionManager::activeTimeLocked(TimePoint now) const {
 }
 
 Duration BehaviorExecutionManager::activeTime() const {
-  return activeTimeLocked(context_.clock->now());
+  // Locked: the watchdog thread writes state_ while user code, still
+  // running past its limit, may ask this.
+  const TimePoint now = context_.clock->now();
+  std::lock_guard lock(mutex_);
+  return activeTimeLocked(now);
 }
 
 void BehaviorExecutionManager::execute() {

@@ -62,6 +62,15 @@ TEST(CheckSampleTest, RejectsMissingUnknownAndMalformedSamples) {
   EXPECT_NE(status.message().find("no.such.Type"), std::string::npos);
   EXPECT_NE(status.message().find("robots/d/x"), std::string::npos);
 
+  // Found by fuzz_channel_sample: a bare name is known to the pool but
+  // Any::UnpackTo refuses it, so no typed subscriber could read the sample.
+  google::protobuf::Any bare;
+  bare.set_type_url("behaviorlib.v1.Imu");
+  status = checkSample("robots/d/imu", bare, &type, &reason);
+  EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(reason, reject_reason::kUnknownType);
+  EXPECT_NE(status.message().find("without a '/'"), std::string::npos);
+
   google::protobuf::Any malformed;
   malformed.set_type_url("type.googleapis.com/behaviorlib.v1.Imu");
   malformed.set_value("\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff", 11);

@@ -5,6 +5,7 @@
 
 #include <cstdio>
 #include <fstream>
+#include <iterator>
 #include <map>
 
 namespace behaviorlib::coordinator {
@@ -139,6 +140,50 @@ TEST(Journal, OnlineCompactionKeepsWhatIsAppendedDuringTheSnapshot) {
   ASSERT_TRUE(reopened.ok());
   EXPECT_EQ(last, (std::map<std::string, double>{{"a", 50}, {"b", 1}, {"c", 1}}));
   std::remove(path.c_str());
+}
+
+// decodeJournal is open()'s replay over bytes in memory: the valid prefix's
+// length, its records in order, and nothing past a torn or corrupt record.
+TEST(Journal, DecodeJournalReturnsTheValidPrefix) {
+  const std::string path = tempPath();
+  {
+    auto journal = Journal::open(path, [](const v1::JournalRecord&) {});
+    ASSERT_TRUE(journal.ok());
+    ASSERT_TRUE((*journal)->append(belief("a", 1)).ok());
+    ASSERT_TRUE((*journal)->append(belief("b", 2)).ok());
+  }
+  std::string content;
+  {
+    std::ifstream in(path, std::ios::binary);
+    content.assign(std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>());
+  }
+  std::remove(path.c_str());
+  std::vector<std::string> keys;
+  const auto collect = [&](const v1::JournalRecord& r) { keys.push_back(r.belief().key()); };
+  uint64_t records = 0;
+  EXPECT_EQ(decodeJournal(content, collect, &records), content.size());
+  EXPECT_EQ(records, 2u);
+  EXPECT_EQ(keys, (std::vector<std::string>{"a", "b"}));
+
+  // A torn tail is left out.
+  keys.clear();
+  const std::string torn = content + std::string("\x28\0\0\0\1\2\3\4xy", 10);
+  EXPECT_EQ(decodeJournal(torn, collect, &records), content.size());
+  EXPECT_EQ(records, 2u);
+
+  // A corrupt second record ends the replay after the first.
+  keys.clear();
+  std::string corrupt = content;
+  corrupt.back() = static_cast<char>(corrupt.back() ^ 0x7f);
+  const size_t first = decodeJournal(corrupt, collect, &records);
+  EXPECT_EQ(records, 1u);
+  EXPECT_EQ(keys, (std::vector<std::string>{"a"}));
+  EXPECT_GT(first, 8u);
+  EXPECT_LT(first, content.size());
+
+  EXPECT_EQ(decodeJournal("", collect, &records), 0u);
+  EXPECT_EQ(records, 0u);
+  EXPECT_EQ(decodeJournal(std::string(7, '\0'), collect), 0u);
 }
 
 TEST(Journal, AnUnwritablePathIsAnError) {

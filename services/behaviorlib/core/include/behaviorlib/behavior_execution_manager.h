@@ -404,8 +404,9 @@ class BehaviorExecutionManager {
   std::condition_variable exited_cv_;
   std::thread worker_;
 
-  // Activation state: written on the worker under mutex_; the worker reads it
-  // without the lock.
+  // Activation state: written on the worker under mutex_ (state_ also by the
+  // watchdog, which marks a stuck call kBlocked); the worker's own code reads
+  // it without the lock, user code through activeTime() with it.
   State state_ = State::kInactive;
   std::string activation_id_;
   std::unique_ptr<google::protobuf::Message> parameters_;

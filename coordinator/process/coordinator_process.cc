@@ -18,6 +18,7 @@
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/durable/journal.h"
+#include "coordinator/durable/replayed_state.h"
 #include "coordinator/service/blocking_pool.h"
 #include "coordinator/service/coordinator_metrics.h"
 #include "coordinator/service/coordinator_service.h"
@@ -203,27 +204,12 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   p->registry = std::make_unique<Registry>(*p->log, *p->metrics, registry_options);
 
   // Belief memory, missions and registrations, restored from the journal.
-  BeliefStore beliefs_restore;  // replay target before the journal is attached
-  std::vector<v1::MissionStatus> missions_restore;
-  std::map<std::pair<std::string, std::string>, v1::SystemRecord> systems_restore;
+  ReplayedState replayed;  // replay target before the journal is attached
   if (!options.state_dir.empty()) {
     std::error_code ec;
     std::filesystem::create_directories(options.state_dir, ec);
     auto opened = Journal::open(options.state_dir + "/coordinator.journal",
-                                [&](const v1::JournalRecord& record) {
-                                  if (record.has_belief()) beliefs_restore.restore(record.belief());
-                                  if (record.has_mission())
-                                    missions_restore.push_back(record.mission());
-                                  if (record.has_system()) {
-                                    const auto& r = record.system();
-                                    const auto key = std::make_pair(r.robot_id(), r.system());
-                                    if (r.unregistered()) {
-                                      systems_restore.erase(key);
-                                    } else {
-                                      systems_restore[key] = r;
-                                    }
-                                  }
-                                });
+                                [&](const v1::JournalRecord& record) { replayed.apply(record); });
     if (!opened.ok()) {
       return absl::InvalidArgumentError("--state-dir: " + std::string(opened.status().message()));
     }
@@ -233,7 +219,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
                  "coordinator: no --state-dir: belief memory is lost when the coordinator stops\n");
   }
   p->beliefs = std::make_unique<BeliefStore>(p->journal.get(), options.belief_limits);
-  for (const auto& belief : beliefs_restore.snapshot()) p->beliefs->restore(belief);
+  for (const auto& belief : replayed.beliefs.snapshot()) p->beliefs->restore(belief);
   p->pool = std::make_unique<BlockingPool>(options.workers);
   p->fleet = std::make_unique<FleetControl>(*p->registry, *p->log, options.catalog);
   MissionManagerOptions mission_options;
@@ -246,10 +232,10 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   mission_options.mission_files = std::move(*mission_files);
   p->missions = std::make_unique<MissionManager>(*p->fleet, *p->registry, *p->beliefs,
                                                  p->journal.get(), mission_options);
-  for (const auto& status : missions_restore) p->missions->restore(status);
+  for (const auto& status : replayed.missions) p->missions->restore(status);
   {
     absl::MutexLock lock(&p->systems_mutex);
-    for (const auto& [key, system] : systems_restore) p->systems.emplace(key, system);
+    for (const auto& [key, system] : replayed.systems) p->systems.emplace(key, system);
   }
   if (p->journal) {
     // Start from a compact journal: the current beliefs, missions and systems.
@@ -312,7 +298,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   for (const auto& system : options.systems) p->registry->addConfigured(system);
   // Systems registered before a restart are contacted at once (they also
   // register again at their next heartbeat).
-  for (const auto& entry : systems_restore) {
+  for (const auto& entry : replayed.systems) {
     const v1::SystemRecord& system = entry.second;
     const bool listed =
         std::any_of(options.systems.begin(), options.systems.end(),

@@ -1,7 +1,7 @@
 // Fuzzes the coordinator's journal (coordinator/durable/journal.h):
 // decodeJournal, the replay Journal::open runs over the file's bytes, with
 // no file. The replayed records go where the coordinator sends them
-// (coordinator/process/coordinator_process.cc): beliefs restored into belief
+// (ReplayedState, coordinator/durable/replayed_state.h): beliefs restored into belief
 // memory (BeliefStore::restore, then copied into the live store from its
 // snapshot), mission statuses kept, the last record of each system kept;
 // then, as MissionManager::resumeOne does for a mission that had not ended,
@@ -20,15 +20,13 @@
 #include <zlib.h>
 
 #include <cstdint>
-#include <map>
 #include <string>
 #include <string_view>
-#include <utility>
-#include <vector>
 
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/durable/journal.h"
+#include "coordinator/durable/replayed_state.h"
 #include "coordinator/mission/mission_file.h"
 #include "fuzz_support.h"
 
@@ -36,6 +34,7 @@ namespace {
 
 namespace v1 = behaviorlib::v1;
 using behaviorlib::coordinator::BeliefStore;
+using behaviorlib::coordinator::ReplayedState;
 using behaviorlib::fuzz::broken;
 
 // The framing of journal.cc: [u32 length LE][u32 CRC-32 LE][payload].
@@ -50,10 +49,8 @@ void frame(std::string_view payload, std::string* out) {
 }
 
 void replay(const std::string& content) {
-  // The coordinator's replay targets.
-  BeliefStore beliefs_restore;
-  std::vector<v1::MissionStatus> missions_restore;
-  std::map<std::pair<std::string, std::string>, v1::SystemRecord> systems_restore;
+  // The coordinator's replay target.
+  ReplayedState replayed;
   uint64_t seen = 0;
   uint64_t records = 0;
   const size_t valid = behaviorlib::coordinator::decodeJournal(
@@ -61,17 +58,7 @@ void replay(const std::string& content) {
       [&](const v1::JournalRecord& record) {
         ++seen;
         (void)record.ByteSizeLong();
-        if (record.has_belief()) beliefs_restore.restore(record.belief());
-        if (record.has_mission()) missions_restore.push_back(record.mission());
-        if (record.has_system()) {
-          const auto& r = record.system();
-          const auto key = std::make_pair(r.robot_id(), r.system());
-          if (r.unregistered()) {
-            systems_restore.erase(key);
-          } else {
-            systems_restore[key] = r;
-          }
-        }
+        replayed.apply(record);
       },
       &records);
   if (valid > content.size() || records != seen) broken("decodeJournal miscounted");
@@ -79,7 +66,7 @@ void replay(const std::string& content) {
 
   // The live store, filled from the snapshot of the replayed one.
   BeliefStore beliefs;
-  for (const auto& belief : beliefs_restore.snapshot()) beliefs.restore(belief);
+  for (const auto& belief : replayed.beliefs.snapshot()) beliefs.restore(belief);
   (void)beliefs.version();
   for (const auto& belief : beliefs.list()) {
     (void)beliefs.get(belief.key());
@@ -89,7 +76,7 @@ void replay(const std::string& content) {
   }
   // Resuming a mission that had not ended parses its text again.
   int parsed = 0;
-  for (const auto& status : missions_restore) {
+  for (const auto& status : replayed.missions) {
     const bool ended = status.has_end_time() || status.state() == v1::MISSION_STATE_SUCCEEDED;
     if (ended || status.source().empty() || ++parsed > 4) continue;
     (void)behaviorlib::coordinator::parseMission(status.source(), status.file());

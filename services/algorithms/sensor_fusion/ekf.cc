@@ -125,6 +125,13 @@ UpdateResult InsEkf::updatePosition(const Eigen::Vector3d& position_m, double st
   return update<3>(position_m - p_, H, R);
 }
 
+UpdateResult InsEkf::updateHorizontalPosition(const Eigen::Vector2d& position_m,
+                                              const Eigen::Matrix2d& covariance_m2) {
+  Eigen::Matrix<double, 2, 15> H = Eigen::Matrix<double, 2, 15>::Zero();
+  H.block<2, 2>(0, kP) = Eigen::Matrix2d::Identity();
+  return update<2>(position_m - p_.head<2>(), H, covariance_m2);
+}
+
 UpdateResult InsEkf::updateAltitude(double altitude_m, double stddev_m) {
   Eigen::Matrix<double, 1, 15> H = Eigen::Matrix<double, 1, 15>::Zero();
   H(0, kP + 2) = 1.0;

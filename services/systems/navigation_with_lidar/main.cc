@@ -1,6 +1,7 @@
 // navigation_with_lidar: the behavior system that maps with the lidar while
 // it runs and plans paths on that map (GENERATE_PATH_WITH_OCCUPANCY_GRID,
-// CLEAR_OCCUPANCY_GRID, SAVE_OCCUPANCY_GRID).
+// CLEAR_OCCUPANCY_GRID, SAVE_OCCUPANCY_GRID), and localizes with the lidar
+// (SELF_LOCALIZE_AND_MAP_WITH_LIDAR).
 
 #include <cstdlib>
 #include <filesystem>
@@ -11,6 +12,7 @@
 #include "behaviorlib/navigation_with_lidar/generate_path_behavior.h"
 #include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
 #include "behaviorlib/navigation_with_lidar/map_behaviors.h"
+#include "behaviorlib/navigation_with_lidar/slam_behavior.h"
 #include "behaviorlib/server/behavior_system_main.h"
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/v1/behaviors/navigation_with_lidar.behaviors.h"
@@ -35,6 +37,7 @@ int main(int argc, char** argv) {
         // Deterministic mode: the map holds every scan received before a grant
         // is reported, whatever the machine's load.
         b.addCatchUpCheck([&mapper] { return mapper.caughtUp(); });
+        b.add<nav::SlamBehavior>(context.channel, settings.lidar_mount_m);
         b.add<nav::GeneratePathBehavior>(mapper, context.beliefs);
         b.add<nav::ClearOccupancyGridBehavior>(mapper);
         const std::string map_dir = absl::GetFlag(FLAGS_map_dir);

@@ -8,6 +8,8 @@
 #include <iterator>
 #include <map>
 
+#include "coordinator/durable/replayed_state.h"
+
 namespace behaviorlib::coordinator {
 namespace {
 
@@ -184,6 +186,49 @@ TEST(Journal, DecodeJournalReturnsTheValidPrefix) {
   EXPECT_EQ(decodeJournal("", collect, &records), 0u);
   EXPECT_EQ(records, 0u);
   EXPECT_EQ(decodeJournal(std::string(7, '\0'), collect), 0u);
+}
+
+TEST(ReplayedState, KeepsTheLastOfEachBeliefAndSystemAndEveryMissionStatus) {
+  ReplayedState replayed;
+  const auto belief = [](const std::string& key, double value, uint64_t version) {
+    v1::JournalRecord r;
+    r.mutable_belief()->set_key(key);
+    r.mutable_belief()->mutable_value()->set_number_value(value);
+    r.mutable_belief()->set_version(version);
+    return r;
+  };
+  const auto system = [](const std::string& robot, const std::string& address, bool gone) {
+    v1::JournalRecord r;
+    r.mutable_system()->set_robot_id(robot);
+    r.mutable_system()->set_system("basic");
+    r.mutable_system()->set_address(address);
+    r.mutable_system()->set_unregistered(gone);
+    return r;
+  };
+  const auto mission = [](const std::string& id, v1::MissionState state) {
+    v1::JournalRecord r;
+    r.mutable_mission()->set_mission_id(id);
+    r.mutable_mission()->set_state(state);
+    return r;
+  };
+  replayed.apply(belief("a", 1, 1));
+  replayed.apply(system("drone1", "127.0.0.1:1", false));
+  replayed.apply(system("drone2", "127.0.0.1:2", false));
+  replayed.apply(mission("m1", v1::MISSION_STATE_RUNNING));
+  replayed.apply(belief("a", 2, 2));
+  replayed.apply(system("drone1", "127.0.0.1:3", false));
+  replayed.apply(system("drone2", "127.0.0.1:2", true));
+  replayed.apply(mission("m1", v1::MISSION_STATE_SUCCEEDED));
+
+  auto a = replayed.beliefs.get("a");
+  ASSERT_TRUE(a.has_value());
+  EXPECT_EQ(a->value().number_value(), 2);
+  ASSERT_EQ(replayed.systems.size(), 1u);
+  EXPECT_EQ(replayed.systems.begin()->first,
+            std::make_pair(std::string("drone1"), std::string("basic")));
+  EXPECT_EQ(replayed.systems.begin()->second.address(), "127.0.0.1:3");
+  ASSERT_EQ(replayed.missions.size(), 2u);
+  EXPECT_EQ(replayed.missions.back().state(), v1::MISSION_STATE_SUCCEEDED);
 }
 
 TEST(Journal, AnUnwritablePathIsAnError) {

@@ -153,6 +153,19 @@ TEST(InsEkf, WithoutCorrectionsTheUncertaintyGrows) {
   EXPECT_NEAR(ekf.position().z(), 1.0, 1e-9);        // a level IMU at rest: no drift
 }
 
+TEST(InsEkf, AHorizontalPositionCorrectsOnlyWhereItsCovarianceIsTight) {
+  InsEkf ekf;
+  ekf.initialize({0, 0, 1}, Eigen::Vector3d::Zero(), Eigen::Quaterniond::Identity());
+  // A scan match in a corridor along y: sure of x, not of y.
+  const Eigen::Matrix2d covariance = Eigen::Vector2d(0.02 * 0.02, 100.0).asDiagonal();
+  ASSERT_TRUE(ekf.updateHorizontalPosition({0.8, 0.8}, covariance).accepted);
+  EXPECT_NEAR(ekf.position().x(), 0.8, 0.01);
+  EXPECT_NEAR(ekf.position().y(), 0.0, 0.01);
+  EXPECT_NEAR(ekf.position().z(), 1.0, 1e-9);
+  EXPECT_LT(std::sqrt(ekf.covariance()(0, 0)), 0.03);
+  EXPECT_GT(std::sqrt(ekf.covariance()(1, 1)), 0.9);
+}
+
 TEST(InsEkf, NonFiniteMeasurementsAreRejected) {
   InsEkf ekf;
   ekf.initialize({0, 0, 1}, Eigen::Vector3d::Zero(), Eigen::Quaterniond::Identity());

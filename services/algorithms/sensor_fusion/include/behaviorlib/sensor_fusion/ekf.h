@@ -64,6 +64,10 @@ class InsEkf {
 
   UpdateResult updatePosition(const Eigen::Vector3d& position_m, double stddev_horizontal_m,
                               double stddev_vertical_m);
+  /// Horizontal position (x, y) with its full covariance (a scan match:
+  /// tight across a wall, loose along a corridor).
+  UpdateResult updateHorizontalPosition(const Eigen::Vector2d& position_m,
+                                        const Eigen::Matrix2d& covariance_m2);
   UpdateResult updateAltitude(double altitude_m, double stddev_m);
   /// Velocity measured in the body frame (optical flow + range).
   UpdateResult updateBodyVelocity(const Eigen::Vector3d& velocity_body_m_s, double stddev_m_s);

@@ -1,5 +1,10 @@
 #include "behaviorlib/flight_common/flight_support.h"
 
+#include <google/protobuf/descriptor.h>
+#include <google/protobuf/message.h>
+
+#include <memory>
+
 #include "behaviorlib/flight_common/flight_monitoring.h"
 #include "behaviorlib/platform/flight_controller_client.h"
 
@@ -96,6 +101,65 @@ std::optional<std::string> staleness(const std::string& what, const v1::Header& 
   const Duration age = now - stampTime(header);
   if (age <= limit) return std::nullopt;
   return what + " is " + secondsText(age) + " old (limit " + secondsText(limit) + ")";
+}
+
+std::optional<std::string> missingSensor(channel::ChannelClient& channel,
+                                         const std::string& robot_id,
+                                         const std::vector<SensorNeed>& needs, TimePoint now) {
+  namespace pb = google::protobuf;
+  for (const SensorNeed& need : needs) {
+    const std::string topic = "robots/" + robot_id + "/" + need.name;
+    auto sample = channel.getLatest(topic, kChannelReadTimeout);
+    if (!sample.ok()) {
+      return sample.status().code() == absl::StatusCode::kNotFound
+                 ? "no " + need.what + ": nothing on " + topic +
+                       " (is the simulator, or the sensor driver, publishing it?)"
+                 : "cannot read " + topic + " from the channel at " + channel.address() + ": " +
+                       std::string(sample.status().message());
+    }
+    // The sample's own type, found by its type URL, and its header.
+    const std::string& url = sample->sample().type_url();
+    const pb::Descriptor* type =
+        pb::DescriptorPool::generated_pool()->FindMessageTypeByName(url.substr(url.rfind('/') + 1));
+    std::unique_ptr<pb::Message> message(
+        type ? pb::MessageFactory::generated_factory()->GetPrototype(type)->New() : nullptr);
+    const pb::FieldDescriptor* field = type ? type->FindFieldByName("header") : nullptr;
+    v1::Header header;
+    if (message && field && field->message_type() == v1::Header::descriptor() &&
+        sample->sample().UnpackTo(message.get())) {
+      header.CopyFrom(message->GetReflection()->GetMessage(*message, field));
+    }
+    if (auto stale = staleness("the latest sample on " + topic, header, now, 2 * need.limit)) {
+      return "no " + need.what + ": " + *stale;
+    }
+  }
+  return std::nullopt;
+}
+
+void estimateMessages(const v1::Header& header, const std::string& robot_id, uint64_t seq,
+                      const Eigen::Vector3d& position_m, const Eigen::Quaterniond& orientation,
+                      const Eigen::Vector3d& velocity_m_s,
+                      const Eigen::Vector3d& angular_velocity_rad_s, v1::PoseStamped* pose,
+                      v1::TwistStamped* twist) {
+  v1::Header h = header;
+  h.set_frame_id("world");
+  h.set_robot_id(robot_id);
+  h.set_seq(seq);
+  const auto set = [](v1::Vector3* out, const Eigen::Vector3d& v) {
+    out->set_x(v.x());
+    out->set_y(v.y());
+    out->set_z(v.z());
+  };
+  *pose->mutable_header() = h;
+  set(pose->mutable_pose()->mutable_position_m(), position_m);
+  auto* o = pose->mutable_pose()->mutable_orientation();
+  o->set_w(orientation.w());
+  o->set_x(orientation.x());
+  o->set_y(orientation.y());
+  o->set_z(orientation.z());
+  *twist->mutable_header() = h;
+  set(twist->mutable_twist()->mutable_linear_m_s(), velocity_m_s);
+  set(twist->mutable_twist()->mutable_angular_rad_s(), angular_velocity_rad_s);
 }
 
 std::optional<std::string> checkFlightInputs(Vehicle& vehicle, TimePoint now,

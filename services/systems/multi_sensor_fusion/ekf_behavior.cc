@@ -16,12 +16,6 @@ std::string topic(const std::string& robot, const char* name) {
 
 Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
 
-void setVec(v1::Vector3* out, const Eigen::Vector3d& v) {
-  out->set_x(v.x());
-  out->set_y(v.y());
-  out->set_z(v.z());
-}
-
 double yawOf(const Eigen::Quaterniond& q) {
   const Eigen::Vector3d forward = q * Eigen::Vector3d::UnitX();
   return std::atan2(forward.y(), forward.x());
@@ -64,21 +58,8 @@ absl::Status EkfSelfLocalizationBehavior::onConfigure(const YAML::Node& config) 
 
 void EkfSelfLocalizationBehavior::fillEstimate(const v1::Header& imu_header, v1::PoseStamped* pose,
                                                v1::TwistStamped* twist) {
-  v1::Header header = imu_header;
-  header.set_frame_id("world");
-  header.set_robot_id(robotId());
-  header.set_seq(++seq_);
-  *pose->mutable_header() = header;
-  setVec(pose->mutable_pose()->mutable_position_m(), ekf_.position());
-  const Eigen::Quaterniond& q = ekf_.orientation();
-  auto* o = pose->mutable_pose()->mutable_orientation();
-  o->set_w(q.w());
-  o->set_x(q.x());
-  o->set_y(q.y());
-  o->set_z(q.z());
-  *twist->mutable_header() = header;
-  setVec(twist->mutable_twist()->mutable_linear_m_s(), ekf_.velocity());
-  setVec(twist->mutable_twist()->mutable_angular_rad_s(), last_gyro_ - ekf_.gyroBias());
+  flight::estimateMessages(imu_header, robotId(), ++seq_, ekf_.position(), ekf_.orientation(),
+                           ekf_.velocity(), last_gyro_ - ekf_.gyroBias(), pose, twist);
 }
 
 void EkfSelfLocalizationBehavior::onImu(const v1::Imu& imu) {
@@ -197,30 +178,10 @@ Situation EkfSelfLocalizationBehavior::checkSituation() {
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) return Situation::ok();
-  for (const auto& [name, limit] :
-       {std::pair{"imu", imu_timeout_}, std::pair{"gps", gps_timeout_}}) {
-    const std::string t = topic(robotId(), name);
-    auto sample = channel_->getLatest(t, flight::kChannelReadTimeout);
-    if (!sample.ok()) {
-      return Situation::infeasible(
-          sample.status().code() == absl::StatusCode::kNotFound
-              ? "nothing on " + t + ": is the simulator (or the sensor driver) publishing?"
-              : "cannot read " + t + " from the channel at " + channel_->address() + ": " +
-                    std::string(sample.status().message()));
-    }
-    v1::Header header;
-    v1::Imu imu;
-    v1::PositionFix fix;
-    if (sample->sample().UnpackTo(&imu)) {
-      header = imu.header();
-    } else if (sample->sample().UnpackTo(&fix)) {
-      header = fix.header();
-    }
-    // A sensor sampling at its rate: a little older than its timeout is fine
-    // before activation, where the channel read itself takes time.
-    if (auto stale = flight::staleness("the latest sample on " + t, header, now(), 2 * limit)) {
-      return Situation::infeasible(*stale);
-    }
+  if (auto missing = flight::missingSensor(
+          *channel_, robotId(), {{"imu", imu_timeout_, "IMU"}, {"gps", gps_timeout_, "GPS"}},
+          now())) {
+    return Situation::infeasible(*missing);
   }
   return Situation::ok();
 }

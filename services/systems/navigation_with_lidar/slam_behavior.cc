@@ -18,12 +18,6 @@ std::string topic(const std::string& robot, const char* name) {
 
 Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
 
-void setVec(v1::Vector3* out, const Eigen::Vector3d& v) {
-  out->set_x(v.x());
-  out->set_y(v.y());
-  out->set_z(v.z());
-}
-
 double seconds(TimePoint t) { return std::chrono::duration<double>(t.time_since_epoch()).count(); }
 
 BehaviorOptions slamOptions() {
@@ -116,23 +110,10 @@ void SlamBehavior::start(const Eigen::Quaterniond& imu_orientation) {
 }
 
 void SlamBehavior::publishEstimate(const v1::Header& imu_header) {
-  v1::Header header = imu_header;
-  header.set_frame_id("world");
-  header.set_robot_id(robotId());
-  header.set_seq(++seq_);
   v1::PoseStamped pose;
-  *pose.mutable_header() = header;
-  setVec(pose.mutable_pose()->mutable_position_m(), ekf_.position());
-  const Eigen::Quaterniond& q = ekf_.orientation();
-  auto* o = pose.mutable_pose()->mutable_orientation();
-  o->set_w(q.w());
-  o->set_x(q.x());
-  o->set_y(q.y());
-  o->set_z(q.z());
   v1::TwistStamped twist;
-  *twist.mutable_header() = header;
-  setVec(twist.mutable_twist()->mutable_linear_m_s(), ekf_.velocity());
-  setVec(twist.mutable_twist()->mutable_angular_rad_s(), last_gyro_ - ekf_.gyroBias());
+  flight::estimateMessages(imu_header, robotId(), ++seq_, ekf_.position(), ekf_.orientation(),
+                           ekf_.velocity(), last_gyro_ - ekf_.gyroBias(), &pose, &twist);
   absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
   if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
   if (!s.ok() && publish_error_.ok()) publish_error_ = s;
@@ -292,34 +273,13 @@ Situation SlamBehavior::checkSituation() {
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) return Situation::ok();
-  for (const auto& [name, limit, what] :
-       {std::tuple{"imu", imu_timeout_, "IMU"},
-        std::tuple{"linear_speed", imu_timeout_ * 4, "body speed (optical flow)"},
-        std::tuple{"lidar/scan", lidar_timeout_, "lidar"}}) {
-    const std::string t = topic(robotId(), name);
-    auto sample = channel_->getLatest(t, flight::kChannelReadTimeout);
-    if (!sample.ok()) {
-      return Situation::infeasible(
-          sample.status().code() == absl::StatusCode::kNotFound
-              ? std::string("no ") + what + ": nothing on " + t +
-                    " (is the simulator, or the sensor driver, publishing it?)"
-              : "cannot read " + t + " from the channel at " + channel_->address() + ": " +
-                    std::string(sample.status().message()));
-    }
-    v1::Header header;
-    v1::Imu imu;
-    v1::TwistStamped twist;
-    v1::LaserScan scan;
-    if (sample->sample().UnpackTo(&imu)) {
-      header = imu.header();
-    } else if (sample->sample().UnpackTo(&twist)) {
-      header = twist.header();
-    } else if (sample->sample().UnpackTo(&scan)) {
-      header = scan.header();
-    }
-    if (auto stale = flight::staleness("the latest sample on " + t, header, now(), 2 * limit)) {
-      return Situation::infeasible(std::string("no ") + what + ": " + *stale);
-    }
+  if (auto missing =
+          flight::missingSensor(*channel_, robotId(),
+                                {{"imu", imu_timeout_, "IMU"},
+                                 {"linear_speed", imu_timeout_ * 4, "body speed (optical flow)"},
+                                 {"lidar/scan", lidar_timeout_, "lidar"}},
+                                now())) {
+    return Situation::infeasible(*missing);
   }
   return Situation::ok();
 }

@@ -22,12 +22,17 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include <Eigen/Core>
+#include <Eigen/Geometry>
 #include <chrono>
+#include <cstdint>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "absl/status/status.h"
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/flight_common/vehicle.h"
 #include "behaviorlib/motion_control/wind_estimator.h"
 
@@ -79,6 +84,30 @@ bool flying(v1::FlightState state);
 /// 0.25 s)"; nullopt when fresh.
 std::optional<std::string> staleness(const std::string& what, const v1::Header& header,
                                      TimePoint now, Duration limit);
+
+/// A sensor topic robots/{robot}/{name} that a behavior needs fresh before it
+/// is activated, `what` naming the sensor in messages ("IMU", "lidar").
+struct SensorNeed {
+  std::string name;
+  Duration limit;
+  std::string what;
+};
+/// checkSituation() of the behaviors that read sensors off the data channel:
+/// the newest sample of each topic (any message with a `header`) at most
+/// twice its limit old (a little older than the timeout is fine before the
+/// activation, where the channel read itself takes time). The first problem
+/// ("no lidar: nothing on robots/drone1/lidar/scan ..."), or nullopt.
+std::optional<std::string> missingSensor(channel::ChannelClient& channel,
+                                         const std::string& robot_id,
+                                         const std::vector<SensorNeed>& needs, TimePoint now);
+
+/// The messages of a self-localization behavior's estimate, stamped with
+/// `header`'s stamp, in frame "world", for `robot_id`, numbered `seq`.
+void estimateMessages(const v1::Header& header, const std::string& robot_id, uint64_t seq,
+                      const Eigen::Vector3d& position_m, const Eigen::Quaterniond& orientation,
+                      const Eigen::Vector3d& velocity_m_s,
+                      const Eigen::Vector3d& angular_velocity_rad_s, v1::PoseStamped* pose,
+                      v1::TwistStamped* twist);
 
 /// checkProcesses() of the flight behaviors: the flight controller answers
 /// (flight status known), the pose (and, if `need_twist`, twist) estimate is

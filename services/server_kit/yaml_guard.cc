@@ -37,6 +37,14 @@ class CountingHandler : public YAML::EventHandler {
     if (++aliases_ > limits_.max_aliases) {
       throw LimitPassed{mark, absl::StrCat("more than ", limits_.max_aliases, " aliases")};
     }
+    // An alias to a node still open refers to a node that contains it: the
+    // tree yaml-cpp would build is a cycle, and whatever walks it recurses
+    // without end (found by fuzz_catalog: `defaults: &d {x: *d}`).
+    for (const Open& open : stack_) {
+      if (open.anchor == anchor && anchor != YAML::NullAnchor) {
+        throw LimitPassed{mark, "an alias inside the node it refers to (a cycle)"};
+      }
+    }
     const auto it = anchored_.find(anchor);
     // yaml-cpp refuses an alias to an unknown anchor itself.
     if (it == anchored_.end()) return;

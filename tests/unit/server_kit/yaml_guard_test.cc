@@ -57,6 +57,21 @@ TEST(YamlGuardTest, CountsExpandedNodesExactly) {
   EXPECT_FALSE(loadYaml(text, "t.yaml", &root, limits).ok());
 }
 
+TEST(YamlGuardTest, RefusesAnAliasInsideTheNodeItRefersTo) {
+  // A cycle: walking the tree would never end.
+  for (const std::string text :
+       {"defaults: &d {x: *d}\n", "a: &a [1, [2, *a]]\n", "&r {k: *r}\n"}) {
+    YAML::Node root;
+    const absl::Status s = loadYaml(text, "cycle.yaml", &root);
+    EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument) << text;
+    EXPECT_THAT(s.message(), HasSubstr("cycle.yaml:1: refused"));
+    EXPECT_THAT(s.message(), HasSubstr("a cycle"));
+  }
+  // The same anchor used after its node ended is fine.
+  YAML::Node root;
+  EXPECT_TRUE(loadYaml("a: &a {x: 1}\nb: {y: *a}\n", "t.yaml", &root).ok());
+}
+
 TEST(YamlGuardTest, RefusesTooManyAliases) {
   std::string text = "a: &a 1\nb: [";
   for (int i = 0; i < 20; ++i) text += (i ? ", " : "") + std::string("*a");

@@ -5,7 +5,8 @@ the launcher's report.
     /usr/bin/python3 tests/e2e/applications_test.py --build-dir build --case aircraft
     /usr/bin/python3 tests/e2e/applications_test.py --build-dir build --case swarm
     /usr/bin/python3 tests/e2e/applications_test.py --build-dir build --case exploration
-    /usr/bin/python3 tests/e2e/applications_test.py --build-dir build   # all three
+    /usr/bin/python3 tests/e2e/applications_test.py --build-dir build --case exploration_slam
+    /usr/bin/python3 tests/e2e/applications_test.py --build-dir build   # all four
 
 aircraft: the aircraft inspection (deploy/missions/aircraft_inspection.yaml
 in the aircraft world, the camera pitched down by
@@ -23,6 +24,9 @@ exploration: the room exploration (deploy/missions/room_exploration.yaml in
 the four-room building): the mission SUCCEEDED, the map it saved exists and
 is not empty, and map_coverage finds at least 80 % of the building's free
 space mapped.
+
+exploration_slam: the same with deploy/missions/room_exploration_slam.yaml,
+localized by SELF_LOCALIZE_AND_MAP_WITH_LIDAR instead of the ground truth.
 
 Each case prints its wall time. Every case runs in the deterministic mode
 (TIME_SCALES below). A failed case keeps its
@@ -63,7 +67,7 @@ from local_demo_test import alive, kill_launched, launched_pids, read_png  # noq
 # side, and a noisy jamb hit raised a lidar column that closed the B-C door
 # for good. Decision 19 and the column that falls fixed both.) Each case
 # still starts only the systems its mission needs (SYSTEMS below).
-TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "max"}
+TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "max", "exploration_slam": "max"}
 # The behavior systems each case starts (--systems; basic_quadrotor_behaviors
 # always runs): what its mission needs, so that the idle rest of the stack
 # does not take the CPU the controllers need.
@@ -71,6 +75,7 @@ SYSTEMS = {
     "aircraft": "quadrotor_motion_with_pid_control,attention_to_visual_markers",
     "swarm": "swarm_interaction",
     "exploration": "quadrotor_motion_with_pid_control,navigation_with_lidar",
+    "exploration_slam": "quadrotor_motion_with_pid_control,navigation_with_lidar",
 }
 SUCCEEDED = "MISSION_STATE_SUCCEEDED"
 # How far a marker found may be from the world file's centre.
@@ -236,9 +241,15 @@ class ApplicationsTest(unittest.TestCase):
         self.passed = True
 
     def test_exploration(self):
-        mission = os.path.join(MISSIONS, "room_exploration.yaml")
+        self._explore("exploration", "room_exploration.yaml")
+
+    def test_exploration_slam(self):
+        self._explore("exploration_slam", "room_exploration_slam.yaml")
+
+    def _explore(self, case, mission_file):
+        mission = os.path.join(MISSIONS, mission_file)
         self.assertTrue(os.path.isfile(mission), f"{mission} does not exist yet")
-        report, markdown = self._launch("exploration", 220, "--world", "rooms",
+        report, markdown = self._launch(case, 220, "--world", "rooms",
                                         "--mission", mission, "--mission-timeout-s", "180")
         self._assert_succeeded(report, "drone1")
         entry = report["robots"]["drone1"]
@@ -256,7 +267,8 @@ class ApplicationsTest(unittest.TestCase):
         self.passed = True
 
 
-CASES = {"aircraft": "test_aircraft", "swarm": "test_swarm", "exploration": "test_exploration"}
+CASES = {"aircraft": "test_aircraft", "swarm": "test_swarm", "exploration": "test_exploration",
+         "exploration_slam": "test_exploration_slam"}
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()

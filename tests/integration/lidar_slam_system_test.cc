@@ -11,9 +11,7 @@
 // at all (refused), and the open field, where the scans see nothing to
 // match (WRONG_PROGRESS).
 
-#include <google/protobuf/util/json_util.h>
 #include <google/protobuf/util/time_util.h>
-#include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
 #include <algorithm>
@@ -28,38 +26,17 @@
 #include <vector>
 
 #include "behaviorlib/channel/channel_client.h"
-#include "behaviorlib/v1/behavior.grpc.pb.h"
-#include "behaviorlib/v1/platform.grpc.pb.h"
-#include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "motion_test_support.h"
 #include "sim_faults.h"
-#include "support/deterministic.h"
-#include "support/server_process.h"
 
 namespace {
 
-namespace v1 = behaviorlib::v1;
-using google::protobuf::util::TimeUtil;
-using std::chrono::milliseconds;
-using std::chrono::seconds;
+using namespace motion_test;
 
-constexpr char kRobot[] = "drone1";
 constexpr char kBehavior[] = "SELF_LOCALIZE_AND_MAP_WITH_LIDAR";
 constexpr double kAltitude = 1.2;
 constexpr double kSpeed = 0.5;
-
-std::unique_ptr<grpc::ClientContext> deadline(milliseconds timeout = seconds(5)) {
-  auto context = std::make_unique<grpc::ClientContext>();
-  context->set_deadline(std::chrono::system_clock::now() + timeout);
-  return context;
-}
-
-double yawOf(const v1::Quaternion& q) {
-  return std::atan2(2.0 * (q.w() * q.z() + q.x() * q.y()),
-                    1.0 - 2.0 * (q.y() * q.y() + q.z() * q.z()));
-}
-
-double wrap(double a) { return std::remainder(a, 2.0 * std::numbers::pi); }
 
 // Poses on a topic, by stamp (ns of simulated time): x, y, z, yaw.
 class Track {
@@ -140,44 +117,27 @@ class LidarSlamSystemTest : public ::testing::Test {
                                  "sim", "--config", BEHAVIORLIB_NAVIGATION_CONFIG_PATH},
                                 simulator_->address()));
     ASSERT_TRUE(system_->start()) << system_->error();
-    behaviors_ = v1::BehaviorSystem::NewStub(
-        grpc::CreateChannel(system_->address(), grpc::InsecureChannelCredentials()));
-    flight_ = v1::FlightController::NewStub(
-        grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials()));
+    system_client_ = std::make_unique<SystemClient>(system_->address());
+    pilot_ = std::make_unique<Pilot>(simulator_->address());
     channel_ = std::make_unique<behaviorlib::channel::ChannelClient>(broker_.address());
   }
 
   void TearDown() override {
     truth_sub_.reset();
     estimate_sub_.reset();
+    system_client_.reset();
     if (system_ && system_->running()) system_->kill();
   }
 
-  // Activates the behavior (retried while the system has no simulated time
-  // or sensor data yet); its activation id.
+  // Activates the behavior once its sensors are on the channel (simulated
+  // time starts once the system joined); its activation id.
   std::string activate(const std::string& json) {
-    v1::ActivateBehaviorRequest request;
-    request.set_behavior(kBehavior);
-    EXPECT_TRUE(
-        google::protobuf::util::JsonStringToMessage(json, request.mutable_parameters()).ok());
-    grpc::Status status;
-    for (int attempt = 0; attempt < 50; ++attempt) {
-      v1::ActivateResponse response;
-      status = behaviors_->ActivateBehavior(deadline().get(), request, &response);
-      if (status.ok()) return response.activation_id();
-      std::this_thread::sleep_for(milliseconds(100));
-    }
-    ADD_FAILURE() << status.error_message();
-    return "";
+    EXPECT_TRUE(FlightStack::waitFor([&] { return checkSituation().feasible(); }, seconds(10)))
+        << checkSituation().ShortDebugString();
+    return system_client_->start(kBehavior, json);
   }
 
-  v1::CheckSituationResponse checkSituation() {
-    v1::CheckBehaviorSituationRequest request;
-    request.set_behavior(kBehavior);
-    v1::CheckSituationResponse response;
-    EXPECT_TRUE(behaviors_->CheckBehaviorSituation(deadline().get(), request, &response).ok());
-    return response;
-  }
+  v1::CheckSituationResponse checkSituation() { return system_client_->checkSituation(kBehavior); }
 
   void record() {
     const behaviorlib::channel::SubscribeOptions queued{.mode = v1::DELIVERY_MODE_QUEUE,
@@ -190,46 +150,6 @@ class LidarSlamSystemTest : public ::testing::Test {
         [&](const v1::PoseStamped& p) { estimate_.add(p); });
     ASSERT_TRUE(truth_sub_->waitConnected(seconds(5)));
     ASSERT_TRUE(estimate_sub_->waitConnected(seconds(5)));
-  }
-
-  void takeOff() {
-    v1::AcquireLeaseRequest lease;
-    lease.set_robot_id(kRobot);
-    lease.set_holder("lidar_slam_system_test");
-    *lease.mutable_ttl() = TimeUtil::SecondsToDuration(10);
-    v1::AcquireLeaseResponse leased;
-    ASSERT_TRUE(flight_->AcquireLease(deadline().get(), lease, &leased).ok());
-    lease_id_ = leased.lease_id();
-    v1::ExecuteFlightActionRequest action;
-    action.set_robot_id(kRobot);
-    action.set_lease_id(lease_id_);
-    action.set_action(v1::FLIGHT_ACTION_TAKE_OFF);
-    action.set_takeoff_altitude_m(kAltitude);
-    v1::ExecuteFlightActionResponse done;
-    ASSERT_TRUE(flight_->ExecuteFlightAction(deadline().get(), action, &done).ok());
-    v1::WatchFlightStateRequest watch;
-    watch.set_robot_id(kRobot);
-    auto ctx = deadline(seconds(30));
-    auto reader = flight_->WatchFlightState(ctx.get(), watch);
-    v1::WatchFlightStateResponse state;
-    bool hovering = false;
-    while (!hovering && reader->Read(&state))
-      hovering = state.status().state() == v1::FLIGHT_STATE_HOVERING;
-    ctx->TryCancel();
-    reader->Finish();
-    ASSERT_TRUE(hovering);
-  }
-
-  void setVelocity(double vx, double vy, double vz) {
-    v1::SetpointRequest setpoint;
-    setpoint.set_robot_id(kRobot);
-    setpoint.set_lease_id(lease_id_);
-    auto* v = setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s();
-    v->set_x(vx);
-    v->set_y(vy);
-    v->set_z(vz);
-    v1::SendSetpointResponse response;
-    ASSERT_TRUE(flight_->SendSetpoint(deadline().get(), setpoint, &response).ok());
   }
 
   // Flies through `waypoints` at kSpeed, steering on the newest ground
@@ -257,28 +177,11 @@ class LidarSlamSystemTest : public ::testing::Test {
         continue;
       }
       const double v = std::min(kSpeed, d);  // slow down into the last metre
-      setVelocity(v * dx / d, v * dy / d, 1.0 * (kAltitude - p[2]));
+      pilot_->setVelocity(v * dx / d, v * dy / d, 1.0 * (kAltitude - p[2]));
       std::this_thread::sleep_for(milliseconds(5));
     }
-    setVelocity(0, 0, 0);
+    pilot_->setVelocity(0, 0, 0);
     return first;
-  }
-
-  std::optional<v1::BehaviorEvent> finishedEvent(milliseconds timeout,
-                                                 const std::string& activation_id) {
-    v1::WatchEventsRequest request;
-    auto ctx = deadline(timeout);
-    auto reader = behaviors_->WatchEvents(ctx.get(), request);
-    v1::WatchEventsResponse message;
-    while (reader->Read(&message)) {
-      if (message.has_event() && message.event().has_finished() &&
-          message.event().activation_id() == activation_id) {
-        ctx->TryCancel();
-        reader->Finish();
-        return message.event();
-      }
-    }
-    return std::nullopt;
   }
 
   void injectLidar(v1::FailureType type, double intensity = 0.0) {
@@ -307,28 +210,23 @@ class LidarSlamSystemTest : public ::testing::Test {
                                         "initial_yaw_rad": 0.0})");
     EXPECT_FALSE(id.empty());
     record();
-    takeOff();
+    pilot_->takeOff(kAltitude);
     const int64_t first = fly(throughTheBuilding(), seconds(150));
     truth_sub_.reset();
     estimate_sub_.reset();
-    v1::CheckBehaviorActivationRequest check;
-    check.set_behavior(kBehavior);
-    v1::CheckActivationResponse active;
-    EXPECT_TRUE(behaviors_->CheckBehaviorActivation(deadline().get(), check, &active).ok());
-    EXPECT_TRUE(active.active())
-        << "the behavior ended during the flight: "
-        << finishedEvent(milliseconds(500), id).value_or(v1::BehaviorEvent()).ShortDebugString();
+    const auto ended = system_client_->finished(id, milliseconds(0));
+    EXPECT_FALSE(ended.has_value()) << "the behavior ended during the flight: "
+                                    << ended.value_or(v1::BehaviorEvent()).ShortDebugString();
     return compare(truth_, estimate_, first);
   }
 
   support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
   std::unique_ptr<support::ServerProcess> simulator_, system_;
-  std::unique_ptr<v1::BehaviorSystem::Stub> behaviors_;
-  std::unique_ptr<v1::FlightController::Stub> flight_;
+  std::unique_ptr<SystemClient> system_client_;
+  std::unique_ptr<Pilot> pilot_;
   std::unique_ptr<behaviorlib::channel::ChannelClient> channel_;
   std::unique_ptr<behaviorlib::channel::Subscription> truth_sub_, estimate_sub_;
   Track truth_, estimate_;
-  std::string lease_id_;
 };
 
 TEST_F(LidarSlamSystemTest, LocalizesThroughTheBuildingWithinTenCentimetresAndTwoDegrees) {
@@ -366,7 +264,7 @@ TEST_F(LidarSlamSystemTest, NoLidarIsRefusedAndASilentLidarIsAProcessFailure) {
   ASSERT_FALSE(id.empty());
   std::this_thread::sleep_for(milliseconds(500));
   ASSERT_NO_FATAL_FAILURE(injectLidar(v1::FAILURE_TYPE_OFF));
-  auto finished = finishedEvent(seconds(20), id);
+  auto finished = system_client_->finished(id, seconds(20));
   ASSERT_TRUE(finished.has_value());
   EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE)
       << finished->ShortDebugString();
@@ -386,10 +284,8 @@ TEST_F(LidarSlamSystemTest, NoLidarIsRefusedAndASilentLidarIsAProcessFailure) {
   EXPECT_FALSE(situation.feasible());
   ASSERT_GT(situation.reasons_size(), 0);
   EXPECT_NE(situation.reasons(0).find("no lidar"), std::string::npos) << situation.reasons(0);
-  v1::ActivateBehaviorRequest request;
-  request.set_behavior(kBehavior);
   v1::ActivateResponse response;
-  const grpc::Status refused = behaviors_->ActivateBehavior(deadline().get(), request, &response);
+  const grpc::Status refused = system_client_->activate(kBehavior, "{}", &response);
   EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << refused.error_message();
   EXPECT_NE(refused.error_message().find("no lidar"), std::string::npos) << refused.error_message();
 }
@@ -399,8 +295,8 @@ TEST_F(LidarSlamSystemTest, TheOpenFieldIsWrongProgress) {
   ASSERT_NO_FATAL_FAILURE(startStack("empty_field"));
   const std::string id = activate("{}");
   ASSERT_FALSE(id.empty());
-  takeOff();
-  auto finished = finishedEvent(seconds(40), id);
+  ASSERT_NO_FATAL_FAILURE(pilot_->takeOff(kAltitude));
+  auto finished = system_client_->finished(id, seconds(40));
   ASSERT_TRUE(finished.has_value());
   EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
       << finished->ShortDebugString();

@@ -293,6 +293,63 @@ inline std::string pathJson(const std::vector<Eigen::Vector3d>& points,
   return out.str();
 }
 
+/// Flies kRobot through the simulator's FlightController itself (a lease, a
+/// take-off, velocity setpoints): for the tests of estimators, whose flight
+/// must not depend on the estimate under test.
+class Pilot {
+ public:
+  explicit Pilot(const std::string& simulator)
+      : flight_(v1::FlightController::NewStub(
+            grpc::CreateChannel(simulator, grpc::InsecureChannelCredentials()))) {}
+
+  /// A 10 s lease, the take-off, and the wait until HOVERING (20 s at most).
+  void takeOff(double altitude_m) {
+    v1::AcquireLeaseRequest lease;
+    lease.set_robot_id(kRobot);
+    lease.set_holder("test pilot");
+    *lease.mutable_ttl() = TimeUtil::SecondsToDuration(10);
+    v1::AcquireLeaseResponse leased;
+    ASSERT_TRUE(flight_->AcquireLease(deadline().get(), lease, &leased).ok());
+    lease_id_ = leased.lease_id();
+    v1::ExecuteFlightActionRequest action;
+    action.set_robot_id(kRobot);
+    action.set_lease_id(lease_id_);
+    action.set_action(v1::FLIGHT_ACTION_TAKE_OFF);
+    action.set_takeoff_altitude_m(altitude_m);
+    v1::ExecuteFlightActionResponse done;
+    ASSERT_TRUE(flight_->ExecuteFlightAction(deadline().get(), action, &done).ok());
+    v1::WatchFlightStateRequest watch;
+    watch.set_robot_id(kRobot);
+    auto context = deadline(seconds(20));
+    auto reader = flight_->WatchFlightState(context.get(), watch);
+    v1::WatchFlightStateResponse state;
+    bool hovering = false;
+    while (!hovering && reader->Read(&state))
+      hovering = state.status().state() == v1::FLIGHT_STATE_HOVERING;
+    context->TryCancel();
+    reader->Finish();
+    ASSERT_TRUE(hovering);
+  }
+
+  /// A velocity setpoint (world frame, m/s; no yaw rate), which also renews
+  /// the lease.
+  void setVelocity(double vx, double vy, double vz = 0.0) {
+    v1::SetpointRequest setpoint;
+    setpoint.set_robot_id(kRobot);
+    setpoint.set_lease_id(lease_id_);
+    auto* v = setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s();
+    v->set_x(vx);
+    v->set_y(vy);
+    v->set_z(vz);
+    v1::SendSetpointResponse response;
+    ASSERT_TRUE(flight_->SendSetpoint(deadline().get(), setpoint, &response).ok());
+  }
+
+ private:
+  std::unique_ptr<v1::FlightController::Stub> flight_;
+  std::string lease_id_;
+};
+
 /// The broker, the simulator (the deterministic mode, fixed seed) and
 /// basic_quadrotor_behaviors for localization, take-off and landing.
 class FlightStack {

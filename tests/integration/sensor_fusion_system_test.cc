@@ -26,6 +26,7 @@
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "motion_test_support.h"
 #include "sim_faults.h"
 #include "support/deterministic.h"
 #include "support/server_process.h"
@@ -89,8 +90,7 @@ class SensorFusionSystemTest : public ::testing::Test {
     ASSERT_TRUE(system_->start()) << system_->error();
     behaviors_ = v1::BehaviorSystem::NewStub(
         grpc::CreateChannel(system_->address(), grpc::InsecureChannelCredentials()));
-    flight_ = v1::FlightController::NewStub(
-        grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials()));
+    pilot_ = std::make_unique<motion_test::Pilot>(simulator_->address());
     channel_ = std::make_unique<behaviorlib::channel::ChannelClient>(broker_.address());
   }
 
@@ -98,34 +98,6 @@ class SensorFusionSystemTest : public ::testing::Test {
     truth_sub_.reset();
     estimate_sub_.reset();
     if (system_ && system_->running()) system_->kill();
-  }
-
-  void takeOff() {
-    v1::AcquireLeaseRequest lease;
-    lease.set_robot_id(kRobot);
-    lease.set_holder("sensor_fusion_system_test");
-    *lease.mutable_ttl() = TimeUtil::SecondsToDuration(10);
-    v1::AcquireLeaseResponse leased;
-    ASSERT_TRUE(flight_->AcquireLease(deadline().get(), lease, &leased).ok());
-    lease_id_ = leased.lease_id();
-    v1::ExecuteFlightActionRequest action;
-    action.set_robot_id(kRobot);
-    action.set_lease_id(lease_id_);
-    action.set_action(v1::FLIGHT_ACTION_TAKE_OFF);
-    action.set_takeoff_altitude_m(2.0);
-    v1::ExecuteFlightActionResponse done;
-    ASSERT_TRUE(flight_->ExecuteFlightAction(deadline().get(), action, &done).ok());
-    v1::WatchFlightStateRequest watch;
-    watch.set_robot_id(kRobot);
-    auto ctx = deadline(seconds(20));
-    auto reader = flight_->WatchFlightState(ctx.get(), watch);
-    v1::WatchFlightStateResponse state;
-    bool hovering = false;
-    while (!hovering && reader->Read(&state))
-      hovering = state.status().state() == v1::FLIGHT_STATE_HOVERING;
-    ctx->TryCancel();
-    reader->Finish();
-    ASSERT_TRUE(hovering);
   }
 
   // Activates the filter, retried while the system has no simulated time yet
@@ -149,17 +121,6 @@ class SensorFusionSystemTest : public ::testing::Test {
     ASSERT_TRUE(status.ok()) << status.error_message();
   }
 
-  void setVelocity(double vx, double vy) {
-    v1::SetpointRequest setpoint;
-    setpoint.set_robot_id(kRobot);
-    setpoint.set_lease_id(lease_id_);
-    auto* v = setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s();
-    v->set_x(vx);
-    v->set_y(vy);
-    v1::SendSetpointResponse response;
-    ASSERT_TRUE(flight_->SendSetpoint(deadline().get(), setpoint, &response).ok());
-  }
-
   // The finished event of `activation_id` (any activation's when empty).
   std::optional<v1::BehaviorEvent> finishedEvent(milliseconds timeout,
                                                  const std::string& activation_id = "") {
@@ -181,10 +142,9 @@ class SensorFusionSystemTest : public ::testing::Test {
   support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
   std::unique_ptr<support::ServerProcess> simulator_, system_;
   std::unique_ptr<v1::BehaviorSystem::Stub> behaviors_;
-  std::unique_ptr<v1::FlightController::Stub> flight_;
+  std::unique_ptr<motion_test::Pilot> pilot_;
   std::unique_ptr<behaviorlib::channel::ChannelClient> channel_;
   std::unique_ptr<behaviorlib::channel::Subscription> truth_sub_, estimate_sub_;
-  std::string lease_id_;
 };
 
 TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCentimetres) {
@@ -203,7 +163,7 @@ TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCent
       [&](const v1::PoseStamped& p) { estimate.add(p); });
   ASSERT_TRUE(truth_sub_->waitConnected(seconds(5)));
   ASSERT_TRUE(estimate_sub_->waitConnected(seconds(5)));
-  ASSERT_NO_FATAL_FAILURE(takeOff());
+  ASSERT_NO_FATAL_FAILURE(pilot_->takeOff(2.0));
   // A circle of 3 m radius (1.5 m/s, 0.5 rad/s), its velocity set from the
   // newest ground truth's stamp: simulated time runs as fast as the filter
   // keeps up, so the setpoints follow it rather than the wall clock.
@@ -220,7 +180,7 @@ TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCent
     if (first_ns < 0) first_ns = now_ns;
     const double t = static_cast<double>(now_ns - first_ns) / 1e9;
     if (t >= kCircleSeconds) break;
-    ASSERT_NO_FATAL_FAILURE(setVelocity(1.5 * std::cos(t / 2.0), 1.5 * std::sin(t / 2.0)));
+    ASSERT_NO_FATAL_FAILURE(pilot_->setVelocity(1.5 * std::cos(t / 2.0), 1.5 * std::sin(t / 2.0)));
     std::this_thread::sleep_for(milliseconds(5));
   }
   truth_sub_.reset();

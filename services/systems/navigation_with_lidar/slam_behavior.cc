@@ -44,11 +44,6 @@ SlamBehavior::SlamBehavior(channel::ChannelClient* channel, const Eigen::Vector3
 
 SlamBehavior::~SlamBehavior() { stopSubscriptions(); }
 
-SlamBehavior::Stats SlamBehavior::stats() const {
-  absl::MutexLock lock(&stats_mutex_);
-  return stats_;
-}
-
 absl::Status SlamBehavior::onConfigure(const YAML::Node& config) {
   using flight::readNumber;
   using flight::readSeconds;
@@ -158,10 +153,6 @@ void SlamBehavior::onScan(const v1::LaserScan& scan) {
   if (!running_) return;
   const TimePoint stamp = flight::stampTime(scan.header());
   last_scan_ = stamp;
-  {
-    absl::MutexLock lock(&stats_mutex_);
-    ++stats_.scans;
-  }
   if (!ekf_.initialized()) return;
   const std::optional<Pose2> predicted = poseAt(stamp);
   if (!predicted) return;  // older than the history, or before the start
@@ -201,11 +192,6 @@ void SlamBehavior::onScan(const v1::LaserScan& scan) {
   } else {
     degenerate_since_.reset();
   }
-  absl::MutexLock lock(&stats_mutex_);
-  stats_.matched += u.matched;
-  stats_.degenerate += u.degenerate;
-  stats_.rejected += u.matched && !accepted;
-  stats_.inserted += u.inserted;
 }
 
 absl::Status SlamBehavior::onActivate() {
@@ -219,10 +205,6 @@ absl::Status SlamBehavior::onActivate() {
   degenerate_since_.reset();
   imu_count_ = 0;
   publish_error_ = absl::OkStatus();
-  {
-    absl::MutexLock lock(&stats_mutex_);
-    stats_ = {};
-  }
   use_imu_yaw_ = parameters().use_imu_yaw();
   running_ = publishing_ = true;
   const std::string robot = robotId();

@@ -69,12 +69,6 @@ class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParame
   SlamBehavior(channel::ChannelClient* channel, const Eigen::Vector3d& lidar_mount_m);
   ~SlamBehavior() override;
 
-  /// Counters of the current activation, for tests and the report.
-  struct Stats {
-    uint64_t scans = 0, matched = 0, degenerate = 0, rejected = 0, inserted = 0;
-  };
-  Stats stats() const;
-
  protected:
   absl::Status onConfigure(const YAML::Node& config) override;
   absl::Status onActivate() override;
@@ -118,7 +112,7 @@ class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParame
   fusion::EkfNoise noise_;
   LidarSlamConfig slam_config_;
 
-  // State: samples arrive on the worker (onWorker), so no lock but for stats.
+  // State: samples arrive on the worker (onWorker), so no lock.
   fusion::InsEkf ekf_;
   std::unique_ptr<LidarSlam> slam_;
   bool running_ = false, publishing_ = false, use_imu_yaw_ = true;
@@ -131,8 +125,6 @@ class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParame
   std::optional<TimePoint> degenerate_since_;
   std::string degenerate_reason_;
   absl::Status publish_error_;
-  mutable absl::Mutex stats_mutex_;
-  Stats stats_ ABSL_GUARDED_BY(stats_mutex_);
 
   TimePoint activated_at_{};
   bool active_ = false;

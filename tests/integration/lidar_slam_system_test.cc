@@ -28,6 +28,7 @@
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "motion_test_support.h"
+#include "pose_tracks.h"
 #include "sim_faults.h"
 
 namespace {
@@ -38,29 +39,7 @@ constexpr char kBehavior[] = "SELF_LOCALIZE_AND_MAP_WITH_LIDAR";
 constexpr double kAltitude = 1.2;
 constexpr double kSpeed = 0.5;
 
-// Poses on a topic, by stamp (ns of simulated time): x, y, z, yaw.
-class Track {
- public:
-  void add(const v1::PoseStamped& pose) {
-    const auto& p = pose.pose().position_m();
-    std::lock_guard lock(mutex_);
-    points_[TimeUtil::TimestampToNanoseconds(pose.header().stamp())] = {
-        p.x(), p.y(), p.z(), yawOf(pose.pose().orientation())};
-  }
-  std::optional<std::pair<int64_t, std::array<double, 4>>> newest() const {
-    std::lock_guard lock(mutex_);
-    if (points_.empty()) return std::nullopt;
-    return *points_.rbegin();
-  }
-  std::map<int64_t, std::array<double, 4>> points() const {
-    std::lock_guard lock(mutex_);
-    return points_;
-  }
-
- private:
-  mutable std::mutex mutex_;
-  std::map<int64_t, std::array<double, 4>> points_;
-};
+using pose_tracks::Track;
 
 struct Errors {
   int samples = 0;
@@ -123,8 +102,7 @@ class LidarSlamSystemTest : public ::testing::Test {
   }
 
   void TearDown() override {
-    truth_sub_.reset();
-    estimate_sub_.reset();
+    tracks_.stop();
     system_client_.reset();
     if (system_ && system_->running()) system_->kill();
   }
@@ -139,19 +117,6 @@ class LidarSlamSystemTest : public ::testing::Test {
 
   v1::CheckSituationResponse checkSituation() { return system_client_->checkSituation(kBehavior); }
 
-  void record() {
-    const behaviorlib::channel::SubscribeOptions queued{.mode = v1::DELIVERY_MODE_QUEUE,
-                                                        .queue_size = 5000};
-    truth_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
-        std::string("robots/") + kRobot + "/ground_truth/pose", queued,
-        [&](const v1::PoseStamped& p) { truth_.add(p); });
-    estimate_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
-        std::string("robots/") + kRobot + "/self_localization/pose", queued,
-        [&](const v1::PoseStamped& p) { estimate_.add(p); });
-    ASSERT_TRUE(truth_sub_->waitConnected(seconds(5)));
-    ASSERT_TRUE(estimate_sub_->waitConnected(seconds(5)));
-  }
-
   // Flies through `waypoints` at kSpeed, steering on the newest ground
   // truth (every few milliseconds of wall time; simulated time runs as fast
   // as the stack keeps up). Returns the first stamp of the flight.
@@ -163,7 +128,7 @@ class LidarSlamSystemTest : public ::testing::Test {
       EXPECT_LT(std::chrono::steady_clock::now() - wall_start, wall_limit)
           << "reached " << next << " of " << waypoints.size() << " waypoints";
       if (std::chrono::steady_clock::now() - wall_start >= wall_limit) break;
-      const auto now = truth_.newest();
+      const auto now = tracks_.truth.newest();
       if (!now) {
         std::this_thread::sleep_for(milliseconds(5));
         continue;
@@ -209,15 +174,14 @@ class LidarSlamSystemTest : public ::testing::Test {
     const std::string id = activate(R"({"initial_position_m": {"x": 2.0, "y": 2.0, "z": 0.0},
                                         "initial_yaw_rad": 0.0})");
     EXPECT_FALSE(id.empty());
-    record();
+    EXPECT_NO_FATAL_FAILURE(tracks_.record(*channel_, kRobot));
     pilot_->takeOff(kAltitude);
     const int64_t first = fly(throughTheBuilding(), seconds(150));
-    truth_sub_.reset();
-    estimate_sub_.reset();
+    tracks_.stop();
     const auto ended = system_client_->finished(id, milliseconds(0));
     EXPECT_FALSE(ended.has_value()) << "the behavior ended during the flight: "
                                     << ended.value_or(v1::BehaviorEvent()).ShortDebugString();
-    return compare(truth_, estimate_, first);
+    return compare(tracks_.truth, tracks_.estimate, first);
   }
 
   support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
@@ -225,8 +189,7 @@ class LidarSlamSystemTest : public ::testing::Test {
   std::unique_ptr<SystemClient> system_client_;
   std::unique_ptr<Pilot> pilot_;
   std::unique_ptr<behaviorlib::channel::ChannelClient> channel_;
-  std::unique_ptr<behaviorlib::channel::Subscription> truth_sub_, estimate_sub_;
-  Track truth_, estimate_;
+  pose_tracks::PoseTracks tracks_;
 };
 
 TEST_F(LidarSlamSystemTest, LocalizesThroughTheBuildingWithinTenCentimetresAndTwoDegrees) {

@@ -27,6 +27,7 @@
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "motion_test_support.h"
+#include "pose_tracks.h"
 #include "sim_faults.h"
 #include "support/deterministic.h"
 #include "support/server_process.h"
@@ -48,29 +49,6 @@ std::unique_ptr<grpc::ClientContext> deadline(milliseconds timeout = seconds(5))
   context->set_deadline(std::chrono::system_clock::now() + timeout);
   return context;
 }
-
-// Positions on a topic, by stamp (ns of simulated time).
-class Track {
- public:
-  void add(const v1::PoseStamped& pose) {
-    const auto& p = pose.pose().position_m();
-    std::lock_guard lock(mutex_);
-    points_[TimeUtil::TimestampToNanoseconds(pose.header().stamp())] = {p.x(), p.y(), p.z()};
-  }
-  /// The newest stamp (ns of simulated time), or -1 before any.
-  int64_t newestStamp() const {
-    std::lock_guard lock(mutex_);
-    return points_.empty() ? -1 : points_.rbegin()->first;
-  }
-  std::map<int64_t, std::array<double, 3>> points() const {
-    std::lock_guard lock(mutex_);
-    return points_;
-  }
-
- private:
-  mutable std::mutex mutex_;
-  std::map<int64_t, std::array<double, 3>> points_;
-};
 
 class SensorFusionSystemTest : public ::testing::Test {
  protected:
@@ -95,8 +73,7 @@ class SensorFusionSystemTest : public ::testing::Test {
   }
 
   void TearDown() override {
-    truth_sub_.reset();
-    estimate_sub_.reset();
+    tracks_.stop();
     if (system_ && system_->running()) system_->kill();
   }
 
@@ -144,7 +121,7 @@ class SensorFusionSystemTest : public ::testing::Test {
   std::unique_ptr<v1::BehaviorSystem::Stub> behaviors_;
   std::unique_ptr<motion_test::Pilot> pilot_;
   std::unique_ptr<behaviorlib::channel::ChannelClient> channel_;
-  std::unique_ptr<behaviorlib::channel::Subscription> truth_sub_, estimate_sub_;
+  pose_tracks::PoseTracks tracks_;
 };
 
 TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCentimetres) {
@@ -152,17 +129,7 @@ TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCent
   // system, so simulated time (and the 10 s lease) cannot run away between
   // the take-off and the first setpoint.
   ASSERT_FALSE(activateFilter().empty());
-  Track truth, estimate;
-  const behaviorlib::channel::SubscribeOptions queued{.mode = v1::DELIVERY_MODE_QUEUE,
-                                                      .queue_size = 5000};
-  truth_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
-      std::string("robots/") + kRobot + "/ground_truth/pose", queued,
-      [&](const v1::PoseStamped& p) { truth.add(p); });
-  estimate_sub_ = channel_->subscribeTyped<v1::PoseStamped>(
-      std::string("robots/") + kRobot + "/self_localization/pose", queued,
-      [&](const v1::PoseStamped& p) { estimate.add(p); });
-  ASSERT_TRUE(truth_sub_->waitConnected(seconds(5)));
-  ASSERT_TRUE(estimate_sub_->waitConnected(seconds(5)));
+  ASSERT_NO_FATAL_FAILURE(tracks_.record(*channel_, kRobot));
   ASSERT_NO_FATAL_FAILURE(pilot_->takeOff(2.0));
   // A circle of 3 m radius (1.5 m/s, 0.5 rad/s), its velocity set from the
   // newest ground truth's stamp: simulated time runs as fast as the filter
@@ -172,26 +139,25 @@ TEST_F(SensorFusionSystemTest, TheEstimateFollowsTheGroundTruthWithinFifteenCent
   while (true) {
     ASSERT_LT(std::chrono::steady_clock::now() - wall_start, kCircleWallLimit)
         << "simulated time did not advance " << kCircleSeconds << " s";
-    const int64_t now_ns = truth.newestStamp();
-    if (now_ns < 0) {
+    const auto newest = tracks_.truth.newest();
+    if (!newest) {
       std::this_thread::sleep_for(milliseconds(5));
       continue;
     }
-    if (first_ns < 0) first_ns = now_ns;
-    const double t = static_cast<double>(now_ns - first_ns) / 1e9;
+    if (first_ns < 0) first_ns = newest->first;
+    const double t = static_cast<double>(newest->first - first_ns) / 1e9;
     if (t >= kCircleSeconds) break;
     ASSERT_NO_FATAL_FAILURE(pilot_->setVelocity(1.5 * std::cos(t / 2.0), 1.5 * std::sin(t / 2.0)));
     std::this_thread::sleep_for(milliseconds(5));
   }
-  truth_sub_.reset();
-  estimate_sub_.reset();
+  tracks_.stop();
 
   // Pair each estimate with the ground truth at the same stamp
   // (interpolated between the neighbouring 100 Hz samples); skip the first
   // 5 s of simulated time of the circle while the filter converges after
   // the take-off.
-  const auto t = truth.points();
-  const auto e = estimate.points();
+  const auto t = tracks_.truth.points();
+  const auto e = tracks_.estimate.points();
   ASSERT_GT(e.size(), 1000u) << "the estimate is published at 100 Hz of simulated time";
   const int64_t first = std::max(e.begin()->first, first_ns) + 5'000'000'000;
   double sum = 0;

@@ -10,6 +10,11 @@
 // multiplied by the NOISY fault; a silent lidar (PROCESS_FAILURE), no lidar
 // at all (refused), and the open field, where the scans see nothing to
 // match (WRONG_PROGRESS).
+//
+// On the SLAM's poses, GENERATE_PATH_WITH_OCCUPANCY_GRID is asked at
+// take-off for a goal in room D, not yet seen: it waits for the map and
+// plans once the flight has shown the way. From room D, a vehicle of
+// radius 0.35 m then has a path out of the building through every door.
 
 #include <google/protobuf/util/time_util.h>
 #include <gtest/gtest.h>
@@ -19,9 +24,13 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <numbers>
+#include <optional>
+#include <sstream>
+#include <string>
 #include <thread>
 #include <vector>
 
@@ -38,6 +47,28 @@ using namespace motion_test;
 constexpr char kBehavior[] = "SELF_LOCALIZE_AND_MAP_WITH_LIDAR";
 constexpr double kAltitude = 1.2;
 constexpr double kSpeed = 0.5;
+constexpr char kPlanner[] = "GENERATE_PATH_WITH_OCCUPANCY_GRID";
+constexpr double kVehicleRadius = 0.35;
+
+// The doors of simulator/worlds/rooms.yaml: the ends of each opening.
+struct Door {
+  const char* name;
+  std::array<double, 2> a, b;
+};
+constexpr std::array<Door, 4> kDoors = {{{"entrance", {2.4, 0.0}, {3.6, 0.0}},
+                                         {"A-B", {6.0, 4.4}, {6.0, 5.6}},
+                                         {"B-C", {12.0, 1.9}, {12.0, 3.1}},
+                                         {"C-D", {14.4, 5.0}, {15.6, 5.0}}}};
+
+// Whether the segments p-q and a-b cross (2-D).
+bool crosses(const std::array<double, 2>& p, const std::array<double, 2>& q,
+             const std::array<double, 2>& a, const std::array<double, 2>& b) {
+  const auto side = [](const std::array<double, 2>& o, const std::array<double, 2>& u,
+                       const std::array<double, 2>& v) {
+    return (u[0] - o[0]) * (v[1] - o[1]) - (u[1] - o[1]) * (v[0] - o[0]);
+  };
+  return side(p, q, a) * side(p, q, b) <= 0 && side(a, b, p) * side(a, b, q) <= 0;
+}
 
 using pose_tracks::Track;
 
@@ -169,13 +200,28 @@ class LidarSlamSystemTest : public ::testing::Test {
             {13.0, 2.5}, {14.5, 3.0}, {15.0, 4.2}, {15.0, 5.8}, {14.0, 8.5}};
   }
 
+  // GENERATE_PATH_WITH_OCCUPANCY_GRID to `goal` at flight height, for a
+  // vehicle of kVehicleRadius; its activation id.
+  std::string planTo(double x, double y, double map_wait_s) {
+    EXPECT_TRUE(FlightStack::waitFor([&] {
+      return system_client_->checkSituation(kPlanner).feasible();
+    })) << system_client_->checkSituation(kPlanner).ShortDebugString();
+    std::ostringstream json;
+    json << R"({"goal_m": {"x": )" << x << R"(, "y": )" << y << R"(, "z": )" << kAltitude
+         << R"(}, "vehicle_radius_m": )" << kVehicleRadius << R"(, "map_wait_s": )" << map_wait_s
+         << "}";
+    return system_client_->start(kPlanner, json.str());
+  }
+
   // Starts at the take-off point, flies through the building, compares.
-  Errors flyThroughTheBuilding() {
+  // `airborne` runs once the vehicle has taken off.
+  Errors flyThroughTheBuilding(const std::function<void()>& airborne = {}) {
     const std::string id = activate(R"({"initial_position_m": {"x": 2.0, "y": 2.0, "z": 0.0},
                                         "initial_yaw_rad": 0.0})");
     EXPECT_FALSE(id.empty());
     EXPECT_NO_FATAL_FAILURE(tracks_.record(*channel_, kRobot));
     pilot_->takeOff(kAltitude);
+    if (airborne) airborne();
     const int64_t first = fly(throughTheBuilding(), seconds(150));
     tracks_.stop();
     const auto ended = system_client_->finished(id, milliseconds(0));
@@ -194,7 +240,18 @@ class LidarSlamSystemTest : public ::testing::Test {
 
 TEST_F(LidarSlamSystemTest, LocalizesThroughTheBuildingWithinTenCentimetresAndTwoDegrees) {
   ASSERT_NO_FATAL_FAILURE(startStack("rooms"));
-  const Errors e = flyThroughTheBuilding();
+  std::mutex mutex;
+  std::optional<v1::Path> path;
+  auto sub = channel_->subscribeTyped<v1::Path>(
+      std::string("robots/") + kRobot + "/navigation/path", {}, [&](const v1::Path& p) {
+        std::lock_guard lock(mutex);
+        path = p;
+      });
+  ASSERT_TRUE(sub->waitConnected(seconds(5)));
+  // Room D, beyond the map at take-off (the lidar sees room B through its
+  // door, no further east than the wall at x = 12): the planner waits.
+  std::string to_room_d;
+  const Errors e = flyThroughTheBuilding([&] { to_room_d = planTo(14.0, 8.5, 200.0); });
   std::printf(
       "lidar SLAM over %d estimates: horizontal RMSE %.3f m (max %.3f m), yaw RMSE %.2f "
       "deg, z RMSE %.3f m\n",
@@ -202,6 +259,46 @@ TEST_F(LidarSlamSystemTest, LocalizesThroughTheBuildingWithinTenCentimetresAndTw
   EXPECT_GT(e.samples, 2000) << "the estimate is published at 100 Hz of simulated time";
   EXPECT_LE(e.horizontal_rmse_m, 0.10);
   EXPECT_LE(e.yaw_rmse_deg, 2.0);
+
+  ASSERT_FALSE(to_room_d.empty());
+  const auto planned_d = system_client_->finished(to_room_d, seconds(10));
+  ASSERT_TRUE(planned_d.has_value());
+  EXPECT_EQ(planned_d->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << planned_d->ShortDebugString();
+  EXPECT_NE(planned_d->finished().message().find("after waiting"), std::string::npos)
+      << planned_d->finished().message();
+  std::printf("to room D: %s\n", planned_d->finished().message().c_str());
+
+  // From room D out of the entrance: every door on the way.
+  {
+    std::lock_guard lock(mutex);
+    path.reset();
+  }
+  const std::string out = planTo(3.0, -1.5, 0.0);
+  ASSERT_FALSE(out.empty());
+  const auto planned_out = system_client_->finished(out, seconds(20));
+  ASSERT_TRUE(planned_out.has_value());
+  ASSERT_EQ(planned_out->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << planned_out->ShortDebugString();
+  std::printf("out of the building: %s\n", planned_out->finished().message().c_str());
+  EXPECT_NE(planned_out->finished().message().find("for the pose estimate's uncertainty"),
+            std::string::npos)
+      << "the SLAM reports its uncertainty: " << planned_out->finished().message();
+  ASSERT_TRUE(FlightStack::waitFor([&] {
+    std::lock_guard lock(mutex);
+    return path.has_value();
+  }));
+  std::lock_guard lock(mutex);
+  for (const Door& door : kDoors) {
+    bool through = false;
+    for (int i = 1; i < path->poses_size(); ++i) {
+      const auto& p = path->poses(i - 1).position_m();
+      const auto& q = path->poses(i).position_m();
+      through = through || crosses({p.x(), p.y()}, {q.x(), q.y()}, door.a, door.b);
+    }
+    EXPECT_TRUE(through) << "the path out does not pass the door " << door.name << ": "
+                         << path->ShortDebugString();
+  }
 }
 
 TEST_F(LidarSlamSystemTest, LocalizesWithTheLidarsNoiseMultiplied) {

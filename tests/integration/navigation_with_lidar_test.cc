@@ -3,8 +3,9 @@
 // (belief memory), basic_quadrotor_behaviors (SELF_LOCALIZE_WITH_GROUND_TRUTH,
 // TAKE_OFF) and the system under test. The vehicle takes off in room A, the
 // map builds from its scans; paths to room B avoid the building's real walls
-// and reach belief memory and the channel; an unreachable goal, goals outside
-// the map or in a wall, and a bad save path are reported; planning time-outs
+// and reach belief memory and the channel; goals out of bounds are refused,
+// goals not yet seen, in a wall or beyond doors too narrow wait for the map,
+// then end naming why, and a bad save path is reported; planning time-outs
 // re-plan up to max_replans, then end TIME_OUT; the saved map is read back
 // with OctoMap; CLEAR empties it (the lidar stopped by fault injection).
 
@@ -247,14 +248,21 @@ TEST_F(NavigationWithLidarTest, PlansFromRoomAToRoomBAroundTheWallsIntoBeliefAnd
   }
 }
 
-TEST_F(NavigationWithLidarTest, AGoalBeyondDoorsNarrowerThanTheVehicleIsUnreachable) {
-  // 0.7 m of radius: the 1.2 m doors are closed to it; room A is shut.
-  const auto finished = run("GENERATE_PATH_WITH_OCCUPANCY_GRID",
-                            goalJson(kGoalInRoomB, 0.7, ", \"belief_key\": \"drone1/wide_path\""));
+TEST_F(NavigationWithLidarTest, AGoalBeyondDoorsNarrowerThanTheVehicleIsBlocked) {
+  // 0.7 m of radius: the 1.2 m doors are closed to it; room A is shut. The
+  // hovering vehicle's new scans change the map; each change is tried again
+  // until map_wait_s (simulated time) has passed.
+  const auto finished = run(
+      "GENERATE_PATH_WITH_OCCUPANCY_GRID",
+      goalJson(kGoalInRoomB, 0.7, ", \"belief_key\": \"drone1/wide_path\", \"map_wait_s\": 2.5"));
   EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
       << finished.ShortDebugString();
-  EXPECT_NE(finished.finished().message().find("unreachable"), std::string::npos)
-      << finished.finished().message();
+  const std::string& message = finished.finished().message();
+  EXPECT_NE(message.find("unreachable (blocked): no free passage"), std::string::npos) << message;
+  EXPECT_NE(message.find("waited"), std::string::npos) << message;
+  EXPECT_GE(finished.finished().active_duration().seconds(), 2) << message;
+  // One scan a second is mapped while the vehicle hovers: tried again.
+  EXPECT_EQ(message.find(" 0 new attempts"), std::string::npos) << message;
   v1::Belief belief;
   EXPECT_EQ(readBelief("drone1/wide_path", &belief).error_code(), grpc::StatusCode::NOT_FOUND);
 }
@@ -293,19 +301,28 @@ TEST_F(NavigationWithLidarTest, PlanningTimeOutsRePlanUpToTheLimitThenEndTimeOut
   fine.terminate();
 }
 
-TEST_F(NavigationWithLidarTest, GoalsOutsideTheMapOrInAWallAreRefused) {
+TEST_F(NavigationWithLidarTest, GoalsOutOfBoundsAreRefusedUnseenOrInAWallSaySo) {
   v1::ActivateResponse response;
-  grpc::Status outside = nav_client_->activate("GENERATE_PATH_WITH_OCCUPANCY_GRID",
-                                               goalJson({60, 60, 1.0}, kRadius), &response);
-  EXPECT_EQ(outside.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(outside);
-  EXPECT_NE(outside.error_message().find("outside the map"), std::string::npos)
-      << outside.error_message();
+  grpc::Status too_high = nav_client_->activate("GENERATE_PATH_WITH_OCCUPANCY_GRID",
+                                                goalJson({3, 5, 2.5}, kRadius), &response);
+  EXPECT_EQ(too_high.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(too_high);
+  EXPECT_NE(too_high.error_message().find("out of bounds"), std::string::npos)
+      << too_high.error_message();
+  // Far beyond anything the lidar has seen.
+  auto outside = run("GENERATE_PATH_WITH_OCCUPANCY_GRID",
+                     goalJson({60, 60, 1.0}, kRadius, ", \"map_wait_s\": 0"));
+  EXPECT_EQ(outside.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
+      << outside.ShortDebugString();
+  EXPECT_NE(outside.finished().message().find("(unknown): it lies outside the space mapped"),
+            std::string::npos)
+      << outside.finished().message();
   // The wall between rooms A and B, seen by the lidar.
-  grpc::Status in_wall = nav_client_->activate("GENERATE_PATH_WITH_OCCUPANCY_GRID",
-                                               goalJson({6.0, 2.0, 1.0}, kRadius), &response);
-  EXPECT_EQ(in_wall.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(in_wall);
-  EXPECT_NE(in_wall.error_message().find("inside an obstacle"), std::string::npos)
-      << in_wall.error_message();
+  auto in_wall = run("GENERATE_PATH_WITH_OCCUPANCY_GRID",
+                     goalJson({6.0, 2.0, 1.0}, kRadius, ", \"map_wait_s\": 0"));
+  EXPECT_EQ(in_wall.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
+      << in_wall.ShortDebugString();
+  EXPECT_NE(in_wall.finished().message().find("(blocked): an occupied voxel"), std::string::npos)
+      << in_wall.finished().message();
 }
 
 TEST_F(NavigationWithLidarTest, BoundsClipThePlanningVolumeAndBadBoundsAreRefused) {
@@ -319,7 +336,7 @@ TEST_F(NavigationWithLidarTest, BoundsClipThePlanningVolumeAndBadBoundsAreRefuse
   // Room B's centre is in the map, but outside a box around room A only.
   expect_refused(R"({"goal_m": {"x": 9, "y": 5, "z": 1}, "bounds_min_m": {"x": 0, "y": 0, "z": 0},
                      "bounds_max_m": {"x": 6, "y": 10, "z": 3}})",
-                 "outside the map");
+                 "out of bounds");
   expect_refused(
       R"({"goal_m": {"x": 3, "y": 5, "z": 1}, "bounds_min_m": {"x": 0, "y": 0, "z": 0}})",
       "go together");

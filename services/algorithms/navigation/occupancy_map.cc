@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <functional>
 #include <limits>
 
@@ -284,6 +285,44 @@ std::optional<size_t> InflatedGrid::cellOf(const Eigen::Vector3d& p) const {
 bool InflatedGrid::blocked(const Eigen::Vector3d& p) const {
   const std::optional<size_t> cell = cellOf(p);
   return !cell || clearance_[*cell] <= radius_;
+}
+
+bool InflatedGrid::blocked(const Eigen::Vector3d& p, double radius_m) const {
+  const std::optional<size_t> cell = cellOf(p);
+  return !cell || clearance_[*cell] <= static_cast<float>(radius_m);
+}
+
+bool InflatedGrid::connected(const Eigen::Vector3d& from, const Eigen::Vector3d& to,
+                             double radius_m) const {
+  const std::optional<size_t> a = cellOf(from), b = cellOf(to);
+  if (!a || !b) return false;
+  const float radius = static_cast<float>(radius_m);
+  const size_t sy = static_cast<size_t>(size_.y()), sz = static_cast<size_t>(size_.z());
+  std::vector<uint8_t> seen(clearance_.size(), 0);
+  std::vector<size_t> frontier{*a};
+  seen[*a] = 1;
+  while (!frontier.empty()) {
+    const size_t c = frontier.back();
+    frontier.pop_back();
+    if (c == *b) return true;
+    const int x = static_cast<int>(c / (sy * sz)), y = static_cast<int>((c / sz) % sy),
+              z = static_cast<int>(c % sz);
+    for (int dx = -1; dx <= 1; ++dx) {
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dz = -1; dz <= 1; ++dz) {
+          const int nx = x + dx, ny = y + dy, nz = z + dz;
+          if (nx < 0 || ny < 0 || nz < 0 || nx >= size_.x() || ny >= size_.y() || nz >= size_.z())
+            continue;
+          const size_t n = (static_cast<size_t>(nx) * sy + ny) * sz + nz;
+          if (seen[n]) continue;
+          seen[n] = 1;
+          if (n != *b && clearance_[n] <= radius) continue;
+          frontier.push_back(n);
+        }
+      }
+    }
+  }
+  return false;
 }
 
 double InflatedGrid::clearanceM(const Eigen::Vector3d& p) const {

@@ -44,14 +44,14 @@ std::vector<Eigen::Vector3d> densify(const std::vector<Eigen::Vector3d>& path, d
 
 // Smallest clearance along the straight segment a-b, sampled every
 // `spacing`; below `floor_m` (or blocked) it stops early and returns -1.
-double segmentClearance(const InflatedGrid& grid, const Eigen::Vector3d& a,
+double segmentClearance(const InflatedGrid& grid, double radius, const Eigen::Vector3d& a,
                         const Eigen::Vector3d& b, double spacing, double floor_m) {
   const int n = std::max(1, static_cast<int>(std::ceil((b - a).norm() / spacing)));
   double least = std::numeric_limits<double>::infinity();
   for (int k = 0; k <= n; ++k) {
     const Eigen::Vector3d p = a + (b - a) * (static_cast<double>(k) / n);
     const double c = grid.clearanceM(p);
-    if (grid.blocked(p) || c < floor_m) return -1.0;
+    if (grid.blocked(p, radius) || c < floor_m) return -1.0;
     least = std::min(least, c);
   }
   return least;
@@ -62,8 +62,8 @@ double segmentClearance(const InflatedGrid& grid, const Eigen::Vector3d& a,
 // point near an obstacle moves out to the target, in a passage narrower
 // than that it moves to the passage's middle. A move that would leave a
 // blocked segment to a neighbour is not made.
-void pushAway(const InflatedGrid& grid, std::vector<Eigen::Vector3d>& points, double target_m,
-              double resolution, double spacing) {
+void pushAway(const InflatedGrid& grid, double radius, std::vector<Eigen::Vector3d>& points,
+              double target_m, double resolution, double spacing) {
   const double h = resolution;
   const double step = resolution;
   for (size_t i = 1; i + 1 < points.size(); ++i) {
@@ -79,13 +79,13 @@ void pushAway(const InflatedGrid& grid, std::vector<Eigen::Vector3d>& points, do
       if (gradient.norm() < 1e-9) break;
       const Eigen::Vector3d next = p + gradient.normalized() * step;
       const double cn = grid.clearanceM(next);
-      if (cn < c || grid.blocked(next)) break;
+      if (cn < c || grid.blocked(next, radius)) break;
       p = next;
       c = cn;
     }
     if (p == points[i]) continue;
-    if (segmentClearance(grid, points[i - 1], p, spacing, 0.0) >= 0.0 &&
-        segmentClearance(grid, p, points[i + 1], spacing, 0.0) >= 0.0) {
+    if (segmentClearance(grid, radius, points[i - 1], p, spacing, 0.0) >= 0.0 &&
+        segmentClearance(grid, radius, p, points[i + 1], spacing, 0.0) >= 0.0) {
       points[i] = p;
     }
   }
@@ -95,7 +95,7 @@ void pushAway(const InflatedGrid& grid, std::vector<Eigen::Vector3d>& points, do
 // keeps min(target, the least clearance of the points it replaces): the
 // path is shortened without being pulled against a wall or a corner where
 // the space allows more room.
-std::vector<Eigen::Vector3d> pullString(const InflatedGrid& grid,
+std::vector<Eigen::Vector3d> pullString(const InflatedGrid& grid, double radius,
                                         const std::vector<Eigen::Vector3d>& points, double target_m,
                                         double spacing) {
   std::vector<Eigen::Vector3d> out;
@@ -111,7 +111,7 @@ std::vector<Eigen::Vector3d> pullString(const InflatedGrid& grid,
     size_t chosen = i + 1;
     for (size_t j = points.size() - 1; j > i + 1; --j) {
       const double required = std::min(target_m, least[j]);
-      if (segmentClearance(grid, points[i], points[j], spacing, required - 1e-6) >= 0.0) {
+      if (segmentClearance(grid, radius, points[i], points[j], spacing, required - 1e-6) >= 0.0) {
         chosen = j;
         break;
       }
@@ -120,6 +120,19 @@ std::vector<Eigen::Vector3d> pullString(const InflatedGrid& grid,
     i = chosen;
   }
   return out;
+}
+
+absl::Status checkEnds(const Eigen::Vector3d& start_m, const Eigen::Vector3d& goal_m,
+                       const PlanOptions& options) {
+  if (!start_m.allFinite() || !goal_m.allFinite()) {
+    return absl::InvalidArgumentError("start and goal must be finite coordinates");
+  }
+  if (!inside(goal_m, options)) {
+    return absl::InvalidArgumentError("goal " + text(goal_m) + " is outside the planning volume " +
+                                      text(options.bounds_min_m) + " .. " +
+                                      text(options.bounds_max_m));
+  }
+  return absl::OkStatus();
 }
 
 void quietOmpl() {
@@ -134,25 +147,34 @@ void seedPlanner(std::uint32_t seed) {
   ompl::RNG::setSeed(seed);
 }
 
+double cellMarginM(double resolution_m) { return 0.5 * std::sqrt(3.0) * resolution_m; }
+
 absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vector3d& start_m,
                                      const Eigen::Vector3d& goal_m, const PlanOptions& options) {
-  quietOmpl();
-  if (!start_m.allFinite() || !goal_m.allFinite()) {
-    return absl::InvalidArgumentError("start and goal must be finite coordinates");
-  }
-  if (!inside(goal_m, options)) {
-    return absl::InvalidArgumentError("goal " + text(goal_m) + " is outside the planning volume " +
-                                      text(options.bounds_min_m) + " .. " +
-                                      text(options.bounds_max_m));
-  }
+  if (absl::Status s = checkEnds(start_m, goal_m, options); !s.ok()) return s;
   const auto t0 = std::chrono::steady_clock::now();
   // One dense inflated grid per plan: thousands of checks, one lookup each.
-  // Cells are judged by their centre: add half a cell diagonal of margin.
-  const double margin = 0.5 * std::sqrt(3.0) * map.resolutionM();
   const InflatedGrid grid(map, options.bounds_min_m, options.bounds_max_m,
-                          options.vehicle_radius_m + margin);
-  const auto t_grid = std::chrono::steady_clock::now();
-  if (grid.blocked(goal_m)) {
+                          options.vehicle_radius_m + cellMarginM(map.resolutionM()) +
+                              std::max(0.0, options.uncertainty_margin_m));
+  const double inflation_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  absl::StatusOr<PlannedPath> path = planPath(grid, start_m, goal_m, options);
+  if (path.ok()) {
+    path->inflation_time_s = inflation_s;
+    path->planning_time_s += inflation_s;
+  }
+  return path;
+}
+
+absl::StatusOr<PlannedPath> planPath(const InflatedGrid& grid, const Eigen::Vector3d& start_m,
+                                     const Eigen::Vector3d& goal_m, const PlanOptions& options) {
+  quietOmpl();
+  if (absl::Status s = checkEnds(start_m, goal_m, options); !s.ok()) return s;
+  const auto t0 = std::chrono::steady_clock::now();
+  const double resolution = grid.resolutionM();
+  const double bare = options.vehicle_radius_m + cellMarginM(resolution);
+  if (grid.blocked(goal_m, bare)) {
     return absl::InvalidArgumentError(
         "goal " + text(goal_m) + " is inside an obstacle: an occupied voxel is within " +
         std::to_string(options.vehicle_radius_m) + " m (the vehicle's radius)");
@@ -161,10 +183,18 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
     return absl::FailedPreconditionError("the vehicle at " + text(start_m) +
                                          " is outside the planning volume");
   }
-  if (grid.blocked(start_m)) {
+  if (grid.blocked(start_m, bare)) {
     return absl::FailedPreconditionError(
         "the vehicle at " + text(start_m) +
         " is closer to an obstacle than its radius: move it away first");
+  }
+  // The uncertainty margin where a passage allows it: kept when the start,
+  // the goal and a chain of cells between them are clear with it.
+  const double margin = std::max(0.0, options.uncertainty_margin_m);
+  double radius = bare + margin;
+  if (margin > 0.0 && (grid.blocked(goal_m, radius) || grid.blocked(start_m, radius) ||
+                       !grid.connected(start_m, goal_m, radius))) {
+    radius = bare;
   }
 
   auto space = std::make_shared<ob::RealVectorStateSpace>(3);
@@ -175,9 +205,9 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
   }
   space->setBounds(bounds);
   og::SimpleSetup setup(space);
-  setup.setStateValidityChecker([&grid](const ob::State* state) {
+  setup.setStateValidityChecker([&grid, radius](const ob::State* state) {
     const double* v = state->as<ob::RealVectorStateSpace::StateType>()->values;
-    return !grid.blocked(Eigen::Vector3d(v[0], v[1], v[2]));
+    return !grid.blocked(Eigen::Vector3d(v[0], v[1], v[2]), radius);
   });
   const double extent = space->getMaximumExtent();
   setup.getSpaceInformation()->setStateValidityCheckingResolution(
@@ -214,10 +244,12 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
   const double spacing = options.check_spacing_m;
   PlannedPath path;
   if (options.shorten) {
-    const double target = grid.radiusM() + std::max(0.0, options.preferred_clearance_m);
-    std::vector<Eigen::Vector3d> dense = densify(raw, map.resolutionM());
-    pushAway(grid, dense, target, map.resolutionM(), spacing);
-    path.waypoints_m = pullString(grid, dense, target, spacing);
+    // The clearance sought includes the margin even where it was dropped:
+    // through a narrow passage the path keeps to its middle.
+    const double target = bare + margin + std::max(0.0, options.preferred_clearance_m);
+    std::vector<Eigen::Vector3d> dense = densify(raw, resolution);
+    pushAway(grid, radius, dense, target, resolution, spacing);
+    path.waypoints_m = pullString(grid, radius, dense, target, spacing);
   } else {
     path.waypoints_m = std::move(raw);
   }
@@ -227,11 +259,12 @@ absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vecto
   for (size_t i = 1; i < path.waypoints_m.size(); ++i) {
     path.length_m += (path.waypoints_m[i] - path.waypoints_m[i - 1]).norm();
     const double c =
-        segmentClearance(grid, path.waypoints_m[i - 1], path.waypoints_m[i], spacing, 0.0);
-    path.min_clearance_m = std::min(path.min_clearance_m, c - grid.radiusM());
+        segmentClearance(grid, radius, path.waypoints_m[i - 1], path.waypoints_m[i], spacing, 0.0);
+    path.min_clearance_m = std::min(path.min_clearance_m, c - bare);
   }
   path.planning_time_s = std::chrono::duration<double>(t1 - t0).count();
-  path.inflation_time_s = std::chrono::duration<double>(t_grid - t0).count();
+  path.inflation_radius_m = radius;
+  path.margin_kept = radius > bare || margin == 0.0;
   return path;
 }
 

@@ -139,8 +139,8 @@ std::optional<std::string> missingSensor(channel::ChannelClient& channel,
 void estimateMessages(const v1::Header& header, const std::string& robot_id, uint64_t seq,
                       const Eigen::Vector3d& position_m, const Eigen::Quaterniond& orientation,
                       const Eigen::Vector3d& velocity_m_s,
-                      const Eigen::Vector3d& angular_velocity_rad_s, v1::PoseStamped* pose,
-                      v1::TwistStamped* twist) {
+                      const Eigen::Vector3d& angular_velocity_rad_s, double horizontal_stddev_m,
+                      v1::PoseStamped* pose, v1::TwistStamped* twist) {
   v1::Header h = header;
   h.set_frame_id("world");
   h.set_robot_id(robot_id);
@@ -157,6 +157,7 @@ void estimateMessages(const v1::Header& header, const std::string& robot_id, uin
   o->set_x(orientation.x());
   o->set_y(orientation.y());
   o->set_z(orientation.z());
+  pose->set_horizontal_stddev_m(horizontal_stddev_m);
   *twist->mutable_header() = h;
   set(twist->mutable_twist()->mutable_linear_m_s(), velocity_m_s);
   set(twist->mutable_twist()->mutable_angular_rad_s(), angular_velocity_rad_s);

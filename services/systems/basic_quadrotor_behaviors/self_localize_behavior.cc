@@ -40,6 +40,7 @@ void SelfLocalizeWithGroundTruthBehavior::onPose(const v1::PoseStamped& pose) {
   estimate.mutable_header()->set_seq(++seq_);
   estimate.mutable_header()->set_frame_id("world");
   estimate.mutable_header()->set_robot_id(robotId());
+  estimate.set_horizontal_stddev_m(0.0);  // the ground truth is exact
   if (absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), estimate); !s.ok()) {
     if (publish_error_.ok()) publish_error_ = s;
   }

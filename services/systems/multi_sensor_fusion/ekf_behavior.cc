@@ -59,7 +59,8 @@ absl::Status EkfSelfLocalizationBehavior::onConfigure(const YAML::Node& config) 
 void EkfSelfLocalizationBehavior::fillEstimate(const v1::Header& imu_header, v1::PoseStamped* pose,
                                                v1::TwistStamped* twist) {
   flight::estimateMessages(imu_header, robotId(), ++seq_, ekf_.position(), ekf_.orientation(),
-                           ekf_.velocity(), last_gyro_ - ekf_.gyroBias(), pose, twist);
+                           ekf_.velocity(), last_gyro_ - ekf_.gyroBias(), ekf_.horizontalStddevM(),
+                           pose, twist);
 }
 
 void EkfSelfLocalizationBehavior::onImu(const v1::Imu& imu) {

@@ -25,9 +25,14 @@ std::string text(const Eigen::Vector3d& p) {
 
 Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
 
-// Half a voxel diagonal: planPath's inflation margin (cells are judged by
-// their centres), so that the checks here agree with the planner's.
-double margin(double resolution_m) { return 0.5 * std::sqrt(3.0) * resolution_m; }
+// Whether the lidar has seen anything in the goal's column between the
+// planning altitudes (a 2-D lidar sees one plane; walls are extruded).
+bool columnSeen(const OccupancyMap& map, const Eigen::Vector3d& goal, double lo_z, double hi_z) {
+  for (double z = lo_z; z <= hi_z; z += map.resolutionM()) {
+    if (map.known({goal.x(), goal.y(), z})) return true;
+  }
+  return false;
+}
 
 BehaviorOptions generatePathOptions() {
   BehaviorOptions o;
@@ -43,48 +48,6 @@ std::string pathTopic(const std::string& robot_id) {
   return "robots/" + robot_id + "/navigation/path";
 }
 
-bool freelyConnected(const InflatedGrid& grid, const Eigen::Vector3d& min_m,
-                     const Eigen::Vector3d& max_m, double resolution_m, const Eigen::Vector3d& from,
-                     const Eigen::Vector3d& to) {
-  Eigen::Vector3i size, a, b;
-  for (int i = 0; i < 3; ++i) {
-    size[i] = std::max(1, static_cast<int>(std::ceil((max_m[i] - min_m[i]) / resolution_m)));
-    a[i] = std::clamp(static_cast<int>(std::floor((from[i] - min_m[i]) / resolution_m)), 0,
-                      size[i] - 1);
-    b[i] =
-        std::clamp(static_cast<int>(std::floor((to[i] - min_m[i]) / resolution_m)), 0, size[i] - 1);
-  }
-  auto centre = [&](const Eigen::Vector3i& c) {
-    return Eigen::Vector3d(min_m +
-                           (c.cast<double>() + Eigen::Vector3d::Constant(0.5)) * resolution_m);
-  };
-  auto index = [&](const Eigen::Vector3i& c) {
-    return (static_cast<size_t>(c.x()) * size.y() + c.y()) * size.z() + c.z();
-  };
-  std::vector<uint8_t> seen(static_cast<size_t>(size.x()) * size.y() * size.z(), 0);
-  std::vector<Eigen::Vector3i> frontier{a};
-  seen[index(a)] = 1;
-  while (!frontier.empty()) {
-    const Eigen::Vector3i c = frontier.back();
-    frontier.pop_back();
-    if (c == b) return true;
-    for (int dx = -1; dx <= 1; ++dx) {
-      for (int dy = -1; dy <= 1; ++dy) {
-        for (int dz = -1; dz <= 1; ++dz) {
-          const Eigen::Vector3i n = c + Eigen::Vector3i(dx, dy, dz);
-          if ((n.array() < 0).any() || (n.array() >= size.array()).any()) continue;
-          uint8_t& s = seen[index(n)];
-          if (s) continue;
-          s = 1;
-          if (n != b && grid.blocked(centre(n))) continue;
-          frontier.push_back(n);
-        }
-      }
-    }
-  }
-  return false;
-}
-
 GeneratePathBehavior::GeneratePathBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs)
     : Behavior(generatePathOptions()), mapper_(mapper), beliefs_(beliefs) {}
 
@@ -93,6 +56,15 @@ absl::Status GeneratePathBehavior::onConfigure(const YAML::Node& config) {
     return s;
   }
   if (auto s = flight::readNumber(config, "timeout_grace_s", -1e-9, 60, &timeout_grace_s_);
+      !s.ok()) {
+    return s;
+  }
+  if (auto s = flight::readNumber(config, "uncertainty_sigmas", -1e-9, 10, &uncertainty_sigmas_);
+      !s.ok()) {
+    return s;
+  }
+  if (auto s = flight::readNumber(config, "max_uncertainty_margin_m", -1e-9, 2,
+                                  &max_uncertainty_margin_m_);
       !s.ok()) {
     return s;
   }
@@ -167,6 +139,24 @@ absl::Status GeneratePathBehavior::onActivate() {
                                         " in every coordinate (finite, metres)");
     }
   }
+  {
+    // Out of bounds: outside the given box or the planning altitudes.
+    const MapperSettings& m = mapper_.settings();
+    const std::optional<Box> bounds = boundsParameter();
+    const double lo_z = std::max(m.planning_min_z_m, bounds ? bounds->first.z() : -1e300);
+    const double hi_z = std::min(m.planning_max_z_m, bounds ? bounds->second.z() : 1e300);
+    if (goal.z() < lo_z || goal.z() > hi_z) {
+      return absl::InvalidArgumentError("goal_m " + text(goal) + " is out of bounds: paths keep " +
+                                        "between z " + flight::fixed2(lo_z) + " and " +
+                                        flight::fixed2(hi_z) + " m");
+    }
+    if (bounds && ((goal.array() < bounds->first.array()).any() ||
+                   (goal.array() > bounds->second.array()).any())) {
+      return absl::InvalidArgumentError("goal_m " + text(goal) + " is out of bounds: outside " +
+                                        "bounds_min_m " + text(bounds->first) +
+                                        " .. bounds_max_m " + text(bounds->second));
+    }
+  }
   const std::optional<v1::PoseStamped> pose = mapper_.latestPose();
   if (!pose) return absl::FailedPreconditionError("no pose estimate on " + mapper_.poseTopic());
   start_m_ = vec(pose->pose().position_m());
@@ -175,25 +165,12 @@ absl::Status GeneratePathBehavior::onActivate() {
     const auto volume = planningVolume(map, boundsParameter());
     if (!volume) return absl::FailedPreconditionError("the map is empty: nothing mapped yet");
     const auto& [lo, hi] = *volume;
-    if ((goal.array() < lo.array()).any() || (goal.array() > hi.array()).any()) {
-      std::ostringstream out;
-      out.precision(3);
-      out << "goal_m " << text(goal) << " is outside the map: it spans x " << lo.x() << " .. "
-          << hi.x() << " m and y " << lo.y() << " .. " << hi.y()
-          << " m so far, and paths keep between z " << lo.z() << " and " << hi.z() << " m";
-      return absl::InvalidArgumentError(out.str());
-    }
-    const InflatedGrid grid(map, lo, hi, radius + margin(map.resolutionM()));
-    if (grid.blocked(goal)) {
-      return absl::InvalidArgumentError("goal_m " + text(goal) +
-                                        " is inside an obstacle: an occupied voxel is within " +
-                                        flight::fixed2(radius) + " m (vehicle_radius_m)");
-    }
     if ((start_m_.array() < lo.array()).any() || (start_m_.array() > hi.array()).any()) {
       return absl::FailedPreconditionError(
           "the vehicle at " + text(start_m_) + " is outside the planning volume (z " +
           flight::fixed2(lo.z()) + " .. " + flight::fixed2(hi.z()) + " m): take off first");
     }
+    const InflatedGrid grid(map, lo, hi, radius + cellMarginM(map.resolutionM()));
     if (grid.blocked(start_m_)) {
       return absl::FailedPreconditionError(
           "the vehicle at " + text(start_m_) + " is closer than vehicle_radius_m (" +
@@ -203,6 +180,8 @@ absl::Status GeneratePathBehavior::onActivate() {
   });
   if (!status.ok()) return status;
   replans_ = 0;
+  map_changes_ = 0;
+  waiting_since_.reset();
   paused_ = waiting_ = false;
   startAttempt();
   return absl::OkStatus();
@@ -211,11 +190,17 @@ absl::Status GeneratePathBehavior::onActivate() {
 void GeneratePathBehavior::startAttempt() {
   const auto& p = parameters();
   Attempt a;
+  if (const std::optional<v1::PoseStamped> pose = mapper_.latestPose()) {
+    start_m_ = vec(pose->pose().position_m());  // the vehicle may have moved while waiting
+    a.stddev_m = pose->has_horizontal_stddev_m() ? pose->horizontal_stddev_m() : 0.0;
+  }
   a.start_m = start_m_;
   a.goal_m = vec(p.goal_m());
   a.options.vehicle_radius_m = p.vehicle_radius_m();
   a.options.timeout_s = p.planning_time_limit_s();
   a.options.preferred_clearance_m = preferred_clearance_m_;
+  a.options.uncertainty_margin_m =
+      std::clamp(uncertainty_sigmas_ * a.stddev_m, 0.0, max_uncertainty_margin_m_);
   a.belief_key = beliefKey();
   a.bounds = boundsParameter();
   a.id = current_id_.fetch_add(1) + 1;
@@ -236,6 +221,7 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
   if (attempt.id != current_id_.load()) return r;  // superseded while it waited
   std::optional<absl::StatusOr<PlannedPath>> planned;
   mapper_.withMap([&](const OccupancyMap& map) {
+    r.map_revision = map.revision();
     const auto volume = planningVolume(map, attempt.bounds);
     if (!volume) {
       r.outcome = Outcome::kInvalid;
@@ -245,22 +231,44 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
     PlanOptions options = attempt.options;
     options.bounds_min_m = volume->first;
     options.bounds_max_m = volume->second;
-    {
-      const InflatedGrid grid(map, options.bounds_min_m, options.bounds_max_m,
-                              options.vehicle_radius_m + margin(map.resolutionM()));
-      if (!grid.blocked(attempt.goal_m) && !grid.blocked(attempt.start_m) &&
-          !freelyConnected(grid, options.bounds_min_m, options.bounds_max_m, map.resolutionM(),
-                           attempt.start_m, attempt.goal_m)) {
-        r.outcome = Outcome::kUnreachable;
-        r.message = "the goal " + text(attempt.goal_m) +
-                    " is unreachable: no free passage for a vehicle of radius " +
-                    flight::fixed2(options.vehicle_radius_m) + " m joins it to the vehicle at " +
-                    text(attempt.start_m) + " in the map (a door narrower than the vehicle, or " +
-                    "a closed space)";
-        return;
-      }
+    const std::string unreachable = "the goal " + text(attempt.goal_m) + " is unreachable ";
+    if ((attempt.goal_m.array() < volume->first.array()).any() ||
+        (attempt.goal_m.array() > volume->second.array()).any()) {
+      std::ostringstream out;
+      out.precision(3);
+      out << unreachable << "(unknown): it lies outside the space mapped so far (x "
+          << volume->first.x() << " .. " << volume->second.x() << " m, y " << volume->first.y()
+          << " .. " << volume->second.y() << " m)";
+      r.outcome = Outcome::kUnknown;
+      r.message = out.str();
+      return;
     }
-    planned = planPath(map, attempt.start_m, attempt.goal_m, options);
+    const double bare = options.vehicle_radius_m + cellMarginM(map.resolutionM());
+    const InflatedGrid grid(map, options.bounds_min_m, options.bounds_max_m,
+                            bare + options.uncertainty_margin_m);
+    if (grid.blocked(attempt.goal_m, bare)) {
+      r.outcome = Outcome::kBlocked;
+      r.message = unreachable + "(blocked): an occupied voxel of the map lies within " +
+                  flight::fixed2(options.vehicle_radius_m) + " m (vehicle_radius_m) of it";
+      return;
+    }
+    if (!grid.blocked(attempt.start_m, bare) &&
+        !grid.connected(attempt.start_m, attempt.goal_m, bare)) {
+      const std::string passage = "no free passage for a vehicle of radius " +
+                                  flight::fixed2(options.vehicle_radius_m) +
+                                  " m joins it to the vehicle at " + text(attempt.start_m);
+      if (columnSeen(map, attempt.goal_m, volume->first.z(), volume->second.z())) {
+        r.outcome = Outcome::kBlocked;
+        r.message = unreachable + "(blocked): " + passage +
+                    " in the map (a door narrower than the vehicle, or a closed space)";
+      } else {
+        r.outcome = Outcome::kUnknown;
+        r.message = unreachable + "(unknown): it lies in space not yet seen, and " + passage +
+                    " through the space mapped so far";
+      }
+      return;
+    }
+    planned = planPath(grid, attempt.start_m, attempt.goal_m, options);
   });
   if (!planned) return r;
   if (!planned->ok()) {
@@ -295,6 +303,7 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
   r.length_m = path.length_m;
   r.planning_time_s = path.planning_time_s;
   r.min_clearance_m = path.min_clearance_m;
+  const double margin = attempt.options.uncertainty_margin_m;
   if (absl::Status s = mapper_.channel()->publish(pathTopic(robotId()), message); !s.ok()) {
     r.outcome = Outcome::kOutputFailed;
     r.message =
@@ -321,6 +330,12 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
         << " m of clearance beyond the vehicle's radius";
   } else {
     out << "no obstacle in reach";
+  }
+  if (margin > 0) {
+    out << "; the map inflated by " << flight::fixed2(margin)
+        << " m more for the pose estimate's uncertainty (horizontal_stddev_m "
+        << flight::fixed2(attempt.stddev_m) << " m)"
+        << (path.margin_kept ? "" : " except in a passage too narrow for it");
   }
   out << "; on " << pathTopic(robotId())
       << (beliefs_ ? " and in belief '" + attempt.belief_key + "'"
@@ -362,14 +377,37 @@ Verdict GeneratePathBehavior::checkProcesses() {
 }
 
 Verdict GeneratePathBehavior::checkGoal() {
-  if (result_.outcome == Outcome::kWritten) return Verdict::finish(result_.message);
+  if (result_.outcome != Outcome::kWritten) return Verdict::keepGoing();
+  if (!waiting_since_) return Verdict::finish(result_.message);
+  const double waited = std::chrono::duration<double>(now() - *waiting_since_).count();
+  return Verdict::finish(result_.message + "; after waiting " + flight::fixed2(waited) +
+                         " s for the map (" + std::to_string(map_changes_) + " new attempts)");
+}
+
+uint64_t GeneratePathBehavior::mapRevision() const {
+  return mapper_.withMap([](const OccupancyMap& map) { return map.revision(); });
+}
+
+Verdict GeneratePathBehavior::waitForTheMap() {
+  if (!waiting_since_) waiting_since_ = now();
+  const double waited = std::chrono::duration<double>(now() - *waiting_since_).count();
+  const double limit = parameters().map_wait_s();
+  if (waited >= limit) {
+    return Verdict::finish(result_.message + "; waited " + flight::fixed2(waited) +
+                           " s (map_wait_s " + flight::fixed2(limit) + ") for new scans, " +
+                           std::to_string(map_changes_) + " new attempts on a changed map");
+  }
+  if (!paused_ && mapRevision() != result_.map_revision) {
+    ++map_changes_;
+    startAttempt();
+  }
   return Verdict::keepGoing();
 }
 
 Verdict GeneratePathBehavior::checkProgress() {
   const Outcome outcome = result_.outcome;
   const std::string message = result_.message;
-  if (outcome == Outcome::kUnreachable) return Verdict::finish(message);
+  if (outcome == Outcome::kUnknown || outcome == Outcome::kBlocked) return waitForTheMap();
   if (outcome == Outcome::kInvalid) {
     return Verdict::finish("the plan is no longer possible on the updated map: " + message);
   }

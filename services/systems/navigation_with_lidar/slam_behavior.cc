@@ -108,7 +108,8 @@ void SlamBehavior::publishEstimate(const v1::Header& imu_header) {
   v1::PoseStamped pose;
   v1::TwistStamped twist;
   flight::estimateMessages(imu_header, robotId(), ++seq_, ekf_.position(), ekf_.orientation(),
-                           ekf_.velocity(), last_gyro_ - ekf_.gyroBias(), &pose, &twist);
+                           ekf_.velocity(), last_gyro_ - ekf_.gyroBias(), ekf_.horizontalStddevM(),
+                           &pose, &twist);
   absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
   if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
   if (!s.ok() && publish_error_.ok()) publish_error_ = s;

@@ -126,6 +126,45 @@ TEST_F(Building, ADoorNarrowerThanThePreferredClearanceIsPassedInItsMiddle) {
   }
 }
 
+// The localization's uncertainty widens the inflation where the space
+// allows: within a room the margin is kept and the path keeps it from the
+// walls; through a door too narrow for it, the plan keeps the bare radius
+// (the vehicle fits) and says so.
+TEST_F(Building, TheUncertaintyMarginIsKeptWhereTheSpaceAllowsAndDroppedInADoor) {
+  PlanOptions options = buildingVolume();
+  options.vehicle_radius_m = 0.35;
+  options.preferred_clearance_m = 0.0;
+  options.uncertainty_margin_m = 0.3;  // 0.35 + 0.09 + 0.3 > the door's half-width of 0.6 m
+  auto within_a = planPath(*map_, {2, 2, 1.5}, {4, 8.5, 1.5}, options);
+  ASSERT_TRUE(within_a.ok()) << within_a.status();
+  EXPECT_TRUE(within_a->margin_kept);
+  EXPECT_GT(within_a->inflation_radius_m, 0.7);
+  EXPECT_GE(within_a->min_clearance_m, 0.3 - 0.1) << "the margin, less a cell";
+  auto through_door = planPath(*map_, {3, 3, 1.5}, {9, 5, 1.5}, options);
+  ASSERT_TRUE(through_door.ok()) << through_door.status();
+  EXPECT_FALSE(through_door->margin_kept);
+  EXPECT_LT(through_door->inflation_radius_m, 0.5);
+  expectCollisionFree(*through_door, options.vehicle_radius_m);
+  // Without a margin the door is passed as before.
+  options.uncertainty_margin_m = 0.0;
+  auto bare = planPath(*map_, {3, 3, 1.5}, {9, 5, 1.5}, options);
+  ASSERT_TRUE(bare.ok()) << bare.status();
+  EXPECT_TRUE(bare->margin_kept);
+}
+
+TEST_F(Building, TheInflatedGridJoinsRoomsThroughDoorsTheVehicleFits) {
+  const PlanOptions o = buildingVolume();
+  const double margin = cellMarginM(map_->resolutionM());
+  const InflatedGrid grid(*map_, o.bounds_min_m, o.bounds_max_m, 0.8 + margin);
+  const Eigen::Vector3d a(3, 3, 1.5), d(16.5, 8.5, 1.5);
+  EXPECT_TRUE(grid.connected(a, d, 0.35 + margin));    // through three doors
+  EXPECT_FALSE(grid.connected(a, d, 0.7 + margin));    // the doors are 1.2 m wide
+  EXPECT_FALSE(grid.connected(a, {40, 2, 1.5}, 0.1));  // outside the grid
+  // The radius given is used, not the grid's own.
+  EXPECT_TRUE(grid.blocked(a, 5.0));
+  EXPECT_FALSE(grid.blocked(a, 0.35 + margin));
+}
+
 TEST_F(Building, RefusesGoalsOutsideTheMapOrInsideObstacles) {
   const PlanOptions options = buildingVolume();
   auto outside = planPath(*map_, {2, 2, 1.5}, {40, 2, 1.5}, options);

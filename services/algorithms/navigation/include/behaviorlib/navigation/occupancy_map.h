@@ -93,11 +93,19 @@ class InflatedGrid {
                double radius_m);
   /// True when `p` is blocked or outside the box.
   bool blocked(const Eigen::Vector3d& p) const;
+  /// The same for another radius (up to the grid's: obstacles outside the
+  /// box are counted within that reach only).
+  bool blocked(const Eigen::Vector3d& p, double radius_m) const;
+  /// Whether a 26-connected chain of cells not blocked at `radius_m` joins
+  /// the cell of `from` to the cell of `to` (either may be blocked itself:
+  /// the vehicle's own cell, the goal's; false when either is outside).
+  bool connected(const Eigen::Vector3d& from, const Eigen::Vector3d& to, double radius_m) const;
   /// Distance from the centre of `p`'s cell to the nearest occupied voxel's
   /// cube (m; infinity with none in reach, 0 outside the box).
   double clearanceM(const Eigen::Vector3d& p) const;
   /// The radius the grid was inflated by (m).
   double radiusM() const { return radius_; }
+  double resolutionM() const { return resolution_; }
   size_t blockedCount() const;
 
  private:

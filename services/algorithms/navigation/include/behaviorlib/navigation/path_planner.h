@@ -10,6 +10,13 @@
 //   options.bounds_max_m = {18, 10, 2.5};
 //   absl::StatusOr<PlannedPath> path = planPath(map, start, goal, options);
 //
+// The map is inflated by the vehicle's radius plus half a voxel diagonal
+// (cells are judged by their centres), and by uncertainty_margin_m (the
+// pose estimate's uncertainty) where the space allows: when no passage
+// joins start and goal with the margin but one does without it, the plan
+// keeps the bare inflation (PlannedPath::margin_kept is false) and the
+// shortened path still keeps the margin's clearance wherever it can.
+//
 // Errors: INVALID_ARGUMENT for a goal outside the planning volume or inside
 // an obstacle (too close to an occupied voxel for the vehicle's radius);
 // FAILED_PRECONDITION for a start in collision; NOT_FOUND when no path was
@@ -43,6 +50,9 @@ struct PlanOptions {
   /// tracking error, nor for the unseen part of an obstacle seen from one
   /// side (unknown space counts as free).
   double preferred_clearance_m = 0.2;
+  /// Inflation beyond the radius for the pose estimate's uncertainty, where
+  /// a passage is wide enough for it (m).
+  double uncertainty_margin_m = 0.0;
 };
 
 struct PlannedPath {
@@ -53,9 +63,22 @@ struct PlannedPath {
   /// Smallest distance beyond the vehicle's radius between the path and an
   /// occupied voxel, sampled along it (m; infinity with none in reach).
   double min_clearance_m = 0.0;
+  /// The radius the map was inflated by for the plan (m): the vehicle's,
+  /// half a voxel diagonal, and the uncertainty margin if kept.
+  double inflation_radius_m = 0.0;
+  /// Whether the uncertainty margin was kept everywhere (false: a passage
+  /// on the way is too narrow for it).
+  bool margin_kept = true;
 };
 
+/// Half a voxel diagonal: a point is judged by its cell's centre.
+double cellMarginM(double resolution_m);
+
 absl::StatusOr<PlannedPath> planPath(const OccupancyMap& map, const Eigen::Vector3d& start_m,
+                                     const Eigen::Vector3d& goal_m, const PlanOptions& options);
+/// The same on a grid already built over options' bounds with a radius of
+/// at least vehicle_radius_m + cellMarginM + uncertainty_margin_m.
+absl::StatusOr<PlannedPath> planPath(const InflatedGrid& grid, const Eigen::Vector3d& start_m,
                                      const Eigen::Vector3d& goal_m, const PlanOptions& options);
 
 /// Seeds OMPL's random generator (once, before the first plan) so that plans

@@ -5,15 +5,18 @@
 // by the vehicle's radius, with OMPL's RRT-Connect (navigation/path_planner.h),
 // and writes the path to belief memory and the data channel.
 //
-//   onActivate      the goal inside the map's box (else INVALID_ARGUMENT), at
-//                   least the radius from occupied voxels (INVALID_ARGUMENT),
-//                   the vehicle itself clear of them (FAILED_PRECONDITION);
-//                   hands the first attempt to the behavior's background
-//                   thread (inBackground; the result returns on the worker)
-//   background job per attempt: a 26-connected flood fill of the inflated
-//                   grid from the vehicle (no passage to the goal: the goal is
-//                   unreachable), then planPath() with the attempt's time
-//                   limit, then the path is published on
+//   onActivate      the goal finite and in bounds (bounds_min_m/bounds_max_m
+//                   and the planning altitudes; else INVALID_ARGUMENT "out of
+//                   bounds"), the vehicle itself inside the planning volume
+//                   and clear of obstacles (FAILED_PRECONDITION); hands the
+//                   first attempt to the behavior's background thread
+//                   (inBackground; the result returns on the worker)
+//   background job per attempt, from the newest pose estimate: the goal
+//                   outside the space mapped so far, or not seen and cut off,
+//                   is "unknown"; an occupied voxel within the radius of the
+//                   goal, or no 26-connected chain of free cells to it, is
+//                   "blocked"; else planPath() with the attempt's time limit
+//                   and the uncertainty margin, and the path is published on
 //                   robots/{id}/navigation/path (Path) and written to the
 //                   belief key as a list of {x, y, z}
 //   checkProcesses  the pose estimate older than pose_timeout_s (behavior
@@ -21,20 +24,28 @@
 //                   -> PROCESS_FAILURE
 //   checkSituation  before: a data channel, a fresh pose estimate, a map
 //   checkGoal       the path written -> GOAL_ACHIEVED
-//   checkProgress   the goal unreachable (or no longer valid on the updated
-//                   map) -> WRONG_PROGRESS; an attempt that found nothing
-//                   within planning_time_limit_s, or still runs past it (by
-//                   wall time, the planner's computation time, plus a grace),
-//                   is a planning time-out: re-plan, up to max_replans times,
-//                   then the activation ends TIME_OUT (its maximum execution
-//                   time is set to the time spent)
+//   checkProgress   unknown or blocked: a new attempt at each change of the
+//                   map (new scans), until map_wait_s of the behavior clock
+//                   has passed since the first such result -> WRONG_PROGRESS
+//                   naming the cause; the plan impossible otherwise ->
+//                   WRONG_PROGRESS; an attempt that found nothing within
+//                   planning_time_limit_s, or still runs past it (by wall
+//                   time, the planner's computation time, plus a grace), is a
+//                   planning time-out: re-plan, up to max_replans times, then
+//                   the activation ends TIME_OUT (its maximum execution time
+//                   is set to the time spent)
+//
+// The uncertainty margin: uncertainty_sigmas times the pose estimate's
+// horizontal_stddev_m (0 when the estimator does not report it), at most
+// max_uncertainty_margin_m, added to the inflation where the space allows
+// (planPath; decision 27).
 //
 // Config (defaults): pose_timeout_s [0.5], timeout_grace_s [0.5] (wall
 // time an attempt may run past its limit before it counts as timed out:
 // building the inflated grid is not part of OMPL's budget),
 // preferred_clearance_m [0.2] (distance beyond vehicle_radius_m that the
 // shortened path keeps from obstacles where the space allows it; see
-// PlanOptions).
+// PlanOptions), uncertainty_sigmas [2], max_uncertainty_margin_m [0.3].
 
 #include <atomic>
 #include <chrono>
@@ -53,12 +64,6 @@ namespace behaviorlib::nav {
 
 /// Topic of the planned paths.
 std::string pathTopic(const std::string& robot_id);
-
-/// Whether a 26-connected chain of free cells of `grid` (the box
-/// [min_m, max_m] at `resolution_m`) joins `from` to `to`.
-bool freelyConnected(const InflatedGrid& grid, const Eigen::Vector3d& min_m,
-                     const Eigen::Vector3d& max_m, double resolution_m, const Eigen::Vector3d& from,
-                     const Eigen::Vector3d& to);
 
 class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancyGridParameters> {
  public:
@@ -80,7 +85,15 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   Verdict checkProcesses() override;
 
  private:
-  enum class Outcome { kRunning, kWritten, kUnreachable, kTimedOut, kInvalid, kOutputFailed };
+  enum class Outcome {
+    kRunning,
+    kWritten,
+    kUnknown,  ///< the goal in space not yet seen: wait for the map
+    kBlocked,  ///< mapped obstacles at or around the goal: wait for the map
+    kTimedOut,
+    kInvalid,
+    kOutputFailed
+  };
   /// An axis-aligned box: lowest and highest corner, metres, world frame.
   using Box = std::pair<Eigen::Vector3d, Eigen::Vector3d>;
   /// The map's planning volume (LidarMapper::planningVolumeLocked) clipped
@@ -96,6 +109,7 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
     PlanOptions options;
     std::string belief_key;
     std::optional<Box> bounds;  ///< bounds_min_m/bounds_max_m, read on the behavior's thread
+    double stddev_m = 0;        ///< the pose estimate's horizontal_stddev_m
   };
   struct Result {
     uint64_t id = 0;
@@ -103,6 +117,7 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
     std::string message;
     size_t waypoints = 0;
     double length_m = 0, planning_time_s = 0, min_clearance_m = 0;
+    uint64_t map_revision = 0;  ///< of the map the attempt was judged on
   };
 
   void startAttempt();
@@ -110,12 +125,18 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   Result plan(const Attempt& attempt) const;
   std::string beliefKey() const;
   std::optional<std::string> poseProblem() const;
+  uint64_t mapRevision() const;
+  /// The outcome while waiting for the map: a new attempt when the map has
+  /// changed, the end once map_wait_s has passed.
+  Verdict waitForTheMap();
 
   LidarMapper& mapper_;
   const server::BeliefClient* beliefs_;
   Duration pose_timeout_ = std::chrono::milliseconds(500);
   double timeout_grace_s_ = 0.5;
   double preferred_clearance_m_ = 0.2;
+  double uncertainty_sigmas_ = 2.0;
+  double max_uncertainty_margin_m_ = 0.3;
 
   // Worker-thread state of the activation.
   Eigen::Vector3d start_m_ = Eigen::Vector3d::Zero();
@@ -123,6 +144,8 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   bool paused_ = false;
   bool waiting_ = false;  // an attempt is due once resumed
   std::chrono::steady_clock::time_point attempt_started_{};
+  std::optional<TimePoint> waiting_since_;  // the first unknown/blocked result
+  uint32_t map_changes_ = 0;                // attempts made again on a changed map
 
   Result result_;  // of the current attempt
   // The current attempt; the background job reads it to drop a superseded

@@ -42,7 +42,8 @@ absl::Status MapperSettings::read(const YAML::Node& mapping) {
         std::tuple{"column_max_z_m", &column_max_z_m, -10.0, 50.0},
         std::tuple{"planning_min_z_m", &planning_min_z_m, -10.0, 50.0},
         std::tuple{"planning_max_z_m", &planning_max_z_m, -10.0, 50.0},
-        std::tuple{"pose_match_s", &pose_match_s, 0.0, 1.0}}) {
+        std::tuple{"pose_match_s", &pose_match_s, 0.0, 1.0},
+        std::tuple{"max_pose_stddev_m", &max_pose_stddev_m, 0.0, 100.0}}) {
     if (auto s = readNumber(mapping, key, min, max, value); !s.ok()) {
       return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
     }
@@ -216,6 +217,11 @@ void LidarMapper::run() {
     }
     if (!pose) {
       ++stats_.scans_without_pose;
+      continue;
+    }
+    if (pose->has_horizontal_stddev_m() &&
+        !(pose->horizontal_stddev_m() <= settings_.max_pose_stddev_m)) {
+      ++stats_.scans_uncertain;
       continue;
     }
     if (!thinner_.admit(stamp, vec(pose->pose().position_m()), quat(pose->pose().orientation()))) {

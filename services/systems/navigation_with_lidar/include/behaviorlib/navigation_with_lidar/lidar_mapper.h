@@ -13,7 +13,8 @@
 // local queue; a mapping thread of its own takes them in order and inserts
 // them. A scan is placed with the pose estimate whose stamp is nearest to
 // the scan's (robots/{id}/self_localization/pose, kept for the last second),
-// and skipped when none is within pose_match_s.
+// and skipped when none is within pose_match_s, or when that estimate's
+// horizontal_stddev_m exceeds max_pose_stddev_m.
 //
 // The lidar is 2-D (one horizontal plane). Rays are inserted as measured
 // (hits, and free space along every ray); each voxel column where a hit
@@ -73,6 +74,10 @@ struct MapperSettings {
   double planning_max_z_m = 1.8;
   /// Largest stamp difference between a scan and the pose it is placed with.
   double pose_match_s = 0.05;
+  /// A scan whose pose estimate reports a larger horizontal_stddev_m (a
+  /// filter still converging after its start, a diverging one) is not
+  /// mapped: its walls would land where they are not, and close doors.
+  double max_pose_stddev_m = 0.15;
   /// Scans waiting for the mapping thread; the oldest is dropped beyond.
   int scan_queue_size = 50;
   /// Which scans are mapped (navigation/scan_thinner.h): at most one every
@@ -92,8 +97,9 @@ struct MapperStats {
   uint64_t scans_received = 0;
   uint64_t scans_inserted = 0;
   uint64_t scans_without_pose = 0;
-  uint64_t scans_dropped = 0;  ///< queue full
-  uint64_t scans_thinned = 0;  ///< not needed (ScanThinner)
+  uint64_t scans_dropped = 0;    ///< queue full
+  uint64_t scans_thinned = 0;    ///< not needed (ScanThinner)
+  uint64_t scans_uncertain = 0;  ///< pose estimate too uncertain (max_pose_stddev_m)
 };
 
 class LidarMapper {

@@ -354,12 +354,14 @@ class Pilot {
 /// basic_quadrotor_behaviors for localization, take-off and landing.
 class FlightStack {
  public:
-  bool start(std::string* error) {
+  /// `world` chooses the simulator's world and vehicles (its one vehicle
+  /// in the open field by default).
+  bool start(std::string* error, const std::vector<std::string>& world = {"--vehicles", kRobot}) {
     if (!broker_.start()) return *error = "broker: " + broker_.error(), false;
+    std::vector<std::string> args = {"--channel", broker_.address(), "--seed", kSeed};
+    args.insert(args.end(), world.begin(), world.end());
     simulator_ = std::make_unique<support::ServerProcess>(
-        BEHAVIORLIB_SIMULATOR_PATH,
-        support::deterministicSimulatorArgs(
-            {"--channel", broker_.address(), "--vehicles", kRobot, "--seed", kSeed}, 1));
+        BEHAVIORLIB_SIMULATOR_PATH, support::deterministicSimulatorArgs(args, 1));
     if (!simulator_->start()) return *error = "simulator: " + simulator_->error(), false;
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH,
                          error);
@@ -375,15 +377,17 @@ class FlightStack {
   }
 
   /// Starts a behavior system on this stack (--clock sim following the time
-  /// grants, --channel, --flight-controller, --config).
+  /// grants, --channel, --flight-controller, --config, then `extra`).
   std::unique_ptr<support::ServerProcess> startSystem(const std::string& binary,
-                                                      const std::string& config,
-                                                      std::string* error) {
+                                                      const std::string& config, std::string* error,
+                                                      const std::vector<std::string>& extra = {}) {
+    std::vector<std::string> args = {
+        "--robot-id", kRobot, "--channel",           broker_.address(),
+        "--clock",    "sim",  "--flight-controller", simulator_->address(),
+        "--config",   config};
+    args.insert(args.end(), extra.begin(), extra.end());
     auto system = std::make_unique<support::ServerProcess>(
-        binary, support::followTimeArgs(
-                    {"--robot-id", kRobot, "--channel", broker_.address(), "--clock", "sim",
-                     "--flight-controller", simulator_->address(), "--config", config},
-                    simulator_->address()));
+        binary, support::followTimeArgs(args, simulator_->address()));
     if (!system->start()) {
       *error = binary + ": " + system->error();
       return nullptr;

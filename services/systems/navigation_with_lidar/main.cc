@@ -1,7 +1,9 @@
 // navigation_with_lidar: the behavior system that maps with the lidar while
 // it runs and plans paths on that map (GENERATE_PATH_WITH_OCCUPANCY_GRID,
-// CLEAR_OCCUPANCY_GRID, SAVE_OCCUPANCY_GRID), and localizes with the lidar
-// (SELF_LOCALIZE_AND_MAP_WITH_LIDAR).
+// CLEAR_OCCUPANCY_GRID, SAVE_OCCUPANCY_GRID), explores an area by its
+// frontiers (EXPLORE_WITH_FRONTIERS: motion references, followed by a motion
+// system's controller; --flight-controller for the flight state), and
+// localizes with the lidar (SELF_LOCALIZE_AND_MAP_WITH_LIDAR).
 
 #include <cstdlib>
 #include <filesystem>
@@ -9,6 +11,9 @@
 #include <memory>
 
 #include "absl/flags/flag.h"
+#include "behaviorlib/flight_common/remote_vehicle.h"
+#include "behaviorlib/motion_behaviors/motion_link.h"
+#include "behaviorlib/navigation_with_lidar/explore_behavior.h"
 #include "behaviorlib/navigation_with_lidar/generate_path_behavior.h"
 #include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
 #include "behaviorlib/navigation_with_lidar/map_behaviors.h"
@@ -39,6 +44,10 @@ int main(int argc, char** argv) {
         b.addCatchUpCheck([&mapper] { return mapper.caughtUp(); });
         b.add<nav::SlamBehavior>(context.channel, settings.lidar_mount_m);
         b.add<nav::GeneratePathBehavior>(mapper, context.beliefs);
+        auto& vehicle = b.own(std::make_unique<behaviorlib::flight::RemoteVehicle>(context));
+        auto& link = b.own(std::make_unique<behaviorlib::motion_behaviors::RemoteMotionLink>(
+            context.channel, context.robot_id));
+        b.add<nav::ExploreBehavior>(mapper, vehicle, link);
         b.add<nav::ClearOccupancyGridBehavior>(mapper);
         const std::string map_dir = absl::GetFlag(FLAGS_map_dir);
         std::error_code made;

@@ -1,0 +1,417 @@
+#include "behaviorlib/navigation_with_lidar/explore_behavior.h"
+
+#include <algorithm>
+#include <cmath>
+#include <deque>
+#include <limits>
+#include <sstream>
+
+#include "behaviorlib/flight_common/flight_support.h"
+#include "behaviorlib/navigation/frontiers.h"
+#include "behaviorlib/navigation/path_planner.h"
+
+namespace behaviorlib::nav {
+namespace {
+
+using flight::fixed2;
+
+Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
+
+std::string text(const Eigen::Vector3d& p) {
+  std::ostringstream out;
+  out.precision(3);
+  out << "(" << p.x() << ", " << p.y() << ", " << p.z() << ")";
+  return out.str();
+}
+
+std::string percent(double fraction) {
+  std::ostringstream out;
+  out.setf(std::ios::fixed);
+  out.precision(1);
+  out << 100.0 * fraction << " %";
+  return out.str();
+}
+
+constexpr double kArrivedM = 0.3;  // a leg ends this close to its target
+constexpr double kGivenUpM = 0.5;  // a target given up rules out those this close
+constexpr double kAccelerationM_S2 = 0.5;
+constexpr int kCandidatesPerChoice = 4;  // plans tried per choice
+
+}  // namespace
+
+ExploreBehavior::ExploreBehavior(LidarMapper& mapper, flight::Vehicle& vehicle,
+                                 motion_behaviors::MotionLink& link)
+    : Behavior(motion_behaviors::referenceBehaviorOptions(Duration::zero())),
+      mapper_(mapper),
+      support_(vehicle, link) {}
+
+absl::Status ExploreBehavior::onConfigure(const YAML::Node& config) {
+  if (auto s = support_.configure(config); !s.ok()) return s;
+  if (auto s = path_settings_.read(config); !s.ok()) return s;
+  lagging_.setDwell(support_.settings().flight.progress_window);
+  double cells = static_cast<double>(min_frontier_cells_);
+  if (auto s = flight::readNumber(config, "min_frontier_cells", 1, 10000, &cells); !s.ok()) {
+    return s;
+  }
+  min_frontier_cells_ = static_cast<size_t>(cells);
+  if (auto s = flight::readNumber(config, "look_ahead_m", 0.1, 100, &look_ahead_m_); !s.ok()) {
+    return s;
+  }
+  return flight::readNumber(config, "slice_half_height_m", 0.01, 2, &slice_half_height_m_);
+}
+
+Situation ExploreBehavior::checkSituation() {
+  if (!mapper_.channel()) {
+    return Situation::infeasible(
+        "no data channel configured: start the behavior system with --channel HOST:PORT");
+  }
+  Situation s =
+      support_.active() ? support_.situationActive() : support_.situationBefore(now(), name());
+  if (!support_.active()) {
+    const bool empty =
+        mapper_.withMap([](const OccupancyMap& map) { return map.tree().size() == 0; });
+    if (empty) {
+      s.feasible = false;
+      s.performance_ratio = 0;
+      s.reasons.push_back("the map is empty: no lidar scan on " + mapper_.scanTopic() +
+                          " has been mapped yet");
+    }
+  }
+  return s;
+}
+
+absl::Status ExploreBehavior::onActivate() {
+  const auto& p = parameters();
+  const Eigen::Vector3d lo = vec(p.bounds_min_m()), hi = vec(p.bounds_max_m());
+  if (!lo.allFinite() || !hi.allFinite() || (lo.array() >= hi.array()).any()) {
+    return absl::InvalidArgumentError("bounds_min_m " + text(lo) + " must be below bounds_max_m " +
+                                      text(hi) + " in every coordinate (finite, metres)");
+  }
+  const MapperSettings& m = mapper_.settings();
+  const double z_lo = std::max(lo.z(), m.planning_min_z_m),
+               z_hi = std::min(hi.z(), m.planning_max_z_m);
+  if (p.altitude_m() < z_lo || p.altitude_m() > z_hi) {
+    return absl::InvalidArgumentError("altitude_m " + fixed2(p.altitude_m()) +
+                                      " is out of bounds: paths keep between z " + fixed2(z_lo) +
+                                      " and " + fixed2(z_hi) + " m");
+  }
+  if (auto s = support_.begin(now(), activationId()); !s.ok()) return s;
+  setMaximumExecutionTime(
+      std::chrono::duration_cast<Duration>(std::chrono::duration<double>(p.time_limit_s())),
+      "the exploration took its time_limit_s (" + fixed2(p.time_limit_s()) + " s)");
+  phase_ = Phase::kChoosing;
+  paused_ = false;
+  stops_ = 0;
+  choice_ = Choice();
+  tracker_.reset();
+  hold_m_ = support_.state().position_m;
+  given_up_.clear();
+  known_fraction_ = 0;
+  last_growth_value_ = 0;
+  last_growth_time_ = now();
+  legs_ = 0;
+  flown_m_ = 0;
+  done_message_.clear();
+  last_update_ = now();
+  startChoice();
+  return absl::OkStatus();
+}
+
+void ExploreBehavior::startChoice() {
+  const auto& p = parameters();
+  const MapperSettings& m = mapper_.settings();
+  Request r;
+  r.id = current_id_.fetch_add(1) + 1;
+  r.start_m = support_.state().position_m;
+  r.lo_m = vec(p.bounds_min_m());
+  r.hi_m = vec(p.bounds_max_m());
+  r.lo_m.z() = std::max(r.lo_m.z(), m.planning_min_z_m);
+  r.hi_m.z() = std::min(r.hi_m.z(), m.planning_max_z_m);
+  r.altitude_m = p.altitude_m();
+  r.radius_m = p.vehicle_radius_m();
+  r.given_up = given_up_;
+  choice_ = Choice();
+  choice_.id = r.id;
+  inBackground<Choice>([this, r] { return choose(r); },
+                       [this](const Choice& c) {
+                         if (c.id == current_id_.load()) choice_ = c;
+                       });
+}
+
+ExploreBehavior::Choice ExploreBehavior::choose(const Request& request) const {
+  Choice c;
+  c.id = request.id;
+  c.done = true;
+  if (request.id != current_id_.load()) return c;  // superseded
+  mapper_.withMap([&](const OccupancyMap& map) {
+    const double plane = request.altitude_m + mapper_.settings().lidar_mount_m.z();
+    const MapSlice slice(map, {.min_m = request.lo_m.head<2>(),
+                               .max_m = request.hi_m.head<2>(),
+                               .z_min_m = plane - slice_half_height_m_,
+                               .z_max_m = plane + slice_half_height_m_});
+    c.known_fraction = slice.census().knownFraction();
+    const std::vector<Frontier> frontiers = slice.frontiers(min_frontier_cells_);
+    c.frontiers = frontiers.size();
+    if (frontiers.empty()) {
+      c.message = "no frontier left";
+      return;
+    }
+    const double bare = request.radius_m + cellMarginM(map.resolutionM());
+    const InflatedGrid grid(map, request.lo_m, request.hi_m, bare);
+    // Breadth-first over the slice's cells at the flight altitude, from the
+    // vehicle: which cells it can reach, and how far (in cells).
+    const int w = slice.width(), h = slice.height();
+    int sx = 0, sy = 0;
+    if (!slice.cellOf(request.start_m.head<2>(), &sx, &sy)) {
+      c.message = "the vehicle at " + text(request.start_m) + " is outside the area";
+      return;
+    }
+    const auto at_altitude = [&](int ix, int iy) {
+      const Eigen::Vector2d q = slice.centre(ix, iy);
+      return Eigen::Vector3d(q.x(), q.y(), request.altitude_m);
+    };
+    constexpr int kUnreached = std::numeric_limits<int>::max();
+    std::vector<int> steps(static_cast<size_t>(w) * h, kUnreached);
+    std::deque<std::pair<int, int>> queue{{sx, sy}};
+    steps[static_cast<size_t>(sy) * w + sx] = 0;
+    while (!queue.empty()) {
+      const auto [x, y] = queue.front();
+      queue.pop_front();
+      const int next = steps[static_cast<size_t>(y) * w + x] + 1;
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const int nx = x + dx, ny = y + dy;
+          if (nx < 0 || ny < 0 || nx >= w || ny >= h) continue;
+          int& s = steps[static_cast<size_t>(ny) * w + nx];
+          if (s != kUnreached || grid.blocked(at_altitude(nx, ny), bare)) continue;
+          s = next;
+          queue.emplace_back(nx, ny);
+        }
+      }
+    }
+    // Each frontier's reachable cell nearest its centre.
+    std::vector<std::pair<int, Eigen::Vector3d>> candidates;
+    for (const Frontier& f : frontiers) {
+      std::optional<Eigen::Vector3d> best;
+      int best_steps = 0;
+      double best_d = std::numeric_limits<double>::infinity();
+      for (const Eigen::Vector2d& cell : f.cells_m) {
+        int ix = 0, iy = 0;
+        if (!slice.cellOf(cell, &ix, &iy)) continue;
+        const int s = steps[static_cast<size_t>(iy) * w + ix];
+        if (s == kUnreached) continue;
+        const double d = (cell - f.centroid_m).norm();
+        if (d < best_d) {
+          best_d = d;
+          best = at_altitude(ix, iy);
+          best_steps = s;
+        }
+      }
+      if (!best) {
+        ++c.unreachable;
+        continue;
+      }
+      const bool gave_up =
+          std::any_of(request.given_up.begin(), request.given_up.end(),
+                      [&](const Eigen::Vector3d& g) { return (g - *best).norm() < kGivenUpM; });
+      if (gave_up) {
+        ++c.unreachable;
+        continue;
+      }
+      candidates.emplace_back(best_steps, *best);
+    }
+    std::stable_sort(candidates.begin(), candidates.end(),
+                     [](const auto& a, const auto& b) { return a.first < b.first; });
+    PlanOptions options;
+    options.vehicle_radius_m = request.radius_m;
+    options.bounds_min_m = request.lo_m;
+    options.bounds_max_m = request.hi_m;
+    options.timeout_s = 0.5;
+    int tried = 0;
+    for (const auto& [steps_to, target] : candidates) {
+      if (tried++ == kCandidatesPerChoice) break;
+      auto planned = planPath(grid, request.start_m, target, options);
+      if (planned.ok()) {
+        c.target_m = target;
+        c.path_m = std::move(planned->waypoints_m);
+        return;
+      }
+      c.given_up.push_back(target);
+    }
+    std::ostringstream out;
+    out << "no reachable frontier left: " << c.frontiers << " frontiers, " << c.unreachable
+        << " out of reach for a vehicle of radius " << fixed2(request.radius_m)
+        << " m (or given up)";
+    if (!c.given_up.empty()) out << ", " << c.given_up.size() << " whose plan failed";
+    c.message = out.str();
+  });
+  return c;
+}
+
+void ExploreBehavior::startLeg(const std::vector<Eigen::Vector3d>& path) {
+  google::protobuf::RepeatedPtrField<v1::Vector3> points;
+  for (const Eigen::Vector3d& q : path) {
+    v1::Vector3* v = points.Add();
+    v->set_x(q.x());
+    v->set_y(q.y());
+    v->set_z(q.z());
+  }
+  auto tracker =
+      motion_behaviors::makePathTracker(points, parameters().speed_m_s(), kAccelerationM_S2,
+                                        path_settings_, support_.settings().min_altitude_m);
+  if (!tracker.ok()) {
+    given_up_.push_back(path.back());
+    startChoice();
+    return;
+  }
+  tracker_ = std::move(*tracker);
+  tracker_->start(support_.state().position_m, support_.yawRad());
+  leg_path_ = path;
+  last_check_ = now();
+  hold_m_.reset();
+  lagging_.reset();
+  flown_m_ += tracker_->lengthM();
+  ++legs_;
+  phase_ = Phase::kFlying;
+}
+
+bool ExploreBehavior::legBlocked() const {
+  // The path from the distance already covered by the reference, sampled
+  // every half voxel, up to look_ahead_m ahead.
+  const double done = tracker_->lengthM() - tracker_->remainingM();
+  const double radius = parameters().vehicle_radius_m();
+  return mapper_.withMap([&](const OccupancyMap& map) {
+    const double step = 0.5 * map.resolutionM();
+    double at = 0.0;  // distance along the path of leg_path_[i - 1]
+    for (size_t i = 1; i < leg_path_.size(); ++i) {
+      const Eigen::Vector3d a = leg_path_[i - 1], b = leg_path_[i];
+      const double length = (b - a).norm();
+      for (double s = std::max(0.0, done - at); s <= length; s += step) {
+        if (at + s > done + look_ahead_m_) return false;
+        if (map.collides(a + (b - a) * (length > 0 ? s / length : 0.0), radius)) return true;
+      }
+      at += length;
+    }
+    return false;
+  });
+}
+
+void ExploreBehavior::hold() {
+  if (!hold_m_) hold_m_ = support_.state().position_m;
+  motion::MotionReference reference;
+  reference.mode = motion::MotionReference::Mode::kPosition;
+  reference.point.position_m = *hold_m_;
+  reference.point.yaw_rad = support_.yawRad();
+  (void)support_.publish(reference, now());
+}
+
+void ExploreBehavior::onExecute() {
+  const TimePoint t = now();
+  const double dt = std::chrono::duration<double>(t - last_update_).count();
+  last_update_ = t;
+  if (!paused_ && phase_ == Phase::kFlying && tracker_) {
+    // A refused sample shows in the controller's status (it stops following).
+    (void)support_.publish(tracker_->update(support_.state().position_m, dt), t);
+    return;
+  }
+  hold();
+}
+
+void ExploreBehavior::onDeactivate() {
+  ++current_id_;  // the running choice is dropped
+  support_.end();
+  tracker_.reset();
+}
+
+void ExploreBehavior::onPause() {
+  paused_ = true;
+  hold_m_ = support_.state().position_m;
+}
+
+void ExploreBehavior::onResume() {
+  paused_ = false;
+  tracker_.reset();
+  hold_m_ = support_.state().position_m;
+  phase_ = Phase::kChoosing;
+  startChoice();
+}
+
+absl::Status ExploreBehavior::onModify(const google::protobuf::Message& new_parameters) {
+  const auto& n = static_cast<const v1::ExploreWithFrontiersParameters&>(new_parameters);
+  const auto& p = parameters();
+  if (vec(n.bounds_min_m()) != vec(p.bounds_min_m()) ||
+      vec(n.bounds_max_m()) != vec(p.bounds_max_m()) || n.altitude_m() != p.altitude_m() ||
+      n.vehicle_radius_m() != p.vehicle_radius_m() || n.time_limit_s() != p.time_limit_s()) {
+    return absl::InvalidArgumentError(
+        "only speed_m_s, coverage and stall_s can change while exploring: deactivate and "
+        "activate again for other bounds, altitude, radius or time limit");
+  }
+  return absl::OkStatus();
+}
+
+Verdict ExploreBehavior::checkProcesses() {
+  if (auto problem = support_.checkProcesses(now())) return Verdict::finish(*problem);
+  return Verdict::keepGoing();
+}
+
+Verdict ExploreBehavior::checkGoal() {
+  if (phase_ == Phase::kDone) return Verdict::finish(done_message_);
+  return Verdict::keepGoing();
+}
+
+Verdict ExploreBehavior::checkProgress() {
+  const auto& p = parameters();
+  const TimePoint t = now();
+  if (phase_ == Phase::kChoosing && choice_.done && choice_.id == current_id_.load() && !paused_) {
+    known_fraction_ = choice_.known_fraction;
+    given_up_.insert(given_up_.end(), choice_.given_up.begin(), choice_.given_up.end());
+    const std::string summary = percent(known_fraction_) + " of the area known after " +
+                                std::to_string(legs_) + " legs (" + std::to_string(stops_) +
+                                " stopped by a wall seen on the way), " + fixed2(flown_m_) +
+                                " m of paths";
+    if (known_fraction_ >= p.coverage()) {
+      phase_ = Phase::kDone;
+      done_message_ = "explored: " + summary + " (coverage " + fixed2(p.coverage()) + " reached)";
+    } else if (!choice_.target_m) {
+      phase_ = Phase::kDone;
+      done_message_ = "explored: " + summary + "; " + choice_.message;
+    } else {
+      startLeg(choice_.path_m);
+    }
+  }
+  if (phase_ == Phase::kFlying && tracker_ && !paused_) {
+    const Eigen::Vector3d position = support_.state().position_m;
+    const Eigen::Vector3d end = tracker_->points().back();
+    const bool arrived = tracker_->referenceAtEnd() && (position - end).norm() <= kArrivedM;
+    bool blocked = false;
+    if (!arrived && t - last_check_ >= check_interval_) {
+      last_check_ = t;
+      blocked = legBlocked();
+    }
+    const bool astray =
+        tracker_->crossTrackErrorM(position) > path_settings_.max_cross_track_m ||
+        lagging_.update(t, tracker_->lagM(position) >= 0.8 * path_settings_.max_lag_m);
+    if (arrived || astray || blocked) {
+      if (astray) given_up_.push_back(end);
+      if (blocked) ++stops_;
+      hold_m_ = arrived ? end : position;
+      tracker_.reset();
+      phase_ = Phase::kChoosing;
+      startChoice();
+    }
+  }
+  if (known_fraction_ >= last_growth_value_ + 0.01) {
+    last_growth_value_ = known_fraction_;
+    last_growth_time_ = t;
+  }
+  const double stalled = std::chrono::duration<double>(t - last_growth_time_).count();
+  if (phase_ != Phase::kDone && stalled > p.stall_s()) {
+    return Verdict::finish("the known fraction of the area has grown by less than 0.01 in " +
+                           fixed2(stalled) + " s (stall_s " + fixed2(p.stall_s()) +
+                           "): " + percent(known_fraction_) + " known after " +
+                           std::to_string(legs_) + " legs");
+  }
+  return Verdict::keepGoing();
+}
+
+}  // namespace behaviorlib::nav

@@ -67,7 +67,8 @@ from local_demo_test import alive, kill_launched, launched_pids, read_png  # noq
 # side, and a noisy jamb hit raised a lidar column that closed the B-C door
 # for good. Decision 19 and the column that falls fixed both.) Each case
 # still starts only the systems its mission needs (SYSTEMS below).
-TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "max", "exploration_slam": "max"}
+TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "max", "exploration_slam": "max",
+               "exploration_autonomous": "max"}
 # The behavior systems each case starts (--systems; basic_quadrotor_behaviors
 # always runs): what its mission needs, so that the idle rest of the stack
 # does not take the CPU the controllers need.
@@ -76,6 +77,7 @@ SYSTEMS = {
     "swarm": "swarm_interaction",
     "exploration": "quadrotor_motion_with_pid_control,navigation_with_lidar",
     "exploration_slam": "quadrotor_motion_with_pid_control,navigation_with_lidar",
+    "exploration_autonomous": "quadrotor_motion_with_pid_control,navigation_with_lidar",
 }
 SUCCEEDED = "MISSION_STATE_SUCCEEDED"
 # How far a marker found may be from the world file's centre.
@@ -246,6 +248,9 @@ class ApplicationsTest(unittest.TestCase):
     def test_exploration_slam(self):
         self._explore("exploration_slam", "room_exploration_slam.yaml")
 
+    def test_exploration_autonomous(self):
+        self._explore("exploration_autonomous", "room_exploration_autonomous.yaml")
+
     def _explore(self, case, mission_file):
         mission = os.path.join(MISSIONS, mission_file)
         self.assertTrue(os.path.isfile(mission), f"{mission} does not exist yet")
@@ -268,7 +273,8 @@ class ApplicationsTest(unittest.TestCase):
 
 
 CASES = {"aircraft": "test_aircraft", "swarm": "test_swarm", "exploration": "test_exploration",
-         "exploration_slam": "test_exploration_slam"}
+         "exploration_slam": "test_exploration_slam",
+         "exploration_autonomous": "test_exploration_autonomous"}
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser()

@@ -36,6 +36,7 @@ constexpr double kArrivedM = 0.3;  // a leg ends this close to its target
 constexpr double kGivenUpM = 0.5;  // a target given up rules out those this close
 constexpr double kAccelerationM_S2 = 0.5;
 constexpr int kCandidatesPerChoice = 4;  // plans tried per choice
+constexpr uint32_t kChoiceRetries = 3;   // choices again when every plan failed
 
 }  // namespace
 
@@ -102,6 +103,7 @@ absl::Status ExploreBehavior::onActivate() {
   phase_ = Phase::kChoosing;
   paused_ = false;
   stops_ = 0;
+  failed_choices_ = 0;
   choice_ = Choice();
   tracker_.reset();
   hold_m_ = support_.state().position_m;
@@ -237,12 +239,16 @@ ExploreBehavior::Choice ExploreBehavior::choose(const Request& request) const {
         return;
       }
       c.given_up.push_back(target);
+      if (c.plan_failure.empty()) c.plan_failure = std::string(planned.status().message());
     }
     std::ostringstream out;
     out << "no reachable frontier left: " << c.frontiers << " frontiers, " << c.unreachable
         << " out of reach for a vehicle of radius " << fixed2(request.radius_m)
         << " m (or given up)";
-    if (!c.given_up.empty()) out << ", " << c.given_up.size() << " whose plan failed";
+    if (!c.given_up.empty()) {
+      out << ", " << c.given_up.size() << " whose plan failed (the first: " << c.plan_failure
+          << ")";
+    }
     c.message = out.str();
   });
   return c;
@@ -270,6 +276,7 @@ void ExploreBehavior::startLeg(const std::vector<Eigen::Vector3d>& path) {
   last_check_ = now();
   hold_m_.reset();
   lagging_.reset();
+  failed_choices_ = 0;
   flown_m_ += tracker_->lengthM();
   ++legs_;
   phase_ = Phase::kFlying;
@@ -364,6 +371,15 @@ Verdict ExploreBehavior::checkProgress() {
   const TimePoint t = now();
   if (phase_ == Phase::kChoosing && choice_.done && choice_.id == current_id_.load() && !paused_) {
     known_fraction_ = choice_.known_fraction;
+    // Frontiers there but every plan failed (a random planner's time-out, a
+    // vehicle just too near a wall): choose again, on a newer map, before
+    // giving those targets up.
+    if (!choice_.target_m && !choice_.given_up.empty() && failed_choices_ < kChoiceRetries &&
+        known_fraction_ < p.coverage()) {
+      ++failed_choices_;
+      startChoice();
+      return Verdict::keepGoing();
+    }
     given_up_.insert(given_up_.end(), choice_.given_up.begin(), choice_.given_up.end());
     const std::string summary = percent(known_fraction_) + " of the area known after " +
                                 std::to_string(legs_) + " legs (" + std::to_string(stops_) +

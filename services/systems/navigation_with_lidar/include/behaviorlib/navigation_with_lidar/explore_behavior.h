@@ -14,8 +14,9 @@
 //                   from the vehicle; the frontier whose reachable cell
 //                   nearest its centre is nearest the vehicle (by that
 //                   search), not within 0.5 m of a target given up before;
-//                   planPath() to it (a failed plan gives the target up and
-//                   the next is tried)
+//                   planPath() to it (a failed plan: the next is tried; a
+//                   choice whose every plan failed is made again, up to 3
+//                   times in a row, before those targets are given up)
 //   onExecute       the leg's PathTracker reference (or holding the vehicle's
 //                   position while choosing or paused)
 //   checkGoal       no reachable frontier left, or the known fraction at
@@ -83,6 +84,7 @@ class ExploreBehavior final : public Behavior<v1::ExploreWithFrontiersParameters
     std::vector<Eigen::Vector3d> path_m;
     std::vector<Eigen::Vector3d> given_up;  ///< targets whose plan failed in this choice
     std::string message;                    ///< why nothing was chosen
+    std::string plan_failure;               ///< the first failed plan's error
   };
 
  private:
@@ -117,7 +119,8 @@ class ExploreBehavior final : public Behavior<v1::ExploreWithFrontiersParameters
   std::optional<motion::PathTracker> tracker_;
   std::vector<Eigen::Vector3d> leg_path_;
   TimePoint last_check_{};
-  uint32_t stops_ = 0;  // legs stopped by a wall seen on the way
+  uint32_t stops_ = 0;           // legs stopped by a wall seen on the way
+  uint32_t failed_choices_ = 0;  // choices in a row whose every plan failed
   std::optional<Eigen::Vector3d> hold_m_;
   std::vector<Eigen::Vector3d> given_up_;
   TimePoint last_update_{};

@@ -330,6 +330,11 @@ def _findings_md(robot, found, h):
             lines.append(f"- free cells of the world: {coverage.get('free_cells', '-')}; known "
                          f"free in the map: {coverage.get('known_free_cells', '-')} "
                          f"(`map_coverage`)")
+            if "wall_error_mean_m" in coverage:
+                lines.append(f"- Wall error of the map: {coverage['wall_error_mean_m']:.3f} m "
+                             f"on average, at most {coverage.get('wall_error_max_m', 0):.3f} m "
+                             f"({coverage.get('occupied_voxels', '-')} occupied voxels at the "
+                             f"scan height, against the world file's surfaces)")
         else:
             lines.append(f"- mapped fraction not measured: "
                          f"{coverage.get('error', 'no measurement')}")

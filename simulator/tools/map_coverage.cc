@@ -69,6 +69,37 @@ MapCoverage measureCoverage(const sim::World& world, const octomap::OcTree& map,
       }
     }
   }
+  // The wall error: each occupied voxel in the band, inside the building.
+  double sum = 0.0;
+  for (auto it = map.begin_leafs(), end = map.end_leafs(); it != end; ++it) {
+    if (!map.isNodeOccupied(*it)) continue;
+    const double half = 0.5 * it.getSize();
+    const Eigen::Vector3d c(it.getX(), it.getY(), it.getZ());
+    if (std::abs(c.z() - options.height_m) > options.band_m + half) continue;
+    if ((c.head<2>().array() < result.building_min_m.array()).any() ||
+        (c.head<2>().array() > result.building_max_m.array()).any()) {
+      continue;
+    }
+    // The smallest radius (to 5 mm, up to 64 m) at which the centre meets a
+    // surface: doubled until it does, then halved.
+    double lo = 0.0, hi = 0.0;
+    if (!world.collides(c, 0.0)) {
+      hi = 0.125;
+      while (hi < 64.0 && !world.collides(c, hi)) {
+        lo = hi;
+        hi *= 2.0;
+      }
+      while (hi - lo > 0.005) {
+        const double mid = 0.5 * (lo + hi);
+        (world.collides(c, mid) ? hi : lo) = mid;
+      }
+    }
+    const double error = hi;
+    sum += error;
+    result.wall_error_max_m = std::max(result.wall_error_max_m, error);
+    ++result.occupied_voxels;
+  }
+  if (result.occupied_voxels > 0) result.wall_error_mean_m = sum / result.occupied_voxels;
   return result;
 }
 

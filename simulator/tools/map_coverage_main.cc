@@ -124,16 +124,21 @@ int main(int argc, char** argv) {
         "{\"mapped_fraction\": %.4f, \"free_cells\": %zu, \"known_free_cells\": %zu, "
         "\"occupied_free_cells\": %zu, \"free_area_m2\": %.2f, \"mapped_area_m2\": %.2f, "
         "\"height_m\": %.3f, \"band_m\": %.3f, \"cell_m\": %.3f, "
-        "\"building_min_m\": [%.2f, %.2f], \"building_max_m\": [%.2f, %.2f]}\n",
+        "\"building_min_m\": [%.2f, %.2f], \"building_max_m\": [%.2f, %.2f], "
+        "\"occupied_voxels\": %zu, \"wall_error_mean_m\": %.4f, \"wall_error_max_m\": %.4f}\n",
         c.mappedFraction(), c.free_cells, c.known_free_cells, c.occupied_cells, c.freeAreaM2(),
         c.mappedAreaM2(), options.height_m, options.band_m, options.cell_m, c.building_min_m.x(),
-        c.building_min_m.y(), c.building_max_m.x(), c.building_max_m.y());
+        c.building_min_m.y(), c.building_max_m.x(), c.building_max_m.y(), c.occupied_voxels,
+        c.wall_error_mean_m, c.wall_error_max_m);
   } else {
     std::printf(
         "mapped fraction of the building's free space at %.2f m: %.1f %% (%.1f of %.1f m^2; "
-        "%zu free cells marked occupied)\n",
+        "%zu free cells marked occupied)\n"
+        "wall error: %zu occupied voxels within %.2f m of that height are %.3f m from the "
+        "world's surfaces on average (at most %.3f m)\n",
         options.height_m, 100.0 * c.mappedFraction(), c.mappedAreaM2(), c.freeAreaM2(),
-        c.occupied_cells);
+        c.occupied_cells, c.occupied_voxels, options.band_m, c.wall_error_mean_m,
+        c.wall_error_max_m);
   }
   return 0;
 }

@@ -87,6 +87,9 @@ MARKER_TOLERANCE_M = 0.3
 # trajectory is sampled at 20 Hz of simulated time).
 SWARM_TOLERANCE_M = 0.3
 MIN_MAPPED_FRACTION = 0.8
+# Mean distance of the saved map's occupied voxels at the scan height from the
+# world's surfaces (issue 17).
+MAX_WALL_ERROR_M = 0.10
 
 
 class ApplicationsTest(unittest.TestCase):
@@ -269,6 +272,10 @@ class ApplicationsTest(unittest.TestCase):
               f"of {coverage.get('free_cells')} free cells)")
         self.assertIn("Mapped fraction of the building's free space: ", markdown)
         self.assertGreaterEqual(coverage["mapped_fraction"], MIN_MAPPED_FRACTION)
+        print(f"wall error of the map: {coverage['wall_error_mean_m']:.3f} m on average, at "
+              f"most {coverage['wall_error_max_m']:.3f} m ({coverage['occupied_voxels']} voxels)")
+        self.assertIn("Wall error of the map: ", markdown)
+        self.assertLessEqual(coverage["wall_error_mean_m"], MAX_WALL_ERROR_M)
         self.passed = True
 
 

@@ -87,5 +87,25 @@ TEST_F(MapCoverageTest, ScansOutsideTheBandDoNotCount) {
             measureCoverage(*world_, map_.tree(), options()).mappedFraction());
 }
 
+TEST_F(MapCoverageTest, TheWallErrorIsSmallForScannedWallsAndGrowsWithAStrayVoxel) {
+  EXPECT_EQ(measureCoverage(*world_, map_.tree(), options()).occupied_voxels, 0u);
+  testing::scanInto(map_, *lidar_, {3, 3, 1.5});
+  const MapCoverage scanned = measureCoverage(*world_, map_.tree(), options());
+  ASSERT_GT(scanned.occupied_voxels, 100u);
+  std::printf("wall error: %zu voxels, mean %.3f m, max %.3f m\n", scanned.occupied_voxels,
+              scanned.wall_error_mean_m, scanned.wall_error_max_m);
+  EXPECT_LT(scanned.wall_error_mean_m, 0.05);
+  // A wall across room A where nothing is: the mean grows, and the maximum
+  // is its farthest voxel's distance to any surface (around (3, 4, 1.5): the
+  // table's top, 2.7 m away; the west wall's face, 2.9 m).
+  std::vector<Eigen::Vector3d> stray;
+  for (double y = 2.0; y <= 4.0; y += 0.1) stray.emplace_back(3.0, y, 1.5);
+  map_.insertScan({1.0, 3.0, 1.5}, stray);
+  const MapCoverage smeared = measureCoverage(*world_, map_.tree(), options());
+  EXPECT_GT(smeared.wall_error_mean_m, scanned.wall_error_mean_m);
+  EXPECT_GT(smeared.wall_error_max_m, 2.5);
+  EXPECT_LT(smeared.wall_error_max_m, 3.0);
+}
+
 }  // namespace
 }  // namespace behaviorlib::nav

@@ -496,10 +496,11 @@ def robot_findings(coordinator, robot_id):
     return found
 
 
-def measure_map_coverage(tool, world_path, map_file, timeout_s=120.0):
+def measure_map_coverage(tool, world_path, map_file, timeout_s=120.0, cells_path=None):
     """Runs `tool --world WORLD --map FILE --json` (map_coverage: how much of
     the world's free space the saved map knows as free) and returns its JSON
-    object; {"error": why} when it cannot be measured."""
+    object; {"error": why} when it cannot be measured. With `cells_path`, the
+    map's occupied cells at the scan height go to that file (--cells)."""
     if not tool or not os.access(tool, os.X_OK):
         return {"error": f"{tool} is not built"}
     if not world_path:
@@ -507,6 +508,8 @@ def measure_map_coverage(tool, world_path, map_file, timeout_s=120.0):
     if not isinstance(map_file, str) or not os.path.isfile(map_file):
         return {"error": f"the map file {map_file!r} does not exist"}
     argv = [tool, "--world", world_path, "--map", map_file, "--json"]
+    if cells_path:
+        argv += ["--cells", cells_path]
     try:
         result = subprocess.run(argv, capture_output=True, text=True, timeout=timeout_s)
     except (OSError, subprocess.TimeoutExpired) as error:

@@ -75,6 +75,7 @@ servers through gRPC reflection (no generated code).
 """
 
 import argparse
+import math
 import os
 import re
 import signal
@@ -170,6 +171,39 @@ def world_markers(path):
     except (ImportError, OSError, ValueError, TypeError, KeyError, AttributeError) as error:
         say(f"  note: cannot read the markers of {path}: {error}")
         return {}
+
+
+def world_walls(path):
+    """The walls of a world file as plan-view segments ((x0, y0), (x1, y1)),
+    their doors left out (for the report's plot); [] when it has none or
+    cannot be read."""
+    if not path:
+        return []
+    try:
+        import yaml  # Debian's python3-yaml
+        with open(path) as f:
+            world = yaml.safe_load(f) or {}
+        segments = []
+        for wall in world.get("walls") or []:
+            (x0, y0), (x1, y1) = [float(v) for v in wall["from_m"]], [float(v) for v in wall["to_m"]]
+            length = math.hypot(x1 - x0, y1 - y0)
+            if length <= 0:
+                continue
+            # Along the wall, the spans between its doors.
+            gaps = sorted((float(d["offset_m"]) - float(d["width_m"]) / 2,
+                           float(d["offset_m"]) + float(d["width_m"]) / 2)
+                          for d in wall.get("doors") or [])
+            start = 0.0
+            for lo, hi in gaps + [(length, length)]:
+                if lo > start:
+                    a, b = start / length, lo / length
+                    segments.append(((x0 + (x1 - x0) * a, y0 + (y1 - y0) * a),
+                                     (x0 + (x1 - x0) * b, y0 + (y1 - y0) * b)))
+                start = max(start, hi)
+        return segments
+    except (ImportError, OSError, ValueError, TypeError, KeyError, AttributeError) as error:
+        say(f"  note: cannot read the walls of {path}: {error}")
+        return []
 
 
 def simulator_vehicles(simulator, timeout_s=3.0):
@@ -406,16 +440,21 @@ def parse_missions(parser, args):
     return missions
 
 
-def robot_reports(args, build_dir, state):
+def robot_reports(args, build_dir, state, run_dir):
     """Per robot what report.write needs; measures the coverage of each map
-    saved (map_coverage), printing it."""
+    saved (map_coverage), printing it, and keeps its occupied cells in
+    run_dir (map_cells_<robot>.json, for the plot)."""
     world_path = world_file(args.world)
     tool = os.path.join(build_dir, MAP_COVERAGE)
     robots = []
     for robot in args.vehicles:
         findings = dict(state["findings"].get(robot, {}))
         if "map_file" in findings:
-            coverage = demo.measure_map_coverage(tool, world_path, findings["map_file"])
+            cells = os.path.join(run_dir, f"map_cells_{robot}.json")
+            coverage = demo.measure_map_coverage(tool, world_path, findings["map_file"],
+                                                 cells_path=cells)
+            if os.path.isfile(cells):
+                findings["map_cells_file"] = cells
             findings["map_coverage"] = coverage
             who = "" if len(args.vehicles) == 1 else f" of {robot}"
             if "mapped_fraction" in coverage:
@@ -624,9 +663,9 @@ def main():
                                  for robot, path in args.missions.items()},
                     "sensor_config": os.path.relpath(os.path.abspath(args.sensor_config), REPO)
                     if args.sensor_config else ""}
-        robots = robot_reports(args, build_dir, demo_state)
+        robots = robot_reports(args, build_dir, demo_state, run_dir)
         report.write(run_dir, settings, robots, behaviors, processes, clean,
-                     world_markers(world_file(args.world)))
+                     world_markers(world_file(args.world)), world_walls(world_file(args.world)))
         say("")
         for robot in args.vehicles:
             if robot not in args.missions:

@@ -15,6 +15,8 @@ WHITE = (255, 255, 255)
 GRID = (225, 225, 225)
 AXIS = (90, 90, 90)
 PLANNED = (150, 150, 150)
+WALL = (200, 185, 160)      # the world's walls (tan)
+CELL = (60, 60, 60)         # a map's occupied cells (dark grey)
 FLOWN = (31, 119, 180)
 START = (44, 160, 44)
 END = (214, 39, 40)
@@ -131,13 +133,20 @@ def plot_trajectory(path, flown, planned=(), size=640, margin=56):
     plot_trajectories(path, [flown], [planned], size=size, margin=margin)
 
 
-def plot_trajectories(path, flown_lines, planned_lines=(), labels=None, size=640, margin=56):
+def plot_trajectories(path, flown_lines, planned_lines=(), labels=None, size=640, margin=56,
+                      walls=(), cells=(), cell_m=0.1):
     """Writes the x-y plot of several vehicles: each of `flown_lines` in its
     colour (vehicle_colors), each of `planned_lines` grey and dashed; a
-    legend above the plot when `labels` (one per flown line) are given."""
+    legend above the plot when `labels` (one per flown line) are given.
+    Under them, the world's `walls` (segments ((x0, y0), (x1, y1)), doors
+    left out) in WALL, and a map's occupied `cells` (centres (x, y), `cell_m`
+    wide) in CELL: a person sees at a glance where the map put the walls."""
     flown_lines = [list(line) for line in flown_lines]
     planned_lines = [list(line) for line in planned_lines]
+    walls = [tuple(w) for w in walls]
+    cells = [tuple(c) for c in cells]
     points = [p for line in flown_lines + planned_lines for p in line]
+    points += [p for w in walls for p in w] + cells
     if not points:
         points = [(0.0, 0.0)]
     xs = [p[0] for p in points]
@@ -181,6 +190,18 @@ def plot_trajectories(path, flown_lines, planned_lines=(), labels=None, size=640
     canvas.text(size // 2 - 20, size - margin + 28, "x (m)", AXIS)
     canvas.text(8, margin - 24, "y (m)", AXIS)
 
+    for a, b in walls:
+        pa, pb = to_px(a), to_px(b)
+        canvas.line(pa[0], pa[1], pb[0], pb[1], WALL, width=max(3, int(round(0.2 * scale))))
+    half = max(1, int(round(0.5 * cell_m * scale)))
+    for c in cells:
+        pc = to_px(c)
+        for dy in range(-half, half):
+            for dx in range(-half, half):
+                px, py = int(pc[0]) + dx, int(pc[1]) + dy
+                if 0 <= px < size and 0 <= py < size:
+                    i = (py * size + px) * 3
+                    canvas.pixels[i:i + 3] = bytes(CELL)
     for planned in planned_lines:
         planned_px = [to_px(p) for p in planned]
         for a, b in zip(planned_px, planned_px[1:]):

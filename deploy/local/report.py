@@ -352,7 +352,24 @@ def _robot_json(r, world_markers, samples_by_robot):
     return entry
 
 
-def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_markers=None):
+def _map_cells(robots):
+    """The occupied cells of the first map saved (map_coverage --cells), as
+    (x, y) centres and their width; ([], 0.1) without one."""
+    for r in robots:
+        path = (r.get("findings") or {}).get("map_cells_file")
+        if not path:
+            continue
+        try:
+            with open(path) as f:
+                data = json.load(f)
+            return [tuple(c) for c in data.get("occupied_xy_m", [])], float(data.get("cell_m", 0.1))
+        except (OSError, ValueError, TypeError, AttributeError):
+            continue
+    return [], 0.1
+
+
+def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_markers=None,
+          world_walls=None):
     """Writes report.json, report.md and trajectory.png; returns the report
     dict.
 
@@ -360,8 +377,10 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
     (relative path, or "" without a mission), mission (its final
     MissionStatus dict, or {}), behavior_events, samples (ground truth:
     (t_sim_s, x, y, z, flight_state)), findings (demo.robot_findings, plus
-    map_coverage). world_markers: marker text -> centre [x, y, z] from the
-    world file, to compare the markers found with."""
+    map_coverage and map_cells_file). world_markers: marker text -> centre
+    [x, y, z] from the world file, to compare the markers found with.
+    world_walls: the world's walls as plan-view segments, drawn under the
+    trajectories with the saved map's occupied cells."""
     world_markers = world_markers or {}
     several = len(robots) > 1
     # One time origin for every robot's timeline: the first event of all.
@@ -380,8 +399,10 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
         for leg in _planned_legs(r.get("mission") or {}, r["timeline"], r.get("samples", [])):
             planned_xy.append([(p[0], p[1]) for p in leg])
     colors = plot.vehicle_colors(len(robots))
+    cells, cell_m = _map_cells(robots)
     plot.plot_trajectories(png, lines_xy, planned_xy,
-                           labels=[r["robot_id"] for r in robots] if several else None)
+                           labels=[r["robot_id"] for r in robots] if several else None,
+                           walls=world_walls or [], cells=cells, cell_m=cell_m)
 
     used = [b for b in behaviors if b.get("a")]
     report = {"settings": settings, "mission": first["mission"], "timeline": first["timeline"],

@@ -2,7 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <limits>
+#include <unordered_set>
 
 namespace behaviorlib::nav {
 
@@ -71,6 +73,7 @@ MapCoverage measureCoverage(const sim::World& world, const octomap::OcTree& map,
   }
   // The wall error: each occupied voxel in the band, inside the building.
   double sum = 0.0;
+  std::unordered_set<int64_t> cells;
   for (auto it = map.begin_leafs(), end = map.end_leafs(); it != end; ++it) {
     if (!map.isNodeOccupied(*it)) continue;
     const double half = 0.5 * it.getSize();
@@ -95,6 +98,11 @@ MapCoverage measureCoverage(const sim::World& world, const octomap::OcTree& map,
       }
     }
     const double error = hi;
+    const int64_t ix = static_cast<int64_t>(std::floor(c.x() / options.cell_m));
+    const int64_t iy = static_cast<int64_t>(std::floor(c.y() / options.cell_m));
+    if (cells.insert(ix * 1'000'003 + iy).second) {
+      result.occupied_xy_m.emplace_back((ix + 0.5) * options.cell_m, (iy + 0.5) * options.cell_m);
+    }
     sum += error;
     result.wall_error_max_m = std::max(result.wall_error_max_m, error);
     ++result.occupied_voxels;

@@ -23,6 +23,7 @@
 
 #include <Eigen/Core>
 #include <cstddef>
+#include <vector>
 
 #include "simulator/world/world.h"
 
@@ -45,6 +46,8 @@ struct MapCoverage {
   size_t occupied_voxels = 0;
   double wall_error_mean_m = 0.0;
   double wall_error_max_m = 0.0;
+  /// Those voxels in plan view: one centre per cell_m cell (for plots).
+  std::vector<Eigen::Vector2d> occupied_xy_m;
   Eigen::Vector2d building_min_m = Eigen::Vector2d::Zero();
   Eigen::Vector2d building_max_m = Eigen::Vector2d::Zero();
   double cell_m = 0.1;

@@ -24,14 +24,16 @@ namespace {
 
 constexpr char kUsage[] =
     "usage: map_coverage --world WORLD.yaml --map MAP.bt|MAP.ot [--json]\n"
-    "                    [--height-m H] [--band-m B] [--cell-m C]\n"
+    "                    [--height-m H] [--band-m B] [--cell-m C] [--cells FILE]\n"
     "  --world     the simulator's world file (its walls bound the building)\n"
     "  --map       an OctoMap saved by SAVE_OCCUPANCY_GRID (.bt, or .ot)\n"
     "  --height-m  height of the plan view in metres, world frame (default 1.3:\n"
     "              flight altitude 1.2 m plus the lidar's 0.1 m mount)\n"
     "  --band-m    a free voxel this far above or below counts (default 0.3)\n"
     "  --cell-m    plan-view cell edge in metres (default 0.1)\n"
-    "  --json      print one JSON object instead of text\n";
+    "  --json      print one JSON object instead of text\n"
+    "  --cells     write the map's occupied cells at that height (plan view, one\n"
+    "              centre per cell) to FILE as JSON: {cell_m, occupied_xy_m}\n";
 
 int usage(const std::string& problem) {
   std::cerr << "map_coverage: " << problem << "\n" << kUsage;
@@ -72,7 +74,7 @@ std::unique_ptr<octomap::OcTree> readMap(const std::string& path, std::string* e
 }  // namespace
 
 int main(int argc, char** argv) {
-  std::string world_path, map_path;
+  std::string world_path, map_path, cells_path;
   bool json = false;
   behaviorlib::nav::CoverageOptions options;
   for (int i = 1; i < argc; ++i) {
@@ -91,6 +93,8 @@ int main(int argc, char** argv) {
       world_path = value;
     } else if (arg == "--map") {
       map_path = value;
+    } else if (arg == "--cells") {
+      cells_path = value;
     } else if (arg == "--height-m") {
       if (!parsePositive(value, &options.height_m)) return usage("--height-m must be > 0");
     } else if (arg == "--band-m") {
@@ -115,6 +119,23 @@ int main(int argc, char** argv) {
     return 2;
   }
   const behaviorlib::nav::MapCoverage c = behaviorlib::nav::measureCoverage(*world, *map, options);
+  if (!cells_path.empty()) {
+    std::FILE* out = std::fopen(cells_path.c_str(), "w");
+    if (out == nullptr) {
+      std::cerr << "map_coverage: --cells: cannot write " << cells_path << "\n";
+      return 2;
+    }
+    std::fprintf(out, "{\"cell_m\": %.3f, \"occupied_xy_m\": [", options.cell_m);
+    for (size_t i = 0; i < c.occupied_xy_m.size(); ++i) {
+      std::fprintf(out, "%s[%.3f, %.3f]", i ? ", " : "", c.occupied_xy_m[i].x(),
+                   c.occupied_xy_m[i].y());
+    }
+    std::fprintf(out, "]}\n");
+    if (std::fclose(out) != 0) {
+      std::cerr << "map_coverage: --cells: cannot write " << cells_path << "\n";
+      return 2;
+    }
+  }
   if (c.free_cells == 0) {
     std::cerr << "map_coverage: " << world_path << " has no walls: no building to cover\n";
     return 2;

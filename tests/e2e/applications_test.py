@@ -276,6 +276,13 @@ class ApplicationsTest(unittest.TestCase):
               f"most {coverage['wall_error_max_m']:.3f} m ({coverage['occupied_voxels']} voxels)")
         self.assertIn("Wall error of the map: ", markdown)
         self.assertLessEqual(coverage["wall_error_mean_m"], MAX_WALL_ERROR_M)
+        # The plot draws the world's walls and the map's occupied cells.
+        self.assertTrue(os.path.isfile(os.path.join(self.run_dir, "map_cells_drone1.json")))
+        _, _, rows = read_png(os.path.join(self.run_dir, "trajectory.png"))
+        for name, color in (("the walls", (200, 185, 160)), ("the occupied cells", (60, 60, 60))):
+            pixels = sum(row[i:i + 3] == bytes(color) for row in rows
+                         for i in range(0, len(row), 3))
+            self.assertGreater(pixels, 500, f"{name} are not drawn")
         self.passed = True
 
 

@@ -91,7 +91,9 @@ TEST_F(BehaviorExecutionManagerTest, CheckProcessesRunsEveryTickBeforeTheGoal) {
   tick();
   tick();
   EXPECT_EQ(b.count("checkProcesses"), 3);
-  EXPECT_EQ(b.count("checkGoal"), 3);
+  // tick() returns once checkProcesses has run; checkGoal follows it on the
+  // worker thread.
+  EXPECT_TRUE(eventually([&] { return b.count("checkGoal") == 3; })) << b.count("checkGoal");
 }
 
 TEST_F(BehaviorExecutionManagerTest, InactiveBehaviorDoesNotTick) {

@@ -7,6 +7,7 @@
 #include <sstream>
 
 #include "behaviorlib/flight_common/flight_support.h"
+#include "behaviorlib/motion_behaviors/motion_messages.h"
 #include "behaviorlib/navigation/frontiers.h"
 #include "behaviorlib/navigation/path_planner.h"
 
@@ -15,14 +16,9 @@ namespace {
 
 using flight::fixed2;
 
-Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
-
-std::string text(const Eigen::Vector3d& p) {
-  std::ostringstream out;
-  out.precision(3);
-  out << "(" << p.x() << ", " << p.y() << ", " << p.z() << ")";
-  return out.str();
-}
+using motion_behaviors::pointText;
+using motion_behaviors::toEigen;
+using motion_behaviors::toProto;
 
 std::string percent(double fraction) {
   std::ostringstream out;
@@ -83,10 +79,11 @@ Situation ExploreBehavior::checkSituation() {
 
 absl::Status ExploreBehavior::onActivate() {
   const auto& p = parameters();
-  const Eigen::Vector3d lo = vec(p.bounds_min_m()), hi = vec(p.bounds_max_m());
+  const Eigen::Vector3d lo = toEigen(p.bounds_min_m()), hi = toEigen(p.bounds_max_m());
   if (!lo.allFinite() || !hi.allFinite() || (lo.array() >= hi.array()).any()) {
-    return absl::InvalidArgumentError("bounds_min_m " + text(lo) + " must be below bounds_max_m " +
-                                      text(hi) + " in every coordinate (finite, metres)");
+    return absl::InvalidArgumentError("bounds_min_m " + pointText(lo) +
+                                      " must be below bounds_max_m " + pointText(hi) +
+                                      " in every coordinate (finite, metres)");
   }
   const MapperSettings& m = mapper_.settings();
   const double z_lo = std::max(lo.z(), m.planning_min_z_m),
@@ -125,8 +122,8 @@ void ExploreBehavior::startChoice() {
   Request r;
   r.id = current_id_.fetch_add(1) + 1;
   r.start_m = support_.state().position_m;
-  r.lo_m = vec(p.bounds_min_m());
-  r.hi_m = vec(p.bounds_max_m());
+  r.lo_m = toEigen(p.bounds_min_m());
+  r.hi_m = toEigen(p.bounds_max_m());
   r.lo_m.z() = std::max(r.lo_m.z(), m.planning_min_z_m);
   r.hi_m.z() = std::min(r.hi_m.z(), m.planning_max_z_m);
   r.altitude_m = p.altitude_m();
@@ -165,7 +162,7 @@ ExploreBehavior::Choice ExploreBehavior::choose(const Request& request) const {
     const int w = slice.width(), h = slice.height();
     int sx = 0, sy = 0;
     if (!slice.cellOf(request.start_m.head<2>(), &sx, &sy)) {
-      c.message = "the vehicle at " + text(request.start_m) + " is outside the area";
+      c.message = "the vehicle at " + pointText(request.start_m) + " is outside the area";
       return;
     }
     const auto at_altitude = [&](int ix, int iy) {
@@ -256,12 +253,7 @@ ExploreBehavior::Choice ExploreBehavior::choose(const Request& request) const {
 
 void ExploreBehavior::startLeg(const std::vector<Eigen::Vector3d>& path) {
   google::protobuf::RepeatedPtrField<v1::Vector3> points;
-  for (const Eigen::Vector3d& q : path) {
-    v1::Vector3* v = points.Add();
-    v->set_x(q.x());
-    v->set_y(q.y());
-    v->set_z(q.z());
-  }
+  for (const Eigen::Vector3d& q : path) toProto(q, points.Add());
   auto tracker =
       motion_behaviors::makePathTracker(points, parameters().speed_m_s(), kAccelerationM_S2,
                                         path_settings_, support_.settings().min_altitude_m);
@@ -346,8 +338,8 @@ void ExploreBehavior::onResume() {
 absl::Status ExploreBehavior::onModify(const google::protobuf::Message& new_parameters) {
   const auto& n = static_cast<const v1::ExploreWithFrontiersParameters&>(new_parameters);
   const auto& p = parameters();
-  if (vec(n.bounds_min_m()) != vec(p.bounds_min_m()) ||
-      vec(n.bounds_max_m()) != vec(p.bounds_max_m()) || n.altitude_m() != p.altitude_m() ||
+  if (toEigen(n.bounds_min_m()) != toEigen(p.bounds_min_m()) ||
+      toEigen(n.bounds_max_m()) != toEigen(p.bounds_max_m()) || n.altitude_m() != p.altitude_m() ||
       n.vehicle_radius_m() != p.vehicle_radius_m() || n.time_limit_s() != p.time_limit_s()) {
     return absl::InvalidArgumentError(
         "only speed_m_s, coverage and stall_s can change while exploring: deactivate and "

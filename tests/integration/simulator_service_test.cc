@@ -120,7 +120,8 @@ class SimulatorServiceTest : public ::testing::Test {
     }
     return pose;
   }
-  // Waits (wall time) for drone1's flight state (and failsafe flag if asked).
+  // Waits (wall time) for drone1's flight state (and failsafe flag if asked);
+  // FLIGHT_STATE_UNSPECIFIED takes the current status, whatever it is.
   bool waitForState(v1::FlightState wanted, seconds timeout, bool want_failsafe = false) {
     auto context = deadline(timeout);
     v1::WatchFlightStateRequest request;
@@ -129,7 +130,7 @@ class SimulatorServiceTest : public ::testing::Test {
     v1::WatchFlightStateResponse message;
     while (reader->Read(&message)) {
       last_status_ = message.status();
-      if (message.status().state() == wanted &&
+      if ((wanted == v1::FLIGHT_STATE_UNSPECIFIED || message.status().state() == wanted) &&
           (!want_failsafe || message.status().failsafe_active())) {
         context->TryCancel();
         reader->Finish();
@@ -162,9 +163,16 @@ TEST_F(SimulatorServiceTest, TakeOffWithTheRealDynamicsHoversAtTheTargetAltitude
 }
 
 TEST_F(SimulatorServiceTest, LeaseRefusesOthersAndItsLossHoversThenLands) {
-  const std::string id = lease("controller", 5000);
+  const std::string id = lease("controller", 10000);
   ASSERT_TRUE(action(v1::FLIGHT_ACTION_TAKE_OFF, id, 1.5).ok());
   ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_HOVERING, seconds(10)));
+  // Simulated time stands still (lock-step) while the leases are checked: at
+  // 10x, the leases' 10 s and 200 ms are 1 s and 20 ms of wall time, less
+  // than a busy machine may take between two calls.
+  v1::SetTimeScaleRequest freeze;
+  freeze.set_lock_step(true);
+  v1::SetTimeScaleResponse scale;
+  ASSERT_TRUE(sim_->SetTimeScale(deadline().get(), freeze, &scale).ok());
 
   v1::AcquireLeaseRequest intruder;
   intruder.set_robot_id("drone1");
@@ -196,9 +204,23 @@ TEST_F(SimulatorServiceTest, LeaseRefusesOthersAndItsLossHoversThenLands) {
   setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s()->set_x(0.5);
   ASSERT_TRUE(flight_->SendSetpoint(deadline().get(), setpoint, &response).ok());
   EXPECT_EQ(response.state(), v1::FLIGHT_STATE_FLYING);
-  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_HOVERING, seconds(5), /*want_failsafe=*/true));
-  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_LANDING, seconds(5)));
-  ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_LANDED, seconds(10)));
+  // Silence, stepped 100 ms at a time: the failsafe hovers, then lands.
+  std::vector<v1::FlightState> seen;
+  bool failsafe_hover = false;
+  v1::StepRequest step;
+  *step.mutable_duration() = TimeUtil::MillisecondsToDuration(100);
+  v1::StepResponse stepped;
+  for (int i = 0; i < 300 && (seen.empty() || seen.back() != v1::FLIGHT_STATE_LANDED); ++i) {
+    ASSERT_TRUE(sim_->Step(deadline().get(), step, &stepped).ok());
+    ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_UNSPECIFIED, seconds(5)));  // the current status
+    if (seen.empty() || seen.back() != last_status_.state()) seen.push_back(last_status_.state());
+    failsafe_hover |=
+        last_status_.state() == v1::FLIGHT_STATE_HOVERING && last_status_.failsafe_active();
+  }
+  EXPECT_TRUE(failsafe_hover);
+  const std::vector<v1::FlightState> expected = {v1::FLIGHT_STATE_FLYING, v1::FLIGHT_STATE_HOVERING,
+                                                 v1::FLIGHT_STATE_LANDING, v1::FLIGHT_STATE_LANDED};
+  EXPECT_EQ(seen, expected);
   EXPECT_NEAR(pose().pose().position_m().z(), 0.0, 0.05);
 }
 

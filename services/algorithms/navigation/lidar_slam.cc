@@ -428,7 +428,7 @@ LevelScan levelScan(const PlanarScan& scan, const Eigen::Quaterniond& tilt,
       continue;
     }
     const Eigen::Vector3d hit = sensor + range * direction;
-    if (body_z_m + hit.z() <= config.ground_max_z_m) continue;  // the ground
+    if (config.ground.mayBeGround(body_z_m + hit.z(), direction.z(), range)) continue;
     const Eigen::Vector2d p = hit.head<2>();
     if (have_last && (p - last).squaredNorm() < spacing2) continue;
     out.hits.push_back(p);

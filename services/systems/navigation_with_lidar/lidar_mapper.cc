@@ -36,7 +36,9 @@ absl::Status MapperSettings::read(const YAML::Node& mapping) {
   for (auto [key, value, min, max] :
        {std::tuple{"resolution_m", &resolution_m, 0.01, 1.0},
         std::tuple{"max_range_m", &max_range_m, 0.5, 100.0},
-        std::tuple{"ground_max_z_m", &ground_max_z_m, -10.0, 10.0},
+        std::tuple{"ground_max_z_m", &ground.max_z_m, -10.0, 10.0},
+        std::tuple{"ground_altitude_error_m", &ground.altitude_error_m, 0.0, 10.0},
+        std::tuple{"ground_attitude_error_rad", &ground.attitude_error_rad, 0.0, 0.5},
         std::tuple{"hit_depth_m", &hit_depth_m, 0.0, 0.5},
         std::tuple{"column_min_z_m", &column_min_z_m, -10.0, 50.0},
         std::tuple{"column_max_z_m", &column_max_z_m, -10.0, 50.0},
@@ -260,7 +262,7 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
       continue;
     }
     const Eigen::Vector3d hit = origin + dir * (r + settings_.hit_depth_m);
-    if (hit.z() <= settings_.ground_max_z_m) continue;  // the ground, seen tilted
+    if (settings_.ground.mayBeGround(hit.z(), dir.z(), r)) continue;  // seen tilted
     hits.push_back(hit);
   }
   std::lock_guard lock(map_mutex_);

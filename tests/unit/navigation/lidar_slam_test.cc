@@ -320,7 +320,7 @@ TEST(LevelScan, DropsTheGroundAndLevelsATiltedScan) {
                    std::numeric_limits<float>::quiet_NaN()};
   const Eigen::Quaterniond tilt(Eigen::AngleAxisd(0.2, Eigen::Vector3d::UnitY()));
   ScanConfig config;
-  config.ground_max_z_m = 0.05;
+  config.ground.max_z_m = 0.05;
   LevelScan level = levelScan(scan, tilt, {0.0, 0.0, 0.1}, 0.5, config);
   ASSERT_EQ(level.hits.size(), 1u);  // the ground hit ahead is dropped, NaN skipped
   EXPECT_NEAR(level.hits[0].x(), 0.1 * std::sin(0.2), 1e-9);

@@ -40,6 +40,8 @@
 #include <optional>
 #include <vector>
 
+#include "behaviorlib/navigation/ground_rejection.h"
+
 namespace behaviorlib::nav {
 
 /// A pose in the plane.
@@ -164,7 +166,7 @@ class OccupancyGrid2 {
 };
 
 struct ScanConfig {
-  double ground_max_z_m = 0.05;       ///< hits at or below this world height: the ground
+  GroundRejection ground;             ///< which hits may be the ground (dropped)
   double max_free_range_m = 12.0;     ///< rays longer than this clear space up to it only
   double min_point_spacing_m = 0.03;  ///< points closer than this to the last kept one merge
 };

@@ -20,8 +20,10 @@
 // (hits, and free space along every ray); each voxel column where a hit
 // lands is then marked occupied from column_min_z_m to column_max_z_m, so
 // that a wall seen at flight height blocks the planner at every planned
-// altitude (the building's walls are vertical; WallColumns). Hits below
-// ground_max_z_m are the ground (a tilted vehicle) and are ignored. A hit is
+// altitude (the building's walls are vertical; WallColumns). Hits that may
+// be the ground, seen by a tilted vehicle, are ignored (GroundRejection: at
+// or below ground_max_z_m, or on a descending ray within the pose
+// estimate's altitude and attitude errors of it). A hit is
 // placed hit_depth_m behind the measured range, inside the surface: a
 // surface on a voxel boundary (every wall of a building drawn on a 0.1 m
 // grid) then maps into the obstacle's voxel, not, half the time by the range
@@ -43,6 +45,7 @@
 
 #include "absl/status/status.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/navigation/ground_rejection.h"
 #include "behaviorlib/navigation/occupancy_map.h"
 #include "behaviorlib/navigation/scan_thinner.h"
 #include "behaviorlib/navigation/wall_columns.h"
@@ -61,7 +64,10 @@ struct MapperSettings {
   double max_range_m = 12.0;
   /// Lidar position in the body frame (the simulator's default mount).
   Eigen::Vector3d lidar_mount_m{0.0, 0.0, 0.1};
-  double ground_max_z_m = 0.05;
+  /// Which hits are the ground seen by a tilted vehicle (dropped): keys
+  /// ground_max_z_m, ground_altitude_error_m, ground_attitude_error_rad
+  /// (navigation/ground_rejection.h).
+  GroundRejection ground;
   /// How far behind the measured range a hit is placed (a few times the
   /// lidar's range noise, 0.01 m in the simulator).
   double hit_depth_m = 0.03;

@@ -20,6 +20,10 @@ TEST(GroundRejectionTest, LowHitsOfDescendingRaysAreTheGroundWithinTheEstimatesE
   EXPECT_TRUE(ground.mayBeGround(0.05, 0.0, 3.0)) << "at max_z_m: the ground, level or not";
   EXPECT_FALSE(ground.mayBeGround(0.3, 0.0, 7.0)) << "a level ray cannot reach the floor";
   EXPECT_FALSE(ground.mayBeGround(0.3, 0.01, 7.0)) << "nor a rising one";
+  // Within the attitude error of level: on the ground (the lidar 0.1 m up),
+  // every hit is near the floor; only those at or below max_z_m go.
+  EXPECT_FALSE(ground.mayBeGround(0.08, -0.02, 5.0));
+  EXPECT_TRUE(ground.mayBeGround(0.08, -0.05, 5.0)) << "surely descending";
   // Descending, 7 m away: 0.05 + 0.2 + 7 x 0.035 = 0.495 m.
   EXPECT_TRUE(ground.mayBeGround(0.45, -0.19, 7.0));
   EXPECT_FALSE(ground.mayBeGround(0.55, -0.19, 7.0));

@@ -10,11 +10,18 @@
 // the middle of a room, which closed the door behind it for the planner.
 //
 // So a hit is taken for the ground when it is at or below max_z_m, or when
-// its ray descends and it is within the estimate's errors of that height:
-// max_z_m + altitude_error_m + range * attitude_error_rad. A level ray (the
-// vehicle flying level) cannot reach the floor within a lidar's range, so its
-// hits are kept at any height above max_z_m: a wall seen from 0.6 m up stays
-// a wall. What a descending ray hits low near the floor is dropped with the
+// its ray surely descends (by more than the attitude error) and the hit is
+// within the estimate's errors of that height: max_z_m + altitude_error_m +
+// range * attitude_error_rad. A ray within the attitude error of level keeps
+// its hits at any height above max_z_m:
+// - in flight it cannot reach the floor within a lidar's range (1.3 m up, a
+//   ray 3 degrees down meets it 25 m away), and a wall seen from 0.6 m up
+//   stays a wall;
+// - on the ground (the lidar 0.1 m up, within the altitude error of the
+//   floor) every hit would be "near the floor": the rule kept only the
+//   hits of rays the estimate tilted upwards, half a scan, and the lidar
+//   SLAM's first matches slid 0.1 m on that half.
+// What a surely descending ray hits low near the floor is dropped with the
 // floor: a low obstacle, seen again from a level attitude.
 //
 //   GroundRejection ground;
@@ -31,10 +38,12 @@ struct GroundRejection {
   double attitude_error_rad = 0.035;
 
   /// Whether a hit at height `z_m`, at `range_m` along a ray whose unit
-  /// direction has vertical component `direction_z`, may be the ground.
+  /// direction has vertical component `direction_z` (the sine of its
+  /// elevation), may be the ground.
   bool mayBeGround(double z_m, double direction_z, double range_m) const {
     if (z_m <= max_z_m) return true;
-    return direction_z < 0.0 && z_m <= max_z_m + altitude_error_m + range_m * attitude_error_rad;
+    return direction_z < -attitude_error_rad &&
+           z_m <= max_z_m + altitude_error_m + range_m * attitude_error_rad;
   }
 };
 

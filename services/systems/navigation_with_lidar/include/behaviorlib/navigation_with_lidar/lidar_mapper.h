@@ -22,7 +22,7 @@
 // that a wall seen at flight height blocks the planner at every planned
 // altitude (the building's walls are vertical; WallColumns). Hits that may
 // be the ground, seen by a tilted vehicle, are ignored (GroundRejection: at
-// or below ground_max_z_m, or on a descending ray within the pose
+// or below ground_max_z_m, or on a surely descending ray within the pose
 // estimate's altitude and attitude errors of it). A hit is
 // placed hit_depth_m behind the measured range, inside the surface: a
 // surface on a voxel boundary (every wall of a building drawn on a 0.1 m

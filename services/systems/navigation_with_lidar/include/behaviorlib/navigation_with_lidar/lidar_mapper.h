@@ -75,9 +75,11 @@ struct MapperSettings {
   double column_max_z_m = 3.0;
   /// Altitudes a path may use; a goal outside them is outside the map. A
   /// 2-D lidar cannot see what lies above a door (its lintel, 2.2 m up in
-  /// the building): the top stays below it by more than a vehicle radius.
+  /// the building): the top stays below it by a vehicle radius (0.35 m) and
+  /// 0.25 m for the estimated altitude's error (a barometer's: 0.2 m) and
+  /// the tracking error.
   double planning_min_z_m = 0.5;
-  double planning_max_z_m = 1.8;
+  double planning_max_z_m = 1.6;
   /// Largest stamp difference between a scan and the pose it is placed with.
   double pose_match_s = 0.05;
   /// A scan whose pose estimate reports a larger horizontal_stddev_m (a

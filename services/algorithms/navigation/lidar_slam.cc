@@ -22,6 +22,13 @@ const double kLogFloor = std::log(kFloor);
 // so the search's log-likelihood is tempered by the number of points: a mean
 // change of this many nats per point counts as one nat.
 constexpr double kTemperaturePerPoint = 0.05;
+// A cell whose hits' rays have a mean direction at least this long (of unit
+// vectors) was seen from one side: a wall's face seen from its room, whose
+// rays spread over a half-plane, gives about 0.64.
+constexpr double kOneSidedRay = 0.4;
+// A ray whose direction has more than this component along a surface's
+// facing would hit that surface from behind (head-on is -1, grazing 0).
+constexpr double kBackside = 0.3;
 
 // Felzenszwalb and Huttenlocher's 1-D squared distance transform of f[0..n)
 // (0 on occupied cells, kFar elsewhere), in place, and in arg the index of
@@ -200,6 +207,7 @@ void OccupancyGrid2::insert(const Eigen::Vector2d& origin, const std::vector<Eig
     for (const auto& p : *points) {
       int cx = 0, cy = 0;
       if (!cellOf(p, &cx, &cy)) continue;
+      const Eigen::Vector2d ray = (p - origin).normalized();
       addLogOdds(cx, cy, config_.hit_log_odds);
       // Where in the cell the surface is: the mean of its hits (the recent
       // ones weigh more once it has many), so that matching is not limited to
@@ -209,6 +217,10 @@ void OccupancyGrid2::insert(const Eigen::Vector2d& origin, const std::vector<Eig
       const float weight = 1.0f / static_cast<float>(cell.hits);
       cell.hit_x += weight * (static_cast<float>(p.x()) - cell.hit_x);
       cell.hit_y += weight * (static_cast<float>(p.y()) - cell.hit_y);
+      if (ray.allFinite()) {
+        cell.ray_x += weight * (static_cast<float>(ray.x()) - cell.ray_x);
+        cell.ray_y += weight * (static_cast<float>(ray.y()) - cell.ray_y);
+      }
     }
   }
   for (const auto& p : hits) {
@@ -242,6 +254,9 @@ void OccupancyGrid2::recomputeField() {
       if (cell.log_odds <= 0.0f) continue;
       Surface surface;
       surface.point = {cell.hit_x, cell.hit_y};
+      // Seen from one side: the rays that hit it agree in direction.
+      const Eigen::Vector2d mean_ray(cell.ray_x, cell.ray_y);
+      if (mean_ray.norm() > kOneSidedRay) surface.facing = -mean_ray.normalized();
       Eigen::Vector2d sum = Eigen::Vector2d::Zero();
       Eigen::Matrix2d outer = Eigen::Matrix2d::Zero();
       double count = 0.0, weight = 0.0;
@@ -271,6 +286,7 @@ void OccupancyGrid2::recomputeField() {
       // band's middle.
       if (eig.eigenvalues()[0] < kLineRatio * eig.eigenvalues()[1]) {
         surface.normal = eig.eigenvectors().col(0);
+        if (surface.normal.dot(surface.facing) < 0.0) surface.normal = -surface.normal;
         surface.point = mean;
         surface.linear = true;
       }
@@ -374,12 +390,25 @@ double OccupancyGrid2::searchScoreAtCell(int cx, int cy) const {
   return score_[index(cx, cy, width_)];
 }
 
-double OccupancyGrid2::field(const Eigen::Vector2d& p, Eigen::Vector2d* gradient) const {
+double OccupancyGrid2::searchScoreAtCell(int cx, int cy, const Eigen::Vector2d& ray) const {
+  if (cx < 0 || cy < 0 || cx >= width_ || cy >= height_ || score_.empty()) return kLogFloor;
+  const size_t i = index(cx, cy, width_);
+  const int32_t nearest = nearest_[i];
+  if (nearest >= 0 && ray.dot(surfaces_[static_cast<size_t>(nearest)].facing) > kBackside) {
+    return kLogFloor;
+  }
+  return score_[i];
+}
+
+double OccupancyGrid2::field(const Eigen::Vector2d& p, Eigen::Vector2d* gradient,
+                             const Eigen::Vector2d* ray) const {
   if (gradient) gradient->setZero();
   int cx = 0, cy = 0;
   if (!cellOf(p, &cx, &cy) || nearest_.empty()) return 0.0;
   const int nearest = nearest_[index(cx, cy, width_)];
   if (nearest < 0) return 0.0;
+  // A ray that would hit the surface from behind saw another surface.
+  if (ray && ray->dot(surfaces_[static_cast<size_t>(nearest)].facing) > kBackside) return 0.0;
   return likelihood(p, nearest, gradient);
 }
 
@@ -468,18 +497,23 @@ MatchResult match(const OccupancyGrid2& grid, const std::vector<Eigen::Vector2d>
       std::max(1, static_cast<int>(std::lround(config.step_m / grid.resolution())));
   const double step_m = step_cells * grid.resolution();
   std::vector<Eigen::Vector2i> cells(points.size());
+  std::vector<Eigen::Vector2d> rays(points.size());
   for (int k = -nyaw; k <= nyaw; ++k) {
     const double yaw = predicted.yaw_rad + k * config.step_rad;
     const double c = std::cos(yaw), s = std::sin(yaw);
     for (size_t i = 0; i < points.size(); ++i) {
-      cells[i] = grid.cellCoordinates({predicted.x_m + c * points[i].x() - s * points[i].y(),
-                                       predicted.y_m + s * points[i].x() + c * points[i].y()});
+      const Eigen::Vector2d along(c * points[i].x() - s * points[i].y(),
+                                  s * points[i].x() + c * points[i].y());
+      cells[i] = grid.cellCoordinates({predicted.x_m + along.x(), predicted.y_m + along.y()});
+      rays[i] = along.normalized();
     }
     for (int ix = -nx; ix <= nx; ++ix) {
       for (int iy = -nx; iy <= nx; ++iy) {
         double score = 0.0;
-        for (const auto& cell : cells)
-          score += grid.searchScoreAtCell(cell.x() + ix * step_cells, cell.y() + iy * step_cells);
+        for (size_t i = 0; i < cells.size(); ++i) {
+          score += grid.searchScoreAtCell(cells[i].x() + ix * step_cells,
+                                          cells[i].y() + iy * step_cells, rays[i]);
+        }
         candidates.push_back({ix * step_m, iy * step_m, k * config.step_rad, score});
         if (score > best) {
           best = score;
@@ -530,8 +564,9 @@ MatchResult match(const OccupancyGrid2& grid, const std::vector<Eigen::Vector2d>
     if (g) g->setZero();
     for (const auto& p : points) {
       const Eigen::Vector2d q(pose.x() + c * p.x() - s * p.y(), pose.y() + s * p.x() + c * p.y());
+      const Eigen::Vector2d ray = (q - pose.head<2>()).normalized();
       Eigen::Vector2d grad;
-      const double m = grid.field(q, h ? &grad : nullptr);
+      const double m = grid.field(q, h ? &grad : nullptr, &ray);
       const double r = 1.0 - m;
       sum += r * r;
       if (h) {
@@ -579,7 +614,8 @@ MatchResult match(const OccupancyGrid2& grid, const std::vector<Eigen::Vector2d>
   const double c = std::cos(xi.z()), s = std::sin(xi.z());
   for (const auto& p : points) {
     const Eigen::Vector2d q(xi.x() + c * p.x() - s * p.y(), xi.y() + s * p.x() + c * p.y());
-    result.inliers += grid.field(q) > 0.5;
+    const Eigen::Vector2d ray = (q - xi.head<2>()).normalized();
+    result.inliers += grid.field(q, nullptr, &ray) > 0.5;
   }
   result.matched =
       result.inliers >= std::max<double>(config.min_points, config.min_inlier_fraction * n);

@@ -59,6 +59,7 @@ absl::Status TakeOffBehavior::onActivate() {
   target_z_ = origin_z_ + altitude;
   commanded_z_ = target_z_;
   seen_airborne_ = false;
+  correcting_ = false;
   command_error_.clear();
   dwell_.reset();
   climb_.reset();
@@ -67,17 +68,50 @@ absl::Status TakeOffBehavior::onActivate() {
 }
 
 void TakeOffBehavior::onExecute() {
-  // After a Modify or a Resume the platform has to be sent to the target;
-  // setpoints are accepted once the take-off action has ended (HOVERING).
-  if (!lease_ || commanded_z_ == target_z_) return;
+  // Setpoints are accepted once the take-off action has ended (HOVERING).
+  if (!lease_) return;
   const auto state = status_.state();
   if (state != v1::FLIGHT_STATE_HOVERING && state != v1::FLIGHT_STATE_FLYING) return;
+  if (commanded_z_ == target_z_) {
+    correctAltitude();
+    return;
+  }
+  // After a Modify or a Resume the platform has to be sent to the target.
   auto sent = lease_->goTo(origin_x_, origin_y_, target_z_, origin_yaw_);
   if (sent.ok()) {
     commanded_z_ = target_z_;
   } else {
     command_error_ =
         "the platform refused the altitude setpoint: " + std::string(sent.status().message());
+  }
+}
+
+// The platform's take-off climbs altitude_m in the platform's own frame; the
+// goal is judged on the pose estimate. A barometric altitude drifts: the
+// lidar SLAM's moved by up to 0.1 m between the ground and 1.2 m, and the
+// vehicle then hovered short of the target for good (WRONG_PROGRESS, no
+// progress). Once the take-off action has ended and the vehicle has settled
+// beyond the tolerance, the rest is closed with a vertical speed, which
+// needs no frame, then a speed of zero.
+void TakeOffBehavior::correctAltitude() {
+  constexpr double kGainPerS = 1.0;
+  constexpr double kMaxSpeedMS = 0.3;
+  const double to_go = target_z_ - pose_.pose().position_m().z();
+  if (!correcting_) {
+    const double vz = twist_.twist().linear_m_s().z();
+    if (std::abs(to_go) <= altitude_tolerance_m_ || std::abs(vz) > max_vertical_speed_m_s_) return;
+    correcting_ = true;
+  }
+  double speed = std::clamp(kGainPerS * to_go, -kMaxSpeedMS, kMaxSpeedMS);
+  if (std::abs(to_go) <= 0.5 * altitude_tolerance_m_) {
+    speed = 0.0;
+    correcting_ = false;
+  }
+  v1::SetpointRequest setpoint;
+  setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s()->set_z(speed);
+  if (auto sent = lease_->send(std::move(setpoint)); !sent.ok()) {
+    command_error_ =
+        "the platform refused the vertical speed setpoint: " + std::string(sent.message());
   }
 }
 
@@ -105,6 +139,7 @@ void TakeOffBehavior::onPause() {
 }
 
 void TakeOffBehavior::onResume() {
+  correcting_ = false;
   dwell_.reset();
   climb_.reset();
 }
@@ -113,6 +148,7 @@ absl::Status TakeOffBehavior::onModify(const google::protobuf::Message& new_para
   const auto& p = static_cast<const v1::TakeOffParameters&>(new_parameters);
   target_z_ = origin_z_ + p.altitude_m();
   commanded_z_ = std::numeric_limits<double>::quiet_NaN();
+  correcting_ = false;
   dwell_.reset();
   climb_.reset();
   return absl::OkStatus();

@@ -87,6 +87,31 @@ TEST_F(FlightBehaviorsUnitTest, TakeOffAchievesItsGoalOnlyAfterHoldingTheAltitud
   EXPECT_EQ(vehicle_.followers(), 0);
 }
 
+TEST_F(FlightBehaviorsUnitTest, TakeOffClosesTheRestOfTheClimbOnTheEstimate) {
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(1.5)).ok());
+  // The platform's take-off ended where it measures 1.5 m; the estimate
+  // (a drifting barometer) says 1.3 m.
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(0, 0, 1.3);
+  vehicle_.setVerticalSpeed(0.0);
+  fly(milliseconds(300), take_off_);
+  ASSERT_TRUE(behaviorlib::testing::eventually([&] { return !vehicle_.setpoints().empty(); }));
+  const v1::SetpointRequest up = vehicle_.setpoints().back();
+  ASSERT_TRUE(up.has_velocity_yaw_rate());
+  EXPECT_NEAR(up.velocity_yaw_rate().velocity_m_s().z(), 0.2, 0.01) << "1/s of the 0.2 m to go";
+  EXPECT_EQ(up.velocity_yaw_rate().velocity_m_s().x(), 0.0);
+  // Within half the tolerance: a speed of zero, then the goal after the dwell.
+  vehicle_.setState(v1::FLIGHT_STATE_FLYING);
+  vehicle_.setPosition(0, 0, 1.48);
+  fly(milliseconds(300), take_off_);
+  ASSERT_TRUE(behaviorlib::testing::eventually(
+      [&] { return vehicle_.setpoints().back().velocity_yaw_rate().velocity_m_s().z() == 0.0; }));
+  const size_t sent = vehicle_.setpoints().size();
+  fly(milliseconds(1500), take_off_);
+  EXPECT_EQ(events_.waitFinished().finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  EXPECT_EQ(vehicle_.setpoints().size(), sent) << "no setpoint once there";
+}
+
 TEST_F(FlightBehaviorsUnitTest, TakeOffWithAVerticalSpeedAboveTheLimitIsNotAGoal) {
   ASSERT_TRUE(take_off_->activateAndWait(altitude(1.0)).ok());
   vehicle_.setState(v1::FLIGHT_STATE_HOVERING);

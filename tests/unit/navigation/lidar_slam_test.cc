@@ -101,9 +101,8 @@ void fuse(const Pose2& measured, const Eigen::Matrix3d& r, Pose2* estimate, Eige
   *p = (Eigen::Matrix3d::Identity() - k) * *p;
 }
 
-// The range noise's standard deviation: the simulator's default, and 3
-// times it (its lidar NOISY fault at intensity 0.1). With 6 and 11 times it
-// the RMSE is 0.15 and 0.13 m (docs/benchmarks.md): not yet good enough.
+// The range noise's standard deviation: the simulator's default, and 3, 6
+// and 11 times it (its lidar NOISY fault at intensity 0.1, 0.25 and 0.5).
 class LidarSlamFlight : public ::testing::TestWithParam<double> {};
 
 TEST_P(LidarSlamFlight, LocalizesAndMapsThroughTheBuilding) {
@@ -182,8 +181,11 @@ TEST_P(LidarSlamFlight, LocalizesAndMapsThroughTheBuilding) {
   // Without the lidar the same odometry drifts far more: the test can fail.
   EXPECT_GT(rmse_dr, 3 * rmse);
   EXPECT_LT(yaw_rmse_deg, 1.0);
-  EXPECT_LT(rmse, 0.05);
-  EXPECT_LT(worst, 0.15);
+  // Six and eleven times the default noise (NOISY at 0.25 and 0.5): walls
+  // are bands 0.2-0.4 m wide, as thick as the building's walls.
+  const bool heavy = noise_m > 0.05;
+  EXPECT_LT(rmse, heavy ? 0.10 : 0.05);
+  EXPECT_LT(worst, heavy ? 0.25 : 0.15);
   EXPECT_EQ(unmatched, 0);
   // The field is as wide as the configured one with the simulator's noise,
   // and wider with three times it.
@@ -222,7 +224,7 @@ TEST_P(LidarSlamFlight, LocalizesAndMapsThroughTheBuilding) {
   EXPECT_GT(near_fraction, 0.95);
 }
 
-INSTANTIATE_TEST_SUITE_P(RangeNoise, LidarSlamFlight, ::testing::Values(0.01, 0.03));
+INSTANTIATE_TEST_SUITE_P(RangeNoise, LidarSlamFlight, ::testing::Values(0.01, 0.03, 0.06, 0.11));
 
 // A map of room A, scanned from (2, 2); the scans of the tests below are
 // matched against it.
@@ -376,6 +378,36 @@ TEST(OccupancyGrid2, TheFieldFallsWithTheDistanceToTheNearestWall) {
   EXPECT_NEAR(grid.field({1.045, 0.0}), std::exp(-0.02 * 0.02 / (2 * sigma * sigma)), 1e-3);
   EXPECT_TRUE(grid.occupied({-19.99, 15.01}));
   EXPECT_EQ(grid.occupiedCells(), before + 1);
+}
+
+TEST(OccupancyGrid2, AWallFaceSeenFromOneSideDoesNotDrawHitsFromTheOther) {
+  GridConfig config;
+  OccupancyGrid2 grid(config);
+  // The west face of a 0.2 m thick wall, at x = 1.025, seen from the origin.
+  std::vector<Eigen::Vector2d> wall;
+  for (double y = -0.5; y <= 0.5; y += 0.02) wall.push_back({1.025, y});
+  grid.insert({0.0, 0.0}, wall, {});
+  const Eigen::Vector2d east(1.0, 0.0), west(-1.0, 0.0), north(0.0, 1.0);
+  const double d = 0.04;  // a point one sigma east of the face
+  const double expected = std::exp(-0.5);
+  EXPECT_NEAR(grid.field({1.025 + d, 0.0}, nullptr, &east), expected, 1e-3)
+      << "seen from the face's side";
+  EXPECT_NEAR(grid.field({1.025 + d, 0.0}, nullptr, &north), expected, 1e-3) << "grazing";
+  // A ray going west hit the wall's east face, not mapped yet: the west
+  // face behind it does not draw it (with a field as wide as the wall, it
+  // pulled every scan through a door by a wall's thickness).
+  EXPECT_EQ(grid.field({1.025 + d, 0.0}, nullptr, &west), 0.0);
+  const Eigen::Vector2i cell = grid.cellCoordinates({1.025 + d, 0.0});
+  EXPECT_NEAR(grid.searchScoreAtCell(cell.x(), cell.y(), west), std::log(0.05), 1e-9)
+      << "the search's floor";
+  EXPECT_GT(grid.searchScoreAtCell(cell.x(), cell.y(), east), std::log(0.05));
+  // Seen from both sides (a post), a surface draws hits from everywhere.
+  std::vector<Eigen::Vector2d> post;
+  for (double y = 2.0; y <= 2.2; y += 0.02) post.push_back({1.025, y});
+  grid.insert({0.0, 2.1}, post, {});
+  grid.insert({2.0, 2.1}, post, {});
+  EXPECT_GT(grid.field({1.025 + 0.02, 2.1}, nullptr, &west), 0.5);
+  EXPECT_GT(grid.field({1.025 - 0.02, 2.1}, nullptr, &east), 0.5);
 }
 
 TEST(OccupancyGrid2, StaysWithinItsMaximumExtent) {

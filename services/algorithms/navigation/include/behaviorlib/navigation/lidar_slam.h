@@ -92,8 +92,12 @@ class OccupancyGrid2 {
   /// Likelihood field at `p`, 0..1: exp(-d^2 / 2 sigma^2), d the distance
   /// from `p` to the surface of the occupied cell nearest `p`'s cell (the
   /// mean of the hits that fell in it), 0 beyond 3 sigma; its gradient (per
-  /// metre) when `gradient` is given.
-  double field(const Eigen::Vector2d& p, Eigen::Vector2d* gradient = nullptr) const;
+  /// metre) when `gradient` is given. With `ray` (the unit direction the
+  /// point was seen along), a surface seen only from its other side does not
+  /// count (0): a thin wall's two faces are two surfaces, and a hit on the
+  /// face not mapped yet must not be drawn to the one behind it.
+  double field(const Eigen::Vector2d& p, Eigen::Vector2d* gradient = nullptr,
+               const Eigen::Vector2d* ray = nullptr) const;
   /// The correlative search's score of a point in the cell holding `p`:
   /// log(floor + (1 - floor) field(cell centre)), precomputed.
   double searchScore(const Eigen::Vector2d& p) const;
@@ -101,6 +105,9 @@ class OccupancyGrid2 {
   /// score of a cell (the floor's outside).
   Eigen::Vector2i cellCoordinates(const Eigen::Vector2d& p) const;
   double searchScoreAtCell(int cx, int cy) const;
+  /// The same for a point seen along `ray`: the floor when the cell's
+  /// surface was seen only from its other side (field()).
+  double searchScoreAtCell(int cx, int cy, const Eigen::Vector2d& ray) const;
 
   /// Distance from `p` to the nearest surface (its line, or its point), if
   /// one is within kSurfaceReachM (or 3 sigma); with `lines_only`, only if
@@ -144,11 +151,15 @@ class OccupancyGrid2 {
   struct Surface {
     Eigen::Vector2d point = Eigen::Vector2d::Zero();  // the mean of its hits
     Eigen::Vector2d normal = Eigen::Vector2d::UnitX();
+    // Towards the side the surface was seen from (against the mean ray of
+    // its hits); zero when seen from every side alike (a thin post).
+    Eigen::Vector2d facing = Eigen::Vector2d::Zero();
     bool linear = false;
   };
   struct Cell {
     float log_odds = 0.0f;
     float hit_x = 0.0f, hit_y = 0.0f;  // mean of the hits in the cell (map frame)
+    float ray_x = 0.0f, ray_y = 0.0f;  // mean unit direction of the rays that hit it
     uint16_t hits = 0;
     uint32_t touched = 0;  // the insertion that last changed it
   };

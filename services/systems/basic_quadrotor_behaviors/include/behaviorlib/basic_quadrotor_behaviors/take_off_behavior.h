@@ -53,6 +53,8 @@ class TakeOffBehavior final : public Behavior<v1::TakeOffParameters> {
   Verdict checkProcesses() override;
 
  private:
+  void correctAltitude();
+
   flight::Vehicle& vehicle_;
   flight::FlightSettings settings_;
   flight::WindWatch wind_;
@@ -70,6 +72,8 @@ class TakeOffBehavior final : public Behavior<v1::TakeOffParameters> {
   // Altitude last commanded to the platform (NaN: a setpoint must be sent).
   double commanded_z_ = std::numeric_limits<double>::quiet_NaN();
   bool seen_airborne_ = false;
+  // Closing the rest of the climb on the estimate (correctAltitude).
+  bool correcting_ = false;
   std::string command_error_;
   // Inputs read by checkProcesses() for the checks after it.
   v1::FlightStatus status_;

@@ -5,9 +5,12 @@
 // and the coordinator with the shipped behavior catalog and a --state-dir,
 // every one a real process on free loopback ports, driven over gRPC (and
 // behaviorctl). Behavior times are simulated time; every wait is bounded in
-// wall time.
+// wall time. Retention by age is tested on the mission manager built
+// in-process, with a clock of the test.
 
+#include <google/protobuf/util/time_util.h>
 #include <gtest/gtest.h>
+#include <prometheus/registry.h>
 #include <signal.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -26,6 +29,12 @@
 #include <vector>
 
 #include "behaviorlib/v1/simulator.grpc.pb.h"
+#include "coordinator/belief/belief_store.h"
+#include "coordinator/service/coordinator_metrics.h"
+#include "coordinator/service/fleet_control.h"
+#include "coordinator/service/fleet_event_log.h"
+#include "coordinator/service/mission_manager.h"
+#include "coordinator/service/registry.h"
 #include "coordinator_test_support.h"
 #include "support/deterministic.h"
 #include "support/server_process.h"
@@ -1090,8 +1099,6 @@ TEST_F(CoordinatorPlansMissionsTest,
   EXPECT_EQ(finished, once);
 }
 
-// behaviorctl against the coordinator: health, a dry run, and `mission run`
-// of the demo (exit 0 when it SUCCEEDED).
 // Ended missions are kept by count (--max-ended-missions): starting a mission
 // forgets the oldest ended ones beyond it.
 TEST_F(CoordinatorPlansMissionsTest, EndedMissionsBeyondTheRetentionCountAreForgotten) {
@@ -1121,6 +1128,49 @@ TEST_F(CoordinatorPlansMissionsTest, EndedMissionsBeyondTheRetentionCountAreForg
   }
 }
 
+// Ended missions are kept by age too (--max-ended-mission-age-s): those that
+// ended longer ago than the age, by the coordinator's clock, are forgotten
+// after a restart (and when a mission starts); the younger ones are kept.
+// The mission manager itself, with a clock of the test: the missions ended
+// in 2023, so a manager that read the real clock would forget them all.
+TEST(MissionRetentionTest, EndedMissionsOlderThanTheRetentionAgeAreForgotten) {
+  namespace bc = behaviorlib::coordinator;
+  prometheus::Registry prometheus;
+  bc::CoordinatorMetrics metrics(prometheus);
+  bc::FleetEventLog log;
+  bc::Registry registry(log, metrics, {});
+  bc::BeliefStore beliefs;
+  bc::FleetControl fleet(registry, log, nullptr);
+  constexpr int64_t kNowS = 1700000000;  // 2023-11-14T22:13:20Z
+  bc::MissionManagerOptions options;
+  options.max_ended_age = std::chrono::hours(24);
+  options.now = [] { return google::protobuf::util::TimeUtil::SecondsToTimestamp(kNowS); };
+  bc::MissionManager missions(fleet, registry, beliefs, nullptr, options);
+  const std::map<std::string, int64_t> ended_ago_s = {{"two-days-ago", 2 * 86400},
+                                                      {"a-day-and-a-second-ago", 86400 + 1},
+                                                      {"a-day-ago", 86400},
+                                                      {"an-hour-ago", 3600}};
+  for (const auto& [id, ago_s] : ended_ago_s) {
+    v1::MissionStatus status;  // as the journal gives it back after a restart
+    status.set_mission_id(id);
+    status.set_robot_id(kRobot);
+    status.set_state(v1::MISSION_STATE_SUCCEEDED);
+    status.mutable_start_time()->set_seconds(kNowS - ago_s - 60);
+    status.mutable_end_time()->set_seconds(kNowS - ago_s);
+    missions.restore(status);
+  }
+  missions.resumeRestored();
+  std::set<std::string> kept;
+  for (const auto& status : missions.list()) kept.insert(status.mission_id());
+  EXPECT_EQ(kept, (std::set<std::string>{"a-day-ago", "an-hour-ago"}))
+      << "ended exactly max_ended_age ago is still kept";
+  for (const std::string id : {"two-days-ago", "a-day-and-a-second-ago"}) {
+    EXPECT_EQ(missions.get(id).status().code(), absl::StatusCode::kNotFound) << id;
+  }
+}
+
+// behaviorctl against the coordinator: health, a dry run, and `mission run`
+// of the demo (exit 0 when it SUCCEEDED).
 TEST_F(CoordinatorPlansMissionsTest, BehaviorctlRunsTheDemoMissionAndChecksHealth) {
   const std::string ctl =
       std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " + coordinator_->address();

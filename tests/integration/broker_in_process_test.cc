@@ -2,7 +2,8 @@
 // server of the test), driven by the real ChannelClient over loopback: a
 // sample published is the latest and reaches a subscriber; shutting the
 // broker down ends the subscription's stream UNAVAILABLE, which the client
-// reports; a new topic beyond the broker's cap is RESOURCE_EXHAUSTED.
+// reports; a new topic beyond the broker's cap is RESOURCE_EXHAUSTED;
+// ListTopics pages the topics.
 
 #include <gmock/gmock.h>
 #include <grpcpp/grpcpp.h>
@@ -16,10 +17,14 @@
 
 #include "behaviorlib/channel/broker.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "support/paging.h"
 
 namespace behaviorlib::channel {
 namespace {
+
+using ::testing::ElementsAre;
 
 class BrokerInProcessTest : public ::testing::Test {
  protected:
@@ -93,6 +98,39 @@ TEST_F(BrokerInProcessTest, ShutdownEndsTheSubscriptionsStream) {
   EXPECT_FALSE(subscription->connected());
   EXPECT_EQ(subscription->status().code(), absl::StatusCode::kUnavailable)
       << subscription->status();
+}
+
+// ListTopics pages the topics: two a page, in name order, each topic under
+// the prefix once, the last page without a next_page_token; a page_token the
+// broker did not give is INVALID_ARGUMENT.
+TEST_F(BrokerInProcessTest, ListTopicsPagesEveryTopicOnce) {
+  for (const std::string topic :
+       {"robots/r/e", "robots/r/a", "robots/q/c", "robots/r/d", "robots/r/b", "robots/r/c"}) {
+    ASSERT_TRUE(client_->publish(topic, altitude(1)).ok()) << topic;
+  }
+  // Closing the publish stream returns once the broker took every sample.
+  auto accepted = client_->flush();
+  ASSERT_TRUE(accepted.ok()) << accepted.status();
+  ASSERT_EQ(*accepted, 6u);
+  auto stub = v1::DataChannel::NewStub(grpc::CreateChannel("127.0.0.1:" + std::to_string(port_),
+                                                           grpc::InsecureChannelCredentials()));
+  const auto topics = [](const v1::ListTopicsResponse& r) -> const auto& { return r.topics(); };
+  const auto name = [](const v1::TopicInfo& t) { return t.name(); };
+  v1::ListTopicsRequest request;
+  request.set_prefix("robots/r/");
+  request.set_page_size(2);
+  std::vector<std::vector<std::string>> pages;
+  grpc::Status status =
+      support::pageKeys(*stub, &v1::DataChannel::Stub::ListTopics, request, topics, name, &pages);
+  ASSERT_TRUE(status.ok()) << status.error_message();
+  EXPECT_THAT(pages,
+              ElementsAre(ElementsAre("robots/r/a", "robots/r/b"),
+                          ElementsAre("robots/r/c", "robots/r/d"), ElementsAre("robots/r/e")));
+
+  request.set_page_token("not-a-token");
+  status =
+      support::pageKeys(*stub, &v1::DataChannel::Stub::ListTopics, request, topics, name, &pages);
+  EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
 }
 
 TEST(BrokerLimitsTest, ANewTopicBeyondTheCapIsResourceExhausted) {

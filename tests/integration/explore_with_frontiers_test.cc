@@ -5,7 +5,9 @@
 // only the building's bounds, the vehicle explores from room A until no
 // reachable frontier is left; the saved map is measured against the world
 // (map_coverage) and the flown track must have entered every room. A
-// time limit ends it TIME_OUT; bad bounds are refused.
+// time limit ends it TIME_OUT; bad bounds are refused. A requested coverage
+// ends it GOAL_ACHIEVED, and with the lidar switched off (the map stops
+// growing) it ends WRONG_PROGRESS.
 
 #include <octomap/OcTree.h>
 #include <unistd.h>
@@ -34,7 +36,7 @@ class ExploreWithFrontiersTest : public ::testing::Test {
     ASSERT_NE(mkdtemp(dir), nullptr);
     dir_ = dir;
     std::string error;
-    ASSERT_TRUE(stack_.start(&error, {"--world", "rooms"})) << error;
+    ASSERT_TRUE(stack_.start(&error, {"--world", "rooms", "--enable-fault-injection"})) << error;
     pid_ = stack_.startSystem(BEHAVIORLIB_PID_SYSTEM_PATH, BEHAVIORLIB_PID_CONFIG_PATH, &error);
     ASSERT_TRUE(pid_) << error;
     nav_ = stack_.startSystem(BEHAVIORLIB_NAVIGATION_WITH_LIDAR_PATH,
@@ -57,6 +59,21 @@ class ExploreWithFrontiersTest : public ::testing::Test {
     }
     stack_.stop();
     std::filesystem::remove_all(dir_);
+  }
+
+  // The simulator's lidar on drone1 goes dark (FAILURE_TYPE_OFF).
+  void switchTheLidarOff() {
+    auto simulator = v1::Simulator::NewStub(
+        grpc::CreateChannel(stack_.simulator().address(), grpc::InsecureChannelCredentials()));
+    v1::InjectFailureRequest request;
+    request.set_robot_id("drone1");
+    request.set_component(v1::FAILURE_COMPONENT_LIDAR);
+    request.set_type(v1::FAILURE_TYPE_OFF);
+    v1::InjectFailureResponse response;
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + seconds(10));
+    const grpc::Status status = simulator->InjectFailure(&context, request, &response);
+    ASSERT_TRUE(status.ok()) << status.error_message();
   }
 
   std::string dir_;
@@ -137,6 +154,34 @@ TEST_F(ExploreWithFrontiersTest, ATimeLimitEndsItTimeOutAndBadBoundsAreRefused) 
       << finished->ShortDebugString();
   EXPECT_NE(finished->finished().message().find("time_limit_s"), std::string::npos)
       << finished->finished().message();
+}
+
+TEST_F(ExploreWithFrontiersTest, ARequestedCoverageEndsItAndAMapThatStopsGrowingIsWrongProgress) {
+  // Three fifths of the area known is enough.
+  std::string id =
+      nav_client_->start(kExplore, std::string("{") + kBuilding + R"(, "coverage": 0.6})");
+  ASSERT_FALSE(id.empty());
+  auto finished = nav_client_->finished(id, seconds(120));
+  ASSERT_TRUE(finished.has_value());
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << finished->ShortDebugString();
+  EXPECT_NE(finished->finished().message().find("coverage 0.60 reached"), std::string::npos)
+      << finished->finished().message();
+  EXPECT_EQ(finished->finished().message().find("after 0 legs"), std::string::npos)
+      << "the take-off point sees 39 % of the area: " << finished->finished().message();
+
+  // Without the lidar nothing new is mapped, wherever the vehicle flies:
+  // the known fraction stops growing.
+  ASSERT_NO_FATAL_FAILURE(switchTheLidarOff());
+  id = nav_client_->start(kExplore, std::string("{") + kBuilding + R"(, "stall_s": 5})");
+  ASSERT_FALSE(id.empty());
+  finished = nav_client_->finished(id, seconds(120));
+  ASSERT_TRUE(finished.has_value());
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
+      << finished->ShortDebugString();
+  EXPECT_NE(finished->finished().message().find("has grown by less than 0.01"), std::string::npos)
+      << finished->finished().message();
+  EXPECT_NE(stack_.flightStatus().state(), v1::FLIGHT_STATE_CRASHED);
 }
 
 }  // namespace

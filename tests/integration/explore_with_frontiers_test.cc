@@ -17,6 +17,7 @@
 #include <string>
 
 #include "motion_test_support.h"
+#include "sim_faults.h"
 #include "simulator/tools/map_coverage.h"
 #include "simulator/world/world.h"
 
@@ -59,21 +60,6 @@ class ExploreWithFrontiersTest : public ::testing::Test {
     }
     stack_.stop();
     std::filesystem::remove_all(dir_);
-  }
-
-  // The simulator's lidar on drone1 goes dark (FAILURE_TYPE_OFF).
-  void switchTheLidarOff() {
-    auto simulator = v1::Simulator::NewStub(
-        grpc::CreateChannel(stack_.simulator().address(), grpc::InsecureChannelCredentials()));
-    v1::InjectFailureRequest request;
-    request.set_robot_id("drone1");
-    request.set_component(v1::FAILURE_COMPONENT_LIDAR);
-    request.set_type(v1::FAILURE_TYPE_OFF);
-    v1::InjectFailureResponse response;
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + seconds(10));
-    const grpc::Status status = simulator->InjectFailure(&context, request, &response);
-    ASSERT_TRUE(status.ok()) << status.error_message();
   }
 
   std::string dir_;
@@ -172,7 +158,9 @@ TEST_F(ExploreWithFrontiersTest, ARequestedCoverageEndsItAndAMapThatStopsGrowing
 
   // Without the lidar nothing new is mapped, wherever the vehicle flies:
   // the known fraction stops growing.
-  ASSERT_NO_FATAL_FAILURE(switchTheLidarOff());
+  const grpc::Status off = sim_faults::inject(stack_.simulator().address(), "drone1",
+                                              v1::FAILURE_COMPONENT_LIDAR, v1::FAILURE_TYPE_OFF);
+  ASSERT_TRUE(off.ok()) << off.error_message();
   id = nav_client_->start(kExplore, std::string("{") + kBuilding + R"(, "stall_s": 5})");
   ASSERT_FALSE(id.empty());
   finished = nav_client_->finished(id, seconds(120));

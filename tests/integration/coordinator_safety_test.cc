@@ -580,7 +580,11 @@ TEST_F(CoordinatorSafetyTest, KillThroughBehaviorctlNeedsConfirmThenStopsTheMoto
   ASSERT_TRUE(took_off) << seenText();
   ASSERT_EQ(took_off->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
       << took_off->ShortDebugString();
-  ASSERT_EQ(flight_->latest()->state(), v1::FLIGHT_STATE_HOVERING) << flight_->trace();
+  // TAKE_OFF leaves the vehicle hovering (after a HOVER of its own when it
+  // ended on a setpoint, which may reach this stream after its end).
+  ASSERT_TRUE(waitUntil([&] { return flight_->latest()->state() == v1::FLIGHT_STATE_HOVERING; },
+                        seconds(5)))
+      << flight_->trace();
 
   const std::string ctl = std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " +
                           coordinator_->address() + " --robot ";

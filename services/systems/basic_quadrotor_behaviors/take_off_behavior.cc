@@ -60,6 +60,7 @@ absl::Status TakeOffBehavior::onActivate() {
   commanded_z_ = target_z_;
   seen_airborne_ = false;
   correcting_ = false;
+  settled_.reset();
   command_error_.clear();
   dwell_.reset();
   climb_.reset();
@@ -90,16 +91,18 @@ void TakeOffBehavior::onExecute() {
 // goal is judged on the pose estimate. A barometric altitude drifts: the
 // lidar SLAM's moved by up to 0.1 m between the ground and 1.2 m, and the
 // vehicle then hovered short of the target for good (WRONG_PROGRESS, no
-// progress). Once the take-off action has ended and the vehicle has settled
-// beyond the tolerance, the rest is closed with a vertical speed, which
-// needs no frame, then a speed of zero.
+// progress). Once the take-off action has ended and the vehicle has hovered
+// still for a second beyond the tolerance, the rest is closed with a
+// vertical speed, which needs no frame, then a speed of zero.
 void TakeOffBehavior::correctAltitude() {
   constexpr double kGainPerS = 1.0;
   constexpr double kMaxSpeedMS = 0.3;
   const double to_go = target_z_ - pose_.pose().position_m().z();
   if (!correcting_) {
     const double vz = twist_.twist().linear_m_s().z();
-    if (std::abs(to_go) <= altitude_tolerance_m_ || std::abs(vz) > max_vertical_speed_m_s_) return;
+    const bool still =
+        status_.state() == v1::FLIGHT_STATE_HOVERING && std::abs(vz) <= max_vertical_speed_m_s_;
+    if (!settled_.update(now(), still) || std::abs(to_go) <= altitude_tolerance_m_) return;
     correcting_ = true;
   }
   double speed = std::clamp(kGainPerS * to_go, -kMaxSpeedMS, kMaxSpeedMS);
@@ -140,6 +143,7 @@ void TakeOffBehavior::onPause() {
 
 void TakeOffBehavior::onResume() {
   correcting_ = false;
+  settled_.reset();
   dwell_.reset();
   climb_.reset();
 }
@@ -149,6 +153,7 @@ absl::Status TakeOffBehavior::onModify(const google::protobuf::Message& new_para
   target_z_ = origin_z_ + p.altitude_m();
   commanded_z_ = std::numeric_limits<double>::quiet_NaN();
   correcting_ = false;
+  settled_.reset();
   dwell_.reset();
   climb_.reset();
   return absl::OkStatus();

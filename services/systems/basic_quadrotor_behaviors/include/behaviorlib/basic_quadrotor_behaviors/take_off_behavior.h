@@ -62,6 +62,9 @@ class TakeOffBehavior final : public Behavior<v1::TakeOffParameters> {
   double max_vertical_speed_m_s_ = 0.1;
   double min_climb_m_ = 0.1;
   flight::DwellTracker dwell_{std::chrono::seconds(1)};
+  // Hovering still after the take-off action, before correctAltitude acts:
+  // the platform's own climb settles first.
+  flight::DwellTracker settled_{std::chrono::seconds(1)};
   flight::ProgressWindow climb_{std::chrono::seconds(3)};
 
   // Activation state (worker thread only).

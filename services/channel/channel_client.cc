@@ -539,14 +539,28 @@ class ChannelClient::Impl {
 
   absl::StatusOr<std::vector<v1::TopicInfo>> listTopics(const std::string& prefix,
                                                         std::chrono::milliseconds timeout) {
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + timeout);
+    // Every page, within one deadline. The broker caps its topics, so the
+    // pages are few; the bound only guards against a broker that never
+    // ends its token chain.
+    constexpr int kPageSize = 1000;
+    constexpr int kMaxPages = 1000;
+    const auto deadline = std::chrono::system_clock::now() + timeout;
     v1::ListTopicsRequest request;
     request.set_prefix(prefix);
-    v1::ListTopicsResponse response;
-    grpc::Status status = stub_->ListTopics(&context, request, &response);
-    if (!status.ok()) return toAbsl(status);
-    return std::vector<v1::TopicInfo>(response.topics().begin(), response.topics().end());
+    request.set_page_size(kPageSize);
+    std::vector<v1::TopicInfo> topics;
+    for (int page = 0; page < kMaxPages; ++page) {
+      grpc::ClientContext context;
+      context.set_deadline(deadline);
+      v1::ListTopicsResponse response;
+      grpc::Status status = stub_->ListTopics(&context, request, &response);
+      if (!status.ok()) return toAbsl(status);
+      topics.insert(topics.end(), response.topics().begin(), response.topics().end());
+      if (response.next_page_token().empty()) return topics;
+      request.set_page_token(response.next_page_token());
+    }
+    return absl::DataLossError("ListTopics: the broker's pages did not end after " +
+                               std::to_string(kMaxPages) + " pages");
   }
 
   std::unique_ptr<Subscription> subscribe(

@@ -3,7 +3,7 @@
 // sample published is the latest and reaches a subscriber; shutting the
 // broker down ends the subscription's stream UNAVAILABLE, which the client
 // reports; a new topic beyond the broker's cap is RESOURCE_EXHAUSTED;
-// ListTopics pages the topics.
+// ListTopics pages the topics, and the client reads every page.
 
 #include <gmock/gmock.h>
 #include <grpcpp/grpcpp.h>
@@ -12,6 +12,7 @@
 
 #include <chrono>
 #include <condition_variable>
+#include <cstdio>
 #include <mutex>
 #include <thread>
 
@@ -100,7 +101,7 @@ TEST_F(BrokerInProcessTest, ShutdownEndsTheSubscriptionsStream) {
       << subscription->status();
 }
 
-// ListTopics pages the topics: two a page, in name order, each topic under
+// ListTopics pages the topics, and the client reads every page. two a page, in name order, each topic under
 // the prefix once, the last page without a next_page_token; a page_token the
 // broker did not give is INVALID_ARGUMENT.
 TEST_F(BrokerInProcessTest, ListTopicsPagesEveryTopicOnce) {
@@ -131,6 +132,28 @@ TEST_F(BrokerInProcessTest, ListTopicsPagesEveryTopicOnce) {
   status =
       support::pageKeys(*stub, &v1::DataChannel::Stub::ListTopics, request, topics, name, &pages);
   EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << status.error_message();
+}
+
+// The client reads every page: more topics than the broker puts on one
+// (1000 at most).
+TEST_F(BrokerInProcessTest, TheClientListsTopicsBeyondOnePage) {
+  constexpr int kTopics = 1205;
+  for (int i = 0; i < kTopics; ++i) {
+    char topic[32];
+    std::snprintf(topic, sizeof(topic), "robots/many/%04d", i);
+    ASSERT_TRUE(client_->publish(topic, altitude(i)).ok()) << topic;
+  }
+  ASSERT_TRUE(client_->publish("robots/other/x", altitude(0)).ok());
+  auto accepted = client_->flush();
+  ASSERT_TRUE(accepted.ok()) << accepted.status();
+  auto listed = client_->listTopics("robots/many/");
+  ASSERT_TRUE(listed.ok()) << listed.status();
+  ASSERT_EQ(listed->size(), static_cast<size_t>(kTopics));
+  for (int i = 0; i < kTopics; ++i) {
+    char topic[32];
+    std::snprintf(topic, sizeof(topic), "robots/many/%04d", i);
+    EXPECT_EQ((*listed)[static_cast<size_t>(i)].name(), topic);
+  }
 }
 
 TEST(BrokerLimitsTest, ANewTopicBeyondTheCapIsResourceExhausted) {

@@ -185,7 +185,7 @@ class ChannelClient {
       const std::string& topic, std::chrono::milliseconds timeout = std::chrono::seconds(5));
 
   /// The broker's topics (sorted), optionally only those starting with
-  /// `prefix`.
+  /// `prefix`: every page of ListTopics, within `timeout` in all.
   absl::StatusOr<std::vector<v1::TopicInfo>> listTopics(
       const std::string& prefix = "", std::chrono::milliseconds timeout = std::chrono::seconds(5));
 

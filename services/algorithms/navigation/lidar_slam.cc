@@ -329,10 +329,12 @@ void OccupancyGrid2::recomputeField() {
 
 void OccupancyGrid2::recomputeScores() {
   score_.assign(cells_.size(), static_cast<float>(kLogFloor));
+  facing_.assign(cells_.size(), Eigen::Vector2f::Zero());
   for (int y = 0; y < height_; ++y) {
     for (int x = 0; x < width_; ++x) {
       const size_t i = index(x, y, width_);
       if (nearest_[i] < 0) continue;
+      facing_[i] = surfaces_[static_cast<size_t>(nearest_[i])].facing.cast<float>();
       const Eigen::Vector2d centre =
           origin_ + config_.resolution_m * Eigen::Vector2d(x + 0.5, y + 0.5);
       score_[i] = static_cast<float>(
@@ -392,11 +394,11 @@ double OccupancyGrid2::searchScoreAtCell(int cx, int cy) const {
 
 double OccupancyGrid2::searchScoreAtCell(int cx, int cy, const Eigen::Vector2d& ray) const {
   if (cx < 0 || cy < 0 || cx >= width_ || cy >= height_ || score_.empty()) return kLogFloor;
+  // The nearest surface's facing, copied beside the score: one array read
+  // more per point and candidate, not two indirections.
   const size_t i = index(cx, cy, width_);
-  const int32_t nearest = nearest_[i];
-  if (nearest >= 0 && ray.dot(surfaces_[static_cast<size_t>(nearest)].facing) > kBackside) {
-    return kLogFloor;
-  }
+  const Eigen::Vector2f& facing = facing_[i];
+  if (ray.x() * facing.x() + ray.y() * facing.y() > kBackside) return kLogFloor;
   return score_[i];
 }
 

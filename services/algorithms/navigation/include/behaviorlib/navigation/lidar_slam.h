@@ -168,10 +168,11 @@ class OccupancyGrid2 {
   Eigen::Vector2d origin_ = Eigen::Vector2d::Zero();
   int width_ = 0, height_ = 0;
   std::vector<Cell> cells_;
-  std::vector<Surface> surfaces_;  // one per occupied cell
-  std::vector<int32_t> nearest_;   // per cell: the surface of the occupied cell nearest it
-                                   // within 3 sigma, or -1
-  std::vector<float> score_;       // per cell: searchScore
+  std::vector<Surface> surfaces_;        // one per occupied cell
+  std::vector<int32_t> nearest_;         // per cell: the surface of the occupied cell nearest it
+                                         // within 3 sigma, or -1
+  std::vector<float> score_;             // per cell: searchScore
+  std::vector<Eigen::Vector2f> facing_;  // per cell: its nearest surface's facing (search)
   uint32_t insertion_ = 0;
   int occupied_cells_ = 0;
 };

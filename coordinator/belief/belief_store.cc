@@ -110,13 +110,15 @@ void BeliefStore::restore(const v1::Belief& belief) {
 
 absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
                                               const google::protobuf::Value& value,
-                                              const std::string& writer, const std::string& type) {
+                                              const std::string& writer, const std::string& type,
+                                              const std::string& authenticated_writer) {
   if (absl::Status s = checkKey(key); !s.ok()) return s;
   v1::Belief belief;
   belief.set_key(key);
   *belief.mutable_value() = value;
   belief.set_type(type);
   belief.set_writer(writer);
+  belief.set_authenticated_writer(authenticated_writer);
   *belief.mutable_update_time() = google::protobuf::util::TimeUtil::GetCurrentTime();
   const size_t bytes = value.ByteSizeLong();
   if (bytes > limits_.max_value_bytes) {
@@ -170,7 +172,8 @@ absl::StatusOr<v1::Belief> BeliefStore::writeMessage(const std::string& key,
   return write(key, value, writer, message.GetTypeName());
 }
 
-absl::Status BeliefStore::erase(const std::string& key, const std::string& writer) {
+absl::Status BeliefStore::erase(const std::string& key, const std::string& writer,
+                                const std::string& authenticated_writer) {
   {
     absl::MutexLock lock(&mutex_);
     auto it = beliefs_.find(key);
@@ -180,6 +183,7 @@ absl::Status BeliefStore::erase(const std::string& key, const std::string& write
     v1::Belief tombstone;
     tombstone.set_key(key);
     tombstone.set_writer(writer);
+    tombstone.set_authenticated_writer(authenticated_writer);
     tombstone.set_deleted(true);
     tombstone.set_version(version_ + 1);
     *tombstone.mutable_update_time() = google::protobuf::util::TimeUtil::GetCurrentTime();

@@ -47,6 +47,9 @@ struct BeliefLimits {
 class BeliefStore {
  public:
   /// `journal` may be null (memory only); it must outlive the store.
+  /// The authenticated writer of the coordinator's own writes.
+  static constexpr const char* kCoordinatorWriter = "coordinator";
+
   explicit BeliefStore(Journal* journal = nullptr, BeliefLimits limits = {});
 
   /// Restores one journal record's belief (replay at start; no new version).
@@ -54,15 +57,20 @@ class BeliefStore {
 
   /// Writes `key`. INVALID_ARGUMENT for a bad key; RESOURCE_EXHAUSTED past
   /// the limits; the journal's error when it cannot be recorded (then
-  /// nothing changes).
+  /// nothing changes). `writer` is who the writer says it is;
+  /// `authenticated_writer` who the coordinator knows it is (the identity of
+  /// an RPC's caller, empty without TLS; the coordinator's own writes by
+  /// default).
   absl::StatusOr<v1::Belief> write(const std::string& key, const google::protobuf::Value& value,
-                                   const std::string& writer, const std::string& type = "");
+                                   const std::string& writer, const std::string& type = "",
+                                   const std::string& authenticated_writer = kCoordinatorWriter);
   /// Writes a typed message as its JSON form, keeping its type name.
   absl::StatusOr<v1::Belief> writeMessage(const std::string& key,
                                           const google::protobuf::Message& message,
                                           const std::string& writer);
   /// Deletes `key`; NOT_FOUND when absent.
-  absl::Status erase(const std::string& key, const std::string& writer);
+  absl::Status erase(const std::string& key, const std::string& writer,
+                     const std::string& authenticated_writer = kCoordinatorWriter);
 
   std::optional<v1::Belief> get(const std::string& key) const;
   /// Current beliefs whose key starts with `prefix`, sorted by key.

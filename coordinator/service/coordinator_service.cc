@@ -248,6 +248,8 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
   call->channel = behaviorlib::server::makeChannel(request->address(), fastReconnectArguments());
   call->stub = v1::BehaviorSystem::NewStub(call->channel);
   call->context = childContext(context, options_.describe_timeout);
+  // One page of the largest size: a system is described by one call here.
+  call->request.set_page_size(kMaxBehaviorsPerSystem);
   call->stub->async()->ListBehaviors(
       call->context.get(), &call->request, &call->description,
       [this, call, reactor, request, response](grpc::Status status) {
@@ -269,6 +271,13 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
                                            " system " + d.system() + " incarnation " +
                                            d.incarnation() + ", not the registered " + who +
                                            " incarnation " + request->incarnation()));
+          return;
+        }
+        if (!d.next_page_token().empty()) {
+          reactor->Finish(
+              grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
+                           who + " hosts more than " + std::to_string(kMaxBehaviorsPerSystem) +
+                               " behaviors, the most a coordinator registers per system"));
           return;
         }
         // The catalog's rules must fit what the system serves (a default
@@ -499,6 +508,13 @@ grpc::ServerUnaryReactor* CoordinatorService::CheckBehaviorSituation(
 namespace behaviorlib::coordinator {
 namespace {
 
+// Who the caller of a belief call is, as its certificate or token says;
+// empty for a plaintext call.
+std::string authenticatedWriter(const grpc::ServerContextBase& context) {
+  const std::optional<server::Caller> caller = server::callerOf(context);
+  return caller ? caller->identity : std::string();
+}
+
 grpc::Status noBeliefs() {
   return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
                       "this coordinator keeps no belief memory");
@@ -513,8 +529,8 @@ grpc::ServerUnaryReactor* CoordinatorService::WriteBelief(grpc::CallbackServerCo
   if (request->writer().empty()) {
     return finishNow(context, missing("writer", "say who writes the belief (\"operator\", ...)"));
   }
-  auto written =
-      options_.beliefs->write(request->key(), request->value(), request->writer(), request->type());
+  auto written = options_.beliefs->write(request->key(), request->value(), request->writer(),
+                                         request->type(), authenticatedWriter(*context));
   if (!written.ok()) return finishNow(context, server::toGrpc(written.status()));
   *response->mutable_belief() = *written;
   return finishNow(context, grpc::Status::OK);
@@ -553,8 +569,8 @@ grpc::ServerUnaryReactor* CoordinatorService::DeleteBelief(grpc::CallbackServerC
   if (request->writer().empty()) {
     return finishNow(context, missing("writer", "say who deletes the belief"));
   }
-  return finishNow(context,
-                   server::toGrpc(options_.beliefs->erase(request->key(), request->writer())));
+  return finishNow(context, server::toGrpc(options_.beliefs->erase(
+                                request->key(), request->writer(), authenticatedWriter(*context))));
 }
 
 }  // namespace behaviorlib::coordinator

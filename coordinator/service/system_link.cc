@@ -363,13 +363,19 @@ bool SystemLink::onStart(const v1::WatchEventsStart& start, v1::BehaviorSystem::
     grpc::ClientContext context;
     context.set_deadline(WallClock::now() + options_.call_timeout);
     setCall(&context);
+    v1::ListBehaviorsRequest request;
+    request.set_page_size(kMaxBehaviorsPerSystem);
     v1::ListBehaviorsResponse description;
-    const grpc::Status status =
-        stub.ListBehaviors(&context, v1::ListBehaviorsRequest(), &description);
+    const grpc::Status status = stub.ListBehaviors(&context, request, &description);
     setCall(nullptr);
     absl::MutexLock lock(&mutex_);
     if (!status.ok()) {
       start_failure_ = "ListBehaviors failed: " + describeStatus(status);
+      return false;
+    }
+    if (!description.next_page_token().empty()) {
+      start_failure_ = "it hosts more than " + std::to_string(kMaxBehaviorsPerSystem) +
+                       " behaviors, the most a coordinator registers per system";
       return false;
     }
     // Raced with another restart: the next attempt sees the newest one.

@@ -48,6 +48,11 @@
 
 namespace behaviorlib::coordinator {
 
+/// The most behaviors a coordinator registers per system: it reads a
+/// system's description as one ListBehaviors page of this size, and refuses
+/// a system whose description has a next page.
+inline constexpr int32_t kMaxBehaviorsPerSystem = 1000;
+
 struct LinkOptions {
   /// How long the health check must keep failing (after the stream broke)
   /// before the system is declared down. Wall time.

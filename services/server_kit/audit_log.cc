@@ -1,10 +1,16 @@
 #include "behaviorlib/server_kit/audit_log.h"
 
+#include <google/protobuf/struct.pb.h>
+#include <google/protobuf/util/json_util.h>
+#include <sys/stat.h>
+
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
 #include <cstring>
 #include <ctime>
 
+#include "absl/strings/escaping.h"
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
@@ -12,28 +18,17 @@
 namespace behaviorlib::server {
 namespace {
 
+// A JSON string literal, escaped by protobuf's JSON printer. Text with bytes
+// past ASCII (a refused call's method is whatever the caller sent, maybe not
+// UTF-8) is C-escaped first, losslessly: the printer refuses what is not
+// UTF-8, and logs it on every call.
 std::string jsonString(const std::string& text) {
-  std::string out = "\"";
-  for (const char c : text) {
-    switch (c) {
-      case '"':
-        out += "\\\"";
-        break;
-      case '\\':
-        out += "\\\\";
-        break;
-      case '\n':
-        out += "\\n";
-        break;
-      default:
-        if (static_cast<unsigned char>(c) < 0x20) {
-          out += absl::StrFormat("\\u%04x", static_cast<int>(c));
-        } else {
-          out += c;
-        }
-    }
-  }
-  return out + "\"";
+  const bool ascii = std::all_of(text.begin(), text.end(),
+                                 [](char c) { return static_cast<unsigned char>(c) < 0x80; });
+  google::protobuf::Value value;
+  value.set_string_value(ascii ? text : absl::CHexEscape(text));
+  std::string out;
+  return google::protobuf::util::MessageToJsonString(value, &out).ok() ? out : "\"\"";
 }
 
 // Wall time: an audit log is read against other logs and clocks.
@@ -109,14 +104,22 @@ class AuditInterceptorFactory final : public grpc::experimental::ServerIntercept
 }  // namespace
 
 absl::StatusOr<std::unique_ptr<AuditLog>> AuditLog::open(const std::string& path,
-                                                         prometheus::Registry& registry) {
+                                                         prometheus::Registry& registry,
+                                                         AuditRotation rotation) {
+  if (rotation.max_bytes == 0 || rotation.keep < 0) {
+    return absl::InvalidArgumentError(
+        "the audit log's rotation needs a size above 0 bytes and a count of 0 or more files");
+  }
   std::FILE* file = nullptr;
+  uint64_t bytes = 0;
   if (!path.empty()) {
     file = std::fopen(path.c_str(), "a");
     if (file == nullptr) {
       return absl::InvalidArgumentError(
           absl::StrCat("cannot open the audit log ", path, ": ", std::strerror(errno)));
     }
+    struct stat info {};
+    if (fstat(fileno(file), &info) == 0) bytes = static_cast<uint64_t>(info.st_size);
   }
   auto& calls = prometheus::BuildCounter()
                     .Name("behaviorlib_audited_calls_total")
@@ -124,12 +127,12 @@ absl::StatusOr<std::unique_ptr<AuditLog>> AuditLog::open(const std::string& path
                         "Control calls and refused calls, by method, outcome (gRPC code) and "
                         "caller identity")
                     .Register(registry);
-  return std::unique_ptr<AuditLog>(new AuditLog(path, file, calls));
+  return std::unique_ptr<AuditLog>(new AuditLog(path, file, bytes, rotation, calls));
 }
 
-AuditLog::AuditLog(std::string path, std::FILE* file,
+AuditLog::AuditLog(std::string path, std::FILE* file, uint64_t bytes, AuditRotation rotation,
                    prometheus::Family<prometheus::Counter>& calls)
-    : path_(std::move(path)), file_(file), calls_(calls) {}
+    : path_(std::move(path)), rotation_(rotation), file_(file), bytes_(bytes), calls_(calls) {}
 
 AuditLog::~AuditLog() {
   absl::MutexLock lock(&mutex_);
@@ -153,6 +156,33 @@ void AuditLog::record(const AuditRecord& r) {
   if (file_ == nullptr) return;
   std::fputs(line.c_str(), file_);
   std::fflush(file_);
+  bytes_ += line.size();
+  if (bytes_ >= rotation_.max_bytes) rotateLocked();
+}
+
+void AuditLog::rotateLocked() {
+  std::fclose(file_);
+  file_ = nullptr;
+  if (rotation_.keep == 0) {
+    std::remove(path_.c_str());
+  } else {
+    // FILE.keep is replaced by FILE.(keep-1), ..., FILE.1 by FILE.
+    for (int i = rotation_.keep - 1; i >= 1; --i) {
+      std::rename(absl::StrCat(path_, ".", i).c_str(), absl::StrCat(path_, ".", i + 1).c_str());
+    }
+    if (std::rename(path_.c_str(), absl::StrCat(path_, ".1").c_str()) != 0) {
+      std::fprintf(stderr, "audit log: cannot rotate %s: %s; it goes on growing\n", path_.c_str(),
+                   std::strerror(errno));
+    }
+  }
+  file_ = std::fopen(path_.c_str(), "a");
+  if (file_ == nullptr) {
+    std::fprintf(stderr, "audit log: cannot reopen %s: %s; control calls are only counted\n",
+                 path_.c_str(), std::strerror(errno));
+    return;
+  }
+  struct stat info {};
+  bytes_ = fstat(fileno(file_), &info) == 0 ? static_cast<uint64_t>(info.st_size) : 0;
 }
 
 std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> makeAuditInterceptor(

@@ -146,6 +146,51 @@ absl::StatusOr<std::string> ConfinedDirectory::resolveForWrite(const std::string
   return target;
 }
 
+absl::StatusOr<std::string> ConfinedDirectory::write(const std::string& requested,
+                                                     std::string_view contents) const {
+  absl::StatusOr<std::string> target = resolveForWrite(requested);
+  if (!target.ok()) return target.status();
+  const size_t slash = target->find_last_of('/');
+  const std::string parent = slash == 0 ? "/" : target->substr(0, slash);
+  const std::string name = target->substr(slash + 1);
+  Fd dir(::open(parent.c_str(), O_RDONLY | O_DIRECTORY | O_NOFOLLOW | O_CLOEXEC));
+  if (dir.get() < 0) {
+    return absl::PermissionDeniedError(absl::StrCat(purpose_, ": cannot open the directory of '",
+                                                    requested, "': ", std::strerror(errno)));
+  }
+  // A fresh name: O_EXCL never opens what is there, link or file.
+  std::string temporary;
+  int fd = -1;
+  for (int attempt = 0; attempt < 100 && fd < 0; ++attempt) {
+    temporary = absl::StrCat(".", name, ".", ::getpid(), ".", attempt, ".tmp");
+    fd = ::openat(dir.get(), temporary.c_str(),
+                  O_WRONLY | O_CREAT | O_EXCL | O_NOFOLLOW | O_CLOEXEC, 0644);
+    if (fd < 0 && errno != EEXIST) break;
+  }
+  if (fd < 0) {
+    return absl::PermissionDeniedError(
+        absl::StrCat(purpose_, ": cannot write '", requested, "': ", std::strerror(errno)));
+  }
+  Fd file(fd);
+  const auto fail = [&](const char* what) {
+    const std::string why = std::strerror(errno);
+    ::unlinkat(dir.get(), temporary.c_str(), 0);
+    return absl::InternalError(
+        absl::StrCat(purpose_, ": cannot ", what, " '", requested, "': ", why));
+  };
+  for (size_t done = 0; done < contents.size();) {
+    const ssize_t n = ::write(file.get(), contents.data() + done, contents.size() - done);
+    if (n < 0 && errno == EINTR) continue;
+    if (n < 0) return fail("write");
+    done += static_cast<size_t>(n);
+  }
+  if (::fsync(file.get()) != 0) return fail("write");
+  if (::renameat(dir.get(), temporary.c_str(), dir.get(), name.c_str()) != 0) {
+    return fail("replace");
+  }
+  return target;
+}
+
 absl::StatusOr<std::string> ConfinedDirectory::read(const std::string& requested) const {
   absl::StatusOr<std::string> path = resolveExisting(requested);
   if (!path.ok()) return path.status();

@@ -24,6 +24,9 @@ ABSL_FLAG(std::string, access_policy, "",
 ABSL_FLAG(std::string, audit_log, "",
           "file that every control call and every refused call is appended to (JSON lines); "
           "the coordinator's default is <state-dir>/audit.jsonl");
+ABSL_FLAG(uint64_t, audit_log_max_bytes, 64ull << 20,
+          "the audit log is rotated (FILE -> FILE.1 -> FILE.2 ...) when it passes this size");
+ABSL_FLAG(int32_t, audit_log_keep, 4, "rotated audit log files kept (FILE.1 .. FILE.N)");
 
 namespace behaviorlib::server {
 
@@ -116,9 +119,13 @@ bool ServerRuntime::startServer(grpc::ServerBuilder& builder, const std::string&
   setProcessAccessPolicy(policy);
   const std::string audit_path =
       absl::GetFlag(FLAGS_audit_log).empty() ? default_audit_log_ : absl::GetFlag(FLAGS_audit_log);
-  absl::StatusOr<std::unique_ptr<AuditLog>> audit = AuditLog::open(audit_path, *registry_);
+  AuditRotation rotation;
+  rotation.max_bytes = absl::GetFlag(FLAGS_audit_log_max_bytes);
+  rotation.keep = absl::GetFlag(FLAGS_audit_log_keep);
+  absl::StatusOr<std::unique_ptr<AuditLog>> audit =
+      AuditLog::open(audit_path, *registry_, rotation);
   if (!audit.ok()) {
-    *error = std::string(audit.status().message());
+    *error = "--audit-log: " + std::string(audit.status().message());
     return false;
   }
   audit_ = std::move(*audit);

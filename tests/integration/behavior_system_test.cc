@@ -13,6 +13,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
@@ -33,6 +34,7 @@
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "support/paging.h"
 #include "support/server_process.h"
 
 namespace {
@@ -594,6 +596,48 @@ TEST_F(BehaviorSystemTest, ListBehaviorsDescribesWaitFromItsProto) {
   ASSERT_TRUE(list.status.ok());
   ASSERT_NE(find_wait(list.response), nullptr);
   EXPECT_EQ(find_wait(list.response)->state(), v1::BEHAVIOR_STATE_ACTIVE);
+}
+
+TEST_F(BehaviorSystemTest, ListBehaviorsPagesThroughEveryBehaviorOnce) {
+  auto stub = v1::BehaviorSystem::NewStub(
+      grpc::CreateChannel(system_->address(), grpc::InsecureChannelCredentials()));
+  const auto items = [](const v1::ListBehaviorsResponse& r) -> const auto& {
+    return r.behaviors();
+  };
+  const auto name = [](const v1::BehaviorDescription& d) { return d.name(); };
+  std::vector<std::vector<std::string>> whole;
+  ASSERT_TRUE(support::pageKeys(*stub, &v1::BehaviorSystem::Stub::ListBehaviors,
+                                v1::ListBehaviorsRequest(), items, name, &whole)
+                  .ok());
+  ASSERT_EQ(whole.size(), 1u);  // the default page holds them all
+  ASSERT_GE(whole[0].size(), 5u);
+  EXPECT_TRUE(std::is_sorted(whole[0].begin(), whole[0].end()));
+
+  v1::ListBehaviorsRequest small;
+  small.set_page_size(2);
+  std::vector<std::vector<std::string>> pages;
+  ASSERT_TRUE(
+      support::pageKeys(*stub, &v1::BehaviorSystem::Stub::ListBehaviors, small, items, name, &pages)
+          .ok());
+  EXPECT_EQ(pages.size(), (whole[0].size() + 1) / 2);
+  std::vector<std::string> joined;
+  for (const auto& page : pages) {
+    EXPECT_LE(page.size(), 2u);
+    joined.insert(joined.end(), page.begin(), page.end());
+  }
+  EXPECT_EQ(joined, whole[0]);
+
+  grpc::ClientContext context;
+  v1::ListBehaviorsRequest bad;
+  bad.set_page_token("not a token");
+  v1::ListBehaviorsResponse response;
+  EXPECT_EQ(stub->ListBehaviors(&context, bad, &response).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
+  grpc::ClientContext negative_context;
+  bad.set_page_token("");
+  bad.set_page_size(-1);
+  EXPECT_EQ(stub->ListBehaviors(&negative_context, bad, &response).error_code(),
+            grpc::StatusCode::INVALID_ARGUMENT);
 }
 
 TEST_F(BehaviorSystemTest, SigtermInterruptsActiveBehaviorNotifiesSubscribersAndExitsZero) {

@@ -26,6 +26,7 @@
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/channel/topic.h"
+#include "behaviorlib/server_kit/server_runtime.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "support/server_process.h"
@@ -1098,6 +1099,73 @@ TEST_F(ChannelBrokerTest, PortInUseFailsCleanly) {
 
   // The running broker is unaffected.
   EXPECT_TRUE(publishOnce(channel_, publishRequest("robots/d1/x", text("still here"))).ok());
+}
+
+// ---- The server limits every process sets (ServerLimits) -------------------
+
+// ListTopics on `channel` within `timeout`.
+grpc::Status listTopicsWithin(const std::shared_ptr<grpc::Channel>& channel,
+                              std::chrono::milliseconds timeout) {
+  auto stub = v1::DataChannel::NewStub(channel);
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + timeout);
+  v1::ListTopicsResponse response;
+  return stub->ListTopics(&context, v1::ListTopicsRequest(), &response);
+}
+
+TEST_F(ChannelBrokerTest, ConcurrentStreamsAreCappedPerConnection) {
+  constexpr int kLimit = server::ServerLimits::kMaxConcurrentStreams;
+  const auto full = makeChannel(broker_.address());  // a connection of its own
+  std::vector<std::unique_ptr<RawSubscriber>> streams;
+  for (int i = 0; i < kLimit; ++i) {
+    streams.push_back(std::make_unique<RawSubscriber>(full, subscribeRequest("robots/limits/t")));
+  }
+  for (auto& stream : streams) ASSERT_TRUE(stream->waitSubscribed());
+  const v1::ListTopicsResponse topics = listTopics("robots/limits/");
+  ASSERT_EQ(topics.topics_size(), 1);
+  EXPECT_EQ(topics.topics(0).subscriber_count(), static_cast<uint32_t>(kLimit));
+
+  // One call more on that connection waits for a free stream...
+  EXPECT_EQ(listTopicsWithin(full, seconds(3)).error_code(), grpc::StatusCode::DEADLINE_EXCEEDED);
+  // ...while another connection, of the same client, is served.
+  EXPECT_TRUE(listTopicsWithin(makeChannel(broker_.address()), seconds(10)).ok());
+  // A stream that ends frees its place.
+  streams.front()->cancel();
+  EXPECT_EQ(streams.front()->finish().error_code(), grpc::StatusCode::CANCELLED);
+  EXPECT_TRUE(listTopicsWithin(full, seconds(10)).ok());
+  for (auto& stream : streams) stream->cancel();
+}
+
+TEST_F(ChannelBrokerTest, AClientThatPingsTooOftenIsDisconnected) {
+  // Pings every 100 ms, also without data: the server allows one per 10 s
+  // (ServerLimits::kMinClientPingIntervalMs) and closes the connection after
+  // two strikes with GOAWAY too_many_pings.
+  grpc::ChannelArguments args;
+  args.SetInt(GRPC_ARG_USE_LOCAL_SUBCHANNEL_POOL, 1);
+  args.SetInt(GRPC_ARG_KEEPALIVE_TIME_MS, 100);
+  args.SetInt(GRPC_ARG_KEEPALIVE_TIMEOUT_MS, 20'000);
+  args.SetInt(GRPC_ARG_KEEPALIVE_PERMIT_WITHOUT_CALLS, 1);
+  args.SetInt(GRPC_ARG_HTTP2_MAX_PINGS_WITHOUT_DATA, 0);
+  const auto pinging =
+      grpc::CreateCustomChannel(broker_.address(), grpc::InsecureChannelCredentials(), args);
+  RawSubscriber abusive(pinging, subscribeRequest("robots/limits/pings"), seconds(60));
+  RawSubscriber polite(makeChannel(broker_.address()), subscribeRequest("robots/limits/pings"),
+                       seconds(60));
+  ASSERT_TRUE(abusive.waitSubscribed());
+  ASSERT_TRUE(polite.waitSubscribed());
+
+  v1::SubscribeResponse response;
+  EXPECT_FALSE(abusive.read(&response));  // the stream ends: no sample was published
+  const grpc::Status ended = abusive.finish();
+  EXPECT_EQ(ended.error_code(), grpc::StatusCode::UNAVAILABLE) << ended.error_message();
+
+  // The polite client's stream on its own connection goes on.
+  ASSERT_TRUE(publishOnce(channel_, publishRequest("robots/limits/pings", text("after"))).ok());
+  ASSERT_TRUE(polite.read(&response));
+  v1::Text got;
+  ASSERT_TRUE(response.sample().UnpackTo(&got));
+  EXPECT_EQ(got.text(), "after");
+  polite.cancel();
 }
 
 }  // namespace

@@ -231,6 +231,28 @@ class RolesTest(unittest.TestCase):
                                   "RegisterSystem", request)
         self.assertNotEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
 
+    def unary(self, identity, method, fields):
+        """The response of one Coordinator call that must succeed."""
+        pool = self.pools["coordinator"]
+        desc = pool.FindServiceByName("behaviorlib.v1.Coordinator").methods_by_name[method]
+        request = rc.message_class(pool, desc.input_type.full_name)(**fields)
+        response_class = rc.message_class(pool, desc.output_type.full_name)
+        with self.channel(identity, self.coordinator) as channel:
+            stub = channel.unary_unary(f"/behaviorlib.v1.Coordinator/{method}",
+                                       request_serializer=lambda m: m.SerializeToString(),
+                                       response_deserializer=response_class.FromString)
+            return stub(request, timeout=10)
+
+    def test_a_belief_keeps_who_really_wrote_it(self):
+        # The writer says it is the navigation system; its certificate says
+        # it is the operator, and the belief records both.
+        written = self.unary("operator", "WriteBelief",
+                             {"key": "drone1/forged", "writer": "drone1/GENERATE_PATH"})
+        self.assertEqual(written.belief.writer, "drone1/GENERATE_PATH")
+        self.assertEqual(written.belief.authenticated_writer, "behaviorlib:operator")
+        read = self.unary("viewer", "ReadBelief", {"key": "drone1/forged"})
+        self.assertEqual(read.belief.authenticated_writer, "behaviorlib:operator")
+
     def test_control_calls_and_refusals_are_audited(self):
         self.call("operator", self.coordinator, "behaviorlib.v1.Coordinator", "WriteBelief",
                   {"key": "drone1/audited", "writer": "t"})

@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <functional>
 #include <limits>
+#include <sstream>
 
 namespace behaviorlib::nav {
 namespace {
@@ -87,9 +88,22 @@ bool OccupancyMap::collides(const Eigen::Vector3d& p, double radius_m) const {
   return false;
 }
 
+bool OccupancyMap::fullFormatFor(const std::string& path) {
+  return path.size() > 3 && path.substr(path.size() - 3) == ".ot";
+}
+
+std::string OccupancyMap::serialize(bool full) const {
+  std::ostringstream out;
+  if (full) {
+    tree_->write(out);
+  } else {
+    tree_->writeBinaryConst(out);
+  }
+  return std::move(out).str();
+}
+
 absl::Status OccupancyMap::save(const std::string& path) const {
-  const bool full = path.size() > 3 && path.substr(path.size() - 3) == ".ot";
-  const bool ok = full ? tree_->write(path) : tree_->writeBinaryConst(path);
+  const bool ok = fullFormatFor(path) ? tree_->write(path) : tree_->writeBinaryConst(path);
   if (!ok) {
     return absl::InvalidArgumentError("cannot write the map to '" + path +
                                       "' (does its directory exist, and may it be written?)");

@@ -7,6 +7,7 @@
 #include "behaviorlib/documentation.h"
 #include "behaviorlib/parameters.h"
 #include "behaviorlib/server_kit/log_stream.h"
+#include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/status.h"
 #include "behaviorlib/v1/options.pb.h"
 
@@ -101,8 +102,15 @@ std::unique_ptr<google::protobuf::Message> BehaviorSystemService::fromStruct(
 }
 
 grpc::ServerUnaryReactor* BehaviorSystemService::ListBehaviors(
-    grpc::CallbackServerContext* context, const v1::ListBehaviorsRequest* /*request*/,
+    grpc::CallbackServerContext* context, const v1::ListBehaviorsRequest* request,
     v1::ListBehaviorsResponse* response) {
+  // A bad page request costs no description.
+  if (grpc::Status s = server::paginate<v1::BehaviorDescription>(
+          response->mutable_behaviors(), [](const auto& d) { return d.name(); }, *request,
+          response->mutable_next_page_token());
+      !s.ok()) {
+    return finishNow(context, s);
+  }
   response->set_robot_id(host_.robotId());
   response->set_system(host_.system());
   response->set_incarnation(host_.events().incarnation());
@@ -126,7 +134,10 @@ grpc::ServerUnaryReactor* BehaviorSystemService::ListBehaviors(
     d->set_frequency_hz(behavior->options().frequency_hz);
     d->set_state(behavior->state());
   }
-  return finishNow(context, grpc::Status::OK);
+  return finishNow(context, server::paginate<v1::BehaviorDescription>(
+                                response->mutable_behaviors(),
+                                [](const v1::BehaviorDescription& d) { return d.name(); }, *request,
+                                response->mutable_next_page_token()));
 }
 
 grpc::ServerWriteReactor<v1::WatchEventsResponse>* BehaviorSystemService::WatchEvents(

@@ -40,20 +40,22 @@ absl::Status SaveOccupancyGridBehavior::onActivate() {
     return absl::InvalidArgumentError("file_path is empty: give the file to write the map to");
   }
   // Inside the system's --map-dir only: no "..", no link out of it, no
-  // device or link at the file's place.
-  absl::StatusOr<std::string> target = maps_.resolveForWrite(path);
-  if (!target.ok()) {
-    return absl::Status(target.status().code(),
-                        "file_path: " + std::string(target.status().message()));
+  // device or link at the file's place (a new file renamed over it).
+  if (absl::Status s = maps_.resolveForWrite(path).status(); !s.ok()) {
+    return absl::Status(s.code(), "file_path: " + std::string(s.message()));
   }
-  saved_path_ = *target;
   belief_error_.reset();
-  absl::Status status = mapper_.withMap([&](const OccupancyMap& map) {
+  std::string bytes;
+  mapper_.withMap([&](const OccupancyMap& map) {
     occupied_ = map.occupiedLeafCount();
-    return map.save(saved_path_);
+    bytes = map.serialize(OccupancyMap::fullFormatFor(path));
   });
-  if (!status.ok())
-    return absl::InvalidArgumentError("file_path: " + std::string(status.message()));
+  absl::StatusOr<std::string> written = maps_.write(path, bytes);
+  if (!written.ok()) {
+    return absl::Status(written.status().code(),
+                        "file_path: " + std::string(written.status().message()));
+  }
+  saved_path_ = *written;
   return absl::OkStatus();
 }
 

@@ -96,6 +96,34 @@ TEST_F(ConfinedFilesTest, WritesOnlyInExistingDirectoriesInside) {
             absl::StatusCode::kPermissionDenied);
 }
 
+TEST_F(ConfinedFilesTest, WritesByRenamingANewFileOverTheOld) {
+  auto written = dir_.write("sub/map.bt", "first");
+  ASSERT_TRUE(written.ok()) << written.status();
+  EXPECT_EQ(*written, (base_ / "root" / "sub" / "map.bt").string());
+  ASSERT_TRUE(dir_.write("sub/map.bt", "second").ok());
+  EXPECT_EQ(*dir_.read("sub/map.bt"), "second");
+  // No temporary file is left beside it.
+  size_t entries = 0;
+  for ([[maybe_unused]] const auto& e : fs::directory_iterator(base_ / "root" / "sub")) ++entries;
+  EXPECT_EQ(entries, 2u);  // deep.yaml, map.bt
+
+  // A hard link to a file outside looks like a regular file inside: the write
+  // replaces the link's name and leaves the outside file alone.
+  fs::create_hard_link(base_ / "outside" / "secret", base_ / "root" / "linked");
+  ASSERT_TRUE(dir_.write("linked", "map").ok());
+  EXPECT_EQ(*readFileCapped((base_ / "outside" / "secret").string(), 64), "secret\n");
+  EXPECT_EQ(*dir_.read("linked"), "map");
+
+  // A symbolic link at the file's place is refused; its target is untouched.
+  fs::create_symlink(base_ / "outside" / "secret", base_ / "root" / "symlinked");
+  const auto refused = dir_.write("symlinked", "map");
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kPermissionDenied);
+  EXPECT_THAT(refused.status().message(), HasSubstr((base_ / "root").string()));
+  EXPECT_EQ(*readFileCapped((base_ / "outside" / "secret").string(), 64), "secret\n");
+  EXPECT_EQ(dir_.write("../outside/secret", "x").status().code(),
+            absl::StatusCode::kPermissionDenied);
+}
+
 TEST(ConfinedDirectoryTest, WithoutADirectoryEverythingIsRefused) {
   ConfinedDirectory none;
   EXPECT_FALSE(none.enabled());

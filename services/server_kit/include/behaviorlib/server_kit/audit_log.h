@@ -11,12 +11,18 @@
 //
 // The coordinator keeps its log beside the journal (<state-dir>/audit.jsonl);
 // any server writes one with --audit-log FILE.
+//
+// The log rotates by size: when the file passes max_bytes it becomes
+// FILE.1 (FILE.1 becomes FILE.2, ...; the oldest past `keep` is removed), and
+// a new FILE is begun. So the log takes at most (keep + 1) * max_bytes plus
+// one record of disk (--audit-log-max-bytes, --audit-log-keep).
 
 #include <grpcpp/support/server_interceptor.h>
 #include <prometheus/counter.h>
 #include <prometheus/family.h>
 #include <prometheus/registry.h>
 
+#include <cstdint>
 #include <cstdio>
 #include <memory>
 #include <string>
@@ -28,11 +34,18 @@
 
 namespace behaviorlib::server {
 
+struct AuditRotation {
+  uint64_t max_bytes = 64ull << 20;  ///< rotate when the file passes this size
+  int keep = 4;                      ///< rotated files kept (FILE.1 .. FILE.keep)
+};
+
 class AuditLog {
  public:
   /// Appends to `path` (made if missing; empty: metrics only).
+  /// INVALID_ARGUMENT for a zero max_bytes or a negative keep.
   static absl::StatusOr<std::unique_ptr<AuditLog>> open(const std::string& path,
-                                                        prometheus::Registry& registry);
+                                                        prometheus::Registry& registry,
+                                                        AuditRotation rotation = {});
   ~AuditLog();
   AuditLog(const AuditLog&) = delete;
   AuditLog& operator=(const AuditLog&) = delete;
@@ -41,10 +54,15 @@ class AuditLog {
   const std::string& path() const { return path_; }
 
  private:
-  AuditLog(std::string path, std::FILE* file, prometheus::Family<prometheus::Counter>& calls);
+  AuditLog(std::string path, std::FILE* file, uint64_t bytes, AuditRotation rotation,
+           prometheus::Family<prometheus::Counter>& calls);
+  void rotateLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
+
   const std::string path_;
+  const AuditRotation rotation_;
   absl::Mutex mutex_;
-  std::FILE* const file_ ABSL_GUARDED_BY(mutex_);
+  std::FILE* file_ ABSL_GUARDED_BY(mutex_);
+  uint64_t bytes_ ABSL_GUARDED_BY(mutex_);  // in the current file
   prometheus::Family<prometheus::Counter>& calls_;
 };
 

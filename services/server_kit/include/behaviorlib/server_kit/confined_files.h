@@ -14,11 +14,14 @@
 //   // PERMISSION_DENIED "mission files must be inside /opt/behaviorlib/missions: ..."
 //
 // What is not covered: a process that may change the directory's contents
-// between the check and the open can swap in a link (the directory should be
-// writable only by the process that reads it, or by nobody).
+// between the check and the open can swap a directory of the path for a link
+// (the directory should be writable only by the process that uses it, or by
+// nobody). A link at the file's own place is not followed: reads open it
+// with O_NOFOLLOW, and write() renames a new file over it.
 
 #include <cstddef>
 #include <string>
+#include <string_view>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -44,6 +47,11 @@ class ConfinedDirectory {
   /// exists inside the directory, and the file, if it exists, is a regular
   /// file and not a link.
   absl::StatusOr<std::string> resolveForWrite(const std::string& requested) const;
+  /// Writes `contents` to the file resolveForWrite() gives, atomically: to a
+  /// new file beside it (made with O_EXCL and O_NOFOLLOW, so no link is
+  /// followed), then renamed over it, which replaces a link put at its place
+  /// since the check rather than following it. Returns the path written.
+  absl::StatusOr<std::string> write(const std::string& requested, std::string_view contents) const;
   /// The contents of a regular file inside the directory, at most
   /// maxReadBytes() long (RESOURCE_EXHAUSTED beyond).
   absl::StatusOr<std::string> read(const std::string& requested) const;

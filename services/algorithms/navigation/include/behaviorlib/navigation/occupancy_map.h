@@ -63,6 +63,11 @@ class OccupancyMap {
   /// or its full format for a ".ot" path. INVALID_ARGUMENT naming the path
   /// when it cannot be written.
   absl::Status save(const std::string& path) const;
+  /// The bytes save() would write: OctoMap's full format when `full` (.ot),
+  /// else its binary format (.bt).
+  std::string serialize(bool full) const;
+  /// Whether save() writes the full format to `path` (it ends in ".ot").
+  static bool fullFormatFor(const std::string& path);
 
   size_t occupiedLeafCount() const;
   /// Volume of known free space (m^3).

@@ -17,6 +17,7 @@ set(_exported
   behaviorlib_core:core
   behaviorlib_reflection_proto:reflection_proto
   behaviorlib_reflection:reflection
+  behaviorlib_reactor_order:reactor_order
   behaviorlib_flags:flags
   behaviorlib_input_guard:input_guard
   behaviorlib_transport:transport

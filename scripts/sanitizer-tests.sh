@@ -5,7 +5,8 @@
 #                                     integration tests, plus a smoke run of every
 #                                     libFuzzer target (same tree) -> build-asan/
 #   scripts/sanitizer-tests.sh tsan   TSan (clang-14, -O1): the library, channel
-#                                     and coordinator tests -> build-tsan/
+#                                     and coordinator tests, and the in-process
+#                                     servers' integration tests -> build-tsan/
 #
 # Only the subsets below are built, so both fit in CI beside the Release build
 # (docs/sanitizers.md says how they were chosen). Every report, also one from
@@ -28,7 +29,7 @@ case "$mode" in
       wait_behavior_test worker_delivery_test channel_topic_test sim_clock_test shm_ring_test
       sim_world_test sim_sensor_config_test sim_sensors_test sim_fault_injector_test catalog_test
       missions_test coordinator_core_test flags_test input_guard_test access_policy_test
-      pagination_test"
+      pagination_test audit_log_test"
     # Integration tests: the servers' own tests, in-process and as real
     # processes (coordinator, broker, simulator, a behavior system). The
     # other behavior systems' code is in their Release tests.
@@ -48,13 +49,13 @@ case "$mode" in
     UNIT="parameters_test event_log_test behavior_execution_manager_test process_supervisor_test
       wait_behavior_test worker_delivery_test channel_topic_test sim_clock_test shm_ring_test
       catalog_test missions_test coordinator_core_test flags_test input_guard_test
-      access_policy_test pagination_test"
-    # No integration test yet: every one runs a gRPC callback server. A
-    # reactor's callbacks (and a callback client's) run one after the other,
-    # but on whichever thread libgrpc's completion queue picks, and TSan
-    # cannot see that order (decision 25, docs/sanitizers.md). They come in
-    # with happens-before annotations in our reactors.
-    INTEGRATION=""
+      access_policy_test pagination_test audit_log_test"
+    # The integration tests whose servers run in the test's process. Our
+    # reactors and client completions tell TSan the order gRPC keeps
+    # (reactor_order.h); a server run as its own program would need its own
+    # TSan build, which CI has no time for.
+    INTEGRATION="reflection_service_test broker_in_process_test behavior_system_in_process_test
+      simulator_in_process_test coordinator_in_process_test authorizer_in_process_test"
     PROGRAMS=""
     FUZZERS=""
     ;;

@@ -11,6 +11,7 @@
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/log_stream.h"
 #include "behaviorlib/server_kit/pagination.h"
+#include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
 #include "behaviorlib/server_kit/transport_security.h"
 #include "coordinator/belief/belief_store.h"
@@ -109,10 +110,14 @@ grpc::ByteBuffer serialized(const google::protobuf::Message& message) {
 }
 
 // A WatchEvents call refused at once.
-class RefusedEventStream final : public grpc::ServerWriteReactor<grpc::ByteBuffer> {
+class RefusedEventStream final
+    : public server::Ordered<grpc::ServerWriteReactor<grpc::ByteBuffer>> {
  public:
   explicit RefusedEventStream(const grpc::Status& status) { Finish(status); }
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    ordered();
+    delete this;
+  }
 };
 
 // One lifecycle call forwarded to a behavior system.
@@ -123,6 +128,29 @@ struct ForwardedCall {
   Request request;
   Response response;
 };
+
+// Sends a forwarded call to its system with `start` (one of the stub's async
+// methods) and finishes `reactor` with the system's reply, which `put` moves
+// into the fleet response beside the robot and system that served it.
+template <class Request, class Response, class FleetResponse, class Start, class Put>
+grpc::ServerUnaryReactor* forward(std::unique_ptr<ForwardedCall<Request, Response>> call,
+                                  grpc::ServerUnaryReactor* reactor, FleetResponse* response,
+                                  Start start, Put put) {
+  auto* raw = call.release();
+  start(*raw->route.stub->async(), raw->context.get(), &raw->request, &raw->response,
+        server::orderedCallback([raw, reactor, response, put](grpc::Status status) {
+          std::unique_ptr<ForwardedCall<Request, Response>> owned(raw);
+          if (!status.ok()) {
+            reactor->Finish(fromSystem(status, owned->route));
+            return;
+          }
+          response->set_robot_id(owned->route.robot_id);
+          response->set_system(owned->route.system);
+          put(response, std::move(owned->response));
+          reactor->Finish(grpc::Status::OK);
+        }));
+  return reactor;
+}
 
 }  // namespace
 
@@ -252,7 +280,7 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
   call->request.set_page_size(kMaxBehaviorsPerSystem);
   call->stub->async()->ListBehaviors(
       call->context.get(), &call->request, &call->description,
-      [this, call, reactor, request, response](grpc::Status status) {
+      server::orderedCallback([this, call, reactor, request, response](grpc::Status status) {
         std::unique_ptr<Describe> owned(call);
         const std::string who = "robot " + request->robot_id() + " system " + request->system();
         if (!status.ok()) {
@@ -301,7 +329,7 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
           for (const auto& b : d.behaviors()) response->add_behaviors(b.name());
         }
         reactor->Finish(registered);
-      });
+      }));
   return reactor;
 }
 
@@ -414,22 +442,10 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
   call->request.set_behavior(request->behavior());
   *call->request.mutable_parameters() = request->parameters();
   call->request.set_request_id(request->request_id());
-  auto* reactor = context->DefaultReactor();
-  Call* raw = call.release();
-  raw->route.stub->async()->ActivateBehavior(raw->context.get(), &raw->request, &raw->response,
-                                             [raw, reactor, response](grpc::Status status) {
-                                               std::unique_ptr<Call> owned(raw);
-                                               if (!status.ok()) {
-                                                 reactor->Finish(fromSystem(status, owned->route));
-                                                 return;
-                                               }
-                                               response->set_robot_id(owned->route.robot_id);
-                                               response->set_system(owned->route.system);
-                                               *response->mutable_activation() =
-                                                   std::move(owned->response);
-                                               reactor->Finish(grpc::Status::OK);
-                                             });
-  return reactor;
+  return forward(
+      std::move(call), context->DefaultReactor(), response,
+      [](auto& async, auto... args) { async.ActivateBehavior(args...); },
+      [](auto* r, auto&& reply) { *r->mutable_activation() = std::move(reply); });
 }
 
 grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
@@ -455,22 +471,10 @@ grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
   call->context = childContext(context, options_.default_call_timeout);
   call->request.set_behavior(request->behavior());
   call->request.set_activation_id(request->activation_id());
-  auto* reactor = context->DefaultReactor();
-  Call* raw = call.release();
-  raw->route.stub->async()->DeactivateBehavior(
-      raw->context.get(), &raw->request, &raw->response,
-      [raw, reactor, response](grpc::Status status) {
-        std::unique_ptr<Call> owned(raw);
-        if (!status.ok()) {
-          reactor->Finish(fromSystem(status, owned->route));
-          return;
-        }
-        response->set_robot_id(owned->route.robot_id);
-        response->set_system(owned->route.system);
-        *response->mutable_result() = std::move(owned->response);
-        reactor->Finish(grpc::Status::OK);
-      });
-  return reactor;
+  return forward(
+      std::move(call), context->DefaultReactor(), response,
+      [](auto& async, auto... args) { async.DeactivateBehavior(args...); },
+      [](auto* r, auto&& reply) { *r->mutable_result() = std::move(reply); });
 }
 
 grpc::ServerUnaryReactor* CoordinatorService::CheckBehaviorSituation(
@@ -483,22 +487,10 @@ grpc::ServerUnaryReactor* CoordinatorService::CheckBehaviorSituation(
   }
   call->context = childContext(context, options_.default_call_timeout);
   call->request.set_behavior(request->behavior());
-  auto* reactor = context->DefaultReactor();
-  Call* raw = call.release();
-  raw->route.stub->async()->CheckBehaviorSituation(
-      raw->context.get(), &raw->request, &raw->response,
-      [raw, reactor, response](grpc::Status status) {
-        std::unique_ptr<Call> owned(raw);
-        if (!status.ok()) {
-          reactor->Finish(fromSystem(status, owned->route));
-          return;
-        }
-        response->set_robot_id(owned->route.robot_id);
-        response->set_system(owned->route.system);
-        *response->mutable_situation() = std::move(owned->response);
-        reactor->Finish(grpc::Status::OK);
-      });
-  return reactor;
+  return forward(
+      std::move(call), context->DefaultReactor(), response,
+      [](auto& async, auto... args) { async.CheckBehaviorSituation(args...); },
+      [](auto* r, auto&& reply) { *r->mutable_situation() = std::move(reply); });
 }
 
 }  // namespace behaviorlib::coordinator

@@ -11,6 +11,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/server_kit/pagination.h"
+#include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/blocking_pool.h"
@@ -44,7 +45,7 @@ bool missionEnded(const v1::MissionStatus& status) {
 // the reactor's liveness live in a shared Core, so that a producer holding
 // the core never touches a reactor that is gone.
 template <class Response>
-class QueuedStream : public grpc::ServerWriteReactor<Response> {
+class QueuedStream : public server::Ordered<grpc::ServerWriteReactor<Response>> {
  public:
   struct Core {
     absl::Mutex mutex;
@@ -76,6 +77,7 @@ class QueuedStream : public grpc::ServerWriteReactor<Response> {
   void assertLocked() const ABSL_ASSERT_EXCLUSIVE_LOCK(core_->mutex) { core_->mutex.AssertHeld(); }
 
   void OnWriteDone(bool ok) override {
+    this->ordered();
     absl::MutexLock lock(&core_->mutex);
     writing_ = false;
     if (!ok) {
@@ -85,11 +87,13 @@ class QueuedStream : public grpc::ServerWriteReactor<Response> {
     writeNextLocked();
   }
   void OnCancel() override {
+    this->ordered();
     absl::MutexLock lock(&core_->mutex);
     cancelled_ = true;
     if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
   }
   void OnDone() override {
+    this->ordered();
     {
       absl::MutexLock lock(&core_->mutex);
       core_->stream = nullptr;

@@ -5,6 +5,8 @@
 #include <future>
 #include <vector>
 
+#include "behaviorlib/server_kit/reactor_order.h"
+
 namespace behaviorlib::coordinator {
 
 namespace {
@@ -48,7 +50,9 @@ HealthResult checkHealth(const std::shared_ptr<grpc::Channel>& channel, const st
   grpc::GenericStub stub(channel);
   std::promise<grpc::Status> done;
   stub.UnaryCall(&context, "/grpc.health.v1.Health/Check", grpc::StubOptions(), &request_buffer,
-                 &response_buffer, [&done](grpc::Status s) { done.set_value(std::move(s)); });
+                 &response_buffer, server::orderedCallback([&done](grpc::Status s) {
+                   done.set_value(std::move(s));
+                 }));
   // The deadline ends the call; wait for the callback in any case, since it
   // refers to this frame.
   const grpc::Status status = done.get_future().get();

@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <utility>
 
+#include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/transport_security.h"
 #include "coordinator/service/health_check.h"
 
@@ -568,13 +569,14 @@ void SystemLink::deactivateFenced() {
     call->request.set_behavior(activation.behavior);
     call->request.set_activation_id(activation.activation_id);
     call->stub->async()->DeactivateBehavior(
-        &call->context, &call->request, &call->response, [call, name](grpc::Status status) {
+        &call->context, &call->request, &call->response,
+        server::orderedCallback([call, name](grpc::Status status) {
           if (!status.ok()) {
             logLine(name + ": deactivating " + call->request.behavior() +
                     " failed: " + status.error_message());
           }
           delete call;
-        });
+        }));
   }
 }
 

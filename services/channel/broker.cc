@@ -26,6 +26,7 @@
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/topic.h"
 #include "behaviorlib/server_kit/pagination.h"
+#include "behaviorlib/server_kit/reactor_order.h"
 
 namespace behaviorlib::channel {
 namespace {
@@ -188,7 +189,8 @@ struct Broker::Topic {
 // WatchInterest: one reactor per stream; only the newest wanted set waits to
 // be written, one write at a time (as a LATEST subscription).
 
-class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchInterestResponse> {
+class Broker::InterestReactor final
+    : public server::Ordered<grpc::ServerWriteReactor<v1::WatchInterestResponse>> {
  public:
   InterestReactor(Broker* broker, std::string prefix)
       : broker_(broker), prefix_(std::move(prefix)) {}
@@ -237,6 +239,7 @@ class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchI
   }
 
   void OnWriteDone(bool ok) override {
+    ordered();
     {
       absl::MutexLock lock(&mutex_);
       busy_ = false;
@@ -248,10 +251,12 @@ class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchI
   }
 
   void OnCancel() override {
+    ordered();
     requestFinish(grpc::Status(grpc::StatusCode::CANCELLED, "interest watch cancelled"));
   }
 
   void OnDone() override {
+    ordered();
     broker_->removeInterestWatcher(this);
     std::shared_ptr<InterestReactor> self = std::move(self_);
   }
@@ -277,7 +282,8 @@ class Broker::InterestReactor final : public grpc::ServerWriteReactor<v1::WatchI
 // the stream (initial metadata, a write, Finish) is started only while no
 // other one is in flight, decided under mutex_.
 
-class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::SubscribeResponse> {
+class Broker::SubscribeReactor final
+    : public server::Ordered<grpc::ServerWriteReactor<v1::SubscribeResponse>> {
  public:
   SubscribeReactor(grpc::CallbackServerContext* context, bool latest_only, std::size_t queue_size)
       : context_(context), latest_only_(latest_only), queue_size_(queue_size) {}
@@ -373,18 +379,24 @@ class Broker::SubscribeReactor final : public grpc::ServerWriteReactor<v1::Subsc
     pump();
   }
 
-  void OnSendInitialMetadataDone(bool ok) override { operationDone(ok); }
+  void OnSendInitialMetadataDone(bool ok) override {
+    ordered();
+    operationDone(ok);
+  }
 
   void OnWriteDone(bool ok) override {
+    ordered();
     if (ok) topic_->samples_out.Increment();
     operationDone(ok);
   }
 
   void OnCancel() override {
+    ordered();
     requestFinish(grpc::Status(grpc::StatusCode::CANCELLED, "subscription cancelled"));
   }
 
   void OnDone() override {
+    ordered();
     std::shared_ptr<Topic> topic;
     {
       absl::MutexLock lock(&mutex_);
@@ -509,8 +521,9 @@ class Broker::Publisher {
       ABSL_GUARDED_BY(mutex_);
 };
 
-class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishRequest>,
-                                     public Broker::Publisher {
+class Broker::PublishReactor final
+    : public server::Ordered<grpc::ServerReadReactor<v1::PublishRequest>>,
+      public Broker::Publisher {
  public:
   PublishReactor(Broker* broker, grpc::CallbackServerContext* context,
                  v1::PublishResponse* response)
@@ -527,6 +540,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
   }
 
   void OnReadDone(bool ok) override {
+    ordered();
     if (!ok) {
       // The client half-closed (or the call ended): report what was taken.
       requestFinish(grpc::Status::OK);
@@ -542,6 +556,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
   }
 
   void OnDone() override {
+    ordered();
     broker_->removePublisher(this);
     delete this;
   }
@@ -563,7 +578,7 @@ class Broker::PublishReactor final : public grpc::ServerReadReactor<v1::PublishR
 // order, once the samples before it are taken; the deterministic mode's
 // barrier then costs one round trip instead of a stream closed and opened.
 class Broker::AckedPublishReactor final
-    : public grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>,
+    : public server::Ordered<grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>>,
       public Broker::Publisher {
  public:
   AckedPublishReactor(Broker* broker, grpc::CallbackServerContext* context)
@@ -583,6 +598,7 @@ class Broker::AckedPublishReactor final
   }
 
   void OnReadDone(bool ok) override {
+    ordered();
     if (!ok) {
       // The client half-closed (or the call ended): answer what was asked,
       // then end.
@@ -613,6 +629,7 @@ class Broker::AckedPublishReactor final
   }
 
   void OnWriteDone(bool ok) override {
+    ordered();
     absl::MutexLock lock(&mutex_);
     writing_ = false;
     if (!ok && !finish_status_.has_value()) {
@@ -622,6 +639,7 @@ class Broker::AckedPublishReactor final
   }
 
   void OnDone() override {
+    ordered();
     broker_->removePublisher(this);
     delete this;
   }

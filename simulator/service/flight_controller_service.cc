@@ -3,6 +3,7 @@
 #include <google/protobuf/util/time_util.h>
 
 #include "behaviorlib/server_kit/access_policy.h"
+#include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
 #include "simulator/service/latest_writer.h"
 #include "simulator/service/messages.h"
@@ -39,13 +40,14 @@ bool sameStatus(const v1::FlightStatus& a, const v1::FlightStatus& b) {
 }  // namespace
 
 // One StreamSetpoints stream: applies each setpoint; the first refusal ends it.
-class SetpointReader final : public grpc::ServerReadReactor<v1::SetpointRequest> {
+class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::SetpointRequest>> {
  public:
   SetpointReader(FlightControllerService* service, v1::StreamSetpointsResponse* response)
       : service_(service), response_(response) {
     StartRead(&request_);
   }
   void OnReadDone(bool ok) override {
+    ordered();
     if (!ok) {  // the client finished sending
       Finish(grpc::Status::OK);
       return;
@@ -58,7 +60,10 @@ class SetpointReader final : public grpc::ServerReadReactor<v1::SetpointRequest>
     response_->set_accepted_count(response_->accepted_count() + 1);
     StartRead(&request_);
   }
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    ordered();
+    delete this;
+  }
 
  private:
   FlightControllerService* service_;

@@ -10,10 +10,12 @@
 #include <mutex>
 #include <string>
 
+#include "behaviorlib/server_kit/reactor_order.h"
+
 namespace behaviorlib::sim {
 
 template <class R>
-class LatestWriter final : public grpc::ServerWriteReactor<R> {
+class LatestWriter final : public server::Ordered<grpc::ServerWriteReactor<R>> {
  public:
   /// `key` says what the stream watches (e.g. a robot id); `on_done` runs
   /// once when the stream is over, just before the reactor deletes itself.
@@ -40,6 +42,7 @@ class LatestWriter final : public grpc::ServerWriteReactor<R> {
   }
 
   void OnWriteDone(bool ok) override {
+    this->ordered();
     std::lock_guard lock(mutex_);
     writing_ = false;
     if (!ok && !ending_) {
@@ -53,9 +56,11 @@ class LatestWriter final : public grpc::ServerWriteReactor<R> {
     }
   }
   void OnCancel() override {
+    this->ordered();
     end(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
   }
   void OnDone() override {
+    this->ordered();
     if (on_done_) on_done_(this);
     delete this;
   }

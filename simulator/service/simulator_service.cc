@@ -4,6 +4,7 @@
 
 #include <cmath>
 
+#include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
 #include "simulator/service/messages.h"
 #include "simulator/service/vehicle_models.h"
@@ -145,13 +146,17 @@ grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>*
 SimulatorService::FollowTime(grpc::CallbackServerContext* context) {
   if (grants_ != nullptr) return grants_->follow();
   class Refused final
-      : public grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse> {
+      : public server::Ordered<
+            grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>> {
    public:
     Refused() {
       Finish(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
                           "FollowTime needs the deterministic mode (simulator --time-scale max)"));
     }
-    void OnDone() override { delete this; }
+    void OnDone() override {
+      ordered();
+      delete this;
+    }
   };
   (void)context;
   return new Refused();

@@ -6,6 +6,8 @@
 #include <cstdio>
 #include <map>
 
+#include "behaviorlib/server_kit/reactor_order.h"
+
 namespace behaviorlib::sim {
 namespace {
 
@@ -24,7 +26,8 @@ constexpr int64_t kIdleGrantPeriodNs = 1'000'000'000;
 // One FollowTime stream: reads reports one at a time, writes the newest
 // grant (one write in flight; a newer grant replaces an unsent one).
 class TimeGrants::Follower final
-    : public grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse> {
+    : public server::Ordered<
+          grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>> {
  public:
   explicit Follower(TimeGrants* owner) : owner_(owner) {}
 
@@ -71,6 +74,7 @@ class TimeGrants::Follower final
   }
 
   void OnReadDone(bool ok) override {
+    ordered();
     if (!ok) {
       finish(grpc::Status::OK);  // the follower half-closed or went away
       return;
@@ -89,6 +93,7 @@ class TimeGrants::Follower final
   }
 
   void OnWriteDone(bool ok) override {
+    ordered();
     std::lock_guard lock(mutex_);
     writing_ = false;
     if (!ok) {
@@ -102,6 +107,7 @@ class TimeGrants::Follower final
   }
 
   void OnDone() override {
+    ordered();
     owner_->left(this);
     delete this;
   }

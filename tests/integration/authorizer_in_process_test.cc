@@ -21,6 +21,7 @@
 #include <vector>
 
 #include "behaviorlib/server_kit/access_policy.h"
+#include "behaviorlib/server_kit/reactor_order.h"
 
 namespace behaviorlib::server {
 namespace {
@@ -105,12 +106,12 @@ TEST(AuthorizerInProcessTest, ManyCallsOnOneConnectionLeaveItsAuthContextAlone) 
     bool done = false;
     grpc::Status status;
     stub.UnaryCall(&context, "/behaviorlib.v1.Coordinator/WriteBelief", grpc::StubOptions(),
-                   &request, &response, [&](grpc::Status s) {
+                   &request, &response, orderedCallback([&](grpc::Status s) {
                      std::lock_guard lock(mutex);
                      status = s;
                      done = true;
                      done_cv.notify_all();
-                   });
+                   }));
     std::unique_lock lock(mutex);
     done_cv.wait(lock, [&] { return done; });
     ASSERT_TRUE(status.ok()) << i << ": " << status.error_message();

@@ -16,6 +16,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/embedded_descriptors.h"
+#include "behaviorlib/server_kit/reactor_order.h"
 #include "grpc/reflection/v1/reflection.grpc.pb.h"
 #include "grpc/reflection/v1alpha/reflection.grpc.pb.h"
 
@@ -235,7 +236,7 @@ void answer(const DescriptorCatalog& catalog, const Request& request, Response* 
 // One ServerReflectionInfo stream: read a request, write its response, repeat
 // until the client half-closes. At most one operation is pending at a time.
 template <typename Request, typename Response>
-class ReflectionReactor final : public grpc::ServerBidiReactor<Request, Response> {
+class ReflectionReactor final : public server::Ordered<grpc::ServerBidiReactor<Request, Response>> {
  public:
   explicit ReflectionReactor(std::shared_ptr<const DescriptorCatalog> catalog)
       : catalog_(std::move(catalog)) {
@@ -243,6 +244,7 @@ class ReflectionReactor final : public grpc::ServerBidiReactor<Request, Response
   }
 
   void OnReadDone(bool ok) override {
+    this->ordered();
     if (!ok) {  // Client half-closed (or the call is cancelled).
       this->Finish(grpc::Status::OK);
       return;
@@ -253,6 +255,7 @@ class ReflectionReactor final : public grpc::ServerBidiReactor<Request, Response
   }
 
   void OnWriteDone(bool ok) override {
+    this->ordered();
     if (!ok) {
       this->Finish(grpc::Status(grpc::StatusCode::UNAVAILABLE, "reflection write failed"));
       return;
@@ -260,7 +263,10 @@ class ReflectionReactor final : public grpc::ServerBidiReactor<Request, Response
     this->StartRead(&request_);
   }
 
-  void OnDone() override { delete this; }
+  void OnDone() override {
+    this->ordered();
+    delete this;
+  }
 
  private:
   const std::shared_ptr<const DescriptorCatalog> catalog_;

@@ -26,11 +26,12 @@
 
 #include "absl/base/thread_annotations.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/server_kit/reactor_order.h"
 
 namespace behaviorlib::server {
 
 template <class Subscription, class Message>
-class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
+class LogStreamWriter : public Ordered<grpc::ServerWriteReactor<Message>> {
  public:
   /// Ends the stream UNAVAILABLE (with the resume point) once what is queued
   /// has been written.
@@ -41,6 +42,7 @@ class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
   }
 
   void OnWriteDone(bool ok) override {
+    this->ordered();
     absl::MutexLock lock(&mutex_);
     writing_ = false;
     if (!ok) {
@@ -51,12 +53,14 @@ class LogStreamWriter : public grpc::ServerWriteReactor<Message> {
   }
 
   void OnCancel() override {
+    this->ordered();
     absl::MutexLock lock(&mutex_);
     cancelled_ = true;
     if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
   }
 
   void OnDone() override {
+    this->ordered();
     Subscription* subscription = nullptr;
     {
       absl::MutexLock lock(&mutex_);

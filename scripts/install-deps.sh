@@ -20,7 +20,8 @@ RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libssl3 libgrpc++1.51 libgrpc29 li
   libabsl20220623 libprometheus-cpp-core1.0 libprometheus-cpp-pull1.0 libyaml-cpp0.7 \
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-objdetect406 \
   libopencv-contrib406 libopencv-calib3d406 liboctomap1.9 libompl16"
-TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml prometheus docker-compose procps openssl \
+TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-venv python3-setuptools \
+  python3-wheel python3-pytest prometheus docker-compose procps openssl \
   clang-14 libclang-rt-14-dev libfuzzer-14-dev llvm-14"
 
 case "${1:-}" in

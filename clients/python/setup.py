@@ -1,0 +1,74 @@
+"""The behaviorlib Python client (clients/python).
+
+Its gRPC stubs are generated at build time from the repository's proto/ with
+Debian's protoc and grpc_python_plugin (protobuf-compiler-grpc), so nothing
+generated is kept in git. Installs without an index into a virtual
+environment made with --system-site-packages (Debian's python3-grpcio and
+python3-protobuf):
+
+    python3 -m venv --system-site-packages venv
+    venv/bin/pip install --no-index clients/python
+"""
+
+import glob
+import os
+import shutil
+import subprocess
+
+from setuptools import setup
+from setuptools.command.build_py import build_py
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+# The protos: the repository's proto/ (pip builds in the source tree), or
+# BEHAVIORLIB_PROTO_DIR.
+PROTO_DIR = os.environ.get("BEHAVIORLIB_PROTO_DIR", os.path.join(HERE, "..", "..", "proto"))
+
+
+def _tool(name, env):
+    path = os.environ.get(env) or shutil.which(name)
+    if not path:
+        raise RuntimeError(f"{name} not found: install Debian's protobuf-compiler-grpc "
+                           f"(or set {env})")
+    return path
+
+
+class BuildWithStubs(build_py):
+    """build_py, then the generated modules of every .proto under
+    proto/behaviorlib into the build tree (behaviorlib/v1/...)."""
+
+    def run(self):
+        super().run()
+        protos = sorted(glob.glob(os.path.join(PROTO_DIR, "behaviorlib", "**", "*.proto"),
+                                  recursive=True))
+        if not protos:
+            raise RuntimeError(f"no .proto files under {PROTO_DIR}/behaviorlib "
+                               "(set BEHAVIORLIB_PROTO_DIR)")
+        protoc = _tool("protoc", "PROTOC")
+        plugin = _tool("grpc_python_plugin", "GRPC_PYTHON_PLUGIN")
+        out = os.path.abspath(self.build_lib)
+        # protoc's own include directory (google/protobuf/*.proto) is found by
+        # protoc itself.
+        subprocess.run([protoc, f"--proto_path={PROTO_DIR}", f"--python_out={out}",
+                        f"--grpc_python_out={out}", f"--plugin=protoc-gen-grpc_python={plugin}",
+                        *[os.path.relpath(p, PROTO_DIR) for p in protos]],
+                       check=True, cwd=PROTO_DIR)
+        # Regular packages for the generated directories.
+        for proto in protos:
+            directory = os.path.dirname(os.path.relpath(proto, PROTO_DIR))
+            while directory and directory != "behaviorlib":
+                init = os.path.join(out, directory, "__init__.py")
+                if not os.path.exists(init):
+                    open(init, "w").close()
+                directory = os.path.dirname(directory)
+
+
+setup(
+    name="behaviorlib",
+    version="0.1.0",
+    description="Python client of behaviorlib: fly robots through the coordinator",
+    packages=["behaviorlib"],
+    python_requires=">=3.9",
+    # Debian's python3-grpcio and python3-protobuf (not listed as
+    # install_requires: pip would look for them on an index).
+    cmdclass={"build_py": BuildWithStubs},
+)

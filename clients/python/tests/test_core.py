@@ -1,0 +1,122 @@
+"""Unit tests of the client's pure parts: behavior methods made from a
+descriptor, and the event stream's resume position. No server."""
+
+import inspect
+
+import pytest
+
+from behaviorlib import _core
+from behaviorlib.v1 import behavior_pb2, coordinator_pb2
+
+
+def description():
+    d = behavior_pb2.BehaviorDescription(name="GO_TO", description="flies to a point")
+    d.parameters.add(name="point_m", type="object", proto_type="behaviorlib.v1.Point",
+                     required=True, unit="m")
+    speed = d.parameters.add(name="speed_m_s", type="number", proto_type="double", unit="m_s",
+                             default_json="0.5")
+    speed.range.min, speed.range.max = 0.1, 2.0
+    d.parameters.add(name="mode", type="enum", enum_values=["FAST", "SAFE"])
+    d.maximum_execution_time.seconds = 30
+    return d
+
+
+def test_a_method_is_made_from_the_descriptor():
+    spec = _core.BehaviorSpec.from_description(description())
+    assert spec.method == "go_to"
+    signature = spec.signature()
+    assert list(signature.parameters) == ["point_m", "speed_m_s", "mode"]
+    assert all(p.kind is inspect.Parameter.KEYWORD_ONLY for p in signature.parameters.values())
+    assert signature.parameters["point_m"].default is inspect.Parameter.empty
+    assert signature.parameters["speed_m_s"].default == 0.5
+    assert signature.parameters["mode"].default is None
+    doc = spec.doc("Returns it.")
+    assert "speed_m_s (number, m_s); in [0.1, 2]; default 0.5" in doc
+    assert "one of FAST, SAFE" in doc
+    assert "30 s of active time" in doc
+
+
+def test_binding_checks_names_and_required_parameters_and_drops_unset_ones():
+    spec = _core.BehaviorSpec.from_description(description())
+    assert spec.bind({"point_m": {"x": 1}, "mode": None}) == {"point_m": {"x": 1}}
+    with pytest.raises(TypeError, match="unexpected parameter.*speed"):
+        spec.bind({"point_m": {}, "speed": 1})
+    with pytest.raises(TypeError, match="missing required parameter.*point_m"):
+        spec.bind({"speed_m_s": 1})
+
+
+def test_method_names_are_python_identifiers():
+    assert _core.method_name("TAKE_OFF") == "take_off"
+    assert _core.method_name("3D_SCAN") == "b_3d_scan"
+    assert _core.method_name("acme.GREET") == "acme_greet"
+
+
+def fleet_event(seq, incarnation, system_incarnation, system_seq, finished=False,
+                synthesized=False, activation="A-1"):
+    event = coordinator_pb2.FleetEvent(seq=seq, incarnation=incarnation, synthesized=synthesized)
+    behavior_event = event.behavior_event
+    behavior_event.seq = system_seq
+    behavior_event.incarnation = system_incarnation
+    behavior_event.robot_id = "drone1"
+    behavior_event.behavior = "WAIT"
+    behavior_event.activation_id = activation
+    if finished:
+        behavior_event.finished.cause = behavior_pb2.TERMINATION_CAUSE_GOAL_ACHIEVED
+    else:
+        behavior_event.activated.SetInParent()
+    return event
+
+
+def start(incarnation, changed=False, dropped=0):
+    response = coordinator_pb2.WatchFleetEventsResponse()
+    response.start.incarnation = incarnation
+    response.start.incarnation_changed = changed
+    response.start.events_dropped = dropped > 0
+    response.start.dropped_count = dropped
+    return response
+
+
+def batch(*events):
+    response = coordinator_pb2.WatchFleetEventsResponse()
+    response.events.events.extend(events)
+    return response
+
+
+def test_the_cursor_resumes_after_the_last_event_and_drops_replays_of_a_restarted_coordinator():
+    cursor = _core.EventCursor(robot_ids=["drone1"])
+    assert cursor.accept(start("c1")) == []
+    first = [fleet_event(1, "c1", "s1", 7), fleet_event(2, "c1", "s1", 8, finished=True)]
+    assert cursor.accept(batch(*first)) == first
+    request = cursor.request()
+    assert (request.since_seq, request.incarnation, list(request.robot_ids)) == (2, "c1",
+                                                                                  ["drone1"])
+    # The coordinator restarted: a new incarnation replays what it read
+    # again from the system, then a new event and one it synthesized.
+    assert cursor.accept(start("c2", changed=True)) == []
+    assert cursor.restarts_seen == 1
+    replay = [fleet_event(1, "c2", "s1", 7), fleet_event(2, "c2", "s1", 8, finished=True),
+              fleet_event(3, "c2", "s1", 9, activation="A-2")]
+    synthesized = fleet_event(4, "c2", "s1", 0, finished=True, synthesized=True,
+                              activation="A-2")
+    assert cursor.accept(batch(*replay)) == replay[2:]
+    assert cursor.accept(batch(synthesized)) == [synthesized]
+    assert cursor.accept(batch(synthesized)) == []
+    assert (cursor.request().since_seq, cursor.request().incarnation) == (4, "c2")
+
+
+def test_the_cursor_counts_what_the_coordinator_no_longer_had():
+    cursor = _core.EventCursor(since_seq=10, incarnation="c1")
+    cursor.accept(start("c1", dropped=5))
+    assert cursor.dropped_count == 5
+    assert cursor.restarts_seen == 0
+
+
+def test_terminations_keep_the_newest_finished_activations():
+    terminations = _core.Terminations(capacity=2)
+    assert terminations.add(fleet_event(1, "c", "s", 1)) is None  # activated: not kept
+    for i in range(3):
+        terminations.add(fleet_event(2 + i, "c", "s", 2 + i, finished=True, activation=f"A-{i}"))
+    assert terminations.get("A-0") is None
+    termination = terminations.get("A-2")
+    assert (termination.cause, termination.succeeded, termination.behavior) == (
+        "GOAL_ACHIEVED", True, "WAIT")

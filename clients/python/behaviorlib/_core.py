@@ -110,12 +110,24 @@ def to_value(value):
     return json_format.ParseDict(to_plain(value), struct_pb2.Value())
 
 
+def _sorted(value):
+    """Dicts with their keys in order, deeply: a Struct is a map, whose order
+    protobuf does not keep."""
+    if isinstance(value, dict):
+        return {k: _sorted(value[k]) for k in sorted(value)}
+    if isinstance(value, list):
+        return [_sorted(v) for v in value]
+    return value
+
+
 def from_struct(struct):
-    return json_format.MessageToDict(struct)
+    """A Struct as a dict (numbers are floats, as in JSON), keys sorted."""
+    return _sorted(json_format.MessageToDict(struct))
 
 
 def from_value(value):
-    return json_format.MessageToDict(value)
+    """A Value as plain Python (numbers are floats, as in JSON), keys sorted."""
+    return _sorted(json_format.MessageToDict(value))
 
 
 def duration_s(duration):

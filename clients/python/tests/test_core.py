@@ -120,3 +120,11 @@ def test_terminations_keep_the_newest_finished_activations():
     termination = terminations.get("A-2")
     assert (termination.cause, termination.succeeded, termination.behavior) == (
         "GOAL_ACHIEVED", True, "WAIT")
+
+
+def test_values_come_back_with_their_keys_in_order():
+    struct = _core.to_struct({"b": 1, "a": {"d": [{"f": 1, "e": 2}], "c": True}})
+    back = _core.from_struct(struct)
+    assert back == {"a": {"c": True, "d": [{"e": 2, "f": 1}]}, "b": 1}
+    assert list(back) == ["a", "b"] and list(back["a"]) == ["c", "d"]
+    assert list(back["a"]["d"][0]) == ["e", "f"]

@@ -9,6 +9,8 @@
 #include <fstream>
 #include <iostream>
 #include <sstream>
+#include <string>
+#include <utility>
 
 #include "behaviorlib/server_kit/transport_security.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
@@ -101,6 +103,33 @@ int unary(Call call) {
   return unary<Response>(call, [](const Response& r) { printJson(r); });
 }
 
+// Every page of a List call (AIP-158) as one reply, printed once: each
+// page's repeated fields appended to the reply, next_page_token cleared.
+// `call(context, request, page)` makes one call; each has the deadline of
+// unary().
+template <class Response, class Request, class Call, class Print>
+int listAll(Request request, Call call, Print print) {
+  Response all;
+  for (;;) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
+    Response page;
+    if (grpc::Status s = call(&context, request, &page); !s.ok()) return fail(s);
+    std::string next = page.next_page_token();
+    page.clear_next_page_token();
+    all.MergeFrom(page);
+    if (next.empty()) break;
+    request.set_page_token(std::move(next));
+  }
+  print(all);
+  return 0;
+}
+
+template <class Response, class Request, class Call>
+int listAll(Request request, Call call) {
+  return listAll<Response>(std::move(request), call, [](const Response& r) { printJson(r); });
+}
+
 // Prints a stream's messages as they come, until `last` says one was the
 // last (0), the stream ends (0), or it fails (1). --timeout-s bounds it.
 template <class Message, class Open, class Last>
@@ -144,8 +173,8 @@ int beliefCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
   if (verb == "list") {
     v1::ListBeliefsRequest request;
     request.set_prefix(key);
-    return unary<v1::ListBeliefsResponse>(
-        [&](auto* context, auto* r) { return stub.ListBeliefs(context, request, r); });
+    return listAll<v1::ListBeliefsResponse>(
+        request, [&](auto* context, auto& q, auto* r) { return stub.ListBeliefs(context, q, r); });
   }
   if (verb == "get" && !key.empty()) {
     v1::ReadBeliefRequest request;
@@ -216,9 +245,9 @@ int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
         [&](auto* context, auto* r) { return stub.GetMission(context, request, r); }, printStatus);
   }
   if (verb == "list") {
-    return unary<v1::ListMissionsResponse>([&](auto* context, auto* r) {
-      return stub.ListMissions(context, v1::ListMissionsRequest(), r);
-    });
+    return listAll<v1::ListMissionsResponse>(
+        v1::ListMissionsRequest(),
+        [&](auto* context, auto& q, auto* r) { return stub.ListMissions(context, q, r); });
   }
   if ((verb == "pause" || verb == "resume" || verb == "abort") && !arg.empty()) {
     v1::MissionControlRequest request;
@@ -257,8 +286,9 @@ int runCoordinator(const CtlOptions& c) {
     request.set_robot_id(c.robot);
     if (command == "status") request.set_behavior(behavior);
     bool missing = false;
-    const int code = unary<v1::ListFleetBehaviorsResponse>(
-        [&](auto* context, auto* r) { return stub->ListBehaviors(context, request, r); },
+    const int code = listAll<v1::ListFleetBehaviorsResponse>(
+        request,
+        [&](auto* context, auto& q, auto* r) { return stub->ListBehaviors(context, q, r); },
         [&](const v1::ListFleetBehaviorsResponse& r) {
           missing = command == "status" && r.behaviors().empty();
           if (!missing) printJson(r);
@@ -273,8 +303,8 @@ int runCoordinator(const CtlOptions& c) {
   if (command == "systems") {
     v1::ListSystemsRequest request;
     request.set_robot_id(c.robot);
-    return unary<v1::ListSystemsResponse>(
-        [&](auto* context, auto* r) { return stub->ListSystems(context, request, r); });
+    return listAll<v1::ListSystemsResponse>(
+        request, [&](auto* context, auto& q, auto* r) { return stub->ListSystems(context, q, r); });
   }
   if (command == "activate") {
     v1::ActivateFleetBehaviorRequest request;
@@ -343,9 +373,9 @@ int runSystem(const CtlOptions& c) {
   const std::string& command = c.args[0];
   const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
   if (command == "list") {
-    return unary<v1::ListBehaviorsResponse>([&](auto* context, auto* r) {
-      return stub->ListBehaviors(context, v1::ListBehaviorsRequest(), r);
-    });
+    return listAll<v1::ListBehaviorsResponse>(
+        v1::ListBehaviorsRequest(),
+        [&](auto* context, auto& q, auto* r) { return stub->ListBehaviors(context, q, r); });
   }
   if (command == "activate") {
     v1::ActivateBehaviorRequest request;

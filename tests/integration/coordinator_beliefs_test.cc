@@ -2,6 +2,7 @@
 // delete, the errors a person gets, and the journal that keeps it across a
 // crash (kill -9) of the coordinator.
 
+#include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 #include <unistd.h>
@@ -12,9 +13,11 @@
 #include <string>
 #include <thread>
 
+#include "absl/strings/str_format.h"
 #include "behaviorlib/server/belief_client.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "support/run_command.h"
 #include "support/server_process.h"
 
 namespace {
@@ -96,6 +99,31 @@ TEST_F(CoordinatorBeliefsTest, WritesReadsListsAndDeletes) {
   EXPECT_EQ(read("drone1/answer", &belief).error_code(), grpc::StatusCode::NOT_FOUND);
   EXPECT_EQ(stub_->DeleteBelief(deadline().get(), erase, &erased).error_code(),
             grpc::StatusCode::NOT_FOUND);
+}
+
+// `behaviorctl belief list` follows the pages: more beliefs than the
+// server's default page (500) are printed as one reply, each key once, in
+// order.
+TEST_F(CoordinatorBeliefsTest, BehaviorctlListsEveryPage) {
+  constexpr int kBeliefs = 1001;  // three pages of 500
+  for (int i = 0; i < kBeliefs; ++i) {
+    ASSERT_TRUE(write(absl::StrFormat("many/b%04d", i), "x").ok()) << i;
+  }
+  ASSERT_TRUE(write("other/b", "x").ok());
+  std::string output;
+  ASSERT_EQ(support::run(std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " +
+                             coordinator_->address() + " belief list many/",
+                         &output),
+            0)
+      << output.substr(0, 1000);
+  v1::ListBeliefsResponse listed;
+  ASSERT_TRUE(google::protobuf::util::JsonStringToMessage(output, &listed).ok())
+      << output.substr(0, 1000);
+  ASSERT_EQ(listed.beliefs_size(), kBeliefs);
+  for (int i = 0; i < kBeliefs; ++i) {
+    EXPECT_EQ(listed.beliefs(i).key(), absl::StrFormat("many/b%04d", i));
+  }
+  EXPECT_TRUE(listed.next_page_token().empty());
 }
 
 TEST_F(CoordinatorBeliefsTest, BadRequestsSayWhatIsWrong) {

@@ -37,6 +37,7 @@
 #include "coordinator/service/registry.h"
 #include "coordinator_test_support.h"
 #include "support/deterministic.h"
+#include "support/run_command.h"
 #include "support/server_process.h"
 
 namespace coordinator_test {
@@ -258,16 +259,7 @@ std::vector<v1::BehaviorEvent> systemHistory(const std::string& address) {
   return events;
 }
 
-/// Runs `command` with a shell; its exit code, and its output in `output`.
-int run(const std::string& command, std::string* output) {
-  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
-  if (!pipe) return -1;
-  char buffer[4096];
-  size_t n;
-  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) output->append(buffer, n);
-  const int status = pclose(pipe);
-  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-}
+using support::run;
 
 // JSON of a path_m value: [{"x": .., "y": .., "z": ..}, ...].
 std::string pathJson(const std::vector<std::array<double, 3>>& points) {

@@ -32,6 +32,7 @@
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "coordinator_test_support.h"
 #include "support/deterministic.h"
+#include "support/run_command.h"
 #include "support/server_process.h"
 
 namespace coordinator_test {
@@ -235,16 +236,7 @@ class VehicleRecorder {
   double max_x_ = -1e9;
 };
 
-// Runs `command` with a shell; its exit code, with its output in `output`.
-int run(const std::string& command, std::string* output) {
-  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
-  if (!pipe) return -1;
-  char buffer[4096];
-  size_t n;
-  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) output->append(buffer, n);
-  const int status = pclose(pipe);
-  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-}
+using support::run;
 
 // Runs `command` with a shell, its stderr going to the test's; its exit
 // code. Its stdout in `output`; its last line parsed as JSON into `message`

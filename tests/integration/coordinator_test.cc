@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "coordinator_test_support.h"
+#include "support/run_command.h"
 #include "support/server_process.h"
 
 namespace coordinator_test {
@@ -366,9 +367,9 @@ TEST_F(CoordinatorTest, ASubscriberThatAsksForBatchesGetsTheSameEventsInFewerMes
     ASSERT_TRUE(message->has_events());
     for (const v1::FleetEvent& e : message->events().events()) {
       EXPECT_EQ(e.seq(), ++seq);
-      finished = finished || (e.behavior_event().has_finished() &&
-                              e.behavior_event().activation_id() ==
-                                  live.response.activation().activation_id());
+      finished = finished ||
+                 (e.behavior_event().has_finished() &&
+                  e.behavior_event().activation_id() == live.response.activation().activation_id());
     }
   }
 }
@@ -604,16 +605,7 @@ TEST_F(CoordinatorTest, ConfiguredSystemsAreContactedAndContactedAgainWhenTheyCo
   unlink(path);
 }
 
-// Runs `command` with a shell, returning its exit code and output.
-int run(const std::string& command, std::string* output) {
-  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
-  if (!pipe) return -1;
-  char buffer[4096];
-  size_t n;
-  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) output->append(buffer, n);
-  const int status = pclose(pipe);
-  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-}
+using support::run;
 
 TEST_F(CoordinatorTest, ABadSystemsFileStopsTheCoordinatorWithItsLine) {
   char path[] = "/tmp/coordinator-bad-XXXXXX";

@@ -17,6 +17,7 @@
 
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "motion_test_support.h"
+#include "support/run_command.h"
 #include "support/server_process.h"
 
 namespace {
@@ -29,16 +30,7 @@ using motion_test::SystemClient;
 using std::chrono::milliseconds;
 using std::chrono::seconds;
 
-// Runs `command` with a shell; its exit code, and its output in `output`.
-int run(const std::string& command, std::string* output) {
-  FILE* pipe = popen((command + " 2>&1").c_str(), "r");
-  if (!pipe) return -1;
-  char buffer[4096];
-  size_t n;
-  while ((n = fread(buffer, 1, sizeof(buffer), pipe)) > 0) output->append(buffer, n);
-  const int status = pclose(pipe);
-  return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-}
+using support::run;
 
 class OperatorInteractionTest : public ::testing::Test {
  protected:

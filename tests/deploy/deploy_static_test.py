@@ -8,6 +8,14 @@ running anything:
   health check of behaviorctl on its own --listen port); every address a
   command names is a service's --listen port, also with other ports set in
   the environment; the override repeats the base file's shared settings;
+  the world, sensor configuration, time scale and the mission and world
+  directories come from the environment, their defaults being what the
+  image ships; Grafana's admin password has no default; the coordinator's
+  journal and saved maps are on the named volume;
+- .dockerignore keeps build trees, the history and secrets out of the build
+  context and nothing the Dockerfile copies;
+- deploy/README.md names every behavior system and every variable of the
+  Compose files;
 - the Dockerfile: Debian 12 build stage with install-deps.sh --build and
   scripts/build.sh, a slim runtime stage with --runtime, a non-root user;
   every container path a command names is in the image or a volume;
@@ -39,6 +47,30 @@ PORT_ENV = {"CHANNEL_PORT": "41001", "SIMULATOR_PORT": "41002", "COORDINATOR_POR
             "PROMETHEUS_HOST_PORT": "41006", "GRAFANA_HOST_PORT": "41007",
             "BEHAVIORLIB_PUBLISH_ADDRESS": "0.0.0.0"}
 ADDRESS = re.compile(r"(?<![\w.-])([a-z][a-z0-9-]*):(\d+)\b")
+# What the simulator and the coordinator fly with when nothing is set: the
+# settings the deployment had before they came from the environment (an
+# empty field at real time, the shipped sensors, worlds and missions).
+SCENARIO_DEFAULTS = {
+    "simulator": {"--world": "", "--time-scale": "1",
+                  "--sensor-config": "/opt/behaviorlib/config/simulator_sensors.yaml",
+                  "--worlds-dir": "/opt/behaviorlib/worlds"},
+    "coordinator": {"--mission-dir": "/opt/behaviorlib/missions"},
+}
+# Each scenario variable set to something other than its default, and what
+# must then reach the commands (flags) and mounts (container path -> host
+# directory).
+SCENARIO_ENV = {"SIMULATOR_WORLD": "aircraft", "SIMULATOR_TIME_SCALE": "2.5",
+                "SIMULATOR_SENSOR_CONFIG":
+                    "/opt/behaviorlib/config/simulator_sensors_aircraft.yaml",
+                "BEHAVIORLIB_WORLDS_DIR": "/srv/scenario/worlds",
+                "BEHAVIORLIB_MISSIONS_DIR": "/srv/scenario/missions"}
+SCENARIO_FLAGS = {"simulator": {"--world": "aircraft", "--time-scale": "2.5",
+                                "--sensor-config":
+                                    "/opt/behaviorlib/config/simulator_sensors_aircraft.yaml"}}
+SCENARIO_MOUNTS = {"simulator": {"/opt/behaviorlib/worlds": "/srv/scenario/worlds"},
+                   "coordinator": {"/opt/behaviorlib/missions": "/srv/scenario/missions"}}
+# Flags naming where a server writes what must outlive its container.
+DATA_FLAGS = ("--state-dir", "--map-dir", "--audit-log")
 
 
 def behaviorlib_services(project):
@@ -48,6 +80,22 @@ def behaviorlib_services(project):
 
 def listen_port(service):
     return ds.port_of(ds.flag_value(service["command"], "--listen"))
+
+
+def mounts(service):
+    """{container path: source} of a service's volumes (a bind mount's
+    source as written, relative to deploy/compose; a named volume's name)."""
+    return {ds._volume_target(v): v.split(":")[0] for v in service.get("volumes", [])}
+
+
+def host_directory(source):
+    """The host directory of a bind mount's source (relative to the
+    directory of the Compose files, as Compose resolves it)."""
+    return os.path.normpath(os.path.join(ds.COMPOSE_DIR, source))
+
+
+def under(path, directory):
+    return path == directory or path.startswith(directory.rstrip("/") + "/")
 
 
 class ComposeTest(unittest.TestCase):
@@ -201,6 +249,88 @@ class ComposeTest(unittest.TestCase):
                 if name.startswith("drone"):
                     self.assertIn("behaviorlib-data:/var/lib/behaviorlib", service["volumes"])
 
+    def test_scenario_defaults_are_what_the_image_ships(self):
+        image = ds.image_directories()
+        for label, project in self.projects().items():
+            for name, flags in SCENARIO_DEFAULTS.items():
+                service = project["services"][name]
+                for flag, value in flags.items():
+                    with self.subTest(project=label, service=name, flag=flag):
+                        self.assertEqual(ds.flag_value(service["command"], flag), value)
+            # The worlds and missions mounted by default are the directories
+            # the Dockerfile copies to the same paths: the same files.
+            for name, flag in (("simulator", "--worlds-dir"), ("coordinator", "--mission-dir")):
+                with self.subTest(project=label, service=name):
+                    target = ds.flag_value(project["services"][name]["command"], flag)
+                    source = mounts(project["services"][name]).get(target)
+                    self.assertIsNotNone(source, f"{name}: {target} is not mounted")
+                    self.assertEqual(host_directory(source), image[target])
+
+    def test_scenario_comes_from_the_environment(self):
+        for label, project in self.projects(SCENARIO_ENV).items():
+            for name, flags in SCENARIO_FLAGS.items():
+                command = project["services"][name]["command"]
+                for flag, value in flags.items():
+                    with self.subTest(project=label, service=name, flag=flag):
+                        self.assertEqual(ds.flag_value(command, flag), value)
+            for name, expected in SCENARIO_MOUNTS.items():
+                service = project["services"][name]
+                for target, source in expected.items():
+                    with self.subTest(project=label, service=name, target=target):
+                        self.assertEqual(mounts(service).get(target), source)
+                        # Read-only: the servers only read worlds and missions.
+                        self.assertIn(f"{source}:{target}:ro", service["volumes"])
+            # Nothing else changed: the other services' commands are the defaults'.
+            defaults = ds.load_compose(*VEHICLES["drone2" if "drone2" in label else "drone1"])
+            for name, service in project["services"].items():
+                if name not in SCENARIO_FLAGS:
+                    self.assertEqual(service.get("command"),
+                                     defaults["services"][name].get("command"), name)
+
+    def test_grafana_admin_password_has_no_default(self):
+        raw = ds.read_yaml(ds.COMPOSE_FILE)["services"]["grafana"]["environment"]
+        self.assertRegex(raw["GF_SECURITY_ADMIN_PASSWORD"],
+                         r"^\$\{GRAFANA_ADMIN_PASSWORD:\?set GRAFANA_ADMIN_PASSWORD .+\}$")
+        # Compose refuses the files without it (the message says what to set).
+        for files in VEHICLES.values():
+            data = [ds.read_yaml(path) for path in files]
+            with self.assertRaisesRegex(ValueError, "GRAFANA_ADMIN_PASSWORD is required: "
+                                                    "set GRAFANA_ADMIN_PASSWORD"):
+                for document in data:
+                    ds.interpolate(document, {})
+            # An empty value counts as unset (`:?`).
+            with self.assertRaises(ValueError):
+                for document in data:
+                    ds.interpolate(document, {"GRAFANA_ADMIN_PASSWORD": ""})
+        grafana = ds.load_compose(ds.COMPOSE_FILE, env={"GRAFANA_ADMIN_PASSWORD": "s3cret"})
+        self.assertEqual(grafana["services"]["grafana"]["environment"]
+                         ["GF_SECURITY_ADMIN_PASSWORD"], "s3cret")
+
+    def test_saved_maps_and_the_journal_are_on_the_named_volume(self):
+        for label, project in self.projects().items():
+            written = 0
+            for name, service in behaviorlib_services(project).items():
+                # A tmpfs for scratch space only, never over the data.
+                self.assertEqual(service.get("tmpfs"), ["/tmp"], name)
+                for flag in DATA_FLAGS:
+                    path = ds.flag_value(service["command"], flag)
+                    if path is None:
+                        continue
+                    written += 1
+                    with self.subTest(project=label, service=name, flag=flag):
+                        target = max((t for t in mounts(service) if under(path, t)),
+                                     key=len, default=None)
+                        self.assertIsNotNone(target, f"{flag}={path} is on no volume")
+                        source = mounts(service)[target]
+                        # A named volume declared at the top level (not a
+                        # bind mount, which depends on the host's directories).
+                        self.assertNotRegex(source, r"^[./$~]", f"{flag}={path}")
+                        self.assertIn(source, project["volumes"])
+                        self.assertFalse(any(under(path, t) for t in service["tmpfs"]))
+            # The coordinator's journal and every vehicle's saved maps.
+            self.assertGreaterEqual(written, 1 + len([n for n in project["services"]
+                                                      if n.endswith("navigation-with-lidar")]))
+
     def test_bind_mounts_exist(self):
         # The certificates are made by scripts/make-dev-certs.sh (into
         # BEHAVIORLIB_CERTS_DIR, deploy/certs by default): its default names
@@ -288,6 +418,140 @@ class DockerfileTest(unittest.TestCase):
                     elif in_image:
                         local = image[in_image[0]] + value[len(in_image[0]):]
                         self.assertTrue(os.path.exists(local), f"{arg}: {local} does not exist")
+
+
+DOCKERIGNORE = os.path.join(ds.REPO, ".dockerignore")
+README = os.path.join(ds.REPO, "deploy", "README.md")
+
+
+def copied_sources():
+    """The repository paths the Dockerfile's COPY lines take from the build
+    context (not those copied from another stage)."""
+    with open(ds.DOCKERFILE) as f:
+        return [os.path.normpath(src) for src in
+                re.findall(r"^COPY\s+(?!--)(\S+)\s+\S+\s*$", f.read(), re.MULTILINE)]
+
+
+def dockerignore_patterns():
+    """(excluded, regex) of each pattern of .dockerignore, in order, as
+    Docker reads them: comments and blank lines skipped, `!` re-includes,
+    leading and trailing slashes dropped, `*` and `?` within one path
+    component, `**` across any number of them."""
+    patterns = []
+    with open(DOCKERIGNORE) as f:
+        for line in f:
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            excluded = not line.startswith("!")
+            pattern = "/".join(p for p in line.lstrip("!").split("/") if p and p != ".")
+            regex = ""
+            for part in re.split(r"(\*\*/?|\*|\?)", pattern):
+                if part.startswith("**"):
+                    regex += "(.*/)?" if part.endswith("/") else ".*"
+                elif part == "*":
+                    regex += "[^/]*"
+                elif part == "?":
+                    regex += "[^/]"
+                else:
+                    regex += re.escape(part)
+            patterns.append((excluded, re.compile(regex + "$")))
+    return patterns
+
+
+def dockerignored(path, patterns):
+    """Whether Docker leaves `path` (relative to the repository) out of the
+    build context: the last pattern matching it or a directory above it
+    decides."""
+    parts = path.split("/")
+    prefixes = ["/".join(parts[:i]) for i in range(1, len(parts) + 1)]
+    result = False
+    for excluded, regex in patterns:
+        if any(regex.match(prefix) for prefix in prefixes):
+            result = excluded
+    return result
+
+
+class DockerignoreTest(unittest.TestCase):
+    def setUp(self):
+        self.assertTrue(os.path.isfile(DOCKERIGNORE), "no .dockerignore at the repository root")
+        self.patterns = dockerignore_patterns()
+
+    def test_build_trees_history_and_secrets_stay_out_of_the_context(self):
+        for path in ("build/bin/coordinator", "build-asan/CMakeCache.txt",
+                     "build-release/bin/simulator", ".git/HEAD", ".git",
+                     "deploy/certs/ca.pem", "deploy/certs/coordinator.key",
+                     "deploy/compose/.env", "clients/python/build/lib/x.py",
+                     "tests/deploy/grafana_schema/node_modules/x/index.js",
+                     "services/shared/x/__pycache__/y.cpython-311.pyc", "deploy/local/z.pyc",
+                     "clients/python/behaviorlib.egg-info/PKG-INFO"):
+            with self.subTest(path=path):
+                self.assertTrue(dockerignored(path, self.patterns), path)
+
+    def test_nothing_the_dockerfile_copies_is_excluded(self):
+        sources = copied_sources()
+        self.assertIn("deploy", sources)
+        self.assertIn("services", sources)
+        for source in sources:
+            with self.subTest(source=source):
+                self.assertTrue(os.path.exists(os.path.join(ds.REPO, source)), source)
+                self.assertFalse(dockerignored(source, self.patterns), source)
+        # Every file of the checkout under those paths reaches the context.
+        files, why = ds.tracked_files(sources)
+        if files is None:
+            self.skipTest(f"not a git checkout: {why}")
+        self.assertGreater(len(files), 100)
+        self.assertEqual([f for f in files if dockerignored(f, self.patterns)], [])
+
+
+class DeployReadmeTest(unittest.TestCase):
+    NUMBERS = {"one": 1, "two": 2, "three": 3, "four": 4, "five": 5, "six": 6, "seven": 7,
+               "eight": 8, "nine": 9, "ten": 10, "eleven": 11, "twelve": 12}
+
+    def setUp(self):
+        with open(README) as f:
+            self.text = f.read()
+
+    def test_names_every_behavior_system_of_the_compose_files(self):
+        for robot, files in VEHICLES.items():
+            systems = sorted({os.path.basename(s["command"][0])
+                              for s in behaviorlib_services(ds.load_compose(*files)).values()
+                              if ds.flag_value(s["command"], "--robot-id") == robot})
+            self.assertEqual(systems, ds.behavior_systems_in_source())
+        for system in ds.behavior_systems_in_source():
+            self.assertTrue(f"`{system}`" in self.text, f"deploy/README.md does not name {system}")
+        # A count of the behavior systems, where the text gives one, is right.
+        count = len(ds.behavior_systems_in_source())
+        for match in re.finditer(r"\b(\w+) behavior systems\b", self.text):
+            number = self.NUMBERS.get(match.group(1).lower(),
+                                      int(match.group(1)) if match.group(1).isdigit() else None)
+            if number is not None:
+                self.assertEqual(number, count, match.group(0))
+
+    def test_documents_every_variable_of_the_compose_files(self):
+        variables = set()
+
+        def collect(value):  # the values only: comments may show ${NAME} too
+            if isinstance(value, dict):
+                for item in value.values():
+                    collect(item)
+            elif isinstance(value, list):
+                for item in value:
+                    collect(item)
+            elif isinstance(value, str):
+                variables.update(re.findall(r"\$\{([A-Za-z_][A-Za-z0-9_]*)", value))
+
+        for path in (ds.COMPOSE_FILE, ds.DRONE2_FILE):
+            collect(ds.read_yaml(path))
+        self.assertIn("GRAFANA_ADMIN_PASSWORD", variables)
+        for name in sorted(variables):
+            with self.subTest(variable=name):
+                self.assertTrue(re.search(r"^\| [^\n]*`" + name + r"`[^\n]*\|$", self.text,
+                                          re.MULTILINE), f"{name} is not in the settings table")
+
+    def test_has_no_leftover_suggested_text(self):
+        self.assertFalse("suggested text" in self.text.lower(), "a \"suggested text\" section")
+        self.assertFalse("admin`/`admin" in self.text, "Grafana's admin password has no default")
 
 
 class PrometheusTargetsTest(unittest.TestCase):

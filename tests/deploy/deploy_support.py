@@ -105,11 +105,17 @@ def read_yaml(path):
         return yaml.safe_load(f)
 
 
+# The variables the Compose files require (`${NAME:?message}`, no default),
+# with the value a deployment would set in the environment or
+# deploy/compose/.env.
+REQUIRED_ENV = {"GRAFANA_ADMIN_PASSWORD": "deploy-tests-password"}
+
+
 def load_compose(*paths, env=None):
     """The Compose project of these files, as Compose reads them: variables
-    interpolated from `env` (default: no variable set, so every default
-    applies), later files merged over earlier ones."""
-    env = {} if env is None else env
+    interpolated from REQUIRED_ENV and `env` (default: nothing more, so every
+    default applies), later files merged over earlier ones."""
+    env = {**REQUIRED_ENV, **(env or {})}
     project = {"services": {}, "volumes": {}}
     for path in paths:
         data = interpolate(read_yaml(path), env)
@@ -365,3 +371,13 @@ class Prometheus(PrometheusApi):
         code = stop_process(self.process)
         self.log.close()
         return code
+
+
+def tracked_files(paths):
+    """The files of the checkout under `paths` (git ls-files), or None with
+    the reason when this is not a git checkout."""
+    listed = subprocess.run(["git", "-C", REPO, "ls-files", "-z", "--", *paths],
+                            capture_output=True, text=True)
+    if listed.returncode != 0:
+        return None, listed.stderr.strip()
+    return [f for f in listed.stdout.split("\0") if f], ""

@@ -294,31 +294,35 @@ class Missions:
         return _pages(self._fleet._stub.ListMissions, coordinator_pb2.ListMissionsRequest(),
                       "missions", self._fleet._credentials)
 
-    def watch(self, mission_id):
+    def watch(self, mission_id, timeout_s=None):
         """Its MissionStatus after each change, until it has ended; the stream
         is opened again after a coordinator restart (the mission is kept in
-        its journal)."""
+        its journal). DeadlineExceeded after `timeout_s` (None: no limit)."""
         request = coordinator_pb2.WatchMissionRequest(mission_id=mission_id)
         metadata = self._fleet._credentials.metadata()
-        for reply in _resuming(self._fleet,
-                                lambda: self._fleet._stub.WatchMission(request, metadata=metadata),
-                                ends=lambda reply: reply.status.state in _core.MISSION_ENDED):
-            yield reply.status
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+
+        def open_stream():
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            return self._fleet._stub.WatchMission(request, metadata=metadata, timeout=remaining)
+
+        try:
+            yield from (reply.status for reply in _resuming(
+                self._fleet, open_stream,
+                ends=lambda reply: reply.status.state in _core.MISSION_ENDED))
+        except DeadlineExceeded:
+            raise DeadlineExceeded(grpc.StatusCode.DEADLINE_EXCEEDED,
+                                   f"mission {mission_id} did not end within {timeout_s} s") \
+                from None
 
     def wait(self, mission_id, timeout_s=None):
-        """Its final MissionStatus."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        """Its final MissionStatus; DeadlineExceeded after `timeout_s`."""
         last = None
-        for status in self.watch(mission_id):
+        for status in self.watch(mission_id, timeout_s):
             last = status
-            if status.state in _core.MISSION_ENDED:
-                return status
-            if deadline is not None and time.monotonic() > deadline:
-                break
-        if last is not None and last.state in _core.MISSION_ENDED:
-            return last
-        raise Error(grpc.StatusCode.DEADLINE_EXCEEDED,
-                    f"mission {mission_id} did not end within {timeout_s} s")
+        if last is None or last.state not in _core.MISSION_ENDED:
+            raise Error(grpc.StatusCode.UNKNOWN, f"mission {mission_id}'s stream ended early")
+        return last
 
     def run(self, *, timeout_s=None, **source):
         """start() then wait(): the final MissionStatus."""

@@ -143,6 +143,8 @@ def test_a_mission_pauses_resumes_and_aborts(fleet):
     wait_until(lambda: state_of(fleet, mission_id) == "PAUSED", 30, "the mission PAUSED")
     fleet.missions.resume(mission_id)
     wait_until(lambda: state_of(fleet, mission_id) == "RUNNING", 30, "the mission RUNNING")
+    with pytest.raises(behaviorlib.DeadlineExceeded, match="did not end within 0.5 s"):
+        fleet.missions.wait(mission_id, timeout_s=0.5)
     fleet.missions.abort(mission_id, reason="pytest aborts it")
     final = fleet.missions.wait(mission_id, timeout_s=60)
     assert behaviorlib.mission_state(final) == "ABORTED"

@@ -8,8 +8,8 @@ process, the ports, the pids and Prometheus file-based service discovery
 targets into a run directory. Then either serves until Ctrl-C, or (--demo)
 flies the demo mission (or the --mission files) through the coordinator,
 prints its progress, and writes a mission report (report.md, report.json,
-trajectory.png). Stops every process in reverse order (SIGTERM, then SIGKILL
-after a time-out) on exit and on Ctrl-C.
+trajectory.png, timeline.png). Stops every process in reverse order (SIGTERM,
+then SIGKILL after a time-out) on exit and on Ctrl-C.
 
 Meanwhile it supervises the processes as compose's `restart:` does. With
 --restart on-failure (the default) a process that crashes (a non-zero exit
@@ -65,7 +65,7 @@ Run directory (--run-dir; default a new directory under /tmp):
                                scrape with honor_labels: true so that a
                                metric's own system/robot labels win
     coordinator/               the coordinator's --state-dir
-    report.md, report.json, trajectory.png   (--demo)
+    report.md, report.json, trajectory.png, timeline.png   (--demo)
 
 Exit code 0 when every process started and stopped cleanly and, with --demo,
 every mission SUCCEEDED; 128 + the signal's number when stopped by a signal.
@@ -656,7 +656,8 @@ def main():
         settings = {"mission": os.path.relpath(args.missions.get(first, ""), REPO)
                     if first in args.missions else "",
                     "robot_id": first, "time_scale": args.time_scale,
-                    "world": args.world, "seed": args.seed, "run_dir": run_dir,
+                    "world": args.world, "world_file": world_file(args.world),
+                    "seed": args.seed, "run_dir": run_dir,
                     "wall_s": time.monotonic() - started, "interrupted": interrupted,
                     "vehicles": args.vehicles,
                     "missions": {robot: os.path.relpath(path, REPO)
@@ -675,7 +676,7 @@ def main():
                                                                               "")
             where = "" if len(args.vehicles) == 1 else f" on {robot}"
             say(f"mission {mission.get('name', '')}{where}: {state}")
-        say(f"report: {os.path.join(run_dir, 'report.md')} (also report.json, trajectory.png)")
+        say(f"report: {os.path.join(run_dir, 'report.md')} (also report.json, trajectory.png, timeline.png)")
     return status
 
 

@@ -1,21 +1,37 @@
-"""A PNG plot of flown x-y trajectories, in pure Python (zlib only): axes
-with metre ticks, the planned paths dashed, each vehicle's flown path solid
-in a colour of its own (with a legend when labelled), start and end marked.
+"""The report's figures, drawn with matplotlib (Debian's python3-matplotlib,
+Agg backend: no display needed).
+
+trajectory.png: the flown x-y trajectories over the world's walls and
+obstacles (filled, in plan view), the planned paths dashed, each vehicle's
+flown path solid in a colour of its own, start and end marked, and a saved
+map's occupied cells.
+
+timeline.png: the behaviors' activity, a Gantt chart with one row per
+behavior and one bar per activation, coloured by its termination cause.
 
     plot_trajectory("trajectory.png", flown=[(x, y), ...], planned=[(x, y), ...])
     plot_trajectories("trajectory.png", [flown1, flown2], [planned1, planned2],
-                      labels=["drone1", "drone2"])
+                      labels=["drone1", "drone2"], walls=[...], obstacles=[...])
+    plot_timeline("timeline.png", [{"behavior": "TAKE_OFF", "start_s": 0.4,
+                                    "end_s": 6.1, "cause": "GOAL_ACHIEVED"}, ...])
 """
 
 import math
-import struct
-import zlib
 
-WHITE = (255, 255, 255)
-GRID = (225, 225, 225)
-AXIS = (90, 90, 90)
-PLANNED = (150, 150, 150)
-WALL = (200, 185, 160)      # the world's walls (tan)
+import matplotlib
+
+matplotlib.use("Agg")  # before pyplot: files only, no display
+
+import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.collections import PolyCollection  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+
+DPI = 100
+GRID = (235, 235, 235)
+PLANNED = (100, 100, 100)   # the planned paths, dashed
+WALL = (150, 150, 150)      # the world's walls (filled)
+OBSTACLE = (205, 205, 205)  # the world's boxes (filled, edged in WALL)
 CELL = (60, 60, 60)         # a map's occupied cells (dark grey)
 FLOWN = (31, 119, 180)
 START = (44, 160, 44)
@@ -25,97 +41,18 @@ END = (214, 39, 40)
 VEHICLE_COLORS = [(FLOWN, "blue"), ((255, 127, 14), "orange"), ((148, 103, 189), "purple"),
                   ((140, 86, 75), "brown"), ((227, 119, 194), "pink"),
                   ((23, 190, 207), "cyan"), ((188, 189, 34), "olive"), ((0, 0, 0), "black")]
-
-# 3x5 glyphs, rows top to bottom, 3 bits each (bit 2 = left column).
-_FONT = {
-    "0": (7, 5, 5, 5, 7), "1": (2, 6, 2, 2, 7), "2": (7, 1, 7, 4, 7), "3": (7, 1, 7, 1, 7),
-    "4": (5, 5, 7, 1, 1), "5": (7, 4, 7, 1, 7), "6": (7, 4, 7, 5, 7), "7": (7, 1, 1, 1, 1),
-    "8": (7, 5, 7, 5, 7), "9": (7, 5, 7, 1, 7), "-": (0, 0, 7, 0, 0), ".": (0, 0, 0, 0, 2),
-    "x": (0, 5, 2, 5, 0), "y": (5, 5, 2, 2, 2), "m": (0, 7, 7, 5, 5), "(": (1, 2, 2, 2, 1),
-    ")": (4, 2, 2, 2, 4), " ": (0, 0, 0, 0, 0),
-    # Letters (one case) and a few more, for the legend's robot ids.
-    "a": (2, 5, 7, 5, 5), "b": (6, 5, 6, 5, 6), "c": (7, 4, 4, 4, 7), "d": (6, 5, 5, 5, 6),
-    "e": (7, 4, 6, 4, 7), "f": (7, 4, 6, 4, 4), "g": (7, 4, 5, 5, 7), "h": (5, 5, 7, 5, 5),
-    "i": (7, 2, 2, 2, 7), "j": (1, 1, 1, 5, 7), "k": (5, 5, 6, 5, 5), "l": (4, 4, 4, 4, 7),
-    "n": (6, 5, 5, 5, 5), "o": (2, 5, 5, 5, 2), "p": (6, 5, 6, 4, 4), "q": (2, 5, 5, 6, 3),
-    "r": (6, 5, 6, 5, 5), "s": (3, 4, 2, 1, 6), "t": (7, 2, 2, 2, 2), "u": (5, 5, 5, 5, 7),
-    "v": (5, 5, 5, 5, 2), "w": (5, 5, 7, 7, 5), "z": (7, 1, 2, 4, 7), "_": (0, 0, 0, 0, 7),
-    "/": (1, 1, 2, 4, 4), ":": (0, 2, 0, 2, 0),
-}
+# The timeline's bar colour per termination cause (demo.short_cause), in
+# the legend's order; ACTIVE: not terminated when the report was written.
+CAUSE_COLORS = [("GOAL_ACHIEVED", (44, 160, 44)), ("TIME_OUT", (255, 127, 14)),
+                ("WRONG_PROGRESS", (148, 103, 189)), ("SITUATION_CHANGE", (23, 190, 207)),
+                ("PROCESS_FAILURE", (214, 39, 40)), ("INTERRUPTED", (150, 150, 150)),
+                ("UNSPECIFIED", (140, 86, 75)), ("ACTIVE", (31, 119, 180))]
+ACTIVE = "ACTIVE"
 
 
-def write_png(path, width, height, pixels):
-    """Writes an 8-bit RGB PNG; `pixels` is a bytearray of width*height*3."""
-    def chunk(kind, data):
-        body = kind + data
-        return struct.pack(">I", len(data)) + body + struct.pack(">I", zlib.crc32(body))
-
-    stride = width * 3
-    raw = b"".join(b"\x00" + bytes(pixels[y * stride:(y + 1) * stride]) for y in range(height))
-    png = (b"\x89PNG\r\n\x1a\n"
-           + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
-           + chunk(b"IDAT", zlib.compress(raw, 9))
-           + chunk(b"IEND", b""))
-    with open(path, "wb") as f:
-        f.write(png)
-
-
-class Canvas:
-    def __init__(self, width, height, background=WHITE):
-        self.width, self.height = width, height
-        self.pixels = bytearray(bytes(background) * (width * height))
-
-    def dot(self, x, y, color, radius=0):
-        for dy in range(-radius, radius + 1):
-            for dx in range(-radius, radius + 1):
-                if dx * dx + dy * dy > radius * radius + radius:
-                    continue
-                px, py = int(x) + dx, int(y) + dy
-                if 0 <= px < self.width and 0 <= py < self.height:
-                    i = (py * self.width + px) * 3
-                    self.pixels[i:i + 3] = bytes(color)
-
-    def line(self, x0, y0, x1, y1, color, width=1, dash=0):
-        """Line from (x0, y0) to (x1, y1), `width` pixels thick; dashed
-        every `dash` pixels when dash > 0."""
-        length = max(abs(x1 - x0), abs(y1 - y0), 1e-9)
-        steps = int(math.ceil(length))
-        radius = max(0, (width - 1) // 2)
-        for i in range(steps + 1):
-            if dash and (i // dash) % 2:
-                continue
-            t = i / steps if steps else 0.0
-            self.dot(round(x0 + (x1 - x0) * t), round(y0 + (y1 - y0) * t), color, radius)
-
-    def text(self, x, y, string, color, scale=2):
-        """Text from the small font, top-left corner at (x, y)."""
-        for k, char in enumerate(string):
-            glyph = _FONT.get(char, _FONT.get(char.lower(), _FONT[" "]))
-            for row, bits in enumerate(glyph):
-                for col in range(3):
-                    if bits & (4 >> col):
-                        for sy in range(scale):
-                            for sx in range(scale):
-                                self.dot(x + (k * 4 + col) * scale + sx, y + row * scale + sy,
-                                         color)
-
-    def save(self, path):
-        write_png(path, self.width, self.height, self.pixels)
-
-
-def _tick_step(span):
-    """A round tick spacing giving about 5-10 ticks over `span` metres."""
-    raw = span / 6.0
-    magnitude = 10 ** math.floor(math.log10(raw))
-    for factor in (1, 2, 5, 10):
-        if raw <= factor * magnitude:
-            return factor * magnitude
-    return 10 * magnitude
-
-
-def _label(value, step):
-    decimals = 0 if step >= 1 else min(3, int(math.ceil(-math.log10(step))))
-    return f"{value:.{decimals}f}"
+def _rgb(color):
+    """matplotlib's colour (0..1 floats) of an 8-bit RGB triple."""
+    return tuple(c / 255.0 for c in color)
 
 
 def vehicle_colors(count):
@@ -127,101 +64,243 @@ def color_name(color):
     return next((name for c, name in VEHICLE_COLORS if c == color), str(color))
 
 
-def plot_trajectory(path, flown, planned=(), size=640, margin=56):
+def cause_color(cause):
+    """The RGB colour of a termination cause's bars (ACTIVE, or None, for
+    an activation not terminated; UNSPECIFIED's for an unknown cause)."""
+    colors = dict(CAUSE_COLORS)
+    return colors.get(cause or ACTIVE, colors["UNSPECIFIED"])
+
+
+def segment_polygon(a, b, thickness_m=0.2):
+    """The plan-view rectangle of a wall segment from `a` to `b`,
+    `thickness_m` wide (a degenerate segment gives a square)."""
+    (x0, y0), (x1, y1) = a, b
+    length = math.hypot(x1 - x0, y1 - y0)
+    ux, uy = ((x1 - x0) / length, (y1 - y0) / length) if length > 0 else (1.0, 0.0)
+    nx, ny = -uy * thickness_m / 2, ux * thickness_m / 2
+    if length <= 0:
+        x1, y1 = x0 + ux * thickness_m, y0
+    return [(x0 + nx, y0 + ny), (x1 + nx, y1 + ny), (x1 - nx, y1 - ny), (x0 - nx, y0 - ny)]
+
+
+def _polygons(shapes, thickness_m):
+    """Polygons from `shapes`: a polygon (three points or more) as it is, a
+    segment (two points) as its rectangle `thickness_m` wide."""
+    out = []
+    for shape in shapes:
+        points = [(float(p[0]), float(p[1])) for p in shape]
+        if len(points) == 2:
+            points = segment_polygon(points[0], points[1], thickness_m)
+        if len(points) >= 3:
+            out.append(points)
+    return out
+
+
+def _limits(points, pad_fraction=0.06, minimum_m=1.0):
+    """x and y limits around `points` with a margin, each at least
+    `minimum_m` wide."""
+    xs = [p[0] for p in points] or [0.0]
+    ys = [p[1] for p in points] or [0.0]
+    pad = max(max(xs) - min(xs), max(ys) - min(ys), minimum_m) * pad_fraction
+
+    def around(values):
+        lo, hi = min(values) - pad, max(values) + pad
+        if hi - lo < minimum_m:
+            middle = (lo + hi) / 2
+            lo, hi = middle - minimum_m / 2, middle + minimum_m / 2
+        return lo, hi
+
+    return around(xs), around(ys)
+
+
+def _legend_below(fig, ax, handles, gap_in=0.55):
+    """The legend under the x axis's label, `gap_in` inches below the
+    axes, four entries a row."""
+    if not handles:
+        return
+    ax.apply_aspect()  # the axes' final box (equal scales shrink it)
+    axes_height_in = ax.get_position().height * fig.get_figheight()
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -gap_in / axes_height_in),
+              ncol=min(len(handles), 4), frameon=False, fontsize=9)
+
+
+def _save(fig, path, margin):
+    fig.savefig(path, dpi=DPI, bbox_inches="tight", pad_inches=max(margin, 0) / DPI,
+                facecolor="white", metadata={"Software": None})
+    plt.close(fig)
+
+
+def plot_trajectory(path, flown, planned=(), size=800, margin=16, **kwargs):
     """Writes the x-y plot of one vehicle (world ENU, x to the right, y up,
     equal scales)."""
-    plot_trajectories(path, [flown], [planned], size=size, margin=margin)
+    plot_trajectories(path, [flown], [planned], size=size, margin=margin, **kwargs)
 
 
-def plot_trajectories(path, flown_lines, planned_lines=(), labels=None, size=640, margin=56,
-                      walls=(), cells=(), cell_m=0.1):
-    """Writes the x-y plot of several vehicles: each of `flown_lines` in its
-    colour (vehicle_colors), each of `planned_lines` grey and dashed; a
-    legend above the plot when `labels` (one per flown line) are given.
-    Under them, the world's `walls` (segments ((x0, y0), (x1, y1)), doors
-    left out) in WALL, and a map's occupied `cells` (centres (x, y), `cell_m`
-    wide) in CELL: a person sees at a glance where the map put the walls."""
-    flown_lines = [list(line) for line in flown_lines]
-    planned_lines = [list(line) for line in planned_lines]
-    walls = [tuple(w) for w in walls]
-    cells = [tuple(c) for c in cells]
+def plot_trajectories(path, flown_lines, planned_lines=(), labels=None, size=800, margin=16,
+                      walls=(), cells=(), cell_m=0.1, obstacles=(), wall_thickness_m=0.2,
+                      title=None):
+    """Writes the x-y plot of several vehicles (world ENU, x to the right, y
+    up, equal scales): each of `flown_lines` in its colour (vehicle_colors),
+    each of `planned_lines` grey and dashed, green dots at the starts and red
+    ones at the ends; the legend names each line by its `labels` (one per
+    flown line) when given.
+
+    Under them, the world: `walls` filled in WALL, each a polygon (its
+    plan-view outline) or a segment ((x0, y0), (x1, y1)) drawn
+    `wall_thickness_m` wide (doors left out); `obstacles` (the boxes'
+    outlines) filled in OBSTACLE; and a map's occupied `cells` (centres (x,
+    y), `cell_m` wide) in CELL: a person sees at a glance where the map put
+    the walls. `size` is the figure's width in pixels (its height follows
+    the plot's aspect), `margin` the blank border in pixels."""
+    flown_lines = [[(float(p[0]), float(p[1])) for p in line] for line in flown_lines]
+    planned_lines = [[(float(p[0]), float(p[1])) for p in line] for line in planned_lines]
+    wall_polygons = _polygons(walls, wall_thickness_m)
+    obstacle_polygons = _polygons(obstacles, wall_thickness_m)
+    cells = [(float(c[0]), float(c[1])) for c in cells]
     points = [p for line in flown_lines + planned_lines for p in line]
-    points += [p for w in walls for p in w] + cells
-    if not points:
-        points = [(0.0, 0.0)]
-    xs = [p[0] for p in points]
-    ys = [p[1] for p in points]
-    cx, cy = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
-    span = max(max(xs) - min(xs), max(ys) - min(ys), 1.0) * 1.15
-    inner = size - 2 * margin
-    scale = inner / span
+    points += [p for polygon in wall_polygons + obstacle_polygons for p in polygon] + cells
+    (x_lo, x_hi), (y_lo, y_hi) = _limits(points)
 
-    def to_px(p):
-        return (margin + (p[0] - cx + span / 2) * scale,
-                size - margin - (p[1] - cy + span / 2) * scale)
+    # The figure's height from the data's aspect, within reason; the title
+    # and the legend below add to it.
+    aspect = min(max((y_hi - y_lo) / (x_hi - x_lo), 0.45), 1.6)
+    width_in = max(size, 240) / DPI
+    fig, ax = plt.subplots(figsize=(width_in, width_in * aspect + 1.2), dpi=DPI)
+    ax.set_aspect("equal", adjustable="box")
+    ax.set_xlim(x_lo, x_hi)
+    ax.set_ylim(y_lo, y_hi)
+    ax.grid(True, color=_rgb(GRID), linewidth=0.8, zorder=0)
+    ax.set_axisbelow(True)
+    ax.set_xlabel("x (m, east)")
+    ax.set_ylabel("y (m, north)")
+    several = len(flown_lines) > 1
+    ax.set_title(title or ("x-y trajectories" if several else "x-y trajectory")
+                 + " (simulator ground truth)", fontsize=12)
 
-    canvas = Canvas(size, size)
-    step = _tick_step(span)
-    x_min, y_min = cx - span / 2, cy - span / 2
-    first = math.ceil(x_min / step)
-    for k in range(first, first + int(span / step) + 2):
-        value = k * step
-        if value > x_min + span:
-            break
-        px = to_px((value, y_min))[0]
-        canvas.line(px, margin, px, size - margin, GRID)
-        canvas.line(px, size - margin, px, size - margin + 5, AXIS)
-        label = _label(value, step)
-        canvas.text(px - len(label) * 4, size - margin + 9, label, AXIS)
-    first = math.ceil(y_min / step)
-    for k in range(first, first + int(span / step) + 2):
-        value = k * step
-        if value > y_min + span:
-            break
-        py = to_px((x_min, value))[1]
-        canvas.line(margin, py, size - margin, py, GRID)
-        canvas.line(margin - 5, py, margin, py, AXIS)
-        label = _label(value, step)
-        canvas.text(margin - 8 - len(label) * 8, py - 5, label, AXIS)
-    canvas.line(margin, margin, margin, size - margin, AXIS)
-    canvas.line(margin, size - margin, size - margin, size - margin, AXIS)
-    canvas.line(size - margin, margin, size - margin, size - margin, AXIS)
-    canvas.line(margin, margin, size - margin, margin, AXIS)
-    canvas.text(size // 2 - 20, size - margin + 28, "x (m)", AXIS)
-    canvas.text(8, margin - 24, "y (m)", AXIS)
-
-    for a, b in walls:
-        pa, pb = to_px(a), to_px(b)
-        canvas.line(pa[0], pa[1], pb[0], pb[1], WALL, width=max(3, int(round(0.2 * scale))))
-    half = max(1, int(round(0.5 * cell_m * scale)))
-    for c in cells:
-        pc = to_px(c)
-        for dy in range(-half, half):
-            for dx in range(-half, half):
-                px, py = int(pc[0]) + dx, int(pc[1]) + dy
-                if 0 <= px < size and 0 <= py < size:
-                    i = (py * size + px) * 3
-                    canvas.pixels[i:i + 3] = bytes(CELL)
+    handles, world = [], []
+    if obstacle_polygons:
+        ax.add_collection(PolyCollection(obstacle_polygons, facecolors=_rgb(OBSTACLE),
+                                         edgecolors=_rgb(WALL), linewidths=0.8, zorder=1))
+        world.append(Patch(facecolor=_rgb(OBSTACLE), edgecolor=_rgb(WALL),
+                           label="obstacles (world)"))
+    if wall_polygons:
+        ax.add_collection(PolyCollection(wall_polygons, facecolors=_rgb(WALL),
+                                         edgecolors="none", zorder=2))
+        world.insert(0, Patch(facecolor=_rgb(WALL), label="walls (world)"))
+    if cells:
+        half = cell_m / 2
+        squares = [[(x - half, y - half), (x + half, y - half), (x + half, y + half),
+                    (x - half, y + half)] for x, y in cells]
+        ax.add_collection(PolyCollection(squares, facecolors=_rgb(CELL), edgecolors="none",
+                                         antialiaseds=False, zorder=3))
+        world.append(Patch(facecolor=_rgb(CELL), label="map: occupied cells"))
+    dashes = (0, (5, 4))
     for planned in planned_lines:
-        planned_px = [to_px(p) for p in planned]
-        for a, b in zip(planned_px, planned_px[1:]):
-            canvas.line(a[0], a[1], b[0], b[1], PLANNED, width=2, dash=6)
-        for p in planned_px:
-            canvas.dot(p[0], p[1], PLANNED, radius=4)
+        if planned:
+            ax.plot([p[0] for p in planned], [p[1] for p in planned], color=_rgb(PLANNED),
+                    linestyle=dashes, linewidth=1.3, marker="o", markersize=4, zorder=4)
+    # The starts under the flown lines, the ends over them: a dot in the
+    # vehicle's colour with a red centre, so that a vehicle that went
+    # straight up and down (its line a point in plan view) still shows.
+    starts = [line[0] for line in flown_lines if line]
+    if starts:
+        ax.scatter([p[0] for p in starts], [p[1] for p in starts], s=150, color=_rgb(START),
+                   edgecolors="white", linewidths=1.0, zorder=5)
     colors = vehicle_colors(len(flown_lines))
-    for flown, color in zip(flown_lines, colors):
-        flown_px = [to_px(p) for p in flown]
-        for a, b in zip(flown_px, flown_px[1:]):
-            canvas.line(a[0], a[1], b[0], b[1], color, width=3)
-    for flown in flown_lines:  # over every line
-        flown_px = [to_px(p) for p in flown]
-        if flown_px:
-            canvas.dot(flown_px[0][0], flown_px[0][1], START, radius=6)
-            canvas.dot(flown_px[-1][0], flown_px[-1][1], END, radius=4)
-    if labels:
-        x = margin + 60
-        for label, color in zip(labels, colors):
-            canvas.line(x, margin - 19, x + 24, margin - 19, color, width=3)
-            canvas.text(x + 30, margin - 24, label, AXIS)
-            x += 30 + len(label) * 8 + 24
-    canvas.save(path)
+    for k, (flown, color) in enumerate(zip(flown_lines, colors)):
+        if not flown:
+            continue
+        label = labels[k] if labels and k < len(labels) else "flown"
+        ax.plot([p[0] for p in flown], [p[1] for p in flown], color=_rgb(color), linewidth=2.2,
+                solid_joinstyle="round", solid_capstyle="round", zorder=6)
+        ax.scatter([flown[-1][0]], [flown[-1][1]], s=70, color=_rgb(color), edgecolors="none",
+                   zorder=7)
+        ax.scatter([flown[-1][0]], [flown[-1][1]], s=22, color=_rgb(END), edgecolors="none",
+                   zorder=8)
+        handles.append(Line2D([], [], color=_rgb(color), linewidth=2.2, label=label))
+    if any(planned_lines):
+        handles.append(Line2D([], [], color=_rgb(PLANNED), linestyle=dashes, linewidth=1.3,
+                              marker="o", markersize=4, label="planned path"))
+    if starts:
+        handles.append(Line2D([], [], linestyle="none", marker="o", markersize=10,
+                              markerfacecolor=_rgb(START), markeredgecolor="white",
+                              label="start"))
+        handles.append(Line2D([], [], linestyle="none", marker="o", markersize=5,
+                              markerfacecolor=_rgb(END), markeredgecolor="none", label="end"))
+    handles += world
+    _legend_below(fig, ax, handles)
+    _save(fig, path, margin)
+
+
+def plot_timeline(path, activations, end_s=None, size=900, margin=16, title=None):
+    """Writes the behaviors' activity as a Gantt chart: one row per behavior
+    (rows in the order of their first activation, top to bottom), one bar
+    per activation from its activation to its termination, coloured by its
+    termination cause (CAUSE_COLORS), its paused intervals hatched; x is
+    simulated time in seconds.
+
+    activations: dicts with `behavior` (the row's label: e.g. "TAKE_OFF", or
+    "drone2 TAKE_OFF" with several robots), `start_s`, `end_s` (None while
+    still active: the bar reaches `end_s`, default the latest time of all),
+    `cause` (the short termination cause, None while active) and optionally
+    `paused` ([(from_s, to_s), ...], to_s None while paused) and `group`
+    (e.g. the robot's index: the rows of a group together, groups in
+    increasing order, a line between them)."""
+    activations = [a for a in activations if a.get("start_s") is not None
+                   or a.get("end_s") is not None]
+    times = [t for a in activations for t in (a.get("start_s"), a.get("end_s"))
+             if t is not None]
+    horizon = max(times + ([end_s] if end_s is not None else []), default=1.0)
+    origin = min(times, default=0.0)
+    rows, groups = [], []
+    for a in sorted(activations, key=lambda a: (a.get("group", 0), a.get("start_s") is None,
+                                                a.get("start_s") or 0.0)):
+        if a["behavior"] not in rows:
+            rows.append(a["behavior"])
+            groups.append(a.get("group", 0))
+    span = max(horizon - min(origin, 0.0), 1e-3)
+    min_width = span * 0.004  # an instant activation stays visible
+
+    height_in = 1.6 + 0.32 * max(len(rows), 1)
+    fig, ax = plt.subplots(figsize=(max(size, 320) / DPI, height_in), dpi=DPI)
+    used = []
+    for a in activations:
+        start = a.get("start_s")
+        end = a.get("end_s")
+        start = end if start is None else start
+        end = horizon if end is None else end
+        cause = a.get("cause") or ACTIVE  # a cause without end_s: ended, time unknown
+        color = cause_color(cause)
+        key = cause if cause in dict(CAUSE_COLORS) else "UNSPECIFIED"
+        if key not in used:
+            used.append(key)
+        y = rows.index(a["behavior"])
+        ax.barh(y, max(end - start, min_width), left=start, height=0.62, color=_rgb(color),
+                edgecolor="white", linewidth=0.8, zorder=2)
+        for p_from, p_to in a.get("paused") or []:
+            if p_from is None:
+                continue
+            p_to = end if p_to is None else p_to
+            ax.barh(y, max(p_to - p_from, min_width), left=p_from, height=0.62,
+                    color="white", alpha=0.55, hatch="////", edgecolor=_rgb(color),
+                    linewidth=0, zorder=3)
+    for y in range(1, len(rows)):
+        if groups[y] != groups[y - 1]:  # between robots
+            ax.axhline(y - 0.5, color=_rgb(PLANNED), linewidth=0.8, zorder=1)
+    ax.set_yticks(range(len(rows)))
+    ax.set_yticklabels(rows, fontsize=9)
+    ax.set_ylim(len(rows) - 0.4, -0.6)  # the first activated on top
+    ax.set_xlim(min(origin, 0.0), horizon + span * 0.01)
+    ax.set_xlabel("simulated time (s)")
+    ax.grid(True, axis="x", color=_rgb(GRID), linewidth=0.8, zorder=0)
+    ax.set_axisbelow(True)
+    ax.set_title(title or "Behavior activity (bars coloured by termination cause)", fontsize=12)
+    order = [c for c, _ in CAUSE_COLORS]
+    handles = [Patch(facecolor=_rgb(cause_color(c)),
+                     label="still active" if c == ACTIVE else c)
+               for c in sorted(used, key=order.index)]
+    if any(a.get("paused") for a in activations):
+        handles.append(Patch(facecolor="white", edgecolor="#808080", hatch="////",
+                             label="paused"))
+    _legend_below(fig, ax, handles)
+    _save(fig, path, margin)

@@ -1,6 +1,8 @@
 """The mission report: report.json (everything), report.md (for people),
-trajectory.png and trajectory.json (each robot's ground truth samples:
-[t_sim_s, x, y, z, flight_state]), written into the run directory.
+trajectory.png (the flown paths over the world's walls and obstacles),
+timeline.png (each behavior's activations, coloured by termination cause)
+and trajectory.json (each robot's ground truth samples: [t_sim_s, x, y, z,
+flight_state]), written into the run directory.
 
 report.json holds: the launch settings, per robot (`robots`, by robot id, in
 launch order) its mission's final status, the timeline of its behavior
@@ -12,7 +14,8 @@ behavior the paper's columns a, t1, t2, t3 (from each behavior system's
 /metrics, labelled with the robot); memory and CPU per process (/proc), and
 how many times the launcher restarted it. The first robot's mission,
 timeline and trajectory are also at the top level (`mission`, `timeline`,
-`trajectory`), as in a single-robot report.
+`trajectory`), as in a single-robot report; `timeline_png` names the
+behavior activity chart of every robot.
 """
 
 import json
@@ -352,6 +355,104 @@ def _robot_json(r, world_markers, samples_by_robot):
     return entry
 
 
+def _rectangle(cx, cy, along, across, ux, uy):
+    """The corners of a rectangle centred on (cx, cy), `along` long in the
+    unit direction (ux, uy) and `across` wide."""
+    ax_, ay_ = ux * along / 2, uy * along / 2
+    nx, ny = -uy * across / 2, ux * across / 2
+    return [(cx - ax_ - nx, cy - ay_ - ny), (cx + ax_ - nx, cy + ay_ - ny),
+            (cx + ax_ + nx, cy + ay_ + ny), (cx - ax_ + nx, cy - ay_ + ny)]
+
+
+def world_footprints(path):
+    """The plan view of a world file (simulator/worlds/README.md): its
+    walls as rectangles (thickness_m wide, reaching thickness_m / 2 past
+    each end as the loader builds them, the doors' openings left out) and
+    its boxes' outlines (yawed); None when there is no world file or it
+    cannot be read. `path` is the world's YAML file, as the launcher resolves
+    --world ("" for the default empty field)."""
+    if not path:
+        return None
+    try:
+        import yaml  # Debian's python3-yaml
+        with open(path) as f:
+            data = yaml.safe_load(f) or {}
+        walls = []
+        for wall in data.get("walls") or []:
+            (x0, y0) = [float(v) for v in wall["from_m"]]
+            (x1, y1) = [float(v) for v in wall["to_m"]]
+            thickness = float(wall.get("thickness_m", 0.2))
+            length = math.hypot(x1 - x0, y1 - y0)
+            if length <= 0:
+                continue
+            ux, uy = (x1 - x0) / length, (y1 - y0) / length
+            # Along the wall (0 at from_m), the spans between its doors.
+            gaps = sorted((float(d["offset_m"]) - float(d["width_m"]) / 2,
+                           float(d["offset_m"]) + float(d["width_m"]) / 2)
+                          for d in wall.get("doors") or [])
+            start = -thickness / 2
+            for lo, hi in gaps + [(length + thickness / 2, length + thickness / 2)]:
+                if lo > start:
+                    middle = (start + lo) / 2
+                    walls.append(_rectangle(x0 + ux * middle, y0 + uy * middle, lo - start,
+                                            thickness, ux, uy))
+                start = max(start, hi)
+        boxes = []
+        for box in data.get("boxes") or []:
+            cx, cy = float(box["center_m"][0]), float(box["center_m"][1])
+            sx, sy = float(box["size_m"][0]), float(box["size_m"][1])
+            yaw = float(box.get("yaw_rad", 0.0))
+            boxes.append(_rectangle(cx, cy, sx, sy, math.cos(yaw), math.sin(yaw)))
+        return {"walls": walls, "boxes": boxes}
+    except (ImportError, OSError, ValueError, TypeError, KeyError, IndexError,
+            AttributeError):
+        return None
+
+
+def _activations(robots, several):
+    """Every robot's behavior activations from its timeline, for the
+    timeline plot: behavior (the robot's id first when there are several),
+    start_s, end_s (None while active), cause (None while active), paused
+    intervals, group (the robot's index); simulated time from the first
+    event of all. Also the latest time known (events and ground truth
+    samples), where the active ones end."""
+    times = [row["sim_time_s"] for r in robots for row in r["timeline"]
+             if row["sim_time_s"] is not None]
+    if not times:
+        return [], None
+    origin = min(times)
+    latest = max(times + [s[0] for r in robots for s in r.get("samples", [])[-1:]])
+    activations = []
+    for index, r in enumerate(robots):
+        by_id = {}
+        for row in r["timeline"]:
+            if not row["behavior"]:
+                continue
+            key = row["activation_id"] or f"{row['system']}/{row['behavior']}"
+            t = None if row["sim_time_s"] is None else row["sim_time_s"] - origin
+            a = by_id.get(key)
+            if a is None or row["event"] == "activated":
+                a = {"behavior": (f"{r['robot_id']} " if several else "") + row["behavior"],
+                     "start_s": t if row["event"] == "activated" else None, "end_s": None,
+                     "cause": None, "paused": [], "group": index}
+                by_id[key] = a
+                activations.append(a)
+            if row["event"] == "finished":
+                a["end_s"] = t
+                a["cause"] = row.get("cause") or "UNSPECIFIED"
+            elif row["event"] == "paused":
+                a["paused"].append([t, None])
+            elif row["event"] == "resumed" and a["paused"] and a["paused"][-1][1] is None:
+                a["paused"][-1][1] = t
+    for a in activations:
+        if a["start_s"] is None:  # activated before the event stream started
+            a["start_s"] = 0.0
+        for p in a["paused"]:
+            if p[1] is None and a["end_s"] is not None:
+                p[1] = a["end_s"]
+    return activations, latest - origin
+
+
 def _map_cells(robots):
     """The occupied cells of the first map saved (map_coverage --cells), as
     (x, y) centres and their width; ([], 0.1) without one."""
@@ -370,8 +471,8 @@ def _map_cells(robots):
 
 def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_markers=None,
           world_walls=None):
-    """Writes report.json, report.md and trajectory.png; returns the report
-    dict.
+    """Writes report.json, report.md, trajectory.png and timeline.png;
+    returns the report dict.
 
     robots: one dict per robot, in launch order: robot_id, mission_file
     (relative path, or "" without a mission), mission (its final
@@ -380,7 +481,8 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
     map_coverage and map_cells_file). world_markers: marker text -> centre
     [x, y, z] from the world file, to compare the markers found with.
     world_walls: the world's walls as plan-view segments, drawn under the
-    trajectories with the saved map's occupied cells."""
+    trajectories (with the saved map's occupied cells) when the world file
+    (settings["world_file"]) cannot be read for its walls' and boxes' outlines."""
     world_markers = world_markers or {}
     several = len(robots) > 1
     # One time origin for every robot's timeline: the first event of all.
@@ -400,14 +502,19 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
             planned_xy.append([(p[0], p[1]) for p in leg])
     colors = plot.vehicle_colors(len(robots))
     cells, cell_m = _map_cells(robots)
+    footprints = world_footprints(settings.get("world_file", ""))
+    walls = footprints["walls"] if footprints else world_walls or []
+    boxes = footprints["boxes"] if footprints else []
     plot.plot_trajectories(png, lines_xy, planned_xy,
                            labels=[r["robot_id"] for r in robots] if several else None,
-                           walls=world_walls or [], cells=cells, cell_m=cell_m)
+                           walls=walls, obstacles=boxes, cells=cells, cell_m=cell_m)
+    activations, latest_s = _activations(robots, several)
+    plot.plot_timeline(os.path.join(run_dir, "timeline.png"), activations, end_s=latest_s)
 
     used = [b for b in behaviors if b.get("a")]
     report = {"settings": settings, "mission": first["mission"], "timeline": first["timeline"],
               "behaviors": used, "processes": processes, "trajectory": first["trajectory"],
-              "robots": entries, "clean_shutdown": clean_exit}
+              "timeline_png": "timeline.png", "robots": entries, "clean_shutdown": clean_exit}
     with open(os.path.join(run_dir, "report.json"), "w") as f:
         json.dump(report, f, indent=2)
         f.write("\n")
@@ -428,6 +535,18 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
     interrupted = ([f"- the launcher was stopped by {settings['interrupted']} before the "
                     f"mission ended"] if settings.get("interrupted") else [])
     image = ["", f"![x-y trajectory]({first['trajectory']['png']})", ""]
+    activity = ["", "## Behavior activity", "", "![behavior activity](timeline.png)", "",
+                "One row per behavior" + (" and robot" if several else "")
+                + ", in the order of their first activation; one bar per activation, from "
+                "its activation to its termination (simulated time from the first event), "
+                "coloured by the termination cause: green GOAL_ACHIEVED, orange TIME_OUT, "
+                "purple WRONG_PROGRESS, cyan SITUATION_CHANGE, red PROCESS_FAILURE, grey "
+                "INTERRUPTED, blue still active; hatched while paused."]
+    # What the trajectory plot drew under the paths.
+    world_key = "".join(f"; {text}" for text, drawn in (
+        ("filled grey: the world's walls", walls),
+        ("light grey: the world's boxes (plan view)", boxes),
+        ("dark grey: the saved map's occupied cells", cells)) if drawn)
     footer = ["", "Logs of every process: `logs/`; Prometheus targets: "
               "`prometheus_targets.json`.", ""]
 
@@ -445,9 +564,10 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
         lines += _timeline_md(entry["timeline"], "##")
         lines += _behaviors_md(used, "##")
         lines += _processes_md(processes, "##")
+        lines += activity
         lines += ["", "## Trajectory (simulator ground truth)"] + image
-        lines += ["Blue: flown (green dot: start, red: end); grey dashed: the planned path. "
-                  "World frame ENU, metres.", ""]
+        lines += [f"Blue: flown (green dot: start, red: end); grey dashed: the planned "
+                  f"path{world_key}. World frame ENU, metres.", ""]
         lines += _trajectory_bullets(entry["trajectory"])
         lines += _findings_md(r["robot_id"], entry, "##")
     else:
@@ -479,11 +599,12 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
             lines += _trajectory_bullets(entry["trajectory"])
             lines += _findings_md(r["robot_id"], entry, "###")
         lines += _processes_md(processes, "##")
+        lines += activity
         lines += ["", "## Trajectories (simulator ground truth)"] + image
         legend = ", ".join(f"{r['robot_id']} {plot.color_name(c)}"
                            for r, c in zip(robots, colors))
         lines += [f"Flown: {legend} (green dot: start, red: end); grey dashed: the planned "
-                  f"paths. World frame ENU, metres.", ""]
+                  f"paths{world_key}. World frame ENU, metres.", ""]
     lines += footer
     with open(os.path.join(run_dir, "report.md"), "w") as f:
         f.write("\n".join(lines))

@@ -54,7 +54,8 @@ WORLDS = os.path.join(REPO, "simulator", "worlds")
 MISSIONS = os.path.join(REPO, "deploy", "missions")
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from local_demo_test import alive, kill_launched, launched_pids, read_png  # noqa: E402
+from local_demo_test import (CAUSE_COLORS, CELL_COLOR, WALL_COLOR, alive,  # noqa: E402
+                             kill_launched, launched_pids, pixels_near, plot_area, read_png)
 
 # The deterministic mode for every case (decision 18): simulated time
 # advances only as fast as every busy behavior system keeps up, so a stall
@@ -80,6 +81,7 @@ SYSTEMS = {
     "exploration_autonomous": "quadrotor_motion_with_pid_control,navigation_with_lidar",
 }
 SUCCEEDED = "MISSION_STATE_SUCCEEDED"
+GOAL_ACHIEVED_COLOR = CAUSE_COLORS["GOAL_ACHIEVED"]
 # How far a marker found may be from the world file's centre.
 MARKER_TOLERANCE_M = 0.3
 # How far a robot's belief about another may be from that robot's ground
@@ -237,12 +239,16 @@ class ApplicationsTest(unittest.TestCase):
                 self.assertIn(f"## {robot}: swarm_two_vehicles (SUCCEEDED)", markdown)
                 self.assertIn(f"| {other} | ", markdown)
 
-        # One line per vehicle in the plot, each in its colour.
-        _, _, rows = read_png(os.path.join(self.run_dir, "trajectory.png"))
+        # One line per vehicle in the plot, each in its colour (inside the
+        # axes: the legend's samples do not count).
+        inside = plot_area(read_png(os.path.join(self.run_dir, "trajectory.png")))
         for name, color in (("drone1", (31, 119, 180)), ("drone2", (255, 127, 14))):
-            pixels = sum(row[i:i + 3] == bytes(color) for row in rows
-                         for i in range(0, len(row), 3))
-            self.assertGreater(pixels, 20, f"{name}'s line is not drawn")
+            self.assertGreater(pixels_near(inside, color), 20, f"{name}'s line is not drawn")
+        # The behavior activity chart of both robots: their TAKE_OFFs and
+        # LANDs at least reached their goals.
+        self.assertEqual(report["timeline_png"], "timeline.png")
+        bars = plot_area(read_png(os.path.join(self.run_dir, "timeline.png")))
+        self.assertGreater(pixels_near(bars, GOAL_ACHIEVED_COLOR), 1000, "no GOAL_ACHIEVED bar")
         self.passed = True
 
     def test_exploration(self):
@@ -276,13 +282,14 @@ class ApplicationsTest(unittest.TestCase):
               f"most {coverage['wall_error_max_m']:.3f} m ({coverage['occupied_voxels']} voxels)")
         self.assertIn("Wall error of the map: ", markdown)
         self.assertLessEqual(coverage["wall_error_mean_m"], MAX_WALL_ERROR_M)
-        # The plot draws the world's walls and the map's occupied cells.
+        # The plot draws the world's walls and the map's occupied cells
+        # (inside the axes; the walls' 0.2 m over 80 m are some 10000
+        # pixels, less the cells drawn over them).
         self.assertTrue(os.path.isfile(os.path.join(self.run_dir, "map_cells_drone1.json")))
-        _, _, rows = read_png(os.path.join(self.run_dir, "trajectory.png"))
-        for name, color in (("the walls", (200, 185, 160)), ("the occupied cells", (60, 60, 60))):
-            pixels = sum(row[i:i + 3] == bytes(color) for row in rows
-                         for i in range(0, len(row), 3))
-            self.assertGreater(pixels, 500, f"{name} are not drawn")
+        inside = plot_area(read_png(os.path.join(self.run_dir, "trajectory.png")))
+        for name, color, least in (("the walls", WALL_COLOR, 2000),
+                                   ("the occupied cells", CELL_COLOR, 500)):
+            self.assertGreater(pixels_near(inside, color), least, f"{name} are not drawn")
         self.passed = True
 
 

@@ -6,9 +6,11 @@ command) against the real binaries on free loopback ports.
 test_demo flies the demo mission (deploy/missions/demo.yaml) through the
 coordinator with the simulator at 2x and checks the launcher's exit code,
 the mission report (every step GOAL_ACHIEVED, the paper's columns, the
-trajectory PNG), the Prometheus targets, and that every process it started
+trajectory and behavior activity figures), the Prometheus targets, and that every process it started
 is gone. test_interrupt stops a serving stack with SIGINT (Ctrl-C) and
-checks that every process was stopped.
+checks that every process was stopped. With BEHAVIORLIB_KEEP_RUN_DIR=1 in
+the environment, each test keeps its run directory (logs, report, figures)
+and prints where it is.
 """
 
 import argparse
@@ -16,13 +18,13 @@ import json
 import os
 import shutil
 import signal
-import struct
 import subprocess
 import sys
 import tempfile
 import time
 import unittest
-import zlib
+
+from PIL import Image, ImageChops  # Debian's python3-pil
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 LAUNCHER = os.path.join(REPO, "deploy", "local", "launch.py")
@@ -37,6 +39,13 @@ DEMO_TIMEOUT_S = 75
 sys.path.insert(0, os.path.dirname(LAUNCHER))
 import launch  # noqa: E402  (its list of behavior systems)
 FLOWN_BEHAVIORS = ("TAKE_OFF", "FOLLOW_PATH", "ROTATE_WITH_PID_CONTROL", "LAND")
+# The figures' colours (deploy/local/plot.py), RGB.
+FLOWN_COLOR = (31, 119, 180)     # the first vehicle's line
+START_COLOR = (44, 160, 44)
+WALL_COLOR = (150, 150, 150)     # the world's walls
+CELL_COLOR = (60, 60, 60)        # a saved map's occupied cells
+CAUSE_COLORS = {"GOAL_ACHIEVED": (44, 160, 44), "INTERRUPTED": (150, 150, 150),
+                "PROCESS_FAILURE": (214, 39, 40)}
 
 
 def alive(pid):
@@ -67,31 +76,44 @@ def kill_launched(run_dir):
 
 
 def read_png(path):
-    """(width, height, RGB rows) of an 8-bit RGB non-interlaced PNG; checks
-    the signature, every chunk's CRC and the filter bytes."""
-    with open(path, "rb") as f:
-        data = f.read()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n", "not a PNG signature"
-    pos, chunks = 8, []
-    while pos < len(data):
-        (length,) = struct.unpack(">I", data[pos:pos + 4])
-        kind, body = data[pos + 4:pos + 8], data[pos + 8:pos + 8 + length]
-        (crc,) = struct.unpack(">I", data[pos + 8 + length:pos + 12 + length])
-        assert zlib.crc32(kind + body) == crc, f"bad CRC in chunk {kind!r}"
-        chunks.append((kind, body))
-        pos += 12 + length
-    assert chunks[0][0] == b"IHDR" and chunks[-1][0] == b"IEND", "bad chunk order"
-    width, height, depth, color, _, _, interlace = struct.unpack(">IIBBBBB", chunks[0][1])
-    assert (depth, color, interlace) == (8, 2, 0), "expected 8-bit RGB, not interlaced"
-    raw = zlib.decompress(b"".join(body for kind, body in chunks if kind == b"IDAT"))
-    stride = width * 3
-    assert len(raw) == height * (stride + 1), "IDAT size does not match IHDR"
-    rows = []
-    for y in range(height):
-        line = raw[y * (stride + 1):(y + 1) * (stride + 1)]
-        assert line[0] == 0, "unexpected filter type"  # what the launcher writes
-        rows.append(line[1:])
-    return width, height, rows
+    """The PNG at `path` as an RGB Pillow image; fails when it is not a
+    PNG (Pillow checks the chunks' CRCs as it decodes)."""
+    with Image.open(path) as image:
+        assert image.format == "PNG", f"{path}: not a PNG ({image.format})"
+        image.load()
+        return image.convert("RGB")
+
+
+def _mask(image, color, tolerance):
+    """An "L" image: 255 where every channel of `image` is within
+    `tolerance` of `color`, 0 elsewhere."""
+    bands = [band.point(lambda v, c=c: 255 if abs(v - c) <= tolerance else 0)
+             for band, c in zip(image.split(), color)]
+    return ImageChops.multiply(ImageChops.multiply(bands[0], bands[1]), bands[2])
+
+
+def pixels_near(rows_or_image, color, tolerance=24):
+    """How many pixels are within `tolerance` of the RGB `color` in every
+    channel (antialiasing blends a line's edges with what is under it), in
+    a Pillow image or in rows of (r, g, b) pixels."""
+    if isinstance(rows_or_image, Image.Image):
+        return _mask(rows_or_image.convert("RGB"), color, tolerance).histogram()[255]
+    return sum(all(abs(a - b) <= tolerance for a, b in zip(pixel, color))
+               for row in rows_or_image for pixel in row)
+
+
+def plot_area(image):
+    """The part of a plot inside its axes' frame: the crop of `image`
+    between the outermost rows and columns that are mostly black (the
+    spines), so that a legend's samples do not count; fails without a
+    frame."""
+    mask = _mask(image, (0, 0, 0), 40)
+    width, height = mask.size
+    data = mask.tobytes()
+    rows = [y for y in range(height) if data[y * width:(y + 1) * width].count(255) > 0.3 * width]
+    columns = [x for x in range(width) if data[x::width].count(255) > 0.3 * height]
+    assert rows and columns, "no axes frame in the plot"
+    return image.crop((min(columns) + 1, min(rows) + 1, max(columns), max(rows)))
 
 
 class LocalDemoTest(unittest.TestCase):
@@ -100,7 +122,10 @@ class LocalDemoTest(unittest.TestCase):
 
     def tearDown(self):
         kill_launched(self.run_dir)
-        shutil.rmtree(self.run_dir, ignore_errors=True)
+        if os.environ.get("BEHAVIORLIB_KEEP_RUN_DIR"):  # to look at the report
+            print(f"run directory kept: {self.run_dir}", file=sys.stderr, flush=True)
+        else:
+            shutil.rmtree(self.run_dir, ignore_errors=True)
 
     def _pids(self):
         return launched_pids(self.run_dir)
@@ -129,7 +154,8 @@ class LocalDemoTest(unittest.TestCase):
         self.assertEqual(result.returncode, 0, "the launcher failed (output above)")
         self._assert_all_stopped()
 
-        for name in ("report.md", "report.json", "trajectory.png", "prometheus_targets.json"):
+        for name in ("report.md", "report.json", "trajectory.png", "timeline.png",
+                     "prometheus_targets.json"):
             self.assertTrue(os.path.isfile(os.path.join(self.run_dir, name)), name)
         with open(os.path.join(self.run_dir, "report.json")) as f:
             report = json.load(f)
@@ -186,12 +212,30 @@ class LocalDemoTest(unittest.TestCase):
         self.assertLess(trajectory["follow_path_cross_track"]["max_m"], 0.5)
         png = os.path.join(self.run_dir, "trajectory.png")
         self.assertGreater(os.path.getsize(png), 2000)
-        width, height, rows = read_png(png)
-        self.assertGreaterEqual(min(width, height), 200)
-        flown_color = bytes((31, 119, 180))
-        flown_pixels = sum(row[i:i + 3] == flown_color for row in rows
-                           for i in range(0, len(row), 3))
-        self.assertGreater(flown_pixels, 1000, "the flown path is not drawn")
+        image = read_png(png)
+        self.assertGreaterEqual(min(image.size), 200)
+        inside = plot_area(image)
+        self.assertGreater(pixels_near(inside, FLOWN_COLOR), 1000, "the flown path is not drawn")
+        self.assertGreater(pixels_near(inside, START_COLOR), 30, "the start is not marked")
+
+        # The behaviors' activity: a Gantt chart, a bar per activation
+        # coloured by its termination cause.
+        self.assertEqual(report["timeline_png"], "timeline.png")
+        self.assertIn("## Behavior activity", markdown)
+        self.assertIn("![behavior activity](timeline.png)", markdown)
+        timeline = read_png(os.path.join(self.run_dir, "timeline.png"))
+        self.assertGreaterEqual(timeline.size[0], 400)
+        self.assertGreaterEqual(timeline.size[1], 200)
+        bars = plot_area(timeline)  # not the legend, nor the labels' antialiased grey
+        # GOAL_ACHIEVED: TAKE_OFF, FOLLOW_PATH, ROTATE, LAND, each bar a few
+        # thousand pixels.
+        self.assertGreater(pixels_near(bars, CAUSE_COLORS["GOAL_ACHIEVED"]), 1000,
+                           "no GOAL_ACHIEVED bar")
+        # The localization, ended by the mission.
+        self.assertGreater(pixels_near(bars, CAUSE_COLORS["INTERRUPTED"]), 1000,
+                           "no INTERRUPTED bar")
+        self.assertEqual(pixels_near(bars, CAUSE_COLORS["PROCESS_FAILURE"]), 0,
+                         "a PROCESS_FAILURE bar")
 
         with open(os.path.join(self.run_dir, "prometheus_targets.json")) as f:
             targets = json.load(f)

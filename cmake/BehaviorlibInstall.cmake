@@ -19,6 +19,7 @@ set(_exported
   behaviorlib_reflection:reflection
   behaviorlib_reactor_order:reactor_order
   behaviorlib_flags:flags
+  behaviorlib_errors:errors
   behaviorlib_input_guard:input_guard
   behaviorlib_transport:transport
   behaviorlib_server_runtime:server_runtime

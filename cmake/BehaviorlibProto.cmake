@@ -54,6 +54,17 @@ function(behaviorlib_generate_grpc out_var)
   set(${out_var} ${_srcs} PARENT_SCOPE)
 endfunction()
 
+# behaviorlib_generate_cpp(<out_var> ROOT <dir> GEN_DIR <dir> [INCLUDES <dirs>]
+#                          PROTOS <files relative to ROOT>)
+# Messages only (no services): sets <out_var> to the generated .pb.cc files.
+function(behaviorlib_generate_cpp out_var)
+  cmake_parse_arguments(G "" "ROOT;GEN_DIR" "PROTOS;INCLUDES" ${ARGN})
+  _behaviorlib_protoc(_srcs ROOT ${G_ROOT} GEN_DIR ${G_GEN_DIR} INCLUDES ${G_INCLUDES}
+    PROTOS ${G_PROTOS} OUTPUTS .pb.cc .pb.h RESULTS .pb.cc ARGS --cpp_out=${G_GEN_DIR}
+    COMMENT "protoc")
+  set(${out_var} ${_srcs} PARENT_SCOPE)
+endfunction()
+
 # behaviorlib_generate_behaviors(<out_var> ROOT <dir> GEN_DIR <dir> [INCLUDES <dirs>]
 #                                PROTOS <files>)
 # Runs protoc-gen-behaviorlib (decision 21) on each declaration file X.proto

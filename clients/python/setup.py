@@ -22,6 +22,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 # The protos: the repository's proto/ (pip builds in the source tree), or
 # BEHAVIORLIB_PROTO_DIR.
 PROTO_DIR = os.environ.get("BEHAVIORLIB_PROTO_DIR", os.path.join(HERE, "..", "..", "proto"))
+GOOGLEAPIS_DIR = os.environ.get("BEHAVIORLIB_GOOGLEAPIS_PROTO_DIR",
+                                "/usr/share/gocode/src/github.com/gogo/googleapis")
 
 
 def _tool(name, env):
@@ -52,6 +54,17 @@ class BuildWithStubs(build_py):
                         f"--grpc_python_out={out}", f"--plugin=protoc-gen-grpc_python={plugin}",
                         *[os.path.relpath(p, PROTO_DIR) for p in protos]],
                        check=True, cwd=PROTO_DIR)
+        # google.rpc.Status, ErrorInfo and BadRequest (the error details of
+        # errors.proto), from Debian's golang-github-gogo-googleapis-dev: a
+        # google/rpc package beside google/protobuf (google/ is a namespace).
+        rpc_protos = ["google/rpc/status.proto", "google/rpc/error_details.proto"]
+        if not os.path.exists(os.path.join(GOOGLEAPIS_DIR, rpc_protos[0])):
+            raise RuntimeError(f"{GOOGLEAPIS_DIR}/{rpc_protos[0]} not found: install Debian's "
+                               "golang-github-gogo-googleapis-dev (or set "
+                               "BEHAVIORLIB_GOOGLEAPIS_PROTO_DIR)")
+        subprocess.run([protoc, f"--proto_path={GOOGLEAPIS_DIR}", f"--python_out={out}",
+                        *rpc_protos], check=True, cwd=GOOGLEAPIS_DIR)
+        open(os.path.join(out, "google", "rpc", "__init__.py"), "w").close()
         # Regular packages for the generated directories.
         for proto in protos:
             directory = os.path.dirname(os.path.relpath(proto, PROTO_DIR))

@@ -5,6 +5,8 @@
 #include <sstream>
 #include <thread>
 
+#include "behaviorlib/error_details.h"
+
 namespace behaviorlib::coordinator {
 namespace {
 
@@ -49,13 +51,17 @@ class Planner {
   absl::StatusOr<Plan> run() {
     const std::string& target = request_.target;
     if (!request_.available.count(target)) {
-      return absl::NotFoundError(
-          cat("no registered behavior system of robot '", request_.robot_id, "' hosts ", target));
+      return errors::withReason(absl::NotFoundError(cat("no registered behavior system of robot '",
+                                                        request_.robot_id, "' hosts ", target)),
+                                v1::UNKNOWN_BEHAVIOR,
+                                {{"robot", request_.robot_id}, {"behavior", target}});
     }
     if (request_.active.count(target)) {
-      return absl::FailedPreconditionError(
-          cat(target, " is already active on robot '", request_.robot_id,
-              "': deactivate it first, or change its parameters with Modify"));
+      return errors::withReason(
+          absl::FailedPreconditionError(
+              cat(target, " is already active on robot '", request_.robot_id,
+                  "': deactivate it first, or change its parameters with Modify")),
+          v1::BEHAVIOR_ALREADY_ACTIVE, {{"robot", request_.robot_id}, {"behavior", target}});
     }
     // Iterate to a fixed point: a deactivation can remove a provider, which
     // adds a requirement activation, which can add a conflict.
@@ -99,20 +105,28 @@ class Planner {
       std::vector<std::string> planned = order_;
       if (providedBy(cap, planned)) continue;
       const Capability* c = catalog_.capability(cap);
+      const errors::Metadata about = {{"robot", request_.robot_id}, {"behavior", b}};
       if (c == nullptr || c->default_provider.empty()) {
-        return absl::FailedPreconditionError(
-            cat(b, " requires ", cap, ", which no active behavior of robot '", request_.robot_id,
-                "' provides and the catalog names no default for"));
+        return errors::withReason(
+            absl::FailedPreconditionError(
+                cat(b, " requires ", cap, ", which no active behavior of robot '",
+                    request_.robot_id, "' provides and the catalog names no default for")),
+            v1::REQUIREMENT_NOT_MET, about);
       }
       if (!request_.available.count(c->default_provider)) {
-        return absl::FailedPreconditionError(cat(
-            b, " requires ", cap, "; its default provider ", c->default_provider,
-            " is not hosted by any registered behavior system of robot '", request_.robot_id, "'"));
+        return errors::withReason(
+            absl::FailedPreconditionError(
+                cat(b, " requires ", cap, "; its default provider ", c->default_provider,
+                    " is not hosted by any registered behavior system of robot '",
+                    request_.robot_id, "'")),
+            v1::REQUIREMENT_NOT_MET, about);
       }
       if (request_.active.count(c->default_provider)) {
-        return absl::FailedPreconditionError(
-            cat(b, " requires ", cap, ", but its default provider ", c->default_provider,
-                " must be deactivated: ", deactivate_reason_.at(c->default_provider)));
+        return errors::withReason(
+            absl::FailedPreconditionError(
+                cat(b, " requires ", cap, ", but its default provider ", c->default_provider,
+                    " must be deactivated: ", deactivate_reason_.at(c->default_provider))),
+            v1::REQUIREMENT_NOT_MET, about);
       }
       if (auto s = visit(c->default_provider, cat("provides ", cap, " required by ", b)); !s.ok()) {
         return s;
@@ -128,9 +142,11 @@ class Planner {
     for (const auto& b : order_) {
       for (const auto& r : rules_.holds(b)) {
         if (auto it = holder.find(r); it != holder.end()) {
-          return absl::InvalidArgumentError(cat("the catalog makes ", b, " and ", it->second,
-                                                " both hold ", r, ", but ", request_.target,
-                                                " needs both (", catalog_.fileName(), ")"));
+          return errors::withReason(
+              absl::InvalidArgumentError(cat("the catalog makes ", b, " and ", it->second,
+                                             " both hold ", r, ", but ", request_.target,
+                                             " needs both (", catalog_.fileName(), ")")),
+              v1::RESOURCE_CONFLICT, {{"robot", request_.robot_id}});
         }
         holder[r] = b;
       }
@@ -244,11 +260,15 @@ absl::StatusOr<PlanResult> applyPlan(const Plan& plan, PlanActions& actions,
       }
     }
     const PlanStep& step = plan.steps[index];
-    return absl::Status(
-        status.code(),
-        cat("step ", index + 1, " of ", plan.steps.size(), " (", stepKindName(step.kind), " ",
-            step.behavior, ") on robot '", plan.robot_id, "' failed: ", status.message(),
-            result.activated.empty() ? "" : "; what the plan activated was stopped", rollback));
+    // The step's error details (a system's reason and field violations)
+    // stay with the reworded error.
+    return errors::withMetadata(
+        errors::rewrap(
+            status,
+            cat("step ", index + 1, " of ", plan.steps.size(), " (", stepKindName(step.kind), " ",
+                step.behavior, ") on robot '", plan.robot_id, "' failed: ", status.message(),
+                result.activated.empty() ? "" : "; what the plan activated was stopped", rollback)),
+        {{"robot", plan.robot_id}, {"behavior", step.behavior}});
   };
   for (size_t i = 0; i < plan.steps.size(); ++i) {
     const PlanStep& step = plan.steps[i];

@@ -8,12 +8,14 @@
 #include <yaml-cpp/yaml.h>
 
 #include <cmath>
+#include <map>
 #include <set>
 #include <sstream>
 #include <string>
 #include <vector>
 
 #include "absl/status/status.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/yaml_guard.h"
 
 namespace behaviorlib::coordinator::yaml {
@@ -48,9 +50,26 @@ class Reader {
   explicit Reader(std::string file) : file_(std::move(file)) {}
   const std::string& file() const { return file_; }
 
+  /// INVALID_ARGUMENT "<file>:<line>: <what>", with a BadRequest field
+  /// violation naming the node's path in the document (after index()).
   absl::Status error(const YAML::Node& node, const std::string& what) const {
-    return absl::InvalidArgumentError(cat(file_, ":", lineOf(node), ": ", what));
+    return violation(node, pathOf(node), what);
   }
+
+  /// The same for a mapping's key (`entry.first`): a key and the mapping it
+  /// opens start at the same place in the text, so keys have their own index.
+  absl::Status keyError(const YAML::Node& key, const std::string& what) const {
+    return violation(key, pathOf(key, keys_), what);
+  }
+
+  /// Records the path ("steps[2].parameters.altitude_m") of every node under
+  /// `root`, by its position in the text: YAML nodes do not know their
+  /// parents. One pass, bounded by the YAML guard's node limit.
+  void index(const YAML::Node& root) { indexNode(root, ""); }
+
+  /// The path of `node` in the indexed document ("" for the root, or when
+  /// not indexed).
+  std::string pathOf(const YAML::Node& node) const { return pathOf(node, paths_); }
 
   /// A mapping whose keys are all in `allowed` (any key when empty), with no
   /// duplicate.
@@ -59,15 +78,17 @@ class Reader {
     if (!node.IsMap()) return error(node, what + ": expected a mapping");
     std::set<std::string> seen;
     for (const auto& entry : node) {
-      if (!entry.first.IsScalar()) return error(entry.first, what + ": a key must be a plain name");
+      if (!entry.first.IsScalar()) {
+        return keyError(entry.first, what + ": a key must be a plain name");
+      }
       const std::string key = entry.first.Scalar();
       if (!seen.insert(key).second)
-        return error(entry.first, what + ": duplicate key '" + key + "'");
+        return keyError(entry.first, what + ": duplicate key '" + key + "'");
       bool known = allowed.empty();
       for (const auto& a : allowed) known = known || a == key;
       if (!known) {
-        return error(entry.first,
-                     cat(what, ": unknown key '", key, "' (expected ", join(allowed), ")"));
+        return keyError(entry.first,
+                        cat(what, ": unknown key '", key, "' (expected ", join(allowed), ")"));
       }
     }
     return absl::OkStatus();
@@ -133,7 +154,42 @@ class Reader {
   }
 
  private:
+  using Paths = std::map<std::pair<int, int>, std::string>;
+
+  absl::Status violation(const YAML::Node& node, const std::string& path,
+                         const std::string& what) const {
+    const std::string message = cat(file_, ":", lineOf(node), ": ", what);
+    return errors::withFieldViolation(absl::InvalidArgumentError(message), path, message);
+  }
+
+  static std::string pathOf(const YAML::Node& node, const Paths& paths) {
+    const YAML::Mark mark = node.Mark();
+    if (mark.is_null()) return "";
+    auto it = paths.find({mark.line, mark.column});
+    return it == paths.end() ? "" : it->second;
+  }
+
+  void indexNode(const YAML::Node& node, const std::string& path) {
+    const YAML::Mark mark = node.Mark();
+    if (!mark.is_null() && !paths_.emplace(std::pair{mark.line, mark.column}, path).second) {
+      return;  // an alias of a node already indexed
+    }
+    if (node.IsSequence()) {
+      for (size_t i = 0; i < node.size(); ++i) indexNode(node[i], cat(path, "[", i, "]"));
+    } else if (node.IsMap()) {
+      for (const auto& entry : node) {
+        const std::string key = entry.first.IsScalar() ? entry.first.Scalar() : "?";
+        const std::string child = path.empty() ? key : cat(path, ".", key);
+        const YAML::Mark key_mark = entry.first.Mark();
+        if (!key_mark.is_null()) keys_.emplace(std::pair{key_mark.line, key_mark.column}, child);
+        indexNode(entry.second, child);
+      }
+    }
+  }
+
   std::string file_;
+  Paths paths_;  // nodes (values, mappings, sequences) by position
+  Paths keys_;   // mapping keys by position
 };
 
 }  // namespace behaviorlib::coordinator::yaml

@@ -20,6 +20,13 @@ const std::vector<std::string>& causeKeys() {
   return keys;
 }
 
+// A mission refused for one field: MISSION_INVALID with the field's path.
+absl::Status stepError(const std::string& field, const std::string& message) {
+  return errors::withReason(
+      errors::withFieldViolation(absl::InvalidArgumentError(message), field, message),
+      v1::MISSION_INVALID);
+}
+
 class MissionParser {
  public:
   explicit MissionParser(const std::string& file) : r_(file) {}
@@ -27,6 +34,7 @@ class MissionParser {
   absl::StatusOr<MissionSpec> parse(const YAML::Node& root) {
     MissionSpec spec;
     spec.file = r_.file();
+    r_.index(root);
     if (root.IsNull()) return absl::InvalidArgumentError(r_.file() + ":1: the mission is empty");
     if (auto s = r_.mapping(
             root, "mission",
@@ -57,11 +65,13 @@ class MissionParser {
       if (!root[key]) continue;
       if (auto s = stepList(root[key], key, out); !s.ok()) return s;
       for (const auto& step : *out) {
-        if (step.behavior.empty())
-          return absl::InvalidArgumentError(
-              cat(r_.file(), ":", step.line, ": ", key, " step: missing 'behavior'"));
+        if (step.behavior.empty()) {
+          return stepError(step.path + ".behavior",
+                           cat(r_.file(), ":", step.line, ": ", key, " step: missing 'behavior'"));
+        }
         if (!step.on.empty() || step.condition) {
-          return absl::InvalidArgumentError(
+          return stepError(
+              step.path + (step.on.empty() ? ".if" : ".on"),
               cat(r_.file(), ":", step.line, ": ", key, " step: 'on' and 'if' are for steps only"));
         }
       }
@@ -116,6 +126,7 @@ class MissionParser {
 
   absl::Status parseStep(const YAML::Node& node, const std::string& list, MissionStep* step) {
     step->line = lineOf(node);
+    step->path = r_.pathOf(node);
     const std::string what = list + " step";
     if (auto s = r_.mapping(node, what, {"name", "behavior", "parameters", "on", "if", "remember"});
         !s.ok()) {
@@ -143,7 +154,7 @@ class MissionParser {
       if (auto s = r_.mapping(remember, label + " remember", {}); !s.ok()) return s;
       for (const auto& entry : remember) {
         if (auto s = BeliefStore::checkKey(entry.first.as<std::string>()); !s.ok()) {
-          return r_.error(entry.first, label + " remember: " + std::string(s.message()));
+          return r_.keyError(entry.first, label + " remember: " + std::string(s.message()));
         }
       }
       google::protobuf::Value value;
@@ -301,7 +312,8 @@ absl::Status checkSteps(const MissionSpec& mission, const std::vector<MissionSte
     if (!step.behavior.empty()) {
       const v1::BehaviorDescription* d = lookup(step.behavior);
       if (d == nullptr) {
-        return absl::InvalidArgumentError(
+        return stepError(
+            step.path + ".behavior",
             cat(where, "behavior ", step.behavior, " is not hosted by any registered system",
                 mission.robot_id.empty() ? "" : " of robot '" + mission.robot_id + "'"));
       }
@@ -316,15 +328,15 @@ absl::Status checkSteps(const MissionSpec& mission, const std::vector<MissionSte
           known.push_back(p.name());
           if (p.name() == key) schema = &p;
         }
+        const std::string field = cat(step.path, ".parameters.", key);
         if (schema == nullptr) {
-          return absl::InvalidArgumentError(
-              cat(at, step.behavior, " has no parameter '", key,
-                  "' (its parameters: ", known.empty() ? "none" : yaml::join(known), ")"));
+          return stepError(
+              field, cat(at, step.behavior, " has no parameter '", key,
+                         "' (its parameters: ", known.empty() ? "none" : yaml::join(known), ")"));
         }
         if (!literalMatches(*schema, value)) {
-          return absl::InvalidArgumentError(
-              cat(at, step.behavior, " parameter '", key, "' must be ",
-                  schema->repeated() ? "a list of " : "a ", schema->type()));
+          return stepError(field, cat(at, step.behavior, " parameter '", key, "' must be ",
+                                      schema->repeated() ? "a list of " : "a ", schema->type()));
         }
       }
     }
@@ -341,13 +353,16 @@ absl::Status checkSteps(const MissionSpec& mission, const std::vector<MissionSte
 
 absl::StatusOr<MissionSpec> parseMission(const std::string& text, const std::string& file) {
   YAML::Node root;
-  if (auto s = yaml::load(text, file, &root); !s.ok()) return s;
+  if (auto s = yaml::load(text, file, &root); !s.ok()) {
+    return errors::withReason(errors::withFieldViolation(s, "", s.message()), v1::MISSION_INVALID);
+  }
   absl::StatusOr<MissionSpec> mission = absl::InternalError("not parsed");
   const absl::Status guarded = server::guardYamlParse(file, [&] {
     mission = MissionParser(file).parse(root);
     return absl::OkStatus();
   });
-  if (!guarded.ok()) return guarded;
+  if (!guarded.ok()) return errors::withReason(guarded, v1::MISSION_INVALID);
+  if (!mission.ok()) return errors::withReason(mission.status(), v1::MISSION_INVALID);
   return mission;
 }
 

@@ -79,6 +79,7 @@ struct MissionStep {
   std::optional<BeliefCondition> condition;
   google::protobuf::Struct remember;
   int line = 0;
+  std::string path;  ///< in the document, e.g. "steps[2]" (error details)
 };
 
 /// An axis-aligned box the vehicle must stay in (world ENU, metres).

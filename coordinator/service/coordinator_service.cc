@@ -8,6 +8,7 @@
 #include <memory>
 #include <utility>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/log_stream.h"
 #include "behaviorlib/server_kit/pagination.h"
@@ -29,8 +30,23 @@ grpc::ServerUnaryReactor* finishNow(grpc::CallbackServerContext* context,
   return reactor;
 }
 
+// INVALID_ARGUMENT naming the faulty request field.
+grpc::Status invalidField(const std::string& field, const std::string& message) {
+  return errors::toGrpc(errors::withFieldViolation(
+      errors::withReason(absl::InvalidArgumentError(message), v1::INVALID_REQUEST), field,
+      message));
+}
+
 grpc::Status missing(const std::string& field, const std::string& hint) {
-  return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, field + " is empty: " + hint);
+  return invalidField(field, field + " is empty: " + hint);
+}
+
+// A refusal of checkSystemIdentity: the caller's identity names another
+// system.
+grpc::Status identityMismatch(const absl::Status& status, const std::string& robot_id,
+                              const std::string& system) {
+  return errors::toGrpc(errors::withDefaultReason(status, v1::IDENTITY_MISMATCH,
+                                                  {{"robot", robot_id}, {"system", system}}));
 }
 
 // A client context for a call made on behalf of `server`: its cancellation
@@ -42,11 +58,9 @@ std::unique_ptr<grpc::ClientContext> childContext(grpc::CallbackServerContext* s
   return context;
 }
 
-// The hosting system's refusal, with the system named.
+// The hosting system's refusal, with the system named (its details kept).
 grpc::Status fromSystem(const grpc::Status& status, const Registry::Route& route) {
-  return grpc::Status(status.error_code(), "robot " + route.robot_id + ", system " + route.system +
-                                               " at " + route.address + ": " +
-                                               status.error_message());
+  return errors::toGrpc(systemError(status, route));
 }
 
 // WatchFleetEventsRequest.max_events_per_message is capped here.
@@ -253,14 +267,13 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
   if (absl::Status s =
           server::checkSystemIdentity(*context, request->robot_id(), request->system());
       !s.ok()) {
-    return finishNow(context,
-                     grpc::Status(grpc::StatusCode::PERMISSION_DENIED, std::string(s.message())));
+    return finishNow(context, identityMismatch(s, request->robot_id(), request->system()));
   }
   if (!isHostPort(request->address())) {
-    return finishNow(context, grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                           "address '" + request->address() +
-                                               "': expected host:port of the system's gRPC "
-                                               "server, reachable from the coordinator"));
+    return finishNow(context, invalidField("address", "address '" + request->address() +
+                                                          "': expected host:port of the system's "
+                                                          "gRPC server, reachable from the "
+                                                          "coordinator"));
   }
   // Read the system's own description at the address it advertises: this
   // both checks that the coordinator can reach it and gives the schemas.
@@ -283,29 +296,36 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
       server::orderedCallback([this, call, reactor, request, response](grpc::Status status) {
         std::unique_ptr<Describe> owned(call);
         const std::string who = "robot " + request->robot_id() + " system " + request->system();
+        const errors::Metadata about = {{"robot", request->robot_id()},
+                                        {"system", request->system()}};
         if (!status.ok()) {
-          reactor->Finish(
-              grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                           "cannot read the behaviors of " + who + " at " + request->address() +
-                               " (BehaviorSystem.ListBehaviors: " + status.error_message() +
-                               "); is that address reachable from the coordinator?"));
+          reactor->Finish(errors::grpcError(
+              grpc::StatusCode::UNAVAILABLE, v1::SYSTEM_UNAVAILABLE,
+              "cannot read the behaviors of " + who + " at " + request->address() +
+                  " (BehaviorSystem.ListBehaviors: " + status.error_message() +
+                  "); is that address reachable from the coordinator?",
+              about));
           return;
         }
         const auto& d = owned->description;
         if (d.robot_id() != request->robot_id() || d.system() != request->system() ||
             d.incarnation() != request->incarnation()) {
-          reactor->Finish(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                                       request->address() + " serves robot " + d.robot_id() +
-                                           " system " + d.system() + " incarnation " +
-                                           d.incarnation() + ", not the registered " + who +
-                                           " incarnation " + request->incarnation()));
+          reactor->Finish(errors::grpcError(
+              grpc::StatusCode::FAILED_PRECONDITION, v1::IDENTITY_MISMATCH,
+              request->address() + " serves robot " + d.robot_id() + " system " + d.system() +
+                  " incarnation " + d.incarnation() + ", not the registered " + who +
+                  " incarnation " + request->incarnation(),
+              about));
           return;
         }
         if (!d.next_page_token().empty()) {
+          errors::Metadata limit = about;
+          limit.emplace_back("limit", std::to_string(kMaxBehaviorsPerSystem));
           reactor->Finish(
-              grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                           who + " hosts more than " + std::to_string(kMaxBehaviorsPerSystem) +
-                               " behaviors, the most a coordinator registers per system"));
+              errors::grpcError(grpc::StatusCode::RESOURCE_EXHAUSTED, v1::LIMIT_EXCEEDED,
+                                who + " hosts more than " + std::to_string(kMaxBehaviorsPerSystem) +
+                                    " behaviors, the most a coordinator registers per system",
+                                limit));
           return;
         }
         // The catalog's rules must fit what the system serves (a default
@@ -339,8 +359,7 @@ grpc::ServerUnaryReactor* CoordinatorService::Heartbeat(grpc::CallbackServerCont
   if (absl::Status s =
           server::checkSystemIdentity(*context, request->robot_id(), request->system());
       !s.ok()) {
-    return finishNow(context,
-                     grpc::Status(grpc::StatusCode::PERMISSION_DENIED, std::string(s.message())));
+    return finishNow(context, identityMismatch(s, request->robot_id(), request->system()));
   }
   const grpc::Status status = registry_.heartbeat(*request);
   if (status.ok()) response->set_coordinator_incarnation(log_.incarnation());
@@ -353,8 +372,7 @@ grpc::ServerUnaryReactor* CoordinatorService::UnregisterSystem(
   if (absl::Status s =
           server::checkSystemIdentity(*context, request->robot_id(), request->system());
       !s.ok()) {
-    return finishNow(context,
-                     grpc::Status(grpc::StatusCode::PERMISSION_DENIED, std::string(s.message())));
+    return finishNow(context, identityMismatch(s, request->robot_id(), request->system()));
   }
   return finishNow(context, registry_.unregister(*request));
 }
@@ -393,8 +411,8 @@ grpc::ServerWriteReactor<grpc::ByteBuffer>* CoordinatorService::WatchEvents(
           grpc::GenericDeserialize<grpc::ProtoBufferReader, v1::WatchFleetEventsRequest>(&copy,
                                                                                          &request);
       !parsed.ok()) {
-    return new RefusedEventStream(grpc::Status(
-        grpc::StatusCode::INVALID_ARGUMENT,
+    return new RefusedEventStream(errors::grpcError(
+        grpc::StatusCode::INVALID_ARGUMENT, v1::INVALID_REQUEST,
         "WatchEvents: the request is not a WatchFleetEventsRequest: " + parsed.error_message()));
   }
   auto* stream = new FleetStreamReactor(this, request);
@@ -430,8 +448,10 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
     });
   }
   if (request->dry_run()) {
-    return finishNow(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                                           "dry_run needs the coordinator's behavior catalog"));
+    return finishNow(
+        context,
+        errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
+                          "dry_run needs the coordinator's behavior catalog"));
   }
   using Call = ForwardedCall<v1::ActivateBehaviorRequest, v1::ActivateResponse>;
   auto call = std::make_unique<Call>();
@@ -507,9 +527,30 @@ std::string authenticatedWriter(const grpc::ServerContextBase& context) {
   return caller ? caller->identity : std::string();
 }
 
+// A refusal of the belief store, with its reason: a key that is not one,
+// a cap reached, a belief that is not there.
+grpc::Status beliefError(const absl::Status& status, const std::string& key) {
+  v1::ErrorReason reason = v1::ERROR_REASON_UNSPECIFIED;
+  switch (status.code()) {
+    case absl::StatusCode::kInvalidArgument:
+      reason = v1::INVALID_REQUEST;
+      break;
+    case absl::StatusCode::kResourceExhausted:
+      reason = v1::LIMIT_EXCEEDED;
+      break;
+    case absl::StatusCode::kNotFound:
+      reason = v1::BELIEF_NOT_FOUND;
+      break;
+    default:
+      break;
+  }
+  return errors::toGrpc(errors::withDefaultReason(status, reason, {{"key", key}}));
+}
+
 grpc::Status noBeliefs() {
-  return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                      "this coordinator keeps no belief memory");
+  // No reason fits a feature this coordinator was started without.
+  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
+                           "this coordinator keeps no belief memory");
 }
 
 }  // namespace
@@ -523,7 +564,7 @@ grpc::ServerUnaryReactor* CoordinatorService::WriteBelief(grpc::CallbackServerCo
   }
   auto written = options_.beliefs->write(request->key(), request->value(), request->writer(),
                                          request->type(), authenticatedWriter(*context));
-  if (!written.ok()) return finishNow(context, server::toGrpc(written.status()));
+  if (!written.ok()) return finishNow(context, beliefError(written.status(), request->key()));
   *response->mutable_belief() = *written;
   return finishNow(context, grpc::Status::OK);
 }
@@ -534,8 +575,9 @@ grpc::ServerUnaryReactor* CoordinatorService::ReadBelief(grpc::CallbackServerCon
   if (options_.beliefs == nullptr) return finishNow(context, noBeliefs());
   auto belief = options_.beliefs->get(request->key());
   if (!belief) {
-    return finishNow(context, grpc::Status(grpc::StatusCode::NOT_FOUND,
-                                           "no belief '" + request->key() + "' in memory"));
+    return finishNow(context, errors::grpcError(grpc::StatusCode::NOT_FOUND, v1::BELIEF_NOT_FOUND,
+                                                "no belief '" + request->key() + "' in memory",
+                                                {{"key", request->key()}}));
   }
   *response->mutable_belief() = *belief;
   return finishNow(context, grpc::Status::OK);
@@ -561,8 +603,10 @@ grpc::ServerUnaryReactor* CoordinatorService::DeleteBelief(grpc::CallbackServerC
   if (request->writer().empty()) {
     return finishNow(context, missing("writer", "say who deletes the belief"));
   }
-  return finishNow(context, server::toGrpc(options_.beliefs->erase(
-                                request->key(), request->writer(), authenticatedWriter(*context))));
+  absl::Status erased =
+      options_.beliefs->erase(request->key(), request->writer(), authenticatedWriter(*context));
+  if (!erased.ok()) return finishNow(context, beliefError(erased, request->key()));
+  return finishNow(context, grpc::Status::OK);
 }
 
 }  // namespace behaviorlib::coordinator

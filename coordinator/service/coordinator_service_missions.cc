@@ -10,6 +10,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/strings/str_format.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
@@ -31,9 +32,14 @@ grpc::ServerUnaryReactor* finishWith(grpc::CallbackServerContext* context,
   return reactor;
 }
 
+// No reason fits a feature this coordinator was started without.
 grpc::Status notServed(const std::string& what, const std::string& flag) {
-  return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                      "this coordinator does not serve " + what + " (" + flag + ")");
+  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
+                           "this coordinator does not serve " + what + " (" + flag + ")");
+}
+
+grpc::Status shuttingDown(const std::string& message) {
+  return errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN, message);
 }
 
 bool missionEnded(const v1::MissionStatus& status) {
@@ -173,13 +179,12 @@ class MissionStreamReactor final : public QueuedStream<v1::WatchMissionResponse>
         auto* stream = static_cast<MissionStreamReactor*>(core->stream);
         stream->assertLocked();
         stream->endLocked(
-            grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                         "the coordinator is shutting down; watch the mission again"));
+            shuttingDown("the coordinator is shutting down; watch the mission again"));
       }
     });
     if (!added) {
       absl::MutexLock lock(&core->mutex);
-      endLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down"));
+      endLocked(shuttingDown("the coordinator is shutting down"));
     }
   }
 
@@ -213,13 +218,12 @@ class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> 
         auto* stream = static_cast<BeliefStreamReactor*>(core->stream);
         stream->assertLocked();
         stream->endLocked(
-            grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                         "the coordinator is shutting down; resume with since_version"));
+            shuttingDown("the coordinator is shutting down; resume with since_version"));
       }
     });
     if (!added) {
       absl::MutexLock lock(&core->mutex);
-      endLocked(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down"));
+      endLocked(shuttingDown("the coordinator is shutting down"));
       return;
     }
     thread_ = std::thread([this, core, beliefs, prefix = request.prefix(),
@@ -270,8 +274,7 @@ grpc::ServerUnaryReactor* CoordinatorService::runBlocking(grpc::CallbackServerCo
   auto* reactor = context->DefaultReactor();
   if (options_.pool == nullptr ||
       !options_.pool->post([reactor, work = std::move(work)] { reactor->Finish(work()); })) {
-    reactor->Finish(
-        grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down"));
+    reactor->Finish(shuttingDown("the coordinator is shutting down"));
   }
   return reactor;
 }

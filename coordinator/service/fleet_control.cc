@@ -4,22 +4,35 @@
 
 #include <thread>
 #include <utility>
+#include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "absl/strings/str_join.h"
+#include "behaviorlib/error_details.h"
 
 namespace behaviorlib::coordinator {
 
-namespace {
-
-absl::Status toAbsl(const grpc::Status& status) {
+absl::Status systemError(const grpc::Status& status, const Registry::Route& route) {
   if (status.ok()) return absl::OkStatus();
-  return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
+  absl::Status s = errors::fromGrpc(status);
+  s = errors::rewrap(s, absl::StrCat("robot ", route.robot_id, ", system ", route.system, " at ",
+                                     route.address, ": ", status.error_message()));
+  s = errors::withMetadata(s, {{"robot", route.robot_id}, {"system", route.system}});
+  // toGrpc gives every error an ErrorInfo: a system's error without a reason
+  // of its own arrives as ERROR_REASON_UNSPECIFIED.
+  const std::string reason = errors::reasonOf(s);
+  if ((reason.empty() || reason == v1::ErrorReason_Name(v1::ERROR_REASON_UNSPECIFIED)) &&
+      (status.error_code() == grpc::StatusCode::UNAVAILABLE ||
+       status.error_code() == grpc::StatusCode::DEADLINE_EXCEEDED)) {
+    s = errors::withReason(s, v1::SYSTEM_UNAVAILABLE);
+  }
+  return s;
 }
 
+namespace {
+
 absl::Status fromSystem(const grpc::Status& status, const Registry::Route& route) {
-  return absl::Status(static_cast<absl::StatusCode>(status.error_code()),
-                      absl::StrCat("robot ", route.robot_id, ", system ", route.system, " at ",
-                                   route.address, ": ", status.error_message()));
+  return systemError(status, route);
 }
 
 }  // namespace
@@ -198,9 +211,12 @@ absl::Status FleetControl::route(const std::string& robot_id, const std::string&
                                  Registry::Route* out) const {
   {
     absl::MutexLock lock(&index_mutex_);
-    if (stopped_) return absl::CancelledError("the coordinator is shutting down");
+    if (stopped_) {
+      return errors::withReason(absl::CancelledError("the coordinator is shutting down"),
+                                v1::SHUTTING_DOWN);
+    }
   }
-  return toAbsl(registry_.route(robot_id, behavior, out));
+  return errors::fromGrpc(registry_.route(robot_id, behavior, out));
 }
 
 absl::StatusOr<v1::ActivateResponse> FleetControl::callActivate(
@@ -255,9 +271,19 @@ absl::Status FleetControl::callCheckSituation(const Registry::Route& route,
   std::string reasons;
   for (const auto& r : response.reasons())
     absl::StrAppend(&reasons, reasons.empty() ? "" : "; ", r);
-  return absl::FailedPreconditionError(absl::StrCat(
-      behavior,
-      " cannot be activated now: ", reasons.empty() ? "its situation check failed" : reasons));
+  std::vector<std::string> codes;
+  for (int code : response.reason_codes()) {
+    codes.push_back(v1::SituationReason_IsValid(code)
+                        ? v1::SituationReason_Name(static_cast<v1::SituationReason>(code))
+                        : std::to_string(code));
+  }
+  errors::Metadata about = {
+      {"robot", route.robot_id}, {"system", route.system}, {"behavior", behavior}};
+  if (!codes.empty()) about.emplace_back("situation_reasons", absl::StrJoin(codes, ","));
+  return errors::withReason(absl::FailedPreconditionError(absl::StrCat(
+                                behavior, " cannot be activated now: ",
+                                reasons.empty() ? "its situation check failed" : reasons)),
+                            v1::SITUATION_NOT_SUITABLE, about);
 }
 
 std::map<std::string, std::string> FleetControl::activeBehaviors(

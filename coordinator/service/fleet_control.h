@@ -49,6 +49,13 @@
 
 namespace behaviorlib::coordinator {
 
+/// A behavior system's error, reworded to name the robot and system, with the
+/// system's details (reason, field violations) kept and the robot and system
+/// added to its metadata. An error without a reason of the system's own in
+/// which the system could not be reached (UNAVAILABLE, DEADLINE_EXCEEDED) is
+/// SYSTEM_UNAVAILABLE.
+absl::Status systemError(const grpc::Status& status, const Registry::Route& route);
+
 struct FleetControlOptions {
   /// Deadline of each call to a behavior system.
   std::chrono::milliseconds call_timeout{10000};

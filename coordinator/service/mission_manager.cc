@@ -11,6 +11,7 @@
 #include <utility>
 
 #include "absl/strings/str_cat.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/transport_security.h"
 
 namespace behaviorlib::coordinator {
@@ -40,8 +41,14 @@ void collectBehaviors(const std::vector<MissionStep>& steps, std::set<std::strin
 }
 
 absl::Status unknownMission(const std::string& mission_id) {
-  return absl::NotFoundError(
-      absl::StrCat("no mission '", mission_id, "' (ListMissions lists them)"));
+  return errors::withReason(
+      absl::NotFoundError(absl::StrCat("no mission '", mission_id, "' (ListMissions lists them)")),
+      v1::MISSION_NOT_FOUND, {{"mission_id", mission_id}});
+}
+
+absl::Status shuttingDown() {
+  return errors::withReason(absl::UnavailableError("the coordinator is shutting down"),
+                            v1::SHUTTING_DOWN);
 }
 
 std::set<std::string> behaviorsOf(const MissionSpec& spec) {
@@ -261,20 +268,27 @@ absl::Status MissionManager::checkAgainstRegistry(const MissionSpec& spec,
   std::map<std::string, v1::BehaviorDescription> hosted;
   for (const auto& b : list.behaviors()) hosted[b.description().name()] = b.description();
   if (hosted.empty()) {
-    return absl::FailedPreconditionError(absl::StrCat(
-        "robot '", robot_id, "' has no registered behavior system: start its systems first"));
+    return errors::withReason(
+        absl::FailedPreconditionError(absl::StrCat(
+            "robot '", robot_id, "' has no registered behavior system: start its systems first")),
+        v1::UNKNOWN_ROBOT, {{"robot", robot_id}});
   }
-  return checkMission(spec, [&](const std::string& behavior) -> const v1::BehaviorDescription* {
-    auto it = hosted.find(behavior);
-    return it == hosted.end() ? nullptr : &it->second;
-  });
+  return errors::withDefaultReason(
+      checkMission(spec,
+                   [&](const std::string& behavior) -> const v1::BehaviorDescription* {
+                     auto it = hosted.find(behavior);
+                     return it == hosted.end() ? nullptr : &it->second;
+                   }),
+      v1::MISSION_INVALID);
 }
 
 absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRequest& request) {
   std::string text;
   std::string file;
-  absl::StatusOr<MissionSpec> spec = absl::InvalidArgumentError(
-      "no mission: set file_path (a mission file in the coordinator's --mission-dir) or text");
+  absl::StatusOr<MissionSpec> spec = errors::withReason(
+      absl::InvalidArgumentError(
+          "no mission: set file_path (a mission file in the coordinator's --mission-dir) or text"),
+      v1::INVALID_REQUEST);
   if (request.has_file_path()) {
     file = request.file_path();
     // Read once: the text is kept so that a restarted coordinator can parse
@@ -285,23 +299,29 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
     spec = parseMission(text, file);
   } else if (request.has_text()) {
     if (request.text().size() > options_.max_mission_bytes) {
-      return absl::InvalidArgumentError(absl::StrCat("the mission text is ", request.text().size(),
-                                                     " bytes, more than the ",
-                                                     options_.max_mission_bytes, " allowed"));
+      return errors::withReason(
+          absl::InvalidArgumentError(absl::StrCat("the mission text is ", request.text().size(),
+                                                  " bytes, more than the ",
+                                                  options_.max_mission_bytes, " allowed")),
+          v1::LIMIT_EXCEEDED, {{"limit", std::to_string(options_.max_mission_bytes)}});
     }
     if (request.source_name().size() > kMaxSourceNameBytes) {
-      return absl::InvalidArgumentError(
-          absl::StrCat("source_name is longer than ", kMaxSourceNameBytes, " bytes"));
+      return errors::withReason(absl::InvalidArgumentError(absl::StrCat(
+                                    "source_name is longer than ", kMaxSourceNameBytes, " bytes")),
+                                v1::LIMIT_EXCEEDED,
+                                {{"limit", std::to_string(kMaxSourceNameBytes)}});
     }
     file = request.source_name().empty() ? "<mission text>" : request.source_name();
     text = request.text();
     spec = parseMission(text, file);
   }
-  if (!spec.ok()) return spec.status();
+  if (!spec.ok()) return errors::withDefaultReason(spec.status(), v1::MISSION_INVALID);
   const std::string robot_id = request.robot_id().empty() ? spec->robot_id : request.robot_id();
   if (robot_id.empty()) {
-    return absl::InvalidArgumentError(absl::StrCat(
-        file, ": no robot: give `robot:` in the mission file or robot_id in the request"));
+    return errors::withReason(
+        absl::InvalidArgumentError(absl::StrCat(
+            file, ": no robot: give `robot:` in the mission file or robot_id in the request")),
+        v1::MISSION_INVALID);
   }
   if (!request.mission_id().empty()) {
     if (auto existing = get(request.mission_id()); existing.ok()) return existing;
@@ -311,12 +331,14 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   std::vector<Entry> pruned;  // destroyed after the lock is released
   absl::MutexLock lock(&mutex_);
   pruneLocked(&pruned);
-  if (stopped_) return absl::UnavailableError("the coordinator is shutting down");
+  if (stopped_) return shuttingDown();
   for (const auto& [id, entry] : missions_) {
     if (entry.status.robot_id() == robot_id && !ended(entry.status)) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("robot '", robot_id, "' runs mission '", id, "' (",
-                       v1::MissionState_Name(entry.status.state()), "): abort it first"));
+      return errors::withReason(
+          absl::FailedPreconditionError(
+              absl::StrCat("robot '", robot_id, "' runs mission '", id, "' (",
+                           v1::MissionState_Name(entry.status.state()), "): abort it first")),
+          v1::MISSION_STATE_CONFLICT, {{"robot", robot_id}, {"mission_id", id}});
     }
   }
   const std::string mission_id =
@@ -335,10 +357,7 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
 absl::StatusOr<v1::MissionStatus> MissionManager::get(const std::string& mission_id) const {
   absl::MutexLock lock(&mutex_);
   auto it = missions_.find(mission_id);
-  if (it == missions_.end()) {
-    return absl::NotFoundError(
-        absl::StrCat("no mission '", mission_id, "' (ListMissions lists them)"));
-  }
+  if (it == missions_.end()) return unknownMission(mission_id);
   return it->second.runner ? it->second.runner->status() : it->second.status;
 }
 
@@ -384,13 +403,21 @@ absl::StatusOr<v1::MissionStatus> MissionManager::control(
     if (it == missions_.end()) return unknownMission(mission_id);  // mutex_ is held
     runner = it->second.runner.get();
     if (runner == nullptr) {
-      return absl::FailedPreconditionError(
-          absl::StrCat("mission '", mission_id, "' is not running here (",
-                       v1::MissionState_Name(it->second.status.state()), ")"));
+      return errors::withReason(absl::FailedPreconditionError(absl::StrCat(
+                                    "mission '", mission_id, "' is not running here (",
+                                    v1::MissionState_Name(it->second.status.state()), ")")),
+                                v1::MISSION_STATE_CONFLICT, {{"mission_id", mission_id}});
     }
   }
-  // Runners live until stop(); the call is made without the lock.
-  if (auto s = request(*runner); !s.ok()) return s;
+  // Runners live until stop(); the call is made without the lock. The
+  // runner refuses a request its state does not allow (pause a finished
+  // mission) with FAILED_PRECONDITION.
+  if (auto s = request(*runner); !s.ok()) {
+    if (s.code() == absl::StatusCode::kFailedPrecondition) {
+      s = errors::withDefaultReason(std::move(s), v1::MISSION_STATE_CONFLICT);
+    }
+    return errors::withMetadata(std::move(s), {{"mission_id", mission_id}});
+  }
   return runner->status();
 }
 
@@ -414,10 +441,7 @@ absl::StatusOr<uint64_t> MissionManager::watch(const std::string& mission_id, Li
   {
     absl::MutexLock lock(&mutex_);
     auto it = missions_.find(mission_id);
-    if (it == missions_.end()) {
-      return absl::NotFoundError(
-          absl::StrCat("no mission '", mission_id, "' (ListMissions lists them)"));
-    }
+    if (it == missions_.end()) return unknownMission(mission_id);
     now = it->second.runner ? it->second.runner->status() : it->second.status;
     token = next_token_++;
     listeners_[token] = {mission_id, listener};

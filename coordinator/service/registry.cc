@@ -4,6 +4,8 @@
 #include <set>
 #include <tuple>
 
+#include "behaviorlib/error_details.h"
+
 namespace behaviorlib::coordinator {
 
 namespace {
@@ -16,6 +18,13 @@ std::string join(const std::set<std::string>& names) {
   std::string out;
   for (const auto& n : names) out += (out.empty() ? "" : ", ") + n;
   return out.empty() ? "none" : out;
+}
+
+// INVALID_ARGUMENT for an empty request field, naming it.
+grpc::Status missingField(const std::string& field, const std::string& message) {
+  return errors::toGrpc(errors::withFieldViolation(
+      errors::withReason(absl::InvalidArgumentError(message), v1::INVALID_REQUEST), field,
+      message));
 }
 
 }  // namespace
@@ -79,7 +88,8 @@ grpc::Status Registry::registerSystem(const v1::RegisterSystemRequest& request,
     reaped = std::move(retired_);
     retired_.clear();
     if (stopped_) {
-      return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the coordinator is shutting down");
+      return errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                               "the coordinator is shutting down");
     }
     auto existing = findLocked(request.robot_id(), request.system(), request.address());
     // One robot's behavior names must be unique, so that (robot, behavior)
@@ -91,11 +101,14 @@ grpc::Status Registry::registerSystem(const v1::RegisterSystemRequest& request,
       }
       for (const auto& behavior : description.behaviors()) {
         if (link->hosts(behavior.name())) {
-          return grpc::Status(
-              grpc::StatusCode::FAILED_PRECONDITION,
+          return errors::grpcError(
+              grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
               "behavior " + behavior.name() + " of robot " + request.robot_id() +
                   " is already hosted by system " + link->system() + " at " + link->address() +
-                  "; the behaviors of one robot must have unique names across its systems");
+                  "; the behaviors of one robot must have unique names across its systems",
+              {{"robot", request.robot_id()},
+               {"system", request.system()},
+               {"behavior", behavior.name()}});
         }
       }
     }
@@ -130,23 +143,27 @@ grpc::Status Registry::heartbeat(const v1::HeartbeatRequest& request) {
   absl::MutexLock lock(&mutex_);
   auto link = findLocked(request.robot_id(), request.system(), "");
   const std::string who = "robot " + request.robot_id() + " system " + request.system();
+  const errors::Metadata about = {{"robot", request.robot_id()}, {"system", request.system()}};
   if (!link) {
-    return grpc::Status(grpc::StatusCode::NOT_FOUND,
-                        who +
-                            " is not registered (the coordinator restarted, or the system "
-                            "unregistered); register again");
+    return errors::grpcError(grpc::StatusCode::NOT_FOUND, v1::UNKNOWN_SYSTEM,
+                             who +
+                                 " is not registered (the coordinator restarted, or the system "
+                                 "unregistered); register again",
+                             about);
   }
   if (link->heartbeat(request.incarnation())) return grpc::Status::OK;
   if (link->state() == v1::SYSTEM_STATE_UP) {
-    return grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                        who + " is now served by incarnation " + link->registeredIncarnation() +
-                            " at " + link->address() + ", not by incarnation " +
-                            request.incarnation() +
-                            "; two processes claim the same robot and system");
+    return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::UNKNOWN_SYSTEM,
+                             who + " is now served by incarnation " +
+                                 link->registeredIncarnation() + " at " + link->address() +
+                                 ", not by incarnation " + request.incarnation() +
+                                 "; two processes claim the same robot and system",
+                             about);
   }
-  return grpc::Status(grpc::StatusCode::NOT_FOUND,
-                      "incarnation " + request.incarnation() + " of " + who +
-                          " is not the registered one; register again");
+  return errors::grpcError(grpc::StatusCode::NOT_FOUND, v1::UNKNOWN_SYSTEM,
+                           "incarnation " + request.incarnation() + " of " + who +
+                               " is not the registered one; register again",
+                           about);
 }
 
 grpc::Status Registry::unregister(const v1::UnregisterSystemRequest& request) {
@@ -155,10 +172,11 @@ grpc::Status Registry::unregister(const v1::UnregisterSystemRequest& request) {
     absl::MutexLock lock(&mutex_);
     auto link = findLocked(request.robot_id(), request.system(), "");
     if (!link || !link->unregister(request.incarnation(), request.final_seq())) {
-      return grpc::Status(grpc::StatusCode::NOT_FOUND, "incarnation " + request.incarnation() +
-                                                           " of robot " + request.robot_id() +
-                                                           " system " + request.system() +
-                                                           " is not registered");
+      return errors::grpcError(grpc::StatusCode::NOT_FOUND, v1::UNKNOWN_SYSTEM,
+                               "incarnation " + request.incarnation() + " of robot " +
+                                   request.robot_id() + " system " + request.system() +
+                                   " is not registered",
+                               {{"robot", request.robot_id()}, {"system", request.system()}});
     }
     record.set_address(link->address());
   }
@@ -231,11 +249,10 @@ std::vector<SystemLink::BehaviorView> Registry::robotBehaviors(const std::string
 grpc::Status Registry::route(const std::string& robot_id, const std::string& behavior,
                              Route* out) const {
   if (robot_id.empty()) {
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "robot_id is empty: name the robot");
+    return missingField("robot_id", "robot_id is empty: name the robot");
   }
   if (behavior.empty()) {
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                        "behavior is empty: name the behavior, e.g. WAIT");
+    return missingField("behavior", "behavior is empty: name the behavior, e.g. WAIT");
   }
   absl::MutexLock lock(&mutex_);
   std::set<std::string> robots;
@@ -252,21 +269,24 @@ grpc::Status Registry::route(const std::string& robot_id, const std::string& beh
     if (link->hosts(behavior)) candidates.push_back(link);
   }
   if (!robots.contains(robot_id)) {
-    return grpc::Status(
-        grpc::StatusCode::NOT_FOUND,
+    return errors::grpcError(
+        grpc::StatusCode::NOT_FOUND, v1::UNKNOWN_ROBOT,
         "unknown robot '" + robot_id +
-            "': no behavior system of it is registered; known robots: " + join(robots));
+            "': no behavior system of it is registered; known robots: " + join(robots),
+        {{"robot", robot_id}});
   }
   if (candidates.empty()) {
     if (!unreached.empty()) {
-      return grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                          "robot " + robot_id + " has a system at " + unreached +
-                              " that has not been reached yet, and no other system hosting '" +
-                              behavior + "'; retry later");
+      return errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SYSTEM_UNAVAILABLE,
+                               "robot " + robot_id + " has a system at " + unreached +
+                                   " that has not been reached yet, and no other system hosting '" +
+                                   behavior + "'; retry later",
+                               {{"robot", robot_id}, {"behavior", behavior}});
     }
-    return grpc::Status(grpc::StatusCode::NOT_FOUND, "robot " + robot_id + " has no behavior '" +
-                                                         behavior +
-                                                         "'; its systems host: " + join(hosted));
+    return errors::grpcError(grpc::StatusCode::NOT_FOUND, v1::UNKNOWN_BEHAVIOR,
+                             "robot " + robot_id + " has no behavior '" + behavior +
+                                 "'; its systems host: " + join(hosted),
+                             {{"robot", robot_id}, {"behavior", behavior}});
   }
   grpc::Status status;
   for (const auto& link : candidates) {

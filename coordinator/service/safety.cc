@@ -7,6 +7,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/flight_common/topics.h"
 #include "behaviorlib/platform/flight_controller_client.h"
 #include "behaviorlib/platform/flight_state_watcher.h"
@@ -23,6 +24,14 @@ bool airborne(v1::FlightState state) {
 
 constexpr char kSafetyHolderSuffix[] = "/coordinator-safety";
 constexpr std::chrono::seconds kSafetyLeaseTtl{10};
+
+absl::Status noFlightController(const std::string& robot_id) {
+  return errors::withReason(
+      absl::NotFoundError(absl::StrCat("no flight controller known for robot '", robot_id,
+                                       "': start the coordinator with --flight-controller ",
+                                       robot_id, "=host:port")),
+      v1::UNKNOWN_ROBOT, {{"robot", robot_id}});
+}
 
 }  // namespace
 
@@ -413,7 +422,7 @@ absl::StatusOr<std::string> SafetyController::flightAction(Robot& robot, int act
   // Released at once: in EMERGENCY the platform takes no setpoint or action
   // but KILL, and a lease kept would refuse the next take-off.
   if (!lease_id.empty()) (void)robot.fc->releaseLease(lease_id);
-  if (!state.ok()) return state.status();
+  if (!state.ok()) return errors::withMetadata(state.status(), {{"robot", robot.robot_id}});
   return absl::StrCat(v1::FlightAction_Name(kind), " accepted by the flight controller at ",
                       robot.fc->address(), " (state ", v1::FlightState_Name(*state), ")");
 }
@@ -421,11 +430,7 @@ absl::StatusOr<std::string> SafetyController::flightAction(Robot& robot, int act
 absl::StatusOr<std::string> SafetyController::emergencyLand(const std::string& robot_id,
                                                             const std::string& reason) {
   Robot* robot = find(robot_id);
-  if (robot == nullptr) {
-    return absl::NotFoundError(absl::StrCat("no flight controller known for robot '", robot_id,
-                                            "': start the coordinator with --flight-controller ",
-                                            robot_id, "=host:port"));
-  }
+  if (robot == nullptr) return noFlightController(robot_id);
   // Stand down first, within the budget, then land whatever the stand-down
   // got done (it goes on in the background).
   struct StandDown {
@@ -437,7 +442,10 @@ absl::StatusOr<std::string> SafetyController::emergencyLand(const std::string& r
   const std::string why = "emergency land" + (reason.empty() ? "" : ": " + reason);
   {
     absl::MutexLock lock(&mutex_);
-    if (stopping_) return absl::UnavailableError("the coordinator is shutting down");
+    if (stopping_) {
+      return errors::withReason(absl::UnavailableError("the coordinator is shutting down"),
+                                v1::SHUTTING_DOWN);
+    }
     fired_.push_back(robot_id + ": EmergencyLand requested: " + reason);
     actions_.emplace_back([this, shared, robot_id, why] {
       std::string result = standDown(robot_id, why, false);
@@ -466,15 +474,13 @@ absl::StatusOr<std::string> SafetyController::emergencyLand(const std::string& r
 absl::StatusOr<std::string> SafetyController::kill(const std::string& robot_id, bool confirm,
                                                    const std::string& reason) {
   if (!confirm) {
-    return absl::InvalidArgumentError(
-        "Kill stops the motors and the vehicle falls: set confirm to true to do it");
+    return errors::withReason(
+        absl::InvalidArgumentError(
+            "Kill stops the motors and the vehicle falls: set confirm to true to do it"),
+        v1::CONFIRMATION_REQUIRED, {{"robot", robot_id}});
   }
   Robot* robot = find(robot_id);
-  if (robot == nullptr) {
-    return absl::NotFoundError(absl::StrCat("no flight controller known for robot '", robot_id,
-                                            "': start the coordinator with --flight-controller ",
-                                            robot_id, "=host:port"));
-  }
+  if (robot == nullptr) return noFlightController(robot_id);
   const std::string why = "kill" + (reason.empty() ? "" : ": " + reason);
   // Motors off first; the mission is told at once (so that it ends ABORTED
   // for this reason), its behaviors are deactivated after.

@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <utility>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/transport_security.h"
 #include "coordinator/service/health_check.h"
@@ -736,10 +737,11 @@ void SystemLink::describeBehaviors(
 std::shared_ptr<v1::BehaviorSystem::Stub> SystemLink::stubForCall(grpc::Status* status) const {
   absl::MutexLock lock(&mutex_);
   if (state_ == v1::SYSTEM_STATE_DOWN || state_ == v1::SYSTEM_STATE_UNREGISTERED) {
-    *status = grpc::Status(grpc::StatusCode::UNAVAILABLE,
-                           nameLocked() + " is " +
-                               (state_ == v1::SYSTEM_STATE_DOWN ? "down" : "unregistered") + " (" +
-                               state_message_ + "); retry when it is back");
+    *status = errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SYSTEM_UNAVAILABLE,
+                                nameLocked() + " is " +
+                                    (state_ == v1::SYSTEM_STATE_DOWN ? "down" : "unregistered") +
+                                    " (" + state_message_ + "); retry when it is back",
+                                {{"robot", identity_.robot_id}, {"system", identity_.system}});
     return nullptr;
   }
   return stub_;

@@ -25,6 +25,7 @@
 #include "absl/time/time.h"
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/topic.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 
@@ -33,8 +34,13 @@ namespace {
 
 using Sample = std::shared_ptr<const v1::SubscribeResponse>;
 
+// With its details; a topic name or sample refused (INVALID_ARGUMENT) is
+// INVALID_REQUEST.
 grpc::Status toGrpc(const absl::Status& status) {
-  return grpc::Status(static_cast<grpc::StatusCode>(status.code()), std::string(status.message()));
+  if (status.code() == absl::StatusCode::kInvalidArgument) {
+    return errors::toGrpc(errors::withDefaultReason(status, v1::INVALID_REQUEST));
+  }
+  return errors::toGrpc(status);
 }
 
 google::protobuf::Timestamp wallNow() {
@@ -67,7 +73,8 @@ bool localPeer(const std::string& peer) {
 }
 
 grpc::Status shuttingDownStatus() {
-  return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the channel broker is shutting down");
+  return errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                           "the channel broker is shutting down");
 }
 
 }  // namespace
@@ -484,8 +491,8 @@ class Broker::Publisher {
     for (v1::PublishRequest& next : *request.mutable_more()) {
       if (!status.ok()) break;
       if (!next.more().empty()) {
-        status = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                              "a sample in a batch ('more') has a batch of its own");
+        status = errors::grpcError(grpc::StatusCode::INVALID_ARGUMENT, v1::INVALID_REQUEST,
+                                   "a sample in a batch ('more') has a batch of its own");
         break;
       }
       status = take(next);
@@ -754,9 +761,10 @@ void Broker::dropRingLocked(Topic& topic) ABSL_EXCLUSIVE_LOCKS_REQUIRED(topic.mu
 }
 
 grpc::Status Broker::tooManyTopics(const std::string& name) const {
-  return grpc::Status(grpc::StatusCode::RESOURCE_EXHAUSTED,
-                      absl::StrCat("the broker keeps ", options_.max_topics,
-                                   " topics, the most allowed: no new topic '", name, "'"));
+  return errors::grpcError(grpc::StatusCode::RESOURCE_EXHAUSTED, v1::LIMIT_EXCEEDED,
+                           absl::StrCat("the broker keeps ", options_.max_topics,
+                                        " topics, the most allowed: no new topic '", name, "'"),
+                           {{"limit", std::to_string(options_.max_topics)}});
 }
 
 std::shared_ptr<Broker::Topic> Broker::topicLocked(const std::string& name) {
@@ -842,8 +850,8 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
     const std::string carried = topic->type->full_name();
     topic->mutex.Unlock();
     countRejected(reject_reason::kTypeMismatch);
-    return grpc::Status(
-        grpc::StatusCode::INVALID_ARGUMENT,
+    return errors::grpcError(
+        grpc::StatusCode::INVALID_ARGUMENT, v1::INVALID_REQUEST,
         absl::StrCat("topic '", topic->name, "' carries ", carried, "; got ", type->full_name()));
   }
   topic->type = type;
@@ -888,16 +896,17 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
     latest_only = false;
     queue_size = request->queue_size() == 0 ? kDefaultQueueSize : request->queue_size();
     if (queue_size > kMaxQueueSize) {
-      invalid = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                             absl::StrCat("queue_size ", request->queue_size(), " for topic '",
-                                          request->topic(), "' is out of range: use 1..",
-                                          kMaxQueueSize, " (0 means ", kDefaultQueueSize, ")"));
+      invalid = errors::grpcError(grpc::StatusCode::INVALID_ARGUMENT, v1::INVALID_REQUEST,
+                                  absl::StrCat("queue_size ", request->queue_size(), " for topic '",
+                                               request->topic(), "' is out of range: use 1..",
+                                               kMaxQueueSize, " (0 means ", kDefaultQueueSize, ")"),
+                                  {{"limit", std::to_string(kMaxQueueSize)}});
     }
   } else if (request->mode() != v1::DELIVERY_MODE_LATEST &&
              request->mode() != v1::DELIVERY_MODE_UNSPECIFIED) {
-    invalid = grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                           absl::StrCat("unknown delivery mode ", request->mode(), " for topic '",
-                                        request->topic(), "'"));
+    invalid = errors::grpcError(grpc::StatusCode::INVALID_ARGUMENT, v1::INVALID_REQUEST,
+                                absl::StrCat("unknown delivery mode ", request->mode(),
+                                             " for topic '", request->topic(), "'"));
   }
 
   auto reactor = std::make_shared<SubscribeReactor>(context, latest_only, queue_size);
@@ -1086,8 +1095,9 @@ void Broker::housekeep() {
         mutex_.Unlock();
         for (const auto& watcher : watchers) watcher->pump();
         for (auto& get : expired) {
-          get.reactor->Finish(grpc::Status(
-              grpc::StatusCode::NOT_FOUND,
+          // No reason fits a topic without a sample yet.
+          get.reactor->Finish(errors::grpcError(
+              grpc::StatusCode::NOT_FOUND, v1::ERROR_REASON_UNSPECIFIED,
               "no sample on the gated topic within the wait: its publisher did not resume it"));
         }
         mutex_.Lock();
@@ -1163,8 +1173,8 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
   for (const auto& watcher : watchers) watcher->pump();
   if (waits) return reactor;
   if (!latest) {
-    reactor->Finish(grpc::Status(
-        grpc::StatusCode::NOT_FOUND,
+    reactor->Finish(errors::grpcError(
+        grpc::StatusCode::NOT_FOUND, v1::ERROR_REASON_UNSPECIFIED,
         absl::StrCat("nothing has been published on topic '", request->topic(), "' yet")));
     return reactor;
   }

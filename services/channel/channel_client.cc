@@ -19,6 +19,7 @@
 #include "absl/time/time.h"
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/topic.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/transport_security.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 
@@ -31,9 +32,8 @@ constexpr std::chrono::milliseconds kMaxBackoff(2000);
 // writer and the stream's end wake it.
 constexpr int64_t kRingWaitNs = 2'000'000'000;
 
-absl::Status toAbsl(const grpc::Status& status) {
-  return absl::Status(static_cast<absl::StatusCode>(status.error_code()), status.error_message());
-}
+// With the broker's details.
+absl::Status toAbsl(const grpc::Status& status) { return errors::fromGrpc(status); }
 
 // gRPC's own reconnection backoff (1 s growing to 120 s by default) would
 // hold a broker restart back far longer than our subscriptions' 100 ms..2 s

@@ -12,6 +12,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/server_kit/yaml_guard.h"
 
@@ -110,7 +111,11 @@ class Authorizer final : public grpc::AuthMetadataProcessor {
                               : absl::StrCat(method, " needs the role ", av(roleName(needed)),
                                              "; '", who, "' has ", rolesText(identity->roles));
       if (audit_) audit_({who, method, "PERMISSION_DENIED", message});
-      return grpc::Status(grpc::StatusCode::PERMISSION_DENIED, message);
+      // Note: gRPC's auth filter hands on only the code and the message of a
+      // processor's refusal (grpc_process_auth_metadata_done_cb takes no
+      // details), so the client may receive this one without its ErrorInfo.
+      return errors::grpcError(grpc::StatusCode::PERMISSION_DENIED, v1::ROLE_REQUIRED, message,
+                               {{"role", std::string(roleName(needed))}, {"identity", who}});
     }
     return grpc::Status::OK;
   }
@@ -301,9 +306,12 @@ absl::Status checkSystemIdentity(const grpc::ServerContextBase& context,
     return absl::OkStatus();
   }
   if (caller->robot_id != robot_id || caller->system != system) {
-    return absl::PermissionDeniedError(
-        absl::StrCat("'", caller->identity, "' may register only as system ", caller->system,
-                     " of robot ", caller->robot_id, ", not as ", system, " of robot ", robot_id));
+    return errors::withReason(
+        absl::PermissionDeniedError(absl::StrCat(
+            "'", caller->identity, "' may register only as system ", caller->system, " of robot ",
+            caller->robot_id, ", not as ", system, " of robot ", robot_id)),
+        v1::IDENTITY_MISMATCH,
+        {{"identity", caller->identity}, {"robot", robot_id}, {"system", system}});
   }
   return absl::OkStatus();
 }

@@ -11,6 +11,7 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "behaviorlib/error_details.h"
 
 namespace behaviorlib::server {
 namespace {
@@ -36,18 +37,32 @@ class Fd {
   int fd_;
 };
 
+// A file that does not exist or cannot be read.
+absl::Status fileNotFound(absl::Status status, const std::string& path) {
+  return errors::withReason(std::move(status), v1::FILE_NOT_FOUND, {{"path", path}});
+}
+
+absl::Status fileTooLarge(absl::Status status, const std::string& path, size_t max_bytes) {
+  return errors::withReason(std::move(status), v1::FILE_TOO_LARGE,
+                            {{"path", path}, {"limit", std::to_string(max_bytes)}});
+}
+
 // Reads an open descriptor of a regular file, at most max_bytes.
 absl::StatusOr<std::string> readCapped(int fd, const std::string& path, size_t max_bytes) {
   struct stat st {};
   if (::fstat(fd, &st) != 0) {
-    return absl::InternalError(absl::StrCat(path, ": cannot stat: ", std::strerror(errno)));
+    return fileNotFound(
+        absl::InternalError(absl::StrCat(path, ": cannot stat: ", std::strerror(errno))), path);
   }
   if (!S_ISREG(st.st_mode)) {
-    return absl::InvalidArgumentError(absl::StrCat(path, ": not a regular file"));
+    return fileNotFound(absl::InvalidArgumentError(absl::StrCat(path, ": not a regular file")),
+                        path);
   }
   if (static_cast<size_t>(st.st_size) > max_bytes) {
-    return absl::ResourceExhaustedError(
-        absl::StrCat(path, ": ", st.st_size, " bytes, more than the ", max_bytes, " allowed"));
+    return fileTooLarge(
+        absl::ResourceExhaustedError(
+            absl::StrCat(path, ": ", st.st_size, " bytes, more than the ", max_bytes, " allowed")),
+        path, max_bytes);
   }
   std::string out;
   char chunk[65536];
@@ -55,14 +70,16 @@ absl::StatusOr<std::string> readCapped(int fd, const std::string& path, size_t m
     const ssize_t n = ::read(fd, chunk, sizeof chunk);
     if (n < 0 && errno == EINTR) continue;
     if (n < 0) {
-      return absl::InternalError(absl::StrCat(path, ": cannot read: ", std::strerror(errno)));
+      return fileNotFound(
+          absl::InternalError(absl::StrCat(path, ": cannot read: ", std::strerror(errno))), path);
     }
     if (n == 0) break;
     out.append(chunk, static_cast<size_t>(n));
     // The file grew after the stat.
     if (out.size() > max_bytes) {
-      return absl::ResourceExhaustedError(
-          absl::StrCat(path, ": more than the ", max_bytes, " bytes allowed"));
+      return fileTooLarge(absl::ResourceExhaustedError(
+                              absl::StrCat(path, ": more than the ", max_bytes, " bytes allowed")),
+                          path, max_bytes);
     }
   }
   return out;
@@ -85,21 +102,31 @@ absl::StatusOr<ConfinedDirectory> ConfinedDirectory::open(std::string purpose,
 
 absl::Status ConfinedDirectory::refuse(const std::string& requested, const std::string& why) const {
   if (root_.empty()) {
-    return absl::PermissionDeniedError(
-        absl::StrCat("'", requested, "' refused: no directory is configured for ", purpose_));
+    // No directory is allowed: every path is outside.
+    return errors::withReason(
+        absl::PermissionDeniedError(
+            absl::StrCat("'", requested, "' refused: no directory is configured for ", purpose_)),
+        v1::PATH_OUTSIDE_ALLOWED_DIRECTORY, {{"path", requested}});
   }
-  return absl::PermissionDeniedError(
-      absl::StrCat(purpose_, " must be inside ", root_, ": '", requested, "' ", why));
+  return errors::withReason(absl::PermissionDeniedError(absl::StrCat(
+                                purpose_, " must be inside ", root_, ": '", requested, "' ", why)),
+                            v1::PATH_OUTSIDE_ALLOWED_DIRECTORY,
+                            {{"path", requested}, {"allowed_directory", root_}});
 }
 
 absl::StatusOr<std::string> ConfinedDirectory::lexical(const std::string& requested) const {
   if (root_.empty()) return refuse(requested, "");
-  if (requested.empty()) return absl::InvalidArgumentError("the path is empty");
+  if (requested.empty()) {
+    return errors::withReason(absl::InvalidArgumentError("the path is empty"), v1::INVALID_REQUEST);
+  }
   if (requested.find('\0') != std::string::npos) {
-    return absl::InvalidArgumentError("the path contains a NUL character");
+    return errors::withReason(absl::InvalidArgumentError("the path contains a NUL character"),
+                              v1::INVALID_REQUEST);
   }
   if (requested.size() > PATH_MAX) {
-    return absl::InvalidArgumentError(absl::StrCat("the path is longer than ", PATH_MAX, " bytes"));
+    return errors::withReason(
+        absl::InvalidArgumentError(absl::StrCat("the path is longer than ", PATH_MAX, " bytes")),
+        v1::INVALID_REQUEST, {{"limit", std::to_string(PATH_MAX)}});
   }
   for (absl::string_view part : absl::StrSplit(requested, '/')) {
     if (part == "..") return refuse(requested, "has a '..' component");
@@ -119,8 +146,9 @@ absl::StatusOr<std::string> ConfinedDirectory::resolveExisting(const std::string
   const std::string resolved = realPath(*full);
   if (resolved.empty()) {
     if (!inside(*full)) return refuse(requested, "is outside it");
-    return absl::NotFoundError(
-        absl::StrCat(purpose_, ": '", requested, "' does not exist in ", root_));
+    return fileNotFound(absl::NotFoundError(absl::StrCat(purpose_, ": '", requested,
+                                                         "' does not exist in ", root_)),
+                        requested);
   }
   if (!inside(resolved)) return refuse(requested, "resolves outside it");
   return resolved;
@@ -134,8 +162,9 @@ absl::StatusOr<std::string> ConfinedDirectory::resolveForWrite(const std::string
   if (name.empty() || name == ".") return refuse(requested, "names no file");
   const std::string parent = realPath(slash == 0 ? "/" : full->substr(0, slash));
   if (parent.empty()) {
-    return absl::NotFoundError(
-        absl::StrCat(purpose_, ": the directory of '", requested, "' does not exist"));
+    return fileNotFound(absl::NotFoundError(absl::StrCat(purpose_, ": the directory of '",
+                                                         requested, "' does not exist")),
+                        requested);
   }
   const std::string target = (parent == "/" ? "" : parent) + "/" + name;
   if (!inside(parent) || target == root_) return refuse(requested, "is outside it");
@@ -197,8 +226,9 @@ absl::StatusOr<std::string> ConfinedDirectory::read(const std::string& requested
   // O_NOFOLLOW: the resolved path has no link left; one appearing since is refused.
   Fd fd(::open(path->c_str(), O_RDONLY | O_NOFOLLOW | O_NONBLOCK | O_CLOEXEC));
   if (fd.get() < 0) {
-    return absl::PermissionDeniedError(
-        absl::StrCat(purpose_, ": cannot open '", requested, "': ", std::strerror(errno)));
+    return fileNotFound(absl::PermissionDeniedError(absl::StrCat(
+                            purpose_, ": cannot open '", requested, "': ", std::strerror(errno))),
+                        requested);
   }
   return readCapped(fd.get(), requested, max_read_bytes_);
 }
@@ -206,7 +236,8 @@ absl::StatusOr<std::string> ConfinedDirectory::read(const std::string& requested
 absl::StatusOr<std::string> readFileCapped(const std::string& path, size_t max_bytes) {
   Fd fd(::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC));
   if (fd.get() < 0) {
-    return absl::NotFoundError(absl::StrCat(path, ": cannot open: ", std::strerror(errno)));
+    return fileNotFound(
+        absl::NotFoundError(absl::StrCat(path, ": cannot open: ", std::strerror(errno))), path);
   }
   return readCapped(fd.get(), path, max_bytes);
 }

@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "absl/strings/str_cat.h"
+#include "behaviorlib/error_details.h"
 
 namespace behaviorlib::server {
 namespace {
@@ -17,6 +18,7 @@ namespace {
 struct LimitPassed {
   YAML::Mark mark;
   std::string what;
+  std::string limit;  // the cap passed; empty for a refusal that is no cap
 };
 
 // Counts the document's nodes as if every alias were expanded. An anchored
@@ -35,14 +37,15 @@ class CountingHandler : public YAML::EventHandler {
   }
   void OnAlias(const YAML::Mark& mark, YAML::anchor_t anchor) override {
     if (++aliases_ > limits_.max_aliases) {
-      throw LimitPassed{mark, absl::StrCat("more than ", limits_.max_aliases, " aliases")};
+      throw LimitPassed{mark, absl::StrCat("more than ", limits_.max_aliases, " aliases"),
+                        std::to_string(limits_.max_aliases)};
     }
     // An alias to a node still open refers to a node that contains it: the
     // tree yaml-cpp would build is a cycle, and whatever walks it recurses
     // without end (found by fuzz_catalog: `defaults: &d {x: *d}`).
     for (const Open& open : stack_) {
       if (open.anchor == anchor && anchor != YAML::NullAnchor) {
-        throw LimitPassed{mark, "an alias inside the node it refers to (a cycle)"};
+        throw LimitPassed{mark, "an alias inside the node it refers to (a cycle)", ""};
       }
     }
     const auto it = anchored_.find(anchor);
@@ -80,12 +83,15 @@ class CountingHandler : public YAML::EventHandler {
   void add(const YAML::Mark& mark, size_t nodes, size_t depth) {
     nodes_ += nodes;
     if (nodes_ > limits_.max_nodes) {
-      throw LimitPassed{mark, absl::StrCat("more than ", limits_.max_nodes,
-                                           " nodes once its aliases are expanded")};
+      throw LimitPassed{
+          mark,
+          absl::StrCat("more than ", limits_.max_nodes, " nodes once its aliases are expanded"),
+          std::to_string(limits_.max_nodes)};
     }
     const size_t reached = stack_.size() + depth;
     if (reached > limits_.max_depth) {
-      throw LimitPassed{mark, absl::StrCat("nested deeper than ", limits_.max_depth, " levels")};
+      throw LimitPassed{mark, absl::StrCat("nested deeper than ", limits_.max_depth, " levels"),
+                        std::to_string(limits_.max_depth)};
     }
     if (!stack_.empty()) stack_.back().deepest = std::max(stack_.back().deepest, reached);
   }
@@ -117,9 +123,11 @@ int lineOf(const YAML::Mark& mark) { return mark.is_null() ? 1 : mark.line + 1; 
 absl::Status loadYaml(std::string_view text, const std::string& file, YAML::Node* out,
                       const YamlLimits& limits) {
   if (text.size() > limits.max_bytes) {
-    return absl::InvalidArgumentError(absl::StrCat(file, ": the text is ", text.size(),
-                                                   " bytes, more than the ", limits.max_bytes,
-                                                   " allowed"));
+    return errors::withReason(absl::InvalidArgumentError(absl::StrCat(
+                                  file, ": the text is ", text.size(), " bytes, more than the ",
+                                  limits.max_bytes, " allowed")),
+                              v1::FILE_TOO_LARGE,
+                              {{"path", file}, {"limit", std::to_string(limits.max_bytes)}});
   }
   const std::string copy(text);
   try {
@@ -130,8 +138,14 @@ absl::Status loadYaml(std::string_view text, const std::string& file, YAML::Node
     parser.HandleNextDocument(counter);
     *out = YAML::Load(copy);
   } catch (const LimitPassed& e) {
-    return absl::InvalidArgumentError(
+    absl::Status refused = absl::InvalidArgumentError(
         absl::StrCat(file, ":", lineOf(e.mark), ": refused: the YAML has ", e.what));
+    // A cap passed; the caller says what else is wrong with the text.
+    if (!e.limit.empty()) {
+      refused = errors::withReason(std::move(refused), v1::LIMIT_EXCEEDED,
+                                   {{"path", file}, {"limit", e.limit}});
+    }
+    return refused;
   } catch (const YAML::Exception& e) {
     return absl::InvalidArgumentError(
         absl::StrCat(file, ":", lineOf(e.mark), ": not valid YAML: ", e.msg));

@@ -4,6 +4,8 @@
 #include <limits>
 #include <thread>
 
+#include "behaviorlib/error_details.h"
+
 namespace behaviorlib::sim {
 
 Simulation::Simulation(SimulationOptions options) : options_(options) {}
@@ -86,8 +88,10 @@ SimTime Simulation::now() const {
 absl::Status Simulation::unknownVehicle(const std::string& robot_id) const {
   std::string known;
   for (const auto& [id, vehicle] : vehicles_) known += (known.empty() ? "" : ", ") + id;
-  return absl::NotFoundError("unknown vehicle '" + robot_id +
-                             "'; the world has: " + (known.empty() ? std::string("none") : known));
+  return errors::withReason(
+      absl::NotFoundError("unknown vehicle '" + robot_id +
+                          "'; the world has: " + (known.empty() ? std::string("none") : known)),
+      v1::UNKNOWN_VEHICLE, {{"robot", robot_id}});
 }
 
 void Simulation::stepLocked() {

@@ -3,6 +3,8 @@
 #include <cmath>
 #include <sstream>
 
+#include "behaviorlib/error_details.h"
+
 namespace behaviorlib::sim {
 namespace {
 
@@ -15,6 +17,13 @@ std::string stateName(v1::FlightState s) {
   std::string name = v1::FlightState_Name(s);
   constexpr std::string_view kPrefix = "FLIGHT_STATE_";
   return name.rfind(kPrefix, 0) == 0 ? name.substr(kPrefix.size()) : name;
+}
+
+// A crashed vehicle takes no lease and no action until a reset.
+absl::Status crashed(const std::string& robot_id) {
+  return errors::withReason(
+      absl::FailedPreconditionError(robot_id + " has crashed; reset the simulation"),
+      v1::SAFETY_REFUSED, {{"robot", robot_id}});
 }
 
 std::string seconds(SimDuration d) {
@@ -134,15 +143,19 @@ void VehiclePlatform::update(SimTime now, const VehicleSnapshot& vehicle) {
 
 absl::Status VehiclePlatform::checkLease(const std::string& lease_id, SimTime now) const {
   if (lease_id.empty()) {
-    return absl::FailedPreconditionError("no lease_id given: call AcquireLease for " + robot_id_ +
-                                         " first");
+    return errors::withReason(
+        absl::FailedPreconditionError("no lease_id given: call AcquireLease for " + robot_id_ +
+                                      " first"),
+        v1::LEASE_INVALID, {{"robot", robot_id_}});
   }
   if (lease_id != lease_id_ || now >= lease_expiry_) {
-    return absl::FailedPreconditionError(
-        "lease " + lease_id + " does not command " + robot_id_ + " (" +
-        (lease_id_.empty() ? std::string("no live lease; it expired or was released")
-                           : "commanded by '" + lease_holder_ + "'") +
-        "); acquire the lease again");
+    return errors::withReason(
+        absl::FailedPreconditionError(
+            "lease " + lease_id + " does not command " + robot_id_ + " (" +
+            (lease_id_.empty() ? std::string("no live lease; it expired or was released")
+                               : "commanded by '" + lease_holder_ + "'") +
+            "); acquire the lease again"),
+        v1::LEASE_INVALID, {{"robot", robot_id_}});
   }
   return absl::OkStatus();
 }
@@ -155,13 +168,13 @@ absl::StatusOr<v1::AcquireLeaseResponse> VehiclePlatform::acquireLease(const std
   if (ttl < std::chrono::milliseconds(50) || ttl > std::chrono::seconds(10)) {
     return absl::InvalidArgumentError("ttl must be within [0.05 s, 10 s], got " + seconds(ttl));
   }
-  if (state_ == v1::FLIGHT_STATE_CRASHED) {
-    return absl::FailedPreconditionError(robot_id_ + " has crashed; reset the simulation");
-  }
+  if (state_ == v1::FLIGHT_STATE_CRASHED) return crashed(robot_id_);
   if (!lease_id_.empty() && now < lease_expiry_ && holder != lease_holder_ && !preempt) {
-    return absl::FailedPreconditionError(robot_id_ + " is commanded by '" + lease_holder_ +
-                                         "' (lease expires in " + seconds(lease_expiry_ - now) +
-                                         " unless renewed); set preempt to take over");
+    return errors::withReason(
+        absl::FailedPreconditionError(robot_id_ + " is commanded by '" + lease_holder_ +
+                                      "' (lease expires in " + seconds(lease_expiry_ - now) +
+                                      " unless renewed); set preempt to take over"),
+        v1::LEASE_HELD, {{"robot", robot_id_}});
   }
   lease_id_ = robot_id_ + "-lease-" + std::to_string(++lease_counter_);
   lease_holder_ = holder;
@@ -198,13 +211,13 @@ absl::StatusOr<v1::FlightState> VehiclePlatform::executeAction(v1::FlightAction 
                                                                const std::string& lease_id,
                                                                double altitude_m, bool confirm,
                                                                SimTime now) {
-  if (state_ == v1::FLIGHT_STATE_CRASHED) {
-    return absl::FailedPreconditionError(robot_id_ + " has crashed; reset the simulation");
-  }
+  if (state_ == v1::FLIGHT_STATE_CRASHED) return crashed(robot_id_);
   switch (action) {
     case v1::FLIGHT_ACTION_KILL:
       if (!confirm) {
-        return absl::InvalidArgumentError("KILL stops the motors in flight; set confirm = true");
+        return errors::withReason(
+            absl::InvalidArgumentError("KILL stops the motors in flight; set confirm = true"),
+            v1::CONFIRMATION_REQUIRED, {{"robot", robot_id_}});
       }
       command_ = PlatformCommand();  // motors off
       state_ = vehicle_.on_ground ? v1::FLIGHT_STATE_LANDED : v1::FLIGHT_STATE_EMERGENCY;

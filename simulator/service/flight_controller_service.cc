@@ -2,6 +2,7 @@
 
 #include <google/protobuf/util/time_util.h>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
@@ -96,7 +97,8 @@ void FlightControllerService::shutdown() {
   std::lock_guard lock(watchers_mutex_);
   shutting_down_ = true;
   for (auto* watcher : watchers_) {
-    watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));
+    watcher->end(errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                                   "the simulator is shutting down"));
   }
 }
 
@@ -116,9 +118,11 @@ grpc::ServerUnaryReactor* FlightControllerService::AcquireLease(
         caller->roles.count(server::Role::kSystem) == 0 &&
         caller->roles.count(server::Role::kAdmin) == 0) {
       auto* reactor = context->DefaultReactor();
-      reactor->Finish(grpc::Status(grpc::StatusCode::PERMISSION_DENIED,
-                                   "a preempting AcquireLease needs the role safety or system; '" +
-                                       caller->identity + "' has neither"));
+      reactor->Finish(
+          errors::grpcError(grpc::StatusCode::PERMISSION_DENIED, v1::ROLE_REQUIRED,
+                            "a preempting AcquireLease needs the role safety or system; '" +
+                                caller->identity + "' has neither",
+                            {{"role", "safety,system"}, {"identity", caller->identity}}));
       return reactor;
     }
   }
@@ -200,7 +204,8 @@ grpc::ServerWriteReactor<v1::WatchFlightStateResponse>* FlightControllerService:
       request->robot_id(), [&](VehiclePlatform& p, SimTime now) -> grpc::Status {
         std::lock_guard lock(watchers_mutex_);
         if (shutting_down_) {
-          return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down");
+          return errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                                   "the simulator is shutting down");
         }
         // Battery as of the last step; the rest from the platform now.
         auto cached = last_status_.find(request->robot_id());

@@ -4,6 +4,7 @@
 
 #include <cmath>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
 #include "simulator/service/messages.h"
@@ -18,6 +19,25 @@ grpc::ServerUnaryReactor* finish(grpc::CallbackServerContext* context, const grp
   auto* reactor = context->DefaultReactor();
   reactor->Finish(s);
   return reactor;
+}
+
+// INVALID_ARGUMENT naming the faulty request field.
+grpc::Status invalidField(const std::string& field, const std::string& message) {
+  return errors::toGrpc(errors::withFieldViolation(
+      errors::withReason(absl::InvalidArgumentError(message), v1::INVALID_REQUEST), field,
+      message));
+}
+
+grpc::Status shuttingDown() {
+  return errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                           "the simulator is shutting down");
+}
+
+// For what the simulator does not do in its current mode, or was started
+// without: no reason is finer than FAILED_PRECONDITION.
+grpc::Status notNow(std::string message) {
+  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
+                           std::move(message));
 }
 
 }  // namespace
@@ -66,7 +86,7 @@ void SimulatorService::shutdown() {
   std::lock_guard lock(watchers_mutex_);
   shutting_down_ = true;
   for (auto& [watcher, watch] : watchers_) {
-    watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));
+    watcher->end(shuttingDown());
   }
 }
 
@@ -88,8 +108,7 @@ grpc::ServerUnaryReactor* SimulatorService::Reset(grpc::CallbackServerContext* c
           loadWorldInto(worlds_, world, seed,
                         same ? WorldSource::kConfiguration : WorldSource::kRequest, simulation_);
       !s.ok()) {
-    return finish(context,
-                  grpc::Status(static_cast<grpc::StatusCode>(s.code()), std::string(s.message())));
+    return finish(context, server::toGrpc(s));
   }
   for (const auto& id : simulation_.robotIds()) response->add_robot_ids(id);
   *response->mutable_time() = TimeUtil::NanosecondsToTimestamp(simulation_.now().count());
@@ -100,16 +119,15 @@ grpc::ServerUnaryReactor* SimulatorService::SetTimeScale(grpc::CallbackServerCon
                                                          const v1::SetTimeScaleRequest* request,
                                                          v1::SetTimeScaleResponse* response) {
   if (time_.deterministic.load()) {
-    return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                                        "the simulator runs in deterministic mode (--time-scale "
-                                        "max): time advances under its followers' grants"));
+    return finish(context, notNow("the simulator runs in deterministic mode (--time-scale "
+                                  "max): time advances under its followers' grants"));
   }
   if (!request->lock_step()) {
     const double scale = request->time_scale();
     if (!std::isfinite(scale) || scale < 0.1 || scale > 1000.0) {
-      return finish(context, grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                          "time_scale must be within [0.1, 1000], got " +
-                                              std::to_string(scale)));
+      return finish(context,
+                    invalidField("time_scale", "time_scale must be within [0.1, 1000], got " +
+                                                   std::to_string(scale)));
     }
     time_.time_scale.store(scale);
   }
@@ -123,19 +141,16 @@ grpc::ServerUnaryReactor* SimulatorService::Step(grpc::CallbackServerContext* co
                                                  const v1::StepRequest* request,
                                                  v1::StepResponse* response) {
   if (time_.deterministic.load()) {
-    return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                                        "the simulator steps itself in deterministic mode "
-                                        "(--time-scale max)"));
+    return finish(context, notNow("the simulator steps itself in deterministic mode "
+                                  "(--time-scale max)"));
   }
   if (!time_.lock_step.load()) {
-    return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                                        "Step needs lock-step mode: call SetTimeScale with "
-                                        "lock_step = true first"));
+    return finish(context, notNow("Step needs lock-step mode: call SetTimeScale with "
+                                  "lock_step = true first"));
   }
   const int64_t ns = TimeUtil::DurationToNanoseconds(request->duration());
   if (ns <= 0 || ns > int64_t{3600} * 1000000000) {
-    return finish(context, grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                                        "duration must be within (0, 3600 s]"));
+    return finish(context, invalidField("duration", "duration must be within (0, 3600 s]"));
   }
   simulation_.advance(std::chrono::nanoseconds(ns));
   *response->mutable_time() = TimeUtil::NanosecondsToTimestamp(simulation_.now().count());
@@ -150,8 +165,7 @@ SimulatorService::FollowTime(grpc::CallbackServerContext* context) {
             grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>> {
    public:
     Refused() {
-      Finish(grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                          "FollowTime needs the deterministic mode (simulator --time-scale max)"));
+      Finish(notNow("FollowTime needs the deterministic mode (simulator --time-scale max)"));
     }
     void OnDone() override {
       ordered();
@@ -166,9 +180,8 @@ grpc::ServerUnaryReactor* SimulatorService::InjectFailure(grpc::CallbackServerCo
                                                           const v1::InjectFailureRequest* request,
                                                           v1::InjectFailureResponse* /*response*/) {
   if (faults_ == nullptr) {
-    return finish(context, grpc::Status(grpc::StatusCode::FAILED_PRECONDITION,
-                                        "fault injection is disabled; start the simulator with "
-                                        "--enable-fault-injection"));
+    return finish(context, notNow("fault injection is disabled; start the simulator with "
+                                  "--enable-fault-injection"));
   }
   // Under the worlds' mutex: never half-way through a Reset.
   std::lock_guard lock(worlds_.mutex);
@@ -181,13 +194,15 @@ grpc::ServerWriteReactor<v1::WatchStateResponse>* SimulatorService::WatchState(
   const std::string key = request->robot_ids_size() == 1 ? request->robot_ids(0) : "";
   auto* watcher = new StateWatcher(key, [this](StateWatcher* w) { removeWatcher(w); });
   if (request->robot_ids_size() > 1) {
-    watcher->end(grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                              "name one robot id, or none for all vehicles"));
+    watcher->end(invalidField("robot_ids", "name one robot id, or none for all vehicles"));
     return watcher;
   }
   if (!key.empty()) {
     if (auto s = simulation_.vehicleState(key); !s.ok()) {
-      watcher->end(grpc::Status(grpc::StatusCode::NOT_FOUND, std::string(s.status().message())));
+      watcher->end(errors::toGrpc(
+          errors::withDefaultReason(errors::rewrap(s.status(), absl::StatusCode::kNotFound,
+                                                   std::string(s.status().message())),
+                                    v1::UNKNOWN_VEHICLE, {{"robot", key}})));
       return watcher;
     }
   }
@@ -202,7 +217,7 @@ grpc::ServerWriteReactor<v1::WatchStateResponse>* SimulatorService::WatchState(
   });
   std::lock_guard lock(watchers_mutex_);
   if (shutting_down_) {
-    watcher->end(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is shutting down"));
+    watcher->end(shuttingDown());
     return watcher;
   }
   watchers_[watcher] = Watch{1.0 / rate};

@@ -6,6 +6,7 @@
 #include <cstdio>
 #include <map>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 
 namespace behaviorlib::sim {
@@ -158,7 +159,8 @@ grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* TimeGran
     refuse = shutting_down_;
   }
   if (refuse) {
-    follower->finish(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is stopping"));
+    follower->finish(errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                                       "the simulator is stopping"));
   } else {
     follower->start();
   }
@@ -261,7 +263,8 @@ void TimeGrants::shutdown() {
     std::lock_guard lock(mutex_);
     shutting_down_ = true;
     for (Follower* follower : followers_) {
-      follower->finish(grpc::Status(grpc::StatusCode::UNAVAILABLE, "the simulator is stopping"));
+      follower->finish(errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                                         "the simulator is stopping"));
     }
   }
   cv_.notify_all();

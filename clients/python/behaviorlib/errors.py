@@ -10,6 +10,7 @@ them, the google.rpc.Status details (`reason`, `metadata`,
 """
 
 import grpc
+from google.rpc import error_details_pb2, status_pb2  # generated at install (setup.py)
 
 # The trailing metadata key under which gRPC servers send a serialized
 # google.rpc.Status with details.
@@ -100,16 +101,12 @@ def error_class(code):
 def _details(trailing_metadata):
     """The google.rpc.Status details of a reply's trailing metadata:
     (reason, metadata, field_violations, details). Empty when the server sent
-    none or when the google.rpc messages are not available."""
+    none (gRPC's own errors: deadlines, unreachable peers)."""
     raw = None
     for key, value in trailing_metadata or ():
         if key == STATUS_DETAILS_KEY:
             raw = value
     if raw is None:
-        return "", {}, [], []
-    try:
-        from google.rpc import error_details_pb2, status_pb2  # noqa: PLC0415
-    except ImportError:
         return "", {}, [], []
     status = status_pb2.Status()
     status.ParseFromString(raw)

@@ -65,8 +65,10 @@ def test_the_sync_block_flies_and_runs_the_demo_mission(coordinator):
     lines = out.splitlines()
     assert lines[0].startswith("GOAL_ACHIEVED at 1.")
     assert lines[1].startswith("StatusCode.FAILED_PRECONDITION") and "LANDED" in lines[1]
-    assert lines[2] == "GOAL_ACHIEVED"
-    assert lines[3] == ("SUCCEEDED ['WAIT', 'TAKE_OFF', 'FOLLOW_PATH', "
+    assert lines[2] == "SITUATION_NOT_SUITABLE SITUATION_REASON_FLIGHT_STATE", lines[2]
+    assert lines[3] == "PARAMETER_OUT_OF_RANGE parameters.duration_s", lines[3]
+    assert lines[4] == "GOAL_ACHIEVED"
+    assert lines[5] == ("SUCCEEDED ['WAIT', 'TAKE_OFF', 'FOLLOW_PATH', "
                         "'ROTATE_WITH_PID_CONTROL', 'LAND']")
 
 

@@ -8,6 +8,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/parameters.h"
 #include "behaviorlib/v1/options.pb.h"
 
@@ -44,6 +45,33 @@ std::string joinReasons(const std::vector<std::string>& reasons) {
   return out.empty() ? "no reason given" : out;
 }
 
+// The situation's codes, comma-separated (ErrorInfo metadata).
+std::string codeNames(const Situation& situation) {
+  std::string out;
+  for (size_t i = 0; i < situation.reasons.size(); ++i) {
+    if (!out.empty()) out += ",";
+    out += v1::SituationReason_Name(situation.code(i));
+  }
+  return out;
+}
+
+// A parameter refusal of params:: (its field violations name the parameter
+// inside the message): a reason, the behavior, and the request's field path.
+absl::Status parameterError(absl::Status status, const std::string& behavior) {
+  status = errors::prefixFieldViolations(std::move(status), "parameters.");
+  return errors::withDefaultReason(std::move(status), v1::PARAMETER_INVALID,
+                                   {{"behavior", behavior}});
+}
+
+// Every reason of `situation`, with its code, into a response or event.
+template <class Message>
+void addReasons(const Situation& situation, Message* out) {
+  for (size_t i = 0; i < situation.reasons.size(); ++i) {
+    out->add_reasons(situation.reasons[i]);
+    out->add_reason_codes(situation.code(i));
+  }
+}
+
 template <class T>
 absl::StatusOr<T> waitFor(const std::function<void(Done<T>)>& start,
                           std::chrono::milliseconds timeout) {
@@ -51,7 +79,9 @@ absl::StatusOr<T> waitFor(const std::function<void(Done<T>)>& start,
   auto future = promise->get_future();
   start([promise](absl::StatusOr<T> result) { promise->set_value(std::move(result)); });
   if (future.wait_for(timeout) != std::future_status::ready) {
-    return absl::DeadlineExceededError("the behavior did not answer in time (blocked user code?)");
+    return errors::withReason(
+        absl::DeadlineExceededError("the behavior did not answer in time (blocked user code?)"),
+        v1::BEHAVIOR_UNRESPONSIVE);
   }
   return future.get();
 }
@@ -297,7 +327,10 @@ void BehaviorExecutionManager::deliver(const std::shared_ptr<detail::Inbox>& inb
 template <class T>
 std::function<void()> BehaviorExecutionManager::cancelWith(const Done<T>& done,
                                                            const std::string& name) {
-  return [done, name] { done(absl::UnavailableError(name + " is shutting down")); };
+  return [done, name] {
+    done(errors::withReason(absl::UnavailableError(name + " is shutting down"), v1::SHUTTING_DOWN,
+                            {{"behavior", name}}));
+  };
 }
 
 void BehaviorExecutionManager::run() {
@@ -503,15 +536,16 @@ void BehaviorExecutionManager::execute() {
   }
   if (std::abs(situation.performance_ratio - reported_performance_) >=
           options_.situation_report_threshold ||
-      situation.reasons != reported_reasons_) {
+      situation.reasons != reported_reasons_ || situation.codes != reported_codes_) {
     std::lock_guard lock(mutex_);
     reported_performance_ = situation.performance_ratio;
     reported_reasons_ = situation.reasons;
+    reported_codes_ = situation.codes;
     v1::BehaviorEvent event = newEventLocked();
     auto* changed = event.mutable_situation_changed();
     changed->set_feasible(true);
     changed->set_performance_ratio(situation.performance_ratio);
-    for (const auto& r : situation.reasons) changed->add_reasons(r);
+    addReasons(situation, changed);
     context_.events->append(std::move(event));
     if (context_.observer) context_.observer->onSituation(situation.performance_ratio);
   }
@@ -578,13 +612,19 @@ absl::Status BehaviorExecutionManager::checkActivationIdLocked(const std::string
                                                                const char* verb) const {
   const bool running = state_ == State::kActive || state_ == State::kPaused;
   if (!activation_id.empty() && (!running || activation_id != activation_id_)) {
-    return absl::AbortedError("cannot " + std::string(verb) + " activation " + activation_id +
-                              " of " + name_ + ": it is not the current activation (current: " +
-                              (running ? activation_id_ : std::string("none")) + ")");
+    const std::string current = running ? activation_id_ : std::string("none");
+    return errors::withReason(
+        absl::AbortedError("cannot " + std::string(verb) + " activation " + activation_id + " of " +
+                           name_ + ": it is not the current activation (current: " + current + ")"),
+        v1::ACTIVATION_MISMATCH,
+        {{"behavior", name_},
+         {"activation_id", activation_id},
+         {"current_activation_id", current}});
   }
   if (!running) {
-    return absl::FailedPreconditionError("cannot " + std::string(verb) + " " + name_ +
-                                         ": it is not active");
+    return errors::withReason(absl::FailedPreconditionError("cannot " + std::string(verb) + " " +
+                                                            name_ + ": it is not active"),
+                              v1::BEHAVIOR_NOT_ACTIVE, {{"behavior", name_}});
   }
   return absl::OkStatus();
 }
@@ -598,10 +638,11 @@ bool BehaviorExecutionManager::refuseWhileBlocked(const std::function<void(absl:
     std::lock_guard lock(mutex_);
     if (state_ != State::kBlocked) return false;
   }
-  reply(absl::FailedPreconditionError(
-      name_ +
-      " is blocked: user code of its previous activation has not returned yet (stopped "
-      "by the watchdog); try again later"));
+  reply(errors::withReason(
+      absl::FailedPreconditionError(
+          name_ + " is blocked: user code of its previous activation has not returned yet (stopped "
+                  "by the watchdog); try again later"),
+      v1::BEHAVIOR_BLOCKED, {{"behavior", name_}}));
   return true;
 }
 
@@ -609,12 +650,13 @@ void BehaviorExecutionManager::activate(std::unique_ptr<google::protobuf::Messag
                                         std::string request_id, Done<v1::ActivateResponse> done,
                                         SteadyTime received) {
   if (!parameters || parameters->GetDescriptor() != parameters_type_) {
-    done(absl::InvalidArgumentError(name_ + " takes parameters of type " +
-                                    parameters_type_->full_name()));
+    done(errors::withReason(absl::InvalidArgumentError(name_ + " takes parameters of type " +
+                                                       parameters_type_->full_name()),
+                            v1::INVALID_REQUEST, {{"behavior", name_}}));
     return;
   }
   if (absl::Status s = params::applyDefaultsAndValidate(parameters.get()); !s.ok()) {
-    done(s);
+    done(parameterError(std::move(s), name_));
     return;
   }
   if (refuseWhileBlocked([&](absl::Status s) { done(s); })) return;
@@ -646,21 +688,26 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
       }
     }
     if (state_ == State::kBlocked) {
-      return absl::FailedPreconditionError(
-          name_ +
-          " is blocked: user code of its previous activation has not returned yet "
-          "(stopped by the watchdog); try again later");
+      return errors::withReason(
+          absl::FailedPreconditionError(
+              name_ + " is blocked: user code of its previous activation has not returned yet "
+                      "(stopped by the watchdog); try again later"),
+          v1::BEHAVIOR_BLOCKED, {{"behavior", name_}});
     }
     if (state_ != State::kInactive) {
-      return absl::FailedPreconditionError(name_ + " is already active (activation " +
-                                           activation_id_ +
-                                           "); deactivate it first, or use Modify to change its "
-                                           "parameters");
+      return errors::withReason(
+          absl::FailedPreconditionError(name_ + " is already active (activation " + activation_id_ +
+                                        "); deactivate it first, or use Modify to change its "
+                                        "parameters"),
+          v1::BEHAVIOR_ALREADY_ACTIVE,
+          {{"behavior", name_}, {"current_activation_id", activation_id_}});
     }
     if (!context_.clock->valid()) {
-      return absl::FailedPreconditionError(
-          "the behavior clock has no time yet; is the simulator publishing on the 'clock' "
-          "topic?");
+      return errors::withReason(
+          absl::FailedPreconditionError(
+              "the behavior clock has no time yet; is the simulator publishing on the 'clock' "
+              "topic?"),
+          v1::CLOCK_NOT_READY, {{"behavior", name_}});
     }
     return std::nullopt;
   }();
@@ -670,12 +717,17 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
   }
   Situation situation;
   if (!guarded("checkSituation", [&] { situation = checkSituation(); })) {
-    done(absl::FailedPreconditionError(name_ + " cannot be activated: " + failure_message_));
+    done(errors::withReason(
+        absl::FailedPreconditionError(name_ + " cannot be activated: " + failure_message_),
+        v1::BEHAVIOR_FAILED, {{"behavior", name_}}));
     return;
   }
   if (!situation.feasible) {
-    done(absl::FailedPreconditionError(name_ + " cannot be activated in the current situation: " +
-                                       joinReasons(situation.reasons)));
+    done(errors::withReason(
+        absl::FailedPreconditionError(name_ + " cannot be activated in the current situation: " +
+                                      joinReasons(situation.reasons)),
+        v1::SITUATION_NOT_SUITABLE,
+        {{"behavior", name_}, {"situation_reasons", codeNames(situation)}}));
     return;
   }
   const TimePoint now = context_.clock->now();
@@ -715,6 +767,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     activate_received_ = received;
     reported_performance_ = situation.performance_ratio;
     reported_reasons_ = situation.reasons;
+    reported_codes_ = situation.codes;
     response.set_activation_id(activation_id_);
     *response.mutable_activation_time() = toTimestamp(now);
     *response.mutable_parameters() = params::toStruct(*parameters_);
@@ -802,7 +855,8 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
           }
           if (state_ == State::kPaused) {
             lock.unlock();
-            done(absl::FailedPreconditionError(name_ + " is already paused"));
+            done(errors::withReason(absl::FailedPreconditionError(name_ + " is already paused"),
+                                    v1::BEHAVIOR_ALREADY_PAUSED, {{"behavior", name_}}));
             return;
           }
           const TimePoint now = context_.clock->now();
@@ -841,7 +895,8 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
           }
           if (state_ != State::kPaused) {
             lock.unlock();
-            done(absl::FailedPreconditionError(name_ + " is not paused"));
+            done(errors::withReason(absl::FailedPreconditionError(name_ + " is not paused"),
+                                    v1::BEHAVIOR_NOT_PAUSED, {{"behavior", name_}}));
             return;
           }
           current = activation_id_;
@@ -871,8 +926,9 @@ void BehaviorExecutionManager::modify(std::string activation_id,
                                       std::unique_ptr<google::protobuf::Message> update,
                                       Done<v1::ModifyResponse> done) {
   if (!update || update->GetDescriptor() != parameters_type_) {
-    done(absl::InvalidArgumentError(name_ + " takes parameters of type " +
-                                    parameters_type_->full_name()));
+    done(errors::withReason(absl::InvalidArgumentError(name_ + " takes parameters of type " +
+                                                       parameters_type_->full_name()),
+                            v1::INVALID_REQUEST, {{"behavior", name_}}));
     return;
   }
   if (refuseWhileBlocked([&](absl::Status s) { done(s); })) return;
@@ -895,7 +951,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         params::mergeUpdate(*update, merged.get());
         if (absl::Status s = params::applyDefaultsAndValidate(merged.get()); !s.ok()) {
-          done(s);
+          done(parameterError(std::move(s), name_));
           return;
         }
         absl::Status status;
@@ -905,8 +961,8 @@ void BehaviorExecutionManager::modify(std::string activation_id,
           return;
         }
         if (!status.ok()) {
-          done(absl::Status(status.code(), name_ + " refused the new parameters: " +
-                                               std::string(status.message())));
+          done(errors::rewrap(
+              status, name_ + " refused the new parameters: " + std::string(status.message())));
           return;
         }
         v1::ModifyResponse response;
@@ -945,7 +1001,7 @@ void BehaviorExecutionManager::checkSituationNow(Done<v1::CheckSituationResponse
         }
         response.set_feasible(situation.feasible);
         response.set_performance_ratio(situation.performance_ratio);
-        for (const auto& r : situation.reasons) response.add_reasons(r);
+        addReasons(situation, &response);
         done(std::move(response));
       },
       cancelWith(done, name_));

@@ -21,6 +21,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "behaviorlib/documentation.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/v1/options.pb.h"
 
 namespace behaviorlib::params {
@@ -118,8 +119,18 @@ std::string mapKeyPath(const std::string& parent, const FD& key_field, absl::str
   return absl::StrCat(parent, "[", key, "]");
 }
 
-absl::Status paramError(const std::string& path, absl::string_view what) {
-  return absl::InvalidArgumentError(absl::StrCat("parameter '", path, "': ", what));
+// INVALID_ARGUMENT with a machine-readable reason and the parameter's path as
+// a BadRequest field violation (errors.proto).
+absl::Status fieldError(const std::string& path, std::string message,
+                        v1::ErrorReason reason = v1::PARAMETER_INVALID) {
+  absl::Status status = absl::InvalidArgumentError(message);
+  status = errors::withFieldViolation(std::move(status), path, message);
+  return errors::withReason(std::move(status), reason);
+}
+
+absl::Status paramError(const std::string& path, absl::string_view what,
+                        v1::ErrorReason reason = v1::PARAMETER_INVALID) {
+  return fieldError(path, absl::StrCat("parameter '", path, "': ", what), reason);
 }
 
 std::string enumNames(const pb::EnumDescriptor& e) {
@@ -199,8 +210,10 @@ absl::Status checkInteger(double d, const FD& field, const std::string& path) {
       return absl::OkStatus();
   }
   if (d < lo || d > hi) {
-    return paramError(path, absl::StrCat(formatNumber(d), " is out of range for ",
-                                         field.type_name(), " ", bounds));
+    return paramError(
+        path,
+        absl::StrCat(formatNumber(d), " is out of range for ", field.type_name(), " ", bounds),
+        v1::PARAMETER_OUT_OF_RANGE);
   }
   return absl::OkStatus();
 }
@@ -490,22 +503,24 @@ absl::Status parseMessage(const pb::Struct& in, pb::Message* out, const std::str
     if (field == nullptr) {
       std::vector<std::string> known;
       for (int i = 0; i < d.field_count(); ++i) known.push_back(d.field(i)->name());
-      return absl::InvalidArgumentError(absl::StrCat(
-          "unknown parameter '", childPath(path, item->first), "' for ", d.full_name(),
-          "; known parameters: ", known.empty() ? "(none)" : absl::StrJoin(known, ", ")));
+      return fieldError(childPath(path, item->first),
+                        absl::StrCat("unknown parameter '", childPath(path, item->first), "' for ",
+                                     d.full_name(), "; known parameters: ",
+                                     known.empty() ? "(none)" : absl::StrJoin(known, ", ")));
     }
     for (const auto& [other, other_key] : given) {
       if (other == field) {
-        return absl::InvalidArgumentError(
+        return fieldError(
+            childPath(path, field->name()),
             absl::StrCat("parameter '", childPath(path, field->name()), "' is given twice, as '",
                          *other_key, "' and as '", item->first, "'"));
       }
       const pb::OneofDescriptor* oneof = field->real_containing_oneof();
       if (oneof != nullptr && other->real_containing_oneof() == oneof) {
-        return absl::InvalidArgumentError(
-            absl::StrCat("parameters '", childPath(path, other->name()), "' and '",
-                         childPath(path, field->name()), "' are alternatives (oneof ",
-                         oneof->name(), "); set only one"));
+        return fieldError(childPath(path, field->name()),
+                          absl::StrCat("parameters '", childPath(path, other->name()), "' and '",
+                                       childPath(path, field->name()), "' are alternatives (oneof ",
+                                       oneof->name(), "); set only one"));
       }
     }
     given.emplace_back(field, &item->first);
@@ -708,14 +723,16 @@ absl::Status checkNumeric(const pb::Message& m, const FD& field, int index,
   const std::optional<Numeric> n = numericAt(m, field, index);
   if (!n) return absl::OkStatus();
   if (n->floating && !std::isfinite(n->value)) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("parameter '", path, "' = ", n->text, " is not a finite number"));
+    return fieldError(
+        path, absl::StrCat("parameter '", path, "' = ", n->text, " is not a finite number"));
   }
   if (!rule.has_range()) return absl::OkStatus();
   const v1::Range& range = rule.range();
   if ((range.has_min() && n->value < range.min()) || (range.has_max() && n->value > range.max())) {
-    return absl::InvalidArgumentError(
-        absl::StrCat("parameter '", path, "' = ", n->text, " is out of range ", rangeText(range)));
+    return fieldError(
+        path,
+        absl::StrCat("parameter '", path, "' = ", n->text, " is out of range ", rangeText(range)),
+        v1::PARAMETER_OUT_OF_RANGE);
   }
   return absl::OkStatus();
 }
@@ -733,10 +750,10 @@ absl::Status validateField(pb::Message* m, const FD& field, const std::string& p
     if (absl::Status s = applyDefault(rule, field, m, path); !s.ok()) return s;
   }
   if (rule.required() && !isSet(*m, field)) {
-    return absl::InvalidArgumentError(
-        descriptionOf(field, rule).empty()
-            ? absl::StrCat("parameter '", path, "' is required")
-            : absl::StrCat("parameter '", path, "' is required: ", descriptionOf(field, rule)));
+    return fieldError(path, descriptionOf(field, rule).empty()
+                                ? absl::StrCat("parameter '", path, "' is required")
+                                : absl::StrCat("parameter '", path,
+                                               "' is required: ", descriptionOf(field, rule)));
   }
   if (field.is_map()) {
     const FD& key_field = *field.message_type()->map_key();

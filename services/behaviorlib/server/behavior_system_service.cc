@@ -5,6 +5,7 @@
 #include <google/protobuf/util/time_util.h>
 
 #include "behaviorlib/documentation.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/parameters.h"
 #include "behaviorlib/server_kit/log_stream.h"
 #include "behaviorlib/server_kit/pagination.h"
@@ -89,8 +90,10 @@ BehaviorExecutionManager* BehaviorSystemService::lookup(const std::string& name,
   if (auto* behavior = host_.find(name)) return behavior;
   std::string known;
   for (const auto& b : host_.behaviors()) known += (known.empty() ? "" : ", ") + b->name();
-  *status = grpc::Status(grpc::StatusCode::NOT_FOUND,
-                         "unknown behavior '" + name + "'; " + host_.system() + " hosts: " + known);
+  *status = errors::grpcError(
+      grpc::StatusCode::NOT_FOUND, v1::UNKNOWN_BEHAVIOR,
+      "unknown behavior '" + name + "'; " + host_.system() + " hosts: " + known,
+      {{"robot", host_.robotId()}, {"system", host_.system()}, {"behavior", name}});
   return nullptr;
 }
 

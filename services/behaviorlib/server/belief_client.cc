@@ -2,16 +2,18 @@
 
 #include <google/protobuf/util/json_util.h>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/transport_security.h"
 
 namespace behaviorlib::server {
 
 namespace {
 
+// The coordinator's error, reworded, with its details (reason, metadata).
 absl::Status fromGrpc(const grpc::Status& status, const std::string& address,
                       const std::string& what) {
-  return absl::Status(static_cast<absl::StatusCode>(status.error_code()),
-                      what + " at the coordinator " + address + ": " + status.error_message());
+  return errors::rewrap(errors::fromGrpc(status),
+                        what + " at the coordinator " + address + ": " + status.error_message());
 }
 
 }  // namespace

@@ -1,5 +1,6 @@
 #include "behaviorlib/server/lifecycle_calls.h"
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/status.h"
 
 namespace behaviorlib::server {
@@ -20,7 +21,8 @@ Done<T> finishInto(grpc::ServerUnaryReactor* reactor, T* response) {
 }
 
 grpc::Status shuttingDown() {
-  return grpc::Status(grpc::StatusCode::UNAVAILABLE, "the behavior system is shutting down");
+  return errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                           "the behavior system is shutting down");
 }
 
 }  // namespace

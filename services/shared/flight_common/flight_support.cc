@@ -9,6 +9,19 @@
 #include "behaviorlib/platform/flight_controller_client.h"
 
 namespace behaviorlib::flight {
+namespace {
+
+// The code of a failed read of the pose or velocity estimate (Vehicle): none
+// published yet, no data channel configured, or the channel not reachable.
+v1::SituationReason estimateReadCode(const absl::Status& status) {
+  if (status.code() == absl::StatusCode::kNotFound) return v1::SITUATION_REASON_INPUT_MISSING;
+  if (status.code() == absl::StatusCode::kFailedPrecondition) {
+    return v1::SITUATION_REASON_CONFIGURATION;
+  }
+  return v1::SITUATION_REASON_PLATFORM_UNAVAILABLE;
+}
+
+}  // namespace
 
 absl::Status readNumber(const YAML::Node& config, const char* key, double min, double max,
                         double* value) {
@@ -103,19 +116,30 @@ std::optional<std::string> staleness(const std::string& what, const v1::Header& 
   return what + " is " + secondsText(age) + " old (limit " + secondsText(limit) + ")";
 }
 
-std::optional<std::string> missingSensor(channel::ChannelClient& channel,
-                                         const std::string& robot_id,
-                                         const std::vector<SensorNeed>& needs, TimePoint now) {
+void refuseFirst(Situation* situation, v1::SituationReason code, std::string reason) {
+  situation->feasible = false;
+  situation->performance_ratio = 0.0;
+  situation->codes.resize(situation->reasons.size(), v1::SITUATION_REASON_UNSPECIFIED);
+  situation->reasons.insert(situation->reasons.begin(), std::move(reason));
+  situation->codes.insert(situation->codes.begin(), code);
+}
+
+std::optional<SituationProblem> missingSensor(channel::ChannelClient& channel,
+                                              const std::string& robot_id,
+                                              const std::vector<SensorNeed>& needs, TimePoint now) {
   namespace pb = google::protobuf;
   for (const SensorNeed& need : needs) {
     const std::string topic = "robots/" + robot_id + "/" + need.name;
     auto sample = channel.getLatest(topic, kChannelReadTimeout);
     if (!sample.ok()) {
-      return sample.status().code() == absl::StatusCode::kNotFound
-                 ? "no " + need.what + ": nothing on " + topic +
-                       " (is the simulator, or the sensor driver, publishing it?)"
-                 : "cannot read " + topic + " from the channel at " + channel.address() + ": " +
-                       std::string(sample.status().message());
+      if (sample.status().code() == absl::StatusCode::kNotFound) {
+        return SituationProblem{v1::SITUATION_REASON_INPUT_MISSING,
+                                "no " + need.what + ": nothing on " + topic +
+                                    " (is the simulator, or the sensor driver, publishing it?)"};
+      }
+      return SituationProblem{v1::SITUATION_REASON_PLATFORM_UNAVAILABLE,
+                              "cannot read " + topic + " from the channel at " + channel.address() +
+                                  ": " + std::string(sample.status().message())};
     }
     // The sample's own type, found by its type URL, and its header.
     const std::string& url = sample->sample().type_url();
@@ -130,7 +154,7 @@ std::optional<std::string> missingSensor(channel::ChannelClient& channel,
       header.CopyFrom(message->GetReflection()->GetMessage(*message, field));
     }
     if (auto stale = staleness("the latest sample on " + topic, header, now, 2 * need.limit)) {
-      return "no " + need.what + ": " + *stale;
+      return SituationProblem{v1::SITUATION_REASON_INPUT_STALE, "no " + need.what + ": " + *stale};
     }
   }
   return std::nullopt;
@@ -199,20 +223,21 @@ std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimeP
                                                          const FlightSettings& settings,
                                                          bool check_battery, bool need_twist,
                                                          Situation* situation) {
-  auto add = [&](std::string reason) {
+  auto add = [&](v1::SituationReason code, std::string reason) {
     situation->feasible = false;
     situation->performance_ratio = 0.0;
-    situation->reasons.push_back(std::move(reason));
+    situation->add(code, std::move(reason));
   };
   std::optional<v1::FlightStatus> result;
   auto flight = vehicle.flightStatus();
   if (!flight.ok()) {
-    add(std::string(flight.status().message()));
+    add(v1::SITUATION_REASON_PLATFORM_UNAVAILABLE, std::string(flight.status().message()));
   } else {
     result = *flight;
     if (check_battery && flight->battery_ratio() < settings.min_battery_ratio) {
-      add("battery at " + fixed2(flight->battery_ratio()) + ", below the minimum " +
-          fixed2(settings.min_battery_ratio));
+      add(v1::SITUATION_REASON_BATTERY_LOW, "battery at " + fixed2(flight->battery_ratio()) +
+                                                ", below the minimum " +
+                                                fixed2(settings.min_battery_ratio));
     } else if (situation->feasible) {
       situation->performance_ratio = batteryPerformance(
           flight->battery_ratio(), check_battery ? settings.min_battery_ratio : 0.0,
@@ -221,18 +246,20 @@ std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimeP
   }
   auto pose = vehicle.poseEstimate();
   if (!pose.ok()) {
-    add("no pose estimate: " + std::string(pose.status().message()));
+    add(estimateReadCode(pose.status()),
+        "no pose estimate: " + std::string(pose.status().message()));
   } else if (auto stale = staleness("the pose estimate on " + vehicle.poseTopic(), pose->header(),
                                     now, settings.pose_timeout)) {
-    add(*stale + "; is a localization behavior active?");
+    add(v1::SITUATION_REASON_INPUT_STALE, *stale + "; is a localization behavior active?");
   }
   if (need_twist) {
     auto twist = vehicle.twistEstimate();
     if (!twist.ok()) {
-      add("no velocity estimate: " + std::string(twist.status().message()));
+      add(estimateReadCode(twist.status()),
+          "no velocity estimate: " + std::string(twist.status().message()));
     } else if (auto stale = staleness("the velocity estimate", twist->header(), now,
                                       settings.pose_timeout)) {
-      add(*stale + "; is a localization behavior active?");
+      add(v1::SITUATION_REASON_INPUT_STALE, *stale + "; is a localization behavior active?");
     }
   }
   return result;
@@ -241,17 +268,20 @@ std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimeP
 Situation activeFlightSituation(const v1::FlightStatus& status, const VehicleLease* lease,
                                 const FlightSettings& settings, bool check_battery) {
   if (status.state() == v1::FLIGHT_STATE_EMERGENCY || status.state() == v1::FLIGHT_STATE_CRASHED) {
-    return Situation::infeasible("the platform reports " +
-                                 platform::flightStateName(status.state()));
+    return Situation::infeasible(
+        v1::SITUATION_REASON_FLIGHT_STATE,
+        "the platform reports " + platform::flightStateName(status.state()));
   }
   if (lease) {
     if (absl::Status s = lease->status(); s.code() == absl::StatusCode::kFailedPrecondition) {
-      return Situation::infeasible(std::string(s.message()));
+      return Situation::infeasible(v1::SITUATION_REASON_PLATFORM_UNAVAILABLE,
+                                   std::string(s.message()));
     }
   }
   if (check_battery && status.battery_ratio() < settings.min_battery_ratio) {
-    return Situation::infeasible("battery at " + fixed2(status.battery_ratio()) +
-                                 ", below the minimum " + fixed2(settings.min_battery_ratio));
+    return Situation::infeasible(v1::SITUATION_REASON_BATTERY_LOW,
+                                 "battery at " + fixed2(status.battery_ratio()) +
+                                     ", below the minimum " + fixed2(settings.min_battery_ratio));
   }
   return Situation::ok(batteryPerformance(status.battery_ratio(),
                                           check_battery ? settings.min_battery_ratio : 0.0,

@@ -45,10 +45,12 @@ void WindWatch::apply(Situation* situation) const {
   const double factor = performance();
   if (factor >= 1.0) return;
   situation->performance_ratio *= factor;
-  situation->reasons.push_back("wind of about " + fixed2(speedMS()) +
-                               " m/s (estimated from the vehicle's lean; calm_wind_m_s " +
-                               fixed2(calm_wind_m_s_) + ", max_wind_m_s " + fixed2(max_wind_m_s_) +
-                               "): performance x" + fixed2(factor));
+  // Not a refusal but a lowered performance: no code names the weather.
+  situation->add(v1::SITUATION_REASON_UNSPECIFIED,
+                 "wind of about " + fixed2(speedMS()) +
+                     " m/s (estimated from the vehicle's lean; calm_wind_m_s " +
+                     fixed2(calm_wind_m_s_) + ", max_wind_m_s " + fixed2(max_wind_m_s_) +
+                     "): performance x" + fixed2(factor));
 }
 
 }  // namespace behaviorlib::flight

@@ -15,17 +15,15 @@ Situation CommanderSupport::situationBefore(TimePoint now, const std::string& be
   Situation situation;
   auto status = flight::checkFlightPreconditions(vehicle_, now, settings_, true, true, &situation);
   if (!status) return situation;
-  auto refuse = [&](std::string reason) {
-    situation.feasible = false;
-    situation.performance_ratio = 0.0;
-    situation.reasons.insert(situation.reasons.begin(), std::move(reason));
-  };
   if (!flight::flying(status->state())) {
-    refuse(behavior + " needs " + vehicle_.robotId() + " FLYING or HOVERING; it is " +
-           platform::flightStateName(status->state()));
+    flight::refuseFirst(&situation, v1::SITUATION_REASON_FLIGHT_STATE,
+                        behavior + " needs " + vehicle_.robotId() + " FLYING or HOVERING; it is " +
+                            platform::flightStateName(status->state()));
   } else if (!status->lease_holder().empty() && !settings_.preempt_lease) {
-    refuse("the command lease of " + vehicle_.robotId() + " is held by " + status->lease_holder() +
-           ": only one commander at a time (deactivate it first)");
+    flight::refuseFirst(&situation, v1::SITUATION_REASON_PLATFORM_UNAVAILABLE,
+                        "the command lease of " + vehicle_.robotId() + " is held by " +
+                            status->lease_holder() +
+                            ": only one commander at a time (deactivate it first)");
   }
   if (situation.feasible) {
     wind_.observe(*status, vehicle_);
@@ -37,8 +35,9 @@ Situation CommanderSupport::situationBefore(TimePoint now, const std::string& be
 Situation CommanderSupport::situationActive() const {
   Situation situation = flight::activeFlightSituation(status_, nullptr, settings_, true);
   if (situation.feasible && !flight::flying(status_.state())) {
-    return Situation::infeasible("the vehicle is no longer flying: the platform reports " +
-                                 platform::flightStateName(status_.state()));
+    return Situation::infeasible(v1::SITUATION_REASON_FLIGHT_STATE,
+                                 "the vehicle is no longer flying: the platform reports " +
+                                     platform::flightStateName(status_.state()));
   }
   wind_.apply(&situation);
   return situation;

@@ -43,12 +43,9 @@ Situation ReferenceSupport::situationBefore(TimePoint now, const std::string& be
   auto status =
       flight::checkFlightPreconditions(vehicle_, now, settings_.flight, true, true, &situation);
   if (status && !flight::flying(status->state())) {
-    situation.feasible = false;
-    situation.performance_ratio = 0.0;
-    situation.reasons.insert(situation.reasons.begin(),
-                             behavior + " needs " + vehicle_.robotId() +
-                                 " FLYING or HOVERING; it is " +
-                                 platform::flightStateName(status->state()));
+    flight::refuseFirst(&situation, v1::SITUATION_REASON_FLIGHT_STATE,
+                        behavior + " needs " + vehicle_.robotId() + " FLYING or HOVERING; it is " +
+                            platform::flightStateName(status->state()));
   }
   if (status && situation.feasible) {
     wind_.observe(*status, vehicle_);
@@ -60,8 +57,9 @@ Situation ReferenceSupport::situationBefore(TimePoint now, const std::string& be
 Situation ReferenceSupport::situationActive() const {
   Situation situation = flight::activeFlightSituation(status_, nullptr, settings_.flight, true);
   if (situation.feasible && !flight::flying(status_.state())) {
-    return Situation::infeasible("the vehicle is no longer flying: the platform reports " +
-                                 platform::flightStateName(status_.state()));
+    return Situation::infeasible(v1::SITUATION_REASON_FLIGHT_STATE,
+                                 "the vehicle is no longer flying: the platform reports " +
+                                     platform::flightStateName(status_.state()));
   }
   wind_.apply(&situation);
   return situation;

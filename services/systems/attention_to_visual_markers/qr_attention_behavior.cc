@@ -331,6 +331,7 @@ absl::Status QrAttentionBehavior::remember(Locating& state, const MarkerEstimate
 Situation QrAttentionBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) return Situation::ok();
@@ -339,22 +340,30 @@ Situation QrAttentionBehavior::checkSituation() {
   if (!info.ok()) {
     return Situation::infeasible(
         info.status().code() == absl::StatusCode::kNotFound
+            ? v1::SITUATION_REASON_INPUT_MISSING
+            : v1::SITUATION_REASON_PLATFORM_UNAVAILABLE,
+        info.status().code() == absl::StatusCode::kNotFound
             ? "no camera info on " + info_topic + ": has the robot a camera (is it publishing)?"
             : "cannot read " + info_topic + " from the channel at " + channel_->address() + ": " +
                   std::string(info.status().message()));
   }
   v1::CameraInfo camera_info;
   if (!info->sample().UnpackTo(&camera_info)) {
-    return Situation::infeasible(info_topic + " does not carry a CameraInfo");
+    return Situation::infeasible(v1::SITUATION_REASON_INPUT_INVALID,
+                                 info_topic + " does not carry a CameraInfo");
   }
   if (auto model = cameraModel(camera_info); !model.ok()) {
-    return Situation::infeasible("unusable " + info_topic + ": " +
-                                 std::string(model.status().message()));
+    return Situation::infeasible(
+        v1::SITUATION_REASON_INPUT_INVALID,
+        "unusable " + info_topic + ": " + std::string(model.status().message()));
   }
   const std::string pose_topic = flight::poseEstimateTopic(robotId());
   auto pose = channel_->getLatest(pose_topic, flight::kChannelReadTimeout);
   if (!pose.ok()) {
     return Situation::infeasible(
+        pose.status().code() == absl::StatusCode::kNotFound
+            ? v1::SITUATION_REASON_INPUT_MISSING
+            : v1::SITUATION_REASON_PLATFORM_UNAVAILABLE,
         pose.status().code() == absl::StatusCode::kNotFound
             ? "no pose estimate on " + pose_topic +
                   ": activate a self-localization behavior (SELF_LOCALIZE_WITH_GROUND_TRUTH, ...)"
@@ -363,12 +372,14 @@ Situation QrAttentionBehavior::checkSituation() {
   }
   v1::PoseStamped estimate;
   if (!pose->sample().UnpackTo(&estimate)) {
-    return Situation::infeasible(pose_topic + " does not carry a PoseStamped");
+    return Situation::infeasible(v1::SITUATION_REASON_INPUT_INVALID,
+                                 pose_topic + " does not carry a PoseStamped");
   }
   // Before activation the channel read itself takes time: twice the limit.
   if (auto stale = flight::staleness("the pose estimate on " + pose_topic, estimate.header(), now(),
                                      2 * pose_timeout_)) {
-    return Situation::infeasible(*stale + ": is a self-localization behavior active?");
+    return Situation::infeasible(v1::SITUATION_REASON_INPUT_STALE,
+                                 *stale + ": is a self-localization behavior active?");
   }
   return Situation::ok();
 }

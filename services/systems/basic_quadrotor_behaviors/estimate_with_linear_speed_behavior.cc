@@ -200,6 +200,7 @@ absl::Status EstimatePositionWithLinearSpeedBehavior::onModify(
 Situation EstimatePositionWithLinearSpeedBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) {
@@ -210,11 +211,11 @@ Situation EstimatePositionWithLinearSpeedBehavior::checkSituation() {
   const std::string robot = robotId();
   if (auto problem = freshSampleProblem<v1::TwistStamped>(
           *channel_, sensorTopic(robot, "linear_speed"), t, 2 * speed_timeout_)) {
-    return Situation::infeasible(*problem);
+    return Situation::infeasible(problem->code, problem->reason);
   }
   if (auto problem =
           freshSampleProblem<v1::Imu>(*channel_, sensorTopic(robot, "imu"), t, 2 * imu_timeout_)) {
-    return Situation::infeasible(*problem);
+    return Situation::infeasible(problem->code, problem->reason);
   }
   return Situation::ok();
 }

@@ -165,6 +165,7 @@ absl::Status EstimatePositionWithSensorBehavior::onModify(
 Situation EstimatePositionWithSensorBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) return Situation::ok();
@@ -175,18 +176,18 @@ Situation EstimatePositionWithSensorBehavior::checkSituation() {
   // takes time.
   if (auto problem =
           freshSampleProblem<v1::Imu>(*channel_, sensorTopic(robot, "imu"), t, 2 * imu_timeout_)) {
-    return Situation::infeasible(*problem);
+    return Situation::infeasible(problem->code, problem->reason);
   }
   if (auto problem = freshSampleProblem<v1::PositionFix>(*channel_, sensorTopic(robot, "gps"), t,
                                                          2 * gps_timeout_)) {
-    return Situation::infeasible(*problem);
+    return Situation::infeasible(problem->code, problem->reason);
   }
   if (auto problem = freshSampleProblem<v1::Altitude>(*channel_, sensorTopic(robot, "baro"), t,
                                                       2 * baro_timeout_)) {
     Situation situation = Situation::ok(0.5);
-    situation.reasons.push_back(*problem +
-                                " (activate with use_barometer: false to take the height from "
-                                "the position fix alone)");
+    situation.add(problem->code, problem->reason +
+                                     " (activate with use_barometer: false to take the height "
+                                     "from the position fix alone)");
     return situation;
   }
   return Situation::ok();

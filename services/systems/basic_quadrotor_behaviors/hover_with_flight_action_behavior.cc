@@ -60,12 +60,10 @@ Situation HoverWithFlightActionControlBehavior::checkSituation() {
       flight::checkFlightPreconditions(vehicle_, now(), settings_, true, false, &situation);
   if (status && status->state() != v1::FLIGHT_STATE_FLYING &&
       status->state() != v1::FLIGHT_STATE_HOVERING) {
-    situation.feasible = false;
-    situation.performance_ratio = 0.0;
-    situation.reasons.insert(situation.reasons.begin(),
-                             "HOVER_WITH_FLIGHT_ACTION_CONTROL needs " + robotId() +
-                                 " FLYING or HOVERING; it is " +
-                                 platform::flightStateName(status->state()));
+    flight::refuseFirst(&situation, v1::SITUATION_REASON_FLIGHT_STATE,
+                        "HOVER_WITH_FLIGHT_ACTION_CONTROL needs " + robotId() +
+                            " FLYING or HOVERING; it is " +
+                            platform::flightStateName(status->state()));
   }
   if (status && situation.feasible) {
     wind_.observe(*status, vehicle_);

@@ -73,11 +73,9 @@ Situation LandBehavior::checkSituation() {
   auto status =
       flight::checkFlightPreconditions(vehicle_, now(), settings_, false, false, &situation);
   if (status && !flight::airborne(status->state())) {
-    situation.feasible = false;
-    situation.performance_ratio = 0.0;
-    situation.reasons.insert(situation.reasons.begin(),
-                             "LAND needs " + robotId() + " in the air; it is " +
-                                 platform::flightStateName(status->state()));
+    flight::refuseFirst(&situation, v1::SITUATION_REASON_FLIGHT_STATE,
+                        "LAND needs " + robotId() + " in the air; it is " +
+                            platform::flightStateName(status->state()));
   }
   if (status && situation.feasible) {
     wind_.observe(*status, vehicle_);

@@ -95,6 +95,7 @@ void SelfLocalizeWithGroundTruthBehavior::onResume() { publishing_ = true; }
 Situation SelfLocalizeWithGroundTruthBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) return Situation::ok();
@@ -102,6 +103,9 @@ Situation SelfLocalizeWithGroundTruthBehavior::checkSituation() {
   auto sample = channel_->getLatest(topic, flight::kChannelReadTimeout);
   if (!sample.ok()) {
     return Situation::infeasible(sample.status().code() == absl::StatusCode::kNotFound
+                                     ? v1::SITUATION_REASON_INPUT_MISSING
+                                     : v1::SITUATION_REASON_PLATFORM_UNAVAILABLE,
+                                 sample.status().code() == absl::StatusCode::kNotFound
                                      ? "no ground truth on " + topic +
                                            ": is the simulator running with --channel and a "
                                            "vehicle " +
@@ -112,11 +116,13 @@ Situation SelfLocalizeWithGroundTruthBehavior::checkSituation() {
   }
   v1::PoseStamped pose;
   if (!sample->sample().UnpackTo(&pose)) {
-    return Situation::infeasible(topic + " does not carry behaviorlib.v1.PoseStamped");
+    return Situation::infeasible(v1::SITUATION_REASON_INPUT_INVALID,
+                                 topic + " does not carry behaviorlib.v1.PoseStamped");
   }
   if (auto stale =
           flight::staleness("the ground truth on " + topic, pose.header(), now(), timeout_)) {
-    return Situation::infeasible(*stale + "; is the simulator running?");
+    return Situation::infeasible(v1::SITUATION_REASON_INPUT_STALE,
+                                 *stale + "; is the simulator running?");
   }
   return Situation::ok();
 }

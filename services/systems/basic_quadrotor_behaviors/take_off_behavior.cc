@@ -169,11 +169,9 @@ Situation TakeOffBehavior::checkSituation() {
   auto status =
       flight::checkFlightPreconditions(vehicle_, now(), settings_, true, true, &situation);
   if (status && status->state() != v1::FLIGHT_STATE_LANDED) {
-    situation.feasible = false;
-    situation.performance_ratio = 0.0;
-    situation.reasons.insert(situation.reasons.begin(),
-                             "TAKE_OFF needs " + robotId() + " LANDED; it is " +
-                                 platform::flightStateName(status->state()));
+    flight::refuseFirst(&situation, v1::SITUATION_REASON_FLIGHT_STATE,
+                        "TAKE_OFF needs " + robotId() + " LANDED; it is " +
+                            platform::flightStateName(status->state()));
   }
   return situation;
 }

@@ -176,13 +176,14 @@ absl::Status EkfSelfLocalizationBehavior::onModify(
 Situation EkfSelfLocalizationBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) return Situation::ok();
   if (auto missing = flight::missingSensor(
           *channel_, robotId(), {{"imu", imu_timeout_, "IMU"}, {"gps", gps_timeout_, "GPS"}},
           now())) {
-    return Situation::infeasible(*missing);
+    return Situation::infeasible(missing->code, missing->reason);
   }
   return Situation::ok();
 }

@@ -60,6 +60,7 @@ absl::Status ExploreBehavior::onConfigure(const YAML::Node& config) {
 Situation ExploreBehavior::checkSituation() {
   if (!mapper_.channel()) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   Situation s =
@@ -70,8 +71,8 @@ Situation ExploreBehavior::checkSituation() {
     if (empty) {
       s.feasible = false;
       s.performance_ratio = 0;
-      s.reasons.push_back("the map is empty: no lidar scan on " + mapper_.scanTopic() +
-                          " has been mapped yet");
+      s.add(v1::SITUATION_REASON_MAP_UNAVAILABLE,
+            "the map is empty: no lidar scan on " + mapper_.scanTopic() + " has been mapped yet");
     }
   }
   return s;

@@ -75,33 +75,40 @@ std::string GeneratePathBehavior::beliefKey() const {
   return parameters().belief_key().empty() ? robotId() + "/path" : parameters().belief_key();
 }
 
-std::optional<std::string> GeneratePathBehavior::poseProblem() const {
+std::optional<flight::SituationProblem> GeneratePathBehavior::poseProblem() const {
   const std::optional<v1::PoseStamped> pose = mapper_.latestPose();
   if (!pose) {
-    return "no pose estimate on " + mapper_.poseTopic() +
-           ": activate a self-localization behavior (SELF_LOCALIZE_WITH_GROUND_TRUTH, ...)";
+    return flight::SituationProblem{
+        v1::SITUATION_REASON_INPUT_MISSING,
+        "no pose estimate on " + mapper_.poseTopic() +
+            ": activate a self-localization behavior (SELF_LOCALIZE_WITH_GROUND_TRUTH, ...)"};
   }
-  return flight::staleness("the pose estimate on " + mapper_.poseTopic(), pose->header(), now(),
-                           pose_timeout_);
+  if (auto stale = flight::staleness("the pose estimate on " + mapper_.poseTopic(), pose->header(),
+                                     now(), pose_timeout_)) {
+    return flight::SituationProblem{v1::SITUATION_REASON_INPUT_STALE, *stale};
+  }
+  return std::nullopt;
 }
 
 Situation GeneratePathBehavior::checkSituation() {
   if (!mapper_.channel()) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (activationId().empty()) {
-    if (auto problem = poseProblem()) return Situation::infeasible(*problem);
+    if (auto problem = poseProblem()) return Situation::infeasible(problem->code, problem->reason);
     const bool empty =
         mapper_.withMap([](const OccupancyMap& map) { return map.tree().size() == 0; });
     if (empty) {
       const MapperStats stats = mapper_.stats();
       return Situation::infeasible(
+          v1::SITUATION_REASON_MAP_UNAVAILABLE,
           "the map is empty: no lidar scan on " + mapper_.scanTopic() +
-          " has been mapped yet (is the simulator's lidar publishing?): " +
-          std::to_string(stats.scans_received) + " scans received, " +
-          std::to_string(stats.scans_without_pose) + " without a pose estimate within " +
-          "pose_match_s of their stamp, " + std::to_string(stats.scans_dropped) + " dropped");
+              " has been mapped yet (is the simulator's lidar publishing?): " +
+              std::to_string(stats.scans_received) + " scans received, " +
+              std::to_string(stats.scans_without_pose) + " without a pose estimate within " +
+              "pose_match_s of their stamp, " + std::to_string(stats.scans_dropped) + " dropped");
     }
   }
   return Situation::ok();
@@ -371,7 +378,7 @@ absl::Status GeneratePathBehavior::onModify(const google::protobuf::Message& new
 }
 
 Verdict GeneratePathBehavior::checkProcesses() {
-  if (auto problem = poseProblem()) return Verdict::finish(*problem);
+  if (auto problem = poseProblem()) return Verdict::finish(problem->reason);
   if (result_.outcome == Outcome::kOutputFailed) return Verdict::finish(result_.message);
   return Verdict::keepGoing();
 }

@@ -253,6 +253,7 @@ absl::Status SlamBehavior::onModify(const google::protobuf::Message& new_paramet
 Situation SlamBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) return Situation::ok();
@@ -262,7 +263,7 @@ Situation SlamBehavior::checkSituation() {
                                  {"linear_speed", imu_timeout_ * 4, "body speed (optical flow)"},
                                  {"lidar/scan", lidar_timeout_, "lidar"}},
                                 now())) {
-    return Situation::infeasible(*missing);
+    return Situation::infeasible(missing->code, missing->reason);
   }
   return Situation::ok();
 }

@@ -83,6 +83,7 @@ void InformOperatorBehavior::onExecute() {
 Situation InformOperatorBehavior::checkSituation() {
   if (!beliefs_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_PEER_UNAVAILABLE,
         "no coordinator to hold the operator's messages: start the behavior system with "
         "--coordinator HOST:PORT");
   }

@@ -114,6 +114,7 @@ absl::Status RequestOperatorAssistanceBehavior::onModify(
 Situation RequestOperatorAssistanceBehavior::checkSituation() {
   if (!beliefs_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_PEER_UNAVAILABLE,
         "no coordinator to ask the operator through: start the behavior system with "
         "--coordinator HOST:PORT");
   }

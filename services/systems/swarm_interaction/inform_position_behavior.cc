@@ -89,6 +89,7 @@ void InformPositionToRobotsBehavior::onExecute() {
 Situation InformPositionToRobotsBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (active_) return Situation::ok();
@@ -97,17 +98,22 @@ Situation InformPositionToRobotsBehavior::checkSituation() {
   if (!sample.ok()) {
     return Situation::infeasible(
         sample.status().code() == absl::StatusCode::kNotFound
+            ? v1::SITUATION_REASON_INPUT_MISSING
+            : v1::SITUATION_REASON_PLATFORM_UNAVAILABLE,
+        sample.status().code() == absl::StatusCode::kNotFound
             ? "no pose estimate on " + topic + ": activate a self-localization behavior first"
             : "cannot read " + topic + " from the channel at " + channel_->address() + ": " +
                   std::string(sample.status().message()));
   }
   v1::PoseStamped pose;
   if (!sample->sample().UnpackTo(&pose)) {
-    return Situation::infeasible(topic + " does not carry behaviorlib.v1.PoseStamped");
+    return Situation::infeasible(v1::SITUATION_REASON_INPUT_INVALID,
+                                 topic + " does not carry behaviorlib.v1.PoseStamped");
   }
   if (auto stale = flight::staleness("the pose estimate on " + topic, pose.header(), now(),
                                      2 * pose_timeout_)) {
-    return Situation::infeasible(*stale + "; is a self-localization behavior active?");
+    return Situation::infeasible(v1::SITUATION_REASON_INPUT_STALE,
+                                 *stale + "; is a self-localization behavior active?");
   }
   return Situation::ok();
 }

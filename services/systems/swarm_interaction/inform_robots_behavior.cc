@@ -65,6 +65,7 @@ void InformRobotsBehavior::onExecute() {
 Situation InformRobotsBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   return Situation::ok();

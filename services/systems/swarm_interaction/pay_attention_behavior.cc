@@ -248,10 +248,12 @@ void PayAttentionToRobotMessagesBehavior::onResume() { recording_ = true; }
 Situation PayAttentionToRobotMessagesBehavior::checkSituation() {
   if (!channel_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   if (!beliefs_) {
     return Situation::infeasible(
+        v1::SITUATION_REASON_PEER_UNAVAILABLE,
         "no belief memory to record messages in: start the behavior system with --coordinator "
         "HOST:PORT");
   }

@@ -11,6 +11,7 @@
 
 #include "behaviorlib/behavior_host.h"
 #include "behaviorlib/clock.h"
+#include "behaviorlib/error_details.h"
 #include "test_behaviors.h"
 
 namespace behaviorlib {
@@ -264,8 +265,10 @@ INSTANTIATE_TEST_SUITE_P(
                       CauseCase{"SituationChange", v1::TERMINATION_CAUSE_SITUATION_CHANGE,
                                 [](ScriptedBehavior& b) {
                                   b.situation = [&b] {
-                                    return ticksSeen(b) >= 1 ? Situation::infeasible("too dark")
-                                                             : Situation::ok();
+                                    return ticksSeen(b) >= 1
+                                               ? Situation::infeasible(
+                                                     v1::SITUATION_REASON_UNSPECIFIED, "too dark")
+                                               : Situation::ok();
                                   };
                                 },
                                 "too dark"},
@@ -297,9 +300,16 @@ TEST_F(BehaviorExecutionManagerTest, RejectsInvalidParametersNamingTheField) {
   auto missing = b.activateAndWait(std::make_unique<v1::WaitParameters>());
   EXPECT_EQ(missing.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(missing.status().message(), HasSubstr("duration_s"));
+  EXPECT_EQ(errors::reasonOf(missing.status()), "PARAMETER_INVALID");
   auto negative = b.activateAndWait(waitParams(-1));
   EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(negative.status().message(), HasSubstr("duration_s"));
+  // Machine-readable: the reason, the behavior, and the request's field.
+  EXPECT_EQ(errors::reasonOf(negative.status()), "PARAMETER_OUT_OF_RANGE");
+  EXPECT_EQ(errors::errorInfo(negative.status())->metadata().at("behavior"), "SCRIPTED");
+  ASSERT_TRUE(errors::badRequest(negative.status()).has_value());
+  EXPECT_EQ(errors::badRequest(negative.status())->field_violations(0).field(),
+            "parameters.duration_s");
   EXPECT_EQ(b.count("onActivate"), 0);
 }
 
@@ -309,18 +319,30 @@ TEST_F(BehaviorExecutionManagerTest, RefusesSecondActivationWhileActive) {
   auto again = b.activateAndWait(waitParams(2));
   EXPECT_EQ(again.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(again.status().message(), HasSubstr("already active"));
+  EXPECT_EQ(errors::reasonOf(again.status()), "BEHAVIOR_ALREADY_ACTIVE");
+  EXPECT_FALSE(errors::errorInfo(again.status())->metadata().at("current_activation_id").empty());
 }
 
 TEST_F(BehaviorExecutionManagerTest, RefusesActivationWhenSituationIsInfeasible) {
   auto& b = start();
-  b.situation = [] { return Situation::infeasible("the robot is not flying"); };
+  b.situation = [] {
+    Situation s =
+        Situation::infeasible(v1::SITUATION_REASON_FLIGHT_STATE, "the robot is not flying");
+    s.add(v1::SITUATION_REASON_BATTERY_LOW, "battery at 0.10");
+    return s;
+  };
   auto r = b.activateAndWait(waitParams(1));
   EXPECT_EQ(r.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(r.status().message(), HasSubstr("the robot is not flying"));
+  EXPECT_EQ(errors::reasonOf(r.status()), "SITUATION_NOT_SUITABLE");
+  EXPECT_EQ(errors::errorInfo(r.status())->metadata().at("situation_reasons"),
+            "SITUATION_REASON_FLIGHT_STATE,SITUATION_REASON_BATTERY_LOW");
   auto situation = b.checkSituationAndWait();
   ASSERT_TRUE(situation.ok());
   EXPECT_FALSE(situation->feasible());
-  EXPECT_THAT(situation->reasons(), ElementsAre("the robot is not flying"));
+  EXPECT_THAT(situation->reasons(), ElementsAre("the robot is not flying", "battery at 0.10"));
+  EXPECT_THAT(situation->reason_codes(),
+              ElementsAre(v1::SITUATION_REASON_FLIGHT_STATE, v1::SITUATION_REASON_BATTERY_LOW));
 }
 
 TEST_F(BehaviorExecutionManagerTest, OnActivateErrorRefusesActivation) {

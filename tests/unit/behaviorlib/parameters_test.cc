@@ -11,6 +11,7 @@
 #include <limits>
 #include <string>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "test_parameters.pb.h"
 
@@ -733,6 +734,39 @@ TEST(UnitOfFieldNameTest, NoUnit) {
   EXPECT_EQ(unitOfFieldName("_s"), "");     // a suffix alone is no name
   EXPECT_EQ(unitOfFieldName(""), "");
   EXPECT_EQ(unitOfFieldName("mode"), "");
+}
+
+// --- error details (errors.proto) ---------------------------------------------
+
+// The reason and the one field violation of a refusal.
+void expectDetails(const absl::Status& s, const std::string& reason, const std::string& field) {
+  ASSERT_FALSE(s.ok());
+  EXPECT_EQ(errors::reasonOf(s), reason) << s;
+  auto bad = errors::badRequest(s);
+  ASSERT_TRUE(bad.has_value()) << s;
+  ASSERT_EQ(bad->field_violations_size(), 1) << s;
+  EXPECT_EQ(bad->field_violations(0).field(), field) << s;
+  EXPECT_EQ(bad->field_violations(0).description(), s.message());
+}
+
+TEST(ErrorDetailsTest, RefusalsNameTheFieldAndTheReason) {
+  auto wait = textProto<v1::WaitParameters>("duration_s: -1");
+  expectDetails(applyDefaultsAndValidate(&wait), "PARAMETER_OUT_OF_RANGE", "duration_s");
+  wait.Clear();
+  expectDetails(applyDefaultsAndValidate(&wait), "PARAMETER_INVALID", "duration_s");
+
+  test::AllKinds a;
+  expectDetails(fromStruct(json(R"({"target": {"z_m": 1}})"), &a), "PARAMETER_INVALID",
+                "target.z_m");
+  expectDetails(fromStruct(json(R"({"count": 3000000000})"), &a), "PARAMETER_OUT_OF_RANGE",
+                "count");
+  expectDetails(fromStruct(json(R"({"path": {"waypoints": [{"x_m": 1}, {"x_m": "far"}]}})"), &a),
+                "PARAMETER_INVALID", "path.waypoints[1].x_m");
+  a.Clear();
+  a.set_duration_s(1);
+  a.add_ids(5);
+  a.add_ids(100);
+  expectDetails(applyDefaultsAndValidate(&a), "PARAMETER_OUT_OF_RANGE", "ids[1]");
 }
 
 }  // namespace

@@ -3,6 +3,8 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include "behaviorlib/error_details.h"
+
 namespace behaviorlib::coordinator {
 namespace {
 
@@ -59,6 +61,7 @@ struct BadMission {
   std::string text;
   int line;
   std::string problem;
+  std::string field;  // the BadRequest field violation's path
 };
 
 class MissionFileErrors : public ::testing::TestWithParam<BadMission> {};
@@ -70,31 +73,41 @@ TEST_P(MissionFileErrors, NameFileLineAndProblem) {
   EXPECT_THAT(std::string(mission.status().message()),
               HasSubstr("m.yaml:" + std::to_string(GetParam().line) + ": "));
   EXPECT_THAT(std::string(mission.status().message()), HasSubstr(GetParam().problem));
+  // Machine-readable: the reason, and the field with the file and line.
+  EXPECT_EQ(errors::reasonOf(mission.status()), "MISSION_INVALID");
+  auto bad = errors::badRequest(mission.status());
+  ASSERT_TRUE(bad.has_value());
+  ASSERT_EQ(bad->field_violations_size(), 1);
+  EXPECT_EQ(bad->field_violations(0).field(), GetParam().field);
+  EXPECT_EQ(bad->field_violations(0).description(), mission.status().message());
 }
 
 INSTANTIATE_TEST_SUITE_P(
     Problems, MissionFileErrors,
     ::testing::Values(
-        BadMission{"name: x\n", 1, "missing 'steps'"},
-        BadMission{"steps: []\n", 1, "'steps' is empty"},
-        BadMission{"steps:\n  - behavior: A\n    param: {}\n", 3, "unknown key 'param'"},
+        BadMission{"name: x\n", 1, "missing 'steps'", ""},
+        BadMission{"steps: []\n", 1, "'steps' is empty", "steps"},
+        BadMission{"steps:\n  - behavior: A\n    param: {}\n", 3, "unknown key 'param'",
+                   "steps[0].param"},
         BadMission{"steps:\n  - behavior: A\n    on:\n      TIMEOUT: abort\n", 4,
-                   "unknown key 'TIMEOUT'"},
+                   "unknown key 'TIMEOUT'", "steps[0].on.TIMEOUT"},
         BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: again\n", 4,
-                   "unknown action 'again'"},
-        BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: {retry: 0}\n", 4, "1..100"},
+                   "unknown action 'again'", "steps[0].on.TIME_OUT"},
+        BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: {retry: 0}\n", 4, "1..100",
+                   "steps[0].on.TIME_OUT.retry"},
         BadMission{"steps:\n  - behavior: A\n    parameters: {p: \"${belief.x\"}\n", 3,
-                   "unterminated binding"},
-        BadMission{"steps:\n  - name: x\n", 2, "needs a 'behavior'"},
+                   "unterminated binding", "steps[0].parameters.p"},
+        BadMission{"steps:\n  - name: x\n", 2, "needs a 'behavior'", "steps[0]"},
         BadMission{"steps:\n  - behavior: A\n    if: {belief: k}\n", 3,
-                   "exactly one of 'exists' and 'equals'"},
-        BadMission{"steps:\n  - remember: {\"bad key\": 1}\n", 2, "has the character ' '"},
+                   "exactly one of 'exists' and 'equals'", "steps[0].if"},
+        BadMission{"steps:\n  - remember: {\"bad key\": 1}\n", 2, "has the character ' '",
+                   "steps[0].remember.bad key"},
         BadMission{
             "safety:\n  - behavior: LAND\n    on: {TIME_OUT: abort}\nsteps:\n  - behavior: A\n", 2,
-            "'on' and 'if' are for steps only"},
+            "'on' and 'if' are for steps only", "safety[0].on"},
         BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: {fallback: []}\n", 4,
-                   "fallback: empty"},
-        BadMission{"steps: [\n", 2, "not valid YAML"}));
+                   "fallback: empty", "steps[0].on.TIME_OUT.fallback"},
+        BadMission{"steps: [\n", 2, "not valid YAML", ""}));
 
 v1::BehaviorDescription description(const std::string& name) {
   v1::BehaviorDescription d;
@@ -137,10 +150,23 @@ TEST(MissionFile, CheckedAgainstTheRegisteredBehaviorsBeforeAnythingFlies) {
       std::string(unknown.message()),
       HasSubstr("demo.yaml:10: TAKE_OFF has no parameter 'altitude_m' (its parameters: path)"));
 
+  EXPECT_EQ(errors::reasonOf(unknown), "MISSION_INVALID");
+  ASSERT_TRUE(errors::badRequest(unknown).has_value());
+  EXPECT_EQ(errors::badRequest(unknown)->field_violations(0).field(),
+            "steps[0].parameters.altitude_m");
+
   registered["TAKE_OFF"] = description("TAKE_OFF");
   registered["TAKE_OFF"].mutable_parameters(0)->set_type("string");
   EXPECT_THAT(std::string(checkMission(*mission, lookup).message()),
               HasSubstr("TAKE_OFF parameter 'altitude_m' must be a string"));
+
+  // A fallback step's path goes through its cause.
+  registered.erase("LAND");
+  registered["TAKE_OFF"] = description("TAKE_OFF");
+  absl::Status in_fallback = checkMission(*mission, lookup);
+  ASSERT_TRUE(errors::badRequest(in_fallback).has_value());
+  EXPECT_EQ(errors::badRequest(in_fallback)->field_violations(0).field(),
+            "steps[0].on.WRONG_PROGRESS.fallback[0].behavior");
 }
 
 }  // namespace

@@ -13,6 +13,8 @@
 #include <fstream>
 #include <string>
 
+#include "behaviorlib/error_details.h"
+
 namespace behaviorlib::server {
 namespace {
 
@@ -57,6 +59,11 @@ TEST_F(ConfinedFilesTest, RefusesEscapesNamingTheDirectory) {
     const auto r = dir_.read(bad);
     EXPECT_EQ(r.status().code(), absl::StatusCode::kPermissionDenied) << bad;
     EXPECT_THAT(r.status().message(), HasSubstr((base_ / "root").string())) << bad;
+    // Machine-readable too (errors.proto).
+    EXPECT_EQ(errors::reasonOf(r.status()), "PATH_OUTSIDE_ALLOWED_DIRECTORY") << bad;
+    EXPECT_EQ(errors::errorInfo(r.status())->metadata().at("path"), bad);
+    EXPECT_EQ(errors::errorInfo(r.status())->metadata().at("allowed_directory"),
+              (base_ / "root").string());
   }
 }
 
@@ -77,8 +84,11 @@ TEST_F(ConfinedFilesTest, RefusesALinkThatLeadsOutside) {
 TEST_F(ConfinedFilesTest, CapsReadsAndRefusesDevicesAndDirectories) {
   write(base_ / "root" / "big.yaml", std::string(65, 'x'));
   EXPECT_EQ(dir_.read("big.yaml").status().code(), absl::StatusCode::kResourceExhausted);
+  EXPECT_EQ(errors::reasonOf(dir_.read("big.yaml").status()), "FILE_TOO_LARGE");
+  EXPECT_EQ(errors::errorInfo(dir_.read("big.yaml").status())->metadata().at("limit"), "64");
   EXPECT_EQ(dir_.read("sub").status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_EQ(dir_.read("missing.yaml").status().code(), absl::StatusCode::kNotFound);
+  EXPECT_EQ(errors::reasonOf(dir_.read("missing.yaml").status()), "FILE_NOT_FOUND");
   auto dev = ConfinedDirectory::open("worlds", "/dev", 64);
   ASSERT_TRUE(dev.ok());
   EXPECT_EQ(dev->read("zero").status().code(), absl::StatusCode::kInvalidArgument);

@@ -60,6 +60,7 @@
 #include "behaviorlib/clock.h"
 #include "behaviorlib/event_log.h"
 #include "behaviorlib/v1/behavior.pb.h"
+#include "behaviorlib/v1/errors.pb.h"
 
 namespace behaviorlib {
 
@@ -69,10 +70,32 @@ struct Situation {
   bool feasible = true;
   /// Estimated performance in [0, 1]; 1 is optimal.
   double performance_ratio = 1.0;
+  /// Why, in words (mostly why the situation is not feasible).
   std::vector<std::string> reasons;
+  /// The same reasons as codes (errors.proto), in the same order; a reason
+  /// without a code reads as SITUATION_REASON_UNSPECIFIED.
+  std::vector<v1::SituationReason> codes;
 
-  static Situation ok(double performance_ratio = 1.0) { return {true, performance_ratio, {}}; }
-  static Situation infeasible(std::string reason) { return {false, 0.0, {std::move(reason)}}; }
+  static Situation ok(double performance_ratio = 1.0) { return {true, performance_ratio, {}, {}}; }
+  static Situation infeasible(v1::SituationReason code, std::string reason) {
+    return {false, 0.0, {std::move(reason)}, {code}};
+  }
+  [[deprecated(
+      "give the reason a code: Situation::infeasible(v1::SITUATION_REASON_..., "
+      "text)")]] static Situation
+  infeasible(std::string reason) {
+    return infeasible(v1::SITUATION_REASON_UNSPECIFIED, std::move(reason));
+  }
+  /// Adds a reason with its code (feasibility and ratio are left alone).
+  void add(v1::SituationReason code, std::string reason) {
+    codes.resize(reasons.size(), v1::SITUATION_REASON_UNSPECIFIED);
+    reasons.push_back(std::move(reason));
+    codes.push_back(code);
+  }
+  /// The code of reasons[i].
+  v1::SituationReason code(size_t i) const {
+    return i < codes.size() ? codes[i] : v1::SITUATION_REASON_UNSPECIFIED;
+  }
 };
 
 /// The answer of checkGoal(), checkProgress() and checkProcesses(): keep going,
@@ -426,6 +449,7 @@ class BehaviorExecutionManager {
   std::chrono::steady_clock::time_point activate_received_{};
   double reported_performance_ = 1.0;
   std::vector<std::string> reported_reasons_;
+  std::vector<v1::SituationReason> reported_codes_;
   uint64_t activation_counter_ = 0;
   std::atomic<bool> wants_ticks_{false};
 

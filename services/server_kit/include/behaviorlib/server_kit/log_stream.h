@@ -26,6 +26,7 @@
 
 #include "absl/base/thread_annotations.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 
 namespace behaviorlib::server {
@@ -114,14 +115,15 @@ class LogStreamWriter : public Ordered<grpc::ServerWriteReactor<Message>> {
       return;
     }
     if (subscription_->overflowed()) {
-      finishLocked(grpc::Status(
-          grpc::StatusCode::RESOURCE_EXHAUSTED,
+      // The subscription's queue is full: a cap reached.
+      finishLocked(errors::grpcError(
+          grpc::StatusCode::RESOURCE_EXHAUSTED, v1::LIMIT_EXCEEDED,
           "subscriber too slow: events were produced faster than it read them; " + resumeHint()));
       return;
     }
     if (shutting_down_) {
-      finishLocked(
-          grpc::Status(grpc::StatusCode::UNAVAILABLE, who_ + " is shutting down; " + resumeHint()));
+      finishLocked(errors::grpcError(grpc::StatusCode::UNAVAILABLE, v1::SHUTTING_DOWN,
+                                     who_ + " is shutting down; " + resumeHint()));
     }
   }
 

@@ -24,6 +24,9 @@
 #include <utility>
 #include <vector>
 
+#include "absl/status/status.h"
+#include "behaviorlib/error_details.h"
+
 namespace behaviorlib::server {
 
 struct PageLimits {
@@ -40,14 +43,17 @@ grpc::Status paginate(google::protobuf::RepeatedPtrField<T>* items,
                       const std::function<std::string(const T&)>& key, const Request& request,
                       std::string* next_page_token, PageLimits limits = {}) {
   if (request.page_size() < 0) {
-    return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT, "page_size must not be negative");
+    const std::string message = "page_size must not be negative";
+    return errors::toGrpc(errors::withFieldViolation(
+        errors::withReason(absl::InvalidArgumentError(message), v1::INVALID_REQUEST), "page_size",
+        message));
   }
   std::optional<std::string> after;
   if (!request.page_token().empty()) {
     after = decodePageToken(request.page_token());
     if (!after) {
-      return grpc::Status(grpc::StatusCode::INVALID_ARGUMENT,
-                          "page_token is not a token this server gave (next_page_token)");
+      return errors::grpcError(grpc::StatusCode::INVALID_ARGUMENT, v1::INVALID_PAGE_TOKEN,
+                               "page_token is not a token this server gave (next_page_token)");
     }
   }
   const size_t size = static_cast<size_t>(request.page_size() == 0

@@ -80,6 +80,17 @@ bool airborne(v1::FlightState state);
 /// True while the platform accepts setpoints: FLYING or HOVERING.
 bool flying(v1::FlightState state);
 
+/// A reason a situation is not suitable (the text of Situation::reasons),
+/// with its code.
+struct SituationProblem {
+  v1::SituationReason code = v1::SITUATION_REASON_UNSPECIFIED;
+  std::string reason;
+};
+
+/// Makes `situation` infeasible (performance 0) with `reason` as its first
+/// reason, ahead of those already there.
+void refuseFirst(Situation* situation, v1::SituationReason code, std::string reason);
+
 /// A fresh sample's problem: "pose estimate on <topic> is 0.4 s old (limit
 /// 0.25 s)"; nullopt when fresh.
 std::optional<std::string> staleness(const std::string& what, const v1::Header& header,
@@ -96,10 +107,11 @@ struct SensorNeed {
 /// the newest sample of each topic (any message with a `header`) at most
 /// twice its limit old (a little older than the timeout is fine before the
 /// activation, where the channel read itself takes time). The first problem
-/// ("no lidar: nothing on robots/drone1/lidar/scan ..."), or nullopt.
-std::optional<std::string> missingSensor(channel::ChannelClient& channel,
-                                         const std::string& robot_id,
-                                         const std::vector<SensorNeed>& needs, TimePoint now);
+/// ("no lidar: nothing on robots/drone1/lidar/scan ..."), with its code, or
+/// nullopt.
+std::optional<SituationProblem> missingSensor(channel::ChannelClient& channel,
+                                              const std::string& robot_id,
+                                              const std::vector<SensorNeed>& needs, TimePoint now);
 
 /// The messages of a self-localization behavior's estimate, stamped with
 /// `header`'s stamp, in frame "world", for `robot_id`, numbered `seq`; the

@@ -90,23 +90,34 @@ inline std::optional<Eigen::Quaterniond> toOrientation(const v1::Quaternion& q) 
 }
 
 /// checkSituation() before activation: a sample of type T on `topic` no
-/// older than `limit` at `now`. The problem as a reason, or nullopt.
+/// older than `limit` at `now`. The problem as a reason with its code, or
+/// nullopt.
 template <class T>
-std::optional<std::string> freshSampleProblem(channel::ChannelClient& channel,
-                                              const std::string& topic, TimePoint now,
-                                              Duration limit) {
+std::optional<flight::SituationProblem> freshSampleProblem(channel::ChannelClient& channel,
+                                                           const std::string& topic, TimePoint now,
+                                                           Duration limit) {
   auto sample = channel.getLatest(topic, std::chrono::milliseconds(300));
   if (!sample.ok()) {
-    return sample.status().code() == absl::StatusCode::kNotFound
-               ? "nothing on " + topic + ": is the simulator (or the sensor driver) publishing?"
-               : "cannot read " + topic + " from the channel at " + channel.address() + ": " +
-                     std::string(sample.status().message());
+    if (sample.status().code() == absl::StatusCode::kNotFound) {
+      return flight::SituationProblem{
+          v1::SITUATION_REASON_INPUT_MISSING,
+          "nothing on " + topic + ": is the simulator (or the sensor driver) publishing?"};
+    }
+    return flight::SituationProblem{v1::SITUATION_REASON_PLATFORM_UNAVAILABLE,
+                                    "cannot read " + topic + " from the channel at " +
+                                        channel.address() + ": " +
+                                        std::string(sample.status().message())};
   }
   T message;
   if (!sample->sample().UnpackTo(&message)) {
-    return topic + " does not carry " + T::descriptor()->full_name();
+    return flight::SituationProblem{v1::SITUATION_REASON_INPUT_INVALID,
+                                    topic + " does not carry " + T::descriptor()->full_name()};
   }
-  return flight::staleness("the latest sample on " + topic, message.header(), now, limit);
+  if (auto stale =
+          flight::staleness("the latest sample on " + topic, message.header(), now, limit)) {
+    return flight::SituationProblem{v1::SITUATION_REASON_INPUT_STALE, *stale};
+  }
+  return std::nullopt;
 }
 
 }  // namespace behaviorlib::basic

@@ -55,6 +55,7 @@
 #include <utility>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/flight_common/flight_support.h"
 #include "behaviorlib/navigation/path_planner.h"
 #include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
 #include "behaviorlib/server/belief_client.h"
@@ -124,7 +125,8 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   // The background job: reads only the attempt, the map, and current_id_.
   Result plan(const Attempt& attempt) const;
   std::string beliefKey() const;
-  std::optional<std::string> poseProblem() const;
+  /// No pose estimate, or a stale one: the reason with its code.
+  std::optional<flight::SituationProblem> poseProblem() const;
   uint64_t mapRevision() const;
   /// The outcome while waiting for the map: a new attempt when the map has
   /// changed, the end once map_wait_s has passed.

@@ -230,6 +230,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
                                                        mission_options.max_mission_bytes);
   if (!mission_files.ok()) return mission_files.status();
   mission_options.mission_files = std::move(*mission_files);
+  mission_options.metrics = p->metrics.get();
   p->missions = std::make_unique<MissionManager>(*p->fleet, *p->registry, *p->beliefs,
                                                  p->journal.get(), mission_options);
   for (const auto& status : replayed.missions) p->missions->restore(status);
@@ -270,6 +271,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   safety_options.hover_before_land = millis(options.hover_before_land);
   safety_options.geofence = options.geofence;
   safety_options.channel_address = options.channel_address;
+  safety_options.metrics = p->metrics.get();
   if (!options.flight_controllers.empty()) {
     p->safety =
         std::make_unique<SafetyController>(*p->fleet, *p->missions, *p->log, safety_options);

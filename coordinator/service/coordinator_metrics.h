@@ -8,6 +8,10 @@
 #include <prometheus/gauge.h>
 #include <prometheus/registry.h>
 
+#include <string>
+
+#include "behaviorlib/v1/mission.pb.h"
+
 namespace behaviorlib::coordinator {
 
 struct CoordinatorMetrics {
@@ -33,6 +37,23 @@ struct CoordinatorMetrics {
   prometheus::Counter& stream_reconnects;
   /// Open Coordinator.WatchEvents streams.
   prometheus::Gauge& subscribers;
+  /// Missions started, by robot.
+  prometheus::Family<prometheus::Counter>& missions_started;
+  /// Missions ended, by robot, outcome and cause (missionEnded).
+  prometheus::Family<prometheus::Counter>& missions_finished;
+  /// Safety actions, by robot, action and trigger.
+  prometheus::Family<prometheus::Counter>& safety_actions;
+
+  /// Counts an ended mission in missions_finished.
+  void missionEnded(const v1::MissionStatus& status);
 };
+
+/// What ended a mission, for missions_finished's `cause` label: the
+/// termination cause of its last step without the TERMINATION_CAUSE_ prefix
+/// (GOAL_ACHIEVED for a success, TIME_OUT, INTERRUPTED for an abort during a
+/// step, ...), REFUSED when that step's activation was refused, NONE when no
+/// step ended it (a failed recurrent behavior, an abort between steps, a
+/// resume that failed).
+std::string missionEndCause(const v1::MissionStatus& status);
 
 }  // namespace behaviorlib::coordinator

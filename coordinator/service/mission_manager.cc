@@ -250,14 +250,19 @@ void MissionManager::onChange(const v1::MissionStatus& status) {
     }
   }
   std::vector<Listener> listeners;
+  bool now_ended = false;
   {
     absl::MutexLock lock(&mutex_);
     auto it = missions_.find(status.mission_id());
-    if (it != missions_.end()) it->second.status = status;
+    if (it != missions_.end()) {
+      now_ended = !ended(it->second.status) && ended(status);
+      it->second.status = status;
+    }
     for (const auto& [token, listener] : listeners_) {
       if (listener.first == status.mission_id()) listeners.push_back(listener.second);
     }
   }
+  if (now_ended && options_.metrics != nullptr) options_.metrics->missionEnded(status);
   for (const auto& listener : listeners) listener(status);
 }
 
@@ -350,6 +355,8 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
       std::move(*spec), mission_id, robot_id, text, fleet_, beliefs_,
       [this](const v1::MissionStatus& s) { onChange(s); });
   entry.status = entry.runner->status();
+  if (options_.metrics != nullptr)
+    options_.metrics->missions_started.Add({{"robot", robot_id}}).Increment();
   entry.runner->start();
   return entry.status;
 }

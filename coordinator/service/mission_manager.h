@@ -36,6 +36,7 @@
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/durable/journal.h"
 #include "coordinator/mission/mission_runner.h"
+#include "coordinator/service/coordinator_metrics.h"
 #include "coordinator/service/fleet_control.h"
 #include "coordinator/service/registry.h"
 
@@ -58,6 +59,8 @@ struct MissionManagerOptions {
   /// The clock that end times are compared with (missions' times are wall
   /// times); a test gives its own.
   std::function<google::protobuf::Timestamp()> now;
+  /// Where missions started and ended are counted; none if null.
+  CoordinatorMetrics* metrics = nullptr;
 };
 
 class MissionManager {

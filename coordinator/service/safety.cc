@@ -122,6 +122,14 @@ SafetyController::Robot* SafetyController::find(const std::string& robot_id) con
   return it == robots_.end() ? nullptr : it->second.get();
 }
 
+void SafetyController::countAction(const std::string& robot_id, const std::string& action,
+                                   const std::string& trigger) {
+  if (options_.metrics == nullptr) return;
+  options_.metrics->safety_actions
+      .Add({{"robot", robot_id}, {"action", action}, {"trigger", trigger}})
+      .Increment();
+}
+
 std::vector<std::string> SafetyController::firedRules() const {
   absl::MutexLock lock(&mutex_);
   return fired_;
@@ -178,7 +186,7 @@ void SafetyController::policyLoop() {
         robot->failure_fired = true;
       }
       if (fire_now) {
-        fire(*robot,
+        fire(*robot, "controller_failure",
              absl::StrCat("motion controller failed (", failure.substr(split + 1),
                           "): hover, then land"),
              true, true, false);
@@ -192,7 +200,7 @@ void SafetyController::checkRobot(Robot& robot) {
   auto status = robot.watcher->latest();
   if (!status.ok()) return;
   const bool flying = airborne(status->state());
-  std::string rule;
+  std::string rule, trigger;
   bool hover_first = false, land = false, with_safety_steps = false;
   {
     absl::MutexLock lock(&mutex_);
@@ -206,12 +214,14 @@ void SafetyController::checkRobot(Robot& robot) {
     if (robot.acting) return;
     if (!robot.failure_fired && status->failsafe_active()) {
       robot.failure_fired = true;
+      trigger = "lease_failsafe";
       rule =
           "the platform's lease failsafe engaged (the motion controller lost its lease): "
           "hover, then land";
       hover_first = land = true;
     } else if (!robot.battery_fired && status->battery_ratio() < options_.critical_battery_ratio) {
       robot.battery_fired = true;
+      trigger = "battery";
       rule = absl::StrFormat("battery %.2f below the critical %.2f: land", status->battery_ratio(),
                              options_.critical_battery_ratio);
       land = true;
@@ -226,6 +236,7 @@ void SafetyController::checkRobot(Robot& robot) {
       const auto& p = robot.pose->pose().position_m();
       if (fence && !fence->contains(p.x(), p.y(), p.z())) {
         robot.geofence_fired = true;
+        trigger = "geofence";
         rule = absl::StrFormat("left %s at (%.2f, %.2f, %.2f): hover and abort the mission", whose,
                                p.x(), p.y(), p.z());
         hover_first = true;
@@ -233,16 +244,18 @@ void SafetyController::checkRobot(Robot& robot) {
       }
     }
   }
-  if (!rule.empty()) fire(robot, rule, hover_first, land, with_safety_steps);
+  if (!rule.empty()) fire(robot, trigger, rule, hover_first, land, with_safety_steps);
 }
 
-void SafetyController::fire(Robot& robot, const std::string& rule, bool hover_first, bool land,
-                            bool abort_with_safety_steps) {
+void SafetyController::fire(Robot& robot, const std::string& trigger, const std::string& rule,
+                            bool hover_first, bool land, bool abort_with_safety_steps) {
   const std::string said = robot.robot_id + ": " + rule;
   std::fprintf(stderr, "coordinator: safety: %s\n", said.c_str());
   absl::MutexLock lock(&mutex_);
   if (stopping_) return;
   fired_.push_back(said);
+  const char* action = land ? (hover_first ? "hover_then_land" : "land") : "hover_and_abort";
+  countAction(robot.robot_id, action, trigger);
   robot.acting = true;
   actions_.emplace_back([this, &robot, rule, hover_first, land, abort_with_safety_steps] {
     // Take the vehicle first (preempting whoever commands it), then stand
@@ -447,6 +460,7 @@ absl::StatusOr<std::string> SafetyController::emergencyLand(const std::string& r
                                 v1::SHUTTING_DOWN);
     }
     fired_.push_back(robot_id + ": EmergencyLand requested: " + reason);
+    countAction(robot_id, "emergency_land", "operator");
     actions_.emplace_back([this, shared, robot_id, why] {
       std::string result = standDown(robot_id, why, false);
       absl::MutexLock lock(&shared->mutex);
@@ -492,6 +506,7 @@ absl::StatusOr<std::string> SafetyController::kill(const std::string& robot_id, 
   {
     absl::MutexLock lock(&mutex_);
     fired_.push_back(robot_id + ": Kill requested: " + reason);
+    countAction(robot_id, "kill", "operator");
   }
   return *done + standDown(robot_id, why, false);
 }

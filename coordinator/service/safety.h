@@ -92,6 +92,8 @@ struct SafetyOptions {
   std::chrono::milliseconds stand_down_budget{500};
   /// How long a stand-down waits for the mission's runner to take the abort.
   std::chrono::milliseconds mission_ack_timeout{2000};
+  /// Where safety actions are counted; none if null.
+  CoordinatorMetrics* metrics = nullptr;
 };
 
 class SafetyController {
@@ -129,8 +131,12 @@ class SafetyController {
   void checkRobot(Robot& robot);
   void onEvents();
   /// Runs a rule's action on the robot's action thread (one at a time).
-  void fire(Robot& robot, const std::string& rule, bool hover_first, bool land,
-            bool abort_with_safety_steps);
+  /// `trigger` names the rule for the metrics (battery, geofence, ...).
+  void fire(Robot& robot, const std::string& trigger, const std::string& rule, bool hover_first,
+            bool land, bool abort_with_safety_steps);
+  /// Counts a safety action in the metrics.
+  void countAction(const std::string& robot_id, const std::string& action,
+                   const std::string& trigger);
   /// Aborts the robot's mission and, once its runner has taken the abort,
   /// deactivates its commanding behaviors (unless the mission's safety steps
   /// run: they command the vehicle).

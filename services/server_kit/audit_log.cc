@@ -14,6 +14,7 @@
 #include "absl/strings/match.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_format.h"
+#include "behaviorlib/server_kit/server_metrics.h"
 
 namespace behaviorlib::server {
 namespace {
@@ -44,28 +45,6 @@ std::string nowUtc() {
   return absl::StrFormat("%s.%03dZ", text, static_cast<int>(millis));
 }
 
-std::string codeName(grpc::StatusCode code) {
-  static constexpr const char* kNames[] = {"OK",
-                                           "CANCELLED",
-                                           "UNKNOWN",
-                                           "INVALID_ARGUMENT",
-                                           "DEADLINE_EXCEEDED",
-                                           "NOT_FOUND",
-                                           "ALREADY_EXISTS",
-                                           "PERMISSION_DENIED",
-                                           "RESOURCE_EXHAUSTED",
-                                           "FAILED_PRECONDITION",
-                                           "ABORTED",
-                                           "OUT_OF_RANGE",
-                                           "UNIMPLEMENTED",
-                                           "INTERNAL",
-                                           "UNAVAILABLE",
-                                           "DATA_LOSS",
-                                           "UNAUTHENTICATED"};
-  const int i = static_cast<int>(code);
-  return i >= 0 && i < 17 ? kNames[i] : absl::StrCat("CODE_", i);
-}
-
 class AuditInterceptor final : public grpc::experimental::Interceptor {
  public:
   AuditInterceptor(grpc::experimental::ServerRpcInfo* info, AuditLog* log)
@@ -77,7 +56,7 @@ class AuditInterceptor final : public grpc::experimental::Interceptor {
       const grpc::Status status = methods->GetSendStatus();
       const std::optional<Caller> caller = callerOf(*info_->server_context());
       log_->record({caller ? caller->identity : "anonymous", info_->method(),
-                    codeName(status.error_code()), status.error_message()});
+                    grpcCodeName(status.error_code()), status.error_message()});
     }
     methods->Proceed();
   }

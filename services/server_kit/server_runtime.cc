@@ -15,6 +15,7 @@
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/reflection/reflection_service.h"
 #include "behaviorlib/server_kit/access_policy.h"
+#include "behaviorlib/server_kit/server_metrics.h"
 #include "behaviorlib/server_kit/transport_security.h"
 
 ABSL_FLAG(std::string, access_policy, "",
@@ -27,10 +28,16 @@ ABSL_FLAG(std::string, audit_log, "",
 ABSL_FLAG(uint64_t, audit_log_max_bytes, 64ull << 20,
           "the audit log is rotated (FILE -> FILE.1 -> FILE.2 ...) when it passes this size");
 ABSL_FLAG(int32_t, audit_log_keep, 4, "rotated audit log files kept (FILE.1 .. FILE.N)");
+ABSL_FLAG(bool, grpc_metrics, true,
+          "count and time every call by service, method and status code (grpc_server_* on "
+          "/metrics); docs/benchmarks.md has its cost");
 
 namespace behaviorlib::server {
 
-ServerRuntime::ServerRuntime() : registry_(std::make_shared<prometheus::Registry>()) {}
+ServerRuntime::ServerRuntime()
+    : registry_(std::make_shared<prometheus::Registry>()), process_(makeProcessCollector()) {
+  addBuildInfo(*registry_);
+}
 
 ServerRuntime::~ServerRuntime() {
   if (server_) server_->Shutdown(std::chrono::system_clock::now());
@@ -78,6 +85,7 @@ bool ServerRuntime::startMetrics(const std::string& address, std::string* error)
     return false;
   }
   exposer_->RegisterCollectable(registry_);
+  exposer_->RegisterCollectable(process_);
   auto ports = exposer_->GetListeningPorts();
   metrics_port_ = ports.empty() ? 0 : ports.front();
   return true;
@@ -137,6 +145,9 @@ bool ServerRuntime::startServer(grpc::ServerBuilder& builder, const std::string&
   }
   std::vector<std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface>> interceptors;
   interceptors.push_back(makeAuditInterceptor(audit_.get()));
+  if (absl::GetFlag(FLAGS_grpc_metrics)) {
+    interceptors.push_back(makeServerMetricsInterceptor(*registry_));
+  }
   builder.experimental().SetInterceptorCreators(std::move(interceptors));
   builder.AddListeningPort(address, *credentials, &grpc_port_);
   builder.SetMaxReceiveMessageSize(ServerLimits::kMaxReceiveBytes);

@@ -1,6 +1,7 @@
 #include "simulator/service/simulator_metrics.h"
 
 #include <algorithm>
+#include <string_view>
 
 #include "simulator/service/channel_publisher.h"
 #include "simulator/service/sensor_publisher.h"
@@ -55,7 +56,7 @@ SimulatorMetrics::SimulatorMetrics(prometheus::Registry& registry, Simulation& s
                         .Register(registry)
                         .Add({}, stepBuckets())),
       position_(prometheus::BuildGauge()
-                    .Name("behaviorlib_simulator_vehicle_position_m")
+                    .Name("behaviorlib_simulator_vehicle_position_meters")
                     .Help("Ground-truth position of a vehicle, world ENU")
                     .Register(registry)),
       battery_(prometheus::BuildGauge()
@@ -64,9 +65,8 @@ SimulatorMetrics::SimulatorMetrics(prometheus::Registry& registry, Simulation& s
                    .Register(registry)),
       flight_state_(prometheus::BuildGauge()
                         .Name("behaviorlib_simulator_vehicle_flight_state")
-                        .Help("Flight state of a vehicle: the behaviorlib.v1.FlightState value "
-                              "(1 LANDED, 2 TAKING_OFF, 3 FLYING, 4 HOVERING, 5 LANDING, "
-                              "6 EMERGENCY)")
+                        .Help("1 for a vehicle's flight state, 0 for its other states "
+                              "(LANDED, TAKING_OFF, FLYING, HOVERING, LANDING, EMERGENCY)")
                         .Register(registry)),
       crashed_(prometheus::BuildGauge()
                    .Name("behaviorlib_simulator_vehicle_crashed")
@@ -208,7 +208,7 @@ void SimulatorMetrics::updateVehicles() {
     VehicleSeries& s = it->second;
     for (prometheus::Gauge* g : s.position) position_.Remove(g);
     battery_.Remove(s.battery);
-    flight_state_.Remove(s.flight_state);
+    for (const auto& [state, gauge] : s.flight_state) flight_state_.Remove(gauge);
     crashed_.Remove(s.crashed);
     it = vehicles_.erase(it);
   }
@@ -222,14 +222,26 @@ void SimulatorMetrics::updateVehicles() {
       for (int i = 0; i < 3; ++i)
         s.position[i] = &position_.Add({{"robot", id}, {"axis", axes[i]}});
       s.battery = &battery_.Add({{"robot", id}});
-      s.flight_state = &flight_state_.Add({{"robot", id}});
+      // One series per state (kube-state-metrics' style): a dashboard or
+      // an alert selects a state by name, and sum() over robots counts them.
+      const auto* states = v1::FlightState_descriptor();
+      for (int i = 0; i < states->value_count(); ++i) {
+        const int number = states->value(i)->number();
+        if (number == v1::FLIGHT_STATE_UNSPECIFIED) continue;
+        std::string name = states->value(i)->name();
+        constexpr std::string_view kPrefix = "FLIGHT_STATE_";
+        if (name.rfind(kPrefix, 0) == 0) name = name.substr(kPrefix.size());
+        s.flight_state.emplace_back(number, &flight_state_.Add({{"robot", id}, {"state", name}}));
+      }
       s.crashed = &crashed_.Add({{"robot", id}});
       it = vehicles_.emplace(id, s).first;
     }
     const VehicleSnapshot& snapshot = state->first;
     for (int i = 0; i < 3; ++i) it->second.position[i]->Set(snapshot.position_m(i));
     it->second.battery->Set(snapshot.battery_ratio);
-    it->second.flight_state->Set(static_cast<double>(state->second));
+    for (const auto& [number, gauge] : it->second.flight_state) {
+      gauge->Set(number == state->second ? 1.0 : 0.0);
+    }
     it->second.crashed->Set(snapshot.crashed ? 1.0 : 0.0);
   }
 }

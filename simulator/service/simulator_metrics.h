@@ -20,9 +20,11 @@
 //   behaviorlib_simulator_step_seconds               histogram: wall time of one physics
 //                                                    step with its listeners (sensors,
 //                                                    publishers), the mean of each batch
-//   behaviorlib_simulator_vehicle_position_m{robot,axis}  ground truth, world ENU
+//   behaviorlib_simulator_vehicle_position_meters{robot,axis}  ground truth, world ENU
 //   behaviorlib_simulator_vehicle_battery_ratio{robot}    state of charge, 0..1
-//   behaviorlib_simulator_vehicle_flight_state{robot}     FlightState enum value
+//   behaviorlib_simulator_vehicle_flight_state{robot,state}  1 for the vehicle's state
+//                       (LANDED, TAKING_OFF, FLYING, HOVERING, LANDING, EMERGENCY), 0
+//                       for the others
 //   behaviorlib_simulator_vehicle_crashed{robot}          1 after a crash
 //   behaviorlib_simulator_sensor_samples_total{robot,sensor}
 //   behaviorlib_simulator_sensor_samples_dropped_total{robot,sensor,reason}
@@ -93,7 +95,7 @@ class SimulatorMetrics {
   struct VehicleSeries {
     std::array<prometheus::Gauge*, 3> position{};
     prometheus::Gauge* battery = nullptr;
-    prometheus::Gauge* flight_state = nullptr;
+    std::vector<std::pair<int, prometheus::Gauge*>> flight_state;  // by FlightState value
     prometheus::Gauge* crashed = nullptr;
   };
   struct SensorSeries {

@@ -1,9 +1,11 @@
-// tls_bench: what mutual TLS and the access policy cost per call. One
-// coordinator per configuration, on loopback, each answering the same unary
-// call (ListMissions, an empty list) from one client on one channel:
-//   plaintext   --listen on loopback, no TLS (the floor)
-//   mtls        --tls-cert/--tls-key/--tls-ca
-//   mtls+policy the same with --access-policy (the authorizer on every call)
+// tls_bench: what mutual TLS, the access policy and the gRPC server metrics
+// cost per call. One coordinator per configuration, on loopback, each
+// answering the same unary call (ListMissions, an empty list) from one client
+// on one channel:
+//   plaintext, no metrics  --grpc-metrics=false, no TLS (the floor)
+//   plaintext              --listen on loopback, no TLS, gRPC metrics (the default)
+//   mtls                   --tls-cert/--tls-key/--tls-ca
+//   mtls+policy            the same with --access-policy (the authorizer on every call)
 // Rounds alternate the configurations so that the machine's load falls on
 // each alike. Prints a markdown table: median and p99 per configuration and
 // their excess over the floor.
@@ -79,16 +81,18 @@ int main(int argc, char** argv) {
   const std::vector<std::string> tls = {"--tls-cert", certs + "/coordinator.pem",
                                         "--tls-key",  certs + "/coordinator.key",
                                         "--tls-ca",   certs + "/ca.pem"};
-  std::vector<Configuration> configurations(3);
-  configurations[0].name = "plaintext (floor)";
-  configurations[1].name = "mtls";
-  configurations[1].flags = tls;
-  configurations[1].tls = true;
-  configurations[2].name = "mtls + access policy";
+  std::vector<Configuration> configurations(4);
+  configurations[0].name = "plaintext, no gRPC metrics (floor)";
+  configurations[0].flags = {"--grpc-metrics=false"};
+  configurations[1].name = "plaintext";
+  configurations[2].name = "mtls";
   configurations[2].flags = tls;
-  configurations[2].flags.insert(configurations[2].flags.end(),
-                                 {"--access-policy", dir + "/policy.yaml"});
   configurations[2].tls = true;
+  configurations[3].name = "mtls + access policy";
+  configurations[3].flags = tls;
+  configurations[3].flags.insert(configurations[3].flags.end(),
+                                 {"--access-policy", dir + "/policy.yaml"});
+  configurations[3].tls = true;
 
   grpc::SslCredentialsOptions client;
   client.pem_root_certs = read(certs + "/ca.pem");

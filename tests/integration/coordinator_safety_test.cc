@@ -364,6 +364,38 @@ class CoordinatorSafetyTest : public ::testing::Test {
     return unary(*stub_, &v1::Coordinator::Stub::Kill, request);
   }
 
+  /// The coordinator's /metrics page once `ready` holds on it, or the last
+  /// page read after 10 s (wall). A counter moves just after the state a
+  /// test waited for (the mission's end is published, then counted).
+  std::string coordinatorMetricsWhen(const std::function<bool(const std::string&)>& ready) {
+    std::string text;
+    const auto until = SteadyClock::now() + seconds(10);
+    for (;;) {
+      text = support::httpGet(coordinator_->metricsPort(), "/metrics");
+      if (ready(text) || SteadyClock::now() > until) return text;
+      std::this_thread::sleep_for(milliseconds(20));
+    }
+  }
+  /// Expects the mission counters of one mission of kRobot that ended with
+  /// `outcome` (its cause is not fixed: a step may end on its own while the
+  /// vehicle is stood down), and one safety action `action` by `trigger`.
+  void expectCounted(const std::string& outcome, const std::string& action,
+                     const std::string& trigger) {
+    const support::MetricLabels robot = {{"robot", kRobot}};
+    const support::MetricLabels ended = {{"robot", kRobot}, {"outcome", outcome}};
+    const std::string text = coordinatorMetricsWhen([&](const std::string& t) {
+      return metricSum(t, "behaviorlib_coordinator_missions_finished_total", ended) >= 1;
+    });
+    EXPECT_EQ(metricSum(text, "behaviorlib_coordinator_missions_started_total", robot), 1) << text;
+    EXPECT_EQ(metricSum(text, "behaviorlib_coordinator_missions_finished_total", robot), 1) << text;
+    EXPECT_EQ(metricSum(text, "behaviorlib_coordinator_missions_finished_total", ended), 1) << text;
+    EXPECT_EQ(metricSum(text, "behaviorlib_coordinator_safety_actions_total", robot), 1) << text;
+    EXPECT_EQ(metricValue(text, "behaviorlib_coordinator_safety_actions_total",
+                          {{"robot", kRobot}, {"action", action}, {"trigger", trigger}}),
+              1.0)
+        << text;
+  }
+
   std::string startMission(const std::string& text) {
     v1::StartMissionRequest request;
     request.set_text(text);
@@ -561,6 +593,8 @@ TEST_F(CoordinatorSafetyTest, EmergencyLandAbortsTheMissionLandsAndInterruptsThe
         << end->ShortDebugString() << "\n"
         << seenText();
   }
+  // Counted: the refused Kill is no action.
+  expectCounted("aborted", "emergency_land", "operator");
 }
 
 TEST_F(CoordinatorSafetyTest, KillThroughBehaviorctlNeedsConfirmThenStopsTheMotors) {
@@ -702,6 +736,7 @@ TEST_F(CoordinatorSafetyTest, CriticalBatteryLandsTheVehicleAndAbortsTheMission)
   auto end = finished(follow);
   ASSERT_TRUE(end) << seenText();
   EXPECT_NE(end->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  expectCounted("aborted", "land", "battery");
 }
 
 TEST_F(CoordinatorSafetyTest, LeavingTheMissionGeofenceAbortsItAndItsSafetyStepLands) {

@@ -31,6 +31,7 @@
 
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
+#include "support/prometheus_text.h"
 #include "support/server_process.h"
 
 namespace coordinator_test {
@@ -479,17 +480,7 @@ class TcpProxy {
   std::vector<std::thread> pumps_;
 };
 
-/// The value of the first sample of `metric` in a Prometheus text page.
-inline std::optional<double> metricValue(const std::string& text, const std::string& metric) {
-  std::istringstream in(text);
-  std::string line;
-  while (std::getline(in, line)) {
-    if (line.rfind(metric + " ", 0) == 0 || line.rfind(metric + "{", 0) == 0) {
-      const auto space = line.rfind(' ');
-      return std::strtod(line.c_str() + space + 1, nullptr);
-    }
-  }
-  return std::nullopt;
-}
+using support::metricSum;
+using support::metricValue;
 
 }  // namespace coordinator_test

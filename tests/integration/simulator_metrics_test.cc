@@ -18,6 +18,7 @@
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "support/prometheus_text.h"
 #include "support/server_process.h"
 
 namespace {
@@ -39,30 +40,7 @@ std::unique_ptr<grpc::ClientContext> deadline(seconds s = seconds(10)) {
 /// text exposition; nullopt when absent.
 std::optional<double> value(const std::string& text, const std::string& name,
                             const Labels& labels = {}) {
-  std::istringstream lines(text);
-  for (std::string line; std::getline(lines, line);) {
-    if (line.empty() || line[0] == '#') continue;
-    const std::size_t end_of_name = line.find_first_of("{ ");
-    if (end_of_name == std::string::npos || line.substr(0, end_of_name) != name) continue;
-    Labels found;
-    std::size_t rest = end_of_name;
-    if (line[end_of_name] == '{') {
-      const std::size_t close = line.find('}', end_of_name);
-      std::istringstream pairs(line.substr(end_of_name + 1, close - end_of_name - 1));
-      for (std::string pair; std::getline(pairs, pair, ',');) {
-        const std::size_t eq = pair.find('=');
-        found[pair.substr(0, eq)] = pair.substr(eq + 2, pair.size() - eq - 3);  // strip quotes
-      }
-      rest = close + 1;
-    }
-    bool match = true;
-    for (const auto& [key, wanted] : labels) {
-      auto it = found.find(key);
-      match = match && it != found.end() && it->second == wanted;
-    }
-    if (match) return std::stod(line.substr(rest));
-  }
-  return std::nullopt;
+  return support::metricValue(text, name, labels);
 }
 
 class SimulatorMetricsTest : public ::testing::Test {
@@ -103,9 +81,17 @@ TEST_F(SimulatorMetricsTest, EverySeriesExistsAndMovesWithTheSimulation) {
   }
   EXPECT_EQ(value(first, "behaviorlib_simulator_time_scale"), 5.0);
   EXPECT_EQ(value(first, "behaviorlib_simulator_lock_step"), 0.0);
-  EXPECT_EQ(value(first, "behaviorlib_simulator_vehicle_position_m", z), 0.0) << "landed";
-  EXPECT_EQ(value(first, "behaviorlib_simulator_vehicle_flight_state", drone1),
-            static_cast<double>(v1::FLIGHT_STATE_LANDED));
+  EXPECT_EQ(value(first, "behaviorlib_simulator_vehicle_position_meters", z), 0.0) << "landed";
+  // One series per state, 1 for the vehicle's.
+  EXPECT_EQ(value(first, "behaviorlib_simulator_vehicle_flight_state",
+                  {{"robot", "drone1"}, {"state", "LANDED"}}),
+            1.0);
+  for (const char* state : {"TAKING_OFF", "FLYING", "HOVERING", "LANDING", "EMERGENCY"}) {
+    EXPECT_EQ(value(first, "behaviorlib_simulator_vehicle_flight_state",
+                    {{"robot", "drone1"}, {"state", state}}),
+              0.0)
+        << state;
+  }
   EXPECT_EQ(value(first, "behaviorlib_simulator_vehicle_crashed", drone1), 0.0);
   EXPECT_TRUE(value(first, "behaviorlib_simulator_vehicle_battery_ratio", drone1));
   EXPECT_TRUE(value(first, "behaviorlib_simulator_sensor_samples_total",
@@ -148,10 +134,24 @@ TEST_F(SimulatorMetricsTest, EverySeriesExistsAndMovesWithTheSimulation) {
   EXPECT_GT(moved("behaviorlib_simulator_step_seconds_count"), 3000.0) << "one count per step";
   EXPECT_GT(moved("behaviorlib_simulator_step_seconds_sum"), 0.0);
   EXPECT_GT(value(second, "behaviorlib_simulator_real_time_factor").value_or(0), 1.0);
-  EXPECT_GT(moved("behaviorlib_simulator_vehicle_position_m", z), 1.0) << "took off";
+  EXPECT_GT(moved("behaviorlib_simulator_vehicle_position_meters", z), 1.0) << "took off";
   EXPECT_LT(moved("behaviorlib_simulator_vehicle_battery_ratio", drone1), 0.0) << "drains";
-  EXPECT_NE(value(second, "behaviorlib_simulator_vehicle_flight_state", drone1),
-            static_cast<double>(v1::FLIGHT_STATE_LANDED));
+  EXPECT_EQ(value(second, "behaviorlib_simulator_vehicle_flight_state",
+                  {{"robot", "drone1"}, {"state", "LANDED"}}),
+            0.0);
+  // Every server's own metrics: its gRPC calls, the process, the build.
+  EXPECT_EQ(value(second, "grpc_server_handled_total",
+                  {{"grpc_type", "unary"},
+                   {"grpc_service", "behaviorlib.v1.FlightController"},
+                   {"grpc_method", "ExecuteFlightAction"},
+                   {"grpc_code", "OK"}}),
+            1.0);
+  EXPECT_EQ(value(second, "grpc_server_handling_seconds_count",
+                  {{"grpc_service", "behaviorlib.v1.Simulator"}, {"grpc_method", "InjectFailure"}}),
+            1.0);
+  EXPECT_GT(value(second, "process_resident_memory_bytes").value_or(0), 1 << 20);
+  EXPECT_GT(value(second, "process_cpu_seconds_total").value_or(0), 0.0);
+  EXPECT_EQ(value(second, "behaviorlib_build_info"), 1.0);
   EXPECT_GT(
       moved("behaviorlib_simulator_sensor_samples_total", {{"robot", "drone1"}, {"sensor", "imu"}}),
       3.0 * 200);

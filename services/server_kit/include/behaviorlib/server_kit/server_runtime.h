@@ -1,7 +1,8 @@
 #pragma once
 
 // What every behaviorlib server process shares: a gRPC server with the
-// standard health service and reflection, a Prometheus /metrics endpoint,
+// standard health service and reflection, a Prometheus /metrics endpoint
+// (with gRPC, process and build metrics: server_metrics.h),
 // the port file that tells scripts and tests which ports were bound
 // (`--listen 127.0.0.1:0` is allowed), and orderly SIGTERM handling.
 //
@@ -30,6 +31,7 @@ class Service;
 }  // namespace grpc
 
 namespace prometheus {
+class Collectable;
 class Exposer;
 class Registry;
 }  // namespace prometheus
@@ -113,6 +115,8 @@ class ServerRuntime {
 
  private:
   std::shared_ptr<prometheus::Registry> registry_;
+  // process_* metrics, collected at each scrape.
+  std::shared_ptr<prometheus::Collectable> process_;
   std::unique_ptr<prometheus::Exposer> exposer_;
   std::vector<std::unique_ptr<grpc::Service>> reflection_services_;
   std::string default_audit_log_;

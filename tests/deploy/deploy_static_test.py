@@ -649,10 +649,10 @@ class GrafanaFilesTest(unittest.TestCase):
         self.assertTrue(home.startswith(entry["options"]["path"] + "/"))
         self.assertIn(os.path.basename(home), self.dashboards)
 
-    def test_the_five_dashboards(self):
+    def test_the_six_dashboards(self):
         self.assertEqual(set(self.dashboards), {
             "fleet_overview.json", "behavior_activity.json", "monitoring_activation_times.json",
-            "vehicle_state.json", "simulator_performance.json"})
+            "vehicle_state.json", "simulator_performance.json", "missions.json"})
         uids = [d["uid"] for d in self.dashboards.values()]
         self.assertEqual(len(set(uids)), len(uids))
 

@@ -56,7 +56,9 @@ class PromtoolTest(unittest.TestCase):
                   for rule in group["rules"] if "alert" in rule}
         self.assertGreaterEqual(alerts, {"BehaviorSystemDown", "BehaviorProcessFailure",
                                          "BehaviorTimeOutRateRising", "SimulatorBehindRealTime",
-                                         "BehaviorActivationSlow"})
+                                         "BehaviorActivationSlow", "MissionFailed",
+                                         "SafetyActionTaken", "VehicleCrashed",
+                                         "GrpcServerErrors"})
         fired = set()
         for path in TEST_FILES:
             for case in ds.read_yaml(path)["tests"]:

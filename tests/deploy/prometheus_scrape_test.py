@@ -10,6 +10,9 @@ through Prometheus's HTTP API:
   (all six causes, GOAL_ACHIEVED and INTERRUPTED moved) and the
   activation-time histogram (behaviorlib_activation_seconds) exist and
   moved during the mission;
+- the coordinator counted the mission (started, succeeded by GOAL_ACHIEVED),
+  and every process exposes its gRPC calls, process_* and build info;
+- `promtool check metrics` accepts every process's /metrics page;
 - every alert rule evaluates without error;
 - every PromQL expression of the Grafana dashboards (panel queries and
   variable queries, with Grafana's variables substituted) returns data.
@@ -29,6 +32,7 @@ import sys
 import tempfile
 import time
 import unittest
+import urllib.request
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import deploy_support as ds  # noqa: E402
@@ -49,6 +53,7 @@ FLOWN = ("TAKE_OFF", "FOLLOW_PATH", "ROTATE_WITH_PID_CONTROL", "LAND")
 CAUSES = ("GOAL_ACHIEVED", "TIME_OUT", "WRONG_PROGRESS", "SITUATION_CHANGE", "PROCESS_FAILURE",
           "INTERRUPTED")
 SCRAPE_INTERVAL_S = 2  # prometheus-local.yml
+PROMTOOL = shutil.which("promtool") or "/usr/bin/promtool"
 # Grafana's $__rate_interval is at least four scrape intervals.
 RATE_INTERVAL = f"{4 * SCRAPE_INTERVAL_S + SCRAPE_INTERVAL_S}s"
 
@@ -252,6 +257,36 @@ class PrometheusScrapeTest(unittest.TestCase):
             f"behaviorlib_activation_seconds_bucket[{window_s}s])))")
         self.assertTrue(0 < p99 <= 1.0, p99)
         self.say(f"activation time p99 during the mission: {p99 * 1e3:.3f} ms")
+
+        # The coordinator counted the mission; every process its gRPC calls,
+        # its resources and its build.
+        started = self.prometheus.scalar(
+            f'sum(behaviorlib_coordinator_missions_started_total{{robot="{ROBOT}"}})')
+        self.assertEqual(started, 1)
+        finished = self.prometheus.query("behaviorlib_coordinator_missions_finished_total")
+        self.assertEqual([(r["metric"]["robot"], r["metric"]["outcome"], r["metric"]["cause"],
+                           r["value"][1]) for r in finished["result"]],
+                         [(ROBOT, "succeeded", "GOAL_ACHIEVED", "1")])
+        handled = self.prometheus.scalar(
+            'sum(grpc_server_handled_total{job="coordinator", grpc_service='
+            '"behaviorlib.v1.Coordinator", grpc_method="StartMission", grpc_code="OK"})')
+        self.assertEqual(handled, 1)
+        for metric in ("behaviorlib_build_info", "process_resident_memory_bytes",
+                       "process_cpu_seconds_total", "grpc_server_started_total"):
+            instances = {r["metric"]["instance"] for r in self.prometheus.query(metric)["result"]}
+            self.assertEqual(instances, set(expected), metric)
+        self.assertEqual(self.prometheus.query(
+            'grpc_server_handled_total{grpc_code=~"INTERNAL|UNKNOWN|DATA_LOSS"}')["result"], [])
+
+        # promtool accepts every process's page (names, units, help, types).
+        for address in sorted(expected):
+            with urllib.request.urlopen(f"http://{address}/metrics", timeout=10) as reply:
+                page = reply.read()
+            result = subprocess.run([PROMTOOL, "check", "metrics"], input=page,
+                                    capture_output=True, timeout=30)
+            output = (result.stdout + result.stderr).decode(errors="replace")
+            self.assertEqual((result.returncode, output), (0, ""), address)
+        self.say(f"promtool check metrics: {len(expected)} pages clean")
 
         # The alert rules evaluate without error.
         def rules_evaluated():

@@ -7,6 +7,7 @@ import type { Dashboard } from '@grafana/schema';
 
 import behaviorActivity from '../../../deploy/grafana/dashboards/behavior_activity.json';
 import fleetOverview from '../../../deploy/grafana/dashboards/fleet_overview.json';
+import missions from '../../../deploy/grafana/dashboards/missions.json';
 import monitoringActivationTimes from '../../../deploy/grafana/dashboards/monitoring_activation_times.json';
 import simulatorPerformance from '../../../deploy/grafana/dashboards/simulator_performance.json';
 import vehicleState from '../../../deploy/grafana/dashboards/vehicle_state.json';
@@ -59,6 +60,8 @@ export const behaviorActivityDashboard: Schema = behaviorActivity;
 export const behaviorActivityKeys: Exact<typeof behaviorActivity, Schema> = behaviorActivity;
 export const fleetOverviewDashboard: Schema = fleetOverview;
 export const fleetOverviewKeys: Exact<typeof fleetOverview, Schema> = fleetOverview;
+export const missionsDashboard: Schema = missions;
+export const missionsKeys: Exact<typeof missions, Schema> = missions;
 export const monitoringActivationTimesDashboard: Schema = monitoringActivationTimes;
 export const monitoringActivationTimesKeys: Exact<typeof monitoringActivationTimes, Schema> =
   monitoringActivationTimes;

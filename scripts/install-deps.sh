@@ -25,8 +25,17 @@ TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-venv
   python3-wheel python3-pytest python3-matplotlib python3-pil prometheus docker-compose procps openssl \
   clang-14 libclang-rt-14-dev libfuzzer-14-dev llvm-14"
 
+# npm (with Node.js) installs the pinned tools of tests/api (buf) and
+# tests/deploy (@grafana/schema, TypeScript) into the build tree. Debian's npm
+# is left out where a Node.js with npm is already installed, which it would
+# conflict with.
+NPM_PACKAGE="npm"
+if command -v npm > /dev/null 2>&1; then
+  NPM_PACKAGE=""
+fi
+
 case "${1:-}" in
-  "") packages="$BUILD_PACKAGES $TEST_PACKAGES" ;;
+  "") packages="$BUILD_PACKAGES $TEST_PACKAGES $NPM_PACKAGE" ;;
   --build) packages="$BUILD_PACKAGES" ;;
   --runtime) packages="$RUNTIME_PACKAGES" ;;
   *)

@@ -6,9 +6,11 @@ loopback with the ports they actually bound, and Prometheus's HTTP API.
 Needs Debian's python3-yaml (and, for rpc, python3-grpcio/python3-protobuf).
 """
 
+import hashlib
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -381,3 +383,38 @@ def tracked_files(paths):
     if listed.returncode != 0:
         return None, listed.stderr.strip()
     return [f for f in listed.stdout.split("\0") if f], ""
+
+
+class RegistryUnreachable(Exception):
+    """npm could not reach its registry (a test then exits 77: skipped)."""
+
+
+def npm_ci(source, work):
+    """npm ci of `source`'s package.json and package-lock.json in `work` (a
+    build directory, never the sources), unless node_modules already holds
+    that lockfile. Install scripts do not run. RegistryUnreachable when the
+    registry cannot be reached."""
+    os.makedirs(work, exist_ok=True)
+    with open(os.path.join(source, "package-lock.json"), "rb") as f:
+        lock = f.read()
+    stamp_path = os.path.join(work, "node_modules", ".behaviorlib-lock-sha256")
+    digest = hashlib.sha256(lock).hexdigest()
+    try:
+        with open(stamp_path) as f:
+            if f.read().strip() == digest:
+                return
+    except OSError:
+        pass
+    for name in ("package.json", "package-lock.json"):
+        shutil.copyfile(os.path.join(source, name), os.path.join(work, name))
+    result = subprocess.run(["npm", "ci", "--no-audit", "--no-fund", "--ignore-scripts"],
+                            cwd=work, capture_output=True, text=True, timeout=240)
+    output = result.stdout + result.stderr
+    if result.returncode != 0 and re.search(
+            r"\b(ENOTFOUND|EAI_AGAIN|ECONNREFUSED|ECONNRESET|ETIMEDOUT|ENETUNREACH)\b", output):
+        raise RegistryUnreachable(f"npm ci in {work}: the npm registry is unreachable:\n"
+                                  f"{output[-2000:]}")
+    if result.returncode != 0:
+        raise AssertionError(f"npm ci in {work} failed:\n{output}")
+    with open(stamp_path, "w") as f:
+        f.write(digest + "\n")

@@ -55,9 +55,11 @@ int main(int argc, char** argv) {
       "  list                                 behaviors and their parameter schemas\n"
       "  activate BEHAVIOR [JSON] [--request-id ID]\n"
       "  deactivate BEHAVIOR [ACTIVATION_ID]\n"
-      "  pause BEHAVIOR | resume BEHAVIOR     (--target only)\n"
-      "  modify BEHAVIOR JSON                 (--target only)\n"
-      "  status BEHAVIOR                      CheckActivation\n"
+      "  pause BEHAVIOR [ACTIVATION_ID] | resume BEHAVIOR [ACTIVATION_ID]\n"
+      "  modify BEHAVIOR JSON                 changes the given parameters\n"
+      "  status BEHAVIOR                      CheckActivation (--target); the behavior's\n"
+      "                                       description and state (--coordinator)\n"
+      "  activation BEHAVIOR                  (--coordinator only) CheckActivation\n"
       "  situation BEHAVIOR                   CheckSituation\n"
       "  watch [--since-seq N] [--incarnation ID] [--until-finished BEHAVIOR] [--timeout-s S]\n"
       "  systems                              (--coordinator only) registered systems\n"
@@ -70,7 +72,8 @@ int main(int argc, char** argv) {
       "activate through the coordinator: --dry-run shows the catalog's plan only,\n"
       "  --skip-plan activates the behavior alone\n"
       "with --coordinator: --robot ID names the robot (required by activate, deactivate,\n"
-      "  status, situation; a filter for list, systems, watch); --behavior NAME filters watch\n");
+      "  pause, resume, modify, status, activation, situation; a filter for list, systems,\n"
+      "  watch); --behavior NAME filters watch\n");
   options.target = absl::GetFlag(FLAGS_target);
   options.coordinator = absl::GetFlag(FLAGS_coordinator);
   options.robot = absl::GetFlag(FLAGS_robot);

@@ -273,9 +273,10 @@ int runCoordinator(const CtlOptions& c) {
   auto stub = v1::Coordinator::NewStub(behaviorlib::server::makeChannel(c.coordinator));
   const std::string& command = c.args[0];
   const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
-  const bool needs_robot = command == "status" || command == "activate" ||
-                           command == "deactivate" || command == "situation" ||
-                           command == "emergency-land" || command == "kill";
+  const bool needs_robot =
+      command == "status" || command == "activate" || command == "deactivate" ||
+      command == "situation" || command == "pause" || command == "resume" || command == "modify" ||
+      command == "activation" || command == "emergency-land" || command == "kill";
   if (needs_robot && c.robot.empty()) {
     std::fprintf(stderr, "behaviorctl: '%s' through the coordinator needs --robot ID\n",
                  command.c_str());
@@ -357,12 +358,37 @@ int runCoordinator(const CtlOptions& c) {
                                : stub->EmergencyLand(context, request, r);
     });
   }
-  if (command == "pause" || command == "resume" || command == "modify") {
-    std::fprintf(stderr,
-                 "behaviorctl: '%s' is not routed by the coordinator; use --target with the "
-                 "hosting system's address (see 'behaviorctl --coordinator ... list')\n",
-                 command.c_str());
-    return 2;
+  if (command == "pause") {
+    v1::PauseFleetBehaviorRequest request;
+    request.set_robot_id(c.robot);
+    request.set_behavior(behavior);
+    if (c.args.size() > 2) request.set_activation_id(c.args[2]);
+    return unary<v1::PauseFleetBehaviorResponse>(
+        [&](auto* context, auto* r) { return stub->PauseFleetBehavior(context, request, r); });
+  }
+  if (command == "resume") {
+    v1::ResumeFleetBehaviorRequest request;
+    request.set_robot_id(c.robot);
+    request.set_behavior(behavior);
+    if (c.args.size() > 2) request.set_activation_id(c.args[2]);
+    return unary<v1::ResumeFleetBehaviorResponse>(
+        [&](auto* context, auto* r) { return stub->ResumeFleetBehavior(context, request, r); });
+  }
+  if (command == "modify") {
+    v1::ModifyFleetBehaviorRequest request;
+    request.set_robot_id(c.robot);
+    request.set_behavior(behavior);
+    if (!parseJson(c, 2, request.mutable_parameters(), kNotAnObject)) return 2;
+    return unary<v1::ModifyFleetBehaviorResponse>(
+        [&](auto* context, auto* r) { return stub->ModifyFleetBehavior(context, request, r); });
+  }
+  if (command == "activation") {
+    v1::CheckFleetBehaviorActivationRequest request;
+    request.set_robot_id(c.robot);
+    request.set_behavior(behavior);
+    return unary<v1::CheckFleetBehaviorActivationResponse>([&](auto* context, auto* r) {
+      return stub->CheckFleetBehaviorActivation(context, request, r);
+    });
   }
   return usageError();
 }
@@ -395,12 +421,14 @@ int runSystem(const CtlOptions& c) {
   if (command == "pause") {
     v1::PauseBehaviorRequest request;
     request.set_behavior(behavior);
+    if (c.args.size() > 2) request.set_activation_id(c.args[2]);
     return unary<v1::PauseResponse>(
         [&](auto* context, auto* r) { return stub->PauseBehavior(context, request, r); });
   }
   if (command == "resume") {
     v1::ResumeBehaviorRequest request;
     request.set_behavior(behavior);
+    if (c.args.size() > 2) request.set_activation_id(c.args[2]);
     return unary<v1::ResumeResponse>(
         [&](auto* context, auto* r) { return stub->ResumeBehavior(context, request, r); });
   }

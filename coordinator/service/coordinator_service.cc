@@ -166,6 +166,22 @@ grpc::ServerUnaryReactor* forward(std::unique_ptr<ForwardedCall<Request, Respons
   return reactor;
 }
 
+// Routes a call on a robot's behavior to the system that hosts it: finishes
+// at once with the routing error (unknown robot or behavior, system down),
+// else forwards `request` with a deadline of `timeout` (see forward()).
+template <class Response, class Request, class FleetResponse, class Start, class Put>
+grpc::ServerUnaryReactor* routed(const Registry& registry, std::chrono::milliseconds timeout,
+                                 grpc::CallbackServerContext* context, const std::string& robot,
+                                 Request request, FleetResponse* response, Start start, Put put) {
+  auto call = std::make_unique<ForwardedCall<Request, Response>>();
+  if (auto s = registry.route(robot, request.behavior(), &call->route); !s.ok()) {
+    return finishNow(context, s);
+  }
+  call->context = childContext(context, timeout);
+  call->request = std::move(request);
+  return forward(std::move(call), context->DefaultReactor(), response, start, put);
+}
+
 }  // namespace
 
 // One WatchEvents stream (LogStreamWriter). Each event's wire form is
@@ -453,18 +469,13 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
         errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
                           "dry_run needs the coordinator's behavior catalog"));
   }
-  using Call = ForwardedCall<v1::ActivateBehaviorRequest, v1::ActivateResponse>;
-  auto call = std::make_unique<Call>();
-  if (auto s = registry_.route(request->robot_id(), request->behavior(), &call->route); !s.ok()) {
-    return finishNow(context, s);
-  }
-  call->context = childContext(context, options_.default_call_timeout);
-  call->request.set_behavior(request->behavior());
-  *call->request.mutable_parameters() = request->parameters();
-  call->request.set_request_id(request->request_id());
-  return forward(
-      std::move(call), context->DefaultReactor(), response,
-      [](auto& async, auto... args) { async.ActivateBehavior(args...); },
+  v1::ActivateBehaviorRequest forwarded;
+  forwarded.set_behavior(request->behavior());
+  *forwarded.mutable_parameters() = request->parameters();
+  forwarded.set_request_id(request->request_id());
+  return routed<v1::ActivateResponse>(
+      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
+      response, [](auto& async, auto... args) { async.ActivateBehavior(args...); },
       [](auto* r, auto&& reply) { *r->mutable_activation() = std::move(reply); });
 }
 
@@ -483,34 +494,72 @@ grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
       return grpc::Status::OK;
     });
   }
-  using Call = ForwardedCall<v1::DeactivateBehaviorRequest, v1::DeactivateResponse>;
-  auto call = std::make_unique<Call>();
-  if (auto s = registry_.route(request->robot_id(), request->behavior(), &call->route); !s.ok()) {
-    return finishNow(context, s);
-  }
-  call->context = childContext(context, options_.default_call_timeout);
-  call->request.set_behavior(request->behavior());
-  call->request.set_activation_id(request->activation_id());
-  return forward(
-      std::move(call), context->DefaultReactor(), response,
-      [](auto& async, auto... args) { async.DeactivateBehavior(args...); },
+  v1::DeactivateBehaviorRequest forwarded;
+  forwarded.set_behavior(request->behavior());
+  forwarded.set_activation_id(request->activation_id());
+  return routed<v1::DeactivateResponse>(
+      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
+      response, [](auto& async, auto... args) { async.DeactivateBehavior(args...); },
       [](auto* r, auto&& reply) { *r->mutable_result() = std::move(reply); });
 }
 
 grpc::ServerUnaryReactor* CoordinatorService::CheckBehaviorSituation(
     grpc::CallbackServerContext* context, const v1::CheckFleetBehaviorSituationRequest* request,
     v1::CheckFleetBehaviorSituationResponse* response) {
-  using Call = ForwardedCall<v1::CheckBehaviorSituationRequest, v1::CheckSituationResponse>;
-  auto call = std::make_unique<Call>();
-  if (auto s = registry_.route(request->robot_id(), request->behavior(), &call->route); !s.ok()) {
-    return finishNow(context, s);
-  }
-  call->context = childContext(context, options_.default_call_timeout);
-  call->request.set_behavior(request->behavior());
-  return forward(
-      std::move(call), context->DefaultReactor(), response,
-      [](auto& async, auto... args) { async.CheckBehaviorSituation(args...); },
+  v1::CheckBehaviorSituationRequest forwarded;
+  forwarded.set_behavior(request->behavior());
+  return routed<v1::CheckSituationResponse>(
+      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
+      response, [](auto& async, auto... args) { async.CheckBehaviorSituation(args...); },
       [](auto* r, auto&& reply) { *r->mutable_situation() = std::move(reply); });
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::CheckFleetBehaviorActivation(
+    grpc::CallbackServerContext* context, const v1::CheckFleetBehaviorActivationRequest* request,
+    v1::CheckFleetBehaviorActivationResponse* response) {
+  v1::CheckBehaviorActivationRequest forwarded;
+  forwarded.set_behavior(request->behavior());
+  return routed<v1::CheckActivationResponse>(
+      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
+      response, [](auto& async, auto... args) { async.CheckBehaviorActivation(args...); },
+      [](auto* r, auto&& reply) { *r->mutable_activation() = std::move(reply); });
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::PauseFleetBehavior(
+    grpc::CallbackServerContext* context, const v1::PauseFleetBehaviorRequest* request,
+    v1::PauseFleetBehaviorResponse* response) {
+  v1::PauseBehaviorRequest forwarded;
+  forwarded.set_behavior(request->behavior());
+  forwarded.set_activation_id(request->activation_id());
+  return routed<v1::PauseResponse>(
+      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
+      response, [](auto& async, auto... args) { async.PauseBehavior(args...); },
+      [](auto* r, auto&& reply) { *r->mutable_result() = std::move(reply); });
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ResumeFleetBehavior(
+    grpc::CallbackServerContext* context, const v1::ResumeFleetBehaviorRequest* request,
+    v1::ResumeFleetBehaviorResponse* response) {
+  v1::ResumeBehaviorRequest forwarded;
+  forwarded.set_behavior(request->behavior());
+  forwarded.set_activation_id(request->activation_id());
+  return routed<v1::ResumeResponse>(
+      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
+      response, [](auto& async, auto... args) { async.ResumeBehavior(args...); },
+      [](auto* r, auto&& reply) { *r->mutable_result() = std::move(reply); });
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::ModifyFleetBehavior(
+    grpc::CallbackServerContext* context, const v1::ModifyFleetBehaviorRequest* request,
+    v1::ModifyFleetBehaviorResponse* response) {
+  v1::ModifyBehaviorRequest forwarded;
+  forwarded.set_behavior(request->behavior());
+  forwarded.set_activation_id(request->activation_id());
+  *forwarded.mutable_parameters() = request->parameters();
+  return routed<v1::ModifyResponse>(
+      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
+      response, [](auto& async, auto... args) { async.ModifyBehavior(args...); },
+      [](auto* r, auto&& reply) { *r->mutable_result() = std::move(reply); });
 }
 
 }  // namespace behaviorlib::coordinator

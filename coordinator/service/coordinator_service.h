@@ -137,6 +137,19 @@ class CoordinatorService final
   grpc::ServerUnaryReactor* CheckBehaviorSituation(
       grpc::CallbackServerContext* context, const v1::CheckFleetBehaviorSituationRequest* request,
       v1::CheckFleetBehaviorSituationResponse* response) override;
+  // Forwarded to the hosting system's BehaviorSystem call.
+  grpc::ServerUnaryReactor* CheckFleetBehaviorActivation(
+      grpc::CallbackServerContext* context, const v1::CheckFleetBehaviorActivationRequest* request,
+      v1::CheckFleetBehaviorActivationResponse* response) override;
+  grpc::ServerUnaryReactor* PauseFleetBehavior(grpc::CallbackServerContext* context,
+                                               const v1::PauseFleetBehaviorRequest* request,
+                                               v1::PauseFleetBehaviorResponse* response) override;
+  grpc::ServerUnaryReactor* ResumeFleetBehavior(grpc::CallbackServerContext* context,
+                                                const v1::ResumeFleetBehaviorRequest* request,
+                                                v1::ResumeFleetBehaviorResponse* response) override;
+  grpc::ServerUnaryReactor* ModifyFleetBehavior(grpc::CallbackServerContext* context,
+                                                const v1::ModifyFleetBehaviorRequest* request,
+                                                v1::ModifyFleetBehaviorResponse* response) override;
 
  private:
   friend class FleetStreamReactor;

@@ -19,6 +19,7 @@
 #include <thread>
 #include <vector>
 
+#include "behaviorlib/error_details.h"
 #include "coordinator_test_support.h"
 #include "support/run_command.h"
 #include "support/server_process.h"
@@ -238,6 +239,103 @@ TEST_F(CoordinatorTest, ListShowsTheActiveStateAndDeactivateIsRoutedToTheSystem)
       },
       seconds(5)));
   EXPECT_FALSE(SystemClient(a.address()).checkActivation("WAIT").response.active());
+}
+
+// Pause, Resume, Modify and CheckActivation by robot: routed to the hosting
+// system, which answers (and refuses) as when called directly; its events
+// reach the fleet stream.
+TEST_F(CoordinatorTest, PauseResumeModifyAndCheckActivationAreRoutedByRobot) {
+  auto& a = startSystem("robot-a");
+  ASSERT_TRUE(client_->waitForSystem("robot-a", v1::SYSTEM_STATE_UP));
+  FleetWatcher watcher(coordinator_->address());
+  ASSERT_TRUE(watcher.start());
+  auto r = client_->activate("robot-a", "WAIT", R"({"duration_s": 3600})");
+  ASSERT_TRUE(r.status.ok()) << describe(r.status);
+  const std::string id = r.response.activation().activation_id();
+  ASSERT_TRUE(watcher.waitActivated(id));
+  auto& stub = client_->stub();
+  auto check = [&] {
+    v1::CheckFleetBehaviorActivationRequest request;
+    request.set_robot_id("robot-a");
+    request.set_behavior("WAIT");
+    return unary(stub, &v1::Coordinator::Stub::CheckFleetBehaviorActivation, request);
+  };
+  auto checked = check();
+  ASSERT_TRUE(checked.status.ok()) << describe(checked.status);
+  EXPECT_EQ(checked.response.robot_id(), "robot-a");
+  EXPECT_EQ(checked.response.system(), kSystem);
+  EXPECT_EQ(checked.response.activation().state(), v1::BEHAVIOR_STATE_ACTIVE);
+  EXPECT_EQ(checked.response.activation().activation_id(), id);
+
+  v1::PauseFleetBehaviorRequest pause;
+  pause.set_robot_id("robot-a");
+  pause.set_behavior("WAIT");
+  pause.set_activation_id(id);
+  auto paused = unary(stub, &v1::Coordinator::Stub::PauseFleetBehavior, pause);
+  ASSERT_TRUE(paused.status.ok()) << describe(paused.status);
+  EXPECT_EQ(paused.response.result().activation_id(), id);
+  EXPECT_EQ(paused.response.system(), kSystem);
+  EXPECT_EQ(check().response.activation().state(), v1::BEHAVIOR_STATE_PAUSED);
+  EXPECT_EQ(SystemClient(a.address()).checkActivation("WAIT").response.state(),
+            v1::BEHAVIOR_STATE_PAUSED);
+  ASSERT_TRUE(watcher.waitFor([&](const v1::FleetEvent& e) {
+    return e.behavior_event().activation_id() == id && e.behavior_event().has_paused();
+  }));
+  // The system's refusal, relayed with its reason and the robot.
+  auto twice = unary(stub, &v1::Coordinator::Stub::PauseFleetBehavior, pause);
+  EXPECT_EQ(twice.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION)
+      << describe(twice.status);
+  auto info = behaviorlib::errors::errorInfo(twice.status);
+  ASSERT_TRUE(info);
+  EXPECT_EQ(info->reason(), "BEHAVIOR_ALREADY_PAUSED");
+  EXPECT_EQ(info->metadata().at("robot"), "robot-a");
+  EXPECT_EQ(info->metadata().at("system"), kSystem);
+
+  v1::ResumeFleetBehaviorRequest resume;
+  resume.set_robot_id("robot-a");
+  resume.set_behavior("WAIT");
+  auto resumed = unary(stub, &v1::Coordinator::Stub::ResumeFleetBehavior, resume);
+  ASSERT_TRUE(resumed.status.ok()) << describe(resumed.status);
+  EXPECT_EQ(resumed.response.result().activation_id(), id);
+  EXPECT_EQ(check().response.activation().state(), v1::BEHAVIOR_STATE_ACTIVE);
+
+  v1::ModifyFleetBehaviorRequest modify;
+  modify.set_robot_id("robot-a");
+  modify.set_behavior("WAIT");
+  *modify.mutable_parameters() = structFromJson(R"({"duration_s": 7200})");
+  auto modified = unary(stub, &v1::Coordinator::Stub::ModifyFleetBehavior, modify);
+  ASSERT_TRUE(modified.status.ok()) << describe(modified.status);
+  EXPECT_EQ(modified.response.result().parameters().fields().at("duration_s").number_value(), 7200);
+  EXPECT_EQ(check().response.activation().parameters().fields().at("duration_s").number_value(),
+            7200);
+  *modify.mutable_parameters() = structFromJson(R"({"duration_s": -1})");
+  auto refused = unary(stub, &v1::Coordinator::Stub::ModifyFleetBehavior, modify);
+  EXPECT_EQ(refused.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << describe(refused.status);
+  auto bad = behaviorlib::errors::badRequest(refused.status);
+  ASSERT_TRUE(bad);
+  ASSERT_EQ(bad->field_violations_size(), 1);
+  EXPECT_NE(bad->field_violations(0).field().find("duration_s"), std::string::npos)
+      << bad->ShortDebugString();
+  modify.set_activation_id("not-this-one");
+  *modify.mutable_parameters() = structFromJson(R"({"duration_s": 10})");
+  EXPECT_EQ(unary(stub, &v1::Coordinator::Stub::ModifyFleetBehavior, modify).status.error_code(),
+            grpc::StatusCode::ABORTED);
+
+  // Unknown robot and behavior: the coordinator's own refusals.
+  pause.set_robot_id("ghost");
+  auto ghost = unary(stub, &v1::Coordinator::Stub::PauseFleetBehavior, pause);
+  EXPECT_EQ(ghost.status.error_code(), grpc::StatusCode::NOT_FOUND) << describe(ghost.status);
+  EXPECT_EQ(behaviorlib::errors::errorInfo(ghost.status)->reason(), "UNKNOWN_ROBOT");
+  pause.set_robot_id("robot-a");
+  pause.set_behavior("NO_SUCH_BEHAVIOR");
+  auto unknown = unary(stub, &v1::Coordinator::Stub::PauseFleetBehavior, pause);
+  EXPECT_EQ(unknown.status.error_code(), grpc::StatusCode::NOT_FOUND);
+  EXPECT_EQ(behaviorlib::errors::errorInfo(unknown.status)->reason(), "UNKNOWN_BEHAVIOR");
+
+  ASSERT_TRUE(client_->deactivate("robot-a", "WAIT", id).status.ok());
+  ASSERT_TRUE(watcher.waitFinished(id));
+  EXPECT_FALSE(check().response.activation().active());
 }
 
 TEST_F(CoordinatorTest, ResumingFromSinceSeqReplaysTheMissedEventsExactlyOnce) {
@@ -650,6 +748,28 @@ TEST_F(CoordinatorTest, BehaviorctlListsActivatesAndWatchesThroughTheCoordinator
             0)
       << output;
   EXPECT_NE(output.find("TERMINATION_CAUSE_GOAL_ACHIEVED"), std::string::npos) << output;
+
+  // Pause, resume, modify and the activation's state, by robot.
+  output.clear();
+  ASSERT_EQ(run(ctl + " --robot robot-a activate WAIT '{\"duration_s\": 3600}'", &output), 0)
+      << output;
+  for (const char* command : {"pause WAIT", "activation WAIT", "resume WAIT",
+                              "modify WAIT '{\"duration_s\": 60}'", "activation WAIT"}) {
+    output.clear();
+    ASSERT_EQ(run(ctl + " --robot robot-a " + command, &output), 0) << command << ": " << output;
+    EXPECT_NE(output.find("\"system\":\"basic_quadrotor_behaviors\""), std::string::npos)
+        << command << ": " << output;
+    if (std::string(command) == "pause WAIT") {
+      output.clear();
+      ASSERT_EQ(run(ctl + " --robot robot-a activation WAIT", &output), 0) << output;
+      EXPECT_NE(output.find("BEHAVIOR_STATE_PAUSED"), std::string::npos) << output;
+    }
+  }
+  EXPECT_NE(output.find("\"duration_s\":60"), std::string::npos) << output;
+  output.clear();
+  ASSERT_EQ(run(ctl + " --robot robot-a deactivate WAIT", &output), 0) << output;
+  output.clear();
+  EXPECT_EQ(run(ctl + " pause WAIT", &output), 2) << "needs --robot: " << output;
 
   output.clear();
   EXPECT_EQ(run(ctl + " --robot ghost activate WAIT", &output), 1) << output;

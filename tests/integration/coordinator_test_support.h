@@ -129,6 +129,8 @@ class CoordinatorClient {
     request.set_behavior(behavior);
     return unary(*stub_, &v1::Coordinator::Stub::CheckBehaviorSituation, request);
   }
+  /// Any other call: unary(client.stub(), &v1::Coordinator::Stub::..., request).
+  v1::Coordinator::Stub& stub() { return *stub_; }
   Reply<v1::RegisterSystemResponse> registerSystem(const v1::RegisterSystemRequest& request) {
     return unary(*stub_, &v1::Coordinator::Stub::RegisterSystem, request);
   }

@@ -432,6 +432,28 @@ def activate_request(robot_id, behavior, parameters, request_id="", skip_plan=Fa
         request_id=request_id, skip_plan=skip_plan, dry_run=dry_run)
 
 
+# The coordinator's calls on one robot's behavior beside activation:
+# (method, request type, reply field).
+ROBOT_CALLS = {
+    "pause": ("PauseFleetBehavior", "PauseFleetBehaviorRequest", "result"),
+    "resume": ("ResumeFleetBehavior", "ResumeFleetBehaviorRequest", "result"),
+    "modify": ("ModifyFleetBehavior", "ModifyFleetBehaviorRequest", "result"),
+    "check_activation": ("CheckFleetBehaviorActivation", "CheckFleetBehaviorActivationRequest",
+                         "activation"),
+}
+
+
+def robot_call(name, robot_id, behavior, activation_id="", parameters=None):
+    """(method, request, reply field) of one of ROBOT_CALLS."""
+    method, request_type, field = ROBOT_CALLS[name]
+    request = getattr(coordinator_pb2, request_type)(robot_id=robot_id, behavior=behavior)
+    if activation_id:
+        request.activation_id = activation_id
+    if parameters is not None:
+        request.parameters.CopyFrom(to_struct(parameters))
+    return method, request, field
+
+
 def mission_request(file=None, text=None, server_file=None, robot_id="", mission_id="",
                     source_name=""):
     """StartMissionRequest from exactly one of: `file` (a local file, read

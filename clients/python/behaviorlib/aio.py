@@ -156,6 +156,18 @@ class Activation:
     async def deactivate(self):
         return await self.robot.deactivate(self.behavior, activation_id=self.id)
 
+    async def pause(self):
+        return await self.robot.pause(self.behavior, activation_id=self.id)
+
+    async def resume(self):
+        return await self.robot.resume(self.behavior, activation_id=self.id)
+
+    async def modify(self, **parameters):
+        return await self.robot.modify(self.behavior, parameters, activation_id=self.id)
+
+    async def check(self):
+        return await self.robot.check_activation(self.behavior)
+
     def __repr__(self):
         return f"Activation({self.robot.id}/{self.behavior} {self.id})"
 
@@ -178,6 +190,9 @@ class BehaviorMethod:
 
     async def check_situation(self):
         return await self._robot.check_situation(self.spec.name)
+
+    async def check_activation(self):
+        return await self._robot.check_activation(self.spec.name)
 
     def __repr__(self):
         return f"<behavior {self._robot.id}.{self.spec.method}{self.__signature__}>"
@@ -228,6 +243,24 @@ class Robot:
                                                                      behavior=behavior)
         return (await _call(self.fleet._stub.CheckBehaviorSituation, request,
                             self.fleet._credentials)).situation
+
+    async def _robot_call(self, name, behavior, **arguments):
+        method, request, field = _core.robot_call(name, self.id, behavior, **arguments)
+        reply = await _call(getattr(self.fleet._stub, method), request, self.fleet._credentials)
+        return getattr(reply, field)
+
+    async def pause(self, behavior, activation_id=""):
+        return await self._robot_call("pause", behavior, activation_id=activation_id)
+
+    async def resume(self, behavior, activation_id=""):
+        return await self._robot_call("resume", behavior, activation_id=activation_id)
+
+    async def modify(self, behavior, parameters, activation_id=""):
+        return await self._robot_call("modify", behavior, activation_id=activation_id,
+                                      parameters=parameters)
+
+    async def check_activation(self, behavior):
+        return await self._robot_call("check_activation", behavior)
 
     async def emergency_land(self, reason=""):
         request = coordinator_pb2.SafetyActionRequest(robot_id=self.id, reason=reason)

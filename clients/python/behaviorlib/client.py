@@ -161,6 +161,20 @@ class Activation:
     def deactivate(self):
         return self.robot.deactivate(self.behavior, activation_id=self.id)
 
+    def pause(self):
+        return self.robot.pause(self.behavior, activation_id=self.id)
+
+    def resume(self):
+        return self.robot.resume(self.behavior, activation_id=self.id)
+
+    def modify(self, **parameters):
+        """Changes the given parameters; the others keep their values."""
+        return self.robot.modify(self.behavior, parameters, activation_id=self.id)
+
+    def check(self):
+        """The behavior's CheckActivationResponse (state, parameters, ...)."""
+        return self.robot.check_activation(self.behavior)
+
     def __repr__(self):
         return f"Activation({self.robot.id}/{self.behavior} {self.id})"
 
@@ -185,6 +199,9 @@ class BehaviorMethod:
 
     def check_situation(self):
         return self._robot.check_situation(self.spec.name)
+
+    def check_activation(self):
+        return self._robot.check_activation(self.spec.name)
 
     def __repr__(self):
         return f"<behavior {self._robot.id}.{self.spec.method}{self.__signature__}>"
@@ -246,6 +263,30 @@ class Robot:
                                                                      behavior=behavior)
         return _call(self.fleet._stub.CheckBehaviorSituation, request,
                      self.fleet._credentials).situation
+
+    def _robot_call(self, name, behavior, **arguments):
+        method, request, field = _core.robot_call(name, self.id, behavior, **arguments)
+        reply = _call(getattr(self.fleet._stub, method), request, self.fleet._credentials)
+        return getattr(reply, field)
+
+    def pause(self, behavior, activation_id=""):
+        """Pauses the behavior's activation; returns the PauseResponse."""
+        return self._robot_call("pause", behavior, activation_id=activation_id)
+
+    def resume(self, behavior, activation_id=""):
+        """Resumes the behavior's paused activation; returns the ResumeResponse."""
+        return self._robot_call("resume", behavior, activation_id=activation_id)
+
+    def modify(self, behavior, parameters, activation_id=""):
+        """Changes some parameters of the behavior's activation (a dict; the
+        others keep their values); returns the ModifyResponse."""
+        return self._robot_call("modify", behavior, activation_id=activation_id,
+                                parameters=parameters)
+
+    def check_activation(self, behavior):
+        """Whether the behavior is active, with which parameters, since when
+        (a CheckActivationResponse)."""
+        return self._robot_call("check_activation", behavior)
 
     def emergency_land(self, reason=""):
         """Hover and land now: every behavior deactivated, the mission

@@ -80,6 +80,40 @@ def test_start_returns_the_activation_which_can_be_waited_for_and_deactivated(fl
     assert (termination.cause, termination.activation_id) == ("INTERRUPTED", activation.id)
 
 
+def test_an_activation_is_paused_resumed_modified_and_checked_through_the_coordinator(fleet):
+    drone = fleet.robot("drone2")
+    activation = drone.wait.start(duration_s=LONG_WAIT_S)
+    try:
+        checked = activation.check()
+        assert (checked.active, checked.state, checked.activation_id) == (
+            True, behavior_pb2.BEHAVIOR_STATE_ACTIVE, activation.id)
+        assert activation.pause().activation_id == activation.id
+        assert activation.check().state == behavior_pb2.BEHAVIOR_STATE_PAUSED
+        # Paused twice, or resumed while active: refused with the reason.
+        with pytest.raises(behaviorlib.FailedPrecondition) as refused:
+            activation.pause()
+        assert refused.value.reason == "BEHAVIOR_ALREADY_PAUSED"
+        assert refused.value.metadata["robot"] == "drone2"
+        assert activation.resume().activation_id == activation.id
+        assert drone.wait.check_activation().state == behavior_pb2.BEHAVIOR_STATE_ACTIVE
+        modified = activation.modify(duration_s=LONG_WAIT_S + 1)
+        assert modified.activation_id == activation.id
+        assert behaviorlib._core.from_struct(modified.parameters) == {
+            "duration_s": LONG_WAIT_S + 1}
+        assert behaviorlib._core.from_struct(activation.check().parameters) == {
+            "duration_s": LONG_WAIT_S + 1}
+        with pytest.raises(behaviorlib.InvalidArgument) as refused:
+            activation.modify(duration_s=-1)
+        assert refused.value.reason == "PARAMETER_OUT_OF_RANGE"
+        assert [field for field, _ in refused.value.field_violations] == ["parameters.duration_s"]
+        with pytest.raises(behaviorlib.NotFound):
+            drone.pause("NO_SUCH_BEHAVIOR")
+    finally:
+        activation.deactivate()
+    assert activation.wait(timeout_s=30).cause == "INTERRUPTED"
+    assert not drone.check_activation("WAIT").active
+
+
 def test_beliefs_are_written_read_listed_watched_and_deleted(fleet):
     key = "pytest/sync/answer"
     first = fleet.beliefs.write(key, {"x": 1, "tags": ["a", "b"]}, writer="pytest")

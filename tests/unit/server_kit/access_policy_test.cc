@@ -23,6 +23,10 @@ TEST(RequiredRoleTest, EveryKindOfMethodNeedsItsRole) {
   EXPECT_EQ(requiredRole("/behaviorlib.v1.Coordinator/StartMission"), Role::kOperator);
   EXPECT_EQ(requiredRole("/behaviorlib.v1.Coordinator/WriteBelief"), Role::kOperator);
   EXPECT_EQ(requiredRole("/behaviorlib.v1.BehaviorSystem/ActivateBehavior"), Role::kOperator);
+  EXPECT_EQ(requiredRole("/behaviorlib.v1.Coordinator/PauseFleetBehavior"), Role::kOperator);
+  EXPECT_EQ(requiredRole("/behaviorlib.v1.Coordinator/ModifyFleetBehavior"), Role::kOperator);
+  EXPECT_EQ(requiredRole("/behaviorlib.v1.Coordinator/CheckFleetBehaviorActivation"),
+            Role::kViewer);
   EXPECT_EQ(requiredRole("/behaviorlib.v1.behaviors.TakeOff/Activate"), Role::kOperator);
   EXPECT_EQ(requiredRole("/behaviorlib.v1.Coordinator/Kill"), Role::kSafety);
   EXPECT_EQ(requiredRole("/behaviorlib.v1.Coordinator/EmergencyLand"), Role::kSafety);

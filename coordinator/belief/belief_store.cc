@@ -144,7 +144,7 @@ absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
     }
     belief.set_version(version_ + 1);
     if (journal_ != nullptr) {
-      v1::JournalRecord record;
+      durable::v1::JournalRecord record;
       *record.mutable_belief() = belief;
       if (absl::Status s = journal_->append(record); !s.ok()) return s;
     }
@@ -188,7 +188,7 @@ absl::Status BeliefStore::erase(const std::string& key, const std::string& write
     tombstone.set_version(version_ + 1);
     *tombstone.mutable_update_time() = google::protobuf::util::TimeUtil::GetCurrentTime();
     if (journal_ != nullptr) {
-      v1::JournalRecord record;
+      durable::v1::JournalRecord record;
       *record.mutable_belief() = tombstone;
       if (absl::Status s = journal_->append(record); !s.ok()) return s;
     }

@@ -8,6 +8,7 @@
 #include <set>
 #include <sstream>
 
+#include "coordinator/common/parameter_types.h"
 #include "coordinator/common/yaml_support.h"
 
 namespace behaviorlib::coordinator {
@@ -28,12 +29,7 @@ bool typeMatches(const v1::ParameterSchema& schema, const google::protobuf::Valu
     }
     return true;
   }
-  const std::string& type = schema.type();
-  if (type == "number" || type == "integer") return value.has_number_value();
-  if (type == "boolean") return value.has_bool_value();
-  if (type == "string" || type == "enum" || type == "bytes") return value.has_string_value();
-  if (type == "object") return value.has_struct_value();
-  return true;
+  return valueHasType(schema, value);
 }
 
 }  // namespace

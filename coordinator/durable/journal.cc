@@ -29,7 +29,7 @@ uint32_t getU32(const char* p) {
   return v;
 }
 
-std::string frame(const v1::JournalRecord& record) {
+std::string frame(const durable::v1::JournalRecord& record) {
   std::string payload;
   record.SerializeToString(&payload);
   std::string out;
@@ -54,7 +54,7 @@ size_t decodeJournal(std::string_view content, const Journal::Replay& replay, ui
     const uint32_t crc = getU32(content.data() + offset + 4);
     if (length > kMaxRecordBytes || content.size() - offset - 8 < length) break;
     const std::string_view payload = content.substr(offset + 8, length);
-    v1::JournalRecord record;
+    durable::v1::JournalRecord record;
     if (crcOf(payload) != crc ||
         !record.ParseFromArray(payload.data(), static_cast<int>(payload.size()))) {
       break;
@@ -121,7 +121,7 @@ absl::Status Journal::writeAll(int fd, const std::string& bytes) {
   return absl::OkStatus();
 }
 
-absl::Status Journal::append(const v1::JournalRecord& record) {
+absl::Status Journal::append(const durable::v1::JournalRecord& record) {
   const std::string bytes = frame(record);
   absl::MutexLock lock(&mutex_);
   if (absl::Status s = writeAll(fd_, bytes); !s.ok()) {
@@ -142,7 +142,7 @@ absl::Status Journal::append(const v1::JournalRecord& record) {
   return absl::OkStatus();
 }
 
-absl::Status Journal::compact(const std::vector<v1::JournalRecord>& snapshot) {
+absl::Status Journal::compact(const std::vector<durable::v1::JournalRecord>& snapshot) {
   std::string bytes;
   for (const auto& record : snapshot) bytes += frame(record);
   absl::MutexLock compaction(&compaction_mutex_);
@@ -151,7 +151,7 @@ absl::Status Journal::compact(const std::vector<v1::JournalRecord>& snapshot) {
 }
 
 absl::Status Journal::compactOnline(
-    const std::function<std::vector<v1::JournalRecord>()>& snapshot) {
+    const std::function<std::vector<durable::v1::JournalRecord>()>& snapshot) {
   absl::MutexLock compaction(&compaction_mutex_);
   {
     absl::MutexLock lock(&mutex_);
@@ -159,7 +159,7 @@ absl::Status Journal::compactOnline(
     captured_.clear();
     captured_records_ = 0;
   }
-  const std::vector<v1::JournalRecord> records = snapshot();
+  const std::vector<durable::v1::JournalRecord> records = snapshot();
   std::string bytes;
   for (const auto& record : records) bytes += frame(record);
   absl::MutexLock lock(&mutex_);

@@ -10,7 +10,7 @@
 // rename: a crash leaves either the old or the new journal).
 //
 //   auto journal = Journal::open("/var/lib/behaviorlib/coordinator.journal",
-//                                [&](const v1::JournalRecord& r) { restore(r); });
+//                                [&](const durable::v1::JournalRecord& r) { restore(r); });
 //   journal.value()->append(record);
 //
 // A process killed with SIGKILL loses nothing that append() returned for
@@ -28,6 +28,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/durable/v1/journal.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
 
 namespace behaviorlib::coordinator {
@@ -38,7 +39,7 @@ struct JournalOptions {
 
 class Journal {
  public:
-  using Replay = std::function<void(const v1::JournalRecord&)>;
+  using Replay = std::function<void(const durable::v1::JournalRecord&)>;
 
   /// Opens or creates `path` and replays its records through `replay` in
   /// order. A torn or corrupt tail is truncated (see truncatedBytes()).
@@ -50,9 +51,9 @@ class Journal {
   Journal& operator=(const Journal&) = delete;
 
   /// Appends one record (durable against a process crash once it returns).
-  absl::Status append(const v1::JournalRecord& record);
+  absl::Status append(const durable::v1::JournalRecord& record);
   /// Replaces the journal's content with `snapshot` atomically.
-  absl::Status compact(const std::vector<v1::JournalRecord>& snapshot);
+  absl::Status compact(const std::vector<durable::v1::JournalRecord>& snapshot);
   /// Compaction while records keep being appended. The journal first starts
   /// keeping a copy of every record appended; then `snapshot` is called (it
   /// reads the stores, which may append meanwhile); the new journal is the
@@ -60,7 +61,8 @@ class Journal {
   /// is last-writer-wins per belief, mission and system, so a record both in
   /// the snapshot and after it replays to the same state. The stores'
   /// locks are never taken under the journal's.
-  absl::Status compactOnline(const std::function<std::vector<v1::JournalRecord>()>& snapshot);
+  absl::Status compactOnline(
+      const std::function<std::vector<durable::v1::JournalRecord>()>& snapshot);
 
   const std::string& path() const { return path_; }
   /// Records replayed at open plus appended since (reset by compact()).

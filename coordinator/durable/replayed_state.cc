@@ -2,7 +2,7 @@
 
 namespace behaviorlib::coordinator {
 
-void ReplayedState::apply(const v1::JournalRecord& record) {
+void ReplayedState::apply(const durable::v1::JournalRecord& record) {
   if (record.has_belief()) beliefs.restore(record.belief());
   if (record.has_mission()) missions.push_back(record.mission());
   if (record.has_system()) {

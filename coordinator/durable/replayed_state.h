@@ -12,7 +12,8 @@
 //     removes the pair.
 //
 //   ReplayedState replayed;
-//   auto journal = Journal::open(path, [&](const v1::JournalRecord& r) { replayed.apply(r); });
+//   auto journal = Journal::open(path, [&](const durable::v1::JournalRecord& r) {
+//   replayed.apply(r); });
 //
 // Not thread-safe: it is filled and read by the one thread that starts the
 // coordinator.
@@ -22,6 +23,7 @@
 #include <utility>
 #include <vector>
 
+#include "behaviorlib/durable/v1/journal.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
 
@@ -30,9 +32,9 @@ namespace behaviorlib::coordinator {
 struct ReplayedState {
   BeliefStore beliefs;
   std::vector<v1::MissionStatus> missions;
-  std::map<std::pair<std::string, std::string>, v1::SystemRecord> systems;
+  std::map<std::pair<std::string, std::string>, durable::v1::SystemRecord> systems;
 
-  void apply(const v1::JournalRecord& record);
+  void apply(const durable::v1::JournalRecord& record);
 };
 
 }  // namespace behaviorlib::coordinator

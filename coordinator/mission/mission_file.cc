@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "coordinator/belief/belief_store.h"
+#include "coordinator/common/parameter_types.h"
 #include "coordinator/common/yaml_support.h"
 
 namespace behaviorlib::coordinator {
@@ -297,12 +298,7 @@ bool literalMatches(const v1::ParameterSchema& schema, const google::protobuf::V
     }
     return true;
   }
-  const std::string& type = schema.type();
-  if (type == "number" || type == "integer") return value.has_number_value();
-  if (type == "boolean") return value.has_bool_value();
-  if (type == "string" || type == "enum" || type == "bytes") return value.has_string_value();
-  if (type == "object") return value.has_struct_value();
-  return true;
+  return valueHasType(schema, value);
 }
 
 absl::Status checkSteps(const MissionSpec& mission, const std::vector<MissionStep>& steps,

@@ -136,7 +136,7 @@ struct Coordinator::Parts {
 
   // The current registrations, for the journal's snapshots.
   absl::Mutex systems_mutex;
-  std::map<std::pair<std::string, std::string>, v1::SystemRecord> systems
+  std::map<std::pair<std::string, std::string>, durable::v1::SystemRecord> systems
       ABSL_GUARDED_BY(systems_mutex);
   // Online compaction: a thread that compacts the journal past a size.
   absl::Mutex compactor_mutex;
@@ -144,8 +144,8 @@ struct Coordinator::Parts {
   std::thread compactor;
 
   /// What the journal must hold: every mission, registration and belief.
-  std::vector<v1::JournalRecord> snapshot() {
-    std::vector<v1::JournalRecord> out = missions->snapshot();
+  std::vector<durable::v1::JournalRecord> snapshot() {
+    std::vector<durable::v1::JournalRecord> out = missions->snapshot();
     {
       absl::MutexLock lock(&systems_mutex);
       for (const auto& [key, system] : systems) *out.emplace_back().mutable_system() = system;
@@ -179,7 +179,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
 
   RegistryOptions registry_options;
   Parts* parts = p.get();
-  registry_options.on_membership = [parts](const v1::SystemRecord& r) {
+  registry_options.on_membership = [parts](const durable::v1::SystemRecord& r) {
     {
       absl::MutexLock lock(&parts->systems_mutex);
       const auto key = std::make_pair(r.robot_id(), r.system());
@@ -191,7 +191,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
     }
     Journal* j = parts->registry_journal.load();
     if (j == nullptr) return;
-    v1::JournalRecord record;
+    durable::v1::JournalRecord record;
     *record.mutable_system() = r;
     if (auto s = j->append(record); !s.ok()) {
       std::fprintf(stderr, "coordinator: cannot journal the registration of %s/%s: %s\n",
@@ -208,8 +208,9 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   if (!options.state_dir.empty()) {
     std::error_code ec;
     std::filesystem::create_directories(options.state_dir, ec);
-    auto opened = Journal::open(options.state_dir + "/coordinator.journal",
-                                [&](const v1::JournalRecord& record) { replayed.apply(record); });
+    auto opened =
+        Journal::open(options.state_dir + "/coordinator.journal",
+                      [&](const durable::v1::JournalRecord& record) { replayed.apply(record); });
     if (!opened.ok()) {
       return absl::InvalidArgumentError("--state-dir: " + std::string(opened.status().message()));
     }
@@ -301,7 +302,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   // Systems registered before a restart are contacted at once (they also
   // register again at their next heartbeat).
   for (const auto& entry : replayed.systems) {
-    const v1::SystemRecord& system = entry.second;
+    const durable::v1::SystemRecord& system = entry.second;
     const bool listed =
         std::any_of(options.systems.begin(), options.systems.end(),
                     [&](const ConfiguredSystem& c) { return c.address == system.address(); });

@@ -242,7 +242,7 @@ void MissionManager::resumeOne(const std::string& mission_id) {
 
 void MissionManager::onChange(const v1::MissionStatus& status) {
   if (journal_ != nullptr) {
-    v1::JournalRecord record;
+    durable::v1::JournalRecord record;
     *record.mutable_mission() = status;
     if (auto s = journal_->append(record); !s.ok()) {
       std::fprintf(stderr, "coordinator: mission %s: cannot journal its status: %s\n",
@@ -462,11 +462,11 @@ void MissionManager::unwatch(uint64_t token) {
   listeners_.erase(token);
 }
 
-std::vector<v1::JournalRecord> MissionManager::snapshot() const {
-  std::vector<v1::JournalRecord> records;
+std::vector<durable::v1::JournalRecord> MissionManager::snapshot() const {
+  std::vector<durable::v1::JournalRecord> records;
   absl::MutexLock lock(&mutex_);
   for (const auto& [id, entry] : missions_) {
-    v1::JournalRecord record;
+    durable::v1::JournalRecord record;
     *record.mutable_mission() = entry.runner ? entry.runner->status() : entry.status;
     records.push_back(std::move(record));
   }

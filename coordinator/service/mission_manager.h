@@ -30,6 +30,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/durable/v1/journal.pb.h"
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
@@ -104,7 +105,7 @@ class MissionManager {
 
   /// Journal records of the current state (beliefs are the store's), for
   /// compaction.
-  std::vector<v1::JournalRecord> snapshot() const;
+  std::vector<durable::v1::JournalRecord> snapshot() const;
 
   /// Stops every runner without ending its mission (the journal keeps it
   /// RUNNING for the next coordinator).

@@ -130,7 +130,7 @@ grpc::Status Registry::registerSystem(const v1::RegisterSystemRequest& request,
   }
   for (auto& link : reaped) link->stop();
   if (status.ok() && options_.on_membership) {
-    v1::SystemRecord record;
+    durable::v1::SystemRecord record;
     record.set_robot_id(request.robot_id());
     record.set_system(request.system());
     record.set_address(request.address());
@@ -167,7 +167,7 @@ grpc::Status Registry::heartbeat(const v1::HeartbeatRequest& request) {
 }
 
 grpc::Status Registry::unregister(const v1::UnregisterSystemRequest& request) {
-  v1::SystemRecord record;
+  durable::v1::SystemRecord record;
   {
     absl::MutexLock lock(&mutex_);
     auto link = findLocked(request.robot_id(), request.system(), "");

@@ -20,6 +20,7 @@
 
 #include "absl/base/thread_annotations.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/durable/v1/journal.pb.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
@@ -34,7 +35,7 @@ struct RegistryOptions {
   LinkOptions link;
   /// Called after a system registered (registered = true) or unregistered,
   /// under no lock of the registry (the coordinator journals it).
-  std::function<void(const v1::SystemRecord& record)> on_membership;
+  std::function<void(const durable::v1::SystemRecord& record)> on_membership;
 };
 
 class Registry {

@@ -23,6 +23,7 @@
 #include <string>
 #include <string_view>
 
+#include "behaviorlib/durable/v1/journal.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/durable/journal.h"
@@ -55,7 +56,7 @@ void replay(const std::string& content) {
   uint64_t records = 0;
   const size_t valid = behaviorlib::coordinator::decodeJournal(
       content,
-      [&](const v1::JournalRecord& record) {
+      [&](const behaviorlib::durable::v1::JournalRecord& record) {
         ++seen;
         (void)record.ByteSizeLong();
         replayed.apply(record);
@@ -98,11 +99,11 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
       std::string content;
       frame(rest, &content);
       // A valid frame: all of it is kept exactly when the payload parses.
-      v1::JournalRecord record;
+      behaviorlib::durable::v1::JournalRecord record;
       const bool parses = record.ParseFromArray(rest.data(), static_cast<int>(rest.size()));
       uint64_t records = 0;
       const size_t valid = behaviorlib::coordinator::decodeJournal(
-          content, [](const v1::JournalRecord&) {}, &records);
+          content, [](const behaviorlib::durable::v1::JournalRecord&) {}, &records);
       if (valid != (parses ? content.size() : 0) || records != (parses ? 1u : 0u)) {
         broken("decodeJournal disagrees with the record's parser on a valid frame");
       }

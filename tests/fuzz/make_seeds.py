@@ -22,18 +22,21 @@ import zlib
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CORPUS = os.path.join(ROOT, "tests", "fuzz", "corpus")
-PROTOS = ["options", "types", "behavior", "mission", "channel", "motion", "platform", "simulator"]
+PROTOS = ["options", "errors", "types", "behavior", "mission", "channel", "motion", "platform",
+          "simulator"]
 
 _gen_dir = tempfile.TemporaryDirectory(prefix="behaviorlib_pb2_")  # removed at exit
 gen = _gen_dir.name
 subprocess.run(["protoc", "--proto_path=" + os.path.join(ROOT, "proto"), "--python_out=" + gen]
-               + [os.path.join(ROOT, "proto", "behaviorlib", "v1", p + ".proto") for p in PROTOS],
+               + [os.path.join(ROOT, "proto", "behaviorlib", "v1", p + ".proto") for p in PROTOS]
+               + [os.path.join(ROOT, "proto", "behaviorlib", "durable", "v1", "journal.proto")],
                check=True)
 sys.path.insert(0, gen)
 
 from google.protobuf import any_pb2, json_format, struct_pb2  # noqa: E402
 from behaviorlib.v1 import (channel_pb2, mission_pb2, motion_pb2, platform_pb2,  # noqa: E402
                             types_pb2)
+from behaviorlib.durable.v1 import journal_pb2  # noqa: E402
 
 
 def encode(message):
@@ -133,7 +136,7 @@ def frame(payload):
 
 
 def record(**kwargs):
-    r = mission_pb2.JournalRecord()
+    r = journal_pb2.JournalRecord()
     for field, value in kwargs.items():
         getattr(r, field).CopyFrom(value)
     return encode(r)
@@ -164,9 +167,9 @@ records = [
     record(belief=belief("bad key!", {"a": None}, 2**64 - 1)),
     record(mission=running),
     record(mission=ended),
-    record(system=mission_pb2.SystemRecord(robot_id="drone1", system="basic",
+    record(system=journal_pb2.SystemRecord(robot_id="drone1", system="basic",
                                            address="127.0.0.1:50061")),
-    record(system=mission_pb2.SystemRecord(robot_id="drone1", system="basic", unregistered=True)),
+    record(system=journal_pb2.SystemRecord(robot_id="drone1", system="basic", unregistered=True)),
 ]
 journal = b"".join(frame(r) for r in records)
 write("fuzz_journal", "mode0_records", b"\x00" + journal)

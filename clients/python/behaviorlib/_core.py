@@ -182,7 +182,11 @@ class Parameter:
         minimum = maximum = None
         if schema.HasField("range"):
             minimum, maximum = schema.range.min, schema.range.max
-        return Parameter(schema.name, schema.type, schema.repeated, schema.unit, schema.required,
+        # value_type; its text form `type` from a system that predates it.
+        type_name = (short_enum(behavior_pb2.ParameterType, schema.value_type,
+                                "PARAMETER_TYPE_").lower()
+                     if schema.value_type else schema.type)
+        return Parameter(schema.name, type_name, schema.repeated, schema.unit, schema.required,
                          default, schema.description, minimum, maximum,
                          tuple(schema.enum_values))
 

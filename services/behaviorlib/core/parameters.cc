@@ -15,6 +15,7 @@
 #include <utility>
 #include <vector>
 
+#include "absl/strings/ascii.h"
 #include "absl/strings/escaping.h"
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
@@ -854,26 +855,35 @@ void copyValue(const pb::Message& from, const FD& field, int index, pb::Message*
 
 // --- describe ----------------------------------------------------------------
 
-std::string jsonTypeOf(const FD& field) {
+v1::ParameterType valueTypeOf(const FD& field) {
   switch (field.cpp_type()) {
     case FD::CPPTYPE_DOUBLE:
     case FD::CPPTYPE_FLOAT:
-      return "number";
+      return v1::PARAMETER_TYPE_NUMBER;
     case FD::CPPTYPE_INT32:
     case FD::CPPTYPE_INT64:
     case FD::CPPTYPE_UINT32:
     case FD::CPPTYPE_UINT64:
-      return "integer";
+      return v1::PARAMETER_TYPE_INTEGER;
     case FD::CPPTYPE_BOOL:
-      return "boolean";
+      return v1::PARAMETER_TYPE_BOOLEAN;
     case FD::CPPTYPE_STRING:
-      return field.type() == FD::TYPE_BYTES ? "bytes" : "string";
+      return field.type() == FD::TYPE_BYTES ? v1::PARAMETER_TYPE_BYTES : v1::PARAMETER_TYPE_STRING;
     case FD::CPPTYPE_ENUM:
-      return "enum";
+      return v1::PARAMETER_TYPE_ENUM;
     case FD::CPPTYPE_MESSAGE:
-      return "object";
+      return v1::PARAMETER_TYPE_OBJECT;
   }
-  return "";
+  return v1::PARAMETER_TYPE_UNSPECIFIED;
+}
+
+// ParameterSchema.type, the text form of its value_type: "number", ...
+void setValueType(v1::ParameterType type, v1::ParameterSchema* schema) {
+  schema->set_value_type(type);
+  std::string name = v1::ParameterType_Name(type);
+  constexpr std::string_view kPrefix = "PARAMETER_TYPE_";
+  name = type == v1::PARAMETER_TYPE_UNSPECIFIED ? "" : absl::AsciiStrToLower(name.substr(kPrefix.size()));
+  schema->set_type(std::move(name));
 }
 
 std::string protoTypeOf(const FD& field) {
@@ -899,11 +909,11 @@ void describeFields(const pb::Descriptor& d, int depth, std::vector<const pb::De
     v1::ParameterSchema* schema = out->Add();
     schema->set_name(field.name());
     if (field.is_map()) {
-      schema->set_type("object");
+      setValueType(v1::PARAMETER_TYPE_OBJECT, schema);
       schema->set_proto_type(absl::StrCat("map<", protoTypeOf(*field.message_type()->map_key()),
                                           ", ", protoTypeOf(value_field), ">"));
     } else {
-      schema->set_type(jsonTypeOf(field));
+      setValueType(valueTypeOf(field), schema);
       schema->set_proto_type(protoTypeOf(field));
       schema->set_repeated(field.is_repeated());
     }

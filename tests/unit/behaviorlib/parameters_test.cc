@@ -9,6 +9,7 @@
 #include <cmath>
 #include <initializer_list>
 #include <limits>
+#include <map>
 #include <string>
 
 #include "behaviorlib/error_details.h"
@@ -596,6 +597,7 @@ TEST(DescribeTest, WaitParameters) {
   const v1::ParameterSchema& d = out[0];
   EXPECT_EQ(d.name(), "duration_s");
   EXPECT_EQ(d.type(), "number");
+  EXPECT_EQ(d.value_type(), v1::PARAMETER_TYPE_NUMBER);
   EXPECT_EQ(d.proto_type(), "double");
   EXPECT_FALSE(d.repeated());
   EXPECT_EQ(d.unit(), "s");
@@ -622,6 +624,12 @@ TEST(DescribeTest, AllKinds) {
     const char* proto_type;
     bool repeated;
   };
+  // value_type, and `type` as its text form.
+  const std::map<std::string, v1::ParameterType> value_types = {
+      {"integer", v1::PARAMETER_TYPE_INTEGER}, {"number", v1::PARAMETER_TYPE_NUMBER},
+      {"boolean", v1::PARAMETER_TYPE_BOOLEAN}, {"string", v1::PARAMETER_TYPE_STRING},
+      {"bytes", v1::PARAMETER_TYPE_BYTES},     {"enum", v1::PARAMETER_TYPE_ENUM},
+      {"object", v1::PARAMETER_TYPE_OBJECT}};
   for (const Expected& e : std::initializer_list<Expected>{
            {"count", "integer", "int32", false},
            {"big", "integer", "int64", false},
@@ -645,6 +653,7 @@ TEST(DescribeTest, AllKinds) {
     const v1::ParameterSchema* s = findSchema(out, e.name);
     ASSERT_NE(s, nullptr);
     EXPECT_EQ(s->type(), e.type) << e.name;
+    EXPECT_EQ(s->value_type(), value_types.at(e.type)) << e.name;
     EXPECT_EQ(s->proto_type(), e.proto_type) << e.name;
     EXPECT_EQ(s->repeated(), e.repeated) << e.name;
   }
@@ -672,6 +681,7 @@ TEST(DescribeTest, AllKinds) {
   const v1::ParameterSchema* target = findSchema(out, "target");
   ASSERT_EQ(target->fields_size(), 3);
   EXPECT_EQ(target->fields(0).name(), "x_m");
+  EXPECT_EQ(target->fields(0).value_type(), v1::PARAMETER_TYPE_NUMBER);
   EXPECT_EQ(target->fields(0).unit(), "m");
   EXPECT_EQ(target->fields(0).description(), "East position.");
   EXPECT_EQ(target->fields(2).unit(), "m/s");

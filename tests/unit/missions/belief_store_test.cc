@@ -149,7 +149,7 @@ TEST(BeliefStore, SurvivesARestartThroughTheJournal) {
   char name[] = "/tmp/belief_journal_XXXXXX";
   close(mkstemp(name));
   {
-    auto journal = Journal::open(name, [](const v1::JournalRecord&) {});
+    auto journal = Journal::open(name, [](const behaviorlib::durable::v1::JournalRecord&) {});
     ASSERT_TRUE(journal.ok());
     BeliefStore store(journal->get());
     ASSERT_TRUE(store.write("answer", text("yes"), "operator").ok());
@@ -157,7 +157,7 @@ TEST(BeliefStore, SurvivesARestartThroughTheJournal) {
     ASSERT_TRUE(store.erase("gone", "t").ok());
   }
   BeliefStore restored;
-  auto journal = Journal::open(name, [&](const v1::JournalRecord& r) {
+  auto journal = Journal::open(name, [&](const behaviorlib::durable::v1::JournalRecord& r) {
     if (r.has_belief()) restored.restore(r.belief());
   });
   ASSERT_TRUE(journal.ok());

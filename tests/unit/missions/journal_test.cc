@@ -21,8 +21,8 @@ std::string tempPath() {
   return name;
 }
 
-v1::JournalRecord belief(const std::string& key, double value) {
-  v1::JournalRecord r;
+behaviorlib::durable::v1::JournalRecord belief(const std::string& key, double value) {
+  behaviorlib::durable::v1::JournalRecord r;
   r.mutable_belief()->set_key(key);
   r.mutable_belief()->mutable_value()->set_number_value(value);
   return r;
@@ -30,8 +30,9 @@ v1::JournalRecord belief(const std::string& key, double value) {
 
 std::vector<std::string> replayKeys(const std::string& path, uint64_t* truncated = nullptr) {
   std::vector<std::string> keys;
-  auto journal =
-      Journal::open(path, [&](const v1::JournalRecord& r) { keys.push_back(r.belief().key()); });
+  auto journal = Journal::open(path, [&](const behaviorlib::durable::v1::JournalRecord& r) {
+    keys.push_back(r.belief().key());
+  });
   EXPECT_TRUE(journal.ok()) << journal.status();
   if (truncated && journal.ok()) *truncated = (*journal)->truncatedBytes();
   return keys;
@@ -40,7 +41,8 @@ std::vector<std::string> replayKeys(const std::string& path, uint64_t* truncated
 TEST(Journal, ReplaysWhatWasAppendedInOrder) {
   const std::string path = tempPath();
   {
-    auto journal = Journal::open(path, [](const v1::JournalRecord&) { FAIL() << "empty journal"; });
+    auto journal = Journal::open(
+        path, [](const behaviorlib::durable::v1::JournalRecord&) { FAIL() << "empty journal"; });
     ASSERT_TRUE(journal.ok());
     for (int i = 0; i < 100; ++i) {
       std::string key = "k";
@@ -59,7 +61,7 @@ TEST(Journal, ReplaysWhatWasAppendedInOrder) {
 TEST(Journal, ATornLastRecordIsCutOffAndTheRestKept) {
   const std::string path = tempPath();
   {
-    auto journal = Journal::open(path, [](const v1::JournalRecord&) {});
+    auto journal = Journal::open(path, [](const behaviorlib::durable::v1::JournalRecord&) {});
     ASSERT_TRUE(journal.ok());
     ASSERT_TRUE((*journal)->append(belief("a", 1)).ok());
     ASSERT_TRUE((*journal)->append(belief("b", 2)).ok());
@@ -76,7 +78,7 @@ TEST(Journal, ATornLastRecordIsCutOffAndTheRestKept) {
   EXPECT_EQ(truncated, 10u);
   // The cut is permanent, and appending goes on after the good records.
   {
-    auto journal = Journal::open(path, [](const v1::JournalRecord&) {});
+    auto journal = Journal::open(path, [](const behaviorlib::durable::v1::JournalRecord&) {});
     ASSERT_TRUE(journal.ok());
     EXPECT_EQ((*journal)->truncatedBytes(), 0u);
     ASSERT_TRUE((*journal)->append(belief("c", 3)).ok());
@@ -88,7 +90,7 @@ TEST(Journal, ATornLastRecordIsCutOffAndTheRestKept) {
 TEST(Journal, ACorruptRecordEndsTheReplay) {
   const std::string path = tempPath();
   {
-    auto journal = Journal::open(path, [](const v1::JournalRecord&) {});
+    auto journal = Journal::open(path, [](const behaviorlib::durable::v1::JournalRecord&) {});
     ASSERT_TRUE((*journal)->append(belief("a", 1)).ok());
     ASSERT_TRUE((*journal)->append(belief("b", 2)).ok());
   }
@@ -104,7 +106,7 @@ TEST(Journal, ACorruptRecordEndsTheReplay) {
 TEST(Journal, CompactionReplacesTheContent) {
   const std::string path = tempPath();
   {
-    auto journal = Journal::open(path, [](const v1::JournalRecord&) {});
+    auto journal = Journal::open(path, [](const behaviorlib::durable::v1::JournalRecord&) {});
     for (int i = 0; i < 50; ++i) ASSERT_TRUE((*journal)->append(belief("same", i)).ok());
     const uint64_t before = (*journal)->sizeBytes();
     ASSERT_TRUE((*journal)->compact({belief("same", 49)}).ok());
@@ -120,7 +122,7 @@ TEST(Journal, CompactionReplacesTheContent) {
 TEST(Journal, OnlineCompactionKeepsWhatIsAppendedDuringTheSnapshot) {
   const std::string path = tempPath();
   {
-    auto journal = Journal::open(path, [](const v1::JournalRecord&) {});
+    auto journal = Journal::open(path, [](const behaviorlib::durable::v1::JournalRecord&) {});
     for (int i = 0; i < 50; ++i) ASSERT_TRUE((*journal)->append(belief("a", i)).ok());
     const uint64_t before = (*journal)->sizeBytes();
     ASSERT_TRUE((*journal)
@@ -128,7 +130,7 @@ TEST(Journal, OnlineCompactionKeepsWhatIsAppendedDuringTheSnapshot) {
                       // The store's state as read, while a writer goes on.
                       EXPECT_TRUE((*journal)->append(belief("a", 50)).ok());
                       EXPECT_TRUE((*journal)->append(belief("b", 1)).ok());
-                      return std::vector<v1::JournalRecord>{belief("a", 49)};
+                      return std::vector<behaviorlib::durable::v1::JournalRecord>{belief("a", 49)};
                     })
                     .ok());
     EXPECT_LT((*journal)->sizeBytes(), before / 10);
@@ -136,7 +138,7 @@ TEST(Journal, OnlineCompactionKeepsWhatIsAppendedDuringTheSnapshot) {
     ASSERT_TRUE((*journal)->append(belief("c", 1)).ok());
   }
   std::map<std::string, double> last;
-  auto reopened = Journal::open(path, [&](const v1::JournalRecord& r) {
+  auto reopened = Journal::open(path, [&](const behaviorlib::durable::v1::JournalRecord& r) {
     last[r.belief().key()] = r.belief().value().number_value();
   });
   ASSERT_TRUE(reopened.ok());
@@ -149,7 +151,7 @@ TEST(Journal, OnlineCompactionKeepsWhatIsAppendedDuringTheSnapshot) {
 TEST(Journal, DecodeJournalReturnsTheValidPrefix) {
   const std::string path = tempPath();
   {
-    auto journal = Journal::open(path, [](const v1::JournalRecord&) {});
+    auto journal = Journal::open(path, [](const behaviorlib::durable::v1::JournalRecord&) {});
     ASSERT_TRUE(journal.ok());
     ASSERT_TRUE((*journal)->append(belief("a", 1)).ok());
     ASSERT_TRUE((*journal)->append(belief("b", 2)).ok());
@@ -161,7 +163,9 @@ TEST(Journal, DecodeJournalReturnsTheValidPrefix) {
   }
   std::remove(path.c_str());
   std::vector<std::string> keys;
-  const auto collect = [&](const v1::JournalRecord& r) { keys.push_back(r.belief().key()); };
+  const auto collect = [&](const behaviorlib::durable::v1::JournalRecord& r) {
+    keys.push_back(r.belief().key());
+  };
   uint64_t records = 0;
   EXPECT_EQ(decodeJournal(content, collect, &records), content.size());
   EXPECT_EQ(records, 2u);
@@ -191,14 +195,14 @@ TEST(Journal, DecodeJournalReturnsTheValidPrefix) {
 TEST(ReplayedState, KeepsTheLastOfEachBeliefAndSystemAndEveryMissionStatus) {
   ReplayedState replayed;
   const auto belief = [](const std::string& key, double value, uint64_t version) {
-    v1::JournalRecord r;
+    behaviorlib::durable::v1::JournalRecord r;
     r.mutable_belief()->set_key(key);
     r.mutable_belief()->mutable_value()->set_number_value(value);
     r.mutable_belief()->set_version(version);
     return r;
   };
   const auto system = [](const std::string& robot, const std::string& address, bool gone) {
-    v1::JournalRecord r;
+    behaviorlib::durable::v1::JournalRecord r;
     r.mutable_system()->set_robot_id(robot);
     r.mutable_system()->set_system("basic");
     r.mutable_system()->set_address(address);
@@ -206,7 +210,7 @@ TEST(ReplayedState, KeepsTheLastOfEachBeliefAndSystemAndEveryMissionStatus) {
     return r;
   };
   const auto mission = [](const std::string& id, v1::MissionState state) {
-    v1::JournalRecord r;
+    behaviorlib::durable::v1::JournalRecord r;
     r.mutable_mission()->set_mission_id(id);
     r.mutable_mission()->set_state(state);
     return r;
@@ -232,7 +236,8 @@ TEST(ReplayedState, KeepsTheLastOfEachBeliefAndSystemAndEveryMissionStatus) {
 }
 
 TEST(Journal, AnUnwritablePathIsAnError) {
-  auto journal = Journal::open("/nonexistent-dir/journal", [](const v1::JournalRecord&) {});
+  auto journal = Journal::open("/nonexistent-dir/journal",
+                               [](const behaviorlib::durable::v1::JournalRecord&) {});
   ASSERT_FALSE(journal.ok());
   EXPECT_NE(std::string(journal.status().message()).find("/nonexistent-dir/journal"),
             std::string::npos);

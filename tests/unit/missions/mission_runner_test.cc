@@ -389,12 +389,12 @@ TEST(MissionRunner, AResumedMissionActivatesNothingTwice) {
   actions.hold("SELF_LOCALIZE");
   actions.hold("FOLLOW_PATH");
   {
-    auto journal = Journal::open(name, [](const v1::JournalRecord&) {});
+    auto journal = Journal::open(name, [](const behaviorlib::durable::v1::JournalRecord&) {});
     ASSERT_TRUE(journal.ok());
     BeliefStore beliefs(journal->get());
     MissionRunner runner(mission(kTakeOffFollowLand), "m7", "drone1", kTakeOffFollowLand, actions,
                          beliefs, [&](const v1::MissionStatus& s) {
-                           v1::JournalRecord r;
+                           behaviorlib::durable::v1::JournalRecord r;
                            *r.mutable_mission() = s;
                            ASSERT_TRUE((*journal)->append(r).ok());
                          });
@@ -406,7 +406,7 @@ TEST(MissionRunner, AResumedMissionActivatesNothingTwice) {
   // A new coordinator replays the journal and resumes the mission.
   std::optional<v1::MissionStatus> recorded;
   BeliefStore beliefs;
-  auto journal = Journal::open(name, [&](const v1::JournalRecord& r) {
+  auto journal = Journal::open(name, [&](const behaviorlib::durable::v1::JournalRecord& r) {
     if (r.has_mission()) recorded = r.mission();
   });
   ASSERT_TRUE(journal.ok());

@@ -882,7 +882,9 @@ void setValueType(v1::ParameterType type, v1::ParameterSchema* schema) {
   schema->set_value_type(type);
   std::string name = v1::ParameterType_Name(type);
   constexpr std::string_view kPrefix = "PARAMETER_TYPE_";
-  name = type == v1::PARAMETER_TYPE_UNSPECIFIED ? "" : absl::AsciiStrToLower(name.substr(kPrefix.size()));
+  name = type == v1::PARAMETER_TYPE_UNSPECIFIED
+             ? ""
+             : absl::AsciiStrToLower(name.substr(kPrefix.size()));
   schema->set_type(std::move(name));
 }
 

@@ -45,7 +45,9 @@ def component_of(include):
         if parts[1] in CORE_HEADERS:
             return "core"
         return "proto"  # embedded_descriptors.h
-    if parts[1] == "v1":
+    # behaviorlib/v1/*.pb.h, and behaviorlib/durable/v1/journal.pb.h (the
+    # coordinator's journal records, generated beside the API).
+    if parts[1] == "v1" or parts[1:3] == ["durable", "v1"]:
         return "proto"
     return parts[1]
 
@@ -142,6 +144,7 @@ class LayersTest(unittest.TestCase):
         self.assertFalse(allowed("coordinator", "basic_quadrotor_behaviors"))
         self.assertTrue(allowed("systems:basic_quadrotor_behaviors", "flight_common"))
         self.assertEqual(component_of("behaviorlib/v1/behavior.pb.h"), "proto")
+        self.assertEqual(component_of("behaviorlib/durable/v1/journal.pb.h"), "proto")
         self.assertEqual(component_of("behaviorlib/clock.h"), "core")
         self.assertEqual(layer_of(os.path.join("services", "systems", "x", "main.cc")),
                          "systems:x")

@@ -1,6 +1,7 @@
 #include "behaviorlib/server_kit/server_metrics.h"
 
 #include <dirent.h>
+#include <google/protobuf/descriptor.h>
 #include <google/protobuf/stubs/common.h>
 #include <grpcpp/grpcpp.h>
 #include <prometheus/counter.h>
@@ -82,19 +83,26 @@ class ServerMetrics {
 
   MethodSeries& series(const char* method, grpc::experimental::ServerRpcInfo::Type type) {
     const std::string full = method == nullptr ? std::string() : std::string(method);
+    const std::string key = absl::StrCat(typeName(type), " ", full);
     absl::MutexLock lock(&mutex_);
-    auto& slot = methods_[full];
-    if (slot) return *slot;
-    slot = std::make_unique<MethodSeries>();
-    // "/package.Service/Method".
+    if (auto it = methods_.find(key); it != methods_.end()) return *it->second;
+    // "/package.Service/Method". A caller may send any name: one the
+    // server's protos do not declare, or one past kMaxMethods, is counted
+    // under service and method "unknown" and not remembered, so that
+    // neither the series nor this map grow with what callers invent.
     const size_t slash = full.rfind('/');
     std::string service = slash == std::string::npos || slash == 0 ? "" : full.substr(1, slash - 1);
     std::string name = slash == std::string::npos ? full : full.substr(slash + 1);
-    slot->labels = {{"grpc_type", typeName(type)},
-                    {"grpc_service", service.empty() ? "unknown" : service},
-                    {"grpc_method", name.empty() ? "unknown" : name}};
-    slot->started = &started_.Add(slot->labels);
-    slot->seconds = &seconds_.Add(slot->labels, bucketBoundaries());
+    const bool known = declared(service, name) && methods_.size() < kMaxMethods;
+    if (!known) {
+      service = name = "unknown";
+      auto& unknown = unknown_[static_cast<size_t>(type) % unknown_.size()];
+      if (unknown) return *unknown;
+      unknown = makeSeries(type, service, name);
+      return *unknown;
+    }
+    auto& slot = methods_[key];
+    slot = makeSeries(type, service, name);
     return *slot;
   }
 
@@ -120,12 +128,37 @@ class ServerMetrics {
     return kBuckets;
   }
 
+  // Methods with series of their own, at most (a server has tens).
+  static constexpr size_t kMaxMethods = 1024;
+
+  // Whether the generated protos declare the method (or it is the health
+  // service's, which gRPC implements without them).
+  static bool declared(const std::string& service, const std::string& method) {
+    if (service.empty() || method.empty()) return false;
+    if (service == "grpc.health.v1.Health") return method == "Check" || method == "Watch";
+    return google::protobuf::DescriptorPool::generated_pool()->FindMethodByName(
+               absl::StrCat(service, ".", method)) != nullptr;
+  }
+
+  std::unique_ptr<MethodSeries> makeSeries(grpc::experimental::ServerRpcInfo::Type type,
+                                           const std::string& service, const std::string& name) {
+    auto series = std::make_unique<MethodSeries>();
+    series->labels = {
+        {"grpc_type", typeName(type)}, {"grpc_service", service}, {"grpc_method", name}};
+    series->started = &started_.Add(series->labels);
+    series->seconds = &seconds_.Add(series->labels, bucketBoundaries());
+    return series;
+  }
+
   const MetricsClock clock_;
   prometheus::Family<prometheus::Counter>& started_;
   prometheus::Family<prometheus::Counter>& handled_;
   prometheus::Family<prometheus::Histogram>& seconds_;
   absl::Mutex mutex_;
+  // By "<type> /package.Service/Method", declared methods only.
   absl::flat_hash_map<std::string, std::unique_ptr<MethodSeries>> methods_ ABSL_GUARDED_BY(mutex_);
+  // The calls of undeclared methods, by type.
+  std::array<std::unique_ptr<MethodSeries>, 4> unknown_ ABSL_GUARDED_BY(mutex_);
 };
 
 class MetricsInterceptor final : public grpc::experimental::Interceptor {

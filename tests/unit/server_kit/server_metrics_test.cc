@@ -4,6 +4,7 @@
 
 #include "behaviorlib/server_kit/server_metrics.h"
 
+#include <grpcpp/generic/generic_stub.h>
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 #include <prometheus/metric_family.h>
@@ -11,8 +12,10 @@
 
 #include <atomic>
 #include <chrono>
+#include <condition_variable>
 #include <ctime>
 #include <map>
+#include <mutex>
 #include <thread>
 
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
@@ -139,6 +142,49 @@ TEST_F(ServerMetricsTest, CountsAndTimesUnaryCallsByCode) {
     const uint64_t expected = bucket.upper_bound >= 0.002 ? 3 : 0;
     EXPECT_EQ(bucket.cumulative_count, expected) << "le=" << bucket.upper_bound;
   }
+}
+
+TEST_F(ServerMetricsTest, MethodsTheProtosDoNotDeclareShareOneSeries) {
+  // Any caller may name any method: those names must not become series.
+  grpc::GenericStub generic(channel_);
+  for (const char* method : {"/evil.Service/M0", "/evil.Service/M1",
+                             "/behaviorlib.v1.Coordinator/NoSuchMethod", "nonsense"}) {
+    grpc::ClientContext context;
+    grpc::Slice empty("");
+    grpc::ByteBuffer request(&empty, 1), response;
+    grpc::Status status;
+    std::mutex mutex;
+    std::condition_variable done;
+    bool finished = false;
+    generic.UnaryCall(&context, method, grpc::StubOptions(), &request, &response,
+                      [&](grpc::Status s) {
+                        std::lock_guard<std::mutex> lock(mutex);
+                        status = std::move(s);
+                        finished = true;
+                        done.notify_one();
+                      });
+    std::unique_lock<std::mutex> lock(mutex);
+    done.wait(lock, [&] { return finished; });
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::UNIMPLEMENTED) << method;
+  }
+  ASSERT_TRUE(get("known").ok());
+  const auto families = registry_.Collect();
+  for (const auto& family : families) {
+    for (const auto& metric : family.metric) {
+      for (const auto& label : metric.label) {
+        EXPECT_EQ(label.value.find("evil"), std::string::npos) << family.name;
+        EXPECT_NE(label.value, "NoSuchMethod") << family.name;
+      }
+    }
+  }
+  EXPECT_EQ(counter(families, "grpc_server_handled_total",
+                    {{"grpc_service", "unknown"},
+                     {"grpc_method", "unknown"},
+                     {"grpc_code", "UNIMPLEMENTED"}}),
+            4);
+  EXPECT_EQ(counter(families, "grpc_server_handled_total",
+                    {{"grpc_method", "GetMission"}, {"grpc_code", "OK"}}),
+            1);
 }
 
 TEST_F(ServerMetricsTest, AStreamItsClientCancelsEndsCancelled) {

@@ -410,8 +410,12 @@ def npm_ci(source, work):
     result = subprocess.run(["npm", "ci", "--no-audit", "--no-fund", "--ignore-scripts"],
                             cwd=work, capture_output=True, text=True, timeout=240)
     output = result.stdout + result.stderr
+    # No route, no name resolution, a refusing proxy: the registry, not the
+    # lockfile, is the problem.
     if result.returncode != 0 and re.search(
-            r"\b(ENOTFOUND|EAI_AGAIN|ECONNREFUSED|ECONNRESET|ETIMEDOUT|ENETUNREACH)\b", output):
+            r"\b(ENOTFOUND|EAI_AGAIN|ECONNREFUSED|ECONNRESET|ETIMEDOUT|ENETUNREACH|EHOSTUNREACH"
+            r"|E403|E407|E5\d\d|SELF_SIGNED_CERT_IN_CHAIN|UNABLE_TO_GET_ISSUER_CERT_LOCALLY)\b"
+            r"|network request|request to https?://\S+ failed", output):
         raise RegistryUnreachable(f"npm ci in {work}: the npm registry is unreachable:\n"
                                   f"{output[-2000:]}")
     if result.returncode != 0:

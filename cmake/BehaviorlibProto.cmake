@@ -89,13 +89,15 @@ endfunction()
 
 # behaviorlib_embed_descriptor_set(<out_cc> ROOT <dir> NAME <stem> NAMESPACE <ns>
 #                                  FUNCTION <fn> [HEADER <h>] PROTOS <files>
-#                                  [GEN_ROOT <dir> GEN_PROTOS <files>])
+#                                  [GEN_ROOT <dir> GEN_PROTOS <files>]
+#                                  [IMPORT_ROOT <dir> IMPORT_PROTOS <files>])
 # Generates <out_cc>, defining <ns>::<fn>() -> std::string_view with the
 # serialized FileDescriptorSet (imports and comments included) of PROTOS
-# (relative to ROOT) and GEN_PROTOS (relative to GEN_ROOT).
+# (relative to ROOT), GEN_PROTOS (relative to GEN_ROOT) and IMPORT_PROTOS
+# (relative to IMPORT_ROOT: third-party files, e.g. google/rpc/*.proto).
 function(behaviorlib_embed_descriptor_set out_cc)
-  cmake_parse_arguments(E "" "ROOT;NAME;NAMESPACE;FUNCTION;HEADER;GEN_ROOT" "PROTOS;GEN_PROTOS"
-    ${ARGN})
+  cmake_parse_arguments(E "" "ROOT;NAME;NAMESPACE;FUNCTION;HEADER;GEN_ROOT;IMPORT_ROOT"
+    "PROTOS;GEN_PROTOS;IMPORT_PROTOS" ${ARGN})
   set(_abs)
   foreach(_proto ${E_PROTOS})
     list(APPEND _abs ${E_ROOT}/${_proto})
@@ -105,6 +107,12 @@ function(behaviorlib_embed_descriptor_set out_cc)
     list(APPEND _roots --proto_path=${E_GEN_ROOT})
     foreach(_proto ${E_GEN_PROTOS})
       list(APPEND _abs ${E_GEN_ROOT}/${_proto})
+    endforeach()
+  endif()
+  if(E_IMPORT_ROOT)
+    list(APPEND _roots --proto_path=${E_IMPORT_ROOT})
+    foreach(_proto ${E_IMPORT_PROTOS})
+      list(APPEND _abs ${E_IMPORT_ROOT}/${_proto})
     endforeach()
   endif()
   set(_desc ${CMAKE_CURRENT_BINARY_DIR}/${E_NAME}.pb)

@@ -465,9 +465,9 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
   }
   if (request->dry_run()) {
     return finishNow(
-        context,
-        errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
-                          "dry_run needs the coordinator's behavior catalog"));
+        context, errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::FEATURE_NOT_ENABLED,
+                                   "dry_run needs the coordinator's behavior catalog",
+                                   {{"feature", "catalog"}}));
   }
   v1::ActivateBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
@@ -597,9 +597,8 @@ grpc::Status beliefError(const absl::Status& status, const std::string& key) {
 }
 
 grpc::Status noBeliefs() {
-  // No reason fits a feature this coordinator was started without.
-  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
-                           "this coordinator keeps no belief memory");
+  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::FEATURE_NOT_ENABLED,
+                           "this coordinator keeps no belief memory", {{"feature", "beliefs"}});
 }
 
 }  // namespace

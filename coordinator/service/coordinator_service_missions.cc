@@ -32,10 +32,13 @@ grpc::ServerUnaryReactor* finishWith(grpc::CallbackServerContext* context,
   return reactor;
 }
 
-// No reason fits a feature this coordinator was started without.
-grpc::Status notServed(const std::string& what, const std::string& flag) {
-  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
-                           "this coordinator does not serve " + what + " (" + flag + ")");
+// A feature this coordinator was started without; `feature` is its name in
+// the error's metadata.
+grpc::Status notServed(const std::string& feature, const std::string& what,
+                       const std::string& flag) {
+  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::FEATURE_NOT_ENABLED,
+                           "this coordinator does not serve " + what + " (" + flag + ")",
+                           {{"feature", feature}});
 }
 
 grpc::Status shuttingDown(const std::string& message) {
@@ -155,7 +158,7 @@ class MissionStreamReactor final : public QueuedStream<v1::WatchMissionResponse>
     MissionManager* missions = service_->options_.missions;
     if (missions == nullptr) {
       absl::MutexLock lock(&core->mutex);
-      endLocked(notServed("missions", "started without missions"));
+      endLocked(notServed("missions", "missions", "started without missions"));
       return;
     }
     auto token = missions->watch(mission_id, [core](const v1::MissionStatus& status) {
@@ -209,7 +212,7 @@ class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> 
     BeliefStore* beliefs = service_->options_.beliefs;
     if (beliefs == nullptr) {
       absl::MutexLock lock(&core->mutex);
-      endLocked(notServed("belief memory", "started without it"));
+      endLocked(notServed("beliefs", "belief memory", "started without it"));
       return;
     }
     const bool added = service_->addShutdownHook(hook_, [core] {
@@ -288,7 +291,7 @@ grpc::ServerUnaryReactor* CoordinatorService::StartMission(grpc::CallbackServerC
                                                            const v1::StartMissionRequest* request,
                                                            v1::StartMissionResponse* response) {
   if (options_.missions == nullptr)
-    return finishWith(context, notServed("missions", "no missions"));
+    return finishWith(context, notServed("missions", "missions", "no missions"));
   // Checking the file against the registry and starting are quick; the
   // mission then runs on its own thread.
   auto started = options_.missions->start(*request);
@@ -301,7 +304,7 @@ grpc::ServerUnaryReactor* CoordinatorService::GetMission(grpc::CallbackServerCon
                                                          const v1::GetMissionRequest* request,
                                                          v1::GetMissionResponse* response) {
   if (options_.missions == nullptr)
-    return finishWith(context, notServed("missions", "no missions"));
+    return finishWith(context, notServed("missions", "missions", "no missions"));
   auto status = options_.missions->get(request->mission_id());
   if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
@@ -312,7 +315,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ListMissions(grpc::CallbackServerC
                                                            const v1::ListMissionsRequest* request,
                                                            v1::ListMissionsResponse* response) {
   if (options_.missions == nullptr)
-    return finishWith(context, notServed("missions", "no missions"));
+    return finishWith(context, notServed("missions", "missions", "no missions"));
   for (auto& status : options_.missions->list()) *response->add_missions() = std::move(status);
   // Newest first: the key runs backwards in start time.
   return finishWith(context, server::paginate<v1::MissionStatus>(
@@ -336,7 +339,7 @@ grpc::ServerUnaryReactor* CoordinatorService::PauseMission(grpc::CallbackServerC
                                                            const v1::MissionControlRequest* request,
                                                            v1::MissionControlResponse* response) {
   if (options_.missions == nullptr)
-    return finishWith(context, notServed("missions", "no missions"));
+    return finishWith(context, notServed("missions", "missions", "no missions"));
   auto status = options_.missions->pause(request->mission_id());
   if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
@@ -347,7 +350,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ResumeMission(
     grpc::CallbackServerContext* context, const v1::MissionControlRequest* request,
     v1::MissionControlResponse* response) {
   if (options_.missions == nullptr)
-    return finishWith(context, notServed("missions", "no missions"));
+    return finishWith(context, notServed("missions", "missions", "no missions"));
   auto status = options_.missions->resume(request->mission_id());
   if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
@@ -358,7 +361,7 @@ grpc::ServerUnaryReactor* CoordinatorService::AbortMission(grpc::CallbackServerC
                                                            const v1::MissionControlRequest* request,
                                                            v1::MissionControlResponse* response) {
   if (options_.missions == nullptr)
-    return finishWith(context, notServed("missions", "no missions"));
+    return finishWith(context, notServed("missions", "missions", "no missions"));
   auto status = options_.missions->abort(request->mission_id(), request->reason());
   if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
@@ -369,7 +372,8 @@ grpc::ServerUnaryReactor* CoordinatorService::EmergencyLand(grpc::CallbackServer
                                                             const v1::SafetyActionRequest* request,
                                                             v1::SafetyActionResponse* response) {
   if (options_.safety == nullptr) {
-    return finishWith(context, notServed("safety actions", "start it with --flight-controller"));
+    return finishWith(context,
+                      notServed("safety", "safety actions", "start it with --flight-controller"));
   }
   return runBlocking(context, [this, request, response] {
     auto done = options_.safety->emergencyLand(request->robot_id(), request->reason());
@@ -383,7 +387,8 @@ grpc::ServerUnaryReactor* CoordinatorService::Kill(grpc::CallbackServerContext* 
                                                    const v1::SafetyActionRequest* request,
                                                    v1::SafetyActionResponse* response) {
   if (options_.safety == nullptr) {
-    return finishWith(context, notServed("safety actions", "start it with --flight-controller"));
+    return finishWith(context,
+                      notServed("safety", "safety actions", "start it with --flight-controller"));
   }
   return runBlocking(context, [this, request, response] {
     auto done = options_.safety->kill(request->robot_id(), request->confirm(), request->reason());

@@ -102,13 +102,14 @@ grpc::Status Registry::registerSystem(const v1::RegisterSystemRequest& request,
       for (const auto& behavior : description.behaviors()) {
         if (link->hosts(behavior.name())) {
           return errors::grpcError(
-              grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
+              grpc::StatusCode::FAILED_PRECONDITION, v1::ALREADY_HOSTED,
               "behavior " + behavior.name() + " of robot " + request.robot_id() +
                   " is already hosted by system " + link->system() + " at " + link->address() +
                   "; the behaviors of one robot must have unique names across its systems",
               {{"robot", request.robot_id()},
                {"system", request.system()},
-               {"behavior", behavior.name()}});
+               {"behavior", behavior.name()},
+               {"hosted_by", link->system()}});
         }
       }
     }

@@ -1059,7 +1059,7 @@ void Broker::housekeep() {
     while (!shutting_down_) {
       const auto now = std::chrono::steady_clock::now();
       auto next = std::chrono::steady_clock::time_point::max();
-      std::vector<Topic::WaitingGet> expired;
+      std::vector<std::pair<Topic::WaitingGet, std::string>> expired;  // and its topic
       bool interest_changed = false;
       for (auto it = timed_topics_.begin(); it != timed_topics_.end();) {
         const std::shared_ptr<Topic> keep = *it;  // outlives topic_lock
@@ -1068,7 +1068,7 @@ void Broker::housekeep() {
         auto& waiting = topic.waiting;
         for (auto w = waiting.begin(); w != waiting.end();) {
           if (w->deadline <= now) {
-            expired.push_back(*w);
+            expired.emplace_back(*w, topic.name);
             w = waiting.erase(w);
           } else {
             next = std::min(next, w->deadline);
@@ -1094,11 +1094,11 @@ void Broker::housekeep() {
       if (!expired.empty() || !watchers.empty()) {
         mutex_.Unlock();
         for (const auto& watcher : watchers) watcher->pump();
-        for (auto& get : expired) {
-          // No reason fits a topic without a sample yet.
+        for (auto& [get, topic_name] : expired) {
           get.reactor->Finish(errors::grpcError(
-              grpc::StatusCode::NOT_FOUND, v1::ERROR_REASON_UNSPECIFIED,
-              "no sample on the gated topic within the wait: its publisher did not resume it"));
+              grpc::StatusCode::NOT_FOUND, v1::TOPIC_EMPTY,
+              "no sample on the gated topic within the wait: its publisher did not resume it",
+              {{"topic", topic_name}}));
         }
         mutex_.Lock();
         continue;
@@ -1174,8 +1174,9 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
   if (waits) return reactor;
   if (!latest) {
     reactor->Finish(errors::grpcError(
-        grpc::StatusCode::NOT_FOUND, v1::ERROR_REASON_UNSPECIFIED,
-        absl::StrCat("nothing has been published on topic '", request->topic(), "' yet")));
+        grpc::StatusCode::NOT_FOUND, v1::TOPIC_EMPTY,
+        absl::StrCat("nothing has been published on topic '", request->topic(), "' yet"),
+        {{"topic", request->topic()}}));
     return reactor;
   }
   *response->mutable_sample() = *latest;

@@ -6,6 +6,8 @@
 #include <cstdio>
 #include <optional>
 
+#include "behaviorlib/error_details.h"
+
 namespace behaviorlib::sim {
 namespace {
 
@@ -190,9 +192,11 @@ absl::Status FaultInjector::injectSensor(const v1::InjectFailureRequest& request
             (kind == SensorKind::kBattery ? " (and _DEGRADED: loss of charge)" : ""));
   }
   if (sensors_ == nullptr) {
-    return absl::FailedPreconditionError(
-        "this simulator publishes no sensors: start it with --channel to fail " +
-        componentFullName(request.component()));
+    return errors::withReason(
+        absl::FailedPreconditionError(
+            "this simulator publishes no sensors: start it with --channel to fail " +
+            componentFullName(request.component())),
+        v1::FEATURE_NOT_ENABLED, {{"feature", "sensors"}});
   }
   SensorFault fault;
   fault.type = *type;

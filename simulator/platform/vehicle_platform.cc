@@ -26,6 +26,13 @@ absl::Status crashed(const std::string& robot_id) {
       v1::SAFETY_REFUSED, {{"robot", robot_id}});
 }
 
+// The vehicle's flight state does not allow the action.
+absl::Status stateConflict(const std::string& robot_id, v1::FlightState state,
+                           const std::string& message) {
+  return errors::withReason(absl::FailedPreconditionError(message), v1::FLIGHT_STATE_CONFLICT,
+                            {{"robot", robot_id}, {"flight_state", v1::FlightState_Name(state)}});
+}
+
 std::string seconds(SimDuration d) {
   std::ostringstream out;
   out << std::chrono::duration<double>(d).count() << " s";
@@ -243,8 +250,8 @@ absl::StatusOr<v1::FlightState> VehiclePlatform::executeAction(v1::FlightAction 
   if (absl::Status s = checkLease(lease_id, now); !s.ok()) return s;
   if (action == v1::FLIGHT_ACTION_TAKE_OFF) {
     if (state_ != v1::FLIGHT_STATE_LANDED) {
-      return absl::FailedPreconditionError("TAKE_OFF needs " + robot_id_ + " LANDED; it is " +
-                                           stateName(state_));
+      return stateConflict(robot_id_, state_,
+                           "TAKE_OFF needs " + robot_id_ + " LANDED; it is " + stateName(state_));
     }
     if (altitude_m == 0.0) altitude_m = 1.0;
     if (!std::isfinite(altitude_m) || altitude_m < 0.2 || altitude_m > 100.0) {
@@ -258,9 +265,9 @@ absl::StatusOr<v1::FlightState> VehiclePlatform::executeAction(v1::FlightAction 
     return state_;
   }
   if (!airborne(state_) && state_ != v1::FLIGHT_STATE_LANDING) {
-    return absl::FailedPreconditionError(
-        std::string(action == v1::FLIGHT_ACTION_LAND ? "LAND" : "HOVER") + " needs " + robot_id_ +
-        " in the air; it is " + stateName(state_));
+    return stateConflict(robot_id_, state_,
+                         std::string(action == v1::FLIGHT_ACTION_LAND ? "LAND" : "HOVER") +
+                             " needs " + robot_id_ + " in the air; it is " + stateName(state_));
   }
   lease_expiry_ = now + lease_ttl_;
   if (action == v1::FLIGHT_ACTION_LAND) {
@@ -277,9 +284,10 @@ absl::StatusOr<v1::FlightState> VehiclePlatform::setpoint(const v1::SetpointRequ
                                                           SimTime now) {
   if (absl::Status s = checkLease(request.lease_id(), now); !s.ok()) return s;
   if (state_ != v1::FLIGHT_STATE_FLYING && state_ != v1::FLIGHT_STATE_HOVERING) {
-    return absl::FailedPreconditionError(
-        "setpoints need " + robot_id_ + " FLYING or HOVERING; it is " + stateName(state_) +
-        (state_ == v1::FLIGHT_STATE_LANDED ? " (TAKE_OFF first)" : ""));
+    return stateConflict(robot_id_, state_,
+                         "setpoints need " + robot_id_ + " FLYING or HOVERING; it is " +
+                             stateName(state_) +
+                             (state_ == v1::FLIGHT_STATE_LANDED ? " (TAKE_OFF first)" : ""));
   }
   PlatformCommand next;
   switch (request.setpoint_case()) {

@@ -34,10 +34,10 @@ grpc::Status shuttingDown() {
 }
 
 // For what the simulator does not do in its current mode, or was started
-// without: no reason is finer than FAILED_PRECONDITION.
-grpc::Status notNow(std::string message) {
-  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::ERROR_REASON_UNSPECIFIED,
-                           std::move(message));
+// without.
+grpc::Status notNow(std::string feature, std::string message) {
+  return errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::FEATURE_NOT_ENABLED,
+                           std::move(message), {{"feature", std::move(feature)}});
 }
 
 }  // namespace
@@ -119,7 +119,8 @@ grpc::ServerUnaryReactor* SimulatorService::SetTimeScale(grpc::CallbackServerCon
                                                          const v1::SetTimeScaleRequest* request,
                                                          v1::SetTimeScaleResponse* response) {
   if (time_.deterministic.load()) {
-    return finish(context, notNow("the simulator runs in deterministic mode (--time-scale "
+    return finish(context, notNow("wall_clock_mode",
+                                  "the simulator runs in deterministic mode (--time-scale "
                                   "max): time advances under its followers' grants"));
   }
   if (!request->lock_step()) {
@@ -141,11 +142,13 @@ grpc::ServerUnaryReactor* SimulatorService::Step(grpc::CallbackServerContext* co
                                                  const v1::StepRequest* request,
                                                  v1::StepResponse* response) {
   if (time_.deterministic.load()) {
-    return finish(context, notNow("the simulator steps itself in deterministic mode "
+    return finish(context, notNow("wall_clock_mode",
+                                  "the simulator steps itself in deterministic mode "
                                   "(--time-scale max)"));
   }
   if (!time_.lock_step.load()) {
-    return finish(context, notNow("Step needs lock-step mode: call SetTimeScale with "
+    return finish(context, notNow("lock_step",
+                                  "Step needs lock-step mode: call SetTimeScale with "
                                   "lock_step = true first"));
   }
   const int64_t ns = TimeUtil::DurationToNanoseconds(request->duration());
@@ -165,7 +168,8 @@ SimulatorService::FollowTime(grpc::CallbackServerContext* context) {
             grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>> {
    public:
     Refused() {
-      Finish(notNow("FollowTime needs the deterministic mode (simulator --time-scale max)"));
+      Finish(notNow("deterministic_mode",
+                    "FollowTime needs the deterministic mode (simulator --time-scale max)"));
     }
     void OnDone() override {
       ordered();
@@ -180,7 +184,8 @@ grpc::ServerUnaryReactor* SimulatorService::InjectFailure(grpc::CallbackServerCo
                                                           const v1::InjectFailureRequest* request,
                                                           v1::InjectFailureResponse* /*response*/) {
   if (faults_ == nullptr) {
-    return finish(context, notNow("fault injection is disabled; start the simulator with "
+    return finish(context, notNow("fault_injection",
+                                  "fault injection is disabled; start the simulator with "
                                   "--enable-fault-injection"));
   }
   // Under the worlds' mutex: never half-way through a Reset.

@@ -26,6 +26,7 @@
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/channel/topic.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
@@ -487,6 +488,10 @@ TEST_F(ChannelBrokerTest, GetLatestAndListTopics) {
   grpc::Status status = getLatest("robots/d1/pose", &latest);
   EXPECT_EQ(status.error_code(), grpc::StatusCode::NOT_FOUND);
   EXPECT_THAT(status.error_message(), HasSubstr("robots/d1/pose"));
+  const auto info = errors::errorInfo(status);
+  ASSERT_TRUE(info.has_value());
+  EXPECT_EQ(info->reason(), "TOPIC_EMPTY");
+  EXPECT_EQ(info->metadata().at("topic"), "robots/d1/pose");
 
   RawPublisher publisher(channel_);
   v1::PoseStamped pose;

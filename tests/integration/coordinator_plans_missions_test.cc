@@ -28,6 +28,7 @@
 #include <thread>
 #include <vector>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/coordinator_metrics.h"
@@ -1159,6 +1160,47 @@ TEST(MissionRetentionTest, EndedMissionsOlderThanTheRetentionAgeAreForgotten) {
   for (const std::string id : {"two-days-ago", "a-day-and-a-second-ago"}) {
     EXPECT_EQ(missions.get(id).status().code(), absl::StatusCode::kNotFound) << id;
   }
+}
+
+// A robot's behavior names are unique across its systems: a second system
+// hosting one of them is refused with ALREADY_HOSTED, naming both systems.
+// The registry itself: no shipped system shares a behavior name with
+// another, so no real process could answer for the second one.
+TEST(RegistryTest, ASecondSystemHostingABehaviorOfTheRobotIsAlreadyHosted) {
+  namespace bc = behaviorlib::coordinator;
+  prometheus::Registry prometheus;
+  bc::CoordinatorMetrics metrics(prometheus);
+  bc::FleetEventLog log;
+  bc::RegistryOptions options;
+  // Nothing listens at the systems' address: the first one's link keeps
+  // reconnecting, and stays registered, for the grace period.
+  options.link.grace = std::chrono::hours(1);
+  bc::Registry registry(log, metrics, options);
+  auto registration = [](const std::string& system, std::vector<std::string> behaviors) {
+    v1::RegisterSystemRequest request;
+    request.set_robot_id(kRobot);
+    request.set_system(system);
+    request.set_address("127.0.0.1:1");
+    request.set_incarnation(system + "-1");
+    v1::ListBehaviorsResponse description;
+    description.set_robot_id(kRobot);
+    description.set_system(system);
+    for (const auto& name : behaviors) description.add_behaviors()->set_name(name);
+    return std::make_pair(request, description);
+  };
+  const auto [first, first_description] = registration("motion", {"FOLLOW_PATH", "HOVER"});
+  ASSERT_TRUE(registry.registerSystem(first, first_description).ok());
+  const auto [second, second_description] = registration("other_motion", {"LAND", "HOVER"});
+  const grpc::Status refused = registry.registerSystem(second, second_description);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  const auto info = behaviorlib::errors::errorInfo(refused);
+  ASSERT_TRUE(info.has_value()) << refused.error_message();
+  EXPECT_EQ(info->reason(), "ALREADY_HOSTED");
+  EXPECT_EQ(info->metadata().at("behavior"), "HOVER");
+  EXPECT_EQ(info->metadata().at("system"), "other_motion");
+  EXPECT_EQ(info->metadata().at("hosted_by"), "motion");
+  const auto [third, third_description] = registration("other_motion", {"LAND"});
+  EXPECT_TRUE(registry.registerSystem(third, third_description).ok());
 }
 
 // behaviorctl against the coordinator: health, a dry run, and `mission run`

@@ -522,6 +522,13 @@ TEST_F(CoordinatorTest, UnknownRobotsAndBehaviorsAndBadRequestsAreRefusedClearly
   g = client_->registerSystem(reg);
   EXPECT_EQ(g.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << describe(g.status);
   EXPECT_NE(g.status.error_message().find("robot-a"), std::string::npos) << describe(g.status);
+  EXPECT_EQ(behaviorlib::errors::errorInfo(g.status)->reason(), "IDENTITY_MISMATCH");
+  // robot-a's system under another name: its address answers otherwise.
+  reg.set_robot_id("robot-a");
+  reg.set_system("impostor");
+  g = client_->registerSystem(reg);
+  EXPECT_EQ(g.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << describe(g.status);
+  EXPECT_EQ(behaviorlib::errors::errorInfo(g.status)->reason(), "IDENTITY_MISMATCH");
 
   v1::HeartbeatRequest hb;
   hb.set_robot_id("robot-z");

@@ -261,6 +261,19 @@ TYPED_TEST(ReflectionServiceTest, ReflectionServicesDescribeThemselves) {
   }
 }
 
+// Every error carries google.rpc details: reflection describes them, with
+// their comments, so grpcurl can print them.
+TYPED_TEST(ReflectionServiceTest, ErrorDetailsAreDescribedWithComments) {
+  const auto response = this->ask(this->symbolRequest("google.rpc.ErrorInfo"));
+  ASSERT_TRUE(response.has_file_descriptor_response()) << response.error_response().error_message();
+  const auto files = this->files(response);
+  ASSERT_FALSE(files.empty());
+  EXPECT_EQ(files[0].name(), "google/rpc/error_details.proto");
+  EXPECT_TRUE(files[0].has_source_code_info());
+  EXPECT_EQ(this->fileOf("google.rpc.Status"), "google/rpc/status.proto");
+  EXPECT_EQ(this->fileOf("behaviorlib.v1.ErrorReason"), "behaviorlib/v1/errors.proto");
+}
+
 TYPED_TEST(ReflectionServiceTest, FallsBackToTheGeneratedPool) {
   // empty.proto is in no embedded set, but libprotobuf registers it.
   EXPECT_EQ(this->fileOf("google.protobuf.Empty"), "google/protobuf/empty.proto");

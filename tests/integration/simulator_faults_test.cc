@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
@@ -446,6 +447,10 @@ TEST(SimulatorFaultsDisabled, InjectFailureIsRefusedWithoutTheFlag) {
   const grpc::Status s = sim->InjectFailure(deadline().get(), request, &response);
   EXPECT_EQ(s.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
   EXPECT_NE(s.error_message().find("--enable-fault-injection"), std::string::npos);
+  const auto info = behaviorlib::errors::errorInfo(s);
+  ASSERT_TRUE(info.has_value());
+  EXPECT_EQ(info->reason(), "FEATURE_NOT_ENABLED");
+  EXPECT_EQ(info->metadata().at("feature"), "fault_injection");
   EXPECT_EQ(simulator.terminate(), 0);
 }
 

@@ -12,6 +12,7 @@
 #include <optional>
 #include <thread>
 
+#include "behaviorlib/error_details.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.grpc.pb.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
@@ -152,6 +153,14 @@ class SimulatorServiceTest : public ::testing::Test {
 TEST_F(SimulatorServiceTest, TakeOffWithTheRealDynamicsHoversAtTheTargetAltitude) {
   ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_LANDED, seconds(5)));
   const std::string id = lease("test-controller", 5000);
+  // On the ground, LAND and setpoints are refused with the flight state.
+  const grpc::Status land = action(v1::FLIGHT_ACTION_LAND, id, 0.0);
+  EXPECT_EQ(land.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  const auto conflict = behaviorlib::errors::errorInfo(land);
+  ASSERT_TRUE(conflict.has_value());
+  EXPECT_EQ(conflict->reason(), "FLIGHT_STATE_CONFLICT");
+  EXPECT_EQ(conflict->metadata().at("flight_state"), "FLIGHT_STATE_LANDED");
+  EXPECT_EQ(conflict->metadata().at("robot"), "drone1");
   ASSERT_TRUE(action(v1::FLIGHT_ACTION_TAKE_OFF, id, 2.0).ok());
   ASSERT_TRUE(waitForState(v1::FLIGHT_STATE_HOVERING, seconds(10)));
   std::this_thread::sleep_for(milliseconds(500));  // 5 s simulated: settle
@@ -191,8 +200,11 @@ TEST_F(SimulatorServiceTest, LeaseRefusesOthersAndItsLossHoversThenLands) {
             grpc::StatusCode::FAILED_PRECONDITION);
   setpoint.set_lease_id(id);
   setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s()->set_x(std::nan(""));
-  EXPECT_EQ(flight_->SendSetpoint(deadline().get(), setpoint, &response).error_code(),
-            grpc::StatusCode::INVALID_ARGUMENT);
+  const grpc::Status not_finite = flight_->SendSetpoint(deadline().get(), setpoint, &response);
+  EXPECT_EQ(not_finite.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  // No finer reason was given: INVALID_ARGUMENT says a request field is wrong.
+  EXPECT_EQ(behaviorlib::errors::errorInfo(not_finite).value_or(google::rpc::ErrorInfo()).reason(),
+            "INVALID_REQUEST");
   setpoint.set_robot_id("drone9");
   EXPECT_EQ(flight_->SendSetpoint(deadline().get(), setpoint, &response).error_code(),
             grpc::StatusCode::NOT_FOUND);
@@ -248,8 +260,10 @@ TEST_F(SimulatorServiceTest, LockStepAdvancesExactlyAndFaultInjectionIsOffByDefa
   failure.set_component(v1::FAILURE_COMPONENT_GPS);
   failure.set_type(v1::FAILURE_TYPE_OFF);
   v1::InjectFailureResponse injected;
-  EXPECT_EQ(sim_->InjectFailure(deadline().get(), failure, &injected).error_code(),
-            grpc::StatusCode::FAILED_PRECONDITION);
+  const grpc::Status disabled = sim_->InjectFailure(deadline().get(), failure, &injected);
+  EXPECT_EQ(disabled.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  EXPECT_EQ(behaviorlib::errors::errorInfo(disabled).value_or(google::rpc::ErrorInfo()).reason(),
+            "FEATURE_NOT_ENABLED");
 }
 
 TEST_F(SimulatorServiceTest, SimulatedTimeDrivesABehaviorSystemThroughTheChannel) {
@@ -501,8 +515,12 @@ TEST(SimulatorDeterministicTest, TimeAdvancesOnlyAsFastAsItsFollowerKeepsUp) {
   v1::StepRequest step;
   step.mutable_duration()->set_seconds(1);
   v1::StepResponse stepped;
-  EXPECT_EQ(sim->Step(deadline().get(), step, &stepped).error_code(),
-            grpc::StatusCode::FAILED_PRECONDITION);
+  const grpc::Status refused = sim->Step(deadline().get(), step, &stepped);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION);
+  const auto info = behaviorlib::errors::errorInfo(refused);
+  ASSERT_TRUE(info.has_value());
+  EXPECT_EQ(info->reason(), "FEATURE_NOT_ENABLED");
+  EXPECT_EQ(info->metadata().at("feature"), "wall_clock_mode");
 
   support::ServerProcess system(
       BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH,

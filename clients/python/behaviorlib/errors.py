@@ -9,6 +9,8 @@ them, the google.rpc.Status details (`reason`, `metadata`,
         print(error.code, error.message, error.field_violations)
 """
 
+import re
+
 import grpc
 from google.rpc import error_details_pb2, status_pb2  # generated at install (setup.py)
 
@@ -125,11 +127,31 @@ def _details(trailing_metadata):
     return reason, metadata, violations, details
 
 
+# The access policy refuses a call inside gRPC's authentication layer, which
+# sends only the code and the message: "<method> needs the role <role>;
+# '<identity>' ..." (ROLE_REQUIRED in errors.proto).
+_POLICY_REFUSAL = re.compile(r" needs the role ([^;]+); '(.*)'")
+
+
+def _policy_refusal(code, message):
+    """(reason, metadata) rebuilt from the access policy's refusal, or None."""
+    if code != grpc.StatusCode.PERMISSION_DENIED:
+        return None
+    match = _POLICY_REFUSAL.search(message)
+    if match is None:
+        return None
+    return "ROLE_REQUIRED", {"role": match.group(1), "identity": match.group(2)}
+
+
 def from_rpc_error(error):
     """The Error for a grpc.RpcError (a sync or an asyncio one)."""
     code = error.code()
     message = error.details() or ""
     trailing = error.trailing_metadata()
     reason, metadata, violations, details = _details(trailing)
+    if not reason:
+        rebuilt = _policy_refusal(code, message)
+        if rebuilt is not None:
+            reason, metadata = rebuilt
     return error_class(code)(code, message, reason=reason, metadata=metadata,
                              field_violations=violations, details=details)

@@ -1,10 +1,13 @@
 """Unit tests of the client's pure parts: behavior methods made from a
-descriptor, and the event stream's resume position. No server."""
+descriptor, the event stream's resume position, and errors gRPC raises
+without details. No server."""
 
 import inspect
 
+import grpc
 import pytest
 
+import behaviorlib
 from behaviorlib import _core
 from behaviorlib.v1 import behavior_pb2, coordinator_pb2
 
@@ -128,3 +131,42 @@ def test_values_come_back_with_their_keys_in_order():
     assert back == {"a": {"c": True, "d": [{"e": 2, "f": 1}]}, "b": 1}
     assert list(back) == ["a", "b"] and list(back["a"]) == ["c", "d"]
     assert list(back["a"]["d"][0]) == ["e", "f"]
+
+
+class _Refused(Exception):
+    """A grpc.RpcError as gRPC raises it for the access policy's refusal:
+    a code and a message, no trailing details."""
+
+    def __init__(self, code, details):
+        super().__init__(details)
+        self._code, self._details = code, details
+
+    def code(self):
+        return self._code
+
+    def details(self):
+        return self._details
+
+    def trailing_metadata(self):
+        return ()
+
+
+def test_the_access_policy_refusal_gets_its_reason_back():
+    # gRPC's authentication layer sends no details; the client rebuilds the
+    # ErrorInfo from the refusal's stable message (ROLE_REQUIRED).
+    error = behaviorlib.errors.from_rpc_error(_Refused(
+        grpc.StatusCode.PERMISSION_DENIED,
+        "/behaviorlib.v1.Coordinator/Kill needs the role safety; "
+        "'behaviorlib:operator' has viewer, operator"))
+    assert isinstance(error, behaviorlib.PermissionDenied)
+    assert error.reason == "ROLE_REQUIRED"
+    assert error.metadata == {"role": "safety", "identity": "behaviorlib:operator"}
+    unknown = behaviorlib.errors.from_rpc_error(_Refused(
+        grpc.StatusCode.PERMISSION_DENIED,
+        "/behaviorlib.v1.Coordinator/Kill needs the role safety; 'stranger' is not in the "
+        "access policy"))
+    assert unknown.metadata["identity"] == "stranger"
+    # Any other refusal is left as it came.
+    other = behaviorlib.errors.from_rpc_error(_Refused(grpc.StatusCode.PERMISSION_DENIED,
+                                                       "no"))
+    assert other.reason == "" and other.metadata == {}

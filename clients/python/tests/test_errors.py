@@ -94,3 +94,4 @@ def test_an_unreasoned_error_still_carries_an_error_info(fleet):
     reasons = set(errors_pb2.ErrorReason.keys())
     assert refused.value.reason in reasons, refused.value
     assert refused.value.reason == "MISSION_NOT_FOUND", refused.value
+

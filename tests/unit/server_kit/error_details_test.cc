@@ -45,6 +45,36 @@ TEST(ErrorDetails, EveryErrorCarriesAnErrorInfo) {
   EXPECT_EQ(info->domain(), "behaviorlib.v1");
   EXPECT_TRUE(toGrpc(absl::OkStatus()).ok());
   EXPECT_TRUE(toGrpc(absl::OkStatus()).error_details().empty());
+  // INVALID_ARGUMENT without a finer reason: a request field is wrong.
+  EXPECT_EQ(errorInfo(toGrpc(absl::InvalidArgumentError("x must be finite")))->reason(),
+            "INVALID_REQUEST");
+  EXPECT_EQ(errorInfo(toGrpc(withReason(absl::InvalidArgumentError("bad"), v1::MISSION_INVALID)))
+                ->reason(),
+            "MISSION_INVALID");
+}
+
+TEST(ErrorDetails, TheAccessPolicysRefusalIsRebuiltFromItsMessage) {
+  // gRPC's auth filter delivers it with no details (ROLE_REQUIRED).
+  const absl::Status known = fromGrpc(grpc::Status(
+      grpc::StatusCode::PERMISSION_DENIED,
+      "/behaviorlib.v1.Coordinator/Kill needs the role safety; 'behaviorlib:operator' has "
+      "viewer, operator"));
+  EXPECT_EQ(known.code(), absl::StatusCode::kPermissionDenied);
+  ASSERT_TRUE(errorInfo(known).has_value());
+  EXPECT_EQ(reasonOf(known), "ROLE_REQUIRED");
+  EXPECT_EQ(errorInfo(known)->metadata().at("role"), "safety");
+  EXPECT_EQ(errorInfo(known)->metadata().at("identity"), "behaviorlib:operator");
+  const absl::Status stranger = fromGrpc(
+      grpc::Status(grpc::StatusCode::PERMISSION_DENIED,
+                   "/behaviorlib.v1.Simulator/Reset needs the role admin; 'it's me' is not in "
+                   "the access policy"));
+  EXPECT_EQ(errorInfo(stranger)->metadata().at("identity"), "it's me");
+  // Other refusals, and other codes with that wording, are left alone.
+  EXPECT_FALSE(
+      errorInfo(fromGrpc(grpc::Status(grpc::StatusCode::PERMISSION_DENIED, "no"))).has_value());
+  EXPECT_FALSE(errorInfo(fromGrpc(grpc::Status(grpc::StatusCode::INTERNAL,
+                                               "/x/Y needs the role safety; 'a' has viewer")))
+                   .has_value());
 }
 
 TEST(ErrorDetails, FieldViolationsArePrefixedAndKept) {

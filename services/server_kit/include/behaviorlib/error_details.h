@@ -66,9 +66,12 @@ std::string reasonOf(const absl::Status& status);
 
 /// absl::Status -> grpc::Status: the same code and message, and a
 /// google.rpc.Status with every detail as error_details. An error without an
-/// ErrorInfo gets one with reason ERROR_REASON_UNSPECIFIED.
+/// ErrorInfo gets one: reason INVALID_REQUEST for INVALID_ARGUMENT,
+/// ERROR_REASON_UNSPECIFIED for other codes.
 grpc::Status toGrpc(const absl::Status& status);
-/// grpc::Status -> absl::Status, keeping the details a peer sent.
+/// grpc::Status -> absl::Status, keeping the details a peer sent. The access
+/// policy's PERMISSION_DENIED, which gRPC delivers without details, gets its
+/// ErrorInfo (ROLE_REQUIRED, role, identity) back from its message.
 absl::Status fromGrpc(const grpc::Status& status);
 
 /// A grpc::Status error with its ErrorInfo, for servers that answer with

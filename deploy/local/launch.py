@@ -88,7 +88,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import demo  # noqa: E402
 import report  # noqa: E402
 import rpc  # noqa: E402
-from stack import Process, RestartPolicy, Stack, StartError, Supervisor  # noqa: E402
+from stack import (HttpProcess, Process, RestartPolicy, Stack, StartError,  # noqa: E402
+                   Supervisor)
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 # The coordinator's catalog and the simulator's sensor configurations; each
@@ -256,7 +257,10 @@ def make_certs(run_dir, names, systems):
                              "operator", *names], capture_output=True, text=True)
     if result.returncode != 0:
         raise StartError(f"cannot make the TLS certificates: {result.stderr.strip()}")
+    # The console acts for whoever reaches its loopback port, unless the
+    # browser sends a bearer token of its own (decision 35).
     roles = {"operator": "[viewer, operator, safety]", "coordinator": "[viewer, operator, safety]",
+             "console": "[viewer, operator, safety]",
              "simulator": "[viewer, operator]", "channel_broker": "[viewer]"}
     lines = ["# Made by deploy/local/launch.py --tls for this run.", "identities:"]
     for name, role_list in roles.items():
@@ -280,7 +284,8 @@ def start_stack(args, build_dir, stack):
     system_processes = {(f"{name}-{robot}" if several else name): (robot, name)
                         for name, _ in binaries for robot in robots}
     certs = (make_certs(stack.run_dir,
-                        ["channel_broker", "simulator", "coordinator", *system_processes],
+                        ["channel_broker", "simulator", "coordinator", "console",
+                         *system_processes],
                         system_processes)
              if args.tls else None)
 
@@ -338,6 +343,18 @@ def start_stack(args, build_dir, stack):
     coordinator = stack.start(Process("coordinator", coordinator_argv, stack.run_dir,
                                       "coordinator"))
 
+    console = None
+    if args.console:
+        console_argv = [binary(build_dir, "bin/console"), "--listen", args.console_listen,
+                        "--coordinator", coordinator.address,
+                        "--web-dir", os.path.join(REPO, "console", "web")]
+        if certs:
+            console_argv += ["--tls-cert", os.path.join(certs, "console.pem"),
+                             "--tls-key", os.path.join(certs, "console.key"),
+                             "--tls-ca", os.path.join(certs, "ca.pem")]
+        console = stack.start(HttpProcess("console", console_argv, stack.run_dir, "console",
+                                          os.path.join(certs, "ca.pem") if certs else None))
+
     systems = []
     for name, path in binaries:
         config = os.path.join(SYSTEMS_DIR, name, "config.yaml")
@@ -355,7 +372,7 @@ def start_stack(args, build_dir, stack):
                 argv += ["--map-dir", output_root(stack.run_dir)]
             systems.append(stack.start(Process(process_name, argv, stack.run_dir,
                                                "behavior_system", robot, system=name)))
-    return simulator, coordinator, systems
+    return simulator, coordinator, systems, console
 
 
 def run_demo(args, run_dir, simulator, coordinator, systems, state):
@@ -553,6 +570,11 @@ def main():
                         help="wall seconds after which the demo aborts the missions")
     parser.add_argument("--stop-timeout-s", type=float, default=10.0,
                         help="wall seconds a process has after SIGTERM before SIGKILL")
+    parser.add_argument("--no-console", dest="console", action="store_false",
+                        help="do not start the operator's console (console/, decision 35)")
+    parser.add_argument("--console-listen", default="127.0.0.1:0", metavar="HOST:PORT",
+                        help="the console's HTTP address (port 0: any free port; the URL is "
+                             "printed; default: %(default)s)")
     parser.add_argument("--restart", choices=RestartPolicy.MODES, default="on-failure",
                         help="on-failure: a process that crashes (non-zero exit code, or a "
                              "signal) is started again on its ports, at most 5 times in 60 s "
@@ -591,14 +613,18 @@ def main():
     say(f"run directory: {run_dir}")
     try:
         say("\n== starting ==")
-        simulator, coordinator, systems = start_stack(args, build_dir, stack)
+        simulator, coordinator, systems, console = start_stack(args, build_dir, stack)
         supervisor.start()
         targets = stack.write_prometheus_targets()
         say("\n== running ==")
         for p in stack.processes:
+            if p is console:
+                continue
             metrics = f"http://{p.metrics_address}/metrics" if p.metrics_port else "-"
             say(f"  {p.name:<40} gRPC {p.address:<17} metrics {metrics}")
         say(f"  Prometheus targets: {targets}")
+        if console is not None:
+            say(f"  console: {console.url}")
         if args.demo:
             run_demo(args, run_dir, simulator, coordinator, systems, demo_state)
             supervisor.check()

@@ -15,9 +15,11 @@ dial them), its output appended to its log and pids.json rewritten.
 import json
 import os
 import signal
+import ssl
 import subprocess
 import threading
 import time
+import urllib.request
 
 import rpc
 
@@ -112,21 +114,28 @@ class Process:
                 self.exit_code = self.process.returncode
                 raise StartError(f"{self.name} exited with {self.exit_description()} before it "
                                  f"was ready; {self.log_path} ends with:\n{self._log_tail()}")
-            if not self.grpc_port and os.path.exists(self.port_file):
-                ports = read_ports(self.port_file)
-                self.grpc_port = ports.get("grpc_port", 0)
-                self.metrics_port = ports.get("metrics_port", 0)
-            if self.grpc_port:
-                try:
-                    health = rpc.health_status(self.address, timeout=1.0)
-                    if health == "SERVING":
-                        self._keep_ports()
-                        return
-                except rpc.grpc.RpcError as error:
-                    health = error.code().name
+            ready, health = self._probe(health)
+            if ready:
+                self._keep_ports()
+                return
             time.sleep(0.02)
         raise StartError(f"{self.name} was not healthy within {timeout_s} s (health: {health}); "
                          f"log {self.log_path}")
+
+    def _probe(self, health):
+        """(ready, what the health check said): its ports reported and its
+        gRPC health check SERVING."""
+        if not self.grpc_port and os.path.exists(self.port_file):
+            ports = read_ports(self.port_file)
+            self.grpc_port = ports.get("grpc_port", 0)
+            self.metrics_port = ports.get("metrics_port", 0)
+        if not self.grpc_port:
+            return False, health
+        try:
+            health = rpc.health_status(self.address, timeout=1.0)
+        except rpc.grpc.RpcError as error:
+            health = error.code().name
+        return health == "SERVING", health
 
     def _keep_ports(self):
         """Rewrites the --listen and --metrics-listen arguments to the ports
@@ -384,3 +393,41 @@ class Supervisor:
             return
         self._note(process, f"{process.name} restarted: pid {process.pid}, gRPC "
                             f"{process.address}")
+
+
+class HttpProcess(Process):
+    """A process that serves HTTP, not gRPC (the console): ready once its
+    port file names its http_port and GET /healthz answers 200. Its
+    `address` is the HTTP one; it has no metrics. With `ca_file` it serves
+    HTTPS with a certificate from that CA."""
+
+    def __init__(self, name, argv, run_dir, role, ca_file=None):
+        super().__init__(name, argv, run_dir, role)
+        self.http_port = 0
+        self.context = ssl.create_default_context(cafile=ca_file) if ca_file else None
+
+    @property
+    def address(self):
+        return f"127.0.0.1:{self.http_port}"
+
+    @property
+    def url(self):
+        return f"{'https' if self.context else 'http'}://{self.address}/"
+
+    def _probe(self, health):
+        if not self.http_port and os.path.exists(self.port_file):
+            self.http_port = read_ports(self.port_file).get("http_port", 0)
+        if not self.http_port:
+            return False, health
+        try:
+            with urllib.request.urlopen(self.url + "healthz", timeout=1.0,
+                                        context=self.context) as reply:
+                return reply.status == 200, f"HTTP {reply.status}"
+        except OSError as error:
+            return False, str(error)
+
+    def _keep_ports(self):
+        for i, arg in enumerate(self.argv[:-1]):
+            if arg == "--listen" and self.http_port:
+                host = self.argv[i + 1].rpartition(":")[0]
+                self.argv[i + 1] = f"{host}:{self.http_port}"

@@ -1,0 +1,416 @@
+#include "behaviorlib/console/gateway.h"
+
+#include <google/protobuf/struct.pb.h>
+#include <google/protobuf/util/json_util.h>
+#include <httplib.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <functional>
+#include <set>
+#include <utility>
+
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_cat.h"
+#include "absl/time/time.h"
+#include "behaviorlib/error_details.h"
+#include "google/rpc/status.pb.h"
+
+namespace behaviorlib::console {
+
+namespace {
+
+namespace pbu = google::protobuf::util;
+
+std::string toJson(const google::protobuf::Message& message) {
+  pbu::JsonPrintOptions options;
+  options.preserve_proto_field_names = true;
+  options.always_print_primitive_fields = true;
+  std::string out;
+  if (!pbu::MessageToJsonString(message, &out, options).ok()) return "{}";
+  return out;
+}
+
+// The HTTP status of a gRPC code, as google.api's HTTP mapping gives it.
+int httpStatus(grpc::StatusCode code) {
+  switch (code) {
+    case grpc::StatusCode::OK:
+      return 200;
+    case grpc::StatusCode::INVALID_ARGUMENT:
+    case grpc::StatusCode::FAILED_PRECONDITION:
+    case grpc::StatusCode::OUT_OF_RANGE:
+      return 400;
+    case grpc::StatusCode::UNAUTHENTICATED:
+      return 401;
+    case grpc::StatusCode::PERMISSION_DENIED:
+      return 403;
+    case grpc::StatusCode::NOT_FOUND:
+      return 404;
+    case grpc::StatusCode::ALREADY_EXISTS:
+    case grpc::StatusCode::ABORTED:
+      return 409;
+    case grpc::StatusCode::RESOURCE_EXHAUSTED:
+      return 429;
+    case grpc::StatusCode::CANCELLED:
+      return 499;
+    case grpc::StatusCode::UNIMPLEMENTED:
+      return 501;
+    case grpc::StatusCode::UNAVAILABLE:
+      return 503;
+    case grpc::StatusCode::DEADLINE_EXCEEDED:
+      return 504;
+    default:
+      return 500;
+  }
+}
+
+struct Reply {
+  int status = 200;
+  std::string json;
+};
+
+// A refused call: the google.rpc.Status with its details, as JSON. The
+// access policy's refusal gets its ErrorInfo back (errors::fromGrpc).
+Reply errorReply(const grpc::Status& status) {
+  google::rpc::Status body;
+  grpc::Status wire = status;
+  if (status.error_details().empty()) {
+    const absl::Status rebuilt = errors::fromGrpc(status);
+    if (errors::errorInfo(rebuilt).has_value()) wire = errors::toGrpc(rebuilt);
+  }
+  if (wire.error_details().empty() || !body.ParseFromString(wire.error_details())) {
+    body.set_code(static_cast<int>(status.error_code()));
+    body.set_message(status.error_message());
+  }
+  return {httpStatus(status.error_code()), toJson(body)};
+}
+
+Reply invalid(const std::string& message) {
+  return errorReply(
+      errors::toGrpc(errors::withReason(absl::InvalidArgumentError(message), v1::INVALID_REQUEST)));
+}
+
+// One unary Coordinator call: the request's JSON in, the response's out.
+using Call = std::function<Reply(const std::string& body, const std::string& authorization)>;
+
+template <typename Request, typename Response>
+Call unary(v1::Coordinator::Stub* stub,
+           grpc::Status (v1::Coordinator::Stub::*method)(grpc::ClientContext*, const Request&,
+                                                         Response*),
+           std::chrono::milliseconds timeout) {
+  return
+      [stub, method, timeout](const std::string& body, const std::string& authorization) -> Reply {
+        Request request;
+        if (!body.empty()) {
+          pbu::JsonParseOptions options;
+          options.ignore_unknown_fields = false;
+          const auto parsed = pbu::JsonStringToMessage(body, &request, options);
+          if (!parsed.ok()) {
+            return invalid(absl::StrCat("the body is not a ", Request::descriptor()->full_name(),
+                                        " in JSON: ", parsed.ToString()));
+          }
+        }
+        grpc::ClientContext context;
+        context.set_deadline(std::chrono::system_clock::now() + timeout);
+        if (!authorization.empty()) context.AddMetadata("authorization", authorization);
+        Response response;
+        const grpc::Status status = (stub->*method)(&context, request, &response);
+        if (!status.ok()) return errorReply(status);
+        return {200, toJson(response)};
+      };
+}
+
+std::string gatewayJson(bool up, const std::string& why) {
+  google::protobuf::Struct message;
+  (*message.mutable_fields())["coordinator_up"].set_bool_value(up);
+  (*message.mutable_fields())["message"].set_string_value(why);
+  return toJson(message);
+}
+
+bool ended(v1::MissionState state) {
+  return state == v1::MISSION_STATE_SUCCEEDED || state == v1::MISSION_STATE_FAILED ||
+         state == v1::MISSION_STATE_ABORTED;
+}
+
+constexpr std::chrono::milliseconds kFirstRetry{100};
+constexpr std::chrono::milliseconds kMaxRetry{2000};
+// An idle event feed sends a comment this often, so a browser that went
+// away is noticed.
+constexpr std::chrono::milliseconds kKeepalive{5000};
+
+}  // namespace
+
+Gateway::Gateway(std::shared_ptr<grpc::Channel> coordinator, GatewayOptions options)
+    : channel_(std::move(coordinator)),
+      stub_(v1::Coordinator::NewStub(channel_)),
+      options_(std::move(options)),
+      hub_(options_.replay_capacity) {}
+
+Gateway::~Gateway() { shutdown(); }
+
+absl::Status Gateway::start(const std::string& host, int port) {
+  if (options_.tls_cert_file.empty() != options_.tls_key_file.empty()) {
+    return absl::InvalidArgumentError("HTTPS needs both a certificate and a key");
+  }
+  if (!options_.tls_cert_file.empty()) {
+    auto server = std::make_unique<httplib::SSLServer>(options_.tls_cert_file.c_str(),
+                                                       options_.tls_key_file.c_str());
+    if (!server->is_valid()) {
+      return absl::InvalidArgumentError(absl::StrCat(
+          "cannot serve HTTPS with ", options_.tls_cert_file, " and ", options_.tls_key_file));
+    }
+    server_ = std::move(server);
+  } else {
+    server_ = std::make_unique<httplib::Server>();
+  }
+  // One worker per event feed, and some for the calls.
+  const size_t workers = static_cast<size_t>(options_.max_event_clients) + 8;
+  server_->new_task_queue = [workers] { return new httplib::ThreadPool(workers); };
+  server_->set_payload_max_length(options_.max_body_bytes);
+  if (!options_.web_dir.empty() && !server_->set_mount_point("/", options_.web_dir)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("the console's web directory ", options_.web_dir, " does not exist"));
+  }
+  routes();
+  if (port == 0) {
+    port_ = server_->bind_to_any_port(host);
+    if (port_ < 0) port_ = 0;
+  } else if (server_->bind_to_port(host, port)) {
+    port_ = port;
+  }
+  if (port_ == 0) {
+    return absl::UnavailableError(absl::StrCat("cannot bind ", host, ":", port));
+  }
+  http_thread_ = std::thread([this] { server_->listen_after_bind(); });
+  events_thread_ = std::thread([this] { followEvents(); });
+  missions_thread_ = std::thread([this] { followMissions(); });
+  return absl::OkStatus();
+}
+
+void Gateway::shutdown() {
+  std::map<std::string, std::thread> watchers;
+  {
+    absl::MutexLock lock(&mutex_);
+    if (stopping_) return;
+    stopping_ = true;
+    for (auto& [name, context] : streams_) context->TryCancel();
+  }
+  hub_.close();
+  if (server_) server_->stop();
+  if (http_thread_.joinable()) http_thread_.join();
+  if (events_thread_.joinable()) events_thread_.join();
+  if (missions_thread_.joinable()) missions_thread_.join();
+  {
+    absl::MutexLock lock(&mutex_);
+    watchers.swap(mission_watchers_);
+  }
+  for (auto& [id, thread] : watchers) {
+    if (thread.joinable()) thread.join();
+  }
+}
+
+bool Gateway::sleepFor(std::chrono::milliseconds wait, bool kickable) {
+  absl::MutexLock lock(&mutex_);
+  auto woken = [this, kickable]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return stopping_ || (kickable && kicked_);
+  };
+  mutex_.AwaitWithTimeout(absl::Condition(&woken), absl::FromChrono(wait));
+  if (kickable) kicked_ = false;
+  return !stopping_;
+}
+
+void Gateway::kick() {
+  absl::MutexLock lock(&mutex_);
+  kicked_ = true;
+}
+
+void Gateway::setCoordinatorUp(bool up, const std::string& why) {
+  {
+    absl::MutexLock lock(&mutex_);
+    if (coordinator_known_ && coordinator_up_ == up) return;
+    coordinator_known_ = true;
+    coordinator_up_ = up;
+  }
+  hub_.publish("gateway", gatewayJson(up, why));
+}
+
+void Gateway::followEvents() {
+  EventCursor cursor;
+  auto retry = kFirstRetry;
+  while (true) {
+    grpc::ClientContext context;
+    {
+      absl::MutexLock lock(&mutex_);
+      if (stopping_) return;
+      streams_["events"] = &context;
+    }
+    auto reader = stub_->WatchEvents(&context, cursor.request());
+    v1::WatchFleetEventsResponse response;
+    while (reader->Read(&response)) {
+      setCoordinatorUp(true, "");
+      retry = kFirstRetry;
+      for (const auto& event : cursor.accept(response)) hub_.publish("fleet", toJson(event));
+    }
+    const grpc::Status status = reader->Finish();
+    {
+      absl::MutexLock lock(&mutex_);
+      streams_.erase("events");
+    }
+    setCoordinatorUp(false, status.error_message());
+    if (!sleepFor(retry, false)) return;
+    retry = std::min(retry * 2, kMaxRetry);
+  }
+}
+
+void Gateway::publishMission(const v1::MissionStatus& status) {
+  std::string json = toJson(status);
+  {
+    absl::MutexLock lock(&mutex_);
+    std::string& last = mission_json_[status.mission_id()];
+    if (last == json) return;
+    last = json;
+  }
+  hub_.publish("mission", std::move(json));
+}
+
+void Gateway::watchMission(const std::string& mission_id) {
+  grpc::ClientContext context;
+  const std::string key = "mission/" + mission_id;
+  {
+    absl::MutexLock lock(&mutex_);
+    if (stopping_) return;
+    streams_[key] = &context;
+  }
+  v1::WatchMissionRequest request;
+  request.set_mission_id(mission_id);
+  auto reader = stub_->WatchMission(&context, request);
+  v1::WatchMissionResponse response;
+  while (reader->Read(&response)) publishMission(response.status());
+  reader->Finish();
+  absl::MutexLock lock(&mutex_);
+  streams_.erase(key);
+  finished_watchers_.push_back(mission_id);
+}
+
+void Gateway::followMissions() {
+  while (true) {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
+    v1::ListMissionsRequest request;
+    request.set_page_size(100);
+    v1::ListMissionsResponse response;
+    std::vector<std::thread> done;
+    if (stub_->ListMissions(&context, request, &response).ok()) {
+      std::set<std::string> listed;
+      for (const auto& status : response.missions()) {
+        listed.insert(status.mission_id());
+        publishMission(status);
+        absl::MutexLock lock(&mutex_);
+        if (!stopping_ && !ended(status.state()) &&
+            mission_watchers_.count(status.mission_id()) == 0 &&
+            mission_watchers_.size() < options_.max_watched_missions) {
+          const std::string id = status.mission_id();
+          mission_watchers_.emplace(id, std::thread([this, id] { watchMission(id); }));
+        }
+      }
+      absl::MutexLock lock(&mutex_);
+      // Missions the coordinator forgot are forgotten here too.
+      for (auto it = mission_json_.begin(); it != mission_json_.end();) {
+        it = listed.count(it->first) ? std::next(it) : mission_json_.erase(it);
+      }
+    }
+    {
+      absl::MutexLock lock(&mutex_);
+      for (const auto& id : finished_watchers_) {
+        auto it = mission_watchers_.find(id);
+        if (it == mission_watchers_.end()) continue;
+        done.push_back(std::move(it->second));
+        mission_watchers_.erase(it);
+      }
+      finished_watchers_.clear();
+    }
+    for (auto& thread : done) thread.join();
+    if (!sleepFor(options_.mission_poll, true)) return;
+  }
+}
+
+void Gateway::routes() {
+  const auto timeout = options_.call_timeout;
+  v1::Coordinator::Stub* stub = stub_.get();
+  using S = v1::Coordinator::Stub;
+  // The calls the console makes: reading the fleet and its missions, and an
+  // operator's controls. Anything else is 404.
+  auto calls = std::make_shared<std::map<std::string, Call>>(std::map<std::string, Call>{
+      {"ListSystems", unary(stub, &S::ListSystems, timeout)},
+      {"ListBehaviors", unary(stub, &S::ListBehaviors, timeout)},
+      {"CheckBehaviorSituation", unary(stub, &S::CheckBehaviorSituation, timeout)},
+      {"ListMissions", unary(stub, &S::ListMissions, timeout)},
+      {"GetMission", unary(stub, &S::GetMission, timeout)},
+      {"StartMission", unary(stub, &S::StartMission, timeout)},
+      {"PauseMission", unary(stub, &S::PauseMission, timeout)},
+      {"ResumeMission", unary(stub, &S::ResumeMission, timeout)},
+      {"AbortMission", unary(stub, &S::AbortMission, timeout)},
+      {"EmergencyLand", unary(stub, &S::EmergencyLand, timeout)},
+      {"ReadBelief", unary(stub, &S::ReadBelief, timeout)},
+      {"ListBeliefs", unary(stub, &S::ListBeliefs, timeout)},
+  });
+  server_->Post(R"(/api/coordinator/([A-Za-z]+))", [this, calls](const httplib::Request& request,
+                                                                 httplib::Response& response) {
+    const std::string name = request.matches[1];
+    const auto call = calls->find(name);
+    Reply reply;
+    if (call == calls->end()) {
+      reply = errorReply(errors::grpcError(grpc::StatusCode::NOT_FOUND, v1::INVALID_REQUEST,
+                                           "the console does not call Coordinator." + name));
+    } else {
+      reply = call->second(request.body, request.get_header_value("Authorization"));
+      if (reply.status == 200 && name.find("Mission") != std::string::npos) kick();
+    }
+    response.status = reply.status;
+    response.set_content(reply.json, "application/json");
+  });
+  server_->Get("/api/events", [this](const httplib::Request& request, httplib::Response& response) {
+    if (event_clients_.fetch_add(1) >= options_.max_event_clients) {
+      event_clients_.fetch_sub(1);
+      const Reply reply = errorReply(
+          errors::grpcError(grpc::StatusCode::RESOURCE_EXHAUSTED, v1::LIMIT_EXCEEDED,
+                            absl::StrCat("the console follows at most ", options_.max_event_clients,
+                                         " event feeds at once"),
+                            {{"limit", std::to_string(options_.max_event_clients)}}));
+      response.status = reply.status;
+      response.set_content(reply.json, "application/json");
+      return;
+    }
+    // A browser that reconnects says what it saw last; a new one gets what
+    // the hub kept.
+    auto last = std::make_shared<uint64_t>(0);
+    const std::string resume = request.get_header_value("Last-Event-ID");
+    if (!resume.empty() && !absl::SimpleAtoi(resume, last.get())) *last = 0;
+    response.set_header("Cache-Control", "no-cache");
+    response.set_header("X-Accel-Buffering", "no");
+    response.set_chunked_content_provider(
+        "text/event-stream",
+        [this, last](size_t, httplib::DataSink& sink) {
+          const auto messages = hub_.after(*last, kKeepalive);
+          if (hub_.closed()) {
+            sink.done();
+            return true;
+          }
+          std::string text = messages.empty() ? std::string(": keepalive\n\n") : std::string();
+          for (const auto& message : messages) text += EventHub::format(message);
+          if (!sink.write(text.data(), text.size())) return false;
+          if (!messages.empty()) *last = messages.back().id;
+          return true;
+        },
+        [this](bool) { event_clients_.fetch_sub(1); });
+  });
+  // Readiness of the console itself (the launcher waits for it).
+  server_->Get("/healthz", [](const httplib::Request&, httplib::Response& response) {
+    response.set_content("ok\n", "text/plain");
+  });
+  server_->set_post_routing_handler([](const httplib::Request&, httplib::Response& response) {
+    response.set_header("X-Content-Type-Options", "nosniff");
+  });
+}
+
+}  // namespace behaviorlib::console

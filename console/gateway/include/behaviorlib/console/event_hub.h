@@ -1,0 +1,51 @@
+#pragma once
+
+// The console's live feed: a bounded broadcast of Server-Sent Events. Every
+// message gets the next sequence number (its SSE id); the last `capacity`
+// are kept, so a browser that reconnects with Last-Event-ID gets what it
+// missed, and a new one the recent past. Thread-safe.
+
+#include <chrono>
+#include <cstdint>
+#include <deque>
+#include <string>
+#include <vector>
+
+#include "absl/synchronization/mutex.h"
+
+namespace behaviorlib::console {
+
+class EventHub {
+ public:
+  struct Message {
+    uint64_t id = 0;
+    std::string event;  ///< the SSE event type: fleet, mission, ...
+    std::string data;   ///< one line of JSON
+  };
+
+  explicit EventHub(size_t capacity) : capacity_(capacity) {}
+
+  /// Adds a message; returns its id.
+  uint64_t publish(std::string event, std::string data);
+
+  /// The kept messages after `after`, waiting up to `wait` for one. Empty
+  /// when the wait ended without one, or the hub is closed.
+  std::vector<Message> after(uint64_t after, std::chrono::milliseconds wait);
+
+  /// Wakes every waiter; after() returns at once from now on.
+  void close();
+  bool closed() const;
+  uint64_t lastId() const;
+
+  /// One message as the SSE wire format: "id: N\nevent: E\ndata: D\n\n".
+  static std::string format(const Message& message);
+
+ private:
+  const size_t capacity_;
+  mutable absl::Mutex mutex_;
+  std::deque<Message> kept_ ABSL_GUARDED_BY(mutex_);
+  uint64_t last_id_ ABSL_GUARDED_BY(mutex_) = 0;
+  bool closed_ ABSL_GUARDED_BY(mutex_) = false;
+};
+
+}  // namespace behaviorlib::console

@@ -1,0 +1,118 @@
+#pragma once
+
+// The console's gateway: the browser cannot speak gRPC, so this small HTTP
+// server does, like any other client of the coordinator (decision 35).
+//
+//   GET  /                      the console's page and its scripts (--web-dir)
+//   GET  /healthz               200 once serving
+//   GET  /api/events            Server-Sent Events: `fleet` (every FleetEvent
+//                               of the coordinator's WatchEvents, resumed
+//                               without gaps or duplicates), `mission` (each
+//                               mission status change), `gateway` (whether
+//                               the coordinator is reachable)
+//   POST /api/coordinator/NAME  one unary Coordinator call of the console's
+//                               (the request as JSON, proto field names; the
+//                               response as JSON), e.g. ListSystems,
+//                               StartMission, AbortMission, EmergencyLand
+//
+// An `Authorization` header is passed on to the coordinator, so the roles of
+// its access policy apply to the browser's calls. A refused call answers the
+// HTTP status of its gRPC code with the google.rpc.Status as JSON.
+
+#include <grpcpp/grpcpp.h>
+
+#include <atomic>
+#include <chrono>
+#include <map>
+#include <memory>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "absl/status/status.h"
+#include "absl/synchronization/mutex.h"
+#include "behaviorlib/console/event_cursor.h"
+#include "behaviorlib/console/event_hub.h"
+#include "behaviorlib/v1/coordinator.grpc.pb.h"
+
+namespace httplib {
+class Server;
+}
+
+namespace behaviorlib::console {
+
+struct GatewayOptions {
+  /// Static files of the console's page.
+  std::string web_dir;
+  /// Messages the event feed keeps for browsers that reconnect.
+  size_t replay_capacity = 2000;
+  /// Browsers following the event feed at once; more are 503.
+  int max_event_clients = 32;
+  /// Largest request body (a mission text is the largest).
+  size_t max_body_bytes = 256 * 1024;
+  /// Deadline of a unary coordinator call.
+  std::chrono::milliseconds call_timeout{10000};
+  /// How often the mission list is read to find missions to watch.
+  std::chrono::milliseconds mission_poll{1000};
+  /// Missions watched at once (the running and paused ones).
+  size_t max_watched_missions = 16;
+  /// HTTPS with these PEM files (both, or neither: HTTP).
+  std::string tls_cert_file;
+  std::string tls_key_file;
+};
+
+class Gateway {
+ public:
+  Gateway(std::shared_ptr<grpc::Channel> coordinator, GatewayOptions options);
+  /// Stops everything (shutdown()).
+  ~Gateway();
+  Gateway(const Gateway&) = delete;
+  Gateway& operator=(const Gateway&) = delete;
+
+  /// Binds host:port (port 0: any free one) and serves on a thread of its
+  /// own; follows the coordinator's events and missions.
+  absl::Status start(const std::string& host, int port);
+  int port() const { return port_; }
+  /// Ends the event feeds and the coordinator streams, stops serving.
+  void shutdown();
+
+  EventHub& hub() { return hub_; }
+
+ private:
+  void followEvents();
+  void followMissions();
+  void watchMission(const std::string& mission_id);
+  void publishMission(const v1::MissionStatus& status);
+  void setCoordinatorUp(bool up, const std::string& why);
+  // Waits `wait`, or until kick() if kickable; false once stopping.
+  bool sleepFor(std::chrono::milliseconds wait, bool kickable);
+  // Reads the mission list now (a mission was started or controlled).
+  void kick();
+  void routes();
+
+  const std::shared_ptr<grpc::Channel> channel_;
+  const std::unique_ptr<v1::Coordinator::Stub> stub_;
+  const GatewayOptions options_;
+  EventHub hub_;
+  std::unique_ptr<httplib::Server> server_;
+  int port_ = 0;
+  std::atomic<int> event_clients_{0};
+  std::thread http_thread_;
+  std::thread events_thread_;
+  std::thread missions_thread_;
+
+  absl::Mutex mutex_;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool kicked_ ABSL_GUARDED_BY(mutex_) = false;
+  bool coordinator_up_ ABSL_GUARDED_BY(mutex_) = false;
+  bool coordinator_known_ ABSL_GUARDED_BY(mutex_) = false;
+  // The calls to cancel at shutdown: the event stream and mission watches.
+  std::map<std::string, grpc::ClientContext*> streams_ ABSL_GUARDED_BY(mutex_);
+  std::map<std::string, std::thread> mission_watchers_ ABSL_GUARDED_BY(mutex_);
+  // Watchers whose mission ended, to join.
+  std::vector<std::string> finished_watchers_ ABSL_GUARDED_BY(mutex_);
+  // The last status published of each mission (its JSON).
+  std::map<std::string, std::string> mission_json_ ABSL_GUARDED_BY(mutex_);
+};
+
+}  // namespace behaviorlib::console

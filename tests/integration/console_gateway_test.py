@@ -1,0 +1,285 @@
+"""The console's gateway (console/gateway, decision 35) against the real
+coordinator and a real behavior system on loopback:
+
+    /usr/bin/python3 console_gateway_test.py --build-dir build
+
+- the page and its scripts are served;
+- POST /api/coordinator/ListSystems answers the coordinator's reply as JSON;
+- the event feed (/api/events, Server-Sent Events) carries a behavior's
+  activation and its termination with the cause, a mission started through
+  the gateway up to its end, and resumes after Last-Event-ID without a gap;
+- refusals answer their HTTP status with the google.rpc.Status as JSON (a
+  call the console does not make, a body that is not the request, a refused
+  mission with its field violation);
+- a coordinator that goes away is reported on the feed.
+"""
+
+import argparse
+import http.client
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import unittest
+
+BUILD_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "build")
+# Waits for what must happen; never a measure of speed.
+WAIT_S = 60
+
+
+class Process:
+    def __init__(self, name, argv, run_dir, tag=None):
+        tag = tag or name
+        self.port_file = os.path.join(run_dir, f"{tag}.ports")
+        self.log_path = os.path.join(run_dir, f"{tag}.log")
+        with open(self.log_path, "w") as log:
+            self.process = subprocess.Popen(
+                [os.path.join(BUILD_DIR, "bin", name), "--port-file", self.port_file, *argv],
+                stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + WAIT_S
+        while not os.path.exists(self.port_file):
+            if self.process.poll() is not None or time.monotonic() > deadline:
+                raise AssertionError(f"{tag} did not start:\n{open(self.log_path).read()}")
+            time.sleep(0.05)
+        with open(self.port_file) as f:
+            self.ports = dict(line.strip().split("=", 1) for line in f if "=" in line)
+
+    def stop(self):
+        if self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(timeout=30)
+        return self.process.returncode
+
+
+class EventFeed:
+    """A reader of the gateway's Server-Sent Events."""
+
+    def __init__(self, port, last_event_id=None):
+        self.connection = http.client.HTTPConnection("127.0.0.1", port, timeout=WAIT_S)
+        headers = {"Accept": "text/event-stream"}
+        if last_event_id is not None:
+            headers["Last-Event-ID"] = str(last_event_id)
+        self.connection.request("GET", "/api/events", headers=headers)
+        self.response = self.connection.getresponse()
+        assert self.response.status == 200, self.response.status
+        assert self.response.getheader("Content-Type").startswith("text/event-stream")
+
+    def next(self):
+        """(id, event, data as JSON) of the next message."""
+        message = {}
+        while True:
+            line = self.response.fp.readline()
+            if not line:
+                raise EOFError("the feed ended")
+            line = line.decode().rstrip("\n")
+            if not line:
+                if "data" in message:
+                    return int(message["id"]), message["event"], json.loads(message["data"])
+                message = {}
+                continue
+            if line.startswith(":"):
+                continue  # keepalive
+            field, _, value = line.partition(": ")
+            message[field] = value
+
+    def until(self, predicate):
+        """Messages up to the first that satisfies predicate(event, data)."""
+        seen = []
+        deadline = time.monotonic() + WAIT_S
+        while time.monotonic() < deadline:
+            message = self.next()
+            seen.append(message)
+            if predicate(message[1], message[2]):
+                return seen
+        raise AssertionError(f"not seen within {WAIT_S} s: {seen[-5:]}")
+
+    def close(self):
+        self.connection.close()
+
+
+def finished(behavior, duration_s, robot="robot-a"):
+    """The finished event of the activation of `behavior` with this
+    duration_s (each test activates its own, and a new feed replays the
+    past)."""
+    def test(event, data):
+        e = data.get("behavior_event") or {}
+        return (event == "fleet" and e.get("behavior") == behavior and
+                e.get("robot_id") == robot and "finished" in e and
+                e["finished"]["parameters"].get("duration_s") == duration_s)
+    return test
+
+
+class ConsoleGatewayTest(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.dir = tempfile.mkdtemp(prefix="console-test-")
+        listen = ["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"]
+        cls.coordinator = Process("coordinator", listen, cls.dir)
+        cls.coordinator_address = f"127.0.0.1:{cls.coordinator.ports['grpc_port']}"
+        cls.system = Process("basic_quadrotor_behaviors",
+                             listen + ["--robot-id", "robot-a", "--coordinator",
+                                       cls.coordinator_address], cls.dir)
+        cls.console = Process("console", ["--listen", "127.0.0.1:0", "--coordinator",
+                                          cls.coordinator_address], cls.dir)
+        cls.port = int(cls.console.ports["http_port"])
+
+    @classmethod
+    def tearDownClass(cls):
+        for process in (cls.console, cls.system, cls.coordinator):
+            process.stop()
+        shutil.rmtree(cls.dir, ignore_errors=True)
+
+    def request(self, method, path, body=None, headers=None):
+        connection = http.client.HTTPConnection("127.0.0.1", self.port, timeout=WAIT_S)
+        connection.request(method, path, body=body, headers=headers or {})
+        response = connection.getresponse()
+        data = response.read()
+        connection.close()
+        return response.status, response.getheader("Content-Type"), data
+
+    def call(self, name, request):
+        status, content_type, data = self.request(
+            "POST", f"/api/coordinator/{name}", json.dumps(request),
+            {"Content-Type": "application/json"})
+        self.assertEqual(content_type, "application/json")
+        return status, json.loads(data)
+
+    def activate(self, behavior, parameters):
+        ctl = os.path.join(BUILD_DIR, "bin", "behaviorctl")
+        subprocess.run([ctl, "--coordinator", self.coordinator_address, "--robot", "robot-a",
+                        "activate", behavior, json.dumps(parameters)], check=True,
+                       stdout=subprocess.DEVNULL, timeout=WAIT_S)
+
+    def wait_for_system(self):
+        deadline = time.monotonic() + WAIT_S
+        while time.monotonic() < deadline:
+            status, reply = self.call("ListSystems", {})
+            if status == 200 and any(s["state"] == "SYSTEM_STATE_UP"
+                                     for s in reply["systems"]):
+                return reply
+            time.sleep(0.1)
+        self.fail(f"the system never came up: {reply}")
+
+    def test_1_the_page_and_its_scripts_are_served(self):
+        status, content_type, page = self.request("GET", "/")
+        self.assertEqual(status, 200)
+        self.assertTrue(content_type.startswith("text/html"), content_type)
+        self.assertIn(b"<title>behaviorlib console</title>", page)
+        for script in (b"console.js", b"console.css"):
+            self.assertIn(script, page)
+            status, _, _ = self.request("GET", "/" + script.decode())
+            self.assertEqual(status, 200, script)
+        status, _, _ = self.request("GET", "/../CMakeLists.txt")
+        self.assertNotEqual(status, 200)
+
+    def test_2_list_systems_is_the_coordinators_reply(self):
+        reply = self.wait_for_system()
+        (system,) = reply["systems"]
+        self.assertEqual(system["robot_id"], "robot-a")
+        self.assertEqual(system["system"], "basic_quadrotor_behaviors")
+        status, behaviors = self.call("ListBehaviors", {"robot_id": "robot-a"})
+        self.assertEqual(status, 200)
+        self.assertIn("WAIT", [b["description"]["name"] for b in behaviors["behaviors"]])
+
+    def test_3_the_feed_carries_a_behaviors_life_with_its_cause(self):
+        self.wait_for_system()
+        feed = EventFeed(self.port)
+        try:
+            self.activate("WAIT", {"duration_s": 0.05})
+            seen = feed.until(finished("WAIT", 0.05))
+        finally:
+            feed.close()
+        events = [data["behavior_event"] for _, event, data in seen
+                  if event == "fleet" and "behavior_event" in data]
+        last = events[-1]
+        self.assertEqual(last["finished"]["cause"], "TERMINATION_CAUSE_GOAL_ACHIEVED")
+        activations = [e for e in events if "activated" in e and
+                       e["activation_id"] == last["activation_id"]]
+        self.assertEqual(len(activations), 1, events)
+        # Ids increase one by one: nothing was skipped.
+        ids = [message[0] for message in seen]
+        self.assertEqual(ids, list(range(ids[0], ids[0] + len(ids))))
+
+    def test_4_a_browser_that_reconnects_resumes_after_its_last_event(self):
+        self.wait_for_system()
+        feed = EventFeed(self.port)
+        try:
+            self.activate("WAIT", {"duration_s": 0.06})
+            seen = feed.until(finished("WAIT", 0.06))
+        finally:
+            feed.close()
+        middle = seen[len(seen) // 2][0]
+        again = EventFeed(self.port, last_event_id=middle)
+        try:
+            first = again.next()
+        finally:
+            again.close()
+        self.assertEqual(first[0], middle + 1)
+
+    def test_5_a_mission_started_through_the_gateway_is_followed_to_its_end(self):
+        self.wait_for_system()
+        feed = EventFeed(self.port)
+        try:
+            status, reply = self.call("StartMission", {
+                "text": "name: console-test\nrobot: robot-a\nsteps:\n"
+                        "  - behavior: WAIT\n    parameters: {duration_s: 0.05}\n"
+                        "  - behavior: WAIT\n    parameters: {duration_s: 0.05}\n",
+                "mission_id": "console-mission"})
+            self.assertEqual(status, 200, reply)
+            seen = feed.until(lambda event, data: event == "mission" and
+                              data["mission_id"] == "console-mission" and
+                              data["state"] == "MISSION_STATE_SUCCEEDED")
+        finally:
+            feed.close()
+        final = seen[-1][2]
+        self.assertEqual(len(final["steps"]), 2, final)
+
+    def test_6_refusals_are_their_http_status_with_the_rpc_status(self):
+        status, body = self.call("Kill", {"robot_id": "robot-a", "confirm": True})
+        self.assertEqual(status, 404)
+        self.assertIn("Coordinator.Kill", body["message"])
+        status, content_type, data = self.request(
+            "POST", "/api/coordinator/ListSystems", "{not json",
+            {"Content-Type": "application/json"})
+        self.assertEqual(status, 400)
+        body = json.loads(data)
+        self.assertEqual(body["code"], 3)  # INVALID_ARGUMENT
+        self.assertEqual(body["details"][0]["reason"], "INVALID_REQUEST")
+        status, body = self.call("StartMission", {
+            "text": "name: bad\nrobot: robot-a\nsteps:\n  - behavior: FLY_TO_THE_MOON\n"})
+        self.assertEqual(status, 400, body)
+        reasons = [d.get("reason") for d in body["details"]]
+        self.assertIn("MISSION_INVALID", reasons, body)
+        violations = [v for d in body["details"] for v in d.get("field_violations", [])]
+        self.assertTrue(violations, body)
+        status, body = self.call("GetMission", {"mission_id": "no-such-mission"})
+        self.assertEqual(status, 404)
+        self.assertEqual(body["details"][0]["reason"], "MISSION_NOT_FOUND")
+
+    def test_7_a_coordinator_that_goes_away_is_reported(self):
+        feed = EventFeed(self.port)
+        try:
+            self.assertEqual(self.coordinator.stop(), 0)
+            seen = feed.until(lambda event, data: event == "gateway" and
+                              not data["coordinator_up"])
+        finally:
+            feed.close()
+        self.assertTrue(seen[-1][2]["message"], seen[-1])
+        status, body = self.call("ListSystems", {})
+        self.assertEqual(status, 503, body)
+
+
+def main():
+    global BUILD_DIR
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--build-dir", default=BUILD_DIR)
+    args, rest = parser.parse_known_args()
+    BUILD_DIR = os.path.abspath(args.build_dir)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
+
+
+if __name__ == "__main__":
+    main()

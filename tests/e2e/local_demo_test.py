@@ -153,6 +153,8 @@ class LocalDemoTest(unittest.TestCase):
         print(f"launcher --demo: {wall_s:.1f} s wall")
         self.assertEqual(result.returncode, 0, "the launcher failed (output above)")
         self._assert_all_stopped()
+        # The main job prints the console's URL.
+        self.assertRegex(result.stdout, r"console: http://127\.0\.0\.1:[1-9][0-9]*/")
 
         for name in ("report.md", "report.json", "trajectory.png", "timeline.png",
                      "prometheus_targets.json"):
@@ -196,7 +198,7 @@ class LocalDemoTest(unittest.TestCase):
 
         processes = {p["name"]: p for p in report["processes"]}
         for name in ("channel_broker", "simulator", "coordinator", "basic_quadrotor_behaviors",
-                     "quadrotor_motion_with_pid_control"):
+                     "quadrotor_motion_with_pid_control", "console"):
             self.assertGreater(processes[name]["rss_kib"], 0, name)
             self.assertGreater(processes[name]["cpu_user_s"] + processes[name]["cpu_system_s"],
                                0, name)
@@ -248,7 +250,8 @@ class LocalDemoTest(unittest.TestCase):
             self.assertRegex(t["targets"][0], r"^127\.0\.0\.1:[1-9][0-9]*$")
             if t["labels"]["job"] == "behavior_system":
                 self.assertEqual(t["labels"]["robot"], "drone1")
-        self.assertEqual(len({t["targets"][0] for t in targets}), len(processes),
+        # Every process but the console (HTTP, no metrics) is a target.
+        self.assertEqual(len({t["targets"][0] for t in targets}), len(processes) - 1,
                          "one target per process")
         promtool = shutil.which("promtool")
         if promtool:  # Debian's prometheus package; promtool reads file_sd files too

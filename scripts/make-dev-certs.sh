@@ -44,7 +44,7 @@ while [[ $# -gt 0 ]]; do
   esac
 done
 if [[ ${#names[@]} -eq 0 ]]; then
-  names=(channel-broker simulator coordinator operator admin prometheus)
+  names=(channel-broker simulator coordinator console operator admin prometheus)
   for robot in drone1 drone2; do
     for system in basic-quadrotor-behaviors quadrotor-motion-with-pid-control \
         quadrotor-motion-with-mpc-control quadrotor-motion-with-platform-control \

@@ -8,6 +8,9 @@
 // --tls-cert/--tls-key/--tls-ca, which also make the page HTTPS). Exits 0
 // after SIGTERM/SIGINT, 1 when it cannot bind, 2 on a bad flag.
 
+#include <httplib.h>
+
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -26,6 +29,9 @@ ABSL_FLAG(std::string, listen, "127.0.0.1:8090",
 ABSL_FLAG(std::string, coordinator, "127.0.0.1:50060", "the coordinator's gRPC address");
 ABSL_FLAG(std::string, web_dir, BEHAVIORLIB_CONSOLE_WEB_DIR, "the console's page and scripts");
 ABSL_FLAG(std::string, port_file, "", "write the bound port here as http_port=N once serving");
+ABSL_FLAG(std::string, probe, "",
+          "health check: GET /healthz of the console at this host:port (HTTPS when the TLS "
+          "flags are given, verified against --tls-ca), exit 0 when it answers 200");
 ABSL_FLAG(int, max_event_clients, behaviorlib::console::GatewayOptions().max_event_clients,
           "browsers following the live event feed at once (1..1000)");
 
@@ -40,6 +46,34 @@ bool splitAddress(const std::string& address, std::string* host, int* port) {
     *host = host->substr(1, host->size() - 2);
   }
   return absl::SimpleAtoi(address.substr(colon + 1), port) && *port >= 0 && *port <= 65535;
+}
+
+// The --probe health check (a container has no curl).
+int probe(const std::string& address, const behaviorlib::server::TransportSecurity& security) {
+  std::string host;
+  int port = 0;
+  if (!splitAddress(address, &host, &port) || port == 0) {
+    std::fprintf(stderr, "console: --probe must be host:port, got '%s'\n", address.c_str());
+    return 2;
+  }
+  auto check = [&](auto& client) {
+    client.set_connection_timeout(std::chrono::seconds(2));
+    client.set_read_timeout(std::chrono::seconds(2));
+    const httplib::Result result = client.Get("/healthz");
+    if (result && result->status == 200) return 0;
+    std::fprintf(stderr, "console: %s is not healthy (%s)\n", address.c_str(),
+                 result ? std::to_string(result->status).c_str()
+                        : httplib::to_string(result.error()).c_str());
+    return 1;
+  };
+  if (security.tls()) {
+    httplib::SSLClient client(host, port);
+    client.set_ca_cert_path(security.ca_file.c_str());
+    client.enable_server_certificate_verification(true);
+    return check(client);
+  }
+  httplib::Client client(host, port);
+  return check(client);
 }
 
 bool writePortFile(const std::string& path, int port) {
@@ -65,6 +99,14 @@ int main(int argc, char** argv) {
   behaviorlib::server::parseFlags(
       argc, argv, "the operator's console in the browser, and its gateway to the coordinator");
 
+  if (absl::Status s = behaviorlib::server::checkProcessTransport(); !s.ok()) {
+    return fatal(program, s);
+  }
+  const auto& security = behaviorlib::server::processTransport();
+  if (const std::string target = absl::GetFlag(FLAGS_probe); !target.empty()) {
+    return probe(target, security);
+  }
+
   std::string host;
   int port = 0;
   const std::string listen = absl::GetFlag(FLAGS_listen);
@@ -77,10 +119,6 @@ int main(int argc, char** argv) {
     return fatal(program, absl::InvalidArgumentError(absl::StrCat(
                               "--max-event-clients must be within [1, 1000], got ", clients)));
   }
-  if (absl::Status s = behaviorlib::server::checkProcessTransport(); !s.ok()) {
-    return fatal(program, s);
-  }
-  const auto& security = behaviorlib::server::processTransport();
   if (absl::Status s = behaviorlib::server::checkListenAddress(listen, security); !s.ok()) {
     return fatal(program, s);
   }

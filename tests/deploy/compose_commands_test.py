@@ -1,8 +1,9 @@
 """Every `command:` of deploy/compose/docker-compose.yml (with
 --with-drone2: merged with docker-compose.drone2.yml) runs, with its flags,
 against the built binaries, as Compose would start it: in dependency order,
-each one's own health check (behaviorctl --target localhost:PORT health,
-translated) passing before the next starts. A renamed or removed flag, a
+each one's own health check (behaviorctl --target localhost:PORT health, or
+the console's --probe localhost:PORT; translated) passing before the next
+starts. A renamed or removed flag, a
 wrong value, a path missing from the image or a volume, or an address that
 does not name a service's port fails here.
 
@@ -197,6 +198,9 @@ class ComposeCommandsTest(unittest.TestCase):
                 if not os.path.exists(service.port_file):
                     return False
                 ports = ds.read_port_file(service.port_file)
+                if "http_port" in ports:  # the console: HTTP(S), no /metrics
+                    service.ports = {"--listen": ports["http_port"]}
+                    return service.ports["--listen"]
                 service.ports = {"--listen": ports.get("grpc_port"),
                                  "--metrics-listen": ports.get("metrics_port")}
                 return service.ports["--listen"]
@@ -206,7 +210,7 @@ class ComposeCommandsTest(unittest.TestCase):
             return bool(ports)
 
         ds.wait_for(ports_known, START_TIMEOUT_S, f"{service.name} listening")
-        if behaviorlib:
+        if behaviorlib and "--metrics-listen" in service.declared:
             self.assertTrue(service.ports["--metrics-listen"], f"{service.name}: no /metrics")
         return True
 
@@ -231,8 +235,9 @@ class ComposeCommandsTest(unittest.TestCase):
                                             timeout=2) as page:
                     return page.status == 200
         else:
-            self.assertEqual(test[1], f"{ds.IMAGE_BIN}/behaviorctl")
-            argv = [ds.build_binary(BUILD_DIR, "behaviorctl")]
+            # behaviorctl's gRPC health check, or the console's --probe.
+            self.assertIn(test[1], (f"{ds.IMAGE_BIN}/behaviorctl", f"{ds.IMAGE_BIN}/console"))
+            argv = [ds.build_binary(BUILD_DIR, os.path.basename(test[1]))]
             for arg in test[2:]:
                 flag, eq, value = arg.partition("=")
                 if eq and value.startswith("/"):  # a file in the container

@@ -38,13 +38,17 @@ import unittest
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import deploy_support as ds  # noqa: E402
 
-PUBLISHED = {"coordinator", "prometheus", "grafana"}
+PUBLISHED = {"coordinator", "console", "prometheus", "grafana"}
+# Services of our image that serve HTTP, not gRPC: the console (decision 35),
+# health checked with its own --probe, and without /metrics.
+HTTP_SERVICES = {"console"}
 BEHAVIORLIB_IMAGE = "${BEHAVIORLIB_IMAGE:-behaviorlib:latest}"
 VEHICLES = {"drone1": [ds.COMPOSE_FILE], "drone2": [ds.COMPOSE_FILE, ds.DRONE2_FILE]}
 # Every port variable set to something unusual: references must follow.
 PORT_ENV = {"CHANNEL_PORT": "41001", "SIMULATOR_PORT": "41002", "COORDINATOR_PORT": "41003",
             "BEHAVIOR_SYSTEM_PORT": "41004", "COORDINATOR_HOST_PORT": "41005",
             "PROMETHEUS_HOST_PORT": "41006", "GRAFANA_HOST_PORT": "41007",
+            "CONSOLE_PORT": "41008", "CONSOLE_HOST_PORT": "41009",
             "BEHAVIORLIB_PUBLISH_ADDRESS": "0.0.0.0"}
 ADDRESS = re.compile(r"(?<![\w.-])([a-z][a-z0-9-]*):(\d+)\b")
 # What the simulator and the coordinator fly with when nothing is set: the
@@ -131,7 +135,7 @@ class ComposeTest(unittest.TestCase):
                         self.assertEqual(ds.image_files().get(
                             f"/opt/behaviorlib/config/{system}.yaml"), config)
 
-    def test_only_the_coordinator_prometheus_and_grafana_are_published(self):
+    def test_only_the_coordinator_console_prometheus_and_grafana_are_published(self):
         for label, project in self.projects().items():
             for name, service in project["services"].items():
                 with self.subTest(project=label, service=name):
@@ -145,6 +149,7 @@ class ComposeTest(unittest.TestCase):
         self.assertEqual(project["services"]["coordinator"]["ports"], ["0.0.0.0:41005:41003"])
         self.assertEqual(project["services"]["prometheus"]["ports"], ["0.0.0.0:41006:9090"])
         self.assertEqual(project["services"]["grafana"]["ports"], ["0.0.0.0:41007:3000"])
+        self.assertEqual(project["services"]["console"]["ports"], ["0.0.0.0:41009:41008"])
 
     def test_every_service_has_restart_limits_and_a_health_check(self):
         for label, project in self.projects().items():
@@ -179,9 +184,13 @@ class ComposeTest(unittest.TestCase):
                         tls = [f"--tls-{part}=/etc/behaviorlib/tls/{file}"
                                for part, file in (("cert", "cert.pem"), ("key", "key.pem"),
                                                   ("ca", "ca.pem"))]
-                        self.assertEqual(service["healthcheck"]["test"],
-                                         ["CMD", f"{ds.IMAGE_BIN}/behaviorctl", *tls, "--target",
-                                          f"localhost:{listen_port(service)}", "health"])
+                        if name in HTTP_SERVICES:
+                            expected = ["CMD", f"{ds.IMAGE_BIN}/console", *tls, "--probe",
+                                        f"localhost:{listen_port(service)}"]
+                        else:
+                            expected = ["CMD", f"{ds.IMAGE_BIN}/behaviorctl", *tls, "--target",
+                                        f"localhost:{listen_port(service)}", "health"]
+                        self.assertEqual(service["healthcheck"]["test"], expected)
                         self.assertTrue(ds.flag_value(service["command"],
                                                       "--listen").startswith("0.0.0.0:"))
 
@@ -398,7 +407,7 @@ class DockerfileTest(unittest.TestCase):
     def test_container_paths_are_in_the_image_or_a_volume(self):
         image = ds.image_directories()
         self.assertEqual(set(image), {"/opt/behaviorlib/config", "/opt/behaviorlib/missions",
-                                      "/opt/behaviorlib/worlds"})
+                                      "/opt/behaviorlib/worlds", "/opt/behaviorlib/console/web"})
         files = ds.image_files()
         self.assertIn("/opt/behaviorlib/config/basic_quadrotor_behaviors.yaml", files)
         project = ds.load_compose(ds.COMPOSE_FILE, ds.DRONE2_FILE)
@@ -559,6 +568,9 @@ class PrometheusTargetsTest(unittest.TestCase):
         """(address, job, system, robot) of every service's /metrics."""
         targets = set()
         for name, service in behaviorlib_services(project).items():
+            if name in HTTP_SERVICES:
+                self.assertIsNone(ds.flag_value(service["command"], "--metrics-listen"), name)
+                continue
             metrics = ds.flag_value(service["command"], "--metrics-listen")
             self.assertTrue(metrics, f"{name} has no --metrics-listen")
             self.assertTrue(metrics.startswith("0.0.0.0:"), name)

@@ -37,7 +37,7 @@ SKIP = 77
 # them from bin/.
 IMAGE_BIN = "/opt/behaviorlib/bin"
 # The programs of the image besides the behavior systems.
-INFRASTRUCTURE_PROGRAMS = ["channel_broker", "simulator", "coordinator", "behaviorctl"]
+INFRASTRUCTURE_PROGRAMS = ["channel_broker", "simulator", "coordinator", "console", "behaviorctl"]
 # Upstream images whose commands run against Debian's package of the same
 # program.
 UPSTREAM_PROGRAMS = {"prom/prometheus": "/usr/bin/prometheus"}

@@ -1,7 +1,11 @@
 #include "behaviorlib/console/gateway.h"
 
+#include <google/protobuf/descriptor.pb.h>
+#include <google/protobuf/descriptor_database.h>
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>
+#include <google/protobuf/util/type_resolver.h>
+#include <google/protobuf/util/type_resolver_util.h>
 #include <httplib.h>
 
 #include <algorithm>
@@ -13,6 +17,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/time/time.h"
+#include "behaviorlib/embedded_descriptors.h"
 #include "behaviorlib/error_details.h"
 #include "google/rpc/status.pb.h"
 
@@ -22,13 +27,47 @@ namespace {
 
 namespace pbu = google::protobuf::util;
 
+constexpr char kTypeUrlPrefix[] = "type.googleapis.com";
+
+// Messages to JSON through the descriptors of every behaviorlib proto and
+// its imports (embedded::descriptorSet()), not the process's generated pool:
+// a channel sample's Any may hold any of our types, linked in or not.
+class JsonPrinter {
+ public:
+  JsonPrinter() : pool_(&database_) {
+    google::protobuf::FileDescriptorSet set;
+    const std::string_view bytes = embedded::descriptorSet();
+    if (set.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
+      for (const auto& file : set.file()) database_.Add(file);
+    }
+    resolver_.reset(pbu::NewTypeResolverForDescriptorPool(kTypeUrlPrefix, &pool_));
+    options_.preserve_proto_field_names = true;
+    options_.always_print_primitive_fields = true;
+  }
+
+  std::string print(const google::protobuf::Message& message) const {
+    std::string out;
+    const auto status = pbu::BinaryToJsonString(
+        resolver_.get(), absl::StrCat(kTypeUrlPrefix, "/", message.GetDescriptor()->full_name()),
+        message.SerializeAsString(), &out, options_);
+    if (!status.ok()) {
+      google::protobuf::Struct error;
+      (*error.mutable_fields())["json_error"].set_string_value(status.ToString());
+      pbu::MessageToJsonString(error, &out);
+    }
+    return out;
+  }
+
+ private:
+  google::protobuf::SimpleDescriptorDatabase database_;
+  google::protobuf::DescriptorPool pool_;
+  std::unique_ptr<pbu::TypeResolver> resolver_;
+  pbu::JsonPrintOptions options_;
+};
+
 std::string toJson(const google::protobuf::Message& message) {
-  pbu::JsonPrintOptions options;
-  options.preserve_proto_field_names = true;
-  options.always_print_primitive_fields = true;
-  std::string out;
-  if (!pbu::MessageToJsonString(message, &out, options).ok()) return "{}";
-  return out;
+  static const JsonPrinter printer;
+  return printer.print(message);
 }
 
 // The HTTP status of a gRPC code, as google.api's HTTP mapping gives it.
@@ -144,7 +183,9 @@ Gateway::Gateway(std::shared_ptr<grpc::Channel> coordinator, GatewayOptions opti
     : channel_(std::move(coordinator)),
       stub_(v1::Coordinator::NewStub(channel_)),
       options_(std::move(options)),
-      hub_(options_.replay_capacity) {}
+      hub_(options_.replay_capacity) {
+  if (options_.data_channel) data_ = v1::DataChannel::NewStub(options_.data_channel);
+}
 
 Gateway::~Gateway() { shutdown(); }
 
@@ -200,13 +241,16 @@ void Gateway::shutdown() {
   if (http_thread_.joinable()) http_thread_.join();
   if (events_thread_.joinable()) events_thread_.join();
   if (missions_thread_.joinable()) missions_thread_.join();
+  std::vector<std::thread> topics;
   {
     absl::MutexLock lock(&mutex_);
     watchers.swap(mission_watchers_);
+    topics.swap(topic_threads_);
   }
   for (auto& [id, thread] : watchers) {
     if (thread.joinable()) thread.join();
   }
+  for (auto& thread : topics) thread.join();
 }
 
 bool Gateway::sleepFor(std::chrono::milliseconds wait, bool kickable) {
@@ -330,7 +374,66 @@ void Gateway::followMissions() {
       finished_watchers_.clear();
     }
     for (auto& thread : done) thread.join();
+    if (data_) followRobots();
     if (!sleepFor(options_.mission_poll, true)) return;
+  }
+}
+
+// Starts following the vehicle topics of robots that registered since.
+void Gateway::followRobots() {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
+  v1::ListSystemsRequest request;
+  request.set_page_size(100);
+  v1::ListSystemsResponse response;
+  if (!stub_->ListSystems(&context, request, &response).ok()) return;
+  absl::MutexLock lock(&mutex_);
+  for (const auto& system : response.systems()) {
+    const std::string& robot = system.robot_id();
+    if (stopping_ || robot.empty() || robots_.count(robot) > 0 ||
+        robots_.size() >= options_.max_robots) {
+      continue;
+    }
+    robots_.insert(robot);
+    for (const auto& topic : options_.vehicle_topics) {
+      const std::string name = "robots/" + robot + "/" + topic;
+      topic_threads_.emplace_back([this, name] { followTopic(name); });
+    }
+  }
+}
+
+// One vehicle topic, its latest sample at most every vehicle_period, until
+// shutdown; reconnects when the channel goes away.
+void Gateway::followTopic(const std::string& topic) {
+  auto retry = kFirstRetry;
+  while (true) {
+    grpc::ClientContext context;
+    {
+      absl::MutexLock lock(&mutex_);
+      if (stopping_) return;
+      streams_["topic/" + topic] = &context;
+    }
+    v1::SubscribeRequest request;
+    request.set_topic(topic);
+    request.set_mode(v1::DELIVERY_MODE_LATEST);
+    request.set_send_latest_first(true);
+    auto reader = data_->Subscribe(&context, request);
+    v1::SubscribeResponse sample;
+    auto last = std::chrono::steady_clock::time_point();
+    while (reader->Read(&sample)) {
+      retry = kFirstRetry;
+      const auto now = std::chrono::steady_clock::now();
+      if (now - last < options_.vehicle_period) continue;
+      last = now;
+      hub_.publish("vehicle", toJson(sample));
+    }
+    reader->Finish();
+    {
+      absl::MutexLock lock(&mutex_);
+      streams_.erase("topic/" + topic);
+    }
+    if (!sleepFor(retry, false)) return;
+    retry = std::min(retry * 2, kMaxRetry);
   }
 }
 

@@ -27,6 +27,9 @@
 ABSL_FLAG(std::string, listen, "127.0.0.1:8090",
           "HTTP address host:port of the console (port 0: any free port)");
 ABSL_FLAG(std::string, coordinator, "127.0.0.1:50060", "the coordinator's gRPC address");
+ABSL_FLAG(std::string, channel, "",
+          "the data channel's gRPC address, for the vehicles' pose and flight status (empty: "
+          "none)");
 ABSL_FLAG(std::string, web_dir, BEHAVIORLIB_CONSOLE_WEB_DIR, "the console's page and scripts");
 ABSL_FLAG(std::string, port_file, "", "write the bound port here as http_port=N once serving");
 ABSL_FLAG(std::string, probe, "",
@@ -128,6 +131,9 @@ int main(int argc, char** argv) {
   options.max_event_clients = clients;
   options.tls_cert_file = security.cert_file;
   options.tls_key_file = security.key_file;
+  if (const std::string channel = absl::GetFlag(FLAGS_channel); !channel.empty()) {
+    options.data_channel = behaviorlib::server::makeChannel(channel);
+  }
   const std::string coordinator = absl::GetFlag(FLAGS_coordinator);
   behaviorlib::console::Gateway gateway(behaviorlib::server::makeChannel(coordinator), options);
   if (absl::Status s = gateway.start(host, port); !s.ok()) return fatal(program, s);

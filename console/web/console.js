@@ -129,6 +129,82 @@ function renderMissions() {
   }
 }
 
+// Each robot's vehicle: its latest pose (the estimate when there is one,
+// else the simulator's ground truth), flight status and flown track.
+const vehicles = new Map();
+const MAX_TRACK = 2000;
+
+function vehicle(robot) {
+  if (!vehicles.has(robot)) {
+    vehicles.set(robot, { robot, track: [], state: "", battery: null, estimate: false });
+  }
+  return vehicles.get(robot);
+}
+
+function onVehicle(sample) {
+  const match = /^robots\/([^/]+)\/(.+)$/.exec(sample.topic || "");
+  if (!match || !sample.sample) return;
+  const v = vehicle(match[1]);
+  const topic = match[2];
+  if (topic === "flight_state") {
+    v.state = shortState(sample.sample.state, "FLIGHT_STATE_");
+    v.battery = sample.sample.battery_ratio;
+  } else if (topic.endsWith("pose")) {
+    const estimate = topic === "self_localization/pose";
+    if (estimate) v.estimate = true;
+    if (!estimate && v.estimate) return;
+    const p = sample.sample.pose.position_m || {};
+    const point = { x: p.x || 0, y: p.y || 0, z: p.z || 0 };
+    const last = v.track[v.track.length - 1];
+    if (!last || Math.hypot(point.x - last.x, point.y - last.y, point.z - last.z) > 0.02) {
+      v.track.push(point);
+      if (v.track.length > MAX_TRACK) v.track.shift();
+    }
+    v.position = point;
+  }
+  renderVehicles();
+}
+
+function renderVehicles() {
+  const body = document.querySelector("#vehicles tbody");
+  body.replaceChildren();
+  const content = document.getElementById("map-content");
+  content.replaceChildren();
+  const ns = "http://www.w3.org/2000/svg";
+  let minX = -2, maxX = 2, minY = -2, maxY = 2;
+  for (const v of vehicles.values()) {
+    const row = body.insertRow();
+    row.dataset.robot = v.robot;
+    cell(row, v.robot);
+    cell(row, v.state, "flight-state");
+    cell(row, v.battery === null ? "" : Math.round(v.battery * 100) + " %", "battery");
+    for (const axis of ["x", "y", "z"]) {
+      cell(row, v.position ? v.position[axis].toFixed(2) : "", "position-" + axis);
+    }
+    for (const p of v.track) {
+      minX = Math.min(minX, p.x); maxX = Math.max(maxX, p.x);
+      minY = Math.min(minY, p.y); maxY = Math.max(maxY, p.y);
+    }
+    const track = document.createElementNS(ns, "polyline");
+    track.setAttribute("class", "track");
+    track.setAttribute("points", v.track.map((p) => p.x + "," + p.y).join(" "));
+    content.appendChild(track);
+    if (v.position) {
+      const marker = document.createElementNS(ns, "circle");
+      marker.setAttribute("class", "vehicle");
+      marker.dataset.robot = v.robot;
+      marker.setAttribute("cx", v.position.x);
+      marker.setAttribute("cy", v.position.y);
+      marker.setAttribute("r", 0.15);
+      content.appendChild(marker);
+    }
+  }
+  const margin = 1;
+  // y up: the content is mirrored (scale(1,-1)), so its box is too.
+  document.getElementById("map").setAttribute("viewBox",
+    [minX - margin, -maxY - margin, maxX - minX + 2 * margin, maxY - minY + 2 * margin].join(" "));
+}
+
 function setCoordinator(up, message) {
   const badge = document.getElementById("coordinator");
   badge.className = "badge " + (up ? "up" : "down");
@@ -147,6 +223,7 @@ function follow() {
     missions.set(status.mission_id, status);
     renderMissions();
   });
+  feed.addEventListener("vehicle", (message) => onVehicle(JSON.parse(message.data)));
   feed.addEventListener("gateway", (message) => {
     const state = JSON.parse(message.data);
     setCoordinator(state.coordinator_up, state.message);

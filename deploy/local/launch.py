@@ -346,7 +346,7 @@ def start_stack(args, build_dir, stack):
     console = None
     if args.console:
         console_argv = [binary(build_dir, "bin/console"), "--listen", args.console_listen,
-                        "--coordinator", coordinator.address,
+                        "--coordinator", coordinator.address, "--channel", broker.address,
                         "--web-dir", os.path.join(REPO, "console", "web")]
         if certs:
             console_argv += ["--tls-cert", os.path.join(certs, "console.pem"),

@@ -11,6 +11,7 @@ coordinator and a real behavior system on loopback:
 - refusals answer their HTTP status with the google.rpc.Status as JSON (a
   call the console does not make, a body that is not the request, a refused
   mission with its field violation);
+- the vehicle's pose and flight status arrive from the data channel;
 - a coordinator that goes away is reported on the feed.
 """
 
@@ -117,18 +118,23 @@ class ConsoleGatewayTest(unittest.TestCase):
     def setUpClass(cls):
         cls.dir = tempfile.mkdtemp(prefix="console-test-")
         listen = ["--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0"]
+        cls.broker = Process("channel_broker", listen, cls.dir)
+        broker = f"127.0.0.1:{cls.broker.ports['grpc_port']}"
+        # robot-a's vehicle, publishing its pose and flight status.
+        cls.simulator = Process("simulator", listen + ["--channel", broker, "--vehicles",
+                                                       "robot-a"], cls.dir)
         cls.coordinator = Process("coordinator", listen, cls.dir)
         cls.coordinator_address = f"127.0.0.1:{cls.coordinator.ports['grpc_port']}"
         cls.system = Process("basic_quadrotor_behaviors",
                              listen + ["--robot-id", "robot-a", "--coordinator",
                                        cls.coordinator_address], cls.dir)
         cls.console = Process("console", ["--listen", "127.0.0.1:0", "--coordinator",
-                                          cls.coordinator_address], cls.dir)
+                                          cls.coordinator_address, "--channel", broker], cls.dir)
         cls.port = int(cls.console.ports["http_port"])
 
     @classmethod
     def tearDownClass(cls):
-        for process in (cls.console, cls.system, cls.coordinator):
+        for process in (cls.console, cls.system, cls.coordinator, cls.simulator, cls.broker):
             process.stop()
         shutil.rmtree(cls.dir, ignore_errors=True)
 
@@ -258,6 +264,28 @@ class ConsoleGatewayTest(unittest.TestCase):
         status, body = self.call("GetMission", {"mission_id": "no-such-mission"})
         self.assertEqual(status, 404)
         self.assertEqual(body["details"][0]["reason"], "MISSION_NOT_FOUND")
+
+    def test_6b_the_vehicles_pose_and_flight_status_come_from_the_channel(self):
+        self.wait_for_system()
+        feed = EventFeed(self.port)
+        seen = {}
+        try:
+            def vehicle(event, data):
+                if event == "vehicle":
+                    assert "sample" in data, data
+                    seen[data["topic"]] = data["sample"]
+                return {"robots/robot-a/ground_truth/pose",
+                        "robots/robot-a/flight_state"} <= set(seen)
+            feed.until(vehicle)
+        finally:
+            feed.close()
+        status = seen["robots/robot-a/flight_state"]
+        self.assertTrue(status["@type"].endswith("behaviorlib.v1.FlightStatus"), status)
+        self.assertEqual(status["state"], "FLIGHT_STATE_LANDED")
+        self.assertGreater(status["battery_ratio"], 0.5)
+        pose = seen["robots/robot-a/ground_truth/pose"]
+        self.assertEqual(pose["header"]["robot_id"], "robot-a")
+        self.assertIn("position_m", pose["pose"])
 
     def test_7_a_coordinator_that_goes_away_is_reported(self):
         feed = EventFeed(self.port)

@@ -8,8 +8,11 @@
 //   GET  /api/events            Server-Sent Events: `fleet` (every FleetEvent
 //                               of the coordinator's WatchEvents, resumed
 //                               without gaps or duplicates), `mission` (each
-//                               mission status change), `gateway` (whether
-//                               the coordinator is reachable)
+//                               mission status change), `vehicle` (each
+//                               robot's pose and flight status from the data
+//                               channel, at most vehicle_period apart per
+//                               topic), `gateway` (whether the coordinator is
+//                               reachable)
 //   POST /api/coordinator/NAME  one unary Coordinator call of the console's
 //                               (the request as JSON, proto field names; the
 //                               response as JSON), e.g. ListSystems,
@@ -25,6 +28,7 @@
 #include <chrono>
 #include <map>
 #include <memory>
+#include <set>
 #include <string>
 #include <thread>
 #include <vector>
@@ -33,6 +37,7 @@
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/console/event_cursor.h"
 #include "behaviorlib/console/event_hub.h"
+#include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 
 namespace httplib {
@@ -56,6 +61,15 @@ struct GatewayOptions {
   std::chrono::milliseconds mission_poll{1000};
   /// Missions watched at once (the running and paused ones).
   size_t max_watched_missions = 16;
+  /// The data channel, for the vehicles' state (none: no `vehicle` events).
+  std::shared_ptr<grpc::Channel> data_channel;
+  /// The topics followed for each robot of the fleet, under robots/{id}/.
+  std::vector<std::string> vehicle_topics = {"self_localization/pose", "ground_truth/pose",
+                                             "flight_state"};
+  /// At most one `vehicle` event per robot and topic this often.
+  std::chrono::milliseconds vehicle_period{100};
+  /// Robots whose vehicle state is followed.
+  size_t max_robots = 16;
   /// HTTPS with these PEM files (both, or neither: HTTP).
   std::string tls_cert_file;
   std::string tls_key_file;
@@ -83,6 +97,8 @@ class Gateway {
   void followMissions();
   void watchMission(const std::string& mission_id);
   void publishMission(const v1::MissionStatus& status);
+  void followRobots();
+  void followTopic(const std::string& topic);
   void setCoordinatorUp(bool up, const std::string& why);
   // Waits `wait`, or until kick() if kickable; false once stopping.
   bool sleepFor(std::chrono::milliseconds wait, bool kickable);
@@ -100,6 +116,7 @@ class Gateway {
   std::thread http_thread_;
   std::thread events_thread_;
   std::thread missions_thread_;
+  std::unique_ptr<v1::DataChannel::Stub> data_;
 
   absl::Mutex mutex_;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
@@ -111,6 +128,9 @@ class Gateway {
   std::map<std::string, std::thread> mission_watchers_ ABSL_GUARDED_BY(mutex_);
   // Watchers whose mission ended, to join.
   std::vector<std::string> finished_watchers_ ABSL_GUARDED_BY(mutex_);
+  // The robots whose vehicle topics are followed, and their threads.
+  std::set<std::string> robots_ ABSL_GUARDED_BY(mutex_);
+  std::vector<std::thread> topic_threads_ ABSL_GUARDED_BY(mutex_);
   // The last status published of each mission (its JSON).
   std::map<std::string, std::string> mission_json_ ABSL_GUARDED_BY(mutex_);
 };

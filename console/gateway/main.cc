@@ -23,6 +23,7 @@
 #include "behaviorlib/server_kit/flags.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "behaviorlib/server_kit/transport_security.h"
+#include "world_json.h"
 
 ABSL_FLAG(std::string, listen, "127.0.0.1:8090",
           "HTTP address host:port of the console (port 0: any free port)");
@@ -31,6 +32,8 @@ ABSL_FLAG(std::string, channel, "",
           "the data channel's gRPC address, for the vehicles' pose and flight status (empty: "
           "none)");
 ABSL_FLAG(std::string, web_dir, BEHAVIORLIB_CONSOLE_WEB_DIR, "the console's page and scripts");
+ABSL_FLAG(std::string, world, "",
+          "a simulator world file (YAML) drawn under the vehicles on the console's map");
 ABSL_FLAG(std::string, port_file, "", "write the bound port here as http_port=N once serving");
 ABSL_FLAG(std::string, probe, "",
           "health check: GET /healthz of the console at this host:port (HTTPS when the TLS "
@@ -131,6 +134,13 @@ int main(int argc, char** argv) {
   options.max_event_clients = clients;
   options.tls_cert_file = security.cert_file;
   options.tls_key_file = security.key_file;
+  if (const std::string world = absl::GetFlag(FLAGS_world); !world.empty()) {
+    absl::StatusOr<std::string> json = behaviorlib::console::worldJson(world);
+    if (!json.ok()) {
+      return fatal(program, absl::InvalidArgumentError("--world: " + json.status().ToString()));
+    }
+    options.world_json = std::move(*json);
+  }
   if (const std::string channel = absl::GetFlag(FLAGS_channel); !channel.empty()) {
     options.data_channel = behaviorlib::server::makeChannel(channel);
   }

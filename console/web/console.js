@@ -129,6 +129,17 @@ function renderMissions() {
   }
 }
 
+// The world under the vehicles (GET /api/world): what stands at MAP_HEIGHT_M,
+// in plan view (so doors stay open under their lintels).
+const MAP_HEIGHT_M = 1.0;
+let world = { boxes: [], markers: [] };
+
+async function loadWorld() {
+  const reply = await fetch("/api/world");
+  if (reply.ok) world = await reply.json();
+  renderVehicles();
+}
+
 // Each robot's vehicle: its latest pose (the estimate when there is one,
 // else the simulator's ground truth), flight status and flown track.
 const vehicles = new Map();
@@ -172,6 +183,31 @@ function renderVehicles() {
   content.replaceChildren();
   const ns = "http://www.w3.org/2000/svg";
   let minX = -2, maxX = 2, minY = -2, maxY = 2;
+  for (const box of world.boxes || []) {
+    const c = box.center_m, s = box.size_m;
+    if (c.z - s.z / 2 > MAP_HEIGHT_M || c.z + s.z / 2 < MAP_HEIGHT_M) continue;
+    const rect = document.createElementNS(ns, "rect");
+    rect.setAttribute("class", box.kind === "wall" ? "wall" : "obstacle");
+    rect.setAttribute("x", -s.x / 2);
+    rect.setAttribute("y", -s.y / 2);
+    rect.setAttribute("width", s.x);
+    rect.setAttribute("height", s.y);
+    rect.setAttribute("transform",
+      `translate(${c.x},${c.y}) rotate(${(box.yaw_rad || 0) * 180 / Math.PI})`);
+    content.appendChild(rect);
+    const r = Math.hypot(s.x, s.y) / 2;
+    minX = Math.min(minX, c.x - r); maxX = Math.max(maxX, c.x + r);
+    minY = Math.min(minY, c.y - r); maxY = Math.max(maxY, c.y + r);
+  }
+  for (const marker of world.markers || []) {
+    const square = document.createElementNS(ns, "rect");
+    square.setAttribute("class", "marker");
+    square.setAttribute("x", marker.center_m.x - 0.1);
+    square.setAttribute("y", marker.center_m.y - 0.1);
+    square.setAttribute("width", 0.2);
+    square.setAttribute("height", 0.2);
+    content.appendChild(square);
+  }
   for (const v of vehicles.values()) {
     const row = body.insertRow();
     row.dataset.robot = v.robot;
@@ -248,3 +284,4 @@ document.getElementById("emergency-land").addEventListener("submit", (event) => 
 
 follow();
 refreshSystems().catch(showError);
+loadWorld().catch(showError);

@@ -348,6 +348,8 @@ def start_stack(args, build_dir, stack):
         console_argv = [binary(build_dir, "bin/console"), "--listen", args.console_listen,
                         "--coordinator", coordinator.address, "--channel", broker.address,
                         "--web-dir", os.path.join(REPO, "console", "web")]
+        if args.world:
+            console_argv += ["--world", world_file(args.world)]
         if certs:
             console_argv += ["--tls-cert", os.path.join(certs, "console.pem"),
                              "--tls-key", os.path.join(certs, "console.key"),

@@ -11,7 +11,8 @@ coordinator and a real behavior system on loopback:
 - refusals answer their HTTP status with the google.rpc.Status as JSON (a
   call the console does not make, a body that is not the request, a refused
   mission with its field violation);
-- the vehicle's pose and flight status arrive from the data channel;
+- the vehicle's pose and flight status arrive from the data channel, and
+  the map's world is the world file's;
 - a coordinator that goes away is reported on the feed.
 """
 
@@ -26,7 +27,8 @@ import tempfile
 import time
 import unittest
 
-BUILD_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "build")
+REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
+BUILD_DIR = os.path.join(REPO, "build")
 # Waits for what must happen; never a measure of speed.
 WAIT_S = 60
 
@@ -129,7 +131,9 @@ class ConsoleGatewayTest(unittest.TestCase):
                              listen + ["--robot-id", "robot-a", "--coordinator",
                                        cls.coordinator_address], cls.dir)
         cls.console = Process("console", ["--listen", "127.0.0.1:0", "--coordinator",
-                                          cls.coordinator_address, "--channel", broker], cls.dir)
+                                          cls.coordinator_address, "--channel", broker,
+                                          "--world", os.path.join(REPO, "simulator", "worlds",
+                                                                  "rooms.yaml")], cls.dir)
         cls.port = int(cls.console.ports["http_port"])
 
     @classmethod
@@ -286,6 +290,32 @@ class ConsoleGatewayTest(unittest.TestCase):
         pose = seen["robots/robot-a/ground_truth/pose"]
         self.assertEqual(pose["header"]["robot_id"], "robot-a")
         self.assertIn("position_m", pose["pose"])
+
+    def test_6c_the_maps_world_is_the_world_files(self):
+        status, content_type, data = self.request("GET", "/api/world")
+        self.assertEqual(status, 200)
+        self.assertEqual(content_type, "application/json")
+        world = json.loads(data)
+        # The rooms' walls stand on the floor (their lintels above the doors
+        # do not).
+        walls = [b for b in world["boxes"] if b["kind"] == "wall" and
+                 b["center_m"]["z"] - b["size_m"]["z"] / 2 < 0.01]
+        self.assertGreater(len(walls), 4, world)
+        self.assertTrue(all(w["size_m"]["z"] > 1.0 for w in walls), walls)
+        # A console without --world says so.
+        other = Process("console", ["--listen", "127.0.0.1:0", "--coordinator",
+                                    self.coordinator_address], self.dir, tag="console-no-world")
+        try:
+            connection = http.client.HTTPConnection(
+                "127.0.0.1", int(other.ports["http_port"]), timeout=WAIT_S)
+            connection.request("GET", "/api/world")
+            reply = connection.getresponse()
+            body = json.loads(reply.read())
+            connection.close()
+        finally:
+            self.assertEqual(other.stop(), 0)
+        self.assertEqual(reply.status, 404)
+        self.assertEqual(body["details"][0]["reason"], "FEATURE_NOT_ENABLED")
 
     def test_7_a_coordinator_that_goes_away_is_reported(self):
         feed = EventFeed(self.port)

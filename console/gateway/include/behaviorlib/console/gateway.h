@@ -5,6 +5,7 @@
 //
 //   GET  /                      the console's page and its scripts (--web-dir)
 //   GET  /healthz               200 once serving
+//   GET  /api/world             the map's world (--world), boxes and markers
 //   GET  /api/events            Server-Sent Events: `fleet` (every FleetEvent
 //                               of the coordinator's WatchEvents, resumed
 //                               without gaps or duplicates), `mission` (each
@@ -70,6 +71,8 @@ struct GatewayOptions {
   std::chrono::milliseconds vehicle_period{100};
   /// Robots whose vehicle state is followed.
   size_t max_robots = 16;
+  /// The map's world as JSON (GET /api/world); empty: 404.
+  std::string world_json;
   /// HTTPS with these PEM files (both, or neither: HTTP).
   std::string tls_cert_file;
   std::string tls_key_file;

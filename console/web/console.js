@@ -72,11 +72,21 @@ async function refreshSystems() {
   }
 }
 
+// The planned path: the `path_m` of the robot's latest activation that has
+// one (FOLLOW_PATH and the other path followers).
+function notePlan(e) {
+  const path = e.activated && e.activated.parameters && e.activated.parameters.path_m;
+  if (!Array.isArray(path)) return;
+  vehicle(e.robot_id).plan = path.map((p) => ({ x: Number(p.x) || 0, y: Number(p.y) || 0 }));
+  renderVehicles();
+}
+
 function addEvent(fleetEvent) {
   const body = document.querySelector("#events tbody");
   const row = body.insertRow(0);
   const e = fleetEvent.behavior_event;
   if (e) {
+    notePlan(e);
     const kind = ["activated", "finished", "paused", "resumed", "modified"].find((k) => e[k]);
     const finished = e.finished || {};
     row.dataset.behavior = e.behavior;
@@ -220,6 +230,16 @@ function renderVehicles() {
     for (const p of v.track) {
       minX = Math.min(minX, p.x); maxX = Math.max(maxX, p.x);
       minY = Math.min(minY, p.y); maxY = Math.max(maxY, p.y);
+    }
+    if (v.plan) {
+      const plan = document.createElementNS(ns, "polyline");
+      plan.setAttribute("class", "plan");
+      plan.setAttribute("points", v.plan.map((p) => p.x + "," + p.y).join(" "));
+      content.appendChild(plan);
+      for (const p of v.plan) {
+        minX = Math.min(minX, p.x); maxX = Math.max(maxX, p.x);
+        minY = Math.min(minY, p.y); maxY = Math.max(maxY, p.y);
+      }
     }
     const track = document.createElementNS(ns, "polyline");
     track.setAttribute("class", "track");

@@ -1,5 +1,7 @@
 #include "behaviorlib/console/event_hub.h"
 
+#include <algorithm>
+
 #include "absl/strings/str_cat.h"
 #include "absl/time/time.h"
 
@@ -16,6 +18,15 @@ uint64_t EventHub::publish(std::string event, std::string data) {
   return last_id_;
 }
 
+uint64_t EventHub::publishLatest(const std::string& key, std::string event, std::string data) {
+  absl::MutexLock lock(&mutex_);
+  Message& message = latest_[key];
+  message.id = ++last_id_;
+  message.event = std::move(event);
+  message.data = std::move(data);
+  return last_id_;
+}
+
 std::vector<EventHub::Message> EventHub::after(uint64_t after, std::chrono::milliseconds wait) {
   absl::MutexLock lock(&mutex_);
   auto ready = [this, after]()
@@ -26,6 +37,10 @@ std::vector<EventHub::Message> EventHub::after(uint64_t after, std::chrono::mill
   for (const auto& message : kept_) {
     if (message.id > after) out.push_back(message);
   }
+  for (const auto& [key, message] : latest_) {
+    if (message.id > after) out.push_back(message);
+  }
+  std::sort(out.begin(), out.end(), [](const Message& a, const Message& b) { return a.id < b.id; });
   return out;
 }
 

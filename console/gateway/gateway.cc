@@ -275,7 +275,7 @@ void Gateway::setCoordinatorUp(bool up, const std::string& why) {
     coordinator_known_ = true;
     coordinator_up_ = up;
   }
-  hub_.publish("gateway", gatewayJson(up, why));
+  hub_.publishLatest("gateway", "gateway", gatewayJson(up, why));
 }
 
 void Gateway::followEvents() {
@@ -425,7 +425,7 @@ void Gateway::followTopic(const std::string& topic) {
       const auto now = std::chrono::steady_clock::now();
       if (now - last < options_.vehicle_period) continue;
       last = now;
-      hub_.publish("vehicle", toJson(sample));
+      hub_.publishLatest(topic, "vehicle", toJson(sample));
     }
     reader->Finish();
     {

@@ -37,6 +37,15 @@ function cell(row, text, className) {
   return td;
 }
 
+// A behavior event's stamp is simulated time (seconds since the simulation
+// began, as a 1970 timestamp); a system's is wall time.
+function formatTime(stamp) {
+  const ms = Date.parse(stamp || "");
+  if (Number.isNaN(ms)) return "";
+  if (ms < 1e11) return "t = " + (ms / 1000).toFixed(2) + " s";
+  return new Date(ms).toLocaleTimeString();
+}
+
 function shortState(name, prefix) {
   return (name || "").replace(prefix, "");
 }
@@ -91,7 +100,7 @@ function addEvent(fleetEvent) {
     const finished = e.finished || {};
     row.dataset.behavior = e.behavior;
     row.dataset.kind = kind || "";
-    cell(row, e.time || fleetEvent.wall_time);
+    cell(row, formatTime(e.time || fleetEvent.wall_time));
     cell(row, e.robot_id);
     cell(row, e.behavior);
     cell(row, kind);
@@ -101,7 +110,7 @@ function addEvent(fleetEvent) {
   } else if (fleetEvent.system_state_changed) {
     const s = fleetEvent.system_state_changed.system;
     row.dataset.kind = "system";
-    cell(row, fleetEvent.wall_time);
+    cell(row, formatTime(fleetEvent.wall_time));
     cell(row, s.robot_id);
     cell(row, s.system);
     cell(row, shortState(s.state, "SYSTEM_STATE_"));

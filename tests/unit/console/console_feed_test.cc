@@ -110,6 +110,24 @@ TEST(EventHub, KeepsTheLastMessagesForThoseWhoReconnect) {
   EXPECT_EQ(EventHub::format(missed[0]), "id: 5\nevent: fleet\ndata: 5\n\n");
 }
 
+TEST(EventHub, StatesKeepTheirLatestMessageAndNeverPushEventsOut) {
+  EventHub hub(2);
+  hub.publish("fleet", "a");
+  for (int i = 0; i < 100; ++i) hub.publishLatest("robots/d1/pose", "vehicle", std::to_string(i));
+  hub.publishLatest("gateway", "gateway", "up");
+  hub.publish("fleet", "b");
+  const auto all = hub.after(0, milliseconds(0));
+  ASSERT_EQ(all.size(), 4u);
+  EXPECT_EQ(all[0].data, "a");
+  EXPECT_EQ(all[1].data, "99");
+  EXPECT_EQ(all[2].data, "up");
+  EXPECT_EQ(all[3].data, "b");
+  // In id order, and a state older than the resume point is not sent again.
+  const auto resumed = hub.after(all[2].id, milliseconds(0));
+  ASSERT_EQ(resumed.size(), 1u);
+  EXPECT_EQ(resumed[0].data, "b");
+}
+
 TEST(EventHub, AWaiterWakesForANewMessageAndForClose) {
   EventHub hub(10);
   std::thread publisher([&] { hub.publish("mission", "{}"); });

@@ -1,13 +1,17 @@
 #pragma once
 
 // The console's live feed: a bounded broadcast of Server-Sent Events. Every
-// message gets the next sequence number (its SSE id); the last `capacity`
-// are kept, so a browser that reconnects with Last-Event-ID gets what it
-// missed, and a new one the recent past. Thread-safe.
+// message gets the next sequence number (its SSE id). Events (publish) are
+// kept, the last `capacity` of them, so a browser that reconnects with
+// Last-Event-ID gets what it missed, and a new one the recent past. States
+// (publishLatest: a vehicle's pose, the coordinator's reachability) keep
+// only their latest message per key, so a flood of samples never pushes the
+// events out. Thread-safe.
 
 #include <chrono>
 #include <cstdint>
 #include <deque>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -25,11 +29,13 @@ class EventHub {
 
   explicit EventHub(size_t capacity) : capacity_(capacity) {}
 
-  /// Adds a message; returns its id.
+  /// Adds an event; returns its id.
   uint64_t publish(std::string event, std::string data);
+  /// Replaces the state `key`'s message; returns its id.
+  uint64_t publishLatest(const std::string& key, std::string event, std::string data);
 
-  /// The kept messages after `after`, waiting up to `wait` for one. Empty
-  /// when the wait ended without one, or the hub is closed.
+  /// The kept messages after `after`, in id order, waiting up to `wait` for
+  /// one. Empty when the wait ended without one, or the hub is closed.
   std::vector<Message> after(uint64_t after, std::chrono::milliseconds wait);
 
   /// Wakes every waiter; after() returns at once from now on.
@@ -44,6 +50,7 @@ class EventHub {
   const size_t capacity_;
   mutable absl::Mutex mutex_;
   std::deque<Message> kept_ ABSL_GUARDED_BY(mutex_);
+  std::map<std::string, Message> latest_ ABSL_GUARDED_BY(mutex_);
   uint64_t last_id_ ABSL_GUARDED_BY(mutex_) = 0;
   bool closed_ ABSL_GUARDED_BY(mutex_) = false;
 };

@@ -508,15 +508,10 @@ void Gateway::routes() {
         [this](bool) { event_clients_.fetch_sub(1); });
   });
   server_->Get("/api/world", [this](const httplib::Request&, httplib::Response& response) {
-    if (options_.world_json.empty()) {
-      const Reply reply = errorReply(
-          errors::grpcError(grpc::StatusCode::NOT_FOUND, v1::FEATURE_NOT_ENABLED,
-                            "the console was started without --world", {{"feature", "world"}}));
-      response.status = reply.status;
-      response.set_content(reply.json, "application/json");
-      return;
-    }
-    response.set_content(options_.world_json, "application/json");
+    // Without --world: an empty one (the page draws the vehicles alone).
+    response.set_content(
+        options_.world_json.empty() ? R"({"boxes":[],"markers":[]})" : options_.world_json,
+        "application/json");
   });
   // Readiness of the console itself (the launcher waits for it).
   server_->Get("/healthz", [](const httplib::Request&, httplib::Response& response) {

@@ -159,14 +159,14 @@ async function loadWorld() {
   renderVehicles();
 }
 
-// Each robot's vehicle: its latest pose (the estimate when there is one,
+// Each robot's vehicle: its latest pose (the estimate while one arrives,
 // else the simulator's ground truth), flight status and flown track.
 const vehicles = new Map();
 const MAX_TRACK = 2000;
 
 function vehicle(robot) {
   if (!vehicles.has(robot)) {
-    vehicles.set(robot, { robot, track: [], state: "", battery: null, estimate: false });
+    vehicles.set(robot, { robot, track: [], state: "", battery: null, estimateAt: 0 });
   }
   return vehicles.get(robot);
 }
@@ -180,9 +180,13 @@ function onVehicle(sample) {
     v.state = shortState(sample.sample.state, "FLIGHT_STATE_");
     v.battery = sample.sample.battery_ratio;
   } else if (topic.endsWith("pose")) {
-    const estimate = topic === "self_localization/pose";
-    if (estimate) v.estimate = true;
-    if (!estimate && v.estimate) return;
+    // An estimate older than a second (its localization ended) gives way to
+    // the ground truth.
+    if (topic === "self_localization/pose") {
+      v.estimateAt = Date.now();
+    } else if (Date.now() - v.estimateAt < 1000) {
+      return;
+    }
     const p = sample.sample.pose.position_m || {};
     const point = { x: p.x || 0, y: p.y || 0, z: p.z || 0 };
     const last = v.track[v.track.length - 1];

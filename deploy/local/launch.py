@@ -329,7 +329,10 @@ def start_stack(args, build_dir, stack):
 
     coordinator_bin = binary(build_dir, "bin/coordinator")
     coordinator_argv = [coordinator_bin, *listen_as("coordinator"),
-                        "--state-dir", os.path.join(stack.run_dir, "coordinator")]
+                        "--state-dir", os.path.join(stack.run_dir, "coordinator"),
+                        # The files StartMission's file_path may name (the
+                        # console's form).
+                        "--mission-dir", os.path.abspath(args.mission_dir)]
     # One --flight-controller flag lists every robot (a repeated flag would
     # replace the previous one).
     coordinator_argv += ["--catalog", os.path.join(CONFIG_DIR, "catalog.yaml"),
@@ -572,6 +575,9 @@ def main():
                         help="wall seconds after which the demo aborts the missions")
     parser.add_argument("--stop-timeout-s", type=float, default=10.0,
                         help="wall seconds a process has after SIGTERM before SIGKILL")
+    parser.add_argument("--mission-dir", default=os.path.join(REPO, "deploy", "missions"),
+                        help="the coordinator's --mission-dir: the mission files a client "
+                             "(the console's form) may start by name (default: %(default)s)")
     parser.add_argument("--no-console", dest="console", action="store_false",
                         help="do not start the operator's console (console/, decision 35)")
     parser.add_argument("--console-listen", default="127.0.0.1:0", metavar="HOST:PORT",

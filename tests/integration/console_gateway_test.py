@@ -302,7 +302,7 @@ class ConsoleGatewayTest(unittest.TestCase):
                  b["center_m"]["z"] - b["size_m"]["z"] / 2 < 0.01]
         self.assertGreater(len(walls), 4, world)
         self.assertTrue(all(w["size_m"]["z"] > 1.0 for w in walls), walls)
-        # A console without --world says so.
+        # A console without --world has an empty one.
         other = Process("console", ["--listen", "127.0.0.1:0", "--coordinator",
                                     self.coordinator_address], self.dir, tag="console-no-world")
         try:
@@ -314,8 +314,8 @@ class ConsoleGatewayTest(unittest.TestCase):
             connection.close()
         finally:
             self.assertEqual(other.stop(), 0)
-        self.assertEqual(reply.status, 404)
-        self.assertEqual(body["details"][0]["reason"], "FEATURE_NOT_ENABLED")
+        self.assertEqual(reply.status, 200)
+        self.assertEqual(body, {"boxes": [], "markers": []})
 
     def test_7_a_coordinator_that_goes_away_is_reported(self):
         feed = EventFeed(self.port)

@@ -71,7 +71,7 @@ struct GatewayOptions {
   std::chrono::milliseconds vehicle_period{100};
   /// Robots whose vehicle state is followed.
   size_t max_robots = 16;
-  /// The map's world as JSON (GET /api/world); empty: 404.
+  /// The map's world as JSON (GET /api/world); empty: a world without boxes.
   std::string world_json;
   /// HTTPS with these PEM files (both, or neither: HTTP).
   std::string tls_cert_file;

@@ -1,0 +1,124 @@
+// Drives Debian's chromium (puppeteer-core) through the operator's console
+// while a real mission flies: tests/browser/console_browser_test.py starts
+// the stack and runs
+//
+//   node console_browser.js URL ROBOT MISSION_FILE SCREENSHOT
+//
+// It fails (exit 1, the reason on stderr) unless, in order:
+// - the page loads and the coordinator's systems appear, UP;
+// - the mission started from the page's form advances step by step;
+// - a terminated behavior shows its cause (TAKE_OFF, GOAL_ACHIEVED);
+// - the vehicle's marker moves on the map;
+// - pressing "Emergency land" lands the vehicle (its flight state LANDED);
+// - and no console error or uncaught exception happened on the way.
+// Each wait is a bound for what must happen, never a measure of speed.
+"use strict";
+
+const puppeteer = require("puppeteer-core");
+
+const [url, robot, missionFile, screenshot] = process.argv.slice(2);
+const WAIT_MS = 180000;
+
+function log(text) {
+  console.log(`[${(process.uptime()).toFixed(1)} s] ${text}`);
+}
+
+async function main() {
+  const browser = await puppeteer.launch({
+    executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
+    headless: true,
+    // No sandbox: CI runs as root, where chromium's sandbox refuses to start.
+    args: ["--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage"],
+  });
+  const errors = [];
+  try {
+    const page = await browser.newPage();
+    page.on("console", (message) => {
+      if (message.type() === "error") errors.push(`console: ${message.text()}`);
+    });
+    page.on("pageerror", (error) => errors.push(`uncaught: ${error}`));
+    page.on("requestfailed", (request) => {
+      // The event feed is cut when the page closes: not an error of the page.
+      if (!request.url().endsWith("/api/events")) {
+        errors.push(`request failed: ${request.url()} ${request.failure().errorText}`);
+      }
+    });
+    await page.setViewport({ width: 1200, height: 1800 });
+    await page.goto(url, { waitUntil: "domcontentloaded" });
+
+    await page.waitForFunction(() => document.getElementById("coordinator").textContent
+      .includes("up"), { timeout: WAIT_MS });
+    await page.waitForFunction(() => [...document.querySelectorAll("#systems tbody tr")]
+      .some((row) => row.querySelector(".state").textContent === "UP"), { timeout: WAIT_MS });
+    const systems = await page.$$eval("#systems tbody tr", (rows) => rows.length);
+    log(`${systems} systems shown`);
+
+    await page.type("#start-mission input[name=file_path]", missionFile);
+    await page.click("#start-mission button[type=submit]");
+    const stepsOf = () => page.$eval("#missions tbody tr", (row) => ({
+      steps: Number(row.querySelector(".steps").textContent),
+      step: row.querySelector(".step").textContent,
+      state: row.querySelector(".state").textContent,
+    }));
+    await page.waitForSelector("#missions tbody tr", { timeout: WAIT_MS });
+    const first = await stepsOf();
+    log(`mission shown: ${JSON.stringify(first)}`);
+
+    await page.waitForSelector(
+      'tr[data-behavior="TAKE_OFF"][data-kind="finished"] td.cause-GOAL_ACHIEVED',
+      { timeout: WAIT_MS });
+    log("TAKE_OFF finished, GOAL_ACHIEVED, in the timeline");
+
+    const marker = `#map circle.vehicle[data-robot="${robot}"]`;
+    await page.waitForSelector(marker, { timeout: WAIT_MS });
+    const start = await page.$eval(marker, (c) => [Number(c.getAttribute("cx")),
+                                                   Number(c.getAttribute("cy"))]);
+    await page.waitForFunction((selector, x0, y0) => {
+      const c = document.querySelector(selector);
+      return Math.hypot(Number(c.getAttribute("cx")) - x0,
+                        Number(c.getAttribute("cy")) - y0) > 1.0;
+    }, { timeout: WAIT_MS }, marker, start[0], start[1]);
+    log(`the marker moved from (${start.map((v) => v.toFixed(2)).join(", ")})`);
+
+    // The hover step: the vehicle is in the air, and stays there.
+    await page.waitForFunction(() => {
+      const row = document.querySelector("#missions tbody tr");
+      return row && Number(row.querySelector(".steps").textContent) >= 4 &&
+        row.querySelector(".step").textContent === "WAIT";
+    }, { timeout: WAIT_MS });
+    const hovering = await stepsOf();
+    if (!(hovering.steps > first.steps)) {
+      throw new Error(`the mission's steps did not advance: ${JSON.stringify([first, hovering])}`);
+    }
+    log(`mission advanced to ${JSON.stringify(hovering)}`);
+    const flying = await page.$eval(`#vehicles tr[data-robot="${robot}"] .flight-state`,
+      (cell) => cell.textContent);
+    if (flying === "LANDED") throw new Error("the vehicle is not in the air before the landing");
+
+    await page.type("#emergency-land input[name=robot_id]", robot);
+    await page.click("#emergency-land button[type=submit]");
+    await page.waitForFunction((r) => {
+      const cell = document.querySelector(`#vehicles tr[data-robot="${r}"] .flight-state`);
+      return cell && cell.textContent === "LANDED";
+    }, { timeout: WAIT_MS }, robot);
+    // On the ground: the position shown follows the vehicle down.
+    await page.waitForFunction((r) => {
+      const cell = document.querySelector(`#vehicles tr[data-robot="${r}"] .position-z`);
+      return cell && Number(cell.textContent) < 0.3;
+    }, { timeout: WAIT_MS }, robot);
+    const error = await page.$eval("#error", (p) => p.textContent);
+    if (error) throw new Error(`the page shows an error: ${error}`);
+    log(`emergency land pressed in flight (${flying}): the vehicle LANDED`);
+
+    await page.screenshot({ path: screenshot });
+    log(`screenshot: ${screenshot}`);
+  } finally {
+    await browser.close();
+  }
+  if (errors.length) throw new Error(`errors in the page:\n${errors.join("\n")}`);
+}
+
+main().then(() => log("ok"), (error) => {
+  console.error(String(error.stack || error));
+  process.exit(1);
+});

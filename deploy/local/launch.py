@@ -618,6 +618,7 @@ def main():
                   "coordinator": None, "clients": []}
     figures = ([], [])
     interrupted = ""
+    console = None
     say(f"run directory: {run_dir}")
     try:
         say("\n== starting ==")
@@ -697,7 +698,8 @@ def main():
                     "missions": {robot: os.path.relpath(path, REPO)
                                  for robot, path in args.missions.items()},
                     "sensor_config": os.path.relpath(os.path.abspath(args.sensor_config), REPO)
-                    if args.sensor_config else ""}
+                    if args.sensor_config else "",
+                    "console_url": console.url if console is not None else ""}
         robots = robot_reports(args, build_dir, demo_state, run_dir)
         report.write(run_dir, settings, robots, behaviors, processes, clean,
                      world_markers(world_file(args.world)), world_walls(world_file(args.world)))

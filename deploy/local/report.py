@@ -548,7 +548,9 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
         ("light grey: the world's boxes (plan view)", boxes),
         ("dark grey: the saved map's occupied cells", cells)) if drawn)
     footer = ["", "Logs of every process: `logs/`; Prometheus targets: "
-              "`prometheus_targets.json`.", ""]
+              "`prometheus_targets.json`."
+              + (f" The run's console was {settings['console_url']} (while the stack ran)."
+                 if settings.get("console_url") else ""), ""]
 
     if not several:
         r, entry = robots[0], first

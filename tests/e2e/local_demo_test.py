@@ -16,6 +16,7 @@ and prints where it is.
 import argparse
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -153,8 +154,9 @@ class LocalDemoTest(unittest.TestCase):
         print(f"launcher --demo: {wall_s:.1f} s wall")
         self.assertEqual(result.returncode, 0, "the launcher failed (output above)")
         self._assert_all_stopped()
-        # The main job prints the console's URL.
-        self.assertRegex(result.stdout, r"console: http://127\.0\.0\.1:[1-9][0-9]*/")
+        # The main job prints the console's URL, and the report names it.
+        url = re.search(r"console: (http://127\.0\.0\.1:[1-9][0-9]*/)", result.stdout)
+        self.assertIsNotNone(url, "no console URL printed")
 
         for name in ("report.md", "report.json", "trajectory.png", "timeline.png",
                      "prometheus_targets.json"):
@@ -163,6 +165,8 @@ class LocalDemoTest(unittest.TestCase):
             report = json.load(f)
         with open(os.path.join(self.run_dir, "report.md")) as f:
             markdown = f.read()
+        self.assertEqual(report["settings"]["console_url"], url.group(1))
+        self.assertIn(f"The run's console was {url.group(1)}", markdown)
 
         mission = report["mission"]
         self.assertEqual(mission["state"], "MISSION_STATE_SUCCEEDED")

@@ -24,6 +24,11 @@ uint64_t EventHub::publishLatest(const std::string& key, std::string event, std:
   message.id = ++last_id_;
   message.event = std::move(event);
   message.data = std::move(data);
+  if (latest_.size() > max_states_) {
+    latest_.erase(
+        std::min_element(latest_.begin(), latest_.end(),
+                         [](const auto& a, const auto& b) { return a.second.id < b.second.id; }));
+  }
   return last_id_;
 }
 

@@ -225,6 +225,7 @@ absl::Status Gateway::start(const std::string& host, int port) {
   http_thread_ = std::thread([this] { server_->listen_after_bind(); });
   events_thread_ = std::thread([this] { followEvents(); });
   missions_thread_ = std::thread([this] { followMissions(); });
+  beliefs_thread_ = std::thread([this] { followBeliefs(); });
   return absl::OkStatus();
 }
 
@@ -241,6 +242,7 @@ void Gateway::shutdown() {
   if (http_thread_.joinable()) http_thread_.join();
   if (events_thread_.joinable()) events_thread_.join();
   if (missions_thread_.joinable()) missions_thread_.join();
+  if (beliefs_thread_.joinable()) beliefs_thread_.join();
   std::vector<std::thread> topics;
   {
     absl::MutexLock lock(&mutex_);
@@ -376,6 +378,37 @@ void Gateway::followMissions() {
     for (auto& thread : done) thread.join();
     if (data_) followRobots();
     if (!sleepFor(options_.mission_poll, true)) return;
+  }
+}
+
+// Every belief's latest value (a state per key), resumed after the last
+// version seen; a coordinator without belief memory is asked again later.
+void Gateway::followBeliefs() {
+  uint64_t since_version = 0;
+  auto retry = kFirstRetry;
+  while (true) {
+    grpc::ClientContext context;
+    {
+      absl::MutexLock lock(&mutex_);
+      if (stopping_) return;
+      streams_["beliefs"] = &context;
+    }
+    v1::WatchBeliefsRequest request;
+    request.set_since_version(since_version);
+    auto reader = stub_->WatchBeliefs(&context, request);
+    v1::WatchBeliefsResponse response;
+    while (reader->Read(&response)) {
+      retry = kFirstRetry;
+      since_version = std::max(since_version, response.belief().version());
+      hub_.publishLatest("belief/" + response.belief().key(), "belief", toJson(response.belief()));
+    }
+    reader->Finish();
+    {
+      absl::MutexLock lock(&mutex_);
+      streams_.erase("beliefs");
+    }
+    if (!sleepFor(retry, false)) return;
+    retry = std::min(retry * 2, kMaxRetry);
   }
 }
 

@@ -159,6 +159,21 @@ async function loadWorld() {
   renderVehicles();
 }
 
+// QR markers found: the beliefs <robot>/markers/<text> that
+// attention_to_visual_markers writes (behaviorlib.v1.QrCodeBelief).
+const markersFound = new Map();
+
+function onBelief(belief) {
+  if (!/^[^/]+\/markers\/.+$/.test(belief.key || "")) return;
+  const value = belief.value;
+  if (belief.deleted || !value || !value.position_m) {
+    markersFound.delete(belief.key);
+  } else {
+    markersFound.set(belief.key, { text: value.text || "", position: value.position_m });
+  }
+  renderVehicles();
+}
+
 // Each robot's vehicle: its latest pose (the estimate while one arrives,
 // else the simulator's ground truth), flight status and flown track.
 const vehicles = new Map();
@@ -231,6 +246,18 @@ function renderVehicles() {
     square.setAttribute("height", 0.2);
     content.appendChild(square);
   }
+  for (const [key, marker] of markersFound) {
+    const found = document.createElementNS(ns, "circle");
+    found.setAttribute("class", "marker-found");
+    found.dataset.key = key;
+    found.setAttribute("cx", marker.position.x || 0);
+    found.setAttribute("cy", marker.position.y || 0);
+    found.setAttribute("r", 0.2);
+    const title = document.createElementNS(ns, "title");
+    title.textContent = marker.text;
+    found.appendChild(title);
+    content.appendChild(found);
+  }
   for (const v of vehicles.values()) {
     const row = body.insertRow();
     row.dataset.robot = v.robot;
@@ -293,6 +320,7 @@ function follow() {
     renderMissions();
   });
   feed.addEventListener("vehicle", (message) => onVehicle(JSON.parse(message.data)));
+  feed.addEventListener("belief", (message) => onBelief(JSON.parse(message.data)));
   feed.addEventListener("gateway", (message) => {
     const state = JSON.parse(message.data);
     setCoordinator(state.coordinator_up, state.message);

@@ -11,8 +11,8 @@ coordinator and a real behavior system on loopback:
 - refusals answer their HTTP status with the google.rpc.Status as JSON (a
   call the console does not make, a body that is not the request, a refused
   mission with its field violation);
-- the vehicle's pose and flight status arrive from the data channel, and
-  the map's world is the world file's;
+- the vehicle's pose and flight status arrive from the data channel, the
+  map's world is the world file's, and beliefs come with their latest value;
 - a coordinator that goes away is reported on the feed.
 """
 
@@ -316,6 +316,22 @@ class ConsoleGatewayTest(unittest.TestCase):
             self.assertEqual(other.stop(), 0)
         self.assertEqual(reply.status, 200)
         self.assertEqual(body, {"boxes": [], "markers": []})
+
+    def test_6d_beliefs_come_with_their_latest_value(self):
+        ctl = os.path.join(BUILD_DIR, "bin", "behaviorctl")
+        marker = {"text": "AC-001", "position_m": {"x": 1.5, "y": -2.0, "z": 1.0}}
+        subprocess.run([ctl, "--coordinator", self.coordinator_address, "belief", "set",
+                        "robot-a/markers/AC-001", json.dumps(marker)], check=True,
+                       stdout=subprocess.DEVNULL, timeout=WAIT_S)
+        feed = EventFeed(self.port)
+        try:
+            seen = feed.until(lambda event, data: event == "belief" and
+                              data["key"] == "robot-a/markers/AC-001")
+        finally:
+            feed.close()
+        belief = seen[-1][2]
+        self.assertEqual(belief["value"]["position_m"]["x"], 1.5)
+        self.assertFalse(belief["deleted"])
 
     def test_7_a_coordinator_that_goes_away_is_reported(self):
         feed = EventFeed(self.port)

@@ -7,6 +7,7 @@
 #include <chrono>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "behaviorlib/console/event_cursor.h"
 #include "behaviorlib/console/event_hub.h"
@@ -126,6 +127,17 @@ TEST(EventHub, StatesKeepTheirLatestMessageAndNeverPushEventsOut) {
   const auto resumed = hub.after(all[2].id, milliseconds(0));
   ASSERT_EQ(resumed.size(), 1u);
   EXPECT_EQ(resumed[0].data, "b");
+}
+
+TEST(EventHub, KeepsABoundedNumberOfStatesTheOldestGoingFirst) {
+  EventHub hub(10, 2);
+  hub.publishLatest("a", "belief", "1");
+  hub.publishLatest("b", "belief", "2");
+  hub.publishLatest("a", "belief", "3");  // a is now the newest
+  hub.publishLatest("c", "belief", "4");  // b goes
+  std::vector<std::string> kept;
+  for (const auto& m : hub.after(0, milliseconds(0))) kept.push_back(m.data);
+  EXPECT_EQ(kept, (std::vector<std::string>{"3", "4"}));
 }
 
 TEST(EventHub, AWaiterWakesForANewMessageAndForClose) {

@@ -27,7 +27,10 @@ class EventHub {
     std::string data;   ///< one line of JSON
   };
 
-  explicit EventHub(size_t capacity) : capacity_(capacity) {}
+  /// Keeps the last `capacity` events and at most `max_states` states (the
+  /// oldest state goes first).
+  explicit EventHub(size_t capacity, size_t max_states = 10000)
+      : capacity_(capacity), max_states_(max_states) {}
 
   /// Adds an event; returns its id.
   uint64_t publish(std::string event, std::string data);
@@ -48,6 +51,7 @@ class EventHub {
 
  private:
   const size_t capacity_;
+  const size_t max_states_;
   mutable absl::Mutex mutex_;
   std::deque<Message> kept_ ABSL_GUARDED_BY(mutex_);
   std::map<std::string, Message> latest_ ABSL_GUARDED_BY(mutex_);

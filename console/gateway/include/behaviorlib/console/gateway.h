@@ -12,8 +12,9 @@
 //                               mission status change), `vehicle` (each
 //                               robot's pose and flight status from the data
 //                               channel, at most vehicle_period apart per
-//                               topic), `gateway` (whether the coordinator is
-//                               reachable)
+//                               topic), `belief` (each belief's latest
+//                               value: the markers found, ...), `gateway`
+//                               (whether the coordinator is reachable)
 //   POST /api/coordinator/NAME  one unary Coordinator call of the console's
 //                               (the request as JSON, proto field names; the
 //                               response as JSON), e.g. ListSystems,
@@ -101,6 +102,7 @@ class Gateway {
   void watchMission(const std::string& mission_id);
   void publishMission(const v1::MissionStatus& status);
   void followRobots();
+  void followBeliefs();
   void followTopic(const std::string& topic);
   void setCoordinatorUp(bool up, const std::string& why);
   // Waits `wait`, or until kick() if kickable; false once stopping.
@@ -119,6 +121,7 @@ class Gateway {
   std::thread http_thread_;
   std::thread events_thread_;
   std::thread missions_thread_;
+  std::thread beliefs_thread_;
   std::unique_ptr<v1::DataChannel::Stub> data_;
 
   absl::Mutex mutex_;

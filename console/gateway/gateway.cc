@@ -222,7 +222,16 @@ absl::Status Gateway::start(const std::string& host, int port) {
   if (port_ == 0) {
     return absl::UnavailableError(absl::StrCat("cannot bind ", host, ":", port));
   }
-  http_thread_ = std::thread([this] { server_->listen_after_bind(); });
+  http_thread_ = std::thread([this] {
+    server_->listen_after_bind();
+    http_ended_ = true;
+  });
+  // Until it accepts: cpp-httplib's stop() does nothing to a server that has
+  // not started listening, which would then never end.
+  while (!server_->is_running() && !http_ended_) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  if (http_ended_) return absl::UnavailableError("the console's HTTP server ended at once");
   events_thread_ = std::thread([this] { followEvents(); });
   missions_thread_ = std::thread([this] { followMissions(); });
   beliefs_thread_ = std::thread([this] { followBeliefs(); });

@@ -118,6 +118,7 @@ class Gateway {
   std::unique_ptr<httplib::Server> server_;
   int port_ = 0;
   std::atomic<int> event_clients_{0};
+  std::atomic<bool> http_ended_{false};
   std::thread http_thread_;
   std::thread events_thread_;
   std::thread missions_thread_;

@@ -191,7 +191,10 @@ function onVehicle(sample) {
   if (!match || !sample.sample) return;
   const v = vehicle(match[1]);
   const topic = match[2];
-  if (topic === "flight_state") {
+  if (topic === "map/occupied") {
+    // The OctoMap's occupied voxels at the lidar's height (navigation_with_lidar).
+    v.cells = (sample.sample.points_m || []).map((p) => ({ x: p.x || 0, y: p.y || 0 }));
+  } else if (topic === "flight_state") {
     v.state = shortState(sample.sample.state, "FLIGHT_STATE_");
     v.battery = sample.sample.battery_ratio;
   } else if (topic.endsWith("pose")) {
@@ -270,6 +273,15 @@ function renderVehicles() {
     for (const p of v.track) {
       minX = Math.min(minX, p.x); maxX = Math.max(maxX, p.x);
       minY = Math.min(minY, p.y); maxY = Math.max(maxY, p.y);
+    }
+    for (const c of v.cells || []) {
+      const cell = document.createElementNS(ns, "rect");
+      cell.setAttribute("class", "cell");
+      cell.setAttribute("x", c.x - 0.05);
+      cell.setAttribute("y", c.y - 0.05);
+      cell.setAttribute("width", 0.1);
+      cell.setAttribute("height", 0.1);
+      content.appendChild(cell);
     }
     if (v.plan) {
       const plan = document.createElementNS(ns, "polyline");

@@ -8,7 +8,8 @@
 // - the page loads and the coordinator's systems appear, UP;
 // - the mission started from the page's form advances step by step;
 // - a terminated behavior shows its cause (TAKE_OFF, GOAL_ACHIEVED);
-// - the vehicle's marker moves on the map;
+// - the vehicle's marker moves on the map, over the world's walls and the
+//   OctoMap's occupied voxels;
 // - pressing "Emergency land" lands the vehicle (its flight state LANDED);
 // - and no console error or uncaught exception happened on the way.
 // Each wait is a bound for what must happen, never a measure of speed.
@@ -79,6 +80,13 @@ async function main() {
                         Number(c.getAttribute("cy")) - y0) > 1.0;
     }, { timeout: WAIT_MS }, marker, start[0], start[1]);
     log(`the marker moved from (${start.map((v) => v.toFixed(2)).join(", ")})`);
+
+    // The world's walls, and the walls as the vehicle's OctoMap sees them.
+    await page.waitForFunction(() => document.querySelectorAll("#map rect.wall").length > 4 &&
+      document.querySelectorAll("#map rect.cell").length > 10, { timeout: WAIT_MS });
+    const drawn = await page.evaluate(() => [document.querySelectorAll("#map rect.wall").length,
+                                             document.querySelectorAll("#map rect.cell").length]);
+    log(`the map shows ${drawn[0]} walls of the world and ${drawn[1]} occupied voxels`);
 
     // The hover step: the vehicle is in the air, and stays there.
     await page.waitForFunction(() => {

@@ -65,7 +65,7 @@ def main():
     with open(launcher_log, "wb") as log:
         launcher = subprocess.Popen(
             [sys.executable, LAUNCHER, "--build-dir", os.path.abspath(args.build_dir),
-             "--run-dir", run_dir, "--time-scale", "max", "--robot-id", ROBOT,
+             "--run-dir", run_dir, "--time-scale", "max", "--robot-id", ROBOT, "--world", "rooms",
              "--mission-dir", os.path.join(HERE, "missions"),
              "--console-listen", "127.0.0.1:0"],
             stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)

@@ -398,6 +398,21 @@ TEST_F(NavigationWithLidarTest, SavesAMapOctoMapReadsBackAndNamesItInBeliefMemor
   v1::Belief belief;
   ASSERT_TRUE(readBelief(std::string(kRobot) + "/map_file", &belief).ok());
   EXPECT_EQ(belief.value().string_value(), file);
+
+  // The operators' view of the same map: its occupied voxels at the lidar's
+  // height on the channel, room A's wall to room B among them.
+  auto latest = channel_->getLatest(std::string("robots/") + kRobot + "/map/occupied");
+  ASSERT_TRUE(latest.ok()) << latest.status();
+  v1::PointCloud cloud;
+  ASSERT_TRUE(latest->sample().UnpackTo(&cloud));
+  EXPECT_EQ(cloud.header().frame_id(), "world");
+  EXPECT_GT(cloud.points_m_size(), 50);
+  bool wall = false;
+  for (const auto& p : cloud.points_m()) {
+    EXPECT_LT(std::abs(p.z() - 1.1), 0.6) << p.ShortDebugString();
+    wall = wall || (std::abs(p.x() - 5.9) < 0.2 && p.y() > 0.5 && p.y() < 3.5);
+  }
+  EXPECT_TRUE(wall) << "no occupied voxel on room A's wall to room B";
 }
 
 TEST_F(NavigationWithLidarTest, ASavePathOutsideTheMapDirectoryIsRefusedNamingIt) {

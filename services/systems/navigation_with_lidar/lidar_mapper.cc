@@ -134,6 +134,7 @@ void LidarMapper::followScans(bool want) {
 }
 
 std::string LidarMapper::scanTopic() const { return "robots/" + robot_id_ + "/lidar/scan"; }
+std::string LidarMapper::occupiedTopic() const { return "robots/" + robot_id_ + "/map/occupied"; }
 
 std::string LidarMapper::poseTopic() const { return flight::poseEstimateTopic(robot_id_); }
 
@@ -265,9 +266,45 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
     if (settings_.ground.mayBeGround(hit.z(), dir.z(), r)) continue;  // seen tilted
     hits.push_back(hit);
   }
-  std::lock_guard lock(map_mutex_);
-  map_.insertScan(origin, hits, misses);
-  columns_.afterScan(map_, hits);
+  {
+    std::lock_guard lock(map_mutex_);
+    map_.insertScan(origin, hits, misses);
+    columns_.afterScan(map_, hits);
+  }
+  publishOccupied(scan, origin.z());
+}
+
+void LidarMapper::publishOccupied(const v1::LaserScan& scan, double height_m) {
+  constexpr int64_t kPeriodNs = 1'000'000'000;
+  const int64_t stamp = stampNs(scan.header());
+  const auto now = std::chrono::steady_clock::now();
+  if (channel_ == nullptr || stamp - occupied_published_stamp_ns_ < kPeriodNs ||
+      now - occupied_published_at_ < std::chrono::nanoseconds(kPeriodNs)) {
+    return;
+  }
+  v1::PointCloud cloud;
+  {
+    std::lock_guard lock(map_mutex_);
+    if (map_.revision() == occupied_published_revision_) return;
+    occupied_published_revision_ = map_.revision();
+    const octomap::OcTree& tree = map_.tree();
+    const double half = tree.getResolution() / 2.0;
+    for (auto it = tree.begin_leafs(); it != tree.end_leafs(); ++it) {
+      if (!tree.isNodeOccupied(*it)) continue;
+      // A pruned leaf is a cube of several voxels: its centre stands for it.
+      const double reach = it.getSize() / 2.0 + half;
+      if (std::abs(it.getZ() - height_m) > reach) continue;
+      auto* point = cloud.add_points_m();
+      point->set_x(it.getX());
+      point->set_y(it.getY());
+      point->set_z(it.getZ());
+    }
+  }
+  *cloud.mutable_header() = scan.header();
+  cloud.mutable_header()->set_frame_id("world");
+  occupied_published_stamp_ns_ = stamp;
+  occupied_published_at_ = now;
+  (void)channel_->publish(occupiedTopic(), cloud);  // for display only
 }
 
 void LidarMapper::clear() {

@@ -67,7 +67,7 @@ struct GatewayOptions {
   std::shared_ptr<grpc::Channel> data_channel;
   /// The topics followed for each robot of the fleet, under robots/{id}/.
   std::vector<std::string> vehicle_topics = {"self_localization/pose", "ground_truth/pose",
-                                             "flight_state"};
+                                             "flight_state", "map/occupied"};
   /// At most one `vehicle` event per robot and topic this often.
   std::chrono::milliseconds vehicle_period{100};
   /// Robots whose vehicle state is followed.

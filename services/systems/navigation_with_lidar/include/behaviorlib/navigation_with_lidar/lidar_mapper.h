@@ -29,6 +29,11 @@
 // grid) then maps into the obstacle's voxel, not, half the time by the range
 // noise, into the free voxel beside it, which narrowed a door by a column
 // for good. A surface inside a voxel moves by at most hit_depth_m.
+//
+// For operators (the console's map): after a scan goes in, at most once a
+// second of scan time and of host time, the occupied voxels around the
+// lidar's height are published on robots/{id}/map/occupied, a PointCloud of
+// voxel centres (frame world; the map's resolution, 0.1 m by default).
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
@@ -124,6 +129,7 @@ class LidarMapper {
   const std::string& robotId() const { return robot_id_; }
   std::string scanTopic() const;
   std::string poseTopic() const;
+  std::string occupiedTopic() const;
 
   /// Calls f(const OccupancyMap&) with the map locked (mapping waits).
   template <class F>
@@ -154,6 +160,9 @@ class LidarMapper {
   // Makes or drops the scan subscription (mapping thread only).
   void followScans(bool want);
   void insert(const v1::LaserScan& scan, const v1::PoseStamped& pose);
+  // Publishes the occupied voxels at the lidar's height when due (mapping
+  // thread only).
+  void publishOccupied(const v1::LaserScan& scan, double height_m);
   std::optional<v1::PoseStamped> poseAt(int64_t stamp_ns) const;
 
   channel::ChannelClient* channel_;
@@ -177,6 +186,11 @@ class LidarMapper {
   std::optional<std::chrono::steady_clock::time_point> last_pose_arrival_;
   uint64_t poses_received_ = 0;
   static constexpr std::chrono::seconds kScanFollowAfterPose{2};
+
+  // The last publication of the occupied voxels (mapping thread only).
+  int64_t occupied_published_stamp_ns_ = 0;
+  std::chrono::steady_clock::time_point occupied_published_at_{};
+  uint64_t occupied_published_revision_ = 0;
 
   std::thread thread_;
   std::unique_ptr<channel::Subscription> scan_sub_, pose_sub_;

@@ -36,7 +36,9 @@ case "$mode" in
     INTEGRATION="reflection_service_test channel_broker_test broker_in_process_test
       behavior_system_test behavior_system_in_process_test simulator_in_process_test
       simulator_service_test coordinator_in_process_test coordinator_beliefs_test
-      coordinator_hardening_test authorizer_in_process_test console_gateway_test"
+      coordinator_hardening_test authorizer_in_process_test"
+    # Tests that are scripts (not build targets) driving the programs above.
+    SCRIPTS="console_gateway_test"
     PROGRAMS="coordinator channel_broker simulator basic_quadrotor_behaviors console behaviorctl"
     FUZZERS="fuzz_mission_file fuzz_world_file fuzz_sensor_config fuzz_catalog
       fuzz_systems_config fuzz_parameters_struct fuzz_parameters_json fuzz_journal
@@ -57,6 +59,7 @@ case "$mode" in
     INTEGRATION="reflection_service_test broker_in_process_test behavior_system_in_process_test
       simulator_in_process_test coordinator_in_process_test authorizer_in_process_test"
     PROGRAMS=""
+    SCRIPTS=""
     FUZZERS=""
     ;;
   *)
@@ -88,7 +91,7 @@ else
 fi
 
 names=""
-for t in $UNIT $INTEGRATION; do names="${names:+$names|}$t"; done
+for t in $UNIT $INTEGRATION $SCRIPTS; do names="${names:+$names|}$t"; done
 for t in $FUZZERS; do names="${names:+$names|}${t}_smoke"; done
 status=0
 ctest --test-dir "$TREE" --output-on-failure -j 2 -R "^($names)\$" || status=$?

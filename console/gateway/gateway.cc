@@ -289,32 +289,43 @@ void Gateway::setCoordinatorUp(bool up, const std::string& why) {
   hub_.publishLatest("gateway", "gateway", gatewayJson(up, why));
 }
 
-void Gateway::followEvents() {
-  EventCursor cursor;
+template <typename Response, typename Open, typename Handle, typename Ended>
+void Gateway::followStream(const std::string& key, Open open, Handle handle, Ended ended) {
   auto retry = kFirstRetry;
   while (true) {
     grpc::ClientContext context;
     {
       absl::MutexLock lock(&mutex_);
       if (stopping_) return;
-      streams_["events"] = &context;
+      streams_[key] = &context;
     }
-    auto reader = stub_->WatchEvents(&context, cursor.request());
-    v1::WatchFleetEventsResponse response;
+    auto reader = open(&context);
+    Response response;
     while (reader->Read(&response)) {
-      setCoordinatorUp(true, "");
       retry = kFirstRetry;
-      for (const auto& event : cursor.accept(response)) hub_.publish("fleet", toJson(event));
+      handle(response);
     }
     const grpc::Status status = reader->Finish();
     {
       absl::MutexLock lock(&mutex_);
-      streams_.erase("events");
+      streams_.erase(key);
     }
-    setCoordinatorUp(false, status.error_message());
+    ended(status);
     if (!sleepFor(retry, false)) return;
     retry = std::min(retry * 2, kMaxRetry);
   }
+}
+
+void Gateway::followEvents() {
+  EventCursor cursor;
+  followStream<v1::WatchFleetEventsResponse>(
+      "events",
+      [&](grpc::ClientContext* context) { return stub_->WatchEvents(context, cursor.request()); },
+      [&](const v1::WatchFleetEventsResponse& response) {
+        setCoordinatorUp(true, "");
+        for (const auto& event : cursor.accept(response)) hub_.publish("fleet", toJson(event));
+      },
+      [&](const grpc::Status& status) { setCoordinatorUp(false, status.error_message()); });
 }
 
 void Gateway::publishMission(const v1::MissionStatus& status) {
@@ -394,31 +405,19 @@ void Gateway::followMissions() {
 // version seen; a coordinator without belief memory is asked again later.
 void Gateway::followBeliefs() {
   uint64_t since_version = 0;
-  auto retry = kFirstRetry;
-  while (true) {
-    grpc::ClientContext context;
-    {
-      absl::MutexLock lock(&mutex_);
-      if (stopping_) return;
-      streams_["beliefs"] = &context;
-    }
-    v1::WatchBeliefsRequest request;
-    request.set_since_version(since_version);
-    auto reader = stub_->WatchBeliefs(&context, request);
-    v1::WatchBeliefsResponse response;
-    while (reader->Read(&response)) {
-      retry = kFirstRetry;
-      since_version = std::max(since_version, response.belief().version());
-      hub_.publishLatest("belief/" + response.belief().key(), "belief", toJson(response.belief()));
-    }
-    reader->Finish();
-    {
-      absl::MutexLock lock(&mutex_);
-      streams_.erase("beliefs");
-    }
-    if (!sleepFor(retry, false)) return;
-    retry = std::min(retry * 2, kMaxRetry);
-  }
+  followStream<v1::WatchBeliefsResponse>(
+      "beliefs",
+      [&](grpc::ClientContext* context) {
+        v1::WatchBeliefsRequest request;
+        request.set_since_version(since_version);
+        return stub_->WatchBeliefs(context, request);
+      },
+      [&](const v1::WatchBeliefsResponse& response) {
+        since_version = std::max(since_version, response.belief().version());
+        hub_.publishLatest("belief/" + response.belief().key(), "belief",
+                           toJson(response.belief()));
+      },
+      [](const grpc::Status&) {});
 }
 
 // Starts following the vehicle topics of robots that registered since.
@@ -447,36 +446,23 @@ void Gateway::followRobots() {
 // One vehicle topic, its latest sample at most every vehicle_period, until
 // shutdown; reconnects when the channel goes away.
 void Gateway::followTopic(const std::string& topic) {
-  auto retry = kFirstRetry;
-  while (true) {
-    grpc::ClientContext context;
-    {
-      absl::MutexLock lock(&mutex_);
-      if (stopping_) return;
-      streams_["topic/" + topic] = &context;
-    }
-    v1::SubscribeRequest request;
-    request.set_topic(topic);
-    request.set_mode(v1::DELIVERY_MODE_LATEST);
-    request.set_send_latest_first(true);
-    auto reader = data_->Subscribe(&context, request);
-    v1::SubscribeResponse sample;
-    auto last = std::chrono::steady_clock::time_point();
-    while (reader->Read(&sample)) {
-      retry = kFirstRetry;
-      const auto now = std::chrono::steady_clock::now();
-      if (now - last < options_.vehicle_period) continue;
-      last = now;
-      hub_.publishLatest(topic, "vehicle", toJson(sample));
-    }
-    reader->Finish();
-    {
-      absl::MutexLock lock(&mutex_);
-      streams_.erase("topic/" + topic);
-    }
-    if (!sleepFor(retry, false)) return;
-    retry = std::min(retry * 2, kMaxRetry);
-  }
+  auto last = std::chrono::steady_clock::time_point();
+  followStream<v1::SubscribeResponse>(
+      "topic/" + topic,
+      [&](grpc::ClientContext* context) {
+        v1::SubscribeRequest request;
+        request.set_topic(topic);
+        request.set_mode(v1::DELIVERY_MODE_LATEST);
+        request.set_send_latest_first(true);
+        return data_->Subscribe(context, request);
+      },
+      [&](const v1::SubscribeResponse& sample) {
+        const auto now = std::chrono::steady_clock::now();
+        if (now - last < options_.vehicle_period) return;
+        last = now;
+        hub_.publishLatest(topic, "vehicle", toJson(sample));
+      },
+      [](const grpc::Status&) {});
 }
 
 void Gateway::routes() {

@@ -97,6 +97,12 @@ class Gateway {
   EventHub& hub() { return hub_; }
 
  private:
+  // Follows one server stream until shutdown: opens it with open(context)
+  // (the context registered under `key`, to cancel), hands each message to
+  // handle(), calls ended(status) when it ends, and opens it again after a
+  // delay that doubles up to 2 s.
+  template <typename Response, typename Open, typename Handle, typename Ended>
+  void followStream(const std::string& key, Open open, Handle handle, Ended ended);
   void followEvents();
   void followMissions();
   void watchMission(const std::string& mission_id);

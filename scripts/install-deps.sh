@@ -12,7 +12,7 @@ BUILD_PACKAGES="g++ cmake ninja-build pkg-config libgtest-dev libgmock-dev libbe
   golang-github-gogo-googleapis-dev \
   libompl-dev libboost-serialization-dev libboost-filesystem-dev libboost-system-dev \
   liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev grpc-proto \
-  libssl-dev libcpp-httplib-dev"
+  libssl-dev libcpp-httplib-dev zlib1g-dev"
 # What the built binaries load (each package pulls in its own dependencies), for
 # a machine that only runs them (Docker runtime stage). When a binary comes to
 # need another library, tests/deploy/runtime_packages_test.py names the package

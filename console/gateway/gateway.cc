@@ -1,7 +1,5 @@
 #include "behaviorlib/console/gateway.h"
 
-#include <google/protobuf/descriptor.pb.h>
-#include <google/protobuf/descriptor_database.h>
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>
 #include <google/protobuf/util/type_resolver.h>
@@ -17,7 +15,7 @@
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/time/time.h"
-#include "behaviorlib/embedded_descriptors.h"
+#include "behaviorlib/embedded_descriptor_pool.h"
 #include "behaviorlib/error_details.h"
 #include "google/rpc/status.pb.h"
 
@@ -34,13 +32,9 @@ constexpr char kTypeUrlPrefix[] = "type.googleapis.com";
 // a channel sample's Any may hold any of our types, linked in or not.
 class JsonPrinter {
  public:
-  JsonPrinter() : pool_(&database_) {
-    google::protobuf::FileDescriptorSet set;
-    const std::string_view bytes = embedded::descriptorSet();
-    if (set.ParseFromArray(bytes.data(), static_cast<int>(bytes.size()))) {
-      for (const auto& file : set.file()) database_.Add(file);
-    }
-    resolver_.reset(pbu::NewTypeResolverForDescriptorPool(kTypeUrlPrefix, &pool_));
+  JsonPrinter() {
+    resolver_.reset(
+        pbu::NewTypeResolverForDescriptorPool(kTypeUrlPrefix, &embedded::descriptorPool()));
     options_.preserve_proto_field_names = true;
     options_.always_print_primitive_fields = true;
   }
@@ -59,8 +53,6 @@ class JsonPrinter {
   }
 
  private:
-  google::protobuf::SimpleDescriptorDatabase database_;
-  google::protobuf::DescriptorPool pool_;
   std::unique_ptr<pbu::TypeResolver> resolver_;
   pbu::JsonPrintOptions options_;
 };
@@ -166,13 +158,17 @@ std::string gatewayJson(bool up, const std::string& why) {
   return toJson(message);
 }
 
-bool ended(v1::MissionState state) {
-  return state == v1::MISSION_STATE_SUCCEEDED || state == v1::MISSION_STATE_FAILED ||
-         state == v1::MISSION_STATE_ABORTED;
+FollowerOptions followerOptions(const GatewayOptions& options) {
+  FollowerOptions follower;
+  follower.call_timeout = options.call_timeout;
+  follower.mission_poll = options.mission_poll;
+  follower.max_watched_missions = options.max_watched_missions;
+  follower.data_channel = options.data_channel;
+  follower.vehicle_topics = options.vehicle_topics;
+  follower.vehicle_period = options.vehicle_period;
+  follower.max_robots = options.max_robots;
+  return follower;
 }
-
-constexpr std::chrono::milliseconds kFirstRetry{100};
-constexpr std::chrono::milliseconds kMaxRetry{2000};
 // An idle event feed sends a comment this often, so a browser that went
 // away is noticed.
 constexpr std::chrono::milliseconds kKeepalive{5000};
@@ -183,9 +179,8 @@ Gateway::Gateway(std::shared_ptr<grpc::Channel> coordinator, GatewayOptions opti
     : channel_(std::move(coordinator)),
       stub_(v1::Coordinator::NewStub(channel_)),
       options_(std::move(options)),
-      hub_(options_.replay_capacity) {
-  if (options_.data_channel) data_ = v1::DataChannel::NewStub(options_.data_channel);
-}
+      hub_(options_.replay_capacity),
+      follower_(channel_, followerOptions(options_), this) {}
 
 Gateway::~Gateway() { shutdown(); }
 
@@ -232,237 +227,35 @@ absl::Status Gateway::start(const std::string& host, int port) {
     std::this_thread::sleep_for(std::chrono::milliseconds(1));
   }
   if (http_ended_) return absl::UnavailableError("the console's HTTP server ended at once");
-  events_thread_ = std::thread([this] { followEvents(); });
-  missions_thread_ = std::thread([this] { followMissions(); });
-  beliefs_thread_ = std::thread([this] { followBeliefs(); });
+  follower_.start();
   return absl::OkStatus();
 }
 
 void Gateway::shutdown() {
-  std::map<std::string, std::thread> watchers;
-  {
-    absl::MutexLock lock(&mutex_);
-    if (stopping_) return;
-    stopping_ = true;
-    for (auto& [name, context] : streams_) context->TryCancel();
-  }
+  if (stopped_.exchange(true)) return;
+  follower_.shutdown();
   hub_.close();
   if (server_) server_->stop();
   if (http_thread_.joinable()) http_thread_.join();
-  if (events_thread_.joinable()) events_thread_.join();
-  if (missions_thread_.joinable()) missions_thread_.join();
-  if (beliefs_thread_.joinable()) beliefs_thread_.join();
-  std::vector<std::thread> topics;
-  {
-    absl::MutexLock lock(&mutex_);
-    watchers.swap(mission_watchers_);
-    topics.swap(topic_threads_);
-  }
-  for (auto& [id, thread] : watchers) {
-    if (thread.joinable()) thread.join();
-  }
-  for (auto& thread : topics) thread.join();
 }
 
-bool Gateway::sleepFor(std::chrono::milliseconds wait, bool kickable) {
-  absl::MutexLock lock(&mutex_);
-  auto woken = [this, kickable]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-    return stopping_ || (kickable && kicked_);
-  };
-  mutex_.AwaitWithTimeout(absl::Condition(&woken), absl::FromChrono(wait));
-  if (kickable) kicked_ = false;
-  return !stopping_;
+void Gateway::onEvent(const v1::FleetEvent& event) { hub_.publish("fleet", toJson(event)); }
+
+void Gateway::onMission(const v1::MissionStatus& status) {
+  hub_.publish("mission", toJson(status));
 }
 
-void Gateway::kick() {
-  absl::MutexLock lock(&mutex_);
-  kicked_ = true;
+// Each belief's latest value is a state of its own.
+void Gateway::onBelief(const v1::Belief& belief) {
+  hub_.publishLatest("belief/" + belief.key(), "belief", toJson(belief));
 }
 
-void Gateway::setCoordinatorUp(bool up, const std::string& why) {
-  {
-    absl::MutexLock lock(&mutex_);
-    if (coordinator_known_ && coordinator_up_ == up) return;
-    coordinator_known_ = true;
-    coordinator_up_ = up;
-  }
+void Gateway::onSample(const v1::SubscribeResponse& sample) {
+  hub_.publishLatest(sample.topic(), "vehicle", toJson(sample));
+}
+
+void Gateway::onCoordinator(bool up, const std::string& why) {
   hub_.publishLatest("gateway", "gateway", gatewayJson(up, why));
-}
-
-template <typename Response, typename Open, typename Handle, typename Ended>
-void Gateway::followStream(const std::string& key, Open open, Handle handle, Ended ended) {
-  auto retry = kFirstRetry;
-  while (true) {
-    grpc::ClientContext context;
-    {
-      absl::MutexLock lock(&mutex_);
-      if (stopping_) return;
-      streams_[key] = &context;
-    }
-    auto reader = open(&context);
-    Response response;
-    while (reader->Read(&response)) {
-      retry = kFirstRetry;
-      handle(response);
-    }
-    const grpc::Status status = reader->Finish();
-    {
-      absl::MutexLock lock(&mutex_);
-      streams_.erase(key);
-    }
-    ended(status);
-    if (!sleepFor(retry, false)) return;
-    retry = std::min(retry * 2, kMaxRetry);
-  }
-}
-
-void Gateway::followEvents() {
-  EventCursor cursor;
-  followStream<v1::WatchFleetEventsResponse>(
-      "events",
-      [&](grpc::ClientContext* context) { return stub_->WatchEvents(context, cursor.request()); },
-      [&](const v1::WatchFleetEventsResponse& response) {
-        setCoordinatorUp(true, "");
-        for (const auto& event : cursor.accept(response)) hub_.publish("fleet", toJson(event));
-      },
-      [&](const grpc::Status& status) { setCoordinatorUp(false, status.error_message()); });
-}
-
-void Gateway::publishMission(const v1::MissionStatus& status) {
-  std::string json = toJson(status);
-  {
-    absl::MutexLock lock(&mutex_);
-    std::string& last = mission_json_[status.mission_id()];
-    if (last == json) return;
-    last = json;
-  }
-  hub_.publish("mission", std::move(json));
-}
-
-void Gateway::watchMission(const std::string& mission_id) {
-  grpc::ClientContext context;
-  const std::string key = "mission/" + mission_id;
-  {
-    absl::MutexLock lock(&mutex_);
-    if (stopping_) return;
-    streams_[key] = &context;
-  }
-  v1::WatchMissionRequest request;
-  request.set_mission_id(mission_id);
-  auto reader = stub_->WatchMission(&context, request);
-  v1::WatchMissionResponse response;
-  while (reader->Read(&response)) publishMission(response.status());
-  reader->Finish();
-  absl::MutexLock lock(&mutex_);
-  streams_.erase(key);
-  finished_watchers_.push_back(mission_id);
-}
-
-void Gateway::followMissions() {
-  while (true) {
-    grpc::ClientContext context;
-    context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
-    v1::ListMissionsRequest request;
-    request.set_page_size(100);
-    v1::ListMissionsResponse response;
-    std::vector<std::thread> done;
-    if (stub_->ListMissions(&context, request, &response).ok()) {
-      std::set<std::string> listed;
-      for (const auto& status : response.missions()) {
-        listed.insert(status.mission_id());
-        publishMission(status);
-        absl::MutexLock lock(&mutex_);
-        if (!stopping_ && !ended(status.state()) &&
-            mission_watchers_.count(status.mission_id()) == 0 &&
-            mission_watchers_.size() < options_.max_watched_missions) {
-          const std::string id = status.mission_id();
-          mission_watchers_.emplace(id, std::thread([this, id] { watchMission(id); }));
-        }
-      }
-      absl::MutexLock lock(&mutex_);
-      // Missions the coordinator forgot are forgotten here too.
-      for (auto it = mission_json_.begin(); it != mission_json_.end();) {
-        it = listed.count(it->first) ? std::next(it) : mission_json_.erase(it);
-      }
-    }
-    {
-      absl::MutexLock lock(&mutex_);
-      for (const auto& id : finished_watchers_) {
-        auto it = mission_watchers_.find(id);
-        if (it == mission_watchers_.end()) continue;
-        done.push_back(std::move(it->second));
-        mission_watchers_.erase(it);
-      }
-      finished_watchers_.clear();
-    }
-    for (auto& thread : done) thread.join();
-    if (data_) followRobots();
-    if (!sleepFor(options_.mission_poll, true)) return;
-  }
-}
-
-// Every belief's latest value (a state per key), resumed after the last
-// version seen; a coordinator without belief memory is asked again later.
-void Gateway::followBeliefs() {
-  uint64_t since_version = 0;
-  followStream<v1::WatchBeliefsResponse>(
-      "beliefs",
-      [&](grpc::ClientContext* context) {
-        v1::WatchBeliefsRequest request;
-        request.set_since_version(since_version);
-        return stub_->WatchBeliefs(context, request);
-      },
-      [&](const v1::WatchBeliefsResponse& response) {
-        since_version = std::max(since_version, response.belief().version());
-        hub_.publishLatest("belief/" + response.belief().key(), "belief",
-                           toJson(response.belief()));
-      },
-      [](const grpc::Status&) {});
-}
-
-// Starts following the vehicle topics of robots that registered since.
-void Gateway::followRobots() {
-  grpc::ClientContext context;
-  context.set_deadline(std::chrono::system_clock::now() + options_.call_timeout);
-  v1::ListSystemsRequest request;
-  request.set_page_size(100);
-  v1::ListSystemsResponse response;
-  if (!stub_->ListSystems(&context, request, &response).ok()) return;
-  absl::MutexLock lock(&mutex_);
-  for (const auto& system : response.systems()) {
-    const std::string& robot = system.robot_id();
-    if (stopping_ || robot.empty() || robots_.count(robot) > 0 ||
-        robots_.size() >= options_.max_robots) {
-      continue;
-    }
-    robots_.insert(robot);
-    for (const auto& topic : options_.vehicle_topics) {
-      const std::string name = "robots/" + robot + "/" + topic;
-      topic_threads_.emplace_back([this, name] { followTopic(name); });
-    }
-  }
-}
-
-// One vehicle topic, its latest sample at most every vehicle_period, until
-// shutdown; reconnects when the channel goes away.
-void Gateway::followTopic(const std::string& topic) {
-  auto last = std::chrono::steady_clock::time_point();
-  followStream<v1::SubscribeResponse>(
-      "topic/" + topic,
-      [&](grpc::ClientContext* context) {
-        v1::SubscribeRequest request;
-        request.set_topic(topic);
-        request.set_mode(v1::DELIVERY_MODE_LATEST);
-        request.set_send_latest_first(true);
-        return data_->Subscribe(context, request);
-      },
-      [&](const v1::SubscribeResponse& sample) {
-        const auto now = std::chrono::steady_clock::now();
-        if (now - last < options_.vehicle_period) return;
-        last = now;
-        hub_.publishLatest(topic, "vehicle", toJson(sample));
-      },
-      [](const grpc::Status&) {});
 }
 
 void Gateway::routes() {
@@ -495,7 +288,7 @@ void Gateway::routes() {
                                            "the console does not call Coordinator." + name));
     } else {
       reply = call->second(request.body, request.get_header_value("Authorization"));
-      if (reply.status == 200 && name.find("Mission") != std::string::npos) kick();
+      if (reply.status == 200 && name.find("Mission") != std::string::npos) follower_.kick();
     }
     response.status = reply.status;
     response.set_content(reply.json, "application/json");

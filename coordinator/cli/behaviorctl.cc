@@ -18,6 +18,8 @@
 //   behaviorctl --coordinator 127.0.0.1:50060 --robot drone1 emergency-land
 //   behaviorctl --coordinator 127.0.0.1:50060 --robot drone1 kill --confirm
 //   behaviorctl --target 127.0.0.1:50061 health        (exit 0 when SERVING)
+//   behaviorctl --coordinator 127.0.0.1:50060 --channel 127.0.0.1:50051 record flight.mcap
+//   behaviorctl --channel 127.0.0.1:50051 replay flight.mcap [--speed 2]
 //
 // Output is one JSON object per line, so it can be piped into other tools.
 
@@ -43,6 +45,13 @@ ABSL_FLAG(bool, skip_plan, false, "activate through the coordinator: the behavio
 ABSL_FLAG(bool, detach, false, "mission run: start it and return");
 ABSL_FLAG(bool, confirm, false, "kill: required");
 ABSL_FLAG(std::string, mission_id, "", "mission run: the mission's id");
+ABSL_FLAG(std::string, channel, "", "record, replay: the data channel's (broker's) address");
+ABSL_FLAG(std::string, topics, "",
+          "record: vehicle topics under robots/{id}/, comma-separated (default: poses, flight "
+          "state, marker detections, the map's occupied cells)");
+ABSL_FLAG(double, duration_s, 0, "record: stop after this many seconds (0: at SIGINT or SIGTERM)");
+ABSL_FLAG(double, speed, 1, "replay: 1 as recorded, 2 twice as fast, 0 as fast as possible");
+ABSL_FLAG(std::string, topic_prefix, "", "replay: only the recording's topics with this prefix");
 
 int main(int argc, char** argv) {
   behaviorlib::coordinator::CtlOptions options;
@@ -69,6 +78,11 @@ int main(int argc, char** argv) {
       "  mission status ID | list | watch ID | pause ID | resume ID | abort ID [REASON]\n"
       "  emergency-land [REASON] | kill --confirm [REASON]   (--coordinator, --robot)\n"
       "  health                               gRPC health check; exit 0 when SERVING\n"
+      "  record FILE [--topics a,b] [--duration-s S]   (--coordinator, --channel) the flight\n"
+      "                                       recorder: events, missions, beliefs and vehicle\n"
+      "                                       topics into an MCAP file, until interrupted\n"
+      "  replay FILE [--speed X] [--topic-prefix P]   (--channel) publishes a recording into a\n"
+      "                                       broker\n"
       "activate through the coordinator: --dry-run shows the catalog's plan only,\n"
       "  --skip-plan activates the behavior alone\n"
       "with --coordinator: --robot ID names the robot (required by activate, deactivate,\n"
@@ -88,6 +102,11 @@ int main(int argc, char** argv) {
   options.detach = absl::GetFlag(FLAGS_detach);
   options.confirm = absl::GetFlag(FLAGS_confirm);
   options.mission_id = absl::GetFlag(FLAGS_mission_id);
+  options.channel = absl::GetFlag(FLAGS_channel);
+  options.topics = absl::GetFlag(FLAGS_topics);
+  options.duration_s = absl::GetFlag(FLAGS_duration_s);
+  options.speed = absl::GetFlag(FLAGS_speed);
+  options.topic_prefix = absl::GetFlag(FLAGS_topic_prefix);
   options.args = std::move(args);
   return behaviorlib::coordinator::runCtl(options);
 }

@@ -483,6 +483,13 @@ int runHealth(const CtlOptions& c) {
 }
 
 int runCtl(const CtlOptions& options) {
+  if (!options.args.empty() && (options.args[0] == "record" || options.args[0] == "replay")) {
+    if (absl::Status s = server::checkProcessTransport(); !s.ok()) {
+      std::fprintf(stderr, "behaviorctl: %s\n", std::string(s.message()).c_str());
+      return 2;
+    }
+    return options.args[0] == "record" ? runRecord(options) : runReplay(options);
+  }
   if (options.args.empty() || options.target.empty() == options.coordinator.empty()) {
     std::fputs(
         "behaviorctl: give a command and one of --target (a behavior system) or --coordinator "

@@ -33,6 +33,16 @@ struct CtlOptions {
   bool detach = false;
   bool confirm = false;
   std::string mission_id;
+  /// record/replay: the data channel (broker) address.
+  std::string channel;
+  /// record: vehicle topics under robots/{id}/, comma-separated (empty: the
+  /// default set); --duration-s: stop after this long (0: at SIGINT/SIGTERM).
+  std::string topics;
+  double duration_s = 0;
+  /// replay: 1 as recorded, 0 as fast as the broker takes it; only MCAP
+  /// topics with this prefix.
+  double speed = 1;
+  std::string topic_prefix;
   /// The command and its arguments ("activate", "WAIT", "{...}").
   std::vector<std::string> args;
 };
@@ -41,5 +51,9 @@ struct CtlOptions {
 /// a mission did not succeed, or a health check found the server not
 /// serving), 2 a usage error.
 int runCtl(const CtlOptions& options);
+
+/// The flight recorder's commands (behaviorctl_recorder.cc).
+int runRecord(const CtlOptions& options);
+int runReplay(const CtlOptions& options);
 
 }  // namespace behaviorlib::coordinator

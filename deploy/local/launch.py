@@ -75,6 +75,8 @@ servers through gRPC reflection (no generated code).
 """
 
 import argparse
+import ctypes
+import json
 import math
 import os
 import re
@@ -437,6 +439,64 @@ def run_demo(args, run_dir, simulator, coordinator, systems, state):
                 f"had no finished event 3 s after the mission ended")
 
 
+class FlightRecorder:
+    """`behaviorctl record` beside the stack (--record, on for --demo): the
+    fleet's events, missions, beliefs and vehicle topics into
+    <run-dir>/flight.mcap (console/recorder, decision 36). It ends with the
+    launcher (SIGTERM at the stop, and the parent-death signal if the
+    launcher dies), writing the file's summary."""
+
+    FILE = "flight.mcap"
+
+    def __init__(self, build_dir, run_dir, coordinator, broker, topics, certs):
+        self.path = os.path.join(run_dir, self.FILE)
+        self.log_path = os.path.join(run_dir, "logs", "recorder.log")
+        self.result = {}
+        argv = [binary(build_dir, "bin/behaviorctl"), "--coordinator", coordinator,
+                "--channel", broker]
+        if topics:
+            argv += ["--topics", topics]
+        if certs:
+            argv += ["--tls-cert", os.path.join(certs, "operator.pem"),
+                     "--tls-key", os.path.join(certs, "operator.key"),
+                     "--tls-ca", os.path.join(certs, "ca.pem")]
+        argv += ["record", self.path]
+        os.makedirs(os.path.dirname(self.log_path), exist_ok=True)
+        self._stdout = tempfile.TemporaryFile(mode="w+")
+        with open(self.log_path, "a") as log:
+            self.process = subprocess.Popen(argv, stdout=self._stdout, stderr=log,
+                                            stdin=subprocess.DEVNULL,
+                                            preexec_fn=_die_with_parent)
+
+    def stop(self, timeout_s):
+        """Ends the recording; what it wrote ({file, bytes, messages})."""
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+        self._stdout.seek(0)
+        for line in self._stdout.read().splitlines():
+            try:
+                self.result = json.loads(line)
+            except ValueError:
+                pass
+        self._stdout.close()
+        return self.result
+
+
+_LIBC = ctypes.CDLL(None, use_errno=True)
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent():
+    """In a child before exec: SIGTERM when the launcher dies (Linux). Only
+    a call here: nothing that takes a lock, as the launcher has threads."""
+    _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
 def parse_missions(parser, args):
     """args.missions: robot -> absolute mission file, from the --mission
     values (FILE for the first robot, or ROBOT=FILE); the demo mission on
@@ -583,6 +643,14 @@ def main():
     parser.add_argument("--console-listen", default="127.0.0.1:0", metavar="HOST:PORT",
                         help="the console's HTTP address (port 0: any free port; the URL is "
                              "printed; default: %(default)s)")
+    parser.add_argument("--record", action=argparse.BooleanOptionalAction, default=None,
+                        help="record the flight into <run-dir>/flight.mcap with behaviorctl "
+                             "record: events, missions, beliefs and the vehicle topics (MCAP, "
+                             "decision 36); on by default with --demo")
+    parser.add_argument("--record-topics", default="", metavar="A,B",
+                        help="the vehicle topics recorded under robots/{id}/ (default: poses, "
+                             "flight state, marker detections, the map's occupied cells; add "
+                             "camera/image or lidar/scan here)")
     parser.add_argument("--restart", choices=RestartPolicy.MODES, default="on-failure",
                         help="on-failure: a process that crashes (non-zero exit code, or a "
                              "signal) is started again on its ports, at most 5 times in 60 s "
@@ -601,6 +669,8 @@ def main():
             parser.error(f"--systems: no behavior system {name} (known: "
                          f"{', '.join(BEHAVIOR_SYSTEMS)})")
     args.missions = parse_missions(parser, args)
+    if args.record is None:
+        args.record = args.demo
     if args.sensor_config and not os.path.isfile(args.sensor_config):
         parser.error(f"--sensor-config: {args.sensor_config} is not a file")
     build_dir = os.path.abspath(args.build_dir)
@@ -619,6 +689,8 @@ def main():
     figures = ([], [])
     interrupted = ""
     console = None
+    flight_recorder = None
+    recording = {}
     say(f"run directory: {run_dir}")
     try:
         say("\n== starting ==")
@@ -634,6 +706,11 @@ def main():
         say(f"  Prometheus targets: {targets}")
         if console is not None:
             say(f"  console: {console.url}")
+        if args.record:
+            flight_recorder = FlightRecorder(
+                build_dir, run_dir, coordinator.address, stack.find("channel_broker").address,
+                args.record_topics, os.path.join(run_dir, "certs") if args.tls else None)
+            say(f"  recording: {flight_recorder.path}")
         if args.demo:
             run_demo(args, run_dir, simulator, coordinator, systems, demo_state)
             supervisor.check()
@@ -678,6 +755,14 @@ def main():
         for client in demo_state["clients"]:
             client.close()
         say("\n== stopping ==")
+        if flight_recorder is not None:
+            recording = flight_recorder.stop(args.stop_timeout_s)
+            code = flight_recorder.process.returncode
+            if code == 0 and recording:
+                say(f"  recording {flight_recorder.path}: {recording.get('bytes', 0):.0f} bytes, "
+                    f"{sum(recording.get('messages', {}).values()):.0f} messages")
+            else:
+                say(f"  the recorder ended with {code}: {flight_recorder.log_path}")
         clean = stack.stop(args.stop_timeout_s, say)
         if not clean:
             status = status or 1
@@ -699,7 +784,9 @@ def main():
                                  for robot, path in args.missions.items()},
                     "sensor_config": os.path.relpath(os.path.abspath(args.sensor_config), REPO)
                     if args.sensor_config else "",
-                    "console_url": console.url if console is not None else ""}
+                    "console_url": console.url if console is not None else "",
+                    "recording": flight_recorder.path if recording else "",
+                    "recording_messages": recording.get("messages", {})}
         robots = robot_reports(args, build_dir, demo_state, run_dir)
         report.write(run_dir, settings, robots, behaviors, processes, clean,
                      world_markers(world_file(args.world)), world_walls(world_file(args.world)))

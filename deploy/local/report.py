@@ -550,7 +550,10 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
     footer = ["", "Logs of every process: `logs/`; Prometheus targets: "
               "`prometheus_targets.json`."
               + (f" The run's console was {settings['console_url']} (while the stack ran)."
-                 if settings.get("console_url") else ""), ""]
+                 if settings.get("console_url") else "")
+              + (f" The flight recording is `{settings['recording']}` (MCAP: `behaviorctl replay`,"
+                 " the console's Recording view, Foxglove)." if settings.get("recording") else ""),
+              ""]
 
     if not several:
         r, entry = robots[0], first

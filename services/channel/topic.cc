@@ -9,6 +9,8 @@
 
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
+#include "behaviorlib/v1/coordinator.pb.h"
+#include "behaviorlib/v1/mission.pb.h"
 #include "behaviorlib/v1/motion.pb.h"
 #include "behaviorlib/v1/platform.pb.h"
 #include "behaviorlib/v1/types.pb.h"
@@ -92,6 +94,12 @@ absl::Status checkSample(absl::string_view topic, const google::protobuf::Any& s
                      "' without a '/': expected \"<prefix>/<full message name>\" as "
                      "Any::PackFrom writes it (type.googleapis.com/behaviorlib.v1.Pose)"));
   }
+  // A flight recording's replay publishes the coordinator's messages too
+  // (robots/{id}/recording/..., decision 36): referenced here so that a
+  // static link keeps their descriptors in the generated pool.
+  static const google::protobuf::Descriptor* const kRecordingTypes[] = {
+      v1::FleetEvent::descriptor(), v1::MissionStatus::descriptor(), v1::Belief::descriptor()};
+  (void)kRecordingTypes;
   const absl::string_view type_name = typeNameOfUrl(sample.type_url());
   const google::protobuf::Descriptor* descriptor =
       google::protobuf::DescriptorPool::generated_pool()->FindMessageTypeByName(

@@ -28,17 +28,14 @@
 
 #include <atomic>
 #include <chrono>
-#include <map>
 #include <memory>
-#include <set>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "absl/status/status.h"
-#include "absl/synchronization/mutex.h"
-#include "behaviorlib/console/event_cursor.h"
 #include "behaviorlib/console/event_hub.h"
+#include "behaviorlib/console/fleet_follower.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 
@@ -79,11 +76,11 @@ struct GatewayOptions {
   std::string tls_key_file;
 };
 
-class Gateway {
+class Gateway : private FleetSink {
  public:
   Gateway(std::shared_ptr<grpc::Channel> coordinator, GatewayOptions options);
   /// Stops everything (shutdown()).
-  ~Gateway();
+  ~Gateway() override;
   Gateway(const Gateway&) = delete;
   Gateway& operator=(const Gateway&) = delete;
 
@@ -97,55 +94,24 @@ class Gateway {
   EventHub& hub() { return hub_; }
 
  private:
-  // Follows one server stream until shutdown: opens it with open(context)
-  // (the context registered under `key`, to cancel), hands each message to
-  // handle(), calls ended(status) when it ends, and opens it again after a
-  // delay that doubles up to 2 s.
-  template <typename Response, typename Open, typename Handle, typename Ended>
-  void followStream(const std::string& key, Open open, Handle handle, Ended ended);
-  void followEvents();
-  void followMissions();
-  void watchMission(const std::string& mission_id);
-  void publishMission(const v1::MissionStatus& status);
-  void followRobots();
-  void followBeliefs();
-  void followTopic(const std::string& topic);
-  void setCoordinatorUp(bool up, const std::string& why);
-  // Waits `wait`, or until kick() if kickable; false once stopping.
-  bool sleepFor(std::chrono::milliseconds wait, bool kickable);
-  // Reads the mission list now (a mission was started or controlled).
-  void kick();
+  void onEvent(const v1::FleetEvent& event) override;
+  void onMission(const v1::MissionStatus& status) override;
+  void onBelief(const v1::Belief& belief) override;
+  void onSample(const v1::SubscribeResponse& sample) override;
+  void onCoordinator(bool up, const std::string& why) override;
   void routes();
 
   const std::shared_ptr<grpc::Channel> channel_;
   const std::unique_ptr<v1::Coordinator::Stub> stub_;
   const GatewayOptions options_;
   EventHub hub_;
+  FleetFollower follower_;
   std::unique_ptr<httplib::Server> server_;
   int port_ = 0;
   std::atomic<int> event_clients_{0};
   std::atomic<bool> http_ended_{false};
+  std::atomic<bool> stopped_{false};
   std::thread http_thread_;
-  std::thread events_thread_;
-  std::thread missions_thread_;
-  std::thread beliefs_thread_;
-  std::unique_ptr<v1::DataChannel::Stub> data_;
-
-  absl::Mutex mutex_;
-  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
-  bool kicked_ ABSL_GUARDED_BY(mutex_) = false;
-  bool coordinator_up_ ABSL_GUARDED_BY(mutex_) = false;
-  bool coordinator_known_ ABSL_GUARDED_BY(mutex_) = false;
-  // The calls to cancel at shutdown: the event stream and mission watches.
-  std::map<std::string, grpc::ClientContext*> streams_ ABSL_GUARDED_BY(mutex_);
-  std::map<std::string, std::thread> mission_watchers_ ABSL_GUARDED_BY(mutex_);
-  // Watchers whose mission ended, to join.
-  std::vector<std::string> finished_watchers_ ABSL_GUARDED_BY(mutex_);
-  // The robots whose vehicle topics are followed, and their threads.
-  std::set<std::string> robots_ ABSL_GUARDED_BY(mutex_);
-  std::vector<std::thread> topic_threads_ ABSL_GUARDED_BY(mutex_);
-  // The last status published of each mission (its JSON).
-  std::map<std::string, std::string> mission_json_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib::console

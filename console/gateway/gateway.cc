@@ -8,15 +8,21 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <filesystem>
 #include <functional>
+#include <map>
+#include <regex>
 #include <set>
 #include <utility>
 
+#include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/time/time.h"
 #include "behaviorlib/embedded_descriptor_pool.h"
 #include "behaviorlib/error_details.h"
+#include "behaviorlib/recorder/mcap.h"
+#include "behaviorlib/recorder/recorder.h"
 #include "google/rpc/status.pb.h"
 
 namespace behaviorlib::console {
@@ -40,10 +46,15 @@ class JsonPrinter {
   }
 
   std::string print(const google::protobuf::Message& message) const {
+    return printBinary(message.GetDescriptor()->full_name(), message.SerializeAsString());
+  }
+
+  // A message of the type `type` (a full name of the embedded descriptors)
+  // from its binary encoding.
+  std::string printBinary(const std::string& type, const std::string& bytes) const {
     std::string out;
     const auto status = pbu::BinaryToJsonString(
-        resolver_.get(), absl::StrCat(kTypeUrlPrefix, "/", message.GetDescriptor()->full_name()),
-        message.SerializeAsString(), &out, options_);
+        resolver_.get(), absl::StrCat(kTypeUrlPrefix, "/", type), bytes, &out, options_);
     if (!status.ok()) {
       google::protobuf::Struct error;
       (*error.mutable_fields())["json_error"].set_string_value(status.ToString());
@@ -57,10 +68,12 @@ class JsonPrinter {
   pbu::JsonPrintOptions options_;
 };
 
-std::string toJson(const google::protobuf::Message& message) {
-  static const JsonPrinter printer;
-  return printer.print(message);
+const JsonPrinter& printer() {
+  static const JsonPrinter* const instance = new JsonPrinter();
+  return *instance;
 }
+
+std::string toJson(const google::protobuf::Message& message) { return printer().print(message); }
 
 // The HTTP status of a gRPC code, as google.api's HTTP mapping gives it.
 int httpStatus(grpc::StatusCode code) {
@@ -158,6 +171,73 @@ std::string gatewayJson(bool up, const std::string& why) {
   return toJson(message);
 }
 
+// One recording as the feed's messages (the page applies them as it does
+// the live ones): the coordinator's events, missions and beliefs, and the
+// vehicle samples thinned to one per `period` per topic.
+absl::StatusOr<std::string> recordingJson(const std::string& path, const std::string& name,
+                                          const GatewayOptions& options) {
+  recorder::mcap::ReadLimits limits;
+  limits.max_file_bytes = options.max_recording_bytes;
+  std::string messages;
+  size_t count = 0;
+  bool truncated = false;
+  uint64_t first_ns = 0;
+  uint64_t last_ns = 0;
+  std::map<uint16_t, uint64_t> last_sample_ns;
+  const uint64_t period_ns =
+      static_cast<uint64_t>(std::chrono::nanoseconds(options.recording_sample_period).count());
+  const auto summary = recorder::mcap::scan(
+      path, limits,
+      [&](const recorder::mcap::ScanSummary& known, const recorder::mcap::Message& message) {
+        const auto& channel = known.channels.at(message.channel_id);
+        const auto schema = known.schemas.find(channel.schema_id);
+        if (schema == known.schemas.end() || schema->second.encoding != "protobuf") return true;
+        const std::string& type = schema->second.name;
+        std::string event;
+        std::string data;
+        if (channel.topic == recorder::kEventsTopic) {
+          event = "fleet";
+        } else if (channel.topic == recorder::kMissionsTopic) {
+          event = "mission";
+        } else if (channel.topic == recorder::kBeliefsTopic) {
+          event = "belief";
+        } else if (absl::StartsWith(channel.topic, "robots/")) {
+          auto last = last_sample_ns.find(message.channel_id);
+          if (last != last_sample_ns.end() && message.log_time_ns < last->second + period_ns) {
+            return true;
+          }
+          last_sample_ns[message.channel_id] = message.log_time_ns;
+          v1::SubscribeResponse sample;
+          sample.set_topic(channel.topic);
+          sample.mutable_sample()->set_type_url(absl::StrCat(kTypeUrlPrefix, "/", type));
+          sample.mutable_sample()->set_value(message.data);
+          event = "vehicle";
+          data = toJson(sample);
+        } else {
+          return true;
+        }
+        if (data.empty()) data = printer().printBinary(type, message.data);
+        if (count == 0) first_ns = message.log_time_ns;
+        last_ns = std::max(last_ns, message.log_time_ns);
+        if (count >= options.max_recording_messages) {
+          truncated = true;
+          return false;
+        }
+        const double t_ms =
+            (static_cast<double>(message.log_time_ns) - static_cast<double>(first_ns)) / 1e6;
+        absl::StrAppend(&messages, count == 0 ? "" : ",", "{\"t_ms\":", t_ms, ",\"event\":\"",
+                        event, "\",\"data\":", data, "}");
+        ++count;
+        return true;
+      });
+  if (!summary.ok()) return summary.status();
+  return absl::StrCat(
+      "{\"name\":\"", name, "\",\"complete\":", summary->complete ? "true" : "false",
+      ",\"truncated\":", truncated ? "true" : "false",
+      ",\"duration_ms\":", (static_cast<double>(last_ns) - static_cast<double>(first_ns)) / 1e6,
+      ",\"messages\":[", messages, "]}");
+}
+
 FollowerOptions followerOptions(const GatewayOptions& options) {
   FollowerOptions follower;
   follower.call_timeout = options.call_timeout;
@@ -172,6 +252,13 @@ FollowerOptions followerOptions(const GatewayOptions& options) {
 // An idle event feed sends a comment this often, so a browser that went
 // away is noticed.
 constexpr std::chrono::milliseconds kKeepalive{5000};
+// Recordings listed at most.
+constexpr size_t kMaxListedRecordings = 1000;
+
+const std::regex& recordingName() {
+  static const std::regex* const pattern = new std::regex(R"([A-Za-z0-9._-]{1,200}\.mcap)");
+  return *pattern;
+}
 
 }  // namespace
 
@@ -207,7 +294,14 @@ absl::Status Gateway::start(const std::string& host, int port) {
     return absl::InvalidArgumentError(
         absl::StrCat("the console's web directory ", options_.web_dir, " does not exist"));
   }
+  if (!options_.recordings_dir.empty()) {
+    auto recordings = server::ConfinedDirectory::open("recordings", options_.recordings_dir,
+                                                      options_.max_recording_bytes);
+    if (!recordings.ok()) return recordings.status();
+    recordings_ = std::move(*recordings);
+  }
   routes();
+  recordingRoutes();
   if (port == 0) {
     port_ = server_->bind_to_any_port(host);
     if (port_ < 0) port_ = 0;
@@ -256,6 +350,51 @@ void Gateway::onSample(const v1::SubscribeResponse& sample) {
 
 void Gateway::onCoordinator(bool up, const std::string& why) {
   hub_.publishLatest("gateway", "gateway", gatewayJson(up, why));
+}
+
+void Gateway::recordingRoutes() {
+  server_->Get("/api/recordings", [this](const httplib::Request&, httplib::Response& response) {
+    std::vector<std::pair<std::string, uintmax_t>> found;
+    std::error_code error;
+    if (recordings_.enabled()) {
+      for (std::filesystem::directory_iterator it(recordings_.root(), error), end;
+           !error && it != end && found.size() < kMaxListedRecordings; it.increment(error)) {
+        const std::string name = it->path().filename().string();
+        if (it->symlink_status().type() != std::filesystem::file_type::regular ||
+            !std::regex_match(name, recordingName())) {
+          continue;
+        }
+        found.emplace_back(name, it->file_size(error));
+      }
+    }
+    std::sort(found.begin(), found.end());
+    std::string list;
+    for (const auto& [name, bytes] : found) {
+      absl::StrAppend(&list, list.empty() ? "" : ",", "{\"name\":\"", name, "\",\"bytes\":", bytes,
+                      "}");
+    }
+    response.set_content(absl::StrCat("{\"recordings\":[", list, "]}"), "application/json");
+  });
+  server_->Get(R"(/api/recordings/([^/]+))", [this](const httplib::Request& request,
+                                                    httplib::Response& response) {
+    const std::string name = request.matches[1];
+    absl::StatusOr<std::string> json;
+    if (!std::regex_match(name, recordingName())) {
+      json = absl::InvalidArgumentError(absl::StrCat(
+          "a recording's name is letters, digits, '.', '_' and '-' ending .mcap, not '", name,
+          "'"));
+    } else {
+      absl::StatusOr<std::string> path = recordings_.resolveExisting(name);
+      json = path.ok() ? recordingJson(*path, name, options_) : path.status();
+    }
+    if (json.ok()) {
+      response.set_content(*json, "application/json");
+      return;
+    }
+    const Reply reply = errorReply(errors::toGrpc(json.status()));
+    response.status = reply.status;
+    response.set_content(reply.json, "application/json");
+  });
 }
 
 void Gateway::routes() {

@@ -34,6 +34,8 @@ ABSL_FLAG(std::string, channel, "",
 ABSL_FLAG(std::string, web_dir, BEHAVIORLIB_CONSOLE_WEB_DIR, "the console's page and scripts");
 ABSL_FLAG(std::string, world, "",
           "a simulator world file (YAML) drawn under the vehicles on the console's map");
+ABSL_FLAG(std::string, recordings_dir, "",
+          "the flight recordings (*.mcap) the console's page may open and scrub through");
 ABSL_FLAG(std::string, port_file, "", "write the bound port here as http_port=N once serving");
 ABSL_FLAG(std::string, probe, "",
           "health check: GET /healthz of the console at this host:port (HTTPS when the TLS "
@@ -134,6 +136,7 @@ int main(int argc, char** argv) {
   options.max_event_clients = clients;
   options.tls_cert_file = security.cert_file;
   options.tls_key_file = security.key_file;
+  options.recordings_dir = absl::GetFlag(FLAGS_recordings_dir);
   if (const std::string world = absl::GetFlag(FLAGS_world); !world.empty()) {
     absl::StatusOr<std::string> json = behaviorlib::console::worldJson(world);
     if (!json.ok()) {

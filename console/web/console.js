@@ -8,6 +8,11 @@
 const token = new URLSearchParams(location.search).get("token");
 const MAX_EVENTS = 500;
 const missions = new Map();
+// The recording shown instead of the live fleet (openRecording), or null.
+let replaying = null;
+// While a recording's messages are applied, the map and tables are drawn
+// once at the end.
+let deferred = false;
 
 async function call(name, request) {
   const headers = { "Content-Type": "application/json" };
@@ -121,6 +126,7 @@ function addEvent(fleetEvent) {
 }
 
 function renderMissions() {
+  if (deferred) return;
   const body = document.querySelector("#missions tbody");
   body.replaceChildren();
   const sorted = [...missions.values()].sort((a, b) =>
@@ -138,7 +144,7 @@ function renderMissions() {
     const controls = cell(row, "");
     for (const [label, method] of [["Pause", "PauseMission"], ["Resume", "ResumeMission"],
                                    ["Abort", "AbortMission"]]) {
-      if (state !== "RUNNING" && state !== "PAUSED") break;
+      if (replaying || (state !== "RUNNING" && state !== "PAUSED")) break;
       const button = document.createElement("button");
       button.textContent = label;
       button.onclick = () => call(method, { mission_id: m.mission_id }).then(
@@ -186,7 +192,8 @@ function vehicle(robot) {
   return vehicles.get(robot);
 }
 
-function onVehicle(sample) {
+// nowMs: the time the sample is shown at (a recording's time when replaying).
+function onVehicle(sample, nowMs = Date.now()) {
   const match = /^robots\/([^/]+)\/(.+)$/.exec(sample.topic || "");
   if (!match || !sample.sample) return;
   const v = vehicle(match[1]);
@@ -201,8 +208,8 @@ function onVehicle(sample) {
     // An estimate older than a second (its localization ended) gives way to
     // the ground truth.
     if (topic === "self_localization/pose") {
-      v.estimateAt = Date.now();
-    } else if (Date.now() - v.estimateAt < 1000) {
+      v.estimateAt = nowMs;
+    } else if (nowMs - v.estimateAt < 1000) {
       return;
     }
     const p = sample.sample.pose.position_m || {};
@@ -218,6 +225,7 @@ function onVehicle(sample) {
 }
 
 function renderVehicles() {
+  if (deferred) return;
   const body = document.querySelector("#vehicles tbody");
   body.replaceChildren();
   const content = document.getElementById("map-content");
@@ -319,21 +327,27 @@ function setCoordinator(up, message) {
   badge.textContent = "coordinator: " + (up ? "up" : "unreachable " + (message || ""));
 }
 
+function onMission(status) {
+  missions.set(status.mission_id, status);
+  renderMissions();
+}
+
 function follow() {
   const feed = new EventSource("/api/events");
-  feed.addEventListener("fleet", (message) => {
-    const event = JSON.parse(message.data);
+  // While a recording is shown, the live feed is not applied (the hub keeps
+  // it: going back to live reloads the page).
+  const live = (handle) => (message) => {
+    if (!replaying) handle(JSON.parse(message.data));
+  };
+  feed.addEventListener("fleet", live((event) => {
     addEvent(event);
     refreshSystems().catch(showError);
-  });
-  feed.addEventListener("mission", (message) => {
-    const status = JSON.parse(message.data);
-    missions.set(status.mission_id, status);
-    renderMissions();
-  });
-  feed.addEventListener("vehicle", (message) => onVehicle(JSON.parse(message.data)));
-  feed.addEventListener("belief", (message) => onBelief(JSON.parse(message.data)));
+  }));
+  feed.addEventListener("mission", live(onMission));
+  feed.addEventListener("vehicle", live((sample) => onVehicle(sample)));
+  feed.addEventListener("belief", live(onBelief));
   feed.addEventListener("gateway", (message) => {
+    if (replaying) return;
     const state = JSON.parse(message.data);
     setCoordinator(state.coordinator_up, state.message);
     if (state.coordinator_up) refreshSystems().catch(showError);
@@ -355,6 +369,112 @@ document.getElementById("emergency-land").addEventListener("submit", (event) => 
     .then(() => showError(null), showError);
 });
 
+// Flight recordings (GET /api/recordings, made by the flight recorder): one
+// is opened whole, then shown as it was at the scrubber's time, by applying
+// its messages up to then as the live ones are.
+async function loadRecordings() {
+  const reply = await fetch("/api/recordings");
+  if (!reply.ok) return;
+  const { recordings } = await reply.json();
+  const select = document.getElementById("recordings");
+  select.replaceChildren();
+  for (const r of recordings) {
+    const option = document.createElement("option");
+    option.value = r.name;
+    option.textContent = `${r.name} (${(r.bytes / 1e6).toFixed(1)} MB)`;
+    select.appendChild(option);
+  }
+}
+
+async function openRecording(name) {
+  const reply = await fetch("/api/recordings/" + encodeURIComponent(name));
+  const body = await reply.json();
+  if (!reply.ok) throw new Error(body.message || reply.statusText);
+  body.messages.sort((a, b) => a.t_ms - b.t_ms);
+  replaying = body;
+  const scrub = document.getElementById("scrub");
+  scrub.max = String(Math.ceil(body.duration_ms));
+  scrub.value = scrub.max;
+  document.getElementById("scrubber").hidden = false;
+  document.getElementById("live").hidden = false;
+  const badge = document.getElementById("coordinator");
+  badge.className = "badge recording";
+  badge.textContent = `recording: ${name}` + (body.complete ? "" : " (still being written)");
+  showRecordingAt(Number(scrub.value));
+}
+
+// The fleet as the recording had it `ms` after its first message.
+function showRecordingAt(ms) {
+  document.querySelector("#events tbody").replaceChildren();
+  missions.clear();
+  vehicles.clear();
+  markersFound.clear();
+  const systems = new Map();
+  const active = new Map();
+  deferred = true;
+  try {
+    for (const { t_ms: t, event, data } of replaying.messages) {
+      if (t > ms) break;
+      if (event === "fleet") {
+        addEvent(data);
+        const e = data.behavior_event;
+        if (data.system_state_changed) {
+          const s = data.system_state_changed.system;
+          systems.set(s.robot_id + "/" + s.system, s);
+        } else if (e && e.activated) {
+          active.set(e.activation_id, e);
+        } else if (e && e.finished) {
+          active.delete(e.activation_id);
+        }
+      } else if (event === "mission") {
+        onMission(data);
+      } else if (event === "vehicle") {
+        onVehicle(data, t);
+      } else if (event === "belief") {
+        onBelief(data);
+      }
+    }
+  } finally {
+    deferred = false;
+  }
+  const systemRows = document.querySelector("#systems tbody");
+  systemRows.replaceChildren();
+  for (const s of systems.values()) {
+    const row = systemRows.insertRow();
+    row.dataset.robot = s.robot_id;
+    row.dataset.system = s.system;
+    cell(row, s.robot_id);
+    cell(row, s.system);
+    cell(row, shortState(s.state, "SYSTEM_STATE_"), "state");
+    cell(row, s.address);
+    cell(row, "");
+  }
+  const activeRows = document.querySelector("#active tbody");
+  activeRows.replaceChildren();
+  for (const e of active.values()) {
+    const row = activeRows.insertRow();
+    cell(row, e.robot_id);
+    cell(row, e.behavior);
+    cell(row, "active");
+    cell(row, e.activation_id);
+  }
+  renderMissions();
+  renderVehicles();
+  document.getElementById("scrub-time").textContent =
+    `${(ms / 1000).toFixed(2)} s of ${(replaying.duration_ms / 1000).toFixed(2)} s`;
+}
+
+document.getElementById("open-recording").addEventListener("submit", (event) => {
+  event.preventDefault();
+  const name = new FormData(event.target).get("name");
+  if (name) openRecording(name).then(() => showError(null), showError);
+});
+document.getElementById("scrub").addEventListener("input", (event) => {
+  if (replaying) showRecordingAt(Number(event.target.value));
+});
+document.getElementById("live").addEventListener("click", () => location.reload());
+
 follow();
 refreshSystems().catch(showError);
 loadWorld().catch(showError);
+loadRecordings().catch(showError);

@@ -248,6 +248,12 @@ def output_root(run_dir):
     return os.path.join(run_dir, "output")
 
 
+def recordings_dir(run_dir):
+    """Where the flight recorder writes (--record), which the console may
+    open (--recordings-dir): nothing else of the run is in it."""
+    return os.path.join(run_dir, "recordings")
+
+
 def make_certs(run_dir, names, systems):
     """--tls: a CA and a certificate per process (scripts/make-dev-certs.sh)
     in <run-dir>/certs, and the access policy that gives each its roles
@@ -352,7 +358,9 @@ def start_stack(args, build_dir, stack):
     if args.console:
         console_argv = [binary(build_dir, "bin/console"), "--listen", args.console_listen,
                         "--coordinator", coordinator.address, "--channel", broker.address,
-                        "--web-dir", os.path.join(REPO, "console", "web")]
+                        "--web-dir", os.path.join(REPO, "console", "web"),
+                        "--recordings-dir", recordings_dir(stack.run_dir)]
+        os.makedirs(recordings_dir(stack.run_dir), exist_ok=True)
         if args.world:
             console_argv += ["--world", world_file(args.world)]
         if certs:
@@ -442,14 +450,14 @@ def run_demo(args, run_dir, simulator, coordinator, systems, state):
 class FlightRecorder:
     """`behaviorctl record` beside the stack (--record, on for --demo): the
     fleet's events, missions, beliefs and vehicle topics into
-    <run-dir>/flight.mcap (console/recorder, decision 36). It ends with the
+    <run-dir>/recordings/flight.mcap (console/recorder, decision 36). It ends with the
     launcher (SIGTERM at the stop, and the parent-death signal if the
     launcher dies), writing the file's summary."""
 
     FILE = "flight.mcap"
 
     def __init__(self, build_dir, run_dir, coordinator, broker, topics, certs):
-        self.path = os.path.join(run_dir, self.FILE)
+        self.path = os.path.join(recordings_dir(run_dir), self.FILE)
         self.log_path = os.path.join(run_dir, "logs", "recorder.log")
         self.result = {}
         argv = [binary(build_dir, "bin/behaviorctl"), "--coordinator", coordinator,
@@ -644,9 +652,9 @@ def main():
                         help="the console's HTTP address (port 0: any free port; the URL is "
                              "printed; default: %(default)s)")
     parser.add_argument("--record", action=argparse.BooleanOptionalAction, default=None,
-                        help="record the flight into <run-dir>/flight.mcap with behaviorctl "
-                             "record: events, missions, beliefs and the vehicle topics (MCAP, "
-                             "decision 36); on by default with --demo")
+                        help="record the flight into <run-dir>/recordings/flight.mcap with "
+                             "behaviorctl record: events, missions, beliefs and the vehicle "
+                             "topics (MCAP, decision 36); on by default with --demo")
     parser.add_argument("--record-topics", default="", metavar="A,B",
                         help="the vehicle topics recorded under robots/{id}/ (default: poses, "
                              "flight state, marker detections, the map's occupied cells; add "

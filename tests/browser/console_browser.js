@@ -11,6 +11,9 @@
 // - the vehicle's marker moves on the map, over the world's walls and the
 //   OctoMap's occupied voxels;
 // - pressing "Emergency land" lands the vehicle (its flight state LANDED);
+// - the flight's recording (the launcher's --record) opens in the page, and
+//   scrubbing through it shows the flight again: fewer events at its start
+//   than at its end, TAKE_OFF's GOAL_ACHIEVED, the vehicle at two places at least;
 // - and no console error or uncaught exception happened on the way.
 // Each wait is a bound for what must happen, never a measure of speed.
 "use strict";
@@ -120,6 +123,42 @@ async function main() {
 
     await page.screenshot({ path: screenshot });
     log(`screenshot: ${screenshot}`);
+
+    // The recording of this flight, still being written.
+    await page.reload({ waitUntil: "domcontentloaded" });
+    await page.waitForFunction(() => [...document.querySelectorAll("#recordings option")]
+      .some((o) => o.value === "flight.mcap"), { timeout: WAIT_MS });
+    await page.select("#recordings", "flight.mcap");
+    await page.click("#open-recording button[type=submit]");
+    await page.waitForFunction(() => document.getElementById("coordinator").textContent
+      .startsWith("recording: flight.mcap"), { timeout: WAIT_MS });
+    const scrubTo = async (fraction) => page.evaluate((f) => {
+      const scrub = document.getElementById("scrub");
+      scrub.value = String(Math.round(Number(scrub.max) * f));
+      scrub.dispatchEvent(new Event("input"));
+      const marker = document.querySelector("#map circle.vehicle");
+      return {
+        events: document.querySelectorAll("#events tbody tr").length,
+        takeOff: [...document.querySelectorAll('#events tbody tr[data-behavior="TAKE_OFF"]')]
+          .some((row) => row.querySelector(".cause").textContent === "GOAL_ACHIEVED"),
+        at: marker ? `${Number(marker.getAttribute("cx")).toFixed(1)},` +
+          `${Number(marker.getAttribute("cy")).toFixed(1)}` : "",
+      };
+    }, fraction);
+    const views = [];
+    for (let i = 0; i <= 40; ++i) views.push(await scrubTo(i / 40));
+    const atStart = views[0];
+    const atEnd = views[views.length - 1];
+    const places = new Set(views.map((v) => v.at).filter((at) => at));
+    log(`recording: ${atStart.events} events at its start, ${atEnd.events} at its end, ` +
+      `the vehicle at ${places.size} places`);
+    if (!(atStart.events < atEnd.events)) throw new Error("scrubbing does not change the events");
+    if (atStart.takeOff || !atEnd.takeOff) {
+      throw new Error("TAKE_OFF's GOAL_ACHIEVED is not where the recording has it");
+    }
+    if (places.size < 2) {
+      throw new Error(`the vehicle does not move in the recording: ${[...places]}`);
+    }
   } finally {
     await browser.close();
   }

@@ -67,7 +67,7 @@ def main():
             [sys.executable, LAUNCHER, "--build-dir", os.path.abspath(args.build_dir),
              "--run-dir", run_dir, "--time-scale", "max", "--robot-id", ROBOT, "--world", "rooms",
              "--mission-dir", os.path.join(HERE, "missions"),
-             "--console-listen", "127.0.0.1:0"],
+             "--console-listen", "127.0.0.1:0", "--record"],
             stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
     status = 1
     try:

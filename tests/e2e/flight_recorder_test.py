@@ -3,7 +3,7 @@
     build/venv/bin/python tests/e2e/flight_recorder_test.py --build-dir build
 
 1. The local launcher flies the demo (--demo, the deterministic mode), which
-   records by default into <run-dir>/flight.mcap; the report names the file.
+   records by default into <run-dir>/recordings/flight.mcap; the report names the file.
 2. Foxglove's MCAP library (npm @mcap/core, pinned by tests/e2e/mcap's
    lockfile, installed by npm ci into the build tree) reads the file: CRCs,
    summary, statistics, and per topic the messages, which must be the ones
@@ -95,7 +95,7 @@ class FlightRecorderTest(unittest.TestCase):
             capture_output=True, text=True, timeout=WAIT_S)
         cls.launcher_output = result.stdout + result.stderr
         assert result.returncode == 0, f"the demo failed:\n{cls.launcher_output[-4000:]}"
-        cls.recording = os.path.join(cls.run_dir, "flight.mcap")
+        cls.recording = os.path.join(cls.run_dir, "recordings", "flight.mcap")
         read = subprocess.run(["node", os.path.join(HERE, "mcap", "read_mcap.js"), cls.recording],
                               env=dict(os.environ, NODE_PATH=os.path.join(ARGS.work_dir,
                                                                           "node_modules")),

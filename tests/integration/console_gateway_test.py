@@ -13,6 +13,9 @@ coordinator and a real behavior system on loopback:
   mission with its field violation);
 - the vehicle's pose and flight status arrive from the data channel, the
   map's world is the world file's, and beliefs come with their latest value;
+- a flight recording (behaviorctl record, still being written, then whole)
+  opens as the feed's messages with their times; bad names, missing files
+  and files that are not MCAP are refused with their status;
 - a coordinator that goes away is reported on the feed.
 """
 
@@ -130,8 +133,12 @@ class ConsoleGatewayTest(unittest.TestCase):
         cls.system = Process("basic_quadrotor_behaviors",
                              listen + ["--robot-id", "robot-a", "--coordinator",
                                        cls.coordinator_address], cls.dir)
+        cls.broker_address = broker
+        cls.recordings = os.path.join(cls.dir, "recordings")
+        os.makedirs(cls.recordings)
         cls.console = Process("console", ["--listen", "127.0.0.1:0", "--coordinator",
                                           cls.coordinator_address, "--channel", broker,
+                                          "--recordings-dir", cls.recordings,
                                           "--world", os.path.join(REPO, "simulator", "worlds",
                                                                   "rooms.yaml")], cls.dir)
         cls.port = int(cls.console.ports["http_port"])
@@ -342,6 +349,65 @@ class ConsoleGatewayTest(unittest.TestCase):
         belief = seen[-1][2]
         self.assertEqual(belief["value"]["position_m"]["x"], 1.5)
         self.assertFalse(belief["deleted"])
+
+    def test_6e_a_recording_opens_as_the_feeds_messages(self):
+        self.wait_for_system()
+        ctl = os.path.join(BUILD_DIR, "bin", "behaviorctl")
+        path = os.path.join(self.recordings, "short.mcap")
+        recorder = subprocess.Popen([ctl, "--coordinator", self.coordinator_address,
+                                     "--channel", self.broker_address, "record", path],
+                                    stdout=subprocess.PIPE, text=True)
+        try:
+            self.activate("WAIT", {"duration_s": 0.07})
+            # Recorded once the recorder saw the activation's end: the
+            # console reads a recording that is still being written.
+            deadline = time.monotonic() + WAIT_S
+            while True:
+                status, _, body = self.request("GET", "/api/recordings/short.mcap")
+                self.assertEqual(status, 200, body)
+                recording = json.loads(body)
+                if any(m["event"] == "fleet" and finished("WAIT", 0.07)("fleet", m["data"])
+                       for m in recording["messages"]):
+                    break
+                self.assertLess(time.monotonic(), deadline, recording["messages"][-5:])
+                time.sleep(0.2)
+        finally:
+            recorder.terminate()
+            out, _ = recorder.communicate(timeout=WAIT_S)
+        self.assertEqual(recorder.returncode, 0)
+        self.assertGreater(json.loads(out)["messages"]["coordinator/events"], 0)
+        status, _, body = self.request("GET", "/api/recordings")
+        self.assertEqual(status, 200)
+        self.assertIn({"name": "short.mcap", "bytes": os.path.getsize(path)},
+                      json.loads(body)["recordings"])
+        status, _, body = self.request("GET", "/api/recordings/short.mcap")
+        recording = json.loads(body)
+        self.assertTrue(recording["complete"])
+        times = [m["t_ms"] for m in recording["messages"]]
+        self.assertEqual(times[0], 0)
+        kinds = {m["event"] for m in recording["messages"]}
+        self.assertLessEqual({"fleet", "vehicle"}, kinds)
+        # Samples in the live feed's shape, thinned to 10 per second.
+        poses = [m for m in recording["messages"] if m["event"] == "vehicle" and
+                 m["data"]["topic"] == "robots/robot-a/ground_truth/pose"]
+        self.assertTrue(poses)
+        self.assertIn("position_m", poses[0]["data"]["sample"]["pose"])
+        gaps = [b["t_ms"] - a["t_ms"] for a, b in zip(poses, poses[1:])]
+        self.assertTrue(all(gap >= 100 for gap in gaps), gaps)
+        # Refused: a name that is not a recording's, a missing one, a file
+        # that is not MCAP; the process keeps serving.
+        status, _, _ = self.request("GET", "/api/recordings/..%2Fconsole.log")
+        self.assertEqual(status, 404)  # No route: '/' is not in a name.
+        for name, code in (("..console.mcap.log", 400), ("missing.mcap", 404),
+                           ("notes.txt", 400)):
+            status, content_type, body = self.request("GET", f"/api/recordings/{name}")
+            self.assertEqual((status, content_type), (code, "application/json"), (name, body))
+            self.assertIn("message", json.loads(body))
+        with open(os.path.join(self.recordings, "text.mcap"), "w") as f:
+            f.write("not a recording")
+        status, _, body = self.request("GET", "/api/recordings/text.mcap")
+        self.assertEqual(status, 400, body)
+        self.assertIn("not an MCAP file", json.loads(body)["message"])
 
     def test_7_a_coordinator_that_goes_away_is_reported(self):
         feed = EventFeed(self.port)

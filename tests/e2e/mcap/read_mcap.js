@@ -60,7 +60,9 @@ function streamed(path) {
         header = { profile: record.profile, library: record.library };
         break;
       case "Schema":
-        schemas.set(record.id, { name: record.name, encoding: record.encoding, bytes: record.data.length });
+        schemas.set(record.id, {
+          name: record.name, encoding: record.encoding, bytes: record.data.length,
+        });
         break;
       case "Channel":
         channels.set(record.id, record);

@@ -15,6 +15,13 @@
 //                               topic), `belief` (each belief's latest
 //                               value: the markers found, ...), `gateway`
 //                               (whether the coordinator is reachable)
+//   GET  /api/recordings        the flight recordings (*.mcap) of
+//                               recordings_dir: {"recordings": [{name, bytes}]}
+//   GET  /api/recordings/NAME   one recording as the feed's messages, for the
+//                               page to scrub through: {name, complete,
+//                               duration_ms, truncated, messages: [{t_ms,
+//                               event, data}]} (vehicle samples at most one
+//                               per recording_sample_period per topic)
 //   POST /api/coordinator/NAME  one unary Coordinator call of the console's
 //                               (the request as JSON, proto field names; the
 //                               response as JSON), e.g. ListSystems,
@@ -36,6 +43,7 @@
 #include "absl/status/status.h"
 #include "behaviorlib/console/event_hub.h"
 #include "behaviorlib/console/fleet_follower.h"
+#include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 
@@ -71,6 +79,13 @@ struct GatewayOptions {
   size_t max_robots = 16;
   /// The map's world as JSON (GET /api/world); empty: a world without boxes.
   std::string world_json;
+  /// Where the flight recordings are (console/recorder); empty: none.
+  std::string recordings_dir;
+  /// Largest recording opened, and most messages sent of one.
+  uint64_t max_recording_bytes = uint64_t{512} << 20;
+  size_t max_recording_messages = 200000;
+  /// A recording's vehicle samples, at most one per topic this often.
+  std::chrono::milliseconds recording_sample_period{100};
   /// HTTPS with these PEM files (both, or neither: HTTP).
   std::string tls_cert_file;
   std::string tls_key_file;
@@ -100,6 +115,7 @@ class Gateway : private FleetSink {
   void onSample(const v1::SubscribeResponse& sample) override;
   void onCoordinator(bool up, const std::string& why) override;
   void routes();
+  void recordingRoutes();
 
   const std::shared_ptr<grpc::Channel> channel_;
   const std::unique_ptr<v1::Coordinator::Stub> stub_;
@@ -107,6 +123,7 @@ class Gateway : private FleetSink {
   EventHub hub_;
   FleetFollower follower_;
   std::unique_ptr<httplib::Server> server_;
+  server::ConfinedDirectory recordings_;
   int port_ = 0;
   std::atomic<int> event_clients_{0};
   std::atomic<bool> http_ended_{false};

@@ -65,25 +65,31 @@ async function refreshSystems() {
   }
   const body = document.querySelector("#systems tbody");
   body.replaceChildren();
-  for (const s of systems) {
-    const row = body.insertRow();
-    row.dataset.robot = s.robot_id;
-    row.dataset.system = s.system;
-    cell(row, s.robot_id);
-    cell(row, s.system);
-    cell(row, shortState(s.state, "SYSTEM_STATE_"), "state");
-    cell(row, s.address);
-    cell(row, hosted.get(s.robot_id + "/" + s.system) || 0);
-  }
+  for (const s of systems) systemRow(body, s, hosted.get(s.robot_id + "/" + s.system) || 0);
   const active = document.querySelector("#active tbody");
   active.replaceChildren();
   for (const b of behaviors.filter((b) => b.activation_id)) {
-    const row = active.insertRow();
-    cell(row, b.robot_id);
-    cell(row, b.description.name);
-    cell(row, "active");
-    cell(row, b.activation_id);
+    activeRow(active, b.robot_id, b.description.name, b.activation_id);
   }
+}
+
+function systemRow(body, s, behaviors) {
+  const row = body.insertRow();
+  row.dataset.robot = s.robot_id;
+  row.dataset.system = s.system;
+  cell(row, s.robot_id);
+  cell(row, s.system);
+  cell(row, shortState(s.state, "SYSTEM_STATE_"), "state");
+  cell(row, s.address);
+  cell(row, behaviors);
+}
+
+function activeRow(body, robot, behavior, activationId) {
+  const row = body.insertRow();
+  cell(row, robot);
+  cell(row, behavior);
+  cell(row, "active");
+  cell(row, activationId);
 }
 
 // The planned path: the `path_m` of the robot's latest activation that has
@@ -439,25 +445,10 @@ function showRecordingAt(ms) {
   }
   const systemRows = document.querySelector("#systems tbody");
   systemRows.replaceChildren();
-  for (const s of systems.values()) {
-    const row = systemRows.insertRow();
-    row.dataset.robot = s.robot_id;
-    row.dataset.system = s.system;
-    cell(row, s.robot_id);
-    cell(row, s.system);
-    cell(row, shortState(s.state, "SYSTEM_STATE_"), "state");
-    cell(row, s.address);
-    cell(row, "");
-  }
+  for (const s of systems.values()) systemRow(systemRows, s, "");
   const activeRows = document.querySelector("#active tbody");
   activeRows.replaceChildren();
-  for (const e of active.values()) {
-    const row = activeRows.insertRow();
-    cell(row, e.robot_id);
-    cell(row, e.behavior);
-    cell(row, "active");
-    cell(row, e.activation_id);
-  }
+  for (const e of active.values()) activeRow(activeRows, e.robot_id, e.behavior, e.activation_id);
   renderMissions();
   renderVehicles();
   document.getElementById("scrub-time").textContent =

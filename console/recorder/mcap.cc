@@ -145,10 +145,13 @@ class Scanner {
     }
     file_ = file.get();
     char magic[kMagicBytes];
-    if (std::fread(magic, 1, kMagicBytes, file_) != kMagicBytes ||
-        std::memcmp(magic, kMagic, kMagicBytes) != 0) {
+    const size_t got = std::fread(magic, 1, kMagicBytes, file_);
+    if (std::memcmp(magic, kMagic, got) != 0) {
       return absl::InvalidArgumentError(absl::StrCat(path_, " is not an MCAP file"));
     }
+    // Shorter than the magic, but its start: a recording that has just
+    // begun, with nothing in it yet.
+    if (got < kMagicBytes) return std::move(summary_);
     offset_ = kMagicBytes;
     bool first = true;
     while (true) {
@@ -335,6 +338,8 @@ absl::StatusOr<std::unique_ptr<Writer>> Writer::create(const std::string& path,
   writer->data_crc_ = crc32Update(0, magic);
   if (absl::Status put = writer->put(magic); !put.ok()) return put;
   if (absl::Status put = writer->putRecord(kHeader, header, true); !put.ok()) return put;
+  // A reader that opens the file at once finds an MCAP file.
+  if (absl::Status flushed = writer->flush(); !flushed.ok()) return flushed;
   return writer;
 }
 

@@ -159,6 +159,20 @@ async function main() {
     if (places.size < 2) {
       throw new Error(`the vehicle does not move in the recording: ${[...places]}`);
     }
+  } catch (error) {
+    // What the page showed when it failed, for the log.
+    const pages = await browser.pages();
+    const page = pages[pages.length - 1];
+    if (page) {
+      const shown = await page.evaluate(() => ({
+        badge: document.getElementById("coordinator").textContent,
+        error: document.getElementById("error").textContent,
+        recordings: [...document.querySelectorAll("#recordings option")].map((o) => o.value),
+      })).catch((e) => `unreadable: ${e}`);
+      log(`the page when it failed: ${JSON.stringify(shown)}`);
+    }
+    if (errors.length) log(`errors in the page:\n${errors.join("\n")}`);
+    throw error;
   } finally {
     await browser.close();
   }

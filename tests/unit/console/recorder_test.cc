@@ -121,6 +121,27 @@ TEST_F(McapTest, AFileCutShortReadsUpToItsLastWholeRecord) {
   EXPECT_EQ(messages[1].data, std::string("se\0cond", 7));
 }
 
+TEST_F(McapTest, ARecordingJustBegunIsReadAsEmptyAndIncomplete) {
+  // Created and not yet flushed past part of the magic: no messages, not
+  // an error.
+  writeBytes(path("new.mcap"), std::string("\x89MCA", 4));
+  mcap::ScanSummary summary;
+  absl::Status status;
+  EXPECT_TRUE(readAll(path("new.mcap"), &summary, &status).empty());
+  ASSERT_TRUE(status.ok()) << status;
+  EXPECT_FALSE(summary.complete);
+  writeBytes(path("empty.mcap"), "");
+  readAll(path("empty.mcap"), &summary, &status);
+  EXPECT_TRUE(status.ok()) << status;
+  // The writer's file is an MCAP file from its creation on.
+  auto writer = mcap::Writer::create(path("open.mcap"), "behaviorlib", "test");
+  ASSERT_TRUE(writer.ok());
+  readAll(path("open.mcap"), &summary, &status);
+  ASSERT_TRUE(status.ok()) << status;
+  EXPECT_EQ(summary.profile, "behaviorlib");
+  EXPECT_FALSE(summary.complete);
+}
+
 TEST_F(McapTest, TheVisitorCanStopTheScan) {
   const std::string file = writeSample();
   int seen = 0;

@@ -22,7 +22,7 @@ RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libssl3 libgrpc++1.51 libgrpc29 li
   libopencv-core406 libopencv-imgproc406 libopencv-imgcodecs406 libopencv-objdetect406 \
   libopencv-contrib406 libopencv-calib3d406 liboctomap1.9 libompl16 libcpp-httplib0.11"
 TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-venv python3-setuptools \
-  python3-wheel python3-pytest python3-matplotlib python3-pil prometheus docker-compose procps openssl \
+  python3-wheel python3-websocket python3-pytest python3-matplotlib python3-pil prometheus docker-compose procps openssl \
   clang-14 libclang-rt-14-dev libfuzzer-14-dev llvm-14 chromium"
 
 # npm (with Node.js) installs the pinned tools of tests/api (buf) and

@@ -90,6 +90,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import demo  # noqa: E402
 import report  # noqa: E402
 import rpc  # noqa: E402
+import screenshot  # noqa: E402
 from stack import (HttpProcess, Process, RestartPolicy, Stack, StartError,  # noqa: E402
                    Supervisor)
 
@@ -505,6 +506,31 @@ def _die_with_parent():
     _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+# The console has drawn the finished demo: every robot's vehicle on the map,
+# the systems, the missions ended and their events.
+CONSOLE_READY = """(() => {
+  const robots = %s;
+  const ended = [...document.querySelectorAll("#missions tbody tr .state")]
+    .filter((cell) => ["SUCCEEDED", "FAILED", "ABORTED"].includes(cell.textContent));
+  return robots.every((r) => document.querySelector(`#map circle.vehicle[data-robot="${r}"]`))
+    && document.querySelectorAll("#systems tbody tr").length > 0
+    && ended.length > 0 && document.querySelectorAll("#events tbody tr").length > 0;
+})()"""
+
+
+def save_console(console, run_dir, robots):
+    """A screenshot of the console at the end of the demo, beside the report
+    (console.png); its name, or "" when there is none (the reason is said)."""
+    path = os.path.join(run_dir, "console.png")
+    problem = screenshot.take(console.url, path, CONSOLE_READY % json.dumps(robots))
+    if problem:
+        say(f"  console screenshot: {problem}")
+    if not os.path.exists(path):
+        return ""
+    say(f"  console screenshot: {path}")
+    return "console.png"
+
+
 def parse_missions(parser, args):
     """args.missions: robot -> absolute mission file, from the --mission
     values (FILE for the first robot, or ROBOT=FILE); the demo mission on
@@ -699,6 +725,7 @@ def main():
     console = None
     flight_recorder = None
     recording = {}
+    console_png = ""
     say(f"run directory: {run_dir}")
     try:
         say("\n== starting ==")
@@ -722,6 +749,8 @@ def main():
         if args.demo:
             run_demo(args, run_dir, simulator, coordinator, systems, demo_state)
             supervisor.check()
+            if console is not None:
+                console_png = save_console(console, run_dir, args.vehicles)
             if any(demo_state["missions"].get(robot, {}).get("state") != "MISSION_STATE_SUCCEEDED"
                    for robot in args.missions):
                 status = 1
@@ -794,6 +823,7 @@ def main():
                     if args.sensor_config else "",
                     "console_url": console.url if console is not None else "",
                     "recording": flight_recorder.path if recording else "",
+                    "console_screenshot": console_png,
                     "recording_messages": recording.get("messages", {})}
         robots = robot_reports(args, build_dir, demo_state, run_dir)
         report.write(run_dir, settings, robots, behaviors, processes, clean,

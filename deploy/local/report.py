@@ -554,6 +554,9 @@ def write(run_dir, settings, robots, behaviors, processes, clean_exit, world_mar
               + (f" The flight recording is `{settings['recording']}` (MCAP: `behaviorctl replay`,"
                  " the console's Recording view, Foxglove)." if settings.get("recording") else ""),
               ""]
+    if settings.get("console_screenshot"):
+        footer += ["The console at the end of the run:", "",
+                   f"![the operator's console]({settings['console_screenshot']})", ""]
 
     if not several:
         r, entry = robots[0], first

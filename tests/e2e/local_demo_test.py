@@ -167,6 +167,18 @@ class LocalDemoTest(unittest.TestCase):
             markdown = f.read()
         self.assertEqual(report["settings"]["console_url"], url.group(1))
         self.assertIn(f"The run's console was {url.group(1)}", markdown)
+        # The flight recording (--demo records) and the console's screenshot
+        # of the finished demo, beside the report, which names both.
+        recording = os.path.join(self.run_dir, "recordings", "flight.mcap")
+        self.assertEqual(report["settings"]["recording"], recording)
+        self.assertIn(f"The flight recording is `{recording}`", markdown)
+        self.assertGreater(os.path.getsize(recording), 10000)
+        if launch.screenshot.chromium_binary() is not None:
+            self.assertEqual(report["settings"]["console_screenshot"], "console.png")
+            self.assertIn("![the operator's console](console.png)", markdown)
+            shot = read_png(os.path.join(self.run_dir, "console.png"))
+            self.assertGreater(shot.size[0] * shot.size[1], 1000 * 1000)
+            self.assertNotIn("console screenshot: captured before", result.stdout)
 
         mission = report["mission"]
         self.assertEqual(mission["state"], "MISSION_STATE_SUCCEEDED")

@@ -29,7 +29,7 @@ case "$mode" in
       wait_behavior_test worker_delivery_test channel_topic_test sim_clock_test shm_ring_test
       sim_world_test sim_sensor_config_test sim_sensors_test sim_fault_injector_test catalog_test
       missions_test coordinator_core_test flags_test input_guard_test access_policy_test
-      pagination_test audit_log_test error_details_test console_feed_test"
+      pagination_test audit_log_test error_details_test console_feed_test recorder_test"
     # Integration tests: the servers' own tests, in-process and as real
     # processes (coordinator, broker, simulator, a behavior system). The
     # other behavior systems' code is in their Release tests.
@@ -42,7 +42,7 @@ case "$mode" in
     PROGRAMS="coordinator channel_broker simulator basic_quadrotor_behaviors console behaviorctl"
     FUZZERS="fuzz_mission_file fuzz_world_file fuzz_sensor_config fuzz_catalog
       fuzz_systems_config fuzz_parameters_struct fuzz_parameters_json fuzz_journal
-      fuzz_channel_sample"
+      fuzz_channel_sample fuzz_mcap"
     ;;
   tsan)
     TREE="${TSAN_BUILD_DIR:-build-tsan}"
@@ -51,7 +51,8 @@ case "$mode" in
     UNIT="parameters_test event_log_test behavior_execution_manager_test process_supervisor_test
       wait_behavior_test worker_delivery_test channel_topic_test sim_clock_test shm_ring_test
       catalog_test missions_test coordinator_core_test flags_test input_guard_test
-      access_policy_test pagination_test audit_log_test error_details_test console_feed_test"
+      access_policy_test pagination_test audit_log_test error_details_test console_feed_test
+      recorder_test"
     # The integration tests whose servers run in the test's process. Our
     # reactors and client completions tell TSan the order gRPC keeps
     # (reactor_order.h); a server run as its own program would need its own

@@ -134,16 +134,12 @@ struct FileCloser {
 
 class Scanner {
  public:
-  Scanner(const std::string& path, const ReadLimits& limits,
+  // `path` names the file in errors; `file` is read from its start.
+  Scanner(const std::string& path, std::FILE* file, const ReadLimits& limits,
           const std::function<bool(const ScanSummary&, const Message&)>& on_message)
-      : path_(path), limits_(limits), on_message_(on_message) {}
+      : path_(path), limits_(limits), on_message_(on_message), file_(file) {}
 
   absl::StatusOr<ScanSummary> run() {
-    std::unique_ptr<std::FILE, FileCloser> file(std::fopen(path_.c_str(), "rb"));
-    if (!file) {
-      return absl::NotFoundError(absl::StrCat("cannot open ", path_, ": ", std::strerror(errno)));
-    }
-    file_ = file.get();
     char magic[kMagicBytes];
     const size_t got = std::fread(magic, 1, kMagicBytes, file_);
     if (std::memcmp(magic, kMagic, got) != 0) {
@@ -308,7 +304,7 @@ class Scanner {
   const std::string& path_;
   const ReadLimits& limits_;
   const std::function<bool(const ScanSummary&, const Message&)>& on_message_;
-  std::FILE* file_ = nullptr;
+  std::FILE* const file_;
   uint64_t offset_ = 0;
   ScanSummary summary_;
 };
@@ -501,7 +497,21 @@ absl::Status Writer::close() {
 absl::StatusOr<ScanSummary> scan(
     const std::string& path, const ReadLimits& limits,
     const std::function<bool(const ScanSummary&, const Message&)>& on_message) {
-  return Scanner(path, limits, on_message).run();
+  std::unique_ptr<std::FILE, FileCloser> file(std::fopen(path.c_str(), "rb"));
+  if (!file) {
+    return absl::NotFoundError(absl::StrCat("cannot open ", path, ": ", std::strerror(errno)));
+  }
+  return Scanner(path, file.get(), limits, on_message).run();
+}
+
+absl::StatusOr<ScanSummary> scanBytes(
+    std::string_view bytes, const ReadLimits& limits,
+    const std::function<bool(const ScanSummary&, const Message&)>& on_message) {
+  if (bytes.empty()) return ScanSummary{};  // fmemopen takes no empty buffer.
+  std::unique_ptr<std::FILE, FileCloser> file(
+      fmemopen(const_cast<char*>(bytes.data()), bytes.size(), "rb"));
+  if (!file) return absl::InternalError(absl::StrCat("fmemopen: ", std::strerror(errno)));
+  return Scanner("the recording", file.get(), limits, on_message).run();
 }
 
 }  // namespace behaviorlib::recorder::mcap

@@ -23,7 +23,7 @@ import zlib
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 CORPUS = os.path.join(ROOT, "tests", "fuzz", "corpus")
 PROTOS = ["options", "errors", "types", "behavior", "mission", "channel", "motion", "platform",
-          "simulator"]
+          "simulator", "coordinator"]
 
 _gen_dir = tempfile.TemporaryDirectory(prefix="behaviorlib_pb2_")  # removed at exit
 gen = _gen_dir.name
@@ -34,8 +34,8 @@ subprocess.run(["protoc", "--proto_path=" + os.path.join(ROOT, "proto"), "--pyth
 sys.path.insert(0, gen)
 
 from google.protobuf import any_pb2, json_format, struct_pb2  # noqa: E402
-from behaviorlib.v1 import (channel_pb2, mission_pb2, motion_pb2, platform_pb2,  # noqa: E402
-                            types_pb2)
+from behaviorlib.v1 import (channel_pb2, coordinator_pb2, mission_pb2, motion_pb2,  # noqa: E402
+                            platform_pb2, types_pb2)
 from behaviorlib.durable.v1 import journal_pb2  # noqa: E402
 
 
@@ -253,3 +253,66 @@ for i, (topic, message) in enumerate(samples):
                                              dropped_count=1)
     response.receive_time.seconds = 1700000000
     write("fuzz_channel_sample", "mode2_subscribe%d" % i, b"\x02" + encode(response))
+
+
+# --- flight recordings (MCAP, console/recorder/mcap.cc) -----------------------
+# Built here record by record (https://mcap.dev/spec), small: schemas carry a
+# placeholder instead of a FileDescriptorSet, which the reader does not parse.
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def mcap_record(opcode, content):
+    return struct.pack("<BQ", opcode, len(content)) + content
+
+
+def mcap_string(text):
+    data = text.encode()
+    return struct.pack("<I", len(data)) + data
+
+
+def mcap_file(messages, chunked=False, whole=True):
+    """messages: (topic, type, bytes) in order."""
+    header = mcap_record(0x01, mcap_string("behaviorlib") + mcap_string("make_seeds"))
+    records = b""
+    schemas, channels = {}, {}
+    for i, (topic, type_name, data) in enumerate(messages):
+        if type_name not in schemas:
+            schemas[type_name] = len(schemas) + 1
+            records += mcap_record(0x03, struct.pack("<H", schemas[type_name])
+                                   + mcap_string(type_name) + mcap_string("protobuf")
+                                   + struct.pack("<I", 4) + b"FDS\0")
+        if topic not in channels:
+            channels[topic] = len(channels) + 1
+            records += mcap_record(0x04, struct.pack("<HH", channels[topic], schemas[type_name])
+                                   + mcap_string(topic) + mcap_string("protobuf")
+                                   + struct.pack("<I", 0))
+        records += mcap_record(0x05, struct.pack("<HIQQ", channels[topic], i,
+                                                 1700000000000000000 + i * 1000000,
+                                                 1700000000000000000 + i * 1000000) + data)
+    if chunked:
+        records = mcap_record(0x06, struct.pack("<QQQI", 0, 0, len(records), zlib.crc32(records))
+                              + mcap_string("") + struct.pack("<Q", len(records)) + records)
+    body = MCAP_MAGIC + header + records
+    if not whole:
+        return body[:-3]
+    body += mcap_record(0x0F, struct.pack("<I", 0))
+    return body + mcap_record(0x02, struct.pack("<QQI", 0, 0, 0)) + MCAP_MAGIC
+
+
+flight = []
+activated = coordinator_pb2.FleetEvent(seq=1, incarnation="c1")
+activated.behavior_event.robot_id = "drone1"
+activated.behavior_event.behavior = "TAKE_OFF"
+flight.append(("coordinator/events", "behaviorlib.v1.FleetEvent", encode(activated)))
+system = coordinator_pb2.FleetEvent(seq=2)
+system.system_state_changed.system.robot_id = "drone1"
+flight.append(("coordinator/events", "behaviorlib.v1.FleetEvent", encode(system)))
+status = mission_pb2.MissionStatus(mission_id="m1", robot_id="drone1")
+flight.append(("coordinator/missions", "behaviorlib.v1.MissionStatus", encode(status)))
+found = mission_pb2.Belief(key="drone1/markers/QR-1", version=3)
+flight.append(("coordinator/beliefs", "behaviorlib.v1.Belief", encode(found)))
+flight.append(("robots/drone1/ground_truth/pose", "behaviorlib.v1.PoseStamped", encode(pose)))
+flight.append(("robots/drone1/ground_truth/pose", "behaviorlib.v1.PoseStamped", encode(pose)))
+write("fuzz_mcap", "flight.mcap", mcap_file(flight))
+write("fuzz_mcap", "flight_chunked.mcap", mcap_file(flight, chunked=True))
+write("fuzz_mcap", "flight_cut.mcap", mcap_file(flight, whole=False))

@@ -185,6 +185,42 @@ TEST_F(McapTest, BadFilesAreRefusedWithWhereAndWhy) {
   EXPECT_NE(status.message().find("at byte"), std::string::npos) << status;
 }
 
+// The fuzz target's seeds (tests/fuzz/make_seeds.py builds them record by
+// record from the spec): one whole, one in an uncompressed chunk, one cut.
+TEST(McapSeedTest, TheSeedsOfOtherWritersAreRead) {
+  const std::string dir = BEHAVIORLIB_MCAP_SEEDS;
+  const auto count = [](const std::string& file, mcap::ScanSummary* summary) {
+    int n = 0;
+    auto scanned = mcap::scan(file, {}, [&](const mcap::ScanSummary&, const mcap::Message&) {
+      ++n;
+      return true;
+    });
+    EXPECT_TRUE(scanned.ok()) << file << ": " << scanned.status();
+    if (scanned.ok()) *summary = *scanned;
+    return n;
+  };
+  mcap::ScanSummary whole, chunked, cut;
+  EXPECT_EQ(count(dir + "/flight.mcap", &whole), 6);
+  EXPECT_TRUE(whole.complete);
+  EXPECT_EQ(whole.profile, "behaviorlib");
+  EXPECT_EQ(count(dir + "/flight_chunked.mcap", &chunked), 6);
+  EXPECT_TRUE(chunked.complete);
+  EXPECT_EQ(count(dir + "/flight_cut.mcap", &cut), 5);
+  EXPECT_FALSE(cut.complete);
+  // The same bytes from memory (the fuzz target's way in).
+  std::ifstream in(dir + "/flight_chunked.mcap", std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(in)), {});
+  int n = 0;
+  auto from_memory =
+      mcap::scanBytes(bytes, {}, [&](const mcap::ScanSummary&, const mcap::Message&) {
+        ++n;
+        return true;
+      });
+  ASSERT_TRUE(from_memory.ok()) << from_memory.status();
+  EXPECT_EQ(n, 6);
+  EXPECT_TRUE(mcap::scanBytes("", {}, [](const auto&, const auto&) { return true; }).ok());
+}
+
 TEST(RecorderSchemaTest, ASchemaHoldsItsTypeAndEveryImportDependenciesFirst) {
   const auto schema = schemaOf("behaviorlib.v1.FleetEvent");
   ASSERT_TRUE(schema.ok()) << schema.status();

@@ -19,6 +19,7 @@
 #include <map>
 #include <memory>
 #include <string>
+#include <string_view>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
@@ -126,6 +127,11 @@ struct ScanSummary {
 /// a malformed record; FAILED_PRECONDITION a compressed chunk (not read).
 absl::StatusOr<ScanSummary> scan(
     const std::string& path, const ReadLimits& limits,
+    const std::function<bool(const ScanSummary&, const Message&)>& on_message);
+
+/// scan() of a file's bytes in memory (the fuzz target's way in).
+absl::StatusOr<ScanSummary> scanBytes(
+    std::string_view bytes, const ReadLimits& limits,
     const std::function<bool(const ScanSummary&, const Message&)>& on_message);
 
 }  // namespace behaviorlib::recorder::mcap

@@ -116,8 +116,9 @@ absl::Status Recorder::stop() {
   follower_.shutdown();
   absl::MutexLock lock(&mutex_);
   stopped_ = true;
+  const absl::Status closed = writer_->close();
   stats_.bytes = writer_->bytesWritten();
-  return writer_->close();
+  return closed;
 }
 
 RecorderStats Recorder::stats() {

@@ -470,6 +470,7 @@ class FlightRecorder:
                      "--tls-key", os.path.join(certs, "operator.key"),
                      "--tls-ca", os.path.join(certs, "ca.pem")]
         argv += ["record", self.path]
+        os.makedirs(os.path.dirname(self.path), exist_ok=True)
         os.makedirs(os.path.dirname(self.log_path), exist_ok=True)
         self._stdout = tempfile.TemporaryFile(mode="w+")
         with open(self.log_path, "a") as log:

@@ -3,8 +3,8 @@
 CMake enforces that a header is reachable only through a linked target (each
 target has its own include root). This test enforces the direction: which
 layer's headers each layer's code may include, and that deploy/ never uses
-tests/. It reads every C++ file under services/, coordinator/ and simulator/
-and every Python file under deploy/.
+tests/. It reads every C++ file under services/, coordinator/, simulator/ and
+console/ and every Python file under deploy/.
 
   layers_test.py [--repo DIR]
 """
@@ -64,7 +64,9 @@ def layer_of(path):
             return "channel"
         if parts[1] in ("algorithms", "shared", "systems"):
             return parts[1] + ":" + parts[2]
-    return parts[0]  # coordinator | simulator
+    if parts[0] == "coordinator" and parts[1] == "cli":
+        return "cli"
+    return parts[0]  # coordinator | simulator | console
 
 
 def allowed(layer, component):
@@ -83,6 +85,13 @@ def allowed(layer, component):
         "channel": {"core", "server_kit"},
         "server": {"core", "server_kit", "channel"},
         "coordinator": {"core", "server_kit", "channel", "platform", "flight_common"},
+        # behaviorctl: a client, which records and replays flights with the
+        # console's client libraries.
+        "cli": {"core", "server_kit", "channel", "platform", "flight_common", "coordinator",
+                "console", "recorder"},
+        # The console and the flight recorder: clients of the coordinator and
+        # the channel over gRPC; the console draws the simulator's world file.
+        "console": {"server_kit", "recorder", "simulator"},
         "simulator": {"server_kit", "channel", "core"} | ALGORITHMS,
     }
     if layer.startswith("shared:"):
@@ -103,7 +112,7 @@ class LayersTest(unittest.TestCase):
     def test_every_include_goes_down_the_layers(self):
         violations = []
         checked = 0
-        for top in ("services", "coordinator", "simulator"):
+        for top in ("services", "coordinator", "simulator", "console"):
             for path in sources(os.path.join(REPO, top), (".h", ".cc")):
                 rel = os.path.relpath(path, REPO)
                 layer = layer_of(rel)

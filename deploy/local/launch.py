@@ -683,7 +683,7 @@ def main():
                              "behaviorctl record: events, missions, beliefs and the vehicle "
                              "topics (MCAP, decision 36); on by default with --demo")
     parser.add_argument("--record-topics", default="", metavar="A,B",
-                        help="the vehicle topics recorded under robots/{id}/ (default: poses, "
+                        help="the vehicle topics recorded under robots/{id}/ (default: poses, twist, "
                              "flight state, marker detections, the map's occupied cells; add "
                              "camera/image or lidar/scan here)")
     parser.add_argument("--restart", choices=RestartPolicy.MODES, default="on-failure",

@@ -683,9 +683,9 @@ def main():
                              "behaviorctl record: events, missions, beliefs and the vehicle "
                              "topics (MCAP, decision 36); on by default with --demo")
     parser.add_argument("--record-topics", default="", metavar="A,B",
-                        help="the vehicle topics recorded under robots/{id}/ (default: poses, twist, "
-                             "flight state, marker detections, the map's occupied cells; add "
-                             "camera/image or lidar/scan here)")
+                        help="the vehicle topics recorded under robots/{id}/ (default: poses, "
+                             "twist, flight state, marker detections, the map's occupied cells; "
+                             "add camera/image or lidar/scan here)")
     parser.add_argument("--restart", choices=RestartPolicy.MODES, default="on-failure",
                         help="on-failure: a process that crashes (non-zero exit code, or a "
                              "signal) is started again on its ports, at most 5 times in 60 s "

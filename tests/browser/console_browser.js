@@ -27,6 +27,14 @@ function log(text) {
   console.log(`[${(process.uptime()).toFixed(1)} s] ${text}`);
 }
 
+// Presses a button as the DOM does (its click activates its form), not at
+// the screen point puppeteer measured a moment before: the tables above the
+// forms fill in as the feed arrives, so a button can move between the
+// measure and the click, and the click then lands on something else.
+async function press(page, selector) {
+  await page.$eval(selector, (button) => button.click());
+}
+
 async function main() {
   const browser = await puppeteer.launch({
     executablePath: process.env.CHROMIUM || "/usr/bin/chromium",
@@ -58,7 +66,7 @@ async function main() {
     log(`${systems} systems shown`);
 
     await page.type("#start-mission input[name=file_path]", missionFile);
-    await page.click("#start-mission button[type=submit]");
+    await press(page, "#start-mission button[type=submit]");
     const stepsOf = () => page.$eval("#missions tbody tr", (row) => ({
       steps: Number(row.querySelector(".steps").textContent),
       step: row.querySelector(".step").textContent,
@@ -107,7 +115,7 @@ async function main() {
     if (flying === "LANDED") throw new Error("the vehicle is not in the air before the landing");
 
     await page.type("#emergency-land input[name=robot_id]", robot);
-    await page.click("#emergency-land button[type=submit]");
+    await press(page, "#emergency-land button[type=submit]");
     await page.waitForFunction((r) => {
       const cell = document.querySelector(`#vehicles tr[data-robot="${r}"] .flight-state`);
       return cell && cell.textContent === "LANDED";
@@ -129,7 +137,7 @@ async function main() {
     await page.waitForFunction(() => [...document.querySelectorAll("#recordings option")]
       .some((o) => o.value === "flight.mcap"), { timeout: WAIT_MS });
     await page.select("#recordings", "flight.mcap");
-    await page.click("#open-recording button[type=submit]");
+    await press(page, "#open-recording button[type=submit]");
     await page.waitForFunction(() => document.getElementById("coordinator").textContent
       .startsWith("recording: flight.mcap"), { timeout: WAIT_MS });
     const scrubTo = async (fraction) => page.evaluate((f) => {

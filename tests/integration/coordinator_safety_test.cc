@@ -52,6 +52,11 @@ constexpr char kSafetyHolder[] = "drone1/coordinator-safety";
 /// Bound on a landing from 1.5 m, wall time (about 3 s of simulated time at
 /// the platform's landing speed, plus the hover before it).
 constexpr milliseconds kLandBound = seconds(15);
+/// Bound on a flight sample or an event that must follow what a test did,
+/// wall time: far above any latency, so that only its absence fails, however
+/// busy the machine. What a test measures is printed, and bounded only where
+/// a wrong design would be slower by the systems' call deadline (3 s).
+constexpr milliseconds kMustFollow = seconds(15);
 
 // A mission of drone1: take off to 1.5 m and fly 10 m east and back at
 // 1 m/s (long enough for what each test provokes), then land; LAND on abort.
@@ -314,7 +319,7 @@ class CoordinatorSafetyTest : public ::testing::Test {
         },
         seconds(15)))
         << client_->listSystems(kRobot).response.ShortDebugString();
-    ASSERT_TRUE(waitUntil([&] { return flight_->latest().has_value(); }, seconds(5)));
+    ASSERT_TRUE(waitUntil([&] { return flight_->latest().has_value(); }, kMustFollow));
     ASSERT_EQ(flight_->latest()->state(), v1::FLIGHT_STATE_LANDED);
   }
 
@@ -565,13 +570,14 @@ TEST_F(CoordinatorSafetyTest, EmergencyLandAbortsTheMissionLandsAndInterruptsThe
   std::printf("EmergencyLand: %s\n", landed.response.message().c_str());
 
   // The platform's emergency descent (EMERGENCY), then on the ground.
-  auto emergency = waitState(mark, v1::FLIGHT_STATE_EMERGENCY, seconds(2));
+  auto emergency = waitState(mark, v1::FLIGHT_STATE_EMERGENCY, kMustFollow);
   ASSERT_TRUE(emergency) << flight_->trace(mark);
   // The stand-down before it (mission, behaviors) has a budget of 0.5 s.
   const double descending_after_s =
       std::chrono::duration<double>(flight_->at(*emergency).at - requested_at).count();
   std::printf("EmergencyLand: descending %.3f s (wall) after the request\n", descending_after_s);
-  EXPECT_LT(descending_after_s, 1.0);
+  // Not held by the stand-down's calls (their deadline is 3 s).
+  EXPECT_LT(descending_after_s, 2.5);
   auto down = waitState(*emergency, v1::FLIGHT_STATE_LANDED);
   ASSERT_TRUE(down) << flight_->trace(mark);
   expectOnTheGround();
@@ -609,7 +615,7 @@ TEST_F(CoordinatorSafetyTest, KillThroughBehaviorctlNeedsConfirmThenStopsTheMoto
   // TAKE_OFF leaves the vehicle hovering (after a HOVER of its own when it
   // ended on a setpoint, which may reach this stream after its end).
   ASSERT_TRUE(waitUntil([&] { return flight_->latest()->state() == v1::FLIGHT_STATE_HOVERING; },
-                        seconds(5)))
+                        kMustFollow))
       << flight_->trace();
 
   const std::string ctl = std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " +
@@ -628,7 +634,7 @@ TEST_F(CoordinatorSafetyTest, KillThroughBehaviorctlNeedsConfirmThenStopsTheMoto
   output.clear();
   ASSERT_EQ(run(ctl + kRobot + " kill --confirm 'test of the kill switch'", &output), 0) << output;
   EXPECT_NE(output.find("KILL"), std::string::npos) << output;
-  ASSERT_TRUE(waitState(mark, v1::FLIGHT_STATE_EMERGENCY, seconds(2))) << flight_->trace(mark);
+  ASSERT_TRUE(waitState(mark, v1::FLIGHT_STATE_EMERGENCY, kMustFollow)) << flight_->trace(mark);
   // Motors off: they spin down within a fraction of a second and the
   // vehicle falls.
   ASSERT_TRUE(vehicle_->sleepSim(0.3));
@@ -659,13 +665,13 @@ TEST_F(CoordinatorSafetyTest, KilledMotionControllerIsReportedThenTheVehicleHove
   // The coordinator's subscribers get PROCESS_FAILURE for both behaviors of
   // the dead process, once its grace period has passed.
   for (const auto& activation : {controller, follow}) {
-    auto end = finished(activation, seconds(5));
+    auto end = finished(activation, kMustFollow);
     ASSERT_TRUE(end) << activation << "\n" << seenText();
     EXPECT_EQ(end->finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE)
         << end->ShortDebugString();
   }
   const double reported_s = std::chrono::duration<double>(SteadyClock::now() - killed_at).count();
-  EXPECT_LT(reported_s, kGraceS + 1.5) << "PROCESS_FAILURE reported after the grace period";
+  EXPECT_LT(reported_s, kGraceS + 2.5) << "PROCESS_FAILURE reported after the grace period";
 
   // The coordinator takes the vehicle: hover, then land, under its lease.
   auto hover = flight_->waitFor(
@@ -673,7 +679,7 @@ TEST_F(CoordinatorSafetyTest, KilledMotionControllerIsReportedThenTheVehicleHove
       [](const v1::FlightStatus& s) {
         return s.state() == v1::FLIGHT_STATE_HOVERING && s.lease_holder() == kSafetyHolder;
       },
-      seconds(5));
+      kMustFollow);
   ASSERT_TRUE(hover) << flight_->trace(mark);
   auto landing = waitState(*hover, v1::FLIGHT_STATE_LANDING);
   ASSERT_TRUE(landing) << flight_->trace(mark);
@@ -717,11 +723,11 @@ TEST_F(CoordinatorSafetyTest, CriticalBatteryLandsTheVehicleAndAbortsTheMission)
 
   auto low = flight_->waitFor(
       mark, [](const v1::FlightStatus& s) { return s.battery_ratio() < kCriticalBattery; },
-      seconds(2));
+      kMustFollow);
   ASSERT_TRUE(low) << flight_->trace(mark);
   EXPECT_GT(flight_->at(*low).status.battery_ratio(), 0.3);
   // Landed by the coordinator (its lease), straight away: no hover first.
-  auto landing = waitState(*low, v1::FLIGHT_STATE_LANDING, seconds(5));
+  auto landing = waitState(*low, v1::FLIGHT_STATE_LANDING, kMustFollow);
   ASSERT_TRUE(landing) << flight_->trace(mark);
   EXPECT_EQ(flight_->at(*landing).status.lease_holder(), kSafetyHolder) << flight_->trace(mark);
   for (size_t i = *low; i < *landing; ++i) {
@@ -758,7 +764,7 @@ TEST_F(CoordinatorSafetyTest, LeavingTheMissionGeofenceAbortsItAndItsSafetyStepL
   // The coordinator held the vehicle (hover: FOLLOW_PATH alone keeps it
   // FLYING), then the mission's safety step LAND landed it (under LAND's
   // lease, not the coordinator's).
-  auto hover = waitState(mark, v1::FLIGHT_STATE_HOVERING, seconds(1));
+  auto hover = waitState(mark, v1::FLIGHT_STATE_HOVERING, kMustFollow);
   ASSERT_TRUE(hover) << flight_->trace(mark);
   auto land = waitEvent(
       [](const v1::BehaviorEvent& e) { return e.behavior() == "LAND" && e.has_activated(); });
@@ -767,10 +773,10 @@ TEST_F(CoordinatorSafetyTest, LeavingTheMissionGeofenceAbortsItAndItsSafetyStepL
   ASSERT_TRUE(landed) << seenText();
   EXPECT_EQ(landed->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
       << landed->ShortDebugString();
-  auto landing = waitState(mark, v1::FLIGHT_STATE_LANDING, seconds(1));
+  auto landing = waitState(mark, v1::FLIGHT_STATE_LANDING, kMustFollow);
   ASSERT_TRUE(landing) << flight_->trace(mark);
   EXPECT_NE(flight_->at(*landing).status.lease_holder(), kSafetyHolder) << flight_->trace(mark);
-  ASSERT_TRUE(waitState(*landing, v1::FLIGHT_STATE_LANDED, seconds(1))) << flight_->trace(mark);
+  ASSERT_TRUE(waitState(*landing, v1::FLIGHT_STATE_LANDED, kMustFollow)) << flight_->trace(mark);
   expectOnTheGround();
   const double overshoot = vehicle_->maxX() - kFenceX;
   std::printf("geofence at x = %.1f m: the vehicle went %.2f m past it; mission: %s\n", kFenceX,
@@ -811,7 +817,7 @@ TEST_F(CoordinatorSafetyTest, AHungControllerLosesItsLeaseAndTheFailsafeRuleHove
   // simulator stopped waiting for the frozen system: 0.25 s of wall time),
   // failsafe hover.
   auto failsafe = flight_->waitFor(
-      mark, [](const v1::FlightStatus& s) { return s.failsafe_active(); }, seconds(4));
+      mark, [](const v1::FlightStatus& s) { return s.failsafe_active(); }, kMustFollow);
   ASSERT_TRUE(failsafe) << flight_->trace(mark);
   const FlightRecorder::Sample engaged = flight_->at(*failsafe);
   EXPECT_EQ(engaged.status.state(), v1::FLIGHT_STATE_HOVERING) << flight_->trace(mark);
@@ -822,16 +828,16 @@ TEST_F(CoordinatorSafetyTest, AHungControllerLosesItsLeaseAndTheFailsafeRuleHove
       [](const v1::FlightStatus& s) {
         return s.state() == v1::FLIGHT_STATE_HOVERING && s.lease_holder() == kSafetyHolder;
       },
-      seconds(2));
+      kMustFollow);
   ASSERT_TRUE(hover) << flight_->trace(mark);
   const double reacted_s = wallSeconds(engaged.at, flight_->at(*hover).at);
-  EXPECT_LT(reacted_s, 1.0) << flight_->trace(mark);
+  EXPECT_LT(reacted_s, 2.5) << flight_->trace(mark);
   // ...then land, still under its lease.
   auto landing = waitState(*hover, v1::FLIGHT_STATE_LANDING);
   ASSERT_TRUE(landing) << flight_->trace(mark);
   const double hovered_s = wallSeconds(flight_->at(*hover).at, flight_->at(*landing).at);
   EXPECT_GE(hovered_s, 0.8 * kHoverBeforeLandS) << flight_->trace(mark);
-  EXPECT_LT(hovered_s, kHoverBeforeLandS + 1.0)
+  EXPECT_LT(hovered_s, kHoverBeforeLandS + 1.5)
       << "the landing did not wait for the frozen system: " << flight_->trace(mark);
   auto landed = waitState(*landing, v1::FLIGHT_STATE_LANDED);
   ASSERT_TRUE(landed) << flight_->trace(mark);
@@ -962,7 +968,7 @@ TEST_F(CoordinatorSafetyTest, BehaviorctlSituationMissionStatusDeactivateAndEmer
   EXPECT_EQ(deactivated.result().activation_id(), hold_id) << output;
   EXPECT_EQ(deactivated.result().cause(), v1::TERMINATION_CAUSE_INTERRUPTED) << output;
   EXPECT_FALSE(deactivated.result().already_finished()) << output;
-  auto interrupted = finished(hold_id, seconds(2));
+  auto interrupted = finished(hold_id, kMustFollow);
   ASSERT_TRUE(interrupted) << seenText();
   EXPECT_EQ(interrupted->finished().cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
   ASSERT_TRUE(waitUntil(
@@ -970,7 +976,7 @@ TEST_F(CoordinatorSafetyTest, BehaviorctlSituationMissionStatusDeactivateAndEmer
         auto next = step(mission("ctl-1"), "hold_on");
         return next && !next->activation_id().empty();
       },
-      seconds(5)))
+      kMustFollow))
       << mission("ctl-1").ShortDebugString();
   output.clear();
   ASSERT_EQ(runJson(ctl + " mission status ctl-1", &status, &output), 0) << output;
@@ -990,7 +996,7 @@ TEST_F(CoordinatorSafetyTest, BehaviorctlSituationMissionStatusDeactivateAndEmer
   std::printf("behaviorctl emergency-land: %s", output.c_str());
   EXPECT_NE(landed.message().find("EMERGENCY_LAND"), std::string::npos) << output;
   EXPECT_NE(landed.message().find("ctl-1"), std::string::npos) << "names the mission: " << output;
-  auto emergency = waitState(mark, v1::FLIGHT_STATE_EMERGENCY, seconds(2));
+  auto emergency = waitState(mark, v1::FLIGHT_STATE_EMERGENCY, kMustFollow);
   ASSERT_TRUE(emergency) << flight_->trace(mark);
   ASSERT_TRUE(waitState(*emergency, v1::FLIGHT_STATE_LANDED)) << flight_->trace(mark);
   expectOnTheGround();
@@ -1039,10 +1045,10 @@ TEST_F(CoordinatorConfiguredGeofenceTest, LeavingTheConfiguredGeofenceHoversAndA
   ASSERT_TRUE(landed) << seenText();
   EXPECT_EQ(landed->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
       << landed->ShortDebugString();
-  auto landing = waitState(mark, v1::FLIGHT_STATE_LANDING, seconds(1));
+  auto landing = waitState(mark, v1::FLIGHT_STATE_LANDING, kMustFollow);
   ASSERT_TRUE(landing) << flight_->trace(mark);
   EXPECT_NE(flight_->at(*landing).status.lease_holder(), kSafetyHolder) << flight_->trace(mark);
-  ASSERT_TRUE(waitState(*landing, v1::FLIGHT_STATE_LANDED, seconds(1))) << flight_->trace(mark);
+  ASSERT_TRUE(waitState(*landing, v1::FLIGHT_STATE_LANDED, kMustFollow)) << flight_->trace(mark);
   expectOnTheGround();
   const double overshoot = vehicle_->maxX() - kFenceX;
   std::printf("configured geofence at x = %.1f m: %.2f m past it; mission: %s\n", kFenceX,

@@ -3,8 +3,11 @@
 #include <algorithm>
 #include <cstdio>
 #include <cstdlib>
+#include <iostream>
 #include <mutex>
 
+#include "absl/flags/internal/parse.h"
+#include "absl/flags/internal/usage.h"
 #include "absl/flags/parse.h"
 #include "absl/flags/usage.h"
 #include "absl/flags/usage_config.h"
@@ -49,8 +52,17 @@ std::vector<std::string> parseCommandLine(int argc, char** argv, const std::stri
   args.reserve(names.size() + 1);
   for (std::string& a : names) args.push_back(a.data());
   args.push_back(nullptr);
-  const std::vector<char*> rest =
-      absl::ParseCommandLine(static_cast<int>(names.size()), args.data());
+  // absl::ParseCommandLine, except that the usage flags are handled here:
+  // absl (as packaged) ends with status 1 after printing --help, which reads
+  // as a failure to a script. What was asked for and printed is a success.
+  namespace internal = absl::flags_internal;
+  const std::vector<char*> rest = internal::ParseCommandLineImpl(
+      static_cast<int>(names.size()), args.data(), internal::ArgvListAction::kRemoveParsedArgs,
+      internal::UsageFlagsAction::kIgnoreUsage, internal::OnUndefinedFlag::kAbortIfUndefined);
+  if (internal::HandleUsageFlags(std::cout, absl::ProgramUsageMessage()) != -1) {
+    std::cout.flush();
+    std::exit(0);
+  }
   return std::vector<std::string>(rest.begin() + 1, rest.end());
 }
 

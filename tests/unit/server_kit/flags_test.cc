@@ -4,6 +4,7 @@
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <string>
 #include <vector>
@@ -69,6 +70,23 @@ TEST(ParseFlagsDeathTest, AnIntegerFlagRefusesAFraction) {
 TEST(ParseFlagsDeathTest, AnUnknownFlagIsRefused) {
   EXPECT_EXIT(parse({"--robot-idd", "x"}), ::testing::ExitedWithCode(1),
               "Unknown command line flag 'robot_idd'");
+}
+
+// What was asked for is printed (to stdout, sent to stderr here for the
+// death test to read), and that is a success: absl itself ends with 1 after
+// --help, which reads as a failure to a script.
+TEST(ParseFlagsDeathTest, HelpListsTheProgramsFlagsAndExitsWithZero) {
+  EXPECT_EXIT(
+      {
+        (void)::dup2(STDERR_FILENO, STDOUT_FILENO);
+        parse({"--help"});
+      },
+      ::testing::ExitedWithCode(0), "--robot_id \\(robot\\); default: \"drone1\"");
+}
+
+TEST(ParseFlagsDeathTest, HelpfullAndVersionExitWithZero) {
+  EXPECT_EXIT(parse({"--helpfull"}), ::testing::ExitedWithCode(0), "");
+  EXPECT_EXIT(parse({"--version"}), ::testing::ExitedWithCode(0), "");
 }
 
 TEST(ParseFlagsDeathTest, APositionalArgumentIsRefusedWithTwo) {

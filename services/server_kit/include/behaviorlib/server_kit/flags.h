@@ -21,9 +21,10 @@
 
 namespace behaviorlib::server {
 
-/// Parses argv into the program's ABSL_FLAGs. Exits like absl does: 1 after
-/// printing an unknown flag or a bad value, or the usage for --help. A
-/// positional argument is refused with exit code 2 (our programs take none).
+/// Parses argv into the program's ABSL_FLAGs. Exits like absl does, 1 after
+/// printing an unknown flag or a bad value, and 0 after printing what
+/// --help, --helpfull or --version asked for. A positional argument is
+/// refused with exit code 2 (our programs take none).
 void parseFlags(int argc, char** argv, const std::string& usage);
 
 /// As parseFlags, for a program that takes arguments besides its flags (a

@@ -813,8 +813,11 @@ TEST_F(CoordinatorTest, APlanWaitingOnOneRobotDoesNotHoldUpAnotherRobot) {
   const auto b_sent = SteadyClock::now();
   auto rb = client_->activate("robot-b", "WAIT", R"({"duration_s": 0.05})");
   const double b_took_s = std::chrono::duration<double>(SteadyClock::now() - b_sent).count();
+  // robot-b's activation returned, and applied, while robot-a's system is
+  // still stopped (robot-a's call below had not returned): had it waited for
+  // robot-a, it would not have returned at all. How long it took is printed,
+  // not bounded: that depends on how busy the machine is.
   EXPECT_TRUE(rb.status.ok()) << describe(rb.status);
-  EXPECT_LT(b_took_s, 1.0) << "robot-b's activation waited";
   auto b_done = watcher.waitFinished(rb.response.activation().activation_id());
   EXPECT_TRUE(b_done) << "robot-b's WAIT did not run to its end";
   if (b_done) {

@@ -76,10 +76,12 @@ servers through gRPC reflection (no generated code).
 
 import argparse
 import ctypes
+import hashlib
 import json
 import math
 import os
 import re
+import secrets
 import signal
 import subprocess
 import sys
@@ -266,14 +268,22 @@ def make_certs(run_dir, names, systems):
                              "operator", *names], capture_output=True, text=True)
     if result.returncode != 0:
         raise StartError(f"cannot make the TLS certificates: {result.stderr.strip()}")
-    # The console acts for whoever reaches its loopback port, unless the
-    # browser sends a bearer token of its own (decision 35).
+    # The console's own identity only views: its controls act with the
+    # browser's bearer token (decision 35), this run's in certs/console-token,
+    # which the console's URL carries (console_url).
     roles = {"operator": "[viewer, operator, safety]", "coordinator": "[viewer, operator, safety]",
-             "console": "[viewer, operator, safety]",
+             "console": "[viewer]",
              "simulator": "[viewer, operator]", "channel_broker": "[viewer]"}
     lines = ["# Made by deploy/local/launch.py --tls for this run.", "identities:"]
     for name, role_list in roles.items():
         lines += [f"  - certificate: behaviorlib:{name}", f"    roles: {role_list}"]
+    token = secrets.token_urlsafe(24)
+    token_file = os.path.join(certs, "console-token")
+    with open(os.open(token_file, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as f:
+        f.write(token + "\n")
+    lines += [f"  - token_sha256: {hashlib.sha256(token.encode()).hexdigest()}",
+              "    name: console-operator",
+              "    roles: [viewer, operator, safety]"]
     for process, (robot, system) in systems.items():
         lines += [f"  - certificate: behaviorlib:{process}",
                   "    roles: [viewer, operator, system]",
@@ -283,6 +293,16 @@ def make_certs(run_dir, names, systems):
     rpc.rc.use_tls(os.path.join(certs, "operator.pem"), os.path.join(certs, "operator.key"),
                    os.path.join(certs, "ca.pem"))
     return certs
+
+
+def console_url(console, run_dir):
+    """The console's address for a person: with --tls, with the run's
+    operator token (certs/console-token) for the page's controls."""
+    token_file = os.path.join(run_dir, "certs", "console-token")
+    if not console.url.startswith("https:") or not os.path.exists(token_file):
+        return console.url
+    with open(token_file) as f:
+        return console.url + "?token=" + f.read().strip()
 
 
 def start_stack(args, build_dir, stack):
@@ -741,7 +761,7 @@ def main():
             say(f"  {p.name:<40} gRPC {p.address:<17} metrics {metrics}")
         say(f"  Prometheus targets: {targets}")
         if console is not None:
-            say(f"  console: {console.url}")
+            say(f"  console: {console_url(console, run_dir)}")
         if args.record:
             flight_recorder = FlightRecorder(
                 build_dir, run_dir, coordinator.address, stack.find("channel_broker").address,
@@ -822,7 +842,7 @@ def main():
                                  for robot, path in args.missions.items()},
                     "sensor_config": os.path.relpath(os.path.abspath(args.sensor_config), REPO)
                     if args.sensor_config else "",
-                    "console_url": console.url if console is not None else "",
+                    "console_url": console_url(console, run_dir) if console is not None else "",
                     "recording": flight_recorder.path if recording else "",
                     "console_screenshot": console_png,
                     "recording_messages": recording.get("messages", {})}

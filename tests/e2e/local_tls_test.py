@@ -6,22 +6,31 @@ its own certificate from a fresh CA. While it serves:
 - behaviorctl with the operator's certificate flies the demo mission to
   SUCCEEDED (coordinator -> systems -> simulator and broker, all over TLS);
 - plaintext and a client without a certificate are refused by every server;
-- the run's access policy holds (the operator may not drive the simulator).
+- the run's access policy holds (the operator may not drive the simulator);
+- the console serves HTTPS, and its own identity only views: without a token
+  it lists the systems but its controls are refused (403, PERMISSION_DENIED
+  naming the role), a wrong token is refused even for viewing, and the run's
+  operator token (certs/console-token, in the URL the launcher printed)
+  passes the policy.
 Then SIGINT stops it cleanly.
 
     /usr/bin/python3 tests/e2e/local_tls_test.py --build-dir build
 """
 
 import argparse
+import http.client
+import json
 import os
 import re
 import shutil
 import signal
+import ssl
 import subprocess
 import sys
 import tempfile
 import time
 import unittest
+import urllib.parse
 
 import grpc
 
@@ -32,6 +41,7 @@ import rpc  # noqa: E402
 LAUNCHER = os.path.join(REPO, "deploy", "local", "launch.py")
 BUILD_DIR = os.path.join(REPO, "build")
 SERVING = re.compile(r"^\s+(\S+)\s+gRPC (127\.0\.0\.1:\d+)")
+CONSOLE = re.compile(r"^\s+console: (https://127\.0\.0\.1:\d+/\S*)$", re.MULTILINE)
 
 
 class LocalTlsTest(unittest.TestCase):
@@ -76,6 +86,52 @@ class LocalTlsTest(unittest.TestCase):
              "--tls-ca", os.path.join(certs, "ca.pem"), *args],
             capture_output=True, text=True, timeout=timeout)
 
+    def console_call(self, url, name, request, token=None):
+        """POST /api/coordinator/NAME to the console over HTTPS (checked
+        against the run's CA): (HTTP status, the JSON reply)."""
+        context = ssl.create_default_context(
+            cafile=os.path.join(self.run_dir, "certs", "ca.pem"))
+        parsed = urllib.parse.urlparse(url)
+        connection = http.client.HTTPSConnection(parsed.hostname, parsed.port, timeout=30,
+                                                 context=context)
+        headers = {"Content-Type": "application/json"}
+        if token is not None:
+            headers["Authorization"] = "Bearer " + token
+        try:
+            connection.request("POST", f"/api/coordinator/{name}", json.dumps(request), headers)
+            reply = connection.getresponse()
+            return reply.status, json.loads(reply.read())
+        finally:
+            connection.close()
+
+    def check_the_console_acts_with_the_browsers_token(self):
+        found = CONSOLE.search(self.output())
+        self.assertIsNotNone(found, self.output())
+        url = found.group(1)
+        query = urllib.parse.parse_qs(urllib.parse.urlparse(url).query)
+        with open(os.path.join(self.run_dir, "certs", "console-token")) as f:
+            token = f.read().strip()
+        self.assertEqual(query.get("token"), [token], "the printed URL carries the run's token")
+        self.assertEqual(os.stat(os.path.join(self.run_dir, "certs", "console-token")).st_mode
+                         & 0o077, 0, "the token file is its owner's alone")
+        # Without a token: the console's own identity, a viewer.
+        status, reply = self.console_call(url, "ListSystems", {})
+        self.assertEqual(status, 200, reply)
+        for name, request, role in (
+                ("EmergencyLand", {"robot_id": "drone1", "reason": "test"}, "safety"),
+                ("PauseMission", {"mission_id": "no-such-mission"}, "operator")):
+            status, reply = self.console_call(url, name, request)
+            self.assertEqual(status, 403, (name, reply))
+            self.assertIn(f"needs the role {role}", reply.get("message", ""), (name, reply))
+        # A wrong token is refused, even for what the console alone may do.
+        status, reply = self.console_call(url, "ListSystems", {}, token="not-the-token")
+        self.assertIn(status, (401, 403), reply)
+        # The run's operator token passes the policy: the mission is then
+        # looked for (and not found).
+        status, reply = self.console_call(url, "PauseMission", {"mission_id": "no-such-mission"},
+                                          token=token)
+        self.assertEqual(status, 404, reply)
+
     def test_the_stack_runs_and_flies_over_mutual_tls(self):
         servers = self.wait_serving()
         for name in ("channel_broker", "simulator", "coordinator", "basic_quadrotor_behaviors",
@@ -106,6 +162,7 @@ class LocalTlsTest(unittest.TestCase):
                 reset(b"", timeout=5.0)
             self.assertEqual(refused.exception.code(), grpc.StatusCode.PERMISSION_DENIED)
             self.assertIn("needs the role admin", refused.exception.details())
+        self.check_the_console_acts_with_the_browsers_token()
         # The systems registered over mTLS (as themselves) and are up.
         deadline = time.monotonic() + 30
         while True:

@@ -6,11 +6,15 @@
 #include <ompl/util/Console.h>
 #include <ompl/util/RandomNumbers.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
 #include <mutex>
+#include <optional>
 #include <sstream>
+#include <utility>
+#include <vector>
 
 namespace behaviorlib::nav {
 namespace {
@@ -135,6 +139,41 @@ absl::Status checkEnds(const Eigen::Vector3d& start_m, const Eigen::Vector3d& go
   return absl::OkStatus();
 }
 
+// The nearest point within options.escape_m of `start` that is clear at
+// `bare`, inside the volume, reached by a straight move along which the
+// clearance never falls below the start's; none when the start is inside an
+// obstacle or no such point exists.
+std::optional<Eigen::Vector3d> escapeFrom(const InflatedGrid& grid, const Eigen::Vector3d& start,
+                                          double bare, const PlanOptions& options) {
+  const double clearance = grid.clearanceM(start);
+  if (!(clearance > 0.0)) return std::nullopt;
+  const double floor = std::min(clearance, bare) - 1e-6;
+  const double step = grid.resolutionM();
+  const int reach = static_cast<int>(std::ceil(options.escape_m / step));
+  std::vector<std::pair<double, Eigen::Vector3d>> candidates;
+  for (int dz = -reach; dz <= reach; ++dz) {
+    for (int dy = -reach; dy <= reach; ++dy) {
+      for (int dx = -reach; dx <= reach; ++dx) {
+        const Eigen::Vector3d offset = step * Eigen::Vector3d(dx, dy, dz);
+        const double d = offset.norm();
+        if (d > 0.0 && d <= options.escape_m) candidates.emplace_back(d, start + offset);
+      }
+    }
+  }
+  std::stable_sort(candidates.begin(), candidates.end(),
+                   [](const auto& a, const auto& b) { return a.first < b.first; });
+  for (const auto& [d, p] : candidates) {
+    if (!inside(p, options) || grid.blocked(p, bare)) continue;
+    const int n = std::max(1, static_cast<int>(std::ceil(d / (0.5 * step))));
+    bool away = true;
+    for (int i = 1; i <= n && away; ++i) {
+      away = grid.clearanceM(start + (p - start) * (static_cast<double>(i) / n)) >= floor;
+    }
+    if (away) return p;
+  }
+  return std::nullopt;
+}
+
 void quietOmpl() {
   static std::once_flag once;
   std::call_once(once, [] { ompl::msg::setLogLevel(ompl::msg::LOG_WARN); });
@@ -184,9 +223,27 @@ absl::StatusOr<PlannedPath> planPath(const InflatedGrid& grid, const Eigen::Vect
                                          " is outside the planning volume");
   }
   if (grid.blocked(start_m, bare)) {
-    return absl::FailedPreconditionError(
-        "the vehicle at " + text(start_m) +
-        " is closer to an obstacle than its radius: move it away first");
+    const std::optional<Eigen::Vector3d> away =
+        options.escape_m > 0.0 ? escapeFrom(grid, start_m, bare, options) : std::nullopt;
+    if (!away) {
+      return absl::FailedPreconditionError(
+          "the vehicle at " + text(start_m) +
+          " is closer to an obstacle than its radius: move it away first" +
+          (options.escape_m > 0.0
+               ? " (no point within " + std::to_string(options.escape_m) + " m is clear of it)"
+               : std::string()));
+    }
+    // Away from the obstacle first, then planned from there.
+    PlanOptions from_there = options;
+    from_there.escape_m = 0.0;
+    absl::StatusOr<PlannedPath> path = planPath(grid, *away, goal_m, from_there);
+    if (!path.ok()) return path;
+    path->waypoints_m.insert(path->waypoints_m.begin(), start_m);
+    path->escape_length_m = (*away - start_m).norm();
+    path->length_m += path->escape_length_m;
+    path->min_clearance_m =
+        std::min(path->min_clearance_m, grid.clearanceM(start_m) - options.vehicle_radius_m);
+    return path;
   }
   // The uncertainty margin where a passage allows it: kept when the start,
   // the goal and a chain of cells between them are clear with it.

@@ -227,6 +227,9 @@ ExploreBehavior::Choice ExploreBehavior::choose(const Request& request) const {
     options.bounds_min_m = request.lo_m;
     options.bounds_max_m = request.hi_m;
     options.timeout_s = 0.5;
+    // A leg may end nearer a wall than the radius (the wall was not in the
+    // map when the leg was planned): the next leg first moves away from it.
+    options.escape_m = 2.0 * request.radius_m;
     int tried = 0;
     for (const auto& [steps_to, target] : candidates) {
       if (tried++ == kCandidatesPerChoice) break;

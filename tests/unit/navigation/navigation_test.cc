@@ -176,6 +176,44 @@ TEST_F(Building, RefusesGoalsOutsideTheMapOrInsideObstacles) {
   EXPECT_NE(std::string(in_wall.status().message()).find("inside an obstacle"), std::string::npos);
 }
 
+// A vehicle 0.2 m from the wall between A and B (x = 6), with a radius of
+// 0.35 m: refused by default; with escape_m, the path first moves straight
+// away from the wall to a point clear at the radius, then goes on.
+TEST_F(Building, AStartNearAWallIsRefusedOrEscapedFromWhenAllowed) {
+  PlanOptions options = buildingVolume();
+  options.vehicle_radius_m = 0.35;
+  const Eigen::Vector3d start(5.75, 2.0, 1.5);
+  const Eigen::Vector3d goal(3.0, 3.0, 1.5);
+  auto clear = planPath(*map_, {3.0, 2.0, 1.5}, goal, options);
+  ASSERT_TRUE(clear.ok()) << clear.status();
+  EXPECT_EQ(clear->escape_length_m, 0.0);
+  auto refused = planPath(*map_, start, goal, options);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(std::string(refused.status().message()).find("move it away first"), std::string::npos);
+
+  options.escape_m = 0.7;
+  auto escaped = planPath(*map_, start, goal, options);
+  ASSERT_TRUE(escaped.ok()) << escaped.status();
+  ASSERT_GE(escaped->waypoints_m.size(), 3u);
+  EXPECT_EQ(escaped->waypoints_m.front(), start);
+  const Eigen::Vector3d away = escaped->waypoints_m[1];
+  EXPECT_LT(away.x(), start.x()) << "away from the wall: " << away.transpose();
+  EXPECT_LE((away - start).norm(), 0.7 + 1e-9);
+  EXPECT_DOUBLE_EQ(escaped->escape_length_m, (away - start).norm());
+  EXPECT_LT(escaped->min_clearance_m, 0.0) << "it began nearer the wall than its radius";
+  EXPECT_FALSE(map_->collides(away, 0.35)) << away.transpose();
+  EXPECT_EQ(escaped->waypoints_m.back(), goal);
+  // From the point it moved to, the path keeps the radius from the walls.
+  PlannedPath rest = *escaped;
+  rest.waypoints_m.erase(rest.waypoints_m.begin());
+  expectCollisionFree(rest, 0.35);
+
+  // Inside the wall itself there is nothing to escape from.
+  auto inside = planPath(*map_, {6.0, 2.0, 1.5}, goal, options);
+  EXPECT_EQ(inside.status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_NE(std::string(inside.status().message()).find("is clear of it"), std::string::npos);
+}
+
 TEST(OccupancyMapAlone, AnUnreachableGoalIsReportedAfterTheTimeout) {
   // A closed box around the goal.
   OccupancyMap map;

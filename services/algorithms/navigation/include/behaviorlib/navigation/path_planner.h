@@ -53,6 +53,13 @@ struct PlanOptions {
   /// Inflation beyond the radius for the pose estimate's uncertainty, where
   /// a passage is wide enough for it (m).
   double uncertainty_margin_m = 0.0;
+  /// A start closer to an obstacle than the vehicle's radius (a vehicle
+  /// that ended a leg near a wall the map had not shown when it was
+  /// planned): 0 refuses it (FAILED_PRECONDITION, "move it away first").
+  /// Otherwise the path begins with a straight move to the nearest point
+  /// within this distance (m) that is clear at the radius, along which the
+  /// vehicle never comes closer to an obstacle than it already is.
+  double escape_m = 0.0;
 };
 
 struct PlannedPath {
@@ -69,6 +76,9 @@ struct PlannedPath {
   /// Whether the uncertainty margin was kept everywhere (false: a passage
   /// on the way is too narrow for it).
   bool margin_kept = true;
+  /// Length of the first move away from an obstacle too near the start
+  /// (PlanOptions::escape_m; m, 0 when the start was clear).
+  double escape_length_m = 0.0;
 };
 
 /// Half a voxel diagonal: a point is judged by its cell's centre.

@@ -38,6 +38,9 @@ REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), 
 sys.path.insert(0, os.path.join(REPO, "deploy", "local"))
 import rpc  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from local_demo_test import kill_launched  # noqa: E402
+
 LAUNCHER = os.path.join(REPO, "deploy", "local", "launch.py")
 BUILD_DIR = os.path.join(REPO, "build")
 SERVING = re.compile(r"^\s+(\S+)\s+gRPC (127\.0\.0\.1:\d+)")
@@ -55,9 +58,17 @@ class LocalTlsTest(unittest.TestCase):
             stdout=self.log, stderr=subprocess.STDOUT, text=True)
 
     def tearDown(self):
+        # After a failed assertion: the launcher stops its stack (SIGINT),
+        # and whatever is left of it is killed. Its processes run in sessions
+        # of their own, so killing the launcher alone would leave them running.
         if self.launcher.poll() is None:
-            self.launcher.kill()
-            self.launcher.wait()
+            self.launcher.send_signal(signal.SIGINT)
+            try:
+                self.launcher.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                self.launcher.kill()
+                self.launcher.wait()
+        kill_launched(self.run_dir)
         self.log.close()
         shutil.rmtree(self.run_dir, ignore_errors=True)
 

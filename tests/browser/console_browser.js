@@ -65,6 +65,13 @@ async function main() {
     const systems = await page.$$eval("#systems tbody tr", (rows) => rows.length);
     log(`${systems} systems shown`);
 
+    // Where the vehicle stands before the mission (the simulator's ground truth).
+    const marker = `#map circle.vehicle[data-robot="${robot}"]`;
+    await page.waitForSelector(marker, { timeout: WAIT_MS });
+    const start = await page.$eval(marker, (c) => [Number(c.getAttribute("cx")),
+                                                   Number(c.getAttribute("cy"))]);
+    log(`the vehicle stands at (${start.map((v) => v.toFixed(2)).join(", ")})`);
+
     await page.type("#start-mission input[name=file_path]", missionFile);
     await press(page, "#start-mission button[type=submit]");
     const stepsOf = () => page.$eval("#missions tbody tr", (row) => ({
@@ -72,8 +79,16 @@ async function main() {
       step: row.querySelector(".step").textContent,
       state: row.querySelector(".state").textContent,
     }));
-    await page.waitForSelector("#missions tbody tr", { timeout: WAIT_MS });
-    const first = await stepsOf();
+    // The mission's row as first drawn (read in the same check that finds it,
+    // not one round trip later, when the fast flight may have gone on).
+    const first = await (await page.waitForFunction(() => {
+      const row = document.querySelector("#missions tbody tr");
+      return row && {
+        steps: Number(row.querySelector(".steps").textContent),
+        step: row.querySelector(".step").textContent,
+        state: row.querySelector(".state").textContent,
+      };
+    }, { polling: "mutation", timeout: WAIT_MS })).jsonValue();
     log(`mission shown: ${JSON.stringify(first)}`);
 
     await page.waitForSelector(
@@ -81,10 +96,10 @@ async function main() {
       { timeout: WAIT_MS });
     log("TAKE_OFF finished, GOAL_ACHIEVED, in the timeline");
 
-    const marker = `#map circle.vehicle[data-robot="${robot}"]`;
-    await page.waitForSelector(marker, { timeout: WAIT_MS });
-    const start = await page.$eval(marker, (c) => [Number(c.getAttribute("cx")),
-                                                   Number(c.getAttribute("cy"))]);
+    // The leg flies 2 m from where the vehicle stood before the mission and
+    // it hovers there: the marker must come more than 1 m from that place.
+    // (Read after TAKE_OFF, the start could already be the leg's end when the
+    // page lags a fast flight.)
     await page.waitForFunction((selector, x0, y0) => {
       const c = document.querySelector(selector);
       return Math.hypot(Number(c.getAttribute("cx")) - x0,

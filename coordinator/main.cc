@@ -63,7 +63,11 @@ ABSL_FLAG(std::string, geofence, "",
 ABSL_FLAG(double, critical_battery, kDefaults.critical_battery,
           "battery state of charge (0..1) under which a flying robot is landed");
 ABSL_FLAG(double, hover_before_land_s, behaviorlib::toSeconds(kDefaults.hover_before_land),
-          "wall seconds a robot hovers before the safety policy lands it");
+          "seconds of the vehicles' time (--clock) a robot hovers before the safety policy "
+          "lands it");
+ABSL_FLAG(std::string, clock, kDefaults.clock,
+          "the vehicles' time for the safety rules' hover before landing: 'steady' (the host's) "
+          "or 'sim' (the simulator's, from --channel's 'clock' topic)");
 ABSL_FLAG(int, workers, kDefaults.workers, "threads for blocking calls (plans, safety actions)");
 ABSL_FLAG(double, resume_wait_s, behaviorlib::toSeconds(kDefaults.resume_wait),
           "after a restart, wall seconds a journaled mission waits for its robot's systems to "
@@ -135,6 +139,7 @@ int main(int argc, char** argv) {
   options.geofence = *geofence;
   options.critical_battery = absl::GetFlag(FLAGS_critical_battery);
   options.hover_before_land = behaviorlib::seconds(absl::GetFlag(FLAGS_hover_before_land_s));
+  options.clock = absl::GetFlag(FLAGS_clock);
   options.workers = absl::GetFlag(FLAGS_workers);
   options.resume_wait = behaviorlib::seconds(absl::GetFlag(FLAGS_resume_wait_s));
   options.mission_dir = absl::GetFlag(FLAGS_mission_dir);

@@ -14,6 +14,7 @@
 
 #include "absl/status/status.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "coordinator/belief/belief_store.h"
@@ -78,6 +79,13 @@ absl::Status CoordinatorOptions::validate() const {
       return absl::InvalidArgumentError(out.str());
     }
   }
+  if (clock != "steady" && clock != "sim") {
+    return absl::InvalidArgumentError("--clock must be 'steady' or 'sim', got '" + clock + "'");
+  }
+  if (clock == "sim" && channel_address.empty()) {
+    return absl::InvalidArgumentError(
+        "--clock sim needs --channel (simulated time comes from its 'clock' topic)");
+  }
   return absl::OkStatus();
 }
 
@@ -130,6 +138,8 @@ struct Coordinator::Parts {
   std::unique_ptr<BlockingPool> pool;
   std::unique_ptr<FleetControl> fleet;
   std::unique_ptr<MissionManager> missions;
+  // The vehicles' simulated time (--clock sim), for the safety rules.
+  std::unique_ptr<channel::SimClock> vehicle_clock;
   std::unique_ptr<SafetyController> safety;
   std::unique_ptr<CoordinatorService> service;
   bool stopped = false;
@@ -274,6 +284,10 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   safety_options.channel_address = options.channel_address;
   safety_options.metrics = p->metrics.get();
   if (!options.flight_controllers.empty()) {
+    if (options.clock == "sim") {
+      p->vehicle_clock = std::make_unique<channel::SimClock>(options.channel_address);
+      safety_options.clock = p->vehicle_clock.get();
+    }
     p->safety =
         std::make_unique<SafetyController>(*p->fleet, *p->missions, *p->log, safety_options);
     for (const auto& [robot, address] : options.flight_controllers) {

@@ -58,8 +58,11 @@ struct CoordinatorOptions {
   std::optional<Geofence> geofence;
   /// Battery ratio at or below which a flying robot is landed.
   double critical_battery = 0.10;
-  /// Hover before a safety landing.
+  /// Hover before a safety landing, in the vehicles' time (`clock`).
   std::chrono::nanoseconds hover_before_land = std::chrono::seconds(1);
+  /// The vehicles' time for the safety rules: "steady" (the host's) or
+  /// "sim" (the simulator's, from the `clock` topic of `channel_address`).
+  std::string clock = "steady";
   /// Threads for blocking calls (plans, safety actions).
   int workers = 4;
   /// After a restart, how long a journaled mission waits for its robot's

@@ -1,5 +1,6 @@
 #include "coordinator/service/safety.h"
 
+#include <algorithm>
 #include <cstdio>
 #include <set>
 #include <utility>
@@ -24,6 +25,46 @@ bool airborne(v1::FlightState state) {
 
 constexpr char kSafetyHolderSuffix[] = "/coordinator-safety";
 constexpr std::chrono::seconds kSafetyLeaseTtl{10};
+// How often a safety action renews its lease (host time), far within the
+// ttl even when simulated time runs many times faster.
+constexpr std::chrono::milliseconds kRenewPeriod{100};
+
+// A span of the vehicle's time (its Clock) from construction. A clock that
+// is not valid (no simulated time yet) counts the span in host time, and one
+// that went back (a restarted simulator, a new time line) ends it: a hover
+// never waits for time that will not come.
+class VehicleTimer {
+ public:
+  VehicleTimer(const Clock& clock, Duration span)
+      : clock_(clock),
+        span_(span),
+        vehicle_time_(clock.valid()),
+        start_(clock.now()),
+        host_start_(std::chrono::steady_clock::now()) {}
+
+  bool done() const { return remaining() <= Duration::zero(); }
+
+  /// How long (host time) to wait before looking again: at most `cap`.
+  std::chrono::nanoseconds wallWait(std::chrono::nanoseconds cap) const {
+    const Duration left = remaining();
+    if (left <= Duration::zero()) return cap;
+    return std::min(cap, vehicle_time_ ? clock_.wallWaitFor(left) : left);
+  }
+
+ private:
+  Duration remaining() const {
+    if (!vehicle_time_) return span_ - (std::chrono::steady_clock::now() - host_start_);
+    const TimePoint now = clock_.now();
+    if (now < start_) return Duration::zero();
+    return span_ - (now - start_);
+  }
+
+  const Clock& clock_;
+  const Duration span_;
+  const bool vehicle_time_;
+  const TimePoint start_;
+  const std::chrono::steady_clock::time_point host_start_;
+};
 
 absl::Status noFlightController(const std::string& robot_id) {
   return errors::withReason(
@@ -59,7 +100,11 @@ struct SafetyController::Robot {
 
 SafetyController::SafetyController(FleetControl& fleet, MissionManager& missions,
                                    FleetEventLog& log, SafetyOptions options)
-    : fleet_(fleet), missions_(missions), log_(log), options_(std::move(options)) {
+    : fleet_(fleet),
+      missions_(missions),
+      log_(log),
+      options_(std::move(options)),
+      clock_(options_.clock != nullptr ? *options_.clock : steady_clock_) {
   if (!options_.channel_address.empty()) {
     channel_ = std::make_unique<channel::ChannelClient>(options_.channel_address);
   }
@@ -294,15 +339,18 @@ void SafetyController::fire(Robot& robot, const std::string& trigger, const std:
               });
         }
       }
+      // The hover is the vehicle's (its clock's time); the stand-down's
+      // budget bounds calls (host time).
       const auto started = std::chrono::steady_clock::now();
-      const auto hover_until =
-          started + (hover_first ? options_.hover_before_land : std::chrono::milliseconds(0));
       const auto stand_down_until = started + options_.stand_down_budget;
+      auto renewed = started;
+      const VehicleTimer hover(
+          clock_, hover_first ? options_.hover_before_land : std::chrono::milliseconds(0));
       for (;;) {
         {
           absl::MutexLock lock(&mutex_);
           const auto now = std::chrono::steady_clock::now();
-          if (stopping_ || (now >= hover_until && (*stood_down || now >= stand_down_until))) {
+          if (stopping_ || (hover.done() && (*stood_down || now >= stand_down_until))) {
             if (!*stood_down && !stopping_) {
               std::fprintf(stderr,
                            "coordinator: safety: %s: the stand-down took longer than %lld ms: "
@@ -312,9 +360,12 @@ void SafetyController::fire(Robot& robot, const std::string& trigger, const std:
             }
             break;
           }
-          cv_.WaitWithTimeout(&mutex_, absl::Milliseconds(100));
+          cv_.WaitWithTimeout(&mutex_, absl::FromChrono(hover.wallWait(kRenewPeriod)));
         }
-        if (lease.ok()) (void)robot.fc->renewLease(lease_id);
+        if (lease.ok() && std::chrono::steady_clock::now() - renewed >= kRenewPeriod) {
+          (void)robot.fc->renewLease(lease_id);
+          renewed = std::chrono::steady_clock::now();
+        }
       }
       // Land under the lease kept alive above; take it again if it was lost
       // meanwhile, or if taking it did not answer in time (a loaded flight
@@ -339,9 +390,10 @@ void SafetyController::fire(Robot& robot, const std::string& trigger, const std:
                        robot.robot_id.c_str(), std::string(landed.status().message()).c_str());
           (void)robot.fc->executeFlightAction(lease_id, v1::FLIGHT_ACTION_EMERGENCY_LAND);
         }
-        // Keep the lease alive until the vehicle is down.
-        const auto deadline = std::chrono::steady_clock::now() + std::chrono::minutes(2);
-        while (std::chrono::steady_clock::now() < deadline) {
+        // Keep the lease alive until the vehicle is down (at most two
+        // minutes of its time: a landing takes seconds).
+        const VehicleTimer down(clock_, std::chrono::minutes(2));
+        while (!down.done()) {
           auto status = robot.watcher->latest();
           if (status.ok() && !airborne(status->state()) &&
               status->state() != v1::FLIGHT_STATE_LANDING) {
@@ -349,8 +401,7 @@ void SafetyController::fire(Robot& robot, const std::string& trigger, const std:
           }
           if (!robot.fc->renewLease(lease_id).ok()) break;  // taken over, or gone
           absl::MutexLock lock(&mutex_);
-          mutex_.AwaitWithTimeout(absl::Condition(&stopping_),
-                                  absl::FromChrono(std::chrono::milliseconds(100)));
+          mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(kRenewPeriod));
           if (stopping_) break;
         }
         (void)robot.fc->releaseLease(lease_id);

@@ -25,6 +25,8 @@
 //   - the pose estimate leaves the geofence (the running mission's, else the
 //     configured one): hover and abort the mission (its safety steps run).
 // Each rule fires once per flight (it re-arms when the vehicle has landed).
+// The hover before landing lasts `hover_before_land` of the vehicles' time
+// (`clock`: simulated time for simulated vehicles).
 // A rule that lands does not wait for a stand-down that hangs (a frozen
 // system's calls run into their deadline): it lands after its hover and at
 // most `stand_down_budget`, keeping its lease alive until the vehicle is down.
@@ -51,6 +53,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/clock.h"
 #include "behaviorlib/v1/platform.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "coordinator/mission/mission_file.h"
@@ -77,8 +80,17 @@ namespace behaviorlib::coordinator {
 struct SafetyOptions {
   /// Battery state of charge (0..1) under which a flying vehicle lands.
   double critical_battery_ratio = 0.10;
-  /// How long the vehicle hovers before it lands (hover-then-land rules).
+  /// How long the vehicle hovers before it lands (hover-then-land rules), in
+  /// the vehicles' time (`clock`).
   std::chrono::milliseconds hover_before_land{1000};
+  /// The vehicles' time: the hover before landing and the watch until the
+  /// vehicle is down run on it (the simulator's SimClock for simulated
+  /// vehicles, whose time may run faster or slower than the host's). Null:
+  /// the host's steady clock. Must outlive the controller. Waits on the
+  /// coordinator's own calls (the stand-down budget, the mission's
+  /// acknowledgement, the lease renewals) stay in host time: they bound
+  /// gRPC calls, whose deadlines are host time.
+  const Clock* clock = nullptr;
   /// How often the policy looks at each robot.
   std::chrono::milliseconds poll{100};
   /// Geofence for robots whose mission has none; unset: none.
@@ -152,6 +164,9 @@ class SafetyController {
   MissionManager& missions_;
   FleetEventLog& log_;
   const SafetyOptions options_;
+  // options_.clock, else steady_clock_.
+  SteadyClock steady_clock_;
+  const Clock& clock_;
   std::unique_ptr<channel::ChannelClient> channel_;
 
   mutable absl::Mutex mutex_;

@@ -367,7 +367,9 @@ def start_stack(args, build_dir, stack):
     coordinator_argv += ["--catalog", os.path.join(CONFIG_DIR, "catalog.yaml"),
                          "--flight-controller",
                          ",".join(f"{robot}={simulator.address}" for robot in robots),
-                         "--channel", broker.address]
+                         # The safety rules' hover before landing lasts the
+                         # vehicle's (simulated) time.
+                         "--channel", broker.address, "--clock", "sim"]
     if deterministic:
         # Supervision stays in wall time: a system starved for over a second
         # on a loaded machine, which this mode tolerates, is not a dead one.

@@ -240,6 +240,8 @@ class ComposeTest(unittest.TestCase):
         robots = [entry.split("=")[0]
                   for entry in ds.flag_value(coordinator, "--flight-controller").split(",")]
         self.assertEqual(robots, ["drone1", "drone2"])
+        # The safety rules' hover runs on the vehicles' simulated time.
+        self.assertEqual(ds.flag_value(coordinator, "--clock"), "sim")
         # Apart from the vehicles, the override's commands are the base file's.
         base = ds.load_compose(ds.COMPOSE_FILE)["services"]
         for name, flag in (("simulator", "--vehicles"), ("coordinator", "--flight-controller")):

@@ -134,6 +134,25 @@ TEST(CoordinatorInProcessTest, AStateDirectoryThatIsAFileIsRefusedNamingIt) {
   EXPECT_THAT(std::string(coordinator.status().message()), HasSubstr("--state-dir"));
 }
 
+// The safety rules' vehicle clock: steady or sim, and simulated time needs
+// the channel it comes from.
+TEST(CoordinatorInProcessTest, AVehicleClockIsSteadyOrSimFromAChannel) {
+  CoordinatorOptions unknown = loopbackOptions("");
+  unknown.clock = "wall";
+  auto refused = Coordinator::start(std::move(unknown));
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(refused.status().message()),
+              HasSubstr("--clock must be 'steady' or 'sim', got 'wall'"));
+
+  CoordinatorOptions no_channel = loopbackOptions("");
+  no_channel.clock = "sim";
+  refused = Coordinator::start(std::move(no_channel));
+  ASSERT_FALSE(refused.ok());
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(std::string(refused.status().message()), HasSubstr("--clock sim needs --channel"));
+}
+
 TEST(CoordinatorInProcessTest, AnAddressInUseIsRefused) {
   auto first = Coordinator::start(loopbackOptions(""));
   ASSERT_TRUE(first.ok()) << first.status();

@@ -58,6 +58,20 @@ constexpr milliseconds kLandBound = seconds(15);
 /// a wrong design would be slower by the systems' call deadline (3 s).
 constexpr milliseconds kMustFollow = seconds(15);
 
+double wallSeconds(SteadyClock::time_point from, SteadyClock::time_point to) {
+  return std::chrono::duration<double>(to - from).count();
+}
+
+/// Simulated seconds from one flight status to another (their stamps): the
+/// vehicle's time, which the coordinator's hover before landing counts
+/// (--clock sim), and which runs slower than the host's when the simulator
+/// waits for a starved system.
+double simSeconds(const v1::FlightStatus& from, const v1::FlightStatus& to) {
+  const auto& a = from.header().stamp();
+  const auto& b = to.header().stamp();
+  return static_cast<double>(b.seconds() - a.seconds()) + (b.nanos() - a.nanos()) * 1e-9;
+}
+
 // A mission of drone1: take off to 1.5 m and fly 10 m east and back at
 // 1 m/s (long enough for what each test provokes), then land; LAND on abort.
 std::string missionText(const std::string& name, const std::string& geofence = "") {
@@ -292,7 +306,9 @@ class CoordinatorSafetyTest : public ::testing::Test {
                                                  "--critical-battery",
                                                  std::to_string(kCriticalBattery),
                                                  "--hover-before-land-s",
-                                                 std::to_string(kHoverBeforeLandS)};
+                                                 std::to_string(kHoverBeforeLandS),
+                                                 "--clock",
+                                                 "sim"};
     for (const auto& arg : extraCoordinatorArgs()) coordinator_args.push_back(arg);
     coordinator_ =
         std::make_unique<support::ServerProcess>(BEHAVIORLIB_COORDINATOR_PATH, coordinator_args);
@@ -684,8 +700,8 @@ TEST_F(CoordinatorSafetyTest, KilledMotionControllerIsReportedThenTheVehicleHove
   auto landing = waitState(*hover, v1::FLIGHT_STATE_LANDING);
   ASSERT_TRUE(landing) << flight_->trace(mark);
   EXPECT_EQ(flight_->at(*landing).status.lease_holder(), kSafetyHolder) << flight_->trace(mark);
-  const double hovered_s =
-      std::chrono::duration<double>(flight_->at(*landing).at - flight_->at(*hover).at).count();
+  // The hover lasts the vehicle's time: its simulated seconds are bounded.
+  const double hovered_s = simSeconds(flight_->at(*hover).status, flight_->at(*landing).status);
   EXPECT_GE(hovered_s, 0.8 * kHoverBeforeLandS) << flight_->trace(mark);
   ASSERT_TRUE(waitState(*landing, v1::FLIGHT_STATE_LANDED)) << flight_->trace(mark);
   const double landed_s = std::chrono::duration<double>(SteadyClock::now() - killed_at).count();
@@ -697,8 +713,8 @@ TEST_F(CoordinatorSafetyTest, KilledMotionControllerIsReportedThenTheVehicleHove
   EXPECT_NE(ended.message().find("motion controller"), std::string::npos) << ended.message();
   std::printf(
       "kill -9 of the PID system: PROCESS_FAILURE after %.2f s, LANDED after %.2f s "
-      "(wall); mission: %s\n",
-      reported_s, landed_s, ended.message().c_str());
+      "(wall), after a hover of %.2f simulated s; mission: %s\n",
+      reported_s, landed_s, hovered_s, ended.message().c_str());
 }
 
 TEST_F(CoordinatorSafetyTest, CriticalBatteryLandsTheVehicleAndAbortsTheMission) {
@@ -787,9 +803,6 @@ TEST_F(CoordinatorSafetyTest, LeavingTheMissionGeofenceAbortsItAndItsSafetyStepL
 }
 
 // Seconds of wall time between two flight samples.
-double wallSeconds(SteadyClock::time_point from, SteadyClock::time_point to) {
-  return std::chrono::duration<double>(to - from).count();
-}
 
 // The motion controller hangs (SIGSTOP of the PID system during
 // FOLLOW_PATH): it stops renewing its lease, the platform's lease failsafe
@@ -835,9 +848,12 @@ TEST_F(CoordinatorSafetyTest, AHungControllerLosesItsLeaseAndTheFailsafeRuleHove
   // ...then land, still under its lease.
   auto landing = waitState(*hover, v1::FLIGHT_STATE_LANDING);
   ASSERT_TRUE(landing) << flight_->trace(mark);
-  const double hovered_s = wallSeconds(flight_->at(*hover).at, flight_->at(*landing).at);
+  // A hover of the vehicle's time, which does not wait for the frozen
+  // system: bounded below in simulated time, above in wall time.
+  const double hovered_s = simSeconds(flight_->at(*hover).status, flight_->at(*landing).status);
   EXPECT_GE(hovered_s, 0.8 * kHoverBeforeLandS) << flight_->trace(mark);
-  EXPECT_LT(hovered_s, kHoverBeforeLandS + 1.5)
+  const double hovered_wall_s = wallSeconds(flight_->at(*hover).at, flight_->at(*landing).at);
+  EXPECT_LT(hovered_wall_s, kHoverBeforeLandS + 1.5)
       << "the landing did not wait for the frozen system: " << flight_->trace(mark);
   auto landed = waitState(*landing, v1::FLIGHT_STATE_LANDED);
   ASSERT_TRUE(landed) << flight_->trace(mark);
@@ -872,8 +888,9 @@ TEST_F(CoordinatorSafetyTest, AHungControllerLosesItsLeaseAndTheFailsafeRuleHove
   EXPECT_EQ(flight_->latest()->state(), v1::FLIGHT_STATE_LANDED) << flight_->trace(mark);
   std::printf(
       "SIGSTOP of the PID system: lease failsafe, coordinator hover after %.2f s, landing after "
-      "%.2f s of hover, LANDED %.2f s after the freeze (wall); mission: %s\n",
-      wallSeconds(frozen_at, flight_->at(*hover).at), hovered_s, landed_s, ended.message().c_str());
+      "%.2f s of hover (%.2f simulated), LANDED %.2f s after the freeze (wall); mission: %s\n",
+      wallSeconds(frozen_at, flight_->at(*hover).at), hovered_wall_s, hovered_s, landed_s,
+      ended.message().c_str());
 }
 
 // behaviorctl's situation, mission run --detach, mission status, deactivate

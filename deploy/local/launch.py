@@ -75,7 +75,6 @@ servers through gRPC reflection (no generated code).
 """
 
 import argparse
-import ctypes
 import hashlib
 import json
 import math
@@ -94,7 +93,7 @@ import report  # noqa: E402
 import rpc  # noqa: E402
 import screenshot  # noqa: E402
 from stack import (HttpProcess, Process, RestartPolicy, Stack, StartError,  # noqa: E402
-                   Supervisor)
+                   Supervisor, popen_with_launcher)
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 # The coordinator's catalog and the simulator's sensor configurations; each
@@ -496,9 +495,8 @@ class FlightRecorder:
         os.makedirs(os.path.dirname(self.log_path), exist_ok=True)
         self._stdout = tempfile.TemporaryFile(mode="w+")
         with open(self.log_path, "a") as log:
-            self.process = subprocess.Popen(argv, stdout=self._stdout, stderr=log,
-                                            stdin=subprocess.DEVNULL,
-                                            preexec_fn=_die_with_parent)
+            self.process = popen_with_launcher(argv, stdout=self._stdout, stderr=log,
+                                               stdin=subprocess.DEVNULL)
 
     def stop(self, timeout_s):
         """Ends the recording; what it wrote ({file, bytes, messages})."""
@@ -517,16 +515,6 @@ class FlightRecorder:
                 pass
         self._stdout.close()
         return self.result
-
-
-_LIBC = ctypes.CDLL(None, use_errno=True)
-_PR_SET_PDEATHSIG = 1
-
-
-def _die_with_parent():
-    """In a child before exec: SIGTERM when the launcher dies (Linux). Only
-    a call here: nothing that takes a lock, as the launcher has threads."""
-    _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 # The console has drawn the finished demo: every robot's vehicle on the map,

@@ -4,7 +4,9 @@ the gRPC health protocol, one log file each, stopped in reverse order
 (SIGTERM, wait, SIGKILL after a timeout).
 
 Each process runs in a session of its own, so a Ctrl-C at the terminal
-reaches only the launcher, which then stops them in order.
+reaches only the launcher, which then stops them in order. Each also gets
+SIGTERM when the launcher dies, even by SIGKILL (popen_with_launcher): no
+stack outlives its launcher.
 
 A Supervisor thread applies a RestartPolicy (compose's `restart:`) to a
 process that exits while the stack runs: with "on-failure" one that failed
@@ -12,14 +14,17 @@ is started again with the same arguments, on the ports it had (the others
 dial them), its output appended to its log and pids.json rewritten.
 """
 
+import ctypes
 import json
 import os
+import queue
 import signal
 import ssl
 import subprocess
 import threading
 import time
 import urllib.request
+from concurrent.futures import Future
 
 import rpc
 
@@ -28,6 +33,62 @@ _CLOCK_TICKS = os.sysconf("SC_CLK_TCK")
 
 class StartError(RuntimeError):
     """A process did not start, or did not become healthy."""
+
+
+_LIBC = ctypes.CDLL(None, use_errno=True)
+_PR_SET_PDEATHSIG = 1
+
+
+def _term_when_launcher_dies(launcher_pid):
+    """preexec_fn: in the child, before exec, SIGTERM once its parent is gone
+    (Linux's parent-death signal); and if the launcher died before this
+    ran, exit at once. Only system calls here: the launcher has threads,
+    and nothing that takes a lock may run between fork and exec."""
+    def arm():
+        _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+        if os.getppid() != launcher_pid:
+            os._exit(1)
+    return arm
+
+
+class _Spawner:
+    """Forks from one thread that lives as long as the launcher. Linux sends
+    the parent-death signal when the *thread* that forked a child ends, not
+    the process: a process the supervisor's thread restarted would be
+    stopped as soon as the supervision ends, before the stack's ordered
+    stop. Every fork goes through here instead (a daemon thread, which ends
+    only with the launcher)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._requests = queue.SimpleQueue()
+        self._thread = None
+
+    def popen(self, argv, **kwargs):
+        with self._lock:
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="spawner", daemon=True)
+                self._thread.start()
+        done = Future()
+        self._requests.put((argv, kwargs, done))
+        return done.result()
+
+    def _run(self):
+        while True:
+            argv, kwargs, done = self._requests.get()
+            try:
+                done.set_result(subprocess.Popen(argv, **kwargs))
+            except BaseException as error:  # handed to the caller
+                done.set_exception(error)
+
+
+_SPAWNER = _Spawner()
+
+
+def popen_with_launcher(argv, **kwargs):
+    """subprocess.Popen(argv, **kwargs), for a child that gets SIGTERM when
+    the launcher dies, however it dies."""
+    return _SPAWNER.popen(argv, preexec_fn=_term_when_launcher_dies(os.getpid()), **kwargs)
 
 
 def read_ports(path):
@@ -101,8 +162,8 @@ class Process:
         with open(self.log_path, "ab" if restarting else "wb") as log:
             log.write(("$ " + " ".join(self.argv) + "\n").encode())
             log.flush()
-            self.process = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=log,
-                                            stderr=subprocess.STDOUT, start_new_session=True)
+            self.process = popen_with_launcher(self.argv, stdin=subprocess.DEVNULL, stdout=log,
+                                               stderr=subprocess.STDOUT, start_new_session=True)
         if on_spawn:
             on_spawn()
         deadline = time.monotonic() + timeout_s

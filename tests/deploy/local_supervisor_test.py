@@ -4,7 +4,8 @@ killed is restarted on its ports (its --listen rewritten), its log appended
 to and pids.json rewritten; one that exits 0 is left stopped; one that keeps
 crashing is restarted with a growing delay until the cap, then the
 supervisor gives up; with "no" the first exit is a failure; stop() cancels a
-restart in progress and nothing is restarted afterwards.
+restart in progress and nothing is restarted afterwards; a launcher killed
+with SIGKILL takes its processes down, the one its supervisor restarted too.
 
     /usr/bin/python3 tests/deploy/local_supervisor_test.py
 
@@ -62,6 +63,30 @@ def serve(argv):
         os._exit(args.exit_code)
     while True:
         time.sleep(1)
+
+
+def launcher(run_dir):
+    """A launcher stand-in (--launcher RUN_DIR): starts two stand-in servers,
+    supervises them (on-failure), says "ready" and waits to be killed."""
+    stack = Stack(run_dir)
+    for name in ("first", "second"):
+        argv = [sys.executable, os.path.abspath(__file__), "--serve", "--listen", "127.0.0.1:0"]
+        stack.start(Process(name, argv, run_dir, "test"))
+    supervisor = Supervisor(stack, RestartPolicy("on-failure", **FAST), print, poll_s=0.05,
+                            start_timeout_s=10.0)
+    supervisor.start()
+    print("ready", flush=True)
+    while True:
+        time.sleep(1)
+
+
+def alive(pid):
+    """Whether `pid` runs (a zombie, which nobody may reap here, does not)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
 
 
 class SupervisorTest(unittest.TestCase):
@@ -160,8 +185,52 @@ class SupervisorTest(unittest.TestCase):
         self.assertLess(time.monotonic() - started, 1.0, "stop() waited for the delay")
         self.assertEqual(server.pid, pid, "restarted after stop()")
 
+    def test_a_killed_launcher_takes_its_processes_down(self):
+        # Linux's parent-death signal follows the thread that forked: the
+        # process the supervisor's thread restarted is the one to check.
+        import json
+        import subprocess
+        output = os.path.join(self.run_dir, "launcher.out")
+        with open(output, "w") as out:
+            stand_in = subprocess.Popen([sys.executable, os.path.abspath(__file__), "--launcher",
+                                         self.run_dir], stdout=out, stderr=subprocess.STDOUT,
+                                        stdin=subprocess.DEVNULL)
+        try:
+            def said(text):
+                with open(output) as f:
+                    return text in f.read()
+
+            def pids():
+                try:
+                    with open(os.path.join(self.run_dir, "pids.json")) as f:
+                        return json.load(f)
+                except (OSError, ValueError):
+                    return {}
+
+            ds.wait_for(lambda: said("ready"), 30, "the launcher's two servers")
+            first, second = pids()["first"], pids()["second"]
+            os.kill(second, signal.SIGKILL)
+            ds.wait_for(lambda: said("second restarted"), 30, "the supervisor's restart")
+            restarted = pids()["second"]
+            self.assertNotEqual(restarted, second)
+            self.assertTrue(alive(first) and alive(restarted))
+
+            stand_in.kill()
+            stand_in.wait()
+            ds.wait_for(lambda: not alive(first) and not alive(restarted), 30,
+                        "the launcher's processes to end after it was killed")
+        finally:
+            if stand_in.poll() is None:
+                stand_in.kill()
+                stand_in.wait()
+            for pid in pids().values():
+                if alive(pid):
+                    os.kill(pid, signal.SIGKILL)
+
 
 if __name__ == "__main__":
     if sys.argv[1:2] == ["--serve"]:
         serve(sys.argv[2:])
+    if sys.argv[1:2] == ["--launcher"]:
+        launcher(sys.argv[2])
     unittest.main(verbosity=2)

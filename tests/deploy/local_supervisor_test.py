@@ -80,15 +80,6 @@ def launcher(run_dir):
         time.sleep(1)
 
 
-def alive(pid):
-    """Whether `pid` runs (a zombie, which nobody may reap here, does not)."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
 class SupervisorTest(unittest.TestCase):
     def setUp(self):
         self.run_dir = tempfile.mkdtemp(prefix="local-supervisor-test-")
@@ -213,18 +204,18 @@ class SupervisorTest(unittest.TestCase):
             ds.wait_for(lambda: said("second restarted"), 30, "the supervisor's restart")
             restarted = pids()["second"]
             self.assertNotEqual(restarted, second)
-            self.assertTrue(alive(first) and alive(restarted))
+            self.assertTrue(ds.alive(first) and ds.alive(restarted))
 
             stand_in.kill()
             stand_in.wait()
-            ds.wait_for(lambda: not alive(first) and not alive(restarted), 30,
+            ds.wait_for(lambda: not ds.alive(first) and not ds.alive(restarted), 30,
                         "the launcher's processes to end after it was killed")
         finally:
             if stand_in.poll() is None:
                 stand_in.kill()
                 stand_in.wait()
             for pid in pids().values():
-                if alive(pid):
+                if ds.alive(pid):
                     os.kill(pid, signal.SIGKILL)
 
 

@@ -14,7 +14,6 @@ is started again with the same arguments, on the ports it had (the others
 dial them), its output appended to its log and pids.json rewritten.
 """
 
-import ctypes
 import json
 import os
 import queue
@@ -35,20 +34,11 @@ class StartError(RuntimeError):
     """A process did not start, or did not become healthy."""
 
 
-_LIBC = ctypes.CDLL(None, use_errno=True)
-_PR_SET_PDEATHSIG = 1
-
-
-def _term_when_launcher_dies(launcher_pid):
-    """preexec_fn: in the child, before exec, SIGTERM once its parent is gone
-    (Linux's parent-death signal); and if the launcher died before this
-    ran, exit at once. Only system calls here: the launcher has threads,
-    and nothing that takes a lock may run between fork and exec."""
-    def arm():
-        _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-        if os.getppid() != launcher_pid:
-            os._exit(1)
-    return arm
+# Sets the parent-death signal, then execs the process (util-linux, which
+# every Debian system has). Not a preexec_fn: that makes Python fork()
+# instead of vfork(), and fork() runs the gRPC library's fork handlers in a
+# launcher with gRPC threads, which crashed it (SIGSEGV) now and then.
+_DIE_WITH_LAUNCHER = ["setpriv", "--pdeathsig", "TERM", "--"]
 
 
 class _Spawner:
@@ -87,8 +77,9 @@ _SPAWNER = _Spawner()
 
 def popen_with_launcher(argv, **kwargs):
     """subprocess.Popen(argv, **kwargs), for a child that gets SIGTERM when
-    the launcher dies, however it dies."""
-    return _SPAWNER.popen(argv, preexec_fn=_term_when_launcher_dies(os.getpid()), **kwargs)
+    the launcher dies, however it dies (unless it dies in the instant
+    between the fork and setpriv's arming the signal)."""
+    return _SPAWNER.popen(_DIE_WITH_LAUNCHER + list(argv), **kwargs)
 
 
 def read_ports(path):

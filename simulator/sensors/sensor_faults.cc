@@ -3,9 +3,9 @@
 #include <cmath>
 #include <limits>
 #include <opencv2/core.hpp>
-#include <opencv2/imgcodecs.hpp>
 #include <type_traits>
 
+#include "behaviorlib/image_codec/image_codec.h"
 #include "simulator/world/camera.h"  // encodeImage
 #include "simulator/world/lidar.h"   // standardNormal
 
@@ -62,10 +62,10 @@ double jump(std::mt19937_64& rng) {
   return uniform01(rng) < 0.5 ? -magnitude : magnitude;
 }
 
+/// The image as BGR, or an empty Mat if it does not decode.
 cv::Mat decode(const CameraImageData& image) {
-  const cv::Mat bytes(1, static_cast<int>(image.data.size()), CV_8UC1,
-                      const_cast<char*>(image.data.data()));
-  return cv::imdecode(bytes, cv::IMREAD_COLOR);
+  absl::StatusOr<cv::Mat> bgr = image_codec::decodeToBgr(image.data);
+  return bgr.ok() ? *std::move(bgr) : cv::Mat();
 }
 
 void reencode(CameraImageData& image, const cv::Mat& bgr, int jpeg_quality) {

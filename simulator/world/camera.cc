@@ -3,11 +3,11 @@
 #include <algorithm>
 #include <cctype>
 #include <cmath>
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <opencv2/objdetect.hpp>
 #include <opencv2/wechat_qrcode.hpp>
 
+#include "behaviorlib/image_codec/image_codec.h"
 #include "simulator/world/str_cat.h"
 
 namespace behaviorlib::sim {
@@ -361,27 +361,20 @@ absl::StatusOr<std::string> encodeImage(const cv::Mat& bgr, std::string_view for
   std::string lower(format);
   std::transform(lower.begin(), lower.end(), lower.begin(),
                  [](unsigned char ch) { return static_cast<char>(std::tolower(ch)); });
-  std::string extension;
-  std::vector<int> params;
+  absl::StatusOr<std::string> encoded;
   if (lower == "jpeg" || lower == "jpg") {
-    extension = ".jpg";
-    params = {cv::IMWRITE_JPEG_QUALITY, std::clamp(jpeg_quality, 1, 100)};
+    encoded = image_codec::encodeJpeg(bgr, std::clamp(jpeg_quality, 1, 100));
   } else if (lower == "png") {
-    extension = ".png";
-    params = {cv::IMWRITE_PNG_COMPRESSION, 1};  // fast; the stream is live
+    encoded = image_codec::encodePng(bgr);  // fast; the stream is live
   } else {
     return absl::InvalidArgumentError(
         strCat("encodeImage: unknown format '", format, "' (use jpeg or png)"));
   }
-  std::vector<unsigned char> bytes;
-  try {
-    if (!cv::imencode(extension, bgr, bytes, params)) {
-      return absl::InternalError(strCat("encodeImage: OpenCV could not encode ", lower));
-    }
-  } catch (const cv::Exception& e) {
-    return absl::InternalError(strCat("encodeImage: ", e.what()));
+  if (!encoded.ok()) {
+    return absl::Status(encoded.status().code(),
+                        strCat("encodeImage: ", encoded.status().message()));
   }
-  return std::string(bytes.begin(), bytes.end());
+  return encoded;
 }
 
 std::vector<std::string> decodeQr(const cv::Mat& image) {

@@ -100,8 +100,10 @@ class Camera {
   std::vector<std::vector<cv::Mat>> marker_mips_;
 };
 
-/// Encodes a BGR image as "jpeg" (or "jpg") or "png"; kInvalidArgument for
-/// other formats or an empty image.
+/// Encodes a BGR (CV_8UC3) or grey (CV_8UC1) image as "jpeg" (or "jpg";
+/// quality clamped to 1..100) or "png" (compressed for speed), with
+/// behaviorlib::image_codec; kInvalidArgument for other formats, an empty
+/// image or another image type.
 absl::StatusOr<std::string> encodeImage(const cv::Mat& bgr, std::string_view format,
                                         int jpeg_quality = 90);
 

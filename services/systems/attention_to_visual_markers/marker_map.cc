@@ -1,7 +1,8 @@
 #include "behaviorlib/attention_to_visual_markers/marker_map.h"
 
 #include <cmath>
-#include <opencv2/imgcodecs.hpp>
+
+#include "behaviorlib/image_codec/image_codec.h"
 
 namespace behaviorlib::markers {
 
@@ -73,19 +74,10 @@ absl::StatusOr<cv::Mat> decodeImage(const v1::Image& image) {
   if (data.empty()) return absl::InvalidArgumentError("image without data");
   const std::string& encoding = image.encoding();
   if (encoding == "jpeg" || encoding == "png") {
-    cv::Mat decoded;
-    try {
-      const cv::Mat buffer(1, static_cast<int>(data.size()), CV_8UC1,
-                           const_cast<char*>(data.data()));
-      decoded = cv::imdecode(buffer, cv::IMREAD_GRAYSCALE);
-    } catch (const cv::Exception& e) {
-      return absl::InvalidArgumentError(std::string("cannot decode the ") + encoding +
-                                        " image: " + e.what());
-    }
-    if (decoded.empty()) {
-      return absl::InvalidArgumentError(std::string("cannot decode the ") + encoding + " image");
-    }
-    return decoded;
+    // The data's signature decides between JPEG and PNG; the codec refuses
+    // garbage, truncated data and oversized headers with kInvalidArgument
+    // and a message that names the format.
+    return image_codec::decodeToGray(data);
   }
   if (encoding == "mono8" || encoding == "bgr8") {
     const int channels = encoding == "mono8" ? 1 : 3;

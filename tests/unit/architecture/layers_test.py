@@ -21,7 +21,7 @@ INCLUDE = re.compile(r'^\s*#\s*include\s+[<"]([^>"]+)[>"]', re.M)
 
 CORE_HEADERS = {"behavior_execution_manager.h", "behavior_host.h", "clock.h", "documentation.h",
                 "event_log.h", "parameters.h", "process_supervisor.h"}
-ALGORITHMS = {"motion_control", "navigation", "sensor_fusion", "visual_markers"}
+ALGORITHMS = {"image_codec", "motion_control", "navigation", "sensor_fusion", "visual_markers"}
 SHARED = {"flight_common", "motion_behaviors", "platform"}
 # Header-only helpers beneath every layer (they include nothing of ours):
 # the order of gRPC's callbacks for TSan, used by every reactor, reflection's

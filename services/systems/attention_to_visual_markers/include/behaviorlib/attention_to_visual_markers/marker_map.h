@@ -58,8 +58,9 @@ class PoseHistory {
 /// be used (sizes or focal lengths not positive, non-finite values).
 absl::StatusOr<CameraModel> cameraModel(const v1::CameraInfo& info);
 
-/// The pixels of an Image ("jpeg", "png", "bgr8", "mono8"); INVALID_ARGUMENT
-/// saying what is wrong with a malformed one.
+/// The pixels of an Image ("jpeg", "png", "bgr8", "mono8"; JPEG and PNG
+/// decoded to grey by behaviorlib::image_codec, within its DecodeLimits);
+/// INVALID_ARGUMENT saying what is wrong with a malformed one.
 absl::StatusOr<cv::Mat> decodeImage(const v1::Image& image);
 
 /// `marker` located with the locator's nominal size, for a marker of side

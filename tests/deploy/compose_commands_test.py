@@ -107,9 +107,16 @@ class ComposeCommandsTest(unittest.TestCase):
             else:  # a named volume, shared by the services that mount it
                 links[target] = os.path.join(self.tmp, "volumes", source)
                 os.makedirs(links[target], exist_ok=True)
-        for target, source in links.items():
+        # Shallower targets first: a file mounted into an image directory
+        # (the coordinator's access policy) then replaces the image's entry.
+        for target, source in sorted(links.items(), key=lambda item: item[0].count("/")):
             path = root + target
             os.makedirs(os.path.dirname(path), exist_ok=True)
+            if os.path.lexists(path):
+                parent = os.path.realpath(os.path.dirname(path))
+                assert parent.startswith(os.path.realpath(root) + "/"), (
+                    f"{target}: mounted inside a linked directory ({parent})")
+                os.remove(path)
             if any(f.startswith(target + "/") for f in files):
                 # A directory the image fills from several places (the
                 # behavior systems' configurations added to deploy/config):

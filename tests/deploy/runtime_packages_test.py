@@ -1,9 +1,12 @@
 """The Docker runtime stage installs enough: every shared library that a
 binary of the image (deploy/compose/Dockerfile: the channel broker, the
-simulator, the coordinator, behaviorctl and every behavior system) needs
-directly comes from a package of `scripts/install-deps.sh --runtime`, or from
-libc6, which every Debian image has. Each of those packages exists in the
-configured Debian archive.
+simulator, the coordinator, the console, behaviorctl and every behavior
+system) needs directly comes from a package of `scripts/install-deps.sh
+--runtime`, from one whose libraries deploy/compose/copy-libraries.sh copies
+from the build stage (OpenCV's, decision 38), or from libc6, which every
+Debian image has; so does every library that a copied library needs
+directly. Each installed package exists in the configured Debian archive.
+(The image's build also checks with ldd that nothing is missing.)
 
     /usr/bin/python3 tests/deploy/runtime_packages_test.py --build-dir build
 """
@@ -30,6 +33,14 @@ def runtime_packages():
     return set(match.group(1).replace("\\\n", " ").split())
 
 
+def copied_packages():
+    with open(os.path.join(ds.REPO, "deploy", "compose", "copy-libraries.sh")) as f:
+        text = f.read()
+    match = re.search(r'^COPIED_PACKAGES="([^"]*)"', text, re.MULTILINE)
+    assert match, "COPIED_PACKAGES not found in deploy/compose/copy-libraries.sh"
+    return set(match.group(1).replace("\\\n", " ").split())
+
+
 def needed_libraries(binary):
     """{soname: resolved path} of the libraries `binary` names directly."""
     dynamic = subprocess.run(["objdump", "-p", binary], capture_output=True, text=True,
@@ -41,6 +52,10 @@ def needed_libraries(binary):
         match = re.match(r"\s*(\S+) => (\S+)", line)
         if match:
             resolved[match.group(1)] = match.group(2)
+        # The loader itself: "/lib64/ld-linux-x86-64.so.2 (0x...)".
+        match = re.match(r"\s*(/\S+/([^/\s]+)) \(0x", line)
+        if match:
+            resolved.setdefault(match.group(2), match.group(1))
     return {name: resolved.get(name) for name in needed}
 
 
@@ -72,11 +87,22 @@ class RuntimePackagesTest(unittest.TestCase):
         return paths
 
     def test_runtime_packages_cover_every_library_the_binaries_need(self):
-        packages = runtime_packages()
-        self.assertTrue(packages)
+        installed, copied = runtime_packages(), copied_packages()
+        self.assertTrue(installed)
+        self.assertTrue(copied)
+        self.assertEqual(installed & copied, set(), "both installed and copied")
+        packages = installed | copied
         needed = {name: needed_libraries(binary) for name, binary in self.binaries().items()}
         owners = owning_packages({path for libs in needed.values() for path in libs.values()
                                   if path})
+        # What the copied libraries need in turn, down to the last one.
+        pending = {path for path, package in owners.items() if package in copied}
+        while pending:
+            path = pending.pop()
+            needed[os.path.basename(path)] = needed_libraries(path)
+            new = {p for p in needed[os.path.basename(path)].values() if p and p not in owners}
+            owners.update(owning_packages(new))
+            pending |= {p for p in new if owners[p] in copied}
         for name, libraries in needed.items():
             for soname, path in libraries.items():
                 with self.subTest(binary=name, library=soname):
@@ -85,7 +111,8 @@ class RuntimePackagesTest(unittest.TestCase):
                     self.assertIsNotNone(package, f"no Debian package owns {path}")
                     self.assertIn(package, packages | BASE_IMAGE_PACKAGES,
                                   f"{name} needs {soname} from {package}, which "
-                                  f"install-deps.sh --runtime does not install")
+                                  f"install-deps.sh --runtime does not install and "
+                                  f"copy-libraries.sh does not copy")
 
     def test_runtime_packages_exist(self):
         packages = sorted(runtime_packages())

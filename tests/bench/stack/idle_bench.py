@@ -135,14 +135,20 @@ def measure(build_dir, time_scale, window_s, settle_s, extra):
         stack.stop()
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__,
+def window_arguments(description):
+    """The options of an idle measurement (also container_idle_bench's)."""
+    parser = argparse.ArgumentParser(description=description,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--build-dir", default=os.path.join(REPO, "build"))
     parser.add_argument("--time-scales", default="1,10")
     parser.add_argument("--window-s", type=float, default=20.0)
     parser.add_argument("--settle-s", type=float, default=5.0)
     parser.add_argument("--runs", type=int, default=3)
+    return parser
+
+
+def main():
+    parser = window_arguments(__doc__)
     parser.add_argument("--smoke", action="store_true")
     parser.add_argument("extra", nargs="*", help="launcher arguments (after --)")
     args = parser.parse_args()

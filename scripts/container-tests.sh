@@ -88,9 +88,11 @@ if [ -z "${DOCKER_HOST:-}" ] && ! docker version > /dev/null 2>&1; then
     i=0
     until docker version > /dev/null 2>&1; do
       if ! kill -0 "$own_daemon_pid" 2> /dev/null || [ $i -ge 120 ]; then
-        own_daemon_pid=""
         tail -n 5 "$run_dir/dockerd.log" >&2 || true
-        skip "no Docker engine can run on this machine (dockerd did not start; see above)"
+        stop_daemon
+        own_daemon_pid=""
+        skip "no Docker engine can run on this machine (dockerd exited, or did not" \
+          "answer within 60 s; its log's end is above)"
       fi
       sleep 0.5
       i=$((i + 1))

@@ -55,6 +55,7 @@ import unittest
 from datetime import datetime
 
 import grpc
+import yaml
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 sys.path.insert(0, os.path.join(REPO, "deploy", "local"))
@@ -163,9 +164,9 @@ class Stack:
         self.files = [BASE_FILE, OFFLINE_FILE]
         self.vehicles = 1
 
-    def with_drone2(self):
-        self.files = [BASE_FILE, OFFLINE_FILE, DRONE2_FILE]
-        self.vehicles = 2
+    def with_drone2(self, drone2=True):
+        self.files = [BASE_FILE, OFFLINE_FILE] + ([DRONE2_FILE] if drone2 else [])
+        self.vehicles = 2 if drone2 else 1
 
     def compose(self, *args, timeout=600, check=True):
         argv = ["docker-compose"]
@@ -174,19 +175,16 @@ class Stack:
         return run(argv + list(args), timeout=timeout, check=check, env=self.env)
 
     def services(self):
-        names = self.compose("config", "--services").stdout.split()
-        grafana_image = self.compose("config").stdout
-        self.grafana = "grafana" in names and subprocess.run(
-            ["docker", "image", "inspect", self.grafana_image(grafana_image)],
-            capture_output=True).returncode == 0
-        if not self.grafana and "grafana" in names:
+        """The services to start: every one of the files but Grafana, unless
+        its image is in the engine (one `config` call)."""
+        config = yaml.safe_load(self.compose("config").stdout)
+        names = list(config["services"])
+        grafana = config["services"].get("grafana")
+        self.grafana = grafana is not None and subprocess.run(
+            ["docker", "image", "inspect", grafana["image"]], capture_output=True).returncode == 0
+        if grafana is not None and not self.grafana:
             names.remove("grafana")
         return names
-
-    @staticmethod
-    def grafana_image(config_text):
-        import yaml
-        return yaml.safe_load(config_text)["services"]["grafana"]["image"]
 
     def up(self):
         services = self.services()
@@ -370,16 +368,25 @@ class ComposeStackTest(unittest.TestCase):
         # What a failed earlier run may have left.
         cls.stack.with_drone2()
         cls.stack.down(volumes=True)
-        cls.stack = Stack(cls.work)
-        cls.up_wall = time.time()
-        cls.services = cls.stack.up()
+        cls.stack.with_drone2(False)
         cls.failed_probes = {}  # service: {(seconds after start, exit code, output)}
+        cls.up_wall = time.time()
+        try:
+            cls.services = cls.stack.up()
+        except BaseException:
+            # unittest runs no tearDownClass after a failed setUpClass.
+            cls.tearDownClass()
+            raise
 
     @classmethod
     def tearDownClass(cls):
-        if os.environ.get("BEHAVIORLIB_KEEP_STACK") != "1":
-            cls.stack.down(volumes=True)
-        shutil.rmtree(cls.work, ignore_errors=True)
+        try:
+            if os.environ.get("BEHAVIORLIB_KEEP_STACK") != "1":
+                # Every file, so that drone2's containers go too.
+                cls.stack.with_drone2()
+                cls.stack.down(volumes=True)
+        finally:
+            shutil.rmtree(cls.work, ignore_errors=True)
 
     def wait_healthy(self, services, timeout_s=HEALTHY_TIMEOUT_S):
         """{service: seconds from its container's start to its first passing

@@ -12,7 +12,7 @@ BUILD_PACKAGES="g++ cmake ninja-build pkg-config libgtest-dev libgmock-dev libbe
   golang-github-gogo-googleapis-dev \
   libompl-dev libboost-serialization-dev libboost-filesystem-dev libboost-system-dev \
   liboctomap-dev libopencv-dev libopencv-contrib-dev prometheus-cpp-dev libyaml-cpp-dev grpc-proto \
-  libssl-dev libcpp-httplib-dev zlib1g-dev libturbojpeg0-dev libpng-dev ccache"
+  libssl-dev libcpp-httplib-dev zlib1g-dev libturbojpeg0-dev libpng-dev ccache libnats-dev"
 # What the built binaries load (each package pulls in its own dependencies), for
 # a machine that only runs them (Docker runtime stage). When a binary comes to
 # need another library, tests/deploy/runtime_packages_test.py names the package
@@ -23,10 +23,11 @@ BUILD_PACKAGES="g++ cmake ninja-build pkg-config libgtest-dev libgmock-dev libbe
 RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libssl3 libgrpc++1.51 libgrpc29 libprotobuf32 \
   libabsl20220623 libprometheus-cpp-core1.0 libprometheus-cpp-pull1.0 libyaml-cpp0.7 \
   liboctomap1.9 libompl16 libcpp-httplib0.11 libturbojpeg0 libpng16-16 \
-  libtbb12 liblapack3 libblas3 libx11-6"
+  libtbb12 liblapack3 libblas3 libx11-6 libnats3.4 nats-server"
 TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-venv python3-setuptools \
   python3-wheel python3-websocket python3-pytest python3-matplotlib python3-pil prometheus docker-compose procps openssl \
-  clang-14 libclang-rt-14-dev libfuzzer-14-dev llvm-14 chromium"
+  clang-14 libclang-rt-14-dev libfuzzer-14-dev llvm-14 chromium \
+  nats-server cyclonedds-dev cyclonedds-tools iproute2 iptables stress-ng"
 
 # npm (with Node.js) installs the pinned tools of tests/api (buf) and
 # tests/deploy (@grafana/schema, TypeScript) into the build tree. Debian's npm

@@ -185,8 +185,16 @@ struct Broker::Topic {
   uint32_t shm_subscribers ABSL_GUARDED_BY(mutex) = 0;
   std::string ring_scratch ABSL_GUARDED_BY(mutex);  // a sample's bytes, reused
 
-  // Caller holds mutex.
+  // Another host wants it (Broker::setRemoteWanted).
+  bool remote_wanted ABSL_GUARDED_BY(mutex) = false;
+
+  // Caller holds mutex. Wanted here or by another host.
   bool wantedLocked(std::chrono::steady_clock::time_point now) const
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex) {
+    return localWantedLocked(now) || remote_wanted;
+  }
+  // Wanted by this host's subscribers or GetLatest callers.
+  bool localWantedLocked(std::chrono::steady_clock::time_point now) const
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex) {
     return !subscribers.empty() || wanted_until > now;
   }
@@ -467,6 +475,10 @@ class Broker::Publisher {
   }
   virtual ~Publisher() = default;
 
+  // Whether its samples come from another host (the link): they are never
+  // handed back to the link.
+  virtual bool remote() const { return false; }
+
   // Ends the stream with `status` (the first requested status wins).
   virtual void requestFinish(const grpc::Status& status) = 0;
 
@@ -508,6 +520,9 @@ class Broker::Publisher {
     }
   }
 
+  // A publisher without a stream (RemotePublisher).
+  explicit Publisher(Broker* broker) : broker_(broker) {}
+
   Broker* const broker_;
   absl::Mutex mutex_;
 
@@ -526,6 +541,15 @@ class Broker::Publisher {
   // The last seq published on each topic (PublishResponse.topic_seqs).
   absl::flat_hash_map<const Topic*, std::pair<std::shared_ptr<Topic>, uint64_t>> published_seqs_
       ABSL_GUARDED_BY(mutex_);
+};
+
+// The samples of other hosts, as the link hands them over. One at a time
+// (Broker::remote_publish_mutex_), so the topic cache needs no lock.
+class Broker::RemotePublisher final : public Broker::Publisher {
+ public:
+  explicit RemotePublisher(Broker* broker) : Publisher(broker) {}
+  bool remote() const override { return true; }
+  void requestFinish(const grpc::Status& /*status*/) override {}
 };
 
 class Broker::PublishReactor final
@@ -772,6 +796,10 @@ std::shared_ptr<Broker::Topic> Broker::topicLocked(const std::string& name) {
   if (it != topics_.end()) return it->second;
   if (topics_.size() >= options_.max_topics) return nullptr;
   auto topic = std::make_shared<Topic>(name, *metrics_);
+  if (remote_wanted_.count(name) != 0) {
+    absl::MutexLock topic_lock(&topic->mutex);
+    topic->remote_wanted = true;
+  }
   topics_.emplace(name, topic);
   return topic;
 }
@@ -861,6 +889,7 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
   // one (its first, say) still made the topic and its type known.
   const bool keep = !topic->gated || topic->wantedLocked(std::chrono::steady_clock::now());
   topic->latest = keep ? sample : nullptr;
+  BrokerLink* const link = topic->remote_wanted && !publisher.remote() ? link_.load() : nullptr;
   if (topic->ring) writeRingLocked(*topic, *sample);
   absl::InlinedVector<std::shared_ptr<SubscribeReactor>, 8> idle;
   for (const auto& subscriber : topic->subscribers) {
@@ -868,6 +897,8 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
   }
   std::vector<Topic::WaitingGet> answered;
   answered.swap(topic->waiting);
+  // Under the topic's mutex, so that attachLink(nullptr) can wait for it.
+  if (link != nullptr) link->localSample(topic->name, *sample);
   topic->mutex.Unlock();
   topic->samples_in.Increment();
   publisher.published_seq = sample->topic_seq();
@@ -1009,18 +1040,77 @@ void Broker::forgetIfUnwantedLocked(Topic& topic, std::chrono::steady_clock::tim
 }
 
 void Broker::interestChangedLocked(InterestReactors* idle) {
-  if (interest_watchers_.empty()) return;
   const auto now = std::chrono::steady_clock::now();
+  localInterestChangedLocked(now);
   for (const auto& watcher : interest_watchers_) {
-    std::vector<std::string> wanted;
+    std::set<std::string> wanted;
     const std::string& prefix = watcher->prefix();
     for (auto it = topics_.lower_bound(prefix);
          it != topics_.end() && absl::StartsWith(it->first, prefix); ++it) {
       absl::MutexLock topic_lock(&it->second->mutex);
-      if (it->second->wantedLocked(now)) wanted.push_back(it->first);
+      if (it->second->wantedLocked(now)) wanted.insert(it->first);
     }
-    if (watcher->offer(std::move(wanted))) idle->push_back(watcher);
+    // Another host may want a topic nothing has published here yet.
+    for (auto it = remote_wanted_.lower_bound(prefix);
+         it != remote_wanted_.end() && absl::StartsWith(*it, prefix); ++it) {
+      wanted.insert(*it);
+    }
+    if (watcher->offer({wanted.begin(), wanted.end()})) idle->push_back(watcher);
   }
+}
+
+void Broker::localInterestChangedLocked(std::chrono::steady_clock::time_point now) {
+  BrokerLink* const link = link_.load();
+  if (link == nullptr) return;
+  std::vector<std::string> wanted;
+  for (const auto& [name, topic] : topics_) {
+    absl::MutexLock topic_lock(&topic->mutex);
+    if (topic->localWantedLocked(now)) wanted.push_back(name);
+  }
+  if (wanted == local_wanted_) return;
+  local_wanted_ = wanted;
+  link->localInterestChanged(std::move(wanted));
+}
+
+void Broker::attachLink(BrokerLink* link) {
+  absl::MutexLock lock(&mutex_);
+  link_.store(link);
+  local_wanted_.clear();
+  if (link != nullptr) {
+    localInterestChangedLocked(std::chrono::steady_clock::now());
+    return;
+  }
+  // A publish that took the old link calls it under its topic's mutex:
+  // taking each one once waits for those calls.
+  for (auto& [name, topic] : topics_) absl::MutexLock topic_lock(&topic->mutex);
+}
+
+void Broker::setRemoteWanted(std::vector<std::string> topics) {
+  InterestReactors watchers;
+  {
+    absl::MutexLock lock(&mutex_);
+    std::set<std::string, std::less<>> wanted(std::make_move_iterator(topics.begin()),
+                                              std::make_move_iterator(topics.end()));
+    if (wanted == remote_wanted_ || shutting_down_) return;
+    const auto now = std::chrono::steady_clock::now();
+    for (auto& [name, topic] : topics_) {
+      absl::MutexLock topic_lock(&topic->mutex);
+      topic->remote_wanted = wanted.count(name) != 0;
+      forgetIfUnwantedLocked(*topic, now);
+    }
+    remote_wanted_ = std::move(wanted);
+    interestChangedLocked(&watchers);
+  }
+  for (const auto& watcher : watchers) watcher->pump();
+}
+
+grpc::Status Broker::publishRemote(const std::string& topic, google::protobuf::Any sample) {
+  v1::PublishRequest request;
+  request.set_topic(topic);
+  *request.mutable_sample() = std::move(sample);
+  absl::MutexLock lock(&remote_publish_mutex_);
+  if (!remote_publisher_) remote_publisher_ = std::make_unique<RemotePublisher>(this);
+  return publish(*remote_publisher_, request);
 }
 
 void Broker::removeInterestWatcher(const InterestReactor* watcher) {
@@ -1061,6 +1151,9 @@ void Broker::housekeep() {
       auto next = std::chrono::steady_clock::time_point::max();
       std::vector<std::pair<Topic::WaitingGet, std::string>> expired;  // and its topic
       bool interest_changed = false;
+      // Topics only ever asked for across the link (GetLatest), never
+      // published: forgotten, as a subscriber's waiting topic is.
+      std::vector<std::shared_ptr<Topic>> unasked;
       for (auto it = timed_topics_.begin(); it != timed_topics_.end();) {
         const std::shared_ptr<Topic> keep = *it;  // outlives topic_lock
         Topic& topic = *keep;
@@ -1081,6 +1174,7 @@ void Broker::housekeep() {
           if (topic.subscribers.empty()) {
             forgetIfUnwantedLocked(topic, now);
             interest_changed = true;
+            if (topic.seq == 0 && waiting.empty()) unasked.push_back(keep);
           }
         } else if (topic.wanted_until != std::chrono::steady_clock::time_point{}) {
           next = std::min(next, topic.wanted_until);
@@ -1088,6 +1182,15 @@ void Broker::housekeep() {
         const bool timed =
             !waiting.empty() || topic.wanted_until != std::chrono::steady_clock::time_point{};
         it = timed ? std::next(it) : timed_topics_.erase(it);
+      }
+      for (const auto& topic : unasked) {
+        auto found = topics_.find(topic->name);
+        if (found == topics_.end() || found->second != topic) continue;
+        absl::MutexLock topic_lock(&topic->mutex);
+        if (topic->seq == 0 && topic->subscribers.empty() && topic->waiting.empty()) {
+          topics_.erase(found);
+          topic->removeMetrics(*metrics_);
+        }
       }
       InterestReactors watchers;
       if (interest_changed) interestChangedLocked(&watchers);
@@ -1138,7 +1241,13 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
     bool gated = false;
     if (it != topics_.end() && !shutting_down_) {
       absl::MutexLock topic_lock(&it->second->mutex);
-      gated = it->second->gated;
+      // With a link, another host may publish it: asking makes it wanted
+      // there too, and the call waits for the sample to arrive.
+      gated = it->second->gated || (link_.load() != nullptr && !it->second->latest);
+    } else if (!shutting_down_ && link_.load() != nullptr) {
+      std::shared_ptr<Topic> made = topicLocked(request->topic());
+      if (made) it = topics_.find(request->topic());
+      gated = made != nullptr;
     }
     if (gated) {
       // A gated topic is wanted for a while after a GetLatest, so that its
@@ -1148,7 +1257,7 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
       bool was_wanted = false;
       {
         absl::MutexLock topic_lock(&topic->mutex);
-        was_wanted = topic->wantedLocked(now);
+        was_wanted = topic->localWantedLocked(now);
         topic->wanted_until = now + kTransientInterest;
         latest = topic->latest;
         if (!latest) {

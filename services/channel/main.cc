@@ -6,13 +6,17 @@
 // or on a bad flag.
 
 #include <grpcpp/grpcpp.h>
+#include <unistd.h>
 
 #include <chrono>
 #include <cstdio>
+#include <memory>
 #include <string>
 
 #include "absl/flags/flag.h"
+#include "absl/strings/str_split.h"
 #include "behaviorlib/channel/broker.h"
+#include "behaviorlib/channel/nats_link.h"
 #include "behaviorlib/server_kit/flags.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 
@@ -24,6 +28,19 @@ ABSL_FLAG(std::string, port_file, "",
 ABSL_FLAG(bool, shared_memory, behaviorlib::channel::BrokerOptions().shared_memory,
           "deliver to subscribers on this host that ask for it through shared-memory rings "
           "under /dev/shm (false: every sample on its gRPC stream)");
+
+ABSL_FLAG(std::string, link_url, "",
+          "NATS server(s) of the fleet's data engine, e.g. nats://127.0.0.1:4222 (comma-separated "
+          "for several): topics wanted on other hosts travel there (decision 39); empty: this host "
+          "only");
+ABSL_FLAG(std::string, link_name, "",
+          "this broker's name in the fleet (letters, digits, '_', '-'; default: the host name)");
+ABSL_FLAG(std::string, link_local, "",
+          "comma-separated topic prefixes that never cross hosts (e.g. clock on a vehicle that "
+          "takes the time from its own autopilot)");
+ABSL_FLAG(std::string, link_tls_cert, "", "the link's client certificate chain (mutual TLS)");
+ABSL_FLAG(std::string, link_tls_key, "", "the link's private key");
+ABSL_FLAG(std::string, link_tls_ca, "", "the CA that signed the NATS server's certificate");
 
 ABSL_FLAG(int, max_topics, static_cast<int>(behaviorlib::channel::BrokerOptions().max_topics),
           "topics the broker keeps; a new topic beyond is RESOURCE_EXHAUSTED (1..1000000)");
@@ -60,6 +77,25 @@ int main(int argc, char** argv) {
   // Declared after `runtime` but shut down explicitly below on every path
   // where the server was started, so the server never outlives the broker.
   behaviorlib::channel::Broker broker(runtime.registry(), options);
+  std::unique_ptr<behaviorlib::channel::NatsLink> link;
+  if (const std::string url = absl::GetFlag(FLAGS_link_url); !url.empty()) {
+    behaviorlib::channel::NatsLinkOptions link_options;
+    link_options.url = url;
+    link_options.name = absl::GetFlag(FLAGS_link_name);
+    if (link_options.name.empty()) {
+      char host[256] = {};
+      if (gethostname(host, sizeof(host) - 1) == 0) link_options.name = host;
+    }
+    link_options.local_prefixes =
+        absl::StrSplit(absl::GetFlag(FLAGS_link_local), ',', absl::SkipEmpty());
+    link_options.tls_cert = absl::GetFlag(FLAGS_link_tls_cert);
+    link_options.tls_key = absl::GetFlag(FLAGS_link_tls_key);
+    link_options.tls_ca = absl::GetFlag(FLAGS_link_tls_ca);
+    auto started =
+        behaviorlib::channel::NatsLink::start(broker, std::move(link_options), runtime.registry());
+    if (!started.ok()) return fatal(program, started.status());
+    link = std::move(*started);
+  }
   grpc::ServerBuilder builder;
   builder.RegisterService(&broker);
   if (!runtime.startServer(builder, listen, {"behaviorlib.v1.DataChannel"}, &error)) {
@@ -74,6 +110,8 @@ int main(int argc, char** argv) {
 
   const int sig = ServerRuntime::waitForShutdownSignal();
   std::fprintf(stderr, "%s: signal %d, shutting down\n", program.c_str(), sig);
+  // The link goes first: nothing more arrives from other hosts.
+  link.reset();
   // End every stream first: Server::Shutdown would otherwise wait for
   // subscribers that never hang up.
   broker.shutdown();

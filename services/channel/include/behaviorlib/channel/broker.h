@@ -41,6 +41,27 @@ class Registry;
 
 namespace behaviorlib::channel {
 
+/// The broker's link to the other hosts of a fleet (decision 39): what
+/// crosses hosts travels on a data engine (NatsLink), not on gRPC streams to
+/// one broker. The broker tells the link which topics this host wants and
+/// hands it the samples that local publishers put on topics another host
+/// wants; the link hands the broker the other hosts' wants and samples
+/// (Broker::setRemoteWanted, Broker::publishRemote). Called on the
+/// broker's threads (localInterestChanged with the broker's mutex held,
+/// localSample with the topic's): an
+/// implementation only records and returns, and never calls back into the
+/// broker from inside.
+class BrokerLink {
+ public:
+  virtual ~BrokerLink() = default;
+  /// The topics this host's subscribers and GetLatest callers want (not the
+  /// ones only other hosts want), sorted, each time the set changes.
+  virtual void localInterestChanged(std::vector<std::string> wanted) = 0;
+  /// A sample that a publisher on this host put on a topic another host
+  /// wants (never a sample that came from the link).
+  virtual void localSample(const std::string& topic, const v1::SubscribeResponse& sample) = 0;
+};
+
 struct BrokerOptions {
   /// Offer delivery through shared-memory rings to subscribers on this host
   /// that ask for it (SubscribeRequest.shared_memory; decision 20).
@@ -76,6 +97,20 @@ class Broker final : public v1::DataChannel::CallbackService {
   grpc::ServerWriteReactor<v1::WatchInterestResponse>* WatchInterest(
       grpc::CallbackServerContext* context, const v1::WatchInterestRequest* request) override;
 
+  /// Attaches the link to the fleet's other hosts. Call it once, before the
+  /// server starts; `link` must outlive the broker's use of it (detach with
+  /// nullptr before destroying it).
+  void attachLink(BrokerLink* link);
+  /// The topics that other hosts want (the union of their announcements).
+  /// They count as wanted here: WatchInterest reports them, so a gating
+  /// publisher resumes them, and their samples go to the link.
+  void setRemoteWanted(std::vector<std::string> topics);
+  /// A sample from another host: delivered to this host's subscribers as if
+  /// published here, but never handed back to the link. Checked like any
+  /// sample (topic name, type, the topic's type); the status says why one
+  /// was refused.
+  grpc::Status publishRemote(const std::string& topic, google::protobuf::Any sample);
+
   /// Ends every Publish and Subscribe stream with UNAVAILABLE and refuses new
   /// ones, so that grpc::Server::Shutdown does not wait for clients that keep
   /// their streams open. Call it before shutting the server down.
@@ -83,6 +118,7 @@ class Broker final : public v1::DataChannel::CallbackService {
 
  private:
   class Publisher;
+  class RemotePublisher;
   class PublishReactor;
   class AckedPublishReactor;
   class SubscribeReactor;
@@ -111,6 +147,10 @@ class Broker final : public v1::DataChannel::CallbackService {
   void writeRingLocked(Topic& topic, const v1::SubscribeResponse& sample);
   void dropRingLocked(Topic& topic);
 
+  // The topics this host wants (not counting remote wants); tells the link
+  // when the set changed. Caller holds mutex_.
+  void localInterestChangedLocked(std::chrono::steady_clock::time_point now)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
   // Interest (WatchInterest). Callers hold mutex_.
   // Sends every watcher whose wanted set changed its new set; the watchers
   // to pump once mutex_ is released are appended to `idle`.
@@ -138,6 +178,12 @@ class Broker final : public v1::DataChannel::CallbackService {
   std::set<std::shared_ptr<Topic>> timed_topics_ ABSL_GUARDED_BY(mutex_);
   absl::CondVar housekeeping_cv_;
   bool shutting_down_ ABSL_GUARDED_BY(mutex_) = false;
+  // The link to other hosts (null: this host only) and what it carries.
+  std::atomic<BrokerLink*> link_{nullptr};
+  std::set<std::string, std::less<>> remote_wanted_ ABSL_GUARDED_BY(mutex_);
+  std::vector<std::string> local_wanted_ ABSL_GUARDED_BY(mutex_);
+  absl::Mutex remote_publish_mutex_;  // one sample from the link at a time
+  std::unique_ptr<RemotePublisher> remote_publisher_ ABSL_GUARDED_BY(remote_publish_mutex_);
   std::thread housekeeper_;  // started last
 };
 

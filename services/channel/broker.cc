@@ -64,6 +64,9 @@ constexpr std::chrono::seconds kMaxGetLatestWait(1);
 constexpr std::size_t kMinSlotBytes = 256;
 constexpr std::size_t kMaxRingBytes = 32u << 20;
 constexpr uint32_t kMinRingSlots = 4;
+// Names the next ring; one count for the process, so that two brokers in
+// one process (tests build them in-process) never name the same ring.
+std::atomic<uint64_t> rings_made{0};
 
 // Whether a peer runs on this host, so that it probably shares our /dev/shm
 // (for a client that does not name its shm_domain).
@@ -746,7 +749,7 @@ bool Broker::ensureRingLocked(Topic& topic, uint32_t slots, std::size_t bytes)
   const auto fitting = static_cast<uint32_t>(
       std::max<std::size_t>(kMinRingSlots, kMaxRingBytes / std::max<std::size_t>(slot_bytes, 1)));
   slot_count = std::min(slot_count, fitting);
-  auto made = ShmRing::create(ShmRing::nameFor(getpid(), ++rings_made_), slot_count, slot_bytes);
+  auto made = ShmRing::create(ShmRing::nameFor(getpid(), ++rings_made), slot_count, slot_bytes);
   if (!made.ok()) {
     // Subscribers that asked for a ring get the stream instead; readers of
     // the old ring see it closed and subscribe again.

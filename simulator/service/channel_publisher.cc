@@ -23,7 +23,7 @@ google::protobuf::Timestamp timestampOf(SimTime t) {
 
 }  // namespace
 
-ChannelPublisher::ChannelPublisher(channel::ChannelClient& client, Simulation& simulation,
+ChannelPublisher::ChannelPublisher(ChannelRoutes& client, Simulation& simulation,
                                    const TimeControl& time, PublishRates rates)
     : simulation_(simulation),
       time_(time),

@@ -39,9 +39,9 @@
 #include <chrono>
 #include <memory>
 
-#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "simulator/core/simulation.h"
+#include "simulator/service/channel_routes.h"
 #include "simulator/service/publish_queue.h"
 #include "simulator/service/simulator_service.h"  // TimeControl
 
@@ -64,7 +64,7 @@ struct PublishRates {
 
 class ChannelPublisher {
  public:
-  ChannelPublisher(channel::ChannelClient& client, Simulation& simulation, const TimeControl& time,
+  ChannelPublisher(ChannelRoutes& client, Simulation& simulation, const TimeControl& time,
                    PublishRates rates);
   ~ChannelPublisher();  // stops publishing (the listener must not run any more)
   ChannelPublisher(const ChannelPublisher&) = delete;
@@ -72,7 +72,7 @@ class ChannelPublisher {
 
   uint64_t publishedCount() const { return queue_.publishedCount(); }
   /// Publishes the vehicles' topics only while wanted (PublishQueue).
-  void setInterest(const channel::InterestWatch* interest) { queue_.setInterest(interest); }
+  void setInterest(const ChannelRoutes* interest) { queue_.setInterest(interest); }
   void interestChanged() { queue_.interestChanged(); }
   uint64_t gatedCount() const { return queue_.gatedCount(); }
   /// Waits until everything queued went to the broker (deterministic mode).

@@ -11,6 +11,7 @@
 #include <string>
 
 #include "absl/flags/flag.h"
+#include "absl/strings/str_split.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/server_kit/flags.h"
 #include "behaviorlib/server_kit/server_runtime.h"
@@ -23,6 +24,9 @@ ABSL_FLAG(std::string, metrics_listen, "127.0.0.1:0",
           "Prometheus /metrics address (empty disables)");
 ABSL_FLAG(std::string, port_file, "", "write the bound ports here (grpc_port=, metrics_port=)");
 ABSL_FLAG(std::string, channel, "", "data channel broker address; empty: publish nothing");
+ABSL_FLAG(std::string, vehicle_channels, "",
+          "ROBOT=HOST:PORT,...: a vehicle's topics (and the clock) go to a broker of its own, as "
+          "its autopilot would publish on the vehicle (a fleet across hosts); needs --channel");
 ABSL_FLAG(std::string, world, "",
           "world file, or the name of a shipped world (empty_field, rooms, aircraft); empty: an "
           "empty field");
@@ -123,6 +127,16 @@ int main(int argc, char** argv) {
   options.listen = absl::GetFlag(FLAGS_listen);
   options.metrics_listen = absl::GetFlag(FLAGS_metrics_listen);
   options.channel = absl::GetFlag(FLAGS_channel);
+  for (absl::string_view item :
+       absl::StrSplit(absl::GetFlag(FLAGS_vehicle_channels), ',', absl::SkipEmpty())) {
+    std::pair<std::string, std::string> route = absl::StrSplit(item, absl::MaxSplits('=', 1));
+    if (route.first.empty() || route.second.empty() || options.channel.empty() ||
+        !options.vehicle_channels.emplace(route.first, route.second).second) {
+      fatal(program, "--vehicle-channels: '" + std::string(item) +
+                         "' is not ROBOT=HOST:PORT (each robot once, and --channel set)");
+      return 2;
+    }
+  }
   options.world = absl::GetFlag(FLAGS_world);
   options.worlds_dir = absl::GetFlag(FLAGS_worlds_dir);
   options.vehicles.clear();

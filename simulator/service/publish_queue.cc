@@ -5,7 +5,7 @@
 
 namespace behaviorlib::sim {
 
-PublishQueue::PublishQueue(channel::ChannelClient& client, PublishQueueLimits limits)
+PublishQueue::PublishQueue(ChannelRoutes& client, PublishQueueLimits limits)
     : client_(client), limits_(limits), thread_([this] { run(); }) {}
 
 PublishQueue::~PublishQueue() {
@@ -59,7 +59,7 @@ bool PublishQueue::waitDrained(std::chrono::milliseconds timeout) {
                               [this] { return stopping_ || (queue_.empty() && !publishing_); });
 }
 
-void PublishQueue::setInterest(const channel::InterestWatch* interest) {
+void PublishQueue::setInterest(const ChannelRoutes* interest) {
   {
     std::lock_guard lock(mutex_);
     interest_ = interest;

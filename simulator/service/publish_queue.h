@@ -24,7 +24,7 @@
 #include <unordered_map>
 #include <unordered_set>
 
-#include "behaviorlib/channel/channel_client.h"
+#include "simulator/service/channel_routes.h"
 
 namespace behaviorlib::sim {
 
@@ -36,7 +36,7 @@ struct PublishQueueLimits {
 class PublishQueue {
  public:
   /// `client` must outlive the queue.
-  PublishQueue(channel::ChannelClient& client, PublishQueueLimits limits);
+  PublishQueue(ChannelRoutes& client, PublishQueueLimits limits);
   /// Stops the thread; samples still queued are not published.
   ~PublishQueue();
   PublishQueue(const PublishQueue&) = delete;
@@ -54,7 +54,7 @@ class PublishQueue {
 
   /// Gates publishing by `interest` (nullptr: publish everything). It must
   /// stay valid until replaced by nullptr.
-  void setInterest(const channel::InterestWatch* interest);
+  void setInterest(const ChannelRoutes* interest);
   /// Queues the held samples of the topics now wanted (call when the watch
   /// reports a change): a new subscriber gets the newest sample at once.
   void interestChanged();
@@ -77,7 +77,7 @@ class PublishQueue {
   static constexpr std::size_t kMaxBatchSamples = 256;
   static constexpr std::size_t kMaxBatchBytes = std::size_t{1} << 20;
 
-  channel::ChannelClient& client_;
+  ChannelRoutes& client_;
   const PublishQueueLimits limits_;
   std::mutex mutex_;
   std::condition_variable cv_;
@@ -88,7 +88,7 @@ class PublishQueue {
   std::size_t queued_bytes_ = 0;
   bool publishing_ = false;  // the thread holds a sample being published
   std::condition_variable drained_cv_;
-  const channel::InterestWatch* interest_ = nullptr;
+  const ChannelRoutes* interest_ = nullptr;
   std::unordered_set<std::string> seen_topics_;  // published at least once
   // With an interest watch: the newest sample of every topic, and whether it
   // went out already (a topic wanted again gets it, or a copy, at once).

@@ -14,7 +14,7 @@ constexpr std::string_view kCameraSuffix = "/camera/image";
 
 }  // namespace
 
-SensorPublisher::SensorPublisher(channel::ChannelClient& client, Simulation& simulation,
+SensorPublisher::SensorPublisher(ChannelRoutes& client, Simulation& simulation,
                                  const TimeControl& time, SensorConfig config,
                                  SensorSystem::FrameTimer frame_timer,
                                  std::chrono::milliseconds poll_period)
@@ -43,7 +43,7 @@ SensorPublisher::~SensorPublisher() {
   if (poller_.joinable()) poller_.join();
 }
 
-void SensorPublisher::setInterest(const channel::InterestWatch* interest) {
+void SensorPublisher::setInterest(const ChannelRoutes* interest) {
   {
     std::lock_guard lock(poll_mutex_);
     interest_ = interest;
@@ -84,9 +84,10 @@ void SensorPublisher::pollSubscribers() {
     lock.unlock();
     std::set<std::string> wanted;
     // When the broker cannot be asked, nobody can be subscribed either.
-    auto topics = client_.listTopics(std::string(kRobotsPrefix), std::chrono::seconds(1));
-    if (topics.ok()) {
-      for (const auto& topic : *topics) {
+    const std::vector<v1::TopicInfo> topics =
+        client_.listTopics(std::string(kRobotsPrefix), std::chrono::seconds(1));
+    {
+      for (const auto& topic : topics) {
         const std::string& name = topic.name();
         if (topic.subscriber_count() == 0 ||
             name.size() <= kRobotsPrefix.size() + kCameraSuffix.size() ||

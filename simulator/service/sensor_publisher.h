@@ -19,9 +19,9 @@
 #include <mutex>
 #include <thread>
 
-#include "behaviorlib/channel/channel_client.h"
 #include "simulator/core/simulation.h"
 #include "simulator/sensors/sensor_system.h"
+#include "simulator/service/channel_routes.h"
 #include "simulator/service/publish_queue.h"
 #include "simulator/service/simulator_service.h"  // TimeControl
 
@@ -33,7 +33,7 @@ class SensorPublisher {
   /// physics waits for lidar and camera frames instead of dropping them.
   /// `frame_timer` (optional) is told how long each frame took to make.
   /// Precondition: config.validate() is OK.
-  SensorPublisher(channel::ChannelClient& client, Simulation& simulation, const TimeControl& time,
+  SensorPublisher(ChannelRoutes& client, Simulation& simulation, const TimeControl& time,
                   SensorConfig config, SensorSystem::FrameTimer frame_timer = {},
                   std::chrono::milliseconds poll_period = std::chrono::milliseconds(500));
   /// Stops the poller, the workers and the publishing thread. The step
@@ -51,7 +51,7 @@ class SensorPublisher {
   SensorSystem& sensors() { return sensors_; }
   uint64_t publishedCount() const { return queue_.publishedCount(); }
   /// Publishes the vehicles' topics only while wanted (PublishQueue).
-  void setInterest(const channel::InterestWatch* interest);
+  void setInterest(const ChannelRoutes* interest);
   void interestChanged();
   uint64_t gatedCount() const { return queue_.gatedCount(); }
   /// Waits until everything queued went to the broker (deterministic mode).
@@ -63,7 +63,7 @@ class SensorPublisher {
   // The wanted cameras from the interest watch; false while it is not known.
   bool camerasFromInterest();
 
-  channel::ChannelClient& client_;
+  ChannelRoutes& client_;
   const std::chrono::milliseconds poll_period_;
   PublishQueue queue_;  // before sensors_: the workers push into it
   SensorSystem sensors_;
@@ -71,7 +71,7 @@ class SensorPublisher {
   std::mutex poll_mutex_;
   std::condition_variable poll_cv_;
   bool stopping_ = false;
-  const channel::InterestWatch* interest_ = nullptr;  // guarded by poll_mutex_
+  const ChannelRoutes* interest_ = nullptr;  // guarded by poll_mutex_
   std::thread poller_;
 };
 

@@ -3,17 +3,18 @@
 #include <google/protobuf/util/time_util.h>
 #include <grpcpp/grpcpp.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cstdio>
 #include <thread>
 
 #include "absl/status/status.h"
-#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "simulator/faults/fault_injector.h"
 #include "simulator/service/channel_publisher.h"
+#include "simulator/service/channel_routes.h"
 #include "simulator/service/flight_controller_service.h"
 #include "simulator/service/sensor_publisher.h"
 #include "simulator/service/simulator_metrics.h"
@@ -30,11 +31,10 @@ struct SimulatorProcess::Parts {
   TimeControl time;
   server::ServerRuntime runtime;
   std::unique_ptr<SimulatorMetrics> metrics;
-  std::unique_ptr<channel::ChannelClient> client;
-  std::unique_ptr<channel::ChannelClient> sensor_client;
+  std::unique_ptr<ChannelRoutes> client;
+  std::unique_ptr<ChannelRoutes> sensor_client;
   std::unique_ptr<ChannelPublisher> publisher;
   std::unique_ptr<SensorPublisher> sensors;
-  std::unique_ptr<channel::InterestWatch> interest;
   std::unique_ptr<FaultInjector> faults;
   WorldControl worlds;
   std::unique_ptr<FlightControllerService> flight_controller;
@@ -107,7 +107,7 @@ absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
 
   // Publishers first: loading the world restarts the sensors.
   if (!o.channel.empty()) {
-    p->client = std::make_unique<channel::ChannelClient>(o.channel);
+    p->client = std::make_unique<ChannelRoutes>(o.channel, o.vehicle_channels);
     PublishRates rates;
     rates.clock_every_tick = o.clock_every_tick;
     // Deterministic, the followers take their time from the grants; the
@@ -117,7 +117,9 @@ absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
     // A stream of their own, so that images never delay the clock (free
     // running; deterministic, the grants wait for both, and one stream is
     // synced with one round trip).
-    if (!o.deterministic) p->sensor_client = std::make_unique<channel::ChannelClient>(o.channel);
+    if (!o.deterministic) {
+      p->sensor_client = std::make_unique<ChannelRoutes>(o.channel, o.vehicle_channels);
+    }
     p->sensors = std::make_unique<SensorPublisher>(
         p->sensor_client ? *p->sensor_client : *p->client, p->simulation, p->time, o.sensor_config,
         p->metrics->frameTimer());
@@ -129,12 +131,12 @@ absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
     p->client->gatePublishing("robots/");
     if (p->sensor_client) p->sensor_client->gatePublishing("robots/");
     Parts* parts = p.get();
-    p->interest = p->client->watchInterest("robots/", [parts] {
+    p->client->watchInterest("robots/", [parts] {
       if (parts->publisher) parts->publisher->interestChanged();
       if (parts->sensors) parts->sensors->interestChanged();
     });
-    p->publisher->setInterest(p->interest.get());
-    p->sensors->setInterest(p->interest.get());
+    p->publisher->setInterest(p->client.get());
+    p->sensors->setInterest(p->client.get());
   }
   p->faults =
       std::make_unique<FaultInjector>(p->simulation, p->sensors ? &p->sensors->sensors() : nullptr);
@@ -152,6 +154,13 @@ absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
           loadWorldInto(p->worlds, o.world, o.seed, WorldSource::kConfiguration, p->simulation);
       !s.ok()) {
     return absl::InvalidArgumentError("--world: " + std::string(s.message()));
+  }
+  const std::vector<std::string> ids = p->simulation.robotIds();
+  for (const auto& [robot, address] : o.vehicle_channels) {
+    if (std::find(ids.begin(), ids.end(), robot) == ids.end()) {
+      return absl::InvalidArgumentError("--vehicle-channels: '" + robot +
+                                        "' is not a vehicle of the world");
+    }
   }
 
   p->flight_controller = std::make_unique<FlightControllerService>(p->simulation);
@@ -207,10 +216,10 @@ void SimulatorProcess::shutdown() {
                  static_cast<unsigned long long>(s.droppedCount(SensorKind::kLidar)),
                  static_cast<unsigned long long>(s.droppedCount(SensorKind::kCamera)));
   }
-  if (p.interest) {
+  if (p.client && p.options.gate_topics) {
     p.publisher->setInterest(nullptr);
     p.sensors->setInterest(nullptr);
-    p.interest.reset();  // no more interestChanged calls
+    p.client->stopWatching();  // no more interestChanged calls
   }
   p.sensors.reset();
   p.publisher.reset();

@@ -8,6 +8,7 @@
 
 #include <chrono>
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <string>
 #include <vector>
@@ -25,6 +26,10 @@ struct SimulatorOptions {
   std::string metrics_listen = "127.0.0.1:0";
   /// Data channel broker; empty: publish nothing.
   std::string channel;
+  /// A broker of its own per vehicle (robot id -> host:port): that vehicle's
+  /// topics, and the clock, go there instead (a fleet across hosts,
+  /// decision 39).
+  std::map<std::string, std::string> vehicle_channels;
   /// World file or shipped world name; empty: an empty field.
   std::string world;
   /// Where the shipped worlds are.

@@ -165,7 +165,6 @@ class Broker final : public v1::DataChannel::CallbackService {
 
   const BrokerOptions options_;
   std::unique_ptr<Metrics> metrics_;
-  std::atomic<uint64_t> rings_made_{0};  // names the next ring
 
   // Lock order: mutex_, then Topic::mutex, then a subscription's mutex.
   absl::Mutex mutex_;

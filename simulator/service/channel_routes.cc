@@ -74,6 +74,19 @@ std::map<std::string, uint64_t> ChannelRoutes::acceptedSeqs() const {
   return seqs;
 }
 
+std::map<std::string, std::map<std::string, uint64_t>> ChannelRoutes::acceptedSeqsByDomain() const {
+  std::map<std::string, std::map<std::string, uint64_t>> seqs;
+  for (const Route& route : routes_) seqs[route.robot_id] = route.client->acceptedSeqs();
+  return seqs;
+}
+
+std::string ChannelRoutes::domainOf(const std::string& robot_id) const {
+  for (std::size_t i = 1; i < routes_.size(); ++i) {
+    if (routes_[i].robot_id == robot_id) return robot_id;
+  }
+  return "";
+}
+
 std::vector<v1::TopicInfo> ChannelRoutes::listTopics(const std::string& prefix,
                                                      std::chrono::milliseconds timeout) const {
   std::vector<v1::TopicInfo> all;

@@ -41,6 +41,11 @@ class ChannelRoutes {
   /// routes the clock is left out: each broker numbers it its own way, and
   /// the deterministic mode's followers take the time from the grants.
   std::map<std::string, uint64_t> acceptedSeqs() const;
+  /// The same per broker: the robot id of a vehicle's broker, "" for the
+  /// main one (the deterministic mode's domains, TimeGrants::setDomainOf).
+  std::map<std::string, std::map<std::string, uint64_t>> acceptedSeqsByDomain() const;
+  /// The domain of a robot's followers: its own broker's, or the main one.
+  std::string domainOf(const std::string& robot_id) const;
   /// The topics under `prefix` of every broker.
   std::vector<v1::TopicInfo> listTopics(const std::string& prefix,
                                         std::chrono::milliseconds timeout) const;

@@ -66,16 +66,15 @@ struct SimulatorProcess::Parts {
         publisher->waitDrained(std::chrono::seconds(1));
         sensors->waitDrained(std::chrono::seconds(1));
         client->sync().IgnoreError();  // a broker away: the followers see stale data
-        for (const auto& [topic, seq] : client->acceptedSeqs()) {
-          (*grant.mutable_topic_seqs())[topic] = seq;
-        }
         *grant.mutable_clock() = publisher->lockStepClock(simulation.now());
+        // Each broker numbers its topics: a follower waits for its own's.
+        grants->grantAndWait(grant, client->acceptedSeqsByDomain(), stop);
       } else {
         *grant.mutable_clock()->mutable_time() =
             google::protobuf::util::TimeUtil::NanosecondsToTimestamp(
                 std::chrono::duration_cast<std::chrono::nanoseconds>(simulation.now()).count());
+        grants->grantAndWait(grant, stop);
       }
-      grants->grantAndWait(grant, stop);
       if (idle_scale > 0.0 && !grants->anyBusy()) {
         // Nobody in the barrier is busy: pace at the idle time scale,
         // sleeping once a few milliseconds are owed (fewer wake-ups than a
@@ -168,6 +167,10 @@ absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
                                                     o.fault_injection ? p->faults.get() : nullptr);
   p->grants = std::make_unique<TimeGrants>(o.follower_timeout);
   if (o.deterministic) p->simulator->setTimeGrants(p->grants.get());
+  if (p->client) {
+    ChannelRoutes* routes = p->client.get();
+    p->grants->setDomainOf([routes](const std::string& robot) { return routes->domainOf(robot); });
+  }
   grpc::ServerBuilder builder;
   builder.RegisterService(p->flight_controller.get());
   builder.RegisterService(p->simulator.get());

@@ -36,6 +36,7 @@ class TimeGrants::Follower final
 
   // Guarded by the owner's mutex.
   std::string name;
+  std::string domain;  // its broker's (TimeGrants::setDomainOf)
   bool joined = false;
   bool silent = false;  // left out of the waits until it reports again
   // Said so in its last report (and no wake since): not waited for. Written
@@ -174,10 +175,17 @@ void TimeGrants::reported(Follower* follower) {
     if (!follower->joined) {
       follower->joined = true;
       follower->name = follower->request().participant();
+      follower->domain = domain_of_ ? domain_of_(follower->request().robot_id()) : "";
       followers_.insert(follower);
       std::fprintf(stderr, "simulator: %s follows the time grants (%zu followers)\n",
                    follower->name.c_str(), followers_.size());
-      catch_up = last_grant_;  // it starts from the current grant
+      // It starts from the current grant.
+      if (auto it = last_grants_.find(follower->domain); it != last_grants_.end()) {
+        catch_up = it->second;
+      } else if (!last_grants_.empty()) {
+        catch_up = last_grants_.begin()->second;
+        catch_up->clear_topic_seqs();
+      }
     }
     if (follower->request().wake()) {
       follower->idle = false;  // waited for from the next grant on
@@ -214,19 +222,40 @@ void TimeGrants::waitForFollowers(int count, const std::atomic<bool>& stop) {
   }
 }
 
+void TimeGrants::setDomainOf(std::function<std::string(const std::string&)> domain_of) {
+  std::lock_guard lock(mutex_);
+  domain_of_ = std::move(domain_of);
+}
+
 int TimeGrants::grantAndWait(v1::FollowTimeResponse grant, const std::atomic<bool>& stop) {
+  DomainSeqs seqs;
+  auto& own = seqs[""];
+  for (const auto& [topic, seq] : grant.topic_seqs()) own[topic] = seq;
+  grant.clear_topic_seqs();
+  return grantAndWait(std::move(grant), seqs, stop);
+}
+
+int TimeGrants::grantAndWait(v1::FollowTimeResponse grant, const DomainSeqs& seqs,
+                             const std::atomic<bool>& stop) {
   const int64_t t = TimeUtil::TimestampToNanoseconds(grant.clock().time());
   std::unique_lock lock(mutex_);
-  // What the followers published before their last reports.
+  // Per domain: the simulator's numbers there, and what its followers
+  // published before their last reports.
+  std::map<std::string, v1::FollowTimeResponse> grants;
+  for (const auto& [domain, topics] : seqs) {
+    v1::FollowTimeResponse& g = grants.try_emplace(domain, grant).first->second;
+    for (const auto& [topic, seq] : topics) (*g.mutable_topic_seqs())[topic] = seq;
+  }
   for (const Follower* follower : followers_) {
+    v1::FollowTimeResponse& g = grants.try_emplace(follower->domain, grant).first->second;
     for (const auto& [topic, seq] : follower->topic_seqs) {
-      uint64_t& named = (*grant.mutable_topic_seqs())[topic];
+      uint64_t& named = (*g.mutable_topic_seqs())[topic];
       named = std::max(named, seq);
     }
   }
-  last_grant_ = grant;
+  last_grants_ = grants;
   ++grants_;
-  for (Follower* follower : followers_) follower->grant(grant);
+  for (Follower* follower : followers_) follower->grant(grants.at(follower->domain));
   const auto deadline = std::chrono::steady_clock::now() + follower_timeout_;
   while (true) {
     int caught_up = 0;

@@ -22,6 +22,8 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstdint>
+#include <functional>
+#include <map>
 #include <mutex>
 #include <optional>
 #include <set>
@@ -51,6 +53,17 @@ class TimeGrants {
   /// has caught up with it, left, or timed out (or `stop`). Returns the
   /// number of followers that caught up.
   int grantAndWait(v1::FollowTimeResponse grant, const std::atomic<bool>& stop);
+  /// The same, where followers read different brokers (a broker per
+  /// vehicle): `seqs` holds the simulator's numbers per domain, and a
+  /// follower's grant names those of its domain and what the followers of
+  /// its domain reported, nothing of another broker's numbering.
+  using DomainSeqs = std::map<std::string, std::map<std::string, uint64_t>>;
+  int grantAndWait(v1::FollowTimeResponse grant, const DomainSeqs& seqs,
+                   const std::atomic<bool>& stop);
+  /// The domain (the broker) of a follower of `robot_id` (FollowTimeRequest.
+  /// robot_id); by default every follower shares one (""). Set before the
+  /// first follower joins.
+  void setDomainOf(std::function<std::string(const std::string& robot_id)> domain_of);
 
   /// Whether a follower is busy now (its last report or wake said so, and
   /// it is not left out for silence): the simulator waits for it.
@@ -75,7 +88,9 @@ class TimeGrants {
   mutable std::mutex mutex_;
   std::condition_variable cv_;
   std::set<Follower*> followers_;
-  std::optional<v1::FollowTimeResponse> last_grant_;
+  // The last grant of each domain (a follower that joins starts from it).
+  std::map<std::string, v1::FollowTimeResponse> last_grants_;
+  std::function<std::string(const std::string&)> domain_of_;
   bool shutting_down_ = false;
   std::atomic<uint64_t> grants_{0};
   std::atomic<uint64_t> timeouts_{0};

@@ -25,6 +25,9 @@
 ABSL_FLAG(std::string, robot_id, "drone1", "robot this process serves");
 ABSL_FLAG(std::string, listen, "127.0.0.1:50061",
           "gRPC address host:port (port 0 picks a free port)");
+ABSL_FLAG(std::string, advertise, "",
+          "the host:port the coordinator dials to reach this system, when not the --listen "
+          "address (a relay or a NAT in front of it); empty: --listen's host and bound port");
 ABSL_FLAG(std::string, metrics_listen, "127.0.0.1:0",
           "Prometheus /metrics address host:port (port 0 picks a free port; empty disables)");
 ABSL_FLAG(std::string, port_file, "", "write the bound ports here (grpc_port=, metrics_port=)");
@@ -138,8 +141,9 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
   register_behaviors(*p->builder);
 
   if (!o.follow_time.empty()) {
-    p->follower = std::make_unique<TimeFollower>(o.follow_time, o.system + "/" + o.robot_id,
-                                                 *p->sim_clock, p->channel_client.get());
+    p->follower =
+        std::make_unique<TimeFollower>(o.follow_time, o.system + "/" + o.robot_id, *p->sim_clock,
+                                       p->channel_client.get(), o.robot_id);
   }
   BehaviorHostOptions host_options;
   host_options.robot_id = o.robot_id;
@@ -179,7 +183,7 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
     return absl::UnavailableError(error);
   }
   p->registration = startCoordinatorRegistration(o.coordinator, o.listen, p->runtime.grpcPort(),
-                                                 *p->host, o.log_prefix);
+                                                 *p->host, o.log_prefix, o.advertise);
   if (p->follower) {
     Parts* parts = p.get();
     p->follower->start(
@@ -251,6 +255,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   options.system = system_name;
   options.robot_id = absl::GetFlag(FLAGS_robot_id);
   options.listen = absl::GetFlag(FLAGS_listen);
+  options.advertise = absl::GetFlag(FLAGS_advertise);
   options.metrics_listen = absl::GetFlag(FLAGS_metrics_listen);
   options.channel = absl::GetFlag(FLAGS_channel);
   options.clock = absl::GetFlag(FLAGS_clock);

@@ -218,13 +218,13 @@ std::string advertisedAddress(const std::string& listen, int port) {
 
 std::unique_ptr<CoordinatorRegistration> startCoordinatorRegistration(
     const std::string& coordinator, const std::string& listen, int bound_port, BehaviorHost& host,
-    const std::string& program) {
+    const std::string& program, const std::string& advertise) {
   if (coordinator.empty()) return nullptr;
   CoordinatorRegistrationOptions options;
   options.coordinator = coordinator;
   options.robot_id = host.robotId();
   options.system = host.system();
-  options.address = advertisedAddress(listen, bound_port);
+  options.address = advertise.empty() ? advertisedAddress(listen, bound_port) : advertise;
   options.incarnation = host.events().incarnation();
   options.final_seq = [&host] { return host.events().latestSeq(); };
   options.log_prefix = program;

@@ -34,8 +34,10 @@ TimePoint toTimePoint(const google::protobuf::Timestamp& t) {
 }  // namespace
 
 TimeFollower::TimeFollower(const std::string& simulator_address, std::string participant,
-                           channel::SimClock& clock, channel::ChannelClient* channel)
+                           channel::SimClock& clock, channel::ChannelClient* channel,
+                           std::string robot_id)
     : participant_(std::move(participant)),
+      robot_id_(std::move(robot_id)),
       clock_(clock),
       data_(channel),
       channel_(behaviorlib::server::makeChannel(simulator_address)) {}
@@ -155,6 +157,7 @@ void TimeFollower::run() {
     };
     v1::FollowTimeRequest join;
     join.set_participant(participant_);
+    join.set_robot_id(robot_id_);
     std::optional<v1::Clock> last_granted;
     if (write(join)) {
       v1::FollowTimeResponse grant;

@@ -12,7 +12,7 @@
 //         });
 //   }
 //
-// Flags: --robot-id, --listen, --metrics-listen, --port-file, --channel,
+// Flags: --robot-id, --listen, --advertise, --metrics-listen, --port-file, --channel,
 // --clock (steady|sim), --config (YAML), --coordinator, --flight-controller.
 // Run with --help.
 //
@@ -150,6 +150,9 @@ struct BehaviorSystemOptions {
   std::string robot_id = "drone1";
   /// gRPC address host:port (port 0 picks a free port).
   std::string listen = "127.0.0.1:50061";
+  /// What the coordinator dials to reach the system (empty: --listen's
+  /// host with the bound port).
+  std::string advertise;
   /// Prometheus /metrics address (port 0 picks one; empty: no metrics).
   std::string metrics_listen = "127.0.0.1:0";
   /// The data channel broker; empty: none.

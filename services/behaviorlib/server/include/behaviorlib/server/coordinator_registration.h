@@ -97,9 +97,11 @@ class CoordinatorRegistration {
 std::string advertisedAddress(const std::string& listen, int port);
 
 /// Starts registering `host`'s system with `coordinator`; nullptr when
-/// `coordinator` is empty (no registration).
+/// `coordinator` is empty (no registration). The coordinator is told to dial
+/// `advertise` when it is set (a relay or a NAT in front of the system),
+/// advertisedAddress(listen, bound_port) otherwise.
 std::unique_ptr<CoordinatorRegistration> startCoordinatorRegistration(
     const std::string& coordinator, const std::string& listen, int bound_port, BehaviorHost& host,
-    const std::string& program);
+    const std::string& program, const std::string& advertise = "");
 
 }  // namespace behaviorlib::server

@@ -57,8 +57,11 @@ namespace behaviorlib::server {
 
 class TimeFollower {
  public:
+  /// `robot_id` names the vehicle whose broker `channel` is (the data
+  /// barrier's numbers are that broker's; FollowTimeRequest.robot_id).
   TimeFollower(const std::string& simulator_address, std::string participant,
-               channel::SimClock& clock, channel::ChannelClient* channel);
+               channel::SimClock& clock, channel::ChannelClient* channel,
+               std::string robot_id = "");
   /// stop()s.
   ~TimeFollower();
   TimeFollower(const TimeFollower&) = delete;
@@ -89,6 +92,7 @@ class TimeFollower {
   bool awaitUntil(const std::function<bool()>& done);
 
   const std::string participant_;
+  const std::string robot_id_;
   channel::SimClock& clock_;
   channel::ChannelClient* const data_;  // may be null
   std::function<bool(TimePoint)> caught_up_;

@@ -1,0 +1,489 @@
+#!/usr/bin/python3
+"""A fleet across hosts on one machine: a ground station, a simulation host
+and one host per vehicle, each a network namespace with its own addresses,
+joined by radio links that lag, drop packets and can be cut (decision 39).
+
+    sudo deploy/fleet/fleet.py --build-dir build            # 3 vehicles fly the swarm mission
+    sudo deploy/fleet/fleet.py --vehicles 4 --loss 0 --delay-ms 0 --keep   # until Ctrl-C
+
+Hosts and what runs on them (every port fixed: each host has its own):
+
+  ground   10.77.0.1   nats-server (the hub; leaf nodes on 7422), channel_broker
+                       (linked), coordinator
+  sim      10.78.0.1   simulator, standing in for every vehicle's autopilot and
+           10.77.0.2   sensors, publishing each vehicle's topics to that
+                       vehicle's broker over its onboard link (the "bus"), and
+                       the clock to its own linked broker
+  droneK   10.77.0.1K  nats-server (a leaf node of the hub), channel_broker
+           10.78.0.1K  (linked), the behavior systems, radio_relay.py
+
+The radio network (10.77.0.0/24) joins the ground and the vehicles; its
+links to the vehicles are shaped: every TCP connection that crosses one goes
+through the vehicle's radio_relay.py (--delay-ms, --jitter-ms per direction),
+iptables' statistic match drops --loss of the packets in each direction (where
+they arrive), tbf
+bounds --rate-kbit, and Fleet.cut() sets the vehicle's veth down. The bus
+network (10.78.0.0/24) stands for each vehicle's onboard link to its
+autopilot: never shaped, never cut. This machine is on both networks
+(10.77.0.254, 10.78.0.254), as an operator's laptop would be, to start and
+watch the processes.
+
+Needs root (namespaces, veths, iptables), iproute2, iptables and nats-server.
+"""
+
+import argparse
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(os.path.dirname(HERE))
+sys.path.insert(0, os.path.join(REPO, "deploy", "local"))
+
+import demo  # noqa: E402
+import rpc  # noqa: E402
+import stack  # noqa: E402
+
+RADIO_NET, BUS_NET = "10.77.0", "10.78.0"
+GROUND_RADIO, SIM_RADIO, SIM_BUS = f"{RADIO_NET}.1", f"{RADIO_NET}.2", f"{BUS_NET}.1"
+OPERATOR_SUFFIX = "254"
+
+NATS_CLIENT_PORT, NATS_LEAF_PORT, NATS_MONITOR_PORT = 4222, 7422, 8222
+BROKER_PORT, COORDINATOR_PORT, SIMULATOR_PORT = 50051, 50060, 50070
+# A behavior system listens on 50061 + i and is reached through the radio on
+# 60061 + i; the vehicle's autopilot (the simulator) on 60070.
+SYSTEM_PORT, RELAYED_OFFSET = 50061, 10000
+METRICS_OFFSET = 1000  # a server's /metrics: its gRPC port + 1000 (9xxx clash with nothing)
+
+SWARM_MISSION = os.path.join(REPO, "deploy", "missions", "swarm_two_vehicles.yaml")
+CATALOG = os.path.join(REPO, "deploy", "config", "catalog.yaml")
+SYSTEMS_DIR = os.path.join(REPO, "services", "systems")
+DEFAULT_SYSTEMS = ["basic_quadrotor_behaviors", "swarm_interaction"]
+# The coordinator's supervision in the deterministic mode (deploy/local/launch.py).
+DETERMINISTIC_GRACE_S = 5.0
+
+
+def run(*argv, check=True):
+    """Runs a command; its output, or raises with it."""
+    result = subprocess.run(argv, capture_output=True, text=True)
+    if check and result.returncode != 0:
+        raise RuntimeError(f"{' '.join(argv)}: exit {result.returncode}: "
+                           f"{(result.stderr or result.stdout).strip()}")
+    return result.stdout
+
+
+def vehicle_radio(index):
+    return f"{RADIO_NET}.{10 + index}"
+
+
+def vehicle_bus(index):
+    return f"{BUS_NET}.{10 + index}"
+
+
+class NsProcess(stack.Process):
+    """A server of ours in a host's namespace, reached at the host's
+    address; ready when its gRPC health check answers."""
+
+    def __init__(self, name, ns, host_ip, argv, run_dir, role, robot_id="", system=""):
+        # Plaintext on the fleet's private networks, which nothing else
+        # reaches; mutual TLS across hosts is not wired here yet.
+        super().__init__(name, ["ip", "netns", "exec", ns, *argv, "--insecure"], run_dir, role,
+                         robot_id, system)
+        self.host_ip = host_ip
+
+    @property
+    def address(self):
+        return f"{self.host_ip}:{self.grpc_port}"
+
+    @property
+    def metrics_address(self):
+        return f"{self.host_ip}:{self.metrics_port}" if self.metrics_port else ""
+
+
+class PlainProcess:
+    """A program that is not ours (nats-server) or writes no port file (the
+    relay): ready when `ready()` says so."""
+
+    def __init__(self, name, ns, argv, run_dir, ready, role="", robot_id=""):
+        self.name, self.role, self.robot_id, self.system = name, role, robot_id, name
+        self.argv = ["ip", "netns", "exec", ns, *argv]
+        self.log_path = os.path.join(run_dir, "logs", name + ".log")
+        self.ready = ready
+        self.process = None
+        self.metrics_port = 0
+        self.exit_code = None
+        self.restarts = 0
+
+    @property
+    def pid(self):
+        return self.process.pid if self.process else None
+
+    def running(self):
+        return self.process is not None and self.process.poll() is None
+
+    def start(self, timeout_s=20.0, on_spawn=None, cancel=None):
+        os.makedirs(os.path.dirname(self.log_path), exist_ok=True)
+        with open(self.log_path, "ab") as log:
+            log.write(("$ " + " ".join(self.argv) + "\n").encode())
+            log.flush()
+            self.process = stack.popen_with_launcher(
+                self.argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
+                start_new_session=True)
+        if on_spawn:
+            on_spawn()
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.process.poll() is not None:
+                raise stack.StartError(f"{self.name} exited with {self.process.returncode}; "
+                                       f"see {self.log_path}")
+            if self.ready():
+                return
+            time.sleep(0.05)
+        raise stack.StartError(f"{self.name} was not ready within {timeout_s} s; "
+                               f"see {self.log_path}")
+
+    def stop(self, timeout_s=10.0):
+        return stack.Process.stop(self, timeout_s)
+
+
+def http_ok(url):
+    def ready():
+        try:
+            with urllib.request.urlopen(url, timeout=1.0) as reply:
+                return reply.status == 200
+        except OSError:
+            return False
+    return ready
+
+
+def file_exists(path):
+    return lambda: os.path.exists(path)
+
+
+class Fleet:
+    """The namespaces, links and processes of one fleet. Use as a context
+    manager: leaving it stops every process and removes the network, even
+    after a failure."""
+
+    def __init__(self, build_dir, run_dir, vehicles=3, prefix="blf", delay_ms=30.0,
+                 jitter_ms=10.0, loss=0.01, rate_kbit=0, systems=None, seed=1, say=print):
+        if not 1 <= vehicles <= 9:
+            raise ValueError("a fleet of 1 to 9 vehicles")
+        if not (len(prefix) <= 4 and prefix.isalnum()):
+            raise ValueError("the prefix names interfaces: at most 4 letters or digits")
+        self.build_dir = os.path.abspath(build_dir)
+        self.run_dir = os.path.abspath(run_dir)
+        self.robots = [f"drone{i}" for i in range(1, vehicles + 1)]
+        self.prefix = prefix
+        self.delay_ms, self.jitter_ms, self.loss, self.rate_kbit = delay_ms, jitter_ms, loss, rate_kbit
+        self.systems = list(systems or DEFAULT_SYSTEMS)
+        self.seed = seed
+        self.say = say
+        self.stack = stack.Stack(self.run_dir)
+        self.namespaces = []
+        self.links = []  # root-side veths
+        self.bridges = []
+        self.forward_rules = []
+        self.coordinator = None
+        self.ground_broker = None
+        self.simulator = None
+        self.sim_broker = None
+        self.by_robot = {robot: [] for robot in self.robots}  # the vehicle host's processes
+
+    # --- names ----------------------------------------------------------------
+
+    def ns(self, host):
+        return f"{self.prefix}-{host}"
+
+    def radio_veth(self, robot):
+        return f"{self.prefix}{self.robots.index(robot) + 1}r"
+
+    def binary(self, name):
+        path = os.path.join(self.build_dir, "bin", name)
+        if not os.access(path, os.X_OK):
+            raise stack.StartError(f"{path} is not built (scripts/build.sh)")
+        return path
+
+    # --- the network -------------------------------------------------------------
+
+    def _bridge(self, name, net):
+        run("ip", "link", "add", name, "type", "bridge")
+        self.bridges.append(name)
+        run("ip", "addr", "add", f"{net}.{OPERATOR_SUFFIX}/24", "dev", name)
+        run("ip", "link", "set", name, "up")
+        # Where bridged frames pass iptables (br_netfilter, loaded by a
+        # Docker engine whose FORWARD policy is DROP), ours go through.
+        if os.path.exists("/proc/sys/net/bridge/bridge-nf-call-iptables"):
+            rule = ["FORWARD", "-i", name, "-o", name, "-j", "ACCEPT"]
+            run("iptables", "-I", *rule)
+            self.forward_rules.append(rule)
+
+    def _host(self, host):
+        ns = self.ns(host)
+        run("ip", "netns", "add", ns)
+        self.namespaces.append(ns)
+        run("ip", "-n", ns, "link", "set", "lo", "up")
+        return ns
+
+    def _attach(self, ns, root_name, bridge, inside, ip):
+        run("ip", "link", "add", root_name, "type", "veth", "peer", "name", root_name + "p")
+        self.links.append(root_name)
+        run("ip", "link", "set", root_name + "p", "netns", ns)
+        run("ip", "-n", ns, "link", "set", root_name + "p", "name", inside)
+        run("ip", "-n", ns, "addr", "add", f"{ip}/24", "dev", inside)
+        run("ip", "-n", ns, "link", "set", inside, "up")
+        run("ip", "link", "set", root_name, "master", bridge)
+        run("ip", "link", "set", root_name, "up")
+
+    def create_network(self):
+        p = self.prefix
+        self._bridge(f"{p}r", RADIO_NET)
+        self._bridge(f"{p}b", BUS_NET)
+        ground = self._host("ground")
+        self._attach(ground, f"{p}gr", f"{p}r", "radio", GROUND_RADIO)
+        sim = self._host("sim")
+        self._attach(sim, f"{p}sb", f"{p}b", "bus", SIM_BUS)
+        self._attach(sim, f"{p}sr", f"{p}r", "radio", SIM_RADIO)
+        for i, robot in enumerate(self.robots, start=1):
+            ns = self._host(robot)
+            self._attach(ns, self.radio_veth(robot), f"{p}r", "radio", vehicle_radio(i))
+            self._attach(ns, f"{p}{i}b", f"{p}b", "bus", vehicle_bus(i))
+            if self.loss > 0:
+                # Dropped where they arrive, in each direction: a drop on
+                # OUTPUT would tell the sender's TCP at once, as no radio does.
+                loss = ["-m", "statistic", "--mode", "random", "--probability",
+                        f"{self.loss:g}", "-j", "DROP"]
+                run("ip", "netns", "exec", ns, "iptables", "-A", "INPUT", "-i", "radio", *loss)
+                run("ip", "netns", "exec", ground, "iptables", "-A", "INPUT", "-i", "radio",
+                    "-s", vehicle_radio(i), *loss)
+            if self.rate_kbit > 0:
+                tbf = ["tbf", "rate", f"{self.rate_kbit}kbit", "burst", "16kb", "latency", "200ms"]
+                run("ip", "netns", "exec", ns, "tc", "qdisc", "add", "dev", "radio", "root", *tbf)
+                run("tc", "qdisc", "add", "dev", self.radio_veth(robot), "root", *tbf)
+
+    def destroy_network(self):
+        for rule in self.forward_rules:
+            run("iptables", "-D", *rule, check=False)
+        for name in self.links + self.bridges:
+            run("ip", "link", "del", name, check=False)
+        for ns in self.namespaces:
+            run("ip", "netns", "del", ns, check=False)
+        self.links, self.bridges, self.namespaces, self.forward_rules = [], [], [], []
+
+    # --- the link faults -------------------------------------------------------
+
+    def cut(self, robot):
+        """The vehicle's radio goes silent: nothing in, nothing out."""
+        run("ip", "link", "set", self.radio_veth(robot), "down")
+
+    def restore(self, robot):
+        run("ip", "link", "set", self.radio_veth(robot), "up")
+
+    def kill_host(self, robot):
+        """Every process of the vehicle's host dies at once (SIGKILL)."""
+        for process in self.by_robot[robot]:
+            if process.running():
+                process.process.kill()
+                process.process.wait()
+
+    # --- the processes ------------------------------------------------------------
+
+    def _nats_config(self, name, text):
+        path = os.path.join(self.run_dir, "nats", name + ".conf")
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        with open(path, "w") as f:
+            f.write(text)
+        return path
+
+    def _nats(self, host, ns, monitor_ip, config_text, robot_id=""):
+        config = self._nats_config(host, config_text)
+        process = PlainProcess(f"nats-{host}", ns, ["nats-server", "-c", config],
+                               self.run_dir,
+                               http_ok(f"http://{monitor_ip}:{NATS_MONITOR_PORT}/healthz"),
+                               robot_id=robot_id)
+        return self.stack.start(process)
+
+    def _broker(self, host, ns, ip, link_url, robot_id="", local=""):
+        argv = [self.binary("channel_broker"), "--listen", f"0.0.0.0:{BROKER_PORT}",
+                "--metrics-listen", f"0.0.0.0:{BROKER_PORT + METRICS_OFFSET}",
+                "--link-url", link_url, "--link-name", host]
+        if local:
+            argv += ["--link-local", local]
+        return self.stack.start(NsProcess(f"channel_broker-{host}", ns, ip, argv, self.run_dir,
+                                          "channel_broker", robot_id))
+
+    def start(self):
+        os.makedirs(self.run_dir, exist_ok=True)
+        ground, sim = self.ns("ground"), self.ns("sim")
+        ping = "ping_interval: \"1s\"\nping_max: 3\n"
+        self._nats("ground", ground, GROUND_RADIO,
+                   f"listen: \"0.0.0.0:{NATS_CLIENT_PORT}\"\nhttp: \"0.0.0.0:{NATS_MONITOR_PORT}\"\n"
+                   f"{ping}leafnodes {{\n  listen: \"0.0.0.0:{NATS_LEAF_PORT}\"\n}}\n")
+        self.ground_broker = self._broker("ground", ground, GROUND_RADIO,
+                                          f"nats://127.0.0.1:{NATS_CLIENT_PORT}")
+        self.sim_broker = self._broker("sim", sim, SIM_BUS, f"nats://{GROUND_RADIO}:{NATS_CLIENT_PORT}")
+
+        # The vehicles' hosts, up to their brokers: the simulator publishes to them.
+        for i, robot in enumerate(self.robots, start=1):
+            ns = self.ns(robot)
+            relays = [f"127.0.0.1:{NATS_LEAF_PORT}={GROUND_RADIO}:{NATS_LEAF_PORT}",
+                      f"127.0.0.1:{COORDINATOR_PORT}={GROUND_RADIO}:{COORDINATOR_PORT}",
+                      f"{vehicle_radio(i)}:{SIMULATOR_PORT + RELAYED_OFFSET}={SIM_BUS}:"
+                      f"{SIMULATOR_PORT}"]
+            for j, _ in enumerate(self.systems):
+                relays.append(f"{vehicle_radio(i)}:{SYSTEM_PORT + j + RELAYED_OFFSET}="
+                              f"127.0.0.1:{SYSTEM_PORT + j}")
+            ready_file = os.path.join(self.run_dir, "relays", robot + ".ready")
+            os.makedirs(os.path.dirname(ready_file), exist_ok=True)
+            if os.path.exists(ready_file):
+                os.remove(ready_file)
+            relay_argv = [sys.executable, os.path.join(HERE, "radio_relay.py"),
+                          "--delay-ms", str(self.delay_ms), "--jitter-ms", str(self.jitter_ms),
+                          "--seed", str(self.seed + i), "--ready-file", ready_file]
+            for relay in relays:
+                relay_argv += ["--map", relay]
+            self.by_robot[robot].append(self.stack.start(PlainProcess(
+                f"radio_relay-{robot}", ns, relay_argv, self.run_dir, file_exists(ready_file),
+                robot_id=robot)))
+            self.by_robot[robot].append(self._nats(
+                robot, ns, vehicle_bus(i),
+                f"listen: \"127.0.0.1:{NATS_CLIENT_PORT}\"\n"
+                f"http: \"0.0.0.0:{NATS_MONITOR_PORT}\"\n{ping}"
+                f"leafnodes {{\n  reconnect: 1\n  remotes: [\n"
+                f"    {{ url: \"nats-leaf://127.0.0.1:{NATS_LEAF_PORT}\" }}\n  ]\n}}\n",
+                robot_id=robot))
+            self.by_robot[robot].append(self._broker(
+                robot, ns, vehicle_bus(i), f"nats://127.0.0.1:{NATS_CLIENT_PORT}", robot,
+                local="clock"))
+
+        sim_argv = [self.binary("simulator"), "--listen", f"0.0.0.0:{SIMULATOR_PORT}",
+                    "--metrics-listen", f"0.0.0.0:{SIMULATOR_PORT + METRICS_OFFSET}",
+                    "--channel", f"127.0.0.1:{BROKER_PORT}",
+                    "--vehicle-channels", ",".join(
+                        f"{robot}={vehicle_bus(i)}:{BROKER_PORT}"
+                        for i, robot in enumerate(self.robots, start=1)),
+                    "--vehicles", ",".join(self.robots), "--time-scale", "max",
+                    "--min-followers", str(len(self.systems) * len(self.robots)),
+                    "--seed", str(self.seed)]
+        self.simulator = self.stack.start(NsProcess("simulator", sim, SIM_BUS, sim_argv,
+                                                    self.run_dir, "simulator"))
+
+        coordinator_argv = [
+            self.binary("coordinator"), "--listen", f"0.0.0.0:{COORDINATOR_PORT}",
+            "--metrics-listen", f"0.0.0.0:{COORDINATOR_PORT + METRICS_OFFSET}",
+            "--state-dir", os.path.join(self.run_dir, "coordinator"),
+            "--mission-dir", os.path.join(REPO, "deploy", "missions"),
+            "--catalog", CATALOG,
+            "--flight-controller", ",".join(
+                f"{robot}={vehicle_radio(i)}:{SIMULATOR_PORT + RELAYED_OFFSET}"
+                for i, robot in enumerate(self.robots, start=1)),
+            "--channel", f"127.0.0.1:{BROKER_PORT}", "--clock", "sim",
+            "--grace-period-s", str(DETERMINISTIC_GRACE_S)]
+        self.coordinator = self.stack.start(NsProcess("coordinator", ground, GROUND_RADIO,
+                                                      coordinator_argv, self.run_dir,
+                                                      "coordinator"))
+
+        for i, robot in enumerate(self.robots, start=1):
+            ns = self.ns(robot)
+            for j, name in enumerate(self.systems):
+                port = SYSTEM_PORT + j
+                argv = [self.binary(name), "--robot-id", robot,
+                        "--listen", f"0.0.0.0:{port}",
+                        "--metrics-listen", f"0.0.0.0:{port + METRICS_OFFSET}",
+                        "--advertise", f"{vehicle_radio(i)}:{port + RELAYED_OFFSET}",
+                        "--channel", f"127.0.0.1:{BROKER_PORT}", "--clock", "sim",
+                        "--coordinator", f"127.0.0.1:{COORDINATOR_PORT}",
+                        "--flight-controller", f"{SIM_BUS}:{SIMULATOR_PORT}",
+                        "--follow-time", f"{SIM_BUS}:{SIMULATOR_PORT}"]
+                config = os.path.join(SYSTEMS_DIR, name, "config.yaml")
+                if os.path.exists(config):
+                    argv += ["--config", config]
+                self.by_robot[robot].append(self.stack.start(NsProcess(
+                    f"{name}-{robot}", ns, vehicle_bus(i), argv, self.run_dir,
+                    "behavior_system", robot, system=name)))
+        return self
+
+    def coordinator_client(self):
+        return rpc.Client(self.coordinator.address, [demo.COORDINATOR])
+
+    def wait_for_systems(self, client, timeout_s=60.0):
+        for robot in self.robots:
+            demo.wait_for_systems(client, robot, self.systems, timeout_s)
+
+    def stop(self):
+        self.stack.stop(timeout_s=10.0, report=lambda text: None)
+
+    def __enter__(self):
+        try:
+            self.create_network()
+            return self.start()
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+
+    def __exit__(self, *exc):
+        try:
+            self.stop()
+        finally:
+            self.destroy_network()
+        return False
+
+
+def fly_swarm(fleet, client, timeout_s=300.0, out=print):
+    """Every vehicle flies the swarm mission at once; {robot: final status}."""
+    stamp = f"{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    missions = [(robot, SWARM_MISSION, f"fleet-{stamp}-{robot}") for robot in fleet.robots]
+    return demo.run_missions(client, missions, timeout_s, out, lambda robot, status: None)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--build-dir", default=os.path.join(REPO, "build"))
+    parser.add_argument("--run-dir", default="")
+    parser.add_argument("--vehicles", type=int, default=3)
+    parser.add_argument("--delay-ms", type=float, default=30.0)
+    parser.add_argument("--jitter-ms", type=float, default=10.0)
+    parser.add_argument("--loss", type=float, default=0.01, help="each direction, 0..1")
+    parser.add_argument("--rate-kbit", type=int, default=0, help="tbf on each radio link; 0: none")
+    parser.add_argument("--prefix", default="blf", help="of the namespaces and interfaces")
+    parser.add_argument("--keep", action="store_true",
+                        help="fly nothing; keep the fleet up until Ctrl-C")
+    parser.add_argument("--mission-timeout-s", type=float, default=300.0)
+    args = parser.parse_args()
+    if os.geteuid() != 0:
+        parser.error("needs root: it makes network namespaces, veths and iptables rules")
+    for tool in ("ip", "iptables", "tc", "nats-server"):
+        if shutil.which(tool) is None:
+            parser.error(f"{tool} is not installed (scripts/install-deps.sh)")
+    run_dir = args.run_dir or tempfile.mkdtemp(prefix="behaviorlib-fleet-")
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    print(f"fleet: {args.vehicles} vehicles, radio {args.delay_ms:g} +- {args.jitter_ms:g} ms, "
+          f"loss {args.loss * 100:g} %; logs in {run_dir}/logs")
+    try:
+        with Fleet(args.build_dir, run_dir, args.vehicles, args.prefix, args.delay_ms,
+                   args.jitter_ms, args.loss, args.rate_kbit) as fleet:
+            client = fleet.coordinator_client()
+            fleet.wait_for_systems(client)
+            print(f"fleet: up; coordinator {fleet.coordinator.address}, "
+                  f"ground broker {fleet.ground_broker.address}")
+            if args.keep:
+                while True:
+                    time.sleep(1)
+            statuses = fly_swarm(fleet, client, args.mission_timeout_s)
+            failed = [robot for robot, status in statuses.items()
+                      if status.get("state") != "MISSION_STATE_SUCCEEDED"]
+            for robot, status in statuses.items():
+                print(f"fleet: {robot}: {status.get('state')} {status.get('message', '')}")
+            client.close()
+            return 1 if failed else 0
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -66,6 +66,9 @@ SYSTEMS_DIR = os.path.join(REPO, "services", "systems")
 DEFAULT_SYSTEMS = ["basic_quadrotor_behaviors", "swarm_interaction"]
 # The coordinator's supervision in the deterministic mode (deploy/local/launch.py).
 DETERMINISTIC_GRACE_S = 5.0
+# A vehicle that has lost the ground this long (its own time) lands by itself
+# (basic_quadrotor_behaviors --link-loss-action LAND).
+LINK_LOSS_S = 10.0
 
 
 def run(*argv, check=True):
@@ -171,7 +174,8 @@ class Fleet:
     after a failure."""
 
     def __init__(self, build_dir, run_dir, vehicles=3, prefix="blf", delay_ms=30.0,
-                 jitter_ms=10.0, loss=0.01, rate_kbit=0, systems=None, seed=1, say=print):
+                 jitter_ms=10.0, loss=0.01, rate_kbit=0, systems=None, seed=1, say=print,
+                 link_loss_s=LINK_LOSS_S):
         if not 1 <= vehicles <= 9:
             raise ValueError("a fleet of 1 to 9 vehicles")
         if not (len(prefix) <= 4 and prefix.isalnum()):
@@ -183,6 +187,7 @@ class Fleet:
         self.delay_ms, self.jitter_ms, self.loss, self.rate_kbit = delay_ms, jitter_ms, loss, rate_kbit
         self.systems = list(systems or DEFAULT_SYSTEMS)
         self.seed = seed
+        self.link_loss_s = link_loss_s
         self.say = say
         self.stack = stack.Stack(self.run_dir)
         self.namespaces = []
@@ -400,6 +405,9 @@ class Fleet:
                         "--coordinator", f"127.0.0.1:{COORDINATOR_PORT}",
                         "--flight-controller", f"{SIM_BUS}:{SIMULATOR_PORT}",
                         "--follow-time", f"{SIM_BUS}:{SIMULATOR_PORT}"]
+                if name == "basic_quadrotor_behaviors" and self.link_loss_s > 0:
+                    argv += ["--link-loss-timeout-s", str(self.link_loss_s),
+                             "--link-loss-action", "LAND"]
                 config = os.path.join(SYSTEMS_DIR, name, "config.yaml")
                 if os.path.exists(config):
                     argv += ["--config", config]

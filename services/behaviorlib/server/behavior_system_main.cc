@@ -14,6 +14,7 @@
 #include "behaviorlib/server/behavior_metrics.h"
 #include "behaviorlib/server/behavior_system_service.h"
 #include "behaviorlib/server/coordinator_registration.h"
+#include "behaviorlib/server/link_loss.h"
 #include "behaviorlib/server/time_follower.h"
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/server_kit/flags.h"
@@ -28,6 +29,12 @@ ABSL_FLAG(std::string, listen, "127.0.0.1:50061",
 ABSL_FLAG(std::string, advertise, "",
           "the host:port the coordinator dials to reach this system, when not the --listen "
           "address (a relay or a NAT in front of it); empty: --listen's host and bound port");
+ABSL_FLAG(double, link_loss_timeout_s, 0.0,
+          "once the coordinator has been unreachable this long (the vehicle's time), activate "
+          "--link-loss-action (0: never)");
+ABSL_FLAG(std::string, link_loss_action, "",
+          "a behavior of this system to activate with its default parameters after a link loss "
+          "(e.g. LAND)");
 ABSL_FLAG(std::string, metrics_listen, "127.0.0.1:0",
           "Prometheus /metrics address host:port (port 0 picks a free port; empty disables)");
 ABSL_FLAG(std::string, port_file, "", "write the bound ports here (grpc_port=, metrics_port=)");
@@ -89,6 +96,7 @@ struct BehaviorSystemProcess::Parts {
   std::unique_ptr<BehaviorMetrics> metrics;
   std::unique_ptr<BehaviorSystemService> system_service;
   std::unique_ptr<CoordinatorRegistration> registration;
+  std::unique_ptr<LinkLossWatch> link_loss;
   bool host_started = false;
   bool stopped = false;
 };
@@ -169,6 +177,10 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
     return absl::InvalidArgumentError("cannot start behaviors: " + std::string(s.message()));
   }
   p->host_started = true;
+  if (!o.link_loss_action.empty() && p->host->find(o.link_loss_action) == nullptr) {
+    return absl::InvalidArgumentError("--link-loss-action " + o.link_loss_action +
+                                      " is not a behavior of " + o.system);
+  }
 
   p->system_service =
       std::make_unique<BehaviorSystemService>(*p->host, p->gate, p->builder->serviceNames());
@@ -184,6 +196,12 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
   }
   p->registration = startCoordinatorRegistration(o.coordinator, o.listen, p->runtime.grpcPort(),
                                                  *p->host, o.log_prefix, o.advertise);
+  if (p->registration && o.link_loss_timeout > Duration::zero() && !o.link_loss_action.empty()) {
+    CoordinatorRegistration* registration = p->registration.get();
+    p->link_loss = std::make_unique<LinkLossWatch>(
+        LinkLossOptions{.timeout = o.link_loss_timeout, .action = o.link_loss_action}, *p->clock,
+        [registration] { return registration->registered(); }, *p->host, o.log_prefix);
+  }
   if (p->follower) {
     Parts* parts = p.get();
     p->follower->start(
@@ -229,6 +247,7 @@ void BehaviorSystemProcess::shutdown() {
   // Order matters: refuse new lifecycle calls, end activations (their
   // INTERRUPTED events go to subscribers), let the streams drain, then stop
   // serving.
+  p.link_loss.reset();                 // unregistering is no link loss
   if (p.follower) p.follower->stop();  // leaves the simulator's barrier first
   p.gate.close();
   p.host->stop();
@@ -256,6 +275,14 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   options.robot_id = absl::GetFlag(FLAGS_robot_id);
   options.listen = absl::GetFlag(FLAGS_listen);
   options.advertise = absl::GetFlag(FLAGS_advertise);
+  if (const double s = absl::GetFlag(FLAGS_link_loss_timeout_s); !(s >= 0.0 && s <= 3600.0)) {
+    fatal(program, "--link-loss-timeout-s must be within [0, 3600], got " + std::to_string(s));
+    return 2;
+  } else {
+    options.link_loss_timeout =
+        std::chrono::duration_cast<Duration>(std::chrono::duration<double>(s));
+  }
+  options.link_loss_action = absl::GetFlag(FLAGS_link_loss_action);
   options.metrics_listen = absl::GetFlag(FLAGS_metrics_listen);
   options.channel = absl::GetFlag(FLAGS_channel);
   options.clock = absl::GetFlag(FLAGS_clock);

@@ -153,6 +153,10 @@ struct BehaviorSystemOptions {
   /// What the coordinator dials to reach the system (empty: --listen's
   /// host with the bound port).
   std::string advertise;
+  /// After a link loss this long (the system's clock), activate
+  /// `link_loss_action` (LinkLossWatch; zero or empty: never).
+  Duration link_loss_timeout{0};
+  std::string link_loss_action;
   /// Prometheus /metrics address (port 0 picks one; empty: no metrics).
   std::string metrics_listen = "127.0.0.1:0";
   /// The data channel broker; empty: none.

@@ -175,7 +175,7 @@ class Fleet:
 
     def __init__(self, build_dir, run_dir, vehicles=3, prefix="blf", delay_ms=30.0,
                  jitter_ms=10.0, loss=0.01, rate_kbit=0, systems=None, seed=1, say=print,
-                 link_loss_s=LINK_LOSS_S):
+                 link_loss_s=LINK_LOSS_S, data_path="nats"):
         if not 1 <= vehicles <= 9:
             raise ValueError("a fleet of 1 to 9 vehicles")
         if not (len(prefix) <= 4 and prefix.isalnum()):
@@ -188,6 +188,12 @@ class Fleet:
         self.systems = list(systems or DEFAULT_SYSTEMS)
         self.seed = seed
         self.link_loss_s = link_loss_s
+        # "nats": a broker per host, linked (decision 39); "broker": the one
+        # broker on the ground that every vehicle's systems and the simulator
+        # use over gRPC, as before (for comparison, benchmarks only).
+        if data_path not in ("nats", "broker"):
+            raise ValueError("data_path is 'nats' or 'broker'")
+        self.data_path = data_path
         self.say = say
         self.stack = stack.Stack(self.run_dir)
         self.namespaces = []
@@ -315,8 +321,9 @@ class Fleet:
 
     def _broker(self, host, ns, ip, link_url, robot_id="", local=""):
         argv = [self.binary("channel_broker"), "--listen", f"0.0.0.0:{BROKER_PORT}",
-                "--metrics-listen", f"0.0.0.0:{BROKER_PORT + METRICS_OFFSET}",
-                "--link-url", link_url, "--link-name", host]
+                "--metrics-listen", f"0.0.0.0:{BROKER_PORT + METRICS_OFFSET}"]
+        if link_url:
+            argv += ["--link-url", link_url, "--link-name", host]
         if local:
             argv += ["--link-local", local]
         return self.stack.start(NsProcess(f"channel_broker-{host}", ns, ip, argv, self.run_dir,
@@ -326,12 +333,18 @@ class Fleet:
         os.makedirs(self.run_dir, exist_ok=True)
         ground, sim = self.ns("ground"), self.ns("sim")
         ping = "ping_interval: \"1s\"\nping_max: 3\n"
-        self._nats("ground", ground, GROUND_RADIO,
-                   f"listen: \"0.0.0.0:{NATS_CLIENT_PORT}\"\nhttp: \"0.0.0.0:{NATS_MONITOR_PORT}\"\n"
-                   f"{ping}leafnodes {{\n  listen: \"0.0.0.0:{NATS_LEAF_PORT}\"\n}}\n")
-        self.ground_broker = self._broker("ground", ground, GROUND_RADIO,
-                                          f"nats://127.0.0.1:{NATS_CLIENT_PORT}")
-        self.sim_broker = self._broker("sim", sim, SIM_BUS, f"nats://{GROUND_RADIO}:{NATS_CLIENT_PORT}")
+        linked = self.data_path == "nats"
+        if linked:
+            self._nats("ground", ground, GROUND_RADIO,
+                       f"listen: \"0.0.0.0:{NATS_CLIENT_PORT}\"\n"
+                       f"http: \"0.0.0.0:{NATS_MONITOR_PORT}\"\n"
+                       f"{ping}leafnodes {{\n  listen: \"0.0.0.0:{NATS_LEAF_PORT}\"\n}}\n")
+        self.ground_broker = self._broker(
+            "ground", ground, GROUND_RADIO,
+            f"nats://127.0.0.1:{NATS_CLIENT_PORT}" if linked else "")
+        if linked:
+            self.sim_broker = self._broker("sim", sim, SIM_BUS,
+                                           f"nats://{GROUND_RADIO}:{NATS_CLIENT_PORT}")
 
         # The vehicles' hosts, up to their brokers: the simulator publishes to them.
         for i, robot in enumerate(self.robots, start=1):
@@ -343,6 +356,8 @@ class Fleet:
             for j, _ in enumerate(self.systems):
                 relays.append(f"{vehicle_radio(i)}:{SYSTEM_PORT + j + RELAYED_OFFSET}="
                               f"127.0.0.1:{SYSTEM_PORT + j}")
+            if not linked:  # the ground's broker, across the radio
+                relays.append(f"127.0.0.1:{BROKER_PORT}={GROUND_RADIO}:{BROKER_PORT}")
             ready_file = os.path.join(self.run_dir, "relays", robot + ".ready")
             os.makedirs(os.path.dirname(ready_file), exist_ok=True)
             if os.path.exists(ready_file):
@@ -355,6 +370,8 @@ class Fleet:
             self.by_robot[robot].append(self.stack.start(PlainProcess(
                 f"radio_relay-{robot}", ns, relay_argv, self.run_dir, file_exists(ready_file),
                 robot_id=robot)))
+            if not linked:
+                continue
             self.by_robot[robot].append(self._nats(
                 robot, ns, vehicle_bus(i),
                 f"listen: \"127.0.0.1:{NATS_CLIENT_PORT}\"\n"
@@ -367,12 +384,15 @@ class Fleet:
                 local="clock"))
 
         sim_argv = [self.binary("simulator"), "--listen", f"0.0.0.0:{SIMULATOR_PORT}",
-                    "--metrics-listen", f"0.0.0.0:{SIMULATOR_PORT + METRICS_OFFSET}",
-                    "--channel", f"127.0.0.1:{BROKER_PORT}",
-                    "--vehicle-channels", ",".join(
-                        f"{robot}={vehicle_bus(i)}:{BROKER_PORT}"
-                        for i, robot in enumerate(self.robots, start=1)),
-                    "--vehicles", ",".join(self.robots), "--time-scale", "max",
+                    "--metrics-listen", f"0.0.0.0:{SIMULATOR_PORT + METRICS_OFFSET}"]
+        if linked:
+            sim_argv += ["--channel", f"127.0.0.1:{BROKER_PORT}",
+                         "--vehicle-channels", ",".join(
+                             f"{robot}={vehicle_bus(i)}:{BROKER_PORT}"
+                             for i, robot in enumerate(self.robots, start=1))]
+        else:
+            sim_argv += ["--channel", f"{GROUND_RADIO}:{BROKER_PORT}"]
+        sim_argv += ["--vehicles", ",".join(self.robots), "--time-scale", "max",
                     "--min-followers", str(len(self.systems) * len(self.robots)),
                     "--seed", str(self.seed)]
         self.simulator = self.stack.start(NsProcess("simulator", sim, SIM_BUS, sim_argv,

@@ -69,6 +69,9 @@ DETERMINISTIC_GRACE_S = 5.0
 # A vehicle that has lost the ground this long (its own time) lands by itself
 # (basic_quadrotor_behaviors --link-loss-action LAND).
 LINK_LOSS_S = 10.0
+# A vehicle's broker sends each topic at most this often over its radio
+# (--link-max-rate-hz): the ground follows a pose at 10 Hz, not 100.
+RADIO_MAX_RATE_HZ = 10.0
 
 
 def run(*argv, check=True):
@@ -175,7 +178,7 @@ class Fleet:
 
     def __init__(self, build_dir, run_dir, vehicles=3, prefix="blf", delay_ms=30.0,
                  jitter_ms=10.0, loss=0.01, rate_kbit=0, systems=None, seed=1, say=print,
-                 link_loss_s=LINK_LOSS_S, data_path="nats"):
+                 link_loss_s=LINK_LOSS_S, data_path="nats", time_scale="max"):
         if not 1 <= vehicles <= 9:
             raise ValueError("a fleet of 1 to 9 vehicles")
         if not (len(prefix) <= 4 and prefix.isalnum()):
@@ -194,6 +197,11 @@ class Fleet:
         if data_path not in ("nats", "broker"):
             raise ValueError("data_path is 'nats' or 'broker'")
         self.data_path = data_path
+        # "max": the deterministic mode (tests); a number: free running at
+        # that many simulated seconds per wall second (a radio's budget is
+        # per wall second).
+        self.time_scale = str(time_scale)
+        self.deterministic = self.time_scale == "max"
         self.say = say
         self.stack = stack.Stack(self.run_dir)
         self.namespaces = []
@@ -319,13 +327,15 @@ class Fleet:
                                robot_id=robot_id)
         return self.stack.start(process)
 
-    def _broker(self, host, ns, ip, link_url, robot_id="", local=""):
+    def _broker(self, host, ns, ip, link_url, robot_id="", local="", max_rate_hz=0.0):
         argv = [self.binary("channel_broker"), "--listen", f"0.0.0.0:{BROKER_PORT}",
                 "--metrics-listen", f"0.0.0.0:{BROKER_PORT + METRICS_OFFSET}"]
         if link_url:
             argv += ["--link-url", link_url, "--link-name", host]
         if local:
             argv += ["--link-local", local]
+        if max_rate_hz:
+            argv += ["--link-max-rate-hz", f"{max_rate_hz:g}"]
         return self.stack.start(NsProcess(f"channel_broker-{host}", ns, ip, argv, self.run_dir,
                                           "channel_broker", robot_id))
 
@@ -381,7 +391,7 @@ class Fleet:
                 robot_id=robot))
             self.by_robot[robot].append(self._broker(
                 robot, ns, vehicle_bus(i), f"nats://127.0.0.1:{NATS_CLIENT_PORT}", robot,
-                local="clock"))
+                local="clock", max_rate_hz=RADIO_MAX_RATE_HZ))
 
         sim_argv = [self.binary("simulator"), "--listen", f"0.0.0.0:{SIMULATOR_PORT}",
                     "--metrics-listen", f"0.0.0.0:{SIMULATOR_PORT + METRICS_OFFSET}"]
@@ -392,9 +402,10 @@ class Fleet:
                              for i, robot in enumerate(self.robots, start=1))]
         else:
             sim_argv += ["--channel", f"{GROUND_RADIO}:{BROKER_PORT}"]
-        sim_argv += ["--vehicles", ",".join(self.robots), "--time-scale", "max",
-                    "--min-followers", str(len(self.systems) * len(self.robots)),
-                    "--seed", str(self.seed)]
+        sim_argv += ["--vehicles", ",".join(self.robots), "--time-scale", self.time_scale,
+                     "--seed", str(self.seed)]
+        if self.deterministic:
+            sim_argv += ["--min-followers", str(len(self.systems) * len(self.robots))]
         self.simulator = self.stack.start(NsProcess("simulator", sim, SIM_BUS, sim_argv,
                                                     self.run_dir, "simulator"))
 
@@ -407,8 +418,9 @@ class Fleet:
             "--flight-controller", ",".join(
                 f"{robot}={vehicle_radio(i)}:{SIMULATOR_PORT + RELAYED_OFFSET}"
                 for i, robot in enumerate(self.robots, start=1)),
-            "--channel", f"127.0.0.1:{BROKER_PORT}", "--clock", "sim",
-            "--grace-period-s", str(DETERMINISTIC_GRACE_S)]
+            "--channel", f"127.0.0.1:{BROKER_PORT}", "--clock", "sim"]
+        if self.deterministic:
+            coordinator_argv += ["--grace-period-s", str(DETERMINISTIC_GRACE_S)]
         self.coordinator = self.stack.start(NsProcess("coordinator", ground, GROUND_RADIO,
                                                       coordinator_argv, self.run_dir,
                                                       "coordinator"))
@@ -423,8 +435,9 @@ class Fleet:
                         "--advertise", f"{vehicle_radio(i)}:{port + RELAYED_OFFSET}",
                         "--channel", f"127.0.0.1:{BROKER_PORT}", "--clock", "sim",
                         "--coordinator", f"127.0.0.1:{COORDINATOR_PORT}",
-                        "--flight-controller", f"{SIM_BUS}:{SIMULATOR_PORT}",
-                        "--follow-time", f"{SIM_BUS}:{SIMULATOR_PORT}"]
+                        "--flight-controller", f"{SIM_BUS}:{SIMULATOR_PORT}"]
+                if self.deterministic:
+                    argv += ["--follow-time", f"{SIM_BUS}:{SIMULATOR_PORT}"]
                 if name == "basic_quadrotor_behaviors" and self.link_loss_s > 0:
                     argv += ["--link-loss-timeout-s", str(self.link_loss_s),
                              "--link-loss-action", "LAND"]

@@ -42,9 +42,10 @@ def mapping(text):
 
 
 class Direction:
-    """One direction of one connection: read, hold for the delay, write."""
+    """One direction of one connection: read, hold for the delay, write.
+    `carried` ([bytes]) counts what it wrote."""
 
-    def __init__(self, reader, writer, delay_s, jitter_s, rng):
+    def __init__(self, reader, writer, delay_s, jitter_s, rng, carried):
         self.reader, self.writer = reader, writer
         self.delay_s, self.jitter_s, self.rng = delay_s, jitter_s, rng
         self.held = asyncio.Queue()
@@ -52,6 +53,7 @@ class Direction:
         self.room = asyncio.Event()
         self.room.set()
         self.last_release = 0.0
+        self.carried = carried
 
     async def read(self):
         try:
@@ -85,20 +87,22 @@ class Direction:
                         self.writer.write_eof()
                     return
                 self.writer.write(data)
+                self.carried[0] += len(data)
                 await self.writer.drain()
         except (ConnectionError, OSError):
             pass
 
 
-async def relay(client_reader, client_writer, target, options, rng):
+async def relay(client_reader, client_writer, target, options, rng, counts):
     try:
         server_reader, server_writer = await asyncio.wait_for(
             asyncio.open_connection(*target), timeout=10.0)
     except (OSError, asyncio.TimeoutError):
         client_writer.close()
         return
-    up = Direction(client_reader, server_writer, options.delay_s, options.jitter_s, rng)
-    down = Direction(server_reader, client_writer, options.delay_s, options.jitter_s, rng)
+    up = Direction(client_reader, server_writer, options.delay_s, options.jitter_s, rng, counts[0])
+    down = Direction(server_reader, client_writer, options.delay_s, options.jitter_s, rng,
+                     counts[1])
     await asyncio.gather(up.read(), up.write(), down.read(), down.write(),
                          return_exceptions=True)
     for writer in (client_writer, server_writer):
@@ -108,9 +112,12 @@ async def relay(client_reader, client_writer, target, options, rng):
 async def main(options):
     rng = random.Random(options.seed)
     servers = []
+    counts = {}  # per mapping: bytes relayed towards the target, and back
     for listen, target in options.map:
-        async def handle(reader, writer, target=target):
-            await relay(reader, writer, target, options, rng)
+        counts[(listen, target)] = ([0], [0])
+
+        async def handle(reader, writer, target=target, mapped=counts[(listen, target)]):
+            await relay(reader, writer, target, options, rng, mapped)
         servers.append(await asyncio.start_server(handle, *listen, reuse_address=True))
     print(f"radio_relay: {len(servers)} relays, delay {options.delay_s * 1e3:g} ms "
           f"+- {options.jitter_s * 1e3:g} ms", file=sys.stderr, flush=True)
@@ -124,6 +131,9 @@ async def main(options):
     await stop.wait()
     for server in servers:
         server.close()
+    for (listen, target), (up, down) in counts.items():
+        print(f"radio_relay: {listen[0]}:{listen[1]} -> {target[0]}:{target[1]}: {up[0]} bytes "
+              f"there, {down[0]} back", file=sys.stderr, flush=True)
 
 
 def parse(argv=None):

@@ -38,6 +38,9 @@ ABSL_FLAG(std::string, link_name, "",
 ABSL_FLAG(std::string, link_local, "",
           "comma-separated topic prefixes that never cross hosts (e.g. clock on a vehicle that "
           "takes the time from its own autopilot)");
+ABSL_FLAG(double, link_max_rate_hz, 0.0,
+          "at most this many samples per second of each topic go to other hosts (0: all): a "
+          "radio link's budget; the newest between two goes when its turn comes");
 ABSL_FLAG(std::string, link_tls_cert, "", "the link's client certificate chain (mutual TLS)");
 ABSL_FLAG(std::string, link_tls_key, "", "the link's private key");
 ABSL_FLAG(std::string, link_tls_ca, "", "the CA that signed the NATS server's certificate");
@@ -88,6 +91,7 @@ int main(int argc, char** argv) {
     }
     link_options.local_prefixes =
         absl::StrSplit(absl::GetFlag(FLAGS_link_local), ',', absl::SkipEmpty());
+    link_options.max_rate_hz = absl::GetFlag(FLAGS_link_max_rate_hz);
     link_options.tls_cert = absl::GetFlag(FLAGS_link_tls_cert);
     link_options.tls_key = absl::GetFlag(FLAGS_link_tls_key);
     link_options.tls_ca = absl::GetFlag(FLAGS_link_tls_ca);

@@ -106,7 +106,17 @@ class NatsLink::Impl {
                          .Name("behaviorlib_channel_link_disconnects_total")
                          .Help("Times the link to the data engine was lost.")
                          .Register(registry)
-                         .Add({})) {}
+                         .Add({})),
+        thinned_count_(prometheus::BuildCounter()
+                           .Name("behaviorlib_channel_link_thinned_samples_total")
+                           .Help("Samples not sent because a newer one of their topic replaced "
+                                 "them within the link's rate limit (max_rate_hz).")
+                           .Register(registry)
+                           .Add({})),
+        interval_(options_.max_rate_hz > 0
+                      ? std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                            std::chrono::duration<double>(1.0 / options_.max_rate_hz))
+                      : std::chrono::steady_clock::duration::zero()) {}
 
   ~Impl() {
     stopWorker();
@@ -209,6 +219,32 @@ class NatsLink::Impl {
     thread_local std::string bytes;
     bytes.clear();
     if (!sample.sample().SerializeToString(&bytes)) return;
+    if (options_.max_rate_hz > 0) {
+      const auto now = std::chrono::steady_clock::now();
+      bool wake = false;
+      {
+        absl::MutexLock lock(&thin_mutex_);
+        Thinned& t = thinned_[topic];
+        if (now - t.last_sent < interval_) {
+          if (t.held) thinned_count_.Increment();
+          t.held = bytes;
+          wake = true;
+        } else {
+          t.last_sent = now;
+          t.held.reset();
+        }
+      }
+      if (wake) {
+        absl::MutexLock lock(&mutex_);
+        thinned_pending_ = true;
+        return;
+      }
+    }
+    send(topic, bytes);
+  }
+
+ private:
+  void send(const std::string& topic, const std::string& bytes) {
     const natsStatus s = natsConnection_Publish(conn_, topicSubject(topic).c_str(), bytes.data(),
                                                 static_cast<int>(bytes.size()));
     if (s != NATS_OK) {
@@ -219,7 +255,28 @@ class NatsLink::Impl {
     bytes_out_.Increment(static_cast<double>(bytes.size()));
   }
 
- private:
+  // Worker: sends the held samples whose turn came; when the next is due.
+  std::chrono::steady_clock::time_point flushThinned() {
+    std::vector<std::pair<std::string, std::string>> due;
+    auto next = std::chrono::steady_clock::time_point::max();
+    {
+      absl::MutexLock lock(&thin_mutex_);
+      const auto now = std::chrono::steady_clock::now();
+      for (auto& [topic, t] : thinned_) {
+        if (!t.held) continue;
+        if (now - t.last_sent >= interval_) {
+          due.emplace_back(topic, std::move(*t.held));
+          t.held.reset();
+          t.last_sent = now;
+        } else {
+          next = std::min(next, t.last_sent + interval_);
+        }
+      }
+    }
+    for (const auto& [topic, bytes] : due) send(topic, bytes);
+    return next;
+  }
+
   // ---- NATS callbacks (the library's threads) ------------------------------
   static void onSample(natsConnection* /*nc*/, natsSubscription* /*sub*/, natsMsg* msg,
                        void* closure) {
@@ -361,6 +418,13 @@ class NatsLink::Impl {
 
       auto wake = next_announce;
       for (const auto& [name, peer] : peers_) wake = std::min(wake, peer.heard + options_.want_ttl);
+      if (options_.max_rate_hz > 0) {
+        thinned_pending_ = false;
+        mutex_.Unlock();
+        const auto next_held = flushThinned();
+        mutex_.Lock();
+        wake = std::min(wake, next_held);
+      }
       const auto wait = std::max(wake - std::chrono::steady_clock::now(),
                                  std::chrono::steady_clock::duration(std::chrono::milliseconds(1)));
       mutex_.AwaitWithTimeout(absl::Condition(this, &Impl::hasWorkLocked), absl::FromChrono(wait));
@@ -368,7 +432,8 @@ class NatsLink::Impl {
   }
 
   bool hasWorkLocked() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-    return stopping_ || local_changed_ || announce_now_ || hello_now_ || peers_changed_;
+    return stopping_ || local_changed_ || announce_now_ || hello_now_ || peers_changed_ ||
+           thinned_pending_;
   }
 
   // Worker thread only: subscribes on NATS to what this host wants.
@@ -451,6 +516,8 @@ class NatsLink::Impl {
   prometheus::Gauge& up_gauge_;
   prometheus::Gauge& peers_gauge_;
   prometheus::Counter& disconnects_;
+  prometheus::Counter& thinned_count_;
+  const std::chrono::steady_clock::duration interval_;
 
   // Set in connect(), before any callback or the worker; read-only after.
   natsOptions* opts_ = nullptr;
@@ -466,7 +533,17 @@ class NatsLink::Impl {
   bool hello_now_ ABSL_GUARDED_BY(mutex_) = false;
   bool peers_changed_ ABSL_GUARDED_BY(mutex_) = false;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool thinned_pending_ ABSL_GUARDED_BY(mutex_) = false;  // a sample waits for its turn
   std::map<std::string, Peer, std::less<>> peers_ ABSL_GUARDED_BY(mutex_);
+
+  // --max-rate-hz: per topic, when its last sample went and the newest one
+  // waiting for its turn.
+  struct Thinned {
+    std::chrono::steady_clock::time_point last_sent;
+    std::optional<std::string> held;
+  };
+  absl::Mutex thin_mutex_;
+  std::map<std::string, Thinned, std::less<>> thinned_ ABSL_GUARDED_BY(thin_mutex_);
   int open_subscriptions_ ABSL_GUARDED_BY(mutex_) = 0;
 
   absl::Mutex counters_mutex_;
@@ -493,6 +570,9 @@ absl::StatusOr<std::unique_ptr<NatsLink>> NatsLink::start(Broker& broker, NatsLi
   if (tls_files != 0 && tls_files != 3) {
     return absl::InvalidArgumentError(
         "the link's mutual TLS needs a certificate, its key and a CA, all three");
+  }
+  if (!(options.max_rate_hz >= 0 && options.max_rate_hz <= 10'000)) {
+    return absl::InvalidArgumentError("the link's max rate must be within [0, 10000] Hz");
   }
   if (options.announce_period <= std::chrono::milliseconds(0) ||
       options.want_ttl <= options.announce_period) {

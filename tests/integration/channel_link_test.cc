@@ -364,6 +364,39 @@ TEST_F(ChannelLinkTest, ALostServerIsDetectedAndTheLinkRecovers) {
   EXPECT_LT(std::chrono::steady_clock::now() - back, seconds(5));
 }
 
+TEST_F(ChannelLinkTest, ARateLimitSendsTheNewestSampleInItsTurn) {
+  auto ground = startBroker("ground");
+  auto vehicle = startBroker("drone1", {"--link-max-rate-hz", "10"});
+  ChannelClient ground_client(ground->address());
+  ChannelClient vehicle_client(vehicle->address());
+  const std::string topic = "robots/drone1/fast_text";
+  Received received;
+  auto sub = collect(ground_client, topic, &received);
+  ASSERT_TRUE(sub->waitConnected(seconds(5)));
+  ASSERT_TRUE(eventually([&] { return metric(*vehicle, "behaviorlib_channel_link_peers") == 1; }));
+  std::this_thread::sleep_for(milliseconds(300));
+  // 100 samples in about half a second: at most 10 a second cross, and the
+  // last one always does, once its turn comes.
+  const auto start = std::chrono::steady_clock::now();
+  for (int i = 0; i < 100; ++i) {
+    ASSERT_TRUE(vehicle_client.publish(topic, text(std::to_string(i))).ok());
+    std::this_thread::sleep_for(milliseconds(5));
+  }
+  ASSERT_TRUE(vehicle_client.flush().ok());
+  ASSERT_TRUE(eventually([&] {
+    std::lock_guard<std::mutex> lock(received.mutex);
+    return !received.texts.empty() && received.texts.back() == "99";
+  })) << "the newest sample never crossed";
+  const double elapsed_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::this_thread::sleep_for(milliseconds(300));
+  const std::size_t crossed = received.size();
+  EXPECT_LE(static_cast<double>(crossed), 10.0 * elapsed_s + 2) << crossed << " in " << elapsed_s;
+  EXPECT_GE(crossed, 2u);
+  EXPECT_GE(metric(*vehicle, "behaviorlib_channel_link_thinned_samples_total"),
+            100.0 - crossed - 1);
+}
+
 TEST_F(ChannelLinkTest, BadLinkOptionsAreRefusedAtStart) {
   support::ServerProcess bad_name(kBrokerPath, {"--link-url", nats_.url(), "--link-name", "a.b"});
   EXPECT_FALSE(bad_name.start(seconds(5)));

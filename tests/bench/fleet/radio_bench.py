@@ -6,7 +6,9 @@
 - broker: the one broker on the ground, that every vehicle's systems and the
   simulator use over gRPC (the path before).
 
-For each: the fleet idle (systems registered, nothing active) for --idle-s,
+For each: at --time-scale (free running at 1x: a real vehicle's pace, so the
+bytes per wall second are a radio's budget; 'max': the deterministic mode),
+the fleet idle (systems registered, nothing active) for --idle-s,
 then the three vehicles flying the swarm mission. The bytes are the vehicle
 radio veth's counters (both directions: gRPC control plane, data, relay),
 per second of wall time and per second of simulated time (the deterministic
@@ -61,10 +63,10 @@ def window(fleet, run):
     return {"wall_s": wall, "sim_s": sim, "links": rates, "result": result}
 
 
-def measure(build_dir, path, idle_s):
+def measure(build_dir, path, idle_s, time_scale):
     run_dir = tempfile.mkdtemp(prefix=f"behaviorlib-radio-bench-{path}-")
     with fleet_module.Fleet(build_dir, run_dir, vehicles=3, say=lambda _: None,
-                            data_path=path) as fleet:
+                            data_path=path, time_scale=time_scale) as fleet:
         client = fleet.coordinator_client()
         fleet.wait_for_systems(client)
         time.sleep(2.0)
@@ -81,11 +83,13 @@ def main():
     parser.add_argument("--build-dir", default=os.path.join(REPO, "build"))
     parser.add_argument("--idle-s", type=float, default=20.0)
     parser.add_argument("--out", default="")
+    parser.add_argument("--time-scale", default="max",
+                        help="'max' (the deterministic mode) or simulated s per wall s")
     args = parser.parse_args()
     if os.geteuid() != 0:
         print("SKIPPED: needs root (network namespaces)")
         return 77
-    results = {path: measure(os.path.abspath(args.build_dir), path, args.idle_s)
+    results = {path: measure(os.path.abspath(args.build_dir), path, args.idle_s, args.time_scale)
                for path in ("nats", "broker")}
     print("| data path | phase | wall s | simulated s | kB/s (wall) per vehicle link, median |"
           " kB per simulated s | missions |")

@@ -58,6 +58,10 @@ struct NatsLinkOptions {
   /// counts the link lost after this many unanswered pings.
   std::chrono::milliseconds ping_interval{1000};
   int max_pings_out = 2;
+  /// At most this many samples per second of each topic go out (0: all):
+  /// a radio link's budget. Between two, the newest waits and goes when
+  /// its turn comes (the ones it replaced are counted, never sent).
+  double max_rate_hz = 0;
   /// Samples kept while the link is down, sent when it returns; beyond,
   /// samples are dropped and counted.
   int reconnect_buffer_bytes = 64 * 1024;

@@ -259,8 +259,18 @@ class Fleet:
         run("ip", "link", "set", root_name, "master", bridge)
         run("ip", "link", "set", root_name, "up")
 
+    def _remove_leftovers(self):
+        """What a fleet of the same prefix left behind when it was killed."""
+        for line in run("ip", "netns", "list", check=False).splitlines():
+            name = line.split()[0] if line.split() else ""
+            if name.startswith(self.prefix + "-"):
+                run("ip", "netns", "del", name, check=False)
+        for name in (f"{self.prefix}r", f"{self.prefix}b"):
+            run("ip", "link", "del", name, check=False)
+
     def create_network(self):
         p = self.prefix
+        self._remove_leftovers()
         self._bridge(f"{p}r", RADIO_NET)
         self._bridge(f"{p}b", BUS_NET)
         ground = self._host("ground")

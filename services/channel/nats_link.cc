@@ -126,11 +126,13 @@ class NatsLink::Impl {
     closeSubscription(hello_sub_);
     if (conn_ != nullptr) natsConnection_Close(conn_);
     {
-      // The handlers of closed subscriptions may still be running once.
+      // The handlers of closed subscriptions may still be running once, and
+      // the connection's callbacks run on the library's thread.
       absl::MutexLock lock(&mutex_);
       mutex_.AwaitWithTimeout(absl::Condition(
                                   +[](int* open) { return *open == 0; }, &open_subscriptions_),
                               absl::Seconds(5));
+      if (conn_ != nullptr) mutex_.AwaitWithTimeout(absl::Condition(&closed_), absl::Seconds(5));
     }
     if (conn_ != nullptr) natsConnection_Destroy(conn_);
     if (opts_ != nullptr) natsOptions_Destroy(opts_);
@@ -315,6 +317,8 @@ class NatsLink::Impl {
     auto* self = static_cast<Impl*>(closure);
     self->up_.store(false);
     self->up_gauge_.Set(0);
+    absl::MutexLock lock(&self->mutex_);
+    self->closed_ = true;  // the last callback of the connection
   }
 
   void setUp(bool up) {
@@ -534,6 +538,7 @@ class NatsLink::Impl {
   bool peers_changed_ ABSL_GUARDED_BY(mutex_) = false;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   bool thinned_pending_ ABSL_GUARDED_BY(mutex_) = false;  // a sample waits for its turn
+  bool closed_ ABSL_GUARDED_BY(mutex_) = false;
   std::map<std::string, Peer, std::less<>> peers_ ABSL_GUARDED_BY(mutex_);
 
   // --max-rate-hz: per topic, when its last sample went and the newest one

@@ -9,7 +9,8 @@ joined by radio links that lag, drop packets and can be cut (decision 39).
 Hosts and what runs on them (every port fixed: each host has its own):
 
   ground   10.77.0.1   nats-server (the hub; leaf nodes on 7422), channel_broker
-                       (linked), coordinator
+                       (linked), coordinator, console (8090), flight recorder
+                       (behaviorctl record)
   sim      10.78.0.1   simulator, standing in for every vehicle's autopilot and
            10.77.0.2   sensors, publishing each vehicle's topics to that
                        vehicle's broker over its onboard link (the "bus"), and
@@ -111,6 +112,18 @@ class NsProcess(stack.Process):
         return f"{self.host_ip}:{self.metrics_port}" if self.metrics_port else ""
 
 
+class NsHttpProcess(stack.HttpProcess):
+    """The console in a host's namespace: ready when GET /healthz answers."""
+
+    def __init__(self, name, ns, host_ip, argv, run_dir, role):
+        super().__init__(name, ["ip", "netns", "exec", ns, *argv, "--insecure"], run_dir, role)
+        self.host_ip = host_ip
+
+    @property
+    def address(self):
+        return f"{self.host_ip}:{self.http_port}"
+
+
 class PlainProcess:
     """A program that is not ours (nats-server) or writes no port file (the
     relay): ready when `ready()` says so."""
@@ -178,7 +191,7 @@ class Fleet:
 
     def __init__(self, build_dir, run_dir, vehicles=3, prefix="blf", delay_ms=30.0,
                  jitter_ms=10.0, loss=0.01, rate_kbit=0, systems=None, seed=1, say=print,
-                 link_loss_s=LINK_LOSS_S, data_path="nats", time_scale="max"):
+                 link_loss_s=LINK_LOSS_S, data_path="nats", time_scale="max", console=True):
         if not 1 <= vehicles <= 9:
             raise ValueError("a fleet of 1 to 9 vehicles")
         if not (len(prefix) <= 4 and prefix.isalnum()):
@@ -202,6 +215,9 @@ class Fleet:
         # per wall second).
         self.time_scale = str(time_scale)
         self.deterministic = self.time_scale == "max"
+        self.with_console = console
+        self.console = None
+        self.recording = os.path.join(self.run_dir, "recordings", "flight.mcap")
         self.say = say
         self.stack = stack.Stack(self.run_dir)
         self.namespaces = []
@@ -434,6 +450,22 @@ class Fleet:
         self.coordinator = self.stack.start(NsProcess("coordinator", ground, GROUND_RADIO,
                                                       coordinator_argv, self.run_dir,
                                                       "coordinator"))
+        if self.with_console:
+            # The ground station's console and flight recorder, on its broker.
+            os.makedirs(os.path.dirname(self.recording), exist_ok=True)
+            self.console = self.stack.start(NsHttpProcess(
+                "console", ground, GROUND_RADIO,
+                [self.binary("console"), "--listen", "0.0.0.0:8090",
+                 "--coordinator", f"127.0.0.1:{COORDINATOR_PORT}",
+                 "--channel", f"127.0.0.1:{BROKER_PORT}",
+                 "--web-dir", os.path.join(REPO, "console", "web"),
+                 "--recordings-dir", os.path.dirname(self.recording)],
+                self.run_dir, "console"))
+            self.stack.start(PlainProcess(
+                "recorder", ground,
+                [self.binary("behaviorctl"), "--coordinator", f"127.0.0.1:{COORDINATOR_PORT}",
+                 "--channel", f"127.0.0.1:{BROKER_PORT}", "record", self.recording],
+                self.run_dir, lambda: True))
 
         for i, robot in enumerate(self.robots, start=1):
             ns = self.ns(robot)

@@ -6,7 +6,8 @@ mode. In order, on one fleet:
 
 1. Three vehicles fly the swarm mission; every mission succeeds, each
    vehicle's belief memory holds the two others' positions (which crossed
-   hosts on NATS), and the brokers' link metrics show it.
+   hosts on NATS), the brokers' link metrics show it, and the ground's
+   console and flight recorder follow every vehicle.
 2. drone1's radio is cut for 15 s mid-mission: the coordinator reports its
    systems down and fails its mission with PROCESS_FAILURE within a bound;
    drone1 lands by itself (its link-loss action, after 10 s of its own time)
@@ -205,8 +206,18 @@ class FleetTest(unittest.TestCase):
             taken = metric(broker.metrics_address,
                            'behaviorlib_channel_link_samples_in_total{topic="robots/swarm/positions"}')
             self.assertGreater(taken or 0, 0, f"{robot}'s broker took no position from NATS")
-        self.assertEqual(metric(self.fleet.ground_broker.metrics_address,
-                                "behaviorlib_channel_link_peers"), 1 + len(self.fleet.robots))
+        ground = self.fleet.ground_broker.metrics_address
+        self.assertEqual(metric(ground, "behaviorlib_channel_link_peers"),
+                         1 + len(self.fleet.robots))
+        # The ground station's console and flight recorder followed every
+        # vehicle, across its radio.
+        with urllib.request.urlopen(f"{self.fleet.console.url}healthz", timeout=5) as reply:
+            self.assertEqual(reply.status, 200)
+        for robot in self.fleet.robots:
+            taken = metric(ground, "behaviorlib_channel_link_samples_in_total"
+                                   f'{{topic="robots/{robot}/ground_truth/pose"}}')
+            self.assertGreater(taken or 0, 0, f"the ground never received {robot}'s pose")
+        self.assertGreater(os.path.getsize(self.fleet.recording), 0)
 
     def test_2_a_cut_radio_is_detected_the_vehicle_lands_and_flies_again(self):
         results = {}

@@ -17,6 +17,9 @@ mode. In order, on one fleet:
 4. The coordinator's event stream over all of it: fleet seqs without a gap or
    a duplicate, and each system's own event seqs, as they crossed the radio,
    without a gap or a duplicate.
+5. The ground station's coordinator is killed mid-mission and started again:
+   each mission resumes and succeeds or ends with its cause, and the vehicles
+   end on the ground.
 
 Needs root (namespaces), nats-server and the build: exits 77 (skipped)
 otherwise. Run: sudo /usr/bin/python3 tests/fleet/fleet_test.py --build-dir build
@@ -320,6 +323,47 @@ class FleetTest(unittest.TestCase):
         self.assertLessEqual(holes, dropped)
         if holes:
             self.assertGreater(synthesized, 0)
+
+
+    def test_5_a_restarted_ground_station_finishes_or_resumes_the_missions(self):
+        # drone3's host was killed in test 3: drone1 and drone2 fly on.
+        robots = ["drone1", "drone2"]
+        results = {}
+        stamp = f"{time.strftime('%H%M%S')}-restart"
+        missions = [(robot, fleet_module.SWARM_MISSION, f"swarm-{stamp}-{robot}")
+                    for robot in robots]
+        for robot, path, mission_id in missions:
+            self.client.call(demo.COORDINATOR, "StartMission",
+                             demo.mission_request(path, robot, mission_id))
+        self.wait_step("drone1", "share_positions")
+        coordinator = self.fleet.coordinator
+        coordinator.process.kill()  # the ground station goes down at once
+        coordinator.process.wait()
+        self.say("coordinator killed; starting it again")
+        self.fleet.stack.restart(coordinator)
+        self.client.close()
+        type(self).client = self.fleet.coordinator_client()
+        deadline = time.monotonic() + 300
+        for robot, _, mission_id in missions:
+            while True:
+                status = self.client.call(demo.COORDINATOR, "GetMission",
+                                          {"mission_id": mission_id})["status"]
+                if status.get("state") in demo.FINAL_MISSION_STATES:
+                    break
+                self.assertLess(time.monotonic(), deadline, f"{robot}'s mission never ended")
+                time.sleep(0.5)
+            results[robot] = status
+            self.say(f"{robot}: {status.get('state')} {status.get('message', '')[:160]}")
+        for robot, status in results.items():
+            # It resumed and succeeded, or ended saying why.
+            if status.get("state") != "MISSION_STATE_SUCCEEDED":
+                self.assertTrue(status.get("message"), f"{robot}'s mission ended without a cause")
+        # Either way the vehicles end safe, on the ground.
+        for robot in robots:
+            deadline = time.monotonic() + 120
+            while self.watch[robot].latest()[1] != "FLIGHT_STATE_LANDED":
+                self.assertLess(time.monotonic(), deadline, f"{robot} is still in the air")
+                time.sleep(0.5)
 
 
 def main():

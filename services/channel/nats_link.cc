@@ -196,8 +196,6 @@ class NatsLink::Impl {
     return absl::OkStatus();
   }
 
-  bool connected() const { return up_.load(); }
-
   void stopWorker() {
     {
       absl::MutexLock lock(&mutex_);
@@ -614,7 +612,5 @@ void NatsLink::localInterestChanged(std::vector<std::string> wanted) {
 void NatsLink::localSample(const std::string& topic, const v1::SubscribeResponse& sample) {
   impl_->localSample(topic, sample);
 }
-
-bool NatsLink::connected() const { return impl_->connected(); }
 
 }  // namespace behaviorlib::channel

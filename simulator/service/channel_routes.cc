@@ -63,17 +63,6 @@ absl::Status ChannelRoutes::sync() {
   return first;
 }
 
-std::map<std::string, uint64_t> ChannelRoutes::acceptedSeqs() const {
-  if (routes_.size() == 1) return routes_[0].client->acceptedSeqs();
-  std::map<std::string, uint64_t> seqs;
-  for (const Route& route : routes_) {
-    for (auto& [topic, seq] : route.client->acceptedSeqs()) {
-      if (topic != channel::kClockTopic && &routeOf(topic) == &route) seqs[topic] = seq;
-    }
-  }
-  return seqs;
-}
-
 std::map<std::string, std::map<std::string, uint64_t>> ChannelRoutes::acceptedSeqsByDomain() const {
   std::map<std::string, std::map<std::string, uint64_t>> seqs;
   for (const Route& route : routes_) seqs[route.robot_id] = route.client->acceptedSeqs();

@@ -37,12 +37,10 @@ class ChannelRoutes {
   absl::Status publishAll(const std::vector<channel::ChannelClient::TopicSample>& samples);
   /// ChannelClient::sync on every broker; the first error.
   absl::Status sync();
-  /// The topic_seq each broker accepted last, per topic. With vehicle
-  /// routes the clock is left out: each broker numbers it its own way, and
-  /// the deterministic mode's followers take the time from the grants.
-  std::map<std::string, uint64_t> acceptedSeqs() const;
-  /// The same per broker: the robot id of a vehicle's broker, "" for the
-  /// main one (the deterministic mode's domains, TimeGrants::setDomainOf).
+  /// The topic_seq each broker accepted last, per topic, per broker: the
+  /// robot id of a vehicle's broker, "" for the main one (the deterministic
+  /// mode's domains, TimeGrants::setDomainOf; each broker numbers a topic,
+  /// the clock too, its own way).
   std::map<std::string, std::map<std::string, uint64_t>> acceptedSeqsByDomain() const;
   /// The domain of a robot's followers: its own broker's, or the main one.
   std::string domainOf(const std::string& robot_id) const;

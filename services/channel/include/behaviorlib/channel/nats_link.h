@@ -90,9 +90,6 @@ class NatsLink final : public BrokerLink {
   void localInterestChanged(std::vector<std::string> wanted) override;
   void localSample(const std::string& topic, const v1::SubscribeResponse& sample) override;
 
-  /// Whether the connection to a server is up now.
-  bool connected() const;
-
   class Impl;
 
  private:

@@ -441,6 +441,9 @@ grpc::ServerWriteReactor<grpc::ByteBuffer>* CoordinatorService::WatchEvents(
 grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
     grpc::CallbackServerContext* context, const v1::ActivateFleetBehaviorRequest* request,
     v1::ActivateFleetBehaviorResponse* response) {
+  if (auto s = server::checkRobotScope(*context, request->robot_id(), "activate behaviors");
+      !s.ok())
+    return finishNow(context, server::toGrpc(s));
   if (options_.fleet != nullptr) {
     return runBlocking(context, [this, request, response] {
       auto done = options_.fleet->activateBehavior({request->robot_id(), request->behavior(),
@@ -482,6 +485,9 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
 grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
     grpc::CallbackServerContext* context, const v1::DeactivateFleetBehaviorRequest* request,
     v1::DeactivateFleetBehaviorResponse* response) {
+  if (auto s = server::checkRobotScope(*context, request->robot_id(), "deactivate behaviors");
+      !s.ok())
+    return finishNow(context, server::toGrpc(s));
   if (options_.fleet != nullptr) {
     return runBlocking(context, [this, request, response] {
       std::string system;
@@ -528,6 +534,8 @@ grpc::ServerUnaryReactor* CoordinatorService::CheckFleetBehaviorActivation(
 grpc::ServerUnaryReactor* CoordinatorService::PauseFleetBehavior(
     grpc::CallbackServerContext* context, const v1::PauseFleetBehaviorRequest* request,
     v1::PauseFleetBehaviorResponse* response) {
+  if (auto s = server::checkRobotScope(*context, request->robot_id(), "pause behaviors"); !s.ok())
+    return finishNow(context, server::toGrpc(s));
   v1::PauseBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
   forwarded.set_activation_id(request->activation_id());
@@ -540,6 +548,8 @@ grpc::ServerUnaryReactor* CoordinatorService::PauseFleetBehavior(
 grpc::ServerUnaryReactor* CoordinatorService::ResumeFleetBehavior(
     grpc::CallbackServerContext* context, const v1::ResumeFleetBehaviorRequest* request,
     v1::ResumeFleetBehaviorResponse* response) {
+  if (auto s = server::checkRobotScope(*context, request->robot_id(), "resume behaviors"); !s.ok())
+    return finishNow(context, server::toGrpc(s));
   v1::ResumeBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
   forwarded.set_activation_id(request->activation_id());
@@ -552,6 +562,8 @@ grpc::ServerUnaryReactor* CoordinatorService::ResumeFleetBehavior(
 grpc::ServerUnaryReactor* CoordinatorService::ModifyFleetBehavior(
     grpc::CallbackServerContext* context, const v1::ModifyFleetBehaviorRequest* request,
     v1::ModifyFleetBehaviorResponse* response) {
+  if (auto s = server::checkRobotScope(*context, request->robot_id(), "modify behaviors"); !s.ok())
+    return finishNow(context, server::toGrpc(s));
   v1::ModifyBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
   forwarded.set_activation_id(request->activation_id());

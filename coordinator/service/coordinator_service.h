@@ -18,6 +18,8 @@
 #include <functional>
 #include <map>
 #include <set>
+#include <string>
+#include <string_view>
 
 #include "absl/base/thread_annotations.h"
 #include "absl/synchronization/mutex.h"
@@ -156,6 +158,10 @@ class CoordinatorService final
   friend class MissionStreamReactor;
   friend class BeliefStreamReactor;
   void removeStream(FleetStreamReactor* stream);
+  /// PERMISSION_DENIED when the caller is bound to another robot than the
+  /// mission's (RobotScope); the mission lookup's error; else OK.
+  grpc::Status missionScopeRefusal(const grpc::CallbackServerContext& context,
+                                   const std::string& mission_id, std::string_view what) const;
   /// Runs `work` on the blocking pool and finishes the call with its status.
   grpc::ServerUnaryReactor* runBlocking(grpc::CallbackServerContext* context,
                                         std::function<grpc::Status()> work);

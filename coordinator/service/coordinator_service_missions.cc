@@ -11,6 +11,7 @@
 #include "absl/strings/str_format.h"
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/error_details.h"
+#include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
@@ -287,11 +288,24 @@ grpc::ServerWriteReactor<v1::WatchBeliefsResponse>* CoordinatorService::WatchBel
   return new BeliefStreamReactor(this, *request);
 }
 
+// A caller bound to a robot controls only that robot's missions.
+grpc::Status CoordinatorService::missionScopeRefusal(const grpc::CallbackServerContext& context,
+                                                     const std::string& mission_id,
+                                                     std::string_view what) const {
+  const server::RobotScope scope = server::robotScopeOf(context);
+  if (!scope.bound()) return grpc::Status::OK;
+  auto status = options_.missions->get(mission_id);
+  if (!status.ok()) return server::toGrpc(status.status());
+  return server::toGrpc(scope.permits(status->robot_id(), what));
+}
+
 grpc::ServerUnaryReactor* CoordinatorService::StartMission(grpc::CallbackServerContext* context,
                                                            const v1::StartMissionRequest* request,
                                                            v1::StartMissionResponse* response) {
   if (options_.missions == nullptr)
     return finishWith(context, notServed("missions", "missions", "no missions"));
+  if (auto s = server::checkRobotScope(*context, request->robot_id(), "start missions"); !s.ok())
+    return finishWith(context, server::toGrpc(s));
   // Checking the file against the registry and starting are quick; the
   // mission then runs on its own thread.
   auto started = options_.missions->start(*request);
@@ -340,6 +354,9 @@ grpc::ServerUnaryReactor* CoordinatorService::PauseMission(grpc::CallbackServerC
                                                            v1::MissionControlResponse* response) {
   if (options_.missions == nullptr)
     return finishWith(context, notServed("missions", "missions", "no missions"));
+  if (auto refused = missionScopeRefusal(*context, request->mission_id(), "pause missions");
+      !refused.ok())
+    return finishWith(context, refused);
   auto status = options_.missions->pause(request->mission_id());
   if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
@@ -351,6 +368,9 @@ grpc::ServerUnaryReactor* CoordinatorService::ResumeMission(
     v1::MissionControlResponse* response) {
   if (options_.missions == nullptr)
     return finishWith(context, notServed("missions", "missions", "no missions"));
+  if (auto refused = missionScopeRefusal(*context, request->mission_id(), "resume missions");
+      !refused.ok())
+    return finishWith(context, refused);
   auto status = options_.missions->resume(request->mission_id());
   if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
@@ -362,6 +382,9 @@ grpc::ServerUnaryReactor* CoordinatorService::AbortMission(grpc::CallbackServerC
                                                            v1::MissionControlResponse* response) {
   if (options_.missions == nullptr)
     return finishWith(context, notServed("missions", "missions", "no missions"));
+  if (auto refused = missionScopeRefusal(*context, request->mission_id(), "abort missions");
+      !refused.ok())
+    return finishWith(context, refused);
   auto status = options_.missions->abort(request->mission_id(), request->reason());
   if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);

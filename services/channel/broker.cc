@@ -26,6 +26,7 @@
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/topic.h"
 #include "behaviorlib/error_details.h"
+#include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 
@@ -118,9 +119,10 @@ struct Broker::Metrics {
                   .Help("Shared memory held by the topics' rings.")
                   .Register(registry)
                   .Add({})) {
-    for (absl::string_view reason : {reject_reason::kInvalidTopic, reject_reason::kMissingSample,
-                                     reject_reason::kUnknownType, reject_reason::kMalformedSample,
-                                     reject_reason::kTypeMismatch, reject_reason::kTooManyTopics}) {
+    for (absl::string_view reason :
+         {reject_reason::kInvalidTopic, reject_reason::kMissingSample, reject_reason::kUnknownType,
+          reject_reason::kMalformedSample, reject_reason::kTypeMismatch,
+          reject_reason::kTooManyTopics, reject_reason::kNotPermitted}) {
       rejected_by_reason.emplace(std::string(reason),
                                  &rejected.Add({{"reason", std::string(reason)}}));
     }
@@ -471,12 +473,16 @@ class Broker::SubscribeReactor final
 // taken and the last topic_seq of each topic.
 class Broker::Publisher {
  public:
-  Publisher(Broker* broker, grpc::CallbackServerContext* context) : broker_(broker) {
+  Publisher(Broker* broker, grpc::CallbackServerContext* context)
+      : broker_(broker), scope_(server::robotScopeOf(*context)) {
     const auto& metadata = context->client_metadata();
     auto it = metadata.find(kGatedPrefixMetadataKey);
     if (it != metadata.end()) gated_prefix_ = std::string(it->second.data(), it->second.size());
   }
   virtual ~Publisher() = default;
+
+  // Who publishes: a caller bound to a robot publishes only its topics.
+  const server::RobotScope& scope() const { return scope_; }
 
   // Whether its samples come from another host (the link): they are never
   // handed back to the link.
@@ -540,6 +546,7 @@ class Broker::Publisher {
   }
 
   std::optional<std::string> gated_prefix_;
+  const server::RobotScope scope_;  // resolved once, at the stream's start
   uint64_t accepted_ ABSL_GUARDED_BY(mutex_) = 0;
   // The last seq published on each topic (PublishResponse.topic_seqs).
   absl::flat_hash_map<const Topic*, std::pair<std::shared_ptr<Topic>, uint64_t>> published_seqs_
@@ -847,6 +854,13 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
     topic.reset();
     if (absl::Status status = validateTopicName(request.topic()); !status.ok()) {
       countRejected(reject_reason::kInvalidTopic);
+      return toGrpc(status);
+    }
+    if (absl::Status status = absl::StartsWith(request.topic(), kSharedRobotsPrefix)
+                                  ? absl::OkStatus()
+                                  : publisher.scope().permitsTopic(request.topic());
+        !status.ok()) {
+      countRejected(reject_reason::kNotPermitted);
       return toGrpc(status);
     }
   }

@@ -180,10 +180,10 @@ absl::StatusOr<AccessPolicy> AccessPolicy::parse(std::string_view yaml, const st
       for (const auto& key : item) {
         const std::string k = key.first.Scalar();
         if (k != "certificate" && k != "token_sha256" && k != "name" && k != "roles" &&
-            k != "system") {
+            k != "system" && k != "robot") {
           return error(key.first, "unknown key '" + k +
                                       "' (expected certificate or token_sha256, name, roles, "
-                                      "system)");
+                                      "system, robot)");
         }
       }
       if (item["certificate"]) entry.certificate = item["certificate"].as<std::string>();
@@ -223,6 +223,15 @@ absl::StatusOr<AccessPolicy> AccessPolicy::parse(std::string_view yaml, const st
         }
         entry.identity.robot_id = system["robot"].as<std::string>();
         entry.identity.system = system["name"].as<std::string>();
+      }
+      if (const YAML::Node robot = item["robot"]) {
+        const std::string id = robot.IsScalar() ? robot.Scalar() : std::string();
+        if (id.empty()) return error(robot, "robot: ROBOT_ID, the one robot it may command");
+        if (!entry.identity.robot_id.empty() && entry.identity.robot_id != id) {
+          return error(robot, "robot '" + id + "' is not the system's robot '" +
+                                  entry.identity.robot_id + "'");
+        }
+        entry.identity.robot_id = id;
       }
       if (entry.identity.roles.count(Role::kSystem) != 0 && entry.identity.system.empty()) {
         return error(item,
@@ -314,6 +323,47 @@ absl::Status checkSystemIdentity(const grpc::ServerContextBase& context,
         {{"identity", caller->identity}, {"robot", robot_id}, {"system", system}});
   }
   return absl::OkStatus();
+}
+
+absl::Status RobotScope::permits(std::string_view robot_id, std::string_view what) const {
+  if (!bound() || robot_id == robot_id_) return absl::OkStatus();
+  return errors::withReason(
+      absl::PermissionDeniedError(absl::StrCat("'", identity_, "' may ", av(what),
+                                               " only for robot ", robot_id_, ", not for robot '",
+                                               av(robot_id), "'")),
+      v1::ROBOT_NOT_PERMITTED,
+      {{"identity", identity_}, {"robot", std::string(robot_id)}, {"allowed_robot", robot_id_}});
+}
+
+absl::Status RobotScope::permitsTopic(std::string_view topic) const {
+  if (!bound()) return absl::OkStatus();
+  const std::string prefix = absl::StrCat("robots/", robot_id_, "/");
+  if (absl::StartsWith(av(topic), prefix)) return absl::OkStatus();
+  // The robot the topic names, for the details (empty: none).
+  std::string named;
+  if (absl::StartsWith(av(topic), "robots/")) {
+    const std::string_view rest = topic.substr(7);
+    named = std::string(rest.substr(0, rest.find('/')));
+  }
+  return errors::withReason(absl::PermissionDeniedError(absl::StrCat(
+                                "'", identity_, "' may publish only under ", prefix,
+                                " (and the fleet's shared topics)", ", not on '", av(topic), "'")),
+                            v1::ROBOT_NOT_PERMITTED,
+                            {{"identity", identity_},
+                             {"robot", named},
+                             {"allowed_robot", robot_id_},
+                             {"topic", std::string(topic)}});
+}
+
+RobotScope robotScopeOf(const grpc::ServerContextBase& context) {
+  const std::optional<Caller> caller = callerOf(context);
+  if (!caller || !caller->policy) return RobotScope();
+  return RobotScope(caller->identity, caller->robot_id);
+}
+
+absl::Status checkRobotScope(const grpc::ServerContextBase& context, std::string_view robot_id,
+                             std::string_view what) {
+  return robotScopeOf(context).permits(robot_id, what);
 }
 
 }  // namespace behaviorlib::server

@@ -20,6 +20,10 @@ template <class F, class Fill>
 grpc::ServerUnaryReactor* platformCall(grpc::CallbackServerContext* context, Simulation& simulation,
                                        const std::string& robot_id, F&& call, Fill&& fill) {
   auto* reactor = context->DefaultReactor();
+  if (auto s = server::checkRobotScope(*context, robot_id, "command the vehicle"); !s.ok()) {
+    reactor->Finish(toGrpc(s));
+    return reactor;
+  }
   auto outer = simulation.withPlatform(robot_id, std::forward<F>(call));
   if (!outer.ok()) {
     reactor->Finish(toGrpc(outer.status()));
@@ -43,8 +47,9 @@ bool sameStatus(const v1::FlightStatus& a, const v1::FlightStatus& b) {
 // One StreamSetpoints stream: applies each setpoint; the first refusal ends it.
 class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::SetpointRequest>> {
  public:
-  SetpointReader(FlightControllerService* service, v1::StreamSetpointsResponse* response)
-      : service_(service), response_(response) {
+  SetpointReader(FlightControllerService* service, const grpc::CallbackServerContext& context,
+                 v1::StreamSetpointsResponse* response)
+      : service_(service), scope_(server::robotScopeOf(context)), response_(response) {
     StartRead(&request_);
   }
   void OnReadDone(bool ok) override {
@@ -53,7 +58,7 @@ class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::
       Finish(grpc::Status::OK);
       return;
     }
-    auto applied = service_->applySetpoint(request_);
+    auto applied = service_->applySetpoint(request_, scope_);
     if (!applied.ok()) {
       Finish(toGrpc(applied.status()));
       return;
@@ -68,6 +73,7 @@ class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::
 
  private:
   FlightControllerService* service_;
+  const server::RobotScope scope_;  // the caller's, resolved once
   v1::StreamSetpointsResponse* response_;
   v1::SetpointRequest request_;
 };
@@ -170,7 +176,8 @@ grpc::ServerUnaryReactor* FlightControllerService::ExecuteFlightAction(
 }
 
 absl::StatusOr<v1::FlightState> FlightControllerService::applySetpoint(
-    const v1::SetpointRequest& request) {
+    const v1::SetpointRequest& request, const server::RobotScope& scope) {
+  if (auto s = scope.permits(request.robot_id(), "command the vehicle"); !s.ok()) return s;
   auto outer = simulation_.withPlatform(request.robot_id(), [&](VehiclePlatform& p, SimTime now) {
     return p.setpoint(request, now);
   });
@@ -182,15 +189,15 @@ grpc::ServerUnaryReactor* FlightControllerService::SendSetpoint(
     grpc::CallbackServerContext* context, const v1::SetpointRequest* request,
     v1::SendSetpointResponse* response) {
   auto* reactor = context->DefaultReactor();
-  auto applied = applySetpoint(*request);
+  auto applied = applySetpoint(*request, server::robotScopeOf(*context));
   if (applied.ok()) response->set_state(*applied);
   reactor->Finish(toGrpc(applied.status()));
   return reactor;
 }
 
 grpc::ServerReadReactor<v1::SetpointRequest>* FlightControllerService::StreamSetpoints(
-    grpc::CallbackServerContext* /*context*/, v1::StreamSetpointsResponse* response) {
-  return new SetpointReader(this, response);
+    grpc::CallbackServerContext* context, v1::StreamSetpointsResponse* response) {
+  return new SetpointReader(this, *context, response);
 }
 
 grpc::ServerWriteReactor<v1::WatchFlightStateResponse>* FlightControllerService::WatchFlightState(

@@ -13,6 +13,7 @@
 #include <set>
 #include <string>
 
+#include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "simulator/core/simulation.h"
 #include "simulator/service/latest_writer.h"
@@ -50,7 +51,9 @@ class FlightControllerService final : public v1::FlightController::CallbackServi
       grpc::CallbackServerContext* context, const v1::WatchFlightStateRequest* request) override;
 
   /// Applies one setpoint (shared by SendSetpoint and StreamSetpoints).
-  absl::StatusOr<v1::FlightState> applySetpoint(const v1::SetpointRequest& request);
+  // Refused for a caller bound to another robot (`scope`).
+  absl::StatusOr<v1::FlightState> applySetpoint(const v1::SetpointRequest& request,
+                                                const server::RobotScope& scope);
 
  private:
   void removeWatcher(FlightStatusWatcher* watcher);

@@ -8,7 +8,9 @@ mutual TLS and one policy. Then each identity (viewer, operator, safety,
 system, admin, a certificate the policy does not know, a bearer token) calls
 one method of each kind (viewer, operator, safety, system, admin): allowed
 exactly when it has the role, otherwise PERMISSION_DENIED naming the role.
-A system certificate cannot register as another system (the hijack), the
+A system certificate cannot register as another system (the hijack), nor
+command another robot (its vehicle, its behaviors, its missions, its topics:
+ROBOT_NOT_PERMITTED); the
 coordinator's audit log and metric record control calls and refusals.
 Needs python3-grpcio and openssl.
 """
@@ -50,6 +52,9 @@ POLICY = f"""identities:
   - certificate: behaviorlib:system
     roles: [viewer, operator, system]
     system: {{robot: drone1, name: basic_quadrotor_behaviors}}
+  - certificate: behaviorlib:drone2-system
+    roles: [viewer, operator, system]
+    system: {{robot: drone2, name: basic_quadrotor_behaviors}}
   - certificate: behaviorlib:admin
     roles: [viewer, admin]
   - certificate: behaviorlib:coordinator
@@ -62,6 +67,15 @@ POLICY = f"""identities:
     name: dashboard
     roles: [viewer]
 """
+
+
+def has_reason(error, reason):
+    """Whether a gRPC error's google.rpc.Status details name `reason` (the
+    ErrorInfo's reason is a string field: its bytes appear as they are)."""
+    for key, value in error.trailing_metadata() or ():
+        if key == "grpc-status-details-bin" and reason.encode() in value:
+            return True
+    return False
 
 
 def read(path):
@@ -99,7 +113,8 @@ class RolesTest(unittest.TestCase):
     def setUpClass(cls):
         cls.dir = tempfile.mkdtemp(prefix="roles-test-")
         cls.certs = os.path.join(cls.dir, "certs")
-        names = [*ROLES, "stranger", "coordinator", "simulator", "channel_broker"]
+        names = [*ROLES, "stranger", "coordinator", "simulator", "channel_broker",
+                 "drone2-system"]
         subprocess.run([os.path.join(REPO, "scripts", "make-dev-certs.sh"), "--out", cls.certs,
                         *names], check=True, capture_output=True)
         policy = os.path.join(cls.dir, "policy.yaml")
@@ -118,22 +133,32 @@ class RolesTest(unittest.TestCase):
             broker = Process("channel_broker", flags("channel_broker"), cls.dir)
             cls.processes.append(broker)
             simulator = Process("simulator", [*flags("simulator"), "--channel", broker.address,
-                                              "--vehicles", "drone1"], cls.dir)
+                                              "--vehicles", "drone1,drone2"], cls.dir)
             cls.processes.append(simulator)
             cls.coordinator = Process("coordinator", [*flags("coordinator"), "--state-dir",
                                                       cls.state_dir, "--flight-controller",
                                                       f"drone1={simulator.address}"], cls.dir)
             cls.processes.append(cls.coordinator)
+            # drone2's behavior system, under its own certificate (bound to drone2).
+            cls.drone2_system = Process("basic_quadrotor_behaviors",
+                                        [*flags("drone2-system"), "--robot-id", "drone2",
+                                         "--clock", "steady"], cls.dir)
+            cls.processes.append(cls.drone2_system)
         except Exception:
             cls.tearDownClass()
             raise
         cls.simulator = simulator
+        cls.broker = broker
         rc.use_tls(os.path.join(cls.certs, "viewer.pem"), os.path.join(cls.certs, "viewer.key"),
                    os.path.join(cls.certs, "ca.pem"))
         cls.pools = {
             "coordinator": rc.pool_for_symbols(cls.coordinator.address,
                                                ["behaviorlib.v1.Coordinator"]),
-            "simulator": rc.pool_for_symbols(simulator.address, ["behaviorlib.v1.Simulator"]),
+            "simulator": rc.pool_for_symbols(
+                simulator.address, ["behaviorlib.v1.Simulator", "behaviorlib.v1.FlightController"]),
+            "broker": rc.pool_for_symbols(broker.address, ["behaviorlib.v1.DataChannel"]),
+            "system": rc.pool_for_symbols(cls.drone2_system.address,
+                                          ["behaviorlib.v1.BehaviorSystem"]),
         }
 
     @classmethod
@@ -149,9 +174,13 @@ class RolesTest(unittest.TestCase):
             certificate_chain=read(os.path.join(self.certs, f"{name}.pem")))
         return grpc.secure_channel(server.address, creds)
 
-    def call(self, identity, server, service, method, fields, token=None):
-        """The gRPC code of one call (OK or the error's)."""
-        pool = self.pools["simulator" if service.endswith("Simulator") else "coordinator"]
+    def call(self, identity, server, service, method, fields, token=None, reason=None):
+        """The gRPC code of one call (OK or the error's) and its message. With
+        `reason`, also whether the error's details carry that ErrorInfo reason."""
+        pool = self.pools[{"behaviorlib.v1.Simulator": "simulator",
+                           "behaviorlib.v1.FlightController": "simulator",
+                           "behaviorlib.v1.BehaviorSystem": "system"}.get(service,
+                                                                          "coordinator")]
         desc = pool.FindServiceByName(service).methods_by_name[method]
         request = rc.message_class(pool, desc.input_type.full_name)(**fields)
         response_class = rc.message_class(pool, desc.output_type.full_name)
@@ -164,7 +193,9 @@ class RolesTest(unittest.TestCase):
                 stub(request, timeout=10, metadata=metadata)
                 return grpc.StatusCode.OK, ""
             except grpc.RpcError as error:
-                return error.code(), error.details()
+                if reason is None:
+                    return error.code(), error.details()
+                return error.code(), error.details(), has_reason(error, reason)
 
     def kinds(self):
         """One method of each kind: (role it needs, server, service, method, request)."""
@@ -230,6 +261,80 @@ class RolesTest(unittest.TestCase):
         code, details = self.call("system", self.coordinator, "behaviorlib.v1.Coordinator",
                                   "RegisterSystem", request)
         self.assertNotEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+
+    def publish(self, identity, topic):
+        """Publishes one sample on the broker as `identity`: (code, message)."""
+        pool = self.pools["broker"]
+        request_class = rc.message_class(pool, "behaviorlib.v1.PublishRequest")
+        response_class = rc.message_class(pool, "behaviorlib.v1.PublishResponse")
+        any_class = rc.message_class(pool, "google.protobuf.Any")
+        request = request_class(topic=topic, sample=any_class(
+            type_url="type.googleapis.com/behaviorlib.v1.PublishResponse", value=b""))
+        with self.channel(identity, self.broker) as channel:
+            stub = channel.stream_unary("/behaviorlib.v1.DataChannel/Publish",
+                                        request_serializer=lambda m: m.SerializeToString(),
+                                        response_deserializer=response_class.FromString)
+            try:
+                response = stub(iter([request]), timeout=10)
+                return grpc.StatusCode.OK, str(response.accepted_count)
+            except grpc.RpcError as error:
+                return error.code(), error.details(), has_reason(error, "ROBOT_NOT_PERMITTED")
+
+    def test_a_system_commands_only_its_own_robot(self):
+        # "system" is drone1's basic_quadrotor_behaviors: bound to drone1.
+        coordinator, flight = "behaviorlib.v1.Coordinator", "behaviorlib.v1.FlightController"
+        cases = [
+            (self.coordinator, coordinator, "ActivateBehavior",
+             lambda robot: {"robot_id": robot, "behavior": "TAKE_OFF"}, "activate behaviors"),
+            (self.coordinator, coordinator, "StartMission",
+             lambda robot: {"robot_id": robot, "text": "steps: []"}, "start missions"),
+            (self.simulator, flight, "ExecuteFlightAction",
+             lambda robot: {"robot_id": robot, "lease_id": "x"}, "command the vehicle"),
+        ]
+        for server, service, method, fields, what in cases:
+            with self.subTest(method=method):
+                code, details, reason = self.call("system", server, service, method,
+                                                  fields("drone2"), reason="ROBOT_NOT_PERMITTED")
+                self.assertEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+                self.assertIn(f"may {what} only for robot drone1, not for robot 'drone2'",
+                              details)
+                self.assertTrue(reason, "the details carry ROBOT_NOT_PERMITTED")
+                # Its own robot passes the check (and may fail further on).
+                code, details = self.call("system", server, service, method, fields("drone1"))
+                self.assertNotEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+                # An operator bound to no robot commands any.
+                code, details = self.call("operator", server, service, method, fields("drone2"))
+                self.assertNotEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+
+    def test_a_system_commands_no_behavior_of_another_robot(self):
+        request = {"behavior": "WAIT"}
+        code, details, reason = self.call("system", self.drone2_system,
+                                          "behaviorlib.v1.BehaviorSystem", "ActivateBehavior",
+                                          request, reason="ROBOT_NOT_PERMITTED")
+        self.assertEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+        self.assertIn("may activate behaviors only for robot drone1, not for robot 'drone2'",
+                      details)
+        self.assertTrue(reason)
+        code, details = self.call("drone2-system", self.drone2_system,
+                                  "behaviorlib.v1.BehaviorSystem", "ActivateBehavior", request)
+        self.assertNotEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+
+    def test_a_system_publishes_only_its_own_robots_topics(self):
+        code, details, reason = self.publish("system", "robots/drone2/pose")
+        self.assertEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+        self.assertIn("may publish only under robots/drone1/", details)
+        self.assertTrue(reason)
+        self.assertEqual(self.publish("system", "robots/drone1/roles_test"),
+                         (grpc.StatusCode.OK, "1"))
+        # The swarm's shared topics, and any topic for an unbound publisher.
+        self.assertEqual(self.publish("system", "robots/swarm/roles_test"),
+                         (grpc.StatusCode.OK, "1"))
+        self.assertEqual(self.publish("operator", "robots/drone2/roles_test"),
+                         (grpc.StatusCode.OK, "1"))
+        with urllib.request.urlopen(f"http://{self.broker.metrics}/metrics", timeout=10) as page:
+            text = page.read().decode()
+        self.assertIn('behaviorlib_channel_rejected_samples_total{reason="not_permitted"} 1',
+                      text)
 
     def unary(self, identity, method, fields):
         """The response of one Coordinator call that must succeed."""

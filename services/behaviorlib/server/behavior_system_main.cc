@@ -82,6 +82,8 @@ void BehaviorSystemBuilder::checkServiceMatches(const BehaviorExecutionManager& 
 
 // Declared in construction order: destroyed in reverse, after shutdown().
 struct BehaviorSystemProcess::Parts {
+  explicit Parts(BehaviorSystemOptions o) : options(std::move(o)), gate(options.robot_id) {}
+
   BehaviorSystemOptions options;
   std::unique_ptr<channel::ChannelClient> channel_client;
   std::unique_ptr<Clock> clock;
@@ -117,8 +119,7 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
     return absl::InvalidArgumentError(
         "--clock sim needs --channel (simulated time comes from its 'clock' topic)");
   }
-  auto p = std::make_unique<Parts>();
-  p->options = std::move(options);
+  auto p = std::make_unique<Parts>(std::move(options));
   const BehaviorSystemOptions& o = p->options;
   if (!o.channel.empty()) p->channel_client = std::make_unique<channel::ChannelClient>(o.channel);
   if (o.clock == "steady") {

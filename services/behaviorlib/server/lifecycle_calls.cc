@@ -1,6 +1,7 @@
 #include "behaviorlib/server/lifecycle_calls.h"
 
 #include "behaviorlib/error_details.h"
+#include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/status.h"
 
 namespace behaviorlib::server {
@@ -25,6 +26,14 @@ grpc::Status shuttingDown() {
                            "the behavior system is shutting down");
 }
 
+// Why `gate` refuses a call that commands a behavior (`what`), or OK.
+grpc::Status refusal(const grpc::CallbackServerContext& context, const AcceptGate& gate,
+                     std::string_view what) {
+  if (!gate.accepting()) return shuttingDown();
+  if (gate.robot().empty()) return grpc::Status::OK;
+  return toGrpc(checkRobotScope(context, gate.robot(), what));
+}
+
 }  // namespace
 
 grpc::ServerUnaryReactor* finishNow(grpc::CallbackServerContext* context,
@@ -40,7 +49,7 @@ grpc::ServerUnaryReactor* activateCall(grpc::CallbackServerContext* context, con
                                        const std::string& request_id,
                                        v1::ActivateResponse* response) {
   const auto received = std::chrono::steady_clock::now();
-  if (!gate.accepting()) return finishNow(context, shuttingDown());
+  if (auto r = refusal(*context, gate, "activate behaviors"); !r.ok()) return finishNow(context, r);
   auto* reactor = context->DefaultReactor();
   behavior.activate(std::move(parameters), request_id, finishInto(reactor, response), received);
   return reactor;
@@ -50,7 +59,8 @@ grpc::ServerUnaryReactor* deactivateCall(grpc::CallbackServerContext* context,
                                          const AcceptGate& gate, BehaviorExecutionManager& behavior,
                                          const std::string& activation_id,
                                          v1::DeactivateResponse* response) {
-  if (!gate.accepting()) return finishNow(context, shuttingDown());
+  if (auto r = refusal(*context, gate, "deactivate behaviors"); !r.ok())
+    return finishNow(context, r);
   auto* reactor = context->DefaultReactor();
   behavior.deactivate(activation_id, finishInto(reactor, response));
   return reactor;
@@ -76,7 +86,7 @@ grpc::ServerUnaryReactor* checkSituationCall(grpc::CallbackServerContext* contex
 grpc::ServerUnaryReactor* pauseCall(grpc::CallbackServerContext* context, const AcceptGate& gate,
                                     BehaviorExecutionManager& behavior,
                                     const std::string& activation_id, v1::PauseResponse* response) {
-  if (!gate.accepting()) return finishNow(context, shuttingDown());
+  if (auto r = refusal(*context, gate, "pause behaviors"); !r.ok()) return finishNow(context, r);
   auto* reactor = context->DefaultReactor();
   behavior.pause(activation_id, finishInto(reactor, response));
   return reactor;
@@ -86,7 +96,7 @@ grpc::ServerUnaryReactor* resumeCall(grpc::CallbackServerContext* context, const
                                      BehaviorExecutionManager& behavior,
                                      const std::string& activation_id,
                                      v1::ResumeResponse* response) {
-  if (!gate.accepting()) return finishNow(context, shuttingDown());
+  if (auto r = refusal(*context, gate, "resume behaviors"); !r.ok()) return finishNow(context, r);
   auto* reactor = context->DefaultReactor();
   behavior.resume(activation_id, finishInto(reactor, response));
   return reactor;
@@ -97,7 +107,7 @@ grpc::ServerUnaryReactor* modifyCall(grpc::CallbackServerContext* context, const
                                      const std::string& activation_id,
                                      std::unique_ptr<google::protobuf::Message> update,
                                      v1::ModifyResponse* response) {
-  if (!gate.accepting()) return finishNow(context, shuttingDown());
+  if (auto r = refusal(*context, gate, "modify behaviors"); !r.ok()) return finishNow(context, r);
   auto* reactor = context->DefaultReactor();
   behavior.modify(activation_id, std::move(update), finishInto(reactor, response));
   return reactor;

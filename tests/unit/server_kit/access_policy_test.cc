@@ -70,6 +70,41 @@ TEST(AccessPolicyTest, IdentifiesByTokenElseByCertificateName) {
   EXPECT_EQ(policy->identify({"behaviorlib:stranger"}, ""), nullptr);
 }
 
+TEST(AccessPolicyTest, BindsAnIdentityToOneRobot) {
+  auto policy = AccessPolicy::parse(R"(identities:
+  - certificate: tablet
+    roles: [viewer, operator]
+    robot: drone2
+)",
+                                    "policy.yaml");
+  ASSERT_TRUE(policy.ok()) << policy.status();
+  const Identity* tablet = policy->identify({"tablet"}, "");
+  ASSERT_NE(tablet, nullptr);
+  EXPECT_EQ(tablet->robot_id, "drone2");
+}
+
+TEST(RobotScopeTest, ABoundCallerCommandsAndPublishesOnlyItsRobot) {
+  const RobotScope unbound;
+  EXPECT_TRUE(unbound.permits("drone2", "activate behaviors").ok());
+  EXPECT_TRUE(unbound.permitsTopic("robots/drone2/pose").ok());
+
+  const RobotScope drone1("behaviorlib:drone1-nav", "drone1");
+  EXPECT_TRUE(drone1.permits("drone1", "activate behaviors").ok());
+  const absl::Status other = drone1.permits("drone2", "activate behaviors");
+  EXPECT_EQ(other.code(), absl::StatusCode::kPermissionDenied);
+  EXPECT_THAT(other.message(),
+              HasSubstr("'behaviorlib:drone1-nav' may activate behaviors only for robot drone1, "
+                        "not for robot 'drone2'"));
+  EXPECT_EQ(drone1.permits("", "start missions").code(), absl::StatusCode::kPermissionDenied);
+
+  EXPECT_TRUE(drone1.permitsTopic("robots/drone1/pose").ok());
+  EXPECT_EQ(drone1.permitsTopic("robots/drone2/pose").code(), absl::StatusCode::kPermissionDenied);
+  // A prefix of another robot's name is not its own.
+  EXPECT_EQ(drone1.permitsTopic("robots/drone10/pose").code(), absl::StatusCode::kPermissionDenied);
+  EXPECT_EQ(drone1.permitsTopic("robots/drone1").code(), absl::StatusCode::kPermissionDenied);
+  EXPECT_EQ(drone1.permitsTopic("world/obstacles").code(), absl::StatusCode::kPermissionDenied);
+}
+
 struct BadPolicy {
   std::string text;
   std::string message;
@@ -96,6 +131,11 @@ INSTANTIATE_TEST_SUITE_P(
         BadPolicy{"identities:\n  - certificate: a\n    roles: [system]\n",
                   "the system role needs system"},
         BadPolicy{"identities:\n  - token_sha256: abc\n    roles: [viewer]\n", "64 hex digits"},
+        BadPolicy{"identities:\n  - certificate: a\n    roles: [viewer]\n    robot: [x]\n",
+                  "robot: ROBOT_ID"},
+        BadPolicy{"identities:\n  - certificate: a\n    roles: [system]\n"
+                  "    system: {robot: drone1, name: s}\n    robot: drone2\n",
+                  "is not the system's robot 'drone1'"},
         BadPolicy{"identities:\n  - ? [a]\n    : 1\n", "p.yaml:"}));
 
 }  // namespace

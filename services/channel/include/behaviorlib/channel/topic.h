@@ -61,6 +61,11 @@ inline constexpr std::size_t kMaxTopicNameLength = 256;
 /// topic and the rule it breaks.
 absl::Status validateTopicName(absl::string_view topic);
 
+/// Topics every robot of a fleet publishes on (the swarm's positions and
+/// messages, whose samples name their sender). A publisher bound to one robot
+/// (server::RobotScope) publishes under robots/<its robot>/ and here.
+inline constexpr absl::string_view kSharedRobotsPrefix = "robots/swarm/";
+
 /// Reasons a sample is rejected, used as the `reason` label of
 /// behaviorlib_channel_rejected_samples_total.
 namespace reject_reason {
@@ -70,6 +75,8 @@ inline constexpr absl::string_view kUnknownType = "unknown_type";
 inline constexpr absl::string_view kMalformedSample = "malformed_sample";
 inline constexpr absl::string_view kTypeMismatch = "type_mismatch";
 inline constexpr absl::string_view kTooManyTopics = "too_many_topics";
+/// The publisher's identity is bound to another robot (RobotScope).
+inline constexpr absl::string_view kNotPermitted = "not_permitted";
 }  // namespace reject_reason
 
 /// Checks a sample published on `topic` (only used in messages): its type_url

@@ -10,6 +10,9 @@
 //     - certificate: behaviorlib:drone1-navigation-with-lidar
 //       roles: [viewer, operator, system]
 //       system: {robot: drone1, name: navigation_with_lidar}
+//     - certificate: behaviorlib:drone1-tablet     # an operator of one robot
+//       roles: [viewer, operator]
+//       robot: drone1
 //     - token_sha256: 5e884898da28...            # a bearer token, by its SHA-256
 //       name: dashboard                          #   (authorization: Bearer <token>)
 //       roles: [viewer]
@@ -21,6 +24,13 @@
 // operator for everything else (activate, deactivate, missions, beliefs,
 // publishing, flight commands). A call from an identity without that role,
 // or from no known identity, is PERMISSION_DENIED naming the role.
+//
+// An identity bound to a robot (`system: {robot}` or `robot:`) commands only
+// that robot: the handlers that take a robot (the coordinator's behavior
+// calls and StartMission, the simulator's flight controller, a behavior
+// system's lifecycle calls, the channel's Publish of robots/<id>/ topics)
+// refuse another with ROBOT_NOT_PERMITTED (RobotScope). It still reads all
+// it may view.
 //
 // The policy is enforced by gRPC's AuthMetadataProcessor on the TLS
 // credentials (transport_security.h), before any handler runs; it needs
@@ -54,7 +64,8 @@ Role requiredRole(std::string_view method);
 struct Identity {
   std::string name;  ///< the certificate name or the token's name, for logs
   std::set<Role> roles;
-  /// For the system role: the only robot and system it may register as.
+  /// The only robot it may command (and, for the system role, register
+  /// for); empty: any robot.
   std::string robot_id;
   std::string system;
 };
@@ -105,7 +116,7 @@ void setProcessAccessPolicy(std::shared_ptr<const AccessPolicy> policy);
 struct Caller {
   std::string identity;
   std::set<Role> roles;
-  std::string robot_id;  ///< for the system role
+  std::string robot_id;  ///< the robot it is bound to (RobotScope), if any
   std::string system;
   bool policy = false;  ///< roles come from an access policy
 };
@@ -116,5 +127,36 @@ std::optional<Caller> callerOf(const grpc::ServerContextBase& context);
 /// force and the caller's identity does not name this robot and system.
 absl::Status checkSystemIdentity(const grpc::ServerContextBase& context,
                                  const std::string& robot_id, const std::string& system);
+
+/// The one robot a caller may command. An identity is bound to a robot by
+/// its `system: {robot: ...}` (every behavior system's certificate) or by
+/// `robot: ROBOT_ID`; any other caller, and every caller when no policy is
+/// in force, is unbound. Resolve it once per call or stream (callerOf
+/// hashes and searches), then ask it per request.
+class RobotScope {
+ public:
+  RobotScope() = default;
+  RobotScope(std::string identity, std::string robot_id)
+      : identity_(std::move(identity)), robot_id_(std::move(robot_id)) {}
+
+  bool bound() const { return !robot_id_.empty(); }
+  const std::string& robot() const { return robot_id_; }
+
+  /// PERMISSION_DENIED (ROBOT_NOT_PERMITTED) when bound to another robot
+  /// than `robot_id`. `what` names the call in the message ("activate
+  /// TAKE_OFF", "command the vehicle").
+  absl::Status permits(std::string_view robot_id, std::string_view what) const;
+  /// For publishing: a bound caller publishes only robots/<its robot>/...
+  absl::Status permitsTopic(std::string_view topic) const;
+
+ private:
+  std::string identity_;
+  std::string robot_id_;
+};
+
+RobotScope robotScopeOf(const grpc::ServerContextBase& context);
+/// robotScopeOf(context).permits(robot_id, what).
+absl::Status checkRobotScope(const grpc::ServerContextBase& context, std::string_view robot_id,
+                             std::string_view what);
 
 }  // namespace behaviorlib::server

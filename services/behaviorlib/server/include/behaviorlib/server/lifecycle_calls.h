@@ -9,20 +9,29 @@
 
 #include <atomic>
 #include <memory>
+#include <string>
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/v1/behavior.pb.h"
 
 namespace behaviorlib::server {
 
-/// Refuses lifecycle calls once the process is shutting down.
+/// Refuses lifecycle calls once the process is shutting down, and the
+/// calls of an identity bound to another robot than the system's own
+/// (RobotScope): a system's certificate commands only its robot's behaviors.
 class AcceptGate {
  public:
+  AcceptGate() = default;
+  explicit AcceptGate(std::string robot_id) : robot_id_(std::move(robot_id)) {}
+
   bool accepting() const { return accepting_.load(std::memory_order_acquire); }
   void close() { accepting_.store(false, std::memory_order_release); }
+  /// The robot whose behaviors this process hosts (empty: not known).
+  const std::string& robot() const { return robot_id_; }
 
  private:
   std::atomic<bool> accepting_{true};
+  const std::string robot_id_;
 };
 
 grpc::ServerUnaryReactor* activateCall(grpc::CallbackServerContext* context, const AcceptGate& gate,

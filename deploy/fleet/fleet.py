@@ -5,6 +5,7 @@ joined by radio links that lag, drop packets and can be cut (decision 39).
 
     sudo deploy/fleet/fleet.py --build-dir build            # 3 vehicles fly the swarm mission
     sudo deploy/fleet/fleet.py --vehicles 4 --loss 0 --delay-ms 0 --keep   # until Ctrl-C
+    sudo deploy/fleet/fleet.py --no-secure       # the data engine in plaintext
 
 Hosts and what runs on them (every port fixed: each host has its own):
 
@@ -18,6 +19,15 @@ Hosts and what runs on them (every port fixed: each host has its own):
   droneK   10.77.0.1K  nats-server (a leaf node of the hub), channel_broker
            10.78.0.1K  (linked), the behavior systems, radio_relay.py
 
+The data engine is secure by default (--no-secure: plaintext): the run
+directory gets a CA and a certificate for the hub, each vehicle's leaf node
+and the ground's and the simulation host's brokers (scripts/make-dev-certs.sh);
+the hub takes only mutual TLS, maps each certificate to a NATS user and holds
+it to that user's permissions: a vehicle publishes only its own topics and the
+swarm's, and receives only the swarm's (hub_config() says why each subject;
+docs/deploying-a-fleet.md what nats-server 2.9 leaves unchecked).
+The control plane (gRPC) stays plaintext here.
+
 The radio network (10.77.0.0/24) joins the ground and the vehicles; its
 links to the vehicles are shaped: every TCP connection that crosses one goes
 through the vehicle's radio_relay.py (--delay-ms, --jitter-ms per direction),
@@ -29,7 +39,8 @@ autopilot: never shaped, never cut. This machine is on both networks
 (10.77.0.254, 10.78.0.254), as an operator's laptop would be, to start and
 watch the processes.
 
-Needs root (namespaces, veths, iptables), iproute2, iptables and nats-server.
+Needs root (namespaces, veths, iptables, /etc/netns), iproute2, iptables,
+nats-server and (secure) openssl.
 """
 
 import argparse
@@ -74,6 +85,28 @@ LINK_LOSS_S = 10.0
 # (--link-max-rate-hz): the ground follows a pose at 10 Hz, not 100.
 RADIO_MAX_RATE_HZ = 10.0
 
+# The secure engine's certificates (scripts/make-dev-certs.sh, in the run
+# directory): the hub's, the ground's and the simulation host's brokers', and
+# one per vehicle named by its robot id, held by its leaf node. Each carries
+# the URI SAN behaviorlib:NAME, the NATS user it maps to.
+MAKE_CERTS = os.path.join(REPO, "scripts", "make-dev-certs.sh")
+HUB_CERT, GROUND_CERT, SIM_CERT = "nats-hub", "ground-broker", "sim-broker"
+# Whoever connects to the hub checks its certificate for the name it dials:
+# the ground's broker and the vehicles' leaf nodes (through their relays)
+# dial 127.0.0.1, which every certificate names; the simulation host dials
+# the hub by the name its certificate carries, mapped to its radio address in
+# the host's own hosts file (/etc/netns/<namespace>/hosts, which ip netns
+# exec mounts over /etc/hosts).
+HUB_NAME = HUB_CERT
+NETNS_ETC = "/etc/netns"
+# The swarm's shared topics (swarm_interaction's swarm_topics.h), whose
+# samples name their sender: swarm_interaction publishes this vehicle's pose
+# and messages there, and reads the other vehicles'.
+SWARM_SUBJECTS = ["bl.t.robots.swarm.positions", "bl.t.robots.swarm.messages"]
+# A TLS handshake across a lossy radio takes a few round trips (and more on a
+# busy machine): nats-server's default of 2 s is too short.
+TLS_TIMEOUT_S = 5
+
 
 def run(*argv, check=True):
     """Runs a command; its output, or raises with it."""
@@ -97,8 +130,8 @@ class NsProcess(stack.Process):
     address; ready when its gRPC health check answers."""
 
     def __init__(self, name, ns, host_ip, argv, run_dir, role, robot_id="", system=""):
-        # Plaintext on the fleet's private networks, which nothing else
-        # reaches; mutual TLS across hosts is not wired here yet.
+        # The control plane: plaintext on the fleet's private networks, which
+        # nothing else reaches (the data engine has mutual TLS: Fleet.secure).
         super().__init__(name, ["ip", "netns", "exec", ns, *argv, "--insecure"], run_dir, role,
                          robot_id, system)
         self.host_ip = host_ip
@@ -191,7 +224,8 @@ class Fleet:
 
     def __init__(self, build_dir, run_dir, vehicles=3, prefix="blf", delay_ms=30.0,
                  jitter_ms=10.0, loss=0.01, rate_kbit=0, systems=None, seed=1, say=print,
-                 link_loss_s=LINK_LOSS_S, data_path="nats", time_scale="max", console=True):
+                 link_loss_s=LINK_LOSS_S, data_path="nats", time_scale="max", console=True,
+                 secure=None):
         if not 1 <= vehicles <= 9:
             raise ValueError("a fleet of 1 to 9 vehicles")
         if not (len(prefix) <= 4 and prefix.isalnum()):
@@ -210,6 +244,12 @@ class Fleet:
         if data_path not in ("nats", "broker"):
             raise ValueError("data_path is 'nats' or 'broker'")
         self.data_path = data_path
+        # Mutual TLS and per-identity permissions on the data engine (NATS):
+        # by default whenever there is one.
+        self.secure = data_path == "nats" if secure is None else bool(secure)
+        if self.secure and data_path != "nats":
+            raise ValueError("secure is for the data engine: data_path 'nats'")
+        self.certs_dir = os.path.join(self.run_dir, "certs")
         # "max": the deterministic mode (tests); a number: free running at
         # that many simulated seconds per wall second (a radio's budget is
         # per wall second).
@@ -224,6 +264,7 @@ class Fleet:
         self.links = []  # root-side veths
         self.bridges = []
         self.forward_rules = []
+        self.etc_dirs = []  # /etc/netns/<namespace>
         self.coordinator = None
         self.ground_broker = None
         self.simulator = None
@@ -275,6 +316,15 @@ class Fleet:
         run("ip", "link", "set", root_name, "master", bridge)
         run("ip", "link", "set", root_name, "up")
 
+    def _hosts_file(self, ns, names):
+        """The host's own /etc/hosts: localhost and `names` {name: address}."""
+        path = os.path.join(NETNS_ETC, ns, "hosts")
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        self.etc_dirs.append(os.path.dirname(path))
+        with open(path, "w") as f:
+            f.write("127.0.0.1 localhost\n::1 localhost\n")
+            f.write("".join(f"{address} {name}\n" for name, address in names.items()))
+
     def _remove_leftovers(self):
         """What a fleet of the same prefix left behind when it was killed."""
         for line in run("ip", "netns", "list", check=False).splitlines():
@@ -283,6 +333,10 @@ class Fleet:
                 run("ip", "netns", "del", name, check=False)
         for name in (f"{self.prefix}r", f"{self.prefix}b"):
             run("ip", "link", "del", name, check=False)
+        if os.path.isdir(NETNS_ETC):
+            for name in os.listdir(NETNS_ETC):
+                if name.startswith(self.prefix + "-"):
+                    shutil.rmtree(os.path.join(NETNS_ETC, name), ignore_errors=True)
 
     def create_network(self):
         p = self.prefix
@@ -294,6 +348,7 @@ class Fleet:
         sim = self._host("sim")
         self._attach(sim, f"{p}sb", f"{p}b", "bus", SIM_BUS)
         self._attach(sim, f"{p}sr", f"{p}r", "radio", SIM_RADIO)
+        self._hosts_file(sim, {HUB_NAME: GROUND_RADIO})
         for i, robot in enumerate(self.robots, start=1):
             ns = self._host(robot)
             self._attach(ns, self.radio_veth(robot), f"{p}r", "radio", vehicle_radio(i))
@@ -318,7 +373,15 @@ class Fleet:
             run("ip", "link", "del", name, check=False)
         for ns in self.namespaces:
             run("ip", "netns", "del", ns, check=False)
+        for path in self.etc_dirs:
+            shutil.rmtree(path, ignore_errors=True)
+        if self.etc_dirs:
+            try:
+                os.rmdir(NETNS_ETC)  # when no other namespace has its files there
+            except OSError:
+                pass
         self.links, self.bridges, self.namespaces, self.forward_rules = [], [], [], []
+        self.etc_dirs = []
 
     # --- the link faults -------------------------------------------------------
 
@@ -335,6 +398,112 @@ class Fleet:
             if process.running():
                 process.process.kill()
                 process.process.wait()
+
+    # --- the engine's certificates and users (secure) ------------------------------
+
+    def tls_files(self, name):
+        """A certificate of the run directory: (chain, key, CA)."""
+        return (os.path.join(self.certs_dir, f"{name}.pem"),
+                os.path.join(self.certs_dir, f"{name}.key"),
+                os.path.join(self.certs_dir, "ca.pem"))
+
+    def make_certs(self):
+        run("bash", MAKE_CERTS, "--out", self.certs_dir, HUB_CERT, GROUND_CERT, SIM_CERT,
+            *self.robots)
+
+    def engine_users(self):
+        """The hub's users, one per certificate: [(certificate name, the
+        connection it may make, [(publish subject, why)], [(subscribe
+        subject, why)])]. `publish` bounds what the user may send to the hub,
+        `subscribe` what the hub sends it. Every broker publishes its wants
+        on bl.want.<its link name> and bl.hello when it (re)connects, and
+        subscribes to every broker's wants (bl.want.*) and to bl.hello
+        (nats_link.h); it makes no request, so no reply subject is needed."""
+        wants = [("bl.want.*", "the other brokers' wants: a topic is sent only while wanted"),
+                 ("bl.hello", "a broker (re)connected: announce the wants again")]
+        users = [
+            (GROUND_CERT, "STANDARD",
+             [("bl.want.ground", "the ground's wants"),
+              ("bl.hello", "its broker (re)connected")],
+             # (no bl.t: nothing published on the ground crosses; a ground tool
+             # that publishes for the vehicles would add its topics here)
+             [("bl.t.>", "the console and the recorder follow every vehicle; "
+                         "the coordinator reads the simulation's clock")] + wants),
+            (SIM_CERT, "STANDARD",
+             [("bl.t.clock", "the simulated time, for the ground (the vehicles take "
+                             "theirs over the bus: --link-local clock)"),
+              ("bl.want.sim", "the simulation host's wants"),
+              ("bl.hello", "its broker (re)connected")],
+             # (it reads nothing across: its vehicles' topics come over the bus)
+             wants),
+        ]
+        for robot in self.robots:
+            users.append((robot, "LEAFNODE",
+                          [(f"bl.t.robots.{robot}.>", "its own topics: state, sensors, "
+                                                      "estimates (the ground's console)")]
+                          + [(subject, "the swarm's, whose samples name their sender")
+                             for subject in SWARM_SUBJECTS]
+                          + [(f"bl.want.{robot}", "its wants"),
+                             ("bl.hello", "its broker (re)connected")],
+                          [(subject, "the other vehicles' (swarm_interaction)")
+                           for subject in SWARM_SUBJECTS] + wants))
+        return users
+
+    def _tls_block(self, name, indent, verify_and_map=False):
+        cert, key, ca = self.tls_files(name)
+        lines = [f'cert_file: "{cert}"', f'key_file: "{key}"', f'ca_file: "{ca}"',
+                 f"timeout: {TLS_TIMEOUT_S}"]
+        if verify_and_map:
+            lines.append("verify_and_map: true")
+        pad = " " * indent
+        return f"{pad}tls {{\n" + "".join(f"{pad}  {line}\n" for line in lines) + f"{pad}}}\n"
+
+    def hub_config(self):
+        """The hub's nats-server configuration."""
+        text = (f'listen: "0.0.0.0:{NATS_CLIENT_PORT}"\n'
+                f'http: "0.0.0.0:{NATS_MONITOR_PORT}"\n'
+                'ping_interval: "1s"\nping_max: 3\n')
+        if not self.secure:
+            return text + f'leafnodes {{\n  listen: "0.0.0.0:{NATS_LEAF_PORT}"\n}}\n'
+        text = ("# Mutual TLS on both ports. verify_and_map: a certificate is its user\n"
+                "# below, matched by its URI SAN (behaviorlib:NAME; no user is named\n"
+                "# after a DNS SAN, which would match first); a certificate without a\n"
+                "# user is refused.\n") + text
+        text += "# The brokers of the ground and the simulation host (clients).\n"
+        text += self._tls_block(HUB_CERT, 0, verify_and_map=True)
+        text += ("# The vehicles' leaf nodes. The hub sends each its user's permissions\n"
+                 "# and tells it only of the interest the user may publish to: the leaf\n"
+                 "# node drops the rest. (nats-server 2.9 does not itself check what\n"
+                 "# arrives from a leaf node: one that ignores its permissions passes.)\n")
+        text += f'leafnodes {{\n  listen: "0.0.0.0:{NATS_LEAF_PORT}"\n'
+        text += self._tls_block(HUB_CERT, 2, verify_and_map=True) + "}\n"
+        text += "authorization {\n  users = [\n"
+        for name, connection, publish, subscribe in self.engine_users():
+            text += (f"    {{\n      user: \"behaviorlib:{name}\"\n"
+                     f"      allowed_connection_types: [\"{connection}\"]\n"
+                     "      permissions: {\n")
+            for verb, subjects, what in (("publish", publish, "it may send to the hub"),
+                                         ("subscribe", subscribe, "the hub sends it")):
+                text += f"        # What {what}.\n        {verb}: {{ allow: [\n"
+                text += "".join(f'          "{subject}"  # {why}\n' for subject, why in subjects)
+                text += "        ] }\n"
+            text += "      }\n    }\n"
+        return text + "  ]\n}\n"
+
+    def leaf_config(self, robot):
+        """A vehicle's leaf node: its broker's server (on the vehicle's
+        loopback, plaintext: the same host), and its one connection to the
+        hub, through the radio's relay."""
+        text = (f'listen: "127.0.0.1:{NATS_CLIENT_PORT}"\n'
+                f'http: "0.0.0.0:{NATS_MONITOR_PORT}"\n'
+                'ping_interval: "1s"\nping_max: 3\n')
+        remote = f'      url: "nats-leaf://127.0.0.1:{NATS_LEAF_PORT}"\n'
+        if self.secure:
+            # It dials the relay's 127.0.0.1, which the hub's certificate
+            # names (IP SAN).
+            remote += self._tls_block(robot, 6)
+        return text + ("leafnodes {\n  reconnect: 1\n  remotes: [\n    {\n"
+                       f"{remote}    }}\n  ]\n}}\n")
 
     # --- the processes ------------------------------------------------------------
 
@@ -353,11 +522,15 @@ class Fleet:
                                robot_id=robot_id)
         return self.stack.start(process)
 
-    def _broker(self, host, ns, ip, link_url, robot_id="", local="", max_rate_hz=0.0):
+    def _broker(self, host, ns, ip, link_url, robot_id="", local="", max_rate_hz=0.0, cert=""):
         argv = [self.binary("channel_broker"), "--listen", f"0.0.0.0:{BROKER_PORT}",
                 "--metrics-listen", f"0.0.0.0:{BROKER_PORT + METRICS_OFFSET}"]
         if link_url:
             argv += ["--link-url", link_url, "--link-name", host]
+        if cert:
+            link_cert, link_key, link_ca = self.tls_files(cert)
+            argv += ["--link-tls-cert", link_cert, "--link-tls-key", link_key,
+                     "--link-tls-ca", link_ca]
         if local:
             argv += ["--link-local", local]
         if max_rate_hz:
@@ -368,19 +541,21 @@ class Fleet:
     def start(self):
         os.makedirs(self.run_dir, exist_ok=True)
         ground, sim = self.ns("ground"), self.ns("sim")
-        ping = "ping_interval: \"1s\"\nping_max: 3\n"
         linked = self.data_path == "nats"
+        scheme = "tls" if self.secure else "nats"
+        if self.secure:
+            self.make_certs()
         if linked:
-            self._nats("ground", ground, GROUND_RADIO,
-                       f"listen: \"0.0.0.0:{NATS_CLIENT_PORT}\"\n"
-                       f"http: \"0.0.0.0:{NATS_MONITOR_PORT}\"\n"
-                       f"{ping}leafnodes {{\n  listen: \"0.0.0.0:{NATS_LEAF_PORT}\"\n}}\n")
+            self._nats("ground", ground, GROUND_RADIO, self.hub_config())
         self.ground_broker = self._broker(
             "ground", ground, GROUND_RADIO,
-            f"nats://127.0.0.1:{NATS_CLIENT_PORT}" if linked else "")
+            f"{scheme}://127.0.0.1:{NATS_CLIENT_PORT}" if linked else "",
+            cert=GROUND_CERT if self.secure else "")
         if linked:
+            hub = HUB_NAME if self.secure else GROUND_RADIO
             self.sim_broker = self._broker("sim", sim, SIM_BUS,
-                                           f"nats://{GROUND_RADIO}:{NATS_CLIENT_PORT}")
+                                           f"{scheme}://{hub}:{NATS_CLIENT_PORT}",
+                                           cert=SIM_CERT if self.secure else "")
 
         # The vehicles' hosts, up to their brokers: the simulator publishes to them.
         for i, robot in enumerate(self.robots, start=1):
@@ -408,13 +583,10 @@ class Fleet:
                 robot_id=robot)))
             if not linked:
                 continue
-            self.by_robot[robot].append(self._nats(
-                robot, ns, vehicle_bus(i),
-                f"listen: \"127.0.0.1:{NATS_CLIENT_PORT}\"\n"
-                f"http: \"0.0.0.0:{NATS_MONITOR_PORT}\"\n{ping}"
-                f"leafnodes {{\n  reconnect: 1\n  remotes: [\n"
-                f"    {{ url: \"nats-leaf://127.0.0.1:{NATS_LEAF_PORT}\" }}\n  ]\n}}\n",
-                robot_id=robot))
+            self.by_robot[robot].append(self._nats(robot, ns, vehicle_bus(i),
+                                                   self.leaf_config(robot), robot_id=robot))
+            # To its own leaf node, on the vehicle's loopback: plaintext (no
+            # other host reaches it).
             self.by_robot[robot].append(self._broker(
                 robot, ns, vehicle_bus(i), f"nats://127.0.0.1:{NATS_CLIENT_PORT}", robot,
                 local="clock", max_rate_hz=RADIO_MAX_RATE_HZ))
@@ -537,19 +709,23 @@ def main():
     parser.add_argument("--keep", action="store_true",
                         help="fly nothing; keep the fleet up until Ctrl-C")
     parser.add_argument("--mission-timeout-s", type=float, default=300.0)
+    parser.add_argument("--no-secure", dest="secure", action="store_false",
+                        help="the data engine in plaintext, every host allowed everything "
+                             "(for comparison)")
     args = parser.parse_args()
     if os.geteuid() != 0:
         parser.error("needs root: it makes network namespaces, veths and iptables rules")
-    for tool in ("ip", "iptables", "tc", "nats-server"):
+    for tool in ("ip", "iptables", "tc", "nats-server") + (("openssl",) if args.secure else ()):
         if shutil.which(tool) is None:
             parser.error(f"{tool} is not installed (scripts/install-deps.sh)")
     run_dir = args.run_dir or tempfile.mkdtemp(prefix="behaviorlib-fleet-")
     signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
     print(f"fleet: {args.vehicles} vehicles, radio {args.delay_ms:g} +- {args.jitter_ms:g} ms, "
-          f"loss {args.loss * 100:g} %; logs in {run_dir}/logs")
+          f"loss {args.loss * 100:g} %; engine {'mutual TLS' if args.secure else 'plaintext'}; "
+          f"logs in {run_dir}/logs")
     try:
         with Fleet(args.build_dir, run_dir, args.vehicles, args.prefix, args.delay_ms,
-                   args.jitter_ms, args.loss, args.rate_kbit) as fleet:
+                   args.jitter_ms, args.loss, args.rate_kbit, secure=args.secure) as fleet:
             client = fleet.coordinator_client()
             fleet.wait_for_systems(client)
             print(f"fleet: up; coordinator {fleet.coordinator.address}, "

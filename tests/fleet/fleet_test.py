@@ -8,16 +8,20 @@ mode. In order, on one fleet:
    vehicle's belief memory holds the two others' positions (which crossed
    hosts on NATS), the brokers' link metrics show it, and the ground's
    console and flight recorder follow every vehicle.
-2. drone1's radio is cut for 15 s mid-mission: the coordinator reports its
+2. The engine holds a vehicle to its identity (mutual TLS, the hub's users):
+   a sample published on drone1's broker as drone2 never reaches the ground,
+   while drone1's own does, and drone1's link to the hub stays up; drone1's
+   certificate cannot connect to the hub except as a leaf node.
+3. drone1's radio is cut for 15 s mid-mission: the coordinator reports its
    systems down and fails its mission with PROCESS_FAILURE within a bound;
    drone1 lands by itself (its link-loss action, after 10 s of its own time)
    while the radio is still cut; the others succeed; once the radio is back,
    drone1's systems register again and it flies a new mission.
-3. A vehicle's host is killed mid-mission: the other vehicles fly on.
-4. The coordinator's event stream over all of it: fleet seqs without a gap or
+4. A vehicle's host is killed mid-mission: the other vehicles fly on.
+5. The coordinator's event stream over all of it: fleet seqs without a gap or
    a duplicate, and each system's own event seqs, as they crossed the radio,
    without a gap or a duplicate.
-5. The ground station's coordinator is killed mid-mission and started again:
+6. The ground station's coordinator is killed mid-mission and started again:
    each mission resumes and succeeds or ends with its cause, and the vehicles
    end on the ground.
 
@@ -26,8 +30,11 @@ otherwise. Run: sudo /usr/bin/python3 tests/fleet/fleet_test.py --build-dir buil
 """
 
 import argparse
+import json
 import os
 import shutil
+import socket
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -53,6 +60,45 @@ DETECT_BOUND_S = 10.0
 # A radio back after 15 s: the systems' TCP connections through it resume
 # after their retransmission back-off.
 REREGISTER_BOUND_S = 60.0
+CHANNEL = "behaviorlib.v1.DataChannel"
+# A topic of the test's own, published on drone1's broker as drone1 and as drone2.
+PROBE = "fleet_test/probe"
+# Once drone1's own sample has crossed, the forged one has this long to
+# (not) arrive.
+REFUSED_WAIT_S = 3.0
+
+
+def connect_to_hub(fleet, name):
+    """Connects to the hub's client port with certificate `name` (the NATS
+    protocol by hand: INFO, TLS, CONNECT, PING): the hub's first answer."""
+    cert, key, ca = fleet.tls_files(name)
+    context = ssl.create_default_context(cafile=ca)
+    context.load_cert_chain(cert, key)
+    address = (fleet_module.GROUND_RADIO, fleet_module.NATS_CLIENT_PORT)
+    with socket.create_connection(address, timeout=5) as raw:
+        info = raw.recv(4096)
+        assert info.startswith(b"INFO "), info
+        with context.wrap_socket(raw, server_hostname=fleet_module.HUB_NAME) as conn:
+            conn.sendall(b'CONNECT {"verbose":false,"name":"fleet_test"}\r\nPING\r\n')
+            answer = b""
+            while b"\r\n" not in answer:
+                data = conn.recv(4096)
+                if not data:
+                    break
+                answer += data
+    return answer.decode(errors="replace")
+
+
+def leaf_connection(robot):
+    """The hub's leaf node connection from `robot`'s host: (ip, port), or
+    None (the hub's /leafz)."""
+    index = int(robot.removeprefix("drone"))
+    with urllib.request.urlopen(f"http://{fleet_module.GROUND_RADIO}:"
+                                f"{fleet_module.NATS_MONITOR_PORT}/leafz", timeout=5) as reply:
+        leafs = json.loads(reply.read()).get("leafs") or []
+    found = [(leaf["ip"], leaf["port"]) for leaf in leafs
+             if leaf["ip"] == fleet_module.vehicle_radio(index)]
+    return found[0] if len(found) == 1 else None
 
 
 def metric(address, series):
@@ -222,7 +268,79 @@ class FleetTest(unittest.TestCase):
             self.assertGreater(taken or 0, 0, f"the ground never received {robot}'s pose")
         self.assertGreater(os.path.getsize(self.fleet.recording), 0)
 
-    def test_2_a_cut_radio_is_detected_the_vehicle_lands_and_flies_again(self):
+    def test_2_a_vehicle_publishing_as_another_is_refused(self):
+        self.assertTrue(self.fleet.secure)
+        own, forged = f"robots/drone1/{PROBE}", f"robots/drone2/{PROBE}"
+        broker = self.fleet.by_robot["drone1"][2]
+        ground = self.fleet.ground_broker
+        received = {own: 0, forged: 0}
+        # The ground wants both: its broker announces them, and drone1's
+        # broker sends both to the engine (drone1's user may publish only
+        # the first).
+        listener = rpc.Client(ground.address, [CHANNEL])
+        calls = [listener.stream(CHANNEL, "Subscribe", {"topic": topic}) for topic in received]
+
+        def follow(call, topic):
+            try:
+                for _ in call:
+                    received[topic] += 1
+            except rpc.grpc.RpcError:
+                pass
+
+        for call, topic in zip(calls, received):
+            threading.Thread(target=follow, args=(call, topic), daemon=True).start()
+        publisher = rpc.Client(broker.address, [CHANNEL])
+        request_class = rpc.rc.message_class(publisher.pool, "behaviorlib.v1.PublishRequest")
+        response_class = rpc.rc.message_class(publisher.pool, "behaviorlib.v1.PublishResponse")
+        any_class = rpc.rc.message_class(publisher.pool, "google.protobuf.Any")
+        publish = publisher.channel.stream_unary(
+            f"/{CHANNEL}/Publish", request_serializer=lambda m: m.SerializeToString(),
+            response_deserializer=response_class.FromString)
+        sample = any_class(type_url="type.googleapis.com/behaviorlib.v1.PublishResponse")
+        leaf = leaf_connection("drone1")
+        self.assertIsNotNone(leaf, "the hub has no leaf node connection from drone1")
+        disconnects = metric(broker.metrics_address, "behaviorlib_channel_link_disconnects_total")
+        try:
+            started, crossed_at = time.monotonic(), None
+            while crossed_at is None or time.monotonic() - crossed_at < REFUSED_WAIT_S:
+                reply = publish(iter([request_class(topic=topic, sample=sample)
+                                      for topic in (own, forged)]), timeout=10)
+                self.assertEqual(reply.accepted_count, 2)
+                self.assertEqual(metric(broker.metrics_address, "behaviorlib_channel_link_up"),
+                                 1, "drone1's link went down")
+                if crossed_at is None and received[own]:
+                    crossed_at = time.monotonic()
+                    self.say(f"drone1's own sample crossed {crossed_at - started:.1f} s after "
+                             "the first")
+                self.assertLess(time.monotonic() - started, 30.0,
+                                "drone1's own sample never reached the ground")
+                time.sleep(0.2)
+        finally:
+            for call in calls:
+                call.cancel()
+            listener.close()
+            publisher.close()
+        self.assertEqual(received[forged], 0, "the ground received drone2's topic from drone1")
+        self.assertGreater(received[own], 1)
+        # drone1's broker did send both; the engine took only its own.
+        sent = 'behaviorlib_channel_link_samples_out_total{topic="%s"}'
+        taken = 'behaviorlib_channel_link_samples_in_total{topic="%s"}'
+        self.assertGreater(metric(broker.metrics_address, sent % forged) or 0, 0)
+        self.assertGreater(metric(ground.metrics_address, taken % own) or 0, 0)
+        self.assertIsNone(metric(ground.metrics_address, taken % forged))
+        # The refusal dropped the messages, not the connections: drone1's
+        # broker never lost its link, and the hub's leaf node connection from
+        # drone1 is the one it had.
+        self.assertEqual(metric(broker.metrics_address,
+                                "behaviorlib_channel_link_disconnects_total"), disconnects)
+        self.assertEqual(leaf_connection("drone1"), leaf)
+        # The hub itself refuses drone1's identity anywhere but on its leaf
+        # node: as a client, it may not connect at all.
+        self.assertIn("Authorization Violation", connect_to_hub(self.fleet, "drone1"))
+        with open(os.path.join(self.run_dir, "logs", "nats-ground.log"), errors="replace") as log:
+            self.assertIn("authentication error", log.read())
+
+    def test_3_a_cut_radio_is_detected_the_vehicle_lands_and_flies_again(self):
         results = {}
         thread = self.start_swarm(self.fleet.robots, results)
         self.wait_step("drone1", "share_positions")
@@ -277,7 +395,7 @@ class FleetTest(unittest.TestCase):
                                   120.0, self.say, lambda status: None)
         self.assertEqual(status.get("state"), "MISSION_STATE_SUCCEEDED", status.get("message"))
 
-    def test_3_a_killed_vehicle_host_leaves_the_others_flying(self):
+    def test_4_a_killed_vehicle_host_leaves_the_others_flying(self):
         results = {}
         thread = self.start_swarm(self.fleet.robots, results)
         self.wait_step("drone3", "share_positions")
@@ -288,7 +406,7 @@ class FleetTest(unittest.TestCase):
             self.assertEqual(results[robot].get("state"), "MISSION_STATE_SUCCEEDED",
                              f"{robot}: {results[robot].get('message')}")
 
-    def test_4_the_event_stream_has_no_gap_and_no_duplicate(self):
+    def test_5_the_event_stream_has_no_gap_and_no_duplicate(self):
         time.sleep(1.0)
         events = list(self.events.events)
         seqs = [int(e["seq"]) for e in events]
@@ -325,8 +443,8 @@ class FleetTest(unittest.TestCase):
             self.assertGreater(synthesized, 0)
 
 
-    def test_5_a_restarted_ground_station_finishes_or_resumes_the_missions(self):
-        # drone3's host was killed in test 3: drone1 and drone2 fly on.
+    def test_6_a_restarted_ground_station_finishes_or_resumes_the_missions(self):
+        # drone3's host was killed in step 4: drone1 and drone2 fly on.
         robots = ["drone1", "drone2"]
         results = {}
         stamp = f"{time.strftime('%H%M%S')}-restart"

@@ -162,7 +162,7 @@ grpc::ServerUnaryReactor* SimulatorService::Step(grpc::CallbackServerContext* co
 
 grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>*
 SimulatorService::FollowTime(grpc::CallbackServerContext* context) {
-  if (grants_ != nullptr) return grants_->follow();
+  if (grants_ != nullptr) return grants_->follow(server::robotScopeOf(*context));
   class Refused final
       : public server::Ordered<
             grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>> {

@@ -8,6 +8,7 @@
 
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
+#include "behaviorlib/server_kit/status.h"
 
 namespace behaviorlib::sim {
 namespace {
@@ -30,7 +31,7 @@ class TimeGrants::Follower final
     : public server::Ordered<
           grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>> {
  public:
-  explicit Follower(TimeGrants* owner) : owner_(owner) {}
+  Follower(TimeGrants* owner, server::RobotScope scope) : owner_(owner), scope_(std::move(scope)) {}
 
   void start() { StartRead(&request_); }
 
@@ -80,6 +81,15 @@ class TimeGrants::Follower final
     if (!ok) {
       finish(grpc::Status::OK);  // the follower half-closed or went away
       return;
+    }
+    if (!checked_) {
+      // A caller bound to a robot follows the time only for its own (its
+      // reports gate that robot's broker's grants).
+      checked_ = true;
+      if (absl::Status s = scope_.permits(request_.robot_id(), "follow the time"); !s.ok()) {
+        finish(server::toGrpc(s));
+        return;
+      }
     }
     const bool report = request_.has_caught_up_to();
     const bool wake = request_.wake();
@@ -144,7 +154,9 @@ class TimeGrants::Follower final
   bool writing_ = false;
   bool awaiting_report_ = false;  // a grant was written, its report not read yet
   bool finished_ = false;
-  int64_t last_written_ns_ = -1;  // the time of the last grant written
+  const server::RobotScope scope_;  // the caller's
+  bool checked_ = false;            // its first report's robot (OnReadDone only)
+  int64_t last_written_ns_ = -1;    // the time of the last grant written
 };
 
 TimeGrants::TimeGrants(std::chrono::nanoseconds follower_timeout)
@@ -152,8 +164,9 @@ TimeGrants::TimeGrants(std::chrono::nanoseconds follower_timeout)
 
 TimeGrants::~TimeGrants() { shutdown(); }
 
-grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* TimeGrants::follow() {
-  auto* follower = new Follower(this);
+grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* TimeGrants::follow(
+    server::RobotScope scope) {
+  auto* follower = new Follower(this, std::move(scope));
   bool refuse = false;
   {
     std::lock_guard lock(mutex_);

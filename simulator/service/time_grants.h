@@ -29,6 +29,7 @@
 #include <set>
 #include <string>
 
+#include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/v1/simulator.pb.h"
 
 namespace behaviorlib::sim {
@@ -43,7 +44,10 @@ class TimeGrants {
   TimeGrants& operator=(const TimeGrants&) = delete;
 
   /// The FollowTime handler.
-  grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* follow();
+  /// A FollowTime stream of a caller whose robot scope is `scope`: refused
+  /// (ROBOT_NOT_PERMITTED) when it reports for another robot.
+  grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* follow(
+      server::RobotScope scope = {});
 
   /// Waits until at least `count` followers joined (or `stop`).
   void waitForFollowers(int count, const std::atomic<bool>& stop);

@@ -84,13 +84,13 @@ def read(path):
 
 
 class Process:
-    def __init__(self, name, argv, run_dir):
-        self.name = name
+    def __init__(self, program, argv, run_dir, name=None):
+        self.name = name = name or program
         self.port_file = os.path.join(run_dir, f"{name}.ports")
         self.log_path = os.path.join(run_dir, f"{name}.log")
         with open(self.log_path, "w") as log:
             self.process = subprocess.Popen(
-                [os.path.join(BUILD_DIR, "bin", name), "--port-file", self.port_file, *argv],
+                [os.path.join(BUILD_DIR, "bin", program), "--port-file", self.port_file, *argv],
                 stdout=log, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + 30
         while not os.path.exists(self.port_file):
@@ -144,6 +144,11 @@ class RolesTest(unittest.TestCase):
                                         [*flags("drone2-system"), "--robot-id", "drone2",
                                          "--clock", "steady"], cls.dir)
             cls.processes.append(cls.drone2_system)
+            # A deterministic simulator, whose time the systems follow.
+            cls.stepped = Process("simulator", [*flags("simulator"), "--time-scale", "max",
+                                                "--vehicles", "drone1,drone2"], cls.dir,
+                                  name="stepped_simulator")
+            cls.processes.append(cls.stepped)
         except Exception:
             cls.tearDownClass()
             raise
@@ -318,6 +323,33 @@ class RolesTest(unittest.TestCase):
         code, details = self.call("drone2-system", self.drone2_system,
                                   "behaviorlib.v1.BehaviorSystem", "ActivateBehavior", request)
         self.assertNotEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+
+    def follow_time(self, identity, robot):
+        """Reports once on FollowTime as `identity` for `robot`: the first
+        grant's code (OK) or the refusal's (code, message, has the reason)."""
+        pool = self.pools["simulator"]
+        request_class = rc.message_class(pool, "behaviorlib.v1.FollowTimeRequest")
+        response_class = rc.message_class(pool, "behaviorlib.v1.FollowTimeResponse")
+        with self.channel(identity, self.stepped) as channel:
+            call = channel.stream_stream("/behaviorlib.v1.Simulator/FollowTime",
+                                         request_serializer=lambda m: m.SerializeToString(),
+                                         response_deserializer=response_class.FromString)
+            replies = call(iter([request_class(participant="roles_test", robot_id=robot,
+                                               wake=True)]), timeout=10)
+            try:
+                next(replies)
+                return grpc.StatusCode.OK, "", False
+            except grpc.RpcError as error:
+                return error.code(), error.details(), has_reason(error, "ROBOT_NOT_PERMITTED")
+
+    def test_a_system_follows_the_time_only_for_its_own_robot(self):
+        code, details, reason = self.follow_time("system", "drone2")
+        self.assertEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
+        self.assertIn("may follow the time only for robot drone1, not for robot 'drone2'",
+                      details)
+        self.assertTrue(reason)
+        code, details, _ = self.follow_time("system", "drone1")
+        self.assertEqual(code, grpc.StatusCode.OK, details)
 
     def test_a_system_publishes_only_its_own_robots_topics(self):
         code, details, reason = self.publish("system", "robots/drone2/pose")

@@ -27,10 +27,10 @@
 //
 // An identity bound to a robot (`system: {robot}` or `robot:`) commands only
 // that robot: the handlers that take a robot (the coordinator's behavior
-// calls and StartMission, the simulator's flight controller, a behavior
-// system's lifecycle calls, the channel's Publish of robots/<id>/ topics)
-// refuse another with ROBOT_NOT_PERMITTED (RobotScope). It still reads all
-// it may view.
+// calls and StartMission, the simulator's flight controller and FollowTime,
+// a behavior system's lifecycle calls, the channel's Publish of robots/<id>/
+// topics) refuse another with ROBOT_NOT_PERMITTED (RobotScope). It still
+// reads all it may view.
 //
 // The policy is enforced by gRPC's AuthMetadataProcessor on the TLS
 // credentials (transport_security.h), before any handler runs; it needs

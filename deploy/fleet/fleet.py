@@ -9,33 +9,33 @@ joined by radio links that lag, drop packets and can be cut (decision 39).
 
 Hosts and what runs on them (every port fixed: each host has its own):
 
-  ground   10.77.0.1   nats-server (the hub; leaf nodes on 7422), channel_broker
-                       (linked), coordinator, console (8090), flight recorder
+  ground   10.77.0.1   nats-server (the hub), channel_broker (linked),
+                       coordinator, console (8090), flight recorder
                        (behaviorctl record)
   sim      10.78.0.1   simulator, standing in for every vehicle's autopilot and
            10.77.0.2   sensors, publishing each vehicle's topics to that
                        vehicle's broker over its onboard link (the "bus"), and
                        the clock to its own linked broker
-  droneK   10.77.0.1K  nats-server (a leaf node of the hub), channel_broker
-           10.78.0.1K  (linked), the behavior systems, radio_relay.py
+  droneK   10.77.0.1K  channel_broker (linked: a client of the hub, through the
+           10.78.0.1K  radio), the behavior systems, radio_relay.py
 
 The data engine is secure by default (--no-secure: plaintext): the run
-directory gets a CA and a certificate for the hub, each vehicle's leaf node
-and the ground's and the simulation host's brokers (scripts/make-dev-certs.sh);
+directory gets a CA and a certificate for the hub, each vehicle's broker and
+the ground's and the simulation host's brokers (scripts/make-dev-certs.sh);
 the hub takes only mutual TLS, maps each certificate to a NATS user and holds
 it to that user's permissions: a vehicle publishes only its own topics and the
-swarm's, and receives only the swarm's (hub_config() says why each subject;
-docs/deploying-a-fleet.md what nats-server 2.9 leaves unchecked).
+swarm's, and receives only the swarm's (engine_users() says why each subject).
+Every broker is a client of the hub, so the hub checks each message itself
+(docs/deploying-a-fleet.md says why not a leaf node per vehicle).
 The control plane (gRPC) stays plaintext here.
 
 The radio network (10.77.0.0/24) joins the ground and the vehicles; its
 links to the vehicles are shaped: every TCP connection that crosses one goes
 through the vehicle's radio_relay.py (--delay-ms, --jitter-ms per direction),
 iptables' statistic match drops --loss of the packets in each direction (where
-they arrive), tbf
-bounds --rate-kbit, and Fleet.cut() sets the vehicle's veth down. The bus
-network (10.78.0.0/24) stands for each vehicle's onboard link to its
-autopilot: never shaped, never cut. This machine is on both networks
+they arrive), tbf bounds --rate-kbit, and Fleet.cut() sets the vehicle's veth
+down. The bus network (10.78.0.0/24) stands for each vehicle's onboard link
+to its autopilot: never shaped, never cut. This machine is on both networks
 (10.77.0.254, 10.78.0.254), as an operator's laptop would be, to start and
 watch the processes.
 
@@ -65,7 +65,7 @@ RADIO_NET, BUS_NET = "10.77.0", "10.78.0"
 GROUND_RADIO, SIM_RADIO, SIM_BUS = f"{RADIO_NET}.1", f"{RADIO_NET}.2", f"{BUS_NET}.1"
 OPERATOR_SUFFIX = "254"
 
-NATS_CLIENT_PORT, NATS_LEAF_PORT, NATS_MONITOR_PORT = 4222, 7422, 8222
+NATS_CLIENT_PORT, NATS_MONITOR_PORT = 4222, 8222
 BROKER_PORT, COORDINATOR_PORT, SIMULATOR_PORT = 50051, 50060, 50070
 # A behavior system listens on 50061 + i and is reached through the radio on
 # 60061 + i; the vehicle's autopilot (the simulator) on 60070.
@@ -87,13 +87,13 @@ RADIO_MAX_RATE_HZ = 10.0
 
 # The secure engine's certificates (scripts/make-dev-certs.sh, in the run
 # directory): the hub's, the ground's and the simulation host's brokers', and
-# one per vehicle named by its robot id, held by its leaf node. Each carries
-# the URI SAN behaviorlib:NAME, the NATS user it maps to.
+# one per vehicle named by its robot id, held by its broker. Each carries the
+# URI SAN behaviorlib:NAME, the NATS user it maps to.
 MAKE_CERTS = os.path.join(REPO, "scripts", "make-dev-certs.sh")
 HUB_CERT, GROUND_CERT, SIM_CERT = "nats-hub", "ground-broker", "sim-broker"
 # Whoever connects to the hub checks its certificate for the name it dials:
-# the ground's broker and the vehicles' leaf nodes (through their relays)
-# dial 127.0.0.1, which every certificate names; the simulation host dials
+# the ground's broker and the vehicles' brokers (through their relays) dial
+# 127.0.0.1, which every certificate names; the simulation host dials
 # the hub by the name its certificate carries, mapped to its radio address in
 # the host's own hosts file (/etc/netns/<namespace>/hosts, which ip netns
 # exec mounts over /etc/hosts).
@@ -234,7 +234,8 @@ class Fleet:
         self.run_dir = os.path.abspath(run_dir)
         self.robots = [f"drone{i}" for i in range(1, vehicles + 1)]
         self.prefix = prefix
-        self.delay_ms, self.jitter_ms, self.loss, self.rate_kbit = delay_ms, jitter_ms, loss, rate_kbit
+        self.delay_ms, self.jitter_ms = delay_ms, jitter_ms
+        self.loss, self.rate_kbit = loss, rate_kbit
         self.systems = list(systems or DEFAULT_SYSTEMS)
         self.seed = seed
         self.link_loss_s = link_loss_s
@@ -257,7 +258,9 @@ class Fleet:
         self.deterministic = self.time_scale == "max"
         self.with_console = console
         self.console = None
+        # The flight recorder's file; each restart of the ground starts a new one.
         self.recording = os.path.join(self.run_dir, "recordings", "flight.mcap")
+        self.recordings = [self.recording]
         self.say = say
         self.stack = stack.Stack(self.run_dir)
         self.namespaces = []
@@ -267,9 +270,12 @@ class Fleet:
         self.etc_dirs = []  # /etc/netns/<namespace>
         self.coordinator = None
         self.ground_broker = None
+        self.recorder = None
         self.simulator = None
         self.sim_broker = None
+        self.ground = []  # the ground host's processes, in start order
         self.by_robot = {robot: [] for robot in self.robots}  # the vehicle host's processes
+        self.vehicle_brokers = {}  # {robot: its broker} (the data path "nats")
 
     # --- names ----------------------------------------------------------------
 
@@ -399,6 +405,32 @@ class Fleet:
                 process.process.kill()
                 process.process.wait()
 
+    def restart_ground(self, down_s=0.0):
+        """The ground station goes down at once and comes back: every
+        process of the ground host (the hub, its broker, the coordinator,
+        the console and the flight recorder) is killed (SIGKILL), and after
+        `down_s` all are started again in the order start() started them.
+        The coordinator takes its missions up from its state directory; the
+        recorder writes a new file (self.recording names it)."""
+        for process in self.ground:
+            if process.running():
+                process.process.kill()
+        for process in self.ground:
+            if process.process is not None:
+                process.process.wait()
+        left = run("ip", "netns", "pids", self.ns("ground"), check=False).split()
+        if left:
+            raise RuntimeError(f"the ground host still runs {', '.join(left)}")
+        time.sleep(down_s)
+        if self.recorder is not None:
+            stem, ext = os.path.splitext(self.recordings[0])
+            self.recording = f"{stem}-{len(self.recordings) + 1}{ext}"
+            self.recordings.append(self.recording)
+            self.recorder.argv[-1] = self.recording
+        for process in self.ground:
+            self.stack.restart(process)
+            process.restarts += 1
+
     # --- the engine's certificates and users (secure) ------------------------------
 
     def tls_files(self, name):
@@ -438,7 +470,9 @@ class Fleet:
              wants),
         ]
         for robot in self.robots:
-            users.append((robot, "LEAFNODE",
+            # Its broker, across the radio: a client, whose every message the
+            # hub checks (a leaf node's it would not).
+            users.append((robot, "STANDARD",
                           [(f"bl.t.robots.{robot}.>", "its own topics: state, sensors, "
                                                       "estimates (the ground's console)")]
                           + [(subject, "the swarm's, whose samples name their sender")
@@ -446,7 +480,13 @@ class Fleet:
                           + [(f"bl.want.{robot}", "its wants"),
                              ("bl.hello", "its broker (re)connected")],
                           [(subject, "the other vehicles' (swarm_interaction)")
-                           for subject in SWARM_SUBJECTS] + wants))
+                           for subject in SWARM_SUBJECTS]
+                          # Its broker subscribes to every topic its host
+                          # wants, its own among them; only it may publish
+                          # there, and none of its own comes back (no echo):
+                          # allowed, so that the hub has no violation to log.
+                          + [(f"bl.t.robots.{robot}.>", "its own topics: nothing arrives")]
+                          + wants))
         return users
 
     def _tls_block(self, name, indent, verify_and_map=False):
@@ -464,19 +504,15 @@ class Fleet:
                 f'http: "0.0.0.0:{NATS_MONITOR_PORT}"\n'
                 'ping_interval: "1s"\nping_max: 3\n')
         if not self.secure:
-            return text + f'leafnodes {{\n  listen: "0.0.0.0:{NATS_LEAF_PORT}"\n}}\n'
-        text = ("# Mutual TLS on both ports. verify_and_map: a certificate is its user\n"
-                "# below, matched by its URI SAN (behaviorlib:NAME; no user is named\n"
-                "# after a DNS SAN, which would match first); a certificate without a\n"
-                "# user is refused.\n") + text
-        text += "# The brokers of the ground and the simulation host (clients).\n"
+            return text
+        text = ("# Mutual TLS. verify_and_map: a certificate is its user below, matched\n"
+                "# by its URI SAN (behaviorlib:NAME; no user is named after a DNS SAN,\n"
+                "# which would match first); a certificate without a user is refused.\n"
+                "# Every broker, the vehicles' too (through their radios), is a client:\n"
+                "# the hub checks each message it takes against the sender's permissions\n"
+                "# (nats-server 2.9 does not check what a leaf node sends against its\n"
+                "# user's permissions: it relies on the leaf node to filter).\n") + text
         text += self._tls_block(HUB_CERT, 0, verify_and_map=True)
-        text += ("# The vehicles' leaf nodes. The hub sends each its user's permissions\n"
-                 "# and tells it only of the interest the user may publish to: the leaf\n"
-                 "# node drops the rest. (nats-server 2.9 does not itself check what\n"
-                 "# arrives from a leaf node: one that ignores its permissions passes.)\n")
-        text += f'leafnodes {{\n  listen: "0.0.0.0:{NATS_LEAF_PORT}"\n'
-        text += self._tls_block(HUB_CERT, 2, verify_and_map=True) + "}\n"
         text += "authorization {\n  users = [\n"
         for name, connection, publish, subscribe in self.engine_users():
             text += (f"    {{\n      user: \"behaviorlib:{name}\"\n"
@@ -490,21 +526,6 @@ class Fleet:
             text += "      }\n    }\n"
         return text + "  ]\n}\n"
 
-    def leaf_config(self, robot):
-        """A vehicle's leaf node: its broker's server (on the vehicle's
-        loopback, plaintext: the same host), and its one connection to the
-        hub, through the radio's relay."""
-        text = (f'listen: "127.0.0.1:{NATS_CLIENT_PORT}"\n'
-                f'http: "0.0.0.0:{NATS_MONITOR_PORT}"\n'
-                'ping_interval: "1s"\nping_max: 3\n')
-        remote = f'      url: "nats-leaf://127.0.0.1:{NATS_LEAF_PORT}"\n'
-        if self.secure:
-            # It dials the relay's 127.0.0.1, which the hub's certificate
-            # names (IP SAN).
-            remote += self._tls_block(robot, 6)
-        return text + ("leafnodes {\n  reconnect: 1\n  remotes: [\n    {\n"
-                       f"{remote}    }}\n  ]\n}}\n")
-
     # --- the processes ------------------------------------------------------------
 
     def _nats_config(self, name, text):
@@ -514,12 +535,11 @@ class Fleet:
             f.write(text)
         return path
 
-    def _nats(self, host, ns, monitor_ip, config_text, robot_id=""):
+    def _nats(self, host, ns, monitor_ip, config_text):
         config = self._nats_config(host, config_text)
         process = PlainProcess(f"nats-{host}", ns, ["nats-server", "-c", config],
                                self.run_dir,
-                               http_ok(f"http://{monitor_ip}:{NATS_MONITOR_PORT}/healthz"),
-                               robot_id=robot_id)
+                               http_ok(f"http://{monitor_ip}:{NATS_MONITOR_PORT}/healthz"))
         return self.stack.start(process)
 
     def _broker(self, host, ns, ip, link_url, robot_id="", local="", max_rate_hz=0.0, cert=""):
@@ -546,11 +566,12 @@ class Fleet:
         if self.secure:
             self.make_certs()
         if linked:
-            self._nats("ground", ground, GROUND_RADIO, self.hub_config())
+            self.ground.append(self._nats("ground", ground, GROUND_RADIO, self.hub_config()))
         self.ground_broker = self._broker(
             "ground", ground, GROUND_RADIO,
             f"{scheme}://127.0.0.1:{NATS_CLIENT_PORT}" if linked else "",
             cert=GROUND_CERT if self.secure else "")
+        self.ground.append(self.ground_broker)
         if linked:
             hub = HUB_NAME if self.secure else GROUND_RADIO
             self.sim_broker = self._broker("sim", sim, SIM_BUS,
@@ -560,14 +581,15 @@ class Fleet:
         # The vehicles' hosts, up to their brokers: the simulator publishes to them.
         for i, robot in enumerate(self.robots, start=1):
             ns = self.ns(robot)
-            relays = [f"127.0.0.1:{NATS_LEAF_PORT}={GROUND_RADIO}:{NATS_LEAF_PORT}",
-                      f"127.0.0.1:{COORDINATOR_PORT}={GROUND_RADIO}:{COORDINATOR_PORT}",
+            relays = [f"127.0.0.1:{COORDINATOR_PORT}={GROUND_RADIO}:{COORDINATOR_PORT}",
                       f"{vehicle_radio(i)}:{SIMULATOR_PORT + RELAYED_OFFSET}={SIM_BUS}:"
                       f"{SIMULATOR_PORT}"]
             for j, _ in enumerate(self.systems):
                 relays.append(f"{vehicle_radio(i)}:{SYSTEM_PORT + j + RELAYED_OFFSET}="
                               f"127.0.0.1:{SYSTEM_PORT + j}")
-            if not linked:  # the ground's broker, across the radio
+            if linked:  # the hub, across the radio
+                relays.append(f"127.0.0.1:{NATS_CLIENT_PORT}={GROUND_RADIO}:{NATS_CLIENT_PORT}")
+            else:  # the ground's broker, across the radio
                 relays.append(f"127.0.0.1:{BROKER_PORT}={GROUND_RADIO}:{BROKER_PORT}")
             ready_file = os.path.join(self.run_dir, "relays", robot + ".ready")
             os.makedirs(os.path.dirname(ready_file), exist_ok=True)
@@ -583,13 +605,17 @@ class Fleet:
                 robot_id=robot)))
             if not linked:
                 continue
-            self.by_robot[robot].append(self._nats(robot, ns, vehicle_bus(i),
-                                                   self.leaf_config(robot), robot_id=robot))
-            # To its own leaf node, on the vehicle's loopback: plaintext (no
-            # other host reaches it).
-            self.by_robot[robot].append(self._broker(
-                robot, ns, vehicle_bus(i), f"nats://127.0.0.1:{NATS_CLIENT_PORT}", robot,
-                local="clock", max_rate_hz=RADIO_MAX_RATE_HZ))
+            # A client of the hub, through the radio's relay (the hub's
+            # certificate names the relay's 127.0.0.1): the hub holds it to
+            # its user's permissions. The NATS client reconnects by itself
+            # when the radio comes back, and buffers what it publishes
+            # meanwhile (up to 64 KiB); the broker keeps serving its host.
+            broker = self._broker(robot, ns, vehicle_bus(i),
+                                  f"{scheme}://127.0.0.1:{NATS_CLIENT_PORT}", robot,
+                                  local="clock", max_rate_hz=RADIO_MAX_RATE_HZ,
+                                  cert=robot if self.secure else "")
+            self.vehicle_brokers[robot] = broker
+            self.by_robot[robot].append(broker)
 
         sim_argv = [self.binary("simulator"), "--listen", f"0.0.0.0:{SIMULATOR_PORT}",
                     "--metrics-listen", f"0.0.0.0:{SIMULATOR_PORT + METRICS_OFFSET}"]
@@ -622,6 +648,7 @@ class Fleet:
         self.coordinator = self.stack.start(NsProcess("coordinator", ground, GROUND_RADIO,
                                                       coordinator_argv, self.run_dir,
                                                       "coordinator"))
+        self.ground.append(self.coordinator)
         if self.with_console:
             # The ground station's console and flight recorder, on its broker.
             os.makedirs(os.path.dirname(self.recording), exist_ok=True)
@@ -633,11 +660,12 @@ class Fleet:
                  "--web-dir", os.path.join(REPO, "console", "web"),
                  "--recordings-dir", os.path.dirname(self.recording)],
                 self.run_dir, "console"))
-            self.stack.start(PlainProcess(
+            self.recorder = self.stack.start(PlainProcess(
                 "recorder", ground,
                 [self.binary("behaviorctl"), "--coordinator", f"127.0.0.1:{COORDINATOR_PORT}",
                  "--channel", f"127.0.0.1:{BROKER_PORT}", "record", self.recording],
                 self.run_dir, lambda: True))
+            self.ground += [self.console, self.recorder]
 
         for i, robot in enumerate(self.robots, start=1):
             ns = self.ns(robot)

@@ -10,20 +10,25 @@ mode. In order, on one fleet:
    console and flight recorder follow every vehicle.
 2. The engine holds a vehicle to its identity (mutual TLS, the hub's users):
    a sample published on drone1's broker as drone2 never reaches the ground,
-   while drone1's own does, and drone1's link to the hub stays up; drone1's
-   certificate cannot connect to the hub except as a leaf node.
+   while drone1's own does, and drone1's link to the hub stays up; the hub
+   itself refuses the forged publish (a client with drone1's certificate is
+   told "Permissions Violation", its own publish passes), and neither
+   drone1's certificate nor the ground's takes the other's role.
 3. drone1's radio is cut for 15 s mid-mission: the coordinator reports its
    systems down and fails its mission with PROCESS_FAILURE within a bound;
    drone1 lands by itself (its link-loss action, after 10 s of its own time)
    while the radio is still cut; the others succeed; once the radio is back,
-   drone1's systems register again and it flies a new mission.
+   drone1's broker links to the hub again (its NATS client reconnects), its
+   systems register again and it flies a new mission.
 4. A vehicle's host is killed mid-mission: the other vehicles fly on.
 5. The coordinator's event stream over all of it: fleet seqs without a gap or
    a duplicate, and each system's own event seqs, as they crossed the radio,
    without a gap or a duplicate.
-6. The ground station's coordinator is killed mid-mission and started again:
-   each mission resumes and succeeds or ends with its cause, and the vehicles
-   end on the ground.
+6. The whole ground host (the hub, its broker, the coordinator, the console
+   and the recorder) is killed mid-mission and started again: each mission
+   resumes and succeeds or ends with its cause, and the vehicles end on the
+   ground; every vehicle's broker links to the hub again, its systems
+   register again with the new coordinator, and the new recording grows.
 
 Needs root (namespaces), nats-server and the build: exits 77 (skipped)
 otherwise. Run: sudo /usr/bin/python3 tests/fleet/fleet_test.py --build-dir build
@@ -66,38 +71,85 @@ PROBE = "fleet_test/probe"
 # Once drone1's own sample has crossed, the forged one has this long to
 # (not) arrive.
 REFUSED_WAIT_S = 3.0
+DISCONNECTS = "behaviorlib_channel_link_disconnects_total"
+# A radio back, or the ground host started again (each process ready): a
+# vehicle's broker is linked to the hub again within this (its NATS client
+# tries every 250 ms, each try bounded by 2 s).
+RELINK_BOUND_S = 15.0
+# The ground host is down this long (all its processes killed) before it
+# starts again: shorter than the vehicles' link-loss time (10 s).
+GROUND_DOWN_S = 3.0
+# Then every vehicle's systems are registered with the new coordinator (their
+# gRPC channels' reconnection back-off, through the radio) and the new
+# recording has grown (the recorder writes every second) within these.
+GROUND_REREGISTER_BOUND_S = 30.0
+RECORDING_BOUND_S = 15.0
 
 
-def connect_to_hub(fleet, name):
-    """Connects to the hub's client port with certificate `name` (the NATS
-    protocol by hand: INFO, TLS, CONNECT, PING): the hub's first answer."""
-    cert, key, ca = fleet.tls_files(name)
-    context = ssl.create_default_context(cafile=ca)
-    context.load_cert_chain(cert, key)
-    address = (fleet_module.GROUND_RADIO, fleet_module.NATS_CLIENT_PORT)
-    with socket.create_connection(address, timeout=5) as raw:
-        info = raw.recv(4096)
-        assert info.startswith(b"INFO "), info
-        with context.wrap_socket(raw, server_hostname=fleet_module.HUB_NAME) as conn:
-            conn.sendall(b'CONNECT {"verbose":false,"name":"fleet_test"}\r\nPING\r\n')
-            answer = b""
-            while b"\r\n" not in answer:
-                data = conn.recv(4096)
+def subject(topic):
+    """A topic's NATS subject (nats_link.h)."""
+    return "bl.t." + topic.replace(".", "~").replace("/", ".")
+
+
+class HubClient:
+    """A NATS client by hand on the hub's client port, with certificate
+    `name`: INFO, TLS, then what ask() sends."""
+
+    def __init__(self, fleet, name):
+        cert, key, ca = fleet.tls_files(name)
+        context = ssl.create_default_context(cafile=ca)
+        context.load_cert_chain(cert, key)
+        address = (fleet_module.GROUND_RADIO, fleet_module.NATS_CLIENT_PORT)
+        raw = socket.create_connection(address, timeout=5)
+        try:
+            info = raw.recv(4096)
+            assert info.startswith(b"INFO "), info
+            self.conn = context.wrap_socket(raw, server_hostname=fleet_module.HUB_NAME)
+        except BaseException:
+            raw.close()
+            raise
+        self.pending = b""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.conn.close()
+
+    def ask(self, text):
+        """Sends `text` and a PING: what the hub answered before its PONG
+        (it handles a client's commands in order), or up to its closing the
+        connection. The hub's own PINGs are answered, not returned."""
+        self.conn.sendall(text.encode() + b"PING\r\n")
+        answer = []
+        while True:
+            while b"\r\n" not in self.pending:
+                data = self.conn.recv(4096)
                 if not data:
-                    break
-                answer += data
-    return answer.decode(errors="replace")
+                    return "".join(answer) + self.pending.decode(errors="replace")
+                self.pending += data
+            line, _, self.pending = self.pending.partition(b"\r\n")
+            if line == b"PONG":
+                return "".join(answer)
+            if line == b"PING":
+                self.conn.sendall(b"PONG\r\n")
+            else:
+                answer.append(line.decode(errors="replace") + "\n")
 
 
-def leaf_connection(robot):
-    """The hub's leaf node connection from `robot`'s host: (ip, port), or
-    None (the hub's /leafz)."""
-    index = int(robot.removeprefix("drone"))
+CONNECT = 'CONNECT {"verbose":false,"pedantic":false,"name":"fleet_test"}\r\n'
+
+
+def hub_connection(name):
+    """The hub's client connection named `name` (a broker's link name):
+    (its id, the user its certificate mapped to), or None (the hub's
+    /connz)."""
     with urllib.request.urlopen(f"http://{fleet_module.GROUND_RADIO}:"
-                                f"{fleet_module.NATS_MONITOR_PORT}/leafz", timeout=5) as reply:
-        leafs = json.loads(reply.read()).get("leafs") or []
-    found = [(leaf["ip"], leaf["port"]) for leaf in leafs
-             if leaf["ip"] == fleet_module.vehicle_radio(index)]
+                                f"{fleet_module.NATS_MONITOR_PORT}/connz?auth=true&limit=1024",
+                                timeout=5) as reply:
+        connections = json.loads(reply.read()).get("connections") or []
+    found = [(c["cid"], c.get("authorized_user", "")) for c in connections
+             if c.get("name") == name]
     return found[0] if len(found) == 1 else None
 
 
@@ -250,10 +302,10 @@ class FleetTest(unittest.TestCase):
                              f"{robot} learnt the positions of {sorted(others)}")
         # The positions crossed hosts on the link: each vehicle's broker took
         # the others' samples from NATS; the ground heard every broker.
-        for i, robot in enumerate(self.fleet.robots, start=1):
-            broker = self.fleet.by_robot[robot][2]
-            taken = metric(broker.metrics_address,
-                           'behaviorlib_channel_link_samples_in_total{topic="robots/swarm/positions"}')
+        for robot in self.fleet.robots:
+            taken = metric(self.fleet.vehicle_brokers[robot].metrics_address,
+                           "behaviorlib_channel_link_samples_in_total"
+                           '{topic="robots/swarm/positions"}')
             self.assertGreater(taken or 0, 0, f"{robot}'s broker took no position from NATS")
         ground = self.fleet.ground_broker.metrics_address
         self.assertEqual(metric(ground, "behaviorlib_channel_link_peers"),
@@ -271,7 +323,7 @@ class FleetTest(unittest.TestCase):
     def test_2_a_vehicle_publishing_as_another_is_refused(self):
         self.assertTrue(self.fleet.secure)
         own, forged = f"robots/drone1/{PROBE}", f"robots/drone2/{PROBE}"
-        broker = self.fleet.by_robot["drone1"][2]
+        broker = self.fleet.vehicle_brokers["drone1"]
         ground = self.fleet.ground_broker
         received = {own: 0, forged: 0}
         # The ground wants both: its broker announces them, and drone1's
@@ -297,9 +349,11 @@ class FleetTest(unittest.TestCase):
             f"/{CHANNEL}/Publish", request_serializer=lambda m: m.SerializeToString(),
             response_deserializer=response_class.FromString)
         sample = any_class(type_url="type.googleapis.com/behaviorlib.v1.PublishResponse")
-        leaf = leaf_connection("drone1")
-        self.assertIsNotNone(leaf, "the hub has no leaf node connection from drone1")
-        disconnects = metric(broker.metrics_address, "behaviorlib_channel_link_disconnects_total")
+        # drone1's broker is a client of the hub, as drone1's user.
+        connection = hub_connection("drone1")
+        self.assertIsNotNone(connection, "the hub has no client connection from drone1")
+        self.assertEqual(connection[1], "behaviorlib:drone1")
+        disconnects = metric(broker.metrics_address, DISCONNECTS)
         try:
             started, crossed_at = time.monotonic(), None
             while crossed_at is None or time.monotonic() - crossed_at < REFUSED_WAIT_S:
@@ -329,16 +383,36 @@ class FleetTest(unittest.TestCase):
         self.assertGreater(metric(ground.metrics_address, taken % own) or 0, 0)
         self.assertIsNone(metric(ground.metrics_address, taken % forged))
         # The refusal dropped the messages, not the connections: drone1's
-        # broker never lost its link, and the hub's leaf node connection from
-        # drone1 is the one it had.
-        self.assertEqual(metric(broker.metrics_address,
-                                "behaviorlib_channel_link_disconnects_total"), disconnects)
-        self.assertEqual(leaf_connection("drone1"), leaf)
-        # The hub itself refuses drone1's identity anywhere but on its leaf
-        # node: as a client, it may not connect at all.
-        self.assertIn("Authorization Violation", connect_to_hub(self.fleet, "drone1"))
+        # broker never lost its link, and the hub's connection from drone1 is
+        # the one it had.
+        self.assertEqual(metric(broker.metrics_address, DISCONNECTS), disconnects)
+        self.assertEqual(hub_connection("drone1"), connection)
+        # The hub itself checks what a vehicle sends: a client with drone1's
+        # certificate may publish drone1's topics, not drone2's.
+        forged_subject, own_subject = subject(forged), subject(own)
+        with HubClient(self.fleet, "drone1") as hub:
+            self.assertEqual(hub.ask(CONNECT), "")
+            self.assertIn(f"-ERR 'Permissions Violation for Publish to \"{forged_subject}\"'",
+                          hub.ask(f"PUB {forged_subject} 0\r\n\r\n"))
+            self.assertEqual(hub.ask(f"PUB {own_subject} 0\r\n\r\n"), "")
+            # Nor may it take the ground's role: read every vehicle's topics.
+            self.assertIn("-ERR 'Permissions Violation for Subscription to \"bl.t.>\"'",
+                          hub.ask("SUB bl.t.> 1\r\n"))
+            # The connection stays, as drone1's broker's did.
+            self.assertEqual(hub.ask(f"PUB {own_subject} 0\r\n\r\n"), "")
+        # Nor the ground's certificate a vehicle's: it publishes nothing that
+        # crosses.
+        with HubClient(self.fleet, fleet_module.GROUND_CERT) as hub:
+            self.assertEqual(hub.ask(CONNECT), "")
+            self.assertIn(f"-ERR 'Permissions Violation for Publish to \"{own_subject}\"'",
+                          hub.ask(f"PUB {own_subject} 0\r\n\r\n"))
+        # The hub refused drone1's broker's forged samples itself, on its
+        # connection, and logged it.
+        refused = (f'cid:{connection[0]} - ', "Publish Violation",
+                   f'User "behaviorlib:drone1", Subject "{forged_subject}"')
         with open(os.path.join(self.run_dir, "logs", "nats-ground.log"), errors="replace") as log:
-            self.assertIn("authentication error", log.read())
+            self.assertTrue(any(all(part in line for part in refused) for line in log),
+                            "the hub logged no refusal of drone1's broker's forged samples")
 
     def test_3_a_cut_radio_is_detected_the_vehicle_lands_and_flies_again(self):
         results = {}
@@ -348,6 +422,8 @@ class FleetTest(unittest.TestCase):
         time.sleep(1.0)
         cut_sim_s, state = self.watch["drone1"].latest()
         self.assertEqual(state, "FLIGHT_STATE_HOVERING")
+        broker = self.fleet.vehicle_brokers["drone1"].metrics_address
+        disconnects = metric(broker, DISCONNECTS)
         self.fleet.cut("drone1")
         cut_at = time.monotonic()
         self.say(f"radio of drone1 cut at {cut_sim_s:.1f} s of simulated time")
@@ -378,6 +454,18 @@ class FleetTest(unittest.TestCase):
         finally:
             self.fleet.restore("drone1")
         back_at = time.monotonic()
+        # Its broker's link to the hub went down with the radio and came back
+        # (the NATS client reconnects by itself), and the ground hears it again.
+        took = self.wait_for("drone1's broker did not link to the hub again",
+                             lambda: (metric(broker, "behaviorlib_channel_link_up") == 1
+                                      and metric(broker, DISCONNECTS) > disconnects),
+                             RELINK_BOUND_S, back_at)
+        self.say(f"drone1's broker linked again {took:.1f} s after the radio came back")
+        ground = self.fleet.ground_broker.metrics_address
+        self.wait_for("the ground's broker does not hear drone1's again",
+                      lambda: (metric(ground, "behaviorlib_channel_link_peers")
+                               == 1 + len(self.fleet.robots)),
+                      RELINK_BOUND_S, back_at)
         thread.join(400)
         self.assertEqual(results["drone1"].get("state"), "MISSION_STATE_FAILED")
         self.assertIn("PROCESS_FAILURE", results["drone1"].get("message", ""))
@@ -442,6 +530,23 @@ class FleetTest(unittest.TestCase):
         if holes:
             self.assertGreater(synthesized, 0)
 
+    def wait_for(self, what, condition, bound_s, since):
+        """Until condition() holds, at most bound_s after `since`
+        (time.monotonic()); how long after `since` it held."""
+        while not condition():
+            self.assertLess(time.monotonic() - since, bound_s, what)
+            time.sleep(0.2)
+        return time.monotonic() - since
+
+    def registered_since(self, robot, wall_s):
+        """Every system of `robot` is up at the coordinator, with a
+        heartbeat it received after wall_s (time.time())."""
+        reply = self.client.call(demo.COORDINATOR, "ListSystems", {"robot_id": robot})
+        systems = reply.get("systems", [])
+        return len(systems) == len(self.fleet.systems) and all(
+            s.get("state") == "SYSTEM_STATE_UP"
+            and (demo.timestamp_s(s.get("last_heartbeat_time")) or 0) > wall_s
+            for s in systems)
 
     def test_6_a_restarted_ground_station_finishes_or_resumes_the_missions(self):
         # drone3's host was killed in step 4: drone1 and drone2 fly on.
@@ -454,13 +559,50 @@ class FleetTest(unittest.TestCase):
             self.client.call(demo.COORDINATOR, "StartMission",
                              demo.mission_request(path, robot, mission_id))
         self.wait_step("drone1", "share_positions")
-        coordinator = self.fleet.coordinator
-        coordinator.process.kill()  # the ground station goes down at once
-        coordinator.process.wait()
-        self.say("coordinator killed; starting it again")
-        self.fleet.stack.restart(coordinator)
+        # The brokers linked to the hub from the other hosts.
+        linked = [self.fleet.sim_broker] + [self.fleet.vehicle_brokers[r] for r in robots]
+        disconnects = {b.name: metric(b.metrics_address, DISCONNECTS) or 0 for b in linked}
+        recording = self.fleet.recording
+        killed_at, killed_wall_s = time.monotonic(), time.time()
+        # The ground station goes down at once, and comes back.
+        self.fleet.restart_ground(down_s=GROUND_DOWN_S)
+        up_at = time.monotonic()
+        self.say(f"ground host killed, down {GROUND_DOWN_S:g} s, and up again "
+                 f"{up_at - killed_at:.1f} s after the kill")
         self.client.close()
         type(self).client = self.fleet.coordinator_client()
+        # Every broker links to the new hub again (its link went down), and
+        # the ground's broker hears each of them.
+        ground = self.fleet.ground_broker.metrics_address
+        for broker in linked + [self.fleet.ground_broker]:
+            took = self.wait_for(
+                f"{broker.name}'s link to the hub did not come back",
+                lambda: (metric(broker.metrics_address, "behaviorlib_channel_link_up") == 1
+                         and (broker is self.fleet.ground_broker
+                              or metric(broker.metrics_address, DISCONNECTS)
+                              > disconnects[broker.name])),
+                RELINK_BOUND_S, up_at)
+            self.say(f"{broker.name} linked again {took:.1f} s after the ground came back")
+        self.wait_for("the ground's broker does not hear every other broker again",
+                      lambda: metric(ground, "behaviorlib_channel_link_peers") == len(linked),
+                      RELINK_BOUND_S, up_at)
+        # Every vehicle's systems register with the new coordinator.
+        for robot in robots:
+            took = self.wait_for(f"{robot}'s systems did not register with the new coordinator",
+                                 lambda: self.registered_since(robot, killed_wall_s),
+                                 GROUND_REREGISTER_BOUND_S, up_at)
+            self.say(f"{robot}'s systems registered again {took:.1f} s after the ground came "
+                     "back")
+        # The flight recorder writes a new file, and it grows.
+        self.assertNotEqual(self.fleet.recording, recording)
+        sizes = []
+
+        def grows():
+            if os.path.exists(self.fleet.recording) and os.path.getsize(self.fleet.recording):
+                sizes.append(os.path.getsize(self.fleet.recording))
+            return len(sizes) > 1 and sizes[-1] > sizes[0]
+
+        self.wait_for("the new recording does not grow", grows, RECORDING_BOUND_S, up_at)
         deadline = time.monotonic() + 300
         for robot, _, mission_id in missions:
             while True:

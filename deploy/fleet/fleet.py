@@ -66,6 +66,15 @@ GROUND_RADIO, SIM_RADIO, SIM_BUS = f"{RADIO_NET}.1", f"{RADIO_NET}.2", f"{BUS_NE
 OPERATOR_SUFFIX = "254"
 
 NATS_CLIENT_PORT, NATS_MONITOR_PORT = 4222, 8222
+# Every broker repeats its host's wants every 3 s (and at once on a change),
+# not every second: each vehicle hears every other broker's, across its radio.
+# A broker that went silent stops counting after 10 s.
+ANNOUNCE_PERIOD_S, WANT_TTL_S = 3.0, 10.0
+# Systems configured for a vehicle whose ground link is a radio (else their
+# own config.yaml): the swarm's belief writes, each a call to the ground.
+RADIO_CONFIGS = {"swarm_interaction": os.path.join(HERE, "swarm_interaction.yaml")}
+# The local ports of outgoing connections on every host: above all of the above.
+EPHEMERAL_PORTS = (61000, 65000)
 BROKER_PORT, COORDINATOR_PORT, SIMULATOR_PORT = 50051, 50060, 50070
 # A behavior system listens on 50061 + i and is reached through the radio on
 # 60061 + i; the vehicle's autopilot (the simulator) on 60070.
@@ -310,6 +319,13 @@ class Fleet:
         run("ip", "netns", "add", ns)
         self.namespaces.append(ns)
         run("ip", "-n", ns, "link", "set", "lo", "up")
+        # Outgoing connections take their local ports above every fixed port
+        # of the fleet (the default range, 32768-60999, holds the servers'
+        # and the relays' ports: a client could take one before its server
+        # binds it). The range is the namespace's own.
+        run("ip", "netns", "exec", ns, "sh", "-c",
+            f"echo {EPHEMERAL_PORTS[0]} {EPHEMERAL_PORTS[1]} "
+            "> /proc/sys/net/ipv4/ip_local_port_range")
         return ns
 
     def _attach(self, ns, root_name, bridge, inside, ip):
@@ -546,7 +562,9 @@ class Fleet:
         argv = [self.binary("channel_broker"), "--listen", f"0.0.0.0:{BROKER_PORT}",
                 "--metrics-listen", f"0.0.0.0:{BROKER_PORT + METRICS_OFFSET}"]
         if link_url:
-            argv += ["--link-url", link_url, "--link-name", host]
+            argv += ["--link-url", link_url, "--link-name", host,
+                     "--link-announce-period-s", f"{ANNOUNCE_PERIOD_S:g}",
+                     "--link-want-ttl-s", f"{WANT_TTL_S:g}"]
         if cert:
             link_cert, link_key, link_ca = self.tls_files(cert)
             argv += ["--link-tls-cert", link_cert, "--link-tls-key", link_key,
@@ -683,7 +701,7 @@ class Fleet:
                 if name == "basic_quadrotor_behaviors" and self.link_loss_s > 0:
                     argv += ["--link-loss-timeout-s", str(self.link_loss_s),
                              "--link-loss-action", "LAND"]
-                config = os.path.join(SYSTEMS_DIR, name, "config.yaml")
+                config = RADIO_CONFIGS.get(name, os.path.join(SYSTEMS_DIR, name, "config.yaml"))
                 if os.path.exists(config):
                     argv += ["--config", config]
                 self.by_robot[robot].append(self.stack.start(NsProcess(

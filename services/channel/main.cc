@@ -8,6 +8,7 @@
 #include <grpcpp/grpcpp.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cstdio>
 #include <memory>
@@ -39,8 +40,15 @@ ABSL_FLAG(std::string, link_local, "",
           "comma-separated topic prefixes that never cross hosts (e.g. clock on a vehicle that "
           "takes the time from its own autopilot)");
 ABSL_FLAG(double, link_max_rate_hz, 0.0,
-          "at most this many samples per second of each topic go to other hosts (0: all): a "
-          "radio link's budget; the newest between two goes when its turn comes");
+          "at most this many frames a second go to other hosts (0: every sample at once): a "
+          "radio link's budget; a frame is the newest sample of each topic since the last, "
+          "written together");
+ABSL_FLAG(double, link_announce_period_s, 1.0,
+          "how often the link repeats this host's wants to the other hosts (they are also "
+          "announced at once on every change)");
+ABSL_FLAG(double, link_want_ttl_s, 3.5,
+          "how long another host's announced wants count without a new announcement (longer "
+          "than the period; the same on every host of a fleet)");
 ABSL_FLAG(std::string, link_tls_cert, "", "the link's client certificate chain (mutual TLS)");
 ABSL_FLAG(std::string, link_tls_key, "", "the link's private key");
 ABSL_FLAG(std::string, link_tls_ca, "", "the CA that signed the NATS server's certificate");
@@ -92,6 +100,11 @@ int main(int argc, char** argv) {
     link_options.local_prefixes =
         absl::StrSplit(absl::GetFlag(FLAGS_link_local), ',', absl::SkipEmpty());
     link_options.max_rate_hz = absl::GetFlag(FLAGS_link_max_rate_hz);
+    const auto millis = [](double s) {
+      return std::chrono::milliseconds(static_cast<int64_t>(std::clamp(s, 0.0, 3600.0) * 1e3));
+    };
+    link_options.announce_period = millis(absl::GetFlag(FLAGS_link_announce_period_s));
+    link_options.want_ttl = millis(absl::GetFlag(FLAGS_link_want_ttl_s));
     link_options.tls_cert = absl::GetFlag(FLAGS_link_tls_cert);
     link_options.tls_key = absl::GetFlag(FLAGS_link_tls_key);
     link_options.tls_ca = absl::GetFlag(FLAGS_link_tls_ca);

@@ -113,6 +113,12 @@ class NatsLink::Impl {
                                  "them within the link's rate limit (max_rate_hz).")
                            .Register(registry)
                            .Add({})),
+        frames_(prometheus::BuildCounter()
+                    .Name("behaviorlib_channel_link_frames_total")
+                    .Help("Sends of the rate-limited link (max_rate_hz): each carries the "
+                          "newest sample of every topic that has one, in one write.")
+                    .Register(registry)
+                    .Add({})),
         interval_(options_.max_rate_hz > 0
                       ? std::chrono::duration_cast<std::chrono::steady_clock::duration>(
                             std::chrono::duration<double>(1.0 / options_.max_rate_hz))
@@ -220,25 +226,22 @@ class NatsLink::Impl {
     bytes.clear();
     if (!sample.sample().SerializeToString(&bytes)) return;
     if (options_.max_rate_hz > 0) {
-      const auto now = std::chrono::steady_clock::now();
-      bool wake = false;
+      // Held for the next frame (flushFrame); the worker is woken when the
+      // first sample of a frame arrives.
+      bool first = false;
       {
         absl::MutexLock lock(&thin_mutex_);
-        Thinned& t = thinned_[topic];
-        if (now - t.last_sent < interval_) {
-          if (t.held) thinned_count_.Increment();
-          t.held = bytes;
-          wake = true;
-        } else {
-          t.last_sent = now;
-          t.held.reset();
-        }
+        std::optional<std::string>& held = held_[topic];
+        if (held) thinned_count_.Increment();
+        held = bytes;
+        first = !frame_pending_;
+        frame_pending_ = true;
       }
-      if (wake) {
+      if (first) {
         absl::MutexLock lock(&mutex_);
         thinned_pending_ = true;
-        return;
       }
+      return;
     }
     send(topic, bytes);
   }
@@ -255,26 +258,30 @@ class NatsLink::Impl {
     bytes_out_.Increment(static_cast<double>(bytes.size()));
   }
 
-  // Worker: sends the held samples whose turn came; when the next is due.
-  std::chrono::steady_clock::time_point flushThinned() {
-    std::vector<std::pair<std::string, std::string>> due;
-    auto next = std::chrono::steady_clock::time_point::max();
+  // Worker, with max_rate_hz: at most once per interval, sends one frame,
+  // the newest held sample of every topic, published back to back so that
+  // the client writes them together (on a radio, one segment and one
+  // acknowledgement instead of one per sample). A frame goes at once when
+  // the previous one is an interval old, else when it is. Returns when the
+  // next frame is due (max: nothing held).
+  std::chrono::steady_clock::time_point flushFrame() {
+    std::vector<std::pair<std::string, std::string>> frame;
     {
       absl::MutexLock lock(&thin_mutex_);
+      if (!frame_pending_) return std::chrono::steady_clock::time_point::max();
       const auto now = std::chrono::steady_clock::now();
-      for (auto& [topic, t] : thinned_) {
-        if (!t.held) continue;
-        if (now - t.last_sent >= interval_) {
-          due.emplace_back(topic, std::move(*t.held));
-          t.held.reset();
-          t.last_sent = now;
-        } else {
-          next = std::min(next, t.last_sent + interval_);
-        }
+      if (now - last_frame_ < interval_) return last_frame_ + interval_;
+      last_frame_ = now;
+      frame_pending_ = false;
+      for (auto& [topic, held] : held_) {
+        if (!held) continue;
+        frame.emplace_back(topic, std::move(*held));
+        held.reset();
       }
     }
-    for (const auto& [topic, bytes] : due) send(topic, bytes);
-    return next;
+    for (const auto& [topic, bytes] : frame) send(topic, bytes);
+    if (!frame.empty()) frames_.Increment();
+    return std::chrono::steady_clock::time_point::max();
   }
 
   // ---- NATS callbacks (the library's threads) ------------------------------
@@ -423,7 +430,7 @@ class NatsLink::Impl {
       if (options_.max_rate_hz > 0) {
         thinned_pending_ = false;
         mutex_.Unlock();
-        const auto next_held = flushThinned();
+        const auto next_held = flushFrame();
         mutex_.Lock();
         wake = std::min(wake, next_held);
       }
@@ -519,6 +526,7 @@ class NatsLink::Impl {
   prometheus::Gauge& peers_gauge_;
   prometheus::Counter& disconnects_;
   prometheus::Counter& thinned_count_;
+  prometheus::Counter& frames_;
   const std::chrono::steady_clock::duration interval_;
 
   // Set in connect(), before any callback or the worker; read-only after.
@@ -535,18 +543,16 @@ class NatsLink::Impl {
   bool hello_now_ ABSL_GUARDED_BY(mutex_) = false;
   bool peers_changed_ ABSL_GUARDED_BY(mutex_) = false;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
-  bool thinned_pending_ ABSL_GUARDED_BY(mutex_) = false;  // a sample waits for its turn
+  bool thinned_pending_ ABSL_GUARDED_BY(mutex_) = false;  // a frame has begun
   bool closed_ ABSL_GUARDED_BY(mutex_) = false;
   std::map<std::string, Peer, std::less<>> peers_ ABSL_GUARDED_BY(mutex_);
 
-  // --max-rate-hz: per topic, when its last sample went and the newest one
-  // waiting for its turn.
-  struct Thinned {
-    std::chrono::steady_clock::time_point last_sent;
-    std::optional<std::string> held;
-  };
+  // --max-rate-hz: the newest sample of each topic waiting for the next
+  // frame, and when the last frame went.
   absl::Mutex thin_mutex_;
-  std::map<std::string, Thinned, std::less<>> thinned_ ABSL_GUARDED_BY(thin_mutex_);
+  std::map<std::string, std::optional<std::string>, std::less<>> held_ ABSL_GUARDED_BY(thin_mutex_);
+  bool frame_pending_ ABSL_GUARDED_BY(thin_mutex_) = false;  // a sample is held
+  std::chrono::steady_clock::time_point last_frame_ ABSL_GUARDED_BY(thin_mutex_);
   int open_subscriptions_ ABSL_GUARDED_BY(mutex_) = 0;
 
   absl::Mutex counters_mutex_;

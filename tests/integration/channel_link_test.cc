@@ -403,6 +403,48 @@ TEST_F(ChannelLinkTest, ARateLimitSendsTheNewestSampleInItsTurn) {
             100.0 - crossed - 1);
 }
 
+TEST_F(ChannelLinkTest, ARateLimitedLinkSendsItsTopicsTogetherInFrames) {
+  auto ground = startBroker("ground");
+  auto vehicle = startBroker("drone1", {"--link-max-rate-hz", "10"});
+  ChannelClient ground_client(ground->address());
+  ChannelClient vehicle_client(vehicle->address());
+  const std::string a = "robots/drone1/frame_a";
+  const std::string b = "robots/drone1/frame_b";
+  Received got_a;
+  Received got_b;
+  auto sub_a = collect(ground_client, a, &got_a);
+  auto sub_b = collect(ground_client, b, &got_b);
+  ASSERT_TRUE(sub_a->waitConnected(seconds(5)));
+  ASSERT_TRUE(sub_b->waitConnected(seconds(5)));
+  ASSERT_TRUE(eventually([&] { return metric(*vehicle, "behaviorlib_channel_link_peers") == 1; }));
+  std::this_thread::sleep_for(milliseconds(300));
+  // Two topics, interleaved, 50 samples each in about a second.
+  const auto start = std::chrono::steady_clock::now();
+  for (int i = 0; i < 50; ++i) {
+    ASSERT_TRUE(vehicle_client.publish(a, text(std::to_string(i))).ok());
+    std::this_thread::sleep_for(milliseconds(10));
+    ASSERT_TRUE(vehicle_client.publish(b, text(std::to_string(i))).ok());
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  ASSERT_TRUE(vehicle_client.flush().ok());
+  for (Received* got : {&got_a, &got_b}) {
+    ASSERT_TRUE(eventually([&] {
+      std::lock_guard<std::mutex> lock(got->mutex);
+      return !got->texts.empty() && got->texts.back() == "49";
+    })) << "a topic's newest sample never crossed";
+  }
+  const double elapsed_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const double frames = metric(*vehicle, "behaviorlib_channel_link_frames_total");
+  const double sent =
+      metric(*vehicle, "behaviorlib_channel_link_samples_out_total{topic=\"" + a + "\"}") +
+      metric(*vehicle, "behaviorlib_channel_link_samples_out_total{topic=\"" + b + "\"}");
+  EXPECT_GE(frames, 2.0);
+  EXPECT_LE(frames, 10.0 * elapsed_s + 2) << frames << " frames in " << elapsed_s << " s";
+  // Frames carried both topics: more samples went than frames.
+  EXPECT_GT(sent, frames) << sent << " samples in " << frames << " frames";
+}
+
 TEST_F(ChannelLinkTest, BadLinkOptionsAreRefusedAtStart) {
   support::ServerProcess bad_name(kBrokerPath, {"--link-url", nats_.url(), "--link-name", "a.b"});
   EXPECT_FALSE(bad_name.start(seconds(5)));

@@ -3,7 +3,8 @@
 // The broker's link to a fleet's other hosts over NATS (decision 39). Each
 // host runs its own broker (same-host subscribers keep their shared-memory
 // rings); the brokers of a fleet share the topics that cross hosts through
-// NATS servers: one on the ground, a leaf node on each vehicle.
+// NATS: each broker a client of the ground's server (or its cluster), with
+// mutual TLS and a NATS user per host that bounds what it may publish.
 //
 //   NatsLinkOptions options;
 //   options.url = "nats://127.0.0.1:4222";
@@ -58,9 +59,11 @@ struct NatsLinkOptions {
   /// counts the link lost after this many unanswered pings.
   std::chrono::milliseconds ping_interval{1000};
   int max_pings_out = 2;
-  /// At most this many samples per second of each topic go out (0: all):
-  /// a radio link's budget. Between two, the newest waits and goes when
-  /// its turn comes (the ones it replaced are counted, never sent).
+  /// At most this many frames a second go out (0: every sample at once):
+  /// a radio link's budget. A frame is the newest sample of every topic
+  /// that has one since the last, written together; a sample waits at most
+  /// one interval for its frame (the ones it replaced are counted, never
+  /// sent). Each topic thus crosses at most this many times a second.
   double max_rate_hz = 0;
   /// Samples kept while the link is down, sent when it returns; beyond,
   /// samples are dropped and counted.

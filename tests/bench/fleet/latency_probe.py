@@ -42,22 +42,33 @@ def publish(channel, topic, count, rate_hz):
                                        request_serializer=lambda m: m.SerializeToString(),
                                        response_deserializer=response_class.FromString)
 
+    left = [count]
+    period = 1.0 / rate_hz
+    next_at = [time.monotonic()]
+
     def samples():
-        period = 1.0 / rate_hz
-        next_at = time.monotonic()
-        for _ in range(count):
+        while left[0] > 0:
             now_ns = time.time_ns()
             request = request_class(topic=topic)
             request.sample.type_url = TIMESTAMP_URL
             request.sample.value = stamp_class(seconds=now_ns // 10**9,
                                                nanos=now_ns % 10**9).SerializeToString()
+            left[0] -= 1
             yield request
-            next_at += period
-            time.sleep(max(0.0, next_at - time.monotonic()))
+            next_at[0] += period
+            time.sleep(max(0.0, next_at[0] - time.monotonic()))
 
-    reply = call(samples(), timeout=count / rate_hz + 30)
+    # As a vehicle's publishers do, it publishes again on a new stream when
+    # the server ended the last (a lost link) and goes on from where it was.
+    accepted = 0
+    while left[0] > 0:
+        try:
+            accepted += call(samples(), timeout=left[0] / rate_hz + 30).accepted_count
+        except rpc.grpc.RpcError:
+            time.sleep(period)
+            next_at[0] = time.monotonic()
     client.close()
-    return reply.accepted_count
+    return accepted
 
 
 class Follower:
@@ -69,6 +80,7 @@ class Follower:
         self.call = self.client.stream(CHANNEL, "Subscribe", {
             "topic": topic, "mode": "DELIVERY_MODE_QUEUE", "queue_size": 1024})
         self.delays_s = []
+        self.arrivals = []  # time.monotonic() of each
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
@@ -76,6 +88,7 @@ class Follower:
         try:
             for response in self.call:
                 arrived_ns = time.time_ns()
+                self.arrivals.append(time.monotonic())
                 stamp = self.stamp_class.FromString(response.sample.value)
                 sent_ns = stamp.seconds * 10**9 + stamp.nanos
                 self.delays_s.append((arrived_ns - sent_ns) / 1e9)

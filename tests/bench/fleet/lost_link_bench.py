@@ -31,7 +31,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 import urllib.request
 
@@ -40,39 +39,20 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.dirname(
 sys.path.insert(0, os.path.join(REPO, "deploy", "fleet"))
 
 import fleet as fleet_module  # noqa: E402
-from fleet import demo, rpc  # noqa: E402
+from fleet import demo  # noqa: E402
 
-CHANNEL = "behaviorlib.v1.DataChannel"
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import latency_probe  # noqa: E402
+
 ROBOT = "drone1"
 PROBE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "latency_probe.py")
 TOPIC = f"robots/{ROBOT}/lost_link_probe"
 POLL_S = 0.1
 
 
-class Arrivals:
-    """Arrival times (time.monotonic) of a topic's samples on a broker."""
-
-    def __init__(self, address, topic):
-        self.client = rpc.Client(address, [CHANNEL])
-        self.call = self.client.stream(CHANNEL, "Subscribe", {"topic": topic})
-        self.times = []
-        self.thread = threading.Thread(target=self._run, daemon=True)
-        self.thread.start()
-
-    def _run(self):
-        try:
-            for _ in self.call:
-                self.times.append(time.monotonic())
-        except rpc.grpc.RpcError:
-            pass
-
-    def first_after(self, t):
-        return next((a for a in self.times if a > t), None)
-
-    def stop(self):
-        self.call.cancel()
-        self.thread.join(timeout=5)
-        self.client.close()
+def first_after(follower, t):
+    """The first arrival after `t` (time.monotonic), or None."""
+    return next((a for a in follower.arrivals if a > t), None)
 
 
 def peers(broker):
@@ -107,7 +87,7 @@ def measure(build_dir, path, runs, cut_s):
                             data_path=path) as fleet:
         client = fleet.coordinator_client()
         fleet.wait_for_systems(client)
-        arrivals = Arrivals(fleet.ground_broker.address, TOPIC)
+        arrivals = latency_probe.Follower(fleet.ground_broker.address, TOPIC)
         publisher = subprocess.Popen(
             ["ip", "netns", "exec", fleet.ns(ROBOT), sys.executable, PROBE, "publish",
              "--channel", f"127.0.0.1:{fleet_module.BROKER_PORT}", "--topic", TOPIC,
@@ -115,8 +95,8 @@ def measure(build_dir, path, runs, cut_s):
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
             for _ in range(runs):
-                if wait_until(lambda: arrivals.times
-                              and time.monotonic() - arrivals.times[-1] < 0.5, 60) is None:
+                if wait_until(lambda: arrivals.arrivals
+                              and time.monotonic() - arrivals.arrivals[-1] < 0.5, 60) is None:
                     raise RuntimeError(f"{ROBOT}'s samples do not reach the ground")
                 heard = peers(fleet.ground_broker) if path == "nats" else None
                 cut_at = time.monotonic()
@@ -135,10 +115,10 @@ def measure(build_dir, path, runs, cut_s):
                 fleet.restore(ROBOT)
                 restored_at = time.monotonic()
                 registered = wait_until(lambda: systems_up(client, fleet.systems), 120)
-                if wait_until(lambda: arrivals.first_after(restored_at), 120) is None:
+                if wait_until(lambda: first_after(arrivals, restored_at), 120) is None:
                     raise RuntimeError(f"{ROBOT}'s data never came back")
                 results.append({"detected_s": detected, "link_detected_s": link_detected,
-                                "data_back_s": arrivals.first_after(restored_at) - restored_at,
+                                "data_back_s": first_after(arrivals, restored_at) - restored_at,
                                 "registered_s": registered})
                 time.sleep(3.0)
         finally:

@@ -856,9 +856,9 @@ grpc::Status Broker::publish(Publisher& publisher, v1::PublishRequest& request) 
       countRejected(reject_reason::kInvalidTopic);
       return toGrpc(status);
     }
-    if (absl::Status status = absl::StartsWith(request.topic(), kSharedRobotsPrefix)
-                                  ? absl::OkStatus()
-                                  : publisher.scope().permitsTopic(request.topic());
+    if (absl::Status status = publisher.scope().permitsTopic(
+            request.topic(),
+            std::string_view(kSharedRobotsPrefix.data(), kSharedRobotsPrefix.size()));
         !status.ok()) {
       countRejected(reject_reason::kNotPermitted);
       return toGrpc(status);

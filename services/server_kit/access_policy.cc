@@ -335,24 +335,29 @@ absl::Status RobotScope::permits(std::string_view robot_id, std::string_view wha
       {{"identity", identity_}, {"robot", std::string(robot_id)}, {"allowed_robot", robot_id_}});
 }
 
-absl::Status RobotScope::permitsTopic(std::string_view topic) const {
+absl::Status RobotScope::permitsTopic(std::string_view topic,
+                                      std::string_view shared_prefix) const {
   if (!bound()) return absl::OkStatus();
   const std::string prefix = absl::StrCat("robots/", robot_id_, "/");
-  if (absl::StartsWith(av(topic), prefix)) return absl::OkStatus();
+  if (absl::StartsWith(av(topic), prefix) ||
+      (!shared_prefix.empty() && absl::StartsWith(av(topic), av(shared_prefix)))) {
+    return absl::OkStatus();
+  }
   // The robot the topic names, for the details (empty: none).
   std::string named;
   if (absl::StartsWith(av(topic), "robots/")) {
     const std::string_view rest = topic.substr(7);
     named = std::string(rest.substr(0, rest.find('/')));
   }
-  return errors::withReason(absl::PermissionDeniedError(absl::StrCat(
-                                "'", identity_, "' may publish only under ", prefix,
-                                " (and the fleet's shared topics)", ", not on '", av(topic), "'")),
-                            v1::ROBOT_NOT_PERMITTED,
-                            {{"identity", identity_},
-                             {"robot", named},
-                             {"allowed_robot", robot_id_},
-                             {"topic", std::string(topic)}});
+  return errors::withReason(
+      absl::PermissionDeniedError(absl::StrCat("'", identity_, "' may publish only under ", prefix,
+                                               shared_prefix.empty() ? "" : " or ",
+                                               av(shared_prefix), ", not on '", av(topic), "'")),
+      v1::ROBOT_NOT_PERMITTED,
+      {{"identity", identity_},
+       {"robot", named},
+       {"allowed_robot", robot_id_},
+       {"topic", std::string(topic)}});
 }
 
 RobotScope robotScopeOf(const grpc::ServerContextBase& context) {

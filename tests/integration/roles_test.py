@@ -354,7 +354,7 @@ class RolesTest(unittest.TestCase):
     def test_a_system_publishes_only_its_own_robots_topics(self):
         code, details, reason = self.publish("system", "robots/drone2/pose")
         self.assertEqual(code, grpc.StatusCode.PERMISSION_DENIED, details)
-        self.assertIn("may publish only under robots/drone1/", details)
+        self.assertIn("may publish only under robots/drone1/ or robots/swarm/", details)
         self.assertTrue(reason)
         self.assertEqual(self.publish("system", "robots/drone1/roles_test"),
                          (grpc.StatusCode.OK, "1"))

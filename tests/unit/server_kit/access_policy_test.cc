@@ -103,6 +103,12 @@ TEST(RobotScopeTest, ABoundCallerCommandsAndPublishesOnlyItsRobot) {
   EXPECT_EQ(drone1.permitsTopic("robots/drone10/pose").code(), absl::StatusCode::kPermissionDenied);
   EXPECT_EQ(drone1.permitsTopic("robots/drone1").code(), absl::StatusCode::kPermissionDenied);
   EXPECT_EQ(drone1.permitsTopic("world/obstacles").code(), absl::StatusCode::kPermissionDenied);
+  // Topics every robot publishes, when the caller names their prefix.
+  EXPECT_TRUE(drone1.permitsTopic("robots/swarm/positions", "robots/swarm/").ok());
+  const absl::Status shared = drone1.permitsTopic("robots/drone2/pose", "robots/swarm/");
+  EXPECT_THAT(shared.message(),
+              HasSubstr("may publish only under robots/drone1/ or robots/swarm/, not on "
+                        "'robots/drone2/pose'"));
 }
 
 struct BadPolicy {

@@ -147,7 +147,8 @@ class RobotScope {
   /// TAKE_OFF", "command the vehicle").
   absl::Status permits(std::string_view robot_id, std::string_view what) const;
   /// For publishing: a bound caller publishes only robots/<its robot>/...
-  absl::Status permitsTopic(std::string_view topic) const;
+  /// and, when given, under `shared_prefix` (topics every robot publishes).
+  absl::Status permitsTopic(std::string_view topic, std::string_view shared_prefix = {}) const;
 
  private:
   std::string identity_;

@@ -248,8 +248,9 @@ void FleetFollower::followRobots() {
     }
     robots_.insert(robot);
     for (const auto& topic : options_.vehicle_topics) {
-      const std::string name = "robots/" + robot + "/" + topic;
-      topic_threads_.emplace_back([this, name] { followTopic(name); });
+      const std::string name = "robots/" + robot + "/" + topic.name;
+      const double rate = topic.max_rate_hz;
+      topic_threads_.emplace_back([this, name, rate] { followTopic(name, rate); });
     }
   }
 }
@@ -257,8 +258,8 @@ void FleetFollower::followRobots() {
 // One vehicle topic until shutdown; reconnects when the channel goes away.
 // The latest sample a new subscription is sent first is not handed on
 // again when it was already.
-void FleetFollower::followTopic(const std::string& topic) {
-  const bool every = options_.vehicle_period.count() == 0;
+void FleetFollower::followTopic(const std::string& topic, double max_rate_hz) {
+  const bool every = options_.vehicle_period.count() == 0 && max_rate_hz <= 0;
   auto last = std::chrono::steady_clock::time_point();
   uint64_t last_seq = 0;
   followStream<v1::SubscribeResponse>(
@@ -268,13 +269,16 @@ void FleetFollower::followTopic(const std::string& topic) {
         request.set_topic(topic);
         request.set_mode(every ? v1::DELIVERY_MODE_QUEUE : v1::DELIVERY_MODE_LATEST);
         if (every) request.set_queue_size(options_.sample_queue);
+        request.set_max_rate_hz(max_rate_hz);
         request.set_send_latest_first(true);
         return data_->Subscribe(context, request);
       },
       [&](const v1::SubscribeResponse& sample) {
         if (sample.topic_seq() != 0 && sample.topic_seq() == last_seq) return;
         last_seq = sample.topic_seq();
-        if (!every) {
+        // The broker keeps a rate itself, and always sends the last sample,
+        // which a filter here could drop.
+        if (max_rate_hz <= 0 && options_.vehicle_period.count() > 0) {
           const auto now = std::chrono::steady_clock::now();
           if (now - last < options_.vehicle_period) return;
           last = now;

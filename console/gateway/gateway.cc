@@ -244,7 +244,13 @@ FollowerOptions followerOptions(const GatewayOptions& options) {
   follower.mission_poll = options.mission_poll;
   follower.max_watched_missions = options.max_watched_missions;
   follower.data_channel = options.data_channel;
-  follower.vehicle_topics = options.vehicle_topics;
+  // The console draws a vehicle at most once a vehicle_period: the broker
+  // and the simulator are asked for no more than that (decision 17).
+  const double rate_hz =
+      options.vehicle_period.count() > 0 ? 1000.0 / options.vehicle_period.count() : 0.0;
+  for (const auto& topic : options.vehicle_topics) {
+    follower.vehicle_topics.push_back({topic, rate_hz});
+  }
   follower.vehicle_period = options.vehicle_period;
   follower.max_robots = options.max_robots;
   return follower;

@@ -10,6 +10,7 @@
 #include <utility>
 
 #include "absl/strings/match.h"
+#include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_split.h"
 #include "behaviorlib/embedded_descriptor_pool.h"
@@ -58,8 +59,10 @@ bool validSegment(std::string_view segment) {
 console::FollowerOptions followerOptions(const RecorderOptions& options) {
   console::FollowerOptions follower;
   follower.data_channel = options.data_channel;
-  follower.vehicle_topics = options.topics;
-  follower.vehicle_period = std::chrono::milliseconds(0);  // every sample
+  for (const std::string& entry : options.topics) {
+    if (auto topic = parseTopic(entry); topic.ok()) follower.vehicle_topics.push_back(*topic);
+  }
+  follower.vehicle_period = std::chrono::milliseconds(0);  // what the broker sends
   follower.max_robots = options.max_robots;
   return follower;
 }
@@ -67,8 +70,29 @@ console::FollowerOptions followerOptions(const RecorderOptions& options) {
 }  // namespace
 
 std::vector<std::string> defaultTopics() {
-  return {"ground_truth/pose", "ground_truth/twist", "self_localization/pose",
-          "flight_state",      "markers/detections", "map/occupied"};
+  return {"ground_truth/pose@30", "ground_truth/twist@30", "self_localization/pose@30",
+          "flight_state",         "markers/detections",    "map/occupied"};
+}
+
+absl::StatusOr<console::FollowerOptions::VehicleTopic> parseTopic(const std::string& entry) {
+  console::FollowerOptions::VehicleTopic topic;
+  const size_t at = entry.find('@');
+  topic.name = entry.substr(0, at);
+  for (absl::string_view segment : absl::StrSplit(topic.name, '/')) {
+    if (!validSegment(std::string_view(segment.data(), segment.size()))) {
+      return absl::InvalidArgumentError(
+          absl::StrCat("recorded topic '", entry,
+                       "': a name is '/'-separated segments of letters, digits, '_', '-' and '.'"));
+    }
+  }
+  if (at == std::string::npos) return topic;
+  if (!absl::SimpleAtod(entry.substr(at + 1), &topic.max_rate_hz) ||
+      !(topic.max_rate_hz > 0 && topic.max_rate_hz <= 100000)) {
+    return absl::InvalidArgumentError(
+        absl::StrCat("recorded topic '", entry,
+                     "': the rate after '@' is samples a second, a number in (0, 100000]"));
+  }
+  return topic;
 }
 
 absl::StatusOr<std::string> schemaOf(const std::string& type) {
@@ -92,6 +116,9 @@ Recorder::Recorder(std::shared_ptr<grpc::Channel> coordinator, RecorderOptions o
 absl::StatusOr<std::unique_ptr<Recorder>> Recorder::start(
     std::shared_ptr<grpc::Channel> coordinator, RecorderOptions options) {
   if (!options.now_ns) options.now_ns = systemNowNs;
+  for (const std::string& entry : options.topics) {
+    if (auto topic = parseTopic(entry); !topic.ok()) return topic.status();
+  }
   auto writer = mcap::Writer::create(options.path, kProfile, "behaviorlib recorder");
   if (!writer.ok()) return writer.status();
   std::unique_ptr<Recorder> recorder(

@@ -47,8 +47,9 @@ ABSL_FLAG(bool, confirm, false, "kill: required");
 ABSL_FLAG(std::string, mission_id, "", "mission run: the mission's id");
 ABSL_FLAG(std::string, channel, "", "record, replay: the data channel's (broker's) address");
 ABSL_FLAG(std::string, topics, "",
-          "record: vehicle topics under robots/{id}/, comma-separated (default: poses, flight "
-          "state, marker detections, the map's occupied cells)");
+          "record: vehicle topics under robots/{id}/, comma-separated, each NAME (every "
+          "sample) or NAME@HZ (at most HZ samples a second of wall time); default: poses and "
+          "twist @30, flight state, marker detections, the map's occupied cells");
 ABSL_FLAG(double, duration_s, 0, "record: stop after this many seconds (0: at SIGINT or SIGTERM)");
 ABSL_FLAG(double, speed, 1, "replay: 1 as recorded, 2 twice as fast, 0 as fast as possible");
 ABSL_FLAG(std::string, topic_prefix, "", "replay: only the recording's topics with this prefix");

@@ -692,10 +692,11 @@ def main():
                         help="record the flight into <run-dir>/recordings/flight.mcap with "
                              "behaviorctl record: events, missions, beliefs and the vehicle "
                              "topics (MCAP, decision 36); on by default with --demo")
-    parser.add_argument("--record-topics", default="", metavar="A,B",
-                        help="the vehicle topics recorded under robots/{id}/ (default: poses, "
-                             "twist, flight state, marker detections, the map's occupied cells; "
-                             "add camera/image or lidar/scan here)")
+    parser.add_argument("--record-topics", default="", metavar="A,B@HZ",
+                        help="the vehicle topics recorded under robots/{id}/, each NAME (every "
+                             "sample) or NAME@HZ (at most HZ samples a wall second); default: "
+                             "poses and twist @30, flight state, marker detections, the map's "
+                             "occupied cells; add camera/image@5 or lidar/scan here")
     parser.add_argument("--restart", choices=RestartPolicy.MODES, default="on-failure",
                         help="on-failure: a process that crashes (non-zero exit code, or a "
                              "signal) is started again on its ports, at most 5 times in 60 s "

@@ -2,6 +2,7 @@
 
 #include <google/protobuf/descriptor.h>
 #include <google/protobuf/timestamp.pb.h>
+#include <grpcpp/alarm.h>
 #include <prometheus/counter.h>
 #include <prometheus/family.h>
 #include <prometheus/gauge.h>
@@ -10,6 +11,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstddef>
 #include <deque>
 #include <optional>
@@ -58,6 +60,9 @@ google::protobuf::Timestamp wallNow() {
 // for a gated topic's next sample.
 constexpr std::chrono::seconds kTransientInterest(2);
 constexpr std::chrono::seconds kMaxGetLatestWait(1);
+
+// SubscribeRequest.max_rate_hz: at most this (a sample every 10 us).
+constexpr double kMaxRateHz = 100'000;
 
 // Ring sizing (decision 20): a slot holds twice the sample that sized it
 // (at least 256 bytes), and a ring at most kMaxRingBytes, however many
@@ -203,6 +208,12 @@ struct Broker::Topic {
       ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex) {
     return !subscribers.empty() || wanted_until > now;
   }
+  // The rate it is wanted at (WatchInterestResponse.max_rate_hz): the
+  // highest of its subscribers' max_rate_hz, 0 (every sample) when one of
+  // them, a GetLatest caller or another host wants every sample. Defined
+  // after SubscribeReactor.
+  double wantedRateLocked(std::chrono::steady_clock::time_point now) const
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex);
 };
 
 // ---------------------------------------------------------------------------
@@ -221,7 +232,9 @@ class Broker::InterestReactor final
   // Called with the broker's mutex held: replaces the unsent set when
   // `wanted` differs from the last one offered. True when the caller must
   // pump() after releasing the mutex.
-  bool offer(std::vector<std::string> wanted) {
+  // Each wanted topic with the rate it is wanted at (0: every sample).
+  using Wanted = std::vector<std::pair<std::string, double>>;
+  bool offer(Wanted wanted) {
     absl::MutexLock lock(&mutex_);
     if (finish_status_.has_value() || (offered_once_ && wanted == last_offered_)) return false;
     offered_once_ = true;
@@ -242,7 +255,10 @@ class Broker::InterestReactor final
     }
     if (!pending_) return;
     current_.Clear();
-    for (auto& name : *pending_) current_.add_wanted_topics(std::move(name));
+    for (auto& [name, rate] : *pending_) {
+      current_.add_wanted_topics(std::move(name));
+      current_.add_max_rate_hz(rate);
+    }
     pending_.reset();
     busy_ = true;
     lock.Release();
@@ -287,8 +303,8 @@ class Broker::InterestReactor final
   std::shared_ptr<InterestReactor> self_;  // alive until OnDone
   absl::Mutex mutex_;
   bool offered_once_ ABSL_GUARDED_BY(mutex_) = false;
-  std::vector<std::string> last_offered_ ABSL_GUARDED_BY(mutex_);
-  std::optional<std::vector<std::string>> pending_ ABSL_GUARDED_BY(mutex_);
+  Wanted last_offered_ ABSL_GUARDED_BY(mutex_);
+  std::optional<Wanted> pending_ ABSL_GUARDED_BY(mutex_);
   bool busy_ ABSL_GUARDED_BY(mutex_) = false;
   std::optional<grpc::Status> finish_status_ ABSL_GUARDED_BY(mutex_);
   bool finished_ ABSL_GUARDED_BY(mutex_) = false;
@@ -305,8 +321,19 @@ class Broker::InterestReactor final
 class Broker::SubscribeReactor final
     : public server::Ordered<grpc::ServerWriteReactor<v1::SubscribeResponse>> {
  public:
-  SubscribeReactor(grpc::CallbackServerContext* context, bool latest_only, std::size_t queue_size)
-      : context_(context), latest_only_(latest_only), queue_size_(queue_size) {}
+  // `max_rate_hz` > 0: the newest sample at most that often (wall time).
+  SubscribeReactor(grpc::CallbackServerContext* context, bool latest_only, std::size_t queue_size,
+                   double max_rate_hz)
+      : context_(context),
+        latest_only_(latest_only || max_rate_hz > 0),
+        queue_size_(queue_size),
+        max_rate_hz_(max_rate_hz),
+        min_interval_(max_rate_hz > 0 ? std::chrono::duration_cast<std::chrono::nanoseconds>(
+                                            std::chrono::duration<double>(1.0 / max_rate_hz))
+                                      : std::chrono::nanoseconds(0)) {}
+
+  // SubscribeRequest.max_rate_hz (0: every sample).
+  double maxRateHz() const { return max_rate_hz_; }
 
   // How many samples the subscription keeps: what its ring must hold.
   uint32_t keeps() const {
@@ -320,6 +347,7 @@ class Broker::SubscribeReactor final
 
   void setOwner(Broker* broker, std::shared_ptr<SubscribeReactor> self) {
     broker_ = broker;
+    weak_self_ = self;
     self_ = std::move(self);
   }
 
@@ -356,6 +384,8 @@ class Broker::SubscribeReactor final
         latest_only_ ? 1 : std::max<std::size_t>(1, queue_size_ - (writing_sample_ ? 1 : 0));
     while (pending_.size() >= capacity) {
       pending_.pop_front();
+      // A rate-limited subscription skips samples by request, not by loss.
+      if (max_rate_hz_ > 0) continue;
       ++dropped_;
       topic_->dropped.Increment();
     }
@@ -375,6 +405,16 @@ class Broker::SubscribeReactor final
       return;
     }
     if (pending_.empty()) return;
+    if (max_rate_hz_ > 0) {
+      // Not before the interval since the last write started: the newest
+      // sample waits for the alarm (replaced meanwhile by any newer one).
+      const auto now = std::chrono::steady_clock::now();
+      if (now < next_write_) {
+        armLocked(next_write_ - now);
+        return;
+      }
+      next_write_ = now + min_interval_;
+    }
     Sample next = std::move(pending_.front());
     pending_.pop_front();
     busy_ = true;
@@ -428,6 +468,26 @@ class Broker::SubscribeReactor final
   }
 
  private:
+  // Pumps again after `delay`, unless an alarm is set already. The alarm
+  // holds no reference: a reactor destroyed first cancels it.
+  void armLocked(std::chrono::steady_clock::duration delay) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    if (alarm_armed_) return;
+    alarm_armed_ = true;
+    alarm_ = std::make_unique<grpc::Alarm>();
+    alarm_->Set(std::chrono::system_clock::now() +
+                    std::chrono::duration_cast<std::chrono::system_clock::duration>(delay),
+                [weak = weak_self_](bool fired) {
+                  if (!fired) return;
+                  std::shared_ptr<SubscribeReactor> self = weak.lock();
+                  if (!self) return;
+                  {
+                    absl::MutexLock lock(&self->mutex_);
+                    self->alarm_armed_ = false;
+                  }
+                  self->pump();
+                });
+  }
+
   void operationDone(bool ok) {
     {
       absl::MutexLock lock(&mutex_);
@@ -445,8 +505,11 @@ class Broker::SubscribeReactor final
   grpc::CallbackServerContext* const context_;
   const bool latest_only_;
   const std::size_t queue_size_;
+  const double max_rate_hz_;
+  const std::chrono::nanoseconds min_interval_;
   bool ring_ = false;
   Broker* broker_ = nullptr;
+  std::weak_ptr<SubscribeReactor> weak_self_;  // for the alarm
   // Keeps the reactor alive until OnDone, while publishers may hold
   // references taken under the topic's mutex.
   std::shared_ptr<SubscribeReactor> self_;
@@ -461,9 +524,23 @@ class Broker::SubscribeReactor final
   bool writing_sample_ ABSL_GUARDED_BY(mutex_) = false;  // ... and it is a sample write
   std::optional<grpc::Status> finish_status_ ABSL_GUARDED_BY(mutex_);
   bool finished_ ABSL_GUARDED_BY(mutex_) = false;  // Finish was called
+  // A rate-limited subscription's next write, and the alarm that pumps then.
+  std::chrono::steady_clock::time_point next_write_ ABSL_GUARDED_BY(mutex_) = {};
+  bool alarm_armed_ ABSL_GUARDED_BY(mutex_) = false;
+  std::unique_ptr<grpc::Alarm> alarm_ ABSL_GUARDED_BY(mutex_);
   // The message of the write in flight (owned by whoever set busy_).
   v1::SubscribeResponse current_;
 };
+
+double Broker::Topic::wantedRateLocked(std::chrono::steady_clock::time_point now) const {
+  if (remote_wanted || wanted_until > now) return 0;
+  double rate = 0;
+  for (const auto& subscriber : subscribers) {
+    if (subscriber->maxRateHz() <= 0) return 0;
+    rate = std::max(rate, subscriber->maxRateHz());
+  }
+  return rate;
+}
 
 // ---------------------------------------------------------------------------
 // Publish and PublishAcked: one read at a time; each sample is validated and
@@ -956,8 +1033,17 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
                                 absl::StrCat("unknown delivery mode ", request->mode(),
                                              " for topic '", request->topic(), "'"));
   }
+  const double max_rate_hz = request->max_rate_hz();
+  if (invalid.ok() && !(max_rate_hz >= 0 && max_rate_hz <= kMaxRateHz)) {
+    invalid = errors::grpcError(
+        grpc::StatusCode::INVALID_ARGUMENT, v1::INVALID_REQUEST,
+        absl::StrCat("max_rate_hz ", max_rate_hz, " for topic '", request->topic(),
+                     "' is out of range: use 0 (every sample) up to ", kMaxRateHz),
+        {{"field", "max_rate_hz"}, {"limit", absl::StrCat(kMaxRateHz)}});
+  }
 
-  auto reactor = std::make_shared<SubscribeReactor>(context, latest_only, queue_size);
+  auto reactor = std::make_shared<SubscribeReactor>(context, latest_only, queue_size,
+                                                    invalid.ok() ? max_rate_hz : 0);
   reactor->setOwner(this, reactor);
   const bool wants_ring =
       request->shared_memory() && options_.shared_memory &&
@@ -979,9 +1065,12 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
     std::shared_ptr<Topic> topic = shutting_down_ ? nullptr : topicLocked(request->topic());
     too_many = !shutting_down_ && !topic;
     if (topic) {
-      bool first = false;
+      bool changed = false;
       {
         absl::MutexLock topic_lock(&topic->mutex);
+        const auto now = std::chrono::steady_clock::now();
+        const bool was_wanted = !topic->subscribers.empty();
+        const double was_rate = topic->wantedRateLocked(now);
         reactor->attach(topic);
         const std::size_t latest_bytes = topic->latest ? topic->latest->ByteSizeLong() : 0;
         if (wants_ring && ensureRingLocked(*topic, reactor->keeps(), latest_bytes)) {
@@ -996,13 +1085,13 @@ grpc::ServerWriteReactor<v1::SubscribeResponse>* Broker::Subscribe(
             ring_first = topic->latest->topic_seq();
           }
         }
-        first = topic->subscribers.empty();
         topic->subscribers.push_back(reactor);
         topic->subscriber_gauge.Set(static_cast<double>(topic->subscribers.size()));
+        changed = !was_wanted || topic->wantedRateLocked(now) != was_rate;
         registered_seq = topic->seq;
         if (request->send_latest_first() && topic->latest) reactor->offer(topic->latest);
       }
-      if (first) interestChangedLocked(&watchers);
+      if (changed) interestChangedLocked(&watchers);
       registered = true;
     }
   }
@@ -1023,8 +1112,11 @@ void Broker::removeSubscriber(const std::shared_ptr<Topic>& topic,
   {
     absl::MutexLock lock(&mutex_);
     bool last = false;
+    bool changed = false;
     {
       absl::MutexLock topic_lock(&topic->mutex);
+      const auto now = std::chrono::steady_clock::now();
+      const double was_rate = topic->wantedRateLocked(now);
       auto& subs = topic->subscribers;
       subs.erase(std::remove_if(subs.begin(), subs.end(),
                                 [subscriber](const auto& s) { return s.get() == subscriber; }),
@@ -1034,7 +1126,8 @@ void Broker::removeSubscriber(const std::shared_ptr<Topic>& topic,
         dropRingLocked(*topic);
       }
       last = subs.empty();
-      if (last) forgetIfUnwantedLocked(*topic, std::chrono::steady_clock::now());
+      changed = last || topic->wantedRateLocked(now) != was_rate;
+      if (last) forgetIfUnwantedLocked(*topic, now);
       if (topic->seq == 0 && last && topic->waiting.empty()) {
         // Only ever had waiting subscribers: forget it rather than keep a
         // topic (and its metric series) for every name someone once asked
@@ -1046,7 +1139,7 @@ void Broker::removeSubscriber(const std::shared_ptr<Topic>& topic,
         }
       }
     }
-    if (last) interestChangedLocked(&watchers);
+    if (changed) interestChangedLocked(&watchers);
   }
   for (const auto& watcher : watchers) watcher->pump();
 }
@@ -1060,17 +1153,18 @@ void Broker::interestChangedLocked(InterestReactors* idle) {
   const auto now = std::chrono::steady_clock::now();
   localInterestChangedLocked(now);
   for (const auto& watcher : interest_watchers_) {
-    std::set<std::string> wanted;
+    std::map<std::string, double> wanted;  // the rate of each (0: every sample)
     const std::string& prefix = watcher->prefix();
     for (auto it = topics_.lower_bound(prefix);
          it != topics_.end() && absl::StartsWith(it->first, prefix); ++it) {
       absl::MutexLock topic_lock(&it->second->mutex);
-      if (it->second->wantedLocked(now)) wanted.insert(it->first);
+      if (it->second->wantedLocked(now)) wanted[it->first] = it->second->wantedRateLocked(now);
     }
-    // Another host may want a topic nothing has published here yet.
+    // Another host may want a topic nothing has published here yet (its
+    // link takes every sample).
     for (auto it = remote_wanted_.lower_bound(prefix);
          it != remote_wanted_.end() && absl::StartsWith(*it, prefix); ++it) {
-      wanted.insert(*it);
+      wanted[*it] = 0;
     }
     if (watcher->offer({wanted.begin(), wanted.end()})) idle->push_back(watcher);
   }
@@ -1188,9 +1282,10 @@ void Broker::housekeep() {
         if (topic.wanted_until != std::chrono::steady_clock::time_point{} &&
             topic.wanted_until <= now) {
           topic.wanted_until = {};
+          // Unwanted now, or wanted only at its subscribers' rates.
+          interest_changed = true;
           if (topic.subscribers.empty()) {
             forgetIfUnwantedLocked(topic, now);
-            interest_changed = true;
             if (topic.seq == 0 && waiting.empty()) unasked.push_back(keep);
           }
         } else if (topic.wanted_until != std::chrono::steady_clock::time_point{}) {
@@ -1274,7 +1369,8 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
       bool was_wanted = false;
       {
         absl::MutexLock topic_lock(&topic->mutex);
-        was_wanted = topic->localWantedLocked(now);
+        // Wanted already, and at every sample (a GetLatest wants the newest).
+        was_wanted = topic->localWantedLocked(now) && topic->wantedRateLocked(now) == 0;
         topic->wanted_until = now + kTransientInterest;
         latest = topic->latest;
         if (!latest) {

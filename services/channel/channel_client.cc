@@ -11,7 +11,7 @@
 #include <utility>
 
 #include "absl/base/thread_annotations.h"
-#include "absl/container/flat_hash_set.h"
+#include "absl/container/flat_hash_map.h"
 #include "absl/strings/match.h"
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_cat.h"
@@ -126,6 +126,7 @@ class Subscription::Impl {
 
   uint64_t receivedCount() const { return received_.load(); }
   uint64_t processedSeq() const { return processed_seq_.load(); }
+  bool rateLimited() const { return request_.max_rate_hz() > 0; }
   const std::string& topic() const { return request_.topic(); }
 
   absl::Status status() const {
@@ -242,7 +243,10 @@ class Subscription::Impl {
       absl::MutexLock lock(&mutex_);
       if (ring_) ring_->wake();
     });
-    const bool latest_only = request_.mode() != v1::DELIVERY_MODE_QUEUE;
+    const bool latest_only = request_.mode() != v1::DELIVERY_MODE_QUEUE || rateLimited();
+    // A rate-limited reader reads the newest sample at most this often.
+    const auto interval =
+        rateLimited() ? absl::Seconds(1.0 / request_.max_rate_hz()) : absl::ZeroDuration();
     std::string bytes;
     uint64_t dropped = 0;
     v1::SubscribeResponse response;
@@ -254,6 +258,11 @@ class Subscription::Impl {
           if (response.ParseFromString(bytes)) {
             response.set_dropped_count(dropped);
             deliver(response);
+          }
+          if (interval > absl::ZeroDuration()) {
+            // Until stopped, at most the interval; then the newest sample.
+            absl::MutexLock lock(&mutex_);
+            mutex_.AwaitWithTimeout(absl::Condition(&stopping_), interval);
           }
           break;
         case ShmRing::Read::kEmpty:
@@ -345,11 +354,20 @@ class InterestWatch::Impl {
     return known_;
   }
 
+  double maxRateHz(const std::string& topic) const {
+    absl::MutexLock lock(&mutex_);
+    if (!known_) return 0;
+    auto it = wanted_.find(topic);
+    return it == wanted_.end() ? 0 : it->second;
+  }
+
   std::vector<std::string> wantedTopics() const {
     std::vector<std::string> topics;
     {
       absl::MutexLock lock(&mutex_);
-      if (known_) topics.assign(wanted_.begin(), wanted_.end());
+      if (known_) {
+        for (const auto& [topic, rate] : wanted_) topics.push_back(topic);
+      }
     }
     std::sort(topics.begin(), topics.end());
     return topics;
@@ -373,8 +391,12 @@ class InterestWatch::Impl {
         {
           absl::MutexLock lock(&mutex_);
           known_ = true;
-          wanted_ = absl::flat_hash_set<std::string>(response.wanted_topics().begin(),
-                                                     response.wanted_topics().end());
+          wanted_.clear();
+          for (int i = 0; i < response.wanted_topics_size(); ++i) {
+            // A broker before max_rate_hz sends no rates: every sample.
+            wanted_[response.wanted_topics(i)] =
+                i < response.max_rate_hz_size() ? response.max_rate_hz(i) : 0.0;
+          }
         }
         backoff = kInitialBackoff;
         on_change_();
@@ -406,13 +428,15 @@ class InterestWatch::Impl {
   grpc::ClientContext* context_ ABSL_GUARDED_BY(mutex_) = nullptr;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   bool known_ ABSL_GUARDED_BY(mutex_) = false;
-  absl::flat_hash_set<std::string> wanted_ ABSL_GUARDED_BY(mutex_);
+  // Each wanted topic and the rate it is wanted at (0: every sample).
+  absl::flat_hash_map<std::string, double> wanted_ ABSL_GUARDED_BY(mutex_);
 };
 
 InterestWatch::InterestWatch(std::shared_ptr<Impl> impl) : impl_(std::move(impl)) {}
 InterestWatch::~InterestWatch() { impl_->stop(); }
 bool InterestWatch::wanted(const std::string& topic) const { return impl_->wanted(topic); }
 bool InterestWatch::known() const { return impl_->known(); }
+double InterestWatch::maxRateHz(const std::string& topic) const { return impl_->maxRateHz(topic); }
 std::vector<std::string> InterestWatch::wantedTopics() const { return impl_->wantedTopics(); }
 
 // ---------------------------------------------------------------------------
@@ -493,7 +517,8 @@ class ChannelClient::Impl {
     absl::MutexLock lock(&subscriptions_mutex_);
     for (const auto& weak : subscriptions_) {
       const std::shared_ptr<Subscription::Impl> sub = weak.lock();
-      if (!sub || !sub->connected()) continue;
+      // A rate-limited one promises no particular sample.
+      if (!sub || !sub->connected() || sub->rateLimited()) continue;
       if (sub->processedSeq() < topic_seq(sub->topic())) return false;
     }
     return true;
@@ -572,6 +597,7 @@ class ChannelClient::Impl {
     request.set_queue_size(options.queue_size);
     request.set_send_latest_first(options.send_latest_first);
     request.set_shared_memory(options.shared_memory);
+    request.set_max_rate_hz(options.max_rate_hz);
     auto impl = std::make_shared<Subscription::Impl>(stub_, std::move(request),
                                                      std::move(on_sample), progress_);
     if (absl::Status status = validateTopicName(topic); !status.ok()) {

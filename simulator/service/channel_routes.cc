@@ -99,6 +99,11 @@ bool ChannelRoutes::wanted(const std::string& topic) const {
   return route.interest == nullptr || route.interest->wanted(topic);
 }
 
+double ChannelRoutes::maxRateHz(const std::string& topic) const {
+  const Route& route = routeOf(topic);
+  return route.interest == nullptr ? 0 : route.interest->maxRateHz(topic);
+}
+
 bool ChannelRoutes::known() const {
   for (const Route& route : routes_) {
     if (route.interest == nullptr || !route.interest->known()) return false;

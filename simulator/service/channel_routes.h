@@ -57,6 +57,9 @@ class ChannelRoutes {
   /// Whether `topic` is wanted at the broker it goes to; true while that
   /// broker's watch is not known (as an InterestWatch).
   bool wanted(const std::string& topic) const;
+  /// The rate `topic` is wanted at by its broker's readers, in samples a
+  /// second of wall time (InterestWatch::maxRateHz); 0: every sample.
+  double maxRateHz(const std::string& topic) const;
   /// Every watch has its broker's set.
   bool known() const;
   /// The union of the wanted sets.

@@ -30,6 +30,10 @@ void PublishQueue::push(std::string topic, std::unique_ptr<google::protobuf::Mes
       ++gated_;
       return;
     }
+    if (interest_ != nullptr && throttleLocked(topic, sample, &replaced)) {
+      ++gated_;
+      return;
+    }
     // Queued while wanted: the broker keeps it and its subscribers get it, so
     // a topic found wanted by the next interestChanged() needs no re-send (a
     // re-send would repeat it, or even follow it with an older sample).
@@ -37,6 +41,57 @@ void PublishQueue::push(std::string topic, std::unique_ptr<google::protobuf::Mes
     queueLocked(std::move(topic), std::move(sample), &evicted);
   }
   cv_.notify_one();
+}
+
+bool PublishQueue::throttleLocked(const std::string& topic,
+                                  std::unique_ptr<google::protobuf::Message>& sample,
+                                  std::unique_ptr<google::protobuf::Message>* replaced) {
+  const double rate = interest_->maxRateHz(topic);
+  if (rate <= 0 || !interest_->wanted(topic)) return false;
+  Newest& newest = newest_[topic];
+  const auto now = std::chrono::steady_clock::now();
+  if (now >= newest.next_send && !newest.throttled) {
+    newest.next_send = now + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                 std::chrono::duration<double>(1.0 / rate));
+    return false;
+  }
+  *replaced = std::exchange(newest.sample, std::move(sample));
+  newest.published = false;
+  newest.sent_while_wanted = false;
+  if (!newest.throttled) {
+    newest.throttled = true;
+    throttled_.insert(topic);
+    cv_.notify_one();  // the thread waits for the interval's end now
+  }
+  return true;
+}
+
+std::chrono::steady_clock::time_point PublishQueue::releaseDueLocked(std::deque<Entry>* evicted) {
+  const auto now = std::chrono::steady_clock::now();
+  auto next = std::chrono::steady_clock::time_point::max();
+  for (auto it = throttled_.begin(); it != throttled_.end();) {
+    Newest& newest = newest_[*it];
+    const bool wanted = interest_ != nullptr && interest_->wanted(*it);
+    const double rate = wanted ? interest_->maxRateHz(*it) : 0;
+    if (wanted && rate > 0 && now < newest.next_send) {
+      next = std::min(next, newest.next_send);
+      ++it;
+      continue;
+    }
+    newest.throttled = false;
+    if (wanted && newest.sample && !newest.published) {
+      // Its interval passed, or every sample is wanted now: it goes.
+      newest.sent_while_wanted = true;
+      if (rate > 0) {
+        newest.next_send = now + std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+                                     std::chrono::duration<double>(1.0 / rate));
+      }
+      queueLocked(*it, std::move(newest.sample), evicted);
+    }
+    // Unwanted meanwhile: it stays held as any gated sample.
+    it = throttled_.erase(it);
+  }
+  return next;
 }
 
 void PublishQueue::queueLocked(std::string topic, std::unique_ptr<google::protobuf::Message> sample,
@@ -79,6 +134,7 @@ void PublishQueue::interestChanged() {
         continue;
       }
       wanted.insert(topic);
+      if (newest.throttled) continue;  // releaseDueLocked decides
       // Wanted again: the newest sample goes out at once (the broker kept
       // none while nobody wanted the topic), unless it was wanted already.
       if (wanted_.contains(topic) || !newest.sample || newest.sent_while_wanted) continue;
@@ -93,6 +149,8 @@ void PublishQueue::interestChanged() {
       queued = true;
     }
     wanted_ = std::move(wanted);
+    // A rate that went up, or away, lets a held sample go sooner.
+    if (!throttled_.empty()) queued = true;
   }
   if (queued) cv_.notify_one();
 }
@@ -100,10 +158,24 @@ void PublishQueue::interestChanged() {
 void PublishQueue::run() {
   std::vector<Entry> batch;
   std::vector<channel::ChannelClient::TopicSample> samples;
+  std::deque<Entry> evicted;
   std::unique_lock lock(mutex_);
   while (true) {
-    cv_.wait(lock, [this] { return stopping_ || !queue_.empty(); });
+    while (true) {
+      const auto next = releaseDueLocked(&evicted);
+      if (stopping_ || !queue_.empty()) break;
+      if (next == std::chrono::steady_clock::time_point::max()) {
+        cv_.wait(lock);
+      } else {
+        cv_.wait_until(lock, next);
+      }
+    }
     if (stopping_) return;
+    if (!evicted.empty()) {
+      lock.unlock();
+      evicted.clear();
+      lock.lock();
+    }
     // Everything queued goes in one batch (one write, one broker read),
     // bounded so that a message stays far below gRPC's 4 MiB limit; a
     // larger sample goes alone.

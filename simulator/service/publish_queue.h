@@ -45,7 +45,10 @@ class PublishQueue {
   /// Queues a sample for `topic`. Thread-safe; never blocks on the broker.
   /// With an interest watch, a sample of a topic nobody wants is held
   /// instead (the newest per topic), except the topic's first, which makes
-  /// the topic known to the broker.
+  /// the topic known to the broker. A topic whose readers want it only at a
+  /// rate (ChannelRoutes::maxRateHz: a console drawing 10 times a second) is
+  /// published at most that often: a sample that comes sooner is held, the
+  /// newest replacing it, and goes out when the interval has passed.
   void push(std::string topic, std::unique_ptr<google::protobuf::Message> sample);
 
   /// Waits until every queued sample went to the broker, or `timeout`;
@@ -58,8 +61,8 @@ class PublishQueue {
   /// Queues the held samples of the topics now wanted (call when the watch
   /// reports a change): a new subscriber gets the newest sample at once.
   void interestChanged();
-  /// Samples held back because nobody wanted their topic (replaced by a
-  /// newer one, or published later).
+  /// Samples held back because nobody wanted their topic or its readers
+  /// wanted fewer (replaced by a newer one, or published later).
   uint64_t gatedCount() const { return gated_.load(); }
 
   uint64_t publishedCount() const { return published_.load(); }
@@ -83,6 +86,13 @@ class PublishQueue {
   std::condition_variable cv_;
   void queueLocked(std::string topic, std::unique_ptr<google::protobuf::Message> sample,
                    std::deque<Entry>* evicted);
+  // Rate-limited topics (ChannelRoutes::maxRateHz): true when `sample` is
+  // held for its topic's next interval instead of queued now.
+  bool throttleLocked(const std::string& topic, std::unique_ptr<google::protobuf::Message>& sample,
+                      std::unique_ptr<google::protobuf::Message>* replaced);
+  // Queues the held samples whose interval has passed (or whose topic is
+  // now wanted at every sample); returns the time of the next one due.
+  std::chrono::steady_clock::time_point releaseDueLocked(std::deque<Entry>* evicted);
 
   std::deque<Entry> queue_;
   std::size_t queued_bytes_ = 0;
@@ -96,9 +106,14 @@ class PublishQueue {
     std::unique_ptr<google::protobuf::Message> sample;
     bool published = false;
     bool sent_while_wanted = false;  // the newest was queued while wanted
+    // A rate-limited topic: when its next sample may go, and whether the
+    // held sample waits for that (rather than for interest).
+    std::chrono::steady_clock::time_point next_send{};
+    bool throttled = false;
   };
   std::unordered_map<std::string, Newest> newest_;
-  std::unordered_set<std::string> wanted_;  // at the last interestChanged()
+  std::unordered_set<std::string> wanted_;     // at the last interestChanged()
+  std::unordered_set<std::string> throttled_;  // topics with Newest::throttled
   std::atomic<uint64_t> gated_{0};
   bool stopping_ = false;
   std::atomic<uint64_t> published_{0};

@@ -93,11 +93,13 @@ SimulatorMetrics::SimulatorMetrics(prometheus::Registry& registry, Simulation& s
                                  "too slow, per stream (state: clock, ground truth, flight "
                                  "state; sensors)")
                            .Register(registry)),
-      publish_gated_(prometheus::BuildCounter()
-                         .Name("behaviorlib_simulator_publish_gated_total")
-                         .Help("Samples not published because nobody wanted their topic "
-                               "(DataChannel.WatchInterest), per stream")
-                         .Register(registry)),
+      publish_gated_(
+          prometheus::BuildCounter()
+              .Name("behaviorlib_simulator_publish_gated_total")
+              .Help("Samples not published because nobody wanted their topic, or its "
+                    "readers wanted it only at a lower rate (DataChannel.WatchInterest), "
+                    "per stream")
+              .Register(registry)),
       pace_slips_(prometheus::BuildCounter()
                       .Name("behaviorlib_simulator_pace_slips_total")
                       .Help("Times the physics fell behind the scaled wall clock and the "

@@ -14,7 +14,9 @@
 #include <algorithm>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <fstream>
+#include <functional>
 #include <map>
 #include <mutex>
 #include <sstream>
@@ -22,6 +24,7 @@
 #include <thread>
 #include <vector>
 
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/channel/shm_ring.h"
 #include "behaviorlib/channel/sim_clock.h"
@@ -1009,6 +1012,90 @@ TEST_F(ChannelBrokerTest, InterestFollowsSubscribersAndGetLatestOfGatedTopics) {
   EXPECT_TRUE(eventually([&] { return watch->wanted(topic); }));
   sub.reset();
   EXPECT_TRUE(eventually([&] { return !watch->wanted(topic); }));
+}
+
+// What a subscription received: when, and which sample.
+struct Received {
+  absl::Mutex mutex;
+  std::vector<uint64_t> seqs ABSL_GUARDED_BY(mutex);
+  std::function<void(const v1::SubscribeResponse&)> callback() {
+    return [this](const v1::SubscribeResponse& sample) {
+      absl::MutexLock lock(&mutex);
+      seqs.push_back(sample.topic_seq());
+    };
+  }
+  std::vector<uint64_t> get() {
+    absl::MutexLock lock(&mutex);
+    return seqs;
+  }
+};
+
+TEST_F(ChannelBrokerTest, RateLimitedSubscriptionsGetTheNewestAtMostThatOftenAndTheLast) {
+  const std::string topic = "robots/r1/pose";
+  ChannelClient watcher(broker_.address());
+  auto watch = watcher.watchInterest("robots/r1/", [] {});
+  ASSERT_TRUE(eventually([&] { return watch->known(); }));
+
+  const auto start = std::chrono::steady_clock::now();
+  ChannelClient reader(broker_.address());
+  Received by_stream;
+  Received by_ring;
+  auto stream_sub =
+      reader.subscribe(topic, {.shared_memory = false, .max_rate_hz = 10}, by_stream.callback());
+  auto ring_sub = reader.subscribe(topic, {.max_rate_hz = 10}, by_ring.callback());
+  ASSERT_TRUE(stream_sub->waitConnected(seconds(10)));
+  ASSERT_TRUE(ring_sub->waitConnected(seconds(10)));
+  // The broker tells a gating publisher the rate its readers want.
+  ASSERT_TRUE(eventually([&] { return watch->wanted(topic) && watch->maxRateHz(topic) == 10; }));
+  EXPECT_TRUE(reader.delivered([](const std::string&) { return 1'000'000; }))
+      << "the data barrier does not wait for a rate-limited reader";
+
+  // 600 samples, about a millisecond apart.
+  ChannelClient publisher(broker_.address());
+  constexpr uint64_t kSamples = 600;
+  for (uint64_t i = 1; i <= kSamples; ++i) {
+    ASSERT_TRUE(publisher.publish(topic, text(std::to_string(i))).ok());
+    std::this_thread::sleep_for(milliseconds(1));
+  }
+  ASSERT_TRUE(publisher.sync().ok());
+  // The last sample always arrives (it waits for its interval)...
+  for (Received* received : {&by_stream, &by_ring}) {
+    ASSERT_TRUE(eventually([&] {
+      auto seqs = received->get();
+      return !seqs.empty() && seqs.back() == kSamples;
+    }));
+  }
+  const double elapsed_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  // ... and at most one sample every 100 ms came, each newer than the last.
+  for (Received* received : {&by_stream, &by_ring}) {
+    const auto seqs = received->get();
+    EXPECT_LE(static_cast<double>(seqs.size()), elapsed_s * 10 + 2) << seqs.size();
+    EXPECT_TRUE(std::is_sorted(seqs.begin(), seqs.end()));
+    EXPECT_EQ(std::adjacent_find(seqs.begin(), seqs.end()), seqs.end()) << "no repeats";
+  }
+  EXPECT_EQ(stream_sub->receivedCount(), by_stream.get().size());
+
+  // A reader of every sample makes the topic wanted at every sample, until
+  // it leaves.
+  auto every = reader.subscribe(topic, {.shared_memory = false}, [](const auto&) {});
+  ASSERT_TRUE(every->waitConnected(seconds(10)));
+  EXPECT_TRUE(eventually([&] { return watch->maxRateHz(topic) == 0; }));
+  every.reset();
+  EXPECT_TRUE(eventually([&] { return watch->maxRateHz(topic) == 10; }));
+
+  // A rate out of range is refused, naming the field.
+  for (double bad : {-1.0, std::nan(""), 1e9}) {
+    v1::SubscribeRequest request = subscribeRequest(topic);
+    request.set_max_rate_hz(bad);
+    RawSubscriber refused(channel_, request, seconds(5));
+    v1::SubscribeResponse ignored;
+    EXPECT_FALSE(refused.read(&ignored));
+    const grpc::Status status = refused.finish();
+    EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << bad;
+    EXPECT_THAT(status.error_message(), HasSubstr("max_rate_hz"));
+    EXPECT_FALSE(status.error_details().empty()) << "google.rpc details";
+  }
 }
 
 TEST_F(ChannelBrokerTest, MetricsEndpoint) {

@@ -381,6 +381,52 @@ TEST_F(SimulatorServiceTest, VehicleTopicsArePublishedOnlyWhileWanted) {
       << "the pose is current (within 1 s simulated of the clock)";
 }
 
+// Polls `condition` (wall time) until true or 10 s.
+template <class F>
+bool eventuallyTrue(F condition) {
+  const auto deadline = std::chrono::steady_clock::now() + seconds(10);
+  while (!condition()) {
+    if (std::chrono::steady_clock::now() > deadline) return false;
+    std::this_thread::sleep_for(milliseconds(20));
+  }
+  return true;
+}
+
+TEST_F(SimulatorServiceTest, AVehicleTopicReadAtARateIsPublishedAtThatRate) {
+  const std::string imu = "robots/drone1/imu";
+  ASSERT_TRUE(eventuallyTrue([&] { return publishedCount(*data_, imu) > 0; }));
+  // A reader at 5 samples a second of wall time: the simulator publishes
+  // the IMU (200 Hz simulated, 2000 a wall second at 10x) about that often.
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + seconds(30));
+  v1::SubscribeRequest request;
+  request.set_topic(imu);
+  request.set_max_rate_hz(5);
+  auto reader = data_->Subscribe(&context, request);
+  std::atomic<int> received{0};
+  std::thread reading([&] {
+    v1::SubscribeResponse response;
+    while (reader->Read(&response)) ++received;
+  });
+  // The rate reaches the simulator with the broker's interest (a round
+  // trip); by the third sample (400 ms on) it has.
+  ASSERT_TRUE(eventuallyTrue([&] { return received.load() >= 3; }));
+  const auto start = std::chrono::steady_clock::now();
+  const uint64_t before = publishedCount(*data_, imu);
+  std::this_thread::sleep_for(milliseconds(1500));
+  const uint64_t published = publishedCount(*data_, imu) - before;
+  const double elapsed_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  // At most one sample every 200 ms (and one that was held at the start).
+  EXPECT_LE(static_cast<double>(published), elapsed_s * 5 + 2) << "published " << published;
+  // Someone who wants every sample gets every sample (1 s at 10x: 2000;
+  // the bound leaves room for a loaded machine).
+  EXPECT_GT(samplesWithin(*data_, imu, milliseconds(1000)), 200);
+  context.TryCancel();
+  reading.join();
+  reader->Finish();
+}
+
 TEST_F(SimulatorServiceTest, ClockTopicCarriesThePaceLineNotEveryTick) {
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + seconds(2));

@@ -238,6 +238,25 @@ TEST(RecorderSchemaTest, ASchemaHoldsItsTypeAndEveryImportDependenciesFirst) {
   EXPECT_EQ(schemaOf("no.such.Type").status().code(), absl::StatusCode::kNotFound);
 }
 
+TEST(RecorderTopicTest, ATopicIsRecordedAtEverySampleOrAtTheRateAfterTheAt) {
+  auto every = parseTopic("flight_state");
+  ASSERT_TRUE(every.ok()) << every.status();
+  EXPECT_EQ(every->name, "flight_state");
+  EXPECT_EQ(every->max_rate_hz, 0);
+  auto rated = parseTopic("ground_truth/pose@12.5");
+  ASSERT_TRUE(rated.ok()) << rated.status();
+  EXPECT_EQ(rated->name, "ground_truth/pose");
+  EXPECT_EQ(rated->max_rate_hz, 12.5);
+  for (const char* bad :
+       {"pose@", "pose@0", "pose@-3", "pose@fast", "pose@1e9", "a//b", "x y", "@5"}) {
+    const auto refused = parseTopic(bad);
+    EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument) << bad;
+    EXPECT_NE(refused.status().message().find(bad), std::string::npos) << refused.status();
+  }
+  // Every default parses.
+  for (const std::string& entry : defaultTopics()) EXPECT_TRUE(parseTopic(entry).ok()) << entry;
+}
+
 TEST(RecorderReplayTopicTest, EachRecordedMessageHasItsBrokerTopic) {
   v1::FleetEvent event;
   event.mutable_behavior_event()->set_robot_id("drone1");

@@ -57,10 +57,18 @@ struct FollowerOptions {
   size_t max_watched_missions = 16;
   /// The data channel, for the vehicle topics (none: no samples).
   std::shared_ptr<grpc::Channel> data_channel;
-  /// The topics followed for each robot of the fleet, under robots/{id}/.
-  std::vector<std::string> vehicle_topics;
-  /// At most one sample per robot and topic this often, the latest; zero:
-  /// every sample (a queue of sample_queue per topic).
+  /// The topics followed for each robot of the fleet, under robots/{id}/,
+  /// each with the rate it is read at: at most max_rate_hz samples a second
+  /// of wall time, the newest (SubscribeRequest.max_rate_hz, which the
+  /// broker and the simulator honour); 0: every sample (a queue of
+  /// sample_queue per topic), unless vehicle_period says otherwise.
+  struct VehicleTopic {
+    std::string name;
+    double max_rate_hz = 0;
+  };
+  std::vector<VehicleTopic> vehicle_topics;
+  /// For a topic read at every sample (max_rate_hz 0): at most one sample
+  /// per robot this often, the latest, kept here (zero: every sample).
   std::chrono::milliseconds vehicle_period{100};
   uint32_t sample_queue = 1000;
   /// Robots whose vehicle topics are followed.
@@ -91,7 +99,7 @@ class FleetFollower {
   void changedMission(const v1::MissionStatus& status);
   void followRobots();
   void followBeliefs();
-  void followTopic(const std::string& topic);
+  void followTopic(const std::string& topic, double max_rate_hz);
   void setCoordinatorUp(bool up, const std::string& why);
   // Waits `wait`, or until kick() if kickable; false once stopping.
   bool sleepFor(std::chrono::milliseconds wait, bool kickable);

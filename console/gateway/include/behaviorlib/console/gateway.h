@@ -73,7 +73,8 @@ struct GatewayOptions {
   /// The topics followed for each robot of the fleet, under robots/{id}/.
   std::vector<std::string> vehicle_topics = {"self_localization/pose", "ground_truth/pose",
                                              "flight_state", "map/occupied"};
-  /// At most one `vehicle` event per robot and topic this often.
+  /// At most one `vehicle` event per robot and topic this often; the
+  /// subscriptions ask the broker for that rate (max_rate_hz).
   std::chrono::milliseconds vehicle_period{100};
   /// Robots whose vehicle state is followed.
   size_t max_robots = 16;

@@ -10,7 +10,8 @@
 //   coordinator/missions  behaviorlib.v1.MissionStatus, each change
 //   coordinator/beliefs   behaviorlib.v1.Belief, each write
 //   robots/{id}/{topic}   the data channel's samples of the chosen topics of
-//                         every robot, every one, with the sample's type
+//                         every robot, every one or at the topic's chosen
+//                         rate (the broker's max_rate_hz), with the type
 //
 // log_time is when the recorder received the message (the injected clock);
 // publish_time is the source's own stamp: the broker's receive time of a
@@ -39,9 +40,18 @@ inline constexpr char kMissionsTopic[] = "coordinator/missions";
 inline constexpr char kBeliefsTopic[] = "coordinator/beliefs";
 inline constexpr char kProfile[] = "behaviorlib";
 
-/// The vehicle topics recorded by default: poses, flight state and the
-/// planned path; camera and lidar only on request (they are large).
+/// The vehicle topics recorded by default: poses and velocity at 30 samples
+/// a second of wall time ("name@HZ", see parseTopic), the flight state,
+/// marker detections and the map at every sample; camera and lidar only on
+/// request (they are large).
 std::vector<std::string> defaultTopics();
+
+/// One recorded vehicle topic, "name" (every sample) or "name@HZ" (at most
+/// HZ samples a second of wall time, the newest each time and always the
+/// last: SubscribeRequest.max_rate_hz). INVALID_ARGUMENT names the entry
+/// when the name is not a topic segment path or the rate is not a number in
+/// (0, 100000].
+absl::StatusOr<console::FollowerOptions::VehicleTopic> parseTopic(const std::string& entry);
 
 /// Serialized google.protobuf.FileDescriptorSet of `type` and every file it
 /// imports, dependencies first (an MCAP "protobuf" schema), from the
@@ -52,7 +62,8 @@ struct RecorderOptions {
   std::string path;
   /// The data channel; none: no samples are recorded.
   std::shared_ptr<grpc::Channel> data_channel;
-  /// Vehicle topics under robots/{id}/.
+  /// Vehicle topics under robots/{id}/, each "name" or "name@HZ"
+  /// (parseTopic; start() refuses a bad one).
   std::vector<std::string> topics = defaultTopics();
   /// Nanoseconds since the Unix epoch (tests give a fake clock).
   std::function<uint64_t()> now_ns;

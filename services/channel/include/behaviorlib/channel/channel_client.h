@@ -51,6 +51,12 @@ struct SubscribeOptions {
   /// host instead of a stream each (decision 20). Otherwise, or when the
   /// ring cannot be opened here, samples come on the stream.
   bool shared_memory = true;
+  /// At most this many samples a second of wall time, the newest each time
+  /// and always the last (SubscribeRequest.max_rate_hz); 0: every sample.
+  /// An observer's rate: the broker and a gating publisher then carry only
+  /// that much for this reader. A rate-limited subscription is not waited
+  /// for by delivered().
+  double max_rate_hz = 0;
 };
 
 /// A running subscription, made by ChannelClient::subscribe. Its reader
@@ -114,6 +120,10 @@ class InterestWatch {
   bool known() const;
   /// The wanted topics under the prefix (sorted; empty while not known).
   std::vector<std::string> wantedTopics() const;
+  /// The rate `topic` is wanted at (WatchInterestResponse.max_rate_hz), in
+  /// samples a second of wall time; 0 when every sample is wanted, or the
+  /// set is not known, or the topic is not wanted.
+  double maxRateHz(const std::string& topic) const;
 
  private:
   std::shared_ptr<Impl> impl_;

@@ -118,8 +118,15 @@ std::string describe(const grpc::Status& s) {
   return "code " + std::to_string(s.error_code()) + ": " + s.error_message();
 }
 
+// Every call goes to a server that is up. Each client opens a connection of
+// its own (ownChannel), several at the same moment, and a fail-fast call
+// fails at the first failed attempt of its new connection (UNAVAILABLE
+// "failed to connect to all addresses"), which made the smoke run fail once
+// beside another test; waiting for ready lets gRPC retry the connection,
+// with backoff, within the call's deadline.
 void setDeadline(grpc::ClientContext* ctx, milliseconds limit = kCallDeadline) {
   ctx->set_deadline(std::chrono::system_clock::now() + limit);
+  ctx->set_wait_for_ready(true);
 }
 
 // Each client its own TCP connection (gRPC otherwise shares one between
@@ -735,6 +742,9 @@ class Subscriber {
 
  private:
   void run() {
+    // Up to the wait for every subscriber's start (runEvents), then stop()
+    // cancels it: a new connection that fails once is tried again.
+    ctx_.set_wait_for_ready(true);
     auto reader = stub_->WatchEvents(&ctx_, request_);
     v1::WatchFleetEventsResponse message;
     uint64_t last_seq = 0;

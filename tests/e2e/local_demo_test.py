@@ -201,6 +201,9 @@ class LocalDemoTest(unittest.TestCase):
             self.assertEqual(figures["a"], len(steps), behavior)
             self.assertGreater(figures["monitoring_ticks"], 0, behavior)
             self.assertGreater(figures["t1_us"], 0, behavior)
+            # On the thread's CPU clock too, and never above the wall time it took.
+            self.assertGreater(figures["t1_cpu_us"], 0, behavior)
+            self.assertLessEqual(figures["t1_cpu_us"], figures["t1_us"] * 1.01 + 1, behavior)
             self.assertGreater(figures["t2_ms"], 0, behavior)
             self.assertGreater(figures["t3_ms"], 0, behavior)
         # The recurrent localization ran through the whole mission and was

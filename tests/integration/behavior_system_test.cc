@@ -897,6 +897,9 @@ TEST_F(BehaviorSystemTest, MetricsEndpointCountsActivationsTerminationsAndTiming
   auto monitoring_count = metricValue(body, "behaviorlib_monitoring_seconds_count", wait_labels);
   ASSERT_TRUE(monitoring_count) << body;
   EXPECT_GE(*monitoring_count, 1);
+  auto cpu_count = metricValue(body, "behaviorlib_monitoring_cpu_seconds_count", wait_labels);
+  ASSERT_TRUE(cpu_count) << body;
+  EXPECT_EQ(*cpu_count, *monitoring_count) << "every tick on both clocks";
   auto active = metricValue(body, "behaviorlib_active_behaviors", wait_labels);
   ASSERT_TRUE(active) << body;
   EXPECT_EQ(*active, 0);

@@ -1,6 +1,7 @@
 #include "behaviorlib/behavior_execution_manager.h"
 
 #include <google/protobuf/util/time_util.h>
+#include <time.h>
 
 #include <cmath>
 #include <future>
@@ -91,6 +92,14 @@ std::unique_ptr<google::protobuf::Message> takeMessage(google::protobuf::Message
   std::unique_ptr<google::protobuf::Message> out(from.New());
   out->GetReflection()->Swap(out.get(), &from);
   return out;
+}
+
+// CPU time of the calling thread: the monitoring functions' own cost, which
+// a preempted or waiting thread does not accrue (wall time does).
+std::chrono::nanoseconds threadCpuTime() {
+  timespec now{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &now);
+  return std::chrono::seconds(now.tv_sec) + std::chrono::nanoseconds(now.tv_nsec);
 }
 
 }  // namespace
@@ -487,6 +496,7 @@ Duration BehaviorExecutionManager::activeTime() const {
 
 void BehaviorExecutionManager::execute() {
   const auto t0 = std::chrono::steady_clock::now();
+  const std::chrono::nanoseconds cpu0 = threadCpuTime();
   v1::TerminationCause cause = v1::TERMINATION_CAUSE_UNSPECIFIED;
   std::string message;
   Situation situation;
@@ -529,7 +539,9 @@ void BehaviorExecutionManager::execute() {
                   : "not finished within maximum_execution_time " +
                         secondsText(maximum_execution_time_) + " of active time";
   }
-  if (context_.observer) context_.observer->onMonitoring(std::chrono::steady_clock::now() - t0);
+  if (context_.observer) {
+    context_.observer->onMonitoring(std::chrono::steady_clock::now() - t0, threadCpuTime() - cpu0);
+  }
   if (cause != v1::TERMINATION_CAUSE_UNSPECIFIED) {
     finish(cause, message);
     return;

@@ -42,6 +42,7 @@ class PrometheusObserver final : public BehaviorObserver {
     }
     active_ = &m.active_.Add(labels);
     monitoring_ = &m.monitoring_.Add(labels, monitoringBuckets());
+    monitoring_cpu_ = &m.monitoring_cpu_.Add(labels, monitoringBuckets());
     activation_ = &m.activation_.Add(labels, activationBuckets());
     performance_ = &m.performance_.Add(labels);
     performance_->Set(1.0);
@@ -60,8 +61,9 @@ class PrometheusObserver final : public BehaviorObserver {
     }
     active_->Set(0);
   }
-  void onMonitoring(std::chrono::nanoseconds duration) override {
-    monitoring_->Observe(std::chrono::duration<double>(duration).count());
+  void onMonitoring(std::chrono::nanoseconds wall, std::chrono::nanoseconds cpu) override {
+    monitoring_->Observe(std::chrono::duration<double>(wall).count());
+    monitoring_cpu_->Observe(std::chrono::duration<double>(cpu).count());
   }
   void onSituation(double performance_ratio) override { performance_->Set(performance_ratio); }
   void onBlocked(bool blocked) override {
@@ -75,6 +77,7 @@ class PrometheusObserver final : public BehaviorObserver {
   std::array<prometheus::Counter*, 7> terminations_{};
   prometheus::Gauge* active_ = nullptr;
   prometheus::Histogram* monitoring_ = nullptr;
+  prometheus::Histogram* monitoring_cpu_ = nullptr;
   prometheus::Histogram* activation_ = nullptr;
   prometheus::Gauge* performance_ = nullptr;
 };
@@ -97,8 +100,14 @@ BehaviorMetrics::BehaviorMetrics(prometheus::Registry& registry, std::string rob
                   .Register(registry)),
       monitoring_(prometheus::BuildHistogram()
                       .Name("behaviorlib_monitoring_seconds")
-                      .Help("Time of the four monitoring functions of one tick (the paper's t1)")
+                      .Help("Wall time of the four monitoring functions of one tick (the "
+                            "paper's t1)")
                       .Register(registry)),
+      monitoring_cpu_(prometheus::BuildHistogram()
+                          .Name("behaviorlib_monitoring_cpu_seconds")
+                          .Help("CPU time of the thread running the four monitoring functions of "
+                                "one tick (the paper's t1, without preemption)")
+                          .Register(registry)),
       activation_(prometheus::BuildHistogram()
                       .Name("behaviorlib_activation_seconds")
                       .Help("Activate request received until the first onExecute (the paper's t3)")

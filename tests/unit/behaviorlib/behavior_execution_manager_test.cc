@@ -556,12 +556,15 @@ TEST_F(BehaviorExecutionManagerTest, StuckOnExecuteEndsWithProcessFailureAndProc
 
 class RecordingObserver final : public BehaviorObserver {
  public:
-  std::atomic<int> activated{0}, finished{0}, first_execute{0}, monitoring{0};
+  std::atomic<int> activated{0}, finished{0}, first_execute{0}, monitoring{0}, cpu_above_wall{0};
   std::atomic<int> blocked{0}, unblocked{0};
   void onActivated() override { ++activated; }
   void onFirstExecute(std::chrono::nanoseconds) override { ++first_execute; }
   void onFinished(v1::TerminationCause) override { ++finished; }
-  void onMonitoring(std::chrono::nanoseconds) override { ++monitoring; }
+  void onMonitoring(std::chrono::nanoseconds wall, std::chrono::nanoseconds cpu) override {
+    ++monitoring;
+    if (cpu > wall + std::chrono::milliseconds(1)) ++cpu_above_wall;
+  }
   void onBlocked(bool b) override { ++(b ? blocked : unblocked); }
 };
 
@@ -584,6 +587,7 @@ TEST_F(BehaviorExecutionManagerTest, ObserverSeesActivationTicksBlockAndRecovery
   EXPECT_EQ(observer->activated, 1);
   EXPECT_EQ(observer->first_execute, 1);
   EXPECT_GE(observer->monitoring, 1);
+  EXPECT_EQ(observer->cpu_above_wall, 0) << "a thread cannot spend more CPU than wall time";
   stuck = true;
   tick();
   ASSERT_TRUE(eventually([&] { return observer->blocked == 1; }));

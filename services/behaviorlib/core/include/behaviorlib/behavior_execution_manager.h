@@ -139,8 +139,10 @@ class BehaviorObserver {
   /// (the paper's t3).
   virtual void onFirstExecute(std::chrono::nanoseconds /*activation_latency*/) {}
   virtual void onFinished(v1::TerminationCause /*cause*/) {}
-  /// Wall time of the four monitoring functions of one tick (the paper's t1).
-  virtual void onMonitoring(std::chrono::nanoseconds /*duration*/) {}
+  /// Time of the four monitoring functions of one tick (the paper's t1):
+  /// wall time, and the CPU time of the thread that ran them (without the
+  /// time it was preempted or waited).
+  virtual void onMonitoring(std::chrono::nanoseconds /*wall*/, std::chrono::nanoseconds /*cpu*/) {}
   virtual void onSituation(double /*performance_ratio*/) {}
   /// The watchdog stopped a stuck user function (true); it returned (false).
   /// May be called from the watchdog thread.

@@ -38,6 +38,7 @@ class BehaviorMetrics {
   prometheus::Family<prometheus::Counter>& terminations_;
   prometheus::Family<prometheus::Gauge>& active_;
   prometheus::Family<prometheus::Histogram>& monitoring_;
+  prometheus::Family<prometheus::Histogram>& monitoring_cpu_;
   prometheus::Family<prometheus::Histogram>& activation_;
   prometheus::Family<prometheus::Gauge>& performance_;
 };

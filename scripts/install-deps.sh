@@ -3,6 +3,8 @@
 # Used by .ci/run, the README and deploy/compose/Dockerfile.
 #   scripts/install-deps.sh          build + runtime + test packages
 #   scripts/install-deps.sh --build  build + runtime packages only (Docker build stage)
+#   scripts/install-deps.sh --demo   build packages and what the launcher and its report
+#                                    use (scripts/run-demo.sh): no test tools
 #   scripts/install-deps.sh --runtime  the shared libraries the binaries load, nothing else
 #                                      (Docker runtime stage; tests/deploy checks the list)
 set -eu
@@ -29,6 +31,10 @@ TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-venv
   clang-14 libclang-rt-14-dev libfuzzer-14-dev llvm-14 chromium \
   nats-server cyclonedds-dev cyclonedds-tools iproute2 iptables stress-ng"
 
+# The launcher (deploy/local/launch.py) and its report: gRPC reflection from
+# Python, the mission files, the plots, /proc readers.
+DEMO_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-matplotlib procps"
+
 # npm (with Node.js) installs the pinned tools of tests/api (buf) and
 # tests/deploy (@grafana/schema, TypeScript) into the build tree. Debian's npm
 # is left out where a Node.js with npm is already installed, which it would
@@ -41,9 +47,10 @@ fi
 case "${1:-}" in
   "") packages="$BUILD_PACKAGES $TEST_PACKAGES $NPM_PACKAGE" ;;
   --build) packages="$BUILD_PACKAGES" ;;
+  --demo) packages="$BUILD_PACKAGES $DEMO_PACKAGES" ;;
   --runtime) packages="$RUNTIME_PACKAGES" ;;
   *)
-    echo "usage: $0 [--build | --runtime]" >&2
+    echo "usage: $0 [--build | --demo | --runtime]" >&2
     exit 2
     ;;
 esac

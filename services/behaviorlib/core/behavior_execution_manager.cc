@@ -783,7 +783,8 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     response.set_activation_id(activation_id_);
     *response.mutable_activation_time() = toTimestamp(now);
     *response.mutable_parameters() = params::toStruct(*parameters_);
-    if (context_.observer) context_.observer->onActivated();
+    if (context_.observer)
+      context_.observer->onActivated(std::chrono::steady_clock::now() - received);
     v1::BehaviorEvent event = newEventLocked();
     *event.mutable_activated()->mutable_parameters() = response.parameters();
     context_.events->append(std::move(event));

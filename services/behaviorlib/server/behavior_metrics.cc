@@ -44,11 +44,13 @@ class PrometheusObserver final : public BehaviorObserver {
     monitoring_ = &m.monitoring_.Add(labels, monitoringBuckets());
     monitoring_cpu_ = &m.monitoring_cpu_.Add(labels, monitoringBuckets());
     activation_ = &m.activation_.Add(labels, activationBuckets());
+    activate_call_ = &m.activate_call_.Add(labels, activationBuckets());
     performance_ = &m.performance_.Add(labels);
     performance_->Set(1.0);
   }
 
-  void onActivated() override {
+  void onActivated(std::chrono::nanoseconds activate_call) override {
+    activate_call_->Observe(std::chrono::duration<double>(activate_call).count());
     activations_->Increment();
     active_->Set(1);
   }
@@ -79,6 +81,7 @@ class PrometheusObserver final : public BehaviorObserver {
   prometheus::Histogram* monitoring_ = nullptr;
   prometheus::Histogram* monitoring_cpu_ = nullptr;
   prometheus::Histogram* activation_ = nullptr;
+  prometheus::Histogram* activate_call_ = nullptr;
   prometheus::Gauge* performance_ = nullptr;
 };
 
@@ -112,6 +115,12 @@ BehaviorMetrics::BehaviorMetrics(prometheus::Registry& registry, std::string rob
                       .Name("behaviorlib_activation_seconds")
                       .Help("Activate request received until the first onExecute (the paper's t3)")
                       .Register(registry)),
+      activate_call_(prometheus::BuildHistogram()
+                         .Name("behaviorlib_activate_call_seconds")
+                         .Help("Activate request received until the activation was decided "
+                               "(checkSituation and onActivate included): the part of t3 before "
+                               "the first tick")
+                         .Register(registry)),
       performance_(prometheus::BuildGauge()
                        .Name("behaviorlib_situation_performance_ratio")
                        .Help("Latest performance estimate of checkSituation, in [0, 1]")

@@ -558,7 +558,7 @@ class RecordingObserver final : public BehaviorObserver {
  public:
   std::atomic<int> activated{0}, finished{0}, first_execute{0}, monitoring{0}, cpu_above_wall{0};
   std::atomic<int> blocked{0}, unblocked{0};
-  void onActivated() override { ++activated; }
+  void onActivated(std::chrono::nanoseconds) override { ++activated; }
   void onFirstExecute(std::chrono::nanoseconds) override { ++first_execute; }
   void onFinished(v1::TerminationCause) override { ++finished; }
   void onMonitoring(std::chrono::nanoseconds wall, std::chrono::nanoseconds cpu) override {

@@ -134,7 +134,10 @@ struct BehaviorOptions {
 class BehaviorObserver {
  public:
   virtual ~BehaviorObserver() = default;
-  virtual void onActivated() {}
+  /// An activation succeeded: `activate_call` is the wall time from the
+  /// request's arrival until the activation was decided (checkSituation and
+  /// onActivate included), the part of t3 before the first tick.
+  virtual void onActivated(std::chrono::nanoseconds /*activate_call*/) {}
   /// Wall time from the activate request's arrival to the first onExecute
   /// (the paper's t3).
   virtual void onFirstExecute(std::chrono::nanoseconds /*activation_latency*/) {}

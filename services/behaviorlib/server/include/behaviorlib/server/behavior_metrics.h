@@ -40,6 +40,7 @@ class BehaviorMetrics {
   prometheus::Family<prometheus::Histogram>& monitoring_;
   prometheus::Family<prometheus::Histogram>& monitoring_cpu_;
   prometheus::Family<prometheus::Histogram>& activation_;
+  prometheus::Family<prometheus::Histogram>& activate_call_;
   prometheus::Family<prometheus::Gauge>& performance_;
 };
 

@@ -94,3 +94,13 @@ class Client:
                                          request_serializer=request_class.SerializeToString,
                                          response_deserializer=response_class.FromString)
         return call(self._request(request_class, request), timeout=timeout)
+
+    def bidi(self, service, method, requests, timeout=None):
+        """Bidirectional streaming call: `requests` yields dicts in proto JSON
+        form (the stream half-closes when it ends); the call object, iterable
+        (each reply as a message) and cancellable with .cancel()."""
+        request_class, response_class = self._method(service, method)
+        call = self.channel.stream_stream(f"/{service}/{method}",
+                                          request_serializer=request_class.SerializeToString,
+                                          response_deserializer=response_class.FromString)
+        return call((self._request(request_class, r) for r in requests), timeout=timeout)

@@ -22,7 +22,6 @@ exceeds --tolerance-m (1 cm). Extra launcher arguments go after `--`.
 
 import argparse
 import json
-import math
 import os
 import subprocess
 import sys
@@ -31,6 +30,9 @@ import time
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", ".."))
 LAUNCHER = os.path.join(REPO, "deploy", "local", "launch.py")
+sys.path.insert(0, os.path.join(REPO, "deploy", "local"))
+# What "the same path" means, shared with deploy/local/campaign.py.
+from determinism import aligned_deviation, path_deviation  # noqa: E402
 
 
 def run_once(args, extra, run_dir):
@@ -72,49 +74,6 @@ def _mission_wall_s(stdout):
             except ValueError:
                 pass
     return None
-
-
-def _segment_distance(p, a, b):
-    ab = [b[i] - a[i] for i in range(3)]
-    ap = [p[i] - a[i] for i in range(3)]
-    length2 = sum(c * c for c in ab)
-    t = 0.0 if length2 == 0 else max(0.0, min(1.0, sum(ab[i] * ap[i] for i in range(3)) / length2))
-    return math.dist(p, [a[i] + ab[i] * t for i in range(3)])
-
-
-def path_deviation(a, b):
-    """The largest distance from a sample of one track to the other track."""
-    def one_way(points, track):
-        worst = 0.0
-        for p in points:
-            best = min(_segment_distance(p, track[i], track[i + 1])
-                       for i in range(len(track) - 1)) if len(track) > 1 else math.dist(p, track[0])
-            worst = max(worst, best)
-        return worst
-    pa = [s[1:] for s in a]
-    pb = [s[1:] for s in b]
-    if not pa or not pb:
-        return float("inf")
-    return max(one_way(pa, pb), one_way(pb, pa))
-
-
-def _position_at(samples, t):
-    """Linear interpolation of the track at simulated time t (None outside)."""
-    for i in range(len(samples) - 1):
-        t0, t1 = samples[i][0], samples[i + 1][0]
-        if t0 <= t <= t1:
-            f = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
-            return [samples[i][k] + f * (samples[i + 1][k] - samples[i][k]) for k in (1, 2, 3)]
-    return None
-
-
-def aligned_deviation(a, a_t0, b, b_t0):
-    worst = 0.0
-    for s in a:
-        other = _position_at(b, s[0] - a_t0 + b_t0)
-        if other is not None:
-            worst = max(worst, math.dist(s[1:], other))
-    return worst
 
 
 def main():

@@ -302,6 +302,7 @@ class PrometheusScrapeTest(unittest.TestCase):
         # Every dashboard expression returns data.
         query_time = time.time()
         range_s = math.ceil(query_time - mission_start) + 2 * SCRAPE_INTERVAL_S
+        range_steps = math.ceil((query_time - mission_start) / SCRAPE_INTERVAL_S) + 1
         empty, nan_only = [], []
         queries = dashboard_queries()
         self.assertGreater(len(queries), 40)
@@ -312,8 +313,12 @@ class PrometheusScrapeTest(unittest.TestCase):
                     result = self.prometheus.query(promql, at=query_time)["result"]
                     values = [r["value"][1] for r in result]
                 else:
+                    # The last step is the query time itself, after the
+                    # scrape that followed the mission: a series born at the
+                    # mission's end (missions finished) is inside the range
+                    # whatever the steps' phase against the scrapes.
                     result = self.prometheus.query_range(
-                        promql, mission_start - SCRAPE_INTERVAL_S, query_time,
+                        promql, query_time - range_steps * SCRAPE_INTERVAL_S, query_time,
                         SCRAPE_INTERVAL_S)["result"]
                     values = [v[1] for r in result for v in r["values"]]
             except (OSError, AssertionError) as error:  # a 400: not valid PromQL

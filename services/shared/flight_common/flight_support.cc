@@ -109,11 +109,11 @@ bool flying(v1::FlightState state) {
   return state == v1::FLIGHT_STATE_FLYING || state == v1::FLIGHT_STATE_HOVERING;
 }
 
-std::optional<std::string> staleness(const std::string& what, const v1::Header& header,
-                                     TimePoint now, Duration limit) {
+std::optional<std::string> staleness(absl::FunctionRef<std::string()> what,
+                                     const v1::Header& header, TimePoint now, Duration limit) {
   const Duration age = now - stampTime(header);
   if (age <= limit) return std::nullopt;
-  return what + " is " + secondsText(age) + " old (limit " + secondsText(limit) + ")";
+  return what() + " is " + secondsText(age) + " old (limit " + secondsText(limit) + ")";
 }
 
 void refuseFirst(Situation* situation, v1::SituationReason code, std::string reason) {
@@ -153,7 +153,8 @@ std::optional<SituationProblem> missingSensor(channel::ChannelClient& channel,
         sample->sample().UnpackTo(message.get())) {
       header.CopyFrom(message->GetReflection()->GetMessage(*message, field));
     }
-    if (auto stale = staleness("the latest sample on " + topic, header, now, 2 * need.limit)) {
+    if (auto stale = staleness([&] { return "the latest sample on " + topic; }, header, now,
+                               2 * need.limit)) {
       return SituationProblem{v1::SITUATION_REASON_INPUT_STALE, "no " + need.what + ": " + *stale};
     }
   }
@@ -190,31 +191,32 @@ void estimateMessages(const v1::Header& header, const std::string& robot_id, uin
 std::optional<std::string> checkFlightInputs(Vehicle& vehicle, TimePoint now,
                                              const FlightSettings& settings,
                                              const VehicleLease* lease, bool need_twist,
-                                             v1::FlightStatus* status, v1::PoseStamped* pose,
-                                             v1::TwistStamped* twist) {
-  auto flight = vehicle.flightStatus();
-  if (!flight.ok()) return std::string(flight.status().message());
-  *status = *flight;
+                                             Held<v1::FlightStatus>* status,
+                                             Held<v1::PoseStamped>* pose,
+                                             Held<v1::TwistStamped>* twist) {
+  // Shared, not copied: this runs every tick of every flight behavior.
+  if (absl::Status s = vehicle.readFlightStatus(status); !s.ok()) return std::string(s.message());
   if (lease) {
     if (absl::Status s = lease->status();
         !s.ok() && s.code() != absl::StatusCode::kFailedPrecondition) {
       return std::string(s.message());
     }
   }
-  auto p = vehicle.poseEstimate();
-  if (!p.ok()) return "pose estimate: " + std::string(p.status().message());
-  if (auto stale = staleness("the pose estimate on " + vehicle.poseTopic(), p->header(), now,
-                             settings.pose_timeout)) {
+  if (absl::Status s = vehicle.readPoseEstimate(pose); !s.ok()) {
+    return "pose estimate: " + std::string(s.message());
+  }
+  if (auto stale = staleness([&] { return "the pose estimate on " + vehicle.poseTopic(); },
+                             (*pose)->header(), now, settings.pose_timeout)) {
     return stale;
   }
-  *pose = *p;
   if (need_twist) {
-    auto t = vehicle.twistEstimate();
-    if (!t.ok()) return "velocity estimate: " + std::string(t.status().message());
-    if (auto stale = staleness("the velocity estimate", t->header(), now, settings.pose_timeout)) {
+    if (absl::Status s = vehicle.readTwistEstimate(twist); !s.ok()) {
+      return "velocity estimate: " + std::string(s.message());
+    }
+    if (auto stale = staleness([] { return std::string("the velocity estimate"); },
+                               (*twist)->header(), now, settings.pose_timeout)) {
       return stale;
     }
-    *twist = *t;
   }
   return std::nullopt;
 }
@@ -248,8 +250,8 @@ std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimeP
   if (!pose.ok()) {
     add(estimateReadCode(pose.status()),
         "no pose estimate: " + std::string(pose.status().message()));
-  } else if (auto stale = staleness("the pose estimate on " + vehicle.poseTopic(), pose->header(),
-                                    now, settings.pose_timeout)) {
+  } else if (auto stale = staleness([&] { return "the pose estimate on " + vehicle.poseTopic(); },
+                                    pose->header(), now, settings.pose_timeout)) {
     add(v1::SITUATION_REASON_INPUT_STALE, *stale + "; is a localization behavior active?");
   }
   if (need_twist) {
@@ -257,8 +259,8 @@ std::optional<v1::FlightStatus> checkFlightPreconditions(Vehicle& vehicle, TimeP
     if (!twist.ok()) {
       add(estimateReadCode(twist.status()),
           "no velocity estimate: " + std::string(twist.status().message()));
-    } else if (auto stale = staleness("the velocity estimate", twist->header(), now,
-                                      settings.pose_timeout)) {
+    } else if (auto stale = staleness([] { return std::string("the velocity estimate"); },
+                                      twist->header(), now, settings.pose_timeout)) {
       add(v1::SITUATION_REASON_INPUT_STALE, *stale + "; is a localization behavior active?");
     }
   }

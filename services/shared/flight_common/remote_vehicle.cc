@@ -94,15 +94,17 @@ void RemoteVehicle::followEstimate(bool follow) {
                                             .send_latest_first = true};
     pose_subscription_ = channel_->subscribeTyped<v1::PoseStamped>(
         poseEstimateTopic(robot_id_), options, [this](const v1::PoseStamped& pose) {
+          auto sample = std::make_shared<const v1::PoseStamped>(pose);
           std::lock_guard inner(mutex_);
           // A sample delivered while the last follower is leaving must not
           // stay behind as the cache (nothing would refresh it).
-          if (followers_ > 0) pose_ = pose;
+          if (followers_ > 0) pose_.swap(sample);  // the old one is freed outside the lock
         });
     twist_subscription_ = channel_->subscribeTyped<v1::TwistStamped>(
         twistEstimateTopic(robot_id_), options, [this](const v1::TwistStamped& twist) {
+          auto sample = std::make_shared<const v1::TwistStamped>(twist);
           std::lock_guard inner(mutex_);
-          if (followers_ > 0) twist_ = twist;
+          if (followers_ > 0) twist_.swap(sample);  // the old one is freed outside the lock
         });
     return;
   }
@@ -114,7 +116,7 @@ void RemoteVehicle::followEstimate(bool follow) {
 }
 
 template <class T>
-absl::StatusOr<T> RemoteVehicle::latest(const std::string& topic, std::optional<T>* cache) {
+absl::StatusOr<T> RemoteVehicle::latest(const std::string& topic, std::shared_ptr<const T>* cache) {
   if (!channel_) {
     return absl::FailedPreconditionError(
         "no data channel configured: start the behavior system with --channel HOST:PORT");
@@ -140,7 +142,7 @@ absl::StatusOr<T> RemoteVehicle::latest(const std::string& topic, std::optional<
                                          ", not " + T::descriptor()->full_name());
   }
   std::lock_guard lock(mutex_);
-  if (followers_ > 0 && !*cache) *cache = message;
+  if (followers_ > 0 && !*cache) *cache = std::make_shared<const T>(message);
   return message;
 }
 
@@ -153,5 +155,35 @@ absl::StatusOr<v1::TwistStamped> RemoteVehicle::twistEstimate() {
 }
 
 std::string RemoteVehicle::poseTopic() const { return poseEstimateTopic(robot_id_); }
+
+absl::Status RemoteVehicle::readFlightStatus(Held<v1::FlightStatus>* out) const {
+  if (!watcher_) return flightStatus().status();
+  auto status = watcher_->latestShared();
+  if (!status.ok()) return status.status();
+  out->hold(*std::move(status));
+  return absl::OkStatus();
+}
+
+template <class T>
+bool RemoteVehicle::holdCached(const std::shared_ptr<const T>& cache, Held<T>* out) {
+  std::shared_ptr<const T> sample;
+  {
+    std::lock_guard lock(mutex_);
+    sample = cache;
+  }
+  if (!sample) return false;
+  out->hold(std::move(sample));
+  return true;
+}
+
+absl::Status RemoteVehicle::readPoseEstimate(Held<v1::PoseStamped>* out) {
+  if (holdCached(pose_, out)) return absl::OkStatus();
+  return holdInto(poseEstimate(), out);
+}
+
+absl::Status RemoteVehicle::readTwistEstimate(Held<v1::TwistStamped>* out) {
+  if (holdCached(twist_, out)) return absl::OkStatus();
+  return holdInto(twistEstimate(), out);
+}
 
 }  // namespace behaviorlib::flight

@@ -29,11 +29,8 @@ void WindWatch::observe(const v1::FlightStatus& status, Vehicle& vehicle) {
     estimator_.reset();
     return;
   }
-  auto pose = vehicle.poseEstimate();
-  if (!pose.ok()) return;
-  auto twist = vehicle.twistEstimate();
-  if (!twist.ok()) return;
-  observe(status, *pose, *twist);
+  if (!vehicle.readPoseEstimate(&pose_).ok() || !vehicle.readTwistEstimate(&twist_).ok()) return;
+  observe(status, *pose_, *twist_);
 }
 
 double WindWatch::performance() const {

@@ -33,11 +33,11 @@ Situation CommanderSupport::situationBefore(TimePoint now, const std::string& be
 }
 
 Situation CommanderSupport::situationActive() const {
-  Situation situation = flight::activeFlightSituation(status_, nullptr, settings_, true);
-  if (situation.feasible && !flight::flying(status_.state())) {
+  Situation situation = flight::activeFlightSituation(*status_, nullptr, settings_, true);
+  if (situation.feasible && !flight::flying(status_->state())) {
     return Situation::infeasible(v1::SITUATION_REASON_FLIGHT_STATE,
                                  "the vehicle is no longer flying: the platform reports " +
-                                     platform::flightStateName(status_.state()));
+                                     platform::flightStateName(status_->state()));
   }
   wind_.apply(&situation);
   return situation;
@@ -51,13 +51,9 @@ absl::Status CommanderSupport::begin(const std::string& holder,
     vehicle_.followEstimate(false);
     return status;
   };
-  auto pose = vehicle_.poseEstimate();
-  if (!pose.ok()) return fail(pose.status());
-  auto twist = vehicle_.twistEstimate();
-  if (!twist.ok()) return fail(twist.status());
-  pose_ = *pose;
-  twist_ = *twist;
-  state_ = stateOf(pose_, twist_);
+  if (absl::Status s = vehicle_.readPoseEstimate(&pose_); !s.ok()) return fail(s);
+  if (absl::Status s = vehicle_.readTwistEstimate(&twist_); !s.ok()) return fail(s);
+  state_ = stateOf(*pose_, *twist_);
   if (check) {
     if (absl::Status s = check(); !s.ok()) return fail(s);
   }
@@ -80,8 +76,8 @@ std::optional<std::string> CommanderSupport::checkProcesses(TimePoint now) {
                                                &status_, &pose_, &twist_)) {
     return problem;
   }
-  state_ = stateOf(pose_, twist_);
-  wind_.observe(status_, pose_, twist_);
+  state_ = stateOf(*pose_, *twist_);
+  wind_.observe(*status_, *pose_, *twist_);
   if (lease_) {
     if (absl::Status s = lease_->status(); !s.ok()) return std::string(s.message());
   }

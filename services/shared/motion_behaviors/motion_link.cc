@@ -47,8 +47,9 @@ void RemoteMotionLink::follow(bool follow, const std::string& topic, Followed<T>
     followed->subscription = channel_->subscribeTyped<T>(
         topic, {.mode = v1::DELIVERY_MODE_LATEST, .send_latest_first = true},
         [this, followed](const T& sample) {
+          auto latest = std::make_shared<const T>(sample);
           std::lock_guard inner(mutex_);
-          followed->latest = sample;
+          followed->latest.swap(latest);  // the old one is freed outside the lock
         });
     return;
   }
@@ -63,12 +64,12 @@ void RemoteMotionLink::followReferences(bool follow) {
 
 void RemoteMotionLink::followStatus(bool follow) { this->follow(follow, statusTopic(), &status_); }
 
-std::optional<v1::MotionReference> RemoteMotionLink::latestReference() {
+std::shared_ptr<const v1::MotionReference> RemoteMotionLink::latestReference() {
   std::lock_guard lock(mutex_);
   return references_.latest;
 }
 
-std::optional<v1::MotionControlStatus> RemoteMotionLink::latestStatus() {
+std::shared_ptr<const v1::MotionControlStatus> RemoteMotionLink::latestStatus() {
   std::lock_guard lock(mutex_);
   return status_.latest;
 }

@@ -55,11 +55,11 @@ Situation ReferenceSupport::situationBefore(TimePoint now, const std::string& be
 }
 
 Situation ReferenceSupport::situationActive() const {
-  Situation situation = flight::activeFlightSituation(status_, nullptr, settings_.flight, true);
-  if (situation.feasible && !flight::flying(status_.state())) {
+  Situation situation = flight::activeFlightSituation(*status_, nullptr, settings_.flight, true);
+  if (situation.feasible && !flight::flying(status_->state())) {
     return Situation::infeasible(v1::SITUATION_REASON_FLIGHT_STATE,
                                  "the vehicle is no longer flying: the platform reports " +
-                                     platform::flightStateName(status_.state()));
+                                     platform::flightStateName(status_->state()));
   }
   wind_.apply(&situation);
   return situation;
@@ -69,19 +69,13 @@ absl::Status ReferenceSupport::begin(TimePoint now, const std::string& source) {
   vehicle_.followEstimate(true);
   link_.followStatus(true);
   active_ = true;
-  auto pose = vehicle_.poseEstimate();
-  if (!pose.ok()) {
-    end();
-    return pose.status();
+  for (absl::Status s : {vehicle_.readPoseEstimate(&pose_), vehicle_.readTwistEstimate(&twist_)}) {
+    if (!s.ok()) {
+      end();
+      return s;
+    }
   }
-  auto twist = vehicle_.twistEstimate();
-  if (!twist.ok()) {
-    end();
-    return twist.status();
-  }
-  pose_ = *pose;
-  twist_ = *twist;
-  state_ = stateOf(pose_, twist_);
+  state_ = stateOf(*pose_, *twist_);
   source_ = source;
   began_ = now;
   last_followed_ = now;
@@ -102,8 +96,8 @@ std::optional<std::string> ReferenceSupport::checkProcesses(TimePoint now) {
                                                &status_, &pose_, &twist_)) {
     return problem;
   }
-  state_ = stateOf(pose_, twist_);
-  wind_.observe(status_, pose_, twist_);
+  state_ = stateOf(*pose_, *twist_);
+  wind_.observe(*status_, *pose_, *twist_);
   return checkController(now);
 }
 

@@ -27,9 +27,15 @@ absl::StatusOr<v1::FlightStatus> FlightStateWatcher::latest() const {
   return error_;
 }
 
+absl::StatusOr<std::shared_ptr<const v1::FlightStatus>> FlightStateWatcher::latestShared() const {
+  std::lock_guard lock(mutex_);
+  if (connected_ && latest_) return latest_;
+  return error_;
+}
+
 bool FlightStateWatcher::connected() const {
   std::lock_guard lock(mutex_);
-  return connected_ && latest_.has_value();
+  return connected_ && latest_ != nullptr;
 }
 
 uint64_t FlightStateWatcher::receivedCount() const {
@@ -39,7 +45,7 @@ uint64_t FlightStateWatcher::receivedCount() const {
 
 bool FlightStateWatcher::waitConnected(std::chrono::milliseconds timeout) const {
   std::unique_lock lock(mutex_);
-  return cv_.wait_for(lock, timeout, [this] { return connected_ && latest_.has_value(); });
+  return cv_.wait_for(lock, timeout, [this] { return connected_ && latest_ != nullptr; });
 }
 
 void FlightStateWatcher::run() {
@@ -58,8 +64,9 @@ void FlightStateWatcher::run() {
     auto reader = client_.stub().WatchFlightState(&context, request);
     v1::WatchFlightStateResponse message;
     while (reader->Read(&message)) {
+      auto status = std::make_shared<const v1::FlightStatus>(std::move(*message.mutable_status()));
       std::lock_guard lock(mutex_);
-      latest_ = message.status();
+      latest_ = std::move(status);
       connected_ = true;
       ++received_;
       backoff = kInitialBackoff;

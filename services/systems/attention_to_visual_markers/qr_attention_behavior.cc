@@ -376,8 +376,8 @@ Situation QrAttentionBehavior::checkSituation() {
                                  pose_topic + " does not carry a PoseStamped");
   }
   // Before activation the channel read itself takes time: twice the limit.
-  if (auto stale = flight::staleness("the pose estimate on " + pose_topic, estimate.header(), now(),
-                                     2 * pose_timeout_)) {
+  if (auto stale = flight::staleness([&] { return "the pose estimate on " + pose_topic; },
+                                     estimate.header(), now(), 2 * pose_timeout_)) {
     return Situation::infeasible(v1::SITUATION_REASON_INPUT_STALE,
                                  *stale + ": is a self-localization behavior active?");
   }

@@ -114,8 +114,8 @@ absl::StatusOr<Eigen::Vector3d> EstimatePositionWithLinearSpeedBehavior::initial
   if (!sample->sample().UnpackTo(&pose)) {
     return absl::FailedPreconditionError(topic + " does not carry behaviorlib.v1.PoseStamped");
   }
-  if (auto stale = flight::staleness("the latest pose estimate on " + topic, pose.header(), at,
-                                     max_initial_estimate_age_)) {
+  if (auto stale = flight::staleness([&] { return "the latest pose estimate on " + topic; },
+                                     pose.header(), at, max_initial_estimate_age_)) {
     return absl::FailedPreconditionError(
         *stale + ": too old to start from; give initial_x_m, initial_y_m and initial_z_m");
   }

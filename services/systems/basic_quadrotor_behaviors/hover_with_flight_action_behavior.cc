@@ -51,7 +51,7 @@ void HoverWithFlightActionControlBehavior::onDeactivate() {
 
 Situation HoverWithFlightActionControlBehavior::checkSituation() {
   if (active_) {
-    Situation situation = flight::activeFlightSituation(status_, lease_.get(), settings_, true);
+    Situation situation = flight::activeFlightSituation(*status_, lease_.get(), settings_, true);
     wind_.apply(&situation);
     return situation;
   }
@@ -73,14 +73,14 @@ Situation HoverWithFlightActionControlBehavior::checkSituation() {
 }
 
 Verdict HoverWithFlightActionControlBehavior::checkProgress() {
-  const auto state = status_.state();
+  const auto state = status_->state();
   if (state == v1::FLIGHT_STATE_HOVERING) {
     seen_hovering_ = true;
   } else if (seen_hovering_) {
     return Verdict::finish("the vehicle left the hover: the platform reports " +
                            platform::flightStateName(state));
   }
-  const auto& p = pose_.pose().position_m();
+  const auto& p = pose_->pose().position_m();
   const double drift =
       std::sqrt((p.x() - hover_x_) * (p.x() - hover_x_) + (p.y() - hover_y_) * (p.y() - hover_y_) +
                 (p.z() - hover_z_) * (p.z() - hover_z_));
@@ -94,12 +94,12 @@ Verdict HoverWithFlightActionControlBehavior::checkProgress() {
 }
 
 Verdict HoverWithFlightActionControlBehavior::checkProcesses() {
-  v1::TwistStamped unused;
+  flight::Held<v1::TwistStamped> unused;
   if (auto problem = flight::checkFlightInputs(vehicle_, now(), settings_, lease_.get(), false,
                                                &status_, &pose_, &unused)) {
     return Verdict::finish(*problem);
   }
-  wind_.observe(status_, vehicle_);
+  wind_.observe(*status_, vehicle_);
   return Verdict::keepGoing();
 }
 

@@ -65,7 +65,7 @@ void LandBehavior::onResume() {
 
 Situation LandBehavior::checkSituation() {
   if (active_) {
-    Situation situation = flight::activeFlightSituation(status_, lease_.get(), settings_, false);
+    Situation situation = flight::activeFlightSituation(*status_, lease_.get(), settings_, false);
     wind_.apply(&situation);
     return situation;
   }
@@ -87,13 +87,13 @@ Situation LandBehavior::checkSituation() {
 Verdict LandBehavior::checkGoal() {
   // The vehicle was in the air when LAND was activated (checkSituation), so
   // LANDED is always news, even if the LANDING in between was not seen.
-  if (status_.state() != v1::FLIGHT_STATE_LANDED) return Verdict::keepGoing();
-  return Verdict::finish("landed at altitude " + flight::fixed2(pose_.pose().position_m().z()) +
+  if (status_->state() != v1::FLIGHT_STATE_LANDED) return Verdict::keepGoing();
+  return Verdict::finish("landed at altitude " + flight::fixed2(pose_->pose().position_m().z()) +
                          " m");
 }
 
 Verdict LandBehavior::checkProgress() {
-  const auto state = status_.state();
+  const auto state = status_->state();
   // Until LANDING is seen, an airborne state may be the status from before
   // the action (the watcher follows the platform by a few milliseconds).
   if (state == v1::FLIGHT_STATE_LANDING) {
@@ -102,7 +102,7 @@ Verdict LandBehavior::checkProgress() {
     return Verdict::finish("the vehicle stopped landing: the platform reports " +
                            platform::flightStateName(state));
   }
-  const double z = pose_.pose().position_m().z();
+  const double z = pose_->pose().position_m().z();
   descent_.add(now(), z);
   if (descent_.full() && state == v1::FLIGHT_STATE_LANDING) {
     const double descended = -descent_.change();
@@ -117,12 +117,12 @@ Verdict LandBehavior::checkProgress() {
 }
 
 Verdict LandBehavior::checkProcesses() {
-  v1::TwistStamped unused;
+  flight::Held<v1::TwistStamped> unused;
   if (auto problem = flight::checkFlightInputs(vehicle_, now(), settings_, lease_.get(), false,
                                                &status_, &pose_, &unused)) {
     return Verdict::finish(*problem);
   }
-  wind_.observe(status_, vehicle_);
+  wind_.observe(*status_, vehicle_);
   if (!command_error_.empty()) return Verdict::finish(command_error_);
   return Verdict::keepGoing();
 }

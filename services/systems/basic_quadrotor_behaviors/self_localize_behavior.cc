@@ -119,8 +119,8 @@ Situation SelfLocalizeWithGroundTruthBehavior::checkSituation() {
     return Situation::infeasible(v1::SITUATION_REASON_INPUT_INVALID,
                                  topic + " does not carry behaviorlib.v1.PoseStamped");
   }
-  if (auto stale =
-          flight::staleness("the ground truth on " + topic, pose.header(), now(), timeout_)) {
+  if (auto stale = flight::staleness([&] { return "the ground truth on " + topic; }, pose.header(),
+                                     now(), timeout_)) {
     return Situation::infeasible(v1::SITUATION_REASON_INPUT_STALE,
                                  *stale + "; is the simulator running?");
   }
@@ -147,9 +147,9 @@ Verdict SelfLocalizeWithGroundTruthBehavior::checkProcesses() {
     }
     return Verdict::keepGoing();
   }
-  if (auto stale =
-          flight::staleness("the ground truth on " + flight::groundTruthPoseTopic(robotId()),
-                            last_pose_->header(), t, timeout_)) {
+  if (auto stale = flight::staleness(
+          [&] { return "the ground truth on " + flight::groundTruthPoseTopic(robotId()); },
+          last_pose_->header(), t, timeout_)) {
     return Verdict::finish(*stale);
   }
   return Verdict::keepGoing();

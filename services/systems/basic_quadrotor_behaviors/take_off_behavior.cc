@@ -71,7 +71,7 @@ absl::Status TakeOffBehavior::onActivate() {
 void TakeOffBehavior::onExecute() {
   // Setpoints are accepted once the take-off action has ended (HOVERING).
   if (!lease_) return;
-  const auto state = status_.state();
+  const auto state = status_->state();
   if (state != v1::FLIGHT_STATE_HOVERING && state != v1::FLIGHT_STATE_FLYING) return;
   if (commanded_z_ == target_z_) {
     correctAltitude();
@@ -97,11 +97,11 @@ void TakeOffBehavior::onExecute() {
 void TakeOffBehavior::correctAltitude() {
   constexpr double kGainPerS = 1.0;
   constexpr double kMaxSpeedMS = 0.3;
-  const double to_go = target_z_ - pose_.pose().position_m().z();
+  const double to_go = target_z_ - pose_->pose().position_m().z();
   if (!correcting_) {
-    const double vz = twist_.twist().linear_m_s().z();
+    const double vz = twist_->twist().linear_m_s().z();
     const bool still =
-        status_.state() == v1::FLIGHT_STATE_HOVERING && std::abs(vz) <= max_vertical_speed_m_s_;
+        status_->state() == v1::FLIGHT_STATE_HOVERING && std::abs(vz) <= max_vertical_speed_m_s_;
     if (!settled_.update(now(), still) || std::abs(to_go) <= altitude_tolerance_m_) return;
     correcting_ = true;
   }
@@ -161,7 +161,7 @@ absl::Status TakeOffBehavior::onModify(const google::protobuf::Message& new_para
 
 Situation TakeOffBehavior::checkSituation() {
   if (active_) {
-    Situation situation = flight::activeFlightSituation(status_, lease_.get(), settings_, false);
+    Situation situation = flight::activeFlightSituation(*status_, lease_.get(), settings_, false);
     wind_.apply(&situation);
     return situation;
   }
@@ -177,9 +177,9 @@ Situation TakeOffBehavior::checkSituation() {
 }
 
 Verdict TakeOffBehavior::checkGoal() {
-  const double z = pose_.pose().position_m().z();
-  const double vz = twist_.twist().linear_m_s().z();
-  const auto state = status_.state();
+  const double z = pose_->pose().position_m().z();
+  const double vz = twist_->twist().linear_m_s().z();
+  const auto state = status_->state();
   const bool holds = (state == v1::FLIGHT_STATE_HOVERING || state == v1::FLIGHT_STATE_FLYING) &&
                      std::abs(z - target_z_) <= altitude_tolerance_m_ &&
                      std::abs(vz) <= max_vertical_speed_m_s_;
@@ -190,7 +190,7 @@ Verdict TakeOffBehavior::checkGoal() {
 }
 
 Verdict TakeOffBehavior::checkProgress() {
-  const auto state = status_.state();
+  const auto state = status_->state();
   if (state == v1::FLIGHT_STATE_TAKING_OFF || state == v1::FLIGHT_STATE_FLYING ||
       state == v1::FLIGHT_STATE_HOVERING) {
     seen_airborne_ = true;
@@ -199,7 +199,7 @@ Verdict TakeOffBehavior::checkProgress() {
     return Verdict::finish("unexpected landing: the platform reports " +
                            platform::flightStateName(state) + " during the take-off");
   }
-  const double z = pose_.pose().position_m().z();
+  const double z = pose_->pose().position_m().z();
   climb_.add(now(), z);
   const double to_go = target_z_ - z;
   // A small overshoot at the end of a fast climb is the autopilot settling,
@@ -225,7 +225,7 @@ Verdict TakeOffBehavior::checkProcesses() {
                                                &status_, &pose_, &twist_)) {
     return Verdict::finish(*problem);
   }
-  wind_.observe(status_, pose_, twist_);
+  wind_.observe(*status_, *pose_, *twist_);
   if (!command_error_.empty()) return Verdict::finish(command_error_);
   return Verdict::keepGoing();
 }

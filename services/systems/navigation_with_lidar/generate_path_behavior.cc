@@ -83,8 +83,8 @@ std::optional<flight::SituationProblem> GeneratePathBehavior::poseProblem() cons
         "no pose estimate on " + mapper_.poseTopic() +
             ": activate a self-localization behavior (SELF_LOCALIZE_WITH_GROUND_TRUTH, ...)"};
   }
-  if (auto stale = flight::staleness("the pose estimate on " + mapper_.poseTopic(), pose->header(),
-                                     now(), pose_timeout_)) {
+  if (auto stale = flight::staleness([&] { return "the pose estimate on " + mapper_.poseTopic(); },
+                                     pose->header(), now(), pose_timeout_)) {
     return flight::SituationProblem{v1::SITUATION_REASON_INPUT_STALE, *stale};
   }
   return std::nullopt;

@@ -110,8 +110,8 @@ Situation InformPositionToRobotsBehavior::checkSituation() {
     return Situation::infeasible(v1::SITUATION_REASON_INPUT_INVALID,
                                  topic + " does not carry behaviorlib.v1.PoseStamped");
   }
-  if (auto stale = flight::staleness("the pose estimate on " + topic, pose.header(), now(),
-                                     2 * pose_timeout_)) {
+  if (auto stale = flight::staleness([&] { return "the pose estimate on " + topic; }, pose.header(),
+                                     now(), 2 * pose_timeout_)) {
     return Situation::infeasible(v1::SITUATION_REASON_INPUT_STALE,
                                  *stale + "; is a self-localization behavior active?");
   }
@@ -132,8 +132,8 @@ Verdict InformPositionToRobotsBehavior::checkProcesses() {
     }
     return Verdict::keepGoing();
   }
-  if (auto stale =
-          flight::staleness("the pose estimate on " + topic, latest_->header(), t, pose_timeout_)) {
+  if (auto stale = flight::staleness([&] { return "the pose estimate on " + topic; },
+                                     latest_->header(), t, pose_timeout_)) {
     return Verdict::finish(*stale);
   }
   return Verdict::keepGoing();

@@ -4,6 +4,7 @@
 // reference, every status) and what they read is whatever the test (or the
 // behaviors) published last, while followed.
 
+#include <memory>
 #include <mutex>
 #include <optional>
 #include <string>
@@ -33,15 +34,15 @@ class FakeMotionLink final : public MotionLink {
     std::lock_guard lock(mutex_);
     status_followers_ += follow ? 1 : -1;
   }
-  std::optional<v1::MotionReference> latestReference() override {
+  std::shared_ptr<const v1::MotionReference> latestReference() override {
     std::lock_guard lock(mutex_);
-    if (reference_followers_ <= 0 || references_.empty()) return std::nullopt;
-    return references_.back();
+    if (reference_followers_ <= 0 || references_.empty()) return nullptr;
+    return std::make_shared<const v1::MotionReference>(references_.back());
   }
-  std::optional<v1::MotionControlStatus> latestStatus() override {
+  std::shared_ptr<const v1::MotionControlStatus> latestStatus() override {
     std::lock_guard lock(mutex_);
-    if (status_followers_ <= 0 || statuses_.empty()) return std::nullopt;
-    return statuses_.back();
+    if (status_followers_ <= 0 || statuses_.empty()) return nullptr;
+    return std::make_shared<const v1::MotionControlStatus>(statuses_.back());
   }
   std::string referenceTopic() const override { return "robots/drone1/motion_reference"; }
   std::string statusTopic() const override { return "robots/drone1/motion_control/status"; }

@@ -30,6 +30,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/functional/function_ref.h"
 #include "absl/status/status.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
@@ -92,9 +93,11 @@ struct SituationProblem {
 void refuseFirst(Situation* situation, v1::SituationReason code, std::string reason);
 
 /// A fresh sample's problem: "pose estimate on <topic> is 0.4 s old (limit
-/// 0.25 s)"; nullopt when fresh.
-std::optional<std::string> staleness(const std::string& what, const v1::Header& header,
-                                     TimePoint now, Duration limit);
+/// 0.25 s)"; nullopt when fresh. `what` names the input; it is called only
+/// for a stale one, so that a check run every tick builds no string:
+///   staleness([&] { return "the pose estimate on " + topic; }, header, now, limit)
+std::optional<std::string> staleness(absl::FunctionRef<std::string()> what,
+                                     const v1::Header& header, TimePoint now, Duration limit);
 
 /// A sensor topic robots/{robot}/{name} that a behavior needs fresh before it
 /// is activated, `what` naming the sensor in messages ("IMU", "lidar").
@@ -125,13 +128,16 @@ void estimateMessages(const v1::Header& header, const std::string& robot_id, uin
 /// checkProcesses() of the flight behaviors: the flight controller answers
 /// (flight status known), the pose (and, if `need_twist`, twist) estimate is
 /// fresh on the behavior clock, and the lease (if any) is still renewed. The
-/// first problem found, as a message; nullopt when all is well. Fills
-/// `status`, `pose`, `twist` on success.
+/// first problem found, as a message; nullopt when all is well. Takes the
+/// latest into `status`, `pose`, `twist` (shared, not copied: it runs every
+/// tick): on a problem, those read before it (a stale pose included) hold
+/// the latest samples, the others are left as they were.
 std::optional<std::string> checkFlightInputs(Vehicle& vehicle, TimePoint now,
                                              const FlightSettings& settings,
                                              const VehicleLease* lease, bool need_twist,
-                                             v1::FlightStatus* status, v1::PoseStamped* pose,
-                                             v1::TwistStamped* twist);
+                                             Held<v1::FlightStatus>* status,
+                                             Held<v1::PoseStamped>* pose,
+                                             Held<v1::TwistStamped>* twist);
 
 /// checkSituation() reasons shared by the flight behaviors before they are
 /// activated: a flight controller that answers, a fresh pose estimate (and

@@ -33,10 +33,17 @@ class RemoteVehicle final : public Vehicle {
   absl::StatusOr<v1::PoseStamped> poseEstimate() override;
   absl::StatusOr<v1::TwistStamped> twistEstimate() override;
   std::string poseTopic() const override;
+  absl::Status readFlightStatus(Held<v1::FlightStatus>* out) const override;
+  absl::Status readPoseEstimate(Held<v1::PoseStamped>* out) override;
+  absl::Status readTwistEstimate(Held<v1::TwistStamped>* out) override;
 
  private:
   template <class T>
-  absl::StatusOr<T> latest(const std::string& topic, std::optional<T>* cache);
+  absl::StatusOr<T> latest(const std::string& topic, std::shared_ptr<const T>* cache);
+  // The followed estimate shared into `out` (true), or false when none is
+  // cached (the caller reads the channel).
+  template <class T>
+  bool holdCached(const std::shared_ptr<const T>& cache, Held<T>* out);
 
   const std::string robot_id_;
   const Clock& clock_;
@@ -46,8 +53,9 @@ class RemoteVehicle final : public Vehicle {
 
   std::mutex mutex_;
   int followers_ = 0;
-  std::optional<v1::PoseStamped> pose_;
-  std::optional<v1::TwistStamped> twist_;
+  // The followed estimates, each sample a new one (readers may hold the old).
+  std::shared_ptr<const v1::PoseStamped> pose_;
+  std::shared_ptr<const v1::TwistStamped> twist_;
   std::unique_ptr<channel::Subscription> pose_subscription_;
   std::unique_ptr<channel::Subscription> twist_subscription_;
 };

@@ -43,6 +43,23 @@ class VehicleLease {
   virtual absl::Status release() = 0;
 };
 
+/// A vehicle input as a behavior keeps it between ticks: the latest sample,
+/// shared with the cache that received it and never changed, so taking the
+/// newest costs a reference count where a copy would allocate every
+/// sub-message and string again. Reads as the message (`status_->state()`,
+/// `*pose_`); the empty message until the first sample.
+template <class T>
+class Held {
+ public:
+  const T& operator*() const { return sample_ ? *sample_ : T::default_instance(); }
+  const T* operator->() const { return &**this; }
+  void hold(std::shared_ptr<const T> sample) { sample_ = std::move(sample); }
+  void reset() { sample_.reset(); }
+
+ private:
+  std::shared_ptr<const T> sample_;
+};
+
 class Vehicle {
  public:
   virtual ~Vehicle() = default;
@@ -71,6 +88,26 @@ class Vehicle {
   virtual absl::StatusOr<v1::TwistStamped> twistEstimate() = 0;
   /// The pose estimate's topic, for messages.
   virtual std::string poseTopic() const = 0;
+
+  /// The same three reads, shared into `out` (Held): what a behavior reads
+  /// every tick. `out` is left as it was on an error.
+  virtual absl::Status readFlightStatus(Held<v1::FlightStatus>* out) const {
+    return holdInto(flightStatus(), out);
+  }
+  virtual absl::Status readPoseEstimate(Held<v1::PoseStamped>* out) {
+    return holdInto(poseEstimate(), out);
+  }
+  virtual absl::Status readTwistEstimate(Held<v1::TwistStamped>* out) {
+    return holdInto(twistEstimate(), out);
+  }
+
+ protected:
+  template <class T>
+  static absl::Status holdInto(absl::StatusOr<T> read, Held<T>* out) {
+    if (!read.ok()) return read.status();
+    out->hold(std::make_shared<const T>(*std::move(read)));
+    return absl::OkStatus();
+  }
 };
 
 /// A header stamp as a time on the behaviors' clock.

@@ -53,6 +53,9 @@ class WindWatch {
 
  private:
   motion::WindEstimator estimator_;
+  // observe(status, vehicle)'s reads.
+  Held<v1::PoseStamped> pose_;
+  Held<v1::TwistStamped> twist_;
   double calm_wind_m_s_ = 2.0;
   double max_wind_m_s_ = 10.0;
 };

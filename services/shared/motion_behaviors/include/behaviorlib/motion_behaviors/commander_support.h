@@ -81,8 +81,8 @@ class CommanderSupport {
 
   const motion::StateEstimate& state() const { return state_; }
   double yawRad() const { return state_.yawRad(); }
-  const v1::PoseStamped& pose() const { return pose_; }
-  const v1::TwistStamped& twist() const { return twist_; }
+  const v1::PoseStamped& pose() const { return *pose_; }
+  const v1::TwistStamped& twist() const { return *twist_; }
   const flight::WindWatch& wind() const { return wind_; }
 
  private:
@@ -90,9 +90,9 @@ class CommanderSupport {
   flight::FlightSettings settings_;
   std::unique_ptr<flight::VehicleLease> lease_;
   std::string failure_;
-  v1::FlightStatus status_;
-  v1::PoseStamped pose_;
-  v1::TwistStamped twist_;
+  flight::Held<v1::FlightStatus> status_;
+  flight::Held<v1::PoseStamped> pose_;
+  flight::Held<v1::TwistStamped> twist_;
   motion::StateEstimate state_;
   flight::WindWatch wind_;
 };

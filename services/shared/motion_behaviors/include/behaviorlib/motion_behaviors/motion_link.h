@@ -8,7 +8,7 @@
 //
 //   RemoteMotionLink link(context.channel, context.robot_id);
 //   link.followReferences(true);                 // while a controller is active
-//   std::optional<v1::MotionReference> r = link.latestReference();
+//   std::shared_ptr<const v1::MotionReference> r = link.latestReference();
 //   link.publishStatus(status);
 
 #include <memory>
@@ -35,9 +35,10 @@ class MotionLink {
   /// is kept by a subscription; latestReference() (latestStatus()) returns it.
   virtual void followReferences(bool follow) = 0;
   virtual void followStatus(bool follow) = 0;
-  /// The newest sample seen since following began; nullopt before any.
-  virtual std::optional<v1::MotionReference> latestReference() = 0;
-  virtual std::optional<v1::MotionControlStatus> latestStatus() = 0;
+  /// The newest sample seen since following began; null before any. Shared,
+  /// never changed (a newer sample replaces it): read every tick, no copy.
+  virtual std::shared_ptr<const v1::MotionReference> latestReference() = 0;
+  virtual std::shared_ptr<const v1::MotionControlStatus> latestStatus() = 0;
 
   virtual std::string referenceTopic() const = 0;
   virtual std::string statusTopic() const = 0;
@@ -54,8 +55,8 @@ class RemoteMotionLink final : public MotionLink {
   absl::Status publishStatus(const v1::MotionControlStatus& status) override;
   void followReferences(bool follow) override;
   void followStatus(bool follow) override;
-  std::optional<v1::MotionReference> latestReference() override;
-  std::optional<v1::MotionControlStatus> latestStatus() override;
+  std::shared_ptr<const v1::MotionReference> latestReference() override;
+  std::shared_ptr<const v1::MotionControlStatus> latestStatus() override;
   std::string referenceTopic() const override;
   std::string statusTopic() const override;
 
@@ -65,7 +66,7 @@ class RemoteMotionLink final : public MotionLink {
   template <class T>
   struct Followed {
     int followers = 0;
-    std::optional<T> latest;
+    std::shared_ptr<const T> latest;
     std::unique_ptr<channel::Subscription> subscription;
   };
   template <class T>

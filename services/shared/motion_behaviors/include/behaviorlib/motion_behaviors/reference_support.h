@@ -103,7 +103,7 @@ class ReferenceSupport {
   /// The estimate read by the last begin() or checkProcesses().
   const motion::StateEstimate& state() const { return state_; }
   double yawRad() const { return state_.yawRad(); }
-  const v1::FlightStatus& flightStatus() const { return status_; }
+  const v1::FlightStatus& flightStatus() const { return *status_; }
   /// The wind estimate (fed by checkProcesses()).
   const flight::WindWatch& wind() const { return wind_; }
   /// The controller that last followed this activation's references ("" if none).
@@ -123,9 +123,9 @@ class ReferenceSupport {
   TimePoint last_followed_{};
   std::string controller_;
   uint64_t seq_ = 0;
-  v1::FlightStatus status_;
-  v1::PoseStamped pose_;
-  v1::TwistStamped twist_;
+  flight::Held<v1::FlightStatus> status_;
+  flight::Held<v1::PoseStamped> pose_;
+  flight::Held<v1::TwistStamped> twist_;
   motion::StateEstimate state_;
   flight::WindWatch wind_;
 };

@@ -14,6 +14,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <functional>
+#include <memory>
 #include <mutex>
 #include <optional>
 #include <thread>
@@ -36,6 +37,8 @@ class FlightStateWatcher {
   /// The latest status while the stream is up; otherwise UNAVAILABLE (or
   /// the code the stream ended with) saying why there is none.
   absl::StatusOr<v1::FlightStatus> latest() const;
+  /// The same, shared: no copy (a reader every tick takes it so).
+  absl::StatusOr<std::shared_ptr<const v1::FlightStatus>> latestShared() const;
   /// Whether a stream is up and has delivered the current status.
   bool connected() const;
   /// Statuses received so far (over all streams).
@@ -52,7 +55,7 @@ class FlightStateWatcher {
   bool stopping_ = false;
   grpc::ClientContext* context_ = nullptr;  // the running stream's, for cancel
   bool connected_ = false;
-  std::optional<v1::FlightStatus> latest_;
+  std::shared_ptr<const v1::FlightStatus> latest_;  // replaced, never changed
   absl::Status error_;
   uint64_t received_ = 0;
   std::thread thread_;

@@ -52,8 +52,8 @@ class HoverWithFlightActionControlBehavior final
   std::unique_ptr<flight::VehicleLease> lease_;
   double hover_x_ = 0, hover_y_ = 0, hover_z_ = 0;
   bool seen_hovering_ = false;
-  v1::FlightStatus status_;
-  v1::PoseStamped pose_;
+  flight::Held<v1::FlightStatus> status_;
+  flight::Held<v1::PoseStamped> pose_;
 };
 
 }  // namespace behaviorlib::basic

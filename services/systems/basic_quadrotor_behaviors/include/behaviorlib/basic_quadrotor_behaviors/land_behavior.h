@@ -55,8 +55,8 @@ class LandBehavior final : public Behavior<v1::LandParameters> {
   std::unique_ptr<flight::VehicleLease> lease_;
   bool seen_landing_ = false;
   std::string command_error_;
-  v1::FlightStatus status_;
-  v1::PoseStamped pose_;
+  flight::Held<v1::FlightStatus> status_;
+  flight::Held<v1::PoseStamped> pose_;
 };
 
 }  // namespace behaviorlib::basic

@@ -113,8 +113,8 @@ std::optional<flight::SituationProblem> freshSampleProblem(channel::ChannelClien
     return flight::SituationProblem{v1::SITUATION_REASON_INPUT_INVALID,
                                     topic + " does not carry " + T::descriptor()->full_name()};
   }
-  if (auto stale =
-          flight::staleness("the latest sample on " + topic, message.header(), now, limit)) {
+  if (auto stale = flight::staleness([&] { return "the latest sample on " + topic; },
+                                     message.header(), now, limit)) {
     return flight::SituationProblem{v1::SITUATION_REASON_INPUT_STALE, *stale};
   }
   return std::nullopt;

@@ -79,9 +79,9 @@ class TakeOffBehavior final : public Behavior<v1::TakeOffParameters> {
   bool correcting_ = false;
   std::string command_error_;
   // Inputs read by checkProcesses() for the checks after it.
-  v1::FlightStatus status_;
-  v1::PoseStamped pose_;
-  v1::TwistStamped twist_;
+  flight::Held<v1::FlightStatus> status_;
+  flight::Held<v1::PoseStamped> pose_;
+  flight::Held<v1::TwistStamped> twist_;
 };
 
 /// Yaw (rad, CCW from +x) of a quaternion (w, x, y, z).

@@ -321,10 +321,7 @@ class LaunchedStack:
         """Starts the stack with the simulator's --seed `seed`."""
         os.makedirs(self.run_dir, exist_ok=True)
         self.seed = seed
-        argv = [sys.executable, LAUNCHER, "--build-dir", self.args.build_dir,
-                "--run-dir", self.run_dir, "--time-scale", "max", "--enable-fault-injection",
-                "--seed", str(seed), "--no-console", "--robot-id", self.args.robot,
-                *self.args.launcher_args]
+        argv = self.launcher_argv(seed)
         self.log_path = os.path.join(self.run_dir, "launcher.log")
         with open(self.log_path, "w") as log:
             self.process = popen_with_launcher(argv, stdout=log, stderr=subprocess.STDOUT,
@@ -351,6 +348,15 @@ class LaunchedStack:
                      if t["labels"].get("job") == "behavior_system"]
         self.systems = [rpc.Client(self._address(name), [BEHAVIOR_SYSTEM]) for name in names]
         self._probes = {}  # client -> a behavior of it
+
+    def launcher_argv(self, seed):
+        """launch.py's command line: serving, in the deterministic mode, with
+        fault injection and the simulator's --seed `seed`, without the
+        console (tests/bench/stack/soak_bench.py starts its stack otherwise)."""
+        return [sys.executable, LAUNCHER, "--build-dir", self.args.build_dir,
+                "--run-dir", self.run_dir, "--time-scale", "max", "--enable-fault-injection",
+                "--seed", str(seed), "--no-console", "--robot-id", self.args.robot,
+                *self.args.launcher_args]
 
     def reset(self, seed):
         """Simulator.Reset with `seed` (time back to 0, the vehicle at its

@@ -11,6 +11,7 @@
 #include "behaviorlib/basic_quadrotor_behaviors/land_behavior.h"
 #include "behaviorlib/basic_quadrotor_behaviors/take_off_behavior.h"
 #include "behaviorlib/behavior_host.h"
+#include "fake_clock_flight.h"
 #include "fake_vehicle.h"
 #include "test_behaviors.h"
 
@@ -45,13 +46,9 @@ class FlightBehaviorsUnitTest : public ::testing::Test {
   }
 
   // Advances the fake clock in 50 ms steps (one tick each at 20 Hz), giving
-  // the worker a moment to tick, until `total` passed or `behavior` ended.
+  // waiting for the worker to tick, until `total` passed or `behavior` ended.
   void fly(Duration total, const BehaviorExecutionManager* behavior) {
-    for (Duration done{0}; done < total; done += milliseconds(50)) {
-      clock_.advance(milliseconds(50));
-      std::this_thread::sleep_for(milliseconds(5));
-      if (behavior->state() == v1::BEHAVIOR_STATE_INACTIVE) return;
-    }
+    behaviorlib::testing::flyOnFakeClock(clock_, host_, total, milliseconds(50), behavior);
   }
 
   // fly()s until `condition` holds, for at most `limit` of the fake clock:

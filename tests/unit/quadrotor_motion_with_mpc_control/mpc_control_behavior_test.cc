@@ -12,6 +12,7 @@
 #include "behaviorlib/motion_behaviors/motion_control_behavior.h"
 #include "behaviorlib/motion_behaviors/motion_messages.h"
 #include "behaviorlib/v1/behaviors/quadrotor_motion_with_mpc_control.pb.h"
+#include "fake_clock_flight.h"
 #include "fake_motion_link.h"
 #include "fake_vehicle.h"
 #include "test_behaviors.h"
@@ -42,12 +43,7 @@ class MpcControlUnitTest : public ::testing::Test {
   // `total` passed or `behavior` ended; `each` runs after every step.
   void fly(Duration total, const BehaviorExecutionManager* behavior,
            const std::function<void()>& each = nullptr) {
-    for (Duration done{0}; done < total; done += milliseconds(10)) {
-      clock_.advance(milliseconds(10));
-      std::this_thread::sleep_for(milliseconds(1));
-      if (each) each();
-      if (behavior->state() == v1::BEHAVIOR_STATE_INACTIVE) return;
-    }
+    behaviorlib::testing::flyOnFakeClock(clock_, host_, total, milliseconds(10), behavior, each);
   }
 
   FakeClock clock_;

@@ -15,6 +15,7 @@
 #include "behaviorlib/motion_behaviors/motion_messages.h"
 #include "behaviorlib/motion_behaviors/rotate_behavior.h"
 #include "behaviorlib/v1/behaviors/quadrotor_motion_with_pid_control.pb.h"
+#include "fake_clock_flight.h"
 #include "fake_motion_link.h"
 #include "fake_vehicle.h"
 #include "test_behaviors.h"
@@ -125,16 +126,11 @@ class MotionBehaviorsUnitTest : public ::testing::Test {
   }
 
   // Advances the fake clock in 10 ms steps (one controller tick each),
-  // letting the workers tick, until `total` passed or `behavior` ended;
+  // waiting for the workers to tick, until `total` passed or `behavior` ended;
   // `each` runs after every step.
   void fly(Duration total, const BehaviorExecutionManager* behavior,
            const std::function<void()>& each = nullptr) {
-    for (Duration done{0}; done < total; done += milliseconds(10)) {
-      clock_.advance(milliseconds(10));
-      std::this_thread::sleep_for(milliseconds(1));
-      if (each) each();
-      if (behavior->state() == v1::BEHAVIOR_STATE_INACTIVE) return;
-    }
+    behaviorlib::testing::flyOnFakeClock(clock_, host_, total, milliseconds(10), behavior, each);
   }
 
   std::unique_ptr<v1::FollowPathParameters> line(double x) {

@@ -9,6 +9,7 @@
 #include <thread>
 
 #include "behaviorlib/behavior_host.h"
+#include "fake_clock_flight.h"
 #include "fake_vehicle.h"
 #include "test_behaviors.h"
 
@@ -35,12 +36,7 @@ class PlatformBehaviorsUnitTest : public ::testing::Test {
   // 50 ms steps (one tick each at 20 Hz); `each` runs after every step.
   void fly(Duration total, const BehaviorExecutionManager* behavior,
            const std::function<void()>& each = nullptr) {
-    for (Duration done{0}; done < total; done += milliseconds(50)) {
-      clock_.advance(milliseconds(50));
-      std::this_thread::sleep_for(milliseconds(3));
-      if (each) each();
-      if (behavior->state() == v1::BEHAVIOR_STATE_INACTIVE) return;
-    }
+    behaviorlib::testing::flyOnFakeClock(clock_, host_, total, milliseconds(50), behavior, each);
   }
 
   FakeClock clock_;

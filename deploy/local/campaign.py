@@ -124,7 +124,8 @@ from launch import DEMO_MISSION, REPO, FlightRecorder, world_file  # noqa: E402
 from stack import popen_with_launcher, read_ports  # noqa: E402
 
 LAUNCHER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "launch.py")
-# The launcher prints this once every process is up and registered.
+# The launcher prints this once every process is up and the coordinator has its
+# behavior systems UP (launch.py wait_until_up).
 SERVING_LINE = "Ctrl-C stops everything."
 # Launcher options the campaign sets itself (or that it cannot follow).
 OWN_LAUNCHER_OPTIONS = ("--demo", "--time-scale", "--seed", "--run-dir", "--build-dir",

@@ -412,6 +412,22 @@ def start_stack(args, build_dir, stack):
     return simulator, coordinator, systems, console
 
 
+def wait_until_up(coordinator, systems, robots):
+    """Serving: waits until the coordinator has every behavior system UP (a
+    system registers, then the coordinator opens its event stream), so that
+    a mission started once the stack says it serves finds its behaviors. A
+    system not UP within the wait is told, and the stack serves anyway."""
+    client = rpc.Client(coordinator.address, [demo.COORDINATOR])
+    try:
+        for robot in robots:
+            demo.wait_for_systems(client, robot,
+                                  [s.system for s in systems if s.robot_id == robot])
+    except RuntimeError as error:
+        say(f"  warning: {error}")
+    finally:
+        client.close()
+
+
 def run_demo(args, run_dir, simulator, coordinator, systems, state):
     """Flies the missions (every robot's at once); fills `state` with what
     the report needs as it goes (each mission's status, the event and
@@ -767,6 +783,7 @@ def main():
                    for robot in args.missions):
                 status = 1
         else:
+            wait_until_up(coordinator, systems, args.vehicles)
             say("Ctrl-C stops everything.")
             while True:
                 supervisor.check()

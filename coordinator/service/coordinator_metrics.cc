@@ -57,7 +57,12 @@ CoordinatorMetrics::CoordinatorMetrics(prometheus::Registry& registry)
                          .Help("Safety actions taken, by robot, action (emergency_land, kill, "
                                "land, hover_then_land, hover_and_abort) and trigger (operator, "
                                "battery, geofence, lease_failsafe, controller_failure)")
-                         .Register(registry)) {}
+                         .Register(registry)),
+      missions_retained(gauge(registry, "behaviorlib_coordinator_missions_retained",
+                              "Missions held: running, and ended ones retained")),
+      mission_runners(gauge(registry, "behaviorlib_coordinator_mission_runners",
+                            "Mission runners alive (thread and parsed mission): running "
+                            "missions and those ended since the last start")) {}
 
 void CoordinatorMetrics::missionEnded(const v1::MissionStatus& status) {
   std::string outcome = "failed";

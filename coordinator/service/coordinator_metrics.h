@@ -43,6 +43,12 @@ struct CoordinatorMetrics {
   prometheus::Family<prometheus::Counter>& missions_finished;
   /// Safety actions, by robot, action and trigger.
   prometheus::Family<prometheus::Counter>& safety_actions;
+  /// Missions the coordinator holds: running, and ended ones retained
+  /// (--max-ended-missions, --max-ended-mission-age-s).
+  prometheus::Gauge& missions_retained;
+  /// Mission runners alive (each with its thread and parsed mission): the
+  /// running missions, plus those that ended since the last start.
+  prometheus::Gauge& mission_runners;
 
   /// Counts an ended mission in missions_finished.
   void missionEnded(const v1::MissionStatus& status);

@@ -5,7 +5,9 @@
 
 #include <algorithm>
 #include <cstdio>
+#include <iterator>
 #include <limits>
+#include <memory>
 #include <random>
 #include <set>
 #include <utility>
@@ -118,7 +120,7 @@ bool MissionManager::ended(const v1::MissionStatus& status) {
 }
 
 void MissionManager::stop() {
-  std::vector<std::unique_ptr<MissionRunner>> runners;
+  std::vector<std::shared_ptr<MissionRunner>> runners;
   std::vector<std::thread> resumers;
   {
     absl::MutexLock lock(&mutex_);
@@ -126,6 +128,9 @@ void MissionManager::stop() {
     for (auto& [id, entry] : missions_) {
       if (entry.runner) runners.push_back(std::move(entry.runner));
     }
+    runners.insert(runners.end(), std::make_move_iterator(finished_.begin()),
+                   std::make_move_iterator(finished_.end()));
+    finished_.clear();
     resumers.swap(resumers_);
   }
   for (auto& t : resumers) t.join();
@@ -167,10 +172,19 @@ void MissionManager::pruneLocked(std::vector<Entry>* pruned) {
   }
 }
 
+void MissionManager::countLocked() const {
+  if (options_.metrics == nullptr) return;
+  size_t runners = finished_.size();
+  for (const auto& [id, entry] : missions_) runners += entry.runner != nullptr;
+  options_.metrics->missions_retained.Set(static_cast<double>(missions_.size()));
+  options_.metrics->mission_runners.Set(static_cast<double>(runners));
+}
+
 void MissionManager::resumeRestored() {
   std::vector<Entry> pruned;
   absl::MutexLock lock(&mutex_);
   pruneLocked(&pruned);
+  countLocked();
   for (const auto& [id, entry] : missions_) {
     if (ended(entry.status) || entry.runner) continue;
     resumers_.emplace_back([this, id = id] { resumeOne(id); });
@@ -235,8 +249,9 @@ void MissionManager::resumeOne(const std::string& mission_id) {
   Entry& entry = missions_.at(mission_id);
   entry.geofence = spec->geofence;
   entry.runner =
-      std::make_unique<MissionRunner>(std::move(*spec), status, fleet_, beliefs_,
+      std::make_shared<MissionRunner>(std::move(*spec), status, fleet_, beliefs_,
                                       [this](const v1::MissionStatus& s) { onChange(s); });
+  countLocked();
   entry.runner->start();
 }
 
@@ -257,6 +272,9 @@ void MissionManager::onChange(const v1::MissionStatus& status) {
     if (it != missions_.end()) {
       now_ended = !ended(it->second.status) && ended(status);
       it->second.status = status;
+      // Called from the runner's own thread: it cannot be joined here.
+      if (now_ended && it->second.runner) finished_.push_back(std::move(it->second.runner));
+      countLocked();
     }
     for (const auto& [token, listener] : listeners_) {
       if (listener.first == status.mission_id()) listeners.push_back(listener.second);
@@ -333,9 +351,14 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   }
   if (auto s = checkAgainstRegistry(*spec, robot_id); !s.ok()) return s;
 
-  std::vector<Entry> pruned;  // destroyed after the lock is released
+  // Destroyed after the lock is released: the pruned missions, and the
+  // runners of those that ended (joining their threads).
+  std::vector<Entry> pruned;
+  std::vector<std::shared_ptr<MissionRunner>> finished;
   absl::MutexLock lock(&mutex_);
   pruneLocked(&pruned);
+  finished.swap(finished_);
+  countLocked();
   if (stopped_) return shuttingDown();
   for (const auto& [id, entry] : missions_) {
     if (entry.status.robot_id() == robot_id && !ended(entry.status)) {
@@ -351,12 +374,13 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   Entry& entry = missions_[mission_id];
   entry.order = next_order_++;
   entry.geofence = spec->geofence;
-  entry.runner = std::make_unique<MissionRunner>(
+  entry.runner = std::make_shared<MissionRunner>(
       std::move(*spec), mission_id, robot_id, text, fleet_, beliefs_,
       [this](const v1::MissionStatus& s) { onChange(s); });
   entry.status = entry.runner->status();
   if (options_.metrics != nullptr)
     options_.metrics->missions_started.Add({{"robot", robot_id}}).Increment();
+  countLocked();
   entry.runner->start();
   return entry.status;
 }
@@ -403,22 +427,27 @@ std::optional<std::pair<std::string, Geofence>> MissionManager::geofenceOf(
 
 absl::StatusOr<v1::MissionStatus> MissionManager::control(
     const std::string& mission_id, const std::function<absl::Status(MissionRunner&)>& request) {
-  MissionRunner* runner = nullptr;
+  std::shared_ptr<MissionRunner> runner;
   {
     absl::MutexLock lock(&mutex_);
     auto it = missions_.find(mission_id);
     if (it == missions_.end()) return unknownMission(mission_id);  // mutex_ is held
-    runner = it->second.runner.get();
+    runner = it->second.runner;
     if (runner == nullptr) {
-      return errors::withReason(absl::FailedPreconditionError(absl::StrCat(
-                                    "mission '", mission_id, "' is not running here (",
-                                    v1::MissionState_Name(it->second.status.state()), ")")),
-                                v1::MISSION_STATE_CONFLICT, {{"mission_id", mission_id}});
+      const Entry& entry = it->second;
+      const std::string state = v1::MissionState_Name(entry.status.state());
+      return errors::withReason(
+          absl::FailedPreconditionError(
+              ended(entry.status)
+                  ? absl::StrCat("mission '", mission_id, "' already ended (", state, ")")
+                  : absl::StrCat("mission '", mission_id, "' is not running here (", state, ")")),
+          v1::MISSION_STATE_CONFLICT, {{"mission_id", mission_id}});
     }
   }
-  // Runners live until stop(); the call is made without the lock. The
-  // runner refuses a request its state does not allow (pause a finished
-  // mission) with FAILED_PRECONDITION.
+  // The call is made without the lock; the shared pointer keeps the runner
+  // alive through it even if the mission ends meanwhile. The runner refuses
+  // a request its state does not allow (pause a finished mission) with
+  // FAILED_PRECONDITION.
   if (auto s = request(*runner); !s.ok()) {
     if (s.code() == absl::StatusCode::kFailedPrecondition) {
       s = errors::withDefaultReason(std::move(s), v1::MISSION_STATE_CONFLICT);

@@ -114,7 +114,9 @@ class MissionManager {
  private:
   struct Entry {
     v1::MissionStatus status;
-    std::unique_ptr<MissionRunner> runner;
+    // Null once the mission has ended (its runner is then released) or when
+    // it was restored ended from the journal.
+    std::shared_ptr<MissionRunner> runner;
     std::optional<Geofence> geofence;
     uint64_t order = 0;  // start order, for list()
   };
@@ -132,6 +134,8 @@ class MissionManager {
   /// Moves the ended missions beyond the retention limits into `pruned`
   /// (destroyed by the caller, outside the lock).
   void pruneLocked(std::vector<Entry>* pruned) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
+  /// Sets the retained-missions and runners gauges.
+  void countLocked() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
 
   FleetControl& fleet_;
   Registry& registry_;
@@ -146,6 +150,11 @@ class MissionManager {
   uint64_t next_token_ ABSL_GUARDED_BY(mutex_) = 1;
   std::map<uint64_t, std::pair<std::string, Listener>> listeners_ ABSL_GUARDED_BY(mutex_);
   std::vector<std::thread> resumers_ ABSL_GUARDED_BY(mutex_);
+  // Runners of missions that have ended, released from their entries (which
+  // keep only the final status) and destroyed, joining their threads, by the
+  // next start() or by stop(): an ended mission keeps neither its parsed
+  // specification nor its thread.
+  std::vector<std::shared_ptr<MissionRunner>> finished_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib::coordinator

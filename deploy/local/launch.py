@@ -373,6 +373,7 @@ def start_stack(args, build_dir, stack):
         # Supervision stays in wall time: a system starved for over a second
         # on a loaded machine, which this mode tolerates, is not a dead one.
         coordinator_argv += ["--grace-period-s", str(DETERMINISTIC_GRACE_S)]
+    coordinator_argv += args.coordinator_arg or []
     coordinator = stack.start(Process("coordinator", coordinator_argv, stack.run_dir,
                                       "coordinator"))
 
@@ -677,6 +678,10 @@ def main():
                         help="an extra argument for the simulator (repeatable), e.g. "
                              "--simulator-arg=--gate-topics=false to publish every sample as "
                              "before decision 17 (benchmarks)")
+    parser.add_argument("--coordinator-arg", action="append", metavar="ARG",
+                        help="an extra argument for the coordinator (repeatable), e.g. "
+                             "--coordinator-arg=--max-ended-missions=100 (what it retains; "
+                             "`coordinator --help` lists them)")
     parser.add_argument("--enable-fault-injection", action="store_true",
                         help="let Simulator.InjectFailure inject faults")
     parser.add_argument("--tls", action="store_true",

@@ -1119,6 +1119,20 @@ TEST_F(CoordinatorPlansMissionsTest, EndedMissionsBeyondTheRetentionCountAreForg
     get.set_mission_id(id);
     EXPECT_TRUE(unary(*stub_, &v1::Coordinator::Stub::GetMission, get).status.ok()) << id;
   }
+  // An ended mission keeps only its status: quick-2's runner (its thread and
+  // parsed mission) was released when quick-3 started, and quick-3's, ended
+  // since, waits for the next start.
+  const std::string metrics = support::httpGet(coordinator_->metricsPort(), "/metrics");
+  EXPECT_EQ(metricValue(metrics, "behaviorlib_coordinator_missions_retained"), 2.0) << metrics;
+  EXPECT_EQ(metricValue(metrics, "behaviorlib_coordinator_mission_runners"), 1.0) << metrics;
+  for (const std::string id : {"quick-2", "quick-3"}) {
+    auto again = control(&v1::Coordinator::Stub::AbortMission, id);
+    EXPECT_EQ(again.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION)
+        << describe(again.status);
+    EXPECT_NE(again.status.error_message().find("already ended (MISSION_STATE_SUCCEEDED)"),
+              std::string::npos)
+        << describe(again.status);
+  }
 }
 
 // Ended missions are kept by age too (--max-ended-mission-age-s): those that

@@ -5,6 +5,7 @@
 # scripts/run-tests.sh after the other tests; runs alone too:
 #
 #   scripts/container-tests.sh
+#   scripts/container-tests.sh --run CMD ARG...   # CMD instead, with the engine
 #
 # The engine: the one that answers at DOCKER_HOST or the default socket,
 # used as it is and left running with its images. Otherwise this script
@@ -144,6 +145,18 @@ for tag in debian:12 debian:12-slim; do
     --change 'CMD ["bash"]' "$tar" "$tag" > /dev/null
   say "$tag: imported (key $base_key)"
 done
+
+# --- or a command of the caller's, with this engine -------------------------------
+# `scripts/container-tests.sh --run CMD ARG...` runs CMD with DOCKER_HOST set to
+# the engine above and the base images made, instead of the image build and the
+# tests (tests/bench/stack/first_run_bench.py uses it); its exit code is CMD's.
+if [ "${1:-}" = "--run" ]; then
+  shift
+  say "running $* with the engine"
+  rc=0
+  "$@" || rc=$?
+  exit "$rc"
+fi
 
 # --- the image, as the README builds it -------------------------------------------
 say "building behaviorlib:latest ($(elapsed) s so far)"

@@ -27,7 +27,6 @@ container and its log for a look.
 
 import argparse
 import os
-import platform
 import re
 import subprocess
 import sys
@@ -35,6 +34,8 @@ import tempfile
 import time
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", ".."))
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import main_job_bench  # noqa: E402
 
 
 def engine_answers():
@@ -43,17 +44,6 @@ def engine_answers():
                               stderr=subprocess.DEVNULL, timeout=20).returncode == 0
     except (OSError, subprocess.TimeoutExpired):
         return False
-
-
-def cpu_model():
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def phases(stamped):
@@ -114,7 +104,7 @@ def main():
     command = ["scripts/run-demo.sh", *args.launcher_args]
     docker = ["docker", "run", "--name", name, "-v", f"{clone}:/behaviorlib", "-w",
               "/behaviorlib", args.image, *command]
-    print(f"# machine: {os.cpu_count()} CPUs (nproc), {cpu_model()}")
+    print(f"# machine: {main_job_bench.machine()}")
     print(f"# date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
     print(f"# a clean clone of {head} in a container of {args.image}: {' '.join(command)}")
     log_path = os.path.join(work, "first-run.log")

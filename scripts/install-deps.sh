@@ -33,7 +33,8 @@ TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-venv
 
 # The launcher (deploy/local/launch.py) and its report: gRPC reflection from
 # Python, the mission files, the plots, /proc readers.
-DEMO_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-matplotlib procps"
+DEMO_PACKAGES="python3 python3-grpcio python3-protobuf python3-yaml python3-matplotlib procps \
+  python3-venv python3-setuptools python3-wheel"
 
 # npm (with Node.js) installs the pinned tools of tests/api (buf) and
 # tests/deploy (@grafana/schema, TypeScript) into the build tree. Debian's npm

@@ -824,7 +824,7 @@ TEST_F(CoordinatorSafetyTest, AHungControllerLosesItsLeaseAndTheFailsafeRuleHove
 
   const size_t mark = flight_->size();
   const auto frozen_at = SteadyClock::now();
-  ASSERT_EQ(::kill(pid_->pid(), SIGSTOP), 0);
+  ASSERT_TRUE(pid_->freeze()) << pid_->error();
 
   // The platform: the lease expired (1 s of simulated time, once the
   // simulator stopped waiting for the frozen system: 0.25 s of wall time),

@@ -284,7 +284,7 @@ TEST_F(CoordinatorSupervisionTest, FrozenSystemGivesProcessFailureWithinThreeSec
   // SIGSTOP: the process keeps its TCP connections open, so the event
   // stream never breaks; only missed answers tell.
   const pid_t pid = system_->pid();
-  ASSERT_EQ(::kill(pid, SIGSTOP), 0);
+  ASSERT_TRUE(system_->freeze()) << system_->error();
   const auto stopped = SteadyClock::now();
   struct Resume {
     pid_t pid;

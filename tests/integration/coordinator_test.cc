@@ -797,7 +797,7 @@ TEST_F(CoordinatorTest, APlanWaitingOnOneRobotDoesNotHoldUpAnotherRobot) {
   FleetWatcher watcher(coordinator_->address());
   ASSERT_TRUE(watcher.start());
 
-  ASSERT_EQ(::kill(a.pid(), SIGSTOP), 0);
+  ASSERT_TRUE(a.freeze()) << a.error();
   std::atomic<bool> a_returned{false};
   Reply<v1::ActivateFleetBehaviorResponse> ra;
   const auto a_sent = SteadyClock::now();
@@ -825,7 +825,7 @@ TEST_F(CoordinatorTest, APlanWaitingOnOneRobotDoesNotHoldUpAnotherRobot) {
   }
   EXPECT_FALSE(a_returned) << "robot-a's call returned while its system was stopped";
 
-  EXPECT_EQ(::kill(a.pid(), SIGCONT), 0);
+  EXPECT_TRUE(a.thaw());
   caller.join();
   ASSERT_TRUE(ra.status.ok()) << describe(ra.status);
   EXPECT_EQ(ra.response.robot_id(), "robot-a");

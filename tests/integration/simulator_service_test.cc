@@ -581,7 +581,7 @@ TEST(SimulatorDeterministicTest, TimeAdvancesOnlyAsFastAsItsFollowerKeepsUp) {
 
   // An idle follower (no behavior active) is not waited for: frozen, time
   // goes on.
-  ASSERT_EQ(::kill(system.pid(), SIGSTOP), 0);
+  ASSERT_TRUE(system.freeze()) << system.error();
   const double idle_frozen = clockSeconds(*data);
   std::this_thread::sleep_for(milliseconds(700));
   const double before_activation = clockSeconds(*data);
@@ -611,7 +611,7 @@ TEST(SimulatorDeterministicTest, TimeAdvancesOnlyAsFastAsItsFollowerKeepsUp) {
   // A busy one (a long WAIT active) frozen: time stands, within the grant in
   // flight and the clock topic's 50 ms.
   std::this_thread::sleep_for(milliseconds(200));
-  ASSERT_EQ(::kill(system.pid(), SIGSTOP), 0);
+  ASSERT_TRUE(system.freeze()) << system.error();
   std::this_thread::sleep_for(milliseconds(200));
   const double frozen = clockSeconds(*data);
   std::this_thread::sleep_for(milliseconds(700));

@@ -9,6 +9,7 @@
 
 #include <cstdio>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <sstream>
 #include <thread>
@@ -40,6 +41,32 @@ int reap(pid_t pid, std::chrono::milliseconds timeout) {
   }
 }
 
+// The state letter of /proc/<pid>/task/<tid>/stat: after the command's
+// closing parenthesis (the command may itself hold spaces and parentheses).
+char threadState(const std::filesystem::path& stat_path) {
+  std::ifstream in(stat_path);
+  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  const auto close = text.rfind(')');
+  if (close == std::string::npos || close + 2 >= text.size()) return '?';
+  return text[close + 2];
+}
+
+// Every thread of `pid` is stopped by a signal ('T'); a thread that exited
+// meanwhile is skipped.
+bool allThreadsStopped(pid_t pid, std::string* running) {
+  std::error_code ec;
+  const std::filesystem::path tasks = "/proc/" + std::to_string(pid) + "/task";
+  for (const auto& entry : std::filesystem::directory_iterator(tasks, ec)) {
+    const char state = threadState(entry.path() / "stat");
+    if (state == '?') continue;
+    if (state != 'T') {
+      *running = entry.path().filename().string() + " in state " + std::string(1, state);
+      return false;
+    }
+  }
+  return !ec;
+}
+
 }  // namespace
 
 int readPortFromFile(const std::string& path, const std::string& key) {
@@ -63,9 +90,9 @@ ServerProcess::~ServerProcess() {
 }
 
 bool ServerProcess::start(std::chrono::milliseconds timeout) {
-  std::vector<std::string> argv_s = {binary_,           "--listen",    "127.0.0.1:0",
-                                     "--metrics-listen", "127.0.0.1:0", "--port-file",
-                                     port_file_};
+  std::vector<std::string> argv_s = {
+      binary_,       "--listen",    "127.0.0.1:0", "--metrics-listen",
+      "127.0.0.1:0", "--port-file", port_file_};
   argv_s.insert(argv_s.end(), args_.begin(), args_.end());
   std::vector<char*> argv;
   for (auto& a : argv_s) argv.push_back(a.data());
@@ -128,6 +155,25 @@ int ServerProcess::wait(std::chrono::milliseconds timeout) {
   pid_ = -1;
   return code;
 }
+
+bool ServerProcess::freeze(std::chrono::milliseconds timeout) {
+  if (pid_ <= 0 || ::kill(pid_, SIGSTOP) != 0) {
+    error_ = "cannot send SIGSTOP";
+    return false;
+  }
+  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  std::string running;
+  while (!allThreadsStopped(pid_, &running)) {
+    if (std::chrono::steady_clock::now() > deadline) {
+      error_ = "SIGSTOP sent, but thread " + running + " after the timeout";
+      return false;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  return true;
+}
+
+bool ServerProcess::thaw() { return pid_ > 0 && ::kill(pid_, SIGCONT) == 0; }
 
 std::string httpGet(int port, const std::string& path) {
   int fd = socket(AF_INET, SOCK_STREAM, 0);

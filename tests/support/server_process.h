@@ -44,6 +44,14 @@ class ServerProcess {
   void kill();
   /// Waits for the process to exit by itself (up to `timeout`); exit code or -1.
   int wait(std::chrono::milliseconds timeout);
+  /// Sends SIGSTOP and waits (up to `timeout`) until every one of its threads
+  /// is stopped. kill(2) returns before that: the stop reaches the other
+  /// threads only once the thread that took the signal runs, and on a busy
+  /// machine another thread can answer a request in between. False with
+  /// error() set when a thread was still running at the timeout.
+  bool freeze(std::chrono::milliseconds timeout = std::chrono::seconds(10));
+  /// Sends SIGCONT.
+  bool thaw();
 
  private:
   std::string binary_;

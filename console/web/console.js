@@ -73,6 +73,29 @@ async function refreshSystems() {
   }
 }
 
+// The tables follow the fleet's events, but with one ListSystems and
+// ListBehaviors at a time and at most one pair per REFRESH_PERIOD_MS: the page
+// asked for both lists at every event, so a page that opened on the hub's
+// kept events, or watched a fleet of 20, sent thousands of them.
+const REFRESH_PERIOD_MS = 500;
+let refreshing = false;
+let refreshWanted = false;
+
+function refreshSoon() {
+  if (refreshing) {
+    refreshWanted = true;
+    return;
+  }
+  refreshing = true;
+  refreshSystems().catch(showError).finally(() => setTimeout(() => {
+    refreshing = false;
+    if (refreshWanted) {
+      refreshWanted = false;
+      refreshSoon();
+    }
+  }, REFRESH_PERIOD_MS));
+}
+
 function systemRow(body, s, behaviors) {
   const row = body.insertRow();
   row.dataset.robot = s.robot_id;
@@ -347,7 +370,7 @@ function follow() {
   };
   feed.addEventListener("fleet", live((event) => {
     addEvent(event);
-    refreshSystems().catch(showError);
+    refreshSoon();
   }));
   feed.addEventListener("mission", live(onMission));
   feed.addEventListener("vehicle", live((sample) => onVehicle(sample)));
@@ -356,7 +379,7 @@ function follow() {
     if (replaying) return;
     const state = JSON.parse(message.data);
     setCoordinator(state.coordinator_up, state.message);
-    if (state.coordinator_up) refreshSystems().catch(showError);
+    if (state.coordinator_up) refreshSoon();
   });
 }
 
@@ -466,6 +489,6 @@ document.getElementById("scrub").addEventListener("input", (event) => {
 document.getElementById("live").addEventListener("click", () => location.reload());
 
 follow();
-refreshSystems().catch(showError);
+refreshSoon();
 loadWorld().catch(showError);
 loadRecordings().catch(showError);

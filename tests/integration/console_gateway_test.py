@@ -65,13 +65,16 @@ class EventFeed:
 
     def __init__(self, port, last_event_id=None):
         self.connection = http.client.HTTPConnection("127.0.0.1", port, timeout=WAIT_S)
-        headers = {"Accept": "text/event-stream"}
+        # What a browser sends: the feed comes uncompressed.
+        headers = {"Accept": "text/event-stream", "Accept-Encoding": "gzip, deflate, br"}
         if last_event_id is not None:
             headers["Last-Event-ID"] = str(last_event_id)
         self.connection.request("GET", "/api/events", headers=headers)
         self.response = self.connection.getresponse()
         assert self.response.status == 200, self.response.status
         assert self.response.getheader("Content-Type").startswith("text/event-stream")
+        encoding = self.response.getheader("Content-Encoding")
+        assert encoding is None, f"the feed came encoded: {encoding}"
 
     def next(self):
         """(id, event, data as JSON) of the next message."""
@@ -155,13 +158,17 @@ class ConsoleGatewayTest(unittest.TestCase):
         response = connection.getresponse()
         data = response.read()
         connection.close()
+        self.last_encoding = response.getheader("Content-Encoding")
         return response.status, response.getheader("Content-Type"), data
 
     def call(self, name, request):
+        # As a browser asks: a reply comes uncompressed all the same (brotli
+        # at the library's quality 11 cost the console tens of ms a reply).
         status, content_type, data = self.request(
             "POST", f"/api/coordinator/{name}", json.dumps(request),
-            {"Content-Type": "application/json"})
-        self.assertEqual(content_type, "application/json")
+            {"Content-Type": "application/json", "Accept-Encoding": "gzip, deflate, br"})
+        self.assertEqual(content_type, "application/json; charset=utf-8")
+        self.assertIsNone(self.last_encoding, f"{name}'s reply came encoded")
         return status, json.loads(data)
 
     def activate(self, behavior, parameters):
@@ -311,7 +318,7 @@ class ConsoleGatewayTest(unittest.TestCase):
     def test_6c_the_maps_world_is_the_world_files(self):
         status, content_type, data = self.request("GET", "/api/world")
         self.assertEqual(status, 200)
-        self.assertEqual(content_type, "application/json")
+        self.assertEqual(content_type, "application/json; charset=utf-8")
         world = json.loads(data)
         # The rooms' walls stand on the floor (their lintels above the doors
         # do not).
@@ -401,7 +408,8 @@ class ConsoleGatewayTest(unittest.TestCase):
         for name, code in (("..console.mcap.log", 400), ("missing.mcap", 404),
                            ("notes.txt", 400)):
             status, content_type, body = self.request("GET", f"/api/recordings/{name}")
-            self.assertEqual((status, content_type), (code, "application/json"), (name, body))
+            self.assertEqual((status, content_type), (code, "application/json; charset=utf-8"),
+                             (name, body))
             self.assertIn("message", json.loads(body))
         with open(os.path.join(self.recordings, "text.mcap"), "w") as f:
             f.write("not a recording")

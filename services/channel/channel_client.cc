@@ -524,6 +524,20 @@ class ChannelClient::Impl {
     return true;
   }
 
+  std::vector<std::string> awaitedTopics() const {
+    std::vector<std::string> topics;
+    {
+      absl::MutexLock lock(&subscriptions_mutex_);
+      for (const auto& weak : subscriptions_) {
+        const std::shared_ptr<Subscription::Impl> sub = weak.lock();
+        if (sub && !sub->rateLimited()) topics.push_back(sub->topic());
+      }
+    }
+    std::sort(topics.begin(), topics.end());
+    topics.erase(std::unique(topics.begin(), topics.end()), topics.end());
+    return topics;
+  }
+
   std::map<std::string, uint64_t> acceptedSeqs() const {
     absl::MutexLock lock(&accepted_mutex_);
     return accepted_seqs_;
@@ -716,6 +730,8 @@ bool ChannelClient::delivered(
     const std::function<uint64_t(const std::string& topic)>& topic_seq) const {
   return impl_->delivered(topic_seq);
 }
+
+std::vector<std::string> ChannelClient::awaitedTopics() const { return impl_->awaitedTopics(); }
 
 std::map<std::string, uint64_t> ChannelClient::acceptedSeqs() const {
   return impl_->acceptedSeqs();

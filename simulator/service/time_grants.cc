@@ -5,6 +5,8 @@
 #include <algorithm>
 #include <cstdio>
 #include <map>
+#include <optional>
+#include <vector>
 
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
@@ -45,6 +47,9 @@ class TimeGrants::Follower final
   std::atomic<bool> idle{false};
   // What it published, from its last report (FollowTimeRequest.topic_seqs).
   std::map<std::string, uint64_t> topic_seqs;
+  // The topics its data barrier waits on (FollowTimeRequest.awaited_topics),
+  // sorted; unset: every topic.
+  std::optional<std::vector<std::string>> awaited_topics;
   int64_t caught_up_ns = -1;
 
   const v1::FollowTimeRequest& request() const { return request_; }
@@ -55,10 +60,10 @@ class TimeGrants::Follower final
   // this an idle follower (not waited for) would fall behind by every grant
   // buffered on its stream. An idle follower's grant waits as pending until
   // a simulated second passed since its last one, or it wakes.
-  void grant(const v1::FollowTimeResponse& grant) {
+  void grant(v1::FollowTimeResponse grant) {
     std::lock_guard lock(mutex_);
     if (finished_) return;
-    pending_ = grant;
+    pending_.Swap(&grant);
     has_pending_ = true;
     if (!writing_ && !awaiting_report_ && dueLocked()) writeLocked();
   }
@@ -135,7 +140,7 @@ class TimeGrants::Follower final
   }
 
   void writeLocked() {
-    current_ = pending_;
+    current_.Swap(&pending_);
     // Read after the follower's last report or wake was applied: if it is
     // busy now, the simulator waits for its report of this grant.
     current_.set_awaited(!idle.load());
@@ -185,19 +190,26 @@ void TimeGrants::reported(Follower* follower) {
   std::optional<v1::FollowTimeResponse> catch_up;
   {
     std::lock_guard lock(mutex_);
-    if (!follower->joined) {
+    const bool joining = !follower->joined;
+    if (joining) {
       follower->joined = true;
       follower->name = follower->request().participant();
       follower->domain = domain_of_ ? domain_of_(follower->request().robot_id()) : "";
       followers_.insert(follower);
       std::fprintf(stderr, "simulator: %s follows the time grants (%zu followers)\n",
                    follower->name.c_str(), followers_.size());
+    }
+    if (follower->request().has_awaited_topics()) {
+      const auto& topics = follower->request().awaited_topics().topics();
+      follower->awaited_topics.emplace(topics.begin(), topics.end());
+      std::sort(follower->awaited_topics->begin(), follower->awaited_topics->end());
+    }
+    if (joining) {
       // It starts from the current grant.
       if (auto it = last_grants_.find(follower->domain); it != last_grants_.end()) {
-        catch_up = it->second;
+        catch_up = grantFor(it->second, *follower);
       } else if (!last_grants_.empty()) {
-        catch_up = last_grants_.begin()->second;
-        catch_up->clear_topic_seqs();
+        catch_up = last_grants_.begin()->second.grant;
       }
     }
     if (follower->request().wake()) {
@@ -214,7 +226,7 @@ void TimeGrants::reported(Follower* follower) {
     }
   }
   cv_.notify_all();
-  if (catch_up) follower->grant(*catch_up);
+  if (catch_up) follower->grant(std::move(*catch_up));
 }
 
 void TimeGrants::left(Follower* follower) {
@@ -251,24 +263,30 @@ int TimeGrants::grantAndWait(v1::FollowTimeResponse grant, const std::atomic<boo
 int TimeGrants::grantAndWait(v1::FollowTimeResponse grant, const DomainSeqs& seqs,
                              const std::atomic<bool>& stop) {
   const int64_t t = TimeUtil::TimestampToNanoseconds(grant.clock().time());
+  grant.clear_topic_seqs();
   std::unique_lock lock(mutex_);
   // Per domain: the simulator's numbers there, and what its followers
   // published before their last reports.
-  std::map<std::string, v1::FollowTimeResponse> grants;
+  std::map<std::string, DomainGrant> grants;
   for (const auto& [domain, topics] : seqs) {
-    v1::FollowTimeResponse& g = grants.try_emplace(domain, grant).first->second;
-    for (const auto& [topic, seq] : topics) (*g.mutable_topic_seqs())[topic] = seq;
+    DomainGrant& g = grants[domain];
+    g.grant = grant;
+    g.seqs = topics;
   }
   for (const Follower* follower : followers_) {
-    v1::FollowTimeResponse& g = grants.try_emplace(follower->domain, grant).first->second;
+    auto [it, added] = grants.try_emplace(follower->domain);
+    if (added) it->second.grant = grant;
     for (const auto& [topic, seq] : follower->topic_seqs) {
-      uint64_t& named = (*g.mutable_topic_seqs())[topic];
+      uint64_t& named = it->second.seqs[topic];
       named = std::max(named, seq);
     }
   }
-  last_grants_ = grants;
   ++grants_;
-  for (Follower* follower : followers_) follower->grant(grants.at(follower->domain));
+  // Each follower is sent the numbers of the topics it awaits only.
+  for (Follower* follower : followers_) {
+    follower->grant(grantFor(grants.at(follower->domain), *follower));
+  }
+  last_grants_ = std::move(grants);
   const auto deadline = std::chrono::steady_clock::now() + follower_timeout_;
   while (true) {
     int caught_up = 0;
@@ -296,6 +314,22 @@ int TimeGrants::grantAndWait(v1::FollowTimeResponse grant, const DomainSeqs& seq
     }
     cv_.wait_until(lock, std::min(deadline, std::chrono::steady_clock::now() + kStopPoll));
   }
+}
+
+v1::FollowTimeResponse TimeGrants::grantFor(const DomainGrant& domain_grant,
+                                            const Follower& follower) {
+  v1::FollowTimeResponse grant = domain_grant.grant;
+  auto& named = *grant.mutable_topic_seqs();
+  if (!follower.awaited_topics) {
+    for (const auto& [topic, seq] : domain_grant.seqs) named[topic] = seq;
+    return grant;
+  }
+  for (const std::string& topic : *follower.awaited_topics) {
+    if (auto it = domain_grant.seqs.find(topic); it != domain_grant.seqs.end()) {
+      named[topic] = it->second;
+    }
+  }
+  return grant;
 }
 
 void TimeGrants::shutdown() {

@@ -28,6 +28,7 @@
 #include <optional>
 #include <set>
 #include <string>
+#include <vector>
 
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/v1/simulator.pb.h"
@@ -92,8 +93,17 @@ class TimeGrants {
   mutable std::mutex mutex_;
   std::condition_variable cv_;
   std::set<Follower*> followers_;
+  // A grant of one domain: the time, and every topic's number there (the
+  // simulator's and what that domain's followers reported).
+  struct DomainGrant {
+    v1::FollowTimeResponse grant;  // without topic_seqs
+    std::map<std::string, uint64_t> seqs;
+  };
+  // What `follower` is sent of `domain_grant`: the numbers of the topics it
+  // awaits (all of them when it did not say which).
+  static v1::FollowTimeResponse grantFor(const DomainGrant& domain_grant, const Follower& follower);
   // The last grant of each domain (a follower that joins starts from it).
-  std::map<std::string, v1::FollowTimeResponse> last_grants_;
+  std::map<std::string, DomainGrant> last_grants_;
   std::function<std::string(const std::string&)> domain_of_;
   bool shutting_down_ = false;
   std::atomic<uint64_t> grants_{0};

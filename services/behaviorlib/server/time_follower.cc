@@ -158,6 +158,19 @@ void TimeFollower::run() {
     v1::FollowTimeRequest join;
     join.set_participant(participant_);
     join.set_robot_id(robot_id_);
+    // The topics the data barrier waits on, named in the join and again
+    // whenever they changed: the grants name only theirs.
+    std::vector<std::string> awaited_topics;
+    const auto name_awaited_topics = [this, &awaited_topics](v1::FollowTimeRequest& message,
+                                                             bool always) {
+      std::vector<std::string> topics;
+      if (data_ != nullptr) topics = data_->awaitedTopics();
+      if (topics == awaited_topics && !always) return;
+      awaited_topics = std::move(topics);
+      auto* named = message.mutable_awaited_topics()->mutable_topics();
+      named->Add(awaited_topics.begin(), awaited_topics.end());
+    };
+    name_awaited_topics(join, true);
     std::optional<v1::Clock> last_granted;
     if (write(join)) {
       v1::FollowTimeResponse grant;
@@ -230,6 +243,7 @@ void TimeFollower::run() {
             (*report.mutable_topic_seqs())[topic] = seq;
           }
         }
+        name_awaited_topics(report, false);
         bool written = false;
         {
           // Decided and written as one with respect to the gate: a command

@@ -185,6 +185,9 @@ class ChannelClient {
   /// (topics not in the map, and subscriptions not connected, count as
   /// done); the deterministic mode's data barrier.
   bool delivered(const std::function<uint64_t(const std::string& topic)>& topic_seq) const;
+  /// The topics delivered() looks at (its live subscriptions' that are not
+  /// rate-limited, connected or not), sorted, each once.
+  std::vector<std::string> awaitedTopics() const;
   /// Waits until delivered(topic_seq) (true) or `timeout` passes (false);
   /// woken by the subscriptions' progress, not by polling.
   bool waitDelivered(const std::function<uint64_t(const std::string& topic)>& topic_seq,

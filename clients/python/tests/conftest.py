@@ -74,12 +74,33 @@ class Stack:
         return self.launcher.output()
 
 
+def barrier_notes(run_dir):
+    """The lines of the stack's logs in which the deterministic mode's
+    bounded waits gave up (a follower left out, a granted sample not
+    waited for): what to look at first when a flight failed."""
+    notes = []
+    logs = os.path.join(run_dir, "logs")
+    for name in sorted(os.listdir(logs)) if os.path.isdir(logs) else []:
+        with open(os.path.join(logs, name), errors="replace") as f:
+            notes += [f"{name}: {line.rstrip()}" for line in f
+                      if "did not catch up" in line or "did not arrive" in line]
+    return notes
+
+
 @pytest.fixture(scope="session")
-def stack():
+def stack(request):
     stack = Stack(["drone1", "drone2"], ["quadrotor_motion_with_pid_control"])
     yield stack
     print(stack.stop())
-    shutil.rmtree(stack.run_dir, ignore_errors=True)
+    if request.session.testsfailed:
+        # Kept for the failure's logs, and said past pytest's capture (a
+        # session fixture's teardown output is shown for no test).
+        capture = request.config.pluginmanager.getplugin("capturemanager")
+        with capture.global_and_fixture_disabled():
+            print(f"\nrun directory kept: {stack.run_dir}")
+            print("\n".join(barrier_notes(stack.run_dir)) or "no bounded wait gave up")
+    else:
+        shutil.rmtree(stack.run_dir, ignore_errors=True)
 
 
 @pytest.fixture(scope="session")

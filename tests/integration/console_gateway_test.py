@@ -365,6 +365,14 @@ class ConsoleGatewayTest(unittest.TestCase):
                                      "--channel", self.broker_address, "record", path],
                                     stdout=subprocess.PIPE, text=True)
         try:
+            # The recorder creates its file before it follows the fleet
+            # (slower to start in a sanitizer build than the console's first
+            # read of it).
+            deadline = time.monotonic() + WAIT_S
+            while not os.path.exists(path):
+                self.assertIsNone(recorder.poll(), "the recorder stopped")
+                self.assertLess(time.monotonic(), deadline, "the recorder made no file")
+                time.sleep(0.05)
             self.activate("WAIT", {"duration_s": 0.07})
             # Recorded once the recorder saw the activation's end: the
             # console reads a recording that is still being written.

@@ -260,7 +260,7 @@ FollowerOptions followerOptions(const GatewayOptions& options) {
 constexpr std::chrono::milliseconds kKeepalive{5000};
 
 // The API's JSON goes out uncompressed. cpp-httplib compresses a reply whose
-// type is exactly kJson when the request accepts it, and with
+// type is exactly "application/json" when the request accepts it, and with
 // brotli at its default quality (11) when a browser says br: the lists of a
 // 20-vehicle fleet then cost tens of milliseconds of CPU a reply, which the
 // page asked for at every fleet event (two thirds of the console's CPU in

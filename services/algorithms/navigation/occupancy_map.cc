@@ -1,6 +1,7 @@
 #include "behaviorlib/navigation/occupancy_map.h"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <functional>
@@ -15,7 +16,115 @@ octomap::point3d toOcto(const Eigen::Vector3d& p) {
                           static_cast<float>(p.z()));
 }
 
+// A voxel's key as its path from the root: for each depth, from the top,
+// the child index OctoMap computes (x bit, y bit << 1, z bit << 2), three
+// bits per level. Sorted, the codes follow the tree (depth first), and a
+// node's code at a coarser depth is the code shifted right.
+uint64_t spreadBits(uint64_t v) {  // bit i to bit 3i, for 16 bits
+  v &= 0xffff;
+  v = (v | (v << 16)) & 0x0000ff0000ffULL;
+  v = (v | (v << 8)) & 0x00f00f00f00fULL;
+  v = (v | (v << 4)) & 0x0c30c30c30c3ULL;
+  v = (v | (v << 2)) & 0x249249249249ULL;
+  return v;
+}
+
+uint64_t packBits(uint64_t v) {  // the inverse: bit 3i to bit i
+  v &= 0x249249249249ULL;
+  v = (v | (v >> 2)) & 0x0c30c30c30c3ULL;
+  v = (v | (v >> 4)) & 0x00f00f00f00fULL;
+  v = (v | (v >> 8)) & 0x0000ff0000ffULL;
+  v = (v | (v >> 16)) & 0xffff;
+  return v;
+}
+
+uint64_t pathCode(const octomap::OcTreeKey& k) {
+  return spreadBits(k[0]) | (spreadBits(k[1]) << 1) | (spreadBits(k[2]) << 2);
+}
+
+octomap::OcTreeKey keyOf(uint64_t code) {
+  return octomap::OcTreeKey(static_cast<octomap::key_type>(packBits(code)),
+                            static_cast<octomap::key_type>(packBits(code >> 1)),
+                            static_cast<octomap::key_type>(packBits(code >> 2)));
+}
+
+// Sorted and unique, by a radix sort of the 48-bit codes (three 16-bit
+// passes): a scan has tens of thousands of ray voxels.
+void sortUnique(std::vector<uint64_t>& codes, std::vector<uint64_t>& buffer) {
+  constexpr int kBits = 16;
+  constexpr size_t kBuckets = size_t{1} << kBits;
+  if (codes.size() > 256) {
+    std::vector<uint32_t> count(kBuckets);
+    buffer.resize(codes.size());
+    for (int pass = 0; pass < 3; ++pass) {
+      const int shift = pass * kBits;
+      std::fill(count.begin(), count.end(), 0u);
+      for (uint64_t c : codes) ++count[(c >> shift) & (kBuckets - 1)];
+      uint32_t sum = 0;
+      for (uint32_t& n : count) {
+        const uint32_t here = n;
+        n = sum;
+        sum += here;
+      }
+      for (uint64_t c : codes) buffer[count[(c >> shift) & (kBuckets - 1)]++] = c;
+      codes.swap(buffer);
+    }
+  } else {
+    std::sort(codes.begin(), codes.end());
+  }
+  codes.erase(std::unique(codes.begin(), codes.end()), codes.end());
+}
+
+// Finds nodes as OcTree::search(key, depth) does, but starts each search
+// from the deepest node the previous one shared with it: codes visited in
+// order share most of their path. Valid while no node on the remembered
+// path is deleted (forget() after pruning).
+class PathFinder {
+ public:
+  explicit PathFinder(octomap::OcTree& tree) : tree_(tree) {}
+
+  // The node at `depth` on `code`'s path; or the leaf that covers it (a
+  // pruned node); or null when the path ends at a node with other children.
+  octomap::OcTreeNode* find(uint64_t code, unsigned depth) {
+    path_[0] = tree_.getRoot();
+    if (path_[0] == nullptr) return nullptr;
+    const uint64_t differ = code ^ last_;
+    const unsigned common =
+        differ == 0 ? kDepth : static_cast<unsigned>(__builtin_clzll(differ) - 16) / 3;
+    unsigned d = std::min(common, valid_);
+    octomap::OcTreeNode* node = path_[d];
+    last_ = code;
+    for (; d < depth; ++d) {
+      const unsigned child = static_cast<unsigned>(code >> (3 * (kDepth - 1 - d))) & 7u;
+      if (!tree_.nodeChildExists(node, child)) {
+        valid_ = d;
+        return tree_.nodeHasChildren(node) ? nullptr : node;
+      }
+      node = tree_.getNodeChild(node, child);
+      path_[d + 1] = node;
+    }
+    valid_ = depth;
+    return node;
+  }
+  // The depth the last find() reached.
+  unsigned reached() const { return valid_; }
+  // The tree may have changed below the root: search anew.
+  void forget() { valid_ = 0; }
+
+ private:
+  static constexpr unsigned kDepth = 16;
+  octomap::OcTree& tree_;
+  std::array<octomap::OcTreeNode*, kDepth + 1> path_{};
+  unsigned valid_ = 0;
+  uint64_t last_ = 0;
+};
+
 }  // namespace
+
+struct OccupancyMap::Scratch {
+  octomap::KeyRay ray;
+  std::vector<uint64_t> miss_free, ends, hit_free, occupied, changed, buffer;
+};
 
 OccupancyMap::OccupancyMap(MapOptions options)
     : options_(options), tree_(std::make_unique<octomap::OcTree>(options.resolution_m)) {
@@ -23,27 +132,98 @@ OccupancyMap::OccupancyMap(MapOptions options)
   tree_->setProbMiss(options.probability_miss);
 }
 
+OccupancyMap::~OccupancyMap() = default;
+OccupancyMap::OccupancyMap(OccupancyMap&&) noexcept = default;
+OccupancyMap& OccupancyMap::operator=(OccupancyMap&&) noexcept = default;
+
 void OccupancyMap::insertScan(const Eigen::Vector3d& origin_m,
                               const std::vector<Eigen::Vector3d>& hits_m,
                               const std::vector<Eigen::Vector3d>& misses_m) {
+  if (!scratch_) scratch_ = std::make_unique<Scratch>();
+  Scratch& s = *scratch_;
+  octomap::OcTree& tree = *tree_;
   const octomap::point3d origin = toOcto(origin_m);
-  octomap::Pointcloud cloud;
-  cloud.reserve(hits_m.size());
-  for (const auto& p : hits_m) {
-    if (p.allFinite()) cloud.push_back(toOcto(p));
-  }
-  // Rays that hit nothing: free space only. computeUpdate marks the end
-  // voxel occupied, so trace them ourselves (discretised, no duplicates).
-  octomap::KeySet free_cells;
-  octomap::KeyRay ray;
+  const auto rayInto = [&](const octomap::point3d& end, std::vector<uint64_t>& codes) {
+    if (!tree.computeRayKeys(origin, end, s.ray)) return;
+    for (const octomap::OcTreeKey& k : s.ray) codes.push_back(pathCode(k));
+  };
+  // Rays that hit nothing: free space only (OctoMap's computeUpdate would
+  // mark the end voxel occupied).
+  s.miss_free.clear();
   for (const auto& p : misses_m) {
-    if (!p.allFinite()) continue;
-    if (tree_->computeRayKeys(origin, toOcto(p), ray)) free_cells.insert(ray.begin(), ray.end());
+    if (p.allFinite()) rayInto(toOcto(p), s.miss_free);
   }
-  for (const auto& key : free_cells) tree_->updateNode(key, false, /*lazy_eval=*/false);
-  // Inner nodes are updated along the way (lazy_eval false): a full
-  // updateInnerOccupancy() would walk the whole tree on every scan.
-  tree_->insertPointCloud(cloud, origin, -1.0, /*lazy_eval=*/false, /*discretize=*/true);
+  sortUnique(s.miss_free, s.buffer);
+  // Hits as insertPointCloud(discretize) takes them: one per voxel, at its
+  // centre; free along the ray, occupied at the end, and a voxel both free
+  // and occupied in this scan counts as occupied.
+  s.ends.clear();
+  for (const auto& p : hits_m) {
+    if (p.allFinite()) s.ends.push_back(pathCode(tree.coordToKey(toOcto(p))));
+  }
+  sortUnique(s.ends, s.buffer);
+  s.hit_free.clear();
+  s.occupied.clear();
+  for (uint64_t end : s.ends) {
+    const octomap::point3d centre = tree.keyToCoord(keyOf(end));
+    rayInto(centre, s.hit_free);
+    octomap::OcTreeKey key;
+    if (tree.coordToKeyChecked(centre, key)) s.occupied.push_back(pathCode(key));
+  }
+  sortUnique(s.hit_free, s.buffer);
+  sortUnique(s.occupied, s.buffer);
+  s.hit_free.erase(std::set_difference(s.hit_free.begin(), s.hit_free.end(), s.occupied.begin(),
+                                       s.occupied.end(), s.hit_free.begin()),
+                   s.hit_free.end());
+
+  // The leaves, in OctoMap's order (the misses' free space, then the hits'),
+  // without updating the inner nodes on each one's path (lazy_eval). A leaf
+  // already at the clamping bound in the update's direction is left as it
+  // is, as updateNode's early abort leaves it.
+  const float min_log = tree.getClampingThresMinLog();
+  const float max_log = tree.getClampingThresMaxLog();
+  const float hit_log = tree.getProbHitLog();
+  const float miss_log = tree.getProbMissLog();
+  const unsigned depth_max = tree.getTreeDepth();  // 16, as PathFinder's codes
+  PathFinder finder(tree);
+  s.changed.clear();
+  const auto update = [&](uint64_t code, bool occupied) {
+    octomap::OcTreeNode* leaf = finder.find(code, depth_max);
+    if (leaf != nullptr &&
+        (occupied ? leaf->getLogOdds() >= max_log : leaf->getLogOdds() <= min_log)) {
+      return;
+    }
+    s.changed.push_back(code);
+    if (leaf != nullptr && finder.reached() == depth_max) {
+      // The voxel's own leaf: what updateNodeRecurs does at the last level.
+      tree.updateNodeLogOdds(leaf, occupied ? hit_log : miss_log);
+      return;
+    }
+    // A pruned leaf to expand, or a path to create.
+    tree.updateNode(keyOf(code), occupied, /*lazy_eval=*/true);
+    finder.forget();
+  };
+  for (uint64_t c : s.miss_free) update(c, false);
+  for (uint64_t c : s.hit_free) update(c, false);
+  for (uint64_t c : s.occupied) update(c, true);
+
+  // Then every inner node above a changed leaf, deepest first, as
+  // updateNodeRecurs does on its way back up: pruned when its eight
+  // children are equal leaves, otherwise given its largest child's odds.
+  // Each sees its children final, so the tree ends as OctoMap's per-leaf
+  // updates leave it. (Shifted, the sorted codes of one level are the sorted
+  // codes of the next one up, with repeats.)
+  sortUnique(s.changed, s.buffer);
+  for (unsigned depth = depth_max; depth-- > 0;) {
+    for (uint64_t& c : s.changed) c >>= 3;
+    s.changed.erase(std::unique(s.changed.begin(), s.changed.end()), s.changed.end());
+    finder.forget();  // pruning one level down deleted nodes
+    for (uint64_t c : s.changed) {
+      octomap::OcTreeNode* node = finder.find(c << (3 * (depth_max - depth)), depth);
+      if (node == nullptr || !tree.nodeHasChildren(node)) continue;  // a leaf (pruned below)
+      if (!tree.pruneNode(node)) node->updateOccupancyChildren();
+    }
+  }
   ++revision_;
 }
 

@@ -23,16 +23,19 @@ inline sim::LidarConfig mappingLidar() {
   return c;
 }
 
-inline void scanInto(OccupancyMap& map, sim::Lidar& lidar, const Eigen::Vector3d& position) {
-  const Eigen::Quaterniond level = Eigen::Quaterniond::Identity();
-  const sim::LidarScan scan = lidar.scan(position, level);
-  std::vector<Eigen::Vector3d> hits, misses;
+// The hits and the ends of the rays that hit nothing (at the lidar's range)
+// of one scan from `position`, in world coordinates.
+inline void scanPoints(sim::Lidar& lidar, const Eigen::Vector3d& position,
+                       const Eigen::Quaterniond& attitude, std::vector<Eigen::Vector3d>& hits,
+                       std::vector<Eigen::Vector3d>& misses) {
+  const sim::LidarScan scan = lidar.scan(position, attitude);
   for (int ch = 0; ch < scan.channels; ++ch) {
     const double el = lidar.elevationRad(ch);
     for (int b = 0; b < scan.beams; ++b) {
       const double az = lidar.azimuthRad(b);
-      const Eigen::Vector3d dir(std::cos(el) * std::cos(az), std::cos(el) * std::sin(az),
-                                std::sin(el));
+      const Eigen::Vector3d dir =
+          attitude *
+          Eigen::Vector3d(std::cos(el) * std::cos(az), std::cos(el) * std::sin(az), std::sin(el));
       const float r = scan.at(ch, b);
       if (std::isinf(r) && r > 0) {
         misses.push_back(position + dir * lidar.config().range_max_m);
@@ -41,6 +44,11 @@ inline void scanInto(OccupancyMap& map, sim::Lidar& lidar, const Eigen::Vector3d
       }
     }
   }
+}
+
+inline void scanInto(OccupancyMap& map, sim::Lidar& lidar, const Eigen::Vector3d& position) {
+  std::vector<Eigen::Vector3d> hits, misses;
+  scanPoints(lidar, position, Eigen::Quaterniond::Identity(), hits, misses);
   map.insertScan(position, hits, misses);
 }
 

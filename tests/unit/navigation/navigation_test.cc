@@ -237,6 +237,73 @@ TEST(OccupancyMapAlone, AnUnreachableGoalIsReportedAfterTheTimeout) {
   EXPECT_NE(std::string(path.status().message()).find("may be unreachable"), std::string::npos);
 }
 
+// OctoMap's own way of inserting a scan, as OccupancyMap did it before it
+// batched the inner nodes: every leaf update walks back up its path.
+void insertTheOctoMapWay(octomap::OcTree& tree, const Eigen::Vector3d& origin_m,
+                         const std::vector<Eigen::Vector3d>& hits_m,
+                         const std::vector<Eigen::Vector3d>& misses_m) {
+  const auto octo = [](const Eigen::Vector3d& p) {
+    return octomap::point3d(static_cast<float>(p.x()), static_cast<float>(p.y()),
+                            static_cast<float>(p.z()));
+  };
+  const octomap::point3d origin = octo(origin_m);
+  octomap::KeySet free_cells;
+  octomap::KeyRay ray;
+  for (const auto& p : misses_m) {
+    if (tree.computeRayKeys(origin, octo(p), ray)) free_cells.insert(ray.begin(), ray.end());
+  }
+  for (const auto& key : free_cells) tree.updateNode(key, false, /*lazy_eval=*/false);
+  octomap::Pointcloud cloud;
+  for (const auto& p : hits_m) cloud.push_back(octo(p));
+  tree.insertPointCloud(cloud, origin, -1.0, /*lazy_eval=*/false, /*discretize=*/true);
+}
+
+// Every node of both trees, inner ones included, in the same order with the
+// same odds and the same children.
+void expectSameTree(const octomap::OcTree& a, const octomap::OcTree& b) {
+  ASSERT_EQ(a.size(), b.size());
+  auto ia = a.begin_tree(), ib = b.begin_tree();
+  size_t nodes = 0;
+  for (; ia != a.end_tree() && ib != b.end_tree(); ++ia, ++ib, ++nodes) {
+    ASSERT_EQ(ia.getKey(), ib.getKey()) << "node " << nodes;
+    ASSERT_EQ(ia.getDepth(), ib.getDepth()) << "node " << nodes;
+    ASSERT_EQ(ia.isLeaf(), ib.isLeaf()) << "node " << nodes;
+    ASSERT_EQ(ia->getLogOdds(), ib->getLogOdds()) << "node " << nodes << " depth " << ia.getDepth();
+  }
+  EXPECT_TRUE(ia == a.end_tree() && ib == b.end_tree());
+  EXPECT_EQ(nodes, a.size());
+}
+
+TEST(OccupancyMapAlone, ScansBuildTheSameTreeAsOctoMapsPerLeafUpdates) {
+  auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+  ASSERT_TRUE(world.ok()) << world.status();
+  sim::LidarConfig planar;  // the simulator's default: 2-D, 360 beams
+  planar.range_max_m = 12.0;
+  planar.noise_stddev_m = 0.05;
+  auto lidar2d = sim::Lidar::create(*world, planar);
+  auto lidar3d = sim::Lidar::create(*world, testing::mappingLidar());
+  ASSERT_TRUE(lidar2d.ok() && lidar3d.ok());
+  OccupancyMap map;
+  octomap::OcTree reference(map.tree().getResolution());
+  // A flight through three rooms and two doors, tilted now and then, scans
+  // repeated where it hovers (voxels reach the clamping bounds and prune).
+  for (int step = 0; step < 60; ++step) {
+    const double t = step / 59.0;
+    const Eigen::Vector3d position(2.0 + 13.0 * t, 3.0 + 2.5 * std::sin(6.0 * t), 1.2 + 0.3 * t);
+    const Eigen::Quaterniond attitude(
+        Eigen::AngleAxisd(0.1 * std::sin(step), Eigen::Vector3d::UnitX()));
+    sim::Lidar& lidar = step % 3 == 0 ? *lidar3d : *lidar2d;
+    std::vector<Eigen::Vector3d> hits, misses;
+    testing::scanPoints(lidar, position, attitude, hits, misses);
+    for (int repeat = 0; repeat < (step % 10 == 0 ? 6 : 1); ++repeat) {
+      map.insertScan(position, hits, misses);
+      insertTheOctoMapWay(reference, position, hits, misses);
+    }
+    ASSERT_NO_FATAL_FAILURE(expectSameTree(map.tree(), reference)) << "after scan " << step;
+  }
+  EXPECT_GT(map.occupiedLeafCount(), 1000u);
+}
+
 TEST(OccupancyMapAlone, SavesAFileOctoMapReadsBack) {
   OccupancyMap map;
   map.insertScan({0, 0, 1}, {{2, 0, 1}, {0, 2, 1}, {-2, 0, 1}});

@@ -465,6 +465,23 @@ class ChannelClient::Impl {
   absl::Status publishAll(const std::vector<ChannelClient::TopicSample>& samples) {
     if (samples.empty()) return absl::OkStatus();
     v1::PublishRequest request;
+    if (absl::Status status = packBatch(samples, request); !status.ok()) return status;
+    absl::MutexLock lock(&publish_mutex_);
+    return writeLocked(request);
+  }
+
+  absl::Status publishAllAndSync(const std::vector<ChannelClient::TopicSample>& samples) {
+    if (samples.empty()) return sync();
+    v1::PublishRequest request;
+    if (absl::Status status = packBatch(samples, request); !status.ok()) return status;
+    request.set_sync(true);
+    absl::MutexLock lock(&publish_mutex_);
+    if (absl::Status status = writeLocked(request); !status.ok()) return status;
+    return answerLocked(nullptr);
+  }
+
+  static absl::Status packBatch(const std::vector<ChannelClient::TopicSample>& samples,
+                                v1::PublishRequest& request) {
     for (std::size_t i = 0; i < samples.size(); ++i) {
       const auto& [topic, sample] = samples[i];
       if (absl::Status status = validateTopicName(topic); !status.ok()) return status;
@@ -472,12 +489,17 @@ class ChannelClient::Impl {
       part->set_topic(topic);
       part->mutable_sample()->PackFrom(*sample);
     }
-    return write(request);
+    return absl::OkStatus();
+  }
+
+  absl::Status write(const v1::PublishRequest& request) {
+    absl::MutexLock lock(&publish_mutex_);
+    return writeLocked(request);
   }
 
   // Writes one message on the publish stream.
-  absl::Status write(const v1::PublishRequest& request) {
-    absl::MutexLock lock(&publish_mutex_);
+  absl::Status writeLocked(const v1::PublishRequest& request)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     while (true) {
       const bool fresh = !writer_;
       if (fresh) openLocked();
@@ -490,11 +512,7 @@ class ChannelClient::Impl {
       // (restart) deserves one retry on a new stream; anything else, or a
       // fresh stream failing, is reported.
       const bool broker_gone = status.ok() || status.code() == absl::StatusCode::kUnavailable;
-      if (fresh || !broker_gone) {
-        return status.ok() ? absl::UnavailableError(absl::StrCat("publish stream to ", address_,
-                                                                 " was closed by the broker"))
-                           : status;
-      }
+      if (fresh || !broker_gone) return status.ok() ? closedByBroker() : status;
     }
   }
 
@@ -652,13 +670,14 @@ class ChannelClient::Impl {
   absl::Status askLocked(uint64_t* accepted) ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     v1::PublishRequest marker;
     marker.set_sync(true);
+    if (!writer_->Write(marker)) return closedLocked();
+    return answerLocked(accepted);
+  }
+
+  // Reads the answer to a sync request just written.
+  absl::Status answerLocked(uint64_t* accepted) ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     v1::PublishResponse answer;
-    if (!writer_->Write(marker) || !writer_->Read(&answer)) {
-      absl::Status status = closeLocked();
-      return status.ok() ? absl::UnavailableError(absl::StrCat("publish stream to ", address_,
-                                                               " was closed by the broker"))
-                         : status;
-    }
+    if (!writer_->Read(&answer)) return closedLocked();
     if (accepted != nullptr) *accepted = answer.accepted_count();
     {
       absl::MutexLock lock(&accepted_mutex_);
@@ -669,6 +688,17 @@ class ChannelClient::Impl {
     }
     unsynced_ = false;
     return absl::OkStatus();
+  }
+
+  // The stream broke: closed, and why.
+  absl::Status closedLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
+    absl::Status status = closeLocked();
+    return status.ok() ? closedByBroker() : status;
+  }
+
+  absl::Status closedByBroker() const {
+    return absl::UnavailableError(
+        absl::StrCat("publish stream to ", address_, " was closed by the broker"));
   }
 
   absl::Status closeLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
@@ -723,6 +753,10 @@ absl::Status ChannelClient::publish(const std::string& topic,
 }
 
 absl::StatusOr<uint64_t> ChannelClient::flush() { return impl_->flush(); }
+
+absl::Status ChannelClient::publishAllAndSync(const std::vector<TopicSample>& samples) {
+  return impl_->publishAllAndSync(samples);
+}
 
 absl::Status ChannelClient::sync() { return impl_->sync(); }
 

@@ -503,7 +503,11 @@ class ChannelClient::Impl {
     while (true) {
       const bool fresh = !writer_;
       if (fresh) openLocked();
-      if (writer_->Write(request)) {
+      grpc::WriteOptions options;
+      if (buffer_until_sync_.load(std::memory_order_relaxed) && !request.sync()) {
+        options.set_buffer_hint();
+      }
+      if (writer_->Write(request, options)) {
         unsynced_ = true;
         return absl::OkStatus();
       }
@@ -643,6 +647,8 @@ class ChannelClient::Impl {
     return std::make_unique<Subscription>(std::move(impl));
   }
 
+  void bufferUntilSync(bool buffer) { buffer_until_sync_.store(buffer); }
+
   void gatePublishing(const std::string& prefix) {
     absl::MutexLock lock(&publish_mutex_);
     gated_prefix_ = prefix;
@@ -720,6 +726,7 @@ class ChannelClient::Impl {
   const std::shared_ptr<grpc::Channel> channel_;
   const std::shared_ptr<v1::DataChannel::Stub> stub_;
 
+  std::atomic<bool> buffer_until_sync_{false};
   absl::Mutex publish_mutex_;  // guards the publish stream below
   std::unique_ptr<grpc::ClientContext> publish_context_ ABSL_GUARDED_BY(publish_mutex_);
   std::unique_ptr<grpc::ClientReaderWriter<v1::PublishRequest, v1::PublishResponse>> writer_
@@ -759,6 +766,8 @@ absl::Status ChannelClient::publishAllAndSync(const std::vector<TopicSample>& sa
 }
 
 absl::Status ChannelClient::sync() { return impl_->sync(); }
+
+void ChannelClient::bufferUntilSync(bool buffer) { impl_->bufferUntilSync(buffer); }
 
 bool ChannelClient::delivered(
     const std::function<uint64_t(const std::string& topic)>& topic_seq) const {

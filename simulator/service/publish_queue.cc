@@ -90,6 +90,7 @@ std::chrono::steady_clock::time_point PublishQueue::releaseDueLocked(std::deque<
                                      std::chrono::duration<double>(1.0 / rate));
       }
       queueLocked(*it, std::move(newest.sample), evicted);
+      kicked_ = true;
     }
     // Unwanted meanwhile: it stays held as any gated sample.
     it = throttled_.erase(it);
@@ -155,7 +156,13 @@ void PublishQueue::interestChanged() {
     // A rate that went up, or away, lets a held sample go sooner.
     if (!throttled_.empty()) queued = true;
   }
-  if (queued) cv_.notify_one();
+  if (queued) {
+    {
+      std::lock_guard lock(mutex_);
+      kicked_ = true;
+    }
+    cv_.notify_one();
+  }
 }
 
 absl::Status PublishQueue::flush(bool sync) {
@@ -183,6 +190,7 @@ absl::Status PublishQueue::flush(bool sync) {
     evicted.clear();
     lock.lock();
   } while (!queue_.empty());
+  kicked_ = false;
   drained_cv_.notify_all();
   return first;
 }
@@ -234,8 +242,14 @@ void PublishQueue::run() {
   while (true) {
     while (true) {
       const auto next = releaseDueLocked(&evicted);
-      // Flushed by the caller: this thread only releases held samples.
-      if (stopping_ || (!queue_.empty() && !flushed_by_caller_ && !publishing_)) break;
+      // Not beside flush(): samples of a topic go out in order. Flushed by
+      // the caller, pushes do not wake this thread; what it is woken for (a
+      // held sample released by interest or by its rate) goes out at once,
+      // with whatever else is queued then, as when free running: the
+      // stepping thread may be waiting for followers, or for time to start.
+      if (stopping_ || (!queue_.empty() && !publishing_ && (!flushed_by_caller_ || kicked_))) {
+        break;
+      }
       if (next == std::chrono::steady_clock::time_point::max()) {
         cv_.wait(lock);
       } else {
@@ -249,6 +263,7 @@ void PublishQueue::run() {
       lock.lock();
     }
     takeBatchLocked(batch);
+    kicked_ = !queue_.empty() && kicked_;  // the rest too, in further batches
     publishing_ = true;
     lock.unlock();
     publishBatch(batch, false).IgnoreError();  // counted as dropped

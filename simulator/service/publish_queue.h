@@ -37,10 +37,11 @@ struct PublishQueueLimits {
 class PublishQueue {
  public:
   /// `client` must outlive the queue. With `flushed_by_caller` (the
-  /// deterministic mode), samples go out only when flush() is called, on
+  /// deterministic mode), pushed samples go out when flush() is called, on
   /// the caller's thread: the stepping thread publishes a quantum and syncs
-  /// in one round trip, with no hand-over to the queue's thread (which then
-  /// only releases rate-limited samples into the queue).
+  /// in one round trip, with no hand-over to the queue's thread. That thread
+  /// then publishes only what it is woken for: held samples released by
+  /// interest (a new subscriber, a GetLatest) or by their rate.
   PublishQueue(ChannelRoutes& client, PublishQueueLimits limits, bool flushed_by_caller = false);
   /// Stops the thread; samples still queued are not published.
   ~PublishQueue();
@@ -113,6 +114,8 @@ class PublishQueue {
   std::deque<Entry> queue_;
   std::size_t queued_bytes_ = 0;
   bool publishing_ = false;  // a batch is being published (the thread or flush())
+  // Flushed by the caller: the thread was woken to send released samples.
+  bool kicked_ = false;
   std::condition_variable drained_cv_;
   const ChannelRoutes* interest_ = nullptr;
   std::unordered_set<std::string> seen_topics_;  // published at least once

@@ -10,8 +10,10 @@
 #include <chrono>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/types.pb.h"
@@ -75,6 +77,48 @@ TEST_F(PublishQueueTest, FlushedByTheCallerNothingGoesOutBeforeFlush) {
   ASSERT_TRUE(queue.flush(false).ok());
   ASSERT_TRUE(routes_->sync().ok());
   EXPECT_EQ(counted().at("robots/q/b"), 2u);
+}
+
+// A sample held while nobody wanted its topic, released when a subscriber
+// comes, is not left for the next flush (the stepping thread may be waiting
+// for time to start, or for a follower): the queue's thread sends it.
+TEST_F(PublishQueueTest, FlushedByTheCallerASampleReleasedByInterestGoesAtOnce) {
+  PublishQueue queue(*routes_, {}, /*flushed_by_caller=*/true);
+  routes_->gatePublishing("robots/");
+  routes_->watchInterest("robots/", [&queue] { queue.interestChanged(); });
+  // The watch ends before the queue its callback names (declared after it).
+  struct StopWatching {
+    ChannelRoutes& routes;
+    ~StopWatching() { routes.stopWatching(); }
+  } stop_watching{*routes_};
+  queue.setInterest(routes_.get());
+  const auto known_by = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while (!routes_->known() && std::chrono::steady_clock::now() < known_by) {
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  ASSERT_TRUE(routes_->known()) << "the broker's interest watch";
+  queue.push("robots/q/held", text("first"));  // a topic's first sample announces it
+  ASSERT_TRUE(queue.flush(true).ok());
+  queue.push("robots/q/held", text("newest"));  // nobody wants it: held
+  ASSERT_TRUE(queue.flush(true).ok());
+  EXPECT_EQ(counted().at("robots/q/held"), 1u);
+  std::mutex mutex;
+  std::vector<std::string> got;
+  auto sub = reader_->subscribeTyped<v1::Text>("robots/q/held", {}, [&](const v1::Text& t) {
+    std::lock_guard lock(mutex);
+    got.push_back(t.text());
+  });
+  const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(10);
+  while (std::chrono::steady_clock::now() < deadline) {
+    {
+      std::lock_guard lock(mutex);
+      if (!got.empty() && got.back() == "newest") break;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
+  }
+  std::lock_guard lock(mutex);
+  ASSERT_FALSE(got.empty());
+  EXPECT_EQ(got.back(), "newest") << "sent without a flush";
 }
 
 TEST_F(PublishQueueTest, ALongQueueGoesInSeveralBatchesTheLastOneSynced) {

@@ -470,16 +470,6 @@ class ChannelClient::Impl {
     return writeLocked(request);
   }
 
-  absl::Status publishAllAndSync(const std::vector<ChannelClient::TopicSample>& samples) {
-    if (samples.empty()) return sync();
-    v1::PublishRequest request;
-    if (absl::Status status = packBatch(samples, request); !status.ok()) return status;
-    request.set_sync(true);
-    absl::MutexLock lock(&publish_mutex_);
-    if (absl::Status status = writeLocked(request); !status.ok()) return status;
-    return answerLocked(nullptr);
-  }
-
   static absl::Status packBatch(const std::vector<ChannelClient::TopicSample>& samples,
                                 v1::PublishRequest& request) {
     for (std::size_t i = 0; i < samples.size(); ++i) {
@@ -760,10 +750,6 @@ absl::Status ChannelClient::publish(const std::string& topic,
 }
 
 absl::StatusOr<uint64_t> ChannelClient::flush() { return impl_->flush(); }
-
-absl::Status ChannelClient::publishAllAndSync(const std::vector<TopicSample>& samples) {
-  return impl_->publishAllAndSync(samples);
-}
 
 absl::Status ChannelClient::sync() { return impl_->sync(); }
 

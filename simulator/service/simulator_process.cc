@@ -63,11 +63,9 @@ struct SimulatorProcess::Parts {
       if (publisher) {
         // What the quantum published reaches the broker before its grant,
         // and the grant names how far each topic got (the data barrier).
-        // Published here, in one round trip for the sync (the sensors share
-        // the publisher's streams in this mode); a broker away: the
-        // followers see stale data.
-        sensors->flush(false).IgnoreError();
-        publisher->flush(true).IgnoreError();
+        publisher->waitDrained(std::chrono::seconds(1));
+        sensors->waitDrained(std::chrono::seconds(1));
+        client->sync().IgnoreError();  // a broker away: the followers see stale data
         *grant.mutable_clock() = publisher->lockStepClock(simulation.now());
         // Each broker numbers its topics: a follower waits for its own's.
         grants->grantAndWait(grant, client->acceptedSeqsByDomain(), stop);

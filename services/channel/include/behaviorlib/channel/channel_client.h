@@ -162,10 +162,6 @@ class ChannelClient {
   /// them. Each sample is numbered, checked and delivered as if published
   /// alone; otherwise as publish(). An empty batch does nothing.
   absl::Status publishAll(const std::vector<TopicSample>& samples);
-  /// publishAll() and sync() in one round trip: the batch carries the sync
-  /// request (PublishRequest.sync), and the broker answers once it took it.
-  /// An empty batch is sync().
-  absl::Status publishAllAndSync(const std::vector<TopicSample>& samples);
 
   /// Closes the publish stream and returns the number of samples the broker
   /// accepted on it, or the status it ended with. The next publish() opens

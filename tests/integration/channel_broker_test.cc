@@ -756,25 +756,6 @@ TEST_F(ChannelBrokerTest, SyncAndDeliveredAreTheDataBarrier) {
   EXPECT_TRUE(subscriber.delivered(seq_of));
 }
 
-// bufferUntilSync: publishes may wait in the stream's buffer, and sync()
-// takes them all out; turned off, a publish goes out by itself again.
-TEST_F(ChannelBrokerTest, BufferedPublishesGoOutWithTheSync) {
-  ChannelClient publisher(broker_.address());
-  ChannelClient reader(broker_.address());
-  const auto counted = [&reader]() -> uint64_t {
-    auto topics = reader.listTopics("robots/u1/");
-    return topics.ok() && topics->size() == 1 ? (*topics)[0].published_count() : 0;
-  };
-  publisher.bufferUntilSync(true);
-  for (int i = 0; i < 3; ++i) ASSERT_TRUE(publisher.publish("robots/u1/a", text("x")).ok());
-  ASSERT_TRUE(publisher.sync().ok());
-  EXPECT_EQ(counted(), 3u);
-  EXPECT_EQ(publisher.acceptedSeqs(), (std::map<std::string, uint64_t>{{"robots/u1/a", 3}}));
-  publisher.bufferUntilSync(false);
-  ASSERT_TRUE(publisher.publish("robots/u1/a", text("y")).ok());
-  EXPECT_TRUE(eventually([&] { return counted() == 4u; })) << "sent without a sync";
-}
-
 TEST_F(ChannelBrokerTest, ChannelClientSubscriberReconnectsAfterBrokerRestart) {
   const int port = broker_.grpcPort();
   ChannelClient client(broker_.address());

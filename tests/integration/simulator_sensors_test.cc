@@ -336,6 +336,21 @@ TEST_F(SimulatorSensorsTest, ResetWithTheSameSeedReproducesEverySampleBitForBit)
                                           "robots/drone1/battery", "robots/drone1/lidar/scan"};
   Recorder recorder(*client_, names);
   ASSERT_TRUE(recorder.waitConnected());
+  // Connected at the broker is not yet known to the simulator: until its
+  // interest watch hears of a topic it holds the topic's samples (decision
+  // 17), and on a busy machine that may be after a run's first steps. Step
+  // until every topic delivered more than its announcing first sample.
+  const auto wanted = [&] {
+    for (const std::string& topic : names) {
+      if (recorder.of(topic).size() < 2) return false;
+    }
+    return true;
+  };
+  for (int i = 0; i < 100 && !wanted(); ++i) {
+    step(100);
+    std::this_thread::sleep_for(milliseconds(20));
+  }
+  ASSERT_TRUE(wanted()) << "the simulator never published every topic";
 
   // One run: Reset(seed), then the same time-stamped commands: take off at
   // 0.5 s, fly forward from 2 s, samples until 3 s.

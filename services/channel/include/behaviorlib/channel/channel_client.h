@@ -174,12 +174,6 @@ class ChannelClient {
   /// last one); the deterministic mode's barrier. A refused sample or a
   /// broker gone ends the stream, and sync() returns why.
   absl::Status sync();
-  /// With `buffer`, a publish may wait in the stream's buffer (gRPC's
-  /// buffer hint: no write to the socket of its own) until the next sync()
-  /// takes everything out at once. For a publisher that syncs before anyone
-  /// may read what it published: a deterministic-mode follower, whose report
-  /// comes after its sync.
-  void bufferUntilSync(bool buffer);
 
   /// The topic_seq of the last sample this client published on each topic,
   /// as the broker reported at the last sync() or flush(); emptied when a

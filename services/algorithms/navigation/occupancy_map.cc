@@ -48,25 +48,27 @@ octomap::OcTreeKey keyOf(uint64_t code) {
                             static_cast<octomap::key_type>(packBits(code >> 2)));
 }
 
-// Sorted and unique, by a radix sort of the 48-bit codes (three 16-bit
-// passes): a scan has tens of thousands of ray voxels.
-void sortUnique(std::vector<uint64_t>& codes, std::vector<uint64_t>& buffer) {
+// Sorted and unique. Large inputs (a scan has tens of thousands of ray
+// voxels) by a radix sort of the 48-bit codes in three 16-bit passes, with
+// the caller's buffers (reused scan after scan: the buckets are 256 KiB).
+void sortUnique(std::vector<uint64_t>& codes, std::vector<uint64_t>& buffer,
+                std::vector<uint32_t>& buckets) {
   constexpr int kBits = 16;
   constexpr size_t kBuckets = size_t{1} << kBits;
-  if (codes.size() > 256) {
-    std::vector<uint32_t> count(kBuckets);
+  if (codes.size() > 8 * 1024) {
+    buckets.resize(kBuckets);
     buffer.resize(codes.size());
     for (int pass = 0; pass < 3; ++pass) {
       const int shift = pass * kBits;
-      std::fill(count.begin(), count.end(), 0u);
-      for (uint64_t c : codes) ++count[(c >> shift) & (kBuckets - 1)];
+      std::fill(buckets.begin(), buckets.end(), 0u);
+      for (uint64_t c : codes) ++buckets[(c >> shift) & (kBuckets - 1)];
       uint32_t sum = 0;
-      for (uint32_t& n : count) {
+      for (uint32_t& n : buckets) {
         const uint32_t here = n;
         n = sum;
         sum += here;
       }
-      for (uint64_t c : codes) buffer[count[(c >> shift) & (kBuckets - 1)]++] = c;
+      for (uint64_t c : codes) buffer[buckets[(c >> shift) & (kBuckets - 1)]++] = c;
       codes.swap(buffer);
     }
   } else {
@@ -124,6 +126,7 @@ class PathFinder {
 struct OccupancyMap::Scratch {
   octomap::KeyRay ray;
   std::vector<uint64_t> miss_free, ends, hit_free, occupied, changed, buffer;
+  std::vector<uint32_t> buckets;  // sortUnique's
 };
 
 OccupancyMap::OccupancyMap(MapOptions options)
@@ -153,7 +156,7 @@ void OccupancyMap::insertScan(const Eigen::Vector3d& origin_m,
   for (const auto& p : misses_m) {
     if (p.allFinite()) rayInto(toOcto(p), s.miss_free);
   }
-  sortUnique(s.miss_free, s.buffer);
+  sortUnique(s.miss_free, s.buffer, s.buckets);
   // Hits as insertPointCloud(discretize) takes them: one per voxel, at its
   // centre; free along the ray, occupied at the end, and a voxel both free
   // and occupied in this scan counts as occupied.
@@ -161,7 +164,7 @@ void OccupancyMap::insertScan(const Eigen::Vector3d& origin_m,
   for (const auto& p : hits_m) {
     if (p.allFinite()) s.ends.push_back(pathCode(tree.coordToKey(toOcto(p))));
   }
-  sortUnique(s.ends, s.buffer);
+  sortUnique(s.ends, s.buffer, s.buckets);
   s.hit_free.clear();
   s.occupied.clear();
   for (uint64_t end : s.ends) {
@@ -170,8 +173,8 @@ void OccupancyMap::insertScan(const Eigen::Vector3d& origin_m,
     octomap::OcTreeKey key;
     if (tree.coordToKeyChecked(centre, key)) s.occupied.push_back(pathCode(key));
   }
-  sortUnique(s.hit_free, s.buffer);
-  sortUnique(s.occupied, s.buffer);
+  sortUnique(s.hit_free, s.buffer, s.buckets);
+  sortUnique(s.occupied, s.buffer, s.buckets);
   s.hit_free.erase(std::set_difference(s.hit_free.begin(), s.hit_free.end(), s.occupied.begin(),
                                        s.occupied.end(), s.hit_free.begin()),
                    s.hit_free.end());
@@ -213,7 +216,7 @@ void OccupancyMap::insertScan(const Eigen::Vector3d& origin_m,
   // Each sees its children final, so the tree ends as OctoMap's per-leaf
   // updates leave it. (Shifted, the sorted codes of one level are the sorted
   // codes of the next one up, with repeats.)
-  sortUnique(s.changed, s.buffer);
+  sortUnique(s.changed, s.buffer, s.buckets);
   for (unsigned depth = depth_max; depth-- > 0;) {
     for (uint64_t& c : s.changed) c >>= 3;
     s.changed.erase(std::unique(s.changed.begin(), s.changed.end()), s.changed.end());

@@ -77,7 +77,14 @@ ReferencePoint PathTracker::sample(double t_s) const {
     p.position_m = points_.back();
     return p;
   }
-  t_s = std::clamp(t_s, 0.0, total_time_s_);
+  if (t_s >= total_time_s_) {
+    // At rest at the last point. (Computed within the last segment, the time
+    // could fall a rounding error short of its end, and the reference kept the
+    // braking acceleration for as long as it was held there.)
+    p.position_m = points_.back();
+    return p;
+  }
+  t_s = std::max(t_s, 0.0);
   auto it = std::upper_bound(segments_.begin(), segments_.end(), t_s,
                              [](double t, const Segment& s) { return t < s.start_time; });
   const Segment& s = *std::prev(it);

@@ -183,6 +183,43 @@ TEST(PathTracker, TimesTheProfileAndStopsAtTheEnd) {
   EXPECT_NEAR(tracker->sample(100).velocity_m_s.norm(), 0.0, 1e-9);
 }
 
+// At its end the reference is at rest: no velocity and no acceleration
+// feed-forward, whatever rounding the segments' times got. (The braking
+// acceleration used to stay on when the time reached the end a hair inside the
+// last segment: depending on where the path started, a vehicle held at the
+// last waypoint was pushed back by 1 m/s^2 of feed-forward, and the demo's
+// FOLLOW_PATH took 4 s longer in about one flight in five.)
+TEST(PathTracker, AtTheEndTheReferenceIsAtRest) {
+  int checked = 0;
+  for (int i = 0; i < 200; ++i) {
+    auto tracker = PathTracker::create({{4, 0, 1.5}, {4, 4, 1.5}, {0, 4, 1.5}, {0, 0, 1.5}},
+                                       PathTrackerParams{});
+    ASSERT_TRUE(tracker.ok());
+    // Where the vehicle happened to be when the path began.
+    tracker->start({-0.013 + 1e-4 * i, 0.0021 * (i % 7), 1.49 + 1e-5 * i}, 0.0);
+    const double end = tracker->totalTimeS();
+    for (const double t : {end, end + 0.01, end + 100.0}) {
+      const ReferencePoint p = tracker->sample(t);
+      EXPECT_EQ(p.acceleration_m_s2.norm(), 0.0) << "start " << i << ", t " << t;
+      EXPECT_EQ(p.velocity_m_s.norm(), 0.0) << "start " << i << ", t " << t;
+      EXPECT_NEAR((p.position_m - Eigen::Vector3d(0, 0, 1.5)).norm(), 0.0, 1e-9);
+    }
+    // Followed tick by tick past the end, as FOLLOW_PATH does.
+    MotionReference reference;
+    for (int k = 0; k < 3000 && !tracker->referenceAtEnd(); ++k) {
+      reference = tracker->update(tracker->sample(tracker->timeS()).position_m, 0.01);
+    }
+    ASSERT_TRUE(tracker->referenceAtEnd());
+    reference = tracker->update(Eigen::Vector3d(0, 0, 1.5), 0.01);
+    EXPECT_EQ(reference.point.acceleration_m_s2.norm(), 0.0) << "start " << i;
+    for (const ReferencePoint& h : reference.horizon) {
+      EXPECT_EQ(h.acceleration_m_s2.norm(), 0.0) << "start " << i;
+    }
+    ++checked;
+  }
+  EXPECT_EQ(checked, 200);
+}
+
 TEST(PathTracker, TheReferenceWaitsForALaggingVehicle) {
   auto tracker = PathTracker::create({{10, 0, 1}}, PathTrackerParams{});
   ASSERT_TRUE(tracker.ok());

@@ -4,6 +4,7 @@
 
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/access_policy.h"
+#include "behaviorlib/server_kit/barrier_metadata.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/status.h"
 #include "simulator/service/latest_writer.h"
@@ -50,6 +51,17 @@ class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::
   SetpointReader(FlightControllerService* service, const grpc::CallbackServerContext& context,
                  v1::StreamSetpointsResponse* response)
       : service_(service), scope_(server::robotScopeOf(context)), response_(response) {
+    // A follower's stream, whose setpoints the next step waits for.
+    if (SetpointBarrier* barrier = service_->setpointBarrier(); barrier != nullptr) {
+      const auto& metadata = context.client_metadata();
+      if (auto it = metadata.find(server::kSetpointStreamMetadataKey); it != metadata.end()) {
+        std::string key(it->second.data(), it->second.size());
+        if (barrier->opened(key)) {
+          barrier_ = barrier;
+          key_ = std::move(key);
+        }
+      }
+    }
     StartRead(&request_);
   }
   void OnReadDone(bool ok) override {
@@ -59,6 +71,7 @@ class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::
       return;
     }
     auto applied = service_->applySetpoint(request_, scope_);
+    if (barrier_ != nullptr) barrier_->read(key_);
     if (!applied.ok()) {
       Finish(toGrpc(applied.status()));
       return;
@@ -68,11 +81,14 @@ class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::
   }
   void OnDone() override {
     ordered();
+    if (barrier_ != nullptr) barrier_->ended(key_);
     delete this;
   }
 
  private:
   FlightControllerService* service_;
+  SetpointBarrier* barrier_ = nullptr;  // a keyed stream's
+  std::string key_;
   const server::RobotScope scope_;  // the caller's, resolved once
   v1::StreamSetpointsResponse* response_;
   v1::SetpointRequest request_;

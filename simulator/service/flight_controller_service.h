@@ -17,6 +17,7 @@
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "simulator/core/simulation.h"
 #include "simulator/service/latest_writer.h"
+#include "simulator/service/setpoint_barrier.h"
 
 namespace behaviorlib::sim {
 
@@ -29,6 +30,10 @@ class FlightControllerService final : public v1::FlightController::CallbackServi
 
   /// Ends every WatchFlightState and StreamSetpoints stream (shutdown).
   void shutdown();
+  /// The deterministic mode: what StreamSetpoints calls that name a ledger
+  /// key read is counted in `barrier` (set before serving).
+  void setSetpointBarrier(SetpointBarrier* barrier) { setpoint_barrier_ = barrier; }
+  SetpointBarrier* setpointBarrier() const { return setpoint_barrier_; }
 
   grpc::ServerUnaryReactor* AcquireLease(grpc::CallbackServerContext* context,
                                          const v1::AcquireLeaseRequest* request,
@@ -57,6 +62,8 @@ class FlightControllerService final : public v1::FlightController::CallbackServi
 
  private:
   void removeWatcher(FlightStatusWatcher* watcher);
+
+  SetpointBarrier* setpoint_barrier_ = nullptr;
 
   Simulation& simulation_;
   std::mutex watchers_mutex_;

@@ -37,6 +37,7 @@ struct SimulatorProcess::Parts {
   std::unique_ptr<SensorPublisher> sensors;
   std::unique_ptr<FaultInjector> faults;
   WorldControl worlds;
+  SetpointBarrier setpoint_barrier;  // the deterministic mode's
   std::unique_ptr<FlightControllerService> flight_controller;
   std::unique_ptr<SimulatorService> simulator;
   std::unique_ptr<TimeGrants> grants;
@@ -166,7 +167,12 @@ absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
   p->simulator = std::make_unique<SimulatorService>(p->simulation, p->time, p->worlds,
                                                     o.fault_injection ? p->faults.get() : nullptr);
   p->grants = std::make_unique<TimeGrants>(o.follower_timeout);
-  if (o.deterministic) p->simulator->setTimeGrants(p->grants.get());
+  if (o.deterministic) {
+    p->simulator->setTimeGrants(p->grants.get());
+    // The followers' setpoints are applied before the next step.
+    p->flight_controller->setSetpointBarrier(&p->setpoint_barrier);
+    p->grants->setSetpointBarrier(&p->setpoint_barrier);
+  }
   if (p->client) {
     ChannelRoutes* routes = p->client.get();
     p->grants->setDomainOf([routes](const std::string& robot) { return routes->domainOf(robot); });
@@ -212,6 +218,12 @@ void SimulatorProcess::shutdown() {
   p.runtime.shutdown(std::chrono::seconds(2));
   p.stepper.join();
   p.metrics->stop();
+  if (p.options.deterministic) {
+    std::fprintf(stderr,
+                 "simulator: steps that waited for a reported setpoint: %llu (gave up: %llu)\n",
+                 static_cast<unsigned long long>(p.setpoint_barrier.waitCount()),
+                 static_cast<unsigned long long>(p.setpoint_barrier.timeoutCount()));
+  }
   if (p.sensors) {
     const auto& s = p.sensors->sensors();
     std::fprintf(stderr,

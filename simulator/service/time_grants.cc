@@ -24,6 +24,11 @@ constexpr std::chrono::milliseconds kStopPoll(100);
 // read by commands from outside, which first wake it and wait for a current
 // grant.
 constexpr int64_t kIdleGrantPeriodNs = 1'000'000'000;
+// The longest wait for reported setpoints (wall time): a stream that a
+// follower's report names may never arrive (its process died in between).
+constexpr std::chrono::seconds kSetpointWaitLimit(2);
+// The most setpoint streams one report may name.
+constexpr int kMaxReportedSetpointStreams = 64;
 
 }  // namespace
 
@@ -50,6 +55,9 @@ class TimeGrants::Follower final
   // The topics its data barrier waits on (FollowTimeRequest.awaited_topics),
   // sorted; unset: every topic.
   std::optional<std::vector<std::string>> awaited_topics;
+  // The setpoints its reports said it wrote, per stream key, not yet waited
+  // for (FollowTimeRequest.setpoints_written).
+  std::map<std::string, uint64_t> setpoints_written;
   int64_t caught_up_ns = -1;
 
   const v1::FollowTimeRequest& request() const { return request_; }
@@ -223,6 +231,14 @@ void TimeGrants::reported(Follower* follower) {
       for (const auto& [topic, seq] : follower->request().topic_seqs()) {
         follower->topic_seqs[topic] = seq;
       }
+      if (setpoint_barrier_ != nullptr) {
+        int named = 0;
+        for (const auto& [key, count] : follower->request().setpoints_written()) {
+          if (++named > kMaxReportedSetpointStreams) break;
+          uint64_t& written = follower->setpoints_written[key];
+          written = std::max(written, count);
+        }
+      }
     }
   }
   cv_.notify_all();
@@ -260,7 +276,40 @@ int TimeGrants::grantAndWait(v1::FollowTimeResponse grant, const std::atomic<boo
   return grantAndWait(std::move(grant), seqs, stop);
 }
 
+void TimeGrants::setSetpointBarrier(SetpointBarrier* barrier) {
+  std::lock_guard lock(mutex_);
+  setpoint_barrier_ = barrier;
+}
+
 int TimeGrants::grantAndWait(v1::FollowTimeResponse grant, const DomainSeqs& seqs,
+                             const std::atomic<bool>& stop) {
+  const int caught_up = awaitReports(std::move(grant), seqs, stop);
+  awaitSetpoints();
+  return caught_up;
+}
+
+void TimeGrants::awaitSetpoints() {
+  std::map<std::string, uint64_t> written;
+  {
+    std::lock_guard lock(mutex_);
+    if (setpoint_barrier_ == nullptr) return;
+    for (Follower* follower : followers_) {
+      for (const auto& [key, count] : follower->setpoints_written) {
+        uint64_t& n = written[key];
+        n = std::max(n, count);
+      }
+      follower->setpoints_written.clear();
+    }
+  }
+  if (setpoint_barrier_->awaitRead(written, kSetpointWaitLimit) || told_setpoint_timeout_) return;
+  told_setpoint_timeout_ = true;
+  std::fprintf(stderr,
+               "simulator: setpoints a follower reported did not arrive within %lld s of wall "
+               "time; stepping on without them (told once)\n",
+               static_cast<long long>(kSetpointWaitLimit.count()));
+}
+
+int TimeGrants::awaitReports(v1::FollowTimeResponse grant, const DomainSeqs& seqs,
                              const std::atomic<bool>& stop) {
   const int64_t t = TimeUtil::TimestampToNanoseconds(grant.clock().time());
   grant.clear_topic_seqs();

@@ -32,6 +32,7 @@
 
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/v1/simulator.pb.h"
+#include "simulator/service/setpoint_barrier.h"
 
 namespace behaviorlib::sim {
 
@@ -69,6 +70,11 @@ class TimeGrants {
   /// robot_id); by default every follower shares one (""). Set before the
   /// first follower joins.
   void setDomainOf(std::function<std::string(const std::string& robot_id)> domain_of);
+  /// The setpoints the followers report (FollowTimeRequest.
+  /// setpoints_written) are waited for in `barrier` before grantAndWait()
+  /// returns, so the next step applies them (at most kSetpointWaitLimit of
+  /// wall time, told once). Set before the first follower joins.
+  void setSetpointBarrier(SetpointBarrier* barrier);
 
   /// Whether a follower is busy now (its last report or wake said so, and
   /// it is not left out for silence): the simulator waits for it.
@@ -88,6 +94,11 @@ class TimeGrants {
   void joined(Follower* follower);
   void reported(Follower* follower);
   void left(Follower* follower);
+  // The reports' part of grantAndWait (under mutex_).
+  int awaitReports(v1::FollowTimeResponse grant, const DomainSeqs& seqs,
+                   const std::atomic<bool>& stop);
+  // The setpoints reported since the last call, waited for in the barrier.
+  void awaitSetpoints();
 
   const std::chrono::nanoseconds follower_timeout_;
   mutable std::mutex mutex_;
@@ -106,6 +117,8 @@ class TimeGrants {
   std::map<std::string, DomainGrant> last_grants_;
   std::function<std::string(const std::string&)> domain_of_;
   bool shutting_down_ = false;
+  SetpointBarrier* setpoint_barrier_ = nullptr;
+  bool told_setpoint_timeout_ = false;  // the stepping thread's
   std::atomic<uint64_t> grants_{0};
   std::atomic<uint64_t> timeouts_{0};
 };

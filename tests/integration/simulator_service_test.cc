@@ -6,9 +6,11 @@
 #include <grpcpp/grpcpp.h>
 #include <gtest/gtest.h>
 
+#include <atomic>
 #include <cmath>
 #include <csignal>
 #include <fstream>
+#include <map>
 #include <optional>
 #include <set>
 #include <thread>
@@ -650,6 +652,88 @@ TEST(SimulatorDeterministicTest, AGrantNamesTheTopicsItsFollowerAwaits) {
   bool both = false;
   for (const auto& named : all.named) both = both || (named.count(pose1) && named.count(pose2));
   EXPECT_TRUE(both) << "the older follower was not named every topic";
+}
+
+// Setpoints travel on StreamSetpoints calls of their own, read by other
+// threads of the simulator than the follower's reports. A report names how
+// many setpoints its follower wrote on each stream (the key in the stream's
+// metadata), and the simulator does not step on until it has read them all,
+// or their stream ended: a setpoint written before a report is applied in
+// the quantum it was meant for (before, about 15 a flight were applied a
+// quantum late in the demo). A stream that never comes holds the step for a
+// bounded wall time only.
+TEST(SimulatorDeterministicTest, AReportedSetpointIsReadBeforeTheNextStep) {
+  support::ServerProcess simulator(
+      BEHAVIORLIB_SIMULATOR_PATH,
+      {"--time-scale", "max", "--min-followers", "1", "--follower-timeout-s", "600"});
+  ASSERT_TRUE(simulator.start()) << simulator.error();
+  auto channel = grpc::CreateChannel(simulator.address(), grpc::InsecureChannelCredentials());
+  auto sim = v1::Simulator::NewStub(channel);
+  auto platform = v1::FlightController::NewStub(channel);
+
+  auto context = deadline(seconds(60));
+  auto stream = sim->FollowTime(context.get());
+  v1::FollowTimeRequest join;
+  join.set_participant("test/setpoints");
+  join.set_robot_id("drone1");
+  ASSERT_TRUE(stream->Write(join));
+  const auto report = [&stream](const v1::FollowTimeResponse& grant,
+                                std::map<std::string, uint64_t> written) {
+    v1::FollowTimeRequest request;
+    *request.mutable_caught_up_to() = grant.clock().time();
+    request.set_idle(false);
+    request.mutable_setpoints_written()->insert(written.begin(), written.end());
+    return stream->Write(request);
+  };
+  const auto nanos = [](const v1::FollowTimeResponse& grant) {
+    return TimeUtil::TimestampToNanoseconds(grant.clock().time());
+  };
+  v1::FollowTimeResponse first;
+  ASSERT_TRUE(stream->Read(&first));
+  ASSERT_TRUE(report(first, {{"test-stream-1", 1}}));
+
+  // The next grant waits for the setpoint.
+  std::atomic<bool> granted{false};
+  v1::FollowTimeResponse second;
+  std::thread reader([&] { granted = stream->Read(&second); });
+  std::this_thread::sleep_for(milliseconds(500));
+  EXPECT_FALSE(granted.load()) << "the simulator stepped before the reported setpoint arrived";
+  {
+    // The setpoint: refused (no lease), which counts as read, and ends the stream.
+    grpc::ClientContext setpoints_context;
+    setpoints_context.AddMetadata("behaviorlib-setpoint-stream", "test-stream-1");
+    v1::StreamSetpointsResponse accepted;
+    auto writer = platform->StreamSetpoints(&setpoints_context, &accepted);
+    v1::SetpointRequest setpoint;
+    setpoint.set_robot_id("drone1");
+    setpoint.set_lease_id("no-such-lease");
+    setpoint.mutable_position_yaw()->mutable_position_m()->set_z(1.0);
+    writer->Write(setpoint);
+    writer->WritesDone();
+    EXPECT_FALSE(writer->Finish().ok()) << "a setpoint without a lease was accepted";
+  }
+  reader.join();
+  ASSERT_TRUE(granted.load());
+  EXPECT_EQ(nanos(second) - nanos(first), 10'000'000) << "one quantum, and only one";
+
+  // A stream that ended is not waited for, whatever its report says.
+  ASSERT_TRUE(report(second, {{"test-stream-1", 3}}));
+  v1::FollowTimeResponse third;
+  ASSERT_TRUE(stream->Read(&third));
+  EXPECT_EQ(nanos(third) - nanos(second), 10'000'000);
+
+  // A stream that never comes holds the step for the bounded wait (2 s).
+  const auto before = std::chrono::steady_clock::now();
+  ASSERT_TRUE(report(third, {{"never-opened", 1}}));
+  v1::FollowTimeResponse fourth;
+  ASSERT_TRUE(stream->Read(&fourth));
+  EXPECT_GE(std::chrono::steady_clock::now() - before, milliseconds(1900));
+  EXPECT_EQ(nanos(fourth) - nanos(third), 10'000'000);
+
+  stream->WritesDone();
+  context->TryCancel();
+  stream->Finish();
+  EXPECT_EQ(simulator.terminate(), 0);
 }
 
 // The deterministic mode (--time-scale max): time starts once the follower

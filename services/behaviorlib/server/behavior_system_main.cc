@@ -15,6 +15,7 @@
 #include "behaviorlib/server/behavior_system_service.h"
 #include "behaviorlib/server/coordinator_registration.h"
 #include "behaviorlib/server/link_loss.h"
+#include "behaviorlib/server/setpoint_ledger.h"
 #include "behaviorlib/server/time_follower.h"
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/server_kit/flags.h"
@@ -90,6 +91,7 @@ struct BehaviorSystemProcess::Parts {
   channel::SimClock* sim_clock = nullptr;
   AcceptGate gate;
   std::unique_ptr<BeliefClient> belief_client;
+  std::unique_ptr<SetpointLedger> setpoints;  // following the time grants
   std::unique_ptr<BehaviorSystemBuilder> builder;
   // Before the host, which calls its awaitTurn() until it stops.
   std::unique_ptr<TimeFollower> follower;
@@ -146,13 +148,17 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
     p->belief_client = std::make_unique<BeliefClient>(o.coordinator);
     context.beliefs = p->belief_client.get();
   }
+  if (!o.follow_time.empty()) {
+    p->setpoints = std::make_unique<SetpointLedger>();
+    context.setpoints = p->setpoints.get();
+  }
   p->builder = std::make_unique<BehaviorSystemBuilder>(p->gate, std::move(context));
   register_behaviors(*p->builder);
 
   if (!o.follow_time.empty()) {
     p->follower =
         std::make_unique<TimeFollower>(o.follow_time, o.system + "/" + o.robot_id, *p->sim_clock,
-                                       p->channel_client.get(), o.robot_id);
+                                       p->channel_client.get(), o.robot_id, p->setpoints.get());
   }
   BehaviorHostOptions host_options;
   host_options.robot_id = o.robot_id;

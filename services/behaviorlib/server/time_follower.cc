@@ -9,6 +9,7 @@
 #include "absl/time/time.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/channel/sim_clock.h"
+#include "behaviorlib/server/setpoint_ledger.h"
 #include "behaviorlib/server_kit/transport_security.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 
@@ -35,11 +36,12 @@ TimePoint toTimePoint(const google::protobuf::Timestamp& t) {
 
 TimeFollower::TimeFollower(const std::string& simulator_address, std::string participant,
                            channel::SimClock& clock, channel::ChannelClient* channel,
-                           std::string robot_id)
+                           std::string robot_id, SetpointLedger* setpoints)
     : participant_(std::move(participant)),
       robot_id_(std::move(robot_id)),
       clock_(clock),
       data_(channel),
+      setpoints_(setpoints),
       channel_(behaviorlib::server::makeChannel(simulator_address)) {}
 
 TimeFollower::~TimeFollower() { stop(); }
@@ -243,6 +245,8 @@ void TimeFollower::run() {
             (*report.mutable_topic_seqs())[topic] = seq;
           }
         }
+        // The setpoints the behaviors wrote are applied before the next step.
+        if (setpoints_ != nullptr) setpoints_->fill(report.mutable_setpoints_written());
         name_awaited_topics(report, false);
         bool written = false;
         {

@@ -11,8 +11,8 @@ namespace {
 class RemoteLease final : public VehicleLease {
  public:
   RemoteLease(const platform::FlightControllerClient& client,
-              std::unique_ptr<platform::LeaseKeeper> keeper)
-      : client_(client), keeper_(std::move(keeper)) {}
+              std::unique_ptr<platform::LeaseKeeper> keeper, server::SetpointLedger* setpoints)
+      : client_(client), keeper_(std::move(keeper)), setpoints_(setpoints) {}
 
   absl::Status status() const override { return keeper_->status(); }
   absl::StatusOr<v1::FlightState> execute(v1::FlightAction action,
@@ -24,7 +24,7 @@ class RemoteLease final : public VehicleLease {
     return client_.sendPositionSetpoint(keeper_->id(), x_m, y_m, z_m, yaw_rad);
   }
   absl::Status send(v1::SetpointRequest setpoint) override {
-    if (!stream_) stream_ = std::make_unique<SetpointStream>(client_, keeper_->id());
+    if (!stream_) stream_ = std::make_unique<SetpointStream>(client_, keeper_->id(), setpoints_);
     return stream_->send(std::move(setpoint));
   }
   absl::Status release() override {
@@ -35,6 +35,7 @@ class RemoteLease final : public VehicleLease {
  private:
   const platform::FlightControllerClient& client_;
   std::unique_ptr<platform::LeaseKeeper> keeper_;
+  server::SetpointLedger* const setpoints_;  // may be null
   std::unique_ptr<SetpointStream> stream_;
 };
 
@@ -46,7 +47,10 @@ TimePoint stampTime(const v1::Header& header) {
 }
 
 RemoteVehicle::RemoteVehicle(const server::SystemContext& context)
-    : robot_id_(context.robot_id), clock_(*context.clock), channel_(context.channel) {
+    : robot_id_(context.robot_id),
+      clock_(*context.clock),
+      channel_(context.channel),
+      setpoints_(context.setpoints) {
   if (!context.flight_controller.empty()) {
     flight_controller_ =
         std::make_unique<platform::FlightControllerClient>(context.flight_controller, robot_id_);
@@ -79,7 +83,8 @@ absl::StatusOr<std::unique_ptr<VehicleLease>> RemoteVehicle::acquireLease(const 
   auto keeper = platform::LeaseKeeper::acquire(*flight_controller_, clock_, holder,
                                                {.ttl = ttl, .preempt = preempt});
   if (!keeper.ok()) return keeper.status();
-  return std::unique_ptr<VehicleLease>(new RemoteLease(*flight_controller_, std::move(*keeper)));
+  return std::unique_ptr<VehicleLease>(
+      new RemoteLease(*flight_controller_, std::move(*keeper), setpoints_));
 }
 
 void RemoteVehicle::followEstimate(bool follow) {

@@ -2,8 +2,9 @@
 
 namespace behaviorlib::flight {
 
-SetpointStream::SetpointStream(const platform::FlightControllerClient& client, std::string lease_id)
-    : client_(client), lease_id_(std::move(lease_id)) {}
+SetpointStream::SetpointStream(const platform::FlightControllerClient& client, std::string lease_id,
+                               server::SetpointLedger* ledger)
+    : client_(client), lease_id_(std::move(lease_id)), ledger_(ledger) {}
 
 SetpointStream::~SetpointStream() {
   if (!writer_) return;
@@ -19,6 +20,7 @@ absl::Status SetpointStream::finish() {
   const grpc::Status status = writer_->Finish();
   writer_.reset();
   context_.reset();
+  if (ledger_ != nullptr) ledger_->closed(ledger_key_);
   return client_.describe(status, "StreamSetpoints");
 }
 
@@ -27,11 +29,16 @@ absl::Status SetpointStream::send(v1::SetpointRequest setpoint) {
   setpoint.set_lease_id(lease_id_);
   if (!writer_) {
     context_ = std::make_unique<grpc::ClientContext>();
+    if (ledger_ != nullptr) {
+      ledger_key_ = ledger_->open();
+      context_->AddMetadata(server::kSetpointStreamMetadataKey, ledger_key_);
+    }
     response_.Clear();
     writer_ = client_.stub().StreamSetpoints(context_.get(), &response_);
   }
   if (writer_->Write(setpoint)) {
     ++sent_;
+    if (ledger_ != nullptr) ledger_->wrote(ledger_key_);
     return absl::OkStatus();
   }
   // The stream has ended: the platform refused a setpoint or went away.

@@ -51,6 +51,8 @@ class ChannelClient;
 
 namespace behaviorlib::server {
 
+class SetpointLedger;
+
 /// What a behavior-system process offers its behaviors beyond the
 /// BehaviorContext each behavior gets at start(): the connections and
 /// settings made from its flags. Everything here lives until the process
@@ -71,6 +73,10 @@ struct SystemContext {
   YAML::Node config;
   /// The coordinator's belief memory (--coordinator); null without one.
   const BeliefClient* beliefs = nullptr;
+  /// Following the simulator's time grants (--follow-time): counts the
+  /// setpoints streamed to the simulator, which applies them before it steps
+  /// on (setpoint_ledger.h); null otherwise.
+  SetpointLedger* setpoints = nullptr;
 };
 
 /// Collects the behaviors of a system and their typed services.

@@ -10,7 +10,9 @@
 // With a channel client, grants are also a data barrier: before the clock
 // moves, each subscription of the client waits for the sample the grant
 // names for its topic (FollowTimeResponse.topic_seqs), and before the report,
-// what the client published is synced to the broker.
+// what the client published is synced to the broker. With a SetpointLedger,
+// a report also names the setpoints the process wrote to the simulator, which
+// applies them before it steps on (setpoint_ledger.h).
 //
 //   channel::SimClock clock(channel);
 //   TimeFollower follower("127.0.0.1:50070", "basic_quadrotor_behaviors/drone1", clock,
@@ -55,13 +57,17 @@ class SimClock;
 
 namespace behaviorlib::server {
 
+class SetpointLedger;
+
 class TimeFollower {
  public:
   /// `robot_id` names the vehicle whose broker `channel` is (the data
   /// barrier's numbers are that broker's; FollowTimeRequest.robot_id).
+  /// `setpoints` (may be null) counts the setpoints the process streams to
+  /// the simulator; each report names its counts.
   TimeFollower(const std::string& simulator_address, std::string participant,
-               channel::SimClock& clock, channel::ChannelClient* channel,
-               std::string robot_id = "");
+               channel::SimClock& clock, channel::ChannelClient* channel, std::string robot_id = "",
+               SetpointLedger* setpoints = nullptr);
   /// stop()s.
   ~TimeFollower();
   TimeFollower(const TimeFollower&) = delete;
@@ -95,6 +101,7 @@ class TimeFollower {
   const std::string robot_id_;
   channel::SimClock& clock_;
   channel::ChannelClient* const data_;  // may be null
+  SetpointLedger* const setpoints_;     // may be null
   std::function<bool(TimePoint)> caught_up_;
   std::function<bool()> idle_;
   std::shared_ptr<grpc::Channel> channel_;

@@ -48,6 +48,7 @@ class RemoteVehicle final : public Vehicle {
   const std::string robot_id_;
   const Clock& clock_;
   channel::ChannelClient* channel_;
+  server::SetpointLedger* setpoints_;  // may be null
   std::unique_ptr<platform::FlightControllerClient> flight_controller_;
   std::unique_ptr<platform::FlightStateWatcher> watcher_;
 

@@ -12,6 +12,10 @@
 //   setpoint.mutable_attitude_thrust()->set_thrust_ratio(0.31);
 //   if (absl::Status s = stream.send(setpoint); !s.ok()) { /* refused or unreachable */ }
 //
+// With a SetpointLedger (following the simulator's time grants), each stream
+// names its ledger key in its metadata and counts its writes there, so that
+// the simulator applies them before it steps on (setpoint_ledger.h).
+//
 // Not thread-safe: one sender (a behavior's worker thread).
 
 #include <grpcpp/grpcpp.h>
@@ -21,14 +25,16 @@
 
 #include "absl/status/status.h"
 #include "behaviorlib/platform/flight_controller_client.h"
+#include "behaviorlib/server/setpoint_ledger.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 
 namespace behaviorlib::flight {
 
 class SetpointStream {
  public:
-  /// `client` must outlive the stream.
-  SetpointStream(const platform::FlightControllerClient& client, std::string lease_id);
+  /// `client` (and `ledger`, which may be null) must outlive the stream.
+  SetpointStream(const platform::FlightControllerClient& client, std::string lease_id,
+                 server::SetpointLedger* ledger = nullptr);
   /// Ends the stream (cancelled: no wait for the platform's answer).
   ~SetpointStream();
   SetpointStream(const SetpointStream&) = delete;
@@ -45,6 +51,8 @@ class SetpointStream {
 
   const platform::FlightControllerClient& client_;
   const std::string lease_id_;
+  server::SetpointLedger* const ledger_;
+  std::string ledger_key_;  // the open stream's
   std::unique_ptr<grpc::ClientContext> context_;
   v1::StreamSetpointsResponse response_;
   std::unique_ptr<grpc::ClientWriter<v1::SetpointRequest>> writer_;

@@ -465,6 +465,23 @@ class ChannelClient::Impl {
   absl::Status publishAll(const std::vector<ChannelClient::TopicSample>& samples) {
     if (samples.empty()) return absl::OkStatus();
     v1::PublishRequest request;
+    if (absl::Status status = packBatch(samples, request); !status.ok()) return status;
+    absl::MutexLock lock(&publish_mutex_);
+    return writeLocked(request);
+  }
+
+  absl::Status publishAllAndSync(const std::vector<ChannelClient::TopicSample>& samples) {
+    if (samples.empty()) return sync();
+    v1::PublishRequest request;
+    if (absl::Status status = packBatch(samples, request); !status.ok()) return status;
+    request.set_sync(true);
+    absl::MutexLock lock(&publish_mutex_);
+    if (absl::Status status = writeLocked(request); !status.ok()) return status;
+    return answerLocked(nullptr);
+  }
+
+  static absl::Status packBatch(const std::vector<ChannelClient::TopicSample>& samples,
+                                v1::PublishRequest& request) {
     for (std::size_t i = 0; i < samples.size(); ++i) {
       const auto& [topic, sample] = samples[i];
       if (absl::Status status = validateTopicName(topic); !status.ok()) return status;
@@ -472,16 +489,25 @@ class ChannelClient::Impl {
       part->set_topic(topic);
       part->mutable_sample()->PackFrom(*sample);
     }
-    return write(request);
+    return absl::OkStatus();
+  }
+
+  absl::Status write(const v1::PublishRequest& request) {
+    absl::MutexLock lock(&publish_mutex_);
+    return writeLocked(request);
   }
 
   // Writes one message on the publish stream.
-  absl::Status write(const v1::PublishRequest& request) {
-    absl::MutexLock lock(&publish_mutex_);
+  absl::Status writeLocked(const v1::PublishRequest& request)
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     while (true) {
       const bool fresh = !writer_;
       if (fresh) openLocked();
-      if (writer_->Write(request)) {
+      grpc::WriteOptions options;
+      if (buffer_until_sync_.load(std::memory_order_relaxed) && !request.sync()) {
+        options.set_buffer_hint();
+      }
+      if (writer_->Write(request, options)) {
         unsynced_ = true;
         return absl::OkStatus();
       }
@@ -490,11 +516,7 @@ class ChannelClient::Impl {
       // (restart) deserves one retry on a new stream; anything else, or a
       // fresh stream failing, is reported.
       const bool broker_gone = status.ok() || status.code() == absl::StatusCode::kUnavailable;
-      if (fresh || !broker_gone) {
-        return status.ok() ? absl::UnavailableError(absl::StrCat("publish stream to ", address_,
-                                                                 " was closed by the broker"))
-                           : status;
-      }
+      if (fresh || !broker_gone) return status.ok() ? closedByBroker() : status;
     }
   }
 
@@ -625,6 +647,8 @@ class ChannelClient::Impl {
     return std::make_unique<Subscription>(std::move(impl));
   }
 
+  void bufferUntilSync(bool buffer) { buffer_until_sync_.store(buffer); }
+
   void gatePublishing(const std::string& prefix) {
     absl::MutexLock lock(&publish_mutex_);
     gated_prefix_ = prefix;
@@ -652,13 +676,14 @@ class ChannelClient::Impl {
   absl::Status askLocked(uint64_t* accepted) ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     v1::PublishRequest marker;
     marker.set_sync(true);
+    if (!writer_->Write(marker)) return closedLocked();
+    return answerLocked(accepted);
+  }
+
+  // Reads the answer to a sync request just written.
+  absl::Status answerLocked(uint64_t* accepted) ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
     v1::PublishResponse answer;
-    if (!writer_->Write(marker) || !writer_->Read(&answer)) {
-      absl::Status status = closeLocked();
-      return status.ok() ? absl::UnavailableError(absl::StrCat("publish stream to ", address_,
-                                                               " was closed by the broker"))
-                         : status;
-    }
+    if (!writer_->Read(&answer)) return closedLocked();
     if (accepted != nullptr) *accepted = answer.accepted_count();
     {
       absl::MutexLock lock(&accepted_mutex_);
@@ -669,6 +694,17 @@ class ChannelClient::Impl {
     }
     unsynced_ = false;
     return absl::OkStatus();
+  }
+
+  // The stream broke: closed, and why.
+  absl::Status closedLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
+    absl::Status status = closeLocked();
+    return status.ok() ? closedByBroker() : status;
+  }
+
+  absl::Status closedByBroker() const {
+    return absl::UnavailableError(
+        absl::StrCat("publish stream to ", address_, " was closed by the broker"));
   }
 
   absl::Status closeLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(publish_mutex_) {
@@ -690,6 +726,7 @@ class ChannelClient::Impl {
   const std::shared_ptr<grpc::Channel> channel_;
   const std::shared_ptr<v1::DataChannel::Stub> stub_;
 
+  std::atomic<bool> buffer_until_sync_{false};
   absl::Mutex publish_mutex_;  // guards the publish stream below
   std::unique_ptr<grpc::ClientContext> publish_context_ ABSL_GUARDED_BY(publish_mutex_);
   std::unique_ptr<grpc::ClientReaderWriter<v1::PublishRequest, v1::PublishResponse>> writer_
@@ -724,7 +761,13 @@ absl::Status ChannelClient::publish(const std::string& topic,
 
 absl::StatusOr<uint64_t> ChannelClient::flush() { return impl_->flush(); }
 
+absl::Status ChannelClient::publishAllAndSync(const std::vector<TopicSample>& samples) {
+  return impl_->publishAllAndSync(samples);
+}
+
 absl::Status ChannelClient::sync() { return impl_->sync(); }
+
+void ChannelClient::bufferUntilSync(bool buffer) { impl_->bufferUntilSync(buffer); }
 
 bool ChannelClient::delivered(
     const std::function<uint64_t(const std::string& topic)>& topic_seq) const {

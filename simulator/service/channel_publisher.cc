@@ -29,7 +29,7 @@ ChannelPublisher::ChannelPublisher(ChannelRoutes& client, Simulation& simulation
       time_(time),
       rates_(rates),
       epoch_base_(randomEpochBase()),
-      queue_(client, PublishQueueLimits{}) {
+      queue_(client, PublishQueueLimits{}, time.deterministic.load()) {
   simulation.addStepListener(
       [this](SimTime now, const std::vector<VehicleReport>& vehicles) { onStep(now, vehicles); });
 }

@@ -75,8 +75,9 @@ class ChannelPublisher {
   void setInterest(const ChannelRoutes* interest) { queue_.setInterest(interest); }
   void interestChanged() { queue_.interestChanged(); }
   uint64_t gatedCount() const { return queue_.gatedCount(); }
-  /// Waits until everything queued went to the broker (deterministic mode).
-  bool waitDrained(std::chrono::milliseconds timeout) { return queue_.waitDrained(timeout); }
+  /// Deterministic mode: publishes what is queued on this thread, and with
+  /// `sync` waits until the broker took it (PublishQueue::flush).
+  absl::Status flush(bool sync) { return queue_.flush(sync); }
   /// A lock-step clock sample of time `t` (time scale 0, this simulator's
   /// epoch), as the clock topic carries in lock-step; also the time grants'.
   v1::Clock lockStepClock(SimTime t) const;

@@ -36,9 +36,15 @@ const ChannelRoutes::Route& ChannelRoutes::routeOf(const std::string& topic) con
 }
 
 absl::Status ChannelRoutes::publishAll(
-    const std::vector<channel::ChannelClient::TopicSample>& samples) {
-  if (routes_.size() == 1) return routes_[0].client->publishAll(samples);
+    const std::vector<channel::ChannelClient::TopicSample>& samples, bool sync) {
+  const auto publish = [sync](channel::ChannelClient& client, const auto& batch) {
+    return sync ? client.publishAllAndSync(batch) : client.publishAll(batch);
+  };
+  if (routes_.size() == 1) return publish(*routes_[0].client, samples);
   std::map<const Route*, std::vector<channel::ChannelClient::TopicSample>> batches;
+  if (sync) {
+    for (const Route& route : routes_) batches[&route];  // each is synced
+  }
   for (const auto& sample : samples) {
     if (sample.topic == channel::kClockTopic) {
       for (const Route& route : routes_) batches[&route].push_back(sample);
@@ -48,7 +54,7 @@ absl::Status ChannelRoutes::publishAll(
   }
   absl::Status first = absl::OkStatus();
   for (const auto& [route, batch] : batches) {
-    absl::Status s = route->client->publishAll(batch);
+    absl::Status s = publish(*route->client, batch);
     if (first.ok() && !s.ok()) first = std::move(s);
   }
   return first;

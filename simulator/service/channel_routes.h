@@ -33,8 +33,11 @@ class ChannelRoutes {
   ChannelRoutes& operator=(const ChannelRoutes&) = delete;
 
   /// Publishes each sample to its broker (the clock to all), one batch per
-  /// broker; the first error.
-  absl::Status publishAll(const std::vector<channel::ChannelClient::TopicSample>& samples);
+  /// broker; the first error. With `sync`, also sync() in the same round
+  /// trip (ChannelClient::publishAllAndSync; a broker with no sample here is
+  /// synced alone).
+  absl::Status publishAll(const std::vector<channel::ChannelClient::TopicSample>& samples,
+                          bool sync = false);
   /// ChannelClient::sync on every broker; the first error.
   absl::Status sync();
   /// The topic_seq each broker accepted last, per topic, per broker: the

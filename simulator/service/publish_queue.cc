@@ -5,8 +5,11 @@
 
 namespace behaviorlib::sim {
 
-PublishQueue::PublishQueue(ChannelRoutes& client, PublishQueueLimits limits)
-    : client_(client), limits_(limits), thread_([this] { run(); }) {}
+PublishQueue::PublishQueue(ChannelRoutes& client, PublishQueueLimits limits, bool flushed_by_caller)
+    : client_(client),
+      limits_(limits),
+      flushed_by_caller_(flushed_by_caller),
+      thread_([this] { run(); }) {}
 
 PublishQueue::~PublishQueue() {
   {
@@ -40,7 +43,7 @@ void PublishQueue::push(std::string topic, std::unique_ptr<google::protobuf::Mes
     if (interest_ != nullptr) newest_[topic].sent_while_wanted = interest_->wanted(topic);
     queueLocked(std::move(topic), std::move(sample), &evicted);
   }
-  cv_.notify_one();
+  if (!flushed_by_caller_) cv_.notify_one();
 }
 
 bool PublishQueue::throttleLocked(const std::string& topic,
@@ -87,6 +90,7 @@ std::chrono::steady_clock::time_point PublishQueue::releaseDueLocked(std::deque<
                                      std::chrono::duration<double>(1.0 / rate));
       }
       queueLocked(*it, std::move(newest.sample), evicted);
+      kicked_ = true;
     }
     // Unwanted meanwhile: it stays held as any gated sample.
     it = throttled_.erase(it);
@@ -152,18 +156,100 @@ void PublishQueue::interestChanged() {
     // A rate that went up, or away, lets a held sample go sooner.
     if (!throttled_.empty()) queued = true;
   }
-  if (queued) cv_.notify_one();
+  if (queued) {
+    {
+      std::lock_guard lock(mutex_);
+      kicked_ = true;
+    }
+    cv_.notify_one();
+  }
+}
+
+absl::Status PublishQueue::flush(bool sync) {
+  std::vector<Entry> batch;
+  std::deque<Entry> evicted;
+  absl::Status first = absl::OkStatus();
+  std::unique_lock lock(mutex_);
+  // Not beside another batch: samples of a topic go out in order.
+  drained_cv_.wait(lock, [this] { return stopping_ || !publishing_; });
+  if (stopping_) return absl::CancelledError("the publish queue is stopping");
+  releaseDueLocked(&evicted);
+  do {
+    takeBatchLocked(batch);
+    const bool last = queue_.empty();
+    if (batch.empty() && !(sync && last)) break;
+    publishing_ = true;
+    lock.unlock();
+    absl::Status status = publishBatch(batch, sync && last);
+    if (first.ok() && !status.ok()) first = std::move(status);
+    lock.lock();
+    publishing_ = false;
+    keepNewestLocked(batch);
+    lock.unlock();
+    batch.clear();  // the samples not kept are freed outside the lock
+    evicted.clear();
+    lock.lock();
+  } while (!queue_.empty());
+  kicked_ = false;
+  drained_cv_.notify_all();
+  return first;
+}
+
+void PublishQueue::takeBatchLocked(std::vector<Entry>& batch) {
+  // Everything queued goes in one batch (one write, one broker read),
+  // bounded so that a message stays far below gRPC's 4 MiB limit; a larger
+  // sample goes alone.
+  std::size_t bytes = 0;
+  while (!queue_.empty() && batch.size() < kMaxBatchSamples &&
+         (batch.empty() || bytes + queue_.front().bytes <= kMaxBatchBytes)) {
+    bytes += queue_.front().bytes;
+    queued_bytes_ -= queue_.front().bytes;
+    batch.push_back(std::move(queue_.front()));
+    queue_.pop_front();
+  }
+}
+
+absl::Status PublishQueue::publishBatch(const std::vector<Entry>& batch, bool sync) {
+  std::vector<channel::ChannelClient::TopicSample> samples;
+  samples.reserve(batch.size());
+  for (const Entry& entry : batch) samples.push_back({entry.topic, entry.sample.get()});
+  absl::Status status = client_.publishAll(samples, sync);
+  if (status.ok()) {
+    published_ += batch.size();
+  } else {
+    dropped_ += batch.size();
+  }
+  return status;
+}
+
+void PublishQueue::keepNewestLocked(std::vector<Entry>& batch) {
+  if (interest_ == nullptr) return;
+  // Each kept as its topic's newest unless a newer one is held already (in
+  // order: a later sample of the same topic replaces an earlier one).
+  for (Entry& entry : batch) {
+    Newest& newest = newest_[entry.topic];
+    if (newest.published || !newest.sample) {
+      newest.sample = std::move(entry.sample);
+      newest.published = true;
+    }
+  }
 }
 
 void PublishQueue::run() {
   std::vector<Entry> batch;
-  std::vector<channel::ChannelClient::TopicSample> samples;
   std::deque<Entry> evicted;
   std::unique_lock lock(mutex_);
   while (true) {
     while (true) {
       const auto next = releaseDueLocked(&evicted);
-      if (stopping_ || !queue_.empty()) break;
+      // Not beside flush(): samples of a topic go out in order. Flushed by
+      // the caller, pushes do not wake this thread; what it is woken for (a
+      // held sample released by interest or by its rate) goes out at once,
+      // with whatever else is queued then, as when free running: the
+      // stepping thread may be waiting for followers, or for time to start.
+      if (stopping_ || (!queue_.empty() && !publishing_ && (!flushed_by_caller_ || kicked_))) {
+        break;
+      }
       if (next == std::chrono::steady_clock::time_point::max()) {
         cv_.wait(lock);
       } else {
@@ -176,40 +262,15 @@ void PublishQueue::run() {
       evicted.clear();
       lock.lock();
     }
-    // Everything queued goes in one batch (one write, one broker read),
-    // bounded so that a message stays far below gRPC's 4 MiB limit; a
-    // larger sample goes alone.
-    std::size_t bytes = 0;
-    while (!queue_.empty() && batch.size() < kMaxBatchSamples &&
-           (batch.empty() || bytes + queue_.front().bytes <= kMaxBatchBytes)) {
-      bytes += queue_.front().bytes;
-      queued_bytes_ -= queue_.front().bytes;
-      batch.push_back(std::move(queue_.front()));
-      queue_.pop_front();
-    }
+    takeBatchLocked(batch);
+    kicked_ = !queue_.empty() && kicked_;  // the rest too, in further batches
     publishing_ = true;
     lock.unlock();
-    samples.clear();
-    for (const Entry& entry : batch) samples.push_back({entry.topic, entry.sample.get()});
-    if (client_.publishAll(samples).ok()) {
-      published_ += batch.size();
-    } else {
-      dropped_ += batch.size();
-    }
+    publishBatch(batch, false).IgnoreError();  // counted as dropped
     lock.lock();
     publishing_ = false;
-    if (queue_.empty()) drained_cv_.notify_all();
-    if (interest_ != nullptr) {
-      // Each kept as its topic's newest unless a newer one is held already
-      // (in order: a later sample of the same topic replaces an earlier one).
-      for (Entry& entry : batch) {
-        Newest& newest = newest_[entry.topic];
-        if (newest.published || !newest.sample) {
-          newest.sample = std::move(entry.sample);
-          newest.published = true;
-        }
-      }
-    }
+    drained_cv_.notify_all();
+    keepNewestLocked(batch);
     lock.unlock();
     batch.clear();  // the samples not kept are freed outside the lock
     lock.lock();

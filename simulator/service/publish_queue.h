@@ -24,6 +24,7 @@
 #include <unordered_map>
 #include <unordered_set>
 
+#include "absl/status/status.h"
 #include "simulator/service/channel_routes.h"
 
 namespace behaviorlib::sim {
@@ -35,8 +36,13 @@ struct PublishQueueLimits {
 
 class PublishQueue {
  public:
-  /// `client` must outlive the queue.
-  PublishQueue(ChannelRoutes& client, PublishQueueLimits limits);
+  /// `client` must outlive the queue. With `flushed_by_caller` (the
+  /// deterministic mode), pushed samples go out when flush() is called, on
+  /// the caller's thread: the stepping thread publishes a quantum and syncs
+  /// in one round trip, with no hand-over to the queue's thread. That thread
+  /// then publishes only what it is woken for: held samples released by
+  /// interest (a new subscriber, a GetLatest) or by their rate.
+  PublishQueue(ChannelRoutes& client, PublishQueueLimits limits, bool flushed_by_caller = false);
   /// Stops the thread; samples still queued are not published.
   ~PublishQueue();
   PublishQueue(const PublishQueue&) = delete;
@@ -54,6 +60,10 @@ class PublishQueue {
   /// Waits until every queued sample went to the broker, or `timeout`;
   /// false on timeout.
   bool waitDrained(std::chrono::milliseconds timeout);
+  /// Publishes everything queued now, on this thread, in batches; with
+  /// `sync`, the last batch carries ChannelRoutes' sync (the broker answers
+  /// once it took everything: one round trip). The first error.
+  absl::Status flush(bool sync);
 
   /// Gates publishing by `interest` (nullptr: publish everything). It must
   /// stay valid until replaced by nullptr.
@@ -76,12 +86,19 @@ class PublishQueue {
     std::size_t bytes;
   };
   void run();
+  // One batch from the front of the queue (bounded as below).
+  void takeBatchLocked(std::vector<Entry>& batch);
+  // After a batch went out: its samples as their topics' newest.
+  void keepNewestLocked(std::vector<Entry>& batch);
+  // Publishes `batch` (the lock not held); counts it.
+  absl::Status publishBatch(const std::vector<Entry>& batch, bool sync);
   // One batch's bounds (ChannelClient::publishAll).
   static constexpr std::size_t kMaxBatchSamples = 256;
   static constexpr std::size_t kMaxBatchBytes = std::size_t{1} << 20;
 
   ChannelRoutes& client_;
   const PublishQueueLimits limits_;
+  const bool flushed_by_caller_;
   std::mutex mutex_;
   std::condition_variable cv_;
   void queueLocked(std::string topic, std::unique_ptr<google::protobuf::Message> sample,
@@ -96,7 +113,9 @@ class PublishQueue {
 
   std::deque<Entry> queue_;
   std::size_t queued_bytes_ = 0;
-  bool publishing_ = false;  // the thread holds a sample being published
+  bool publishing_ = false;  // a batch is being published (the thread or flush())
+  // Flushed by the caller: the thread was woken to send released samples.
+  bool kicked_ = false;
   std::condition_variable drained_cv_;
   const ChannelRoutes* interest_ = nullptr;
   std::unordered_set<std::string> seen_topics_;  // published at least once

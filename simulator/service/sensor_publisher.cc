@@ -20,7 +20,7 @@ SensorPublisher::SensorPublisher(ChannelRoutes& client, Simulation& simulation,
                                  std::chrono::milliseconds poll_period)
     : client_(client),
       poll_period_(poll_period),
-      queue_(client, PublishQueueLimits{}),
+      queue_(client, PublishQueueLimits{}, time.deterministic.load()),
       sensors_(
           std::move(config),
           [this](SensorSample sample) {

@@ -54,8 +54,9 @@ class SensorPublisher {
   void setInterest(const ChannelRoutes* interest);
   void interestChanged();
   uint64_t gatedCount() const { return queue_.gatedCount(); }
-  /// Waits until everything queued went to the broker (deterministic mode).
-  bool waitDrained(std::chrono::milliseconds timeout) { return queue_.waitDrained(timeout); }
+  /// Deterministic mode: publishes what is queued on this thread, and with
+  /// `sync` waits until the broker took it (PublishQueue::flush).
+  absl::Status flush(bool sync) { return queue_.flush(sync); }
   uint64_t droppedCount() const { return queue_.droppedCount(); }
 
  private:

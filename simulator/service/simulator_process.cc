@@ -64,9 +64,11 @@ struct SimulatorProcess::Parts {
       if (publisher) {
         // What the quantum published reaches the broker before its grant,
         // and the grant names how far each topic got (the data barrier).
-        publisher->waitDrained(std::chrono::seconds(1));
-        sensors->waitDrained(std::chrono::seconds(1));
-        client->sync().IgnoreError();  // a broker away: the followers see stale data
+        // Published here, in one round trip for the sync (the sensors share
+        // the publisher's streams in this mode); a broker away: the
+        // followers see stale data.
+        sensors->flush(false).IgnoreError();
+        publisher->flush(true).IgnoreError();
         *grant.mutable_clock() = publisher->lockStepClock(simulation.now());
         // Each broker numbers its topics: a follower waits for its own's.
         grants->grantAndWait(grant, client->acceptedSeqsByDomain(), stop);

@@ -756,6 +756,56 @@ TEST_F(ChannelBrokerTest, SyncAndDeliveredAreTheDataBarrier) {
   EXPECT_TRUE(subscriber.delivered(seq_of));
 }
 
+// publishAllAndSync: the batch and the question in one round trip; when it
+// returns, the broker took the batch and numbered it, as after publishAll()
+// and sync(); a refused sample is its answer.
+TEST_F(ChannelBrokerTest, ABatchCarriesItsSyncInOneRoundTrip) {
+  ChannelClient publisher(broker_.address());
+  const v1::Text a1 = text("a1"), b1 = text("b1"), a2 = text("a2");
+  ASSERT_TRUE(publisher.publishAllAndSync({}).ok());  // nothing: nothing to wait for
+  ASSERT_TRUE(
+      publisher
+          .publishAllAndSync({{"robots/s1/a", &a1}, {"robots/s1/b", &b1}, {"robots/s1/a", &a2}})
+          .ok());
+  EXPECT_EQ(publisher.acceptedSeqs(),
+            (std::map<std::string, uint64_t>{{"robots/s1/a", 2}, {"robots/s1/b", 1}}));
+  auto topics = publisher.listTopics("robots/s1/");
+  ASSERT_TRUE(topics.ok()) << topics.status();
+  ASSERT_EQ(topics->size(), 2u);
+  EXPECT_EQ((*topics)[0].published_count() + (*topics)[1].published_count(), 3u);
+  // Samples published before, without a sync, are covered by the next one.
+  ASSERT_TRUE(publisher.publish("robots/s1/b", text("b2")).ok());
+  ASSERT_TRUE(publisher.publishAllAndSync({{"robots/s1/a", &a1}}).ok());
+  EXPECT_EQ(publisher.acceptedSeqs(),
+            (std::map<std::string, uint64_t>{{"robots/s1/a", 3}, {"robots/s1/b", 2}}));
+  // A sample of the wrong type: the answer is the refusal.
+  const v1::Clock wrong = clockSample(1);
+  const absl::Status refused = publisher.publishAllAndSync({{"robots/s1/a", &wrong}});
+  EXPECT_EQ(refused.code(), absl::StatusCode::kInvalidArgument) << refused;
+  // The next batch opens a new stream.
+  ASSERT_TRUE(publisher.publishAllAndSync({{"robots/s1/a", &a2}}).ok());
+  EXPECT_EQ(publisher.acceptedSeqs().at("robots/s1/a"), 4u);
+}
+
+// bufferUntilSync: publishes may wait in the stream's buffer, and sync()
+// takes them all out; turned off, a publish goes out by itself again.
+TEST_F(ChannelBrokerTest, BufferedPublishesGoOutWithTheSync) {
+  ChannelClient publisher(broker_.address());
+  ChannelClient reader(broker_.address());
+  const auto counted = [&reader]() -> uint64_t {
+    auto topics = reader.listTopics("robots/u1/");
+    return topics.ok() && topics->size() == 1 ? (*topics)[0].published_count() : 0;
+  };
+  publisher.bufferUntilSync(true);
+  for (int i = 0; i < 3; ++i) ASSERT_TRUE(publisher.publish("robots/u1/a", text("x")).ok());
+  ASSERT_TRUE(publisher.sync().ok());
+  EXPECT_EQ(counted(), 3u);
+  EXPECT_EQ(publisher.acceptedSeqs(), (std::map<std::string, uint64_t>{{"robots/u1/a", 3}}));
+  publisher.bufferUntilSync(false);
+  ASSERT_TRUE(publisher.publish("robots/u1/a", text("y")).ok());
+  EXPECT_TRUE(eventually([&] { return counted() == 4u; })) << "sent without a sync";
+}
+
 TEST_F(ChannelBrokerTest, ChannelClientSubscriberReconnectsAfterBrokerRestart) {
   const int port = broker_.grpcPort();
   ChannelClient client(broker_.address());

@@ -141,6 +141,15 @@ void TimeFollower::run() {
       return write_locked(m);
     };
     const auto set_streaming = [this, &write](bool streaming) {
+      if (data_ != nullptr) {
+        // While grants come, what the behaviors publish is read only after
+        // the report that follows the sync: it may wait for that sync in
+        // the stream's buffer (one socket write per quantum, not one per
+        // sample). Without grants, every sample goes out at once again,
+        // those waiting too.
+        data_->bufferUntilSync(streaming);
+        if (!streaming) data_->sync().IgnoreError();
+      }
       {
         absl::MutexLock lock(&mutex_);
         streaming_ = streaming;

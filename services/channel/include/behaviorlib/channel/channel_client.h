@@ -162,6 +162,10 @@ class ChannelClient {
   /// them. Each sample is numbered, checked and delivered as if published
   /// alone; otherwise as publish(). An empty batch does nothing.
   absl::Status publishAll(const std::vector<TopicSample>& samples);
+  /// publishAll() and sync() in one round trip: the batch carries the sync
+  /// request (PublishRequest.sync), and the broker answers once it took it.
+  /// An empty batch is sync().
+  absl::Status publishAllAndSync(const std::vector<TopicSample>& samples);
 
   /// Closes the publish stream and returns the number of samples the broker
   /// accepted on it, or the status it ended with. The next publish() opens
@@ -174,6 +178,12 @@ class ChannelClient {
   /// last one); the deterministic mode's barrier. A refused sample or a
   /// broker gone ends the stream, and sync() returns why.
   absl::Status sync();
+  /// With `buffer`, a publish may wait in the stream's buffer (gRPC's
+  /// buffer hint: no write to the socket of its own) until the next sync()
+  /// takes everything out at once. For a publisher that syncs before anyone
+  /// may read what it published: a deterministic-mode follower, whose report
+  /// comes after its sync.
+  void bufferUntilSync(bool buffer);
 
   /// The topic_seq of the last sample this client published on each topic,
   /// as the broker reported at the last sync() or flush(); emptied when a

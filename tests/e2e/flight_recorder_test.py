@@ -138,12 +138,15 @@ class FlightRecorderTest(unittest.TestCase):
             self.assertEqual(schema["encoding"], "protobuf")
             self.assertGreater(schema["bytes"], 100, schema)  # a FileDescriptorSet
         # Poses at the recorder's rate (ground_truth/pose@30: at most 30 a second of wall
-        # time, where the simulator publishes 100 a simulated second times the speed-up)
-        # through a flight of several seconds.
+        # time, where the simulator publishes 100 a simulated second times the speed-up,
+        # about 800 a second) through a flight of several seconds. The broker spaces its
+        # writes; the log times are when the recorder took them, which on a busy machine
+        # may lag a write by tens of milliseconds, so the span gets 0.25 s of slack (a
+        # run beside a CPU hog logged 127 poses in 4.14 s).
         poses = read["topics"][f"robots/{ROBOT}/ground_truth/pose"]
         span_s = (int(poses["last_log_time_ns"]) - int(poses["first_log_time_ns"])) / 1e9
         self.assertGreater(poses["count"], 20)
-        self.assertLessEqual(poses["count"], span_s * 30 + 2, (poses["count"], span_s))
+        self.assertLessEqual(poses["count"], (span_s + 0.25) * 30 + 2, (poses["count"], span_s))
         # A topic recorded at every sample is not thinned: the flight state changes (landed,
         # taking off, flying, landing, landed) are all there.
         self.assertGreaterEqual(read["topics"][f"robots/{ROBOT}/flight_state"]["count"], 5)

@@ -19,7 +19,11 @@ void SetpointBarrier::read(const std::string& key) {
 void SetpointBarrier::ended(const std::string& key) {
   absl::MutexLock lock(&mutex_);
   if (open_.erase(key) == 0) return;
-  ended_[key] = true;
+  keepEndedLocked(key);
+}
+
+void SetpointBarrier::keepEndedLocked(const std::string& key) {
+  if (!ended_.emplace(key, true).second) return;
   ended_order_.push_back(key);
   if (ended_order_.size() > kEndedKeysKept) {
     ended_.erase(ended_order_.front());
@@ -29,7 +33,8 @@ void SetpointBarrier::ended(const std::string& key) {
 
 bool SetpointBarrier::doneLocked(const std::map<std::string, uint64_t>& written) const {
   for (const auto& [key, count] : written) {
-    if (ended_.count(key) > 0) continue;
+    // A key too long is never counted, so never waited for.
+    if (key.size() > kMaxKeyBytes || ended_.count(key) > 0) continue;
     // A stream not opened yet (its first message is on its way) is waited for.
     const auto it = open_.find(key);
     if (it == open_.end() || it->second < count) return false;
@@ -47,6 +52,11 @@ bool SetpointBarrier::awaitRead(const std::map<std::string, uint64_t>& written,
                         ABSL_SHARED_LOCKS_REQUIRED(mutex_) { return doneLocked(written); };
   if (mutex_.AwaitWithTimeout(absl::Condition(&done), absl::FromChrono(limit))) return true;
   ++timeouts_;
+  // A stream that never came (its process died, or its setpoints went to
+  // another platform) is not waited for again, as if it had ended.
+  for (const auto& [key, count] : written) {
+    if (key.size() <= kMaxKeyBytes && open_.count(key) == 0) keepEndedLocked(key);
+  }
   return false;
 }
 

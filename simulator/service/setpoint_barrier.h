@@ -14,7 +14,8 @@
 // Bounded: keys longer than kMaxKeyBytes are not counted (their streams are
 // not waited for), the keys of ended streams are remembered up to
 // kEndedKeysKept (so a report that names a stream after its end does not
-// wait), and a wait gives up after its limit.
+// wait), and a wait gives up after its limit; a stream it gave up on that
+// never began then counts as ended (it is not waited for again).
 //
 // Thread-safe.
 
@@ -54,6 +55,7 @@ class SetpointBarrier {
  private:
   bool doneLocked(const std::map<std::string, uint64_t>& written) const
       ABSL_SHARED_LOCKS_REQUIRED(mutex_);
+  void keepEndedLocked(const std::string& key) ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
 
   mutable absl::Mutex mutex_;
   std::map<std::string, uint64_t> open_ ABSL_GUARDED_BY(mutex_);  // key → read

@@ -148,7 +148,9 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
     p->belief_client = std::make_unique<BeliefClient>(o.coordinator);
     context.beliefs = p->belief_client.get();
   }
-  if (!o.follow_time.empty()) {
+  // Only when the setpoints go to the simulator that grants the time: another
+  // platform's streams would never reach the simulator's barrier.
+  if (!o.follow_time.empty() && o.flight_controller == o.follow_time) {
     p->setpoints = std::make_unique<SetpointLedger>();
     context.setpoints = p->setpoints.get();
   }

@@ -59,14 +59,18 @@ TEST(SetpointBarrier, AStepWaitsUntilEveryReportedSetpointWasReadOrItsStreamEnde
   EXPECT_FALSE(barrier.awaitRead({{"k1", 2}}, seconds(0)));
   barrier.read("k1");
   EXPECT_TRUE(barrier.awaitRead({{"k1", 2}}, seconds(0)));
-  // A stream the simulator has not seen yet (its first message is on its
-  // way) is waited for; one that ended is not (what it did not deliver never
-  // comes).
-  EXPECT_FALSE(barrier.awaitRead({{"k2", 1}}, seconds(0)));
+  // A stream that ended is not waited for (what it did not deliver never
+  // comes), and its key is not used again.
   ASSERT_TRUE(barrier.opened("k2"));
   barrier.ended("k2");
   EXPECT_TRUE(barrier.awaitRead({{"k2", 5}}, seconds(0)));
   EXPECT_FALSE(barrier.opened("k2")) << "an ended stream's key was used again";
+  // One the simulator has not seen yet (its first message is on its way) is
+  // waited for; once a wait gave up on it (its process died, or its
+  // setpoints went to another platform), it counts as ended.
+  EXPECT_FALSE(barrier.awaitRead({{"k3", 1}}, seconds(0)));
+  EXPECT_TRUE(barrier.awaitRead({{"k3", 1}}, seconds(0)));
+  EXPECT_FALSE(barrier.opened("k3"));
   EXPECT_EQ(barrier.waitCount(), 3u);
   EXPECT_EQ(barrier.timeoutCount(), 3u);
 }
@@ -96,6 +100,9 @@ TEST(SetpointBarrier, KeysAreBounded) {
   }
   EXPECT_TRUE(barrier.awaitRead({{"s1", 1}}, seconds(0)));
   EXPECT_FALSE(barrier.awaitRead({{"s0", 1}}, milliseconds(1))) << "the oldest was kept";
+  // A key too long is never counted, so never waited for.
+  const std::string long_key(sim::SetpointBarrier::kMaxKeyBytes + 1, 'x');
+  EXPECT_TRUE(barrier.awaitRead({{long_key, 1}}, seconds(0)));
 }
 
 }  // namespace

@@ -73,9 +73,10 @@ struct SystemContext {
   YAML::Node config;
   /// The coordinator's belief memory (--coordinator); null without one.
   const BeliefClient* beliefs = nullptr;
-  /// Following the simulator's time grants (--follow-time): counts the
-  /// setpoints streamed to the simulator, which applies them before it steps
-  /// on (setpoint_ledger.h); null otherwise.
+  /// Following the simulator's time grants (--follow-time) with that
+  /// simulator as the --flight-controller: counts the setpoints streamed to
+  /// it, which applies them before it steps on (setpoint_ledger.h); null
+  /// otherwise.
   SetpointLedger* setpoints = nullptr;
 };
 

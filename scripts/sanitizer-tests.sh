@@ -52,7 +52,7 @@ case "$mode" in
       wait_behavior_test worker_delivery_test channel_topic_test sim_clock_test shm_ring_test
       catalog_test missions_test coordinator_core_test flags_test input_guard_test
       access_policy_test pagination_test audit_log_test error_details_test console_feed_test
-      recorder_test"
+      recorder_test setpoint_barrier_test"
     # The integration tests whose servers run in the test's process. Our
     # reactors and client completions tell TSan the order gRPC keeps
     # (reactor_order.h); a server run as its own program would need its own

@@ -4,6 +4,7 @@
 #include <google/protobuf/descriptor.h>
 #include <google/protobuf/stubs/common.h>
 #include <grpcpp/grpcpp.h>
+#include <malloc.h>
 #include <prometheus/counter.h>
 #include <prometheus/family.h>
 #include <prometheus/gauge.h>
@@ -279,6 +280,15 @@ class ProcessCollector final : public prometheus::Collectable {
                                   *boot_ + stat->start_seconds_after_boot));
       }
     }
+    const HeapStat heap = heapStat();
+    out.push_back(gaugeFamily("behaviorlib_process_heap_in_use_bytes",
+                              "Bytes the allocator has handed out and not had back (malloc "
+                              "arenas and mmap'd blocks).",
+                              static_cast<double>(heap.in_use_bytes)));
+    out.push_back(gaugeFamily("behaviorlib_process_heap_free_bytes",
+                              "Bytes the allocator holds from the system but has not handed out "
+                              "(freed, not yet returned).",
+                              static_cast<double>(heap.free_bytes)));
     out.push_back(gaugeFamily("process_open_fds", "Number of open file descriptors.",
                               static_cast<double>(openFileDescriptors())));
     rlimit limit{};
@@ -347,6 +357,14 @@ std::optional<ProcStat> parseProcStat(const std::string& text, long ticks_per_se
   stat.start_seconds_after_boot = static_cast<double>(start) / ticks;
   stat.virtual_memory_bytes = vsize;
   stat.resident_memory_bytes = rss * static_cast<uint64_t>(page_bytes);
+  return stat;
+}
+
+HeapStat heapStat() {
+  const struct mallinfo2 info = mallinfo2();
+  HeapStat stat;
+  stat.in_use_bytes = static_cast<uint64_t>(info.uordblks + info.hblkhd);
+  stat.free_bytes = static_cast<uint64_t>(info.fordblks);
   return stat;
 }
 

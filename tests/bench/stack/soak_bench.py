@@ -6,7 +6,9 @@ back, with Simulator.Reset and a new seed every --reset-every missions (and
 after a mission that did not succeed), as deploy/local/campaign.py does with
 --missions-per-stack. After every mission, every process of the stack (by
 name, the launcher too) is read from /proc: VmRSS, VmHWM, RssAnon, open file
-descriptors (/proc/PID/fd), threads and CPU time.
+descriptors (/proc/PID/fd), threads and CPU time; and every server process's
+/metrics for its allocator's count (behaviorlib_process_heap_in_use_bytes and
+_free_bytes), which tells a growing heap from a fragmented one.
 
     python3 tests/bench/stack/soak_bench.py --build-dir build --missions 0 \
         --duration-s 7200 --plot soak.png --check        # the 2-hour soak
@@ -23,7 +25,8 @@ Writes into --out DIR (default a new directory under /tmp, printed):
                  the stack after start-up, before the first mission), wall
                  seconds since then, the seed of a Reset before it, its
                  outcome and wall duration, then the process's pid, VmRSS,
-                 VmHWM, RssAnon (MiB), fds, threads, CPU seconds;
+                 VmHWM, RssAnon (MiB), fds, threads, CPU seconds, heap in
+                 use and heap held free (MiB; empty for the launcher);
   summary.json   the settings, the machine, every mission, and per process
                  the figures of the table below;
   stack/         the launcher's output (launcher.log) and every process's log.
@@ -32,7 +35,8 @@ Prints the machine (CPU model, cores), the exact command, and a markdown
 table ready for docs/benchmarks.md: per process the RSS after the warm-up
 (mission W = --warmup-missions, default 10 % of the run, at most 10), at the
 middle and at the end of the run, the growth over the second half (MiB) and
-its least-squares slope against wall time (MiB/h), the peak (VmHWM), fds and
+its least-squares slope against wall time (MiB/h), the heap in use after the
+warm-up and at the end, and the heap held free at the end (MiB), the peak (VmHWM), fds and
 threads min-max, and whether it plateaued: a second-half slope below
 --plateau-mib-per-h (default 2 MiB/h; "-" with fewer than 3 samples in the
 second half, and mind that over a short run a single 1 MiB step is a steep
@@ -60,6 +64,7 @@ import statistics
 import sys
 import tempfile
 import time
+import urllib.request
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", ".."))
 sys.path.insert(0, os.path.join(REPO, "deploy", "local"))
@@ -69,6 +74,7 @@ import demo  # noqa: E402
 import idle_bench  # noqa: E402
 import main_job_bench  # noqa: E402
 import rpc  # noqa: E402
+from stack import read_ports  # noqa: E402
 
 SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 # Options the soak sets itself (or cannot follow: one robot, one stack, serving).
@@ -77,7 +83,10 @@ OWN_LAUNCHER_OPTIONS = ("--demo", "--run-dir", "--build-dir", "--robot-id", "--v
 LAUNCHER_NAME = "launcher"
 MIB = 1024.0
 FIELDS = ("mission", "elapsed_s", "reset_seed", "mission_state", "mission_wall_s", "process",
-          "pid", "rss_mib", "hwm_mib", "anon_mib", "fds", "threads", "cpu_s")
+          "pid", "rss_mib", "hwm_mib", "anon_mib", "fds", "threads", "cpu_s", "heap_mib",
+          "heap_free_mib")
+HEAP_METRICS = {"behaviorlib_process_heap_in_use_bytes": "heap_kib",
+                "behaviorlib_process_heap_free_bytes": "heap_free_kib"}
 
 
 def _on_signal(signum, _frame):
@@ -101,6 +110,28 @@ class SoakStack(campaign.LaunchedStack):
     def processes(self):
         """{name: pid} of every process of the stack, the launcher last."""
         return {**self.pids, LAUNCHER_NAME: self.process.pid}
+
+    def heap(self, name):
+        """{heap_kib, heap_free_kib} from `name`'s /metrics; {} when it serves
+        none (the launcher, the console) and None when it does not answer."""
+        try:
+            ports = read_ports(os.path.join(self.run_dir, "ports", name + ".ports"))
+        except OSError:
+            return {}
+        if "metrics_port" not in ports:
+            return {}
+        try:
+            port = ports["metrics_port"]
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as page:
+                text = page.read().decode()
+        except (OSError, ValueError):
+            return None
+        found = {}
+        for line in text.splitlines():
+            metric, _, value = line.partition(" ")
+            if metric in HEAP_METRICS:
+                found[HEAP_METRICS[metric]] = float(value) / 1024.0
+        return found
 
 
 def proc_sample(pid):
@@ -178,9 +209,9 @@ def summarize_process(rows, n, args):
     warm, middle, half = marks(n, args.warmup_missions)
     by_mission = {m: s for m, _, s in rows}
 
-    def rss_at(mission):
+    def rss_at(mission, key="rss_kib"):
         sample = by_mission.get(mission)
-        return round(sample["rss_kib"] / MIB, 1) if sample else None
+        return round(sample[key] / MIB, 1) if sample and key in sample else None
 
     second = [(t, s["rss_kib"] / MIB) for m, t, s in rows if m >= half]
     slope = slope_per_h(second)
@@ -189,6 +220,8 @@ def summarize_process(rows, n, args):
     return {"rss_start_mib": rss_at(warm), "rss_mid_mib": rss_at(middle),
             "rss_end_mib": rss_at(n), "rss_after_startup_mib": rss_at(0),
             "second_half_growth_mib": growth,
+            "heap_start_mib": rss_at(warm, "heap_kib"), "heap_end_mib": rss_at(n, "heap_kib"),
+            "heap_free_end_mib": rss_at(n, "heap_free_kib"),
             "second_half_slope_mib_per_h": None if slope is None else round(slope, 2),
             "hwm_mib": round(max(s["hwm_kib"] for s in samples) / MIB, 1),
             "fds": [min(s["fds"] for s in samples), max(s["fds"] for s in samples)],
@@ -229,19 +262,22 @@ def print_table(summary):
     warm, middle, _half = summary["marks"]
     n = summary["missions_done"]
     print(f"\n| process | RSS MiB after mission {warm} | mission {middle} | mission {n} "
-          f"| 2nd half growth MiB | 2nd half slope MiB/h | VmHWM MiB | fds | threads "
-          f"| plateau? |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---|")
+          f"| 2nd half growth MiB | 2nd half slope MiB/h | heap in use MiB | heap free MiB "
+          f"| VmHWM MiB | fds | threads | plateau? |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     for name, p in summary["processes"].items():
         plateau = {None: "-", True: "yes", False: "**no**"}[p["plateaued"]]
         print(f"| {name} | {fmt(p['rss_start_mib'])} | {fmt(p['rss_mid_mib'])} "
               f"| {fmt(p['rss_end_mib'])} | {fmt(p['second_half_growth_mib'])} "
-              f"| {fmt(p['second_half_slope_mib_per_h'])} | {fmt(p['hwm_mib'])} "
+              f"| {fmt(p['second_half_slope_mib_per_h'])} "
+              f"| {fmt(p['heap_start_mib'])} → {fmt(p['heap_end_mib'])} "
+              f"| {fmt(p['heap_free_end_mib'])} | {fmt(p['hwm_mib'])} "
               f"| {p['fds'][0]}–{p['fds'][1]} | {p['threads'][0]}–{p['threads'][1]} "
               f"| {plateau} |")
     totals = [sum(p[key] or 0.0 for p in summary["processes"].values())
               for key in ("rss_start_mib", "rss_mid_mib", "rss_end_mib")]
-    print(f"| **total** | {totals[0]:.1f} | {totals[1]:.1f} | {totals[2]:.1f} | | | | | | |")
+    print(f"| **total** | {totals[0]:.1f} | {totals[1]:.1f} | {totals[2]:.1f} | | | | | | | "
+          f"| |")
     m = summary["mission_summary"]
     print(f"\nmissions: {m['succeeded']} of {m['total']} succeeded", end="")
     if m.get("wall_median_s") is not None:
@@ -313,7 +349,7 @@ def parse_args():
                              "it is not installed)")
     parser.add_argument("--smoke", action="store_true",
                         help="2 missions, a Reset between them; fails unless both succeed and "
-                             "every process was sampled after each")
+                             "every process was sampled after each, its heap included")
     parser.add_argument("launcher_args", nargs="*", metavar="-- LAUNCHER_ARG",
                         help="extra launch.py arguments after --")
     args = parser.parse_args()
@@ -355,6 +391,7 @@ def main():
 
     stack = SoakStack(args)
     series = {}  # process -> [(mission, elapsed s, sample)]
+    heap_readers = set()  # the processes that serve /metrics
     missions, resets, problems = [], [], []
     status, interrupted, mission_row = 0, "", {}
     samples_file = open(os.path.join(args.out, "samples.csv"), "w", newline="")
@@ -367,6 +404,13 @@ def main():
             if taken is None:
                 problems.append(f"{name} (pid {pid}) was gone after mission {number}")
                 continue
+            if name != LAUNCHER_NAME:
+                heap = stack.heap(name)
+                if heap is None:
+                    heap = {"heap_kib": 0.0}  # counted as not read by the smoke run
+                elif heap:
+                    heap_readers.add(name)
+                taken.update(heap)
             series.setdefault(name, []).append((number, elapsed_s, taken))
             writer.writerow({**mission_row, "mission": number, "elapsed_s": round(elapsed_s, 2),
                              "process": name, "pid": pid,
@@ -374,7 +418,9 @@ def main():
                              "hwm_mib": round(taken["hwm_kib"] / MIB, 2),
                              "anon_mib": round(taken["anon_kib"] / MIB, 2),
                              "fds": taken["fds"], "threads": taken["threads"],
-                             "cpu_s": round(taken["cpu_s"], 2)})
+                             "cpu_s": round(taken["cpu_s"], 2),
+                             **{key[:-4] + "_mib": round(taken[key] / MIB, 2)
+                                for key in HEAP_METRICS.values() if key in taken}})
         samples_file.flush()
 
     started = time.monotonic()
@@ -470,6 +516,14 @@ def main():
                        or any(len(rows) != n + 1 for rows in series.values())):
         print("FAILED: the smoke run did not fly 2 missions with a Reset, every process "
               "sampled after each")
+        return 1
+    no_heap = sorted(name for name, rows in series.items() if name in heap_readers
+                     and any("heap_kib" not in sample or sample["heap_kib"] <= 0
+                             for _, _, sample in rows))
+    if args.smoke and (no_heap or len(heap_readers) < 3):
+        print(f"FAILED: the heap in use was not read from every /metrics (read from "
+              f"{', '.join(sorted(heap_readers)) or 'none'}; missing in "
+              f"{', '.join(no_heap) or 'none'})")
         return 1
     if failed or problems or (args.check and not_flat):
         return 1

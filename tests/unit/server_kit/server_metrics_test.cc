@@ -17,6 +17,7 @@
 #include <map>
 #include <mutex>
 #include <thread>
+#include <vector>
 
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 
@@ -254,6 +255,25 @@ TEST(ProcessCollector, ReportsThisProcess) {
   const double now_s = static_cast<double>(std::time(nullptr));
   EXPECT_GT(value("process_start_time_seconds"), now_s - 3600);
   EXPECT_LE(value("process_start_time_seconds"), now_s + 1);
+}
+
+TEST(ProcessCollector, CountsTheHeapInUse) {
+  auto in_use = [] {
+    const auto families = makeProcessCollector()->Collect();
+    const prometheus::ClientMetric* metric =
+        find(families, "behaviorlib_process_heap_in_use_bytes", {});
+    EXPECT_NE(metric, nullptr);
+    EXPECT_NE(find(families, "behaviorlib_process_heap_free_bytes", {}), nullptr);
+    return metric == nullptr ? -1.0 : metric->gauge.value;
+  };
+  const double before = in_use();
+  constexpr size_t kBytes = 32u << 20;
+  {
+    std::vector<char> held(kBytes, 1);
+    EXPECT_GE(in_use() - before, static_cast<double>(kBytes));
+    EXPECT_GE(heapStat().in_use_bytes, kBytes);
+  }
+  EXPECT_LT(in_use() - before, static_cast<double>(kBytes));
 }
 
 TEST(BuildInfo, IsOneWithTheVersions) {

@@ -14,6 +14,11 @@
 //   process_start_time_seconds
 //       the Prometheus client libraries' process metrics, read from /proc at
 //       each scrape.
+//   behaviorlib_process_heap_in_use_bytes, behaviorlib_process_heap_free_bytes
+//       the C library allocator's own count (mallinfo2): what is handed out,
+//       and what it holds freed without having returned it to the system. A
+//       resident size that grows while the first stays flat is the
+//       allocator's fragmentation, not a leak.
 //   behaviorlib_build_info{version,grpc_version,protobuf_version,compiler,build_type} 1
 
 #include <grpcpp/support/server_interceptor.h>
@@ -53,6 +58,13 @@ struct ProcStat {
 /// `ticks_per_second` is sysconf(_SC_CLK_TCK), `page_bytes` the page size.
 std::optional<ProcStat> parseProcStat(const std::string& text, long ticks_per_second,
                                       long page_bytes);
+
+/// What the C library's allocator says of the calling process's heap.
+struct HeapStat {
+  uint64_t in_use_bytes = 0;  // allocated and not freed, mmap'd blocks included
+  uint64_t free_bytes = 0;    // freed into the arenas, not returned to the system
+};
+HeapStat heapStat();
 
 /// The process_* metrics of the calling process, collected at each scrape
 /// (register it with the Exposer beside the registry).

@@ -12,6 +12,7 @@ include(CMakePackageConfigHelpers)
 
 set(_exported
   behaviorlib_options_proto:options_proto
+  behaviorlib_proto_messages:proto_messages
   behaviorlib_proto:proto
   behaviorlib_proto_descriptors:proto_descriptors
   behaviorlib_core:core
@@ -19,6 +20,7 @@ set(_exported
   behaviorlib_reflection:reflection
   behaviorlib_reactor_order:reactor_order
   behaviorlib_flags:flags
+  behaviorlib_status_details:status_details
   behaviorlib_errors:errors
   behaviorlib_input_guard:input_guard
   behaviorlib_transport:transport
@@ -44,6 +46,7 @@ install(TARGETS ${_targets} EXPORT behaviorlibTargets
 
 foreach(_dir
     ${PROJECT_SOURCE_DIR}/proto/include
+    ${PROJECT_SOURCE_DIR}/services/errors/include
     ${PROJECT_SOURCE_DIR}/services/behaviorlib/core/include
     ${PROJECT_SOURCE_DIR}/services/behaviorlib/server/include
     ${PROJECT_SOURCE_DIR}/services/server_kit/include

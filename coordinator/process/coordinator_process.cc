@@ -19,7 +19,7 @@
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/durable/journal.h"
-#include "coordinator/durable/replayed_state.h"
+#include "coordinator/process/replayed_state.h"
 #include "coordinator/service/blocking_pool.h"
 #include "coordinator/service/coordinator_metrics.h"
 #include "coordinator/service/coordinator_service.h"

@@ -1,7 +1,7 @@
 // Fuzzes the coordinator's journal (coordinator/durable/journal.h):
 // decodeJournal, the replay Journal::open runs over the file's bytes, with
 // no file. The replayed records go where the coordinator sends them
-// (ReplayedState, coordinator/durable/replayed_state.h): beliefs restored into belief
+// (ReplayedState, coordinator/process/replayed_state.h): beliefs restored into belief
 // memory (BeliefStore::restore, then copied into the live store from its
 // snapshot), mission statuses kept, the last record of each system kept;
 // then, as MissionManager::resumeOne does for a mission that had not ended,
@@ -27,8 +27,8 @@
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/durable/journal.h"
-#include "coordinator/durable/replayed_state.h"
 #include "coordinator/mission/mission_file.h"
+#include "coordinator/process/replayed_state.h"
 #include "fuzz_support.h"
 
 namespace {

@@ -9,7 +9,7 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "behaviorlib/error_details.h"
+#include "behaviorlib/errors/status_details.h"
 #include "behaviorlib/parameters.h"
 #include "behaviorlib/v1/options.pb.h"
 

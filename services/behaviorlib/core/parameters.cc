@@ -22,7 +22,7 @@
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "behaviorlib/documentation.h"
-#include "behaviorlib/error_details.h"
+#include "behaviorlib/errors/status_details.h"
 #include "behaviorlib/v1/options.pb.h"
 
 namespace behaviorlib::params {

@@ -19,37 +19,82 @@ REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), 
 
 INCLUDE = re.compile(r'^\s*#\s*include\s+[<"]([^>"]+)[>"]', re.M)
 
-CORE_HEADERS = {"behavior_execution_manager.h", "behavior_host.h", "clock.h", "documentation.h",
-                "event_log.h", "parameters.h", "process_supervisor.h"}
 ALGORITHMS = {"image_codec", "motion_control", "navigation", "sensor_fusion", "visual_markers"}
 SHARED = {"flight_common", "motion_behaviors", "platform"}
 # Header-only helpers beneath every layer (they include nothing of ours):
 # the order of gRPC's callbacks for TSan, used by every reactor, reflection's
 # too.
-BASE_HEADERS = {"behaviorlib/server_kit/reactor_order.h"}
+BASE_HEADERS = {"services/server_kit/include/behaviorlib/server_kit/reactor_order.h"}
+# The folders whose code is classified (and whose headers may be included).
+TOPS = ("services", "proto", "coordinator", "simulator", "console")
+# Headers that the build generates, by the rule that makes them: the
+# messages ("proto", protobuf only), the gRPC stubs and typed services
+# ("stubs", which need gRPC), and reflection's. Each must come from a .proto
+# of the repository (or googleapis', or gRPC's reflection).
+GENERATED = (
+    (re.compile(r"^behaviorlib/((?:durable/)?v1/.+)\.grpc\.pb\.h$"), "stubs", "proto/behaviorlib"),
+    (re.compile(r"^behaviorlib/(v1/.+)\.behaviors\.h$"), "stubs", "proto/behaviorlib"),
+    (re.compile(r"^behaviorlib/((?:durable/)?v1/.+)\.pb\.h$"), "proto", "proto/behaviorlib"),
+    (re.compile(r"^google/rpc/(status|error_details)\.pb\.h$"), "proto", None),
+    (re.compile(r"^grpc/reflection/(v1|v1alpha)/reflection\.grpc\.pb\.h$"), "reflection", None),
+    (re.compile(r"^behaviorlib/(embedded_descriptors)\.h$"), "proto", None),
+)
+_HEADERS = {}  # include path -> repository-relative file, built on first use
 
 
-def component_of(include):
-    """The component a project header belongs to ("core", "server",
-    "server_kit", "reflection", "channel", "proto", an algorithm, a shared
-    helper or a system), "simulator", "coordinator", or None for a header
-    outside the project."""
-    if include in BASE_HEADERS:
+def header_index():
+    """{include path: repository-relative header} for every header under an
+    `include` folder of the repository, and every header of coordinator/,
+    simulator/ and console/ by its path from the root (their include roots
+    are the repository's root, through behaviorlib_own_include_root)."""
+    if not _HEADERS:
+        for top in TOPS:
+            for path in sources(os.path.join(REPO, top), (".h",)):
+                rel = os.path.relpath(path, REPO)
+                parts = rel.split(os.sep)
+                if "include" in parts:
+                    at = parts.index("include")
+                    _HEADERS.setdefault("/".join(parts[at + 1:]), rel)
+                if top in ("coordinator", "simulator", "console"):
+                    _HEADERS.setdefault("/".join(parts), rel)
+    return _HEADERS
+
+
+def component_of(include, including=None):
+    """The component of an included header, by the folder its file is in: a
+    layer_of() name ("core", "server", "server_kit", "errors", "channel", an
+    algorithm, a shared helper or a system, "simulator", "coordinator",
+    "console", "cli"), "proto" or "stubs" for a generated header, "base", or
+    None for a header outside the project. `including` (the including file,
+    relative to the repository) resolves an include relative to its folder.
+    Raises LookupError for a header in the project's namespaces that is no
+    file of the repository and no generated header: nothing is guessed."""
+    if including is not None:
+        local = os.path.join(os.path.dirname(including), include)
+        if os.path.isfile(os.path.join(REPO, local)):
+            return component_of_file(os.path.normpath(local))
+    found = header_index().get(include)
+    if found is not None:
+        return component_of_file(found)
+    for pattern, component, proto_root in GENERATED:
+        match = pattern.match(include)
+        if match:
+            if proto_root and not os.path.isfile(
+                    os.path.join(REPO, proto_root, match.group(1) + ".proto")):
+                raise LookupError(f"{include}: generated from no .proto of {proto_root}")
+            return component
+    if include.split("/")[0] in ("behaviorlib",) + TOPS:
+        raise LookupError(f"{include}: no header of the repository and none generated")
+    return None
+
+
+def component_of_file(rel):
+    """The component of a header of the repository, by its folder."""
+    if rel in BASE_HEADERS:
         return "base"
-    parts = include.split("/")
-    if parts[0] in ("simulator", "coordinator"):
-        return parts[0]
-    if parts[0] != "behaviorlib":
-        return None
-    if len(parts) == 2:
-        if parts[1] in CORE_HEADERS:
-            return "core"
-        return "proto"  # embedded_descriptors.h
-    # behaviorlib/v1/*.pb.h, and behaviorlib/durable/v1/journal.pb.h (the
-    # coordinator's journal records, generated beside the API).
-    if parts[1] == "v1" or parts[1:3] == ["durable", "v1"]:
+    if rel.split(os.sep)[0] == "proto":
         return "proto"
-    return parts[1]
+    return layer_of(rel).split(":")[-1]
 
 
 def layer_of(path):
@@ -60,8 +105,8 @@ def layer_of(path):
             return parts[2]  # core | server
         if parts[1] == "server_kit":
             return "reflection" if parts[2] == "reflection" else "server_kit"
-        if parts[1] == "channel":
-            return "channel"
+        if parts[1] in ("channel", "errors"):
+            return parts[1]
         if parts[1] in ("algorithms", "shared", "systems"):
             return parts[1] + ":" + parts[2]
     if parts[0] == "coordinator" and parts[1] == "cli":
@@ -71,15 +116,18 @@ def layer_of(path):
 
 def allowed(layer, component):
     """Whether code of `layer` may include a header of `component`."""
-    if component is None or component in ("proto", "base"):
+    if component is None or component in ("proto", "base", "errors"):
         return True
     name = layer.split(":")[-1]
     if component == name:
         return True
     if layer.startswith("algorithms:"):
         return False  # transport-free: only their own headers
+    if component == "stubs":  # gRPC: every layer but the core and the algorithms
+        return layer not in ("core", "errors")
     rules = {
         "core": set(),
+        "errors": set(),
         "reflection": set(),
         "server_kit": {"reflection"},
         "channel": {"core", "server_kit"},
@@ -88,10 +136,10 @@ def allowed(layer, component):
         # behaviorctl: a client, which records and replays flights with the
         # console's client libraries.
         "cli": {"core", "server_kit", "channel", "platform", "flight_common", "coordinator",
-                "console", "recorder"},
+                "console"},
         # The console and the flight recorder: clients of the coordinator and
         # the channel over gRPC; the console draws the simulator's world file.
-        "console": {"server_kit", "recorder", "simulator"},
+        "console": {"server_kit", "simulator"},
         "simulator": {"server_kit", "channel", "core"} | ALGORITHMS,
     }
     if layer.startswith("shared:"):
@@ -108,6 +156,65 @@ def sources(root, suffixes):
                 yield os.path.join(base, name)
 
 
+def folder_of(rel):
+    """The unit of the folder graph: a layer, or for the coordinator, the
+    simulator and the console their sub-folder (coordinator/belief)."""
+    parts = rel.split(os.sep)
+    if parts[0] in ("coordinator", "simulator", "console") and len(parts) > 2:
+        return "/".join(parts[:2])
+    return layer_of(rel)
+
+
+def folder_graph():
+    """{folder: {folders its code includes}}, generated headers left out."""
+    graph = {}
+    for top in ("services", "coordinator", "simulator", "console"):
+        for path in sources(os.path.join(REPO, top), (".h", ".cc")):
+            rel = os.path.relpath(path, REPO)
+            here = folder_of(rel)
+            graph.setdefault(here, set())
+            with open(path, encoding="utf-8") as f:
+                for include in INCLUDE.findall(f.read()):
+                    local = os.path.normpath(os.path.join(os.path.dirname(rel), include))
+                    found = (local if os.path.isfile(os.path.join(REPO, local))
+                             else header_index().get(include))
+                    if (found is not None and found not in BASE_HEADERS
+                            and folder_of(found) != here):
+                        graph[here].add(folder_of(found))
+    return graph
+
+
+def cycles(graph):
+    """Every strongly connected set of more than one folder (Tarjan)."""
+    index, low, stack, on_stack, found = {}, {}, [], set(), []
+
+    def visit(node):
+        index[node] = low[node] = len(index)
+        stack.append(node)
+        on_stack.add(node)
+        for nxt in sorted(graph.get(node, ())):
+            if nxt not in index:
+                visit(nxt)
+                low[node] = min(low[node], low[nxt])
+            elif nxt in on_stack:
+                low[node] = min(low[node], index[nxt])
+        if low[node] == index[node]:
+            group = []
+            while True:
+                member = stack.pop()
+                on_stack.discard(member)
+                group.append(member)
+                if member == node:
+                    break
+            if len(group) > 1:
+                found.append(sorted(group))
+
+    for node in sorted(graph):
+        if node not in index:
+            visit(node)
+    return found
+
+
 class LayersTest(unittest.TestCase):
     def test_every_include_goes_down_the_layers(self):
         violations = []
@@ -120,7 +227,11 @@ class LayersTest(unittest.TestCase):
                     text = f.read()
                 for include in INCLUDE.findall(text):
                     checked += 1
-                    component = component_of(include)
+                    try:
+                        component = component_of(include, rel)
+                    except LookupError as error:
+                        violations.append(f"{rel} ({layer}): {error}")
+                        continue
                     if not allowed(layer, component):
                         violations.append(f"{rel} ({layer}) includes {include} ({component})")
         self.assertGreater(checked, 1000)
@@ -130,8 +241,13 @@ class LayersTest(unittest.TestCase):
         for path in sources(os.path.join(REPO, "coordinator"), (".h", ".cc")):
             with open(path, encoding="utf-8") as f:
                 for include in INCLUDE.findall(f.read()):
-                    if component_of(include) == "flight_common":
+                    if component_of(include, os.path.relpath(path, REPO)) == "flight_common":
                         self.assertEqual(include, "behaviorlib/flight_common/topics.h", path)
+
+    def test_no_two_folders_include_each_other(self):
+        graph = folder_graph()
+        self.assertIn("coordinator/belief", graph)
+        self.assertEqual(cycles(graph), [])
 
     def test_deploy_never_uses_tests(self):
         for path in sources(os.path.join(REPO, "deploy"), (".py",)):
@@ -155,6 +271,16 @@ class LayersTest(unittest.TestCase):
         self.assertEqual(component_of("behaviorlib/v1/behavior.pb.h"), "proto")
         self.assertEqual(component_of("behaviorlib/durable/v1/journal.pb.h"), "proto")
         self.assertEqual(component_of("behaviorlib/clock.h"), "core")
+        self.assertEqual(component_of("behaviorlib/error_details.h"), "server_kit")
+        self.assertEqual(component_of("behaviorlib/errors/status_details.h"), "errors")
+        self.assertEqual(component_of("behaviorlib/v1/coordinator.grpc.pb.h"), "stubs")
+        self.assertFalse(allowed("core", "stubs"))
+        self.assertFalse(allowed("core", "server_kit"))
+        with self.assertRaises(LookupError):
+            component_of("behaviorlib/no_such_header.h")
+        with self.assertRaises(LookupError):
+            component_of("behaviorlib/v1/no_such.pb.h")
+        self.assertEqual(cycles({"a": {"b"}, "b": {"a", "c"}, "c": set()}), [["a", "b"]])
         self.assertEqual(layer_of(os.path.join("services", "systems", "x", "main.cc")),
                          "systems:x")
 

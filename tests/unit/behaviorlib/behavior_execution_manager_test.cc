@@ -11,7 +11,7 @@
 
 #include "behaviorlib/behavior_host.h"
 #include "behaviorlib/clock.h"
-#include "behaviorlib/error_details.h"
+#include "behaviorlib/errors/status_details.h"
 #include "test_behaviors.h"
 
 namespace behaviorlib {

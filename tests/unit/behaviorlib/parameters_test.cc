@@ -12,7 +12,7 @@
 #include <map>
 #include <string>
 
-#include "behaviorlib/error_details.h"
+#include "behaviorlib/errors/status_details.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "test_parameters.pb.h"
 

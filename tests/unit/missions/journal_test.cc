@@ -8,7 +8,7 @@
 #include <iterator>
 #include <map>
 
-#include "coordinator/durable/replayed_state.h"
+#include "coordinator/process/replayed_state.h"
 
 namespace behaviorlib::coordinator {
 namespace {

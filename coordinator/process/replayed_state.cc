@@ -1,4 +1,4 @@
-#include "coordinator/durable/replayed_state.h"
+#include "coordinator/process/replayed_state.h"
 
 namespace behaviorlib::coordinator {
 

@@ -64,7 +64,6 @@ import statistics
 import sys
 import tempfile
 import time
-import urllib.request
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", ".."))
 sys.path.insert(0, os.path.join(REPO, "deploy", "local"))
@@ -121,17 +120,11 @@ class SoakStack(campaign.LaunchedStack):
         if "metrics_port" not in ports:
             return {}
         try:
-            port = ports["metrics_port"]
-            with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as page:
-                text = page.read().decode()
+            samples = demo.scrape(f"127.0.0.1:{ports['metrics_port']}")
         except (OSError, ValueError):
             return None
-        found = {}
-        for line in text.splitlines():
-            metric, _, value = line.partition(" ")
-            if metric in HEAP_METRICS:
-                found[HEAP_METRICS[metric]] = float(value) / 1024.0
-        return found
+        return {HEAP_METRICS[metric]: value / 1024.0 for metric, _labels, value in samples
+                if metric in HEAP_METRICS}
 
 
 def proc_sample(pid):
@@ -392,6 +385,7 @@ def main():
     stack = SoakStack(args)
     series = {}  # process -> [(mission, elapsed s, sample)]
     heap_readers = set()  # the processes that serve /metrics
+    heap_unread = set()  # those whose /metrics did not answer once
     missions, resets, problems = [], [], []
     status, interrupted, mission_row = 0, "", {}
     samples_file = open(os.path.join(args.out, "samples.csv"), "w", newline="")
@@ -407,10 +401,10 @@ def main():
             if name != LAUNCHER_NAME:
                 heap = stack.heap(name)
                 if heap is None:
-                    heap = {"heap_kib": 0.0}  # counted as not read by the smoke run
+                    heap_unread.add(name)
                 elif heap:
                     heap_readers.add(name)
-                taken.update(heap)
+                    taken.update(heap)
             series.setdefault(name, []).append((number, elapsed_s, taken))
             writer.writerow({**mission_row, "mission": number, "elapsed_s": round(elapsed_s, 2),
                              "process": name, "pid": pid,
@@ -517,9 +511,10 @@ def main():
         print("FAILED: the smoke run did not fly 2 missions with a Reset, every process "
               "sampled after each")
         return 1
-    no_heap = sorted(name for name, rows in series.items() if name in heap_readers
-                     and any("heap_kib" not in sample or sample["heap_kib"] <= 0
-                             for _, _, sample in rows))
+    no_heap = sorted(heap_unread | {name for name, rows in series.items()
+                                    if name in heap_readers
+                                    and any(sample.get("heap_kib", 0) <= 0
+                                            for _, _, sample in rows)})
     if args.smoke and (no_heap or len(heap_readers) < 3):
         print(f"FAILED: the heap in use was not read from every /metrics (read from "
               f"{', '.join(sorted(heap_readers)) or 'none'}; missing in "

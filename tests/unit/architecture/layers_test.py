@@ -60,6 +60,17 @@ def header_index():
     return _HEADERS
 
 
+def resolve(include, including=None):
+    """The repository-relative file of an included header: beside the
+    including file (relative to the repository) first, then by the index;
+    None for a header that is no file of the repository."""
+    if including is not None:
+        local = os.path.normpath(os.path.join(os.path.dirname(including), include))
+        if os.path.isfile(os.path.join(REPO, local)):
+            return local
+    return header_index().get(include)
+
+
 def component_of(include, including=None):
     """The component of an included header, by the folder its file is in: a
     layer_of() name ("core", "server", "server_kit", "errors", "channel", an
@@ -69,11 +80,7 @@ def component_of(include, including=None):
     relative to the repository) resolves an include relative to its folder.
     Raises LookupError for a header in the project's namespaces that is no
     file of the repository and no generated header: nothing is guessed."""
-    if including is not None:
-        local = os.path.join(os.path.dirname(including), include)
-        if os.path.isfile(os.path.join(REPO, local)):
-            return component_of_file(os.path.normpath(local))
-    found = header_index().get(include)
+    found = resolve(include, including)
     if found is not None:
         return component_of_file(found)
     for pattern, component, proto_root in GENERATED:
@@ -175,9 +182,7 @@ def folder_graph():
             graph.setdefault(here, set())
             with open(path, encoding="utf-8") as f:
                 for include in INCLUDE.findall(f.read()):
-                    local = os.path.normpath(os.path.join(os.path.dirname(rel), include))
-                    found = (local if os.path.isfile(os.path.join(REPO, local))
-                             else header_index().get(include))
+                    found = resolve(include, rel)
                     if (found is not None and found not in BASE_HEADERS
                             and folder_of(found) != here):
                         graph[here].add(folder_of(found))

@@ -21,8 +21,8 @@
 #include "absl/time/time.h"
 #include "behaviorlib/embedded_descriptor_pool.h"
 #include "behaviorlib/error_details.h"
-#include "behaviorlib/recorder/mcap.h"
 #include "behaviorlib/recorder/recorder.h"
+#include "formats/mcap/mcap.h"
 #include "google/rpc/status.pb.h"
 
 namespace behaviorlib::console {

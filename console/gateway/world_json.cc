@@ -3,7 +3,7 @@
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>
 
-#include "simulator/world/world.h"
+#include "formats/world/world.h"
 
 namespace behaviorlib::console {
 

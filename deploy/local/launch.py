@@ -489,7 +489,7 @@ def run_demo(args, run_dir, simulator, coordinator, systems, state):
 class FlightRecorder:
     """`behaviorctl record` beside the stack (--record, on for --demo): the
     fleet's events, missions, beliefs and vehicle topics into
-    <run-dir>/recordings/flight.mcap (console/recorder, decision 36). It ends with the
+    <run-dir>/recordings/flight.mcap (clients/recorder, decision 36). It ends with the
     launcher (SIGTERM at the stop, and the parent-death signal if the
     launcher dies), writing the file's summary."""
 

@@ -50,8 +50,8 @@
 #include <Eigen/Geometry>
 #include <array>
 
+#include "formats/world/collision_world.h"
 #include "simulator/dynamics/vehicle_params.h"
-#include "simulator/world/collision_world.h"
 
 namespace behaviorlib::sim {
 

@@ -23,11 +23,11 @@
 #include <string>
 #include <vector>
 
+#include "formats/world/collision_world.h"
 #include "simulator/dynamics/autopilot.h"
 #include "simulator/dynamics/gust.h"
 #include "simulator/dynamics/quadrotor.h"
 #include "simulator/dynamics/vehicle_params.h"
-#include "simulator/world/collision_world.h"
 
 namespace behaviorlib::sim {
 

@@ -17,7 +17,7 @@
 
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/server_kit/yaml_guard.h"
-#include "simulator/world/str_cat.h"
+#include "formats/world/str_cat.h"
 
 namespace behaviorlib::sim {
 namespace {

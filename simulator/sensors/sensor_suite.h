@@ -26,6 +26,7 @@
 #include <string_view>
 #include <vector>
 
+#include "formats/world/world.h"
 #include "simulator/sensors/sensor_config.h"
 #include "simulator/sensors/sensor_faults.h"
 #include "simulator/sensors/sensor_output.h"
@@ -33,7 +34,6 @@
 #include "simulator/sensors/sensor_workers.h"
 #include "simulator/world/camera.h"
 #include "simulator/world/lidar.h"
-#include "simulator/world/world.h"
 
 namespace behaviorlib::sim {
 

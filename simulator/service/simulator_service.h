@@ -15,12 +15,12 @@
 #include <vector>
 
 #include "behaviorlib/v1/simulator.grpc.pb.h"
+#include "formats/world/world.h"
 #include "simulator/core/simulation.h"
 #include "simulator/faults/fault_injector.h"
 #include "simulator/service/latest_writer.h"
 #include "simulator/service/time_grants.h"
 #include "simulator/service/vehicle_models.h"
-#include "simulator/world/world.h"
 
 namespace behaviorlib::sim {
 

@@ -12,8 +12,8 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "formats/world/world.h"
 #include "simulator/core/simulation.h"
-#include "simulator/world/world.h"
 
 namespace behaviorlib::sim {
 

@@ -25,7 +25,7 @@
 #include <cstddef>
 #include <vector>
 
-#include "simulator/world/world.h"
+#include "formats/world/world.h"
 
 namespace behaviorlib::nav {
 

@@ -17,8 +17,8 @@
 #include <memory>
 #include <string>
 
+#include "formats/world/world.h"
 #include "simulator/tools/map_coverage.h"
-#include "simulator/world/world.h"
 
 namespace {
 

@@ -8,7 +8,7 @@
 #include <opencv2/wechat_qrcode.hpp>
 
 #include "behaviorlib/image_codec/image_codec.h"
-#include "simulator/world/str_cat.h"
+#include "formats/world/str_cat.h"
 
 namespace behaviorlib::sim {
 namespace {

@@ -38,7 +38,7 @@
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
-#include "simulator/world/world.h"
+#include "formats/world/world.h"
 
 namespace behaviorlib::sim {
 

@@ -6,7 +6,7 @@
 #include <numbers>
 #include <string>
 
-#include "simulator/world/str_cat.h"
+#include "formats/world/str_cat.h"
 
 namespace behaviorlib::sim {
 namespace {

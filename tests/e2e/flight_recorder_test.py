@@ -1,4 +1,4 @@
-"""The flight recorder (console/recorder, decision 36) end to end:
+"""The flight recorder (clients/recorder, decision 36) end to end:
 
     build/venv/bin/python tests/e2e/flight_recorder_test.py --build-dir build
 

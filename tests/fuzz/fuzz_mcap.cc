@@ -1,4 +1,4 @@
-// Fuzzes the flight recorder's MCAP reader (console/recorder/mcap.h), which
+// Fuzzes the flight recorder's MCAP reader (formats/mcap/mcap.h), which
 // the console runs on any *.mcap file of its recordings directory and
 // `behaviorctl replay` on any file it is given: mcap::scanBytes over the
 // input, then, for each message, the broker topic a replay would publish it
@@ -12,8 +12,8 @@
 #include <cstdint>
 #include <string_view>
 
-#include "behaviorlib/recorder/mcap.h"
 #include "behaviorlib/recorder/recorder.h"
+#include "formats/mcap/mcap.h"
 #include "fuzz_support.h"
 
 BEHAVIORLIB_FUZZ_SILENCE_PROTOBUF_LOGS()

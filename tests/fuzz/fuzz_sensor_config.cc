@@ -11,11 +11,11 @@
 #include <cstdint>
 #include <string_view>
 
+#include "formats/world/world.h"
 #include "fuzz_support.h"
 #include "simulator/sensors/sensor_config.h"
 #include "simulator/world/camera.h"
 #include "simulator/world/lidar.h"
-#include "simulator/world/world.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   namespace fuzz = behaviorlib::fuzz;

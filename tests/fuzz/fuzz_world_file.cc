@@ -1,4 +1,4 @@
-// Fuzzes world files (simulator/world/world.h): parseWorld on the raw bytes,
+// Fuzzes world files (formats/world/world.h): parseWorld on the raw bytes,
 // then what the simulator does with a world it loaded: ray casts and a lidar
 // scan from the start poses, collision tests, marker geometry.
 
@@ -8,9 +8,9 @@
 #include <cstdint>
 #include <string_view>
 
+#include "formats/world/world.h"
 #include "fuzz_support.h"
 #include "simulator/world/lidar.h"
-#include "simulator/world/world.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   using behaviorlib::sim::World;

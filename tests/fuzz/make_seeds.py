@@ -255,7 +255,7 @@ for i, (topic, message) in enumerate(samples):
     write("fuzz_channel_sample", "mode2_subscribe%d" % i, b"\x02" + encode(response))
 
 
-# --- flight recordings (MCAP, console/recorder/mcap.cc) -----------------------
+# --- flight recordings (MCAP, formats/mcap/mcap.cc) -----------------------
 # Built here record by record (https://mcap.dev/spec), small: schemas carry a
 # placeholder instead of a FileDescriptorSet, which the reader does not parse.
 MCAP_MAGIC = b"\x89MCAP0\r\n"

@@ -22,9 +22,9 @@
 #include "behaviorlib/v1/behaviors/attention_to_visual_markers.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "formats/world/world.h"
 #include "motion_test_support.h"
 #include "sim_faults.h"
-#include "simulator/world/world.h"
 #include "support/deterministic.h"
 
 namespace motion_test {

@@ -16,10 +16,10 @@
 #include <filesystem>
 #include <string>
 
+#include "formats/world/world.h"
 #include "motion_test_support.h"
 #include "sim_faults.h"
 #include "simulator/tools/map_coverage.h"
-#include "simulator/world/world.h"
 
 namespace {
 

@@ -19,9 +19,9 @@
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "formats/world/world.h"
 #include "motion_test_support.h"
 #include "sim_faults.h"
-#include "simulator/world/world.h"
 #include "support/deterministic.h"
 
 namespace {

@@ -22,9 +22,9 @@
 #include "behaviorlib/navigation/path_planner.h"
 #include "behaviorlib/sensor_fusion/ekf.h"
 #include "behaviorlib/visual_markers/marker_locator.h"
+#include "formats/world/world.h"
 #include "simulator/world/camera.h"
 #include "simulator/world/lidar.h"
-#include "simulator/world/world.h"
 #include "unit/navigation/mapping.h"
 
 namespace {

@@ -1,6 +1,6 @@
 // Reads a flight recording with @mcap/core, the MCAP library of Foxglove
 // (installed by npm ci from this directory's lockfile; NODE_PATH names its
-// node_modules), as a check of our own writer (console/recorder/mcap.cc):
+// node_modules), as a check of our own writer (formats/mcap/mcap.cc):
 //
 //   node read_mcap.js FILE
 //

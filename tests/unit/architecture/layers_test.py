@@ -3,8 +3,8 @@
 CMake enforces that a header is reachable only through a linked target (each
 target has its own include root). This test enforces the direction: which
 layer's headers each layer's code may include, and that deploy/ never uses
-tests/. It reads every C++ file under services/, coordinator/, simulator/ and
-console/ and every Python file under deploy/.
+tests/. It reads every C++ file under services/, formats/, coordinator/,
+simulator/, console/ and clients/ and every Python file under deploy/.
 
   layers_test.py [--repo DIR]
 """
@@ -26,7 +26,12 @@ SHARED = {"flight_common", "motion_behaviors", "platform"}
 # too.
 BASE_HEADERS = {"services/server_kit/include/behaviorlib/server_kit/reactor_order.h"}
 # The folders whose code is classified (and whose headers may be included).
-TOPS = ("services", "proto", "coordinator", "simulator", "console")
+TOPS = ("services", "proto", "formats", "coordinator", "simulator", "console", "clients")
+# The folders of C++ code: the servers, the formats both sides read, the
+# clients (which call the servers and are never called by them).
+CODE = ("services", "formats", "coordinator", "simulator", "console", "clients")
+SERVERS = ("services", "coordinator", "simulator")
+CLIENTS = ("console", "clients")
 # Headers that the build generates, by the rule that makes them: the
 # messages ("proto", protobuf only), the gRPC stubs and typed services
 # ("stubs", which need gRPC), and reflection's. Each must come from a .proto
@@ -44,9 +49,10 @@ _HEADERS = {}  # include path -> repository-relative file, built on first use
 
 def header_index():
     """{include path: repository-relative header} for every header under an
-    `include` folder of the repository, and every header of coordinator/,
-    simulator/ and console/ by its path from the root (their include roots
-    are the repository's root, through behaviorlib_own_include_root)."""
+    `include` folder of the repository, and every header of formats/,
+    coordinator/, simulator/, console/ and clients/ by its path from the root
+    (their include roots are the repository's root, through
+    behaviorlib_own_include_root)."""
     if not _HEADERS:
         for top in TOPS:
             for path in sources(os.path.join(REPO, top), (".h",)):
@@ -55,7 +61,7 @@ def header_index():
                 if "include" in parts:
                     at = parts.index("include")
                     _HEADERS.setdefault("/".join(parts[at + 1:]), rel)
-                if top in ("coordinator", "simulator", "console"):
+                if top in ("formats", "coordinator", "simulator", "console", "clients"):
                     _HEADERS.setdefault("/".join(parts), rel)
     return _HEADERS
 
@@ -74,8 +80,8 @@ def resolve(include, including=None):
 def component_of(include, including=None):
     """The component of an included header, by the folder its file is in: a
     layer_of() name ("core", "server", "server_kit", "errors", "channel", an
-    algorithm, a shared helper or a system, "simulator", "coordinator",
-    "console", "cli"), "proto" or "stubs" for a generated header, "base", or
+    algorithm, a shared helper or a system, "formats", "simulator",
+    "coordinator", "console", "clients"), "proto" or "stubs" for a generated header, "base", or
     None for a header outside the project. `including` (the including file,
     relative to the repository) resolves an include relative to its folder.
     Raises LookupError for a header in the project's namespaces that is no
@@ -116,9 +122,7 @@ def layer_of(path):
             return parts[1]
         if parts[1] in ("algorithms", "shared", "systems"):
             return parts[1] + ":" + parts[2]
-    if parts[0] == "coordinator" and parts[1] == "cli":
-        return "cli"
-    return parts[0]  # coordinator | simulator | console
+    return parts[0]  # formats | coordinator | simulator | console | clients
 
 
 def allowed(layer, component):
@@ -140,14 +144,16 @@ def allowed(layer, component):
         "channel": {"core", "server_kit"},
         "server": {"core", "server_kit", "channel"},
         "coordinator": {"core", "server_kit", "channel", "platform", "flight_common"},
-        # behaviorctl: a client, which records and replays flights with the
-        # console's client libraries.
-        "cli": {"core", "server_kit", "channel", "platform", "flight_common", "coordinator",
-                "console"},
-        # The console and the flight recorder: clients of the coordinator and
-        # the channel over gRPC; the console draws the simulator's world file.
-        "console": {"server_kit", "simulator"},
-        "simulator": {"server_kit", "channel", "core"} | ALGORITHMS,
+        # The world files and MCAP: read by servers and clients alike; they
+        # use the server kit's confined, capped file reading only.
+        "formats": {"server_kit"},
+        # The clients: behaviorctl, the fleet follower and the flight
+        # recorder (clients/), and the console, which draws the world file
+        # and serves the recordings. They call the servers over gRPC and
+        # may use the coordinator's health-check client.
+        "clients": {"core", "server_kit", "channel", "coordinator", "formats"},
+        "console": {"server_kit", "clients", "formats"},
+        "simulator": {"server_kit", "channel", "core", "formats"} | ALGORITHMS,
     }
     if layer.startswith("shared:"):
         return component in {"core", "server", "server_kit", "channel"} | ALGORITHMS | SHARED
@@ -167,7 +173,7 @@ def folder_of(rel):
     """The unit of the folder graph: a layer, or for the coordinator, the
     simulator and the console their sub-folder (coordinator/belief)."""
     parts = rel.split(os.sep)
-    if parts[0] in ("coordinator", "simulator", "console") and len(parts) > 2:
+    if parts[0] in ("formats", "coordinator", "simulator", "console", "clients") and len(parts) > 2:
         return "/".join(parts[:2])
     return layer_of(rel)
 
@@ -175,7 +181,7 @@ def folder_of(rel):
 def folder_graph():
     """{folder: {folders its code includes}}, generated headers left out."""
     graph = {}
-    for top in ("services", "coordinator", "simulator", "console"):
+    for top in CODE:
         for path in sources(os.path.join(REPO, top), (".h", ".cc")):
             rel = os.path.relpath(path, REPO)
             here = folder_of(rel)
@@ -224,7 +230,7 @@ class LayersTest(unittest.TestCase):
     def test_every_include_goes_down_the_layers(self):
         violations = []
         checked = 0
-        for top in ("services", "coordinator", "simulator", "console"):
+        for top in CODE:
             for path in sources(os.path.join(REPO, top), (".h", ".cc")):
                 rel = os.path.relpath(path, REPO)
                 layer = layer_of(rel)
@@ -254,6 +260,27 @@ class LayersTest(unittest.TestCase):
         self.assertIn("coordinator/belief", graph)
         self.assertEqual(cycles(graph), [])
 
+    def test_no_server_includes_a_client(self):
+        # Clients stand above the servers: nothing in services/, coordinator/
+        # or simulator/ includes a header of console/ or clients/, nor links
+        # one of their targets.
+        found = []
+        for top in SERVERS:
+            for path in sources(os.path.join(REPO, top), (".h", ".cc", "CMakeLists.txt")):
+                rel = os.path.relpath(path, REPO)
+                with open(path, encoding="utf-8") as f:
+                    text = f.read()
+                if path.endswith("CMakeLists.txt"):
+                    found += [f"{rel} links {name}" for name in re.findall(
+                        r"behaviorlib::(fleet_follower|recorder|console_gateway|behaviorctl)\b",
+                        text)]
+                    continue
+                for include in INCLUDE.findall(text):
+                    header = resolve(include, rel)
+                    if header is not None and header.split(os.sep)[0] in CLIENTS:
+                        found.append(f"{rel} includes {include}")
+        self.assertEqual(found, [])
+
     def test_deploy_never_uses_tests(self):
         for path in sources(os.path.join(REPO, "deploy"), (".py",)):
             with open(path, encoding="utf-8") as f:
@@ -272,6 +299,15 @@ class LayersTest(unittest.TestCase):
         self.assertFalse(allowed("systems:navigation_with_lidar", "simulator"))
         self.assertFalse(allowed("server_kit", "core"))
         self.assertFalse(allowed("coordinator", "basic_quadrotor_behaviors"))
+        for server in ("core", "server", "server_kit", "channel", "coordinator", "simulator",
+                       "systems:x", "shared:platform", "algorithms:navigation", "formats"):
+            self.assertFalse(allowed(server, "clients"), server)
+            self.assertFalse(allowed(server, "console"), server)
+        self.assertFalse(allowed("console", "simulator"))
+        self.assertFalse(allowed("formats", "simulator"))
+        self.assertTrue(allowed("simulator", "formats"))
+        self.assertEqual(component_of("formats/world/world.h"), "formats")
+        self.assertEqual(component_of("behaviorlib/recorder/recorder.h"), "clients")
         self.assertTrue(allowed("systems:basic_quadrotor_behaviors", "flight_common"))
         self.assertEqual(component_of("behaviorlib/v1/behavior.pb.h"), "proto")
         self.assertEqual(component_of("behaviorlib/durable/v1/journal.pb.h"), "proto")

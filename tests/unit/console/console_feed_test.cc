@@ -9,8 +9,8 @@
 #include <thread>
 #include <vector>
 
-#include "behaviorlib/console/event_cursor.h"
 #include "behaviorlib/console/event_hub.h"
+#include "behaviorlib/follower/event_cursor.h"
 
 namespace behaviorlib::console {
 namespace {

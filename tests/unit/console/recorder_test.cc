@@ -1,5 +1,5 @@
 // The flight recorder's file format and topic mapping, without servers
-// (console/recorder, decision 36): the MCAP writer and reader round trip,
+// (clients/recorder, decision 36): the MCAP writer and reader round trip,
 // a file cut short, malformed and oversized records, the schemas, and where
 // a replay publishes each recorded message.
 
@@ -17,9 +17,9 @@
 #include <string>
 #include <vector>
 
-#include "behaviorlib/recorder/mcap.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
+#include "formats/mcap/mcap.h"
 
 namespace behaviorlib::recorder {
 namespace {

@@ -12,8 +12,8 @@
 #include <random>
 #include <vector>
 
+#include "formats/world/world.h"
 #include "simulator/world/lidar.h"
-#include "simulator/world/world.h"
 
 namespace behaviorlib::nav {
 namespace {

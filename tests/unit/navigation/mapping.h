@@ -7,8 +7,8 @@
 #include <vector>
 
 #include "behaviorlib/navigation/occupancy_map.h"
+#include "formats/world/world.h"
 #include "simulator/world/lidar.h"
-#include "simulator/world/world.h"
 
 namespace behaviorlib::nav::testing {
 

@@ -11,8 +11,8 @@
 #include <opencv2/objdetect.hpp>
 
 #include "behaviorlib/visual_markers/qr_finder.h"
+#include "formats/world/world.h"
 #include "simulator/world/camera.h"
-#include "simulator/world/world.h"
 
 namespace behaviorlib::markers {
 namespace {

@@ -19,8 +19,8 @@
 #include <string>
 #include <vector>
 
+#include "formats/world/world.h"
 #include "simulator/sensors/sensor_system.h"
-#include "simulator/world/world.h"
 
 namespace behaviorlib::sim {
 namespace {

@@ -13,8 +13,8 @@
 #include <stdexcept>
 #include <vector>
 
+#include "formats/world/world.h"
 #include "simulator/world/camera.h"
-#include "simulator/world/world.h"
 
 namespace behaviorlib::sim {
 namespace {

@@ -8,7 +8,7 @@
 #include <numbers>
 #include <opencv2/imgcodecs.hpp>
 
-#include "simulator/world/world.h"
+#include "formats/world/world.h"
 
 namespace behaviorlib::sim {
 namespace {

@@ -8,7 +8,7 @@
 #include <limits>
 #include <numbers>
 
-#include "simulator/world/world.h"
+#include "formats/world/world.h"
 
 namespace behaviorlib::sim {
 namespace {

@@ -1,4 +1,4 @@
-#include "simulator/world/world.h"
+#include "formats/world/world.h"
 
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>

@@ -42,7 +42,7 @@
 
 #include "absl/status/status.h"
 #include "behaviorlib/console/event_hub.h"
-#include "behaviorlib/console/fleet_follower.h"
+#include "behaviorlib/follower/fleet_follower.h"
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
@@ -80,7 +80,7 @@ struct GatewayOptions {
   size_t max_robots = 16;
   /// The map's world as JSON (GET /api/world); empty: a world without boxes.
   std::string world_json;
-  /// Where the flight recordings are (console/recorder); empty: none.
+  /// Where the flight recordings are (clients/recorder); empty: none.
   std::string recordings_dir;
   /// Largest recording opened, and most messages sent of one.
   uint64_t max_recording_bytes = uint64_t{512} << 20;

@@ -1,4 +1,4 @@
-#include "behaviorlib/recorder/mcap.h"
+#include "formats/mcap/mcap.h"
 
 #include <zlib.h>
 

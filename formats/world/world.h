@@ -27,7 +27,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
-#include "simulator/world/collision_world.h"
+#include "formats/world/collision_world.h"
 
 namespace behaviorlib::sim {
 

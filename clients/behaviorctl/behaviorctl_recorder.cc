@@ -23,7 +23,7 @@
 #include "absl/strings/str_split.h"
 #include "behaviorlib/recorder/recorder.h"
 #include "behaviorlib/server_kit/transport_security.h"
-#include "coordinator/cli/behaviorctl_commands.h"
+#include "clients/behaviorctl/behaviorctl_commands.h"
 
 namespace behaviorlib::coordinator {
 

@@ -1,7 +1,7 @@
 #pragma once
 
 // CollisionWorld: the one question the vehicle dynamics asks of the
-// environment. `World` (simulator/world/world.h) implements it; the dynamics
+// environment. `World` (formats/world/world.h) implements it; the dynamics
 // code depends only on this header, so it does not need the world's file
 // format or ray casting.
 //

@@ -15,8 +15,8 @@
 #include "absl/status/status.h"
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/server_kit/yaml_guard.h"
-#include "simulator/world/str_cat.h"
-#include "simulator/world/world.h"
+#include "formats/world/str_cat.h"
+#include "formats/world/world.h"
 
 namespace behaviorlib::sim {
 namespace {

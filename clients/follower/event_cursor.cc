@@ -1,4 +1,4 @@
-#include "behaviorlib/console/event_cursor.h"
+#include "behaviorlib/follower/event_cursor.h"
 
 namespace behaviorlib::console {
 

@@ -30,8 +30,8 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
-#include "behaviorlib/console/fleet_follower.h"
-#include "behaviorlib/recorder/mcap.h"
+#include "behaviorlib/follower/fleet_follower.h"
+#include "formats/mcap/mcap.h"
 
 namespace behaviorlib::recorder {
 

@@ -27,7 +27,7 @@
 
 #include "absl/flags/flag.h"
 #include "behaviorlib/server_kit/flags.h"
-#include "coordinator/cli/behaviorctl_commands.h"
+#include "clients/behaviorctl/behaviorctl_commands.h"
 
 ABSL_FLAG(std::string, target, "", "a behavior system's address host:port");
 ABSL_FLAG(std::string, coordinator, "", "the coordinator's address host:port");

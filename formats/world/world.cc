@@ -1,4 +1,4 @@
-#include "simulator/world/world.h"
+#include "formats/world/world.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,4 +1,4 @@
-#include "coordinator/cli/behaviorctl_commands.h"
+#include "clients/behaviorctl/behaviorctl_commands.h"
 
 #include <google/protobuf/util/json_util.h>
 #include <grpcpp/grpcpp.h>

@@ -1,4 +1,4 @@
-#include "behaviorlib/console/fleet_follower.h"
+#include "behaviorlib/follower/fleet_follower.h"
 
 #include <google/protobuf/io/coded_stream.h>
 #include <google/protobuf/io/zero_copy_stream_impl_lite.h>
@@ -7,7 +7,7 @@
 #include <utility>
 
 #include "absl/time/time.h"
-#include "behaviorlib/console/event_cursor.h"
+#include "behaviorlib/follower/event_cursor.h"
 
 namespace behaviorlib::console {
 

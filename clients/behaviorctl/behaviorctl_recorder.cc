@@ -99,6 +99,7 @@ int runRecord(const CtlOptions& options) {
   fields["file"].set_string_value(recorder_options.path);
   fields["bytes"].set_number_value(static_cast<double>(stats.bytes));
   fields["dropped"].set_number_value(static_cast<double>(stats.dropped));
+  fields["drained"].set_bool_value(stats.drained);
   fields["messages"] = counts(stats.messages);
   printJson(line);
   return stopped.ok() ? 0 : failWith(stopped);

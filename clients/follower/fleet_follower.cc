@@ -135,8 +135,49 @@ void FleetFollower::followEvents() {
       [&](const v1::WatchFleetEventsResponse& response) {
         setCoordinatorUp(true, "");
         for (const auto& event : cursor.accept(response)) sink_->onEvent(event);
+        absl::MutexLock lock(&mutex_);
+        events_seq_ = cursor.sinceSeq();
+        events_incarnation_ = cursor.incarnation();
       },
       [&](const grpc::Status& status) { setCoordinatorUp(false, status.error_message()); });
+}
+
+bool FleetFollower::catchUp(std::chrono::milliseconds timeout) {
+  if (timeout <= std::chrono::milliseconds::zero()) return false;
+  const auto deadline = std::chrono::system_clock::now() + timeout;
+  // Where the coordinator's log ends now: the start message of a stream
+  // that resumes where ours is (the replay that would follow is not read).
+  v1::WatchFleetEventsRequest probe;
+  {
+    absl::MutexLock lock(&mutex_);
+    probe.set_since_seq(events_seq_);
+    probe.set_incarnation(events_incarnation_);
+  }
+  v1::WatchFleetEventsResponse first;
+  {
+    grpc::ClientContext context;
+    context.set_deadline(deadline);
+    auto reader = stub_->WatchEvents(&context, probe);
+    const bool read = reader->Read(&first);
+    context.TryCancel();
+    reader->Finish().IgnoreError();
+    if (!read || !first.has_start()) return false;
+  }
+  grpc::ClientContext context;
+  context.set_deadline(deadline);
+  v1::ListMissionsRequest request;
+  request.set_page_size(100);
+  v1::ListMissionsResponse response;
+  if (!stub_->ListMissions(&context, request, &response).ok()) return false;
+  for (const auto& status : response.missions()) changedMission(status);
+  const std::string incarnation = first.start().incarnation();
+  const uint64_t latest = first.start().latest_seq();
+  absl::MutexLock lock(&mutex_);
+  const auto caught_up = [&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return stopping_ || (events_incarnation_ == incarnation && events_seq_ >= latest);
+  };
+  return mutex_.AwaitWithDeadline(absl::Condition(&caught_up), absl::FromChrono(deadline)) &&
+         !stopping_;
 }
 
 void FleetFollower::changedMission(const v1::MissionStatus& status) {

@@ -64,6 +64,8 @@ console::FollowerOptions followerOptions(const RecorderOptions& options) {
   }
   follower.vehicle_period = std::chrono::milliseconds(0);  // what the broker sends
   follower.max_robots = options.max_robots;
+  follower.mission_poll = options.mission_poll;
+  follower.max_watched_missions = options.max_watched_missions;
   return follower;
 }
 
@@ -140,9 +142,13 @@ absl::Status Recorder::stop() {
     absl::MutexLock lock(&mutex_);
     if (stopped_) return absl::OkStatus();
   }
+  // What the coordinator had when the stop was asked is in the file: a
+  // recorder stopped right after a mission ended still holds its end.
+  const bool drained = follower_.catchUp(options_.drain_timeout);
   follower_.shutdown();
   absl::MutexLock lock(&mutex_);
   stopped_ = true;
+  stats_.drained = drained;
   const absl::Status closed = writer_->close();
   stats_.bytes = writer_->bytesWritten();
   return closed;

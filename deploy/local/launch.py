@@ -831,7 +831,9 @@ def main():
             code = flight_recorder.process.returncode
             if code == 0 and recording:
                 say(f"  recording {flight_recorder.path}: {recording.get('bytes', 0):.0f} bytes, "
-                    f"{sum(recording.get('messages', {}).values()):.0f} messages")
+                    f"{sum(recording.get('messages', {}).values()):.0f} messages"
+                    + ("" if recording.get("drained") else
+                       " (it did not catch up with the coordinator before closing)"))
             else:
                 say(f"  the recorder ended with {code}: {flight_recorder.log_path}")
         clean = stack.stop(args.stop_timeout_s, say)

@@ -89,6 +89,13 @@ class FleetFollower {
   void shutdown();
   /// Reads the mission list now (a mission was started or controlled).
   void kick();
+  /// Brings the sink up to the coordinator's present, before a stop: every
+  /// listed mission's current status (one ListMissions, handed on when it
+  /// changed), and every event up to the newest one the coordinator holds
+  /// now (the events stream delivers them; this waits for it). False when
+  /// the coordinator did not answer or `timeout` passed first (at once for a
+  /// timeout of zero: no catch-up).
+  bool catchUp(std::chrono::milliseconds timeout);
 
  private:
   template <typename Response, typename Open, typename Handle, typename Ended>
@@ -126,6 +133,10 @@ class FleetFollower {
   // The robots whose vehicle topics are followed, and their threads.
   std::set<std::string> robots_ ABSL_GUARDED_BY(mutex_);
   std::vector<std::thread> topic_threads_ ABSL_GUARDED_BY(mutex_);
+  // Where the events stream is: the last coordinator seq handed to the
+  // sink, of this incarnation.
+  uint64_t events_seq_ ABSL_GUARDED_BY(mutex_) = 0;
+  std::string events_incarnation_ ABSL_GUARDED_BY(mutex_);
   // The last status seen of each mission (serialized).
   std::map<std::string, std::string> missions_ ABSL_GUARDED_BY(mutex_);
 };

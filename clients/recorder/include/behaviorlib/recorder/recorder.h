@@ -20,6 +20,7 @@
 
 #include <grpcpp/grpcpp.h>
 
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <map>
@@ -72,6 +73,14 @@ struct RecorderOptions {
   uint64_t max_bytes = uint64_t{4} << 30;
   /// Robots whose topics are recorded.
   size_t max_robots = 16;
+  /// How often the mission list is read, and how many missions are
+  /// watched at once (FollowerOptions).
+  std::chrono::milliseconds mission_poll{1000};
+  size_t max_watched_missions = 16;
+  /// stop() first catches up with the coordinator (FleetFollower::catchUp):
+  /// every mission's last status and every event it holds, for at most
+  /// this long (zero: not at all).
+  std::chrono::milliseconds drain_timeout{5000};
 };
 
 struct RecorderStats {
@@ -80,6 +89,8 @@ struct RecorderStats {
   /// of a subscription that fell behind.
   uint64_t dropped = 0;
   uint64_t bytes = 0;
+  /// stop() caught up with the coordinator before closing the file.
+  bool drained = false;
 };
 
 class Recorder : private console::FleetSink {
@@ -94,7 +105,9 @@ class Recorder : private console::FleetSink {
   /// Hands what is recorded to the operating system (a killed recorder's
   /// file reads up to its last flush).
   absl::Status flush();
-  /// Stops following and closes the file with its summary.
+  /// Catches up with the coordinator (at most drain_timeout; stats().drained
+  /// says whether it did), stops following and closes the file with its
+  /// summary.
   absl::Status stop();
   RecorderStats stats();
 

@@ -21,7 +21,10 @@
 //   behaviorctl --coordinator 127.0.0.1:50060 --channel 127.0.0.1:50051 record flight.mcap
 //   behaviorctl --channel 127.0.0.1:50051 replay flight.mcap [--speed 2]
 //
-// Output is one JSON object per line, so it can be piped into other tools.
+//   behaviorctl --coordinator 127.0.0.1:50060 systems -o wide     (-o json, -o yaml)
+//
+// The listing commands print aligned tables; -o json gives the reply as one
+// JSON object a line, so it can be piped into other tools.
 
 #include <string>
 
@@ -53,6 +56,10 @@ ABSL_FLAG(std::string, topics, "",
 ABSL_FLAG(double, duration_s, 0, "record: stop after this many seconds (0: at SIGINT or SIGTERM)");
 ABSL_FLAG(double, speed, 1, "replay: 1 as recorded, 2 twice as fast, 0 as fast as possible");
 ABSL_FLAG(std::string, topic_prefix, "", "replay: only the recording's topics with this prefix");
+ABSL_FLAG(std::string, output, "",
+          "table (the listing commands' default), wide (more columns: the parameter schemas, "
+          "addresses, messages), json (every other command's default) or yaml");
+ABSL_FLAG(std::string, o, "", "short for --output");
 
 int main(int argc, char** argv) {
   behaviorlib::coordinator::CtlOptions options;
@@ -62,7 +69,7 @@ int main(int argc, char** argv) {
       "usage: behaviorctl --target HOST:PORT COMMAND ...        (one behavior system)\n"
       "       behaviorctl --coordinator HOST:PORT COMMAND ...   (the fleet, by robot)\n"
       "commands:\n"
-      "  list                                 behaviors and their parameter schemas\n"
+      "  list                                 behaviors (-o wide: their parameter schemas)\n"
       "  activate BEHAVIOR [JSON] [--request-id ID]\n"
       "  deactivate BEHAVIOR [ACTIVATION_ID]\n"
       "  pause BEHAVIOR [ACTIVATION_ID] | resume BEHAVIOR [ACTIVATION_ID]\n"
@@ -86,6 +93,8 @@ int main(int argc, char** argv) {
       "                                       broker\n"
       "activate through the coordinator: --dry-run shows the catalog's plan only,\n"
       "  --skip-plan activates the behavior alone\n"
+      "output: list, systems, status, mission list and belief list print a table; -o wide\n"
+      "  adds columns, -o json and -o yaml print the reply (every other command prints JSON)\n"
       "with --coordinator: --robot ID names the robot (required by activate, deactivate,\n"
       "  pause, resume, modify, status, activation, situation; a filter for list, systems,\n"
       "  watch); --behavior NAME filters watch\n");
@@ -107,6 +116,8 @@ int main(int argc, char** argv) {
   options.topics = absl::GetFlag(FLAGS_topics);
   options.duration_s = absl::GetFlag(FLAGS_duration_s);
   options.speed = absl::GetFlag(FLAGS_speed);
+  options.output =
+      absl::GetFlag(FLAGS_o).empty() ? absl::GetFlag(FLAGS_output) : absl::GetFlag(FLAGS_o);
   options.topic_prefix = absl::GetFlag(FLAGS_topic_prefix);
   options.args = std::move(args);
   return behaviorlib::coordinator::runCtl(options);

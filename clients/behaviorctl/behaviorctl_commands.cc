@@ -15,6 +15,7 @@
 #include "behaviorlib/server_kit/transport_security.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
+#include "clients/behaviorctl/behaviorctl_output.h"
 #include "coordinator/service/health_check.h"
 
 namespace behaviorlib::coordinator {
@@ -26,18 +27,47 @@ int usageError() {
   return 2;
 }
 
-std::string toJson(const google::protobuf::Message& message) {
-  std::string out;
-  google::protobuf::util::JsonPrintOptions options;
-  options.preserve_proto_field_names = true;
-  (void)google::protobuf::util::MessageToJsonString(message, &out, options);
-  return out;
+int fail(const grpc::Status& status) {
+  std::fputs(describeError(status).c_str(), stderr);
+  return 1;
 }
 
-int fail(const grpc::Status& status) {
-  std::fprintf(stderr, "behaviorctl: %d %s\n", static_cast<int>(status.error_code()),
-               status.error_message().c_str());
-  return 1;
+// The format of a command's reply: a table for the listing commands unless
+// -o says otherwise; JSON (or YAML) for the others, and for a listing with
+// -o json or -o yaml.
+OutputFormat formatOf(const CtlOptions& c, bool listing) {
+  const OutputFormat format =
+      parseOutputFormat(c.output, listing ? OutputFormat::kTable : OutputFormat::kJson)
+          .value_or(OutputFormat::kJson);  // runCtl refused a bad -o already
+  if (!listing && (format == OutputFormat::kTable || format == OutputFormat::kWide)) {
+    return OutputFormat::kJson;
+  }
+  return format;
+}
+
+// A reply in the machine form -o asks for (JSON unless yaml).
+void printMessage(const CtlOptions& c, const google::protobuf::Message& message) {
+  if (formatOf(c, false) == OutputFormat::kYaml) {
+    std::cout << toYaml(message) << "---" << std::endl;
+  } else {
+    std::cout << toJson(message) << std::endl;
+  }
+}
+
+// A listing's reply: its table (wide with -o wide), or the machine form.
+template <class Response, class MakeTable>
+void printListing(const CtlOptions& c, const Response& response, MakeTable make_table) {
+  const OutputFormat format = formatOf(c, true);
+  if (format == OutputFormat::kTable || format == OutputFormat::kWide) {
+    const Table table = make_table(response, format == OutputFormat::kWide);
+    if (table.rows.empty()) {
+      std::fputs("behaviorctl: nothing found\n", stderr);  // as kubectl: no header
+    } else {
+      std::cout << table.render() << std::flush;
+    }
+  } else {
+    printMessage(c, response);
+  }
 }
 
 // One line per change of a mission's status, on stderr (the last status is
@@ -64,7 +94,7 @@ void printProgress(const v1::MissionStatus& status, int* printed_steps) {
 }
 
 // Follows a mission until it ends; 0 when it SUCCEEDED.
-int followMission(v1::Coordinator::Stub& stub, const std::string& mission_id) {
+int followMission(const CtlOptions& c, v1::Coordinator::Stub& stub, const std::string& mission_id) {
   grpc::ClientContext context;
   v1::WatchMissionRequest request;
   request.set_mission_id(mission_id);
@@ -78,18 +108,14 @@ int followMission(v1::Coordinator::Stub& stub, const std::string& mission_id) {
   }
   auto s = reader->Finish();
   if (!s.ok()) return fail(s);
-  std::cout << toJson(last) << std::endl;
+  printMessage(c, last);
   return last.state() == v1::MISSION_STATE_SUCCEEDED ? 0 : 1;
-}
-
-void printJson(const google::protobuf::Message& message) {
-  std::cout << toJson(message) << std::endl;
 }
 
 // One unary call under the command's deadline: `call(context, response)`
 // makes it; `print` shows the response. 1 when the call fails.
 template <class Response, class Call, class Print>
-int unary(Call call, Print print) {
+int unary(const CtlOptions&, Call call, Print print) {
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(10));
   Response response;
@@ -99,8 +125,8 @@ int unary(Call call, Print print) {
 }
 
 template <class Response, class Call>
-int unary(Call call) {
-  return unary<Response>(call, [](const Response& r) { printJson(r); });
+int unary(const CtlOptions& c, Call call) {
+  return unary<Response>(c, call, [&](const Response& r) { printMessage(c, r); });
 }
 
 // Every page of a List call (AIP-158) as one reply, printed once: each
@@ -108,7 +134,7 @@ int unary(Call call) {
 // `call(context, request, page)` makes one call; each has the deadline of
 // unary().
 template <class Response, class Request, class Call, class Print>
-int listAll(Request request, Call call, Print print) {
+int listAll(const CtlOptions&, Request request, Call call, Print print) {
   Response all;
   for (;;) {
     grpc::ClientContext context;
@@ -126,8 +152,9 @@ int listAll(Request request, Call call, Print print) {
 }
 
 template <class Response, class Request, class Call>
-int listAll(Request request, Call call) {
-  return listAll<Response>(std::move(request), call, [](const Response& r) { printJson(r); });
+int listAll(const CtlOptions& c, Request request, Call call) {
+  return listAll<Response>(c, std::move(request), call,
+                           [&](const Response& r) { printMessage(c, r); });
 }
 
 // Prints a stream's messages as they come, until `last` says one was the
@@ -142,7 +169,7 @@ int watch(const CtlOptions& c, Open open, Last last) {
   auto reader = open(&context);
   Message message;
   while (reader->Read(&message)) {
-    printJson(message);
+    printMessage(c, message);
     if (last(message)) {
       context.TryCancel();
       reader->Finish();
@@ -174,14 +201,20 @@ int beliefCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
     v1::ListBeliefsRequest request;
     request.set_prefix(key);
     return listAll<v1::ListBeliefsResponse>(
-        request, [&](auto* context, auto& q, auto* r) { return stub.ListBeliefs(context, q, r); });
+        c, request,
+        [&](auto* context, auto& q, auto* r) { return stub.ListBeliefs(context, q, r); },
+        [&](const v1::ListBeliefsResponse& r) {
+          printListing(c, r, [](const auto& l, bool wide) {
+            return beliefsTable(l, wide, std::chrono::system_clock::now());
+          });
+        });
   }
   if (verb == "get" && !key.empty()) {
     v1::ReadBeliefRequest request;
     request.set_key(key);
     return unary<v1::ReadBeliefResponse>(
-        [&](auto* context, auto* r) { return stub.ReadBelief(context, request, r); },
-        [](const v1::ReadBeliefResponse& r) { printJson(r.belief()); });
+        c, [&](auto* context, auto* r) { return stub.ReadBelief(context, request, r); },
+        [&](const v1::ReadBeliefResponse& r) { printMessage(c, r.belief()); });
   }
   if (verb == "set" && c.args.size() > 3) {
     v1::WriteBeliefRequest request;
@@ -192,15 +225,15 @@ int beliefCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
       return 2;
     }
     return unary<v1::WriteBeliefResponse>(
-        [&](auto* context, auto* r) { return stub.WriteBelief(context, request, r); },
-        [](const v1::WriteBeliefResponse& r) { printJson(r.belief()); });
+        c, [&](auto* context, auto* r) { return stub.WriteBelief(context, request, r); },
+        [&](const v1::WriteBeliefResponse& r) { printMessage(c, r.belief()); });
   }
   if (verb == "delete" && !key.empty()) {
     v1::DeleteBeliefRequest request;
     request.set_key(key);
     request.set_writer("operator");
     return unary<v1::DeleteBeliefResponse>(
-        [&](auto* context, auto* r) { return stub.DeleteBelief(context, request, r); },
+        c, [&](auto* context, auto* r) { return stub.DeleteBelief(context, request, r); },
         [](const v1::DeleteBeliefResponse&) {});
   }
   std::fputs(
@@ -213,7 +246,7 @@ int beliefCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
 int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
   const std::string verb = c.args.size() > 1 ? c.args[1] : "";
   const std::string arg = c.args.size() > 2 ? c.args[2] : "";
-  auto printStatus = [](const auto& r) { printJson(r.status()); };
+  auto printStatus = [&](const auto& r) { printMessage(c, r.status()); };
   if (verb == "run" && !arg.empty()) {
     std::ifstream in(arg);
     if (!in) {
@@ -229,31 +262,38 @@ int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
     request.set_mission_id(c.mission_id);
     std::string started;
     const int code = unary<v1::StartMissionResponse>(
-        [&](auto* context, auto* r) { return stub.StartMission(context, request, r); },
+        c, [&](auto* context, auto* r) { return stub.StartMission(context, request, r); },
         [&](const v1::StartMissionResponse& r) {
-          if (c.detach) printJson(r.status());
+          if (c.detach) printMessage(c, r.status());
           started = r.status().mission_id();
         });
     if (code != 0 || c.detach) return code;
-    return followMission(stub, started);
+    return followMission(c, stub, started);
   }
-  if (verb == "watch" && !arg.empty()) return followMission(stub, arg);
+  if (verb == "watch" && !arg.empty()) return followMission(c, stub, arg);
   if (verb == "status" && !arg.empty()) {
     v1::GetMissionRequest request;
     request.set_mission_id(arg);
     return unary<v1::GetMissionResponse>(
-        [&](auto* context, auto* r) { return stub.GetMission(context, request, r); }, printStatus);
+        c, [&](auto* context, auto* r) { return stub.GetMission(context, request, r); },
+        printStatus);
   }
   if (verb == "list") {
     return listAll<v1::ListMissionsResponse>(
-        v1::ListMissionsRequest(),
-        [&](auto* context, auto& q, auto* r) { return stub.ListMissions(context, q, r); });
+        c, v1::ListMissionsRequest(),
+        [&](auto* context, auto& q, auto* r) { return stub.ListMissions(context, q, r); },
+        [&](const v1::ListMissionsResponse& r) {
+          printListing(c, r, [](const auto& l, bool wide) {
+            return missionsTable(l, wide, std::chrono::system_clock::now());
+          });
+        });
   }
   if ((verb == "pause" || verb == "resume" || verb == "abort") && !arg.empty()) {
     v1::MissionControlRequest request;
     request.set_mission_id(arg);
     request.set_reason(c.args.size() > 3 ? c.args[3] : "requested with behaviorctl");
     return unary<v1::MissionControlResponse>(
+        c,
         [&](auto* context, auto* r) {
           return verb == "pause"    ? stub.PauseMission(context, request, r)
                  : verb == "resume" ? stub.ResumeMission(context, request, r)
@@ -288,11 +328,11 @@ int runCoordinator(const CtlOptions& c) {
     if (command == "status") request.set_behavior(behavior);
     bool missing = false;
     const int code = listAll<v1::ListFleetBehaviorsResponse>(
-        request,
+        c, request,
         [&](auto* context, auto& q, auto* r) { return stub->ListBehaviors(context, q, r); },
         [&](const v1::ListFleetBehaviorsResponse& r) {
           missing = command == "status" && r.behaviors().empty();
-          if (!missing) printJson(r);
+          if (!missing) printListing(c, r, fleetBehaviorsTable);
         });
     if (missing) {
       std::fprintf(stderr, "behaviorctl: robot %s has no behavior '%s'\n", c.robot.c_str(),
@@ -305,7 +345,13 @@ int runCoordinator(const CtlOptions& c) {
     v1::ListSystemsRequest request;
     request.set_robot_id(c.robot);
     return listAll<v1::ListSystemsResponse>(
-        request, [&](auto* context, auto& q, auto* r) { return stub->ListSystems(context, q, r); });
+        c, request,
+        [&](auto* context, auto& q, auto* r) { return stub->ListSystems(context, q, r); },
+        [&](const v1::ListSystemsResponse& r) {
+          printListing(c, r, [](const auto& l, bool wide) {
+            return systemsTable(l, wide, std::chrono::system_clock::now());
+          });
+        });
   }
   if (command == "activate") {
     v1::ActivateFleetBehaviorRequest request;
@@ -316,7 +362,7 @@ int runCoordinator(const CtlOptions& c) {
     request.set_skip_plan(c.skip_plan);
     if (!parseJson(c, 2, request.mutable_parameters(), kNotAnObject)) return 2;
     return unary<v1::ActivateFleetBehaviorResponse>(
-        [&](auto* context, auto* r) { return stub->ActivateBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->ActivateBehavior(context, request, r); });
   }
   if (command == "deactivate") {
     v1::DeactivateFleetBehaviorRequest request;
@@ -324,14 +370,15 @@ int runCoordinator(const CtlOptions& c) {
     request.set_behavior(behavior);
     if (c.args.size() > 2) request.set_activation_id(c.args[2]);
     return unary<v1::DeactivateFleetBehaviorResponse>(
-        [&](auto* context, auto* r) { return stub->DeactivateBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->DeactivateBehavior(context, request, r); });
   }
   if (command == "situation") {
     v1::CheckFleetBehaviorSituationRequest request;
     request.set_robot_id(c.robot);
     request.set_behavior(behavior);
-    return unary<v1::CheckFleetBehaviorSituationResponse>(
-        [&](auto* context, auto* r) { return stub->CheckBehaviorSituation(context, request, r); });
+    return unary<v1::CheckFleetBehaviorSituationResponse>(c, [&](auto* context, auto* r) {
+      return stub->CheckBehaviorSituation(context, request, r);
+    });
   }
   if (command == "watch") {
     v1::WatchFleetEventsRequest request;
@@ -353,7 +400,7 @@ int runCoordinator(const CtlOptions& c) {
     request.set_robot_id(c.robot);
     request.set_confirm(c.confirm);
     request.set_reason(c.args.size() > 1 ? c.args[1] : "requested with behaviorctl");
-    return unary<v1::SafetyActionResponse>([&](auto* context, auto* r) {
+    return unary<v1::SafetyActionResponse>(c, [&](auto* context, auto* r) {
       return command == "kill" ? stub->Kill(context, request, r)
                                : stub->EmergencyLand(context, request, r);
     });
@@ -364,7 +411,7 @@ int runCoordinator(const CtlOptions& c) {
     request.set_behavior(behavior);
     if (c.args.size() > 2) request.set_activation_id(c.args[2]);
     return unary<v1::PauseFleetBehaviorResponse>(
-        [&](auto* context, auto* r) { return stub->PauseFleetBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->PauseFleetBehavior(context, request, r); });
   }
   if (command == "resume") {
     v1::ResumeFleetBehaviorRequest request;
@@ -372,7 +419,7 @@ int runCoordinator(const CtlOptions& c) {
     request.set_behavior(behavior);
     if (c.args.size() > 2) request.set_activation_id(c.args[2]);
     return unary<v1::ResumeFleetBehaviorResponse>(
-        [&](auto* context, auto* r) { return stub->ResumeFleetBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->ResumeFleetBehavior(context, request, r); });
   }
   if (command == "modify") {
     v1::ModifyFleetBehaviorRequest request;
@@ -380,13 +427,13 @@ int runCoordinator(const CtlOptions& c) {
     request.set_behavior(behavior);
     if (!parseJson(c, 2, request.mutable_parameters(), kNotAnObject)) return 2;
     return unary<v1::ModifyFleetBehaviorResponse>(
-        [&](auto* context, auto* r) { return stub->ModifyFleetBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->ModifyFleetBehavior(context, request, r); });
   }
   if (command == "activation") {
     v1::CheckFleetBehaviorActivationRequest request;
     request.set_robot_id(c.robot);
     request.set_behavior(behavior);
-    return unary<v1::CheckFleetBehaviorActivationResponse>([&](auto* context, auto* r) {
+    return unary<v1::CheckFleetBehaviorActivationResponse>(c, [&](auto* context, auto* r) {
       return stub->CheckFleetBehaviorActivation(context, request, r);
     });
   }
@@ -400,8 +447,9 @@ int runSystem(const CtlOptions& c) {
   const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
   if (command == "list") {
     return listAll<v1::ListBehaviorsResponse>(
-        v1::ListBehaviorsRequest(),
-        [&](auto* context, auto& q, auto* r) { return stub->ListBehaviors(context, q, r); });
+        c, v1::ListBehaviorsRequest(),
+        [&](auto* context, auto& q, auto* r) { return stub->ListBehaviors(context, q, r); },
+        [&](const v1::ListBehaviorsResponse& r) { printListing(c, r, systemBehaviorsTable); });
   }
   if (command == "activate") {
     v1::ActivateBehaviorRequest request;
@@ -409,47 +457,53 @@ int runSystem(const CtlOptions& c) {
     request.set_request_id(c.request_id);
     if (!parseJson(c, 2, request.mutable_parameters(), kNotAnObject)) return 2;
     return unary<v1::ActivateResponse>(
-        [&](auto* context, auto* r) { return stub->ActivateBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->ActivateBehavior(context, request, r); });
   }
   if (command == "deactivate") {
     v1::DeactivateBehaviorRequest request;
     request.set_behavior(behavior);
     if (c.args.size() > 2) request.set_activation_id(c.args[2]);
     return unary<v1::DeactivateResponse>(
-        [&](auto* context, auto* r) { return stub->DeactivateBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->DeactivateBehavior(context, request, r); });
   }
   if (command == "pause") {
     v1::PauseBehaviorRequest request;
     request.set_behavior(behavior);
     if (c.args.size() > 2) request.set_activation_id(c.args[2]);
     return unary<v1::PauseResponse>(
-        [&](auto* context, auto* r) { return stub->PauseBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->PauseBehavior(context, request, r); });
   }
   if (command == "resume") {
     v1::ResumeBehaviorRequest request;
     request.set_behavior(behavior);
     if (c.args.size() > 2) request.set_activation_id(c.args[2]);
     return unary<v1::ResumeResponse>(
-        [&](auto* context, auto* r) { return stub->ResumeBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->ResumeBehavior(context, request, r); });
   }
   if (command == "modify") {
     v1::ModifyBehaviorRequest request;
     request.set_behavior(behavior);
     if (!parseJson(c, 2, request.mutable_parameters(), kNotAnObject)) return 2;
     return unary<v1::ModifyResponse>(
-        [&](auto* context, auto* r) { return stub->ModifyBehavior(context, request, r); });
+        c, [&](auto* context, auto* r) { return stub->ModifyBehavior(context, request, r); });
   }
   if (command == "status") {
     v1::CheckBehaviorActivationRequest request;
     request.set_behavior(behavior);
     return unary<v1::CheckActivationResponse>(
-        [&](auto* context, auto* r) { return stub->CheckBehaviorActivation(context, request, r); });
+        c,
+        [&](auto* context, auto* r) { return stub->CheckBehaviorActivation(context, request, r); },
+        [&](const v1::CheckActivationResponse& r) {
+          printListing(
+              c, r, [&](const auto& a, bool wide) { return activationTable(behavior, a, wide); });
+        });
   }
   if (command == "situation") {
     v1::CheckBehaviorSituationRequest request;
     request.set_behavior(behavior);
-    return unary<v1::CheckSituationResponse>(
-        [&](auto* context, auto* r) { return stub->CheckBehaviorSituation(context, request, r); });
+    return unary<v1::CheckSituationResponse>(c, [&](auto* context, auto* r) {
+      return stub->CheckBehaviorSituation(context, request, r);
+    });
   }
   if (command == "watch") {
     v1::WatchEventsRequest request;
@@ -499,6 +553,10 @@ int runCtl(const CtlOptions& options) {
   }
   if (absl::Status s = server::checkProcessTransport(); !s.ok()) {
     std::fprintf(stderr, "behaviorctl: %s\n", std::string(s.message()).c_str());
+    return 2;
+  }
+  if (auto format = parseOutputFormat(options.output, OutputFormat::kJson); !format.ok()) {
+    std::fprintf(stderr, "behaviorctl: %s\n", std::string(format.status().message()).c_str());
     return 2;
   }
   if (options.args[0] == "health") return runHealth(options);

@@ -4,7 +4,10 @@
 // behaviorlib.v1.BehaviorSystem service, --target) or of the coordinator
 // (behaviorlib.v1.Coordinator, --coordinator), which routes by robot and
 // behavior. main() parses the command line into CtlOptions and runs one.
-// Output is one JSON object per line on stdout; messages go to stderr.
+// The listing commands (list, systems, status, mission list, belief list)
+// print an aligned table on stdout, -o wide a wider one; the others, and
+// every command with -o json, print one JSON object per line (-o yaml:
+// YAML documents). Messages and errors go to stderr.
 
 #include <cstdint>
 #include <string>
@@ -43,6 +46,9 @@ struct CtlOptions {
   /// topics with this prefix.
   double speed = 1;
   std::string topic_prefix;
+  /// -o: table, wide, json or yaml (behaviorctl_output.h); empty: a table
+  /// for the listing commands, JSON for the others.
+  std::string output;
   /// The command and its arguments ("activate", "WAIT", "{...}").
   std::vector<std::string> args;
 };

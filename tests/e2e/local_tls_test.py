@@ -177,7 +177,7 @@ class LocalTlsTest(unittest.TestCase):
         # The systems registered over mTLS (as themselves) and are up.
         deadline = time.monotonic() + 30
         while True:
-            systems = self.ctl("--coordinator", coordinator, "systems", timeout=20)
+            systems = self.ctl("--coordinator", coordinator, "systems", "-o", "json", timeout=20)
             self.assertEqual(systems.returncode, 0, systems.stderr)
             if systems.stdout.count("SYSTEM_STATE_UP") >= 2 or time.monotonic() > deadline:
                 break

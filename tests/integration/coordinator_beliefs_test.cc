@@ -112,7 +112,7 @@ TEST_F(CoordinatorBeliefsTest, BehaviorctlListsEveryPage) {
   ASSERT_TRUE(write("other/b", "x").ok());
   std::string output;
   ASSERT_EQ(support::run(std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " +
-                             coordinator_->address() + " belief list many/",
+                             coordinator_->address() + " belief list many/ -o json",
                          &output),
             0)
       << output.substr(0, 1000);

@@ -3,6 +3,7 @@
 // free loopback ports, talking real gRPC. Systems register themselves with
 // --coordinator, or are listed in the coordinator's --systems file.
 
+#include <gmock/gmock.h>
 #include <gtest/gtest.h>
 #include <signal.h>
 #include <sys/wait.h>
@@ -19,6 +20,8 @@
 #include <thread>
 #include <vector>
 
+#include "absl/strings/match.h"
+#include "absl/strings/str_split.h"
 #include "behaviorlib/error_details.h"
 #include "coordinator_test_support.h"
 #include "support/run_command.h"
@@ -711,6 +714,8 @@ TEST_F(CoordinatorTest, ConfiguredSystemsAreContactedAndContactedAgainWhenTheyCo
 }
 
 using support::run;
+using ::testing::HasSubstr;
+using ::testing::MatchesRegex;
 
 TEST_F(CoordinatorTest, ABadSystemsFileStopsTheCoordinatorWithItsLine) {
   char path[] = "/tmp/coordinator-bad-XXXXXX";
@@ -736,13 +741,58 @@ TEST_F(CoordinatorTest, BehaviorctlListsActivatesAndWatchesThroughTheCoordinator
   const std::string ctl =
       std::string(kBehaviorctlBinary) + " --coordinator " + coordinator_->address();
   std::string output;
+  // The listings print aligned tables, as kubectl does: a header, then a row
+  // per item, each column starting where its header does.
   ASSERT_EQ(run(ctl + " list --robot robot-a", &output), 0) << output;
+  {
+    const std::vector<std::string> lines = absl::StrSplit(output, '\n', absl::SkipEmpty());
+    ASSERT_GE(lines.size(), 2u) << output;
+    EXPECT_THAT(lines[0], MatchesRegex("ROBOT +SYSTEM +BEHAVIOR +STATE +ACTIVATION")) << output;
+    bool wait = false;
+    for (size_t i = 1; i < lines.size(); ++i) {
+      EXPECT_EQ(lines[i].find("robot-a"), 0u) << lines[i];
+      if (absl::StrContains(lines[i], " WAIT ")) {
+        wait = true;
+        EXPECT_EQ(lines[i].substr(lines[0].find("SYSTEM"), 25), "basic_quadrotor_behaviors");
+        EXPECT_EQ(lines[i].substr(lines[0].find("STATE"), 8), "INACTIVE") << output;
+      }
+    }
+    EXPECT_TRUE(wait) << output;
+  }
+  // -o wide adds the schemas; -o json and -o yaml print the reply itself.
+  output.clear();
+  ASSERT_EQ(run(ctl + " list --robot robot-a -o wide", &output), 0) << output;
+  EXPECT_THAT(output, HasSubstr("PARAMETERS"));
+  EXPECT_THAT(output, HasSubstr("duration_s"));
+  output.clear();
+  ASSERT_EQ(run(ctl + " list --robot robot-a -o json", &output), 0) << output;
   EXPECT_NE(output.find("\"robot_id\":\"robot-a\""), std::string::npos) << output;
   EXPECT_NE(output.find("\"name\":\"WAIT\""), std::string::npos) << output;
+  output.clear();
+  ASSERT_EQ(run(ctl + " list --robot robot-a --output=yaml", &output), 0) << output;
+  EXPECT_THAT(output, HasSubstr("robot_id: robot-a"));
+  output.clear();
+  EXPECT_EQ(run(ctl + " list -o xml", &output), 2) << output;
+  EXPECT_THAT(output, HasSubstr("table, wide, json, yaml"));
 
   output.clear();
   ASSERT_EQ(run(ctl + " systems", &output), 0) << output;
-  EXPECT_NE(output.find("SYSTEM_STATE_UP"), std::string::npos) << output;
+  EXPECT_THAT(
+      output,
+      MatchesRegex(
+          "ROBOT +SYSTEM +STATE +ADDRESS +BEHAVIORS +AGE\n"
+          "robot-a +basic_quadrotor_behaviors +UP +127\\.0\\.0\\.1:[0-9]+ +[0-9]+ +[0-9]+s\n"))
+      << output;
+  output.clear();
+  ASSERT_EQ(run(ctl + " systems -o json", &output), 0) << output;
+  EXPECT_THAT(output, HasSubstr("SYSTEM_STATE_UP"));
+
+  // An error says the reason and the field.
+  output.clear();
+  EXPECT_EQ(run(ctl + " --robot robot-a activate WAIT '{\"duration_s\": -1}'", &output), 1)
+      << output;
+  EXPECT_THAT(output, HasSubstr("behaviorctl: INVALID_ARGUMENT: "));
+  EXPECT_THAT(output, HasSubstr("\n  field parameters.duration_s: "));
 
   output.clear();
   ASSERT_EQ(run(ctl + " --robot robot-a activate WAIT '{\"duration_s\": 0.05}'", &output), 0)

@@ -13,7 +13,6 @@
 #include "behaviorlib/server_kit/log_stream.h"
 #include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/reactor_order.h"
-#include "behaviorlib/server_kit/status.h"
 #include "behaviorlib/server_kit/transport_security.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/fleet_control.h"
@@ -351,7 +350,7 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
           for (const auto& b : d.behaviors()) {
             if (auto s = options_.fleet->catalog()->checkRegistration(b, request->system());
                 !s.ok()) {
-              reactor->Finish(server::toGrpc(s));
+              reactor->Finish(errors::toGrpc(s));
               return;
             }
           }
@@ -443,13 +442,13 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
     v1::ActivateFleetBehaviorResponse* response) {
   if (auto s = server::checkRobotScope(*context, request->robot_id(), "activate behaviors");
       !s.ok())
-    return finishNow(context, server::toGrpc(s));
+    return finishNow(context, errors::toGrpc(s));
   if (options_.fleet != nullptr) {
     return runBlocking(context, [this, request, response] {
       auto done = options_.fleet->activateBehavior({request->robot_id(), request->behavior(),
                                                     request->parameters(), request->request_id(),
                                                     request->dry_run(), request->skip_plan()});
-      if (!done.ok()) return server::toGrpc(done.status());
+      if (!done.ok()) return errors::toGrpc(done.status());
       response->set_robot_id(request->robot_id());
       response->set_system(done->system);
       *response->mutable_activation() = std::move(done->activation);
@@ -487,13 +486,13 @@ grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
     v1::DeactivateFleetBehaviorResponse* response) {
   if (auto s = server::checkRobotScope(*context, request->robot_id(), "deactivate behaviors");
       !s.ok())
-    return finishNow(context, server::toGrpc(s));
+    return finishNow(context, errors::toGrpc(s));
   if (options_.fleet != nullptr) {
     return runBlocking(context, [this, request, response] {
       std::string system;
       auto done = options_.fleet->deactivateBehavior(request->robot_id(), request->behavior(),
                                                      request->activation_id(), &system);
-      if (!done.ok()) return server::toGrpc(done.status());
+      if (!done.ok()) return errors::toGrpc(done.status());
       response->set_robot_id(request->robot_id());
       response->set_system(system);
       *response->mutable_result() = std::move(*done);
@@ -535,7 +534,7 @@ grpc::ServerUnaryReactor* CoordinatorService::PauseFleetBehavior(
     grpc::CallbackServerContext* context, const v1::PauseFleetBehaviorRequest* request,
     v1::PauseFleetBehaviorResponse* response) {
   if (auto s = server::checkRobotScope(*context, request->robot_id(), "pause behaviors"); !s.ok())
-    return finishNow(context, server::toGrpc(s));
+    return finishNow(context, errors::toGrpc(s));
   v1::PauseBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
   forwarded.set_activation_id(request->activation_id());
@@ -549,7 +548,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ResumeFleetBehavior(
     grpc::CallbackServerContext* context, const v1::ResumeFleetBehaviorRequest* request,
     v1::ResumeFleetBehaviorResponse* response) {
   if (auto s = server::checkRobotScope(*context, request->robot_id(), "resume behaviors"); !s.ok())
-    return finishNow(context, server::toGrpc(s));
+    return finishNow(context, errors::toGrpc(s));
   v1::ResumeBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
   forwarded.set_activation_id(request->activation_id());
@@ -563,7 +562,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ModifyFleetBehavior(
     grpc::CallbackServerContext* context, const v1::ModifyFleetBehaviorRequest* request,
     v1::ModifyFleetBehaviorResponse* response) {
   if (auto s = server::checkRobotScope(*context, request->robot_id(), "modify behaviors"); !s.ok())
-    return finishNow(context, server::toGrpc(s));
+    return finishNow(context, errors::toGrpc(s));
   v1::ModifyBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
   forwarded.set_activation_id(request->activation_id());

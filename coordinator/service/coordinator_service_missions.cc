@@ -14,7 +14,6 @@
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/reactor_order.h"
-#include "behaviorlib/server_kit/status.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/service/blocking_pool.h"
 #include "coordinator/service/coordinator_service.h"
@@ -173,7 +172,7 @@ class MissionStreamReactor final : public QueuedStream<v1::WatchMissionResponse>
     });
     if (!token.ok()) {
       absl::MutexLock lock(&core->mutex);
-      endLocked(server::toGrpc(token.status()));
+      endLocked(errors::toGrpc(token.status()));
       return;
     }
     token_ = *token;
@@ -295,8 +294,8 @@ grpc::Status CoordinatorService::missionScopeRefusal(const grpc::CallbackServerC
   const server::RobotScope scope = server::robotScopeOf(context);
   if (!scope.bound()) return grpc::Status::OK;
   auto status = options_.missions->get(mission_id);
-  if (!status.ok()) return server::toGrpc(status.status());
-  return server::toGrpc(scope.permits(status->robot_id(), what));
+  if (!status.ok()) return errors::toGrpc(status.status());
+  return errors::toGrpc(scope.permits(status->robot_id(), what));
 }
 
 grpc::ServerUnaryReactor* CoordinatorService::StartMission(grpc::CallbackServerContext* context,
@@ -305,11 +304,11 @@ grpc::ServerUnaryReactor* CoordinatorService::StartMission(grpc::CallbackServerC
   if (options_.missions == nullptr)
     return finishWith(context, notServed("missions", "missions", "no missions"));
   if (auto s = server::checkRobotScope(*context, request->robot_id(), "start missions"); !s.ok())
-    return finishWith(context, server::toGrpc(s));
+    return finishWith(context, errors::toGrpc(s));
   // Checking the file against the registry and starting are quick; the
   // mission then runs on its own thread.
   auto started = options_.missions->start(*request);
-  if (!started.ok()) return finishWith(context, server::toGrpc(started.status()));
+  if (!started.ok()) return finishWith(context, errors::toGrpc(started.status()));
   *response->mutable_status() = std::move(*started);
   return finishWith(context, grpc::Status::OK);
 }
@@ -320,7 +319,7 @@ grpc::ServerUnaryReactor* CoordinatorService::GetMission(grpc::CallbackServerCon
   if (options_.missions == nullptr)
     return finishWith(context, notServed("missions", "missions", "no missions"));
   auto status = options_.missions->get(request->mission_id());
-  if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
+  if (!status.ok()) return finishWith(context, errors::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
   return finishWith(context, grpc::Status::OK);
 }
@@ -358,7 +357,7 @@ grpc::ServerUnaryReactor* CoordinatorService::PauseMission(grpc::CallbackServerC
       !refused.ok())
     return finishWith(context, refused);
   auto status = options_.missions->pause(request->mission_id());
-  if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
+  if (!status.ok()) return finishWith(context, errors::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
   return finishWith(context, grpc::Status::OK);
 }
@@ -372,7 +371,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ResumeMission(
       !refused.ok())
     return finishWith(context, refused);
   auto status = options_.missions->resume(request->mission_id());
-  if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
+  if (!status.ok()) return finishWith(context, errors::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
   return finishWith(context, grpc::Status::OK);
 }
@@ -386,7 +385,7 @@ grpc::ServerUnaryReactor* CoordinatorService::AbortMission(grpc::CallbackServerC
       !refused.ok())
     return finishWith(context, refused);
   auto status = options_.missions->abort(request->mission_id(), request->reason());
-  if (!status.ok()) return finishWith(context, server::toGrpc(status.status()));
+  if (!status.ok()) return finishWith(context, errors::toGrpc(status.status()));
   *response->mutable_status() = std::move(*status);
   return finishWith(context, grpc::Status::OK);
 }
@@ -400,7 +399,7 @@ grpc::ServerUnaryReactor* CoordinatorService::EmergencyLand(grpc::CallbackServer
   }
   return runBlocking(context, [this, request, response] {
     auto done = options_.safety->emergencyLand(request->robot_id(), request->reason());
-    if (!done.ok()) return server::toGrpc(done.status());
+    if (!done.ok()) return errors::toGrpc(done.status());
     response->set_message(*done);
     return grpc::Status::OK;
   });
@@ -415,7 +414,7 @@ grpc::ServerUnaryReactor* CoordinatorService::Kill(grpc::CallbackServerContext* 
   }
   return runBlocking(context, [this, request, response] {
     auto done = options_.safety->kill(request->robot_id(), request->confirm(), request->reason());
-    if (!done.ok()) return server::toGrpc(done.status());
+    if (!done.ok()) return errors::toGrpc(done.status());
     response->set_message(*done);
     return grpc::Status::OK;
   });

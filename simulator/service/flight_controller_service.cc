@@ -6,14 +6,12 @@
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/barrier_metadata.h"
 #include "behaviorlib/server_kit/reactor_order.h"
-#include "behaviorlib/server_kit/status.h"
 #include "simulator/service/latest_writer.h"
 #include "simulator/service/messages.h"
 
 namespace behaviorlib::sim {
 namespace {
 
-using server::toGrpc;
 
 // Runs a platform call and finishes the reactor with its outcome. `fill`
 // copies a successful value into the response.
@@ -22,14 +20,14 @@ grpc::ServerUnaryReactor* platformCall(grpc::CallbackServerContext* context, Sim
                                        const std::string& robot_id, F&& call, Fill&& fill) {
   auto* reactor = context->DefaultReactor();
   if (auto s = server::checkRobotScope(*context, robot_id, "command the vehicle"); !s.ok()) {
-    reactor->Finish(toGrpc(s));
+    reactor->Finish(errors::toGrpc(s));
     return reactor;
   }
   auto outer = simulation.withPlatform(robot_id, std::forward<F>(call));
   if (!outer.ok()) {
-    reactor->Finish(toGrpc(outer.status()));
+    reactor->Finish(errors::toGrpc(outer.status()));
   } else if (!outer->ok()) {
-    reactor->Finish(toGrpc(outer->status()));
+    reactor->Finish(errors::toGrpc(outer->status()));
   } else {
     fill(**outer);
     reactor->Finish(grpc::Status::OK);
@@ -73,7 +71,7 @@ class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::
     auto applied = service_->applySetpoint(request_, scope_);
     if (barrier_ != nullptr) barrier_->read(key_);
     if (!applied.ok()) {
-      Finish(toGrpc(applied.status()));
+      Finish(errors::toGrpc(applied.status()));
       return;
     }
     response_->set_accepted_count(response_->accepted_count() + 1);
@@ -207,7 +205,7 @@ grpc::ServerUnaryReactor* FlightControllerService::SendSetpoint(
   auto* reactor = context->DefaultReactor();
   auto applied = applySetpoint(*request, server::robotScopeOf(*context));
   if (applied.ok()) response->set_state(*applied);
-  reactor->Finish(toGrpc(applied.status()));
+  reactor->Finish(errors::toGrpc(applied.status()));
   return reactor;
 }
 
@@ -241,7 +239,7 @@ grpc::ServerWriteReactor<v1::WatchFlightStateResponse>* FlightControllerService:
         return grpc::Status::OK;
       });
   if (!registered.ok()) {
-    watcher->end(toGrpc(registered.status()));
+    watcher->end(errors::toGrpc(registered.status()));
   } else if (!registered->ok()) {
     watcher->end(*registered);
   }

@@ -6,7 +6,6 @@
 
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
-#include "behaviorlib/server_kit/status.h"
 #include "simulator/service/messages.h"
 #include "simulator/service/vehicle_models.h"
 
@@ -108,7 +107,7 @@ grpc::ServerUnaryReactor* SimulatorService::Reset(grpc::CallbackServerContext* c
           loadWorldInto(worlds_, world, seed,
                         same ? WorldSource::kConfiguration : WorldSource::kRequest, simulation_);
       !s.ok()) {
-    return finish(context, server::toGrpc(s));
+    return finish(context, errors::toGrpc(s));
   }
   for (const auto& id : simulation_.robotIds()) response->add_robot_ids(id);
   *response->mutable_time() = TimeUtil::NanosecondsToTimestamp(simulation_.now().count());
@@ -190,7 +189,7 @@ grpc::ServerUnaryReactor* SimulatorService::InjectFailure(grpc::CallbackServerCo
   }
   // Under the worlds' mutex: never half-way through a Reset.
   std::lock_guard lock(worlds_.mutex);
-  return finish(context, server::toGrpc(faults_->inject(*request)));
+  return finish(context, errors::toGrpc(faults_->inject(*request)));
 }
 
 grpc::ServerWriteReactor<v1::WatchStateResponse>* SimulatorService::WatchState(

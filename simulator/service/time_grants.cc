@@ -10,7 +10,6 @@
 
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
-#include "behaviorlib/server_kit/status.h"
 
 namespace behaviorlib::sim {
 namespace {
@@ -100,7 +99,7 @@ class TimeGrants::Follower final
       // reports gate that robot's broker's grants).
       checked_ = true;
       if (absl::Status s = scope_.permits(request_.robot_id(), "follow the time"); !s.ok()) {
-        finish(server::toGrpc(s));
+        finish(errors::toGrpc(s));
         return;
       }
     }

@@ -9,7 +9,6 @@
 #include "behaviorlib/parameters.h"
 #include "behaviorlib/server_kit/log_stream.h"
 #include "behaviorlib/server_kit/pagination.h"
-#include "behaviorlib/server_kit/status.h"
 #include "behaviorlib/v1/options.pb.h"
 
 namespace behaviorlib::server {
@@ -104,7 +103,7 @@ std::unique_ptr<google::protobuf::Message> BehaviorSystemService::fromStruct(
       &behavior.parametersType());
   std::unique_ptr<google::protobuf::Message> message(prototype->New());
   if (absl::Status s = params::fromStruct(in, message.get()); !s.ok()) {
-    *status = toGrpc(s);
+    *status = errors::toGrpc(s);
     return nullptr;
   }
   return message;

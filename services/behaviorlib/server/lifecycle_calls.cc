@@ -2,7 +2,6 @@
 
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/access_policy.h"
-#include "behaviorlib/server_kit/status.h"
 
 namespace behaviorlib::server {
 namespace {
@@ -16,7 +15,7 @@ Done<T> finishInto(grpc::ServerUnaryReactor* reactor, T* response) {
       *response = std::move(*result);
       reactor->Finish(grpc::Status::OK);
     } else {
-      reactor->Finish(toGrpc(result.status()));
+      reactor->Finish(errors::toGrpc(result.status()));
     }
   };
 }
@@ -31,7 +30,7 @@ grpc::Status refusal(const grpc::CallbackServerContext& context, const AcceptGat
                      std::string_view what) {
   if (!gate.accepting()) return shuttingDown();
   if (gate.robot().empty()) return grpc::Status::OK;
-  return toGrpc(checkRobotScope(context, gate.robot(), what));
+  return errors::toGrpc(checkRobotScope(context, gate.robot(), what));
 }
 
 }  // namespace

@@ -9,6 +9,8 @@
 #include <thread>
 
 #include "absl/status/status.h"
+#include "absl/strings/str_join.h"
+#include "behaviorlib/errors/status_details.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "behaviorlib/v1/platform.grpc.pb.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
@@ -93,9 +95,48 @@ struct SimulatorProcess::Parts {
   }
 };
 
+absl::Status SimulatorOptions::validate() const {
+  absl::Status status;
+  std::vector<std::string> problems;
+  const auto refuse = [&](const char* field, const std::string& problem) {
+    if (status.ok()) status = absl::InvalidArgumentError("");
+    status = errors::withFieldViolation(status, field, problem);
+    problems.push_back(problem);
+  };
+  if (!deterministic && !(time_scale >= 0.1 && time_scale <= 1000.0)) {
+    refuse("time_scale", "--time-scale must be within [0.1, 1000] or 'max'");
+  }
+  const double quantum_ms = std::chrono::duration<double, std::milli>(quantum).count();
+  if (!(quantum_ms >= 1.0 && quantum_ms <= 100.0)) {
+    refuse("quantum", "--quantum-ms must be within [1, 100]");
+  }
+  if (min_followers < 0 || min_followers > 1000) {
+    refuse("min_followers", "--min-followers must be within [0, 1000]");
+  }
+  const double timeout_s = std::chrono::duration<double>(follower_timeout).count();
+  if (!(timeout_s >= 0.1 && timeout_s <= 600.0)) {
+    refuse("follower_timeout", "--follower-timeout-s must be within [0.1, 600]");
+  }
+  if (!(idle_time_scale == 0.0 || (idle_time_scale >= 1.0 && idle_time_scale <= 1000.0))) {
+    refuse("idle_time_scale", "--idle-time-scale must be 0 or within [1, 1000]");
+  }
+  if (seed == 0) refuse("seed", "--seed must be a positive integer");
+  if (vehicles.empty()) refuse("vehicles", "--vehicles names no vehicle");
+  if (!vehicle_channels.empty() && channel.empty()) {
+    refuse("vehicle_channels", "--vehicle-channels needs --channel");
+  }
+  for (const auto& [robot, address] : vehicle_channels) {
+    if (robot.empty() || address.empty()) {
+      refuse("vehicle_channels", "--vehicle-channels: each entry is ROBOT=HOST:PORT");
+    }
+  }
+  if (status.ok()) return status;
+  return errors::rewrap(status, absl::StrJoin(problems, "; "));
+}
+
 absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
     SimulatorOptions options) {
-  if (options.vehicles.empty()) return absl::InvalidArgumentError("--vehicles names no vehicle");
+  if (absl::Status valid = options.validate(); !valid.ok()) return valid;
   auto p = std::make_unique<Parts>(std::move(options));
   const SimulatorOptions& o = p->options;
   p->time.time_scale.store(o.time_scale);

@@ -13,6 +13,7 @@
 #include <string>
 #include <vector>
 
+#include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "simulator/sensors/sensor_config.h"
 
@@ -60,6 +61,12 @@ struct SimulatorOptions {
   SensorConfig sensor_config;
   /// Seed of the sensor noise (positive).
   uint64_t seed = 1;
+
+  /// Every setting within its range, each problem named by its flag:
+  /// INVALID_ARGUMENT with a google.rpc.BadRequest field violation per
+  /// setting (time_scale, quantum, min_followers, follower_timeout,
+  /// idle_time_scale, seed, vehicles, vehicle_channels). start() checks it.
+  absl::Status validate() const;
 };
 
 class SimulatorProcess {

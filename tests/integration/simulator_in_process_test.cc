@@ -15,6 +15,7 @@
 
 #include "behaviorlib/channel/broker.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/errors/status_details.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "simulator/service/simulator_process.h"
@@ -76,6 +77,34 @@ TEST(SimulatorInProcessTest, NoVehicleIsRefused) {
   auto simulator = SimulatorProcess::start(std::move(options));
   ASSERT_FALSE(simulator.ok());
   EXPECT_EQ(simulator.status().code(), absl::StatusCode::kInvalidArgument);
+}
+
+TEST(SimulatorInProcessTest, EverySettingOutOfRangeIsRefusedNamingItsFlag) {
+  SimulatorOptions options = lockStep();
+  options.time_scale = 5000;
+  options.quantum = std::chrono::milliseconds(0);
+  options.min_followers = -1;
+  options.follower_timeout = std::chrono::hours(1);
+  options.idle_time_scale = 0.5;
+  options.seed = 0;
+  options.vehicle_channels = {{"drone1", "127.0.0.1:2"}};  // without --channel
+  const absl::Status status = options.validate();
+  ASSERT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
+  for (const char* flag :
+       {"--time-scale", "--quantum-ms", "--min-followers", "--follower-timeout-s",
+        "--idle-time-scale", "--seed", "--vehicle-channels"}) {
+    EXPECT_THAT(std::string(status.message()), HasSubstr(flag));
+  }
+  const auto bad = errors::badRequest(status);
+  ASSERT_TRUE(bad.has_value());
+  std::vector<std::string> fields;
+  for (const auto& violation : bad->field_violations()) fields.push_back(violation.field());
+  EXPECT_THAT(fields, ElementsAre("time_scale", "quantum", "min_followers", "follower_timeout",
+                                  "idle_time_scale", "seed", "vehicle_channels"));
+  auto simulator = SimulatorProcess::start(std::move(options));
+  ASSERT_FALSE(simulator.ok());
+  EXPECT_EQ(simulator.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_TRUE(lockStep().validate().ok());
 }
 
 // A broker built in-process on a free loopback port.

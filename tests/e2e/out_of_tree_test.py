@@ -124,9 +124,11 @@ class OutOfTreeTest(unittest.TestCase):
         files = [(label[len("file: "):], text) for _, label, text in blocks if label != "run"]
         self.assertGreaterEqual(len(files), 4)
         self.assertGreaterEqual(len(self.commands), 2)
+        # Each block is a whole file of the example, and each file is shown once.
+        self.assertEqual(len({path for path, _ in files}), len(files), files)
         for path, text in files:
             with open(os.path.join(EXAMPLE, path), encoding="utf-8") as f:
-                self.assertIn(text.strip(), f.read(), path)
+                self.assertEqual(text.strip(), f.read().strip(), path)
 
     def test_the_generated_typed_services_are_served(self):
         services = rc.list_services(self.greeter_address)

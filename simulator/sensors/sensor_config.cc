@@ -1,6 +1,6 @@
 // loadSensorConfig()/parseSensorConfig(): the YAML sensor-configuration
 // reader. Every problem is reported as "<file>:<line>: <section>: <problem>"
-// using yaml-cpp's marks, as world files are (simulator/world/world_file.cc).
+// using yaml-cpp's marks, as world files are (formats/world/world_file.cc).
 
 #include "simulator/sensors/sensor_config.h"
 

@@ -445,7 +445,6 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
       parameters_.reset();
       ++generation_;
     }
-    callOffBackgroundJobs();
     reportActive(false);
     if (context_.observer) context_.observer->onBlocked(false);
     failure_message_ = "stopped by the watchdog";
@@ -594,13 +593,7 @@ void BehaviorExecutionManager::finish(v1::TerminationCause cause, const std::str
     parameters_.reset();
     ++generation_;
   }
-  callOffBackgroundJobs();
   reportActive(false);
-}
-
-void BehaviorExecutionManager::callOffBackgroundJobs() {
-  activation_jobs_.request_stop();
-  activation_jobs_ = std::stop_source();
 }
 
 void BehaviorExecutionManager::recordFinishedLocked(v1::TerminationCause cause,
@@ -778,7 +771,6 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
       activation_id_.clear();
       ++generation_;
     }
-    callOffBackgroundJobs();
     done(absl::Status(status.code(),
                       name_ + " refused activation: " + std::string(status.message())));
     return;

@@ -46,7 +46,6 @@
 #include <memory>
 #include <optional>
 #include <stdexcept>
-#include <stop_token>
 #include <string>
 #include <thread>
 #include <utility>
@@ -350,15 +349,6 @@ class BehaviorExecutionManager {
   /// PROCESS_FAILURE. stop() waits for the running job. Worker thread.
   template <class R>
   void inBackground(std::function<R()> job, std::function<void(const R&)> done);
-  /// inBackground() for a job that may be called off: it gets a
-  /// std::stop_token and looks at it where stopping is worth it (before a
-  /// long step, before writing an output). The returned std::stop_source
-  /// calls it off (a newer job superseding it, say); the end of the
-  /// activation calls off every job it started. A called-off job's result
-  /// is dropped: `done` does not see it. Worker thread.
-  template <class R>
-  std::stop_source inBackground(std::function<R(std::stop_token)> job,
-                                std::function<void(const R&)> done);
   const std::string& robotId() const { return context_.robot_id; }
   /// Overrides maximum_execution_time for the current activation (e.g. from
   /// its parameters, in onActivate()); zero means none. `reason`, when not
@@ -465,10 +455,6 @@ class BehaviorExecutionManager {
   std::vector<v1::SituationReason> reported_codes_;
   uint64_t activation_counter_ = 0;
   std::atomic<bool> wants_ticks_{false};
-  // Calls off the cancellable background jobs of the activation when it
-  // ends (worker thread only).
-  std::stop_source activation_jobs_;
-  void callOffBackgroundJobs();
 
   // Failure reported from user code (exception) during the current call, and
   // whether the watchdog had stopped it (worker thread only).
@@ -571,22 +557,6 @@ void BehaviorExecutionManager::inBackground(std::function<R()> job,
     }
     deliver(*result);
   });
-}
-
-template <class R>
-std::stop_source BehaviorExecutionManager::inBackground(std::function<R(std::stop_token)> job,
-                                                        std::function<void(const R&)> done) {
-  std::stop_source stop;
-  // The job's own source, stopped too when the activation's is: the link
-  // lives as long as the job (it is part of the job's closure).
-  auto call_off = [stop]() mutable { stop.request_stop(); };
-  auto link = std::make_shared<std::stop_callback<decltype(call_off)>>(activation_jobs_.get_token(),
-                                                                       std::move(call_off));
-  inBackground<R>([job = std::move(job), token = stop.get_token(), link] { return job(token); },
-                  [done = std::move(done), token = stop.get_token()](const R& result) {
-                    if (!token.stop_requested()) done(result);
-                  });
-  return stop;
 }
 
 /// The name of the behavior that `parameters` declares with the

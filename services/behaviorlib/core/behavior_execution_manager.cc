@@ -105,14 +105,14 @@ std::chrono::nanoseconds threadCpuTime() {
 }  // namespace
 
 bool BehaviorExecutionManager::caughtUp(TimePoint t) const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (gated_) return true;  // the command waits for time to be granted
   if (!commands_.empty() || commanding_ || ticking_) return false;
   return state_ != State::kActive || next_tick_ > t;
 }
 
 bool BehaviorExecutionManager::idle() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return commands_.empty() && !gated_ && !commanding_ && !ticking_ && state_ != State::kActive;
 }
 
@@ -128,8 +128,8 @@ class BehaviorExecutionManager::WakeOnClock final : public ClockListener {
   explicit WakeOnClock(BehaviorExecutionManager* owner) : owner_(owner) {}
   void onClockAdvanced() override {
     if (!owner_->wants_ticks_.load(std::memory_order_acquire)) return;
-    absl::MutexLock lock(&owner_->mutex_);
-    ++owner_->wakes_;
+    { std::lock_guard lock(owner_->mutex_); }
+    owner_->cv_.notify_one();
   }
 
  private:
@@ -145,12 +145,14 @@ class BehaviorExecutionManager::Background {
     absl::MutexLock lock(&mutex_);
     if (stopping_) return;
     tasks_.push_back(std::move(task));
+    wake_.Signal();
   }
   // Waits for the running task; drops the queued ones.
   void stop() {
     {
       absl::MutexLock lock(&mutex_);
       stopping_ = true;
+      wake_.Signal();
     }
     if (thread_.joinable()) thread_.join();
   }
@@ -161,7 +163,7 @@ class BehaviorExecutionManager::Background {
       std::function<void()> task;
       {
         absl::MutexLock lock(&mutex_);
-        mutex_.Await(absl::Condition(this, &Background::hasWorkLocked));
+        while (!stopping_ && tasks_.empty()) wake_.Wait(&mutex_);
         if (stopping_) return;
         task = std::move(tasks_.front());
         tasks_.pop_front();
@@ -170,11 +172,8 @@ class BehaviorExecutionManager::Background {
     }
   }
 
-  bool hasWorkLocked() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-    return stopping_ || !tasks_.empty();
-  }
-
   absl::Mutex mutex_;
+  absl::CondVar wake_;
   std::deque<std::function<void()>> tasks_ ABSL_GUARDED_BY(mutex_);
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   std::thread thread_;
@@ -183,7 +182,7 @@ class BehaviorExecutionManager::Background {
 void BehaviorExecutionManager::runInBackground(std::function<void()> task) {
   Background* background;
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     if (!background_) background_ = std::make_unique<Background>();
     background = background_.get();
   }
@@ -260,20 +259,20 @@ void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
       [this] {
         State state;
         {
-          absl::ReleasableMutexLock lock(&mutex_);
+          std::unique_lock lock(mutex_);
           state = state_;
         }
         if (state == State::kActive || state == State::kPaused) {
           finish(v1::TERMINATION_CAUSE_INTERRUPTED, "process shutting down");
         }
-        absl::MutexLock lock(&mutex_);
+        std::lock_guard lock(mutex_);
         stopping_ = true;
       },
       nullptr);
   bool exited;
   {
-    absl::MutexLock lock(&mutex_);
-    exited = mutex_.AwaitWithTimeout(absl::Condition(&exited_), absl::FromChrono(timeout));
+    std::unique_lock lock(mutex_);
+    exited = exited_cv_.wait_for(lock, timeout, [this] { return exited_; });
   }
   if (exited) {
     worker_.join();
@@ -285,7 +284,7 @@ void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
   // behavior is destroyed.
   Background* background;
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     background = background_.get();
   }
   if (background) background->stop();
@@ -294,9 +293,10 @@ void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
 
 void BehaviorExecutionManager::post(std::function<void()> command, std::function<void()> cancel) {
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     if (!exited_) {
       commands_.push_back({std::move(command), std::move(cancel)});
+      cv_.notify_one();
       return;
     }
   }
@@ -304,13 +304,14 @@ void BehaviorExecutionManager::post(std::function<void()> command, std::function
 }
 
 void BehaviorExecutionManager::schedule(std::shared_ptr<detail::Inbox> inbox) {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (exited_ || stopping_) return;
   ready_.push_back(std::move(inbox));
+  cv_.notify_one();
 }
 
 uint64_t BehaviorExecutionManager::inboxGeneration() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return activation_id_.empty() ? 0 : generation_;
 }
 
@@ -318,7 +319,7 @@ void BehaviorExecutionManager::deliver(const std::shared_ptr<detail::Inbox>& inb
   bool stale;
   bool active;
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     stale = inbox->generation() != 0 && inbox->generation() != generation_;
     active = state_ == State::kActive || state_ == State::kPaused;
   }
@@ -342,7 +343,7 @@ std::function<void()> BehaviorExecutionManager::cancelWith(const Done<T>& done,
 }
 
 void BehaviorExecutionManager::run() {
-  mutex_.Lock();
+  std::unique_lock lock(mutex_);
   while (true) {
     if (stopping_) break;
     if (!commands_.empty()) {
@@ -350,35 +351,29 @@ void BehaviorExecutionManager::run() {
       commands_.pop_front();
       if (context_.before_command) {
         gated_ = true;
-        mutex_.Unlock();
+        lock.unlock();
         context_.before_command();
-        mutex_.Lock();
+        lock.lock();
         gated_ = false;
       }
       commanding_ = true;
-      mutex_.Unlock();
+      lock.unlock();
       command.run();
-      mutex_.Lock();
+      lock.lock();
       commanding_ = false;
       continue;
     }
     if (!ready_.empty()) {
       auto inbox = std::move(ready_.front());
       ready_.pop_front();
-      mutex_.Unlock();
+      lock.unlock();
       deliver(inbox);
-      mutex_.Lock();
+      lock.lock();
       continue;
     }
-    // Until there is work for the worker (a command, an inbox, the stop) or
-    // the clock wakes it.
-    const uint64_t seen = wakes_;
-    const auto woken = [this, seen]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-      return stopping_ || !commands_.empty() || !ready_.empty() || wakes_ != seen;
-    };
     if (state_ == State::kActive) {
       if (!context_.clock->valid()) {
-        mutex_.AwaitWithTimeout(absl::Condition(&woken), absl::Milliseconds(50));
+        cv_.wait_for(lock, std::chrono::milliseconds(50));
         continue;
       }
       const TimePoint now = context_.clock->now();
@@ -387,23 +382,23 @@ void BehaviorExecutionManager::run() {
         // Never burst to catch up: a late tick moves the schedule.
         if (next_tick_ <= now) next_tick_ = now + period_;
         ticking_ = true;
-        mutex_.Unlock();
+        lock.unlock();
         execute();
-        mutex_.Lock();
+        lock.lock();
         ticking_ = false;
         continue;
       }
-      mutex_.AwaitWithTimeout(absl::Condition(&woken),
-                              absl::FromChrono(context_.clock->wallWaitFor(next_tick_ - now)));
+      cv_.wait_for(lock, context_.clock->wallWaitFor(next_tick_ - now));
     } else {
-      mutex_.Await(absl::Condition(&woken));  // inactive: no CPU until a command arrives
+      cv_.wait(lock);  // inactive: no CPU until a command arrives
     }
   }
   exited_ = true;
   ready_.clear();
   std::deque<Command> left = std::move(commands_);
   commands_.clear();
-  mutex_.Unlock();
+  exited_cv_.notify_all();
+  lock.unlock();
   for (auto& command : left) {
     if (command.cancel) command.cancel();
   }
@@ -439,7 +434,7 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
       }
     }
     {
-      absl::MutexLock lock(&mutex_);
+      std::lock_guard lock(mutex_);
       state_ = State::kInactive;
       activation_id_.clear();
       parameters_.reset();
@@ -470,7 +465,7 @@ void BehaviorExecutionManager::watchdogCheck(std::chrono::steady_clock::time_poi
   const auto limit =
       std::chrono::duration_cast<std::chrono::nanoseconds>(options_.watchdog_timeout);
   if (steadyNs(now) - started < limit.count()) return;
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (state_ != State::kActive && state_ != State::kPaused) return;
   int64_t expected = started;
   if (!call_started_ns_.compare_exchange_strong(expected, kWatchdogFired,
@@ -495,7 +490,7 @@ Duration BehaviorExecutionManager::activeTime() const {
   // Locked: the watchdog thread writes state_ while user code, still
   // running past its limit, may ask this.
   const TimePoint now = context_.clock->now();
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return activeTimeLocked(now);
 }
 
@@ -554,7 +549,7 @@ void BehaviorExecutionManager::execute() {
   if (std::abs(situation.performance_ratio - reported_performance_) >=
           options_.situation_report_threshold ||
       situation.reasons != reported_reasons_ || situation.codes != reported_codes_) {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     reported_performance_ = situation.performance_ratio;
     reported_reasons_ = situation.reasons;
     reported_codes_ = situation.codes;
@@ -585,7 +580,7 @@ void BehaviorExecutionManager::finish(v1::TerminationCause cause, const std::str
     full_message += (full_message.empty() ? "" : "; ") + failure_message_;
   }
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     if (state_ != State::kActive && state_ != State::kPaused) return;
     recordFinishedLocked(cause, full_message);
     state_ = State::kInactive;
@@ -652,7 +647,7 @@ absl::Status BehaviorExecutionManager::checkActivationIdLocked(const std::string
 // commands; answer at once instead of queueing behind it.
 bool BehaviorExecutionManager::refuseWhileBlocked(const std::function<void(absl::Status)>& reply) {
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     if (state_ != State::kBlocked) return false;
   }
   reply(errors::withReason(
@@ -690,7 +685,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
                                           const Done<v1::ActivateResponse>& done) {
   // Answered after the lock is released: completions never run under it.
   auto early = [&]() -> std::optional<absl::StatusOr<v1::ActivateResponse>> {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     const auto wall_now = std::chrono::steady_clock::now();
     while (!request_id_order_.empty() &&
            wall_now - request_id_order_.front().first > kRequestIdWindow) {
@@ -749,7 +744,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
   }
   const TimePoint now = context_.clock->now();
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     parameters_ = std::move(parameters);
     activation_id_ = name_ + "-" + context_.events->incarnation().substr(0, 8) + "-" +
                      std::to_string(++activation_counter_);
@@ -766,7 +761,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
   }
   if (!status.ok()) {
     {
-      absl::MutexLock lock(&mutex_);
+      std::lock_guard lock(mutex_);
       parameters_.reset();
       activation_id_.clear();
       ++generation_;
@@ -777,7 +772,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
   }
   v1::ActivateResponse response;
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     state_ = State::kActive;
     next_tick_ = now;
     first_execute_pending_ = true;
@@ -806,7 +801,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
 void BehaviorExecutionManager::deactivate(std::string activation_id,
                                           Done<v1::DeactivateResponse> done) {
   {
-    absl::ReleasableMutexLock lock(&mutex_);
+    std::unique_lock lock(mutex_);
     if (state_ == State::kBlocked) {
       for (const auto& f : finished_) {
         if (!activation_id.empty() && f.activation_id == activation_id) {
@@ -814,12 +809,12 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
           response.set_activation_id(activation_id);
           response.set_cause(f.cause);
           response.set_already_finished(true);
-          lock.Release();
+          lock.unlock();
           done(std::move(response));
           return;
         }
       }
-      lock.Release();
+      lock.unlock();
       refuseWhileBlocked([&](absl::Status s) { done(s); });
       return;
     }
@@ -828,7 +823,7 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          absl::ReleasableMutexLock lock(&mutex_);
+          std::unique_lock lock(mutex_);
           const bool running = state_ == State::kActive || state_ == State::kPaused;
           if (!running && !activation_id.empty()) {
             for (const auto& f : finished_) {
@@ -837,14 +832,14 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
                 response.set_activation_id(activation_id);
                 response.set_cause(f.cause);
                 response.set_already_finished(true);
-                lock.Release();
+                lock.unlock();
                 done(std::move(response));
                 return;
               }
             }
           }
           if (absl::Status s = checkActivationIdLocked(activation_id, "deactivate"); !s.ok()) {
-            lock.Release();
+            lock.unlock();
             done(s);
             return;
           }
@@ -865,14 +860,14 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          absl::ReleasableMutexLock lock(&mutex_);
+          std::unique_lock lock(mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "pause"); !s.ok()) {
-            lock.Release();
+            lock.unlock();
             done(s);
             return;
           }
           if (state_ == State::kPaused) {
-            lock.Release();
+            lock.unlock();
             done(errors::withReason(absl::FailedPreconditionError(name_ + " is already paused"),
                                     v1::BEHAVIOR_ALREADY_PAUSED, {{"behavior", name_}}));
             return;
@@ -887,7 +882,7 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
                 "onPause", [&] { onPause(); }, [&](absl::Status s) { done(s); }))
           return;
         {
-          absl::ReleasableMutexLock lock(&mutex_);
+          std::unique_lock lock(mutex_);
           v1::BehaviorEvent event = newEventLocked();
           event.mutable_paused();
           context_.events->append(std::move(event));
@@ -905,14 +900,14 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          absl::ReleasableMutexLock lock(&mutex_);
+          std::unique_lock lock(mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "resume"); !s.ok()) {
-            lock.Release();
+            lock.unlock();
             done(s);
             return;
           }
           if (state_ != State::kPaused) {
-            lock.Release();
+            lock.unlock();
             done(errors::withReason(absl::FailedPreconditionError(name_ + " is not paused"),
                                     v1::BEHAVIOR_NOT_PAUSED, {{"behavior", name_}}));
             return;
@@ -923,7 +918,7 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
                 "onResume", [&] { onResume(); }, [&](absl::Status s) { done(s); }))
           return;
         {
-          absl::ReleasableMutexLock lock(&mutex_);
+          std::unique_lock lock(mutex_);
           const TimePoint now = context_.clock->now();
           state_ = State::kActive;
           active_since_ = now;
@@ -957,9 +952,9 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         std::unique_ptr<google::protobuf::Message> merged;
         std::string current;
         {
-          absl::ReleasableMutexLock lock(&mutex_);
+          std::unique_lock lock(mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "modify"); !s.ok()) {
-            lock.Release();
+            lock.unlock();
             done(s);
             return;
           }
@@ -985,7 +980,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         v1::ModifyResponse response;
         {
-          absl::ReleasableMutexLock lock(&mutex_);
+          std::unique_lock lock(mutex_);
           parameters_ = std::move(merged);
           response.set_activation_id(current);
           *response.mutable_parameters() = params::toStruct(*parameters_);
@@ -1026,7 +1021,7 @@ void BehaviorExecutionManager::checkSituationNow(Done<v1::CheckSituationResponse
 }
 
 v1::BehaviorState BehaviorExecutionManager::state() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   switch (state_) {
     case State::kInactive:
       return v1::BEHAVIOR_STATE_INACTIVE;
@@ -1043,7 +1038,7 @@ v1::BehaviorState BehaviorExecutionManager::state() const {
 v1::CheckActivationResponse BehaviorExecutionManager::checkActivation() const {
   v1::CheckActivationResponse response;
   response.set_state(state());
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   const bool running = state_ == State::kActive || state_ == State::kPaused;
   response.set_active(running);
   if (running) {

@@ -21,11 +21,10 @@ bool runningOnThisThread(const void* slot) {
 void WakeSlot::fire() {
   if (runningOnThisThread(this)) {
     // Re-entered from our own callback: the outer frame holds the mutex.
-    mutex_.AssertHeld();
     if (!cancelled_ && wake_) wake_();
     return;
   }
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (cancelled_ || !wake_) return;
   t_running_wakes.push_back(this);
   struct Pop {
@@ -36,11 +35,10 @@ void WakeSlot::fire() {
 
 void WakeSlot::cancel() {
   if (runningOnThisThread(this)) {
-    mutex_.AssertHeld();  // by the outer frame, on this thread
     cancelled_ = true;
     return;
   }
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   cancelled_ = true;
 }
 

@@ -13,41 +13,39 @@ FlightStateWatcher::FlightStateWatcher(const FlightControllerClient& client)
 
 FlightStateWatcher::~FlightStateWatcher() {
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     stopping_ = true;
     if (context_) context_->TryCancel();
   }
+  cv_.notify_all();
   thread_.join();
 }
 
 absl::StatusOr<v1::FlightStatus> FlightStateWatcher::latest() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (connected_ && latest_) return *latest_;
   return error_;
 }
 
 absl::StatusOr<std::shared_ptr<const v1::FlightStatus>> FlightStateWatcher::latestShared() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (connected_ && latest_) return latest_;
   return error_;
 }
 
 bool FlightStateWatcher::connected() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return connected_ && latest_ != nullptr;
 }
 
 uint64_t FlightStateWatcher::receivedCount() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return received_;
 }
 
 bool FlightStateWatcher::waitConnected(std::chrono::milliseconds timeout) const {
-  absl::MutexLock lock(&mutex_);
-  const auto ready = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-    return connected_ && latest_ != nullptr;
-  };
-  return mutex_.AwaitWithTimeout(absl::Condition(&ready), absl::FromChrono(timeout));
+  std::unique_lock lock(mutex_);
+  return cv_.wait_for(lock, timeout, [this] { return connected_ && latest_ != nullptr; });
 }
 
 void FlightStateWatcher::run() {
@@ -57,7 +55,7 @@ void FlightStateWatcher::run() {
   while (true) {
     grpc::ClientContext context;
     {
-      absl::MutexLock lock(&mutex_);
+      std::lock_guard lock(mutex_);
       if (stopping_) return;
       context_ = &context;
     }
@@ -67,14 +65,15 @@ void FlightStateWatcher::run() {
     v1::WatchFlightStateResponse message;
     while (reader->Read(&message)) {
       auto status = std::make_shared<const v1::FlightStatus>(std::move(*message.mutable_status()));
-      absl::MutexLock lock(&mutex_);
+      std::lock_guard lock(mutex_);
       latest_ = std::move(status);
       connected_ = true;
       ++received_;
       backoff = kInitialBackoff;
+      cv_.notify_all();
     }
     const grpc::Status status = reader->Finish();
-    absl::MutexLock lock(&mutex_);
+    std::unique_lock lock(mutex_);
     context_ = nullptr;
     connected_ = false;
     if (stopping_) return;
@@ -82,7 +81,7 @@ void FlightStateWatcher::run() {
         status.ok() ? grpc::Status(grpc::StatusCode::UNAVAILABLE, "the flight-state stream ended")
                     : status,
         "WatchFlightState");
-    mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(backoff));
+    cv_.wait_for(lock, backoff, [this] { return stopping_; });
     backoff = std::min(backoff * 2, kMaxBackoff);
   }
 }

@@ -19,8 +19,8 @@ class LeaseKeeper::Listener final : public ClockListener {
  public:
   explicit Listener(LeaseKeeper* owner) : owner_(owner) {}
   void onClockAdvanced() override {
-    absl::MutexLock lock(&owner_->mutex_);
-    ++owner_->wakes_;
+    { std::lock_guard lock(owner_->mutex_); }
+    owner_->cv_.notify_all();
   }
   bool caughtUp(TimePoint t) const override { return owner_->caughtUp(t); }
 
@@ -43,7 +43,7 @@ LeaseKeeper::LeaseKeeper(const FlightControllerClient& client, const Clock& cloc
 }
 
 bool LeaseKeeper::caughtUp(TimePoint t) const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return stopping_ || !lost_.ok() || (!renewing_ && next_ > t);
 }
 
@@ -51,9 +51,10 @@ LeaseKeeper::~LeaseKeeper() { release().IgnoreError(); }
 
 void LeaseKeeper::stopThread() {
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     stopping_ = true;
   }
+  cv_.notify_all();
   if (thread_.joinable()) thread_.join();
   if (listener_) clock_.removeListener(listener_.get());
 }
@@ -61,7 +62,7 @@ void LeaseKeeper::stopThread() {
 absl::Status LeaseKeeper::release() {
   stopThread();
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     if (released_ || !lost_.ok()) return lost_;
     released_ = true;
   }
@@ -69,7 +70,7 @@ absl::Status LeaseKeeper::release() {
 }
 
 absl::Status LeaseKeeper::status() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (!lost_.ok()) return lost_;
   if (!last_failure_.ok() && clock_.now() - last_renewed_ > options_.ttl) {
     return absl::Status(last_failure_.code(),
@@ -80,7 +81,7 @@ absl::Status LeaseKeeper::status() const {
 }
 
 uint64_t LeaseKeeper::renewals() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return renewals_;
 }
 
@@ -88,25 +89,20 @@ void LeaseKeeper::run() {
   const Duration period = std::max<Duration>(options_.ttl / 4, std::chrono::milliseconds(10));
   // After a failed renewal, retry sooner (still on the clock).
   const Duration retry = std::max<Duration>(options_.ttl / 10, std::chrono::milliseconds(5));
-  absl::MutexLock lock(&mutex_);
+  std::unique_lock lock(mutex_);
   while (!stopping_) {
     const TimePoint now = clock_.now();
     if (now < next_) {
       // Woken when simulated time moves (the listener); re-read it at least
       // every 20 ms of wall time anyway.
-      const uint64_t seen = wakes_;
-      const auto woken = [this, seen]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-        return stopping_ || wakes_ != seen;
-      };
-      mutex_.AwaitWithTimeout(absl::Condition(&woken),
-                              absl::FromChrono(std::min<std::chrono::nanoseconds>(
-                                  clock_.wallWaitFor(next_ - now), std::chrono::milliseconds(20))));
+      cv_.wait_for(lock, std::min<std::chrono::nanoseconds>(clock_.wallWaitFor(next_ - now),
+                                                            std::chrono::milliseconds(20)));
       continue;
     }
     renewing_ = true;
-    mutex_.Unlock();
+    lock.unlock();
     auto renewed = client_.renewLease(lease_id_);
-    mutex_.Lock();
+    lock.lock();
     renewing_ = false;
     if (renewed.ok()) {
       last_renewed_ = clock_.now();

@@ -111,9 +111,10 @@ LidarMapper::~LidarMapper() {
   // The mapping thread first (it makes and drops the scan subscription),
   // then the readers (their callbacks take mutex_).
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     stopping_ = true;
   }
+  cv_.notify_all();
   if (thread_.joinable()) thread_.join();
   scan_sub_.reset();
   pose_sub_.reset();
@@ -138,7 +139,7 @@ std::string LidarMapper::occupiedTopic() const { return "robots/" + robot_id_ + 
 std::string LidarMapper::poseTopic() const { return flight::poseEstimateTopic(robot_id_); }
 
 void LidarMapper::onPose(const v1::PoseStamped& pose) {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   const int64_t t = stampNs(pose.header());
   if (!poses_.empty() && t < stampNs(poses_.back().header())) poses_.clear();  // a reset
   poses_.push_back(pose);
@@ -146,12 +147,13 @@ void LidarMapper::onPose(const v1::PoseStamped& pose) {
     poses_.pop_front();
   }
   last_pose_arrival_ = std::chrono::steady_clock::now();
-  ++poses_received_;  // a scan may be waiting for this pose (or the scans for poses)
+  ++poses_received_;
+  cv_.notify_all();  // a scan may be waiting for this pose (or the scans for poses)
 }
 
 void LidarMapper::onScan(const v1::LaserScan& scan) {
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     ++stats_.scans_received;
     queue_.push_back(scan);
     while (queue_.size() > static_cast<size_t>(std::max(1, settings_.scan_queue_size))) {
@@ -159,6 +161,7 @@ void LidarMapper::onScan(const v1::LaserScan& scan) {
       ++stats_.scans_dropped;
     }
   }
+  cv_.notify_all();
 }
 
 std::optional<v1::PoseStamped> LidarMapper::poseAt(int64_t stamp_ns) const {
@@ -176,30 +179,24 @@ std::optional<v1::PoseStamped> LidarMapper::poseAt(int64_t stamp_ns) const {
 }
 
 void LidarMapper::run() {
-  absl::MutexLock lock(&mutex_);
+  std::unique_lock lock(mutex_);
   while (true) {
     // Scans are followed while pose estimates arrive (host time: this is
     // about the data flowing, not about simulated time).
     const auto now = std::chrono::steady_clock::now();
     const bool posed = last_pose_arrival_ && now - *last_pose_arrival_ < kScanFollowAfterPose;
     if (posed != (scan_sub_ != nullptr)) {
-      mutex_.Unlock();  // the scan callback takes mutex_
+      lock.unlock();  // the scan callback takes mutex_
       followScans(posed);
-      mutex_.Lock();
+      lock.lock();
       continue;
     }
     const uint64_t poses_seen = poses_received_;
     if (posed) {
-      const auto scan_or_stop = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-        return stopping_ || !queue_.empty();
-      };
-      mutex_.AwaitWithTimeout(absl::Condition(&scan_or_stop),
-                              absl::FromChrono(*last_pose_arrival_ + kScanFollowAfterPose - now));
+      cv_.wait_until(lock, *last_pose_arrival_ + kScanFollowAfterPose,
+                     [&] { return stopping_ || !queue_.empty(); });
     } else {
-      const auto scan_pose_or_stop = [this, poses_seen]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-        return stopping_ || !queue_.empty() || poses_received_ != poses_seen;
-      };
-      mutex_.Await(absl::Condition(&scan_pose_or_stop));
+      cv_.wait(lock, [&] { return stopping_ || !queue_.empty() || poses_received_ != poses_seen; });
     }
     if (stopping_) return;
     if (queue_.empty()) continue;
@@ -215,10 +212,8 @@ void LidarMapper::run() {
     if (!pose && !poses_.empty() && stampNs(poses_.back().header()) < stamp &&
         stamp - stampNs(poses_.back().header()) < kPoseWaitWindowNs) {
       waiting_for_pose_ = true;  // caught up: the pose comes with later data
-      const auto posed_or_stop = [this, stamp]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-        return stopping_ || stampNs(poses_.back().header()) >= stamp;
-      };
-      mutex_.AwaitWithTimeout(absl::Condition(&posed_or_stop), absl::Milliseconds(50));
+      cv_.wait_for(lock, std::chrono::milliseconds(50),
+                   [&] { return stopping_ || stampNs(poses_.back().header()) >= stamp; });
       waiting_for_pose_ = false;
       if (stopping_) return;
       pose = poseAt(stamp);
@@ -237,16 +232,16 @@ void LidarMapper::run() {
       continue;
     }
     inserting_ = true;
-    mutex_.Unlock();
+    lock.unlock();
     insert(scan, *pose);
-    mutex_.Lock();
+    lock.lock();
     inserting_ = false;
     ++stats_.scans_inserted;
   }
 }
 
 bool LidarMapper::caughtUp() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return !inserting_ && (queue_.empty() || waiting_for_pose_);
 }
 
@@ -272,7 +267,7 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
     hits.push_back(hit);
   }
   {
-    absl::MutexLock lock(&map_mutex_);
+    std::lock_guard lock(map_mutex_);
     map_.insertScan(origin, hits, misses);
     columns_.afterScan(map_, hits);
   }
@@ -289,7 +284,7 @@ void LidarMapper::publishOccupied(const v1::LaserScan& scan, double height_m) {
   }
   v1::PointCloud cloud;
   {
-    absl::MutexLock lock(&map_mutex_);
+    std::lock_guard lock(map_mutex_);
     if (map_.revision() == occupied_published_revision_) return;
     occupied_published_revision_ = map_.revision();
     const octomap::OcTree& tree = map_.tree();
@@ -314,24 +309,24 @@ void LidarMapper::publishOccupied(const v1::LaserScan& scan, double height_m) {
 
 void LidarMapper::clear() {
   {
-    absl::MutexLock lock(&map_mutex_);
+    std::lock_guard lock(map_mutex_);
     map_.clear();
     columns_.clear();
   }
   // Then the next scan is mapped whatever it is (reset before the map was
   // cleared, a scan mapped in between would be lost and the next thinned).
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   thinner_.reset();
 }
 
 std::optional<v1::PoseStamped> LidarMapper::latestPose() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (poses_.empty()) return std::nullopt;
   return poses_.back();
 }
 
 MapperStats LidarMapper::stats() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return stats_;
 }
 

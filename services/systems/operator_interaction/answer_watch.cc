@@ -13,34 +13,35 @@ void AnswerWatch::start() {
 
 void AnswerWatch::stop() {
   {
-    absl::MutexLock lock(&mutex_);
+    std::lock_guard lock(mutex_);
     stopping_ = true;
+    wake_.notify_all();
   }
   if (thread_.joinable()) thread_.join();
 }
 
 AnswerWatch::State AnswerWatch::state() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return state_;
 }
 
 std::optional<v1::Belief> AnswerWatch::answer() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return answer_;
 }
 
 std::optional<std::string> AnswerWatch::failure() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return failure_;
 }
 
 uint64_t AnswerWatch::questionVersion() const {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   return question_version_;
 }
 
 bool AnswerWatch::record(const absl::Status& status) {
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   if (status.ok()) {
     failure_.reset();
     return true;
@@ -50,8 +51,8 @@ bool AnswerWatch::record(const absl::Status& status) {
 }
 
 bool AnswerWatch::pause(std::chrono::milliseconds period) {
-  absl::MutexLock lock(&mutex_);
-  return mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(period));
+  std::unique_lock lock(mutex_);
+  return wake_.wait_for(lock, period, [&] { return stopping_; });
 }
 
 void AnswerWatch::run() {
@@ -61,7 +62,7 @@ void AnswerWatch::run() {
     auto written = beliefs_.write(request_.request_key, request_.question, request_.writer);
     if (record(written.status())) {
       asked = written->version();
-      absl::MutexLock lock(&mutex_);
+      std::lock_guard lock(mutex_);
       question_version_ = asked;
       state_ = State::kWaiting;
       break;
@@ -92,7 +93,7 @@ void AnswerWatch::run() {
     if (record(copied.status())) break;
     if (pause(request_.poll_period)) return;
   }
-  absl::MutexLock lock(&mutex_);
+  std::lock_guard lock(mutex_);
   answer_ = answer;
   state_ = State::kAnswered;
 }

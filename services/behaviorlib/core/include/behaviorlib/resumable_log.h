@@ -36,6 +36,7 @@
 #include <deque>
 #include <functional>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <utility>
 #include <vector>
@@ -62,9 +63,9 @@ class WakeSlot {
   void cancel();
 
  private:
-  absl::Mutex mutex_;
+  std::mutex mutex_;
   std::function<void()> wake_;
-  bool cancelled_ ABSL_GUARDED_BY(mutex_) = false;
+  bool cancelled_ = false;  // Guarded by mutex_.
 };
 
 void setWallTime(google::protobuf::Timestamp* timestamp);

@@ -14,6 +14,7 @@ import os
 import re
 import subprocess
 import sys
+import tempfile
 import unittest
 
 ARGS = None
@@ -66,7 +67,6 @@ class TestsDeclaredTest(unittest.TestCase):
 
     def test_the_check_finds_a_bare_call(self):
         # The checker itself, on a file written here.
-        import tempfile
         with tempfile.TemporaryDirectory() as repo:
             os.makedirs(os.path.join(repo, "cmake"))
             with open(os.path.join(repo, HELPER), "w") as f:

@@ -16,7 +16,7 @@
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 #include "clients/behaviorctl/behaviorctl_output.h"
-#include "coordinator/service/health_check.h"
+#include "coordinator/registry/health_check.h"
 
 namespace behaviorlib::coordinator {
 

@@ -72,8 +72,8 @@ struct PlanRequest {
 /// the behaviors and the capability or resource involved.
 absl::StatusOr<Plan> makePlan(const Catalog& catalog, const PlanRequest& request);
 
-/// Carries out plan steps (the coordinator's service routes them to the
-/// robot's behavior systems; tests fake them).
+/// Carries out plan steps (the coordinator's FleetControl, coordinator/control/,
+/// routes them to the robot's behavior systems; tests fake them).
 class PlanActions {
  public:
   virtual ~PlanActions() = default;

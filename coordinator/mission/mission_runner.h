@@ -16,8 +16,9 @@
 // answers with the same activation (nothing is activated twice), and its
 // finished event (replayed if it happened meanwhile) decides what comes next.
 //
-// No gRPC: the coordinator's service implements MissionActions (through the
-// catalog's activation plans and its event stream); tests fake them.
+// No gRPC: the coordinator's FleetControl (coordinator/control/) implements
+// MissionActions (through the catalog's activation plans and its event
+// stream); tests fake them.
 
 #include <google/protobuf/struct.pb.h>
 

@@ -17,16 +17,16 @@
 #include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/server_kit/server_runtime.h"
+#include "coordinator/api/blocking_pool.h"
+#include "coordinator/api/coordinator_service.h"
 #include "coordinator/belief/belief_store.h"
+#include "coordinator/control/fleet_control.h"
 #include "coordinator/durable/journal.h"
+#include "coordinator/events/fleet_event_log.h"
+#include "coordinator/metrics/coordinator_metrics.h"
 #include "coordinator/process/replayed_state.h"
-#include "coordinator/service/blocking_pool.h"
-#include "coordinator/service/coordinator_metrics.h"
-#include "coordinator/service/coordinator_service.h"
-#include "coordinator/service/fleet_control.h"
-#include "coordinator/service/fleet_event_log.h"
-#include "coordinator/service/registry.h"
-#include "coordinator/service/safety.h"
+#include "coordinator/registry/registry.h"
+#include "coordinator/safety/safety.h"
 
 namespace behaviorlib::coordinator {
 

@@ -24,8 +24,8 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 #include "coordinator/catalog/catalog.h"
-#include "coordinator/service/mission_manager.h"
-#include "coordinator/service/systems_config.h"
+#include "coordinator/control/mission_manager.h"
+#include "coordinator/registry/systems_config.h"
 
 namespace behaviorlib::coordinator {
 

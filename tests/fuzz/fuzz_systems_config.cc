@@ -1,4 +1,4 @@
-// Fuzzes the coordinator's --systems file (coordinator/service/
+// Fuzzes the coordinator's --systems file (coordinator/registry/
 // systems_config.h): parseSystemsConfig on the raw bytes, and isHostPort on
 // them as an address.
 
@@ -8,7 +8,7 @@
 #include <set>
 #include <string>
 
-#include "coordinator/service/systems_config.h"
+#include "coordinator/registry/systems_config.h"
 #include "fuzz_support.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {

@@ -45,6 +45,14 @@ GENERATED = (
     (re.compile(r"^behaviorlib/(embedded_descriptors)\.h$"), "proto", None),
 )
 _HEADERS = {}  # include path -> repository-relative file, built on first use
+# The coordinator's folders, bottom up (docs/architecture.md, "The
+# coordinator's folders"): a folder's code includes only folders listed
+# before it, and every folder of coordinator/ is listed.
+COORDINATOR_FOLDERS = ("common", "durable", "belief", "catalog", "mission", "events", "metrics",
+                       "registry", "control", "safety", "api", "process")
+# What of the coordinator a client may include: the gRPC health check (it
+# sits in coordinator/registry/, beside the links that use it).
+CLIENT_VISIBLE = {os.path.join("coordinator", "registry", "health_check.h")}
 
 
 def header_index():
@@ -195,6 +203,23 @@ def folder_graph():
     return graph
 
 
+def coordinator_order_violations(graph):
+    """Includes between the coordinator's folders that go up (or across)
+    COORDINATOR_FOLDERS, and folders of coordinator/ it does not list."""
+    order = {"coordinator/" + name: at for at, name in enumerate(COORDINATOR_FOLDERS)}
+    found = []
+    for folder, used in sorted(graph.items()):
+        if not folder.startswith("coordinator/"):
+            continue
+        if folder not in order:
+            found.append(f"{folder}: not in COORDINATOR_FOLDERS")
+            continue
+        for other in sorted(used):
+            if other.startswith("coordinator/") and order.get(other, len(order)) >= order[folder]:
+                found.append(f"{folder} includes {other}")
+    return found
+
+
 def cycles(graph):
     """Every strongly connected set of more than one folder (Tarjan)."""
     index, low, stack, on_stack, found = {}, {}, [], set(), []
@@ -260,6 +285,25 @@ class LayersTest(unittest.TestCase):
         self.assertIn("coordinator/belief", graph)
         self.assertEqual(cycles(graph), [])
 
+    def test_the_coordinator_folders_include_down_their_order(self):
+        graph = folder_graph()
+        for name in COORDINATOR_FOLDERS:
+            self.assertIn("coordinator/" + name, graph)
+        self.assertEqual(coordinator_order_violations(graph), [])
+
+    def test_clients_use_only_the_health_check_of_the_coordinator(self):
+        found = []
+        for top in CLIENTS:
+            for path in sources(os.path.join(REPO, top), (".h", ".cc")):
+                rel = os.path.relpath(path, REPO)
+                with open(path, encoding="utf-8") as f:
+                    for include in INCLUDE.findall(f.read()):
+                        header = resolve(include, rel)
+                        if (header is not None and header.split(os.sep)[0] == "coordinator"
+                                and header not in CLIENT_VISIBLE):
+                            found.append(f"{rel} includes {include}")
+        self.assertEqual(found, [])
+
     def test_no_server_includes_a_client(self):
         # Clients stand above the servers: nothing in services/, coordinator/
         # or simulator/ includes a header of console/ or clients/, nor links
@@ -322,6 +366,11 @@ class LayersTest(unittest.TestCase):
         with self.assertRaises(LookupError):
             component_of("behaviorlib/v1/no_such.pb.h")
         self.assertEqual(cycles({"a": {"b"}, "b": {"a", "c"}, "c": set()}), [["a", "b"]])
+        self.assertEqual(coordinator_order_violations(
+            {"coordinator/registry": {"coordinator/api", "coordinator/events"},
+             "coordinator/service": set()}),
+            ["coordinator/registry includes coordinator/api",
+             "coordinator/service: not in COORDINATOR_FOLDERS"])
         self.assertEqual(layer_of(os.path.join("services", "systems", "x", "main.cc")),
                          "systems:x")
 

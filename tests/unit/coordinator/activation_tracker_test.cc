@@ -2,7 +2,7 @@
 // every activation ends with exactly one finished event, restarts and outages
 // end what was running with PROCESS_FAILURE.
 
-#include "coordinator/service/activation_tracker.h"
+#include "coordinator/events/activation_tracker.h"
 
 #include <gtest/gtest.h>
 

@@ -1,7 +1,7 @@
 // The coordinator's mission counters: what ended a mission (its `cause`
 // label) and the outcome counted once per ended mission.
 
-#include "coordinator/service/coordinator_metrics.h"
+#include "coordinator/metrics/coordinator_metrics.h"
 
 #include <gtest/gtest.h>
 #include <prometheus/metric_family.h>

@@ -1,7 +1,7 @@
 // The coordinator's event log: numbering, resumable replay, filters, bounded
 // retention and slow subscribers.
 
-#include "coordinator/service/fleet_event_log.h"
+#include "coordinator/events/fleet_event_log.h"
 
 #include <gtest/gtest.h>
 

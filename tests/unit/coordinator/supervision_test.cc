@@ -1,7 +1,7 @@
 // When is a system down: stream broken and health failing for the grace
 // period, declared once per outage. Time is given explicitly (fake).
 
-#include "coordinator/service/supervision.h"
+#include "coordinator/registry/supervision.h"
 
 #include <gtest/gtest.h>
 

@@ -1,6 +1,6 @@
 // The --systems file: entries, and errors naming the file and the line.
 
-#include "coordinator/service/systems_config.h"
+#include "coordinator/registry/systems_config.h"
 
 #include <gtest/gtest.h>
 

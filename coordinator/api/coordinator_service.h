@@ -24,9 +24,9 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
-#include "coordinator/service/coordinator_metrics.h"
-#include "coordinator/service/fleet_event_log.h"
-#include "coordinator/service/registry.h"
+#include "coordinator/events/fleet_event_log.h"
+#include "coordinator/metrics/coordinator_metrics.h"
+#include "coordinator/registry/registry.h"
 
 namespace behaviorlib::coordinator {
 

@@ -1,4 +1,4 @@
-#include "coordinator/service/coordinator_service.h"
+#include "coordinator/api/coordinator_service.h"
 
 #include <google/protobuf/io/coded_stream.h>
 #include <google/protobuf/util/time_util.h>
@@ -15,8 +15,8 @@
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/transport_security.h"
 #include "coordinator/belief/belief_store.h"
-#include "coordinator/service/fleet_control.h"
-#include "coordinator/service/systems_config.h"
+#include "coordinator/control/fleet_control.h"
+#include "coordinator/registry/systems_config.h"
 
 namespace behaviorlib::coordinator {
 

@@ -1,4 +1,4 @@
-#include "coordinator/service/registry.h"
+#include "coordinator/registry/registry.h"
 
 #include <algorithm>
 #include <set>

@@ -1,4 +1,4 @@
-#include "coordinator/service/mission_manager.h"
+#include "coordinator/control/mission_manager.h"
 
 #include <google/protobuf/util/time_util.h>
 #include <grpcpp/grpcpp.h>

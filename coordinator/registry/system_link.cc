@@ -1,4 +1,4 @@
-#include "coordinator/service/system_link.h"
+#include "coordinator/registry/system_link.h"
 
 #include <algorithm>
 #include <cstdio>
@@ -7,7 +7,7 @@
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "behaviorlib/server_kit/transport_security.h"
-#include "coordinator/service/health_check.h"
+#include "coordinator/registry/health_check.h"
 
 namespace behaviorlib::coordinator {
 

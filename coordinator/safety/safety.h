@@ -56,10 +56,10 @@
 #include "behaviorlib/clock.h"
 #include "behaviorlib/v1/platform.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "coordinator/control/fleet_control.h"
+#include "coordinator/control/mission_manager.h"
+#include "coordinator/events/fleet_event_log.h"
 #include "coordinator/mission/mission_file.h"
-#include "coordinator/service/fleet_control.h"
-#include "coordinator/service/fleet_event_log.h"
-#include "coordinator/service/mission_manager.h"
 
 namespace behaviorlib::platform {
 class FlightControllerClient;

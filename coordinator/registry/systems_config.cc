@@ -1,4 +1,4 @@
-#include "coordinator/service/systems_config.h"
+#include "coordinator/registry/systems_config.h"
 
 #include <yaml-cpp/yaml.h>
 

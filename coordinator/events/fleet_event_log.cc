@@ -1,4 +1,4 @@
-#include "coordinator/service/fleet_event_log.h"
+#include "coordinator/events/fleet_event_log.h"
 
 #include <algorithm>
 

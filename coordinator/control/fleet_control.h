@@ -43,9 +43,9 @@
 #include "behaviorlib/v1/behavior.pb.h"
 #include "coordinator/catalog/catalog.h"
 #include "coordinator/catalog/planner.h"
+#include "coordinator/events/fleet_event_log.h"
 #include "coordinator/mission/mission_runner.h"
-#include "coordinator/service/fleet_event_log.h"
-#include "coordinator/service/registry.h"
+#include "coordinator/registry/registry.h"
 
 namespace behaviorlib::coordinator {
 

@@ -35,11 +35,11 @@
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
+#include "coordinator/control/fleet_control.h"
 #include "coordinator/durable/journal.h"
+#include "coordinator/metrics/coordinator_metrics.h"
 #include "coordinator/mission/mission_runner.h"
-#include "coordinator/service/coordinator_metrics.h"
-#include "coordinator/service/fleet_control.h"
-#include "coordinator/service/registry.h"
+#include "coordinator/registry/registry.h"
 
 namespace behaviorlib::coordinator {
 

@@ -14,12 +14,12 @@
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/pagination.h"
 #include "behaviorlib/server_kit/reactor_order.h"
+#include "coordinator/api/blocking_pool.h"
+#include "coordinator/api/coordinator_service.h"
 #include "coordinator/belief/belief_store.h"
-#include "coordinator/service/blocking_pool.h"
-#include "coordinator/service/coordinator_service.h"
-#include "coordinator/service/fleet_control.h"
-#include "coordinator/service/mission_manager.h"
-#include "coordinator/service/safety.h"
+#include "coordinator/control/fleet_control.h"
+#include "coordinator/control/mission_manager.h"
+#include "coordinator/safety/safety.h"
 
 namespace behaviorlib::coordinator {
 

@@ -41,10 +41,10 @@
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.pb.h"
-#include "coordinator/service/activation_tracker.h"
-#include "coordinator/service/coordinator_metrics.h"
-#include "coordinator/service/fleet_event_log.h"
-#include "coordinator/service/supervision.h"
+#include "coordinator/events/activation_tracker.h"
+#include "coordinator/events/fleet_event_log.h"
+#include "coordinator/metrics/coordinator_metrics.h"
+#include "coordinator/registry/supervision.h"
 
 namespace behaviorlib::coordinator {
 

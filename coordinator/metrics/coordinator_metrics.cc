@@ -1,4 +1,4 @@
-#include "coordinator/service/coordinator_metrics.h"
+#include "coordinator/metrics/coordinator_metrics.h"
 
 #include <string>
 #include <string_view>

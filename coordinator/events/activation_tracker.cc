@@ -1,4 +1,4 @@
-#include "coordinator/service/activation_tracker.h"
+#include "coordinator/events/activation_tracker.h"
 
 #include <utility>
 

@@ -24,10 +24,10 @@
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
-#include "coordinator/service/coordinator_metrics.h"
-#include "coordinator/service/fleet_event_log.h"
-#include "coordinator/service/system_link.h"
-#include "coordinator/service/systems_config.h"
+#include "coordinator/events/fleet_event_log.h"
+#include "coordinator/metrics/coordinator_metrics.h"
+#include "coordinator/registry/system_link.h"
+#include "coordinator/registry/systems_config.h"
 
 namespace behaviorlib::coordinator {
 

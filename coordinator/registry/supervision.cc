@@ -1,4 +1,4 @@
-#include "coordinator/service/supervision.h"
+#include "coordinator/registry/supervision.h"
 
 namespace behaviorlib::coordinator {
 

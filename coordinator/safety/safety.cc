@@ -1,4 +1,4 @@
-#include "coordinator/service/safety.h"
+#include "coordinator/safety/safety.h"
 
 #include <algorithm>
 #include <cstdio>

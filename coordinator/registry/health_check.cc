@@ -1,4 +1,4 @@
-#include "coordinator/service/health_check.h"
+#include "coordinator/registry/health_check.h"
 
 #include <grpcpp/generic/generic_stub.h>
 

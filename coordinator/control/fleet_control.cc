@@ -1,4 +1,4 @@
-#include "coordinator/service/fleet_control.h"
+#include "coordinator/control/fleet_control.h"
 
 #include <grpcpp/grpcpp.h>
 

@@ -969,7 +969,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         absl::Status status;
         if (!hookOrAbort(
-                "onModify", [&] { status = onModify(*merged); },
+                "onModify", [&] { status = modifyParameters(*merged); },
                 [&](absl::Status s) { done(s); })) {
           return;
         }

@@ -137,8 +137,7 @@ void FollowPathBehavior<Params>::onResume() {
 }
 
 template <class Params>
-absl::Status FollowPathBehavior<Params>::onModify(const google::protobuf::Message& new_parameters) {
-  const auto& p = static_cast<const Params&>(new_parameters);
+absl::Status FollowPathBehavior<Params>::onModify(const Params& p) {
   auto tracker = makePathTracker(p.path_m(), p.speed_m_s(), p.acceleration_m_s2(), path_settings_,
                                  support_.settings().min_altitude_m);
   if (!tracker.ok()) return tracker.status();

@@ -216,9 +216,8 @@ void MotionControlBehavior<Params>::onResume() {
 }
 
 template <class Params>
-absl::Status MotionControlBehavior<Params>::onModify(
-    const google::protobuf::Message& new_parameters) {
-  makeController(static_cast<const Params&>(new_parameters));
+absl::Status MotionControlBehavior<Params>::onModify(const Params& new_parameters) {
+  makeController(new_parameters);
   return absl::OkStatus();
 }
 

@@ -81,8 +81,8 @@ void RotateBehavior<Params>::onResume() {
 }
 
 template <class Params>
-absl::Status RotateBehavior<Params>::onModify(const google::protobuf::Message& new_parameters) {
-  setTarget(static_cast<const Params&>(new_parameters));
+absl::Status RotateBehavior<Params>::onModify(const Params& new_parameters) {
+  setTarget(new_parameters);
   return absl::OkStatus();
 }
 

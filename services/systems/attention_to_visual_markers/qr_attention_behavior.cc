@@ -147,9 +147,9 @@ void QrAttentionBehavior::onPause() { decoding_ = false; }
 
 void QrAttentionBehavior::onResume() { decoding_ = true; }
 
-absl::Status QrAttentionBehavior::onModify(const google::protobuf::Message& new_parameters) {
-  absl::StatusOr<Settings> settings =
-      settingsFrom(static_cast<const v1::PayAttentionToQrCodesParameters&>(new_parameters));
+absl::Status QrAttentionBehavior::onModify(
+    const v1::PayAttentionToQrCodesParameters& new_parameters) {
+  absl::StatusOr<Settings> settings = settingsFrom(new_parameters);
   if (!settings.ok()) return settings.status();
   settings_ = std::move(*settings);
   return absl::OkStatus();

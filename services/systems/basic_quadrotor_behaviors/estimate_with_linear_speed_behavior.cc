@@ -180,8 +180,7 @@ void EstimatePositionWithLinearSpeedBehavior::onPause() { publishing_ = false; }
 void EstimatePositionWithLinearSpeedBehavior::onResume() { publishing_ = true; }
 
 absl::Status EstimatePositionWithLinearSpeedBehavior::onModify(
-    const google::protobuf::Message& new_parameters) {
-  const auto& p = static_cast<const v1::EstimatePositionWithLinearSpeedParameters&>(new_parameters);
+    const v1::EstimatePositionWithLinearSpeedParameters& p) {
   const auto& current = parameters();
   if (p.has_initial_x_m() != current.has_initial_x_m() ||
       p.has_initial_y_m() != current.has_initial_y_m() ||

@@ -151,8 +151,7 @@ void EstimatePositionWithSensorBehavior::onPause() { publishing_ = false; }
 void EstimatePositionWithSensorBehavior::onResume() { publishing_ = true; }
 
 absl::Status EstimatePositionWithSensorBehavior::onModify(
-    const google::protobuf::Message& new_parameters) {
-  const auto& p = static_cast<const v1::EstimatePositionWithSensorParameters&>(new_parameters);
+    const v1::EstimatePositionWithSensorParameters& p) {
   if (p.use_barometer() != use_barometer_) {
     return absl::InvalidArgumentError(
         "parameter 'use_barometer' cannot change while active (deactivate and activate again)");

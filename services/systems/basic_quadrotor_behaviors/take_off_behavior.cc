@@ -148,8 +148,7 @@ void TakeOffBehavior::onResume() {
   climb_.reset();
 }
 
-absl::Status TakeOffBehavior::onModify(const google::protobuf::Message& new_parameters) {
-  const auto& p = static_cast<const v1::TakeOffParameters&>(new_parameters);
+absl::Status TakeOffBehavior::onModify(const v1::TakeOffParameters& p) {
   target_z_ = origin_z_ + p.altitude_m();
   commanded_z_ = std::numeric_limits<double>::quiet_NaN();
   correcting_ = false;

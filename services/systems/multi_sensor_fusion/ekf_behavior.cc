@@ -165,8 +165,7 @@ void EkfSelfLocalizationBehavior::onPause() { publishing_ = false; }
 void EkfSelfLocalizationBehavior::onResume() { publishing_ = true; }
 
 absl::Status EkfSelfLocalizationBehavior::onModify(
-    const google::protobuf::Message& new_parameters) {
-  const auto& p = static_cast<const v1::SelfLocalizeWithEkfSensorFusionParameters&>(new_parameters);
+    const v1::SelfLocalizeWithEkfSensorFusionParameters& p) {
   use_linear_speed_ = p.use_linear_speed();
   use_barometer_ = p.use_barometer();
   use_imu_yaw_ = p.use_imu_yaw();

@@ -339,8 +339,7 @@ void ExploreBehavior::onResume() {
   startChoice();
 }
 
-absl::Status ExploreBehavior::onModify(const google::protobuf::Message& new_parameters) {
-  const auto& n = static_cast<const v1::ExploreWithFrontiersParameters&>(new_parameters);
+absl::Status ExploreBehavior::onModify(const v1::ExploreWithFrontiersParameters& n) {
   const auto& p = parameters();
   if (toEigen(n.bounds_min_m()) != toEigen(p.bounds_min_m()) ||
       toEigen(n.bounds_max_m()) != toEigen(p.bounds_max_m()) || n.altitude_m() != p.altitude_m() ||

@@ -365,8 +365,7 @@ void GeneratePathBehavior::onResume() {
   }
 }
 
-absl::Status GeneratePathBehavior::onModify(const google::protobuf::Message& new_parameters) {
-  const auto& n = static_cast<const v1::GeneratePathWithOccupancyGridParameters&>(new_parameters);
+absl::Status GeneratePathBehavior::onModify(const v1::GeneratePathWithOccupancyGridParameters& n) {
   const auto& p = parameters();
   if (vec(n.goal_m()) != vec(p.goal_m()) || n.vehicle_radius_m() != p.vehicle_radius_m() ||
       n.belief_key() != p.belief_key()) {

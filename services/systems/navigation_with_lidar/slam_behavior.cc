@@ -244,8 +244,7 @@ void SlamBehavior::onPause() { publishing_ = false; }
 
 void SlamBehavior::onResume() { publishing_ = true; }
 
-absl::Status SlamBehavior::onModify(const google::protobuf::Message& new_parameters) {
-  const auto& p = static_cast<const v1::SelfLocalizeAndMapWithLidarParameters&>(new_parameters);
+absl::Status SlamBehavior::onModify(const v1::SelfLocalizeAndMapWithLidarParameters& p) {
   use_imu_yaw_ = p.use_imu_yaw();
   return absl::OkStatus();
 }

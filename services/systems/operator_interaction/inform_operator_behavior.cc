@@ -32,9 +32,9 @@ absl::Status InformOperatorBehavior::onActivate() {
   return absl::OkStatus();
 }
 
-absl::Status InformOperatorBehavior::onModify(const google::protobuf::Message& new_parameters) {
+absl::Status InformOperatorBehavior::onModify(const v1::InformOperatorParameters& new_parameters) {
   if (done_) return absl::FailedPreconditionError("the message has already been written");
-  if (static_cast<const v1::InformOperatorParameters&>(new_parameters).text().empty()) {
+  if (new_parameters.text().empty()) {
     return absl::InvalidArgumentError("parameter 'text': empty; say something to the operator");
   }
   return absl::OkStatus();

@@ -100,8 +100,7 @@ void RequestOperatorAssistanceBehavior::onDeactivate() {
 }
 
 absl::Status RequestOperatorAssistanceBehavior::onModify(
-    const google::protobuf::Message& new_parameters) {
-  const auto& p = static_cast<const v1::RequestOperatorAssistanceParameters&>(new_parameters);
+    const v1::RequestOperatorAssistanceParameters& p) {
   if (p.question() != parameters().question() || p.answer_key() != parameters().answer_key() ||
       p.request_id() != parameters().request_id()) {
     return absl::InvalidArgumentError(

@@ -43,7 +43,8 @@ void KeepMovingWithPidControlBehavior::onResume() {
   changed_at_ = now();
 }
 
-absl::Status KeepMovingWithPidControlBehavior::onModify(const google::protobuf::Message&) {
+absl::Status KeepMovingWithPidControlBehavior::onModify(
+    const v1::KeepMovingWithPidControlParameters&) {
   off_speed_.reset();
   changed_at_ = now();
   return absl::OkStatus();

@@ -113,9 +113,9 @@ void MoveVerticalBehavior::onPause() { support_.holdHere(); }
 
 void MoveVerticalBehavior::onResume() { restart(); }
 
-absl::Status MoveVerticalBehavior::onModify(const google::protobuf::Message& new_parameters) {
-  auto target =
-      targetOf(static_cast<const v1::MoveVerticalWithPlatformControlParameters&>(new_parameters));
+absl::Status MoveVerticalBehavior::onModify(
+    const v1::MoveVerticalWithPlatformControlParameters& new_parameters) {
+  auto target = targetOf(new_parameters);
   if (!target.ok()) return target.status();
   target_z_m_ = *target;
   restart();
@@ -209,7 +209,7 @@ void MoveAtSpeedBehavior::onResume() {
   changed_at_ = now();
 }
 
-absl::Status MoveAtSpeedBehavior::onModify(const google::protobuf::Message&) {
+absl::Status MoveAtSpeedBehavior::onModify(const v1::MoveAtSpeedWithPlatformControlParameters&) {
   off_speed_.reset();
   changed_at_ = now();
   return absl::OkStatus();
@@ -292,8 +292,8 @@ void RotateWithPlatformControlBehavior::onResume() {
 }
 
 absl::Status RotateWithPlatformControlBehavior::onModify(
-    const google::protobuf::Message& new_parameters) {
-  setTarget(static_cast<const v1::RotateWithPlatformControlParameters&>(new_parameters));
+    const v1::RotateWithPlatformControlParameters& new_parameters) {
+  setTarget(new_parameters);
   return absl::OkStatus();
 }
 

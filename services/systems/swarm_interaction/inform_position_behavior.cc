@@ -60,8 +60,7 @@ void InformPositionToRobotsBehavior::onDeactivate() {
 }
 
 absl::Status InformPositionToRobotsBehavior::onModify(
-    const google::protobuf::Message& new_parameters) {
-  const auto& p = static_cast<const v1::InformPositionToRobotsParameters&>(new_parameters);
+    const v1::InformPositionToRobotsParameters& p) {
   if (auto s = checkRecipients(p.robot_ids()); !s.ok()) return s;
   next_publish_.reset();  // the new rate applies from now
   return absl::OkStatus();

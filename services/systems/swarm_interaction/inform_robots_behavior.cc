@@ -33,10 +33,9 @@ absl::Status InformRobotsBehavior::onActivate() {
   return checkInformRobotsParameters(parameters());
 }
 
-absl::Status InformRobotsBehavior::onModify(const google::protobuf::Message& new_parameters) {
+absl::Status InformRobotsBehavior::onModify(const v1::InformRobotsParameters& new_parameters) {
   if (sent_) return absl::FailedPreconditionError("the message has already been sent");
-  return checkInformRobotsParameters(
-      static_cast<const v1::InformRobotsParameters&>(new_parameters));
+  return checkInformRobotsParameters(new_parameters);
 }
 
 void InformRobotsBehavior::onExecute() {

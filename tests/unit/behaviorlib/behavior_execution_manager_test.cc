@@ -475,9 +475,18 @@ TEST_F(BehaviorExecutionManagerTest, PauseStopsMonitoringAndTheTimeOutCountsActi
 
 TEST_F(BehaviorExecutionManagerTest, ModifyMergesValidatesAndNotifies) {
   auto& b = start();
+  // onModify gets the merged parameters typed, before they take effect.
+  std::vector<std::pair<double, double>> seen;  // (new, current) duration_s
+  b.on_modify = [&](const v1::WaitParameters& p) {
+    seen.emplace_back(p.duration_s(), b.durationParameterNow());
+    return absl::OkStatus();
+  };
   const auto activation = activate(5.0);
   auto modified = b.modifyAndWait(waitParams(7.0), activation.activation_id());
   ASSERT_TRUE(modified.ok()) << modified.status();
+  ASSERT_EQ(seen.size(), 1u);
+  EXPECT_EQ(seen[0].first, 7.0);
+  EXPECT_EQ(seen[0].second, 5.0);
   EXPECT_EQ(modified->parameters().fields().at("duration_s").number_value(), 7.0);
   tick();
   EXPECT_TRUE(eventually([&] { return b.durationParameter() == 7.0; }));
@@ -489,7 +498,7 @@ TEST_F(BehaviorExecutionManagerTest, ModifyMergesValidatesAndNotifies) {
   ASSERT_TRUE(b.modifyAndWait(std::make_unique<v1::WaitParameters>()).ok());
   EXPECT_EQ(b.checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
 
-  b.on_modify = [](const google::protobuf::Message&) {
+  b.on_modify = [](const v1::WaitParameters&) {
     return absl::FailedPreconditionError("cannot shorten now");
   };
   auto refused = b.modifyAndWait(waitParams(1.0));

@@ -30,8 +30,9 @@ class ScriptedBehavior final : public Behavior<v1::WaitParameters> {
   std::function<Verdict()> goal = [] { return Verdict::keepGoing(); };
   std::function<Verdict()> progress = [] { return Verdict::keepGoing(); };
   std::function<Verdict()> processes = [] { return Verdict::keepGoing(); };
-  std::function<absl::Status(const google::protobuf::Message&)> on_modify =
-      [](const google::protobuf::Message&) { return absl::OkStatus(); };
+  std::function<absl::Status(const v1::WaitParameters&)> on_modify = [](const v1::WaitParameters&) {
+    return absl::OkStatus();
+  };
   /// Not empty: checkProgress ends the activation through the time-out with
   /// this reason as its message.
   std::function<std::string()> time_out_reason = [] { return std::string(); };
@@ -52,6 +53,8 @@ class ScriptedBehavior final : public Behavior<v1::WaitParameters> {
   }
   Duration lastActiveTime() const { return Duration(last_active_ns_.load()); }
   double durationParameter() const { return duration_parameter_.load(); }
+  /// The current activation's duration_s (on the worker only: from a hook).
+  double durationParameterNow() const { return parameters().duration_s(); }
 
  protected:
   absl::Status onActivate() override {
@@ -70,7 +73,7 @@ class ScriptedBehavior final : public Behavior<v1::WaitParameters> {
     on_pause();
   }
   void onResume() override { record("onResume"); }
-  absl::Status onModify(const google::protobuf::Message& p) override {
+  absl::Status onModify(const v1::WaitParameters& p) override {
     record("onModify");
     return on_modify(p);
   }

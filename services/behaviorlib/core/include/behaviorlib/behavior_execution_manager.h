@@ -314,10 +314,7 @@ class BehaviorExecutionManager {
   /// Paused: a motion behavior should hold position here.
   virtual void onPause() {}
   virtual void onResume() {}
-  /// New parameters are about to take effect; an error refuses them.
-  virtual absl::Status onModify(const google::protobuf::Message& /*new_parameters*/) {
-    return absl::OkStatus();
-  }
+  // (onModify is typed: Behavior<Params>::onModify(const Params&).)
 
   // ---- For subclasses (worker thread) --------------------------------------
   const Clock& clock() const { return *context_.clock; }
@@ -362,6 +359,12 @@ class BehaviorExecutionManager {
   }
 
  private:
+  template <class Params>
+  friend class Behavior;
+  /// New parameters are about to take effect; an error refuses them.
+  /// Behavior<Params> overrides it with the typed onModify(const Params&).
+  virtual absl::Status modifyParameters(const google::protobuf::Message& new_parameters) = 0;
+
   enum class State { kInactive, kActive, kPaused, kBlocked };
   struct Finished {
     std::string activation_id;
@@ -589,6 +592,15 @@ class Behavior : public BehaviorExecutionManager {
  protected:
   /// The current activation's parameters (defaults applied, validated).
   const Params& parameters() const { return static_cast<const Params&>(parametersMessage()); }
+  /// Modify: `new_parameters` (the current ones with the update's set
+  /// fields, defaults applied, validated) are about to take effect; an error
+  /// refuses them and the current ones stay.
+  virtual absl::Status onModify(const Params& /*new_parameters*/) { return absl::OkStatus(); }
+
+ private:
+  absl::Status modifyParameters(const google::protobuf::Message& new_parameters) final {
+    return onModify(static_cast<const Params&>(new_parameters));
+  }
 };
 
 /// A TerminationCause's short name ("GOAL_ACHIEVED").

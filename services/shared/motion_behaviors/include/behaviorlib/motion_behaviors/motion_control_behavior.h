@@ -75,7 +75,7 @@ class MotionControlBehavior final : public Behavior<Params> {
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const Params& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkProgress() override;

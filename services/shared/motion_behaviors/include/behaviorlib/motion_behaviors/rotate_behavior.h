@@ -40,7 +40,7 @@ class RotateBehavior final : public Behavior<Params> {
   void onExecute() override;
   void onDeactivate() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const Params& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;

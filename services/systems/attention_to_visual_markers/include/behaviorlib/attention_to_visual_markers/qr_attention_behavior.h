@@ -70,7 +70,7 @@ class QrAttentionBehavior final : public Behavior<v1::PayAttentionToQrCodesParam
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::PayAttentionToQrCodesParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkProcesses() override;

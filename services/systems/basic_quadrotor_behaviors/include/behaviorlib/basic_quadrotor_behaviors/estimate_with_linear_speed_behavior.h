@@ -65,7 +65,8 @@ class EstimatePositionWithLinearSpeedBehavior final
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(
+      const v1::EstimatePositionWithLinearSpeedParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkProgress() override;

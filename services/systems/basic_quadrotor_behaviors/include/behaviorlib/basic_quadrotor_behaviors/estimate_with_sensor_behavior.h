@@ -61,7 +61,7 @@ class EstimatePositionWithSensorBehavior final
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::EstimatePositionWithSensorParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkProgress() override;

@@ -45,7 +45,7 @@ class TakeOffBehavior final : public Behavior<v1::TakeOffParameters> {
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::TakeOffParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;

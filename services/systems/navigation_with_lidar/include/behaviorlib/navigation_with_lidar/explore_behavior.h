@@ -66,7 +66,7 @@ class ExploreBehavior final : public Behavior<v1::ExploreWithFrontiersParameters
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::ExploreWithFrontiersParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;

@@ -78,7 +78,7 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::GeneratePathWithOccupancyGridParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;

@@ -75,7 +75,7 @@ class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParame
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::SelfLocalizeAndMapWithLidarParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkProgress() override;

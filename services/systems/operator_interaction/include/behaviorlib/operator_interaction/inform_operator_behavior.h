@@ -31,7 +31,7 @@ class InformOperatorBehavior final : public Behavior<v1::InformOperatorParameter
  protected:
   absl::Status onActivate() override;
   void onExecute() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::InformOperatorParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;

@@ -45,7 +45,7 @@ class RequestOperatorAssistanceBehavior final
   absl::Status onConfigure(const YAML::Node& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::RequestOperatorAssistanceParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;

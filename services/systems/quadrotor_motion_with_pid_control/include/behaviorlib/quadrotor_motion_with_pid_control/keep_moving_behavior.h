@@ -38,7 +38,7 @@ class KeepMovingWithPidControlBehavior final
   void onExecute() override;
   void onDeactivate() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::KeepMovingWithPidControlParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkProgress() override;

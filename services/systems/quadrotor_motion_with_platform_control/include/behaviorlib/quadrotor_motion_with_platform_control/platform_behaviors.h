@@ -67,7 +67,8 @@ class MoveVerticalBehavior final : public Behavior<v1::MoveVerticalWithPlatformC
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(
+      const v1::MoveVerticalWithPlatformControlParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;
@@ -102,7 +103,8 @@ class MoveAtSpeedBehavior final : public Behavior<v1::MoveAtSpeedWithPlatformCon
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(
+      const v1::MoveAtSpeedWithPlatformControlParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;
@@ -131,7 +133,7 @@ class RotateWithPlatformControlBehavior final
   void onDeactivate() override;
   void onPause() override;
   void onResume() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::RotateWithPlatformControlParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;

@@ -35,7 +35,7 @@ class InformPositionToRobotsBehavior final : public Behavior<v1::InformPositionT
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::InformPositionToRobotsParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkProcesses() override;

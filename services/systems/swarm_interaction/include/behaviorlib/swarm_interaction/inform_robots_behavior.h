@@ -28,7 +28,7 @@ class InformRobotsBehavior final : public Behavior<v1::InformRobotsParameters> {
  protected:
   absl::Status onActivate() override;
   void onExecute() override;
-  absl::Status onModify(const google::protobuf::Message& new_parameters) override;
+  absl::Status onModify(const v1::InformRobotsParameters& new_parameters) override;
 
   Situation checkSituation() override;
   Verdict checkGoal() override;

@@ -1,7 +1,9 @@
 """Clang's thread-safety analysis over the library and the coordinator.
 
 Compiles (syntax only) every translation unit of services/behaviorlib,
-services/server_kit, services/channel, coordinator/, console/ and clients/ with clang++-14
+services/server_kit, services/channel, the two behavior systems that keep
+threads of their own (operator_interaction's AnswerWatch, navigation_with_lidar's
+LidarMapper), coordinator/, console/ and clients/ with clang++-14
 -Wthread-safety as errors, using the flags of the build's
 compile_commands.json, so an access to a field marked ABSL_GUARDED_BY(mu)
 without holding mu fails the run. GCC builds everything else; this only
@@ -19,9 +21,9 @@ import subprocess
 import sys
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
-CHECKED = ("services/behaviorlib/", "services/server_kit/", "services/channel/", "coordinator/",
-           "clients/",
-           "console/")
+CHECKED = ("services/behaviorlib/", "services/server_kit/", "services/channel/",
+           "services/systems/operator_interaction/", "services/systems/navigation_with_lidar/",
+           "coordinator/", "console/", "clients/")
 CLANG = "clang++-14"
 FLAGS = ["-fsyntax-only", "-Wthread-safety", "-Werror=thread-safety",
          "-Wno-unknown-warning-option"]

@@ -111,10 +111,9 @@ LidarMapper::~LidarMapper() {
   // The mapping thread first (it makes and drops the scan subscription),
   // then the readers (their callbacks take mutex_).
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopping_ = true;
   }
-  cv_.notify_all();
   if (thread_.joinable()) thread_.join();
   scan_sub_.reset();
   pose_sub_.reset();
@@ -139,7 +138,7 @@ std::string LidarMapper::occupiedTopic() const { return "robots/" + robot_id_ + 
 std::string LidarMapper::poseTopic() const { return flight::poseEstimateTopic(robot_id_); }
 
 void LidarMapper::onPose(const v1::PoseStamped& pose) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   const int64_t t = stampNs(pose.header());
   if (!poses_.empty() && t < stampNs(poses_.back().header())) poses_.clear();  // a reset
   poses_.push_back(pose);
@@ -147,13 +146,12 @@ void LidarMapper::onPose(const v1::PoseStamped& pose) {
     poses_.pop_front();
   }
   last_pose_arrival_ = std::chrono::steady_clock::now();
-  ++poses_received_;
-  cv_.notify_all();  // a scan may be waiting for this pose (or the scans for poses)
+  ++poses_received_;  // a scan may be waiting for this pose (or the scans for poses)
 }
 
 void LidarMapper::onScan(const v1::LaserScan& scan) {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     ++stats_.scans_received;
     queue_.push_back(scan);
     while (queue_.size() > static_cast<size_t>(std::max(1, settings_.scan_queue_size))) {
@@ -161,7 +159,6 @@ void LidarMapper::onScan(const v1::LaserScan& scan) {
       ++stats_.scans_dropped;
     }
   }
-  cv_.notify_all();
 }
 
 std::optional<v1::PoseStamped> LidarMapper::poseAt(int64_t stamp_ns) const {
@@ -179,24 +176,30 @@ std::optional<v1::PoseStamped> LidarMapper::poseAt(int64_t stamp_ns) const {
 }
 
 void LidarMapper::run() {
-  std::unique_lock lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   while (true) {
     // Scans are followed while pose estimates arrive (host time: this is
     // about the data flowing, not about simulated time).
     const auto now = std::chrono::steady_clock::now();
     const bool posed = last_pose_arrival_ && now - *last_pose_arrival_ < kScanFollowAfterPose;
     if (posed != (scan_sub_ != nullptr)) {
-      lock.unlock();  // the scan callback takes mutex_
+      mutex_.Unlock();  // the scan callback takes mutex_
       followScans(posed);
-      lock.lock();
+      mutex_.Lock();
       continue;
     }
     const uint64_t poses_seen = poses_received_;
     if (posed) {
-      cv_.wait_until(lock, *last_pose_arrival_ + kScanFollowAfterPose,
-                     [&] { return stopping_ || !queue_.empty(); });
+      const auto scan_or_stop = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+        return stopping_ || !queue_.empty();
+      };
+      mutex_.AwaitWithTimeout(absl::Condition(&scan_or_stop),
+                              absl::FromChrono(*last_pose_arrival_ + kScanFollowAfterPose - now));
     } else {
-      cv_.wait(lock, [&] { return stopping_ || !queue_.empty() || poses_received_ != poses_seen; });
+      const auto scan_pose_or_stop = [this, poses_seen]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+        return stopping_ || !queue_.empty() || poses_received_ != poses_seen;
+      };
+      mutex_.Await(absl::Condition(&scan_pose_or_stop));
     }
     if (stopping_) return;
     if (queue_.empty()) continue;
@@ -212,8 +215,10 @@ void LidarMapper::run() {
     if (!pose && !poses_.empty() && stampNs(poses_.back().header()) < stamp &&
         stamp - stampNs(poses_.back().header()) < kPoseWaitWindowNs) {
       waiting_for_pose_ = true;  // caught up: the pose comes with later data
-      cv_.wait_for(lock, std::chrono::milliseconds(50),
-                   [&] { return stopping_ || stampNs(poses_.back().header()) >= stamp; });
+      const auto posed_or_stop = [this, stamp]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+        return stopping_ || (!poses_.empty() && stampNs(poses_.back().header()) >= stamp);
+      };
+      mutex_.AwaitWithTimeout(absl::Condition(&posed_or_stop), absl::Milliseconds(50));
       waiting_for_pose_ = false;
       if (stopping_) return;
       pose = poseAt(stamp);
@@ -232,16 +237,16 @@ void LidarMapper::run() {
       continue;
     }
     inserting_ = true;
-    lock.unlock();
+    mutex_.Unlock();
     insert(scan, *pose);
-    lock.lock();
+    mutex_.Lock();
     inserting_ = false;
     ++stats_.scans_inserted;
   }
 }
 
 bool LidarMapper::caughtUp() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return !inserting_ && (queue_.empty() || waiting_for_pose_);
 }
 
@@ -267,7 +272,7 @@ void LidarMapper::insert(const v1::LaserScan& scan, const v1::PoseStamped& pose)
     hits.push_back(hit);
   }
   {
-    std::lock_guard lock(map_mutex_);
+    absl::MutexLock lock(&map_mutex_);
     map_.insertScan(origin, hits, misses);
     columns_.afterScan(map_, hits);
   }
@@ -284,7 +289,7 @@ void LidarMapper::publishOccupied(const v1::LaserScan& scan, double height_m) {
   }
   v1::PointCloud cloud;
   {
-    std::lock_guard lock(map_mutex_);
+    absl::MutexLock lock(&map_mutex_);
     if (map_.revision() == occupied_published_revision_) return;
     occupied_published_revision_ = map_.revision();
     const octomap::OcTree& tree = map_.tree();
@@ -309,24 +314,24 @@ void LidarMapper::publishOccupied(const v1::LaserScan& scan, double height_m) {
 
 void LidarMapper::clear() {
   {
-    std::lock_guard lock(map_mutex_);
+    absl::MutexLock lock(&map_mutex_);
     map_.clear();
     columns_.clear();
   }
   // Then the next scan is mapped whatever it is (reset before the map was
   // cleared, a scan mapped in between would be lost and the next thinned).
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   thinner_.reset();
 }
 
 std::optional<v1::PoseStamped> LidarMapper::latestPose() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (poses_.empty()) return std::nullopt;
   return poses_.back();
 }
 
 MapperStats LidarMapper::stats() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return stats_;
 }
 

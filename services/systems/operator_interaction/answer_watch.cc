@@ -13,35 +13,34 @@ void AnswerWatch::start() {
 
 void AnswerWatch::stop() {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopping_ = true;
-    wake_.notify_all();
   }
   if (thread_.joinable()) thread_.join();
 }
 
 AnswerWatch::State AnswerWatch::state() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return state_;
 }
 
 std::optional<v1::Belief> AnswerWatch::answer() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return answer_;
 }
 
 std::optional<std::string> AnswerWatch::failure() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return failure_;
 }
 
 uint64_t AnswerWatch::questionVersion() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return question_version_;
 }
 
 bool AnswerWatch::record(const absl::Status& status) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (status.ok()) {
     failure_.reset();
     return true;
@@ -51,8 +50,8 @@ bool AnswerWatch::record(const absl::Status& status) {
 }
 
 bool AnswerWatch::pause(std::chrono::milliseconds period) {
-  std::unique_lock lock(mutex_);
-  return wake_.wait_for(lock, period, [&] { return stopping_; });
+  absl::MutexLock lock(&mutex_);
+  return mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(period));
 }
 
 void AnswerWatch::run() {
@@ -62,7 +61,7 @@ void AnswerWatch::run() {
     auto written = beliefs_.write(request_.request_key, request_.question, request_.writer);
     if (record(written.status())) {
       asked = written->version();
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       question_version_ = asked;
       state_ = State::kWaiting;
       break;
@@ -93,7 +92,7 @@ void AnswerWatch::run() {
     if (record(copied.status())) break;
     if (pause(request_.poll_period)) return;
   }
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   answer_ = answer;
   state_ = State::kAnswered;
 }

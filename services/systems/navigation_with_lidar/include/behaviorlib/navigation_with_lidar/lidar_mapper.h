@@ -39,16 +39,15 @@
 #include <Eigen/Geometry>
 #include <atomic>
 #include <chrono>
-#include <condition_variable>
 #include <cstdint>
 #include <deque>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <thread>
 
 #include "absl/status/status.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/navigation/ground_rejection.h"
 #include "behaviorlib/navigation/occupancy_map.h"
@@ -134,7 +133,7 @@ class LidarMapper {
   /// Calls f(const OccupancyMap&) with the map locked (mapping waits).
   template <class F>
   auto withMap(F&& f) const {
-    std::lock_guard lock(map_mutex_);
+    absl::MutexLock lock(&map_mutex_);
     return f(static_cast<const OccupancyMap&>(map_));
   }
   /// Forgets the map (and the extruded columns).
@@ -163,34 +162,37 @@ class LidarMapper {
   // Publishes the occupied voxels at the lidar's height when due (mapping
   // thread only).
   void publishOccupied(const v1::LaserScan& scan, double height_m);
-  std::optional<v1::PoseStamped> poseAt(int64_t stamp_ns) const;
+  std::optional<v1::PoseStamped> poseAt(int64_t stamp_ns) const
+      ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
 
   channel::ChannelClient* channel_;
   const std::string robot_id_;
   const MapperSettings settings_;
 
-  mutable std::mutex map_mutex_;
-  OccupancyMap map_;
-  WallColumns columns_;  // map_mutex_
+  mutable absl::Mutex map_mutex_;
+  OccupancyMap map_ ABSL_GUARDED_BY(map_mutex_);
+  WallColumns columns_ ABSL_GUARDED_BY(map_mutex_);
 
-  mutable std::mutex mutex_;  // queue, poses, stats
-  std::condition_variable cv_;
-  std::deque<v1::LaserScan> queue_;
-  std::deque<v1::PoseStamped> poses_;  // the last second, by stamp
-  MapperStats stats_;
-  ScanThinner thinner_;
-  bool stopping_ = false;
-  bool inserting_ = false;         // a scan is going into the map
-  bool waiting_for_pose_ = false;  // the next scan waits for its pose estimate
+  // The queue, the poses and the statistics; the mapping thread waits on it
+  // (Mutex::Await).
+  mutable absl::Mutex mutex_;
+  std::deque<v1::LaserScan> queue_ ABSL_GUARDED_BY(mutex_);
+  std::deque<v1::PoseStamped> poses_ ABSL_GUARDED_BY(mutex_);  // the last second, by stamp
+  MapperStats stats_ ABSL_GUARDED_BY(mutex_);
+  ScanThinner thinner_ ABSL_GUARDED_BY(mutex_);
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool inserting_ ABSL_GUARDED_BY(mutex_) = false;  // a scan is going into the map
+  // The next scan waits for its pose estimate.
+  bool waiting_for_pose_ ABSL_GUARDED_BY(mutex_) = false;
   // When the last pose estimate arrived (host time); none yet: no scans.
-  std::optional<std::chrono::steady_clock::time_point> last_pose_arrival_;
-  uint64_t poses_received_ = 0;
+  std::optional<std::chrono::steady_clock::time_point> last_pose_arrival_ ABSL_GUARDED_BY(mutex_);
+  uint64_t poses_received_ ABSL_GUARDED_BY(mutex_) = 0;
   static constexpr std::chrono::seconds kScanFollowAfterPose{2};
 
   // The last publication of the occupied voxels (mapping thread only).
   int64_t occupied_published_stamp_ns_ = 0;
   std::chrono::steady_clock::time_point occupied_published_at_{};
-  uint64_t occupied_published_revision_ = 0;
+  uint64_t occupied_published_revision_ ABSL_GUARDED_BY(map_mutex_) = 0;
 
   std::thread thread_;
   std::unique_ptr<channel::Subscription> scan_sub_, pose_sub_;

@@ -16,12 +16,11 @@
 #include <google/protobuf/struct.pb.h>
 
 #include <chrono>
-#include <condition_variable>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <thread>
 
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/server/belief_client.h"
 #include "behaviorlib/v1/coordinator.pb.h"
 
@@ -67,13 +66,12 @@ class AnswerWatch {
 
   const server::BeliefClient& beliefs_;
   const Request request_;
-  mutable std::mutex mutex_;
-  std::condition_variable wake_;
-  bool stopping_ = false;
-  State state_ = State::kAsking;
-  uint64_t question_version_ = 0;
-  std::optional<v1::Belief> answer_;
-  std::optional<std::string> failure_;
+  mutable absl::Mutex mutex_;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  State state_ ABSL_GUARDED_BY(mutex_) = State::kAsking;
+  uint64_t question_version_ ABSL_GUARDED_BY(mutex_) = 0;
+  std::optional<v1::Belief> answer_ ABSL_GUARDED_BY(mutex_);
+  std::optional<std::string> failure_ ABSL_GUARDED_BY(mutex_);
   std::thread thread_;
 };
 

@@ -109,18 +109,19 @@ void tick(benchmark::State& state, bool with_metrics, bool cold = false) {
   }
   auto parameters = std::make_unique<v1::WaitParameters>();
   parameters->set_duration_s(86400);
-  if (auto r = behavior->activateAndWait(std::move(parameters)); !r.ok()) {
+  BehaviorExecutionManager& engine = detail::engineOf(*behavior);
+  if (auto r = engine.activateAndWait(std::move(parameters)); !r.ok()) {
     host.stop();
     return fail(state, "activate: " + std::string(r.status().message()));
   }
 
   if (cold) {
-    coldTicks(state, *behavior);
+    coldTicks(state, engine);
   } else {
-    for (auto _ : state) behavior->execute();
+    for (auto _ : state) engine.execute();
   }
 
-  if (behavior->state() != v1::BEHAVIOR_STATE_ACTIVE) {
+  if (engine.state() != v1::BEHAVIOR_STATE_ACTIVE) {
     fail(state, "the activation ended during the ticks");
   }
   host.stop();

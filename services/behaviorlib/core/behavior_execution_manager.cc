@@ -189,9 +189,25 @@ void BehaviorExecutionManager::runInBackground(std::function<void()> task) {
   background->post(std::move(task));
 }
 
-BehaviorExecutionManager::BehaviorExecutionManager(
-    std::string name, const google::protobuf::Descriptor* parameters_type, BehaviorOptions options)
-    : name_(std::move(name)), parameters_type_(parameters_type), options_(options) {}
+BehaviorBase::BehaviorBase(std::string name, const google::protobuf::Descriptor* parameters_type,
+                           BehaviorOptions options)
+    : name_(std::move(name)), parameters_type_(parameters_type), initial_options_(options) {}
+
+namespace detail {
+BehaviorExecutionManager& engineOf(BehaviorBase& behavior) { return behavior.engine(); }
+}  // namespace detail
+
+BehaviorExecutionManager::BehaviorExecutionManager(std::unique_ptr<BehaviorBase> behavior)
+    : name_(behavior ? behavior->name_ : std::string()),
+      parameters_type_(behavior ? behavior->parameters_type_ : nullptr),
+      options_(behavior ? behavior->initial_options_ : BehaviorOptions{}),
+      behavior_(std::move(behavior)) {
+  if (!behavior_) throw std::logic_error("a BehaviorExecutionManager needs a behavior");
+  if (behavior_->engine_ != nullptr) {
+    throw std::logic_error("behavior " + name_ + " is already held by an engine");
+  }
+  behavior_->engine_ = this;
+}
 
 BehaviorExecutionManager::~BehaviorExecutionManager() {
   if (worker_.joinable()) worker_.detach();  // stop() was not called: a host bug
@@ -234,7 +250,8 @@ absl::Status BehaviorExecutionManager::start(BehaviorContext context) {
         post(
             [this, done] {
               absl::Status status;
-              if (!guarded("onConfigure", [&] { status = onConfigure(context_.config); })) {
+              if (!guarded("onConfigure",
+                           [&] { status = behavior_->onConfigure(context_.config); })) {
                 status = absl::InternalError(failure_message_);
               }
               if (status.ok()) {
@@ -429,7 +446,7 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
     // now that it returned, clean up and accept activations again.
     if (std::string_view(function) != "onDeactivate") {
       try {
-        onDeactivate();
+        behavior_->onDeactivate();
       } catch (...) {
       }
     }
@@ -502,26 +519,26 @@ void BehaviorExecutionManager::execute() {
   Situation situation;
   const bool ok = guarded("monitoring", [&] {
     call_function_.store("checkProcesses", std::memory_order_relaxed);
-    if (Verdict v = checkProcesses(); v.finishes()) {
+    if (Verdict v = behavior_->checkProcesses(); v.finishes()) {
       cause = v1::TERMINATION_CAUSE_PROCESS_FAILURE;
       message = v.message();
       return;
     }
     call_function_.store("checkSituation", std::memory_order_relaxed);
-    situation = checkSituation();
+    situation = behavior_->checkSituation();
     if (!situation.feasible) {
       cause = v1::TERMINATION_CAUSE_SITUATION_CHANGE;
       message = joinReasons(situation.reasons);
       return;
     }
     call_function_.store("checkGoal", std::memory_order_relaxed);
-    if (Verdict v = checkGoal(); v.finishes()) {
+    if (Verdict v = behavior_->checkGoal(); v.finishes()) {
       cause = v1::TERMINATION_CAUSE_GOAL_ACHIEVED;
       message = v.message();
       return;
     }
     call_function_.store("checkProgress", std::memory_order_relaxed);
-    if (Verdict v = checkProgress(); v.finishes()) {
+    if (Verdict v = behavior_->checkProgress(); v.finishes()) {
       cause = v1::TERMINATION_CAUSE_WRONG_PROGRESS;
       message = v.message();
       return;
@@ -561,7 +578,7 @@ void BehaviorExecutionManager::execute() {
     context_.events->append(std::move(event));
     if (context_.observer) context_.observer->onSituation(situation.performance_ratio);
   }
-  const bool executed = guarded("onExecute", [&] { onExecute(); });
+  const bool executed = guarded("onExecute", [&] { behavior_->onExecute(); });
   if (first_execute_pending_) {
     first_execute_pending_ = false;
     if (context_.observer) {
@@ -575,7 +592,7 @@ void BehaviorExecutionManager::execute() {
 
 void BehaviorExecutionManager::finish(v1::TerminationCause cause, const std::string& message) {
   std::string full_message = message;
-  if (!guarded("onDeactivate", [&] { onDeactivate(); })) {
+  if (!guarded("onDeactivate", [&] { behavior_->onDeactivate(); })) {
     if (stopped_by_watchdog_) return;
     full_message += (full_message.empty() ? "" : "; ") + failure_message_;
   }
@@ -728,7 +745,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     return;
   }
   Situation situation;
-  if (!guarded("checkSituation", [&] { situation = checkSituation(); })) {
+  if (!guarded("checkSituation", [&] { situation = behavior_->checkSituation(); })) {
     done(errors::withReason(
         absl::FailedPreconditionError(name_ + " cannot be activated: " + failure_message_),
         v1::BEHAVIOR_FAILED, {{"behavior", name_}}));
@@ -756,7 +773,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     active_accumulated_ = Duration::zero();
   }
   absl::Status status;
-  if (!guarded("onActivate", [&] { status = onActivate(); })) {
+  if (!guarded("onActivate", [&] { status = behavior_->onActivate(); })) {
     status = absl::InternalError(failure_message_);
   }
   if (!status.ok()) {
@@ -879,7 +896,7 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
           current = activation_id_;
         }
         if (!hookOrAbort(
-                "onPause", [&] { onPause(); }, [&](absl::Status s) { done(s); }))
+                "onPause", [&] { behavior_->onPause(); }, [&](absl::Status s) { done(s); }))
           return;
         {
           std::unique_lock lock(mutex_);
@@ -915,7 +932,7 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
           current = activation_id_;
         }
         if (!hookOrAbort(
-                "onResume", [&] { onResume(); }, [&](absl::Status s) { done(s); }))
+                "onResume", [&] { behavior_->onResume(); }, [&](absl::Status s) { done(s); }))
           return;
         {
           std::unique_lock lock(mutex_);
@@ -969,7 +986,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         absl::Status status;
         if (!hookOrAbort(
-                "onModify", [&] { status = modifyParameters(*merged); },
+                "onModify", [&] { status = behavior_->modifyParameters(*merged); },
                 [&](absl::Status s) { done(s); })) {
           return;
         }
@@ -1006,7 +1023,7 @@ void BehaviorExecutionManager::checkSituationNow(Done<v1::CheckSituationResponse
       [this, done] {
         Situation situation;
         v1::CheckSituationResponse response;
-        if (!guarded("checkSituation", [&] { situation = checkSituation(); })) {
+        if (!guarded("checkSituation", [&] { situation = behavior_->checkSituation(); })) {
           response.set_feasible(false);
           response.add_reasons(failure_message_);
           done(std::move(response));

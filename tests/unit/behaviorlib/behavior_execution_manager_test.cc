@@ -35,11 +35,13 @@ class BehaviorExecutionManagerTest : public ::testing::Test {
     EXPECT_TRUE(host_.start().ok());
     return *behavior_;
   }
+  // The engine that holds the behavior start() made.
+  BehaviorExecutionManager& engine() { return detail::engineOf(*behavior_); }
   // Activates and waits for the first tick's onExecute, which runs right
   // after onActivate without any clock advance.
   v1::ActivateResponse activate(double duration_s = 1.0, std::string request_id = {}) {
     const int executed = behavior_->count("onExecute");
-    auto r = behavior_->activateAndWait(waitParams(duration_s), std::move(request_id));
+    auto r = engine().activateAndWait(waitParams(duration_s), std::move(request_id));
     EXPECT_TRUE(r.ok()) << r.status();
     EXPECT_TRUE(eventually([&] { return behavior_->count("onExecute") > executed; }));
     return r.ok() ? *r : v1::ActivateResponse();
@@ -60,6 +62,34 @@ class BehaviorExecutionManagerTest : public ::testing::Test {
 // A behavior's name comes from its parameters' declaration in the proto.
 class DeclaredWait final : public Behavior<v1::WaitParameters> {};
 class Undeclared final : public Behavior<google::protobuf::Struct> {};
+
+// The engine is the library's own: a behavior's class has none of its host
+// interface, threads or queues, and no way to reach them.
+template <class T>
+concept ReachesTheEngine = requires(T& behavior) {
+  behavior.activateAndWait(nullptr);
+  behavior.watchdogCheck(std::chrono::steady_clock::now());
+  behavior.execute();
+};
+static_assert(!std::is_base_of_v<BehaviorExecutionManager, DeclaredWait>);
+static_assert(!ReachesTheEngine<DeclaredWait>);
+static_assert(ReachesTheEngine<BehaviorExecutionManager>);
+
+TEST(BehaviorEngineTest, AnEngineHoldsOneBehaviorAndHelpersNeedIt) {
+  auto owned = std::make_unique<DeclaredWait>();
+  DeclaredWait& behavior = *owned;
+  try {
+    detail::engineOf(behavior);
+    ADD_FAILURE() << "a behavior no engine holds gave an engine";
+  } catch (const std::logic_error& e) {
+    EXPECT_THAT(e.what(), HasSubstr("no engine holds it yet"));
+  }
+  BehaviorExecutionManager engine(std::move(owned));
+  EXPECT_EQ(&detail::engineOf(behavior), &engine);
+  EXPECT_EQ(&engine.behavior(), &behavior);
+  EXPECT_EQ(engine.name(), "WAIT");
+  EXPECT_THROW(BehaviorExecutionManager(std::unique_ptr<BehaviorBase>()), std::logic_error);
+}
 
 TEST(BehaviorDeclarationTest, TheNameComesFromTheParametersDeclaration) {
   EXPECT_EQ(DeclaredWait().name(), "WAIT");
@@ -164,8 +194,9 @@ TEST(BehaviorTimeGateTest, ACommandHeldAtTheGateIsCaughtUpButNotIdleAndRunsAtThe
 
   gate.setOpen(false);
   std::promise<absl::StatusOr<v1::ActivateResponse>> reply;
-  b.activate(waitParams(10.0), "",
-             [&reply](absl::StatusOr<v1::ActivateResponse> r) { reply.set_value(std::move(r)); });
+  detail::engineOf(b).activate(
+      waitParams(10.0), "",
+      [&reply](absl::StatusOr<v1::ActivateResponse> r) { reply.set_value(std::move(r)); });
   ASSERT_TRUE(gate.waitForWaiter());
   // Held at the gate: it waits for time, so the system is caught up with
   // any time (the follower may apply the next grant), but it is not idle
@@ -220,7 +251,7 @@ TEST_P(TerminationCauseTest, EndsActivationWithCauseThenDeactivates) {
   param.script(b);
   const auto activation = activate();
   if (param.cause == v1::TERMINATION_CAUSE_INTERRUPTED) {
-    ASSERT_TRUE(b.deactivateAndWait(activation.activation_id()).ok());
+    ASSERT_TRUE(engine().deactivateAndWait(activation.activation_id()).ok());
   } else if (param.cause == v1::TERMINATION_CAUSE_TIME_OUT) {
     clock_.advance(milliseconds(1500));
   } else {
@@ -236,8 +267,8 @@ TEST_P(TerminationCauseTest, EndsActivationWithCauseThenDeactivates) {
   EXPECT_EQ(b.count("onDeactivate"), 1);
   // onDeactivate runs before the event is emitted.
   EXPECT_EQ(b.calls().back(), "onDeactivate");
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
-  EXPECT_FALSE(b.checkActivation().active());
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_FALSE(engine().checkActivation().active());
 }
 
 int ticksSeen(ScriptedBehavior& b) { return b.count("onExecute"); }
@@ -297,11 +328,11 @@ INSTANTIATE_TEST_SUITE_P(
 
 TEST_F(BehaviorExecutionManagerTest, RejectsInvalidParametersNamingTheField) {
   auto& b = start();
-  auto missing = b.activateAndWait(std::make_unique<v1::WaitParameters>());
+  auto missing = engine().activateAndWait(std::make_unique<v1::WaitParameters>());
   EXPECT_EQ(missing.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(missing.status().message(), HasSubstr("duration_s"));
   EXPECT_EQ(errors::reasonOf(missing.status()), "PARAMETER_INVALID");
-  auto negative = b.activateAndWait(waitParams(-1));
+  auto negative = engine().activateAndWait(waitParams(-1));
   EXPECT_EQ(negative.status().code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(negative.status().message(), HasSubstr("duration_s"));
   // Machine-readable: the reason, the behavior, and the request's field.
@@ -314,9 +345,9 @@ TEST_F(BehaviorExecutionManagerTest, RejectsInvalidParametersNamingTheField) {
 }
 
 TEST_F(BehaviorExecutionManagerTest, RefusesSecondActivationWhileActive) {
-  auto& b = start();
+  start();
   activate();
-  auto again = b.activateAndWait(waitParams(2));
+  auto again = engine().activateAndWait(waitParams(2));
   EXPECT_EQ(again.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(again.status().message(), HasSubstr("already active"));
   EXPECT_EQ(errors::reasonOf(again.status()), "BEHAVIOR_ALREADY_ACTIVE");
@@ -331,13 +362,13 @@ TEST_F(BehaviorExecutionManagerTest, RefusesActivationWhenSituationIsInfeasible)
     s.add(v1::SITUATION_REASON_BATTERY_LOW, "battery at 0.10");
     return s;
   };
-  auto r = b.activateAndWait(waitParams(1));
+  auto r = engine().activateAndWait(waitParams(1));
   EXPECT_EQ(r.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(r.status().message(), HasSubstr("the robot is not flying"));
   EXPECT_EQ(errors::reasonOf(r.status()), "SITUATION_NOT_SUITABLE");
   EXPECT_EQ(errors::errorInfo(r.status())->metadata().at("situation_reasons"),
             "SITUATION_REASON_FLIGHT_STATE,SITUATION_REASON_BATTERY_LOW");
-  auto situation = b.checkSituationAndWait();
+  auto situation = engine().checkSituationAndWait();
   ASSERT_TRUE(situation.ok());
   EXPECT_FALSE(situation->feasible());
   EXPECT_THAT(situation->reasons(), ElementsAre("the robot is not flying", "battery at 0.10"));
@@ -348,26 +379,27 @@ TEST_F(BehaviorExecutionManagerTest, RefusesActivationWhenSituationIsInfeasible)
 TEST_F(BehaviorExecutionManagerTest, OnActivateErrorRefusesActivation) {
   auto& b = start();
   b.on_activate = [] { return absl::FailedPreconditionError("no map loaded"); };
-  auto r = b.activateAndWait(waitParams(1));
+  auto r = engine().activateAndWait(waitParams(1));
   EXPECT_EQ(r.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(r.status().message(), HasSubstr("no map loaded"));
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_INACTIVE);
   EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kActivated), 0);
 }
 
 TEST_F(BehaviorExecutionManagerTest, DeactivateWhenInactiveIsFailedPrecondition) {
-  auto& b = start();
-  auto r = b.deactivateAndWait();
+  start();
+  auto r = engine().deactivateAndWait();
   EXPECT_EQ(r.status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_EQ(b.pauseAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_EQ(b.resumeAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
-  EXPECT_EQ(b.modifyAndWait(waitParams(2)).status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(engine().pauseAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(engine().resumeAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
+  EXPECT_EQ(engine().modifyAndWait(waitParams(2)).status().code(),
+            absl::StatusCode::kFailedPrecondition);
 }
 
 TEST_F(BehaviorExecutionManagerTest, SameRequestIdReturnsTheSameActivation) {
   auto& b = start();
   const auto first = activate(1.0, "req-1");
-  auto retry = b.activateAndWait(waitParams(1.0), "req-1");
+  auto retry = engine().activateAndWait(waitParams(1.0), "req-1");
   ASSERT_TRUE(retry.ok()) << retry.status();
   EXPECT_EQ(retry->activation_id(), first.activation_id());
   EXPECT_TRUE(retry->replayed());
@@ -375,22 +407,22 @@ TEST_F(BehaviorExecutionManagerTest, SameRequestIdReturnsTheSameActivation) {
   EXPECT_EQ(b.count("onActivate"), 1);
   EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kActivated), 1);
   // A different id is a new request, refused because already active.
-  EXPECT_EQ(b.activateAndWait(waitParams(1.0), "req-2").status().code(),
+  EXPECT_EQ(engine().activateAndWait(waitParams(1.0), "req-2").status().code(),
             absl::StatusCode::kFailedPrecondition);
   // After the activation ended, the old id still replays (within the window).
-  ASSERT_TRUE(b.deactivateAndWait().ok());
-  auto late = b.activateAndWait(waitParams(1.0), "req-1");
+  ASSERT_TRUE(engine().deactivateAndWait().ok());
+  auto late = engine().activateAndWait(waitParams(1.0), "req-1");
   ASSERT_TRUE(late.ok());
   EXPECT_EQ(late->activation_id(), first.activation_id());
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_INACTIVE);
 }
 
 TEST_F(BehaviorExecutionManagerTest, StaleActivationIdNeverStopsANewerActivation) {
-  auto& b = start();
+  start();
   const auto old_activation = activate();
-  ASSERT_TRUE(b.deactivateAndWait(old_activation.activation_id()).ok());
+  ASSERT_TRUE(engine().deactivateAndWait(old_activation.activation_id()).ok());
   // Retrying the deactivation of a finished activation reports how it ended.
-  auto retry = b.deactivateAndWait(old_activation.activation_id());
+  auto retry = engine().deactivateAndWait(old_activation.activation_id());
   ASSERT_TRUE(retry.ok()) << retry.status();
   EXPECT_TRUE(retry->already_finished());
   EXPECT_EQ(retry->cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
@@ -398,14 +430,14 @@ TEST_F(BehaviorExecutionManagerTest, StaleActivationIdNeverStopsANewerActivation
   const auto current = activate();
   ASSERT_NE(current.activation_id(), old_activation.activation_id());
   for (auto code :
-       {b.deactivateAndWait(old_activation.activation_id()).status().code(),
-        b.pauseAndWait(old_activation.activation_id()).status().code(),
-        b.resumeAndWait(old_activation.activation_id()).status().code(),
-        b.modifyAndWait(waitParams(3), old_activation.activation_id()).status().code()}) {
+       {engine().deactivateAndWait(old_activation.activation_id()).status().code(),
+        engine().pauseAndWait(old_activation.activation_id()).status().code(),
+        engine().resumeAndWait(old_activation.activation_id()).status().code(),
+        engine().modifyAndWait(waitParams(3), old_activation.activation_id()).status().code()}) {
     EXPECT_EQ(code, absl::StatusCode::kAborted);
   }
-  EXPECT_EQ(b.checkActivation().activation_id(), current.activation_id());
-  EXPECT_TRUE(b.checkActivation().active());
+  EXPECT_EQ(engine().checkActivation().activation_id(), current.activation_id());
+  EXPECT_TRUE(engine().checkActivation().active());
 }
 
 TEST_F(BehaviorExecutionManagerTest, ABehaviorEndingThroughTheTimeOutGivesItsReason) {
@@ -426,7 +458,7 @@ TEST_F(BehaviorExecutionManagerTest, ABehaviorEndingThroughTheTimeOutGivesItsRea
   give_up = false;
   const auto second = activate();
   clock_.advance(milliseconds(1100));
-  ASSERT_TRUE(eventually([&] { return b.state() == v1::BEHAVIOR_STATE_INACTIVE; }));
+  ASSERT_TRUE(eventually([&] { return engine().state() == v1::BEHAVIOR_STATE_INACTIVE; }));
   finished = events_.waitFinished(/*skip=*/1);
   EXPECT_EQ(finished.activation_id(), second.activation_id());
   EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_TIME_OUT);
@@ -443,24 +475,24 @@ TEST_F(BehaviorExecutionManagerTest, PauseStopsMonitoringAndTheTimeOutCountsActi
   const auto activation = activate();
   clock_.advance(milliseconds(1500));
   ASSERT_TRUE(eventually([&] { return b.lastActiveTime() >= milliseconds(1500); }));
-  ASSERT_TRUE(b.pauseAndWait(activation.activation_id()).ok());
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_PAUSED);
-  EXPECT_EQ(b.pauseAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
+  ASSERT_TRUE(engine().pauseAndWait(activation.activation_id()).ok());
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_PAUSED);
+  EXPECT_EQ(engine().pauseAndWait().status().code(), absl::StatusCode::kFailedPrecondition);
   const int checks = b.count("checkProcesses");
   clock_.advance(seconds(10));
   std::this_thread::sleep_for(milliseconds(30));
   EXPECT_EQ(b.count("checkProcesses"), checks) << "no monitoring while paused";
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_PAUSED) << "paused time must not time out";
-  const auto paused_status = b.checkActivation();
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_PAUSED) << "paused time must not time out";
+  const auto paused_status = engine().checkActivation();
   EXPECT_TRUE(paused_status.active());
   EXPECT_EQ(paused_status.active_duration().seconds(), 1);
 
-  ASSERT_TRUE(b.resumeAndWait(activation.activation_id()).ok());
+  ASSERT_TRUE(engine().resumeAndWait(activation.activation_id()).ok());
   ASSERT_TRUE(eventually([&] { return b.count("checkProcesses") > checks; }))
       << "resume ticks at once";
   clock_.advance(milliseconds(400));
   std::this_thread::sleep_for(milliseconds(20));
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_ACTIVE);
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_ACTIVE);
   clock_.advance(milliseconds(200));
   const auto finished = events_.waitFinished();
   EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_TIME_OUT);
@@ -482,7 +514,7 @@ TEST_F(BehaviorExecutionManagerTest, ModifyMergesValidatesAndNotifies) {
     return absl::OkStatus();
   };
   const auto activation = activate(5.0);
-  auto modified = b.modifyAndWait(waitParams(7.0), activation.activation_id());
+  auto modified = engine().modifyAndWait(waitParams(7.0), activation.activation_id());
   ASSERT_TRUE(modified.ok()) << modified.status();
   ASSERT_EQ(seen.size(), 1u);
   EXPECT_EQ(seen[0].first, 7.0);
@@ -490,21 +522,21 @@ TEST_F(BehaviorExecutionManagerTest, ModifyMergesValidatesAndNotifies) {
   EXPECT_EQ(modified->parameters().fields().at("duration_s").number_value(), 7.0);
   tick();
   EXPECT_TRUE(eventually([&] { return b.durationParameter() == 7.0; }));
-  EXPECT_EQ(b.checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
+  EXPECT_EQ(engine().checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
 
-  auto bad = b.modifyAndWait(waitParams(-3.0));
+  auto bad = engine().modifyAndWait(waitParams(-3.0));
   EXPECT_EQ(bad.status().code(), absl::StatusCode::kInvalidArgument);
   // An empty update keeps everything.
-  ASSERT_TRUE(b.modifyAndWait(std::make_unique<v1::WaitParameters>()).ok());
-  EXPECT_EQ(b.checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
+  ASSERT_TRUE(engine().modifyAndWait(std::make_unique<v1::WaitParameters>()).ok());
+  EXPECT_EQ(engine().checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
 
   b.on_modify = [](const v1::WaitParameters&) {
     return absl::FailedPreconditionError("cannot shorten now");
   };
-  auto refused = b.modifyAndWait(waitParams(1.0));
+  auto refused = engine().modifyAndWait(waitParams(1.0));
   EXPECT_EQ(refused.status().code(), absl::StatusCode::kFailedPrecondition);
   EXPECT_THAT(refused.status().message(), HasSubstr("cannot shorten now"));
-  EXPECT_EQ(b.checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
+  EXPECT_EQ(engine().checkActivation().parameters().fields().at("duration_s").number_value(), 7.0);
   EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kModified), 2);
 }
 
@@ -546,8 +578,8 @@ TEST_F(BehaviorExecutionManagerTest, StuckOnExecuteEndsWithProcessFailureAndProc
   ASSERT_TRUE(finished.has_finished());
   EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
   EXPECT_THAT(finished.finished().message(), HasSubstr("onExecute did not return"));
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_BLOCKED);
-  auto refused = b.activateAndWait(waitParams(1), {}, milliseconds(200));
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_BLOCKED);
+  auto refused = engine().activateAndWait(waitParams(1), {}, milliseconds(200));
   EXPECT_FALSE(refused.ok());
 
   {
@@ -555,11 +587,11 @@ TEST_F(BehaviorExecutionManagerTest, StuckOnExecuteEndsWithProcessFailureAndProc
     release = true;
   }
   cv.notify_all();
-  ASSERT_TRUE(eventually([&] { return b.state() == v1::BEHAVIOR_STATE_INACTIVE; }));
+  ASSERT_TRUE(eventually([&] { return engine().state() == v1::BEHAVIOR_STATE_INACTIVE; }));
   EXPECT_EQ(b.count("onDeactivate"), 1);
   b.on_execute = [] {};
   activate();
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_ACTIVE);
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_ACTIVE);
   EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kFinished), 1);
 }
 
@@ -604,26 +636,26 @@ TEST_F(BehaviorExecutionManagerTest, ObserverSeesActivationTicksBlockAndRecovery
   EXPECT_EQ(observer->unblocked, 0);
   stuck = false;
   ASSERT_TRUE(eventually([&] { return observer->unblocked == 1; }));
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_INACTIVE);
 }
 
 TEST_F(BehaviorExecutionManagerTest, HookThatThrowsWhilePausingEndsTheActivation) {
   auto& b = start();
   b.on_pause = [] { throw std::runtime_error("brake stuck"); };
   const auto activation = activate();
-  auto paused = b.pauseAndWait(activation.activation_id());
+  auto paused = engine().pauseAndWait(activation.activation_id());
   EXPECT_EQ(paused.status().code(), absl::StatusCode::kAborted);
   EXPECT_THAT(paused.status().message(), HasSubstr("onPause threw: brake stuck"));
   const auto finished = events_.waitFinished();
   EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
-  EXPECT_EQ(b.state(), v1::BEHAVIOR_STATE_INACTIVE);
+  EXPECT_EQ(engine().state(), v1::BEHAVIOR_STATE_INACTIVE);
   EXPECT_EQ(events_.countKind(v1::BehaviorEvent::kPaused), 0);
 }
 
 TEST_F(BehaviorExecutionManagerTest, ExceptionInMonitoringIsProcessFailure) {
   auto& b = start();
   b.goal = []() -> Verdict { throw std::out_of_range("bad index"); };
-  ASSERT_TRUE(b.activateAndWait(waitParams(1)).ok());
+  ASSERT_TRUE(engine().activateAndWait(waitParams(1)).ok());
   const auto finished = events_.waitFinished();
   EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
   EXPECT_THAT(finished.finished().message(), HasSubstr("checkGoal threw: bad index"));
@@ -638,13 +670,14 @@ TEST_F(BehaviorExecutionManagerTest, HostStopInterruptsActiveBehaviors) {
   EXPECT_EQ(finished.activation_id(), activation.activation_id());
   EXPECT_EQ(b.count("onDeactivate"), 1);
   // Calls after stop get an answer, not a hang.
-  EXPECT_EQ(b.activateAndWait(waitParams(1)).status().code(), absl::StatusCode::kUnavailable);
+  EXPECT_EQ(engine().activateAndWait(waitParams(1)).status().code(),
+            absl::StatusCode::kUnavailable);
 }
 
 TEST_F(BehaviorExecutionManagerTest, EventsCarryHostIdentityAndIncreasingSeq) {
-  auto& b = start();
+  start();
   const auto activation = activate();
-  ASSERT_TRUE(b.deactivateAndWait().ok());
+  ASSERT_TRUE(engine().deactivateAndWait().ok());
   const auto events = events_.events();
   ASSERT_EQ(events.size(), 2u);
   EXPECT_TRUE(events[0].has_activated());
@@ -663,13 +696,12 @@ TEST(BehaviorConfigTest, ConfigOverridesOptionsAndRejectsBadValues) {
   FakeClock clock;
   BehaviorHost host(testing::hostOptions("r", "s"), clock);
   auto behavior = std::make_unique<ScriptedBehavior>();
-  auto* b = behavior.get();
   host.add(std::move(behavior));
   YAML::Node config = YAML::Load(
       "behaviors:\n  SCRIPTED:\n    frequency_hz: 20\n    maximum_execution_time_s: 3.5\n");
   ASSERT_TRUE(host.start(config).ok());
-  EXPECT_EQ(b->options().frequency_hz, 20.0);
-  EXPECT_EQ(b->options().maximum_execution_time, milliseconds(3500));
+  EXPECT_EQ(host.find("SCRIPTED")->options().frequency_hz, 20.0);
+  EXPECT_EQ(host.find("SCRIPTED")->options().maximum_execution_time, milliseconds(3500));
   host.stop();
 
   BehaviorHost bad_host(testing::hostOptions("r", "s"), clock);

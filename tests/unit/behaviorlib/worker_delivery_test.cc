@@ -8,8 +8,8 @@
 #include <future>
 #include <mutex>
 #include <optional>
-#include <utility>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "behaviorlib/behavior_execution_manager.h"
@@ -21,8 +21,8 @@ namespace behaviorlib {
 namespace {
 
 using ::testing::ElementsAre;
-using ::testing::HasSubstr;
 using testing::eventually;
+using ::testing::HasSubstr;
 using testing::waitParams;
 
 // Hands every int it is fed to its worker. Sample 1 holds the worker until
@@ -90,7 +90,7 @@ class WorkerDeliveryTest : public ::testing::Test {
     behavior_ = behavior.get();
     host_.add(std::move(behavior));
     EXPECT_TRUE(host_.start().ok());
-    auto r = behavior_->activateAndWait(waitParams(100));
+    auto r = detail::engineOf(*behavior_).activateAndWait(waitParams(100));
     EXPECT_TRUE(r.ok()) << r.status();
     return *behavior_;
   }
@@ -145,15 +145,14 @@ TEST_F(WorkerDeliveryTest, SamplesOfAnEndedActivationAreDropped) {
   b.feed(2);
   // Queued behind the held handler; commands run before waiting samples.
   std::promise<absl::StatusOr<v1::DeactivateResponse>> deactivated;
-  b.deactivate({}, [&](absl::StatusOr<v1::DeactivateResponse> r) {
-    deactivated.set_value(std::move(r));
-  });
+  detail::engineOf(b).deactivate(
+      {}, [&](absl::StatusOr<v1::DeactivateResponse> r) { deactivated.set_value(std::move(r)); });
   b.release.set_value();
   auto r = deactivated.get_future().get();
   ASSERT_TRUE(r.ok()) << r.status();
   // The old activation's callback stays dropped in the next activation.
   const auto old_feed = b.feed;
-  ASSERT_TRUE(b.activateAndWait(waitParams(100)).ok());
+  ASSERT_TRUE(detail::engineOf(b).activateAndWait(waitParams(100)).ok());
   old_feed(3);
   b.feed(5);  // queued after 3: once 5 arrives, 3 has been passed over
   ASSERT_TRUE(eventually([&] { return b.received().size() >= 2; }));
@@ -213,7 +212,7 @@ class BackgroundJobTest : public ::testing::Test {
     auto& b = *behavior;
     host_.add(std::move(behavior));
     EXPECT_TRUE(host_.start().ok());
-    auto r = b.activateAndWait(waitParams(100));
+    auto r = detail::engineOf(b).activateAndWait(waitParams(100));
     EXPECT_TRUE(r.ok()) << r.status();
     return b;
   }

@@ -1,9 +1,10 @@
 #pragma once
 
-// BehaviorExecutionManager: a robot behavior that controls itself and manages
-// its own execution (Molina et al., "Programming Robot Behaviors with Execution
-// Management Functions"). Subclass it (through Behavior<Params>), override the
-// paper's functions, and register the class in a behavior system:
+// A robot behavior that controls itself and manages its own execution (Molina
+// et al., "Programming Robot Behaviors with Execution Management Functions").
+// The behavior's author derives from Behavior<Params> (a BehaviorBase),
+// overrides the paper's functions, and registers the class in a behavior
+// system, which wraps it in its engine, the BehaviorExecutionManager:
 //
 //   class WaitBehavior final : public behaviorlib::Behavior<v1::WaitParameters> {
 //    protected:
@@ -206,14 +207,127 @@ class Inbox {
 };
 }  // namespace detail
 
-class BehaviorExecutionManager {
+class BehaviorBase;
+namespace detail {
+/// The engine that holds `behavior` (tests, hosts; never behavior code).
+/// Throws std::logic_error when no engine holds it yet.
+BehaviorExecutionManager& engineOf(BehaviorBase& behavior);
+}  // namespace detail
+
+/// What a behavior's author derives from (through Behavior<Params>): the
+/// paper's functions to override, and the helpers they may call on the
+/// behavior's worker. The engine (BehaviorExecutionManager) that runs it,
+/// with its threads, queues and locks, is the library's own.
+class BehaviorBase {
  public:
-  BehaviorExecutionManager(std::string name, const google::protobuf::Descriptor* parameters_type,
-                           BehaviorOptions options = {});
+  virtual ~BehaviorBase() = default;
+  BehaviorBase(const BehaviorBase&) = delete;
+  BehaviorBase& operator=(const BehaviorBase&) = delete;
+
+  const std::string& name() const { return name_; }
+  const google::protobuf::Descriptor& parametersType() const { return *parameters_type_; }
+
+ protected:
+  BehaviorBase(std::string name, const google::protobuf::Descriptor* parameters_type,
+               BehaviorOptions options);
+
+  // ---- Activation management (the paper's table) ---------------------------
+  /// Reads configuration (this behavior's section of --config).
+  virtual absl::Status onConfigure(const YAML::Node& /*config*/) { return absl::OkStatus(); }
+  /// Prepares an activation; parameters() are set. An error refuses it.
+  virtual absl::Status onActivate() { return absl::OkStatus(); }
+  /// One step of the behavior's control.
+  virtual void onExecute() {}
+  /// Leaves a safe, stable state; releases what onActivate acquired.
+  virtual void onDeactivate() {}
+
+  // ---- Execution monitoring (the paper's table) ----------------------------
+  virtual Situation checkSituation() { return Situation::ok(); }
+  virtual Verdict checkGoal() { return Verdict::keepGoing(); }
+  virtual Verdict checkProgress() { return Verdict::keepGoing(); }
+  virtual Verdict checkProcesses() { return Verdict::keepGoing(); }
+
+  // ---- Beyond the paper ----------------------------------------------------
+  /// Paused: a motion behavior should hold position here.
+  virtual void onPause() {}
+  virtual void onResume() {}
+  // (onModify is typed: Behavior<Params>::onModify(const Params&).)
+
+  // ---- For subclasses (worker thread) --------------------------------------
+  const Clock& clock() const;
+  TimePoint now() const;
+  /// Active (not paused) time of the current activation.
+  Duration activeTime() const;
+  const google::protobuf::Message& parametersMessage() const;
+  const std::string& activationId() const;
+  const std::string& robotId() const;
+  /// Options after configuration.
+  const BehaviorOptions& options() const;
+
+  /// A callback that any thread may call (a channel subscription's reader, a
+  /// belief watch, a helper thread): it copies the sample, and `handler` runs
+  /// with it on this behavior's worker, between ticks, like every other user
+  /// function. Behavior state therefore needs no lock. Made during an
+  /// activation (onActivate, a tick), its samples that are still waiting when
+  /// that activation ends are dropped; made outside one (onConfigure), it
+  /// delivers whenever. An exception from `handler` ends an activation with
+  /// PROCESS_FAILURE; the watchdog watches it as any user function.
+  /// `capacity` bounds the waiting samples of Delivery::kEvery.
+  template <class T>
+  std::function<void(const T&)> onWorker(std::function<void(const T&)> handler,
+                                         Delivery delivery = Delivery::kEvery,
+                                         size_t capacity = 1024);
+
+  /// Runs `job` on this behavior's background thread (one per behavior,
+  /// started on first use; jobs run one at a time, in order), then `done`
+  /// with its result on the worker, as onWorker() delivers. For work too
+  /// long for a tick: decoding an image, planning, a slow remote call. The
+  /// job gets copies (or sole ownership) of what it reads and writes, and
+  /// leaves the behavior's state alone. The result of an ended activation is
+  /// dropped; an exception from the job ends the activation with
+  /// PROCESS_FAILURE. stop() waits for the running job. Worker thread.
+  template <class R>
+  void inBackground(std::function<R()> job, std::function<void(const R&)> done);
+  /// Overrides maximum_execution_time for the current activation (e.g. from
+  /// its parameters, in onActivate()); zero means none. `reason`, when not
+  /// empty, is the TIME_OUT's message instead of the library's (e.g. a
+  /// behavior that ends itself through the time-out says why).
+  void setMaximumExecutionTime(Duration d, std::string reason = {});
+
+ private:
+  friend class BehaviorExecutionManager;
+  friend BehaviorExecutionManager& detail::engineOf(BehaviorBase& behavior);
+  // The engine that holds it; throws std::logic_error before one does (a
+  // helper called from a constructor).
+  BehaviorExecutionManager& engine() const;
+
+  /// New parameters are about to take effect; an error refuses them.
+  /// Behavior<Params> overrides it with the typed onModify(const Params&).
+  virtual absl::Status modifyParameters(const google::protobuf::Message& new_parameters) = 0;
+
+  const std::string name_;
+  const google::protobuf::Descriptor* const parameters_type_;
+  const BehaviorOptions initial_options_;
+  BehaviorExecutionManager* engine_ = nullptr;
+};
+
+/// The engine of one behavior: it holds the behavior (a BehaviorBase), runs
+/// its functions on the behavior's own worker thread, and serves the uniform
+/// interface to the host. Behavior authors never see it: their class derives
+/// from Behavior<Params>, and a host (BehaviorHost, a behavior system) wraps
+/// it in an engine.
+class BehaviorExecutionManager final {
+ public:
+  /// Holds `behavior` (not null).
+  explicit BehaviorExecutionManager(std::unique_ptr<BehaviorBase> behavior);
   BehaviorExecutionManager(const BehaviorExecutionManager&) = delete;
   BehaviorExecutionManager& operator=(const BehaviorExecutionManager&) = delete;
   /// The host must call stop() before destroying a started behavior.
-  virtual ~BehaviorExecutionManager();
+  ~BehaviorExecutionManager();
+
+  /// The behavior it holds.
+  BehaviorBase& behavior() { return *behavior_; }
+  const BehaviorBase& behavior() const { return *behavior_; }
 
   const std::string& name() const { return name_; }
   const google::protobuf::Descriptor& parametersType() const { return *parameters_type_; }
@@ -293,77 +407,25 @@ class BehaviorExecutionManager {
   /// How many finished activation ids are remembered (for Deactivate replies).
   static constexpr size_t kFinishedRemembered = 64;
 
- protected:
-  // ---- Activation management (the paper's table) ---------------------------
-  /// Reads configuration (this behavior's section of --config).
-  virtual absl::Status onConfigure(const YAML::Node& /*config*/) { return absl::OkStatus(); }
-  /// Prepares an activation; parameters() are set. An error refuses it.
-  virtual absl::Status onActivate() { return absl::OkStatus(); }
-  /// One step of the behavior's control.
-  virtual void onExecute() {}
-  /// Leaves a safe, stable state; releases what onActivate acquired.
-  virtual void onDeactivate() {}
-
-  // ---- Execution monitoring (the paper's table) ----------------------------
-  virtual Situation checkSituation() { return Situation::ok(); }
-  virtual Verdict checkGoal() { return Verdict::keepGoing(); }
-  virtual Verdict checkProgress() { return Verdict::keepGoing(); }
-  virtual Verdict checkProcesses() { return Verdict::keepGoing(); }
-
-  // ---- Beyond the paper ----------------------------------------------------
-  /// Paused: a motion behavior should hold position here.
-  virtual void onPause() {}
-  virtual void onResume() {}
-  // (onModify is typed: Behavior<Params>::onModify(const Params&).)
-
-  // ---- For subclasses (worker thread) --------------------------------------
+ private:
+  friend class BehaviorBase;
+  // ---- What BehaviorBase's helpers read (the behavior's worker) ------------
   const Clock& clock() const { return *context_.clock; }
   TimePoint now() const { return context_.clock->now(); }
-  /// Active (not paused) time of the current activation.
   Duration activeTime() const;
   const google::protobuf::Message& parametersMessage() const { return *parameters_; }
   const std::string& activationId() const { return activation_id_; }
-
-  /// A callback that any thread may call (a channel subscription's reader, a
-  /// belief watch, a helper thread): it copies the sample, and `handler` runs
-  /// with it on this behavior's worker, between ticks, like every other user
-  /// function. Behavior state therefore needs no lock. Made during an
-  /// activation (onActivate, a tick), its samples that are still waiting when
-  /// that activation ends are dropped; made outside one (onConfigure), it
-  /// delivers whenever. An exception from `handler` ends an activation with
-  /// PROCESS_FAILURE; the watchdog watches it as any user function.
-  /// `capacity` bounds the waiting samples of Delivery::kEvery.
   template <class T>
   std::function<void(const T&)> onWorker(std::function<void(const T&)> handler,
                                          Delivery delivery = Delivery::kEvery,
                                          size_t capacity = 1024);
-
-  /// Runs `job` on this behavior's background thread (one per behavior,
-  /// started on first use; jobs run one at a time, in order), then `done`
-  /// with its result on the worker, as onWorker() delivers. For work too
-  /// long for a tick: decoding an image, planning, a slow remote call. The
-  /// job gets copies (or sole ownership) of what it reads and writes, and
-  /// leaves the behavior's state alone. The result of an ended activation is
-  /// dropped; an exception from the job ends the activation with
-  /// PROCESS_FAILURE. stop() waits for the running job. Worker thread.
   template <class R>
   void inBackground(std::function<R()> job, std::function<void(const R&)> done);
   const std::string& robotId() const { return context_.robot_id; }
-  /// Overrides maximum_execution_time for the current activation (e.g. from
-  /// its parameters, in onActivate()); zero means none. `reason`, when not
-  /// empty, is the TIME_OUT's message instead of the library's (e.g. a
-  /// behavior that ends itself through the time-out says why).
-  void setMaximumExecutionTime(Duration d, std::string reason = {}) {
+  void setMaximumExecutionTime(Duration d, std::string reason) {
     maximum_execution_time_ = d;
     time_out_reason_ = std::move(reason);
   }
-
- private:
-  template <class Params>
-  friend class Behavior;
-  /// New parameters are about to take effect; an error refuses them.
-  /// Behavior<Params> overrides it with the typed onModify(const Params&).
-  virtual absl::Status modifyParameters(const google::protobuf::Message& new_parameters) = 0;
 
   enum class State { kInactive, kActive, kPaused, kBlocked };
   struct Finished {
@@ -476,6 +538,8 @@ class BehaviorExecutionManager {
       request_ids_;
   std::deque<std::pair<std::chrono::steady_clock::time_point, std::string>> request_id_order_;
   std::deque<Finished> finished_;
+  // Last: the behavior's own state goes first, before the engine's.
+  std::unique_ptr<BehaviorBase> behavior_;
 };
 
 template <class T>
@@ -564,6 +628,36 @@ void BehaviorExecutionManager::inBackground(std::function<R()> job,
   });
 }
 
+inline BehaviorExecutionManager& BehaviorBase::engine() const {
+  if (engine_ == nullptr) {
+    throw std::logic_error("behavior " + name_ +
+                           ": no engine holds it yet (a helper was called from its constructor; "
+                           "use onConfigure)");
+  }
+  return *engine_;
+}
+inline const Clock& BehaviorBase::clock() const { return engine().clock(); }
+inline TimePoint BehaviorBase::now() const { return engine().now(); }
+inline Duration BehaviorBase::activeTime() const { return engine().activeTime(); }
+inline const google::protobuf::Message& BehaviorBase::parametersMessage() const {
+  return engine().parametersMessage();
+}
+inline const std::string& BehaviorBase::activationId() const { return engine().activationId(); }
+inline const std::string& BehaviorBase::robotId() const { return engine().robotId(); }
+inline const BehaviorOptions& BehaviorBase::options() const { return engine().options(); }
+inline void BehaviorBase::setMaximumExecutionTime(Duration d, std::string reason) {
+  engine().setMaximumExecutionTime(d, std::move(reason));
+}
+template <class T>
+std::function<void(const T&)> BehaviorBase::onWorker(std::function<void(const T&)> handler,
+                                                     Delivery delivery, size_t capacity) {
+  return engine().template onWorker<T>(std::move(handler), delivery, capacity);
+}
+template <class R>
+void BehaviorBase::inBackground(std::function<R()> job, std::function<void(const R&)> done) {
+  engine().template inBackground<R>(std::move(job), std::move(done));
+}
+
 /// The name of the behavior that `parameters` declares with the
 /// (behaviorlib.v1.declare) option, or "" when it declares none.
 std::string declaredBehaviorName(const google::protobuf::Descriptor* parameters);
@@ -575,19 +669,19 @@ std::string requireDeclaredName(const google::protobuf::Descriptor* parameters);
 
 /// A behavior with a typed parameter message.
 template <class Params>
-class Behavior : public BehaviorExecutionManager {
+class Behavior : public BehaviorBase {
  public:
   using Parameters = Params;
   /// The behavior that Params declares (its name comes from the proto).
   /// Throws std::logic_error when Params declares none.
   explicit Behavior(BehaviorOptions options = {})
-      : BehaviorExecutionManager(detail::requireDeclaredName(Params::descriptor()),
-                                 Params::descriptor(), options) {}
+      : BehaviorBase(detail::requireDeclaredName(Params::descriptor()), Params::descriptor(),
+                     options) {}
   /// A behavior named here, served only through the generic BehaviorSystem
   /// service (tests, tools: a test behavior may borrow WAIT's parameters).
   /// BehaviorSystemBuilder::add<> refuses a typed service of another name.
   explicit Behavior(std::string name, BehaviorOptions options = {})
-      : BehaviorExecutionManager(std::move(name), Params::descriptor(), options) {}
+      : BehaviorBase(std::move(name), Params::descriptor(), options) {}
 
  protected:
   /// The current activation's parameters (defaults applied, validated).

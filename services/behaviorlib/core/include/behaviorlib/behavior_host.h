@@ -47,6 +47,10 @@ class BehaviorHost {
 
   /// Adds a behavior before start(); names must be unique.
   void add(std::unique_ptr<BehaviorExecutionManager> behavior);
+  /// The same, wrapped in its engine here.
+  void add(std::unique_ptr<BehaviorBase> behavior) {
+    add(std::make_unique<BehaviorExecutionManager>(std::move(behavior)));
+  }
   /// Factory for metrics: called once per behavior at start(); may return
   /// nullptr. The host keeps the observers alive.
   using ObserverFactory =

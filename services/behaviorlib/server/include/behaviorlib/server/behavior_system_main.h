@@ -108,7 +108,8 @@ class BehaviorSystemBuilder {
   BehaviorSystemBuilder& add(Args&&... args) {
     using Params = typename BehaviorT::Parameters;
     using S = decltype(behaviorServiceOf(static_cast<const Params*>(nullptr)));
-    auto behavior = std::make_unique<BehaviorT>(std::forward<Args>(args)...);
+    auto behavior = std::make_unique<BehaviorExecutionManager>(
+        std::make_unique<BehaviorT>(std::forward<Args>(args)...));
     checkServiceMatches(*behavior, S::service_full_name());
     services_.push_back(std::make_unique<TypedBehaviorService<S>>(*behavior, gate_));
     service_names_[behavior->name()] = S::service_full_name();
@@ -118,8 +119,8 @@ class BehaviorSystemBuilder {
 
   /// Hosts a behavior reachable only through the generic BehaviorSystem
   /// service (tests, tools).
-  BehaviorSystemBuilder& addGeneric(std::unique_ptr<BehaviorExecutionManager> behavior) {
-    behaviors_.push_back(std::move(behavior));
+  BehaviorSystemBuilder& addGeneric(std::unique_ptr<BehaviorBase> behavior) {
+    behaviors_.push_back(std::make_unique<BehaviorExecutionManager>(std::move(behavior)));
     return *this;
   }
 

@@ -48,6 +48,19 @@ class CampaignTest(unittest.TestCase):
     def say(self, text):
         print(f"[{time.monotonic() - self.started:5.1f} s] {text}", flush=True)
 
+    def sayFailedRuns(self, out):
+        """Each failed run's message and its failed step's, from the report: the
+        campaign's summary names the cause only."""
+        try:
+            with open(os.path.join(out, "report.json")) as f:
+                runs = json.load(f)["runs"]
+        except (OSError, ValueError, KeyError) as e:
+            self.say(f"no report to read ({e})")
+            return
+        for run in runs:
+            if run.get("state") != "MISSION_STATE_SUCCEEDED":
+                self.say(f"seed {run.get('seed')}: {run.get('message')}")
+
     def campaign(self, *argv, timeout_s=150):
         return subprocess.run([sys.executable, CAMPAIGN, "--build-dir", BUILD_DIR, *argv],
                               stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
@@ -72,6 +85,8 @@ class CampaignTest(unittest.TestCase):
                                "--check-determinism", str(FAILING_SEED), "--keep-worst", "1",
                                "--min-success-rate", "0.5", "--out", out)
         self.say(f"campaign exited with {result.returncode}:\n{result.stdout}")
+        if result.returncode != 0:
+            self.sayFailedRuns(out)
         self.assertEqual(result.returncode, 0, result.stdout)
         with open(os.path.join(out, "report.json")) as f:
             report = json.load(f)

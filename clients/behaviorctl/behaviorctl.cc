@@ -62,7 +62,7 @@ ABSL_FLAG(std::string, output, "",
 ABSL_FLAG(std::string, o, "", "short for --output");
 
 int main(int argc, char** argv) {
-  behaviorlib::coordinator::CtlOptions options;
+  behaviorlib::behaviorctl::CtlOptions options;
   std::vector<std::string> args = behaviorlib::server::parseCommandLine(
       argc, argv,
       "a client of behavior systems and of the coordinator\n\n"
@@ -120,5 +120,5 @@ int main(int argc, char** argv) {
       absl::GetFlag(FLAGS_o).empty() ? absl::GetFlag(FLAGS_output) : absl::GetFlag(FLAGS_o);
   options.topic_prefix = absl::GetFlag(FLAGS_topic_prefix);
   options.args = std::move(args);
-  return behaviorlib::coordinator::runCtl(options);
+  return behaviorlib::behaviorctl::runCtl(options);
 }

@@ -18,7 +18,7 @@
 #include "clients/behaviorctl/behaviorctl_output.h"
 #include "coordinator/registry/health_check.h"
 
-namespace behaviorlib::coordinator {
+namespace behaviorlib::behaviorctl {
 
 namespace {
 
@@ -563,4 +563,4 @@ int runCtl(const CtlOptions& options) {
   return options.coordinator.empty() ? runSystem(options) : runCoordinator(options);
 }
 
-}  // namespace behaviorlib::coordinator
+}  // namespace behaviorlib::behaviorctl

@@ -13,7 +13,7 @@
 #include <string>
 #include <vector>
 
-namespace behaviorlib::coordinator {
+namespace behaviorlib::behaviorctl {
 
 struct CtlOptions {
   /// A behavior system's address; exactly one of target and coordinator.
@@ -62,4 +62,4 @@ int runCtl(const CtlOptions& options);
 int runRecord(const CtlOptions& options);
 int runReplay(const CtlOptions& options);
 
-}  // namespace behaviorlib::coordinator
+}  // namespace behaviorlib::behaviorctl

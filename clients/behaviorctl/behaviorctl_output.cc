@@ -15,7 +15,7 @@
 #include "absl/strings/str_join.h"
 #include "behaviorlib/error_details.h"
 
-namespace behaviorlib::coordinator {
+namespace behaviorlib::behaviorctl {
 
 namespace {
 
@@ -322,4 +322,4 @@ std::string describeError(const grpc::Status& status) {
   return out;
 }
 
-}  // namespace behaviorlib::coordinator
+}  // namespace behaviorlib::behaviorctl

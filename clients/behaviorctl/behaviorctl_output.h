@@ -20,7 +20,7 @@
 #include "behaviorlib/v1/coordinator.pb.h"
 #include "behaviorlib/v1/mission.pb.h"
 
-namespace behaviorlib::coordinator {
+namespace behaviorlib::behaviorctl {
 
 enum class OutputFormat { kTable, kWide, kJson, kYaml };
 
@@ -64,4 +64,4 @@ Table beliefsTable(const v1::ListBeliefsResponse& response, bool wide,
 ///     field parameters.altitude_m: <what is wrong with it>
 std::string describeError(const grpc::Status& status);
 
-}  // namespace behaviorlib::coordinator
+}  // namespace behaviorlib::behaviorctl

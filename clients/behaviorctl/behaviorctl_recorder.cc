@@ -25,7 +25,7 @@
 #include "behaviorlib/server_kit/transport_security.h"
 #include "clients/behaviorctl/behaviorctl_commands.h"
 
-namespace behaviorlib::coordinator {
+namespace behaviorlib::behaviorctl {
 
 namespace {
 
@@ -127,4 +127,4 @@ int runReplay(const CtlOptions& options) {
   return 0;
 }
 
-}  // namespace behaviorlib::coordinator
+}  // namespace behaviorlib::behaviorctl

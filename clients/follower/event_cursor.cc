@@ -1,6 +1,6 @@
 #include "behaviorlib/follower/event_cursor.h"
 
-namespace behaviorlib::console {
+namespace behaviorlib::follower {
 
 namespace {
 // Up to this many events in one WatchEvents message.
@@ -57,4 +57,4 @@ std::vector<v1::FleetEvent> EventCursor::accept(const v1::WatchFleetEventsRespon
   return fresh;
 }
 
-}  // namespace behaviorlib::console
+}  // namespace behaviorlib::follower

@@ -9,7 +9,7 @@
 #include "absl/time/time.h"
 #include "behaviorlib/follower/event_cursor.h"
 
-namespace behaviorlib::console {
+namespace behaviorlib::follower {
 
 namespace {
 
@@ -329,4 +329,4 @@ void FleetFollower::followTopic(const std::string& topic, double max_rate_hz) {
       [](const grpc::Status&) {});
 }
 
-}  // namespace behaviorlib::console
+}  // namespace behaviorlib::follower

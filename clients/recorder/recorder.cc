@@ -56,8 +56,8 @@ bool validSegment(std::string_view segment) {
   return true;
 }
 
-console::FollowerOptions followerOptions(const RecorderOptions& options) {
-  console::FollowerOptions follower;
+follower::FollowerOptions followerOptions(const RecorderOptions& options) {
+  follower::FollowerOptions follower;
   follower.data_channel = options.data_channel;
   for (const std::string& entry : options.topics) {
     if (auto topic = parseTopic(entry); topic.ok()) follower.vehicle_topics.push_back(*topic);
@@ -76,8 +76,8 @@ std::vector<std::string> defaultTopics() {
           "flight_state",         "markers/detections",    "map/occupied"};
 }
 
-absl::StatusOr<console::FollowerOptions::VehicleTopic> parseTopic(const std::string& entry) {
-  console::FollowerOptions::VehicleTopic topic;
+absl::StatusOr<follower::FollowerOptions::VehicleTopic> parseTopic(const std::string& entry) {
+  follower::FollowerOptions::VehicleTopic topic;
   const size_t at = entry.find('@');
   topic.name = entry.substr(0, at);
   for (absl::string_view segment : absl::StrSplit(topic.name, '/')) {

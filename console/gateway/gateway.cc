@@ -238,8 +238,8 @@ absl::StatusOr<std::string> recordingJson(const std::string& path, const std::st
       ",\"messages\":[", messages, "]}");
 }
 
-FollowerOptions followerOptions(const GatewayOptions& options) {
-  FollowerOptions follower;
+follower::FollowerOptions followerOptions(const GatewayOptions& options) {
+  follower::FollowerOptions follower;
   follower.call_timeout = options.call_timeout;
   follower.mission_poll = options.mission_poll;
   follower.max_watched_missions = options.max_watched_missions;

@@ -12,7 +12,7 @@
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/errors/status_details.h"
 
-namespace behaviorlib::coordinator {
+namespace behaviorlib::behaviorctl {
 namespace {
 
 using ::testing::HasSubstr;
@@ -140,4 +140,4 @@ TEST(ErrorTest, AnErrorSaysItsCodeReasonAndEachField) {
 }
 
 }  // namespace
-}  // namespace behaviorlib::coordinator
+}  // namespace behaviorlib::behaviorctl

@@ -15,6 +15,7 @@
 namespace behaviorlib::console {
 namespace {
 
+using follower::EventCursor;
 using std::chrono::milliseconds;
 
 v1::WatchFleetEventsResponse start(const std::string& incarnation) {

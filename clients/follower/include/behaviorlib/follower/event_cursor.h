@@ -21,7 +21,7 @@
 
 #include "behaviorlib/v1/coordinator.pb.h"
 
-namespace behaviorlib::console {
+namespace behaviorlib::follower {
 
 class EventCursor {
  public:
@@ -53,4 +53,4 @@ class EventCursor {
   std::deque<Identity> order_;
 };
 
-}  // namespace behaviorlib::console
+}  // namespace behaviorlib::follower

@@ -32,7 +32,7 @@
 #include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 
-namespace behaviorlib::console {
+namespace behaviorlib::follower {
 
 class FleetSink {
  public:
@@ -141,4 +141,4 @@ class FleetFollower {
   std::map<std::string, std::string> missions_ ABSL_GUARDED_BY(mutex_);
 };
 
-}  // namespace behaviorlib::console
+}  // namespace behaviorlib::follower

@@ -52,7 +52,7 @@ std::vector<std::string> defaultTopics();
 /// last: SubscribeRequest.max_rate_hz). INVALID_ARGUMENT names the entry
 /// when the name is not a topic segment path or the rate is not a number in
 /// (0, 100000].
-absl::StatusOr<console::FollowerOptions::VehicleTopic> parseTopic(const std::string& entry);
+absl::StatusOr<follower::FollowerOptions::VehicleTopic> parseTopic(const std::string& entry);
 
 /// Serialized google.protobuf.FileDescriptorSet of `type` and every file it
 /// imports, dependencies first (an MCAP "protobuf" schema), from the
@@ -93,7 +93,7 @@ struct RecorderStats {
   bool drained = false;
 };
 
-class Recorder : private console::FleetSink {
+class Recorder : private follower::FleetSink {
  public:
   /// Creates the file (an error names it) and follows the coordinator.
   static absl::StatusOr<std::unique_ptr<Recorder>> start(std::shared_ptr<grpc::Channel> coordinator,
@@ -130,7 +130,7 @@ class Recorder : private console::FleetSink {
   // Per topic, the dropped_count of the subscription's last sample.
   std::map<std::string, uint64_t> broker_drops_ ABSL_GUARDED_BY(mutex_);
   bool stopped_ ABSL_GUARDED_BY(mutex_) = false;
-  console::FleetFollower follower_;
+  follower::FleetFollower follower_;
 };
 
 struct ReplayOptions {

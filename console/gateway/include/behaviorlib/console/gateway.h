@@ -92,7 +92,7 @@ struct GatewayOptions {
   std::string tls_key_file;
 };
 
-class Gateway : private FleetSink {
+class Gateway : private follower::FleetSink {
  public:
   Gateway(std::shared_ptr<grpc::Channel> coordinator, GatewayOptions options);
   /// Stops everything (shutdown()).
@@ -122,7 +122,7 @@ class Gateway : private FleetSink {
   const std::unique_ptr<v1::Coordinator::Stub> stub_;
   const GatewayOptions options_;
   EventHub hub_;
-  FleetFollower follower_;
+  follower::FleetFollower follower_;
   std::unique_ptr<httplib::Server> server_;
   server::ConfinedDirectory recordings_;
   int port_ = 0;

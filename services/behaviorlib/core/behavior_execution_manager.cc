@@ -198,13 +198,11 @@ BehaviorExecutionManager& engineOf(BehaviorBase& behavior) { return behavior.eng
 }  // namespace detail
 
 BehaviorExecutionManager::BehaviorExecutionManager(std::unique_ptr<BehaviorBase> behavior)
-    : name_(behavior ? behavior->name_ : std::string()),
-      parameters_type_(behavior ? behavior->parameters_type_ : nullptr),
-      options_(behavior ? behavior->initial_options_ : BehaviorOptions{}),
+    : options_(behavior ? behavior->initial_options_ : BehaviorOptions{}),
       behavior_(std::move(behavior)) {
   if (!behavior_) throw std::logic_error("a BehaviorExecutionManager needs a behavior");
   if (behavior_->engine_ != nullptr) {
-    throw std::logic_error("behavior " + name_ + " is already held by an engine");
+    throw std::logic_error("behavior " + name() + " is already held by an engine");
   }
   behavior_->engine_ = this;
 }
@@ -215,7 +213,7 @@ BehaviorExecutionManager::~BehaviorExecutionManager() {
 
 absl::Status BehaviorExecutionManager::start(BehaviorContext context) {
   if (!context.clock || !context.events) {
-    return absl::InvalidArgumentError("behavior " + name_ + " needs a clock and an event log");
+    return absl::InvalidArgumentError("behavior " + name() + " needs a clock and an event log");
   }
   context_ = std::move(context);
   try {
@@ -230,14 +228,14 @@ absl::Status BehaviorExecutionManager::start(BehaviorContext context) {
       }
     }
   } catch (const YAML::Exception& e) {
-    return absl::InvalidArgumentError("configuration of " + name_ + ": " + e.what());
+    return absl::InvalidArgumentError("configuration of " + name() + ": " + e.what());
   }
   if (!(options_.frequency_hz > 0.0 && options_.frequency_hz <= 10000.0)) {
-    return absl::InvalidArgumentError("configuration of " + name_ +
+    return absl::InvalidArgumentError("configuration of " + name() +
                                       ": frequency_hz must be in (0, 10000]");
   }
   if (options_.watchdog_timeout <= std::chrono::milliseconds(0)) {
-    return absl::InvalidArgumentError("configuration of " + name_ +
+    return absl::InvalidArgumentError("configuration of " + name() +
                                       ": watchdog_timeout_s must be positive");
   }
   period_ = Duration(static_cast<int64_t>(std::llround(1e9 / options_.frequency_hz)));
@@ -260,7 +258,7 @@ absl::Status BehaviorExecutionManager::start(BehaviorContext context) {
                 done(status);
               }
             },
-            cancelWith(done, name_));
+            cancelWith(done, name()));
       },
       std::chrono::seconds(60));
   if (!configured.ok()) {
@@ -472,7 +470,7 @@ bool BehaviorExecutionManager::hookOrAbort(const char* function, F&& hook,
   if (guarded(function, std::forward<F>(hook))) return true;
   const std::string why = failure_message_;
   if (!stopped_by_watchdog_) finish(v1::TERMINATION_CAUSE_PROCESS_FAILURE, why);
-  reply(absl::AbortedError(name_ + ": " + why + "; the activation ended with PROCESS_FAILURE"));
+  reply(absl::AbortedError(name() + ": " + why + "; the activation ended with PROCESS_FAILURE"));
   return false;
 }
 
@@ -492,7 +490,7 @@ void BehaviorExecutionManager::watchdogCheck(std::chrono::steady_clock::time_poi
   const char* function = call_function_.load(std::memory_order_relaxed);
   recordFinishedLocked(v1::TERMINATION_CAUSE_PROCESS_FAILURE,
                        std::string(function ? function : "user code") + " did not return within " +
-                           secondsText(limit) + " (watchdog); " + name_ +
+                           secondsText(limit) + " (watchdog); " + name() +
                            " accepts activations again once it returns");
   state_ = State::kBlocked;
   if (context_.observer) context_.observer->onBlocked(true);
@@ -627,7 +625,7 @@ void BehaviorExecutionManager::recordFinishedLocked(v1::TerminationCause cause,
 
 v1::BehaviorEvent BehaviorExecutionManager::newEventLocked() const {
   v1::BehaviorEvent event;
-  event.set_behavior(name_);
+  event.set_behavior(name());
   event.set_activation_id(activation_id_);
   *event.mutable_time() = toTimestamp(context_.clock->now());
   return event;
@@ -644,16 +642,17 @@ absl::Status BehaviorExecutionManager::checkActivationIdLocked(const std::string
     const std::string current = running ? activation_id_ : std::string("none");
     return errors::withReason(
         absl::AbortedError("cannot " + std::string(verb) + " activation " + activation_id + " of " +
-                           name_ + ": it is not the current activation (current: " + current + ")"),
+                           name() + ": it is not the current activation (current: " + current +
+                           ")"),
         v1::ACTIVATION_MISMATCH,
-        {{"behavior", name_},
+        {{"behavior", name()},
          {"activation_id", activation_id},
          {"current_activation_id", current}});
   }
   if (!running) {
     return errors::withReason(absl::FailedPreconditionError("cannot " + std::string(verb) + " " +
-                                                            name_ + ": it is not active"),
-                              v1::BEHAVIOR_NOT_ACTIVE, {{"behavior", name_}});
+                                                            name() + ": it is not active"),
+                              v1::BEHAVIOR_NOT_ACTIVE, {{"behavior", name()}});
   }
   return absl::OkStatus();
 }
@@ -669,23 +668,24 @@ bool BehaviorExecutionManager::refuseWhileBlocked(const std::function<void(absl:
   }
   reply(errors::withReason(
       absl::FailedPreconditionError(
-          name_ + " is blocked: user code of its previous activation has not returned yet (stopped "
-                  "by the watchdog); try again later"),
-      v1::BEHAVIOR_BLOCKED, {{"behavior", name_}}));
+          name() +
+          " is blocked: user code of its previous activation has not returned yet (stopped "
+          "by the watchdog); try again later"),
+      v1::BEHAVIOR_BLOCKED, {{"behavior", name()}}));
   return true;
 }
 
 void BehaviorExecutionManager::activate(std::unique_ptr<google::protobuf::Message> parameters,
                                         std::string request_id, Done<v1::ActivateResponse> done,
                                         SteadyTime received) {
-  if (!parameters || parameters->GetDescriptor() != parameters_type_) {
-    done(errors::withReason(absl::InvalidArgumentError(name_ + " takes parameters of type " +
-                                                       parameters_type_->full_name()),
-                            v1::INVALID_REQUEST, {{"behavior", name_}}));
+  if (!parameters || parameters->GetDescriptor() != &parametersType()) {
+    done(errors::withReason(absl::InvalidArgumentError(name() + " takes parameters of type " +
+                                                       parametersType().full_name()),
+                            v1::INVALID_REQUEST, {{"behavior", name()}}));
     return;
   }
   if (absl::Status s = params::applyDefaultsAndValidate(parameters.get()); !s.ok()) {
-    done(parameterError(std::move(s), name_));
+    done(parameterError(std::move(s), name()));
     return;
   }
   if (refuseWhileBlocked([&](absl::Status s) { done(s); })) return;
@@ -694,7 +694,7 @@ void BehaviorExecutionManager::activate(std::unique_ptr<google::protobuf::Messag
   std::shared_ptr<google::protobuf::Message> holder(parameters.release());
   post([this, holder, request_id = std::move(request_id), received,
         done] { doActivate(takeMessage(*holder), request_id, received, done); },
-       cancelWith(done, name_));
+       cancelWith(done, name()));
 }
 
 void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Message> parameters,
@@ -719,24 +719,24 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
     if (state_ == State::kBlocked) {
       return errors::withReason(
           absl::FailedPreconditionError(
-              name_ + " is blocked: user code of its previous activation has not returned yet "
-                      "(stopped by the watchdog); try again later"),
-          v1::BEHAVIOR_BLOCKED, {{"behavior", name_}});
+              name() + " is blocked: user code of its previous activation has not returned yet "
+                       "(stopped by the watchdog); try again later"),
+          v1::BEHAVIOR_BLOCKED, {{"behavior", name()}});
     }
     if (state_ != State::kInactive) {
-      return errors::withReason(
-          absl::FailedPreconditionError(name_ + " is already active (activation " + activation_id_ +
-                                        "); deactivate it first, or use Modify to change its "
-                                        "parameters"),
-          v1::BEHAVIOR_ALREADY_ACTIVE,
-          {{"behavior", name_}, {"current_activation_id", activation_id_}});
+      return errors::withReason(absl::FailedPreconditionError(
+                                    name() + " is already active (activation " + activation_id_ +
+                                    "); deactivate it first, or use Modify to change its "
+                                    "parameters"),
+                                v1::BEHAVIOR_ALREADY_ACTIVE,
+                                {{"behavior", name()}, {"current_activation_id", activation_id_}});
     }
     if (!context_.clock->valid()) {
       return errors::withReason(
           absl::FailedPreconditionError(
               "the behavior clock has no time yet; is the simulator publishing on the 'clock' "
               "topic?"),
-          v1::CLOCK_NOT_READY, {{"behavior", name_}});
+          v1::CLOCK_NOT_READY, {{"behavior", name()}});
     }
     return std::nullopt;
   }();
@@ -747,23 +747,23 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
   Situation situation;
   if (!guarded("checkSituation", [&] { situation = behavior_->checkSituation(); })) {
     done(errors::withReason(
-        absl::FailedPreconditionError(name_ + " cannot be activated: " + failure_message_),
-        v1::BEHAVIOR_FAILED, {{"behavior", name_}}));
+        absl::FailedPreconditionError(name() + " cannot be activated: " + failure_message_),
+        v1::BEHAVIOR_FAILED, {{"behavior", name()}}));
     return;
   }
   if (!situation.feasible) {
     done(errors::withReason(
-        absl::FailedPreconditionError(name_ + " cannot be activated in the current situation: " +
+        absl::FailedPreconditionError(name() + " cannot be activated in the current situation: " +
                                       joinReasons(situation.reasons)),
         v1::SITUATION_NOT_SUITABLE,
-        {{"behavior", name_}, {"situation_reasons", codeNames(situation)}}));
+        {{"behavior", name()}, {"situation_reasons", codeNames(situation)}}));
     return;
   }
   const TimePoint now = context_.clock->now();
   {
     std::lock_guard lock(mutex_);
     parameters_ = std::move(parameters);
-    activation_id_ = name_ + "-" + context_.events->incarnation().substr(0, 8) + "-" +
+    activation_id_ = name() + "-" + context_.events->incarnation().substr(0, 8) + "-" +
                      std::to_string(++activation_counter_);
     ++generation_;
     maximum_execution_time_ = options_.maximum_execution_time;
@@ -784,7 +784,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
       ++generation_;
     }
     done(absl::Status(status.code(),
-                      name_ + " refused activation: " + std::string(status.message())));
+                      name() + " refused activation: " + std::string(status.message())));
     return;
   }
   v1::ActivateResponse response;
@@ -868,7 +868,7 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
         response.set_cause(v1::TERMINATION_CAUSE_INTERRUPTED);
         done(std::move(response));
       },
-      cancelWith(done, name_));
+      cancelWith(done, name()));
 }
 
 void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseResponse> done) {
@@ -885,8 +885,8 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
           }
           if (state_ == State::kPaused) {
             lock.unlock();
-            done(errors::withReason(absl::FailedPreconditionError(name_ + " is already paused"),
-                                    v1::BEHAVIOR_ALREADY_PAUSED, {{"behavior", name_}}));
+            done(errors::withReason(absl::FailedPreconditionError(name() + " is already paused"),
+                                    v1::BEHAVIOR_ALREADY_PAUSED, {{"behavior", name()}}));
             return;
           }
           const TimePoint now = context_.clock->now();
@@ -908,7 +908,7 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
         response.set_activation_id(current);
         done(std::move(response));
       },
-      cancelWith(done, name_));
+      cancelWith(done, name()));
 }
 
 void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::ResumeResponse> done) {
@@ -925,8 +925,8 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
           }
           if (state_ != State::kPaused) {
             lock.unlock();
-            done(errors::withReason(absl::FailedPreconditionError(name_ + " is not paused"),
-                                    v1::BEHAVIOR_NOT_PAUSED, {{"behavior", name_}}));
+            done(errors::withReason(absl::FailedPreconditionError(name() + " is not paused"),
+                                    v1::BEHAVIOR_NOT_PAUSED, {{"behavior", name()}}));
             return;
           }
           current = activation_id_;
@@ -949,16 +949,16 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
         response.set_activation_id(current);
         done(std::move(response));
       },
-      cancelWith(done, name_));
+      cancelWith(done, name()));
 }
 
 void BehaviorExecutionManager::modify(std::string activation_id,
                                       std::unique_ptr<google::protobuf::Message> update,
                                       Done<v1::ModifyResponse> done) {
-  if (!update || update->GetDescriptor() != parameters_type_) {
-    done(errors::withReason(absl::InvalidArgumentError(name_ + " takes parameters of type " +
-                                                       parameters_type_->full_name()),
-                            v1::INVALID_REQUEST, {{"behavior", name_}}));
+  if (!update || update->GetDescriptor() != &parametersType()) {
+    done(errors::withReason(absl::InvalidArgumentError(name() + " takes parameters of type " +
+                                                       parametersType().full_name()),
+                            v1::INVALID_REQUEST, {{"behavior", name()}}));
     return;
   }
   if (refuseWhileBlocked([&](absl::Status s) { done(s); })) return;
@@ -981,7 +981,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         params::mergeUpdate(*update, merged.get());
         if (absl::Status s = params::applyDefaultsAndValidate(merged.get()); !s.ok()) {
-          done(parameterError(std::move(s), name_));
+          done(parameterError(std::move(s), name()));
           return;
         }
         absl::Status status;
@@ -992,7 +992,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         if (!status.ok()) {
           done(errors::rewrap(
-              status, name_ + " refused the new parameters: " + std::string(status.message())));
+              status, name() + " refused the new parameters: " + std::string(status.message())));
           return;
         }
         v1::ModifyResponse response;
@@ -1007,7 +1007,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         done(std::move(response));
       },
-      cancelWith(done, name_));
+      cancelWith(done, name()));
 }
 
 void BehaviorExecutionManager::checkSituationNow(Done<v1::CheckSituationResponse> done) {
@@ -1034,7 +1034,7 @@ void BehaviorExecutionManager::checkSituationNow(Done<v1::CheckSituationResponse
         addReasons(situation, &response);
         done(std::move(response));
       },
-      cancelWith(done, name_));
+      cancelWith(done, name()));
 }
 
 v1::BehaviorState BehaviorExecutionManager::state() const {

@@ -329,8 +329,8 @@ class BehaviorExecutionManager final {
   BehaviorBase& behavior() { return *behavior_; }
   const BehaviorBase& behavior() const { return *behavior_; }
 
-  const std::string& name() const { return name_; }
-  const google::protobuf::Descriptor& parametersType() const { return *parameters_type_; }
+  const std::string& name() const { return behavior_->name(); }
+  const google::protobuf::Descriptor& parametersType() const { return behavior_->parametersType(); }
   /// Options after configuration.
   const BehaviorOptions& options() const { return options_; }
 
@@ -473,8 +473,6 @@ class BehaviorExecutionManager final {
   bool refuseWhileBlocked(const std::function<void(absl::Status)>& reply);
   absl::Status checkActivationIdLocked(const std::string& activation_id, const char* verb) const;
 
-  const std::string name_;
-  const google::protobuf::Descriptor* parameters_type_;
   BehaviorOptions options_;
   BehaviorContext context_;
   std::unique_ptr<WakeOnClock> clock_listener_;

@@ -1,7 +1,7 @@
 """Clang's thread-safety analysis over the library and the coordinator.
 
 Compiles (syntax only) every translation unit of services/behaviorlib,
-services/server_kit, services/channel, the two behavior systems that keep
+services/server_kit, services/channel, services/shared, the two behavior systems that keep
 threads of their own (operator_interaction's AnswerWatch, navigation_with_lidar's
 LidarMapper), coordinator/, console/ and clients/ with clang++-14
 -Wthread-safety as errors, using the flags of the build's
@@ -22,7 +22,7 @@ import sys
 
 REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", ".."))
 CHECKED = ("services/behaviorlib/", "services/server_kit/", "services/channel/",
-           "services/systems/operator_interaction/", "services/systems/navigation_with_lidar/",
+           "services/shared/", "services/systems/operator_interaction/", "services/systems/navigation_with_lidar/",
            "coordinator/", "console/", "clients/")
 CLANG = "clang++-14"
 FLAGS = ["-fsyntax-only", "-Wthread-safety", "-Werror=thread-safety",

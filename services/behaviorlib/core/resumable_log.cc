@@ -21,10 +21,11 @@ bool runningOnThisThread(const void* slot) {
 void WakeSlot::fire() {
   if (runningOnThisThread(this)) {
     // Re-entered from our own callback: the outer frame holds the mutex.
+    mutex_.AssertHeld();
     if (!cancelled_ && wake_) wake_();
     return;
   }
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (cancelled_ || !wake_) return;
   t_running_wakes.push_back(this);
   struct Pop {
@@ -35,10 +36,11 @@ void WakeSlot::fire() {
 
 void WakeSlot::cancel() {
   if (runningOnThisThread(this)) {
+    mutex_.AssertHeld();  // by the outer frame, on this thread
     cancelled_ = true;
     return;
   }
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   cancelled_ = true;
 }
 

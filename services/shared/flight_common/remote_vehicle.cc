@@ -61,7 +61,7 @@ RemoteVehicle::RemoteVehicle(const server::SystemContext& context)
 RemoteVehicle::~RemoteVehicle() {
   std::unique_ptr<channel::Subscription> pose, twist;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     pose = std::move(pose_subscription_);
     twist = std::move(twist_subscription_);
   }
@@ -92,7 +92,7 @@ void RemoteVehicle::followEstimate(bool follow) {
   // Declared first: a dropped subscription is destroyed (its reader joined)
   // after the lock is released, since its callback takes the lock.
   std::unique_ptr<channel::Subscription> old_pose, old_twist;
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (follow) {
     if (followers_++ > 0) return;
     const channel::SubscribeOptions options{.mode = v1::DELIVERY_MODE_LATEST,
@@ -100,7 +100,7 @@ void RemoteVehicle::followEstimate(bool follow) {
     pose_subscription_ = channel_->subscribeTyped<v1::PoseStamped>(
         poseEstimateTopic(robot_id_), options, [this](const v1::PoseStamped& pose) {
           auto sample = std::make_shared<const v1::PoseStamped>(pose);
-          std::lock_guard inner(mutex_);
+          absl::MutexLock inner(&mutex_);
           // A sample delivered while the last follower is leaving must not
           // stay behind as the cache (nothing would refresh it).
           if (followers_ > 0) pose_.swap(sample);  // the old one is freed outside the lock
@@ -108,7 +108,7 @@ void RemoteVehicle::followEstimate(bool follow) {
     twist_subscription_ = channel_->subscribeTyped<v1::TwistStamped>(
         twistEstimateTopic(robot_id_), options, [this](const v1::TwistStamped& twist) {
           auto sample = std::make_shared<const v1::TwistStamped>(twist);
-          std::lock_guard inner(mutex_);
+          absl::MutexLock inner(&mutex_);
           if (followers_ > 0) twist_.swap(sample);  // the old one is freed outside the lock
         });
     return;
@@ -127,7 +127,7 @@ absl::StatusOr<T> RemoteVehicle::latest(const std::string& topic, std::shared_pt
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (*cache) return **cache;
   }
   auto sample = channel_->getLatest(topic, flight::kChannelReadTimeout);
@@ -146,7 +146,7 @@ absl::StatusOr<T> RemoteVehicle::latest(const std::string& topic, std::shared_pt
     return absl::FailedPreconditionError(topic + " carries " + sample->sample().type_url() +
                                          ", not " + T::descriptor()->full_name());
   }
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (followers_ > 0 && !*cache) *cache = std::make_shared<const T>(message);
   return message;
 }
@@ -170,11 +170,11 @@ absl::Status RemoteVehicle::readFlightStatus(Held<v1::FlightStatus>* out) const 
 }
 
 template <class T>
-bool RemoteVehicle::holdCached(const std::shared_ptr<const T>& cache, Held<T>* out) {
+bool RemoteVehicle::holdCached(const std::shared_ptr<const T>* cache, Held<T>* out) {
   std::shared_ptr<const T> sample;
   {
-    std::lock_guard lock(mutex_);
-    sample = cache;
+    absl::MutexLock lock(&mutex_);
+    sample = *cache;
   }
   if (!sample) return false;
   out->hold(std::move(sample));
@@ -182,12 +182,12 @@ bool RemoteVehicle::holdCached(const std::shared_ptr<const T>& cache, Held<T>* o
 }
 
 absl::Status RemoteVehicle::readPoseEstimate(Held<v1::PoseStamped>* out) {
-  if (holdCached(pose_, out)) return absl::OkStatus();
+  if (holdCached(&pose_, out)) return absl::OkStatus();
   return holdInto(poseEstimate(), out);
 }
 
 absl::Status RemoteVehicle::readTwistEstimate(Held<v1::TwistStamped>* out) {
-  if (holdCached(twist_, out)) return absl::OkStatus();
+  if (holdCached(&twist_, out)) return absl::OkStatus();
   return holdInto(twistEstimate(), out);
 }
 

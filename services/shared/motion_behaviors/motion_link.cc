@@ -11,7 +11,7 @@ RemoteMotionLink::~RemoteMotionLink() {
   // Joined outside the lock: their callbacks take it.
   std::unique_ptr<channel::Subscription> a, b;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     a = std::move(references_.subscription);
     b = std::move(status_.subscription);
   }
@@ -40,7 +40,7 @@ void RemoteMotionLink::follow(bool follow, const std::string& topic, Followed<T>
   // Declared before the lock: a dropped subscription is joined after the
   // lock is released (its callback takes the lock).
   std::unique_ptr<channel::Subscription> old;
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (follow) {
     if (followed->followers++ > 0) return;
     followed->latest.reset();
@@ -48,7 +48,7 @@ void RemoteMotionLink::follow(bool follow, const std::string& topic, Followed<T>
         topic, {.mode = v1::DELIVERY_MODE_LATEST, .send_latest_first = true},
         [this, followed](const T& sample) {
           auto latest = std::make_shared<const T>(sample);
-          std::lock_guard inner(mutex_);
+          absl::MutexLock inner(&mutex_);
           followed->latest.swap(latest);  // the old one is freed outside the lock
         });
     return;
@@ -65,12 +65,12 @@ void RemoteMotionLink::followReferences(bool follow) {
 void RemoteMotionLink::followStatus(bool follow) { this->follow(follow, statusTopic(), &status_); }
 
 std::shared_ptr<const v1::MotionReference> RemoteMotionLink::latestReference() {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return references_.latest;
 }
 
 std::shared_ptr<const v1::MotionControlStatus> RemoteMotionLink::latestStatus() {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return status_.latest;
 }
 

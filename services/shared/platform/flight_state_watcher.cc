@@ -13,39 +13,41 @@ FlightStateWatcher::FlightStateWatcher(const FlightControllerClient& client)
 
 FlightStateWatcher::~FlightStateWatcher() {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopping_ = true;
     if (context_) context_->TryCancel();
   }
-  cv_.notify_all();
   thread_.join();
 }
 
 absl::StatusOr<v1::FlightStatus> FlightStateWatcher::latest() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (connected_ && latest_) return *latest_;
   return error_;
 }
 
 absl::StatusOr<std::shared_ptr<const v1::FlightStatus>> FlightStateWatcher::latestShared() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (connected_ && latest_) return latest_;
   return error_;
 }
 
 bool FlightStateWatcher::connected() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return connected_ && latest_ != nullptr;
 }
 
 uint64_t FlightStateWatcher::receivedCount() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return received_;
 }
 
 bool FlightStateWatcher::waitConnected(std::chrono::milliseconds timeout) const {
-  std::unique_lock lock(mutex_);
-  return cv_.wait_for(lock, timeout, [this] { return connected_ && latest_ != nullptr; });
+  absl::MutexLock lock(&mutex_);
+  const auto ready = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return connected_ && latest_ != nullptr;
+  };
+  return mutex_.AwaitWithTimeout(absl::Condition(&ready), absl::FromChrono(timeout));
 }
 
 void FlightStateWatcher::run() {
@@ -55,7 +57,7 @@ void FlightStateWatcher::run() {
   while (true) {
     grpc::ClientContext context;
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       if (stopping_) return;
       context_ = &context;
     }
@@ -65,15 +67,14 @@ void FlightStateWatcher::run() {
     v1::WatchFlightStateResponse message;
     while (reader->Read(&message)) {
       auto status = std::make_shared<const v1::FlightStatus>(std::move(*message.mutable_status()));
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       latest_ = std::move(status);
       connected_ = true;
       ++received_;
       backoff = kInitialBackoff;
-      cv_.notify_all();
     }
     const grpc::Status status = reader->Finish();
-    std::unique_lock lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     context_ = nullptr;
     connected_ = false;
     if (stopping_) return;
@@ -81,7 +82,7 @@ void FlightStateWatcher::run() {
         status.ok() ? grpc::Status(grpc::StatusCode::UNAVAILABLE, "the flight-state stream ended")
                     : status,
         "WatchFlightState");
-    cv_.wait_for(lock, backoff, [this] { return stopping_; });
+    mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(backoff));
     backoff = std::min(backoff * 2, kMaxBackoff);
   }
 }

@@ -19,8 +19,8 @@ class LeaseKeeper::Listener final : public ClockListener {
  public:
   explicit Listener(LeaseKeeper* owner) : owner_(owner) {}
   void onClockAdvanced() override {
-    { std::lock_guard lock(owner_->mutex_); }
-    owner_->cv_.notify_all();
+    absl::MutexLock lock(&owner_->mutex_);
+    ++owner_->wakes_;
   }
   bool caughtUp(TimePoint t) const override { return owner_->caughtUp(t); }
 
@@ -43,7 +43,7 @@ LeaseKeeper::LeaseKeeper(const FlightControllerClient& client, const Clock& cloc
 }
 
 bool LeaseKeeper::caughtUp(TimePoint t) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return stopping_ || !lost_.ok() || (!renewing_ && next_ > t);
 }
 
@@ -51,10 +51,9 @@ LeaseKeeper::~LeaseKeeper() { release().IgnoreError(); }
 
 void LeaseKeeper::stopThread() {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stopping_ = true;
   }
-  cv_.notify_all();
   if (thread_.joinable()) thread_.join();
   if (listener_) clock_.removeListener(listener_.get());
 }
@@ -62,7 +61,7 @@ void LeaseKeeper::stopThread() {
 absl::Status LeaseKeeper::release() {
   stopThread();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (released_ || !lost_.ok()) return lost_;
     released_ = true;
   }
@@ -70,7 +69,7 @@ absl::Status LeaseKeeper::release() {
 }
 
 absl::Status LeaseKeeper::status() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (!lost_.ok()) return lost_;
   if (!last_failure_.ok() && clock_.now() - last_renewed_ > options_.ttl) {
     return absl::Status(last_failure_.code(),
@@ -81,7 +80,7 @@ absl::Status LeaseKeeper::status() const {
 }
 
 uint64_t LeaseKeeper::renewals() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return renewals_;
 }
 
@@ -89,20 +88,25 @@ void LeaseKeeper::run() {
   const Duration period = std::max<Duration>(options_.ttl / 4, std::chrono::milliseconds(10));
   // After a failed renewal, retry sooner (still on the clock).
   const Duration retry = std::max<Duration>(options_.ttl / 10, std::chrono::milliseconds(5));
-  std::unique_lock lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   while (!stopping_) {
     const TimePoint now = clock_.now();
     if (now < next_) {
       // Woken when simulated time moves (the listener); re-read it at least
       // every 20 ms of wall time anyway.
-      cv_.wait_for(lock, std::min<std::chrono::nanoseconds>(clock_.wallWaitFor(next_ - now),
-                                                            std::chrono::milliseconds(20)));
+      const uint64_t seen = wakes_;
+      const auto woken = [this, seen]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+        return stopping_ || wakes_ != seen;
+      };
+      mutex_.AwaitWithTimeout(absl::Condition(&woken),
+                              absl::FromChrono(std::min<std::chrono::nanoseconds>(
+                                  clock_.wallWaitFor(next_ - now), std::chrono::milliseconds(20))));
       continue;
     }
     renewing_ = true;
-    lock.unlock();
+    mutex_.Unlock();
     auto renewed = client_.renewLease(lease_id_);
-    lock.lock();
+    mutex_.Lock();
     renewing_ = false;
     if (renewed.ok()) {
       last_renewed_ = clock_.now();

@@ -36,7 +36,6 @@
 #include <deque>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <string>
 #include <utility>
 #include <vector>
@@ -63,9 +62,9 @@ class WakeSlot {
   void cancel();
 
  private:
-  std::mutex mutex_;
+  absl::Mutex mutex_;
   std::function<void()> wake_;
-  bool cancelled_ = false;  // Guarded by mutex_.
+  bool cancelled_ ABSL_GUARDED_BY(mutex_) = false;
 };
 
 void setWallTime(google::protobuf::Timestamp* timestamp);

@@ -8,10 +8,10 @@
 //   auto& vehicle = builder.own(std::make_unique<RemoteVehicle>(builder.context()));
 
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/flight_common/vehicle.h"
 #include "behaviorlib/platform/flight_controller_client.h"
@@ -43,7 +43,7 @@ class RemoteVehicle final : public Vehicle {
   // The followed estimate shared into `out` (true), or false when none is
   // cached (the caller reads the channel).
   template <class T>
-  bool holdCached(const std::shared_ptr<const T>& cache, Held<T>* out);
+  bool holdCached(const std::shared_ptr<const T>* cache, Held<T>* out);
 
   const std::string robot_id_;
   const Clock& clock_;
@@ -52,13 +52,15 @@ class RemoteVehicle final : public Vehicle {
   std::unique_ptr<platform::FlightControllerClient> flight_controller_;
   std::unique_ptr<platform::FlightStateWatcher> watcher_;
 
-  std::mutex mutex_;
-  int followers_ = 0;
-  // The followed estimates, each sample a new one (readers may hold the old).
-  std::shared_ptr<const v1::PoseStamped> pose_;
-  std::shared_ptr<const v1::TwistStamped> twist_;
-  std::unique_ptr<channel::Subscription> pose_subscription_;
-  std::unique_ptr<channel::Subscription> twist_subscription_;
+  absl::Mutex mutex_;
+  int followers_ ABSL_GUARDED_BY(mutex_) = 0;
+  // The followed estimates, each sample a new one (readers may hold the
+  // old). latest() and holdCached() reach them through a pointer, which the
+  // analysis does not follow; they hold mutex_.
+  std::shared_ptr<const v1::PoseStamped> pose_ ABSL_GUARDED_BY(mutex_);
+  std::shared_ptr<const v1::TwistStamped> twist_ ABSL_GUARDED_BY(mutex_);
+  std::unique_ptr<channel::Subscription> pose_subscription_ ABSL_GUARDED_BY(mutex_);
+  std::unique_ptr<channel::Subscription> twist_subscription_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib::flight

@@ -12,11 +12,11 @@
 //   link.publishStatus(status);
 
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 
 #include "absl/status/status.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/motion.pb.h"
 
@@ -75,9 +75,11 @@ class RemoteMotionLink final : public MotionLink {
 
   channel::ChannelClient* channel_;
   const std::string robot_id_;
-  std::mutex mutex_;
-  Followed<v1::MotionReference> references_;
-  Followed<v1::MotionControlStatus> status_;
+  absl::Mutex mutex_;
+  // follow() reaches them through a pointer, which the analysis does not
+  // follow; it holds mutex_ (and the subscription's callback takes it).
+  Followed<v1::MotionReference> references_ ABSL_GUARDED_BY(mutex_);
+  Followed<v1::MotionControlStatus> status_ ABSL_GUARDED_BY(mutex_);
 };
 
 }  // namespace behaviorlib::motion_behaviors

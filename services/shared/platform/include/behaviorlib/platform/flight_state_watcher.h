@@ -12,15 +12,14 @@
 //   // UNAVAILABLE naming the address and the error while not connected.
 
 #include <chrono>
-#include <condition_variable>
 #include <functional>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <thread>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/platform/flight_controller_client.h"
 
 namespace behaviorlib::platform {
@@ -50,14 +49,15 @@ class FlightStateWatcher {
   void run();
 
   const FlightControllerClient& client_;
-  mutable std::mutex mutex_;
-  mutable std::condition_variable cv_;
-  bool stopping_ = false;
-  grpc::ClientContext* context_ = nullptr;  // the running stream's, for cancel
-  bool connected_ = false;
-  std::shared_ptr<const v1::FlightStatus> latest_;  // replaced, never changed
-  absl::Status error_;
-  uint64_t received_ = 0;
+  mutable absl::Mutex mutex_;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  // The running stream's, for cancel.
+  grpc::ClientContext* context_ ABSL_GUARDED_BY(mutex_) = nullptr;
+  bool connected_ ABSL_GUARDED_BY(mutex_) = false;
+  // Replaced, never changed.
+  std::shared_ptr<const v1::FlightStatus> latest_ ABSL_GUARDED_BY(mutex_);
+  absl::Status error_ ABSL_GUARDED_BY(mutex_);
+  uint64_t received_ ABSL_GUARDED_BY(mutex_) = 0;
   std::thread thread_;
 };
 

@@ -16,14 +16,13 @@
 //   lease->reset();   // releases
 
 #include <chrono>
-#include <condition_variable>
 #include <memory>
-#include <mutex>
 #include <string>
 #include <thread>
 
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
+#include "absl/synchronization/mutex.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/platform/flight_controller_client.h"
 
@@ -77,16 +76,18 @@ class LeaseKeeper {
   const std::string lease_id_;
   const LeaseOptions options_;
 
-  mutable std::mutex mutex_;
-  std::condition_variable cv_;
-  bool stopping_ = false;
-  bool released_ = false;
-  absl::Status lost_;          // set once the lease is known lost
-  absl::Status last_failure_;  // the last failed renewal
-  TimePoint last_renewed_{};   // clock time of the last acquire/renew
-  TimePoint next_{};           // when the next renewal is due
-  bool renewing_ = false;      // a renewal call is under way
-  uint64_t renewals_ = 0;
+  // The renewal thread waits on mutex_ (Mutex::Await) for stopping_ or a
+  // wake from the clock (wakes_ counts them).
+  mutable absl::Mutex mutex_;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool released_ ABSL_GUARDED_BY(mutex_) = false;
+  uint64_t wakes_ ABSL_GUARDED_BY(mutex_) = 0;
+  absl::Status lost_ ABSL_GUARDED_BY(mutex_);          // set once the lease is known lost
+  absl::Status last_failure_ ABSL_GUARDED_BY(mutex_);  // the last failed renewal
+  TimePoint last_renewed_ ABSL_GUARDED_BY(mutex_){};   // clock time of the last acquire/renew
+  TimePoint next_ ABSL_GUARDED_BY(mutex_){};           // when the next renewal is due
+  bool renewing_ ABSL_GUARDED_BY(mutex_) = false;      // a renewal call is under way
+  uint64_t renewals_ ABSL_GUARDED_BY(mutex_) = 0;
   std::unique_ptr<Listener> listener_;
   std::thread thread_;
 };

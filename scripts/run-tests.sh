@@ -8,7 +8,7 @@ cd "$(dirname "$0")/.."
 scripts/install-deps.sh
 scripts/build.sh
 # Clang's thread-safety analysis (ABSL_GUARDED_BY) over the library and the
-# coordinator; GCC builds, clang only checks (about 35 s).
+# coordinator; GCC builds, clang only checks (about 2.5 minutes on 2 cores).
 /usr/bin/python3 tests/static/thread_safety_check.py --build-dir "${BUILD_DIR:-build}"
 # The label container runs last, alone (scripts/container-tests.sh).
 ctest --test-dir "${BUILD_DIR:-build}" --output-on-failure -j 2 -LE container

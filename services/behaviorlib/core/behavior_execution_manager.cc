@@ -105,14 +105,14 @@ std::chrono::nanoseconds threadCpuTime() {
 }  // namespace
 
 bool BehaviorExecutionManager::caughtUp(TimePoint t) const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (gated_) return true;  // the command waits for time to be granted
   if (!commands_.empty() || commanding_ || ticking_) return false;
   return state_ != State::kActive || next_tick_ > t;
 }
 
 bool BehaviorExecutionManager::idle() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return commands_.empty() && !gated_ && !commanding_ && !ticking_ && state_ != State::kActive;
 }
 
@@ -128,8 +128,8 @@ class BehaviorExecutionManager::WakeOnClock final : public ClockListener {
   explicit WakeOnClock(BehaviorExecutionManager* owner) : owner_(owner) {}
   void onClockAdvanced() override {
     if (!owner_->wants_ticks_.load(std::memory_order_acquire)) return;
-    { std::lock_guard lock(owner_->mutex_); }
-    owner_->cv_.notify_one();
+    absl::MutexLock lock(&owner_->mutex_);
+    ++owner_->wakes_;
   }
 
  private:
@@ -145,14 +145,12 @@ class BehaviorExecutionManager::Background {
     absl::MutexLock lock(&mutex_);
     if (stopping_) return;
     tasks_.push_back(std::move(task));
-    wake_.Signal();
   }
   // Waits for the running task; drops the queued ones.
   void stop() {
     {
       absl::MutexLock lock(&mutex_);
       stopping_ = true;
-      wake_.Signal();
     }
     if (thread_.joinable()) thread_.join();
   }
@@ -163,7 +161,7 @@ class BehaviorExecutionManager::Background {
       std::function<void()> task;
       {
         absl::MutexLock lock(&mutex_);
-        while (!stopping_ && tasks_.empty()) wake_.Wait(&mutex_);
+        mutex_.Await(absl::Condition(this, &Background::hasWorkLocked));
         if (stopping_) return;
         task = std::move(tasks_.front());
         tasks_.pop_front();
@@ -172,8 +170,11 @@ class BehaviorExecutionManager::Background {
     }
   }
 
+  bool hasWorkLocked() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return stopping_ || !tasks_.empty();
+  }
+
   absl::Mutex mutex_;
-  absl::CondVar wake_;
   std::deque<std::function<void()>> tasks_ ABSL_GUARDED_BY(mutex_);
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   std::thread thread_;
@@ -182,7 +183,7 @@ class BehaviorExecutionManager::Background {
 void BehaviorExecutionManager::runInBackground(std::function<void()> task) {
   Background* background;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!background_) background_ = std::make_unique<Background>();
     background = background_.get();
   }
@@ -274,20 +275,20 @@ void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
       [this] {
         State state;
         {
-          std::unique_lock lock(mutex_);
+          absl::ReleasableMutexLock lock(&mutex_);
           state = state_;
         }
         if (state == State::kActive || state == State::kPaused) {
           finish(v1::TERMINATION_CAUSE_INTERRUPTED, "process shutting down");
         }
-        std::lock_guard lock(mutex_);
+        absl::MutexLock lock(&mutex_);
         stopping_ = true;
       },
       nullptr);
   bool exited;
   {
-    std::unique_lock lock(mutex_);
-    exited = exited_cv_.wait_for(lock, timeout, [this] { return exited_; });
+    absl::MutexLock lock(&mutex_);
+    exited = mutex_.AwaitWithTimeout(absl::Condition(&exited_), absl::FromChrono(timeout));
   }
   if (exited) {
     worker_.join();
@@ -299,7 +300,7 @@ void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
   // behavior is destroyed.
   Background* background;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     background = background_.get();
   }
   if (background) background->stop();
@@ -308,10 +309,9 @@ void BehaviorExecutionManager::stop(std::chrono::milliseconds timeout) {
 
 void BehaviorExecutionManager::post(std::function<void()> command, std::function<void()> cancel) {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (!exited_) {
       commands_.push_back({std::move(command), std::move(cancel)});
-      cv_.notify_one();
       return;
     }
   }
@@ -319,14 +319,13 @@ void BehaviorExecutionManager::post(std::function<void()> command, std::function
 }
 
 void BehaviorExecutionManager::schedule(std::shared_ptr<detail::Inbox> inbox) {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (exited_ || stopping_) return;
   ready_.push_back(std::move(inbox));
-  cv_.notify_one();
 }
 
 uint64_t BehaviorExecutionManager::inboxGeneration() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return activation_id_.empty() ? 0 : generation_;
 }
 
@@ -334,7 +333,7 @@ void BehaviorExecutionManager::deliver(const std::shared_ptr<detail::Inbox>& inb
   bool stale;
   bool active;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     stale = inbox->generation() != 0 && inbox->generation() != generation_;
     active = state_ == State::kActive || state_ == State::kPaused;
   }
@@ -358,7 +357,7 @@ std::function<void()> BehaviorExecutionManager::cancelWith(const Done<T>& done,
 }
 
 void BehaviorExecutionManager::run() {
-  std::unique_lock lock(mutex_);
+  mutex_.Lock();
   while (true) {
     if (stopping_) break;
     if (!commands_.empty()) {
@@ -366,29 +365,35 @@ void BehaviorExecutionManager::run() {
       commands_.pop_front();
       if (context_.before_command) {
         gated_ = true;
-        lock.unlock();
+        mutex_.Unlock();
         context_.before_command();
-        lock.lock();
+        mutex_.Lock();
         gated_ = false;
       }
       commanding_ = true;
-      lock.unlock();
+      mutex_.Unlock();
       command.run();
-      lock.lock();
+      mutex_.Lock();
       commanding_ = false;
       continue;
     }
     if (!ready_.empty()) {
       auto inbox = std::move(ready_.front());
       ready_.pop_front();
-      lock.unlock();
+      mutex_.Unlock();
       deliver(inbox);
-      lock.lock();
+      mutex_.Lock();
       continue;
     }
+    // Until there is work for the worker (a command, an inbox, the stop) or
+    // the clock wakes it.
+    const uint64_t seen = wakes_;
+    const auto woken = [this, seen]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+      return stopping_ || !commands_.empty() || !ready_.empty() || wakes_ != seen;
+    };
     if (state_ == State::kActive) {
       if (!context_.clock->valid()) {
-        cv_.wait_for(lock, std::chrono::milliseconds(50));
+        mutex_.AwaitWithTimeout(absl::Condition(&woken), absl::Milliseconds(50));
         continue;
       }
       const TimePoint now = context_.clock->now();
@@ -397,23 +402,23 @@ void BehaviorExecutionManager::run() {
         // Never burst to catch up: a late tick moves the schedule.
         if (next_tick_ <= now) next_tick_ = now + period_;
         ticking_ = true;
-        lock.unlock();
+        mutex_.Unlock();
         execute();
-        lock.lock();
+        mutex_.Lock();
         ticking_ = false;
         continue;
       }
-      cv_.wait_for(lock, context_.clock->wallWaitFor(next_tick_ - now));
+      mutex_.AwaitWithTimeout(absl::Condition(&woken),
+                              absl::FromChrono(context_.clock->wallWaitFor(next_tick_ - now)));
     } else {
-      cv_.wait(lock);  // inactive: no CPU until a command arrives
+      mutex_.Await(absl::Condition(&woken));  // inactive: no CPU until a command arrives
     }
   }
   exited_ = true;
   ready_.clear();
   std::deque<Command> left = std::move(commands_);
   commands_.clear();
-  exited_cv_.notify_all();
-  lock.unlock();
+  mutex_.Unlock();
   for (auto& command : left) {
     if (command.cancel) command.cancel();
   }
@@ -449,7 +454,7 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
       }
     }
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       state_ = State::kInactive;
       activation_id_.clear();
       parameters_.reset();
@@ -480,7 +485,7 @@ void BehaviorExecutionManager::watchdogCheck(std::chrono::steady_clock::time_poi
   const auto limit =
       std::chrono::duration_cast<std::chrono::nanoseconds>(options_.watchdog_timeout);
   if (steadyNs(now) - started < limit.count()) return;
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   if (state_ != State::kActive && state_ != State::kPaused) return;
   int64_t expected = started;
   if (!call_started_ns_.compare_exchange_strong(expected, kWatchdogFired,
@@ -505,7 +510,7 @@ Duration BehaviorExecutionManager::activeTime() const {
   // Locked: the watchdog thread writes state_ while user code, still
   // running past its limit, may ask this.
   const TimePoint now = context_.clock->now();
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   return activeTimeLocked(now);
 }
 
@@ -564,7 +569,7 @@ void BehaviorExecutionManager::execute() {
   if (std::abs(situation.performance_ratio - reported_performance_) >=
           options_.situation_report_threshold ||
       situation.reasons != reported_reasons_ || situation.codes != reported_codes_) {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     reported_performance_ = situation.performance_ratio;
     reported_reasons_ = situation.reasons;
     reported_codes_ = situation.codes;
@@ -595,7 +600,7 @@ void BehaviorExecutionManager::finish(v1::TerminationCause cause, const std::str
     full_message += (full_message.empty() ? "" : "; ") + failure_message_;
   }
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (state_ != State::kActive && state_ != State::kPaused) return;
     recordFinishedLocked(cause, full_message);
     state_ = State::kInactive;
@@ -663,7 +668,7 @@ absl::Status BehaviorExecutionManager::checkActivationIdLocked(const std::string
 // commands; answer at once instead of queueing behind it.
 bool BehaviorExecutionManager::refuseWhileBlocked(const std::function<void(absl::Status)>& reply) {
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     if (state_ != State::kBlocked) return false;
   }
   reply(errors::withReason(
@@ -702,7 +707,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
                                           const Done<v1::ActivateResponse>& done) {
   // Answered after the lock is released: completions never run under it.
   auto early = [&]() -> std::optional<absl::StatusOr<v1::ActivateResponse>> {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     const auto wall_now = std::chrono::steady_clock::now();
     while (!request_id_order_.empty() &&
            wall_now - request_id_order_.front().first > kRequestIdWindow) {
@@ -761,7 +766,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
   }
   const TimePoint now = context_.clock->now();
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     parameters_ = std::move(parameters);
     activation_id_ = name() + "-" + context_.events->incarnation().substr(0, 8) + "-" +
                      std::to_string(++activation_counter_);
@@ -778,7 +783,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
   }
   if (!status.ok()) {
     {
-      std::lock_guard lock(mutex_);
+      absl::MutexLock lock(&mutex_);
       parameters_.reset();
       activation_id_.clear();
       ++generation_;
@@ -789,7 +794,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
   }
   v1::ActivateResponse response;
   {
-    std::lock_guard lock(mutex_);
+    absl::MutexLock lock(&mutex_);
     state_ = State::kActive;
     next_tick_ = now;
     first_execute_pending_ = true;
@@ -818,7 +823,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
 void BehaviorExecutionManager::deactivate(std::string activation_id,
                                           Done<v1::DeactivateResponse> done) {
   {
-    std::unique_lock lock(mutex_);
+    absl::ReleasableMutexLock lock(&mutex_);
     if (state_ == State::kBlocked) {
       for (const auto& f : finished_) {
         if (!activation_id.empty() && f.activation_id == activation_id) {
@@ -826,12 +831,12 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
           response.set_activation_id(activation_id);
           response.set_cause(f.cause);
           response.set_already_finished(true);
-          lock.unlock();
+          lock.Release();
           done(std::move(response));
           return;
         }
       }
-      lock.unlock();
+      lock.Release();
       refuseWhileBlocked([&](absl::Status s) { done(s); });
       return;
     }
@@ -840,7 +845,7 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          std::unique_lock lock(mutex_);
+          absl::ReleasableMutexLock lock(&mutex_);
           const bool running = state_ == State::kActive || state_ == State::kPaused;
           if (!running && !activation_id.empty()) {
             for (const auto& f : finished_) {
@@ -849,14 +854,14 @@ void BehaviorExecutionManager::deactivate(std::string activation_id,
                 response.set_activation_id(activation_id);
                 response.set_cause(f.cause);
                 response.set_already_finished(true);
-                lock.unlock();
+                lock.Release();
                 done(std::move(response));
                 return;
               }
             }
           }
           if (absl::Status s = checkActivationIdLocked(activation_id, "deactivate"); !s.ok()) {
-            lock.unlock();
+            lock.Release();
             done(s);
             return;
           }
@@ -877,14 +882,14 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          std::unique_lock lock(mutex_);
+          absl::ReleasableMutexLock lock(&mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "pause"); !s.ok()) {
-            lock.unlock();
+            lock.Release();
             done(s);
             return;
           }
           if (state_ == State::kPaused) {
-            lock.unlock();
+            lock.Release();
             done(errors::withReason(absl::FailedPreconditionError(name() + " is already paused"),
                                     v1::BEHAVIOR_ALREADY_PAUSED, {{"behavior", name()}}));
             return;
@@ -899,7 +904,7 @@ void BehaviorExecutionManager::pause(std::string activation_id, Done<v1::PauseRe
                 "onPause", [&] { behavior_->onPause(); }, [&](absl::Status s) { done(s); }))
           return;
         {
-          std::unique_lock lock(mutex_);
+          absl::ReleasableMutexLock lock(&mutex_);
           v1::BehaviorEvent event = newEventLocked();
           event.mutable_paused();
           context_.events->append(std::move(event));
@@ -917,14 +922,14 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
       [this, activation_id = std::move(activation_id), done] {
         std::string current;
         {
-          std::unique_lock lock(mutex_);
+          absl::ReleasableMutexLock lock(&mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "resume"); !s.ok()) {
-            lock.unlock();
+            lock.Release();
             done(s);
             return;
           }
           if (state_ != State::kPaused) {
-            lock.unlock();
+            lock.Release();
             done(errors::withReason(absl::FailedPreconditionError(name() + " is not paused"),
                                     v1::BEHAVIOR_NOT_PAUSED, {{"behavior", name()}}));
             return;
@@ -935,7 +940,7 @@ void BehaviorExecutionManager::resume(std::string activation_id, Done<v1::Resume
                 "onResume", [&] { behavior_->onResume(); }, [&](absl::Status s) { done(s); }))
           return;
         {
-          std::unique_lock lock(mutex_);
+          absl::ReleasableMutexLock lock(&mutex_);
           const TimePoint now = context_.clock->now();
           state_ = State::kActive;
           active_since_ = now;
@@ -969,9 +974,9 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         std::unique_ptr<google::protobuf::Message> merged;
         std::string current;
         {
-          std::unique_lock lock(mutex_);
+          absl::ReleasableMutexLock lock(&mutex_);
           if (absl::Status s = checkActivationIdLocked(activation_id, "modify"); !s.ok()) {
-            lock.unlock();
+            lock.Release();
             done(s);
             return;
           }
@@ -997,7 +1002,7 @@ void BehaviorExecutionManager::modify(std::string activation_id,
         }
         v1::ModifyResponse response;
         {
-          std::unique_lock lock(mutex_);
+          absl::ReleasableMutexLock lock(&mutex_);
           parameters_ = std::move(merged);
           response.set_activation_id(current);
           *response.mutable_parameters() = params::toStruct(*parameters_);
@@ -1038,7 +1043,7 @@ void BehaviorExecutionManager::checkSituationNow(Done<v1::CheckSituationResponse
 }
 
 v1::BehaviorState BehaviorExecutionManager::state() const {
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   switch (state_) {
     case State::kInactive:
       return v1::BEHAVIOR_STATE_INACTIVE;
@@ -1055,7 +1060,7 @@ v1::BehaviorState BehaviorExecutionManager::state() const {
 v1::CheckActivationResponse BehaviorExecutionManager::checkActivation() const {
   v1::CheckActivationResponse response;
   response.set_state(state());
-  std::lock_guard lock(mutex_);
+  absl::MutexLock lock(&mutex_);
   const bool running = state_ == State::kActive || state_ == State::kPaused;
   response.set_active(running);
   if (running) {

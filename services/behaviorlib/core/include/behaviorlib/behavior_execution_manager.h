@@ -41,12 +41,10 @@
 
 #include <atomic>
 #include <chrono>
-#include <condition_variable>
 #include <deque>
 #include <functional>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <stdexcept>
 #include <string>
@@ -476,23 +474,23 @@ class BehaviorExecutionManager final {
   BehaviorOptions options_;
   BehaviorContext context_;
   std::unique_ptr<WakeOnClock> clock_listener_;
-  std::unique_ptr<Background> background_;  // created on first use (guarded by mutex_)
-
-  mutable std::mutex mutex_;
-  std::condition_variable cv_;
+  // The worker waits on mutex_ (Mutex::Await) for a command, an inbox,
+  // stopping_, or a wake from the clock (wakes_ counts them).
+  mutable absl::Mutex mutex_;
+  std::unique_ptr<Background> background_ ABSL_GUARDED_BY(mutex_);  // created on first use
   struct Command {
     std::function<void()> run;
     std::function<void()> cancel;
   };
-  std::deque<Command> commands_;
-  // Inboxes with samples for the worker (guarded by mutex_).
-  std::deque<std::shared_ptr<detail::Inbox>> ready_;
+  std::deque<Command> commands_ ABSL_GUARDED_BY(mutex_);
+  // Inboxes with samples for the worker.
+  std::deque<std::shared_ptr<detail::Inbox>> ready_ ABSL_GUARDED_BY(mutex_);
   // Changes when an activation starts or ends; onWorker() inboxes of an
-  // ended activation are discarded (guarded by mutex_).
-  uint64_t generation_ = 1;
-  bool stopping_ = false;
-  bool exited_ = false;
-  std::condition_variable exited_cv_;
+  // ended activation are discarded.
+  uint64_t generation_ ABSL_GUARDED_BY(mutex_) = 1;
+  bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
+  bool exited_ ABSL_GUARDED_BY(mutex_) = false;
+  uint64_t wakes_ ABSL_GUARDED_BY(mutex_) = 0;
   std::thread worker_;
 
   // Activation state: written on the worker under mutex_ (state_ also by the
@@ -507,11 +505,11 @@ class BehaviorExecutionManager final {
   Duration maximum_execution_time_{0};
   std::string time_out_reason_;
   TimePoint next_tick_{};
-  bool ticking_ = false;  // the worker runs a tick (guarded by mutex_)
+  bool ticking_ ABSL_GUARDED_BY(mutex_) = false;  // the worker runs a tick
   // The worker holds a command at the time gate (before_command), or runs
-  // one (guarded by mutex_).
-  bool gated_ = false;
-  bool commanding_ = false;
+  // one.
+  bool gated_ ABSL_GUARDED_BY(mutex_) = false;
+  bool commanding_ ABSL_GUARDED_BY(mutex_) = false;
   Duration period_{0};
   bool first_execute_pending_ = false;
   std::chrono::steady_clock::time_point activate_received_{};

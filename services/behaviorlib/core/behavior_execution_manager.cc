@@ -460,6 +460,7 @@ bool BehaviorExecutionManager::guarded(const char* function, F&& f) {
       parameters_.reset();
       ++generation_;
     }
+    callOffBackgroundJobs();
     reportActive(false);
     if (context_.observer) context_.observer->onBlocked(false);
     failure_message_ = "stopped by the watchdog";
@@ -608,7 +609,13 @@ void BehaviorExecutionManager::finish(v1::TerminationCause cause, const std::str
     parameters_.reset();
     ++generation_;
   }
+  callOffBackgroundJobs();
   reportActive(false);
+}
+
+void BehaviorExecutionManager::callOffBackgroundJobs() {
+  activation_jobs_.request_stop();
+  activation_jobs_ = std::stop_source();
 }
 
 void BehaviorExecutionManager::recordFinishedLocked(v1::TerminationCause cause,
@@ -788,6 +795,7 @@ void BehaviorExecutionManager::doActivate(std::unique_ptr<google::protobuf::Mess
       activation_id_.clear();
       ++generation_;
     }
+    callOffBackgroundJobs();
     done(absl::Status(status.code(),
                       name() + " refused activation: " + std::string(status.message())));
     return;

@@ -121,7 +121,6 @@ void ExploreBehavior::startChoice() {
   const auto& p = parameters();
   const MapperSettings& m = mapper_.settings();
   Request r;
-  r.id = current_id_.fetch_add(1) + 1;
   r.start_m = support_.state().position_m;
   r.lo_m = toEigen(p.bounds_min_m());
   r.hi_m = toEigen(p.bounds_max_m());
@@ -131,18 +130,18 @@ void ExploreBehavior::startChoice() {
   r.radius_m = p.vehicle_radius_m();
   r.given_up = given_up_;
   choice_ = Choice();
-  choice_.id = r.id;
-  inBackground<Choice>([this, r] { return choose(r); },
-                       [this](const Choice& c) {
-                         if (c.id == current_id_.load()) choice_ = c;
-                       });
+  // A newer choice supersedes the running one: called off, its result never
+  // reaches choice_.
+  choosing_.request_stop();
+  choosing_ = inBackground<Choice>([this, r](std::stop_token stop) { return choose(r, stop); },
+                                   [this](const Choice& c) { choice_ = c; });
 }
 
-ExploreBehavior::Choice ExploreBehavior::choose(const Request& request) const {
+ExploreBehavior::Choice ExploreBehavior::choose(const Request& request,
+                                                std::stop_token stop) const {
   Choice c;
-  c.id = request.id;
   c.done = true;
-  if (request.id != current_id_.load()) return c;  // superseded
+  if (stop.stop_requested()) return c;  // superseded
   mapper_.withMap([&](const OccupancyMap& map) {
     const double plane = request.altitude_m + mapper_.settings().lidar_mount_m.z();
     const MapSlice slice(map, {.min_m = request.lo_m.head<2>(),
@@ -321,7 +320,7 @@ void ExploreBehavior::onExecute() {
 }
 
 void ExploreBehavior::onDeactivate() {
-  ++current_id_;  // the running choice is dropped
+  choosing_.request_stop();  // the running choice is dropped
   support_.end();
   tracker_.reset();
 }
@@ -364,7 +363,7 @@ Verdict ExploreBehavior::checkGoal() {
 Verdict ExploreBehavior::checkProgress() {
   const auto& p = parameters();
   const TimePoint t = now();
-  if (phase_ == Phase::kChoosing && choice_.done && choice_.id == current_id_.load() && !paused_) {
+  if (phase_ == Phase::kChoosing && choice_.done && !paused_) {
     known_fraction_ = choice_.known_fraction;
     // Frontiers there but every plan failed (a random planner's time-out, a
     // vehicle just too near a wall): choose again, on a newer map, before

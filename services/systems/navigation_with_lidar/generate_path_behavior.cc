@@ -210,22 +210,21 @@ void GeneratePathBehavior::startAttempt() {
       std::clamp(uncertainty_sigmas_ * a.stddev_m, 0.0, max_uncertainty_margin_m_);
   a.belief_key = beliefKey();
   a.bounds = boundsParameter();
-  a.id = current_id_.fetch_add(1) + 1;
   result_ = Result();
-  result_.id = a.id;
   attempt_started_ = std::chrono::steady_clock::now();
   // Planned on the behavior's background thread; the result comes back on
   // the worker, where only the current attempt's counts.
-  inBackground<Result>([this, a] { return plan(a); },
-                       [this](const Result& r) {
-                         if (r.id == current_id_.load()) result_ = r;
-                       });
+  // A newer attempt supersedes the running one: called off, its result
+  // never reaches result_.
+  attempt_.request_stop();
+  attempt_ = inBackground<Result>([this, a](std::stop_token stop) { return plan(a, stop); },
+                                  [this](const Result& r) { result_ = r; });
 }
 
-GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) const {
+GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt,
+                                                        std::stop_token stop) const {
   Result r;
-  r.id = attempt.id;
-  if (attempt.id != current_id_.load()) return r;  // superseded while it waited
+  if (stop.stop_requested()) return r;  // superseded while it waited
   std::optional<absl::StatusOr<PlannedPath>> planned;
   mapper_.withMap([&](const OccupancyMap& map) {
     r.map_revision = map.revision();
@@ -285,7 +284,7 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
     return r;
   }
   const PlannedPath& path = **planned;
-  if (attempt.id != current_id_.load()) return r;  // abandoned: write nothing
+  if (stop.stop_requested()) return r;  // abandoned: write nothing
   // The channel's Path, and the belief FOLLOW_PATH takes as path_m.
   v1::Path message;
   auto* header = message.mutable_header();
@@ -352,7 +351,7 @@ GeneratePathBehavior::Result GeneratePathBehavior::plan(const Attempt& attempt) 
 }
 
 void GeneratePathBehavior::onDeactivate() {
-  ++current_id_;  // the running attempt writes nothing
+  attempt_.request_stop();  // the running attempt writes nothing
 }
 
 void GeneratePathBehavior::onPause() { paused_ = true; }
@@ -443,7 +442,6 @@ Verdict GeneratePathBehavior::checkProgress() {
   if (paused_) {
     waiting_ = true;
     result_ = Result();
-    result_.id = current_id_.load();
   } else {
     startAttempt();
   }

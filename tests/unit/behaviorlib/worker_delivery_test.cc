@@ -5,9 +5,11 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <chrono>
 #include <future>
 #include <mutex>
 #include <optional>
+#include <stop_token>
 #include <thread>
 #include <utility>
 #include <vector>
@@ -236,6 +238,71 @@ TEST_F(BackgroundJobTest, AJobThatThrowsEndsTheActivationWithProcessFailure) {
   EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
   EXPECT_THAT(finished.finished().message(), HasSubstr("a background job threw: no plan"));
   EXPECT_FALSE(b.seen().has_value());
+}
+
+// Cancellable background jobs: each waits (bounded) until it is called off,
+// then says whether it was. At activation, job 1 is started and superseded
+// by job 2 at once; job 2 runs until the activation ends.
+class CallOffBehavior final : public Behavior<v1::WaitParameters> {
+ public:
+  CallOffBehavior() : Behavior("CALL_OFF") {}
+
+  std::vector<int> delivered() const {
+    std::lock_guard lock(test_mutex_);
+    return delivered_;
+  }
+  std::vector<int> calledOff() const {
+    std::lock_guard lock(test_mutex_);
+    return called_off_;
+  }
+
+ protected:
+  absl::Status onActivate() override {
+    std::stop_source first = start(1);
+    first.request_stop();  // superseded
+    start(2);
+    return absl::OkStatus();
+  }
+
+ private:
+  std::stop_source start(int id) {
+    return inBackground<int>(
+        [this, id](std::stop_token stop) {
+          const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(20);
+          while (!stop.stop_requested() && std::chrono::steady_clock::now() < deadline) {
+            std::this_thread::sleep_for(std::chrono::milliseconds(1));
+          }
+          std::lock_guard lock(test_mutex_);
+          if (stop.stop_requested()) called_off_.push_back(id);
+          return id;
+        },
+        [this](const int& id) {
+          std::lock_guard lock(test_mutex_);
+          delivered_.push_back(id);
+        });
+  }
+
+  mutable std::mutex test_mutex_;
+  std::vector<int> delivered_, called_off_;
+};
+
+TEST(CancellableJobTest, ASupersededJobAndTheJobsOfAnEndedActivationAreCalledOffAndDropped) {
+  FakeClock clock;
+  BehaviorHost host(testing::hostOptions("drone1", "test"), clock);
+  auto behavior = std::make_unique<CallOffBehavior>();
+  auto& b = *behavior;
+  host.add(std::move(behavior));
+  ASSERT_TRUE(host.start().ok());
+  ASSERT_TRUE(detail::engineOf(b).activateAndWait(waitParams(100)).ok());
+  // Job 1 was called off by the behavior; job 2 runs.
+  ASSERT_TRUE(eventually([&] { return b.calledOff() == std::vector<int>{1}; }));
+  // The activation's end calls job 2 off.
+  ASSERT_TRUE(detail::engineOf(b).deactivateAndWait().ok());
+  ASSERT_TRUE(eventually([&] { return b.calledOff() == std::vector<int>{1, 2}; }));
+  // Neither result reached the behavior (stop() joins the worker and the
+  // background thread, so a late delivery would have happened by now).
+  host.stop();
+  EXPECT_TRUE(b.delivered().empty());
 }
 
 }  // namespace

@@ -47,6 +47,7 @@
 #include <memory>
 #include <optional>
 #include <stdexcept>
+#include <stop_token>
 #include <string>
 #include <thread>
 #include <utility>
@@ -286,6 +287,15 @@ class BehaviorBase {
   /// PROCESS_FAILURE. stop() waits for the running job. Worker thread.
   template <class R>
   void inBackground(std::function<R()> job, std::function<void(const R&)> done);
+  /// inBackground() for a job that may be called off: it gets a
+  /// std::stop_token and looks at it where stopping is worth it (before a
+  /// long step, before writing an output). The returned std::stop_source
+  /// calls it off (a newer job superseding it, say); the end of the
+  /// activation calls off every job it started. A called-off job's result
+  /// is dropped: `done` does not see it. Worker thread.
+  template <class R>
+  std::stop_source inBackground(std::function<R(std::stop_token)> job,
+                                std::function<void(const R&)> done);
   /// Overrides maximum_execution_time for the current activation (e.g. from
   /// its parameters, in onActivate()); zero means none. `reason`, when not
   /// empty, is the TIME_OUT's message instead of the library's (e.g. a
@@ -419,6 +429,9 @@ class BehaviorExecutionManager final {
                                          size_t capacity = 1024);
   template <class R>
   void inBackground(std::function<R()> job, std::function<void(const R&)> done);
+  template <class R>
+  std::stop_source inBackground(std::function<R(std::stop_token)> job,
+                                std::function<void(const R&)> done);
   const std::string& robotId() const { return context_.robot_id; }
   void setMaximumExecutionTime(Duration d, std::string reason) {
     maximum_execution_time_ = d;
@@ -518,6 +531,10 @@ class BehaviorExecutionManager final {
   std::vector<v1::SituationReason> reported_codes_;
   uint64_t activation_counter_ = 0;
   std::atomic<bool> wants_ticks_{false};
+  // Calls off the cancellable background jobs of the activation when it
+  // ends (worker thread only).
+  std::stop_source activation_jobs_;
+  void callOffBackgroundJobs();
 
   // Failure reported from user code (exception) during the current call, and
   // whether the watchdog had stopped it (worker thread only).
@@ -624,6 +641,22 @@ void BehaviorExecutionManager::inBackground(std::function<R()> job,
   });
 }
 
+template <class R>
+std::stop_source BehaviorExecutionManager::inBackground(std::function<R(std::stop_token)> job,
+                                                        std::function<void(const R&)> done) {
+  std::stop_source stop;
+  // The job's own source, stopped too when the activation's is: the link
+  // lives as long as the job (it is part of the job's closure).
+  auto call_off = [stop]() mutable { stop.request_stop(); };
+  auto link = std::make_shared<std::stop_callback<decltype(call_off)>>(activation_jobs_.get_token(),
+                                                                       std::move(call_off));
+  inBackground<R>([job = std::move(job), token = stop.get_token(), link] { return job(token); },
+                  [done = std::move(done), token = stop.get_token()](const R& result) {
+                    if (!token.stop_requested()) done(result);
+                  });
+  return stop;
+}
+
 inline BehaviorExecutionManager& BehaviorBase::engine() const {
   if (engine_ == nullptr) {
     throw std::logic_error("behavior " + name_ +
@@ -652,6 +685,11 @@ std::function<void(const T&)> BehaviorBase::onWorker(std::function<void(const T&
 template <class R>
 void BehaviorBase::inBackground(std::function<R()> job, std::function<void(const R&)> done) {
   engine().template inBackground<R>(std::move(job), std::move(done));
+}
+template <class R>
+std::stop_source BehaviorBase::inBackground(std::function<R(std::stop_token)> job,
+                                            std::function<void(const R&)> done) {
+  return engine().template inBackground<R>(std::move(job), std::move(done));
 }
 
 /// The name of the behavior that `parameters` declares with the

@@ -37,9 +37,9 @@
 // look_ahead_m [3] (how much of the path ahead is checked against the map).
 
 #include <Eigen/Core>
-#include <atomic>
 #include <cstdint>
 #include <optional>
+#include <stop_token>
 #include <string>
 #include <utility>
 #include <vector>
@@ -76,7 +76,6 @@ class ExploreBehavior final : public Behavior<v1::ExploreWithFrontiersParameters
  public:
   /// What one choice found (the background job's result).
   struct Choice {
-    uint64_t id = 0;
     bool done = false;  ///< no choice made yet
     double known_fraction = 0;
     size_t frontiers = 0, unreachable = 0;
@@ -89,12 +88,11 @@ class ExploreBehavior final : public Behavior<v1::ExploreWithFrontiersParameters
 
  private:
   struct Request {
-    uint64_t id = 0;
     Eigen::Vector3d start_m, lo_m, hi_m;
     double altitude_m = 0, radius_m = 0;
     std::vector<Eigen::Vector3d> given_up;
   };
-  Choice choose(const Request& request) const;
+  Choice choose(const Request& request, std::stop_token stop) const;
   void startChoice();
   void startLeg(const std::vector<Eigen::Vector3d>& path);
   void hold();
@@ -131,7 +129,8 @@ class ExploreBehavior final : public Behavior<v1::ExploreWithFrontiersParameters
   uint32_t legs_ = 0;
   double flown_m_ = 0;
   std::string done_message_;
-  std::atomic<uint64_t> current_id_{0};
+  // Calls off the running choice (inBackground's cancellation).
+  std::stop_source choosing_;
 };
 
 }  // namespace behaviorlib::nav

@@ -47,10 +47,10 @@
 // shortened path keeps from obstacles where the space allows it; see
 // PlanOptions), uncertainty_sigmas [2], max_uncertainty_margin_m [0.3].
 
-#include <atomic>
 #include <chrono>
 #include <cstdint>
 #include <optional>
+#include <stop_token>
 #include <string>
 #include <utility>
 
@@ -105,7 +105,6 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   std::optional<Box> boundsParameter() const;
 
   struct Attempt {
-    uint64_t id = 0;
     Eigen::Vector3d start_m, goal_m;
     PlanOptions options;
     std::string belief_key;
@@ -113,7 +112,6 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
     double stddev_m = 0;        ///< the pose estimate's horizontal_stddev_m
   };
   struct Result {
-    uint64_t id = 0;
     Outcome outcome = Outcome::kRunning;
     std::string message;
     size_t waypoints = 0;
@@ -122,8 +120,9 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   };
 
   void startAttempt();
-  // The background job: reads only the attempt, the map, and current_id_.
-  Result plan(const Attempt& attempt) const;
+  // The background job: reads only the attempt and the map; `stop` says
+  // that a newer attempt or the activation's end called it off.
+  Result plan(const Attempt& attempt, std::stop_token stop) const;
   std::string beliefKey() const;
   /// No pose estimate, or a stale one: the reason with its code.
   std::optional<flight::SituationProblem> poseProblem() const;
@@ -150,9 +149,9 @@ class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancy
   uint32_t map_changes_ = 0;                // attempts made again on a changed map
 
   Result result_;  // of the current attempt
-  // The current attempt; the background job reads it to drop a superseded
-  // or abandoned attempt's output.
-  std::atomic<uint64_t> current_id_{0};
+  // Calls off the running attempt (inBackground's cancellation): a
+  // superseded or abandoned attempt writes nothing.
+  std::stop_source attempt_;
 };
 
 }  // namespace behaviorlib::nav

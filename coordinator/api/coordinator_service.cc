@@ -226,9 +226,14 @@ class FleetStreamReactor final
 };
 
 CoordinatorService::CoordinatorService(Registry& registry, FleetEventLog& log,
-                                       CoordinatorMetrics& metrics,
-                                       CoordinatorServiceOptions options)
-    : registry_(registry), log_(log), metrics_(metrics), options_(options) {}
+                                       CoordinatorMetrics& metrics, FleetControl& fleet,
+                                       BlockingPool& pool, CoordinatorServiceOptions options)
+    : registry_(registry),
+      log_(log),
+      metrics_(metrics),
+      fleet_(fleet),
+      pool_(pool),
+      options_(options) {}
 
 CoordinatorService::~CoordinatorService() = default;
 
@@ -346,10 +351,9 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
         // The catalog's rules must fit what the system serves (a default
         // parameter the behavior does not have is the catalog's mistake,
         // named with its file and line).
-        if (options_.fleet != nullptr) {
+        if (const Catalog* catalog = fleet_.catalog(); catalog != nullptr) {
           for (const auto& b : d.behaviors()) {
-            if (auto s = options_.fleet->catalog()->checkRegistration(b, request->system());
-                !s.ok()) {
+            if (auto s = catalog->checkRegistration(b, request->system()); !s.ok()) {
               reactor->Finish(errors::toGrpc(s));
               return;
             }
@@ -443,42 +447,26 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
   if (auto s = server::checkRobotScope(*context, request->robot_id(), "activate behaviors");
       !s.ok())
     return finishNow(context, errors::toGrpc(s));
-  if (options_.fleet != nullptr) {
-    return runBlocking(context, [this, request, response] {
-      auto done = options_.fleet->activateBehavior({request->robot_id(), request->behavior(),
-                                                    request->parameters(), request->request_id(),
-                                                    request->dry_run(), request->skip_plan()});
-      if (!done.ok()) return errors::toGrpc(done.status());
-      response->set_robot_id(request->robot_id());
-      response->set_system(done->system);
-      *response->mutable_activation() = std::move(done->activation);
-      for (const auto& step : done->plan.steps) {
-        auto* out = response->add_plan();
-        out->set_kind(step.kind == StepKind::kDeactivate ? v1::ActivationPlanStep::KIND_DEACTIVATE
-                      : step.kind == StepKind::kCheckSituation
-                          ? v1::ActivationPlanStep::KIND_CHECK_SITUATION
-                          : v1::ActivationPlanStep::KIND_ACTIVATE);
-        out->set_behavior(step.behavior);
-        *out->mutable_parameters() = step.parameters;
-        out->set_reason(step.reason);
-      }
-      return grpc::Status::OK;
-    });
-  }
-  if (request->dry_run()) {
-    return finishNow(
-        context, errors::grpcError(grpc::StatusCode::FAILED_PRECONDITION, v1::FEATURE_NOT_ENABLED,
-                                   "dry_run needs the coordinator's behavior catalog",
-                                   {{"feature", "catalog"}}));
-  }
-  v1::ActivateBehaviorRequest forwarded;
-  forwarded.set_behavior(request->behavior());
-  *forwarded.mutable_parameters() = request->parameters();
-  forwarded.set_request_id(request->request_id());
-  return routed<v1::ActivateResponse>(
-      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
-      response, [](auto& async, auto... args) { async.ActivateBehavior(args...); },
-      [](auto* r, auto&& reply) { *r->mutable_activation() = std::move(reply); });
+  return runBlocking(context, [this, request, response] {
+    auto done =
+        fleet_.activateBehavior({request->robot_id(), request->behavior(), request->parameters(),
+                                 request->request_id(), request->dry_run(), request->skip_plan()});
+    if (!done.ok()) return errors::toGrpc(done.status());
+    response->set_robot_id(request->robot_id());
+    response->set_system(done->system);
+    *response->mutable_activation() = std::move(done->activation);
+    for (const auto& step : done->plan.steps) {
+      auto* out = response->add_plan();
+      out->set_kind(step.kind == StepKind::kDeactivate ? v1::ActivationPlanStep::KIND_DEACTIVATE
+                    : step.kind == StepKind::kCheckSituation
+                        ? v1::ActivationPlanStep::KIND_CHECK_SITUATION
+                        : v1::ActivationPlanStep::KIND_ACTIVATE);
+      out->set_behavior(step.behavior);
+      *out->mutable_parameters() = step.parameters;
+      out->set_reason(step.reason);
+    }
+    return grpc::Status::OK;
+  });
 }
 
 grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
@@ -487,25 +475,16 @@ grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
   if (auto s = server::checkRobotScope(*context, request->robot_id(), "deactivate behaviors");
       !s.ok())
     return finishNow(context, errors::toGrpc(s));
-  if (options_.fleet != nullptr) {
-    return runBlocking(context, [this, request, response] {
-      std::string system;
-      auto done = options_.fleet->deactivateBehavior(request->robot_id(), request->behavior(),
-                                                     request->activation_id(), &system);
-      if (!done.ok()) return errors::toGrpc(done.status());
-      response->set_robot_id(request->robot_id());
-      response->set_system(system);
-      *response->mutable_result() = std::move(*done);
-      return grpc::Status::OK;
-    });
-  }
-  v1::DeactivateBehaviorRequest forwarded;
-  forwarded.set_behavior(request->behavior());
-  forwarded.set_activation_id(request->activation_id());
-  return routed<v1::DeactivateResponse>(
-      registry_, options_.default_call_timeout, context, request->robot_id(), std::move(forwarded),
-      response, [](auto& async, auto... args) { async.DeactivateBehavior(args...); },
-      [](auto* r, auto&& reply) { *r->mutable_result() = std::move(reply); });
+  return runBlocking(context, [this, request, response] {
+    std::string system;
+    auto done = fleet_.deactivateBehavior(request->robot_id(), request->behavior(),
+                                          request->activation_id(), &system);
+    if (!done.ok()) return errors::toGrpc(done.status());
+    response->set_robot_id(request->robot_id());
+    response->set_system(system);
+    *response->mutable_result() = std::move(*done);
+    return grpc::Status::OK;
+  });
 }
 
 grpc::ServerUnaryReactor* CoordinatorService::CheckBehaviorSituation(

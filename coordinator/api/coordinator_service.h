@@ -49,15 +49,10 @@ struct CoordinatorServiceOptions {
   /// Belief memory served by WriteBelief/ReadBelief/...; must outlive the
   /// service. Null: those calls answer FAILED_PRECONDITION.
   BeliefStore* beliefs = nullptr;
-  /// Plans and blocking calls (ActivateBehavior, DeactivateBehavior);
-  /// null: lifecycle calls are forwarded without the catalog's plan.
-  FleetControl* fleet = nullptr;
   /// Missions; null: mission calls answer FAILED_PRECONDITION.
   MissionManager* missions = nullptr;
   /// EmergencyLand and Kill; null: they answer FAILED_PRECONDITION.
   SafetyController* safety = nullptr;
-  /// Where blocking work runs (required with fleet, missions or safety).
-  BlockingPool* pool = nullptr;
 };
 
 // WatchEvents is a raw method: its events are written from their stored
@@ -65,8 +60,12 @@ struct CoordinatorServiceOptions {
 class CoordinatorService final
     : public v1::Coordinator::WithRawCallbackMethod_WatchEvents<v1::Coordinator::CallbackService> {
  public:
+  /// `fleet` is the one path of ActivateBehavior and DeactivateBehavior
+  /// (the catalog's plan, the read-your-writes wait); the other lifecycle
+  /// calls are forwarded to the robot's system as they are. `pool` runs the
+  /// blocking work (those two, the mission and safety calls).
   CoordinatorService(Registry& registry, FleetEventLog& log, CoordinatorMetrics& metrics,
-                     CoordinatorServiceOptions options);
+                     FleetControl& fleet, BlockingPool& pool, CoordinatorServiceOptions options);
   ~CoordinatorService() override;
 
   /// Ends every WatchEvents stream once what is queued for it is sent
@@ -174,6 +173,8 @@ class CoordinatorService final
   Registry& registry_;
   FleetEventLog& log_;
   CoordinatorMetrics& metrics_;
+  FleetControl& fleet_;
+  BlockingPool& pool_;
   const CoordinatorServiceOptions options_;
   absl::Mutex streams_mutex_;
   std::set<FleetStreamReactor*> streams_ ABSL_GUARDED_BY(streams_mutex_);

@@ -275,8 +275,7 @@ class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> 
 grpc::ServerUnaryReactor* CoordinatorService::runBlocking(grpc::CallbackServerContext* context,
                                                           std::function<grpc::Status()> work) {
   auto* reactor = context->DefaultReactor();
-  if (options_.pool == nullptr ||
-      !options_.pool->post([reactor, work = std::move(work)] { reactor->Finish(work()); })) {
+  if (!pool_.post([reactor, work = std::move(work)] { reactor->Finish(work()); })) {
     reactor->Finish(shuttingDown("the coordinator is shutting down"));
   }
   return reactor;

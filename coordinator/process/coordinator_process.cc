@@ -296,13 +296,11 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   }
   CoordinatorServiceOptions service_options;
   service_options.beliefs = p->beliefs.get();
-  service_options.fleet = p->fleet.get();
   service_options.missions = p->missions.get();
   service_options.safety = p->safety.get();
-  service_options.pool = p->pool.get();
   service_options.heartbeat_interval = millis(options.heartbeat_interval);
-  p->service =
-      std::make_unique<CoordinatorService>(*p->registry, *p->log, *p->metrics, service_options);
+  p->service = std::make_unique<CoordinatorService>(*p->registry, *p->log, *p->metrics, *p->fleet,
+                                                    *p->pool, service_options);
 
   grpc::ServerBuilder builder;
   builder.RegisterService(p->service.get());

@@ -270,6 +270,29 @@ class BehaviorSpec:
         return {k: v for k, v in arguments.items() if v is not None}
 
 
+class RobotMethods:
+    """A robot's behaviors as attributes (TAKE_OFF -> take_off), shared by
+    the sync and asyncio clients' Robot: `method_type(robot, spec)` makes
+    each one."""
+
+    def __init__(self, fleet, robot_id, specs, method_type):
+        self.fleet = fleet
+        self.id = robot_id
+        # BehaviorSpec by behavior name.
+        self.behaviors = specs
+        self._methods = {spec.method: method_type(self, spec) for spec in specs.values()}
+
+    def __getattr__(self, name):
+        methods = self.__dict__.get("_methods", {})
+        if name in methods:
+            return methods[name]
+        raise AttributeError(f"robot {self.__dict__.get('id')!r} has no behavior method {name!r} "
+                             f"(its behaviors: {', '.join(sorted(methods)) or 'none'})")
+
+    def __dir__(self):
+        return sorted(set(super().__dir__()) | set(self._methods))
+
+
 def specs_of(fleet_behaviors, robot_id):
     """BehaviorSpecs by name of the FleetBehaviors of one robot."""
     return {b.description.name: BehaviorSpec.from_description(b.description)

@@ -198,24 +198,11 @@ class BehaviorMethod:
         return f"<behavior {self._robot.id}.{self.spec.method}{self.__signature__}>"
 
 
-class Robot:
+class Robot(_core.RobotMethods):
     """One robot: a coroutine method per behavior, and its safety actions."""
 
     def __init__(self, fleet, robot_id, specs):
-        self.fleet = fleet
-        self.id = robot_id
-        self.behaviors = specs
-        self._methods = {spec.method: BehaviorMethod(self, spec) for spec in specs.values()}
-
-    def __getattr__(self, name):
-        methods = self.__dict__.get("_methods", {})
-        if name in methods:
-            return methods[name]
-        raise AttributeError(f"robot {self.__dict__.get('id')!r} has no behavior method {name!r} "
-                             f"(its behaviors: {', '.join(sorted(methods)) or 'none'})")
-
-    def __dir__(self):
-        return sorted(set(super().__dir__()) | set(self._methods))
+        super().__init__(fleet, robot_id, specs, BehaviorMethod)
 
     async def activate(self, behavior, parameters=None, *, wait=True, timeout_s=None,
                        request_id="", skip_plan=False):

@@ -161,33 +161,6 @@ std::optional<SituationProblem> missingSensor(channel::ChannelClient& channel,
   return std::nullopt;
 }
 
-void estimateMessages(const v1::Header& header, const std::string& robot_id, uint64_t seq,
-                      const Eigen::Vector3d& position_m, const Eigen::Quaterniond& orientation,
-                      const Eigen::Vector3d& velocity_m_s,
-                      const Eigen::Vector3d& angular_velocity_rad_s, double horizontal_stddev_m,
-                      v1::PoseStamped* pose, v1::TwistStamped* twist) {
-  v1::Header h = header;
-  h.set_frame_id("world");
-  h.set_robot_id(robot_id);
-  h.set_seq(seq);
-  const auto set = [](v1::Vector3* out, const Eigen::Vector3d& v) {
-    out->set_x(v.x());
-    out->set_y(v.y());
-    out->set_z(v.z());
-  };
-  *pose->mutable_header() = h;
-  set(pose->mutable_pose()->mutable_position_m(), position_m);
-  auto* o = pose->mutable_pose()->mutable_orientation();
-  o->set_w(orientation.w());
-  o->set_x(orientation.x());
-  o->set_y(orientation.y());
-  o->set_z(orientation.z());
-  pose->set_horizontal_stddev_m(horizontal_stddev_m);
-  *twist->mutable_header() = h;
-  set(twist->mutable_twist()->mutable_linear_m_s(), velocity_m_s);
-  set(twist->mutable_twist()->mutable_angular_rad_s(), angular_velocity_rad_s);
-}
-
 std::optional<std::string> checkFlightInputs(Vehicle& vehicle, TimePoint now,
                                              const FlightSettings& settings,
                                              const VehicleLease* lease, bool need_twist,

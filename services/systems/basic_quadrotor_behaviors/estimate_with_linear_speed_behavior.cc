@@ -12,7 +12,9 @@
 namespace behaviorlib::basic {
 EstimatePositionWithLinearSpeedBehavior::EstimatePositionWithLinearSpeedBehavior(
     channel::ChannelClient* channel)
-    : Behavior(flight::flightBehaviorOptions(Duration::zero())), channel_(channel) {}
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())),
+      channel_(channel),
+      estimate_(channel) {}
 
 EstimatePositionWithLinearSpeedBehavior::~EstimatePositionWithLinearSpeedBehavior() {
   stopSubscriptions();
@@ -52,8 +54,6 @@ void EstimatePositionWithLinearSpeedBehavior::onImu(const v1::Imu& imu) {
 }
 
 void EstimatePositionWithLinearSpeedBehavior::onSpeed(const v1::TwistStamped& speed) {
-  v1::PoseStamped pose;
-  v1::TwistStamped twist;
   if (!running_) return;
   const TimePoint stamp = flight::stampTime(speed.header());
   const Eigen::Vector3d velocity = toEigen(speed.twist().linear_m_s());
@@ -71,13 +71,12 @@ void EstimatePositionWithLinearSpeedBehavior::onSpeed(const v1::TwistStamped& sp
   const double max_gap_s = std::chrono::duration<double>(speed_timeout_).count();
   if (!reckoning_->add(toSeconds(stamp), velocity, *orientation_, max_gap_s)) return;
   if (!publishing_) return;
-  fillEstimate(speed.header().stamp(), robotId(), ++seq_, reckoning_->position(), *orientation_,
-               reckoning_->velocity(), gyro_, &pose, &twist);
-  absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
-  if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
-  if (!s.ok()) {
-    if (publish_error_.ok()) publish_error_ = s;
-  }
+  estimate_.publish(speed.header().stamp(), robotId(),
+                    {.position_m = reckoning_->position(),
+                     .orientation = *orientation_,
+                     .velocity_m_s = reckoning_->velocity(),
+                     .body_rates_rad_s = gyro_,
+                     .horizontal_stddev_m = std::nullopt});  // not known
 }
 
 absl::StatusOr<Eigen::Vector3d> EstimatePositionWithLinearSpeedBehavior::initialPosition(
@@ -149,7 +148,7 @@ absl::Status EstimatePositionWithLinearSpeedBehavior::onActivate() {
   speed_.emplace(sensorTopic(robot, "linear_speed"), speed_timeout_, frozen_timeout_);
   imu_.emplace(sensorTopic(robot, "imu"), imu_timeout_, frozen_timeout_);
   implausible_.clear();
-  publish_error_ = absl::OkStatus();
+  estimate_.reset();
   running_ = publishing_ = true;
   setMaximumExecutionTime(seconds(parameters().max_duration_s()));
   activated_at_ = start;
@@ -235,8 +234,9 @@ Verdict EstimatePositionWithLinearSpeedBehavior::checkProgress() {
 
 Verdict EstimatePositionWithLinearSpeedBehavior::checkProcesses() {
   const TimePoint t = now();
-  if (!publish_error_.ok()) {
-    return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
+  if (!estimate_.error().ok()) {
+    return Verdict::finish("cannot publish the estimate: " +
+                           std::string(estimate_.error().message()));
   }
   if (reckoning_ && !reckoning_->position().allFinite()) {
     return Verdict::finish("the dead-reckoned position is no longer a finite number");

@@ -12,7 +12,9 @@ namespace behaviorlib::basic {
 
 EstimatePositionWithSensorBehavior::EstimatePositionWithSensorBehavior(
     channel::ChannelClient* channel)
-    : Behavior(flight::flightBehaviorOptions(Duration::zero())), channel_(channel) {}
+    : Behavior(flight::flightBehaviorOptions(Duration::zero())),
+      channel_(channel),
+      estimate_(channel) {}
 
 EstimatePositionWithSensorBehavior::~EstimatePositionWithSensorBehavior() { stopSubscriptions(); }
 
@@ -38,8 +40,6 @@ absl::Status EstimatePositionWithSensorBehavior::onConfigure(const YAML::Node& c
 }
 
 void EstimatePositionWithSensorBehavior::onImu(const v1::Imu& imu) {
-  v1::PoseStamped pose;
-  v1::TwistStamped twist;
   if (!running_) return;
   const TimePoint stamp = flight::stampTime(imu.header());
   const Eigen::Vector3d gyro = toEigen(imu.angular_velocity_rad_s());
@@ -55,13 +55,12 @@ void EstimatePositionWithSensorBehavior::onImu(const v1::Imu& imu) {
   last_imu_s_ = t;
   last_gyro_ = gyro;
   if (!filter_.initialized() || !publishing_ || imu_count_++ % 2 != 0) return;
-  fillEstimate(imu.header().stamp(), robotId(), ++seq_, filter_.position(), *orientation,
-               filter_.velocity(), gyro, &pose, &twist);
-  absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
-  if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
-  if (!s.ok()) {
-    if (publish_error_.ok()) publish_error_ = s;
-  }
+  estimate_.publish(imu.header().stamp(), robotId(),
+                    {.position_m = filter_.position(),
+                     .orientation = *orientation,
+                     .velocity_m_s = filter_.velocity(),
+                     .body_rates_rad_s = gyro,
+                     .horizontal_stddev_m = std::nullopt});  // not known
 }
 
 void EstimatePositionWithSensorBehavior::countRejection(bool accepted, double innovation_m,
@@ -114,7 +113,7 @@ absl::Status EstimatePositionWithSensorBehavior::onActivate() {
   gps_.emplace(sensorTopic(robot, "gps"), gps_timeout_, frozen_timeout_);
   baro_.emplace(sensorTopic(robot, "baro"), baro_timeout_, frozen_timeout_);
   jump_.clear();
-  publish_error_ = absl::OkStatus();
+  estimate_.reset();
   running_ = publishing_ = true;
   activated_at_ = now();
   active_ = true;
@@ -199,8 +198,9 @@ Verdict EstimatePositionWithSensorBehavior::checkProgress() {
 
 Verdict EstimatePositionWithSensorBehavior::checkProcesses() {
   const TimePoint t = now();
-  if (!publish_error_.ok()) {
-    return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
+  if (!estimate_.error().ok()) {
+    return Verdict::finish("cannot publish the estimate: " +
+                           std::string(estimate_.error().message()));
   }
   if (!filter_.finite()) return Verdict::finish("the filter's state is no longer a finite number");
   for (const SensorStream* stream : {&*imu_, &*gps_, &*baro_}) {

@@ -16,11 +16,6 @@ std::string topic(const std::string& robot, const char* name) {
 
 Eigen::Vector3d vec(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
 
-double yawOf(const Eigen::Quaterniond& q) {
-  const Eigen::Vector3d forward = q * Eigen::Vector3d::UnitX();
-  return std::atan2(forward.y(), forward.x());
-}
-
 BehaviorOptions ekfOptions() {
   BehaviorOptions o = flight::flightBehaviorOptions(Duration::zero());
   o.frequency_hz = 10.0;
@@ -30,7 +25,7 @@ BehaviorOptions ekfOptions() {
 }  // namespace
 
 EkfSelfLocalizationBehavior::EkfSelfLocalizationBehavior(channel::ChannelClient* channel)
-    : Behavior(ekfOptions()), channel_(channel) {}
+    : Behavior(ekfOptions()), channel_(channel), estimate_(channel) {}
 
 EkfSelfLocalizationBehavior::~EkfSelfLocalizationBehavior() { stopSubscriptions(); }
 
@@ -56,76 +51,64 @@ absl::Status EkfSelfLocalizationBehavior::onConfigure(const YAML::Node& config) 
   return absl::OkStatus();
 }
 
-void EkfSelfLocalizationBehavior::fillEstimate(const v1::Header& imu_header, v1::PoseStamped* pose,
-                                               v1::TwistStamped* twist) {
-  flight::estimateMessages(imu_header, robotId(), ++seq_, ekf_.position(), ekf_.orientation(),
-                           ekf_.velocity(), last_gyro_ - ekf_.gyroBias(), ekf_.horizontalStddevM(),
-                           pose, twist);
-}
-
 void EkfSelfLocalizationBehavior::onImu(const v1::Imu& imu) {
   if (!running_) return;
-  v1::PoseStamped pose;
-  v1::TwistStamped twist;
-  bool publish = false;
   const TimePoint stamp = flight::stampTime(imu.header());
   const auto& qo = imu.orientation();
-  imu_orientation_ = Eigen::Quaterniond(qo.w(), qo.x(), qo.y(), qo.z()).normalized();
-  last_gyro_ = vec(imu.angular_velocity_rad_s());
-  if (ekf_.initialized() && last_imu_) {
-    const double dt = std::chrono::duration<double>(stamp - *last_imu_).count();
-    ekf_.predict(last_gyro_, vec(imu.linear_acceleration_m_s2()), dt);
-    if (use_imu_yaw_ && imu_count_ % 20 == 0)
-      ekf_.updateYaw(yawOf(*imu_orientation_), yaw_stddev_rad_);
-    publish = publishing_ && imu_count_ % 2 == 0;
-    if (publish) fillEstimate(imu.header(), &pose, &twist);
-  }
+  // Published every second sample, counted before this one.
+  const bool every_second = ins_.imuCount() % 2 == 0;
+  const bool predicted = ins_.imu(
+      stamp.time_since_epoch(), Eigen::Quaterniond(qo.w(), qo.x(), qo.y(), qo.z()).normalized(),
+      vec(imu.angular_velocity_rad_s()), vec(imu.linear_acceleration_m_s2()));
   last_imu_ = stamp;
-  ++imu_count_;
-  if (!publish) return;
-  absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
-  if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
-  if (!s.ok()) {
-    if (publish_error_.ok()) publish_error_ = s;
-  }
+  if (!predicted || !publishing_ || !every_second) return;
+  const InsEkf& ekf = ins_.ekf();
+  estimate_.publish(imu.header().stamp(), robotId(),
+                    {.position_m = ekf.position(),
+                     .orientation = ekf.orientation(),
+                     .velocity_m_s = ekf.velocity(),
+                     .body_rates_rad_s = ins_.bodyRates(),
+                     .horizontal_stddev_m = ekf.horizontalStddevM()});
 }
 
 void EkfSelfLocalizationBehavior::onGps(const v1::PositionFix& fix) {
   if (!running_) return;
   last_gps_ = flight::stampTime(fix.header());
   const Eigen::Vector3d position = vec(fix.position_m());
-  if (!ekf_.initialized()) {
-    if (imu_orientation_ && position.allFinite())
-      ekf_.initialize(position, Eigen::Vector3d::Zero(), *imu_orientation_);
+  InsEkf& ekf = ins_.ekf();
+  if (!ekf.initialized()) {
+    if (ins_.imuOrientation() && position.allFinite())
+      ekf.initialize(position, Eigen::Vector3d::Zero(), *ins_.imuOrientation());
     return;
   }
-  const UpdateResult r = ekf_.updatePosition(position, std::max(fix.horizontal_stddev_m(), 0.05),
-                                             std::max(fix.vertical_stddev_m(), 0.05));
+  const UpdateResult r = ekf.updatePosition(position, std::max(fix.horizontal_stddev_m(), 0.05),
+                                            std::max(fix.vertical_stddev_m(), 0.05));
   gps_accepted_.push_back(r.accepted);
   while (gps_accepted_.size() > static_cast<size_t>(gps_window_)) gps_accepted_.pop_front();
 }
 
 void EkfSelfLocalizationBehavior::onBaro(const v1::Altitude& altitude) {
-  if (!running_ || !use_barometer_ || !ekf_.initialized()) return;
-  ekf_.updateAltitude(altitude.altitude_m(), std::max(altitude.stddev_m(), baro_stddev_m_));
+  if (!running_ || !use_barometer_) return;
+  ins_.altitude(altitude.altitude_m(), altitude.stddev_m());
 }
 
 void EkfSelfLocalizationBehavior::onLinearSpeed(const v1::TwistStamped& twist) {
-  if (!running_ || !use_linear_speed_ || !ekf_.initialized()) return;
-  ekf_.updateBodyVelocity(vec(twist.twist().linear_m_s()), linear_speed_stddev_m_s_);
+  if (!running_ || !use_linear_speed_) return;
+  ins_.bodyVelocity(vec(twist.twist().linear_m_s()));
 }
 
 absl::Status EkfSelfLocalizationBehavior::onActivate() {
-  ekf_ = InsEkf(noise_);
+  ins_ = InsFeed(noise_, {.use_imu_yaw = parameters().use_imu_yaw(),
+                          .yaw_stddev_rad = yaw_stddev_rad_,
+                          .yaw_every = 20,
+                          .baro_stddev_m = baro_stddev_m_,
+                          .linear_speed_stddev_m_s = linear_speed_stddev_m_s_});
   last_imu_.reset();
   last_gps_.reset();
-  imu_orientation_.reset();
   gps_accepted_.clear();
-  imu_count_ = 0;
-  publish_error_ = absl::OkStatus();
+  estimate_.reset();
   use_linear_speed_ = parameters().use_linear_speed();
   use_barometer_ = parameters().use_barometer();
-  use_imu_yaw_ = parameters().use_imu_yaw();
   running_ = publishing_ = true;
   const std::string robot = robotId();
   // Every IMU sample predicts: a queue, not latest-only.
@@ -168,7 +151,7 @@ absl::Status EkfSelfLocalizationBehavior::onModify(
     const v1::SelfLocalizeWithEkfSensorFusionParameters& p) {
   use_linear_speed_ = p.use_linear_speed();
   use_barometer_ = p.use_barometer();
-  use_imu_yaw_ = p.use_imu_yaw();
+  ins_.setUseImuYaw(p.use_imu_yaw());
   return absl::OkStatus();
 }
 
@@ -188,10 +171,11 @@ Situation EkfSelfLocalizationBehavior::checkSituation() {
 }
 
 Verdict EkfSelfLocalizationBehavior::checkProgress() {
-  if (!ekf_.initialized()) return Verdict::keepGoing();
-  if (ekf_.horizontalStddevM() > max_horizontal_stddev_m_) {
+  const InsEkf& ekf = ins_.ekf();
+  if (!ekf.initialized()) return Verdict::keepGoing();
+  if (ekf.horizontalStddevM() > max_horizontal_stddev_m_) {
     return Verdict::finish("the filter is diverging: horizontal standard deviation " +
-                           flight::fixed2(ekf_.horizontalStddevM()) + " m (limit " +
+                           flight::fixed2(ekf.horizontalStddevM()) + " m (limit " +
                            flight::fixed2(max_horizontal_stddev_m_) + " m)");
   }
   if (gps_accepted_.size() >= static_cast<size_t>(gps_window_)) {
@@ -209,11 +193,13 @@ Verdict EkfSelfLocalizationBehavior::checkProgress() {
 
 Verdict EkfSelfLocalizationBehavior::checkProcesses() {
   const TimePoint t = now();
-  if (!publish_error_.ok()) {
-    return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
+  if (!estimate_.error().ok()) {
+    return Verdict::finish("cannot publish the estimate: " +
+                           std::string(estimate_.error().message()));
   }
-  if (!ekf_.finite()) return Verdict::finish("the filter's state is no longer a finite number");
-  if (!ekf_.initialized()) {
+  const InsEkf& ekf = ins_.ekf();
+  if (!ekf.finite()) return Verdict::finish("the filter's state is no longer a finite number");
+  if (!ekf.initialized()) {
     if (t - activated_at_ > start_timeout_) {
       return Verdict::finish(std::string("the filter did not start within ") +
                              flight::secondsText(start_timeout_) +

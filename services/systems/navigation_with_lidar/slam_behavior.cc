@@ -36,7 +36,10 @@ constexpr double kNoInformation = 1.0;
 }  // namespace
 
 SlamBehavior::SlamBehavior(channel::ChannelClient* channel, const Eigen::Vector3d& lidar_mount_m)
-    : Behavior(slamOptions()), channel_(channel), lidar_mount_m_(lidar_mount_m) {
+    : Behavior(slamOptions()),
+      channel_(channel),
+      lidar_mount_m_(lidar_mount_m),
+      estimate_(channel) {
   // The start pose is given: the filter starts sure of it.
   noise_.initial_position_stddev_m = 0.02;
   noise_.initial_velocity_stddev_m_s = 0.1;
@@ -79,7 +82,7 @@ absl::Status SlamBehavior::onConfigure(const YAML::Node& config) {
 }
 
 Pose2 SlamBehavior::currentPose() const {
-  return {ekf_.position().x(), ekf_.position().y(), yawOf(ekf_.orientation())};
+  return {ekf().position().x(), ekf().position().y(), yawOf(ekf().orientation())};
 }
 
 std::optional<Pose2> SlamBehavior::poseAt(TimePoint stamp) const {
@@ -100,19 +103,17 @@ void SlamBehavior::start(const Eigen::Quaterniond& imu_orientation) {
       tiltOf(imu_orientation);
   const Eigen::Vector3d position(p.initial_position_m().x(), p.initial_position_m().y(),
                                  last_baro_m_.value_or(p.initial_position_m().z()));
-  ekf_.initialize(position, Eigen::Vector3d::Zero(), orientation.normalized());
+  ekf().initialize(position, Eigen::Vector3d::Zero(), orientation.normalized());
   slam_->start({position.x(), position.y(), yaw});
 }
 
 void SlamBehavior::publishEstimate(const v1::Header& imu_header) {
-  v1::PoseStamped pose;
-  v1::TwistStamped twist;
-  flight::estimateMessages(imu_header, robotId(), ++seq_, ekf_.position(), ekf_.orientation(),
-                           ekf_.velocity(), last_gyro_ - ekf_.gyroBias(), ekf_.horizontalStddevM(),
-                           &pose, &twist);
-  absl::Status s = channel_->publish(flight::poseEstimateTopic(robotId()), pose);
-  if (s.ok()) s = channel_->publish(flight::twistEstimateTopic(robotId()), twist);
-  if (!s.ok() && publish_error_.ok()) publish_error_ = s;
+  estimate_.publish(imu_header.stamp(), robotId(),
+                    {.position_m = ekf().position(),
+                     .orientation = ekf().orientation(),
+                     .velocity_m_s = ekf().velocity(),
+                     .body_rates_rad_s = ins_.bodyRates(),
+                     .horizontal_stddev_m = ekf().horizontalStddevM()});
 }
 
 void SlamBehavior::onImu(const v1::Imu& imu) {
@@ -121,40 +122,34 @@ void SlamBehavior::onImu(const v1::Imu& imu) {
   const auto& qo = imu.orientation();
   const Eigen::Quaterniond orientation =
       Eigen::Quaterniond(qo.w(), qo.x(), qo.y(), qo.z()).normalized();
-  last_gyro_ = vec(imu.angular_velocity_rad_s());
-  if (!ekf_.initialized()) {
-    if (orientation.coeffs().allFinite()) start(orientation);
-  } else if (last_imu_) {
-    const double dt = std::chrono::duration<double>(stamp - *last_imu_).count();
-    ekf_.predict(last_gyro_, vec(imu.linear_acceleration_m_s2()), dt);
-    if (use_imu_yaw_ && imu_count_ % 20 == 0)
-      ekf_.updateYaw(yawOf(orientation), imu_yaw_stddev_rad_);
-  }
+  // The filter starts at the first sample with an orientation, and predicts
+  // from the next one on.
+  if (!ekf().initialized() && orientation.coeffs().allFinite()) start(orientation);
+  ins_.imu(stamp.time_since_epoch(), orientation, vec(imu.angular_velocity_rad_s()),
+           vec(imu.linear_acceleration_m_s2()));
   last_imu_ = stamp;
-  ++imu_count_;
-  if (!ekf_.initialized()) return;
+  if (!ekf().initialized()) return;
   history_.push_back({stamp, currentPose()});
   while (!history_.empty() && stamp - history_.front().stamp > kHistory) history_.pop_front();
-  if (publishing_ && imu_count_ % 2 == 0) publishEstimate(imu.header());
+  if (publishing_ && ins_.imuCount() % 2 == 0) publishEstimate(imu.header());
 }
 
 void SlamBehavior::onBaro(const v1::Altitude& altitude) {
   if (!running_) return;
   last_baro_m_ = altitude.altitude_m();
-  if (ekf_.initialized())
-    ekf_.updateAltitude(altitude.altitude_m(), std::max(altitude.stddev_m(), baro_stddev_m_));
+  ins_.altitude(altitude.altitude_m(), altitude.stddev_m());
 }
 
 void SlamBehavior::onLinearSpeed(const v1::TwistStamped& twist) {
-  if (!running_ || !ekf_.initialized()) return;
-  ekf_.updateBodyVelocity(vec(twist.twist().linear_m_s()), linear_speed_stddev_m_s_);
+  if (!running_) return;
+  ins_.bodyVelocity(vec(twist.twist().linear_m_s()));
 }
 
 void SlamBehavior::onScan(const v1::LaserScan& scan) {
   if (!running_) return;
   const TimePoint stamp = flight::stampTime(scan.header());
   last_scan_ = stamp;
-  if (!ekf_.initialized()) return;
+  if (!ekf().initialized()) return;
   const std::optional<Pose2> predicted = poseAt(stamp);
   if (!predicted) return;  // older than the history, or before the start
   PlanarScan planar;
@@ -165,8 +160,8 @@ void SlamBehavior::onScan(const v1::LaserScan& scan) {
   planar.ranges_m.assign(scan.ranges_m().begin(), scan.ranges_m().end());
   // The vehicle is not below the ground, whatever the barometer says: a
   // landed vehicle's level rays are not ground hits.
-  const LevelScan level = levelScan(planar, tiltOf(ekf_.orientation()), lidar_mount_m_,
-                                    std::max(0.0, ekf_.position().z()), slam_config_.scan);
+  const LevelScan level = levelScan(planar, tiltOf(ekf().orientation()), lidar_mount_m_,
+                                    std::max(0.0, ekf().position().z()), slam_config_.scan);
   const ScanUpdate u =
       slam_->addScan(level, *predicted, seconds(stamp), std::abs(scan.angle_increment_rad()));
   bool accepted = false;
@@ -175,10 +170,10 @@ void SlamBehavior::onScan(const v1::LaserScan& scan) {
     const Pose2 now = currentPose();
     const Eigen::Vector2d shift = u.pose.position() - predicted->position();
     const Eigen::Matrix2d covariance = u.covariance.topLeftCorner<2, 2>();
-    accepted = ekf_.updateHorizontalPosition(now.position() + shift, covariance).accepted;
+    accepted = ekf().updateHorizontalPosition(now.position() + shift, covariance).accepted;
     if (u.covariance(2, 2) < kNoInformation) {
-      ekf_.updateYaw(wrapAngle(now.yaw_rad + wrapAngle(u.pose.yaw_rad - predicted->yaw_rad)),
-                     std::sqrt(u.covariance(2, 2)));
+      ekf().updateYaw(wrapAngle(now.yaw_rad + wrapAngle(u.pose.yaw_rad - predicted->yaw_rad)),
+                      std::sqrt(u.covariance(2, 2)));
     }
     match_accepted_.push_back(accepted);
     while (match_accepted_.size() > static_cast<size_t>(match_window_)) match_accepted_.pop_front();
@@ -196,7 +191,12 @@ void SlamBehavior::onScan(const v1::LaserScan& scan) {
 }
 
 absl::Status SlamBehavior::onActivate() {
-  ekf_ = fusion::InsEkf(noise_);
+  ins_ = fusion::InsFeed(noise_, {.use_imu_yaw = parameters().use_imu_yaw(),
+                                  .yaw_stddev_rad = imu_yaw_stddev_rad_,
+                                  .yaw_every = 20,
+                                  .baro_stddev_m = baro_stddev_m_,
+                                  .linear_speed_stddev_m_s = linear_speed_stddev_m_s_});
+  estimate_.reset();
   slam_ = std::make_unique<LidarSlam>(slam_config_);
   last_imu_.reset();
   last_scan_.reset();
@@ -204,9 +204,6 @@ absl::Status SlamBehavior::onActivate() {
   history_.clear();
   match_accepted_.clear();
   degenerate_since_.reset();
-  imu_count_ = 0;
-  publish_error_ = absl::OkStatus();
-  use_imu_yaw_ = parameters().use_imu_yaw();
   running_ = publishing_ = true;
   const std::string robot = robotId();
   imu_sub_ = channel_->subscribeTyped<v1::Imu>(
@@ -245,7 +242,7 @@ void SlamBehavior::onPause() { publishing_ = false; }
 void SlamBehavior::onResume() { publishing_ = true; }
 
 absl::Status SlamBehavior::onModify(const v1::SelfLocalizeAndMapWithLidarParameters& p) {
-  use_imu_yaw_ = p.use_imu_yaw();
+  ins_.setUseImuYaw(p.use_imu_yaw());
   return absl::OkStatus();
 }
 
@@ -268,7 +265,7 @@ Situation SlamBehavior::checkSituation() {
 }
 
 Verdict SlamBehavior::checkProgress() {
-  if (!ekf_.initialized()) return Verdict::keepGoing();
+  if (!ekf().initialized()) return Verdict::keepGoing();
   if (degenerate_since_ && now() - *degenerate_since_ > max_degenerate_) {
     return Verdict::finish(
         "scan matching has been degenerate for " + flight::secondsText(now() - *degenerate_since_) +
@@ -286,9 +283,9 @@ Verdict SlamBehavior::checkProgress() {
                              "no longer fits)");
     }
   }
-  if (ekf_.horizontalStddevM() > max_horizontal_stddev_m_) {
+  if (ekf().horizontalStddevM() > max_horizontal_stddev_m_) {
     return Verdict::finish("the estimate is diverging: horizontal standard deviation " +
-                           flight::fixed2(ekf_.horizontalStddevM()) + " m (limit " +
+                           flight::fixed2(ekf().horizontalStddevM()) + " m (limit " +
                            flight::fixed2(max_horizontal_stddev_m_) + " m)");
   }
   return Verdict::keepGoing();
@@ -296,11 +293,12 @@ Verdict SlamBehavior::checkProgress() {
 
 Verdict SlamBehavior::checkProcesses() {
   const TimePoint t = now();
-  if (!publish_error_.ok()) {
-    return Verdict::finish("cannot publish the estimate: " + std::string(publish_error_.message()));
+  if (!estimate_.error().ok()) {
+    return Verdict::finish("cannot publish the estimate: " +
+                           std::string(estimate_.error().message()));
   }
-  if (!ekf_.finite()) return Verdict::finish("the filter's state is no longer a finite number");
-  if (!ekf_.initialized()) {
+  if (!ekf().finite()) return Verdict::finish("the filter's state is no longer a finite number");
+  if (!ekf().initialized()) {
     if (t - activated_at_ > start_timeout_) {
       return Verdict::finish(std::string("the filter did not start within ") +
                              flight::secondsText(start_timeout_) + ": no IMU sample arrived");

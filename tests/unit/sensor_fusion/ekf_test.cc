@@ -2,10 +2,12 @@
 
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <random>
 
+#include "behaviorlib/sensor_fusion/ins_feed.h"
 #include "simulator/dynamics/autopilot.h"
 #include "simulator/dynamics/quadrotor.h"
 
@@ -173,6 +175,68 @@ TEST(InsEkf, NonFiniteMeasurementsAreRejected) {
   EXPECT_FALSE(ekf.updateAltitude(std::nan(""), 0.1).accepted);
   EXPECT_EQ(ekf.rejectedCount(), 2u);
   EXPECT_TRUE(ekf.finite());
+}
+
+// InsFeed: the inertial navigation shared by the EKF and SLAM behaviors.
+const Eigen::Vector3d kAtRest(0, 0, 9.81);  // specific force at rest, body FLU
+
+Eigen::Quaterniond yawed(double yaw_rad) {
+  return Eigen::Quaterniond(Eigen::AngleAxisd(yaw_rad, Eigen::Vector3d::UnitZ()));
+}
+
+TEST(InsFeed, PredictsOnlyOnceStartedAndFromTheSecondSampleOn) {
+  InsFeed ins;
+  const auto t0 = std::chrono::nanoseconds(1'700'000'000'000'000'000);  // a wall-clock stamp
+  const auto dt = std::chrono::milliseconds(5);
+  EXPECT_FALSE(ins.imu(t0, Eigen::Quaterniond::Identity(), Eigen::Vector3d::Zero(), kAtRest));
+  EXPECT_FALSE(ins.altitude(3.0, 0.1).accepted) << "nothing before the filter starts";
+  EXPECT_EQ(ins.imuCount(), 1u);
+  ins.ekf().initialize({0, 0, 1}, Eigen::Vector3d::Zero(), Eigen::Quaterniond::Identity());
+  // 1 m/s^2 forward over 5 ms: the stamps' difference is exact even this
+  // far from their epoch.
+  EXPECT_TRUE(ins.imu(t0 + dt, Eigen::Quaterniond::Identity(), Eigen::Vector3d::Zero(),
+                      kAtRest + Eigen::Vector3d(1, 0, 0)));
+  EXPECT_NEAR(ins.ekf().velocity().x(), 0.005, 1e-9);
+  EXPECT_EQ(ins.imuCount(), 2u);
+  ASSERT_TRUE(ins.imuOrientation().has_value());
+  ins.reset();
+  EXPECT_FALSE(ins.ekf().initialized());
+  EXPECT_EQ(ins.imuCount(), 0u);
+  EXPECT_FALSE(ins.imuOrientation().has_value());
+}
+
+// Fed the IMU's orientation at 0.3 rad while the filter holds 0: the yaw is
+// corrected at every yaw_every-th sample only, and never without use_imu_yaw.
+double yawAfter(int samples, bool use_imu_yaw) {
+  InsFeedSettings settings;
+  settings.use_imu_yaw = use_imu_yaw;
+  settings.yaw_stddev_rad = 0.01;
+  settings.yaw_every = 20;
+  InsFeed ins({}, settings);
+  ins.ekf().initialize({0, 0, 1}, Eigen::Vector3d::Zero(), Eigen::Quaterniond::Identity());
+  for (int k = 0; k < samples; ++k) {
+    ins.imu(std::chrono::milliseconds(5 * k), yawed(0.3), Eigen::Vector3d::Zero(), kAtRest);
+  }
+  return yawOf(ins.ekf().orientation());
+}
+
+TEST(InsFeed, CorrectsTheYawAtEveryYawEveryThSample) {
+  EXPECT_NEAR(yawAfter(20, true), 0.0, 1e-6) << "samples 1..19 predict without a yaw update";
+  EXPECT_GT(yawAfter(21, true), 0.1) << "sample 20 corrects the yaw";
+  EXPECT_NEAR(yawAfter(21, false), 0.0, 1e-6);
+}
+
+TEST(InsFeed, TrustsTheBarometerNoMoreThanItsConfiguredDeviation) {
+  const auto varianceAfterAltitude = [](double floor_m) {
+    InsFeedSettings settings;
+    settings.baro_stddev_m = floor_m;
+    InsFeed ins({}, settings);
+    ins.ekf().initialize({0, 0, 1}, Eigen::Vector3d::Zero(), Eigen::Quaterniond::Identity());
+    EXPECT_TRUE(ins.altitude(1.0, 0.001).accepted);
+    return ins.ekf().covariance()(2, 2);
+  };
+  // A barometer that claims 1 mm is taken at the configured 0.5 m.
+  EXPECT_GT(varianceAfterAltitude(0.5), 10 * varianceAfterAltitude(0.001));
 }
 
 }  // namespace

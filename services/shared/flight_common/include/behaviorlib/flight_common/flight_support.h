@@ -116,15 +116,6 @@ std::optional<SituationProblem> missingSensor(channel::ChannelClient& channel,
                                               const std::string& robot_id,
                                               const std::vector<SensorNeed>& needs, TimePoint now);
 
-/// The messages of a self-localization behavior's estimate, stamped with
-/// `header`'s stamp, in frame "world", for `robot_id`, numbered `seq`; the
-/// pose carries the horizontal position's standard deviation (m).
-void estimateMessages(const v1::Header& header, const std::string& robot_id, uint64_t seq,
-                      const Eigen::Vector3d& position_m, const Eigen::Quaterniond& orientation,
-                      const Eigen::Vector3d& velocity_m_s,
-                      const Eigen::Vector3d& angular_velocity_rad_s, double horizontal_stddev_m,
-                      v1::PoseStamped* pose, v1::TwistStamped* twist);
-
 /// checkProcesses() of the flight behaviors: the flight controller answers
 /// (flight status known), the pose (and, if `need_twist`, twist) estimate is
 /// fresh on the behavior clock, and the lease (if any) is still renewed. The

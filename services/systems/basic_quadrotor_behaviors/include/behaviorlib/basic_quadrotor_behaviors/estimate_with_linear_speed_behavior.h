@@ -46,6 +46,7 @@
 #include "behaviorlib/basic_quadrotor_behaviors/sensor_stream.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/flight_common/estimate_publisher.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
@@ -97,10 +98,9 @@ class EstimatePositionWithLinearSpeedBehavior final
   double max_speed_m_s_ = 15.0;
   std::optional<Eigen::Quaterniond> orientation_;
   Eigen::Vector3d gyro_ = Eigen::Vector3d::Zero();
-  uint64_t seq_ = 0;
   std::optional<SensorStream> speed_, imu_;
   std::string implausible_;
-  absl::Status publish_error_;
+  flight::EstimatePublisher estimate_;
 
   bool active_ = false;
   TimePoint activated_at_{};

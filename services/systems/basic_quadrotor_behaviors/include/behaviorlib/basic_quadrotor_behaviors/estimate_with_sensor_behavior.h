@@ -42,6 +42,7 @@
 #include "behaviorlib/basic_quadrotor_behaviors/sensor_stream.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/flight_common/estimate_publisher.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
@@ -93,10 +94,10 @@ class EstimatePositionWithSensorBehavior final
   uint32_t rejected_fixes_ = 0, rejected_altitudes_ = 0;
   std::optional<double> last_imu_s_;
   Eigen::Vector3d last_gyro_ = Eigen::Vector3d::Zero();
-  uint64_t imu_count_ = 0, seq_ = 0;
+  uint64_t imu_count_ = 0;
   std::optional<SensorStream> imu_, gps_, baro_;
   std::string jump_;
-  absl::Status publish_error_;
+  flight::EstimatePublisher estimate_;
 
   bool active_ = false;
   TimePoint activated_at_{};

@@ -69,15 +69,6 @@ class SensorStream {
   FrozenDetector frozen_;
 };
 
-/// An estimate as published on the self_localization topics: `pose` (frame
-/// "world") and `twist` (linear velocity in the world frame, angular in the
-/// body frame), both with `stamp`, `robot_id` and `seq`.
-void fillEstimate(const google::protobuf::Timestamp& stamp, const std::string& robot_id,
-                  uint64_t seq, const Eigen::Vector3d& position_m,
-                  const Eigen::Quaterniond& orientation, const Eigen::Vector3d& velocity_m_s,
-                  const Eigen::Vector3d& body_rates_rad_s, v1::PoseStamped* pose,
-                  v1::TwistStamped* twist);
-
 inline Eigen::Vector3d toEigen(const v1::Vector3& v) { return {v.x(), v.y(), v.z()}; }
 
 /// A message's quaternion, normalised; nullopt when it is not finite or far

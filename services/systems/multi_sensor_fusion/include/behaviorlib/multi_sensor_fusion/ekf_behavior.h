@@ -42,7 +42,9 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/flight_common/estimate_publisher.h"
 #include "behaviorlib/sensor_fusion/ekf.h"
+#include "behaviorlib/sensor_fusion/ins_feed.h"
 #include "behaviorlib/v1/behaviors/multi_sensor_fusion.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
@@ -73,7 +75,6 @@ class EkfSelfLocalizationBehavior final
   void onGps(const v1::PositionFix& fix);
   void onBaro(const v1::Altitude& altitude);
   void onLinearSpeed(const v1::TwistStamped& twist);
-  void fillEstimate(const v1::Header& imu_header, v1::PoseStamped* pose, v1::TwistStamped* twist);
   void stopSubscriptions();
 
   channel::ChannelClient* channel_;
@@ -90,15 +91,12 @@ class EkfSelfLocalizationBehavior final
   EkfNoise noise_;
 
   // Filter state: samples arrive on the worker (onWorker), so no lock.
-  InsEkf ekf_;
+  InsFeed ins_;
+  flight::EstimatePublisher estimate_;
   bool running_ = false, publishing_ = false;
-  bool use_linear_speed_ = true, use_barometer_ = true, use_imu_yaw_ = true;
+  bool use_linear_speed_ = true, use_barometer_ = true;
   std::optional<TimePoint> last_imu_, last_gps_;
-  std::optional<Eigen::Quaterniond> imu_orientation_;
-  Eigen::Vector3d last_gyro_ = Eigen::Vector3d::Zero();
-  uint64_t imu_count_ = 0, seq_ = 0;
   std::deque<bool> gps_accepted_;  // the last gps_window fixes
-  absl::Status publish_error_;
 
   TimePoint activated_at_{};
   bool active_ = false;

@@ -56,8 +56,10 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/flight_common/estimate_publisher.h"
 #include "behaviorlib/navigation/lidar_slam.h"
 #include "behaviorlib/sensor_fusion/ekf.h"
+#include "behaviorlib/sensor_fusion/ins_feed.h"
 #include "behaviorlib/v1/behaviors/navigation_with_lidar.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
@@ -95,6 +97,8 @@ class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParame
   std::optional<Pose2> poseAt(TimePoint stamp) const;
   void publishEstimate(const v1::Header& imu_header);
   void stopSubscriptions();
+  fusion::InsEkf& ekf() { return ins_.ekf(); }
+  const fusion::InsEkf& ekf() const { return ins_.ekf(); }
 
   channel::ChannelClient* channel_;
   const Eigen::Vector3d lidar_mount_m_;
@@ -113,18 +117,16 @@ class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParame
   LidarSlamConfig slam_config_;
 
   // State: samples arrive on the worker (onWorker), so no lock.
-  fusion::InsEkf ekf_;
+  fusion::InsFeed ins_;
+  flight::EstimatePublisher estimate_;
   std::unique_ptr<LidarSlam> slam_;
-  bool running_ = false, publishing_ = false, use_imu_yaw_ = true;
+  bool running_ = false, publishing_ = false;
   std::optional<TimePoint> last_imu_, last_scan_;
   std::optional<double> last_baro_m_;
-  Eigen::Vector3d last_gyro_ = Eigen::Vector3d::Zero();
-  uint64_t imu_count_ = 0, seq_ = 0;
   std::deque<Stamped> history_;      // the estimate at recent IMU stamps
   std::deque<bool> match_accepted_;  // the last match_window matches
   std::optional<TimePoint> degenerate_since_;
   std::string degenerate_reason_;
-  absl::Status publish_error_;
 
   TimePoint activated_at_{};
   bool active_ = false;

@@ -122,11 +122,12 @@ void SlamBehavior::onImu(const v1::Imu& imu) {
   const auto& qo = imu.orientation();
   const Eigen::Quaterniond orientation =
       Eigen::Quaterniond(qo.w(), qo.x(), qo.y(), qo.z()).normalized();
-  // The filter starts at the first sample with an orientation, and predicts
-  // from the next one on.
-  if (!ekf().initialized() && orientation.coeffs().allFinite()) start(orientation);
   ins_.imu(stamp.time_since_epoch(), orientation, vec(imu.angular_velocity_rad_s()),
            vec(imu.linear_acceleration_m_s2()));
+  // The filter starts at the first sample with an orientation (after the
+  // feed, which therefore did not predict with it), and predicts from the
+  // next one on.
+  if (!ekf().initialized() && orientation.coeffs().allFinite()) start(orientation);
   last_imu_ = stamp;
   if (!ekf().initialized()) return;
   history_.push_back({stamp, currentPose()});

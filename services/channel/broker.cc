@@ -37,6 +37,14 @@ namespace {
 
 using Sample = std::shared_ptr<const v1::SubscribeResponse>;
 
+// A stream's write that failed ends it with CANCELLED naming the stream,
+// unless it is ending already.
+void endOnFailedWrite(bool ok, const char* stream, std::optional<grpc::Status>* finish_status) {
+  if (!ok && !finish_status->has_value()) {
+    *finish_status = grpc::Status(grpc::StatusCode::CANCELLED, std::string(stream) + " broken");
+  }
+}
+
 // With its details; a topic name or sample refused (INVALID_ARGUMENT) is
 // INVALID_REQUEST.
 grpc::Status toGrpc(const absl::Status& status) {
@@ -279,9 +287,7 @@ class Broker::InterestReactor final
     {
       absl::MutexLock lock(&mutex_);
       busy_ = false;
-      if (!ok && !finish_status_.has_value()) {
-        finish_status_ = grpc::Status(grpc::StatusCode::CANCELLED, "interest stream broken");
-      }
+      endOnFailedWrite(ok, "interest stream", &finish_status_);
     }
     pump();
   }
@@ -750,9 +756,7 @@ class Broker::AckedPublishReactor final
     ordered();
     absl::MutexLock lock(&mutex_);
     writing_ = false;
-    if (!ok && !finish_status_.has_value()) {
-      finish_status_ = grpc::Status(grpc::StatusCode::CANCELLED, "publisher stream broken");
-    }
+    endOnFailedWrite(ok, "publisher stream", &finish_status_);
     pumpLocked();
   }
 

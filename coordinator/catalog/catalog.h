@@ -19,7 +19,7 @@
 //     FOLLOW_PATH:
 //       requires: [self_localization, motion_control]
 //       holds: [motion_reference]
-//       defaults: {speed_m_s: 1.0}
+//       defaults: {speed_m_s: 1.0}   # when a plan activates it as a requirement
 //
 // Every problem is reported as "<file>:<line>: <what>: <problem>"
 // (INVALID_ARGUMENT): unknown keys, undeclared capabilities or resources, a
@@ -50,7 +50,7 @@ struct CatalogBehavior {
   std::vector<std::string> provides;   ///< capabilities
   std::vector<std::string> requires_;  ///< capabilities
   std::vector<std::string> holds;      ///< exclusive resources
-  google::protobuf::Struct defaults;   ///< default parameters
+  google::protobuf::Struct defaults;   ///< parameters when a plan activates it as a requirement
   int line = 0;                        ///< of the entry, for messages
 };
 

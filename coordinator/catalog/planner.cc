@@ -208,11 +208,10 @@ class Planner {
     for (const auto& b : order_) {
       plan.steps.push_back({StepKind::kCheckSituation, b, {}, reasons_.at(b)});
       PlanStep activate{StepKind::kActivate, b, {}, reasons_.at(b)};
-      if (const CatalogBehavior* e = catalog_.find(b)) activate.parameters = e->defaults;
       if (b == request_.target) {
-        for (const auto& [key, value] : request_.parameters.fields()) {
-          (*activate.parameters.mutable_fields())[key] = value;
-        }
+        activate.parameters = request_.parameters;
+      } else if (const CatalogBehavior* e = catalog_.find(b)) {
+        activate.parameters = e->defaults;
       }
       plan.steps.push_back(std::move(activate));
     }

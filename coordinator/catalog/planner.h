@@ -8,9 +8,11 @@
 //      planned behaviors hold (they finish INTERRUPTED), and active behaviors
 //      that would lose a required capability;
 //   2. for each missing requirement (its default provider, requirements
-//      first) and finally the target: CheckSituation, then Activate, with the
-//      catalog's default parameters (the caller's parameters override the
-//      target's defaults).
+//      first) and finally the target: CheckSituation, then Activate. A
+//      requirement the plan activates on its own gets the catalog's
+//      `defaults` (nobody else gives it parameters); the target gets the
+//      caller's parameters alone, and its unset fields take the proto's
+//      defaults in the behavior system: one place (decision 45).
 //
 // If a step fails, everything the plan activated is deactivated again (in
 // reverse order) and the error names the step. A dry run is makePlan()
@@ -40,8 +42,8 @@ const char* stepKindName(StepKind kind);
 struct PlanStep {
   StepKind kind = StepKind::kActivate;
   std::string behavior;
-  /// For kActivate: the parameters (catalog defaults merged with the
-  /// caller's for the target).
+  /// For kActivate: the caller's parameters for the target; the catalog's
+  /// defaults for a requirement the plan activates.
   google::protobuf::Struct parameters;
   /// Why the step is there, for people: "the target", "provides
   /// self_localization required by FOLLOW_PATH", "holds motion_reference,

@@ -109,20 +109,33 @@ TEST(Planner, ReplacingTheEstimatorKeepsItsUsers) {
                                            "activate SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION"));
 }
 
-TEST(Planner, CallerParametersOverrideCatalogDefaults) {
+// Decision 45: the catalog's defaults are for a requirement the plan
+// activates on its own; the target gets the caller's parameters alone (its
+// unset fields take the proto's defaults in the behavior system).
+TEST(Planner, CatalogDefaultsGoToRequirementsNotTheTarget) {
   auto catalog = Catalog::parse(
-      "behaviors:\n  MOVE:\n    defaults: {speed_m_s: 1.0, height_m: 2.0}\n", "c.yaml");
-  ASSERT_TRUE(catalog.ok());
+      "capabilities:\n  loc: {default: LOC}\n"
+      "behaviors:\n"
+      "  LOC:\n    provides: [loc]\n    defaults: {rate_hz: 5.0}\n"
+      "  MOVE:\n    requires: [loc]\n    defaults: {speed_m_s: 1.0, height_m: 2.0}\n",
+      "c.yaml");
+  ASSERT_TRUE(catalog.ok()) << catalog.status();
   PlanRequest r;
   r.robot_id = "drone1";
   r.target = "MOVE";
-  r.available = {"MOVE"};
+  r.available = {"MOVE", "LOC"};
   (*r.parameters.mutable_fields())["speed_m_s"].set_number_value(3.0);
   auto plan = makePlan(*catalog, r);
-  ASSERT_TRUE(plan.ok());
-  const auto& fields = plan->steps.back().parameters.fields();
-  EXPECT_DOUBLE_EQ(fields.at("speed_m_s").number_value(), 3.0);
-  EXPECT_DOUBLE_EQ(fields.at("height_m").number_value(), 2.0);
+  ASSERT_TRUE(plan.ok()) << plan.status();
+  std::map<std::string, google::protobuf::Struct> activated;
+  for (const auto& step : plan->steps) {
+    if (step.kind == StepKind::kActivate) activated[step.behavior] = step.parameters;
+  }
+  ASSERT_EQ(activated.size(), 2u);
+  const auto& target = activated.at("MOVE").fields();
+  EXPECT_DOUBLE_EQ(target.at("speed_m_s").number_value(), 3.0);
+  EXPECT_FALSE(target.contains("height_m"));  // not the catalog's: the proto's, in the system
+  EXPECT_DOUBLE_EQ(activated.at("LOC").fields().at("rate_hz").number_value(), 5.0);
 }
 
 TEST(Planner, RefusesWithReasons) {

@@ -109,5 +109,26 @@ TEST(BehaviorSystemInProcessTest, InconsistentOptionsAreRefusedNamingTheFlag) {
   EXPECT_THAT(refused.status().message(), HasSubstr("frequency_hz"));
 }
 
+// Decision 45: every key of the file is checked at start, with its position.
+TEST(BehaviorSystemInProcessTest, UnknownConfigKeysStopTheStartNamingFileAndLine) {
+  auto options = loopbackOptions();
+  options.config_file = "sys.yaml";
+  options.config = YAML::Load("behaviors:\n  WAIT: {frequency_hz: 5}\nmaping: {}\n");
+  auto refused = BehaviorSystemProcess::start(options, registerWait);
+  EXPECT_EQ(refused.status().code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_THAT(refused.status().message(),
+              HasSubstr("sys.yaml:3:1: unknown key 'maping'; known keys: (none)"));
+
+  options.config = YAML::Load("behaviors:\n  WAIT:\n    frequency_hz: 5\n    duration_s: 2\n");
+  refused = BehaviorSystemProcess::start(options, registerWait);
+  EXPECT_THAT(refused.status().message(),
+              HasSubstr("sys.yaml:4:5: behaviors.WAIT: unknown key 'duration_s'"));
+
+  options.config = YAML::Load("behaviors:\n  WAIT: {frequency_hz: 5}\n");
+  auto started = BehaviorSystemProcess::start(options, registerWait);
+  ASSERT_TRUE(started.ok()) << started.status();
+  (*started)->shutdown();
+}
+
 }  // namespace
 }  // namespace behaviorlib::server

@@ -9,6 +9,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "behaviorlib/config/v1/execution.pb.h"
+#include "behaviorlib/configuration.h"
 #include "behaviorlib/errors/status_details.h"
 #include "behaviorlib/parameters.h"
 #include "behaviorlib/v1/options.pb.h"
@@ -212,25 +214,33 @@ BehaviorExecutionManager::~BehaviorExecutionManager() {
   if (worker_.joinable()) worker_.detach();  // stop() was not called: a host bug
 }
 
+absl::Status BehaviorExecutionManager::readExecutionConfig() {
+  // The section's every key is the library's or the behavior's: decoded,
+  // defaults applied and checked before the worker starts.
+  config::v1::ExecutionConfig execution;
+  const config::Source source{context_.config_file, "behaviors." + name()};
+  if (absl::Status s = config::decode(context_.config, source, {&execution, configuration_.get()});
+      !s.ok()) {
+    return s;
+  }
+  if (execution.has_frequency_hz()) options_.frequency_hz = execution.frequency_hz();
+  if (execution.has_maximum_execution_time_s()) {
+    options_.maximum_execution_time = seconds(execution.maximum_execution_time_s());
+  }
+  if (execution.has_watchdog_timeout_s()) {
+    options_.watchdog_timeout = std::chrono::milliseconds(
+        static_cast<int64_t>(std::llround(execution.watchdog_timeout_s() * 1000.0)));
+  }
+  return absl::OkStatus();
+}
+
 absl::Status BehaviorExecutionManager::start(BehaviorContext context) {
   if (!context.clock || !context.events) {
     return absl::InvalidArgumentError("behavior " + name() + " needs a clock and an event log");
   }
   context_ = std::move(context);
-  try {
-    if (context_.config && context_.config.IsMap()) {
-      if (auto f = context_.config["frequency_hz"]) options_.frequency_hz = f.as<double>();
-      if (auto m = context_.config["maximum_execution_time_s"]) {
-        options_.maximum_execution_time = seconds(m.as<double>());
-      }
-      if (auto w = context_.config["watchdog_timeout_s"]) {
-        options_.watchdog_timeout =
-            std::chrono::milliseconds(static_cast<int64_t>(std::llround(w.as<double>() * 1000.0)));
-      }
-    }
-  } catch (const YAML::Exception& e) {
-    return absl::InvalidArgumentError("configuration of " + name() + ": " + e.what());
-  }
+  configuration_ = behavior_->newConfiguration();
+  if (absl::Status s = readExecutionConfig(); !s.ok()) return s;
   if (!(options_.frequency_hz > 0.0 && options_.frequency_hz <= 10000.0)) {
     return absl::InvalidArgumentError("configuration of " + name() +
                                       ": frequency_hz must be in (0, 10000]");
@@ -250,7 +260,7 @@ absl::Status BehaviorExecutionManager::start(BehaviorContext context) {
             [this, done] {
               absl::Status status;
               if (!guarded("onConfigure",
-                           [&] { status = behavior_->onConfigure(context_.config); })) {
+                           [&] { status = behavior_->configure(*configuration_); })) {
                 status = absl::InternalError(failure_message_);
               }
               if (status.ok()) {

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 
+#include "behaviorlib/configuration.h"
+
 namespace behaviorlib {
 namespace {
 
@@ -23,7 +25,7 @@ void BehaviorHost::add(std::unique_ptr<BehaviorExecutionManager> behavior) {
   behaviors_.push_back(std::move(behavior));
 }
 
-absl::Status BehaviorHost::start(const YAML::Node& config) {
+absl::Status BehaviorHost::start(const YAML::Node& config, const std::string& config_file) {
   for (size_t i = 0; i < behaviors_.size(); ++i) {
     for (size_t j = i + 1; j < behaviors_.size(); ++j) {
       if (behaviors_[i]->name() == behaviors_[j]->name()) {
@@ -34,6 +36,23 @@ absl::Status BehaviorHost::start(const YAML::Node& config) {
   }
   YAML::Node section;
   if (config && config.IsMap() && config["behaviors"]) section = config["behaviors"];
+  if (section && !section.IsNull()) {
+    if (!section.IsMap()) {
+      return absl::InvalidArgumentError(config::position(section, config_file) +
+                                        ": behaviors: must be a map from behavior names to keys");
+    }
+    for (const auto& item : section) {
+      const std::string name = item.first.IsScalar() ? item.first.Scalar() : std::string();
+      if (find(name) != nullptr) continue;
+      std::string hosted;
+      for (const auto& behavior : behaviors_) {
+        hosted += (hosted.empty() ? "" : ", ") + behavior->name();
+      }
+      return absl::InvalidArgumentError(config::position(item.first, config_file) +
+                                        ": behaviors: no behavior '" + name +
+                                        "' in this system (it hosts " + hosted + ")");
+    }
+  }
   for (auto& behavior : behaviors_) {
     BehaviorContext context;
     context.clock = &clock_;
@@ -42,6 +61,7 @@ absl::Status BehaviorHost::start(const YAML::Node& config) {
     if (section && section.IsMap() && section[behavior->name()]) {
       context.config = section[behavior->name()];
     }
+    context.config_file = config_file;
     if (observer_factory_) {
       if (auto observer = observer_factory_(*behavior)) {
         context.observer = observer.get();

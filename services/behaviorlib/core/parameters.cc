@@ -983,11 +983,13 @@ void describe(const google::protobuf::Descriptor& descriptor,
 
 std::string unitOfFieldName(std::string_view name) {
   static constexpr std::pair<absl::string_view, absl::string_view> kSuffixes[] = {
-      {"_s", "s"},        {"_ms", "ms"},       {"_m", "m"},         {"_m_s", "m/s"},
-      {"_m_s2", "m/s^2"}, {"_rad", "rad"},     {"_rad_s", "rad/s"}, {"_deg", "deg"},
-      {"_hz", "Hz"},      {"_n", "N"},         {"_kg", "kg"},       {"_v", "V"},
-      {"_a", "A"},        {"_px", "px"},       {"_pa", "Pa"},       {"_ratio", "1"},
-      {"_percent", "%"},  {"_bytes", "bytes"},
+      {"_s", "s"},         {"_ms", "ms"},       {"_m", "m"},
+      {"_m_s", "m/s"},     {"_m_s2", "m/s^2"},  {"_rad", "rad"},
+      {"_rad_s", "rad/s"}, {"_deg", "deg"},     {"_hz", "Hz"},
+      {"_n", "N"},         {"_kg", "kg"},       {"_v", "V"},
+      {"_a", "A"},         {"_px", "px"},       {"_pa", "Pa"},
+      {"_ratio", "1"},     {"_percent", "%"},   {"_bytes", "bytes"},
+      {"_m_s3", "m/s^3"},  {"_n_s_m", "N s/m"}, {"_n_s2_m2", "N s^2/m^2"},
   };
   // This abseil build does not alias absl::string_view to std::string_view.
   const absl::string_view field_name(name.data(), name.size());

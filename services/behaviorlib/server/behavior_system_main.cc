@@ -1,6 +1,7 @@
 #include "behaviorlib/server/behavior_system_main.h"
 
 #include <google/protobuf/descriptor.h>
+#include <google/protobuf/empty.pb.h>
 #include <yaml-cpp/yaml.h>
 
 #include <cstdio>
@@ -11,6 +12,8 @@
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/clock.h"
+#include "behaviorlib/config/v1/execution.pb.h"
+#include "behaviorlib/configuration.h"
 #include "behaviorlib/server/behavior_metrics.h"
 #include "behaviorlib/server/behavior_system_service.h"
 #include "behaviorlib/server/coordinator_registration.h"
@@ -46,6 +49,9 @@ ABSL_FLAG(std::string, clock, "steady",
 ABSL_FLAG(std::string, config, "",
           "YAML file: behaviors: {NAME: {frequency_hz, maximum_execution_time_s, "
           "watchdog_timeout_s, ...}}");
+ABSL_FLAG(bool, help_config, false,
+          "print every key the --config file may hold, with its type, unit, range, default and "
+          "description (the behaviors' configuration messages), and exit");
 ABSL_FLAG(std::string, coordinator, "",
           "coordinator address host:port: register there (retrying until it is up) with this "
           "process's real bound port, send heartbeats, register again after a coordinator "
@@ -63,6 +69,27 @@ namespace behaviorlib::server {
 namespace {
 constexpr size_t kMaxConfigBytes = 1 << 20;
 }  // namespace
+
+absl::Status BehaviorSystemBuilder::decodeSystemConfiguration(google::protobuf::Message* out) {
+  system_configuration_read_ = true;
+  return config::decode(
+      context_.config,
+      config::Source{.file = context_.config_file, .section = "", .skip = {"behaviors"}}, {out});
+}
+
+std::string BehaviorSystemBuilder::documentConfiguration() const {
+  std::string out = "--config of " + context_.system + " (YAML; decision 45):\n";
+  if (system_configuration_type_ != nullptr) {
+    out += config::document({system_configuration_type_}, "  ");
+  }
+  out += "behaviors:\n  <every behavior>: the library's keys\n";
+  out += config::document({config::v1::ExecutionConfig::descriptor()}, "    ");
+  for (const auto& behavior : behaviors_) {
+    const std::string keys = config::document({&behavior->configurationType()}, "    ");
+    out += "  " + behavior->name() + ":" + (keys.empty() ? " no keys of its own\n" : "\n" + keys);
+  }
+  return out;
+}
 
 void BehaviorSystemBuilder::checkServiceMatches(const BehaviorExecutionManager& behavior,
                                                 const char* service_full_name) {
@@ -144,6 +171,7 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
   context.channel = p->channel_client.get();
   context.flight_controller = o.flight_controller;
   context.config = o.config;
+  context.config_file = o.config_file;
   if (!o.coordinator.empty()) {
     p->belief_client = std::make_unique<BeliefClient>(o.coordinator);
     context.beliefs = p->belief_client.get();
@@ -156,6 +184,12 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
   }
   p->builder = std::make_unique<BehaviorSystemBuilder>(p->gate, std::move(context));
   register_behaviors(*p->builder);
+  if (!p->builder->systemConfigurationRead()) {
+    google::protobuf::Empty none;
+    if (absl::Status s = p->builder->decodeSystemConfiguration(&none); !s.ok()) {
+      return absl::InvalidArgumentError("--config: " + std::string(s.message()));
+    }
+  }
 
   if (!o.follow_time.empty()) {
     p->follower =
@@ -182,7 +216,7 @@ absl::StatusOr<std::unique_ptr<BehaviorSystemProcess>> BehaviorSystemProcess::st
       }));
   std::string error;
   if (!p->runtime.startMetrics(o.metrics_listen, &error)) return absl::UnavailableError(error);
-  if (absl::Status s = p->host->start(o.config); !s.ok()) {
+  if (absl::Status s = p->host->start(o.config, o.config_file); !s.ok()) {
     return absl::InvalidArgumentError("cannot start behaviors: " + std::string(s.message()));
   }
   p->host_started = true;
@@ -275,10 +309,23 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
                       const std::function<void(BehaviorSystemBuilder&)>& register_behaviors) {
   ServerRuntime::blockShutdownSignals();
   const std::string program = system_name;
-  parseFlags(argc, argv,
-             "behavior system " + system_name +
-                 ": hosts its behaviors as gRPC services (typed per behavior, plus "
-                 "behaviorlib.v1.BehaviorSystem)");
+  parseFlags(
+      argc, argv,
+      "behavior system " + system_name +
+          ": hosts its behaviors as gRPC services (typed per behavior, plus "
+          "behaviorlib.v1.BehaviorSystem); --help-config lists the keys of its --config file");
+  if (absl::GetFlag(FLAGS_help_config)) {
+    // The behaviors made without connections, only to read their
+    // configuration types.
+    AcceptGate gate;
+    SystemContext context;
+    context.system = system_name;
+    context.robot_id = absl::GetFlag(FLAGS_robot_id);
+    BehaviorSystemBuilder builder(gate, std::move(context));
+    register_behaviors(builder);
+    std::fputs(builder.documentConfiguration().c_str(), stdout);
+    return 0;
+  }
   BehaviorSystemOptions options;
   options.system = system_name;
   options.robot_id = absl::GetFlag(FLAGS_robot_id);
@@ -301,6 +348,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   if (const std::string path = absl::GetFlag(FLAGS_config); !path.empty()) {
     absl::StatusOr<std::string> text = readFileCapped(path, kMaxConfigBytes);
     absl::Status loaded = text.ok() ? loadYaml(*text, path, &options.config) : text.status();
+    options.config_file = path;
     if (!loaded.ok()) {
       fatal(program, "cannot read --config " + path + ": " + std::string(loaded.message()));
       return 2;

@@ -23,71 +23,25 @@ v1::SituationReason estimateReadCode(const absl::Status& status) {
 
 }  // namespace
 
-absl::Status readNumber(const YAML::Node& config, const char* key, double min, double max,
-                        double* value) {
-  if (!config || !config.IsMap() || !config[key]) return absl::OkStatus();
-  double v = 0;
-  try {
-    v = config[key].as<double>();
-  } catch (const YAML::Exception&) {
-    return absl::InvalidArgumentError(std::string(key) + " must be a number");
-  }
-  if (!(v > min && v <= max)) {
-    return absl::InvalidArgumentError(std::string(key) + " must be within (" + std::to_string(min) +
-                                      ", " + std::to_string(max) + "], got " + std::to_string(v));
-  }
-  *value = v;
-  return absl::OkStatus();
-}
-
-absl::Status readSeconds(const YAML::Node& config, const char* key, double min, double max,
-                         Duration* value) {
-  double value_s = std::chrono::duration<double>(*value).count();
-  if (absl::Status s = readNumber(config, key, min, max, &value_s); !s.ok()) return s;
-  *value = seconds(value_s);
-  return absl::OkStatus();
-}
-
-absl::Status FlightSettings::read(const YAML::Node& config) {
-  if (auto s = readSeconds(config, "pose_timeout_s", 0, 60, &pose_timeout); !s.ok()) return s;
-  if (auto s = readSeconds(config, "lease_ttl_s", 0.05 - 1e-9, 10, &lease_ttl); !s.ok()) return s;
-  if (auto s = readNumber(config, "min_battery_ratio", -1e-9, 1, &min_battery_ratio); !s.ok()) {
-    return s;
-  }
-  if (auto s = readNumber(config, "full_battery_ratio", -1e-9, 1, &full_battery_ratio); !s.ok()) {
-    return s;
-  }
-  if (auto s = readSeconds(config, "progress_window_s", 0, 600, &progress_window); !s.ok()) {
-    return s;
-  }
-  if (auto s = readNumber(config, "mass_kg", 0.01, 1000, &wind.mass_kg); !s.ok()) return s;
-  if (auto s = readNumber(config, "linear_drag_n_s_m", -1e-9, 1000, &wind.linear_drag_n_s_m);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s =
-          readNumber(config, "quadratic_drag_n_s2_m2", -1e-9, 1000, &wind.quadratic_drag_n_s2_m2);
-      !s.ok()) {
-    return s;
-  }
+absl::Status FlightSettings::configure(const config::v1::FlightConfig& config) {
+  pose_timeout = seconds(config.pose_timeout_s());
+  lease_ttl = seconds(config.lease_ttl_s());
+  preempt_lease = config.preempt_lease();
+  min_battery_ratio = config.min_battery_ratio();
+  full_battery_ratio = config.full_battery_ratio();
+  progress_window = seconds(config.progress_window_s());
+  wind.mass_kg = config.mass_kg();
+  wind.linear_drag_n_s_m = config.linear_drag_n_s_m();
+  wind.quadratic_drag_n_s2_m2 = config.quadratic_drag_n_s2_m2();
+  wind.time_constant_s = config.wind_time_constant_s();
+  calm_wind_m_s = config.calm_wind_m_s();
+  max_wind_m_s = config.max_wind_m_s();
   if (wind.linear_drag_n_s_m <= 0.0 && wind.quadratic_drag_n_s2_m2 <= 0.0) {
     return absl::InvalidArgumentError(
         "linear_drag_n_s_m and quadratic_drag_n_s2_m2 cannot both be 0");
   }
-  if (auto s = readNumber(config, "wind_time_constant_s", 0, 60, &wind.time_constant_s); !s.ok()) {
-    return s;
-  }
-  if (auto s = readNumber(config, "calm_wind_m_s", -1e-9, 100, &calm_wind_m_s); !s.ok()) return s;
-  if (auto s = readNumber(config, "max_wind_m_s", 0, 100, &max_wind_m_s); !s.ok()) return s;
   if (max_wind_m_s <= calm_wind_m_s) {
     return absl::InvalidArgumentError("max_wind_m_s must be above calm_wind_m_s");
-  }
-  if (config && config.IsMap() && config["preempt_lease"]) {
-    try {
-      preempt_lease = config["preempt_lease"].as<bool>();
-    } catch (const YAML::Exception&) {
-      return absl::InvalidArgumentError("preempt_lease must be true or false");
-    }
   }
   return absl::OkStatus();
 }

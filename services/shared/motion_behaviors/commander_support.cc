@@ -5,8 +5,8 @@
 
 namespace behaviorlib::motion_behaviors {
 
-absl::Status CommanderSupport::configure(const YAML::Node& config) {
-  if (auto s = settings_.read(config); !s.ok()) return s;
+absl::Status CommanderSupport::configure(const config::v1::FlightConfig& config) {
+  if (auto s = settings_.configure(config); !s.ok()) return s;
   wind_.configure(settings_);
   return absl::OkStatus();
 }

@@ -99,46 +99,33 @@ std::unique_ptr<ControllerAdapter> makeMpcController(const motion::VehicleModel&
   return std::make_unique<Mpc>(model, params);
 }
 
-absl::Status ControllerConfig::read(const YAML::Node& config) {
-  using flight::readNumber;
-  struct Key {
-    const char* name;
-    double min, max;
-    double* value;
-  };
-  double horizon = mpc.horizon_steps, iterations = mpc.max_iterations;
-  const Key keys[] = {
-      {"mass_kg", 0.01, 1000, &model.mass_kg},
-      {"max_thrust_n", 0.01, 100000, &model.max_thrust_n},
-      {"position_p_xy", 0, 100, &pid.position_p.x()},
-      {"position_p_z", 0, 100, &pid.position_p.z()},
-      {"velocity_p_xy", 0, 100, &pid.velocity_p.x()},
-      {"velocity_p_z", 0, 100, &pid.velocity_p.z()},
-      {"velocity_i_xy", -1e-9, 100, &pid.velocity_i.x()},
-      {"velocity_i_z", -1e-9, 100, &pid.velocity_i.z()},
-      {"attitude_p_xy", 0, 100, &attitude_p.x()},
-      {"attitude_p_z", 0, 100, &attitude_p.z()},
-      {"max_rate_rad_s", 0, 10, &max_rate_rad_s},
-      {"horizon_steps", 1, 200, &horizon},
-      {"step_s", 0, 1, &mpc.step_s},
-      {"acceleration_lag_s", 0, 10, &mpc.acceleration_lag_s},
-      {"position_weight", -1e-9, 1e6, &mpc.position_weight},
-      {"velocity_weight", -1e-9, 1e6, &mpc.velocity_weight},
-      {"input_weight", 0, 1e6, &mpc.input_weight},
-      {"input_rate_weight", -1e-9, 1e6, &mpc.input_rate_weight},
-      {"max_iterations", 0, 100000, &iterations},
-      {"disturbance_gain", -1e-9, 1, &mpc.disturbance_gain},
-  };
-  for (const Key& key : keys) {
-    if (auto s = readNumber(config, key.name, key.min, key.max, key.value); !s.ok()) return s;
-  }
-  pid.position_p.y() = pid.position_p.x();
-  pid.velocity_p.y() = pid.velocity_p.x();
-  pid.velocity_i.y() = pid.velocity_i.x();
-  attitude_p.y() = attitude_p.x();
-  mpc.horizon_steps = static_cast<int>(horizon);
-  mpc.max_iterations = static_cast<int>(iterations);
-  return absl::OkStatus();
+namespace {
+void configureAirframe(const config::v1::MotionControlConfig& config, motion::VehicleModel* model) {
+  model->mass_kg = config.flight().mass_kg();
+  model->max_thrust_n = config.max_thrust_n();
+}
+}  // namespace
+
+void ControllerConfig::configure(const config::v1::PidMotionControlConfig& config) {
+  configureAirframe(config.control(), &model);
+  pid.position_p = {config.position_p_xy(), config.position_p_xy(), config.position_p_z()};
+  pid.velocity_p = {config.velocity_p_xy(), config.velocity_p_xy(), config.velocity_p_z()};
+  pid.velocity_i = {config.velocity_i_xy(), config.velocity_i_xy(), config.velocity_i_z()};
+  attitude_p = {config.attitude_p_xy(), config.attitude_p_xy(), config.attitude_p_z()};
+  max_rate_rad_s = config.max_rate_rad_s();
+}
+
+void ControllerConfig::configure(const config::v1::MpcMotionControlConfig& config) {
+  configureAirframe(config.control(), &model);
+  mpc.horizon_steps = config.horizon_steps();
+  mpc.step_s = config.step_s();
+  mpc.acceleration_lag_s = config.acceleration_lag_s();
+  mpc.position_weight = config.position_weight();
+  mpc.velocity_weight = config.velocity_weight();
+  mpc.input_weight = config.input_weight();
+  mpc.input_rate_weight = config.input_rate_weight();
+  mpc.max_iterations = config.max_iterations();
+  mpc.disturbance_gain = config.disturbance_gain();
 }
 
 }  // namespace behaviorlib::motion_behaviors

@@ -11,28 +11,14 @@ namespace behaviorlib::motion_behaviors {
 using flight::fixed2;
 using flight::secondsText;
 
-absl::Status PathSettings::read(const YAML::Node& config) {
-  if (auto s = flight::readNumber(config, "max_path_length_m", 0, 1e6, &max_path_length_m);
-      !s.ok()) {
-    return s;
-  }
-  double points = max_path_points;
-  if (auto s = flight::readNumber(config, "max_path_points", 0, 100000, &points); !s.ok()) {
-    return s;
-  }
-  max_path_points = static_cast<int>(points);
-  if (auto s = flight::readNumber(config, "max_lag_m", 0.05, 100, &max_lag_m); !s.ok()) return s;
-  if (auto s = flight::readNumber(config, "max_cross_track_m", 0, 100, &max_cross_track_m);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "min_progress_m", -1e-9, 100, &min_progress_m); !s.ok()) {
-    return s;
-  }
-  double steps = horizon_steps;
-  if (auto s = flight::readNumber(config, "horizon_steps", 1, 200, &steps); !s.ok()) return s;
-  horizon_steps = static_cast<int>(steps);
-  return flight::readNumber(config, "horizon_step_s", 0, 1, &horizon_step_s);
+void PathSettings::configure(const config::v1::PathConfig& config) {
+  max_path_length_m = config.max_path_length_m();
+  max_path_points = config.max_path_points();
+  max_lag_m = config.max_lag_m();
+  max_cross_track_m = config.max_cross_track_m();
+  min_progress_m = config.min_progress_m();
+  horizon_steps = config.horizon_steps();
+  horizon_step_s = config.horizon_spacing_s();
 }
 
 absl::StatusOr<motion::PathTracker> makePathTracker(
@@ -76,12 +62,13 @@ absl::StatusOr<motion::PathTracker> makePathTracker(
 
 template <class Params>
 FollowPathBehavior<Params>::FollowPathBehavior(flight::Vehicle& vehicle, MotionLink& link)
-    : Behavior<Params>(referenceBehaviorOptions(Duration::zero())), support_(vehicle, link) {}
+    : Behavior<Params, config::v1::FollowPathConfig>(referenceBehaviorOptions(Duration::zero())),
+      support_(vehicle, link) {}
 
 template <class Params>
-absl::Status FollowPathBehavior<Params>::onConfigure(const YAML::Node& config) {
-  if (auto s = support_.configure(config); !s.ok()) return s;
-  if (auto s = path_settings_.read(config); !s.ok()) return s;
+absl::Status FollowPathBehavior<Params>::onConfigure(const config::v1::FollowPathConfig& config) {
+  if (auto s = support_.configure(config.motion()); !s.ok()) return s;
+  path_settings_.configure(config.path());
   goal_.setDwell(support_.settings().goal_dwell);
   lagging_.setDwell(support_.settings().flight.progress_window);
   progress_.setWindow(support_.settings().flight.progress_window);

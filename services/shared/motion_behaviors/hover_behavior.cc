@@ -9,10 +9,11 @@ namespace behaviorlib::motion_behaviors {
 
 template <class Params>
 HoverBehavior<Params>::HoverBehavior(flight::Vehicle& vehicle, MotionLink& link)
-    : Behavior<Params>(referenceBehaviorOptions(Duration::zero())), support_(vehicle, link) {}
+    : Behavior<Params, config::v1::MotionConfig>(referenceBehaviorOptions(Duration::zero())),
+      support_(vehicle, link) {}
 
 template <class Params>
-absl::Status HoverBehavior<Params>::onConfigure(const YAML::Node& config) {
+absl::Status HoverBehavior<Params>::onConfigure(const config::v1::MotionConfig& config) {
   return support_.configure(config);
 }
 

@@ -39,53 +39,38 @@ BehaviorOptions controllerBehaviorOptions() {
   return options;
 }
 
-template <class Params>
-MotionControlBehavior<Params>::MotionControlBehavior(flight::Vehicle& vehicle, MotionLink& link,
-                                                     ControllerFactory factory)
-    : Behavior<Params>(controllerBehaviorOptions()),
+template <class Params, class Config>
+MotionControlBehavior<Params, Config>::MotionControlBehavior(flight::Vehicle& vehicle,
+                                                             MotionLink& link,
+                                                             ControllerFactory factory)
+    : Behavior<Params, Config>(controllerBehaviorOptions()),
       link_(link),
       factory_(std::move(factory)),
       support_(vehicle) {}
 
-template <class Params>
-absl::Status MotionControlBehavior<Params>::onConfigure(const YAML::Node& config) {
-  if (auto s = support_.configure(config); !s.ok()) return s;
-  if (auto s = controller_config_.read(config); !s.ok()) return s;
-  if (auto s = flight::readSeconds(config, "reference_timeout_s", 0, 60, &reference_timeout_);
-      !s.ok()) {
-    return s;
-  }
-  double status_hz = 1.0 / toSeconds(status_period_);
-  if (auto s = flight::readNumber(config, "status_frequency_hz", 0, 1000, &status_hz); !s.ok()) {
-    return s;
-  }
-  status_period_ = seconds(1.0 / status_hz);
-  if (auto s = flight::readSeconds(config, "saturation_timeout_s", 0, 600, &saturation_timeout_);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "max_tracking_error_m", 0, 1000, &max_tracking_error_m_);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "max_pose_extrapolation_s", -1e-9, 1,
-                                  &max_pose_extrapolation_s_);
-      !s.ok()) {
-    return s;
-  }
+template <class Params, class Config>
+absl::Status MotionControlBehavior<Params, Config>::onConfigure(const Config& config) {
+  const config::v1::MotionControlConfig& control = config.control();
+  if (auto s = support_.configure(control.flight()); !s.ok()) return s;
+  controller_config_.configure(config);
+  reference_timeout_ = seconds(control.reference_timeout_s());
+  status_period_ = seconds(1.0 / control.status_frequency_hz());
+  saturation_timeout_ = seconds(control.saturation_timeout_s());
+  max_tracking_error_m_ = control.max_tracking_error_m();
+  max_pose_extrapolation_s_ = control.max_pose_extrapolation_s();
   off_track_.setDwell(support_.settings().progress_window);
   return absl::OkStatus();
 }
 
-template <class Params>
-void MotionControlBehavior<Params>::makeController(const Params& p) {
+template <class Params, class Config>
+void MotionControlBehavior<Params, Config>::makeController(const Params& p) {
   motion::VehicleModel model = controller_config_.model;
   applyLimits(p, &model);
   controller_ = factory_(controller_config_, model);
 }
 
-template <class Params>
-absl::Status MotionControlBehavior<Params>::onActivate() {
+template <class Params, class Config>
+absl::Status MotionControlBehavior<Params, Config>::onActivate() {
   if (auto s = support_.begin(this->robotId() + "/" + this->name()); !s.ok()) return s;
   link_.followReferences(true);
   makeController(this->parameters());
@@ -103,9 +88,9 @@ absl::Status MotionControlBehavior<Params>::onActivate() {
   return absl::OkStatus();
 }
 
-template <class Params>
-motion::MotionReference MotionControlBehavior<Params>::currentReference(TimePoint now,
-                                                                        bool* tracking) {
+template <class Params, class Config>
+motion::MotionReference MotionControlBehavior<Params, Config>::currentReference(TimePoint now,
+                                                                                bool* tracking) {
   const auto latest = link_.latestReference();
   if (latest && latest->mode() != v1::MOTION_REFERENCE_MODE_UNSPECIFIED) {
     const double age = ageSeconds(latest->header(), now);
@@ -133,8 +118,8 @@ motion::MotionReference MotionControlBehavior<Params>::currentReference(TimePoin
   return hold_;
 }
 
-template <class Params>
-void MotionControlBehavior<Params>::onExecute() {
+template <class Params, class Config>
+void MotionControlBehavior<Params, Config>::onExecute() {
   const TimePoint t = this->now();
   const double dt = std::clamp(toSeconds(t - last_step_), 0.001, 0.1);
   last_step_ = t;
@@ -172,8 +157,9 @@ void MotionControlBehavior<Params>::onExecute() {
   }
 }
 
-template <class Params>
-void MotionControlBehavior<Params>::publishStatus(TimePoint now, v1::MotionControllerState state) {
+template <class Params, class Config>
+void MotionControlBehavior<Params, Config>::publishStatus(TimePoint now,
+                                                          v1::MotionControllerState state) {
   last_status_ = now;
   v1::MotionControlStatus status;
   stampHeader(now, this->robotId(), ++status_seq_, status.mutable_header());
@@ -193,8 +179,8 @@ void MotionControlBehavior<Params>::publishStatus(TimePoint now, v1::MotionContr
   (void)link_.publishStatus(status);
 }
 
-template <class Params>
-void MotionControlBehavior<Params>::onDeactivate() {
+template <class Params, class Config>
+void MotionControlBehavior<Params, Config>::onDeactivate() {
   if (!support_.active()) return;
   publishStatus(this->now(), v1::MOTION_CONTROLLER_STATE_STOPPED);
   support_.end();  // the platform hovers where the vehicle is
@@ -202,33 +188,33 @@ void MotionControlBehavior<Params>::onDeactivate() {
   link_.followReferences(false);
 }
 
-template <class Params>
-void MotionControlBehavior<Params>::onPause() {
+template <class Params, class Config>
+void MotionControlBehavior<Params, Config>::onPause() {
   support_.holdHere();
   publishStatus(this->now(), v1::MOTION_CONTROLLER_STATE_HOLDING);
 }
 
-template <class Params>
-void MotionControlBehavior<Params>::onResume() {
+template <class Params, class Config>
+void MotionControlBehavior<Params, Config>::onResume() {
   last_step_ = this->now();
   saturated_since_.reset();
   off_track_.reset();
 }
 
-template <class Params>
-absl::Status MotionControlBehavior<Params>::onModify(const Params& new_parameters) {
+template <class Params, class Config>
+absl::Status MotionControlBehavior<Params, Config>::onModify(const Params& new_parameters) {
   makeController(new_parameters);
   return absl::OkStatus();
 }
 
-template <class Params>
-Situation MotionControlBehavior<Params>::checkSituation() {
+template <class Params, class Config>
+Situation MotionControlBehavior<Params, Config>::checkSituation() {
   return support_.active() ? support_.situationActive()
                            : support_.situationBefore(this->now(), this->name());
 }
 
-template <class Params>
-Verdict MotionControlBehavior<Params>::checkProgress() {
+template <class Params, class Config>
+Verdict MotionControlBehavior<Params, Config>::checkProgress() {
   if (off_track_.update(this->now(), position_error_m_ > max_tracking_error_m_)) {
     return Verdict::finish("the vehicle has been more than " + fixed2(max_tracking_error_m_) +
                            " m from the reference for " + secondsText(off_track_.dwell()) +
@@ -237,8 +223,8 @@ Verdict MotionControlBehavior<Params>::checkProgress() {
   return Verdict::keepGoing();
 }
 
-template <class Params>
-Verdict MotionControlBehavior<Params>::checkProcesses() {
+template <class Params, class Config>
+Verdict MotionControlBehavior<Params, Config>::checkProcesses() {
   if (auto problem = support_.checkProcesses(this->now())) return Verdict::finish(*problem);
   if (saturated_since_ && this->now() - *saturated_since_ > saturation_timeout_) {
     return Verdict::finish(
@@ -249,8 +235,11 @@ Verdict MotionControlBehavior<Params>::checkProcesses() {
   return Verdict::keepGoing();
 }
 
-template class MotionControlBehavior<v1::QuadrotorPidMotionControlParameters>;
-template class MotionControlBehavior<v1::QuadrotorPidThrustControlParameters>;
-template class MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters>;
+template class MotionControlBehavior<v1::QuadrotorPidMotionControlParameters,
+                                     config::v1::PidMotionControlConfig>;
+template class MotionControlBehavior<v1::QuadrotorPidThrustControlParameters,
+                                     config::v1::PidMotionControlConfig>;
+template class MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters,
+                                     config::v1::MpcMotionControlConfig>;
 
 }  // namespace behaviorlib::motion_behaviors

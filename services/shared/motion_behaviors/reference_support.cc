@@ -5,20 +5,13 @@
 #include "behaviorlib/platform/flight_controller_client.h"
 
 namespace behaviorlib::motion_behaviors {
-absl::Status MotionSettings::read(const YAML::Node& config) {
-  if (auto s = flight.read(config); !s.ok()) return s;
-  if (auto s = flight::readSeconds(config, "controller_timeout_s", 0, 60, &controller_timeout);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readSeconds(config, "controller_grace_s", -1e-9, 60, &controller_grace);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readSeconds(config, "goal_dwell_s", -1e-9, 600, &goal_dwell); !s.ok()) {
-    return s;
-  }
-  return flight::readNumber(config, "min_altitude_m", -1e-9, 1000, &min_altitude_m);
+absl::Status MotionSettings::configure(const config::v1::MotionConfig& config) {
+  if (auto s = flight.configure(config.flight()); !s.ok()) return s;
+  controller_timeout = seconds(config.controller_timeout_s());
+  controller_grace = seconds(config.controller_grace_s());
+  goal_dwell = seconds(config.goal_dwell_s());
+  min_altitude_m = config.min_altitude_m();
+  return absl::OkStatus();
 }
 
 BehaviorOptions referenceBehaviorOptions(Duration maximum_execution_time) {
@@ -32,8 +25,8 @@ BehaviorOptions referenceBehaviorOptions(Duration maximum_execution_time) {
 ReferenceSupport::ReferenceSupport(flight::Vehicle& vehicle, MotionLink& link)
     : vehicle_(vehicle), link_(link) {}
 
-absl::Status ReferenceSupport::configure(const YAML::Node& config) {
-  if (auto s = settings_.read(config); !s.ok()) return s;
+absl::Status ReferenceSupport::configure(const config::v1::MotionConfig& config) {
+  if (auto s = settings_.configure(config); !s.ok()) return s;
   wind_.configure(settings_.flight);
   return absl::OkStatus();
 }

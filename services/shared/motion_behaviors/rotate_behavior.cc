@@ -26,16 +26,15 @@ double turnTowards(double current, double target, double step) {
 
 template <class Params>
 RotateBehavior<Params>::RotateBehavior(flight::Vehicle& vehicle, MotionLink& link)
-    : Behavior<Params>(referenceBehaviorOptions(std::chrono::seconds(60))),
+    : Behavior<Params, config::v1::RotateConfig>(
+          referenceBehaviorOptions(std::chrono::seconds(60))),
       support_(vehicle, link) {}
 
 template <class Params>
-absl::Status RotateBehavior<Params>::onConfigure(const YAML::Node& config) {
-  if (auto s = support_.configure(config); !s.ok()) return s;
-  if (auto s = flight::readNumber(config, "max_drift_m", 0, 100, &max_drift_m_); !s.ok()) return s;
-  if (auto s = flight::readNumber(config, "max_yaw_lag_rad", 0, 7, &max_yaw_lag_rad_); !s.ok()) {
-    return s;
-  }
+absl::Status RotateBehavior<Params>::onConfigure(const config::v1::RotateConfig& config) {
+  if (auto s = support_.configure(config.motion()); !s.ok()) return s;
+  max_drift_m_ = config.max_drift_m();
+  max_yaw_lag_rad_ = config.max_yaw_lag_rad();
   goal_.setDwell(support_.settings().goal_dwell);
   lagging_.setDwell(support_.settings().flight.progress_window);
   return absl::OkStatus();

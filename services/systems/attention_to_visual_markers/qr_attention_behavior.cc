@@ -55,13 +55,13 @@ QrAttentionBehavior::QrAttentionBehavior(channel::ChannelClient* channel,
 
 QrAttentionBehavior::~QrAttentionBehavior() { stop(); }
 
-absl::Status QrAttentionBehavior::onConfigure(const YAML::Node& config) {
-  for (auto [key, value] :
-       {std::pair{"pose_timeout_s", &pose_timeout_}, std::pair{"pose_history_s", &pose_history_},
-        std::pair{"pose_tolerance_s", &pose_tolerance_}}) {
-    if (auto s = flight::readSeconds(config, key, 0, 60, value); !s.ok()) return s;
-  }
-  return flight::readNumber(config, "belief_refresh_m", 0, 100, &belief_refresh_m_);
+absl::Status QrAttentionBehavior::onConfigure(
+    const config::v1::PayAttentionToQrCodesConfig& config) {
+  pose_timeout_ = seconds(config.pose_timeout_s());
+  pose_history_ = seconds(config.pose_history_s());
+  pose_tolerance_ = seconds(config.pose_tolerance_s());
+  belief_refresh_m_ = config.belief_refresh_m();
+  return absl::OkStatus();
 }
 
 absl::StatusOr<QrAttentionBehavior::Settings> QrAttentionBehavior::settingsFrom(

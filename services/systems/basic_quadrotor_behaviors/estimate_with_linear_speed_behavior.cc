@@ -20,19 +20,15 @@ EstimatePositionWithLinearSpeedBehavior::~EstimatePositionWithLinearSpeedBehavio
   stopSubscriptions();
 }
 
-absl::Status EstimatePositionWithLinearSpeedBehavior::onConfigure(const YAML::Node& config) {
-  using flight::readNumber;
-  using flight::readSeconds;
-  for (auto [key, value] : {std::pair{"linear_speed_timeout_s", &speed_timeout_},
-                            std::pair{"imu_timeout_s", &imu_timeout_},
-                            std::pair{"max_initial_estimate_age_s", &max_initial_estimate_age_}}) {
-    if (auto s = readSeconds(config, key, 0, 60, value); !s.ok()) return s;
-  }
-  if (auto s = readSeconds(config, "frozen_timeout_s", -1e-9, 60, &frozen_timeout_); !s.ok()) {
-    return s;
-  }
-  if (auto s = readNumber(config, "drift_ratio", -1e-9, 1, &drift_ratio_); !s.ok()) return s;
-  return readNumber(config, "drift_rate_m_s", -1e-9, 10, &drift_rate_m_s_);
+absl::Status EstimatePositionWithLinearSpeedBehavior::onConfigure(
+    const config::v1::EstimatePositionWithLinearSpeedConfig& config) {
+  speed_timeout_ = seconds(config.linear_speed_timeout_s());
+  imu_timeout_ = seconds(config.imu_timeout_s());
+  frozen_timeout_ = seconds(config.frozen_timeout_s());
+  max_initial_estimate_age_ = seconds(config.max_initial_estimate_age_s());
+  drift_ratio_ = config.drift_ratio();
+  drift_rate_m_s_ = config.drift_rate_m_s();
+  return absl::OkStatus();
 }
 
 double EstimatePositionWithLinearSpeedBehavior::driftBound() const {

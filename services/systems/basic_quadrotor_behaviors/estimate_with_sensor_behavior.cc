@@ -18,24 +18,16 @@ EstimatePositionWithSensorBehavior::EstimatePositionWithSensorBehavior(
 
 EstimatePositionWithSensorBehavior::~EstimatePositionWithSensorBehavior() { stopSubscriptions(); }
 
-absl::Status EstimatePositionWithSensorBehavior::onConfigure(const YAML::Node& config) {
-  using flight::readNumber;
-  using flight::readSeconds;
-  for (auto [key, value] :
-       {std::pair{"imu_timeout_s", &imu_timeout_}, std::pair{"gps_timeout_s", &gps_timeout_},
-        std::pair{"baro_timeout_s", &baro_timeout_}}) {
-    if (auto s = readSeconds(config, key, 0, 60, value); !s.ok()) return s;
-  }
-  if (auto s = readSeconds(config, "frozen_timeout_s", -1e-9, 60, &frozen_timeout_); !s.ok()) {
-    return s;
-  }
-  for (auto [key, value, max] :
-       {std::tuple{"accel_noise_m_s2", &noise_.accel_noise_m_s2, 100.0},
-        std::tuple{"accel_bias_walk_m_s2", &noise_.accel_bias_walk_m_s2, 10.0},
-        std::tuple{"baro_drift_m", &noise_.baro_drift_m, 10.0},
-        std::tuple{"baro_offset_stddev_m", &noise_.initial_baro_offset_stddev_m, 1000.0}}) {
-    if (auto s = readNumber(config, key, 0, max, value); !s.ok()) return s;
-  }
+absl::Status EstimatePositionWithSensorBehavior::onConfigure(
+    const config::v1::EstimatePositionWithSensorConfig& config) {
+  imu_timeout_ = seconds(config.imu_timeout_s());
+  gps_timeout_ = seconds(config.gps_timeout_s());
+  baro_timeout_ = seconds(config.baro_timeout_s());
+  frozen_timeout_ = seconds(config.frozen_timeout_s());
+  noise_.accel_noise_m_s2 = config.accel_noise_m_s2();
+  noise_.accel_bias_walk_m_s2 = config.accel_bias_walk_m_s2();
+  noise_.baro_drift_m = config.baro_drift_m();
+  noise_.initial_baro_offset_stddev_m = config.baro_offset_stddev_m();
   return absl::OkStatus();
 }
 

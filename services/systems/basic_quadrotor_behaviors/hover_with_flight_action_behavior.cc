@@ -10,8 +10,9 @@ namespace behaviorlib::basic {
 HoverWithFlightActionControlBehavior::HoverWithFlightActionControlBehavior(flight::Vehicle& vehicle)
     : Behavior(flight::flightBehaviorOptions(Duration::zero())), vehicle_(vehicle) {}
 
-absl::Status HoverWithFlightActionControlBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = settings_.read(config); !s.ok()) return s;
+absl::Status HoverWithFlightActionControlBehavior::onConfigure(
+    const config::v1::FlightConfig& config) {
+  if (auto s = settings_.configure(config); !s.ok()) return s;
   wind_.configure(settings_);
   return absl::OkStatus();
 }

@@ -7,10 +7,9 @@ namespace behaviorlib::basic {
 LandBehavior::LandBehavior(flight::Vehicle& vehicle)
     : Behavior(flight::flightBehaviorOptions(std::chrono::seconds(120))), vehicle_(vehicle) {}
 
-absl::Status LandBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = settings_.read(config); !s.ok()) return s;
-  if (auto s = flight::readNumber(config, "min_descent_m", 0, 100, &min_descent_m_); !s.ok())
-    return s;
+absl::Status LandBehavior::onConfigure(const config::v1::LandConfig& config) {
+  if (auto s = settings_.configure(config.flight()); !s.ok()) return s;
+  min_descent_m_ = config.min_descent_m();
   descent_.setWindow(settings_.progress_window);
   wind_.configure(settings_);
   return absl::OkStatus();

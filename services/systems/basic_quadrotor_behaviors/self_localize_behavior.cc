@@ -14,10 +14,11 @@ SelfLocalizeWithGroundTruthBehavior::SelfLocalizeWithGroundTruthBehavior(
 
 SelfLocalizeWithGroundTruthBehavior::~SelfLocalizeWithGroundTruthBehavior() { stopSubscriptions(); }
 
-absl::Status SelfLocalizeWithGroundTruthBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = flight::readSeconds(config, "ground_truth_timeout_s", 0, 60, &timeout_); !s.ok())
-    return s;
-  return flight::readNumber(config, "max_jump_m", 0, 1e6, &max_jump_m_);
+absl::Status SelfLocalizeWithGroundTruthBehavior::onConfigure(
+    const config::v1::SelfLocalizeWithGroundTruthConfig& config) {
+  timeout_ = seconds(config.ground_truth_timeout_s());
+  max_jump_m_ = config.max_jump_m();
+  return absl::OkStatus();
 }
 
 void SelfLocalizeWithGroundTruthBehavior::onPose(const v1::PoseStamped& pose) {

@@ -15,22 +15,13 @@ double yawOf(const v1::Quaternion& q) {
 TakeOffBehavior::TakeOffBehavior(flight::Vehicle& vehicle)
     : Behavior(flight::flightBehaviorOptions(std::chrono::seconds(60))), vehicle_(vehicle) {}
 
-absl::Status TakeOffBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = settings_.read(config); !s.ok()) return s;
+absl::Status TakeOffBehavior::onConfigure(const config::v1::TakeOffConfig& config) {
+  if (auto s = settings_.configure(config.flight()); !s.ok()) return s;
   wind_.configure(settings_);
-  if (auto s = flight::readNumber(config, "altitude_tolerance_m", 0, 10, &altitude_tolerance_m_);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s =
-          flight::readNumber(config, "max_vertical_speed_m_s", 0, 10, &max_vertical_speed_m_s_);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "min_climb_m", 0, 100, &min_climb_m_); !s.ok()) return s;
-  Duration dwell = dwell_.dwell();
-  if (auto s = flight::readSeconds(config, "goal_dwell_s", -1e-9, 600, &dwell); !s.ok()) return s;
-  dwell_.setDwell(dwell);
+  altitude_tolerance_m_ = config.altitude_tolerance_m();
+  max_vertical_speed_m_s_ = config.max_vertical_speed_m_s();
+  min_climb_m_ = config.min_climb_m();
+  dwell_.setDwell(seconds(config.goal_dwell_s()));
   climb_.setWindow(settings_.progress_window);
   return absl::OkStatus();
 }

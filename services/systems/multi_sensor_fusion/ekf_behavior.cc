@@ -29,25 +29,19 @@ EkfSelfLocalizationBehavior::EkfSelfLocalizationBehavior(channel::ChannelClient*
 
 EkfSelfLocalizationBehavior::~EkfSelfLocalizationBehavior() { stopSubscriptions(); }
 
-absl::Status EkfSelfLocalizationBehavior::onConfigure(const YAML::Node& config) {
-  using flight::readNumber;
-  using flight::readSeconds;
-  for (auto [key, value] :
-       {std::pair{"imu_timeout_s", &imu_timeout_}, std::pair{"gps_timeout_s", &gps_timeout_},
-        std::pair{"start_timeout_s", &start_timeout_}}) {
-    if (auto s = readSeconds(config, key, 0, 60, value); !s.ok()) return s;
-  }
-  for (auto [key, value, max] :
-       {std::tuple{"max_horizontal_stddev_m", &max_horizontal_stddev_m_, 1000.0},
-        std::tuple{"max_rejected_ratio", &max_rejected_ratio_, 1.0},
-        std::tuple{"gps_window", &gps_window_, 1000.0},
-        std::tuple{"baro_stddev_m", &baro_stddev_m_, 100.0},
-        std::tuple{"linear_speed_stddev_m_s", &linear_speed_stddev_m_s_, 100.0},
-        std::tuple{"yaw_stddev_rad", &yaw_stddev_rad_, 10.0},
-        std::tuple{"gyro_noise_rad_s", &noise_.gyro_noise_rad_s, 10.0},
-        std::tuple{"accel_noise_m_s2", &noise_.accel_noise_m_s2, 100.0}}) {
-    if (auto s = readNumber(config, key, 0, max, value); !s.ok()) return s;
-  }
+absl::Status EkfSelfLocalizationBehavior::onConfigure(
+    const config::v1::SelfLocalizeWithEkfSensorFusionConfig& config) {
+  imu_timeout_ = behaviorlib::seconds(config.imu_timeout_s());
+  gps_timeout_ = behaviorlib::seconds(config.gps_timeout_s());
+  start_timeout_ = behaviorlib::seconds(config.start_timeout_s());
+  max_horizontal_stddev_m_ = config.max_horizontal_stddev_m();
+  max_rejected_ratio_ = config.max_rejected_ratio();
+  gps_window_ = config.gps_window();
+  baro_stddev_m_ = config.baro_stddev_m();
+  linear_speed_stddev_m_s_ = config.linear_speed_stddev_m_s();
+  yaw_stddev_rad_ = config.yaw_stddev_rad();
+  noise_.gyro_noise_rad_s = config.gyro_noise_rad_s();
+  noise_.accel_noise_m_s2 = config.accel_noise_m_s2();
   return absl::OkStatus();
 }
 

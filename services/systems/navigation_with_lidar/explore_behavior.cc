@@ -42,19 +42,14 @@ ExploreBehavior::ExploreBehavior(LidarMapper& mapper, flight::Vehicle& vehicle,
       mapper_(mapper),
       support_(vehicle, link) {}
 
-absl::Status ExploreBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = support_.configure(config); !s.ok()) return s;
-  if (auto s = path_settings_.read(config); !s.ok()) return s;
+absl::Status ExploreBehavior::onConfigure(const config::v1::ExploreWithFrontiersConfig& config) {
+  if (auto s = support_.configure(config.motion()); !s.ok()) return s;
+  path_settings_.configure(config.path());
   lagging_.setDwell(support_.settings().flight.progress_window);
-  double cells = static_cast<double>(min_frontier_cells_);
-  if (auto s = flight::readNumber(config, "min_frontier_cells", 1, 10000, &cells); !s.ok()) {
-    return s;
-  }
-  min_frontier_cells_ = static_cast<size_t>(cells);
-  if (auto s = flight::readNumber(config, "look_ahead_m", 0.1, 100, &look_ahead_m_); !s.ok()) {
-    return s;
-  }
-  return flight::readNumber(config, "slice_half_height_m", 0.01, 2, &slice_half_height_m_);
+  min_frontier_cells_ = static_cast<size_t>(config.min_frontier_cells());
+  look_ahead_m_ = config.look_ahead_m();
+  slice_half_height_m_ = config.slice_half_height_m();
+  return absl::OkStatus();
 }
 
 Situation ExploreBehavior::checkSituation() {

@@ -51,24 +51,14 @@ std::string pathTopic(const std::string& robot_id) {
 GeneratePathBehavior::GeneratePathBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs)
     : Behavior(generatePathOptions()), mapper_(mapper), beliefs_(beliefs) {}
 
-absl::Status GeneratePathBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = flight::readSeconds(config, "pose_timeout_s", 0, 60, &pose_timeout_); !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "timeout_grace_s", -1e-9, 60, &timeout_grace_s_);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "uncertainty_sigmas", -1e-9, 10, &uncertainty_sigmas_);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "max_uncertainty_margin_m", -1e-9, 2,
-                                  &max_uncertainty_margin_m_);
-      !s.ok()) {
-    return s;
-  }
-  return flight::readNumber(config, "preferred_clearance_m", -1e-9, 5, &preferred_clearance_m_);
+absl::Status GeneratePathBehavior::onConfigure(
+    const config::v1::GeneratePathWithOccupancyGridConfig& config) {
+  pose_timeout_ = behaviorlib::seconds(config.pose_timeout_s());
+  timeout_grace_s_ = config.timeout_grace_s();
+  uncertainty_sigmas_ = config.uncertainty_sigmas();
+  max_uncertainty_margin_m_ = config.max_uncertainty_margin_m();
+  preferred_clearance_m_ = config.preferred_clearance_m();
+  return absl::OkStatus();
 }
 
 std::string GeneratePathBehavior::beliefKey() const {

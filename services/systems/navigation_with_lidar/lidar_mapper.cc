@@ -1,12 +1,11 @@
 #include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
 
 #include <google/protobuf/util/time_util.h>
-#include <yaml-cpp/yaml.h>
 
+#include <algorithm>
 #include <cmath>
 #include <vector>
 
-#include "behaviorlib/flight_common/flight_support.h"
 #include "behaviorlib/flight_common/topics.h"
 
 namespace behaviorlib::nav {
@@ -29,52 +28,29 @@ int64_t stampNs(const v1::Header& header) {
   return google::protobuf::util::TimeUtil::TimestampToNanoseconds(header.stamp());
 }
 
-absl::Status MapperSettings::read(const YAML::Node& mapping) {
-  if (!mapping) return absl::OkStatus();
-  if (!mapping.IsMap()) return absl::InvalidArgumentError("mapping: must be a mapping of keys");
-  using flight::readNumber;
-  for (auto [key, value, min, max] :
-       {std::tuple{"resolution_m", &resolution_m, 0.01, 1.0},
-        std::tuple{"max_range_m", &max_range_m, 0.5, 100.0},
-        std::tuple{"ground_max_z_m", &ground.max_z_m, -10.0, 10.0},
-        std::tuple{"ground_altitude_error_m", &ground.altitude_error_m, 0.0, 10.0},
-        std::tuple{"ground_attitude_error_rad", &ground.attitude_error_rad, 0.0, 0.5},
-        std::tuple{"hit_depth_m", &hit_depth_m, 0.0, 0.5},
-        std::tuple{"column_min_z_m", &column_min_z_m, -10.0, 50.0},
-        std::tuple{"column_max_z_m", &column_max_z_m, -10.0, 50.0},
-        std::tuple{"planning_min_z_m", &planning_min_z_m, -10.0, 50.0},
-        std::tuple{"planning_max_z_m", &planning_max_z_m, -10.0, 50.0},
-        std::tuple{"pose_match_s", &pose_match_s, 0.0, 1.0},
-        std::tuple{"max_pose_stddev_m", &max_pose_stddev_m, 0.0, 100.0}}) {
-    if (auto s = readNumber(mapping, key, min, max, value); !s.ok()) {
-      return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
-    }
+absl::Status MapperSettings::configure(const config::v1::MappingConfig& mapping) {
+  if (mapping.lidar_mount_m_size() != 3) {
+    return absl::InvalidArgumentError(
+        "mapping: lidar_mount_m must be a list of 3 numbers [x, y, z] (body frame, metres)");
   }
-  double queue = scan_queue_size;
-  if (auto s = readNumber(mapping, "scan_queue_size", 0, 10000, &queue); !s.ok()) {
-    return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
-  }
-  scan_queue_size = static_cast<int>(queue);
-  for (auto [key, value, max] :
-       {std::tuple{"min_scan_interval_s", &thinning.min_interval_s, 60.0},
-        std::tuple{"still_distance_m", &thinning.still_distance_m, 100.0},
-        std::tuple{"still_angle_rad", &thinning.still_angle_rad, 3.15},
-        std::tuple{"still_scan_interval_s", &thinning.still_interval_s, 3600.0}}) {
-    if (auto s = readNumber(mapping, key, 0.0, max, value); !s.ok()) {
-      return absl::InvalidArgumentError("mapping: " + std::string(s.message()));
-    }
-  }
-  if (const YAML::Node mount = mapping["lidar_mount_m"]) {
-    if (!mount.IsSequence() || mount.size() != 3) {
-      return absl::InvalidArgumentError(
-          "mapping: lidar_mount_m must be a list of 3 numbers [x, y, z] (body frame, metres)");
-    }
-    try {
-      for (int i = 0; i < 3; ++i) lidar_mount_m[i] = mount[i].as<double>();
-    } catch (const YAML::Exception&) {
-      return absl::InvalidArgumentError("mapping: lidar_mount_m must be a list of 3 numbers");
-    }
-  }
+  resolution_m = mapping.resolution_m();
+  max_range_m = mapping.max_range_m();
+  lidar_mount_m = {mapping.lidar_mount_m(0), mapping.lidar_mount_m(1), mapping.lidar_mount_m(2)};
+  ground.max_z_m = mapping.ground_max_z_m();
+  ground.altitude_error_m = mapping.ground_altitude_error_m();
+  ground.attitude_error_rad = mapping.ground_attitude_error_rad();
+  hit_depth_m = mapping.hit_depth_m();
+  column_min_z_m = mapping.column_min_z_m();
+  column_max_z_m = mapping.column_max_z_m();
+  planning_min_z_m = mapping.planning_min_z_m();
+  planning_max_z_m = mapping.planning_max_z_m();
+  pose_match_s = mapping.pose_match_s();
+  max_pose_stddev_m = mapping.max_pose_stddev_m();
+  scan_queue_size = mapping.scan_queue_size();
+  thinning.min_interval_s = mapping.min_scan_interval_s();
+  thinning.still_distance_m = mapping.still_distance_m();
+  thinning.still_angle_rad = mapping.still_angle_rad();
+  thinning.still_interval_s = mapping.still_scan_interval_s();
   if (planning_max_z_m <= planning_min_z_m) {
     return absl::InvalidArgumentError(
         "mapping: planning_max_z_m must be greater than planning_min_z_m");

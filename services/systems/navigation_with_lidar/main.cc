@@ -11,6 +11,7 @@
 #include <memory>
 
 #include "absl/flags/flag.h"
+#include "behaviorlib/config/v1/navigation_with_lidar.pb.h"
 #include "behaviorlib/flight_common/remote_vehicle.h"
 #include "behaviorlib/motion_behaviors/motion_link.h"
 #include "behaviorlib/navigation_with_lidar/explore_behavior.h"
@@ -31,10 +32,14 @@ int main(int argc, char** argv) {
       argc, argv, "navigation_with_lidar", [](behaviorlib::server::BehaviorSystemBuilder& b) {
         namespace nav = behaviorlib::nav;
         const auto& context = b.context();
+        // The system's own keys (the mapping: section), declared in
+        // proto/behaviorlib/config/v1/navigation_with_lidar.proto.
+        auto system = b.systemConfiguration<behaviorlib::config::v1::NavigationWithLidarConfig>();
+        absl::Status configured = system.status();
         nav::MapperSettings settings;
-        const YAML::Node mapping = context.config ? context.config["mapping"] : YAML::Node();
-        if (absl::Status s = settings.read(mapping); !s.ok()) {
-          std::cerr << "navigation_with_lidar: --config: " << s.message() << std::endl;
+        if (configured.ok()) configured = settings.configure(system->mapping());
+        if (!configured.ok()) {
+          std::cerr << "navigation_with_lidar: --config: " << configured.message() << std::endl;
           std::exit(2);
         }
         auto& mapper =

@@ -47,31 +47,24 @@ SlamBehavior::SlamBehavior(channel::ChannelClient* channel, const Eigen::Vector3
 
 SlamBehavior::~SlamBehavior() { stopSubscriptions(); }
 
-absl::Status SlamBehavior::onConfigure(const YAML::Node& config) {
-  using flight::readNumber;
-  using flight::readSeconds;
-  for (auto [key, value] :
-       {std::pair{"imu_timeout_s", &imu_timeout_}, std::pair{"lidar_timeout_s", &lidar_timeout_},
-        std::pair{"start_timeout_s", &start_timeout_},
-        std::pair{"max_degenerate_s", &max_degenerate_}}) {
-    if (auto s = readSeconds(config, key, 0, 600, value); !s.ok()) return s;
-  }
-  for (auto [key, value, min, max] : {
-           std::tuple{"max_rejected_ratio", &max_rejected_ratio_, 0.0, 1.0},
-           std::tuple{"match_window", &match_window_, 0.0, 1000.0},
-           std::tuple{"max_horizontal_stddev_m", &max_horizontal_stddev_m_, 0.0, 1000.0},
-           std::tuple{"baro_stddev_m", &baro_stddev_m_, 0.0, 100.0},
-           std::tuple{"linear_speed_stddev_m_s", &linear_speed_stddev_m_s_, 0.0, 100.0},
-           std::tuple{"imu_yaw_stddev_rad", &imu_yaw_stddev_rad_, 0.0, 10.0},
-           std::tuple{"gyro_noise_rad_s", &noise_.gyro_noise_rad_s, 0.0, 10.0},
-           std::tuple{"accel_noise_m_s2", &noise_.accel_noise_m_s2, 0.0, 100.0},
-           std::tuple{"resolution_m", &slam_config_.grid.resolution_m, 0.01, 1.0},
-           std::tuple{"likelihood_sigma_m", &slam_config_.grid.likelihood_sigma_m, 0.005, 1.0},
-           std::tuple{"max_extent_m", &slam_config_.grid.max_extent_m, 1.0, 1000.0},
-           std::tuple{"max_free_range_m", &slam_config_.scan.max_free_range_m, 0.1, 100.0},
-       }) {
-    if (auto s = readNumber(config, key, min, max, value); !s.ok()) return s;
-  }
+absl::Status SlamBehavior::onConfigure(
+    const config::v1::SelfLocalizeAndMapWithLidarConfig& config) {
+  imu_timeout_ = behaviorlib::seconds(config.imu_timeout_s());
+  lidar_timeout_ = behaviorlib::seconds(config.lidar_timeout_s());
+  start_timeout_ = behaviorlib::seconds(config.start_timeout_s());
+  max_degenerate_ = behaviorlib::seconds(config.max_degenerate_s());
+  max_rejected_ratio_ = config.max_rejected_ratio();
+  match_window_ = config.match_window();
+  max_horizontal_stddev_m_ = config.max_horizontal_stddev_m();
+  baro_stddev_m_ = config.baro_stddev_m();
+  linear_speed_stddev_m_s_ = config.linear_speed_stddev_m_s();
+  imu_yaw_stddev_rad_ = config.imu_yaw_stddev_rad();
+  noise_.gyro_noise_rad_s = config.gyro_noise_rad_s();
+  noise_.accel_noise_m_s2 = config.accel_noise_m_s2();
+  slam_config_.grid.resolution_m = config.resolution_m();
+  slam_config_.grid.likelihood_sigma_m = config.likelihood_sigma_m();
+  slam_config_.grid.max_extent_m = config.max_extent_m();
+  slam_config_.scan.max_free_range_m = config.max_free_range_m();
   const double cells = slam_config_.grid.max_extent_m / slam_config_.grid.resolution_m;
   if (cells * cells > 2.5e7) {
     return absl::InvalidArgumentError(

@@ -25,13 +25,11 @@ RequestOperatorAssistanceBehavior::RequestOperatorAssistanceBehavior(
 
 RequestOperatorAssistanceBehavior::~RequestOperatorAssistanceBehavior() { watch_.reset(); }
 
-absl::Status RequestOperatorAssistanceBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s =
-          flight::readSeconds(config, "read_failure_timeout_s", 0, 3600, &read_failure_timeout_);
-      !s.ok()) {
-    return s;
-  }
-  return flight::readNumber(config, "poll_period_s", 0, 10, &poll_period_s_);
+absl::Status RequestOperatorAssistanceBehavior::onConfigure(
+    const config::v1::RequestOperatorAssistanceConfig& config) {
+  read_failure_timeout_ = seconds(config.read_failure_timeout_s());
+  poll_period_s_ = config.poll_period_s();
+  return absl::OkStatus();
 }
 
 google::protobuf::Value RequestOperatorAssistanceBehavior::requestValue(

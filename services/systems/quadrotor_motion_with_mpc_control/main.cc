@@ -29,7 +29,8 @@ int main(int argc, char** argv) {
         builder.add<mb::FollowPathBehavior<v1::FollowPathWithMpcControlParameters>>(vehicle, link);
         builder.add<mb::RotateBehavior<v1::RotateWithMpcControlParameters>>(vehicle, link);
         builder.add<mb::HoverBehavior<v1::HoverWithMpcControlParameters>>(vehicle, link);
-        builder.add<mb::MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters>>(
+        builder.add<mb::MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters,
+                                              behaviorlib::config::v1::MpcMotionControlConfig>>(
             vehicle, link,
             [](const mb::ControllerConfig& config, const behaviorlib::motion::VehicleModel& model) {
               return mb::makeMpcController(model, config.mpc);

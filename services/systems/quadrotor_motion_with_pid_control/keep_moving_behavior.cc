@@ -8,7 +8,7 @@ KeepMovingWithPidControlBehavior::KeepMovingWithPidControlBehavior(flight::Vehic
                                                                    MotionLink& link)
     : Behavior(referenceBehaviorOptions(Duration::zero())), support_(vehicle, link) {}
 
-absl::Status KeepMovingWithPidControlBehavior::onConfigure(const YAML::Node& config) {
+absl::Status KeepMovingWithPidControlBehavior::onConfigure(const config::v1::MotionConfig& config) {
   if (auto s = support_.configure(config); !s.ok()) return s;
   off_speed_.setDwell(support_.settings().flight.progress_window);
   return absl::OkStatus();

@@ -32,12 +32,14 @@ int main(int argc, char** argv) {
         builder.add<mb::RotateBehavior<v1::RotateWithPidControlParameters>>(vehicle, link);
         builder.add<mb::HoverBehavior<v1::KeepHoveringWithPidControlParameters>>(vehicle, link);
         builder.add<mb::KeepMovingWithPidControlBehavior>(vehicle, link);
-        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidMotionControlParameters>>(
+        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidMotionControlParameters,
+                                              behaviorlib::config::v1::PidMotionControlConfig>>(
             vehicle, link,
             [](const mb::ControllerConfig& config, const behaviorlib::motion::VehicleModel& model) {
               return mb::makePidAttitudeController(model, config.pid);
             });
-        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidThrustControlParameters>>(
+        builder.add<mb::MotionControlBehavior<v1::QuadrotorPidThrustControlParameters,
+                                              behaviorlib::config::v1::PidMotionControlConfig>>(
             vehicle, link,
             [](const mb::ControllerConfig& config, const behaviorlib::motion::VehicleModel& model) {
               return mb::makePidThrustRatesController(model, config.pid, config.attitude_p,

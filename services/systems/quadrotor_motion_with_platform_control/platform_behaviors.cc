@@ -28,16 +28,11 @@ std::string degrees(double rad) { return fixed2(rad * 180.0 / std::numbers::pi) 
 
 }  // namespace
 
-absl::Status PlatformMotionSettings::read(const YAML::Node& config) {
-  if (auto s = flight::readSeconds(config, "goal_dwell_s", -1e-9, 600, &goal_dwell); !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "min_altitude_m", -1e-9, 1000, &min_altitude_m);
-      !s.ok()) {
-    return s;
-  }
-  if (auto s = flight::readNumber(config, "max_drift_m", 0, 100, &max_drift_m); !s.ok()) return s;
-  return flight::readNumber(config, "min_progress_m", -1e-9, 100, &min_progress_m);
+void PlatformMotionSettings::configure(const config::v1::PlatformMotionConfig& config) {
+  goal_dwell = seconds(config.goal_dwell_s());
+  min_altitude_m = config.min_altitude_m();
+  max_drift_m = config.max_drift_m();
+  min_progress_m = config.min_progress_m();
 }
 
 // ---- MOVE_VERTICAL_WITH_PLATFORM_CONTROL ----------------------------------
@@ -45,14 +40,11 @@ absl::Status PlatformMotionSettings::read(const YAML::Node& config) {
 MoveVerticalBehavior::MoveVerticalBehavior(flight::Vehicle& vehicle)
     : Behavior(platformBehaviorOptions(std::chrono::seconds(120))), support_(vehicle) {}
 
-absl::Status MoveVerticalBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = support_.configure(config); !s.ok()) return s;
-  if (auto s = settings_.read(config); !s.ok()) return s;
-  if (auto s =
-          flight::readNumber(config, "max_vertical_speed_m_s", 0, 10, &max_vertical_speed_m_s_);
-      !s.ok()) {
-    return s;
-  }
+absl::Status MoveVerticalBehavior::onConfigure(
+    const config::v1::MoveVerticalWithPlatformControlConfig& config) {
+  if (auto s = support_.configure(config.platform().flight()); !s.ok()) return s;
+  settings_.configure(config.platform());
+  max_vertical_speed_m_s_ = config.max_vertical_speed_m_s();
   goal_.setDwell(settings_.goal_dwell);
   progress_.setWindow(support_.settings().progress_window);
   return absl::OkStatus();
@@ -169,13 +161,11 @@ Verdict MoveVerticalBehavior::checkProcesses() {
 MoveAtSpeedBehavior::MoveAtSpeedBehavior(flight::Vehicle& vehicle)
     : Behavior(platformBehaviorOptions(Duration::zero())), support_(vehicle) {}
 
-absl::Status MoveAtSpeedBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = support_.configure(config); !s.ok()) return s;
-  if (auto s = settings_.read(config); !s.ok()) return s;
-  if (auto s = flight::readNumber(config, "max_speed_error_m_s", 0, 10, &max_speed_error_m_s_);
-      !s.ok()) {
-    return s;
-  }
+absl::Status MoveAtSpeedBehavior::onConfigure(
+    const config::v1::MoveAtSpeedWithPlatformControlConfig& config) {
+  if (auto s = support_.configure(config.platform().flight()); !s.ok()) return s;
+  settings_.configure(config.platform());
+  max_speed_error_m_s_ = config.max_speed_error_m_s();
   off_speed_.setDwell(support_.settings().progress_window);
   return absl::OkStatus();
 }
@@ -245,12 +235,11 @@ Verdict MoveAtSpeedBehavior::checkProcesses() {
 RotateWithPlatformControlBehavior::RotateWithPlatformControlBehavior(flight::Vehicle& vehicle)
     : Behavior(platformBehaviorOptions(std::chrono::seconds(60))), support_(vehicle) {}
 
-absl::Status RotateWithPlatformControlBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = support_.configure(config); !s.ok()) return s;
-  if (auto s = settings_.read(config); !s.ok()) return s;
-  if (auto s = flight::readNumber(config, "max_yaw_lag_rad", 0, 7, &max_yaw_lag_rad_); !s.ok()) {
-    return s;
-  }
+absl::Status RotateWithPlatformControlBehavior::onConfigure(
+    const config::v1::RotateWithPlatformControlConfig& config) {
+  if (auto s = support_.configure(config.platform().flight()); !s.ok()) return s;
+  settings_.configure(config.platform());
+  max_yaw_lag_rad_ = config.max_yaw_lag_rad();
   goal_.setDwell(settings_.goal_dwell);
   lagging_.setDwell(support_.settings().progress_window);
   return absl::OkStatus();

@@ -35,8 +35,10 @@ InformPositionToRobotsBehavior::InformPositionToRobotsBehavior(channel::ChannelC
 
 InformPositionToRobotsBehavior::~InformPositionToRobotsBehavior() { pose_sub_.reset(); }
 
-absl::Status InformPositionToRobotsBehavior::onConfigure(const YAML::Node& config) {
-  return flight::readSeconds(config, "pose_timeout_s", 0, 60, &pose_timeout_);
+absl::Status InformPositionToRobotsBehavior::onConfigure(
+    const config::v1::InformPositionToRobotsConfig& config) {
+  pose_timeout_ = seconds(config.pose_timeout_s());
+  return absl::OkStatus();
 }
 
 absl::Status InformPositionToRobotsBehavior::onActivate() {

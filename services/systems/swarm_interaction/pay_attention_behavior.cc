@@ -56,12 +56,11 @@ PayAttentionToRobotMessagesBehavior::PayAttentionToRobotMessagesBehavior(
 
 PayAttentionToRobotMessagesBehavior::~PayAttentionToRobotMessagesBehavior() { stop(); }
 
-absl::Status PayAttentionToRobotMessagesBehavior::onConfigure(const YAML::Node& config) {
-  if (auto s = flight::readSeconds(config, "channel_timeout_s", 0, 600, &channel_timeout_);
-      !s.ok()) {
-    return s;
-  }
-  return flight::readNumber(config, "write_period_s", 0, 60, &write_period_s_);
+absl::Status PayAttentionToRobotMessagesBehavior::onConfigure(
+    const config::v1::PayAttentionToRobotMessagesConfig& config) {
+  channel_timeout_ = seconds(config.channel_timeout_s());
+  write_period_s_ = config.write_period_s();
+  return absl::OkStatus();
 }
 
 void PayAttentionToRobotMessagesBehavior::countMalformed(const std::string& why) {

@@ -37,9 +37,9 @@ CLIENTS = ("console", "clients")
 # ("stubs", which need gRPC), and reflection's. Each must come from a .proto
 # of the repository (or googleapis', or gRPC's reflection).
 GENERATED = (
-    (re.compile(r"^behaviorlib/((?:durable/)?v1/.+)\.grpc\.pb\.h$"), "stubs", "proto/behaviorlib"),
+    (re.compile(r"^behaviorlib/((?:durable/|config/)?v1/.+)\.grpc\.pb\.h$"), "stubs", "proto/behaviorlib"),
     (re.compile(r"^behaviorlib/(v1/.+)\.behaviors\.h$"), "stubs", "proto/behaviorlib"),
-    (re.compile(r"^behaviorlib/((?:durable/)?v1/.+)\.pb\.h$"), "proto", "proto/behaviorlib"),
+    (re.compile(r"^behaviorlib/((?:durable/|config/)?v1/.+)\.pb\.h$"), "proto", "proto/behaviorlib"),
     (re.compile(r"^google/rpc/(status|error_details)\.pb\.h$"), "proto", None),
     (re.compile(r"^grpc/reflection/(v1|v1alpha)/reflection\.grpc\.pb\.h$"), "reflection", None),
     (re.compile(r"^behaviorlib/(embedded_descriptors)\.h$"), "proto", None),

@@ -13,6 +13,7 @@
 #include "behaviorlib/clock.h"
 #include "behaviorlib/errors/status_details.h"
 #include "test_behaviors.h"
+#include "test_parameters.pb.h"
 
 namespace behaviorlib {
 namespace {
@@ -709,6 +710,90 @@ TEST(BehaviorConfigTest, ConfigOverridesOptionsAndRejectsBadValues) {
   auto status = bad_host.start(YAML::Load("behaviors:\n  SCRIPTED:\n    frequency_hz: -1\n"));
   EXPECT_EQ(status.code(), absl::StatusCode::kInvalidArgument);
   EXPECT_THAT(status.message(), HasSubstr("frequency_hz"));
+}
+
+// A behavior with a configuration message (decision 45): the test's
+// SectionConfig, whose keys it keeps.
+class ConfiguredBehavior final : public Behavior<v1::WaitParameters, test::SectionConfig> {
+ public:
+  ConfiguredBehavior() : Behavior("CONFIGURED") {}
+  test::SectionConfig seen;
+
+ protected:
+  absl::Status onConfigure(const test::SectionConfig& config) override {
+    seen = config;
+    if (config.name() == "refuse") return absl::InvalidArgumentError("refused by the behavior");
+    return absl::OkStatus();
+  }
+};
+
+TEST(BehaviorConfigTest, ATypedBehaviorGetsItsKeysWithDefaults) {
+  FakeClock clock;
+  BehaviorHost host(testing::hostOptions("r", "s"), clock);
+  auto owned = std::make_unique<ConfiguredBehavior>();
+  ConfiguredBehavior* behavior = owned.get();
+  host.add(std::move(owned));
+  ASSERT_TRUE(host.start(YAML::Load("behaviors:\n"
+                                    "  CONFIGURED:\n"
+                                    "    frequency_hz: 40\n"
+                                    "    tolerance_m: 2.5\n"
+                                    "    mount_m: [0.1, 0.2, 0.3]\n"),
+                         "sys.yaml")
+                  .ok());
+  EXPECT_EQ(host.find("CONFIGURED")->options().frequency_hz, 40.0);
+  EXPECT_DOUBLE_EQ(behavior->seen.tolerance_m(), 2.5);
+  EXPECT_DOUBLE_EQ(behavior->seen.shared().timeout_s(), 0.5);  // the proto's default
+  EXPECT_EQ(behavior->seen.mount_m_size(), 3);
+  host.stop();
+}
+
+TEST(BehaviorConfigTest, UnknownKeysAndBehaviorsStopTheStartWithTheirLine) {
+  FakeClock clock;
+  {
+    BehaviorHost host(testing::hostOptions("r", "s"), clock);
+    host.add(std::make_unique<ConfiguredBehavior>());
+    const absl::Status s = host.start(
+        YAML::Load("behaviors:\n  CONFIGURED:\n    frequency_hz: 40\n    tolerence_m: 1\n"),
+        "sys.yaml");
+    EXPECT_EQ(s.code(), absl::StatusCode::kInvalidArgument);
+    EXPECT_THAT(s.message(),
+                HasSubstr("sys.yaml:4:5: behaviors.CONFIGURED: unknown key 'tolerence_m'"));
+  }
+  {
+    // A behavior without keys of its own (Empty) refuses any but the library's.
+    BehaviorHost host(testing::hostOptions("r", "s"), clock);
+    host.add(std::make_unique<ScriptedBehavior>());
+    const absl::Status s =
+        host.start(YAML::Load("behaviors:\n  SCRIPTED:\n    tolerance_m: 1\n"), "sys.yaml");
+    EXPECT_THAT(s.message(), HasSubstr("sys.yaml:3:5: behaviors.SCRIPTED: unknown key"));
+  }
+  {
+    // A section for a behavior the system does not host: a misspelled name.
+    BehaviorHost host(testing::hostOptions("r", "s"), clock);
+    host.add(std::make_unique<ScriptedBehavior>());
+    const absl::Status s =
+        host.start(YAML::Load("behaviors:\n  SCRIPTD:\n    frequency_hz: 5\n"), "sys.yaml");
+    EXPECT_THAT(s.message(),
+                HasSubstr("sys.yaml:2:3: behaviors: no behavior 'SCRIPTD' in this system "
+                          "(it hosts SCRIPTED)"));
+  }
+  {
+    // Out of range, on its value's line.
+    BehaviorHost host(testing::hostOptions("r", "s"), clock);
+    host.add(std::make_unique<ConfiguredBehavior>());
+    const absl::Status s =
+        host.start(YAML::Load("behaviors:\n  CONFIGURED:\n    timeout_s: 99\n"), "sys.yaml");
+    EXPECT_THAT(s.message(), HasSubstr("sys.yaml:3:16: behaviors.CONFIGURED: key "
+                                       "'shared.timeout_s' = 99 is out of range"));
+  }
+  {
+    // The behavior's own refusal stops the start too.
+    BehaviorHost host(testing::hostOptions("r", "s"), clock);
+    host.add(std::make_unique<ConfiguredBehavior>());
+    const absl::Status s =
+        host.start(YAML::Load("behaviors:\n  CONFIGURED:\n    name: refuse\n"), "sys.yaml");
+    EXPECT_THAT(s.message(), HasSubstr("refused by the behavior"));
+  }
 }
 
 }  // namespace

@@ -736,6 +736,9 @@ TEST(UnitOfFieldNameTest, SuffixTable) {
   EXPECT_EQ(unitOfFieldName("fill_ratio"), "1");
   EXPECT_EQ(unitOfFieldName("battery_percent"), "%");
   EXPECT_EQ(unitOfFieldName("buffer_bytes"), "bytes");
+  EXPECT_EQ(unitOfFieldName("jerk_m_s3"), "m/s^3");
+  EXPECT_EQ(unitOfFieldName("linear_drag_n_s_m"), "N s/m");
+  EXPECT_EQ(unitOfFieldName("quadratic_drag_n_s2_m2"), "N s^2/m^2");
 }
 
 TEST(UnitOfFieldNameTest, NoUnit) {

@@ -30,7 +30,8 @@ class MpcControlUnitTest : public ::testing::Test {
     vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
     vehicle_.setPosition(0, 0, 2);
     host_.add(std::make_unique<HoverBehavior<v1::HoverWithMpcControlParameters>>(vehicle_, link_));
-    host_.add(std::make_unique<MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters>>(
+    host_.add(std::make_unique<MotionControlBehavior<v1::QuadrotorMpcMotionControlParameters,
+                                                     config::v1::MpcMotionControlConfig>>(
         vehicle_, link_, [](const ControllerConfig& config, const motion::VehicleModel& model) {
           return makeMpcController(model, config.mpc);
         }));

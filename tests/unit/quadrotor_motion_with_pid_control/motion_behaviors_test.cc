@@ -110,7 +110,8 @@ TEST(PathChecksTest, BadPathsAreInvalidArgumentNamingThePoint) {
 class MotionBehaviorsUnitTest : public ::testing::Test {
  protected:
   using FollowPath = FollowPathBehavior<v1::FollowPathParameters>;
-  using Controller = MotionControlBehavior<v1::QuadrotorPidMotionControlParameters>;
+  using Controller = MotionControlBehavior<v1::QuadrotorPidMotionControlParameters,
+                                           config::v1::PidMotionControlConfig>;
 
   void SetUp() override {
     vehicle_.setState(v1::FLIGHT_STATE_FLYING);

@@ -36,6 +36,7 @@
 // function ends the activation with PROCESS_FAILURE. Activation wakes the worker
 // at once: the first tick (and onExecute) follows onActivate immediately.
 
+#include <google/protobuf/empty.pb.h>
 #include <google/protobuf/message.h>
 #include <yaml-cpp/yaml.h>
 
@@ -160,6 +161,8 @@ struct BehaviorContext {
   std::string robot_id;
   /// This behavior's section of the --config file (may be null).
   YAML::Node config;
+  /// The file it came from, for messages ("" when none).
+  std::string config_file;
   /// Called (on the worker) when the behavior becomes active or inactive; the
   /// system's watchdog uses it to poll only while something runs.
   std::function<void(bool active)> on_active_changed;
@@ -231,8 +234,6 @@ class BehaviorBase {
                BehaviorOptions options);
 
   // ---- Activation management (the paper's table) ---------------------------
-  /// Reads configuration (this behavior's section of --config).
-  virtual absl::Status onConfigure(const YAML::Node& /*config*/) { return absl::OkStatus(); }
   /// Prepares an activation; parameters() are set. An error refuses it.
   virtual absl::Status onActivate() { return absl::OkStatus(); }
   /// One step of the behavior's control.
@@ -312,6 +313,11 @@ class BehaviorBase {
   /// New parameters are about to take effect; an error refuses them.
   /// Behavior<Params> overrides it with the typed onModify(const Params&).
   virtual absl::Status modifyParameters(const google::protobuf::Message& new_parameters) = 0;
+  /// An empty message of the behavior's configuration type.
+  virtual std::unique_ptr<google::protobuf::Message> newConfiguration() const = 0;
+  /// The decoded, checked configuration; Behavior<Params, Config> overrides
+  /// it with the typed onConfigure(const Config&).
+  virtual absl::Status configure(const google::protobuf::Message& configuration) = 0;
 
   const std::string name_;
   const google::protobuf::Descriptor* const parameters_type_;
@@ -341,6 +347,11 @@ class BehaviorExecutionManager final {
   const google::protobuf::Descriptor& parametersType() const { return behavior_->parametersType(); }
   /// Options after configuration.
   const BehaviorOptions& options() const { return options_; }
+  /// The behavior's configuration message (its keys beside the library's
+  /// ExecutionConfig; decision 45).
+  const google::protobuf::Descriptor& configurationType() const {
+    return *behavior_->newConfiguration()->GetDescriptor();
+  }
 
   // ---- Host interface ------------------------------------------------------
 
@@ -451,6 +462,9 @@ class BehaviorExecutionManager final {
   // Queues `task` for the background thread (started on first use).
   void runInBackground(std::function<void()> task);
   void run();
+  // Decodes the section's keys (the library's, and the behavior's when it
+  // declares a configuration message) and applies the library's to options_.
+  absl::Status readExecutionConfig();
   // Any thread: queues `inbox` for the worker to drain (once per push
   // burst; the inbox keeps its own scheduled flag).
   void schedule(std::shared_ptr<detail::Inbox> inbox);
@@ -486,6 +500,9 @@ class BehaviorExecutionManager final {
 
   BehaviorOptions options_;
   BehaviorContext context_;
+  // The behavior's decoded configuration (null when it declares no message);
+  // set by start() before the worker exists, read only by it afterwards.
+  std::unique_ptr<google::protobuf::Message> configuration_;
   std::unique_ptr<WakeOnClock> clock_listener_;
   // The worker waits on mutex_ (Mutex::Await) for a command, an inbox,
   // stopping_, or a wake from the clock (wakes_ counts them).
@@ -701,8 +718,11 @@ namespace detail {
 std::string requireDeclaredName(const google::protobuf::Descriptor* parameters);
 }  // namespace detail
 
-/// A behavior with a typed parameter message.
-template <class Params>
+/// A behavior with a typed parameter message and a typed configuration
+/// message (decision 45): the keys of its section of --config beside the
+/// library's. A behavior without keys of its own keeps the default, Empty,
+/// and any other key in its section is refused.
+template <class Params, class Config = google::protobuf::Empty>
 class Behavior : public BehaviorBase {
  public:
   using Parameters = Params;
@@ -724,10 +744,22 @@ class Behavior : public BehaviorBase {
   /// fields, defaults applied, validated) are about to take effect; an error
   /// refuses them and the current ones stay.
   virtual absl::Status onModify(const Params& /*new_parameters*/) { return absl::OkStatus(); }
+  /// Reads the behavior's configuration: its section of --config, decoded
+  /// into Config, defaults applied and checked (an unknown key, a value of
+  /// the wrong type or out of range stops the system at start, naming the
+  /// file and line). Runs once, on the worker, before any activation; an
+  /// error stops the system at start.
+  virtual absl::Status onConfigure(const Config& /*config*/) { return absl::OkStatus(); }
 
  private:
   absl::Status modifyParameters(const google::protobuf::Message& new_parameters) final {
     return onModify(static_cast<const Params&>(new_parameters));
+  }
+  std::unique_ptr<google::protobuf::Message> newConfiguration() const final {
+    return std::make_unique<Config>();
+  }
+  absl::Status configure(const google::protobuf::Message& configuration) final {
+    return onConfigure(static_cast<const Config&>(configuration));
   }
 };
 

@@ -57,8 +57,10 @@ class BehaviorHost {
   void setObserverFactory(ObserverFactory factory) { observer_factory_ = std::move(factory); }
 
   /// Configures and starts every behavior. `config` is the whole --config
-  /// document; each behavior gets `config["behaviors"][<NAME>]`.
-  absl::Status start(const YAML::Node& config = YAML::Node());
+  /// document (read from `config_file`, named in messages); each behavior
+  /// gets `config["behaviors"][<NAME>]`. A section of a behavior the host
+  /// does not hold is an error with its file:line (a misspelled name).
+  absl::Status start(const YAML::Node& config = YAML::Node(), const std::string& config_file = "");
   /// Ends every active activation with INTERRUPTED (events emitted), joins
   /// the workers and the watchdog.
   void stop();

@@ -69,8 +69,9 @@ struct SystemContext {
   /// --flight-controller: the FlightController's address ("host:port");
   /// empty when none was given.
   std::string flight_controller;
-  /// The whole --config document (may be null).
+  /// The whole --config document (may be null), and its file.
   YAML::Node config;
+  std::string config_file;
   /// The coordinator's belief memory (--coordinator); null without one.
   const BeliefClient* beliefs = nullptr;
   /// Following the simulator's time grants (--follow-time) with that
@@ -98,6 +99,23 @@ class BehaviorSystemBuilder {
     resources_.push_back(std::shared_ptr<void>(std::move(resource)));
     return ref;
   }
+
+  /// Decodes the system's own keys of the --config document (all but the
+  /// library's `behaviors`) into C, a configuration message (decision 45):
+  /// INVALID_ARGUMENT with file:line for an unknown key or a bad value. A
+  /// system that never calls it accepts no key but `behaviors`.
+  template <class C>
+  absl::StatusOr<C> systemConfiguration() {
+    system_configuration_type_ = C::descriptor();
+    C out;
+    if (absl::Status s = decodeSystemConfiguration(&out); !s.ok()) return s;
+    return out;
+  }
+  absl::Status decodeSystemConfiguration(google::protobuf::Message* out);
+  /// Whether the system decoded its own keys (systemConfiguration()).
+  bool systemConfigurationRead() const { return system_configuration_read_; }
+  /// Every key the --config file may hold, by section, for --help-config.
+  std::string documentConfiguration() const;
 
   /// Hosts BehaviorT (constructed from `args`) and serves it as the typed
   /// service generated for its parameters message. The caller includes the
@@ -149,6 +167,8 @@ class BehaviorSystemBuilder {
   std::vector<std::unique_ptr<grpc::Service>> services_;
   std::map<std::string, std::string> service_names_;
   std::vector<std::function<bool()>> catch_up_checks_;
+  bool system_configuration_read_ = false;
+  const google::protobuf::Descriptor* system_configuration_type_ = nullptr;
 };
 
 /// A behavior system's settings: its command line, parsed.
@@ -171,8 +191,9 @@ struct BehaviorSystemOptions {
   std::string channel;
   /// "steady" (host monotonic time) or "sim" (the channel's clock topic).
   std::string clock = "steady";
-  /// The --config document (may be null).
+  /// The --config document (may be null), and its file (for messages).
   YAML::Node config;
+  std::string config_file;
   /// Register with this coordinator; empty: no registration.
   std::string coordinator;
   /// The FlightController's address for flight behaviors; empty: none.

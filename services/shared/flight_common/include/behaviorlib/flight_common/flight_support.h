@@ -3,7 +3,8 @@
 // What the flight behaviors (TAKE_OFF, LAND, HOVER_WITH_FLIGHT_ACTION_CONTROL,
 // and the motion behaviors) share: their --config settings and the checks of their inputs.
 //
-// Config keys of each flight behavior's section (defaults in brackets):
+// Config keys of each flight behavior's section (defaults in brackets; declared
+// once in proto/behaviorlib/config/v1/flight.proto, FlightConfig):
 //   pose_timeout_s [0.5]        pose/twist estimate older than this (behavior
 //                               clock): PROCESS_FAILURE
 //   lease_ttl_s [2]             ttl of the command lease (renewed every ttl/4)
@@ -20,8 +21,6 @@
 //   max_wind_m_s [10]           at and beyond it the wind's factor is 0.2
 // plus the library's frequency_hz, maximum_execution_time_s, watchdog_timeout_s.
 
-#include <yaml-cpp/yaml.h>
-
 #include <Eigen/Core>
 #include <Eigen/Geometry>
 #include <chrono>
@@ -34,6 +33,7 @@
 #include "absl/status/status.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/flight.pb.h"
 #include "behaviorlib/flight_common/vehicle.h"
 #include "behaviorlib/motion_control/wind_estimator.h"
 
@@ -58,18 +58,10 @@ struct FlightSettings {
   double calm_wind_m_s = 2.0;
   double max_wind_m_s = 10.0;
 
-  /// Reads the keys above from a behavior's config section (missing keys
-  /// keep their values); INVALID_ARGUMENT naming a bad key.
-  absl::Status read(const YAML::Node& config);
+  /// Takes the decoded keys (ranges already checked) and checks the rules
+  /// between them; INVALID_ARGUMENT naming the keys.
+  absl::Status configure(const config::v1::FlightConfig& config);
 };
-
-/// Reads a double key of `config` into `*value` when present, checking
-/// (min, max]; INVALID_ARGUMENT naming the key otherwise.
-absl::Status readNumber(const YAML::Node& config, const char* key, double min, double max,
-                        double* value);
-/// The same for a duration given in seconds.
-absl::Status readSeconds(const YAML::Node& config, const char* key, double min, double max,
-                         Duration* value);
 
 /// Defaults of the flight behaviors' execution: 20 Hz, the given maximum
 /// execution time, and a 2 s watchdog (a user function may make up to three

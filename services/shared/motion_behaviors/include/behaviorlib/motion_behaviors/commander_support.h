@@ -32,6 +32,7 @@
 #include <string>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/flight.pb.h"
 #include "behaviorlib/flight_common/flight_support.h"
 #include "behaviorlib/flight_common/vehicle.h"
 #include "behaviorlib/flight_common/wind_watch.h"
@@ -43,7 +44,7 @@ class CommanderSupport {
  public:
   explicit CommanderSupport(flight::Vehicle& vehicle) : vehicle_(vehicle) {}
 
-  absl::Status configure(const YAML::Node& config);
+  absl::Status configure(const config::v1::FlightConfig& config);
   const flight::FlightSettings& settings() const { return settings_; }
 
   /// Before activation: a flight controller that answers, FLYING or

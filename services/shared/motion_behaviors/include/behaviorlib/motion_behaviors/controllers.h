@@ -16,6 +16,7 @@
 #include <string>
 
 #include "absl/status/status.h"
+#include "behaviorlib/config/v1/motion.pb.h"
 #include "behaviorlib/motion_control/motion_types.h"
 #include "behaviorlib/motion_control/mpc_controller.h"
 #include "behaviorlib/motion_control/pid_controller.h"
@@ -61,7 +62,10 @@ struct ControllerConfig {
   double max_rate_rad_s = 3.0;
   motion::MpcParams mpc;
 
-  absl::Status read(const YAML::Node& config);
+  /// Takes the decoded keys: the PID gains, or the MPC's parameters, and
+  /// the airframe's (the mass is the flight keys' mass_kg).
+  void configure(const config::v1::PidMotionControlConfig& config);
+  void configure(const config::v1::MpcMotionControlConfig& config);
 };
 
 }  // namespace behaviorlib::motion_behaviors

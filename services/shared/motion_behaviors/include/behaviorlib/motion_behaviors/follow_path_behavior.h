@@ -53,7 +53,8 @@ struct PathSettings {
   int horizon_steps = 20;
   double horizon_step_s = 0.1;
 
-  absl::Status read(const YAML::Node& config);
+  /// Takes the decoded keys.
+  void configure(const config::v1::PathConfig& config);
 };
 
 /// Validates a path (INVALID_ARGUMENT naming path_m and the point) and makes
@@ -64,12 +65,12 @@ absl::StatusOr<motion::PathTracker> makePathTracker(
     double acceleration_m_s2, const PathSettings& settings, double min_altitude_m);
 
 template <class Params>
-class FollowPathBehavior final : public Behavior<Params> {
+class FollowPathBehavior final : public Behavior<Params, config::v1::FollowPathConfig> {
  public:
   FollowPathBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::FollowPathConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

@@ -22,12 +22,12 @@
 namespace behaviorlib::motion_behaviors {
 
 template <class Params>
-class HoverBehavior final : public Behavior<Params> {
+class HoverBehavior final : public Behavior<Params, config::v1::MotionConfig> {
  public:
   HoverBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::MotionConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

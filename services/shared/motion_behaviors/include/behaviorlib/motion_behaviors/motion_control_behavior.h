@@ -63,13 +63,14 @@ using ControllerFactory = std::function<std::unique_ptr<ControllerAdapter>(
 /// watchdog.
 BehaviorOptions controllerBehaviorOptions();
 
-template <class Params>
-class MotionControlBehavior final : public Behavior<Params> {
+/// Config: config::v1::PidMotionControlConfig or MpcMotionControlConfig.
+template <class Params, class Config>
+class MotionControlBehavior final : public Behavior<Params, Config> {
  public:
   MotionControlBehavior(flight::Vehicle& vehicle, MotionLink& link, ControllerFactory factory);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const Config& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

@@ -42,6 +42,7 @@
 
 #include "absl/status/status.h"
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/motion.pb.h"
 #include "behaviorlib/flight_common/flight_support.h"
 #include "behaviorlib/flight_common/vehicle.h"
 #include "behaviorlib/flight_common/wind_watch.h"
@@ -58,9 +59,9 @@ struct MotionSettings {
   Duration goal_dwell = std::chrono::seconds(1);
   double min_altitude_m = 0.2;
 
-  /// Reads the keys above (missing keys keep their values); INVALID_ARGUMENT
-  /// naming a bad key.
-  absl::Status read(const YAML::Node& config);
+  /// Takes the decoded keys (flight keys included); INVALID_ARGUMENT when
+  /// the rules between them do not hold.
+  absl::Status configure(const config::v1::MotionConfig& config);
 };
 
 /// Execution defaults of the high-level motion behaviors: 50 Hz, the given
@@ -71,7 +72,7 @@ class ReferenceSupport {
  public:
   ReferenceSupport(flight::Vehicle& vehicle, MotionLink& link);
 
-  absl::Status configure(const YAML::Node& config);
+  absl::Status configure(const config::v1::MotionConfig& config);
   const MotionSettings& settings() const { return settings_; }
 
   /// Before activation: a flight controller that answers, the vehicle

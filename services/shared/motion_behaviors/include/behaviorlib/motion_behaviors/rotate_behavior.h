@@ -30,12 +30,12 @@
 namespace behaviorlib::motion_behaviors {
 
 template <class Params>
-class RotateBehavior final : public Behavior<Params> {
+class RotateBehavior final : public Behavior<Params, config::v1::RotateConfig> {
  public:
   RotateBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::RotateConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

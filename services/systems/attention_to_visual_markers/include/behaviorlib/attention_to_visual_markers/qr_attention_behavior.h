@@ -39,13 +39,15 @@
 #include "behaviorlib/attention_to_visual_markers/marker_map.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/attention_to_visual_markers.pb.h"
 #include "behaviorlib/server/belief_client.h"
 #include "behaviorlib/v1/behaviors/attention_to_visual_markers.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
 namespace behaviorlib::markers {
 
-class QrAttentionBehavior final : public Behavior<v1::PayAttentionToQrCodesParameters> {
+class QrAttentionBehavior final : public Behavior<v1::PayAttentionToQrCodesParameters,
+                                                  config::v1::PayAttentionToQrCodesConfig> {
  public:
   /// `channel` may be null (the behavior is then infeasible); `beliefs` may
   /// be null (nothing is remembered).
@@ -65,7 +67,7 @@ class QrAttentionBehavior final : public Behavior<v1::PayAttentionToQrCodesParam
   };
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::PayAttentionToQrCodesConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;
@@ -124,7 +126,7 @@ class QrAttentionBehavior final : public Behavior<v1::PayAttentionToQrCodesParam
 
   channel::ChannelClient* channel_;
   const server::BeliefClient* beliefs_;
-  // Config.
+  // Config (defaults: PayAttentionToQrCodesConfig).
   Duration pose_timeout_ = std::chrono::milliseconds(500);
   Duration pose_history_ = std::chrono::seconds(3);
   Duration pose_tolerance_ = std::chrono::milliseconds(100);

@@ -46,6 +46,7 @@
 #include "behaviorlib/basic_quadrotor_behaviors/sensor_stream.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/flight_common/estimate_publisher.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/v1/types.pb.h"
@@ -53,7 +54,8 @@
 namespace behaviorlib::basic {
 
 class EstimatePositionWithLinearSpeedBehavior final
-    : public Behavior<v1::EstimatePositionWithLinearSpeedParameters> {
+    : public Behavior<v1::EstimatePositionWithLinearSpeedParameters,
+                      config::v1::EstimatePositionWithLinearSpeedConfig> {
  public:
   /// `channel` may be null (the process runs without --channel): the
   /// behavior then reports itself infeasible.
@@ -61,7 +63,8 @@ class EstimatePositionWithLinearSpeedBehavior final
   ~EstimatePositionWithLinearSpeedBehavior() override;
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(
+      const config::v1::EstimatePositionWithLinearSpeedConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;

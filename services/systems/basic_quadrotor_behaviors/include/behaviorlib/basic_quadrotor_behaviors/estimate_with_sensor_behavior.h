@@ -42,6 +42,7 @@
 #include "behaviorlib/basic_quadrotor_behaviors/sensor_stream.h"
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/flight_common/estimate_publisher.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/v1/types.pb.h"
@@ -49,7 +50,8 @@
 namespace behaviorlib::basic {
 
 class EstimatePositionWithSensorBehavior final
-    : public Behavior<v1::EstimatePositionWithSensorParameters> {
+    : public Behavior<v1::EstimatePositionWithSensorParameters,
+                      config::v1::EstimatePositionWithSensorConfig> {
  public:
   /// `channel` may be null (the process runs without --channel): the
   /// behavior then reports itself infeasible.
@@ -57,7 +59,7 @@ class EstimatePositionWithSensorBehavior final
   ~EstimatePositionWithSensorBehavior() override;
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::EstimatePositionWithSensorConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;

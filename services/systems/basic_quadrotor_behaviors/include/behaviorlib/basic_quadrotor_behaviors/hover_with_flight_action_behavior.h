@@ -22,6 +22,7 @@
 #include <memory>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/flight_common/flight_support.h"
 #include "behaviorlib/flight_common/vehicle.h"
 #include "behaviorlib/flight_common/wind_watch.h"
@@ -30,12 +31,12 @@
 namespace behaviorlib::basic {
 
 class HoverWithFlightActionControlBehavior final
-    : public Behavior<v1::HoverWithFlightActionControlParameters> {
+    : public Behavior<v1::HoverWithFlightActionControlParameters, config::v1::FlightConfig> {
  public:
   explicit HoverWithFlightActionControlBehavior(flight::Vehicle& vehicle);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::FlightConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
 

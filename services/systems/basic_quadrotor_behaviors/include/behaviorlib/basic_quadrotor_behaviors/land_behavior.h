@@ -20,6 +20,7 @@
 #include <memory>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/flight_common/flight_monitoring.h"
 #include "behaviorlib/flight_common/flight_support.h"
 #include "behaviorlib/flight_common/vehicle.h"
@@ -28,12 +29,12 @@
 
 namespace behaviorlib::basic {
 
-class LandBehavior final : public Behavior<v1::LandParameters> {
+class LandBehavior final : public Behavior<v1::LandParameters, config::v1::LandConfig> {
  public:
   explicit LandBehavior(flight::Vehicle& vehicle);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::LandConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;

@@ -24,13 +24,15 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
 namespace behaviorlib::basic {
 
 class SelfLocalizeWithGroundTruthBehavior final
-    : public Behavior<v1::SelfLocalizeWithGroundTruthParameters> {
+    : public Behavior<v1::SelfLocalizeWithGroundTruthParameters,
+                      config::v1::SelfLocalizeWithGroundTruthConfig> {
  public:
   /// `channel` may be null (the process runs without --channel): the
   /// behavior then reports itself infeasible.
@@ -38,7 +40,7 @@ class SelfLocalizeWithGroundTruthBehavior final
   ~SelfLocalizeWithGroundTruthBehavior() override;
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::SelfLocalizeWithGroundTruthConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;

@@ -26,6 +26,7 @@
 #include <memory>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/basic_quadrotor_behaviors.pb.h"
 #include "behaviorlib/flight_common/flight_monitoring.h"
 #include "behaviorlib/flight_common/flight_support.h"
 #include "behaviorlib/flight_common/vehicle.h"
@@ -34,12 +35,12 @@
 
 namespace behaviorlib::basic {
 
-class TakeOffBehavior final : public Behavior<v1::TakeOffParameters> {
+class TakeOffBehavior final : public Behavior<v1::TakeOffParameters, config::v1::TakeOffConfig> {
  public:
   explicit TakeOffBehavior(flight::Vehicle& vehicle);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::TakeOffConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

@@ -29,11 +29,14 @@
 //                   non-finite state, or the estimate cannot be published
 //                   -> PROCESS_FAILURE
 //
-// Config (defaults): imu_timeout_s [0.25], gps_timeout_s [1.5],
-// start_timeout_s [2], max_horizontal_stddev_m [3], max_rejected_ratio
-// [0.5], gps_window [20], baro_stddev_m [0.5], linear_speed_stddev_m_s
-// [0.1], yaw_stddev_rad [0.05], gyro_noise_rad_s [0.001], accel_noise_m_s2
-// [0.02] (noise densities of the IMU, per sqrt(Hz)).
+// Config (its section of --config; the keys, their ranges and defaults are
+// declared in proto/behaviorlib/config/v1/multi_sensor_fusion.proto,
+// SelfLocalizeWithEkfSensorFusionConfig): imu_timeout_s [0.25],
+// gps_timeout_s [1.5], start_timeout_s [2], max_horizontal_stddev_m [3],
+// max_rejected_ratio [0.5], gps_window [20], baro_stddev_m [0.5],
+// linear_speed_stddev_m_s [0.1], yaw_stddev_rad [0.05], gyro_noise_rad_s
+// [0.005], accel_noise_m_s2 [0.05] (noise densities of the IMU, per
+// sqrt(Hz): EkfNoise's defaults).
 
 #include <deque>
 #include <memory>
@@ -42,6 +45,7 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/multi_sensor_fusion.pb.h"
 #include "behaviorlib/flight_common/estimate_publisher.h"
 #include "behaviorlib/sensor_fusion/ekf.h"
 #include "behaviorlib/sensor_fusion/ins_feed.h"
@@ -51,14 +55,16 @@
 namespace behaviorlib::fusion {
 
 class EkfSelfLocalizationBehavior final
-    : public Behavior<v1::SelfLocalizeWithEkfSensorFusionParameters> {
+    : public Behavior<v1::SelfLocalizeWithEkfSensorFusionParameters,
+                      config::v1::SelfLocalizeWithEkfSensorFusionConfig> {
  public:
   /// `channel` may be null: the behavior then reports itself infeasible.
   explicit EkfSelfLocalizationBehavior(channel::ChannelClient* channel);
   ~EkfSelfLocalizationBehavior() override;
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(
+      const config::v1::SelfLocalizeWithEkfSensorFusionConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;
@@ -84,7 +90,7 @@ class EkfSelfLocalizationBehavior final
   Duration start_timeout_ = std::chrono::seconds(2);
   double max_horizontal_stddev_m_ = 3.0;
   double max_rejected_ratio_ = 0.5;
-  double gps_window_ = 20;
+  int gps_window_ = 20;
   double baro_stddev_m_ = 0.5;
   double linear_speed_stddev_m_s_ = 0.1;
   double yaw_stddev_rad_ = 0.05;

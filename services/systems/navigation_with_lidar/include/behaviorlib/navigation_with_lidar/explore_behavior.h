@@ -31,10 +31,13 @@
 //   checkProcesses  ReferenceSupport's (estimate, controller) -> PROCESS_FAILURE
 //   time_limit_s    the activation's maximum execution time -> TIME_OUT
 //
-// Config (besides ReferenceSupport's and PathSettings' keys): frequency_hz
-// [50], min_frontier_cells [5] (shorter frontiers are noise: half a metre at
-// 0.1 m), slice_half_height_m [0.15] (the slice around the lidar's plane),
-// look_ahead_m [3] (how much of the path ahead is checked against the map).
+// Config (its section of --config; the keys, their ranges and defaults are
+// declared in proto/behaviorlib/config/v1/navigation_with_lidar.proto,
+// ExploreWithFrontiersConfig): besides ReferenceSupport's (MotionConfig) and
+// PathSettings' (PathConfig) keys, frequency_hz [50], min_frontier_cells [5]
+// (shorter frontiers are noise: half a metre at 0.1 m), slice_half_height_m
+// [0.15] (the slice around the lidar's plane), look_ahead_m [3] (how much of
+// the path ahead is checked against the map).
 
 #include <Eigen/Core>
 #include <cstdint>
@@ -45,6 +48,7 @@
 #include <vector>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/navigation_with_lidar.pb.h"
 #include "behaviorlib/flight_common/flight_monitoring.h"
 #include "behaviorlib/motion_behaviors/follow_path_behavior.h"
 #include "behaviorlib/motion_behaviors/reference_support.h"
@@ -54,13 +58,14 @@
 
 namespace behaviorlib::nav {
 
-class ExploreBehavior final : public Behavior<v1::ExploreWithFrontiersParameters> {
+class ExploreBehavior final
+    : public Behavior<v1::ExploreWithFrontiersParameters, config::v1::ExploreWithFrontiersConfig> {
  public:
   ExploreBehavior(LidarMapper& mapper, flight::Vehicle& vehicle,
                   motion_behaviors::MotionLink& link);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::ExploreWithFrontiersConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

@@ -40,12 +40,14 @@
 // max_uncertainty_margin_m, added to the inflation where the space allows
 // (planPath; decision 27).
 //
-// Config (defaults): pose_timeout_s [0.5], timeout_grace_s [0.5] (wall
-// time an attempt may run past its limit before it counts as timed out:
-// building the inflated grid is not part of OMPL's budget),
-// preferred_clearance_m [0.2] (distance beyond vehicle_radius_m that the
-// shortened path keeps from obstacles where the space allows it; see
-// PlanOptions), uncertainty_sigmas [2], max_uncertainty_margin_m [0.3].
+// Config (its section of --config; the keys, their ranges and defaults are
+// declared in proto/behaviorlib/config/v1/navigation_with_lidar.proto,
+// GeneratePathWithOccupancyGridConfig): pose_timeout_s [0.5],
+// timeout_grace_s [0.5] (wall time an attempt may run past its limit before
+// it counts as timed out: building the inflated grid is not part of OMPL's
+// budget), preferred_clearance_m [0.2] (distance beyond vehicle_radius_m
+// that the shortened path keeps from obstacles where the space allows it;
+// see PlanOptions), uncertainty_sigmas [2], max_uncertainty_margin_m [0.3].
 
 #include <chrono>
 #include <cstdint>
@@ -55,6 +57,7 @@
 #include <utility>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/navigation_with_lidar.pb.h"
 #include "behaviorlib/flight_common/flight_support.h"
 #include "behaviorlib/navigation/path_planner.h"
 #include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
@@ -66,14 +69,16 @@ namespace behaviorlib::nav {
 /// Topic of the planned paths.
 std::string pathTopic(const std::string& robot_id);
 
-class GeneratePathBehavior final : public Behavior<v1::GeneratePathWithOccupancyGridParameters> {
+class GeneratePathBehavior final
+    : public Behavior<v1::GeneratePathWithOccupancyGridParameters,
+                      config::v1::GeneratePathWithOccupancyGridConfig> {
  public:
   /// `beliefs` may be null (no coordinator): the path then goes to the
   /// channel only.
   GeneratePathBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::GeneratePathWithOccupancyGridConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;

@@ -49,19 +49,19 @@
 #include "absl/status/status.h"
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/navigation_with_lidar.pb.h"
 #include "behaviorlib/navigation/ground_rejection.h"
 #include "behaviorlib/navigation/occupancy_map.h"
 #include "behaviorlib/navigation/scan_thinner.h"
 #include "behaviorlib/navigation/wall_columns.h"
 #include "behaviorlib/v1/types.pb.h"
 
-namespace YAML {
-class Node;
-}  // namespace YAML
-
 namespace behaviorlib::nav {
 
-/// The `mapping:` section of the system's --config (defaults here).
+/// The `mapping:` section of the system's --config. Its keys, their ranges
+/// and defaults are declared in proto/behaviorlib/config/v1/
+/// navigation_with_lidar.proto (MappingConfig); the defaults here are the
+/// same.
 struct MapperSettings {
   double resolution_m = 0.1;
   /// Ranges beyond this are inserted as free space up to it only.
@@ -99,9 +99,11 @@ struct MapperSettings {
   /// still_angle_rad, still_scan_interval_s.
   ScanThinningSettings thinning;
 
-  /// Reads the keys of `mapping` (missing keys keep their values);
-  /// INVALID_ARGUMENT naming a bad key.
-  absl::Status read(const YAML::Node& mapping);
+  /// Takes the decoded keys (defaults applied, ranges already checked) and
+  /// checks the rules between them: lidar_mount_m has 3 numbers,
+  /// planning_max_z_m above planning_min_z_m, column_max_z_m above
+  /// column_min_z_m; INVALID_ARGUMENT naming the keys.
+  absl::Status configure(const config::v1::MappingConfig& mapping);
 };
 
 /// Counters of the mapping thread.

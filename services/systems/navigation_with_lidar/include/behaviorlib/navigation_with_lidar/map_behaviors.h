@@ -15,6 +15,11 @@
 //                         {robot_id}/map_file) from checkGoal;
 //                         checkProcesses -> PROCESS_FAILURE when that write
 //                         fails.
+//
+// Config: none of their own (google::protobuf::Empty): their sections take
+// the library's keys only, and any other key is refused at start.
+
+#include <google/protobuf/empty.pb.h>
 
 #include <optional>
 #include <string>
@@ -27,7 +32,8 @@
 
 namespace behaviorlib::nav {
 
-class ClearOccupancyGridBehavior final : public Behavior<v1::ClearOccupancyGridParameters> {
+class ClearOccupancyGridBehavior final
+    : public Behavior<v1::ClearOccupancyGridParameters, google::protobuf::Empty> {
  public:
   explicit ClearOccupancyGridBehavior(LidarMapper& mapper);
 
@@ -39,7 +45,8 @@ class ClearOccupancyGridBehavior final : public Behavior<v1::ClearOccupancyGridP
   LidarMapper& mapper_;
 };
 
-class SaveOccupancyGridBehavior final : public Behavior<v1::SaveOccupancyGridParameters> {
+class SaveOccupancyGridBehavior final
+    : public Behavior<v1::SaveOccupancyGridParameters, google::protobuf::Empty> {
  public:
   /// `beliefs` may be null (no coordinator): the file is saved, no belief
   /// written. Files are written inside `maps` only.

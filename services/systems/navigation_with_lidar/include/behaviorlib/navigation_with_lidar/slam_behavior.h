@@ -40,13 +40,16 @@
 //                   start_timeout_s, a non-finite state, or the estimate
 //                   cannot be published -> PROCESS_FAILURE
 //
-// Config (defaults): imu_timeout_s [0.25], lidar_timeout_s [1],
-// start_timeout_s [2], max_degenerate_s [5], max_rejected_ratio [0.5],
+// Config (its section of --config; the keys, their ranges and defaults are
+// declared in proto/behaviorlib/config/v1/navigation_with_lidar.proto,
+// SelfLocalizeAndMapWithLidarConfig): imu_timeout_s [0.25], lidar_timeout_s
+// [1], start_timeout_s [2], max_degenerate_s [5], max_rejected_ratio [0.5],
 // match_window [20], max_horizontal_stddev_m [1], baro_stddev_m [0.5],
 // linear_speed_stddev_m_s [0.1], imu_yaw_stddev_rad [0.01],
-// gyro_noise_rad_s [0.001], accel_noise_m_s2 [0.02], resolution_m [0.05],
-// likelihood_sigma_m [0.04], max_extent_m [100], max_free_range_m [12].
-// The lidar's mounting is the system's (mapping: lidar_mount_m).
+// gyro_noise_rad_s [0.005], accel_noise_m_s2 [0.05] (EkfNoise's defaults),
+// resolution_m [0.05], likelihood_sigma_m [0.04], max_extent_m [100],
+// max_free_range_m [12]. The lidar's mounting is the system's (mapping:
+// lidar_mount_m).
 
 #include <cstdint>
 #include <deque>
@@ -56,6 +59,7 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/navigation_with_lidar.pb.h"
 #include "behaviorlib/flight_common/estimate_publisher.h"
 #include "behaviorlib/navigation/lidar_slam.h"
 #include "behaviorlib/sensor_fusion/ekf.h"
@@ -65,14 +69,15 @@
 
 namespace behaviorlib::nav {
 
-class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParameters> {
+class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParameters,
+                                           config::v1::SelfLocalizeAndMapWithLidarConfig> {
  public:
   /// `channel` may be null: the behavior then reports itself infeasible.
   SlamBehavior(channel::ChannelClient* channel, const Eigen::Vector3d& lidar_mount_m);
   ~SlamBehavior() override;
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::SelfLocalizeAndMapWithLidarConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;
@@ -108,7 +113,7 @@ class SlamBehavior final : public Behavior<v1::SelfLocalizeAndMapWithLidarParame
   Duration start_timeout_ = std::chrono::seconds(2);
   Duration max_degenerate_ = std::chrono::seconds(5);
   double max_rejected_ratio_ = 0.5;
-  double match_window_ = 20;
+  int match_window_ = 20;
   double max_horizontal_stddev_m_ = 1.0;
   double baro_stddev_m_ = 0.5;
   double linear_speed_stddev_m_s_ = 0.1;

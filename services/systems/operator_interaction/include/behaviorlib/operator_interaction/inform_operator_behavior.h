@@ -12,6 +12,8 @@
 //   checkGoal       written -> GOAL_ACHIEVED
 //   checkProcesses  belief memory or the channel failed -> PROCESS_FAILURE
 
+#include <google/protobuf/empty.pb.h>
+
 #include <string>
 
 #include "absl/status/status.h"
@@ -22,7 +24,8 @@
 
 namespace behaviorlib::operator_interaction {
 
-class InformOperatorBehavior final : public Behavior<v1::InformOperatorParameters> {
+class InformOperatorBehavior final
+    : public Behavior<v1::InformOperatorParameters, google::protobuf::Empty> {
  public:
   /// `beliefs` may be null (the behavior is then infeasible), `channel` too
   /// (nothing is published then).

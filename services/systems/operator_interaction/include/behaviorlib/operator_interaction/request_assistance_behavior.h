@@ -28,6 +28,7 @@
 #include <string>
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/operator_interaction.pb.h"
 #include "behaviorlib/operator_interaction/answer_watch.h"
 #include "behaviorlib/server/belief_client.h"
 #include "behaviorlib/v1/behaviors/operator_interaction.pb.h"
@@ -35,14 +36,15 @@
 namespace behaviorlib::operator_interaction {
 
 class RequestOperatorAssistanceBehavior final
-    : public Behavior<v1::RequestOperatorAssistanceParameters> {
+    : public Behavior<v1::RequestOperatorAssistanceParameters,
+                      config::v1::RequestOperatorAssistanceConfig> {
  public:
   /// `beliefs` may be null: the behavior is then infeasible.
   explicit RequestOperatorAssistanceBehavior(const server::BeliefClient* beliefs);
   ~RequestOperatorAssistanceBehavior() override;
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::RequestOperatorAssistanceConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   absl::Status onModify(const v1::RequestOperatorAssistanceParameters& new_parameters) override;

@@ -28,12 +28,12 @@
 namespace behaviorlib::motion_behaviors {
 
 class KeepMovingWithPidControlBehavior final
-    : public Behavior<v1::KeepMovingWithPidControlParameters> {
+    : public Behavior<v1::KeepMovingWithPidControlParameters, config::v1::MotionConfig> {
  public:
   KeepMovingWithPidControlBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::MotionConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

@@ -39,6 +39,7 @@
 // behavior's own keys named above.
 
 #include "behaviorlib/behavior_execution_manager.h"
+#include "behaviorlib/config/v1/quadrotor_motion_with_platform_control.pb.h"
 #include "behaviorlib/flight_common/flight_monitoring.h"
 #include "behaviorlib/flight_common/vehicle.h"
 #include "behaviorlib/motion_behaviors/commander_support.h"
@@ -53,15 +54,18 @@ struct PlatformMotionSettings {
   double max_drift_m = 0.5;
   double min_progress_m = 0.1;
 
-  absl::Status read(const YAML::Node& config);
+  void configure(const config::v1::PlatformMotionConfig& config);
 };
 
-class MoveVerticalBehavior final : public Behavior<v1::MoveVerticalWithPlatformControlParameters> {
+class MoveVerticalBehavior final
+    : public Behavior<v1::MoveVerticalWithPlatformControlParameters,
+                      config::v1::MoveVerticalWithPlatformControlConfig> {
  public:
   explicit MoveVerticalBehavior(flight::Vehicle& vehicle);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(
+      const config::v1::MoveVerticalWithPlatformControlConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;
@@ -92,12 +96,14 @@ class MoveVerticalBehavior final : public Behavior<v1::MoveVerticalWithPlatformC
   TimePoint last_update_{};
 };
 
-class MoveAtSpeedBehavior final : public Behavior<v1::MoveAtSpeedWithPlatformControlParameters> {
+class MoveAtSpeedBehavior final
+    : public Behavior<v1::MoveAtSpeedWithPlatformControlParameters,
+                      config::v1::MoveAtSpeedWithPlatformControlConfig> {
  public:
   explicit MoveAtSpeedBehavior(flight::Vehicle& vehicle);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::MoveAtSpeedWithPlatformControlConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;
@@ -122,12 +128,13 @@ class MoveAtSpeedBehavior final : public Behavior<v1::MoveAtSpeedWithPlatformCon
 };
 
 class RotateWithPlatformControlBehavior final
-    : public Behavior<v1::RotateWithPlatformControlParameters> {
+    : public Behavior<v1::RotateWithPlatformControlParameters,
+                      config::v1::RotateWithPlatformControlConfig> {
  public:
   explicit RotateWithPlatformControlBehavior(flight::Vehicle& vehicle);
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::RotateWithPlatformControlConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

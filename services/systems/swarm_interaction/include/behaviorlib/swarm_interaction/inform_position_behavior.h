@@ -19,19 +19,22 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/swarm_interaction.pb.h"
 #include "behaviorlib/v1/behaviors/swarm_interaction.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 
 namespace behaviorlib::swarm {
 
-class InformPositionToRobotsBehavior final : public Behavior<v1::InformPositionToRobotsParameters> {
+class InformPositionToRobotsBehavior final
+    : public Behavior<v1::InformPositionToRobotsParameters,
+                      config::v1::InformPositionToRobotsConfig> {
  public:
   /// `channel` may be null: the behavior then reports itself infeasible.
   explicit InformPositionToRobotsBehavior(channel::ChannelClient* channel);
   ~InformPositionToRobotsBehavior() override;
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::InformPositionToRobotsConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
   void onDeactivate() override;

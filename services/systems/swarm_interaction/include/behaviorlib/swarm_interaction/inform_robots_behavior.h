@@ -11,6 +11,8 @@
 //   checkGoal       published -> GOAL_ACHIEVED
 //   checkProcesses  the channel refused the message -> PROCESS_FAILURE
 
+#include <google/protobuf/empty.pb.h>
+
 #include <string>
 
 #include "absl/status/status.h"
@@ -20,7 +22,8 @@
 
 namespace behaviorlib::swarm {
 
-class InformRobotsBehavior final : public Behavior<v1::InformRobotsParameters> {
+class InformRobotsBehavior final
+    : public Behavior<v1::InformRobotsParameters, google::protobuf::Empty> {
  public:
   /// `channel` may be null: the behavior then reports itself infeasible.
   explicit InformRobotsBehavior(channel::ChannelClient* channel);

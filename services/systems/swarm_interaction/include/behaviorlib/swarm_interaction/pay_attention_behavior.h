@@ -33,6 +33,7 @@
 
 #include "behaviorlib/behavior_execution_manager.h"
 #include "behaviorlib/channel/channel_client.h"
+#include "behaviorlib/config/v1/swarm_interaction.pb.h"
 #include "behaviorlib/server/belief_client.h"
 #include "behaviorlib/v1/behaviors/swarm_interaction.pb.h"
 #include "behaviorlib/v1/types.pb.h"
@@ -40,7 +41,8 @@
 namespace behaviorlib::swarm {
 
 class PayAttentionToRobotMessagesBehavior final
-    : public Behavior<v1::PayAttentionToRobotMessagesParameters> {
+    : public Behavior<v1::PayAttentionToRobotMessagesParameters,
+                      config::v1::PayAttentionToRobotMessagesConfig> {
  public:
   /// `channel` or `beliefs` may be null: the behavior then reports itself
   /// infeasible.
@@ -49,7 +51,7 @@ class PayAttentionToRobotMessagesBehavior final
   ~PayAttentionToRobotMessagesBehavior() override;
 
  protected:
-  absl::Status onConfigure(const YAML::Node& config) override;
+  absl::Status onConfigure(const config::v1::PayAttentionToRobotMessagesConfig& config) override;
   absl::Status onActivate() override;
   void onDeactivate() override;
   void onPause() override;

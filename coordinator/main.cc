@@ -93,13 +93,13 @@ ABSL_FLAG(int64_t, journal_compact_bytes, static_cast<int64_t>(kDefaults.journal
           "it grows past this many bytes");
 
 int main(int argc, char** argv) {
-  using behaviorlib::server::fatal;
-  using behaviorlib::server::ServerRuntime;
+  using behaviorlib::server_kit::fatal;
+  using behaviorlib::server_kit::ServerRuntime;
   namespace coord = behaviorlib::coordinator;
   // Before any thread exists, so that every thread inherits the mask.
   ServerRuntime::blockShutdownSignals();
   const std::string program = "coordinator";
-  behaviorlib::server::parseFlags(
+  behaviorlib::server_kit::parseFlags(
       argc, argv,
       "the coordinator (behaviorlib.v1.Coordinator): registry of behavior systems, one "
       "resumable event stream for the fleet, supervision, lifecycle calls by robot and "

@@ -63,7 +63,7 @@ ABSL_FLAG(std::string, o, "", "short for --output");
 
 int main(int argc, char** argv) {
   behaviorlib::behaviorctl::CtlOptions options;
-  std::vector<std::string> args = behaviorlib::server::parseCommandLine(
+  std::vector<std::string> args = behaviorlib::server_kit::parseCommandLine(
       argc, argv,
       "a client of behavior systems and of the coordinator\n\n"
       "usage: behaviorctl --target HOST:PORT COMMAND ...        (one behavior system)\n"

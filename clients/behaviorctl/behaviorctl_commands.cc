@@ -310,7 +310,7 @@ int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
 
 // The commands through the coordinator (behaviorlib.v1.Coordinator).
 int runCoordinator(const CtlOptions& c) {
-  auto stub = v1::Coordinator::NewStub(behaviorlib::server::makeChannel(c.coordinator));
+  auto stub = v1::Coordinator::NewStub(behaviorlib::server_kit::makeChannel(c.coordinator));
   const std::string& command = c.args[0];
   const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
   const bool needs_robot =
@@ -442,7 +442,7 @@ int runCoordinator(const CtlOptions& c) {
 
 // The commands to one behavior system (behaviorlib.v1.BehaviorSystem).
 int runSystem(const CtlOptions& c) {
-  auto stub = v1::BehaviorSystem::NewStub(behaviorlib::server::makeChannel(c.target));
+  auto stub = v1::BehaviorSystem::NewStub(behaviorlib::server_kit::makeChannel(c.target));
   const std::string& command = c.args[0];
   const std::string behavior = c.args.size() > 1 ? c.args[1] : "";
   if (command == "list") {
@@ -525,7 +525,7 @@ int runHealth(const CtlOptions& c) {
   // The standard gRPC health service, for docker-compose health checks.
   const std::string address = c.coordinator.empty() ? c.target : c.coordinator;
   auto result = behaviorlib::coordinator::checkHealth(
-      behaviorlib::server::makeChannel(address), "",
+      behaviorlib::server_kit::makeChannel(address), "",
       std::chrono::milliseconds(static_cast<int64_t>((c.timeout_s > 0 ? c.timeout_s : 3.0) * 1e3)));
   if (!result.serving) {
     std::fprintf(stderr, "behaviorctl: %s is not serving: %s\n", address.c_str(),
@@ -538,7 +538,7 @@ int runHealth(const CtlOptions& c) {
 
 int runCtl(const CtlOptions& options) {
   if (!options.args.empty() && (options.args[0] == "record" || options.args[0] == "replay")) {
-    if (absl::Status s = server::checkProcessTransport(); !s.ok()) {
+    if (absl::Status s = server_kit::checkProcessTransport(); !s.ok()) {
       std::fprintf(stderr, "behaviorctl: %s\n", std::string(s.message()).c_str());
       return 2;
     }
@@ -551,7 +551,7 @@ int runCtl(const CtlOptions& options) {
         stderr);
     return 2;
   }
-  if (absl::Status s = server::checkProcessTransport(); !s.ok()) {
+  if (absl::Status s = server_kit::checkProcessTransport(); !s.ok()) {
     std::fprintf(stderr, "behaviorctl: %s\n", std::string(s.message()).c_str());
     return 2;
   }

@@ -66,7 +66,7 @@ int runRecord(const CtlOptions& options) {
   recorder::RecorderOptions recorder_options;
   recorder_options.path = options.args[1];
   if (!options.channel.empty()) {
-    recorder_options.data_channel = server::makeChannel(options.channel);
+    recorder_options.data_channel = server_kit::makeChannel(options.channel);
   }
   if (!options.topics.empty()) {
     recorder_options.topics = absl::StrSplit(options.topics, ',', absl::SkipEmpty());
@@ -74,7 +74,7 @@ int runRecord(const CtlOptions& options) {
   std::signal(SIGINT, onSignal);
   std::signal(SIGTERM, onSignal);
   auto recording =
-      recorder::Recorder::start(server::makeChannel(options.coordinator), recorder_options);
+      recorder::Recorder::start(server_kit::makeChannel(options.coordinator), recorder_options);
   if (!recording.ok()) return failWith(recording.status());
   std::fprintf(stderr, "behaviorctl: recording into %s (topics %s) until interrupted\n",
                recorder_options.path.c_str(), absl::StrJoin(recorder_options.topics, ",").c_str());
@@ -113,7 +113,7 @@ int runReplay(const CtlOptions& options) {
   recorder::ReplayOptions replay_options;
   replay_options.speed = options.speed;
   replay_options.topic_prefix = options.topic_prefix;
-  auto broker = v1::DataChannel::NewStub(server::makeChannel(options.channel));
+  auto broker = v1::DataChannel::NewStub(server_kit::makeChannel(options.channel));
   const auto stats = recorder::replay(options.args[1], broker.get(), replay_options);
   if (!stats.ok()) return failWith(stats.status());
   google::protobuf::Struct line;

@@ -311,8 +311,8 @@ absl::Status Gateway::start(const std::string& host, int port) {
         absl::StrCat("the console's web directory ", options_.web_dir, " does not exist"));
   }
   if (!options_.recordings_dir.empty()) {
-    auto recordings = server::ConfinedDirectory::open("recordings", options_.recordings_dir,
-                                                      options_.max_recording_bytes);
+    auto recordings = server_kit::ConfinedDirectory::open("recordings", options_.recordings_dir,
+                                                          options_.max_recording_bytes);
     if (!recordings.ok()) return recordings.status();
     recordings_ = std::move(*recordings);
   }

@@ -57,7 +57,7 @@ bool splitAddress(const std::string& address, std::string* host, int* port) {
 }
 
 // The --probe health check (a container has no curl).
-int probe(const std::string& address, const behaviorlib::server::TransportSecurity& security) {
+int probe(const std::string& address, const behaviorlib::server_kit::TransportSecurity& security) {
   std::string host;
   int port = 0;
   if (!splitAddress(address, &host, &port) || port == 0) {
@@ -100,17 +100,17 @@ bool writePortFile(const std::string& path, int port) {
 }  // namespace
 
 int main(int argc, char** argv) {
-  using behaviorlib::server::fatal;
-  using behaviorlib::server::ServerRuntime;
+  using behaviorlib::server_kit::fatal;
+  using behaviorlib::server_kit::ServerRuntime;
   ServerRuntime::blockShutdownSignals();
   const std::string program = "console";
-  behaviorlib::server::parseFlags(
+  behaviorlib::server_kit::parseFlags(
       argc, argv, "the operator's console in the browser, and its gateway to the coordinator");
 
-  if (absl::Status s = behaviorlib::server::checkProcessTransport(); !s.ok()) {
+  if (absl::Status s = behaviorlib::server_kit::checkProcessTransport(); !s.ok()) {
     return fatal(program, s);
   }
-  const auto& security = behaviorlib::server::processTransport();
+  const auto& security = behaviorlib::server_kit::processTransport();
   if (const std::string target = absl::GetFlag(FLAGS_probe); !target.empty()) {
     return probe(target, security);
   }
@@ -127,7 +127,7 @@ int main(int argc, char** argv) {
     return fatal(program, absl::InvalidArgumentError(absl::StrCat(
                               "--max-event-clients must be within [1, 1000], got ", clients)));
   }
-  if (absl::Status s = behaviorlib::server::checkListenAddress(listen, security); !s.ok()) {
+  if (absl::Status s = behaviorlib::server_kit::checkListenAddress(listen, security); !s.ok()) {
     return fatal(program, s);
   }
 
@@ -145,10 +145,10 @@ int main(int argc, char** argv) {
     options.world_json = std::move(*json);
   }
   if (const std::string channel = absl::GetFlag(FLAGS_channel); !channel.empty()) {
-    options.data_channel = behaviorlib::server::makeChannel(channel);
+    options.data_channel = behaviorlib::server_kit::makeChannel(channel);
   }
   const std::string coordinator = absl::GetFlag(FLAGS_coordinator);
-  behaviorlib::console::Gateway gateway(behaviorlib::server::makeChannel(coordinator), options);
+  behaviorlib::console::Gateway gateway(behaviorlib::server_kit::makeChannel(coordinator), options);
   if (absl::Status s = gateway.start(host, port); !s.ok()) return fatal(program, s);
   if (!writePortFile(absl::GetFlag(FLAGS_port_file), gateway.port())) {
     gateway.shutdown();

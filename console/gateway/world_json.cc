@@ -21,14 +21,14 @@ google::protobuf::Value vector3(const Eigen::Vector3d& v) {
 }  // namespace
 
 absl::StatusOr<std::string> worldJson(const std::string& path) {
-  absl::StatusOr<sim::World> world = sim::loadWorld(path);
+  absl::StatusOr<world::World> world = world::loadWorld(path);
   if (!world.ok()) return world.status();
   google::protobuf::Struct root;
   auto* boxes = (*root.mutable_fields())["boxes"].mutable_list_value();
   for (const auto& box : world->boxes()) {
     auto& fields = *boxes->add_values()->mutable_struct_value()->mutable_fields();
     fields["name"].set_string_value(box.name);
-    fields["kind"].set_string_value(box.kind == sim::Box::Kind::kWall ? "wall" : "box");
+    fields["kind"].set_string_value(box.kind == world::Box::Kind::kWall ? "wall" : "box");
     fields["center_m"] = vector3(box.center_m);
     fields["size_m"] = vector3(box.size_m);
     fields["yaw_rad"].set_number_value(box.yaw_rad);

@@ -124,7 +124,7 @@ grpc::ByteBuffer serialized(const google::protobuf::Message& message) {
 
 // A WatchEvents call refused at once.
 class RefusedEventStream final
-    : public server::Ordered<grpc::ServerWriteReactor<grpc::ByteBuffer>> {
+    : public server_kit::Ordered<grpc::ServerWriteReactor<grpc::ByteBuffer>> {
  public:
   explicit RefusedEventStream(const grpc::Status& status) { Finish(status); }
   void OnDone() override {
@@ -151,7 +151,7 @@ grpc::ServerUnaryReactor* forward(std::unique_ptr<ForwardedCall<Request, Respons
                                   Start start, Put put) {
   auto* raw = call.release();
   start(*raw->route.stub->async(), raw->context.get(), &raw->request, &raw->response,
-        server::orderedCallback([raw, reactor, response, put](grpc::Status status) {
+        server_kit::orderedCallback([raw, reactor, response, put](grpc::Status status) {
           std::unique_ptr<ForwardedCall<Request, Response>> owned(raw);
           if (!status.ok()) {
             reactor->Finish(fromSystem(status, owned->route));
@@ -187,7 +187,7 @@ grpc::ServerUnaryReactor* routed(const Registry& registry, std::chrono::millisec
 // serialized once and shared by every subscriber: messages are written as
 // bytes.
 class FleetStreamReactor final
-    : public server::LogStreamWriter<FleetSubscription, grpc::ByteBuffer> {
+    : public server_kit::LogStreamWriter<FleetSubscription, grpc::ByteBuffer> {
  public:
   FleetStreamReactor(CoordinatorService* service, const v1::WatchFleetEventsRequest& request)
       : LogStreamWriter("the coordinator"), service_(service) {
@@ -285,7 +285,7 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
   // Under an access policy, a system registers only as the system and robot
   // its certificate names: no one else can take its place.
   if (absl::Status s =
-          server::checkSystemIdentity(*context, request->robot_id(), request->system());
+          server_kit::checkSystemIdentity(*context, request->robot_id(), request->system());
       !s.ok()) {
     return finishNow(context, identityMismatch(s, request->robot_id(), request->system()));
   }
@@ -306,14 +306,15 @@ grpc::ServerUnaryReactor* CoordinatorService::RegisterSystem(
   };
   auto* reactor = context->DefaultReactor();
   auto* call = new Describe();
-  call->channel = behaviorlib::server::makeChannel(request->address(), fastReconnectArguments());
+  call->channel =
+      behaviorlib::server_kit::makeChannel(request->address(), fastReconnectArguments());
   call->stub = v1::BehaviorSystem::NewStub(call->channel);
   call->context = childContext(context, options_.describe_timeout);
   // One page of the largest size: a system is described by one call here.
   call->request.set_page_size(kMaxBehaviorsPerSystem);
   call->stub->async()->ListBehaviors(
       call->context.get(), &call->request, &call->description,
-      server::orderedCallback([this, call, reactor, request, response](grpc::Status status) {
+      server_kit::orderedCallback([this, call, reactor, request, response](grpc::Status status) {
         std::unique_ptr<Describe> owned(call);
         const std::string who = "robot " + request->robot_id() + " system " + request->system();
         const errors::Metadata about = {{"robot", request->robot_id()},
@@ -376,7 +377,7 @@ grpc::ServerUnaryReactor* CoordinatorService::Heartbeat(grpc::CallbackServerCont
                                                         const v1::HeartbeatRequest* request,
                                                         v1::HeartbeatResponse* response) {
   if (absl::Status s =
-          server::checkSystemIdentity(*context, request->robot_id(), request->system());
+          server_kit::checkSystemIdentity(*context, request->robot_id(), request->system());
       !s.ok()) {
     return finishNow(context, identityMismatch(s, request->robot_id(), request->system()));
   }
@@ -389,7 +390,7 @@ grpc::ServerUnaryReactor* CoordinatorService::UnregisterSystem(
     grpc::CallbackServerContext* context, const v1::UnregisterSystemRequest* request,
     v1::UnregisterSystemResponse* /*response*/) {
   if (absl::Status s =
-          server::checkSystemIdentity(*context, request->robot_id(), request->system());
+          server_kit::checkSystemIdentity(*context, request->robot_id(), request->system());
       !s.ok()) {
     return finishNow(context, identityMismatch(s, request->robot_id(), request->system()));
   }
@@ -400,7 +401,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ListSystems(grpc::CallbackServerCo
                                                           const v1::ListSystemsRequest* request,
                                                           v1::ListSystemsResponse* response) {
   registry_.listSystems(request->robot_id(), response);
-  return finishNow(context, server::paginate<v1::SystemInfo>(
+  return finishNow(context, server_kit::paginate<v1::SystemInfo>(
                                 response->mutable_systems(),
                                 [](const v1::SystemInfo& s) {
                                   return absl::StrCat(s.robot_id(), "\x1f", s.system(), "\x1f",
@@ -413,7 +414,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ListBehaviors(
     grpc::CallbackServerContext* context, const v1::ListFleetBehaviorsRequest* request,
     v1::ListFleetBehaviorsResponse* response) {
   registry_.listBehaviors(request->robot_id(), request->behavior(), response);
-  return finishNow(context, server::paginate<v1::FleetBehavior>(
+  return finishNow(context, server_kit::paginate<v1::FleetBehavior>(
                                 response->mutable_behaviors(),
                                 [](const v1::FleetBehavior& b) {
                                   return absl::StrCat(b.robot_id(), "\x1f", b.description().name(),
@@ -444,7 +445,7 @@ grpc::ServerWriteReactor<grpc::ByteBuffer>* CoordinatorService::WatchEvents(
 grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
     grpc::CallbackServerContext* context, const v1::ActivateFleetBehaviorRequest* request,
     v1::ActivateFleetBehaviorResponse* response) {
-  if (auto s = server::checkRobotScope(*context, request->robot_id(), "activate behaviors");
+  if (auto s = server_kit::checkRobotScope(*context, request->robot_id(), "activate behaviors");
       !s.ok())
     return finishNow(context, errors::toGrpc(s));
   return runBlocking(context, [this, request, response] {
@@ -472,7 +473,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
 grpc::ServerUnaryReactor* CoordinatorService::DeactivateBehavior(
     grpc::CallbackServerContext* context, const v1::DeactivateFleetBehaviorRequest* request,
     v1::DeactivateFleetBehaviorResponse* response) {
-  if (auto s = server::checkRobotScope(*context, request->robot_id(), "deactivate behaviors");
+  if (auto s = server_kit::checkRobotScope(*context, request->robot_id(), "deactivate behaviors");
       !s.ok())
     return finishNow(context, errors::toGrpc(s));
   return runBlocking(context, [this, request, response] {
@@ -512,7 +513,8 @@ grpc::ServerUnaryReactor* CoordinatorService::CheckFleetBehaviorActivation(
 grpc::ServerUnaryReactor* CoordinatorService::PauseFleetBehavior(
     grpc::CallbackServerContext* context, const v1::PauseFleetBehaviorRequest* request,
     v1::PauseFleetBehaviorResponse* response) {
-  if (auto s = server::checkRobotScope(*context, request->robot_id(), "pause behaviors"); !s.ok())
+  if (auto s = server_kit::checkRobotScope(*context, request->robot_id(), "pause behaviors");
+      !s.ok())
     return finishNow(context, errors::toGrpc(s));
   v1::PauseBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
@@ -526,7 +528,8 @@ grpc::ServerUnaryReactor* CoordinatorService::PauseFleetBehavior(
 grpc::ServerUnaryReactor* CoordinatorService::ResumeFleetBehavior(
     grpc::CallbackServerContext* context, const v1::ResumeFleetBehaviorRequest* request,
     v1::ResumeFleetBehaviorResponse* response) {
-  if (auto s = server::checkRobotScope(*context, request->robot_id(), "resume behaviors"); !s.ok())
+  if (auto s = server_kit::checkRobotScope(*context, request->robot_id(), "resume behaviors");
+      !s.ok())
     return finishNow(context, errors::toGrpc(s));
   v1::ResumeBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
@@ -540,7 +543,8 @@ grpc::ServerUnaryReactor* CoordinatorService::ResumeFleetBehavior(
 grpc::ServerUnaryReactor* CoordinatorService::ModifyFleetBehavior(
     grpc::CallbackServerContext* context, const v1::ModifyFleetBehaviorRequest* request,
     v1::ModifyFleetBehaviorResponse* response) {
-  if (auto s = server::checkRobotScope(*context, request->robot_id(), "modify behaviors"); !s.ok())
+  if (auto s = server_kit::checkRobotScope(*context, request->robot_id(), "modify behaviors");
+      !s.ok())
     return finishNow(context, errors::toGrpc(s));
   v1::ModifyBehaviorRequest forwarded;
   forwarded.set_behavior(request->behavior());
@@ -562,7 +566,7 @@ namespace {
 // Who the caller of a belief call is, as its certificate or token says;
 // empty for a plaintext call.
 std::string authenticatedWriter(const grpc::ServerContextBase& context) {
-  const std::optional<server::Caller> caller = server::callerOf(context);
+  const std::optional<server_kit::Caller> caller = server_kit::callerOf(context);
   return caller ? caller->identity : std::string();
 }
 
@@ -629,7 +633,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ListBeliefs(grpc::CallbackServerCo
     *response->add_beliefs() = std::move(belief);
   }
   return finishNow(context,
-                   server::paginate<v1::Belief>(
+                   server_kit::paginate<v1::Belief>(
                        response->mutable_beliefs(), [](const v1::Belief& b) { return b.key(); },
                        *request, response->mutable_next_page_token()));
 }

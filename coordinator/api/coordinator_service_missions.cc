@@ -54,7 +54,7 @@ bool missionEnded(const v1::MissionStatus& status) {
 // the reactor's liveness live in a shared Core, so that a producer holding
 // the core never touches a reactor that is gone.
 template <class Response>
-class QueuedStream : public server::Ordered<grpc::ServerWriteReactor<Response>> {
+class QueuedStream : public server_kit::Ordered<grpc::ServerWriteReactor<Response>> {
  public:
   struct Core {
     absl::Mutex mutex;
@@ -290,7 +290,7 @@ grpc::ServerWriteReactor<v1::WatchBeliefsResponse>* CoordinatorService::WatchBel
 grpc::Status CoordinatorService::missionScopeRefusal(const grpc::CallbackServerContext& context,
                                                      const std::string& mission_id,
                                                      std::string_view what) const {
-  const server::RobotScope scope = server::robotScopeOf(context);
+  const server_kit::RobotScope scope = server_kit::robotScopeOf(context);
   if (!scope.bound()) return grpc::Status::OK;
   auto status = options_.missions->get(mission_id);
   if (!status.ok()) return errors::toGrpc(status.status());
@@ -302,7 +302,8 @@ grpc::ServerUnaryReactor* CoordinatorService::StartMission(grpc::CallbackServerC
                                                            v1::StartMissionResponse* response) {
   if (options_.missions == nullptr)
     return finishWith(context, notServed("missions", "missions", "no missions"));
-  if (auto s = server::checkRobotScope(*context, request->robot_id(), "start missions"); !s.ok())
+  if (auto s = server_kit::checkRobotScope(*context, request->robot_id(), "start missions");
+      !s.ok())
     return finishWith(context, errors::toGrpc(s));
   // Checking the file against the registry and starting are quick; the
   // mission then runs on its own thread.
@@ -330,7 +331,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ListMissions(grpc::CallbackServerC
     return finishWith(context, notServed("missions", "missions", "no missions"));
   for (auto& status : options_.missions->list()) *response->add_missions() = std::move(status);
   // Newest first: the key runs backwards in start time.
-  return finishWith(context, server::paginate<v1::MissionStatus>(
+  return finishWith(context, server_kit::paginate<v1::MissionStatus>(
                                  response->mutable_missions(),
                                  [](const v1::MissionStatus& m) {
                                    return absl::StrFormat("%020d.%09d/%s",

@@ -46,7 +46,7 @@ absl::StatusOr<Catalog> Catalog::parse(const std::string& yaml, const std::strin
   YAML::Node root;
   if (auto s = yaml::load(yaml, file_name, &root); !s.ok()) return s;
   absl::StatusOr<Catalog> catalog = absl::InternalError("not parsed");
-  const absl::Status guarded = server::guardYamlParse(file_name, [&] {
+  const absl::Status guarded = server_kit::guardYamlParse(file_name, [&] {
     catalog = parseTree(root, file_name);
     return absl::OkStatus();
   });

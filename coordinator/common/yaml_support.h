@@ -42,7 +42,7 @@ inline std::string join(const std::vector<std::string>& items) {
 /// aliases expanded, aliases, depth): "<file>:<line>: not valid YAML" or
 /// "<file>:<line>: refused: ...".
 inline absl::Status load(const std::string& text, const std::string& file, YAML::Node* out) {
-  return server::loadYaml(text, file, out);
+  return server_kit::loadYaml(text, file, out);
 }
 
 class Reader {

@@ -65,7 +65,7 @@ std::set<std::string> behaviorsOf(const MissionSpec& spec) {
 // message of its WatchEvents, asked for events after the largest seq: nothing
 // is replayed); nullopt when it cannot be asked.
 std::optional<uint64_t> latestSeqOf(const std::string& address) {
-  auto stub = v1::BehaviorSystem::NewStub(behaviorlib::server::makeChannel(address));
+  auto stub = v1::BehaviorSystem::NewStub(behaviorlib::server_kit::makeChannel(address));
   grpc::ClientContext context;
   context.set_deadline(std::chrono::system_clock::now() + std::chrono::seconds(2));
   v1::WatchEventsRequest request;

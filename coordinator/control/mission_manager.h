@@ -49,7 +49,7 @@ struct MissionManagerOptions {
   std::chrono::milliseconds resume_wait{60000};
   /// Where StartMission.file_path may read (the default refuses every path:
   /// clients send the text).
-  server::ConfinedDirectory mission_files;
+  server_kit::ConfinedDirectory mission_files;
   /// Largest mission, as text or file.
   size_t max_mission_bytes = 1 << 20;
   /// Ended missions kept (GetMission, ListMissions, the journal): at most

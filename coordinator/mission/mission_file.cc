@@ -353,7 +353,7 @@ absl::StatusOr<MissionSpec> parseMission(const std::string& text, const std::str
     return errors::withReason(errors::withFieldViolation(s, "", s.message()), v1::MISSION_INVALID);
   }
   absl::StatusOr<MissionSpec> mission = absl::InternalError("not parsed");
-  const absl::Status guarded = server::guardYamlParse(file, [&] {
+  const absl::Status guarded = server_kit::guardYamlParse(file, [&] {
     mission = MissionParser(file).parse(root);
     return absl::OkStatus();
   });

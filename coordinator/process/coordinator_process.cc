@@ -126,7 +126,7 @@ absl::StatusOr<std::optional<Geofence>> parseGeofence(const std::string& text) {
 
 // Declared in construction order: destroyed in reverse, after shutdown().
 struct Coordinator::Parts {
-  server::ServerRuntime runtime;
+  server_kit::ServerRuntime runtime;
   std::unique_ptr<CoordinatorMetrics> metrics;
   std::unique_ptr<FleetEventLog> log;
   // Registrations are journaled once the journal is open, so that a
@@ -237,8 +237,8 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   mission_options.resume_wait = millis(options.resume_wait);
   mission_options.max_ended_missions = options.max_ended_missions;
   mission_options.max_ended_age = options.max_ended_mission_age;
-  auto mission_files = server::ConfinedDirectory::open("mission files", options.mission_dir,
-                                                       mission_options.max_mission_bytes);
+  auto mission_files = server_kit::ConfinedDirectory::open("mission files", options.mission_dir,
+                                                           mission_options.max_mission_bytes);
   if (!mission_files.ok()) return mission_files.status();
   mission_options.mission_files = std::move(*mission_files);
   mission_options.metrics = p->metrics.get();

@@ -50,7 +50,7 @@ HealthResult checkHealth(const std::shared_ptr<grpc::Channel>& channel, const st
   grpc::GenericStub stub(channel);
   std::promise<grpc::Status> done;
   stub.UnaryCall(&context, "/grpc.health.v1.Health/Check", grpc::StubOptions(), &request_buffer,
-                 &response_buffer, server::orderedCallback([&done](grpc::Status s) {
+                 &response_buffer, server_kit::orderedCallback([&done](grpc::Status s) {
                    done.set_value(std::move(s));
                  }));
   // The deadline ends the call; wait for the callback in any case, since it

@@ -101,7 +101,7 @@ void SystemLink::stop() {
 }
 
 void SystemLink::rebuildChannelLocked() {
-  channel_ = behaviorlib::server::makeChannel(identity_.address, fastReconnectArguments());
+  channel_ = behaviorlib::server_kit::makeChannel(identity_.address, fastReconnectArguments());
   stub_ = v1::BehaviorSystem::NewStub(channel_);
 }
 
@@ -571,7 +571,7 @@ void SystemLink::deactivateFenced() {
     call->request.set_activation_id(activation.activation_id);
     call->stub->async()->DeactivateBehavior(
         &call->context, &call->request, &call->response,
-        server::orderedCallback([call, name](grpc::Status status) {
+        server_kit::orderedCallback([call, name](grpc::Status status) {
           if (!status.ok()) {
             logLine(name + ": deactivating " + call->request.behavior() +
                     " failed: " + status.error_message());

@@ -92,9 +92,9 @@ absl::StatusOr<std::vector<ConfiguredSystem>> parseRoot(const YAML::Node& root,
 absl::StatusOr<std::vector<ConfiguredSystem>> parseSystemsConfig(const std::string& text,
                                                                  const std::string& name) {
   YAML::Node root;
-  if (absl::Status s = server::loadYaml(text, name, &root); !s.ok()) return s;
+  if (absl::Status s = server_kit::loadYaml(text, name, &root); !s.ok()) return s;
   absl::StatusOr<std::vector<ConfiguredSystem>> systems = absl::InternalError("not parsed");
-  const absl::Status guarded = server::guardYamlParse(name, [&] {
+  const absl::Status guarded = server_kit::guardYamlParse(name, [&] {
     systems = parseRoot(root, name);
     return absl::OkStatus();
   });

@@ -10,7 +10,7 @@
 
 #include <Eigen/Core>
 
-namespace behaviorlib::sim {
+namespace behaviorlib::world {
 
 /// Static geometry a vehicle can collide with. Positions in the world frame
 /// (ENU, metres).
@@ -20,4 +20,4 @@ class CollisionWorld {
   virtual bool collides(const Eigen::Vector3d& position_m, double radius_m) const = 0;
 };
 
-}  // namespace behaviorlib::sim
+}  // namespace behaviorlib::world

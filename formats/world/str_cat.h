@@ -7,7 +7,7 @@
 #include <sstream>
 #include <string>
 
-namespace behaviorlib::sim::internal {
+namespace behaviorlib::world::internal {
 
 /// Streams every argument into one string; doubles print with up to 6
 /// significant digits ("0.5", "4.3").
@@ -18,4 +18,4 @@ std::string strCat(const Args&... args) {
   return out.str();
 }
 
-}  // namespace behaviorlib::sim::internal
+}  // namespace behaviorlib::world::internal

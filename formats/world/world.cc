@@ -4,7 +4,7 @@
 #include <cmath>
 #include <limits>
 
-namespace behaviorlib::sim {
+namespace behaviorlib::world {
 namespace {
 
 constexpr double kInf = std::numeric_limits<double>::infinity();
@@ -168,4 +168,4 @@ std::string World::collidingSurface(const Eigen::Vector3d& position_m, double ra
   return "";
 }
 
-}  // namespace behaviorlib::sim
+}  // namespace behaviorlib::world

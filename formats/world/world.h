@@ -29,7 +29,7 @@
 #include "absl/status/statusor.h"
 #include "formats/world/collision_world.h"
 
-namespace behaviorlib::sim {
+namespace behaviorlib::world {
 
 /// A colour, 0..255 per channel (red, green, blue; not OpenCV's BGR order).
 struct Rgb {
@@ -186,4 +186,4 @@ absl::StatusOr<World> loadWorld(const std::string& path);
 /// Parses world YAML text; `source_name` stands for the file in errors.
 absl::StatusOr<World> parseWorld(std::string_view yaml_text, std::string_view source_name);
 
-}  // namespace behaviorlib::sim
+}  // namespace behaviorlib::world

@@ -18,7 +18,7 @@
 #include "formats/world/str_cat.h"
 #include "formats/world/world.h"
 
-namespace behaviorlib::sim {
+namespace behaviorlib::world {
 namespace {
 
 using internal::strCat;
@@ -536,9 +536,9 @@ absl::StatusOr<World> parseRoot(const Parser& parser, const YAML::Node& root) {
 absl::StatusOr<World> parseWorld(std::string_view yaml_text, std::string_view source_name) {
   const Parser parser{std::string(source_name)};
   YAML::Node root;
-  BL_RETURN_IF_ERROR(server::loadYaml(yaml_text, std::string(source_name), &root));
+  BL_RETURN_IF_ERROR(server_kit::loadYaml(yaml_text, std::string(source_name), &root));
   absl::StatusOr<World> world = absl::InternalError("not parsed");
-  BL_RETURN_IF_ERROR(server::guardYamlParse(std::string(source_name), [&] {
+  BL_RETURN_IF_ERROR(server_kit::guardYamlParse(std::string(source_name), [&] {
     world = parseRoot(parser, root);
     return absl::OkStatus();
   }));
@@ -548,11 +548,11 @@ absl::StatusOr<World> parseWorld(std::string_view yaml_text, std::string_view so
 
 absl::StatusOr<World> loadWorld(const std::string& path) {
   // The cap keeps a path such as /dev/zero or a huge file from being read whole.
-  absl::StatusOr<std::string> text = server::readFileCapped(path, kMaxWorldFileBytes);
+  absl::StatusOr<std::string> text = server_kit::readFileCapped(path, kMaxWorldFileBytes);
   if (!text.ok()) return text.status();
   return parseWorld(*text, path);
 }
 
 #undef BL_RETURN_IF_ERROR
 
-}  // namespace behaviorlib::sim
+}  // namespace behaviorlib::world

@@ -229,7 +229,7 @@ struct Broker::Topic {
 // be written, one write at a time (as a LATEST subscription).
 
 class Broker::InterestReactor final
-    : public server::Ordered<grpc::ServerWriteReactor<v1::WatchInterestResponse>> {
+    : public server_kit::Ordered<grpc::ServerWriteReactor<v1::WatchInterestResponse>> {
  public:
   InterestReactor(Broker* broker, std::string prefix)
       : broker_(broker), prefix_(std::move(prefix)) {}
@@ -325,7 +325,7 @@ class Broker::InterestReactor final
 // other one is in flight, decided under mutex_.
 
 class Broker::SubscribeReactor final
-    : public server::Ordered<grpc::ServerWriteReactor<v1::SubscribeResponse>> {
+    : public server_kit::Ordered<grpc::ServerWriteReactor<v1::SubscribeResponse>> {
  public:
   // `max_rate_hz` > 0: the newest sample at most that often (wall time).
   SubscribeReactor(grpc::CallbackServerContext* context, bool latest_only, std::size_t queue_size,
@@ -557,7 +557,7 @@ double Broker::Topic::wantedRateLocked(std::chrono::steady_clock::time_point now
 class Broker::Publisher {
  public:
   Publisher(Broker* broker, grpc::CallbackServerContext* context)
-      : broker_(broker), scope_(server::robotScopeOf(*context)) {
+      : broker_(broker), scope_(server_kit::robotScopeOf(*context)) {
     const auto& metadata = context->client_metadata();
     auto it = metadata.find(kGatedPrefixMetadataKey);
     if (it != metadata.end()) gated_prefix_ = std::string(it->second.data(), it->second.size());
@@ -565,7 +565,7 @@ class Broker::Publisher {
   virtual ~Publisher() = default;
 
   // Who publishes: a caller bound to a robot publishes only its topics.
-  const server::RobotScope& scope() const { return scope_; }
+  const server_kit::RobotScope& scope() const { return scope_; }
 
   // Whether its samples come from another host (the link): they are never
   // handed back to the link.
@@ -629,7 +629,7 @@ class Broker::Publisher {
   }
 
   std::optional<std::string> gated_prefix_;
-  const server::RobotScope scope_;  // resolved once, at the stream's start
+  const server_kit::RobotScope scope_;  // resolved once, at the stream's start
   uint64_t accepted_ ABSL_GUARDED_BY(mutex_) = 0;
   // The last seq published on each topic (PublishResponse.topic_seqs).
   absl::flat_hash_map<const Topic*, std::pair<std::shared_ptr<Topic>, uint64_t>> published_seqs_
@@ -646,7 +646,7 @@ class Broker::RemotePublisher final : public Broker::Publisher {
 };
 
 class Broker::PublishReactor final
-    : public server::Ordered<grpc::ServerReadReactor<v1::PublishRequest>>,
+    : public server_kit::Ordered<grpc::ServerReadReactor<v1::PublishRequest>>,
       public Broker::Publisher {
  public:
   PublishReactor(Broker* broker, grpc::CallbackServerContext* context,
@@ -702,7 +702,7 @@ class Broker::PublishReactor final
 // order, once the samples before it are taken; the deterministic mode's
 // barrier then costs one round trip instead of a stream closed and opened.
 class Broker::AckedPublishReactor final
-    : public server::Ordered<grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>>,
+    : public server_kit::Ordered<grpc::ServerBidiReactor<v1::PublishRequest, v1::PublishResponse>>,
       public Broker::Publisher {
  public:
   AckedPublishReactor(Broker* broker, grpc::CallbackServerContext* context)
@@ -1428,7 +1428,7 @@ grpc::ServerUnaryReactor* Broker::ListTopics(grpc::CallbackServerContext* contex
       if (topic.latest) *info->mutable_last_receive_time() = topic.latest->receive_time();
     }
   }
-  const grpc::Status paged = server::paginate<v1::TopicInfo>(
+  const grpc::Status paged = server_kit::paginate<v1::TopicInfo>(
       response->mutable_topics(), [](const v1::TopicInfo& t) { return t.name(); }, *request,
       response->mutable_next_page_token());
   grpc::ServerUnaryReactor* reactor = context->DefaultReactor();

@@ -446,7 +446,7 @@ class ChannelClient::Impl {
  public:
   explicit Impl(std::string address)
       : address_(std::move(address)),
-        channel_(behaviorlib::server::makeChannel(address_, channelArguments())),
+        channel_(behaviorlib::server_kit::makeChannel(address_, channelArguments())),
         stub_(v1::DataChannel::NewStub(channel_)) {}
 
   ~Impl() {

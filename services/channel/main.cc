@@ -57,14 +57,14 @@ ABSL_FLAG(int, max_topics, static_cast<int>(behaviorlib::channel::BrokerOptions(
           "topics the broker keeps; a new topic beyond is RESOURCE_EXHAUSTED (1..1000000)");
 
 int main(int argc, char** argv) {
-  using behaviorlib::server::fatal;
-  using behaviorlib::server::ServerRuntime;
+  using behaviorlib::server_kit::fatal;
+  using behaviorlib::server_kit::ServerRuntime;
   // Before any thread exists, so that every thread inherits the mask and the
   // signal is only taken by waitForShutdownSignal().
   ServerRuntime::blockShutdownSignals();
   const std::string program = "channel_broker";
 
-  behaviorlib::server::parseFlags(
+  behaviorlib::server_kit::parseFlags(
       argc, argv,
       "the common data channel broker (behaviorlib.v1.DataChannel): typed samples on named "
       "topics");

@@ -16,7 +16,7 @@
 #include "behaviorlib/server_kit/confined_files.h"
 #include "behaviorlib/server_kit/yaml_guard.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 constexpr std::array<std::pair<Role, std::string_view>, 5> kRoleNames = {{
@@ -371,4 +371,4 @@ absl::Status checkRobotScope(const grpc::ServerContextBase& context, std::string
   return robotScopeOf(context).permits(robot_id, what);
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -16,7 +16,7 @@
 #include "absl/strings/str_format.h"
 #include "behaviorlib/server_kit/server_metrics.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 // A JSON string literal, escaped by protobuf's JSON printer. Text with bytes
@@ -169,4 +169,4 @@ std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> makeAudit
   return std::make_unique<AuditInterceptorFactory>(log);
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

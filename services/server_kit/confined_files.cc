@@ -13,7 +13,7 @@
 #include "absl/strings/str_split.h"
 #include "behaviorlib/error_details.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 // realpath(3), or empty when the path does not resolve.
@@ -242,4 +242,4 @@ absl::StatusOr<std::string> readFileCapped(const std::string& path, size_t max_b
   return readCapped(fd.get(), path, max_bytes);
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

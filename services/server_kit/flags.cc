@@ -13,7 +13,7 @@
 #include "absl/flags/usage_config.h"
 #include "absl/strings/match.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 std::vector<std::string> abslFlagNames(int argc, char** argv) {
   std::vector<std::string> out(argv, argv + argc);
@@ -75,4 +75,4 @@ void parseFlags(int argc, char** argv, const std::string& usage) {
   }
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -3,7 +3,7 @@
 #include "absl/strings/escaping.h"
 #include "absl/strings/match.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 constexpr char kPrefix[] = "k1.";
 }  // namespace
@@ -19,4 +19,4 @@ std::optional<std::string> decodePageToken(const std::string& token) {
   return key;
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -32,7 +32,7 @@
 #define BEHAVIORLIB_BUILD_TYPE "unknown"
 #endif
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 constexpr int kCodes = 17;  // OK .. UNAUTHENTICATED
@@ -386,4 +386,4 @@ void addBuildInfo(prometheus::Registry& registry) {
       .Set(1);
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -32,7 +32,7 @@ ABSL_FLAG(bool, grpc_metrics, true,
           "count and time every call by service, method and status code (grpc_server_* on "
           "/metrics); docs/benchmarks.md has its cost");
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 ServerRuntime::ServerRuntime()
     : registry_(std::make_shared<prometheus::Registry>()), process_(makeProcessCollector()) {
@@ -230,4 +230,4 @@ int fatal(const std::string& program, const absl::Status& status) {
   return status.code() == absl::StatusCode::kInvalidArgument ? 2 : 1;
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

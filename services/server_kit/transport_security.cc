@@ -19,7 +19,7 @@ ABSL_FLAG(bool, insecure, false,
           "allow plaintext gRPC on an address other than loopback: anyone who can reach the "
           "port can then command, land or kill the vehicles");
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 constexpr size_t kMaxPemBytes = 1 << 20;
@@ -186,4 +186,4 @@ std::shared_ptr<grpc::Channel> makeChannel(const std::string& target,
   return grpc::CreateCustomChannel(target, credentials, args);
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -11,7 +11,7 @@
 #include "absl/strings/str_cat.h"
 #include "behaviorlib/error_details.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 // Thrown by the counting handler to stop the parser at the first limit passed.
@@ -163,4 +163,4 @@ absl::Status guardYamlParse(const std::string& file, const std::function<absl::S
   }
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

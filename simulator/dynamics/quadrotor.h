@@ -130,7 +130,7 @@ class Quadrotor {
   void setBatteryStateOfCharge(double soc);
 
   /// Static geometry the vehicle crashes into (not owned; may be null).
-  void setCollisionWorld(const CollisionWorld* world) { collision_world_ = world; }
+  void setCollisionWorld(const world::CollisionWorld* world) { collision_world_ = world; }
 
   /// Specific force measured by an ideal accelerometer, body frame (m/s^2):
   /// R^T (a + g z). (0, 0, g) when resting level.
@@ -153,7 +153,7 @@ class Quadrotor {
   Eigen::Vector3d wind_m_s_ = Eigen::Vector3d::Zero();
   Eigen::Vector3d external_force_n_ = Eigen::Vector3d::Zero();
   std::array<double, kMotorCount> efficiency_{1.0, 1.0, 1.0, 1.0};
-  const CollisionWorld* collision_world_ = nullptr;
+  const world::CollisionWorld* collision_world_ = nullptr;
 
   // Cached per-step constants.
   Eigen::Vector3d inverse_inertia_;

@@ -72,7 +72,7 @@ void WorldSim::advance(double duration_s) {
   for (long long i = 0; i < steps; ++i) step();
 }
 
-void WorldSim::setCollisionWorld(const CollisionWorld* world) {
+void WorldSim::setCollisionWorld(const world::CollisionWorld* world) {
   collision_world_ = world;
   for (auto& [id, vehicle] : vehicles_) vehicle->quadrotor().setCollisionWorld(world);
 }

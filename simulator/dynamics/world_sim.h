@@ -115,12 +115,12 @@ class WorldSim {
   /// Mean wind for every vehicle (world frame, m/s).
   void setWindVelocity(const Eigen::Vector3d& wind_m_s) { options_.wind_m_s = wind_m_s; }
   /// Static geometry for every vehicle, present and future (not owned).
-  void setCollisionWorld(const CollisionWorld* world);
+  void setCollisionWorld(const world::CollisionWorld* world);
   const WorldSimOptions& options() const { return options_; }
 
  private:
   WorldSimOptions options_;
-  const CollisionWorld* collision_world_ = nullptr;
+  const world::CollisionWorld* collision_world_ = nullptr;
   std::map<std::string, std::unique_ptr<SimVehicle>> vehicles_;
   std::int64_t time_ns_ = 0;
   std::uint64_t step_count_ = 0;

@@ -22,7 +22,7 @@
 namespace behaviorlib::sim {
 namespace {
 
-using internal::strCat;
+using world::internal::strCat;
 
 /// One setting that is wrong, and where (for the line number in files).
 struct Problem {
@@ -366,11 +366,11 @@ absl::StatusOr<SensorConfig> parseSensorConfig(std::string_view yaml_text,
   Parser parser{std::string(source_name)};
   SensorConfig config;
   YAML::Node root;
-  if (absl::Status s = server::loadYaml(yaml_text, std::string(source_name), &root); !s.ok()) {
+  if (absl::Status s = server_kit::loadYaml(yaml_text, std::string(source_name), &root); !s.ok()) {
     return s;
   }
-  if (absl::Status s = server::guardYamlParse(std::string(source_name),
-                                              [&] { return parseRoot(parser, root, &config); });
+  if (absl::Status s = server_kit::guardYamlParse(std::string(source_name),
+                                                  [&] { return parseRoot(parser, root, &config); });
       !s.ok()) {
     return s;
   }
@@ -378,7 +378,7 @@ absl::StatusOr<SensorConfig> parseSensorConfig(std::string_view yaml_text,
 }
 
 absl::StatusOr<SensorConfig> loadSensorConfig(const std::string& path) {
-  absl::StatusOr<std::string> content = server::readFileCapped(path, 1 << 20);
+  absl::StatusOr<std::string> content = server_kit::readFileCapped(path, 1 << 20);
   if (!content.ok()) return content.status();
   return parseSensorConfig(*content, path);
 }

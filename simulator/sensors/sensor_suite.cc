@@ -76,8 +76,9 @@ uint64_t sensorSeed(uint64_t seed, std::string_view robot_id, std::string_view s
   return splitMix64(splitMix64(seed) ^ name_hash);
 }
 
-SensorScene::SensorScene(std::shared_ptr<const World> scene_world, const SensorConfig& config)
-    : world(scene_world ? std::move(scene_world) : std::make_shared<const World>()) {
+SensorScene::SensorScene(std::shared_ptr<const world::World> scene_world,
+                         const SensorConfig& config)
+    : world(scene_world ? std::move(scene_world) : std::make_shared<const world::World>()) {
   if (config.lidar.rate_hz > 0.0) {
     absl::StatusOr<Lidar> made = Lidar::create(*world, config.lidar.lidarConfig());
     if (!made.ok()) throw std::invalid_argument(std::string(made.status().message()));

@@ -45,11 +45,11 @@ uint64_t sensorSeed(uint64_t seed, std::string_view robot_id, std::string_view s
 /// lidar and camera models (const, usable from several threads). Replaced on
 /// reset; `retired` then tells frames still in flight to vanish.
 struct SensorScene {
-  SensorScene(std::shared_ptr<const World> world, const SensorConfig& config);
+  SensorScene(std::shared_ptr<const world::World> world, const SensorConfig& config);
 
-  std::shared_ptr<const World> world;  ///< never null
-  std::optional<Lidar> lidar;          ///< when the lidar is enabled
-  std::optional<Camera> camera;        ///< when the camera or its info is enabled
+  std::shared_ptr<const world::World> world;  ///< never null
+  std::optional<Lidar> lidar;                 ///< when the lidar is enabled
+  std::optional<Camera> camera;               ///< when the camera or its info is enabled
   mutable std::atomic<bool> retired{false};
 };
 

@@ -56,7 +56,7 @@ SensorSystem::SensorSystem(SensorConfig config, Sink sink, FrameTimer frame_time
 
 SensorSystem::~SensorSystem() { workers_.stop(); }
 
-void SensorSystem::reset(std::shared_ptr<const World> world, uint64_t seed) {
+void SensorSystem::reset(std::shared_ptr<const world::World> world, uint64_t seed) {
   auto scene = std::make_shared<const SensorScene>(std::move(world), config_);
   {
     std::lock_guard lock(emit_mutex_);

@@ -73,7 +73,7 @@ class SensorSystem {
   /// samples a fault delays) are discarded. Must not run concurrently with
   /// onStep (call it from the simulation's reset, see
   /// Simulation::resetVehicles).
-  void reset(std::shared_ptr<const World> world, uint64_t seed);
+  void reset(std::shared_ptr<const world::World> world, uint64_t seed);
 
   /// Samples every vehicle's sensors due at `now`. A vehicle seen for the
   /// first time gets its suite here.

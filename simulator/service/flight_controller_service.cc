@@ -12,14 +12,13 @@
 namespace behaviorlib::sim {
 namespace {
 
-
 // Runs a platform call and finishes the reactor with its outcome. `fill`
 // copies a successful value into the response.
 template <class F, class Fill>
 grpc::ServerUnaryReactor* platformCall(grpc::CallbackServerContext* context, Simulation& simulation,
                                        const std::string& robot_id, F&& call, Fill&& fill) {
   auto* reactor = context->DefaultReactor();
-  if (auto s = server::checkRobotScope(*context, robot_id, "command the vehicle"); !s.ok()) {
+  if (auto s = server_kit::checkRobotScope(*context, robot_id, "command the vehicle"); !s.ok()) {
     reactor->Finish(errors::toGrpc(s));
     return reactor;
   }
@@ -44,15 +43,16 @@ bool sameStatus(const v1::FlightStatus& a, const v1::FlightStatus& b) {
 }  // namespace
 
 // One StreamSetpoints stream: applies each setpoint; the first refusal ends it.
-class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::SetpointRequest>> {
+class SetpointReader final
+    : public server_kit::Ordered<grpc::ServerReadReactor<v1::SetpointRequest>> {
  public:
   SetpointReader(FlightControllerService* service, const grpc::CallbackServerContext& context,
                  v1::StreamSetpointsResponse* response)
-      : service_(service), scope_(server::robotScopeOf(context)), response_(response) {
+      : service_(service), scope_(server_kit::robotScopeOf(context)), response_(response) {
     // A follower's stream, whose setpoints the next step waits for.
     if (SetpointBarrier* barrier = service_->setpointBarrier(); barrier != nullptr) {
       const auto& metadata = context.client_metadata();
-      if (auto it = metadata.find(server::kSetpointStreamMetadataKey); it != metadata.end()) {
+      if (auto it = metadata.find(server_kit::kSetpointStreamMetadataKey); it != metadata.end()) {
         std::string key(it->second.data(), it->second.size());
         if (barrier->opened(key)) {
           barrier_ = barrier;
@@ -87,7 +87,7 @@ class SetpointReader final : public server::Ordered<grpc::ServerReadReactor<v1::
   FlightControllerService* service_;
   SetpointBarrier* barrier_ = nullptr;  // a keyed stream's
   std::string key_;
-  const server::RobotScope scope_;  // the caller's, resolved once
+  const server_kit::RobotScope scope_;  // the caller's, resolved once
   v1::StreamSetpointsResponse* response_;
   v1::SetpointRequest request_;
 };
@@ -133,10 +133,10 @@ grpc::ServerUnaryReactor* FlightControllerService::AcquireLease(
   // Taking the vehicle from its holder is for the safety policy and the
   // behavior systems (LAND), not for any operator, under an access policy.
   if (request->preempt()) {
-    const std::optional<server::Caller> caller = server::callerOf(*context);
-    if (caller && caller->policy && caller->roles.count(server::Role::kSafety) == 0 &&
-        caller->roles.count(server::Role::kSystem) == 0 &&
-        caller->roles.count(server::Role::kAdmin) == 0) {
+    const std::optional<server_kit::Caller> caller = server_kit::callerOf(*context);
+    if (caller && caller->policy && caller->roles.count(server_kit::Role::kSafety) == 0 &&
+        caller->roles.count(server_kit::Role::kSystem) == 0 &&
+        caller->roles.count(server_kit::Role::kAdmin) == 0) {
       auto* reactor = context->DefaultReactor();
       reactor->Finish(
           errors::grpcError(grpc::StatusCode::PERMISSION_DENIED, v1::ROLE_REQUIRED,
@@ -190,7 +190,7 @@ grpc::ServerUnaryReactor* FlightControllerService::ExecuteFlightAction(
 }
 
 absl::StatusOr<v1::FlightState> FlightControllerService::applySetpoint(
-    const v1::SetpointRequest& request, const server::RobotScope& scope) {
+    const v1::SetpointRequest& request, const server_kit::RobotScope& scope) {
   if (auto s = scope.permits(request.robot_id(), "command the vehicle"); !s.ok()) return s;
   auto outer = simulation_.withPlatform(request.robot_id(), [&](VehiclePlatform& p, SimTime now) {
     return p.setpoint(request, now);
@@ -203,7 +203,7 @@ grpc::ServerUnaryReactor* FlightControllerService::SendSetpoint(
     grpc::CallbackServerContext* context, const v1::SetpointRequest* request,
     v1::SendSetpointResponse* response) {
   auto* reactor = context->DefaultReactor();
-  auto applied = applySetpoint(*request, server::robotScopeOf(*context));
+  auto applied = applySetpoint(*request, server_kit::robotScopeOf(*context));
   if (applied.ok()) response->set_state(*applied);
   reactor->Finish(errors::toGrpc(applied.status()));
   return reactor;

@@ -58,7 +58,7 @@ class FlightControllerService final : public v1::FlightController::CallbackServi
   /// Applies one setpoint (shared by SendSetpoint and StreamSetpoints).
   // Refused for a caller bound to another robot (`scope`).
   absl::StatusOr<v1::FlightState> applySetpoint(const v1::SetpointRequest& request,
-                                                const server::RobotScope& scope);
+                                                const server_kit::RobotScope& scope);
 
  private:
   void removeWatcher(FlightStatusWatcher* watcher);

@@ -15,7 +15,7 @@
 namespace behaviorlib::sim {
 
 template <class R>
-class LatestWriter final : public server::Ordered<grpc::ServerWriteReactor<R>> {
+class LatestWriter final : public server_kit::Ordered<grpc::ServerWriteReactor<R>> {
  public:
   /// `key` says what the stream watches (e.g. a robot id); `on_done` runs
   /// once when the stream is over, just before the reactor deletes itself.

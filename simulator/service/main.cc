@@ -67,12 +67,12 @@ ABSL_FLAG(std::string, sensor_config, "",
 ABSL_FLAG(uint64_t, seed, 1, "seed of the sensor noise (a positive integer; Reset can change it)");
 
 int main(int argc, char** argv) {
-  using behaviorlib::server::fatal;
-  using behaviorlib::server::ServerRuntime;
+  using behaviorlib::server_kit::fatal;
+  using behaviorlib::server_kit::ServerRuntime;
   namespace sim = behaviorlib::sim;
   ServerRuntime::blockShutdownSignals();
   const std::string program = "simulator";
-  behaviorlib::server::parseFlags(
+  behaviorlib::server_kit::parseFlags(
       argc, argv,
       "quadrotor simulator: FlightController + Simulator services, state and time on the data "
       "channel");

@@ -44,7 +44,9 @@ class SensorPublisher {
 
   /// Restarts every sensor for a new world and seed (Reset); call it from
   /// Simulation::resetVehicles' `then`.
-  void reset(std::shared_ptr<const World> world, uint64_t seed) { sensors_.reset(world, seed); }
+  void reset(std::shared_ptr<const world::World> world, uint64_t seed) {
+    sensors_.reset(world, seed);
+  }
 
   const SensorSystem& sensors() const { return sensors_; }
   /// For fault injection (SensorSystem::setFault is thread-safe).

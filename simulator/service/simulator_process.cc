@@ -31,7 +31,7 @@ struct SimulatorProcess::Parts {
   const SimulatorOptions options;
   Simulation simulation;
   TimeControl time;
-  server::ServerRuntime runtime;
+  server_kit::ServerRuntime runtime;
   std::unique_ptr<SimulatorMetrics> metrics;
   std::unique_ptr<ChannelRoutes> client;
   std::unique_ptr<ChannelRoutes> sensor_client;
@@ -189,7 +189,8 @@ absl::StatusOr<std::unique_ptr<SimulatorProcess>> SimulatorProcess::start(
   // Reset restarts the sensors and forgets the faults (the vehicles are new,
   // the wind calm).
   Parts* parts = p.get();
-  p->worlds.on_reset = [parts](const std::shared_ptr<const World>& world, uint64_t world_seed) {
+  p->worlds.on_reset = [parts](const std::shared_ptr<const world::World>& world,
+                               uint64_t world_seed) {
     if (parts->sensors) parts->sensors->reset(world, world_seed);
     parts->faults->reset();
   };

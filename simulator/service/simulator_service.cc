@@ -43,13 +43,13 @@ grpc::Status notNow(std::string feature, std::string message) {
 
 absl::Status loadWorldInto(WorldControl& control, const std::string& world_arg, uint64_t seed,
                            WorldSource source, Simulation& simulation) {
-  auto world = std::make_shared<World>();
+  auto world = std::make_shared<world::World>();
   if (!world_arg.empty()) {
     auto loaded = loadWorldByName(world_arg, control.worlds_dir, source);
     if (!loaded.ok()) return loaded.status();
     *world = std::move(*loaded);
   }
-  std::shared_ptr<const World> shared = world;
+  std::shared_ptr<const world::World> shared = world;
   simulation.resetVehicles(makeVehicles(*world, control.fallback_ids, seed), [&] {
     if (control.on_reset) control.on_reset(shared, seed);
   });
@@ -161,9 +161,9 @@ grpc::ServerUnaryReactor* SimulatorService::Step(grpc::CallbackServerContext* co
 
 grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>*
 SimulatorService::FollowTime(grpc::CallbackServerContext* context) {
-  if (grants_ != nullptr) return grants_->follow(server::robotScopeOf(*context));
+  if (grants_ != nullptr) return grants_->follow(server_kit::robotScopeOf(*context));
   class Refused final
-      : public server::Ordered<
+      : public server_kit::Ordered<
             grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>> {
    public:
     Refused() {

@@ -36,14 +36,14 @@ struct TimeControl {
 /// The world the vehicles fly in, replaced by Reset.
 struct WorldControl {
   std::mutex mutex;
-  std::shared_ptr<const World> world;  ///< outlives the vehicles that collide with it
-  std::string world_arg;               ///< path or shipped name; "" for an empty field
-  std::string worlds_dir;              ///< where shipped worlds are
+  std::shared_ptr<const world::World> world;  ///< outlives the vehicles that collide with it
+  std::string world_arg;                      ///< path or shipped name; "" for an empty field
+  std::string worlds_dir;                     ///< where shipped worlds are
   std::vector<std::string> fallback_ids;
   uint64_t seed = 1;  ///< of every random process (sensor noise)
   /// Runs under the simulation's mutex when the new vehicles are in place,
   /// before the next step, with the new world and seed: restarts the sensors.
-  std::function<void(const std::shared_ptr<const World>& world, uint64_t seed)> on_reset;
+  std::function<void(const std::shared_ptr<const world::World>& world, uint64_t seed)> on_reset;
 };
 
 /// Loads `world_arg` ("" -> an empty field) and puts its vehicles into

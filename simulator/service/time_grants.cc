@@ -34,10 +34,11 @@ constexpr int kMaxReportedSetpointStreams = 64;
 // One FollowTime stream: reads reports one at a time, writes the newest
 // grant (one write in flight; a newer grant replaces an unsent one).
 class TimeGrants::Follower final
-    : public server::Ordered<
+    : public server_kit::Ordered<
           grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>> {
  public:
-  Follower(TimeGrants* owner, server::RobotScope scope) : owner_(owner), scope_(std::move(scope)) {}
+  Follower(TimeGrants* owner, server_kit::RobotScope scope)
+      : owner_(owner), scope_(std::move(scope)) {}
 
   void start() { StartRead(&request_); }
 
@@ -166,9 +167,9 @@ class TimeGrants::Follower final
   bool writing_ = false;
   bool awaiting_report_ = false;  // a grant was written, its report not read yet
   bool finished_ = false;
-  const server::RobotScope scope_;  // the caller's
-  bool checked_ = false;            // its first report's robot (OnReadDone only)
-  int64_t last_written_ns_ = -1;    // the time of the last grant written
+  const server_kit::RobotScope scope_;  // the caller's
+  bool checked_ = false;                // its first report's robot (OnReadDone only)
+  int64_t last_written_ns_ = -1;        // the time of the last grant written
 };
 
 TimeGrants::TimeGrants(std::chrono::nanoseconds follower_timeout)
@@ -177,7 +178,7 @@ TimeGrants::TimeGrants(std::chrono::nanoseconds follower_timeout)
 TimeGrants::~TimeGrants() { shutdown(); }
 
 grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* TimeGrants::follow(
-    server::RobotScope scope) {
+    server_kit::RobotScope scope) {
   auto* follower = new Follower(this, std::move(scope));
   bool refuse = false;
   {

@@ -49,7 +49,7 @@ class TimeGrants {
   /// A FollowTime stream of a caller whose robot scope is `scope`: refused
   /// (ROBOT_NOT_PERMITTED) when it reports for another robot.
   grpc::ServerBidiReactor<v1::FollowTimeRequest, v1::FollowTimeResponse>* follow(
-      server::RobotScope scope = {});
+      server_kit::RobotScope scope = {});
 
   /// Waits until at least `count` followers joined (or `stop`).
   void waitForFollowers(int count, const std::atomic<bool>& stop);

@@ -30,7 +30,7 @@ Setpoint toSetpoint(const PlatformCommand& c) {
 // The rigid-body quadrotor flown by the simulator's autopilot.
 class QuadrotorModel final : public VehicleModel {
  public:
-  QuadrotorModel(const Eigen::Vector3d& start, double yaw_rad, const CollisionWorld* world,
+  QuadrotorModel(const Eigen::Vector3d& start, double yaw_rad, const world::CollisionWorld* world,
                  uint64_t gust_seed)
       : quadrotor_(QuadrotorParams{}, initialState(start, yaw_rad)),
         autopilot_(QuadrotorParams{}),
@@ -101,13 +101,13 @@ class QuadrotorModel final : public VehicleModel {
 }  // namespace
 
 std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_position_m,
-                                                 double yaw_rad, const CollisionWorld* world,
+                                                 double yaw_rad, const world::CollisionWorld* world,
                                                  uint64_t gust_seed) {
   return std::make_unique<QuadrotorModel>(start_position_m, yaw_rad, world, gust_seed);
 }
 
 std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
-    const World& world, const std::vector<std::string>& fallback_ids, uint64_t seed) {
+    const world::World& world, const std::vector<std::string>& fallback_ids, uint64_t seed) {
   std::map<std::string, std::unique_ptr<VehicleModel>> vehicles;
   for (const auto& start : world.startPoses()) {
     vehicles[start.robot_id] =
@@ -123,19 +123,19 @@ std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
   return vehicles;
 }
 
-absl::StatusOr<World> loadWorldByName(const std::string& world, const std::string& worlds_dir,
-                                      WorldSource source) {
+absl::StatusOr<world::World> loadWorldByName(const std::string& world,
+                                             const std::string& worlds_dir, WorldSource source) {
   const bool is_name = world.find('/') == std::string::npos &&
                        (world.size() < 5 || world.substr(world.size() - 5) != ".yaml");
   if (source == WorldSource::kConfiguration) {
-    return loadWorld(is_name ? worlds_dir + "/" + world + ".yaml" : world);
+    return world::loadWorld(is_name ? worlds_dir + "/" + world + ".yaml" : world);
   }
-  absl::StatusOr<server::ConfinedDirectory> dir =
-      server::ConfinedDirectory::open("worlds", worlds_dir, kMaxWorldFileBytes);
+  absl::StatusOr<server_kit::ConfinedDirectory> dir =
+      server_kit::ConfinedDirectory::open("worlds", worlds_dir, world::kMaxWorldFileBytes);
   if (!dir.ok()) return dir.status();
   absl::StatusOr<std::string> text = dir->read(is_name ? world + ".yaml" : world);
   if (!text.ok()) return text.status();
-  return parseWorld(*text, world);
+  return world::parseWorld(*text, world);
 }
 
 }  // namespace behaviorlib::sim

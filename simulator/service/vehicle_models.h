@@ -23,14 +23,14 @@ namespace behaviorlib::sim {
 /// wind with gusts drawn from `gust_seed` (see gustSeed()).
 std::unique_ptr<VehicleModel> makeQuadrotorModel(const Eigen::Vector3d& start_position_m,
                                                  double yaw_rad = 0.0,
-                                                 const CollisionWorld* world = nullptr,
+                                                 const world::CollisionWorld* world = nullptr,
                                                  uint64_t gust_seed = 1);
 
 /// One quadrotor per start pose of `world`; or, when the world has none, one
 /// per id of `fallback_ids`, landed at x = 2 i m. `seed` is the run's seed
 /// (each vehicle's gusts are seeded from it and the robot id).
 std::map<std::string, std::unique_ptr<VehicleModel>> makeVehicles(
-    const World& world, const std::vector<std::string>& fallback_ids, uint64_t seed = 1);
+    const world::World& world, const std::vector<std::string>& fallback_ids, uint64_t seed = 1);
 
 /// Where a world's name comes from: the simulator's own configuration (its
 /// --world flag: any path the operator chose) or a request (Reset), which
@@ -41,7 +41,8 @@ enum class WorldSource { kConfiguration, kRequest };
 /// `<worlds_dir>/rooms.yaml`). The error names the file, the line and the
 /// problem; for a request, a path outside worlds_dir is PERMISSION_DENIED
 /// naming worlds_dir.
-absl::StatusOr<World> loadWorldByName(const std::string& world, const std::string& worlds_dir,
-                                      WorldSource source = WorldSource::kConfiguration);
+absl::StatusOr<world::World> loadWorldByName(const std::string& world,
+                                             const std::string& worlds_dir,
+                                             WorldSource source = WorldSource::kConfiguration);
 
 }  // namespace behaviorlib::sim

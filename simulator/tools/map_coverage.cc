@@ -8,11 +8,11 @@
 
 namespace behaviorlib::nav {
 
-void buildingExtent(const sim::World& world, Eigen::Vector2d* min_m, Eigen::Vector2d* max_m) {
+void buildingExtent(const world::World& world, Eigen::Vector2d* min_m, Eigen::Vector2d* max_m) {
   constexpr double kInf = std::numeric_limits<double>::infinity();
   Eigen::Vector2d lo(kInf, kInf), hi(-kInf, -kInf);
-  for (const sim::Box& box : world.boxes()) {
-    if (box.kind != sim::Box::Kind::kWall) continue;
+  for (const world::Box& box : world.boxes()) {
+    if (box.kind != world::Box::Kind::kWall) continue;
     const double c = std::cos(box.yaw_rad), s = std::sin(box.yaw_rad);
     for (const double sx : {-0.5, 0.5}) {
       for (const double sy : {-0.5, 0.5}) {
@@ -49,7 +49,7 @@ bool knownOccupied(const octomap::OcTree& map, double x, double y, double z) {
 
 }  // namespace
 
-MapCoverage measureCoverage(const sim::World& world, const octomap::OcTree& map,
+MapCoverage measureCoverage(const world::World& world, const octomap::OcTree& map,
                             const CoverageOptions& options) {
   MapCoverage result;
   result.cell_m = options.cell_m;

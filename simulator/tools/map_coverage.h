@@ -4,7 +4,7 @@
 // exploration application reports ("the mapped fraction of the building's
 // free space").
 //
-//   absl::StatusOr<sim::World> world = sim::loadWorld("simulator/worlds/rooms.yaml");
+//   absl::StatusOr<world::World> world = world::loadWorld("simulator/worlds/rooms.yaml");
 //   octomap::OcTree map("building.bt");
 //   MapCoverage c = measureCoverage(*world, map, {.height_m = 1.3});
 //   double fraction = c.mappedFraction();
@@ -61,11 +61,11 @@ struct MapCoverage {
 
 /// The building's extent: the axis-aligned box around every wall of `world`
 /// (each wall box's corners). Empty (min = max = 0) without walls.
-void buildingExtent(const sim::World& world, Eigen::Vector2d* min_m, Eigen::Vector2d* max_m);
+void buildingExtent(const world::World& world, Eigen::Vector2d* min_m, Eigen::Vector2d* max_m);
 
 /// Plan-view coverage of `world`'s building by `map` (see the file comment).
 /// A world without walls covers nothing: free_cells is 0.
-MapCoverage measureCoverage(const sim::World& world, const octomap::OcTree& map,
+MapCoverage measureCoverage(const world::World& world, const octomap::OcTree& map,
                             const CoverageOptions& options = {});
 
 }  // namespace behaviorlib::nav

@@ -107,7 +107,7 @@ int main(int argc, char** argv) {
   }
   if (world_path.empty() || map_path.empty()) return usage("--world and --map are required");
 
-  auto world = behaviorlib::sim::loadWorld(world_path);
+  auto world = behaviorlib::world::loadWorld(world_path);
   if (!world.ok()) {
     std::cerr << "map_coverage: " << world.status().message() << "\n";
     return 2;

@@ -13,7 +13,7 @@
 namespace behaviorlib::sim {
 namespace {
 
-using internal::strCat;
+using world::internal::strCat;
 
 /// Quiet zone around a QR code, in modules (the QR standard asks for 4).
 constexpr int kQuietZoneModules = 4;
@@ -49,7 +49,7 @@ std::vector<Eigen::Vector3d> clip(std::vector<Eigen::Vector3d> polygon,
   return polygon;
 }
 
-cv::Scalar toBgr(Rgb color, double shade = 1.0) {
+cv::Scalar toBgr(world::Rgb color, double shade = 1.0) {
   return cv::Scalar(std::clamp(color.b * shade, 0.0, 255.0),
                     std::clamp(color.g * shade, 0.0, 255.0),
                     std::clamp(color.r * shade, 0.0, 255.0));
@@ -148,12 +148,12 @@ absl::Status CameraConfig::validate() const {
   return absl::OkStatus();
 }
 
-absl::StatusOr<Camera> Camera::create(const World& world, CameraConfig config) {
+absl::StatusOr<Camera> Camera::create(const world::World& world, CameraConfig config) {
   if (absl::Status status = config.validate(); !status.ok()) return status;
   return Camera(world, std::move(config));
 }
 
-Camera::Camera(const World& world, CameraConfig config)
+Camera::Camera(const world::World& world, CameraConfig config)
     : world_(&world), config_(std::move(config)) {
   focal_px_ = (config_.width_px / 2.0) / std::tan(config_.horizontal_fov_rad / 2.0);
   cx_ = (config_.width_px - 1) / 2.0;
@@ -168,7 +168,7 @@ Camera::Camera(const World& world, CameraConfig config)
       v_row[u] = static_cast<float>(v);
     }
   }
-  for (const Marker& marker : world_->markers()) {
+  for (const world::Marker& marker : world_->markers()) {
     marker_mips_.push_back(markerMips(marker.text, config_.marker_module_px));
   }
 }
@@ -227,7 +227,7 @@ cv::Mat Camera::render(const Eigen::Vector3d& position_m,
                 color);
   };
   paint_plane(Eigen::Vector3d::UnitZ(), Eigen::Vector3d::Zero(), toBgr(world_->groundColor()));
-  for (const Plane& plane : world_->planes()) {
+  for (const world::Plane& plane : world_->planes()) {
     paint_plane(plane.normal, plane.point_m, toBgr(plane.color, shadeFor(plane.normal)));
   }
 
@@ -271,7 +271,7 @@ cv::Mat Camera::render(const Eigen::Vector3d& position_m,
   };
 
   // Box faces facing the camera.
-  for (const Box& box : world_->boxes()) {
+  for (const world::Box& box : world_->boxes()) {
     const Eigen::Matrix3d rotation =
         Eigen::AngleAxisd(box.yaw_rad, Eigen::Vector3d::UnitZ()).toRotationMatrix();
     const Eigen::Vector3d half = box.size_m / 2.0;
@@ -298,10 +298,10 @@ cv::Mat Camera::render(const Eigen::Vector3d& position_m,
   }
 
   // Markers facing the camera.
-  const std::vector<Marker>& markers = world_->markers();
+  const std::vector<world::Marker>& markers = world_->markers();
   for (std::size_t i = 0; i < markers.size(); ++i) {
-    const Marker& marker = markers[i];
-    Marker lifted = marker;
+    const world::Marker& marker = markers[i];
+    world::Marker lifted = marker;
     lifted.center_m += marker.normal * kMarkerLift_m;
     const double d = marker.normal.dot(lifted.center_m - eye);
     if (d >= -1e-9) continue;

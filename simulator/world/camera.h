@@ -63,7 +63,7 @@ struct CameraConfig {
 class Camera {
  public:
   /// `world` must outlive the Camera. Precomputes the marker textures.
-  static absl::StatusOr<Camera> create(const World& world, CameraConfig config);
+  static absl::StatusOr<Camera> create(const world::World& world, CameraConfig config);
 
   const CameraConfig& config() const { return config_; }
   double focalLengthPx() const { return focal_px_; }
@@ -86,9 +86,9 @@ class Camera {
                                          const Eigen::Quaterniond& world_from_body) const;
 
  private:
-  Camera(const World& world, CameraConfig config);
+  Camera(const world::World& world, CameraConfig config);
 
-  const World* world_;
+  const world::World* world_;
   CameraConfig config_;
   double focal_px_ = 0.0;
   double cx_ = 0.0;

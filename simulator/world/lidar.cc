@@ -11,7 +11,7 @@
 namespace behaviorlib::sim {
 namespace {
 
-using internal::strCat;
+using world::internal::strCat;
 
 constexpr double kTwoPi = 2.0 * std::numbers::pi;
 
@@ -48,12 +48,12 @@ absl::Status LidarConfig::validate() const {
   return absl::OkStatus();
 }
 
-absl::StatusOr<Lidar> Lidar::create(const World& world, LidarConfig config) {
+absl::StatusOr<Lidar> Lidar::create(const world::World& world, LidarConfig config) {
   if (absl::Status status = config.validate(); !status.ok()) return status;
   return Lidar(world, std::move(config));
 }
 
-Lidar::Lidar(const World& world, LidarConfig config)
+Lidar::Lidar(const world::World& world, LidarConfig config)
     : world_(&world), config_(std::move(config)), rng_(config_.seed) {
   const double span = config_.angle_max_rad - config_.angle_min_rad;
   const bool full_turn = span >= kTwoPi - 1e-9;

@@ -72,7 +72,7 @@ struct LidarScan {
 class Lidar {
  public:
   /// `world` must outlive the Lidar.
-  static absl::StatusOr<Lidar> create(const World& world, LidarConfig config);
+  static absl::StatusOr<Lidar> create(const world::World& world, LidarConfig config);
 
   const LidarConfig& config() const { return config_; }
   double azimuthRad(int beam) const { return azimuths_[beam]; }
@@ -94,9 +94,9 @@ class Lidar {
   void reseed(std::uint64_t seed) { rng_.seed(seed); }
 
  private:
-  Lidar(const World& world, LidarConfig config);
+  Lidar(const world::World& world, LidarConfig config);
 
-  const World* world_;
+  const world::World* world_;
   LidarConfig config_;
   std::vector<double> azimuths_;
   std::vector<double> elevations_;

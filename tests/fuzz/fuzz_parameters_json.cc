@@ -4,8 +4,8 @@
 //   source 0  JSON text -> Struct (JsonStringToMessage): behaviorctl
 //             activate/modify, the JSON form of the gRPC API;
 //   source 1  YAML text -> Struct as the mission and catalog readers do
-//             (server::loadYaml, then yaml::Reader::value under
-//             server::guardYamlParse): a step's `parameters`, a behavior's
+//             (server_kit::loadYaml, then yaml::Reader::value under
+//             server_kit::guardYamlParse): a step's `parameters`, a behavior's
 //             `defaults`;
 //   source 2  JSON text -> Value (JsonStringToMessage), written to belief
 //             memory (BeliefStore::write: behaviorctl belief set), then bound
@@ -46,7 +46,7 @@ bool fromYaml(const std::string& text, pb::Struct* out) {
   YAML::Node root;
   if (!behaviorlib::coordinator::yaml::load(text, "fuzz.yaml", &root).ok()) return false;
   const behaviorlib::coordinator::yaml::Reader reader("fuzz.yaml");
-  const absl::Status guarded = behaviorlib::server::guardYamlParse("fuzz.yaml", [&] {
+  const absl::Status guarded = behaviorlib::server_kit::guardYamlParse("fuzz.yaml", [&] {
     if (!root.IsMap()) return reader.error(root, "parameters: expected a mapping");
     pb::Value value;
     if (auto s = reader.value(root, "parameters", &value); !s.ok()) return s;

@@ -31,7 +31,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   if (const absl::Status s = config->validate(); !s.ok()) {
     fuzz::broken("parseSensorConfig accepted an invalid configuration", s.ToString());
   }
-  static const behaviorlib::sim::World* const world = new behaviorlib::sim::World("empty");
+  static const behaviorlib::world::World* const world = new behaviorlib::world::World("empty");
   const behaviorlib::sim::LidarConfig lidar_config = config->lidar.lidarConfig();
   auto lidar = behaviorlib::sim::Lidar::create(*world, lidar_config);
   if (!lidar.ok()) {

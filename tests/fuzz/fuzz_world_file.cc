@@ -13,10 +13,10 @@
 #include "simulator/world/lidar.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
-  using behaviorlib::sim::World;
+  using behaviorlib::world::World;
   const std::string_view text(reinterpret_cast<const char*>(data), size);
   const absl::StatusOr<World> world =
-      behaviorlib::sim::parseWorld(text, behaviorlib::fuzz::kFileName);
+      behaviorlib::world::parseWorld(text, behaviorlib::fuzz::kFileName);
   if (!world.ok()) {
     behaviorlib::fuzz::checkParseError(world.status(), "parseWorld");
     return 0;

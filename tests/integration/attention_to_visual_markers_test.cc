@@ -200,7 +200,7 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
 };
 
 TEST_F(AttentionToVisualMarkersTest, TheInspectionMissionFindsEveryMarkerAndMonitoringWorks) {
-  auto world = behaviorlib::sim::loadWorld(BEHAVIORLIB_AIRCRAFT_WORLD_PATH);
+  auto world = behaviorlib::world::loadWorld(BEHAVIORLIB_AIRCRAFT_WORLD_PATH);
   ASSERT_TRUE(world.ok()) << world.status();
   ASSERT_EQ(world->markers().size(), 5u);
 

@@ -26,7 +26,7 @@
 #include "behaviorlib/server_kit/access_policy.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 std::string read(const std::string& path) {
@@ -174,4 +174,4 @@ TEST_F(AuthorizerInProcessTest, ARefusalGetsItsErrorInfoBackOnTheClient) {
 }
 
 }  // namespace
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -1256,7 +1256,7 @@ grpc::Status listTopicsWithin(const std::shared_ptr<grpc::Channel>& channel,
 }
 
 TEST_F(ChannelBrokerTest, ConcurrentStreamsAreCappedPerConnection) {
-  constexpr int kLimit = server::ServerLimits::kMaxConcurrentStreams;
+  constexpr int kLimit = server_kit::ServerLimits::kMaxConcurrentStreams;
   const auto full = makeChannel(broker_.address());  // a connection of its own
   std::vector<std::unique_ptr<RawSubscriber>> streams;
   for (int i = 0; i < kLimit; ++i) {

@@ -108,7 +108,7 @@ TEST_F(ExploreWithFrontiersTest, ExploresTheBuildingFromItsBoundsAlone) {
   ASSERT_TRUE(saved.has_value());
   ASSERT_EQ(saved->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
       << saved->ShortDebugString();
-  auto world = behaviorlib::sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+  auto world = behaviorlib::world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
   ASSERT_TRUE(world.ok()) << world.status();
   octomap::OcTree map(0.1);
   ASSERT_TRUE(map.readBinary(file));

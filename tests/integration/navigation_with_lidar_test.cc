@@ -37,9 +37,9 @@ class NavigationWithLidarTest : public ::testing::Test {
     char dir[] = "/tmp/navigation_with_lidar_XXXXXX";
     ASSERT_NE(mkdtemp(dir), nullptr);
     dir_ = new std::string(dir);
-    auto world = behaviorlib::sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+    auto world = behaviorlib::world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
     ASSERT_TRUE(world.ok()) << world.status();
-    world_ = new behaviorlib::sim::World(std::move(*world));
+    world_ = new behaviorlib::world::World(std::move(*world));
 
     broker_ = new support::ServerProcess(BEHAVIORLIB_CHANNEL_BROKER_PATH, {});
     ASSERT_TRUE(broker_->start()) << broker_->error();
@@ -152,7 +152,7 @@ class NavigationWithLidarTest : public ::testing::Test {
   }
 
   static std::string* dir_;
-  static behaviorlib::sim::World* world_;
+  static behaviorlib::world::World* world_;
   static support::ServerProcess *broker_, *simulator_, *coordinator_, *basic_, *navigation_;
   static SystemClient *basic_client_, *nav_client_;
   static behaviorlib::channel::ChannelClient* channel_;
@@ -160,7 +160,7 @@ class NavigationWithLidarTest : public ::testing::Test {
 };
 
 std::string* NavigationWithLidarTest::dir_ = nullptr;
-behaviorlib::sim::World* NavigationWithLidarTest::world_ = nullptr;
+behaviorlib::world::World* NavigationWithLidarTest::world_ = nullptr;
 support::ServerProcess* NavigationWithLidarTest::broker_ = nullptr;
 support::ServerProcess* NavigationWithLidarTest::simulator_ = nullptr;
 support::ServerProcess* NavigationWithLidarTest::coordinator_ = nullptr;

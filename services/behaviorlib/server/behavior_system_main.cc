@@ -123,7 +123,7 @@ struct BehaviorSystemProcess::Parts {
   // Before the host, which calls its awaitTurn() until it stops.
   std::unique_ptr<TimeFollower> follower;
   std::unique_ptr<BehaviorHost> host;
-  ServerRuntime runtime;
+  server_kit::ServerRuntime runtime;
   std::unique_ptr<BehaviorMetrics> metrics;
   std::unique_ptr<BehaviorSystemService> system_service;
   std::unique_ptr<CoordinatorRegistration> registration;
@@ -307,9 +307,9 @@ void BehaviorSystemProcess::shutdown() {
 
 int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
                       const std::function<void(BehaviorSystemBuilder&)>& register_behaviors) {
-  ServerRuntime::blockShutdownSignals();
+  server_kit::ServerRuntime::blockShutdownSignals();
   const std::string program = system_name;
-  parseFlags(
+  server_kit::parseFlags(
       argc, argv,
       "behavior system " + system_name +
           ": hosts its behaviors as gRPC services (typed per behavior, plus "
@@ -332,7 +332,8 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   options.listen = absl::GetFlag(FLAGS_listen);
   options.advertise = absl::GetFlag(FLAGS_advertise);
   if (const double s = absl::GetFlag(FLAGS_link_loss_timeout_s); !(s >= 0.0 && s <= 3600.0)) {
-    fatal(program, "--link-loss-timeout-s must be within [0, 3600], got " + std::to_string(s));
+    server_kit::fatal(program,
+                      "--link-loss-timeout-s must be within [0, 3600], got " + std::to_string(s));
     return 2;
   } else {
     options.link_loss_timeout =
@@ -346,21 +347,23 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
   options.flight_controller = absl::GetFlag(FLAGS_flight_controller);
   options.follow_time = absl::GetFlag(FLAGS_follow_time);
   if (const std::string path = absl::GetFlag(FLAGS_config); !path.empty()) {
-    absl::StatusOr<std::string> text = readFileCapped(path, kMaxConfigBytes);
-    absl::Status loaded = text.ok() ? loadYaml(*text, path, &options.config) : text.status();
+    absl::StatusOr<std::string> text = server_kit::readFileCapped(path, kMaxConfigBytes);
+    absl::Status loaded =
+        text.ok() ? server_kit::loadYaml(*text, path, &options.config) : text.status();
     options.config_file = path;
     if (!loaded.ok()) {
-      fatal(program, "cannot read --config " + path + ": " + std::string(loaded.message()));
+      server_kit::fatal(program,
+                        "cannot read --config " + path + ": " + std::string(loaded.message()));
       return 2;
     }
   }
 
   auto system = BehaviorSystemProcess::start(std::move(options), register_behaviors);
-  if (!system.ok()) return fatal(program, system.status());
+  if (!system.ok()) return server_kit::fatal(program, system.status());
   std::string error;
   if (!(*system)->writePortFile(absl::GetFlag(FLAGS_port_file), &error)) {
     (*system)->shutdown();
-    return fatal(program, error);
+    return server_kit::fatal(program, error);
   }
   std::string hosted;
   for (const auto& name : (*system)->behaviorNames()) hosted += (hosted.empty() ? "" : ", ") + name;
@@ -371,7 +374,7 @@ int runBehaviorSystem(int argc, char** argv, const std::string& system_name,
                (*system)->grpcPort(), (*system)->metricsPort(), absl::GetFlag(FLAGS_clock).c_str(),
                (*system)->incarnation().c_str());
 
-  const int sig = ServerRuntime::waitForShutdownSignal();
+  const int sig = server_kit::ServerRuntime::waitForShutdownSignal();
   std::fprintf(stderr, "%s: signal %d, interrupting active behaviors and shutting down\n",
                program.c_str(), sig);
   (*system)->shutdown();

@@ -21,7 +21,7 @@ constexpr uint32_t kMaxEventsPerMessage = 1024;
 // One WatchEvents stream (LogStreamWriter): the start message, then the
 // subscription's events, one or a batch per message.
 class EventStreamReactor final
-    : public LogStreamWriter<EventSubscription, v1::WatchEventsResponse> {
+    : public server_kit::LogStreamWriter<EventSubscription, v1::WatchEventsResponse> {
  public:
   EventStreamReactor(BehaviorSystemService* service, const v1::WatchEventsRequest& request)
       : LogStreamWriter("the behavior system"), service_(service) {
@@ -113,7 +113,7 @@ grpc::ServerUnaryReactor* BehaviorSystemService::ListBehaviors(
     grpc::CallbackServerContext* context, const v1::ListBehaviorsRequest* request,
     v1::ListBehaviorsResponse* response) {
   // A bad page request costs no description.
-  if (grpc::Status s = server::paginate<v1::BehaviorDescription>(
+  if (grpc::Status s = server_kit::paginate<v1::BehaviorDescription>(
           response->mutable_behaviors(), [](const auto& d) { return d.name(); }, *request,
           response->mutable_next_page_token());
       !s.ok()) {
@@ -142,7 +142,7 @@ grpc::ServerUnaryReactor* BehaviorSystemService::ListBehaviors(
     d->set_frequency_hz(behavior->options().frequency_hz);
     d->set_state(behavior->state());
   }
-  return finishNow(context, server::paginate<v1::BehaviorDescription>(
+  return finishNow(context, server_kit::paginate<v1::BehaviorDescription>(
                                 response->mutable_behaviors(),
                                 [](const v1::BehaviorDescription& d) { return d.name(); }, *request,
                                 response->mutable_next_page_token()));

@@ -21,7 +21,7 @@ absl::Status fromGrpc(const grpc::Status& status, const std::string& address,
 BeliefClient::BeliefClient(std::string coordinator_address, std::chrono::milliseconds timeout)
     : address_(std::move(coordinator_address)),
       timeout_(timeout),
-      stub_(v1::Coordinator::NewStub(behaviorlib::server::makeChannel(address_))) {}
+      stub_(v1::Coordinator::NewStub(behaviorlib::server_kit::makeChannel(address_))) {}
 
 absl::StatusOr<v1::Belief> BeliefClient::write(const std::string& key,
                                                const google::protobuf::Value& value,

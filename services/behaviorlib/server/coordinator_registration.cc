@@ -43,7 +43,7 @@ std::string describe(const grpc::Status& status) {
 
 CoordinatorRegistration::CoordinatorRegistration(CoordinatorRegistrationOptions options)
     : options_(std::move(options)),
-      channel_(behaviorlib::server::makeChannel(options_.coordinator, channelArguments())),
+      channel_(behaviorlib::server_kit::makeChannel(options_.coordinator, channelArguments())),
       stub_(v1::Coordinator::NewStub(channel_)) {}
 
 CoordinatorRegistration::~CoordinatorRegistration() { stop(std::chrono::milliseconds(500)); }

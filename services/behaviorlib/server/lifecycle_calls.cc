@@ -30,7 +30,7 @@ grpc::Status refusal(const grpc::CallbackServerContext& context, const AcceptGat
                      std::string_view what) {
   if (!gate.accepting()) return shuttingDown();
   if (gate.robot().empty()) return grpc::Status::OK;
-  return errors::toGrpc(checkRobotScope(context, gate.robot(), what));
+  return errors::toGrpc(server_kit::checkRobotScope(context, gate.robot(), what));
 }
 
 }  // namespace

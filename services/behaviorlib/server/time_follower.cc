@@ -42,7 +42,7 @@ TimeFollower::TimeFollower(const std::string& simulator_address, std::string par
       clock_(clock),
       data_(channel),
       setpoints_(setpoints),
-      channel_(behaviorlib::server::makeChannel(simulator_address)) {}
+      channel_(behaviorlib::server_kit::makeChannel(simulator_address)) {}
 
 TimeFollower::~TimeFollower() { stop(); }
 

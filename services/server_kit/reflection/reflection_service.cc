@@ -236,7 +236,8 @@ void answer(const DescriptorCatalog& catalog, const Request& request, Response* 
 // One ServerReflectionInfo stream: read a request, write its response, repeat
 // until the client half-closes. At most one operation is pending at a time.
 template <typename Request, typename Response>
-class ReflectionReactor final : public server::Ordered<grpc::ServerBidiReactor<Request, Response>> {
+class ReflectionReactor final
+    : public server_kit::Ordered<grpc::ServerBidiReactor<Request, Response>> {
  public:
   explicit ReflectionReactor(std::shared_ptr<const DescriptorCatalog> catalog)
       : catalog_(std::move(catalog)) {

@@ -31,7 +31,7 @@ absl::Status SetpointStream::send(v1::SetpointRequest setpoint) {
     context_ = std::make_unique<grpc::ClientContext>();
     if (ledger_ != nullptr) {
       ledger_key_ = ledger_->open();
-      context_->AddMetadata(server::kSetpointStreamMetadataKey, ledger_key_);
+      context_->AddMetadata(server_kit::kSetpointStreamMetadataKey, ledger_key_);
     }
     response_.Clear();
     writer_ = client_.stub().StreamSetpoints(context_.get(), &response_);

@@ -34,7 +34,7 @@ FlightControllerClient::FlightControllerClient(std::string address, std::string 
     : address_(std::move(address)),
       robot_id_(std::move(robot_id)),
       options_(options),
-      channel_(behaviorlib::server::makeChannel(address_, channelArguments())),
+      channel_(behaviorlib::server_kit::makeChannel(address_, channelArguments())),
       stub_(v1::FlightController::NewStub(channel_)) {}
 
 std::unique_ptr<grpc::ClientContext> FlightControllerClient::context() const {

@@ -57,7 +57,7 @@ int main(int argc, char** argv) {
         const std::string map_dir = absl::GetFlag(FLAGS_map_dir);
         std::error_code made;
         if (!map_dir.empty()) std::filesystem::create_directories(map_dir, made);
-        auto maps = behaviorlib::server::ConfinedDirectory::open("maps", map_dir, 0);
+        auto maps = behaviorlib::server_kit::ConfinedDirectory::open("maps", map_dir, 0);
         if (!maps.ok()) {
           std::cerr << "navigation_with_lidar: --map-dir: " << maps.status().message()
                     << (made ? " (" + made.message() + ")" : "") << std::endl;

@@ -31,7 +31,7 @@ Verdict ClearOccupancyGridBehavior::checkGoal() {
 
 SaveOccupancyGridBehavior::SaveOccupancyGridBehavior(LidarMapper& mapper,
                                                      const server::BeliefClient* beliefs,
-                                                     server::ConfinedDirectory maps)
+                                                     server_kit::ConfinedDirectory maps)
     : Behavior(mapBehaviorOptions()), mapper_(mapper), beliefs_(beliefs), maps_(std::move(maps)) {}
 
 absl::Status SaveOccupancyGridBehavior::onActivate() {

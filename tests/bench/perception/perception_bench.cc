@@ -53,7 +53,7 @@ int main(int argc, char** argv) {
   int failures = 0;
 
   // --- the building: map from scans, then room-to-room plans ---------------
-  auto rooms = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+  auto rooms = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
   if (!rooms.ok()) return 1;
   auto lidar = sim::Lidar::create(*rooms, nav::testing::mappingLidar());
   if (!lidar.ok()) return 1;
@@ -107,7 +107,7 @@ int main(int argc, char** argv) {
   }
 
   // --- the aircraft: QR decoding and localisation per frame ----------------
-  auto aircraft = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/aircraft.yaml");
+  auto aircraft = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/aircraft.yaml");
   if (!aircraft.ok()) return 1;
   sim::CameraConfig config;
   auto camera = sim::Camera::create(*aircraft, config);

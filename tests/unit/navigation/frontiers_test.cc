@@ -80,9 +80,9 @@ TEST(MapSliceTest, TheAreaIsClippedToTheCellBudget) {
 class BuildingSlices : public ::testing::Test {
  protected:
   void SetUp() override {
-    auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+    auto world = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
     ASSERT_TRUE(world.ok()) << world.status();
-    world_ = std::make_unique<sim::World>(std::move(*world));
+    world_ = std::make_unique<world::World>(std::move(*world));
     // A plane lidar, as on the vehicle: one level channel.
     sim::LidarConfig plane = testing::mappingLidar();
     plane.channels = 1;
@@ -95,7 +95,7 @@ class BuildingSlices : public ::testing::Test {
   static SliceOptions building() {
     return {.min_m = {0.1, 0.1}, .max_m = {17.9, 9.9}, .z_min_m = 1.4, .z_max_m = 1.6};
   }
-  std::unique_ptr<sim::World> world_;
+  std::unique_ptr<world::World> world_;
   std::unique_ptr<sim::Lidar> lidar_;
 };
 

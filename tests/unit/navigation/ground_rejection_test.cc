@@ -39,7 +39,7 @@ TEST(GroundRejectionTest, LowHitsOfDescendingRaysAreTheGroundWithinTheEstimatesE
 class TiltedScanTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+    auto world = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
     ASSERT_TRUE(world.ok()) << world.status();
     world_ = std::move(*world);
     sim::LidarConfig config;
@@ -91,7 +91,7 @@ class TiltedScanTest : public ::testing::Test {
     return inside;
   }
 
-  sim::World world_;
+  world::World world_;
   std::optional<sim::Lidar> lidar_;
   int walls_ = 0;  ///< columns of the B-C wall beside the vehicle
 };

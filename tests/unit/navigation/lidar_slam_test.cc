@@ -20,8 +20,8 @@ namespace {
 
 constexpr double kHeight = 1.2;
 
-sim::World loadWorld(const std::string& name) {
-  auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/" + name + ".yaml");
+world::World loadWorld(const std::string& name) {
+  auto world = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/" + name + ".yaml");
   EXPECT_TRUE(world.ok()) << world.status();
   return std::move(*world);
 }
@@ -107,7 +107,7 @@ class LidarSlamFlight : public ::testing::TestWithParam<double> {};
 
 TEST_P(LidarSlamFlight, LocalizesAndMapsThroughTheBuilding) {
   const double noise_m = GetParam();
-  const sim::World world = loadWorld("rooms");
+  const world::World world = loadWorld("rooms");
   sim::LidarConfig lidar_config = planarLidar();
   lidar_config.noise_stddev_m = noise_m;
   auto lidar = sim::Lidar::create(world, lidar_config);
@@ -237,7 +237,7 @@ OccupancyGrid2 roomA(sim::Lidar& lidar) {
 }
 
 TEST(Match, RecoversAnOffsetWithinItsWindow) {
-  const sim::World world = loadWorld("rooms");
+  const world::World world = loadWorld("rooms");
   auto lidar = sim::Lidar::create(world, planarLidar());
   ASSERT_TRUE(lidar.ok());
   const OccupancyGrid2 grid = roomA(*lidar);
@@ -294,7 +294,7 @@ TEST(Match, ACorridorIsDegenerateAlongItsAxis) {
 }
 
 TEST(Match, AnOpenFieldIsNotMatched) {
-  const sim::World world = loadWorld("empty_field");
+  const world::World world = loadWorld("empty_field");
   auto lidar = sim::Lidar::create(world, planarLidar());
   ASSERT_TRUE(lidar.ok());
   LidarSlam slam;

@@ -14,9 +14,9 @@ namespace {
 class MapCoverageTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+    auto world = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
     ASSERT_TRUE(world.ok()) << world.status();
-    world_ = std::make_unique<sim::World>(std::move(*world));
+    world_ = std::make_unique<world::World>(std::move(*world));
     auto lidar = sim::Lidar::create(*world_, testing::mappingLidar());
     ASSERT_TRUE(lidar.ok());
     lidar_ = std::make_unique<sim::Lidar>(std::move(*lidar));
@@ -28,7 +28,7 @@ class MapCoverageTest : public ::testing::Test {
     return o;
   }
 
-  std::unique_ptr<sim::World> world_;
+  std::unique_ptr<world::World> world_;
   std::unique_ptr<sim::Lidar> lidar_;
   OccupancyMap map_;
 };
@@ -42,7 +42,7 @@ TEST_F(MapCoverageTest, TheBuildingIsTheBoxAroundItsWalls) {
   EXPECT_NEAR(hi.x(), 18.1, 1e-9);
   EXPECT_NEAR(hi.y(), 10.1, 1e-9);
 
-  sim::World open_field("field");
+  world::World open_field("field");
   buildingExtent(open_field, &lo, &hi);
   EXPECT_EQ(lo, Eigen::Vector2d::Zero());
   EXPECT_EQ(hi, Eigen::Vector2d::Zero());

@@ -14,9 +14,9 @@ class Building : public ::testing::Test {
  protected:
   static void SetUpTestSuite() {
     seedPlanner(42);
-    auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+    auto world = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
     ASSERT_TRUE(world.ok()) << world.status();
-    world_ = new sim::World(std::move(*world));
+    world_ = new world::World(std::move(*world));
     auto lidar = sim::Lidar::create(*world_, testing::mappingLidar());
     ASSERT_TRUE(lidar.ok());
     map_ = new OccupancyMap();
@@ -53,11 +53,11 @@ class Building : public ::testing::Test {
     }
   }
 
-  static sim::World* world_;
+  static world::World* world_;
   static OccupancyMap* map_;
 };
 
-sim::World* Building::world_ = nullptr;
+world::World* Building::world_ = nullptr;
 OccupancyMap* Building::map_ = nullptr;
 
 TEST_F(Building, TheMapHasTheWallsAndTheRoomsFreeSpace) {
@@ -275,7 +275,7 @@ void expectSameTree(const octomap::OcTree& a, const octomap::OcTree& b) {
 }
 
 TEST(OccupancyMapAlone, ScansBuildTheSameTreeAsOctoMapsPerLeafUpdates) {
-  auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+  auto world = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
   ASSERT_TRUE(world.ok()) << world.status();
   sim::LidarConfig planar;  // the simulator's default: 2-D, 360 beams
   planar.range_max_m = 12.0;

@@ -8,7 +8,7 @@
 
 #include <string>
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 using ::testing::HasSubstr;
@@ -145,4 +145,4 @@ INSTANTIATE_TEST_SUITE_P(
         BadPolicy{"identities:\n  - ? [a]\n    : 1\n", "p.yaml:"}));
 
 }  // namespace
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

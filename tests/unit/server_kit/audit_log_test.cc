@@ -15,7 +15,7 @@
 #include <string>
 #include <vector>
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 namespace fs = std::filesystem;
@@ -125,4 +125,4 @@ TEST_F(AuditLogTest, RefusesARotationThatCannotBound) {
 }
 
 }  // namespace
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

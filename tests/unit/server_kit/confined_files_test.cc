@@ -15,7 +15,7 @@
 
 #include "behaviorlib/error_details.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 namespace fs = std::filesystem;
@@ -145,4 +145,4 @@ TEST(ConfinedDirectoryTest, WithoutADirectoryEverythingIsRefused) {
 }
 
 }  // namespace
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -15,7 +15,7 @@ ABSL_FLAG(std::string, robot_id, "drone1", "robot");
 ABSL_FLAG(int, workers, 4, "threads");
 ABSL_FLAG(bool, shared_memory, true, "rings");
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 using ::testing::ElementsAre;
@@ -95,4 +95,4 @@ TEST(ParseFlagsDeathTest, APositionalArgumentIsRefusedWithTwo) {
 }
 
 }  // namespace
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -10,7 +10,7 @@
 
 #include "behaviorlib/v1/coordinator.pb.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 v1::ListBeliefsResponse beliefs(const std::vector<std::string>& keys) {
@@ -71,4 +71,4 @@ TEST(PaginationTest, DefaultAndMaximumSizesAndBadRequests) {
 }
 
 }  // namespace
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

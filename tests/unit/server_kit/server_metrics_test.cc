@@ -21,7 +21,7 @@
 
 #include "behaviorlib/v1/coordinator.grpc.pb.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 namespace v1 = behaviorlib::v1;
@@ -293,4 +293,4 @@ TEST(BuildInfo, IsOneWithTheVersions) {
 }
 
 }  // namespace
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

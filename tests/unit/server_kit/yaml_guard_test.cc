@@ -8,7 +8,7 @@
 
 #include <string>
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 namespace {
 
 using ::testing::HasSubstr;
@@ -127,4 +127,4 @@ TEST(YamlGuardTest, GuardTurnsExceptionsIntoInvalidArgumentWithTheLine) {
 }
 
 }  // namespace
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -20,9 +20,9 @@ namespace {
 class Aircraft : public ::testing::Test {
  protected:
   void SetUp() override {
-    auto world = sim::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/aircraft.yaml");
+    auto world = world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/aircraft.yaml");
     ASSERT_TRUE(world.ok()) << world.status();
-    world_ = std::make_unique<sim::World>(std::move(*world));
+    world_ = std::make_unique<world::World>(std::move(*world));
     sim::CameraConfig config;
     config.mount_position_m = {0.1, 0.0, -0.05};
     config.mount_pitch_rad = 0.1;
@@ -44,20 +44,20 @@ class Aircraft : public ::testing::Test {
   // A viewpoint `distance` m in front of a marker with the body's x axis
   // towards it (for a marker facing up, the body looks down: the locator's
   // geometry does not care how a vehicle would get there).
-  std::pair<Eigen::Vector3d, Eigen::Quaterniond> facing(const sim::Marker& marker,
+  std::pair<Eigen::Vector3d, Eigen::Quaterniond> facing(const world::Marker& marker,
                                                         double distance) const {
     const Eigen::Vector3d position = marker.center_m + marker.normal * distance;
     return {position, Eigen::Quaterniond::FromTwoVectors(Eigen::Vector3d::UnitX(), -marker.normal)};
   }
 
-  std::unique_ptr<sim::World> world_;
+  std::unique_ptr<world::World> world_;
   std::unique_ptr<sim::Camera> camera_;
   CameraModel model_;
 };
 
 TEST_F(Aircraft, EveryMarkerIsDecodedAndLocatedWithinTenCentimetres) {
   ASSERT_FALSE(world_->markers().empty());
-  for (const sim::Marker& marker : world_->markers()) {
+  for (const world::Marker& marker : world_->markers()) {
     MarkerLocator locator(model_, marker.size_m);
     const auto [position, attitude] = facing(marker, 3.0);
     const cv::Mat image = camera_->render(position, attitude);
@@ -78,7 +78,7 @@ TEST_F(Aircraft, SymbolCornersAreFoundWithinAPixel) {
   // straight on and from the side. (The renderer lifts markers 5 mm off
   // their surface.)
   std::vector<double> worsts;
-  for (const sim::Marker& marker : world_->markers()) {
+  for (const world::Marker& marker : world_->markers()) {
     MarkerLocator locator(model_, marker.size_m);
     const double h = 0.5 * locator.symbolSideM(marker.text);
     const Eigen::Vector3d lifted = marker.center_m + marker.normal * 0.005;
@@ -121,7 +121,7 @@ TEST_F(Aircraft, SymbolCornersAreFoundWithinAPixel) {
 TEST_F(Aircraft, ViewsUpTo55DegreesOffTheNormalStillLocate) {
   // Flying past a marker: seen 45 and 55 degrees off its normal, to either
   // side (foreshortened to 0.7 and 0.57 of its width).
-  for (const sim::Marker& marker : world_->markers()) {
+  for (const world::Marker& marker : world_->markers()) {
     MarkerLocator locator(model_, marker.size_m);
     for (const double degrees : {-55.0, -45.0, 45.0, 55.0}) {
       const double angle = degrees * std::numbers::pi / 180.0;
@@ -142,7 +142,7 @@ TEST_F(Aircraft, NoisyBlurredAndCompressedFramesStillLocate) {
   // A real camera's frame: sensor noise (sigma 6 grey levels), a little
   // defocus, and JPEG at quality 75.
   cv::RNG rng(7);
-  for (const sim::Marker& marker : world_->markers()) {
+  for (const world::Marker& marker : world_->markers()) {
     MarkerLocator locator(model_, marker.size_m);
     for (const double distance : {3.0, 5.0}) {
       const auto [position, attitude] = facing(marker, distance);
@@ -166,7 +166,7 @@ TEST_F(Aircraft, NoisyBlurredAndCompressedFramesStillLocate) {
 }
 
 TEST_F(Aircraft, AnObliqueViewStillLocatesTheMarker) {
-  const sim::Marker& marker = world_->markers().front();
+  const world::Marker& marker = world_->markers().front();
   MarkerLocator locator(model_, marker.size_m);
   auto [position, attitude] = facing(marker, 4.0);
   // Step sideways by 1.5 m and turn back towards the marker.

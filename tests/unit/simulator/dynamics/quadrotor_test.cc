@@ -254,7 +254,7 @@ TEST(QuadrotorTest, TouchingDownTiltedTipsOver) {
 }
 
 // A wall filling x >= 5 m.
-class Wall : public CollisionWorld {
+class Wall : public world::CollisionWorld {
  public:
   bool collides(const Eigen::Vector3d& position_m, double radius_m) const override {
     return position_m.x() + radius_m >= 5.0;

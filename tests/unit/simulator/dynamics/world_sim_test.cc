@@ -115,7 +115,7 @@ TEST(WorldSimTest, TurbulenceHasTheRequestedSpread) {
   EXPECT_EQ(v->quadrotor().windVelocity(), options.wind_m_s + v->gust());
 }
 
-class Floor : public CollisionWorld {
+class Floor : public world::CollisionWorld {
  public:
   explicit Floor(double z) : z_(z) {}
   bool collides(const Eigen::Vector3d& p, double radius_m) const override {

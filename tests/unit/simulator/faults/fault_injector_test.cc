@@ -93,7 +93,7 @@ class FaultInjectorTest : public ::testing::Test {
     return out;
   }
 
-  World world_;
+  world::World world_;
   Simulation simulation_{SimulationOptions{}};
   std::mutex mutex_;
   std::vector<SensorSample> samples_;

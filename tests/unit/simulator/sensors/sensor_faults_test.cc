@@ -79,10 +79,10 @@ VehicleSnapshot moving(double t) {
 }
 
 /// A wall 10 m east of the origin, for the lidar and the camera to see.
-std::shared_ptr<const World> wallWorld() {
-  auto world = std::make_shared<World>("wall");
-  world->addBox(
-      Box{"wall", {10.1, 0.0, 5.0}, {0.2, 40.0, 10.0}, 0.0, {200, 120, 60}, Box::Kind::kWall});
+std::shared_ptr<const world::World> wallWorld() {
+  auto world = std::make_shared<world::World>("wall");
+  world->addBox(world::Box{
+      "wall", {10.1, 0.0, 5.0}, {0.2, 40.0, 10.0}, 0.0, {200, 120, 60}, world::Box::Kind::kWall});
   return world;
 }
 

@@ -326,10 +326,10 @@ TEST(SensorSystem, RatesAreHonouredInSimulatedTime) {
 }
 
 /// A wall whose near face is the plane x = 5 (from y = -10 to 10, 4 m high).
-std::shared_ptr<const World> wallWorld() {
-  auto world = std::make_shared<World>("wall");
-  world->addBox(
-      Box{"wall", {5.1, 0.0, 2.0}, {0.2, 20.0, 4.0}, 0.0, {200, 200, 200}, Box::Kind::kWall});
+std::shared_ptr<const world::World> wallWorld() {
+  auto world = std::make_shared<world::World>("wall");
+  world->addBox(world::Box{
+      "wall", {5.1, 0.0, 2.0}, {0.2, 20.0, 4.0}, 0.0, {200, 200, 200}, world::Box::Kind::kWall});
   return world;
 }
 
@@ -381,11 +381,11 @@ TEST(SensorSystem, LidarRangeToAKnownWallIsWithinItsNoise) {
 }
 
 /// A 4 m wide panel whose near face is x = 3, with a 0.8 m marker at z = 1.
-std::shared_ptr<const World> markerWorld(const std::string& text) {
-  auto world = std::make_shared<World>("marker");
-  world->addBox(
-      Box{"panel", {3.1, 0.0, 1.5}, {0.2, 4.0, 3.0}, 0.0, {90, 110, 160}, Box::Kind::kBox});
-  Marker marker;
+std::shared_ptr<const world::World> markerWorld(const std::string& text) {
+  auto world = std::make_shared<world::World>("marker");
+  world->addBox(world::Box{
+      "panel", {3.1, 0.0, 1.5}, {0.2, 4.0, 3.0}, 0.0, {90, 110, 160}, world::Box::Kind::kBox});
+  world::Marker marker;
   marker.name = "m";
   marker.text = text;
   marker.center_m = {3.0, 0.0, 1.0};

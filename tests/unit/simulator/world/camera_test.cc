@@ -22,11 +22,11 @@ Eigen::Quaterniond yaw(double yaw_rad) {
 }
 
 /// A 4 m wide panel whose near face is x = 3, with a 0.8 m marker on it.
-World markerWorld(const std::string& text) {
-  World world("marker");
-  world.addBox(
-      Box{"panel", {3.1, 0.0, 1.5}, {0.2, 4.0, 3.0}, 0.0, {90, 110, 160}, Box::Kind::kBox});
-  Marker marker;
+world::World markerWorld(const std::string& text) {
+  world::World world("marker");
+  world.addBox(world::Box{
+      "panel", {3.1, 0.0, 1.5}, {0.2, 4.0, 3.0}, 0.0, {90, 110, 160}, world::Box::Kind::kBox});
+  world::Marker marker;
   marker.name = "m";
   marker.text = text;
   marker.center_m = {3.0, 0.0, 1.0};
@@ -38,10 +38,10 @@ World markerWorld(const std::string& text) {
   return world;
 }
 
-cv::Vec3b bgrOf(Rgb color) { return cv::Vec3b(color.b, color.g, color.r); }
+cv::Vec3b bgrOf(world::Rgb color) { return cv::Vec3b(color.b, color.g, color.r); }
 
 TEST(Camera, MarkerThreeMetresAheadDecodes) {
-  const World world = markerWorld("behaviorlib marker 1");
+  const world::World world = markerWorld("behaviorlib marker 1");
   absl::StatusOr<Camera> camera = Camera::create(world, CameraConfig{});
   ASSERT_TRUE(camera.ok()) << camera.status();
   const cv::Mat image = camera->render({0, 0, 1}, Eigen::Quaterniond::Identity());
@@ -58,7 +58,7 @@ TEST(Camera, MarkerThreeMetresAheadDecodes) {
 }
 
 TEST(Camera, SkyGroundAndFramesAreWhereExpected) {
-  const World world = markerWorld("x");
+  const world::World world = markerWorld("x");
   absl::StatusOr<Camera> camera = Camera::create(world, CameraConfig{});
   ASSERT_TRUE(camera.ok());
   // Facing west (away from the panel): sky above the horizon, ground below.
@@ -85,13 +85,14 @@ TEST(Camera, SkyGroundAndFramesAreWhereExpected) {
 }
 
 TEST(Camera, AircraftMarkersDecode) {
-  absl::StatusOr<World> world = loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/aircraft.yaml");
+  absl::StatusOr<world::World> world =
+      world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/aircraft.yaml");
   ASSERT_TRUE(world.ok()) << world.status();
   absl::StatusOr<Camera> camera = Camera::create(*world, CameraConfig{});
   ASSERT_TRUE(camera.ok());
   // 3 m in front of each marker (except the one on the wing, seen from
   // above), looking at it.
-  for (const Marker& marker : world->markers()) {
+  for (const world::Marker& marker : world->markers()) {
     Eigen::Vector3d position = marker.center_m + marker.normal * 3.0;
     Eigen::Quaterniond orientation = yaw(std::atan2(-marker.normal.y(), -marker.normal.x()));
     if (std::abs(marker.normal.z()) > 0.5) {
@@ -108,23 +109,24 @@ TEST(Camera, AircraftMarkersDecode) {
 }
 
 TEST(Camera, SceneWithoutMarkerDecodesNothing) {
-  absl::StatusOr<World> world = loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+  absl::StatusOr<world::World> world =
+      world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
   ASSERT_TRUE(world.ok()) << world.status();
   absl::StatusOr<Camera> camera = Camera::create(*world, CameraConfig{});
   ASSERT_TRUE(camera.ok());
   const cv::Mat image = camera->render({2, 2, 1}, Eigen::Quaterniond::Identity());
   EXPECT_THAT(decodeQr(image), IsEmpty());
-  const World empty("empty");
+  const world::World empty("empty");
   absl::StatusOr<Camera> empty_camera = Camera::create(empty, CameraConfig{});
   ASSERT_TRUE(empty_camera.ok());
   EXPECT_THAT(decodeQr(empty_camera->render({0, 0, 1}, Eigen::Quaterniond::Identity())), IsEmpty());
 }
 
 TEST(Camera, OccludedMarkerDecodesNothing) {
-  World world = markerWorld("hidden");
+  world::World world = markerWorld("hidden");
   // A crate between the camera and the marker.
-  world.addBox(
-      Box{"crate", {1.5, 0.0, 1.0}, {0.4, 1.5, 1.5}, 0.0, {180, 140, 80}, Box::Kind::kBox});
+  world.addBox(world::Box{
+      "crate", {1.5, 0.0, 1.0}, {0.4, 1.5, 1.5}, 0.0, {180, 140, 80}, world::Box::Kind::kBox});
   absl::StatusOr<Camera> camera = Camera::create(world, CameraConfig{});
   ASSERT_TRUE(camera.ok());
   const cv::Mat image = camera->render({0, 0, 1}, Eigen::Quaterniond::Identity());
@@ -135,13 +137,13 @@ TEST(Camera, OccludedMarkerDecodesNothing) {
 }
 
 TEST(Camera, SeveralMarkersInOneImage) {
-  World world("two");
-  const World single = markerWorld("unused");
+  world::World world("two");
+  const world::World single = markerWorld("unused");
   world.addBox(single.boxes().front());
-  Marker left = single.markers().front();
+  world::Marker left = single.markers().front();
   left.text = "left one";
   left.center_m.y() = 1.2;
-  Marker right = left;
+  world::Marker right = left;
   right.name = "m2";
   right.text = "right one";
   right.center_m.y() = -1.2;
@@ -154,7 +156,7 @@ TEST(Camera, SeveralMarkersInOneImage) {
 }
 
 TEST(Camera, EncodedImagesStillDecode) {
-  const World world = markerWorld("encoded");
+  const world::World world = markerWorld("encoded");
   absl::StatusOr<Camera> camera = Camera::create(world, CameraConfig{});
   ASSERT_TRUE(camera.ok());
   const cv::Mat image = camera->render({0, 0, 1}, Eigen::Quaterniond::Identity());
@@ -175,7 +177,7 @@ TEST(Camera, EncodedImagesStillDecode) {
 }
 
 TEST(Camera, InvalidConfigIsRejected) {
-  const World world("empty");
+  const world::World world("empty");
   CameraConfig config;
   config.width_px = 0;
   EXPECT_FALSE(Camera::create(world, config).ok());
@@ -186,11 +188,12 @@ TEST(Camera, InvalidConfigIsRejected) {
 
 TEST(Camera, TimePerFrame) {
   for (const char* file : {"rooms.yaml", "aircraft.yaml"}) {
-    absl::StatusOr<World> world = loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/" + file);
+    absl::StatusOr<world::World> world =
+        world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/" + file);
     ASSERT_TRUE(world.ok()) << world.status();
     absl::StatusOr<Camera> camera = Camera::create(*world, CameraConfig{});
     ASSERT_TRUE(camera.ok());
-    const StartPose* start = world->findStartPose("drone1");
+    const world::StartPose* start = world->findStartPose("drone1");
     ASSERT_NE(start, nullptr);
     const Eigen::Vector3d position = start->position_m + Eigen::Vector3d(0, 0, 1.5);
     constexpr int kFrames = 30;

@@ -16,9 +16,10 @@ namespace {
 constexpr float kInf = std::numeric_limits<float>::infinity();
 
 /// A wall whose near face is the plane x = 5, 20 m wide, 3 m high.
-World wallAt5m() {
-  World world("wall");
-  world.addBox(Box{"wall", {5.1, 0.0, 1.5}, {0.2, 20.0, 3.0}, 0.0, {}, Box::Kind::kWall});
+world::World wallAt5m() {
+  world::World world("wall");
+  world.addBox(
+      world::Box{"wall", {5.1, 0.0, 1.5}, {0.2, 20.0, 3.0}, 0.0, {}, world::Box::Kind::kWall});
   return world;
 }
 
@@ -27,7 +28,7 @@ Eigen::Quaterniond yaw(double yaw_rad) {
 }
 
 TEST(Lidar, ForwardBeamOnAWallWithinThreeSigma) {
-  const World world = wallAt5m();
+  const world::World world = wallAt5m();
   LidarConfig config;
   config.noise_stddev_m = 0.02;
   config.seed = 42;
@@ -47,7 +48,7 @@ TEST(Lidar, ForwardBeamOnAWallWithinThreeSigma) {
 }
 
 TEST(Lidar, BeamsAreInTheBodyFrameCounterClockwise) {
-  const World world = wallAt5m();
+  const world::World world = wallAt5m();
   LidarConfig config;
   config.noise_stddev_m = 0.0;
   absl::StatusOr<Lidar> lidar = Lidar::create(world, config);
@@ -66,7 +67,7 @@ TEST(Lidar, BeamsAreInTheBodyFrameCounterClockwise) {
 }
 
 TEST(Lidar, SameSeedSameScanOtherSeedOtherScan) {
-  const World world = wallAt5m();
+  const world::World world = wallAt5m();
   LidarConfig config;
   config.noise_stddev_m = 0.05;
   config.seed = 7;
@@ -88,7 +89,7 @@ TEST(Lidar, SameSeedSameScanOtherSeedOtherScan) {
 }
 
 TEST(Lidar, NoiseHasTheConfiguredSpread) {
-  const World world = wallAt5m();
+  const world::World world = wallAt5m();
   LidarConfig config;
   config.beams = 1;
   config.angle_min_rad = config.angle_max_rad = 0.0;
@@ -109,7 +110,7 @@ TEST(Lidar, NoiseHasTheConfiguredSpread) {
 }
 
 TEST(Lidar, RangeLimitsFollowRep117) {
-  const World world = wallAt5m();
+  const world::World world = wallAt5m();
   LidarConfig config;
   config.beams = 1;
   config.angle_min_rad = config.angle_max_rad = 0.0;
@@ -124,7 +125,7 @@ TEST(Lidar, RangeLimitsFollowRep117) {
 }
 
 TEST(Lidar, ThreeDimensionalSeesTheGroundAndTheWall) {
-  const World world = wallAt5m();
+  const world::World world = wallAt5m();
   LidarConfig config;
   config.beams = 180;
   config.channels = 16;
@@ -150,7 +151,7 @@ TEST(Lidar, ThreeDimensionalSeesTheGroundAndTheWall) {
 }
 
 TEST(Lidar, InvalidConfigIsRejected) {
-  const World world = wallAt5m();
+  const world::World world = wallAt5m();
   LidarConfig config;
   config.beams = 0;
   EXPECT_FALSE(Lidar::create(world, config).ok());
@@ -160,7 +161,8 @@ TEST(Lidar, InvalidConfigIsRejected) {
 }
 
 TEST(Lidar, TimePerScan) {
-  absl::StatusOr<World> world = loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
+  absl::StatusOr<world::World> world =
+      world::loadWorld(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
   ASSERT_TRUE(world.ok()) << world.status();
   const Eigen::Vector3d position =
       world->findStartPose("drone1")->position_m + Eigen::Vector3d(0, 0, 1);

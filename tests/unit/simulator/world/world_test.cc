@@ -35,7 +35,7 @@ std::string writeTemp(const std::string& name, const std::string& text) {
 void expectError(const std::string& name, const std::string& text, int line,
                  const std::string& problem) {
   const std::string path = writeTemp(name, text);
-  const absl::StatusOr<World> world = loadWorld(path);
+  const absl::StatusOr<world::World> world = world::loadWorld(path);
   ASSERT_FALSE(world.ok()) << name;
   EXPECT_EQ(world.status().code(), absl::StatusCode::kInvalidArgument) << world.status();
   const std::string message(world.status().message());
@@ -50,11 +50,11 @@ TEST(ShippedWorlds, EveryWorldFileLoads) {
   int count = 0;
   for (const auto& entry : std::filesystem::directory_iterator(BEHAVIORLIB_WORLDS_DIR)) {
     if (entry.path().extension() != ".yaml") continue;
-    const absl::StatusOr<World> world = loadWorld(entry.path().string());
+    const absl::StatusOr<world::World> world = world::loadWorld(entry.path().string());
     ASSERT_TRUE(world.ok()) << world.status();
     EXPECT_EQ(world->name(), entry.path().stem().string());
     EXPECT_FALSE(world->startPoses().empty()) << entry.path();
-    for (const StartPose& pose : world->startPoses()) {
+    for (const world::StartPose& pose : world->startPoses()) {
       EXPECT_FALSE(world->collides(pose.position_m, 0.0)) << pose.robot_id;
     }
     ++count;
@@ -63,7 +63,7 @@ TEST(ShippedWorlds, EveryWorldFileLoads) {
 }
 
 TEST(ShippedWorlds, EmptyFieldHasOnlyTheGround) {
-  const absl::StatusOr<World> world = loadWorld(worldPath("empty_field.yaml"));
+  const absl::StatusOr<world::World> world = world::loadWorld(worldPath("empty_field.yaml"));
   ASSERT_TRUE(world.ok()) << world.status();
   EXPECT_TRUE(world->boxes().empty());
   ASSERT_NE(world->findStartPose("drone1"), nullptr);
@@ -72,11 +72,11 @@ TEST(ShippedWorlds, EmptyFieldHasOnlyTheGround) {
 }
 
 TEST(ShippedWorlds, RoomsHasThreeOrMoreRoomsJoinedByDoors) {
-  const absl::StatusOr<World> world = loadWorld(worldPath("rooms.yaml"));
+  const absl::StatusOr<world::World> world = world::loadWorld(worldPath("rooms.yaml"));
   ASSERT_TRUE(world.ok()) << world.status();
   // 3 inner doors (A-B, B-C, C-D) plus the entrance.
   EXPECT_GE(world->doors().size(), 4u);
-  const StartPose* start = world->findStartPose("drone1");
+  const world::StartPose* start = world->findStartPose("drone1");
   ASSERT_NE(start, nullptr);
   // Inside: walls in all four directions at flight height.
   const Eigen::Vector3d eye = start->position_m + Eigen::Vector3d(0, 0, 1.0);
@@ -84,7 +84,7 @@ TEST(ShippedWorlds, RoomsHasThreeOrMoreRoomsJoinedByDoors) {
     EXPECT_LT(world->castRay(eye, {std::cos(yaw), std::sin(yaw), 0}, 50.0), 20.0) << yaw;
   }
   // Through each door the ray passes, below the lintel it does not.
-  for (const Door& door : world->doors()) {
+  for (const world::Door& door : world->doors()) {
     const Eigen::Vector3d across(-std::sin(door.yaw_rad), std::cos(door.yaw_rad), 0.0);
     const Eigen::Vector3d before = door.center_m + Eigen::Vector3d(0, 0, 1.0) - across * 0.5;
     EXPECT_GT(world->castRay(before, across, 1.0), 1.0) << door.wall;
@@ -95,10 +95,10 @@ TEST(ShippedWorlds, RoomsHasThreeOrMoreRoomsJoinedByDoors) {
 }
 
 TEST(ShippedWorlds, AircraftHasMarkersOnItsSurfaces) {
-  const absl::StatusOr<World> world = loadWorld(worldPath("aircraft.yaml"));
+  const absl::StatusOr<world::World> world = world::loadWorld(worldPath("aircraft.yaml"));
   ASSERT_TRUE(world.ok()) << world.status();
   ASSERT_GE(world->markers().size(), 3u);
-  for (const Marker& marker : world->markers()) {
+  for (const world::Marker& marker : world->markers()) {
     EXPECT_FALSE(marker.attached_to.empty()) << marker.name;
     EXPECT_NE(world->findBox(marker.attached_to), nullptr) << marker.name;
     // The surface is right behind the marker and nothing is in front of it.
@@ -120,8 +120,8 @@ TEST(ShippedWorlds, ReadmeExampleLoads) {
   ASSERT_NE(begin, std::string::npos);
   const std::size_t end = readme.find("```", begin + 8);
   ASSERT_NE(end, std::string::npos);
-  const absl::StatusOr<World> world =
-      parseWorld(readme.substr(begin + 8, end - begin - 8), "README.md example");
+  const absl::StatusOr<world::World> world =
+      world::parseWorld(readme.substr(begin + 8, end - begin - 8), "README.md example");
   ASSERT_TRUE(world.ok()) << world.status();
   EXPECT_EQ(world->doors().size(), 1u);
   EXPECT_EQ(world->markers().size(), 1u);
@@ -130,7 +130,7 @@ TEST(ShippedWorlds, ReadmeExampleLoads) {
 // ---------------------------------------------------------------- malformed files
 
 TEST(WorldFile, MissingFileNamesTheFile) {
-  const absl::StatusOr<World> world = loadWorld("/nonexistent/dir/nowhere.yaml");
+  const absl::StatusOr<world::World> world = world::loadWorld("/nonexistent/dir/nowhere.yaml");
   ASSERT_FALSE(world.ok());
   EXPECT_EQ(world.status().code(), absl::StatusCode::kNotFound);
   EXPECT_THAT(world.status().message(), HasSubstr("/nonexistent/dir/nowhere.yaml"));
@@ -253,7 +253,7 @@ TEST(WorldFile, OtherProblems) {
 }
 
 TEST(WorldFile, WallsBecomeBoxesWithGapsForDoors) {
-  const absl::StatusOr<World> world = parseWorld(
+  const absl::StatusOr<world::World> world = world::parseWorld(
       "name: t\n"
       "walls:\n"
       "  - name: w\n"
@@ -279,15 +279,16 @@ TEST(WorldFile, WallsBecomeBoxesWithGapsForDoors) {
 
 // ---------------------------------------------------------------- ray casting
 
-World wallWorld() {
-  World world("wall");
+world::World wallWorld() {
+  world::World world("wall");
   // A wall whose near face is the plane x = 5.
-  world.addBox(Box{"wall", {5.1, 0.0, 1.5}, {0.2, 10.0, 3.0}, 0.0, {}, Box::Kind::kWall});
+  world.addBox(
+      world::Box{"wall", {5.1, 0.0, 1.5}, {0.2, 10.0, 3.0}, 0.0, {}, world::Box::Kind::kWall});
   return world;
 }
 
 TEST(CastRay, KnownWallExactDistance) {
-  const World world = wallWorld();
+  const world::World world = wallWorld();
   EXPECT_DOUBLE_EQ(world.castRay({0, 0, 1}, {1, 0, 0}, 30.0), 5.0);
   EXPECT_DOUBLE_EQ(world.castRay({1, 2, 1}, {1, 0, 0}, 30.0), 4.0);
   // Oblique: 5 / cos(30 degrees).
@@ -303,7 +304,7 @@ TEST(CastRay, KnownWallExactDistance) {
 }
 
 TEST(CastRay, Ground) {
-  const World world("empty");
+  const world::World world("empty");
   EXPECT_DOUBLE_EQ(world.castRay({3, 4, 2}, {0, 0, -1}, 30.0), 2.0);
   const Eigen::Vector3d down45 = Eigen::Vector3d(1, 0, -1).normalized();
   EXPECT_NEAR(world.castRay({0, 0, 1}, down45, 30.0), std::sqrt(2.0), 1e-12);
@@ -314,20 +315,21 @@ TEST(CastRay, Ground) {
 }
 
 TEST(CastRay, YawedBoxAndPlane) {
-  World world("yaw");
+  world::World world("yaw");
   // A 2 m cube turned 45 degrees: its nearest edge is at x = 5 - sqrt(2).
-  world.addBox(Box{"cube", {5, 0, 1}, {2, 2, 2}, std::numbers::pi / 4, {}, Box::Kind::kBox});
+  world.addBox(
+      world::Box{"cube", {5, 0, 1}, {2, 2, 2}, std::numbers::pi / 4, {}, world::Box::Kind::kBox});
   EXPECT_NEAR(world.castRay({0, 0, 1}, {1, 0, 0}, 30.0), 5.0 - std::sqrt(2.0), 1e-12);
   EXPECT_EQ(world.castRay({0, 1.5, 1}, {1, 0, 0}, 30.0), kInf);
   // A plane x = 10 facing -x (solid beyond).
-  world.addPlane(Plane{"cliff", {10, 0, 0}, {-2, 0, 0}, {}});
+  world.addPlane(world::Plane{"cliff", {10, 0, 0}, {-2, 0, 0}, {}});
   EXPECT_NEAR(world.castRay({0, 3, 1}, {1, 0, 0}, 30.0), 10.0, 1e-12);
   EXPECT_EQ(world.castRay({11, 3, 1}, {1, 0, 0}, 30.0), 0.0);
 }
 
 TEST(Collides, SphereAgainstBoxesAndGround) {
-  const World world = wallWorld();
-  const CollisionWorld& collision = world;
+  const world::World world = wallWorld();
+  const world::CollisionWorld& collision = world;
   EXPECT_TRUE(collision.collides({4.8, 0, 1}, 0.3));
   EXPECT_FALSE(collision.collides({4.8, 0, 1}, 0.1));
   EXPECT_TRUE(collision.collides({5.1, 0, 1}, 0.0));  // inside
@@ -341,8 +343,9 @@ TEST(Collides, SphereAgainstBoxesAndGround) {
   EXPECT_EQ(world.collidingSurface({4.8, 0, 1}, 0.3), "wall");
   EXPECT_EQ(world.collidingSurface({0, 0, -1}, 0.3), "ground");
 
-  World yawed("yaw");
-  yawed.addBox(Box{"cube", {5, 0, 1}, {2, 2, 2}, std::numbers::pi / 4, {}, Box::Kind::kBox});
+  world::World yawed("yaw");
+  yawed.addBox(
+      world::Box{"cube", {5, 0, 1}, {2, 2, 2}, std::numbers::pi / 4, {}, world::Box::Kind::kBox});
   const double edge_x = 5.0 - std::sqrt(2.0);
   EXPECT_FALSE(yawed.collides({edge_x - 0.25, 0, 1}, 0.2));
   EXPECT_TRUE(yawed.collides({edge_x - 0.15, 0, 1}, 0.2));

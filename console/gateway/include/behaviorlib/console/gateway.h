@@ -124,7 +124,7 @@ class Gateway : private follower::FleetSink {
   EventHub hub_;
   follower::FleetFollower follower_;
   std::unique_ptr<httplib::Server> server_;
-  server::ConfinedDirectory recordings_;
+  server_kit::ConfinedDirectory recordings_;
   int port_ = 0;
   std::atomic<int> event_clients_{0};
   std::atomic<bool> http_ended_{false};

@@ -63,7 +63,7 @@ absl::Status validateTopicName(absl::string_view topic);
 
 /// Topics every robot of a fleet publishes on (the swarm's positions and
 /// messages, whose samples name their sender). A publisher bound to one robot
-/// (server::RobotScope) publishes under robots/<its robot>/ and here.
+/// (server_kit::RobotScope) publishes under robots/<its robot>/ and here.
 inline constexpr absl::string_view kSharedRobotsPrefix = "robots/swarm/";
 
 /// Reasons a sample is rejected, used as the `reason` label of

@@ -53,7 +53,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 enum class Role { kViewer, kOperator, kSafety, kSystem, kAdmin };
 
@@ -160,4 +160,4 @@ RobotScope robotScopeOf(const grpc::ServerContextBase& context);
 absl::Status checkRobotScope(const grpc::ServerContextBase& context, std::string_view robot_id,
                              std::string_view what);
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -32,7 +32,7 @@
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/server_kit/access_policy.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 struct AuditRotation {
   uint64_t max_bytes = 64ull << 20;  ///< rotate when the file passes this size
@@ -70,4 +70,4 @@ class AuditLog {
 std::unique_ptr<grpc::experimental::ServerInterceptorFactoryInterface> makeAuditInterceptor(
     AuditLog* log);
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

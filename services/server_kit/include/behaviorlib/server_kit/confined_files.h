@@ -26,7 +26,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 class ConfinedDirectory {
  public:
@@ -72,4 +72,4 @@ class ConfinedDirectory {
 /// but a regular file of at most `max_bytes`.
 absl::StatusOr<std::string> readFileCapped(const std::string& path, size_t max_bytes);
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -7,7 +7,7 @@
 //   ABSL_FLAG(int, workers, 4, "threads for blocking calls");
 //
 //   int main(int argc, char** argv) {
-//     behaviorlib::server::parseFlags(argc, argv, "the coordinator: ...");
+//     behaviorlib::server_kit::parseFlags(argc, argv, "the coordinator: ...");
 //     options.workers = absl::GetFlag(FLAGS_workers);
 //
 // On the command line a flag's name is written with hyphens (--robot-id, the
@@ -19,7 +19,7 @@
 #include <string>
 #include <vector>
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 /// Parses argv into the program's ABSL_FLAGs. Exits like absl does, 1 after
 /// printing an unknown flag or a bad value, and 0 after printing what
@@ -37,4 +37,4 @@ std::vector<std::string> parseCommandLine(int argc, char** argv, const std::stri
 /// starts with "--" would be rewritten too; none of our flags takes one.
 std::vector<std::string> abslFlagNames(int argc, char** argv);
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -29,7 +29,7 @@
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/server_kit/reactor_order.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 template <class Subscription, class Message>
 class LogStreamWriter : public Ordered<grpc::ServerWriteReactor<Message>> {
@@ -143,4 +143,4 @@ class LogStreamWriter : public Ordered<grpc::ServerWriteReactor<Message>> {
   bool shutting_down_ ABSL_GUARDED_BY(mutex_) = false;
 };
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -27,7 +27,7 @@
 #include "absl/status/status.h"
 #include "behaviorlib/error_details.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 struct PageLimits {
   int32_t default_size = 500;
@@ -75,4 +75,4 @@ grpc::Status paginate(google::protobuf::RepeatedPtrField<T>* items,
   return grpc::Status::OK;
 }
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -14,7 +14,7 @@
 // reactor; each callback we override begins with `ordered()`, which acquires
 // it:
 //
-//   class Feed final : public server::Ordered<grpc::ServerWriteReactor<v1::Sample>> {
+//   class Feed final : public server_kit::Ordered<grpc::ServerWriteReactor<v1::Sample>> {
 //     void OnWriteDone(bool ok) override {
 //       ordered();
 //       ...
@@ -42,7 +42,7 @@ extern "C" void __tsan_acquire(void* addr);
 extern "C" void __tsan_release(void* addr);
 #endif
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 /// For a callback that gRPC runs on one of its threads, such as a client's
 /// unary completion: happensBefore(key) just before the call starts, and
@@ -162,4 +162,4 @@ class Ordered : public Reactor {
   void release() { happensBefore(this); }
 };
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -33,7 +33,7 @@
 #include <optional>
 #include <string>
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 /// The name of a gRPC status code as the gRPC specification spells it
 /// ("OK", "NOT_FOUND", ...), or "CODE_<n>" for one outside it.
@@ -73,4 +73,4 @@ std::shared_ptr<prometheus::Collectable> makeProcessCollector();
 /// Adds behaviorlib_build_info to `registry`.
 void addBuildInfo(prometheus::Registry& registry);
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -36,7 +36,7 @@ class Exposer;
 class Registry;
 }  // namespace prometheus
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 /// Limits every server sets explicitly rather than inheriting gRPC's
 /// defaults (some of which are unlimited).
@@ -134,4 +134,4 @@ int fatal(const std::string& program, const std::string& message);
 /// that failed with `status`: 2 for INVALID_ARGUMENT (bad options), else 1.
 int fatal(const std::string& program, const absl::Status& status);
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -30,7 +30,7 @@
 #include "absl/status/status.h"
 #include "absl/status/statusor.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 struct TransportSecurity {
   std::string cert_file;  ///< PEM certificate (chain) of this process
@@ -90,4 +90,4 @@ absl::Status checkListenAddress(const std::string& address, const TransportSecur
 std::shared_ptr<grpc::Channel> makeChannel(const std::string& target,
                                            const grpc::ChannelArguments& args = {});
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -25,7 +25,7 @@
 
 #include "absl/status/status.h"
 
-namespace behaviorlib::server {
+namespace behaviorlib::server_kit {
 
 struct YamlLimits {
   size_t max_bytes = 1 << 20;  ///< the text
@@ -44,4 +44,4 @@ absl::Status loadYaml(std::string_view text, const std::string& file, YAML::Node
 /// escape: nothing above it catches.
 absl::Status guardYamlParse(const std::string& file, const std::function<absl::Status()>& parse);
 
-}  // namespace behaviorlib::server
+}  // namespace behaviorlib::server_kit

@@ -51,7 +51,7 @@ class SaveOccupancyGridBehavior final
   /// `beliefs` may be null (no coordinator): the file is saved, no belief
   /// written. Files are written inside `maps` only.
   SaveOccupancyGridBehavior(LidarMapper& mapper, const server::BeliefClient* beliefs,
-                            server::ConfinedDirectory maps);
+                            server_kit::ConfinedDirectory maps);
 
  protected:
   absl::Status onActivate() override;
@@ -61,7 +61,7 @@ class SaveOccupancyGridBehavior final
  private:
   LidarMapper& mapper_;
   const server::BeliefClient* beliefs_;
-  const server::ConfinedDirectory maps_;
+  const server_kit::ConfinedDirectory maps_;
   std::string saved_path_;
   size_t occupied_ = 0;
   std::optional<std::string> belief_error_;

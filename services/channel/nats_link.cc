@@ -102,6 +102,12 @@ class NatsLink::Impl {
                          .Help("Other brokers heard from within the announcement time to live.")
                          .Register(registry)
                          .Add({})),
+        wants_gauge_(prometheus::BuildGauge()
+                         .Name("behaviorlib_channel_link_wants_heard")
+                         .Help("Wants heard from other brokers (one per broker and topic), set "
+                               "once this broker sends those topics.")
+                         .Register(registry)
+                         .Add({})),
         disconnects_(prometheus::BuildCounter()
                          .Name("behaviorlib_channel_link_disconnects_total")
                          .Help("Times the link to the data engine was lost.")
@@ -401,11 +407,16 @@ class NatsLink::Impl {
       std::optional<std::vector<std::string>> imports;
       if (local_changed_) imports = local_wanted_;
       std::optional<std::vector<std::string>> remote;
+      std::size_t peers = 0;
+      std::size_t wants = 0;
       if (peers_changed_) {
         std::set<std::string> all;
-        for (const auto& [name, peer] : peers_) all.insert(peer.wanted.begin(), peer.wanted.end());
+        for (const auto& [name, peer] : peers_) {
+          all.insert(peer.wanted.begin(), peer.wanted.end());
+          wants += peer.wanted.size();
+        }
         remote.emplace(all.begin(), all.end());
-        peers_gauge_.Set(static_cast<double>(peers_.size()));
+        peers = peers_.size();
       }
       v1::WatchInterestResponse announcement;
       if (announce) {
@@ -415,7 +426,13 @@ class NatsLink::Impl {
 
       mutex_.Unlock();
       if (imports) updateImports(*imports);
-      if (remote) broker_.setRemoteWanted(std::move(*remote));
+      if (remote) {
+        broker_.setRemoteWanted(std::move(*remote));
+        // After the broker has them: a reader of these gauges may count on
+        // the samples of what it sees wanted being sent.
+        peers_gauge_.Set(static_cast<double>(peers));
+        wants_gauge_.Set(static_cast<double>(wants));
+      }
       if (announce) {
         const std::string bytes = announcement.SerializeAsString();
         (void)natsConnection_Publish(conn_, absl::StrCat(kWantPrefix, options_.name).c_str(),
@@ -524,6 +541,7 @@ class NatsLink::Impl {
   prometheus::Counter& rejected_;
   prometheus::Gauge& up_gauge_;
   prometheus::Gauge& peers_gauge_;
+  prometheus::Gauge& wants_gauge_;
   prometheus::Counter& disconnects_;
   prometheus::Counter& thinned_count_;
   prometheus::Counter& frames_;

@@ -143,6 +143,17 @@ class ChannelLinkTest : public ::testing::Test {
     return broker;
   }
 
+  // Whether `broker` comes to send what the others want: `count` wants (one
+  // per other broker and topic) heard and taken up. A sample published
+  // before that would not cross, and no sleep makes sure of it.
+  ::testing::AssertionResult hearsWants(const support::ServerProcess& broker, double count) {
+    if (eventually([&] { return metric(broker, "behaviorlib_channel_link_wants_heard") == count; }))
+      return ::testing::AssertionSuccess();
+    return ::testing::AssertionFailure()
+           << "the broker heard " << metric(broker, "behaviorlib_channel_link_wants_heard")
+           << " wants, not " << count;
+  }
+
   // Collects the texts a subscription receives.
   struct Received {
     std::mutex mutex;
@@ -179,17 +190,26 @@ TEST_F(ChannelLinkTest, ATopicWantedOnOneHostIsCarriedFromAnother) {
             0);
 
   // The ground's want reaches the vehicle's broker: its publishers see it.
+  // Until its stream has answered, a watch says every topic is wanted: wait
+  // for the broker's answer, or the samples below could go before the want
+  // has reached the vehicle (and a sample nobody wanted is not carried).
   auto interest = vehicle_client.watchInterest("robots/", [] {});
+  ASSERT_TRUE(eventually([&] { return interest->known(); }));
+  ASSERT_FALSE(interest->wanted(topic));
   Received received;
   auto sub = collect(ground_client, topic, &received);
   ASSERT_TRUE(sub->waitConnected(seconds(5)));
-  ASSERT_TRUE(eventually([&] { return interest->wanted(topic); }))
+  ASSERT_TRUE(eventually([&] { return interest->known() && interest->wanted(topic); }))
       << "the vehicle's broker never heard that the ground wants " << topic;
 
   for (int i = 0; i < 20; ++i)
     ASSERT_TRUE(vehicle_client.publish(topic, text(std::to_string(i))).ok());
   ASSERT_TRUE(vehicle_client.flush().ok());
-  ASSERT_TRUE(eventually([&] { return received.size() == 20; })) << received.size();
+  ASSERT_TRUE(eventually([&] { return received.size() == 20; }))
+      << received.size() << " received; the vehicle sent "
+      << metric(*vehicle, "behaviorlib_channel_link_samples_out_total{topic=\"" + topic + "\"}")
+      << ", the ground took "
+      << metric(*ground, "behaviorlib_channel_link_samples_in_total{topic=\"" + topic + "\"}");
   {
     std::lock_guard<std::mutex> lock(received.mutex);
     for (int i = 0; i < 20; ++i)
@@ -203,7 +223,7 @@ TEST_F(ChannelLinkTest, ATopicWantedOnOneHostIsCarriedFromAnother) {
 
   // The ground stops wanting it: the vehicle's broker stops sending.
   sub.reset();
-  ASSERT_TRUE(eventually([&] { return !interest->wanted(topic); }));
+  ASSERT_TRUE(eventually([&] { return interest->known() && !interest->wanted(topic); }));
   ASSERT_TRUE(vehicle_client.publish(topic, text("late")).ok());
   ASSERT_TRUE(vehicle_client.flush().ok());
   std::this_thread::sleep_for(milliseconds(300));
@@ -228,8 +248,8 @@ TEST_F(ChannelLinkTest, ATopicSeveralHostsPublishReachesEachOnceAndNeverComesBac
   // Every broker hears the two others want it.
   for (auto* broker : {a.get(), b.get(), c.get()}) {
     ASSERT_TRUE(eventually([&] { return metric(*broker, "behaviorlib_channel_link_peers") == 2; }));
+    ASSERT_TRUE(hearsWants(*broker, 2));
   }
-  std::this_thread::sleep_for(milliseconds(200));  // the announcements reach everyone
   constexpr int kEach = 50;
   for (int i = 0; i < kEach; ++i) {
     ASSERT_TRUE(a_client.publish(topic, text("a" + std::to_string(i))).ok());
@@ -316,8 +336,7 @@ TEST_F(ChannelLinkTest, LocalPrefixesNeverCross) {
   ASSERT_TRUE(sub->waitConnected(seconds(5)));
   Received texts;
   auto other = collect(vehicle_client, "robots/drone1/note", &texts);
-  ASSERT_TRUE(eventually([&] { return metric(*sim_side, "behaviorlib_channel_link_peers") == 1; }));
-  std::this_thread::sleep_for(milliseconds(300));
+  ASSERT_TRUE(hearsWants(*sim_side, 1));
   v1::Clock clock;
   clock.mutable_time()->set_seconds(1);
   for (int i = 0; i < 5; ++i) {
@@ -339,8 +358,7 @@ TEST_F(ChannelLinkTest, ALostServerIsDetectedAndTheLinkRecovers) {
   Received received;
   auto sub = collect(ground_client, topic, &received);
   ASSERT_TRUE(sub->waitConnected(seconds(5)));
-  ASSERT_TRUE(eventually([&] { return metric(*vehicle, "behaviorlib_channel_link_peers") == 1; }));
-  std::this_thread::sleep_for(milliseconds(200));
+  ASSERT_TRUE(hearsWants(*vehicle, 1));
   ASSERT_TRUE(vehicle_client.publish(topic, text("before")).ok());
   ASSERT_TRUE(eventually([&] { return received.size() == 1; }));
 
@@ -379,8 +397,7 @@ TEST_F(ChannelLinkTest, ARateLimitSendsTheNewestSampleInItsTurn) {
   Received received;
   auto sub = collect(ground_client, topic, &received);
   ASSERT_TRUE(sub->waitConnected(seconds(5)));
-  ASSERT_TRUE(eventually([&] { return metric(*vehicle, "behaviorlib_channel_link_peers") == 1; }));
-  std::this_thread::sleep_for(milliseconds(300));
+  ASSERT_TRUE(hearsWants(*vehicle, 1));
   // 100 samples in about half a second: at most 10 a second cross, and the
   // last one always does, once its turn comes.
   const auto start = std::chrono::steady_clock::now();
@@ -416,8 +433,7 @@ TEST_F(ChannelLinkTest, ARateLimitedLinkSendsItsTopicsTogetherInFrames) {
   auto sub_b = collect(ground_client, b, &got_b);
   ASSERT_TRUE(sub_a->waitConnected(seconds(5)));
   ASSERT_TRUE(sub_b->waitConnected(seconds(5)));
-  ASSERT_TRUE(eventually([&] { return metric(*vehicle, "behaviorlib_channel_link_peers") == 1; }));
-  std::this_thread::sleep_for(milliseconds(300));
+  ASSERT_TRUE(hearsWants(*vehicle, 2));
   // Two topics, interleaved, 50 samples each in about a second.
   const auto start = std::chrono::steady_clock::now();
   for (int i = 0; i < 50; ++i) {

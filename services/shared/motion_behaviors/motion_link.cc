@@ -74,6 +74,12 @@ std::shared_ptr<const v1::MotionControlStatus> RemoteMotionLink::latestStatus() 
   return status_.latest;
 }
 
+bool RemoteMotionLink::statusFollowed() {
+  if (!channel_) return true;  // nothing will come: the checks say why
+  absl::MutexLock lock(&mutex_);
+  return status_.subscription && status_.subscription->connectCount() > 0;
+}
+
 std::string RemoteMotionLink::referenceTopic() const { return motionReferenceTopic(robot_id_); }
 
 std::string RemoteMotionLink::statusTopic() const { return motionControlStatusTopic(robot_id_); }

@@ -103,6 +103,10 @@ std::optional<std::string> ReferenceSupport::checkController(TimePoint now) {
     last_followed_ = now;
     controller_ = status->controller();
   }
+  // The grace runs from when statuses can arrive: a subscription that takes
+  // long to establish (a busy host, the deterministic mode running ahead of
+  // the wall clock) is not a controller that does not follow.
+  if (!link_.statusFollowed()) began_ = now;
   if (now - began_ < settings_.controller_grace) return std::nullopt;
   if (now - last_followed_ <= settings_.controller_timeout) return std::nullopt;
   const std::string activate =

@@ -44,6 +44,15 @@ class FakeMotionLink final : public MotionLink {
     if (status_followers_ <= 0 || statuses_.empty()) return nullptr;
     return std::make_shared<const v1::MotionControlStatus>(statuses_.back());
   }
+  bool statusFollowed() override {
+    std::lock_guard lock(mutex_);
+    return status_followed_;
+  }
+  /// Whether the status subscription counts as established (statusFollowed()).
+  void setStatusFollowed(bool followed) {
+    std::lock_guard lock(mutex_);
+    status_followed_ = followed;
+  }
   std::string referenceTopic() const override { return "robots/drone1/motion_reference"; }
   std::string statusTopic() const override { return "robots/drone1/motion_control/status"; }
 
@@ -69,6 +78,7 @@ class FakeMotionLink final : public MotionLink {
   std::vector<v1::MotionReference> references_;
   std::vector<v1::MotionControlStatus> statuses_;
   int reference_followers_ = 0;
+  bool status_followed_ = true;
   int status_followers_ = 0;
 };
 

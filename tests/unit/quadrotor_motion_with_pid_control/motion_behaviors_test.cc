@@ -142,6 +142,14 @@ class MotionBehaviorsUnitTest : public ::testing::Test {
     return p;
   }
 
+  // The next activation's end: its cause, and its message contains `text`.
+  void expectFinished(v1::TerminationCause cause, const std::string& text) {
+    const auto finished = events_.waitFinished();
+    EXPECT_EQ(finished.finished().cause(), cause) << finished.ShortDebugString();
+    EXPECT_NE(finished.finished().message().find(text), std::string::npos)
+        << finished.finished().message();
+  }
+
   // A status as a controller following `source` publishes it now.
   void followedBy(const std::string& source) {
     v1::MotionControlStatus status;
@@ -174,13 +182,26 @@ TEST_F(MotionBehaviorsUnitTest, FollowPathPublishesTrajectoryReferencesAndFailsW
   EXPECT_GT(references.back().point().position_m().x(), 0.0) << "the reference moves along";
   EXPECT_EQ(follow_path_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "within the grace";
   fly(std::chrono::seconds(2), follow_path_);
-  const auto finished = events_.waitFinished();
-  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE)
-      << finished.ShortDebugString();
-  EXPECT_NE(finished.finished().message().find("no motion controller"), std::string::npos)
-      << finished.finished().message();
+  expectFinished(v1::TERMINATION_CAUSE_PROCESS_FAILURE, "no motion controller");
   EXPECT_EQ(vehicle_.followers(), 0);
   EXPECT_EQ(link_.statusFollowers(), 0);
+}
+
+// The controller's grace runs from when the status subscription is
+// established: a slow subscription (a busy host, the deterministic mode
+// ahead of the wall clock) is not taken for a controller that does not follow.
+TEST_F(MotionBehaviorsUnitTest, TheControllerGraceWaitsForTheStatusSubscription) {
+  link_.setStatusFollowed(false);
+  auto activated = follow_path_->activateAndWait(line(2.0));
+  ASSERT_TRUE(activated.ok()) << activated.status();
+  fly(std::chrono::seconds(3), follow_path_);
+  EXPECT_EQ(follow_path_->state(), v1::BEHAVIOR_STATE_ACTIVE)
+      << "3 s without a subscription, past the 1 s grace";
+  link_.setStatusFollowed(true);
+  fly(milliseconds(500), follow_path_);
+  EXPECT_EQ(follow_path_->state(), v1::BEHAVIOR_STATE_ACTIVE) << "the grace starts now";
+  fly(std::chrono::seconds(2), follow_path_);
+  expectFinished(v1::TERMINATION_CAUSE_PROCESS_FAILURE, "no motion controller");
 }
 
 TEST_F(MotionBehaviorsUnitTest, FollowPathAchievesItsGoalWhenTheVehicleFollowsTheReference) {

@@ -39,6 +39,10 @@ class MotionLink {
   /// never changed (a newer sample replaces it): read every tick, no copy.
   virtual std::shared_ptr<const v1::MotionReference> latestReference() = 0;
   virtual std::shared_ptr<const v1::MotionControlStatus> latestStatus() = 0;
+  /// While followed: whether the status subscription has been established
+  /// (from then on every status published reaches latestStatus()). A link
+  /// with nothing to establish says true.
+  virtual bool statusFollowed() { return true; }
 
   virtual std::string referenceTopic() const = 0;
   virtual std::string statusTopic() const = 0;
@@ -57,6 +61,7 @@ class RemoteMotionLink final : public MotionLink {
   void followStatus(bool follow) override;
   std::shared_ptr<const v1::MotionReference> latestReference() override;
   std::shared_ptr<const v1::MotionControlStatus> latestStatus() override;
+  bool statusFollowed() override;
   std::string referenceTopic() const override;
   std::string statusTopic() const override;
 

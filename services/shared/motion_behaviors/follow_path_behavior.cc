@@ -62,16 +62,15 @@ absl::StatusOr<motion::PathTracker> makePathTracker(
 
 template <class Params>
 FollowPathBehavior<Params>::FollowPathBehavior(flight::Vehicle& vehicle, MotionLink& link)
-    : Behavior<Params, config::v1::FollowPathConfig>(referenceBehaviorOptions(Duration::zero())),
-      support_(vehicle, link) {}
+    : ReferenceBehavior<Params, config::v1::FollowPathConfig>(vehicle, link, Duration::zero()) {}
 
 template <class Params>
 absl::Status FollowPathBehavior<Params>::onConfigure(const config::v1::FollowPathConfig& config) {
-  if (auto s = support_.configure(config.motion()); !s.ok()) return s;
+  if (auto s = support().configure(config.motion()); !s.ok()) return s;
   path_settings_.configure(config.path());
-  goal_.setDwell(support_.settings().goal_dwell);
-  lagging_.setDwell(support_.settings().flight.progress_window);
-  progress_.setWindow(support_.settings().flight.progress_window);
+  goal_.setDwell(support().settings().goal_dwell);
+  lagging_.setDwell(support().settings().flight.progress_window);
+  progress_.setWindow(support().settings().flight.progress_window);
   return absl::OkStatus();
 }
 
@@ -87,11 +86,11 @@ template <class Params>
 absl::Status FollowPathBehavior<Params>::onActivate() {
   const Params& p = this->parameters();
   auto tracker = makePathTracker(p.path_m(), p.speed_m_s(), p.acceleration_m_s2(), path_settings_,
-                                 support_.settings().min_altitude_m);
+                                 support().settings().min_altitude_m);
   if (!tracker.ok()) return tracker.status();
-  if (auto s = support_.begin(this->now(), this->activationId()); !s.ok()) return s;
+  if (auto s = support().begin(this->now(), this->activationId()); !s.ok()) return s;
   tracker_ = std::move(*tracker);
-  tracker_->start(support_.state().position_m, support_.yawRad());
+  tracker_->start(support().state().position_m, support().yawRad());
   tolerance_m_ = p.tolerance_m();
   if (this->options().maximum_execution_time == Duration::zero()) {
     this->setMaximumExecutionTime(seconds(3.0 * tracker_->totalTimeS() + 10.0));
@@ -107,14 +106,14 @@ void FollowPathBehavior<Params>::onExecute() {
   const TimePoint t = this->now();
   const double dt = std::chrono::duration<double>(t - last_update_).count();
   last_update_ = t;
-  const motion::MotionReference reference = tracker_->update(support_.state().position_m, dt);
+  const motion::MotionReference reference = tracker_->update(support().state().position_m, dt);
   // A refused sample shows in the controller's status (it stops following).
-  (void)support_.publish(reference, t);
+  (void)support().publish(reference, t);
 }
 
 template <class Params>
 void FollowPathBehavior<Params>::onDeactivate() {
-  support_.end();
+  support().end();
   tracker_.reset();
 }
 
@@ -126,24 +125,18 @@ void FollowPathBehavior<Params>::onResume() {
 template <class Params>
 absl::Status FollowPathBehavior<Params>::onModify(const Params& p) {
   auto tracker = makePathTracker(p.path_m(), p.speed_m_s(), p.acceleration_m_s2(), path_settings_,
-                                 support_.settings().min_altitude_m);
+                                 support().settings().min_altitude_m);
   if (!tracker.ok()) return tracker.status();
   tracker_ = std::move(*tracker);
-  tracker_->start(support_.state().position_m, support_.yawRad());
+  tracker_->start(support().state().position_m, support().yawRad());
   tolerance_m_ = p.tolerance_m();
   restartWindows();
   return absl::OkStatus();
 }
 
 template <class Params>
-Situation FollowPathBehavior<Params>::checkSituation() {
-  return support_.active() ? support_.situationActive()
-                           : support_.situationBefore(this->now(), this->name());
-}
-
-template <class Params>
 Verdict FollowPathBehavior<Params>::checkGoal() {
-  const Eigen::Vector3d position = support_.state().position_m;
+  const Eigen::Vector3d position = support().state().position_m;
   const Eigen::Vector3d last = tracker_->points().back();
   const double distance = (position - last).norm();
   if (!goal_.update(this->now(), tracker_->referenceAtEnd() && distance <= tolerance_m_)) {
@@ -162,7 +155,7 @@ Verdict FollowPathBehavior<Params>::checkGoal() {
 template <class Params>
 Verdict FollowPathBehavior<Params>::checkProgress() {
   const TimePoint t = this->now();
-  const Eigen::Vector3d position = support_.state().position_m;
+  const Eigen::Vector3d position = support().state().position_m;
   const double cross_track = tracker_->crossTrackErrorM(position);
   cross_track_sum_sq_ += cross_track * cross_track;
   cross_track_max_ = std::max(cross_track_max_, cross_track);
@@ -190,12 +183,6 @@ Verdict FollowPathBehavior<Params>::checkProgress() {
   } else {
     progress_.reset();
   }
-  return Verdict::keepGoing();
-}
-
-template <class Params>
-Verdict FollowPathBehavior<Params>::checkProcesses() {
-  if (auto problem = support_.checkProcesses(this->now())) return Verdict::finish(*problem);
   return Verdict::keepGoing();
 }
 

@@ -9,53 +9,35 @@ namespace behaviorlib::motion_behaviors {
 
 template <class Params>
 HoverBehavior<Params>::HoverBehavior(flight::Vehicle& vehicle, MotionLink& link)
-    : Behavior<Params, config::v1::MotionConfig>(referenceBehaviorOptions(Duration::zero())),
-      support_(vehicle, link) {}
+    : ReferenceBehavior<Params, config::v1::MotionConfig>(vehicle, link, Duration::zero()) {}
 
 template <class Params>
 absl::Status HoverBehavior<Params>::onConfigure(const config::v1::MotionConfig& config) {
-  return support_.configure(config);
+  return support().configure(config);
 }
 
 template <class Params>
 absl::Status HoverBehavior<Params>::onActivate() {
-  if (auto s = support_.begin(this->now(), this->activationId()); !s.ok()) return s;
-  hold_m_ = support_.state().position_m;
-  yaw_rad_ = support_.yawRad();
+  if (auto s = support().begin(this->now(), this->activationId()); !s.ok()) return s;
+  hold_m_ = support().state().position_m;
+  yaw_rad_ = support().yawRad();
   return absl::OkStatus();
 }
 
 template <class Params>
 void HoverBehavior<Params>::onExecute() {
-  (void)support_.publish(holdAt(hold_m_, yaw_rad_), this->now());
-}
-
-template <class Params>
-void HoverBehavior<Params>::onDeactivate() {
-  support_.end();
-}
-
-template <class Params>
-Situation HoverBehavior<Params>::checkSituation() {
-  return support_.active() ? support_.situationActive()
-                           : support_.situationBefore(this->now(), this->name());
+  (void)support().publish(holdAt(hold_m_, yaw_rad_), this->now());
 }
 
 template <class Params>
 Verdict HoverBehavior<Params>::checkProgress() {
-  const Eigen::Vector3d position = support_.state().position_m;
+  const Eigen::Vector3d position = support().state().position_m;
   const double drift = (position - hold_m_).norm();
   const double limit = this->parameters().max_drift_m();
   if (drift > limit) {
     return Verdict::finish("drifted " + flight::fixed2(drift) + " m from the hover point " +
                            pointText(hold_m_) + ", beyond max_drift_m " + flight::fixed2(limit));
   }
-  return Verdict::keepGoing();
-}
-
-template <class Params>
-Verdict HoverBehavior<Params>::checkProcesses() {
-  if (auto problem = support_.checkProcesses(this->now())) return Verdict::finish(*problem);
   return Verdict::keepGoing();
 }
 

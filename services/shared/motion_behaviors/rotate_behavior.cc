@@ -26,17 +26,16 @@ double turnTowards(double current, double target, double step) {
 
 template <class Params>
 RotateBehavior<Params>::RotateBehavior(flight::Vehicle& vehicle, MotionLink& link)
-    : Behavior<Params, config::v1::RotateConfig>(
-          referenceBehaviorOptions(std::chrono::seconds(60))),
-      support_(vehicle, link) {}
+    : ReferenceBehavior<Params, config::v1::RotateConfig>(vehicle, link, std::chrono::seconds(60)) {
+}
 
 template <class Params>
 absl::Status RotateBehavior<Params>::onConfigure(const config::v1::RotateConfig& config) {
-  if (auto s = support_.configure(config.motion()); !s.ok()) return s;
+  if (auto s = support().configure(config.motion()); !s.ok()) return s;
   max_drift_m_ = config.max_drift_m();
   max_yaw_lag_rad_ = config.max_yaw_lag_rad();
-  goal_.setDwell(support_.settings().goal_dwell);
-  lagging_.setDwell(support_.settings().flight.progress_window);
+  goal_.setDwell(support().settings().goal_dwell);
+  lagging_.setDwell(support().settings().flight.progress_window);
   return absl::OkStatus();
 }
 
@@ -49,9 +48,9 @@ void RotateBehavior<Params>::setTarget(const Params& p) {
 
 template <class Params>
 absl::Status RotateBehavior<Params>::onActivate() {
-  if (auto s = support_.begin(this->now(), this->activationId()); !s.ok()) return s;
-  hold_m_ = support_.state().position_m;
-  start_yaw_rad_ = reference_yaw_rad_ = support_.yawRad();
+  if (auto s = support().begin(this->now(), this->activationId()); !s.ok()) return s;
+  hold_m_ = support().state().position_m;
+  start_yaw_rad_ = reference_yaw_rad_ = support().yawRad();
   setTarget(this->parameters());
   last_update_ = this->now();
   return absl::OkStatus();
@@ -64,12 +63,7 @@ void RotateBehavior<Params>::onExecute() {
   last_update_ = t;
   reference_yaw_rad_ = turnTowards(reference_yaw_rad_, target_yaw_rad_,
                                    this->parameters().yaw_rate_rad_s() * std::max(dt, 0.0));
-  (void)support_.publish(holdAt(hold_m_, reference_yaw_rad_), t);
-}
-
-template <class Params>
-void RotateBehavior<Params>::onDeactivate() {
-  support_.end();
+  (void)support().publish(holdAt(hold_m_, reference_yaw_rad_), t);
 }
 
 template <class Params>
@@ -86,14 +80,8 @@ absl::Status RotateBehavior<Params>::onModify(const Params& new_parameters) {
 }
 
 template <class Params>
-Situation RotateBehavior<Params>::checkSituation() {
-  return support_.active() ? support_.situationActive()
-                           : support_.situationBefore(this->now(), this->name());
-}
-
-template <class Params>
 Verdict RotateBehavior<Params>::checkGoal() {
-  const double yaw = support_.yawRad();
+  const double yaw = support().yawRad();
   const double error = motion::wrapAngle(yaw - target_yaw_rad_);
   const double tolerance = this->parameters().tolerance_rad();
   if (!goal_.update(this->now(), std::abs(error) <= tolerance)) return Verdict::keepGoing();
@@ -104,24 +92,18 @@ Verdict RotateBehavior<Params>::checkGoal() {
 
 template <class Params>
 Verdict RotateBehavior<Params>::checkProgress() {
-  const Eigen::Vector3d position = support_.state().position_m;
+  const Eigen::Vector3d position = support().state().position_m;
   const double drift = (position - hold_m_).norm();
   if (drift > max_drift_m_) {
     return Verdict::finish("drifted " + fixed2(drift) + " m from " + pointText(hold_m_) +
                            " while turning (max_drift_m " + fixed2(max_drift_m_) + ")");
   }
-  const double lag = std::abs(motion::wrapAngle(support_.yawRad() - reference_yaw_rad_));
+  const double lag = std::abs(motion::wrapAngle(support().yawRad() - reference_yaw_rad_));
   if (lagging_.update(this->now(), lag > max_yaw_lag_rad_)) {
     return Verdict::finish("the yaw has been more than " + degrees(max_yaw_lag_rad_) +
                            " behind the reference for " + secondsText(lagging_.dwell()) + " (now " +
                            degrees(lag) + ")");
   }
-  return Verdict::keepGoing();
-}
-
-template <class Params>
-Verdict RotateBehavior<Params>::checkProcesses() {
-  if (auto problem = support_.checkProcesses(this->now())) return Verdict::finish(*problem);
   return Verdict::keepGoing();
 }
 

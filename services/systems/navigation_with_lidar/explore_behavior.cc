@@ -38,14 +38,12 @@ constexpr uint32_t kChoiceRetries = 3;   // choices again when every plan failed
 
 ExploreBehavior::ExploreBehavior(LidarMapper& mapper, flight::Vehicle& vehicle,
                                  motion_behaviors::MotionLink& link)
-    : Behavior(motion_behaviors::referenceBehaviorOptions(Duration::zero())),
-      mapper_(mapper),
-      support_(vehicle, link) {}
+    : ReferenceBehavior(vehicle, link, Duration::zero()), mapper_(mapper) {}
 
 absl::Status ExploreBehavior::onConfigure(const config::v1::ExploreWithFrontiersConfig& config) {
-  if (auto s = support_.configure(config.motion()); !s.ok()) return s;
+  if (auto s = support().configure(config.motion()); !s.ok()) return s;
   path_settings_.configure(config.path());
-  lagging_.setDwell(support_.settings().flight.progress_window);
+  lagging_.setDwell(support().settings().flight.progress_window);
   min_frontier_cells_ = static_cast<size_t>(config.min_frontier_cells());
   look_ahead_m_ = config.look_ahead_m();
   slice_half_height_m_ = config.slice_half_height_m();
@@ -58,9 +56,8 @@ Situation ExploreBehavior::checkSituation() {
         v1::SITUATION_REASON_CONFIGURATION,
         "no data channel configured: start the behavior system with --channel HOST:PORT");
   }
-  Situation s =
-      support_.active() ? support_.situationActive() : support_.situationBefore(now(), name());
-  if (!support_.active()) {
+  Situation s = ReferenceBehavior::checkSituation();
+  if (!support().active()) {
     const bool empty =
         mapper_.withMap([](const OccupancyMap& map) { return map.tree().size() == 0; });
     if (empty) {
@@ -89,7 +86,7 @@ absl::Status ExploreBehavior::onActivate() {
                                       " is out of bounds: paths keep between z " + fixed2(z_lo) +
                                       " and " + fixed2(z_hi) + " m");
   }
-  if (auto s = support_.begin(now(), activationId()); !s.ok()) return s;
+  if (auto s = support().begin(now(), activationId()); !s.ok()) return s;
   setMaximumExecutionTime(
       std::chrono::duration_cast<Duration>(std::chrono::duration<double>(p.time_limit_s())),
       "the exploration took its time_limit_s (" + fixed2(p.time_limit_s()) + " s)");
@@ -99,7 +96,7 @@ absl::Status ExploreBehavior::onActivate() {
   failed_choices_ = 0;
   choice_ = Choice();
   tracker_.reset();
-  hold_m_ = support_.state().position_m;
+  hold_m_ = support().state().position_m;
   given_up_.clear();
   known_fraction_ = 0;
   last_growth_value_ = 0;
@@ -116,7 +113,7 @@ void ExploreBehavior::startChoice() {
   const auto& p = parameters();
   const MapperSettings& m = mapper_.settings();
   Request r;
-  r.start_m = support_.state().position_m;
+  r.start_m = support().state().position_m;
   r.lo_m = toEigen(p.bounds_min_m());
   r.hi_m = toEigen(p.bounds_max_m());
   r.lo_m.z() = std::max(r.lo_m.z(), m.planning_min_z_m);
@@ -254,14 +251,14 @@ void ExploreBehavior::startLeg(const std::vector<Eigen::Vector3d>& path) {
   for (const Eigen::Vector3d& q : path) toProto(q, points.Add());
   auto tracker =
       motion_behaviors::makePathTracker(points, parameters().speed_m_s(), kAccelerationM_S2,
-                                        path_settings_, support_.settings().min_altitude_m);
+                                        path_settings_, support().settings().min_altitude_m);
   if (!tracker.ok()) {
     given_up_.push_back(path.back());
     startChoice();
     return;
   }
   tracker_ = std::move(*tracker);
-  tracker_->start(support_.state().position_m, support_.yawRad());
+  tracker_->start(support().state().position_m, support().yawRad());
   leg_path_ = path;
   last_check_ = now();
   hold_m_.reset();
@@ -294,12 +291,12 @@ bool ExploreBehavior::legBlocked() const {
 }
 
 void ExploreBehavior::hold() {
-  if (!hold_m_) hold_m_ = support_.state().position_m;
+  if (!hold_m_) hold_m_ = support().state().position_m;
   motion::MotionReference reference;
   reference.mode = motion::MotionReference::Mode::kPosition;
   reference.point.position_m = *hold_m_;
-  reference.point.yaw_rad = support_.yawRad();
-  (void)support_.publish(reference, now());
+  reference.point.yaw_rad = support().yawRad();
+  (void)support().publish(reference, now());
 }
 
 void ExploreBehavior::onExecute() {
@@ -308,7 +305,7 @@ void ExploreBehavior::onExecute() {
   last_update_ = t;
   if (!paused_ && phase_ == Phase::kFlying && tracker_) {
     // A refused sample shows in the controller's status (it stops following).
-    (void)support_.publish(tracker_->update(support_.state().position_m, dt), t);
+    (void)support().publish(tracker_->update(support().state().position_m, dt), t);
     return;
   }
   hold();
@@ -316,19 +313,19 @@ void ExploreBehavior::onExecute() {
 
 void ExploreBehavior::onDeactivate() {
   choosing_.request_stop();  // the running choice is dropped
-  support_.end();
+  support().end();
   tracker_.reset();
 }
 
 void ExploreBehavior::onPause() {
   paused_ = true;
-  hold_m_ = support_.state().position_m;
+  hold_m_ = support().state().position_m;
 }
 
 void ExploreBehavior::onResume() {
   paused_ = false;
   tracker_.reset();
-  hold_m_ = support_.state().position_m;
+  hold_m_ = support().state().position_m;
   phase_ = Phase::kChoosing;
   startChoice();
 }
@@ -343,11 +340,6 @@ absl::Status ExploreBehavior::onModify(const v1::ExploreWithFrontiersParameters&
         "activate again for other bounds, altitude, radius or time limit");
   }
   return absl::OkStatus();
-}
-
-Verdict ExploreBehavior::checkProcesses() {
-  if (auto problem = support_.checkProcesses(now())) return Verdict::finish(*problem);
-  return Verdict::keepGoing();
 }
 
 Verdict ExploreBehavior::checkGoal() {
@@ -385,7 +377,7 @@ Verdict ExploreBehavior::checkProgress() {
     }
   }
   if (phase_ == Phase::kFlying && tracker_ && !paused_) {
-    const Eigen::Vector3d position = support_.state().position_m;
+    const Eigen::Vector3d position = support().state().position_m;
     const Eigen::Vector3d end = tracker_->points().back();
     const bool arrived = tracker_->referenceAtEnd() && (position - end).norm() <= kArrivedM;
     bool blocked = false;

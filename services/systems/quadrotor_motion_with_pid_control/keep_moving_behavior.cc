@@ -6,11 +6,11 @@ namespace behaviorlib::motion_behaviors {
 
 KeepMovingWithPidControlBehavior::KeepMovingWithPidControlBehavior(flight::Vehicle& vehicle,
                                                                    MotionLink& link)
-    : Behavior(referenceBehaviorOptions(Duration::zero())), support_(vehicle, link) {}
+    : ReferenceBehavior(vehicle, link, Duration::zero()) {}
 
 absl::Status KeepMovingWithPidControlBehavior::onConfigure(const config::v1::MotionConfig& config) {
-  if (auto s = support_.configure(config); !s.ok()) return s;
-  off_speed_.setDwell(support_.settings().flight.progress_window);
+  if (auto s = support().configure(config); !s.ok()) return s;
+  off_speed_.setDwell(support().settings().flight.progress_window);
   return absl::OkStatus();
 }
 
@@ -20,7 +20,7 @@ Eigen::Vector3d KeepMovingWithPidControlBehavior::requested() const {
 }
 
 absl::Status KeepMovingWithPidControlBehavior::onActivate() {
-  if (auto s = support_.begin(now(), activationId()); !s.ok()) return s;
+  if (auto s = support().begin(now(), activationId()); !s.ok()) return s;
   off_speed_.reset();
   changed_at_ = now();
   return absl::OkStatus();
@@ -29,14 +29,12 @@ absl::Status KeepMovingWithPidControlBehavior::onActivate() {
 void KeepMovingWithPidControlBehavior::onExecute() {
   motion::MotionReference reference;
   reference.mode = motion::MotionReference::Mode::kVelocity;
-  reference.point.position_m = support_.state().position_m;
+  reference.point.position_m = support().state().position_m;
   reference.point.velocity_m_s = requested();
-  reference.point.yaw_rad = support_.yawRad();
+  reference.point.yaw_rad = support().yawRad();
   reference.yaw_rate_rad_s = parameters().yaw_rate_rad_s();
-  (void)support_.publish(reference, now());
+  (void)support().publish(reference, now());
 }
-
-void KeepMovingWithPidControlBehavior::onDeactivate() { support_.end(); }
 
 void KeepMovingWithPidControlBehavior::onResume() {
   off_speed_.reset();
@@ -50,21 +48,12 @@ absl::Status KeepMovingWithPidControlBehavior::onModify(
   return absl::OkStatus();
 }
 
-Situation KeepMovingWithPidControlBehavior::checkSituation() {
-  return support_.active() ? support_.situationActive() : support_.situationBefore(now(), name());
-}
-
 Verdict KeepMovingWithPidControlBehavior::checkProgress() {
   if (auto problem =
-          velocityProblem(support_.state(), requested(), support_.settings().min_altitude_m,
+          velocityProblem(support().state(), requested(), support().settings().min_altitude_m,
                           parameters().max_speed_error_m_s(), now(), changed_at_, &off_speed_)) {
     return Verdict::finish(*problem);
   }
-  return Verdict::keepGoing();
-}
-
-Verdict KeepMovingWithPidControlBehavior::checkProcesses() {
-  if (auto problem = support_.checkProcesses(now())) return Verdict::finish(*problem);
   return Verdict::keepGoing();
 }
 

@@ -65,7 +65,7 @@ absl::StatusOr<motion::PathTracker> makePathTracker(
     double acceleration_m_s2, const PathSettings& settings, double min_altitude_m);
 
 template <class Params>
-class FollowPathBehavior final : public Behavior<Params, config::v1::FollowPathConfig> {
+class FollowPathBehavior final : public ReferenceBehavior<Params, config::v1::FollowPathConfig> {
  public:
   FollowPathBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
@@ -77,15 +77,14 @@ class FollowPathBehavior final : public Behavior<Params, config::v1::FollowPathC
   void onResume() override;
   absl::Status onModify(const Params& new_parameters) override;
 
-  Situation checkSituation() override;
   Verdict checkGoal() override;
   Verdict checkProgress() override;
-  Verdict checkProcesses() override;
 
  private:
+  using ReferenceBehavior<Params, config::v1::FollowPathConfig>::support;
+
   void restartWindows();
 
-  ReferenceSupport support_;
   PathSettings path_settings_;
   std::optional<motion::PathTracker> tracker_;
   flight::DwellTracker goal_{std::chrono::seconds(1)};

@@ -22,7 +22,7 @@
 namespace behaviorlib::motion_behaviors {
 
 template <class Params>
-class HoverBehavior final : public Behavior<Params, config::v1::MotionConfig> {
+class HoverBehavior final : public ReferenceBehavior<Params, config::v1::MotionConfig> {
  public:
   HoverBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
@@ -30,14 +30,12 @@ class HoverBehavior final : public Behavior<Params, config::v1::MotionConfig> {
   absl::Status onConfigure(const config::v1::MotionConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
-  void onDeactivate() override;
 
-  Situation checkSituation() override;
   Verdict checkProgress() override;
-  Verdict checkProcesses() override;
 
  private:
-  ReferenceSupport support_;
+  using ReferenceBehavior<Params, config::v1::MotionConfig>::support;
+
   Eigen::Vector3d hold_m_ = Eigen::Vector3d::Zero();
   double yaw_rad_ = 0.0;
 };

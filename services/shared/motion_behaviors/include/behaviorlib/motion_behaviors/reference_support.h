@@ -4,15 +4,17 @@
 // KEEP_HOVERING_WITH_PID_CONTROL, KEEP_MOVING_WITH_PID_CONTROL,
 // HOVER_WITH_MPC_CONTROL) share: their configuration, their inputs (the pose
 // estimate, the platform's flight status), publishing motion references, and
-// watching that a motion controller follows them. Each behavior owns one
-// ReferenceSupport and calls it from its hooks:
+// watching that a motion controller follows them. Each behavior derives from
+// ReferenceBehavior, which owns one ReferenceSupport and calls it from the
+// hooks they share (checkSituation, checkProcesses, onDeactivate); the
+// behavior calls it from the others:
 //
-//   onConfigure     support_.configure(config)
-//   checkSituation  active ? support_.situationActive() : support_.situationBefore(now(), name())
-//   onActivate      support_.begin(now(), activationId())   // reads the first estimate
-//   checkProcesses  if (auto problem = support_.checkProcesses(now())) -> PROCESS_FAILURE
-//   onExecute       support_.publish(reference, now())
-//   onDeactivate    support_.end()
+//   onConfigure     support().configure(config)
+//   checkSituation  active ? support().situationActive() : support().situationBefore(now(), name())
+//   onActivate      support().begin(now(), activationId())   // reads the first estimate
+//   checkProcesses  if (auto problem = support().checkProcesses(now())) -> PROCESS_FAILURE
+//   onExecute       support().publish(reference, now())
+//   onDeactivate    support().end()
 //
 // They never command the platform: the active motion controller turns their
 // references into setpoints.
@@ -23,7 +25,8 @@
 //   controller_timeout_s [0.5]   a controller status older than this, or one that
 //                                followed none of this activation's references for
 //                                this long: no controller follows (PROCESS_FAILURE)
-//   controller_grace_s [1]       ... checked only after this long since activation
+//   controller_grace_s [1]       ... checked only after this long since activation (or since
+//                                the status subscription was established, if later)
 //   goal_dwell_s [1]             a goal condition must hold this long
 //   progress_window_s [3]        window of the progress checks
 //   min_altitude_m [0.2]         lowest altitude a reference may ask for
@@ -129,6 +132,40 @@ class ReferenceSupport {
   flight::Held<v1::TwistStamped> twist_;
   motion::StateEstimate state_;
   flight::WindWatch wind_;
+};
+
+/// The base of the behaviors that fly by publishing motion references
+/// (FOLLOW_PATH*, ROTATE_WITH_*_CONTROL, KEEP_HOVERING_WITH_PID_CONTROL,
+/// HOVER_WITH_MPC_CONTROL, KEEP_MOVING_WITH_PID_CONTROL,
+/// EXPLORE_WITH_FRONTIERS): it owns their ReferenceSupport and gives the hooks
+/// they share. One that overrides a hook and still wants this one calls it.
+template <class Params, class Config>
+class ReferenceBehavior : public Behavior<Params, Config> {
+ protected:
+  ReferenceBehavior(flight::Vehicle& vehicle, MotionLink& link, Duration maximum_execution_time)
+      : Behavior<Params, Config>(referenceBehaviorOptions(maximum_execution_time)),
+        support_(vehicle, link) {}
+
+  /// Before activation: a flight controller, FLYING or HOVERING, a fresh
+  /// estimate, the battery; while active: still flying, the battery.
+  Situation checkSituation() override {
+    return support_.active() ? support_.situationActive()
+                             : support_.situationBefore(this->now(), this->name());
+  }
+  /// A stale estimate, a flight controller gone, no motion controller
+  /// following: PROCESS_FAILURE.
+  Verdict checkProcesses() override {
+    if (auto problem = support_.checkProcesses(this->now())) return Verdict::finish(*problem);
+    return Verdict::keepGoing();
+  }
+  /// Stops following the estimate and the controller's status.
+  void onDeactivate() override { support_.end(); }
+
+  ReferenceSupport& support() { return support_; }
+  const ReferenceSupport& support() const { return support_; }
+
+ private:
+  ReferenceSupport support_;
 };
 
 }  // namespace behaviorlib::motion_behaviors

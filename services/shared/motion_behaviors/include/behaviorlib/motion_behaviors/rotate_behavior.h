@@ -30,7 +30,7 @@
 namespace behaviorlib::motion_behaviors {
 
 template <class Params>
-class RotateBehavior final : public Behavior<Params, config::v1::RotateConfig> {
+class RotateBehavior final : public ReferenceBehavior<Params, config::v1::RotateConfig> {
  public:
   RotateBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
@@ -38,19 +38,17 @@ class RotateBehavior final : public Behavior<Params, config::v1::RotateConfig> {
   absl::Status onConfigure(const config::v1::RotateConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
-  void onDeactivate() override;
   void onResume() override;
   absl::Status onModify(const Params& new_parameters) override;
 
-  Situation checkSituation() override;
   Verdict checkGoal() override;
   Verdict checkProgress() override;
-  Verdict checkProcesses() override;
 
  private:
+  using ReferenceBehavior<Params, config::v1::RotateConfig>::support;
+
   void setTarget(const Params& p);
 
-  ReferenceSupport support_;
   double max_drift_m_ = 0.5;
   double max_yaw_lag_rad_ = 0.5;
   flight::DwellTracker goal_{std::chrono::seconds(1)};

@@ -59,7 +59,8 @@
 namespace behaviorlib::nav {
 
 class ExploreBehavior final
-    : public Behavior<v1::ExploreWithFrontiersParameters, config::v1::ExploreWithFrontiersConfig> {
+    : public motion_behaviors::ReferenceBehavior<v1::ExploreWithFrontiersParameters,
+                                                 config::v1::ExploreWithFrontiersConfig> {
  public:
   ExploreBehavior(LidarMapper& mapper, flight::Vehicle& vehicle,
                   motion_behaviors::MotionLink& link);
@@ -76,7 +77,6 @@ class ExploreBehavior final
   Situation checkSituation() override;
   Verdict checkGoal() override;
   Verdict checkProgress() override;
-  Verdict checkProcesses() override;
 
  public:
   /// What one choice found (the background job's result).
@@ -107,7 +107,6 @@ class ExploreBehavior final
   bool legBlocked() const;
 
   LidarMapper& mapper_;
-  motion_behaviors::ReferenceSupport support_;
   motion_behaviors::PathSettings path_settings_;
   size_t min_frontier_cells_ = 5;
   double slice_half_height_m_ = 0.15;

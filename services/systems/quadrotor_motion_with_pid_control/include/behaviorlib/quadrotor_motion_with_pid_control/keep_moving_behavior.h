@@ -28,7 +28,7 @@
 namespace behaviorlib::motion_behaviors {
 
 class KeepMovingWithPidControlBehavior final
-    : public Behavior<v1::KeepMovingWithPidControlParameters, config::v1::MotionConfig> {
+    : public ReferenceBehavior<v1::KeepMovingWithPidControlParameters, config::v1::MotionConfig> {
  public:
   KeepMovingWithPidControlBehavior(flight::Vehicle& vehicle, MotionLink& link);
 
@@ -36,18 +36,14 @@ class KeepMovingWithPidControlBehavior final
   absl::Status onConfigure(const config::v1::MotionConfig& config) override;
   absl::Status onActivate() override;
   void onExecute() override;
-  void onDeactivate() override;
   void onResume() override;
   absl::Status onModify(const v1::KeepMovingWithPidControlParameters& new_parameters) override;
 
-  Situation checkSituation() override;
   Verdict checkProgress() override;
-  Verdict checkProcesses() override;
 
  private:
   Eigen::Vector3d requested() const;
 
-  ReferenceSupport support_;
   flight::DwellTracker off_speed_{std::chrono::seconds(3)};
   TimePoint changed_at_{};
 };

@@ -37,13 +37,29 @@ namespace {
 
 using Sample = std::shared_ptr<const v1::SubscribeResponse>;
 
-// A stream's write that failed ends it with CANCELLED naming the stream,
-// unless it is ending already.
-void endOnFailedWrite(bool ok, const char* stream, std::optional<grpc::Status>* finish_status) {
-  if (!ok && !finish_status->has_value()) {
-    *finish_status = grpc::Status(grpc::StatusCode::CANCELLED, std::string(stream) + " broken");
+// How a server stream ends, kept under its reactor's mutex: the status
+// asked for first, and whether Finish has been called.
+struct StreamEnd {
+  std::optional<grpc::Status> status;
+  bool finished = false;
+
+  bool asked() const { return status.has_value(); }
+  // The first status asked for wins.
+  void ask(grpc::Status s) {
+    if (!status) status = std::move(s);
   }
-}
+  // A write that failed (the client is gone) ends the stream with
+  // CANCELLED naming it: it must still be finished.
+  void writeDone(bool ok, const char* stream) {
+    if (!ok) ask(grpc::Status(grpc::StatusCode::CANCELLED, std::string(stream) + " broken"));
+  }
+  // With no operation in flight: the status to Finish with, once.
+  std::optional<grpc::Status> due() {
+    if (finished || !status) return std::nullopt;
+    finished = true;
+    return status;
+  }
+};
 
 // With its details; a topic name or sample refused (INVALID_ARGUMENT) is
 // INVALID_REQUEST.
@@ -99,38 +115,35 @@ grpc::Status shuttingDownStatus() {
 // ---------------------------------------------------------------------------
 // Metrics
 
+namespace {
+prometheus::Family<prometheus::Counter>& counters(prometheus::Registry& registry, const char* name,
+                                                  const char* help) {
+  return prometheus::BuildCounter().Name(name).Help(help).Register(registry);
+}
+prometheus::Family<prometheus::Gauge>& gauges(prometheus::Registry& registry, const char* name,
+                                              const char* help) {
+  return prometheus::BuildGauge().Name(name).Help(help).Register(registry);
+}
+}  // namespace
+
 struct Broker::Metrics {
   explicit Metrics(prometheus::Registry& registry)
-      : samples_in(prometheus::BuildCounter()
-                       .Name("behaviorlib_channel_samples_in_total")
-                       .Help("Samples accepted from publishers, per topic.")
-                       .Register(registry)),
-        samples_out(prometheus::BuildCounter()
-                        .Name("behaviorlib_channel_samples_out_total")
-                        .Help("Samples written to subscribers, per topic.")
-                        .Register(registry)),
-        dropped(prometheus::BuildCounter()
-                    .Name("behaviorlib_channel_dropped_samples_total")
-                    .Help("Samples lost by slow subscriptions (queue overflow or replaced in "
-                          "latest-only mode), per topic.")
-                    .Register(registry)),
-        rejected(prometheus::BuildCounter()
-                     .Name("behaviorlib_channel_rejected_samples_total")
-                     .Help("Published samples refused, per reason.")
-                     .Register(registry)),
-        subscribers(prometheus::BuildGauge()
-                        .Name("behaviorlib_channel_subscribers")
-                        .Help("Current subscriptions, per topic.")
-                        .Register(registry)),
-        shm_samples(prometheus::BuildCounter()
-                        .Name("behaviorlib_channel_shm_samples_total")
-                        .Help("Samples written once to a topic's shared-memory ring, from which "
-                              "every subscriber on this host reads them, per topic.")
-                        .Register(registry)),
-        rings(prometheus::BuildGauge()
-                  .Name("behaviorlib_channel_shm_ring_bytes")
-                  .Help("Shared memory held by the topics' rings.")
-                  .Register(registry)
+      : samples_in(counters(registry, "behaviorlib_channel_samples_in_total",
+                            "Samples accepted from publishers, per topic.")),
+        samples_out(counters(registry, "behaviorlib_channel_samples_out_total",
+                             "Samples written to subscribers, per topic.")),
+        dropped(counters(registry, "behaviorlib_channel_dropped_samples_total",
+                         "Samples lost by slow subscriptions (queue overflow or replaced in "
+                         "latest-only mode), per topic.")),
+        rejected(counters(registry, "behaviorlib_channel_rejected_samples_total",
+                          "Published samples refused, per reason.")),
+        subscribers(gauges(registry, "behaviorlib_channel_subscribers",
+                           "Current subscriptions, per topic.")),
+        shm_samples(counters(registry, "behaviorlib_channel_shm_samples_total",
+                             "Samples written once to a topic's shared-memory ring, from which "
+                             "every subscriber on this host reads them, per topic.")),
+        rings(gauges(registry, "behaviorlib_channel_shm_ring_bytes",
+                     "Shared memory held by the topics' rings.")
                   .Add({})) {
     for (absl::string_view reason :
          {reject_reason::kInvalidTopic, reject_reason::kMissingSample, reject_reason::kUnknownType,
@@ -244,7 +257,7 @@ class Broker::InterestReactor final
   using Wanted = std::vector<std::pair<std::string, double>>;
   bool offer(Wanted wanted) {
     absl::MutexLock lock(&mutex_);
-    if (finish_status_.has_value() || (offered_once_ && wanted == last_offered_)) return false;
+    if (end_.asked() || (offered_once_ && wanted == last_offered_)) return false;
     offered_once_ = true;
     last_offered_ = wanted;
     pending_ = std::move(wanted);
@@ -253,12 +266,10 @@ class Broker::InterestReactor final
 
   void pump() {
     absl::ReleasableMutexLock lock(&mutex_);
-    if (busy_ || finished_) return;
-    if (finish_status_.has_value()) {
-      finished_ = true;
-      const grpc::Status status = *finish_status_;
+    if (busy_ || end_.finished) return;
+    if (std::optional<grpc::Status> status = end_.due()) {
       lock.Release();
-      Finish(status);
+      Finish(*status);
       return;
     }
     if (!pending_) return;
@@ -276,7 +287,7 @@ class Broker::InterestReactor final
   void requestFinish(grpc::Status status) {
     {
       absl::MutexLock lock(&mutex_);
-      if (!finish_status_.has_value()) finish_status_ = std::move(status);
+      end_.ask(std::move(status));
       pending_.reset();
     }
     pump();
@@ -287,7 +298,7 @@ class Broker::InterestReactor final
     {
       absl::MutexLock lock(&mutex_);
       busy_ = false;
-      endOnFailedWrite(ok, "interest stream", &finish_status_);
+      end_.writeDone(ok, "interest stream");
     }
     pump();
   }
@@ -312,8 +323,7 @@ class Broker::InterestReactor final
   Wanted last_offered_ ABSL_GUARDED_BY(mutex_);
   std::optional<Wanted> pending_ ABSL_GUARDED_BY(mutex_);
   bool busy_ ABSL_GUARDED_BY(mutex_) = false;
-  std::optional<grpc::Status> finish_status_ ABSL_GUARDED_BY(mutex_);
-  bool finished_ ABSL_GUARDED_BY(mutex_) = false;
+  StreamEnd end_ ABSL_GUARDED_BY(mutex_);
   v1::WatchInterestResponse current_;  // owned by whoever set busy_
 };
 
@@ -383,7 +393,7 @@ class Broker::SubscribeReactor final
   bool offer(const Sample& sample) {
     if (ring_) return false;
     absl::MutexLock lock(&mutex_);
-    if (finish_status_.has_value()) return false;
+    if (end_.asked()) return false;
     // In QUEUE mode the sample being written counts against queue_size (it
     // is not delivered yet), but one new sample is always kept.
     const std::size_t capacity =
@@ -402,12 +412,10 @@ class Broker::SubscribeReactor final
   // Starts the next operation if none is in flight.
   void pump() {
     absl::ReleasableMutexLock lock(&mutex_);
-    if (busy_ || finished_) return;
-    if (finish_status_.has_value()) {
-      finished_ = true;
-      const grpc::Status status = *finish_status_;
+    if (busy_ || end_.finished) return;
+    if (std::optional<grpc::Status> status = end_.due()) {
       lock.Release();
-      Finish(status);
+      Finish(*status);
       return;
     }
     if (pending_.empty()) return;
@@ -439,7 +447,7 @@ class Broker::SubscribeReactor final
   void requestFinish(grpc::Status status) {
     {
       absl::MutexLock lock(&mutex_);
-      if (!finish_status_.has_value()) finish_status_ = std::move(status);
+      end_.ask(std::move(status));
       pending_.clear();
     }
     pump();
@@ -499,9 +507,8 @@ class Broker::SubscribeReactor final
       absl::MutexLock lock(&mutex_);
       busy_ = false;
       writing_sample_ = false;
-      if (!ok && !finish_status_.has_value()) {
-        // The stream is broken (client gone); it must still be finished.
-        finish_status_ = grpc::Status(grpc::StatusCode::CANCELLED, "subscriber stream broken");
+      if (!ok) {
+        end_.writeDone(ok, "subscriber stream");
         pending_.clear();
       }
     }
@@ -528,8 +535,7 @@ class Broker::SubscribeReactor final
   uint64_t dropped_ ABSL_GUARDED_BY(mutex_) = 0;
   bool busy_ ABSL_GUARDED_BY(mutex_) = false;            // an operation is in flight
   bool writing_sample_ ABSL_GUARDED_BY(mutex_) = false;  // ... and it is a sample write
-  std::optional<grpc::Status> finish_status_ ABSL_GUARDED_BY(mutex_);
-  bool finished_ ABSL_GUARDED_BY(mutex_) = false;  // Finish was called
+  StreamEnd end_ ABSL_GUARDED_BY(mutex_);
   // A rate-limited subscription's next write, and the alarm that pumps then.
   std::chrono::steady_clock::time_point next_write_ ABSL_GUARDED_BY(mutex_) = {};
   bool alarm_armed_ ABSL_GUARDED_BY(mutex_) = false;
@@ -710,14 +716,12 @@ class Broker::AckedPublishReactor final
 
   void start() {
     absl::MutexLock lock(&mutex_);
-    if (!finish_status_.has_value()) {
-      StartRead(&request_);
-    }
+    if (!end_.asked()) StartRead(&request_);
   }
 
   void requestFinish(const grpc::Status& status) override {
     absl::MutexLock lock(&mutex_);
-    if (!finish_status_.has_value()) finish_status_ = status;
+    end_.ask(status);
     pumpLocked();
   }
 
@@ -727,7 +731,7 @@ class Broker::AckedPublishReactor final
       // The client half-closed (or the call ended): answer what was asked,
       // then end.
       absl::MutexLock lock(&mutex_);
-      if (!finish_status_.has_value()) finish_status_ = grpc::Status::OK;
+      end_.ask(grpc::Status::OK);
       pumpLocked();
       return;
     }
@@ -737,7 +741,7 @@ class Broker::AckedPublishReactor final
     }
     absl::MutexLock lock(&mutex_);
     if (!status.ok()) {
-      if (!finish_status_.has_value()) finish_status_ = status;
+      end_.ask(status);
       acks_.clear();  // the client learns of the refusal from the stream's end
       pumpLocked();
       return;
@@ -746,9 +750,7 @@ class Broker::AckedPublishReactor final
       acks_.emplace_back();
       reportLocked(&acks_.back());
     }
-    if (!finish_status_.has_value()) {
-      StartRead(&request_);
-    }
+    if (!end_.asked()) StartRead(&request_);
     pumpLocked();
   }
 
@@ -756,7 +758,7 @@ class Broker::AckedPublishReactor final
     ordered();
     absl::MutexLock lock(&mutex_);
     writing_ = false;
-    endOnFailedWrite(ok, "publisher stream", &finish_status_);
+    end_.writeDone(ok, "publisher stream");
     pumpLocked();
   }
 
@@ -769,8 +771,8 @@ class Broker::AckedPublishReactor final
  private:
   // Writes the next answer, or finishes once nothing is in flight.
   void pumpLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-    if (writing_ || finished_) return;
-    if (!acks_.empty() && (!finish_status_.has_value() || finish_status_->ok())) {
+    if (writing_ || end_.finished) return;
+    if (!acks_.empty() && (!end_.asked() || end_.status->ok())) {
       current_ = std::move(acks_.front());
       acks_.pop_front();
       writing_ = true;
@@ -778,18 +780,14 @@ class Broker::AckedPublishReactor final
       return;
     }
     // A read may still be pending: it then completes, not ok.
-    if (finish_status_.has_value()) {
-      finished_ = true;
-      Finish(*finish_status_);
-    }
+    if (std::optional<grpc::Status> status = end_.due()) Finish(*status);
   }
 
   v1::PublishRequest request_;  // used by one read at a time
   std::deque<v1::PublishResponse> acks_ ABSL_GUARDED_BY(mutex_);
   v1::PublishResponse current_ ABSL_GUARDED_BY(mutex_);  // the answer being written
   bool writing_ ABSL_GUARDED_BY(mutex_) = false;
-  bool finished_ ABSL_GUARDED_BY(mutex_) = false;
-  std::optional<grpc::Status> finish_status_ ABSL_GUARDED_BY(mutex_);
+  StreamEnd end_ ABSL_GUARDED_BY(mutex_);
 };
 
 // ---------------------------------------------------------------------------

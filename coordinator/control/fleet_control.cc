@@ -80,8 +80,11 @@ class FleetControl::StepActions final : public PlanActions {
     return response->activation_id();
   }
 
+  // The plan runs under the robot's lock (activateBehavior).
   absl::Status deactivate(const std::string& behavior) override {
-    return fleet_.deactivateBehavior(robot_id_, behavior, "").status();
+    Registry::Route route;
+    if (auto s = fleet_.route(robot_id_, behavior, &route); !s.ok()) return s;
+    return fleet_.deactivateLocked(route, robot_id_, behavior, "").status();
   }
 
   v1::ActivateResponse target_response_;
@@ -200,10 +203,10 @@ std::optional<FinishedActivation> FleetControl::awaitFinished(const std::string&
   return it->second;
 }
 
-std::recursive_mutex& FleetControl::robotLock(const std::string& robot_id) {
+absl::Mutex& FleetControl::robotLock(const std::string& robot_id) {
   absl::MutexLock lock(&locks_mutex_);
   auto& slot = robot_locks_[robot_id];
-  if (!slot) slot = std::make_unique<std::recursive_mutex>();
+  if (!slot) slot = std::make_unique<absl::Mutex>();
   return *slot;
 }
 
@@ -304,7 +307,7 @@ absl::StatusOr<FleetControl::ActivateResult> FleetControl::activateBehavior(
   ActivateResult result;
   result.system = target_route.system;
 
-  std::lock_guard robot_lock(robotLock(request.robot_id));
+  absl::MutexLock robot_lock(&robotLock(request.robot_id));
   if (request.skip_plan) {
     result.plan = {request.robot_id, request.behavior, {}};
     result.plan.steps.push_back({StepKind::kActivate, request.behavior, request.parameters,
@@ -367,7 +370,13 @@ absl::StatusOr<v1::DeactivateResponse> FleetControl::deactivateBehavior(
   Registry::Route r;
   if (auto s = route(robot_id, behavior, &r); !s.ok()) return s;
   if (system != nullptr) *system = r.system;
-  std::lock_guard robot_lock(robotLock(robot_id));
+  absl::MutexLock robot_lock(&robotLock(robot_id));
+  return deactivateLocked(r, robot_id, behavior, activation_id);
+}
+
+absl::StatusOr<v1::DeactivateResponse> FleetControl::deactivateLocked(
+    const Registry::Route& r, const std::string& robot_id, const std::string& behavior,
+    const std::string& activation_id) {
   auto response = callDeactivate(r, behavior, activation_id);
   if (!response.ok()) {
     // Inactive already is what the caller wants.

@@ -30,7 +30,6 @@
 #include <functional>
 #include <map>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <set>
 #include <string>
@@ -130,8 +129,15 @@ class FleetControl final : public MissionActions {
  private:
   class StepActions;
 
-  // The robot's serialization lock.
-  std::recursive_mutex& robotLock(const std::string& robot_id);
+  // The robot's serialization lock: one plan or deactivation at a time per
+  // robot. Never taken twice by one thread: a plan's steps deactivate with
+  // deactivateLocked().
+  absl::Mutex& robotLock(const std::string& robot_id);
+  // deactivateBehavior()'s work, the robot's lock held by the caller.
+  absl::StatusOr<v1::DeactivateResponse> deactivateLocked(const Registry::Route& route,
+                                                          const std::string& robot_id,
+                                                          const std::string& behavior,
+                                                          const std::string& activation_id);
   // Calls a system; the status names robot, system and address.
   absl::Status route(const std::string& robot_id, const std::string& behavior,
                      Registry::Route* out) const;
@@ -179,10 +185,7 @@ class FleetControl final : public MissionActions {
   const FleetControlOptions options_;
 
   absl::Mutex locks_mutex_;
-  // Recursive (a plan's steps deactivate under the robot's lock already
-  // held), which absl::Mutex is not: these stay std::recursive_mutex.
-  std::map<std::string, std::unique_ptr<std::recursive_mutex>> robot_locks_
-      ABSL_GUARDED_BY(locks_mutex_);
+  std::map<std::string, std::unique_ptr<absl::Mutex>> robot_locks_ ABSL_GUARDED_BY(locks_mutex_);
 
   mutable absl::Mutex index_mutex_;
   bool stopped_ ABSL_GUARDED_BY(index_mutex_) = false;

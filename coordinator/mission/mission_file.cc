@@ -4,6 +4,8 @@
 #include <fstream>
 #include <sstream>
 
+#include "absl/strings/str_join.h"
+#include "behaviorlib/parameters.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/common/parameter_types.h"
 #include "coordinator/common/yaml_support.h"
@@ -301,48 +303,120 @@ bool literalMatches(const v1::ParameterSchema& schema, const google::protobuf::V
   return valueHasType(schema, value);
 }
 
-absl::Status checkSteps(const MissionSpec& mission, const std::vector<MissionStep>& steps,
-                        const BehaviorLookup& lookup) {
-  for (const auto& step : steps) {
-    const std::string where = cat(mission.file, ":", step.line, ": ");
-    if (!step.behavior.empty()) {
-      const v1::BehaviorDescription* d = lookup(step.behavior);
-      if (d == nullptr) {
-        return stepError(
-            step.path + ".behavior",
-            cat(where, "behavior ", step.behavior, " is not hosted by any registered system",
-                mission.robot_id.empty() ? "" : " of robot '" + mission.robot_id + "'"));
+// What a check found: every problem with its field path, at most
+// kMaxProblems of them (the count of the others is said).
+class Problems {
+ public:
+  static constexpr std::size_t kMaxProblems = 50;
+
+  void add(std::string field, std::string message) {
+    if (list_.size() < kMaxProblems) {
+      list_.emplace_back(std::move(field), std::move(message));
+    } else {
+      ++left_out_;
+    }
+  }
+
+  // OK, or INVALID_ARGUMENT MISSION_INVALID: the message lists every
+  // problem, one a line; each is a field violation.
+  absl::Status status() const {
+    if (list_.empty()) return absl::OkStatus();
+    std::vector<std::string> lines;
+    for (const auto& [field, message] : list_) lines.push_back(message);
+    if (left_out_ > 0) lines.push_back(cat("... and ", left_out_, " more"));
+    const std::size_t count = list_.size() + left_out_;
+    absl::Status status = absl::InvalidArgumentError(
+        count == 1 ? lines.front()
+                   : cat(count, " problems in the mission:\n  ", absl::StrJoin(lines, "\n  ")));
+    for (const auto& [field, message] : list_) {
+      status = errors::withFieldViolation(status, field, message);
+    }
+    return errors::withReason(status, v1::MISSION_INVALID);
+  }
+
+ private:
+  std::vector<std::pair<std::string, std::string>> list_;
+  std::size_t left_out_ = 0;
+};
+
+// A literal number (or each number of a literal list) outside the schema's
+// range, as the behavior would refuse it at activation.
+std::optional<std::string> outOfRange(const v1::ParameterSchema& schema,
+                                      const google::protobuf::Value& value,
+                                      const std::string& key) {
+  if (!schema.has_range()) return std::nullopt;
+  const v1::Range& range = schema.range();
+  auto outside = [&](double v) {
+    return (range.has_min() && v < range.min()) || (range.has_max() && v > range.max());
+  };
+  if (value.has_number_value() && outside(value.number_value())) {
+    return cat("parameter '", key, "' = ", params::numberText(value.number_value()),
+               " is out of range ", params::rangeText(range));
+  }
+  if (value.has_list_value()) {
+    const auto& items = value.list_value().values();
+    for (int i = 0; i < items.size(); ++i) {
+      if (items[i].has_number_value() && outside(items[i].number_value())) {
+        return cat("parameter '", key, "[", i, "]' = ", params::numberText(items[i].number_value()),
+                   " is out of range ", params::rangeText(range));
       }
-      for (const auto& [key, value] : step.parameters.fields()) {
-        const auto line_it = step.parameter_lines.find(key);
-        const std::string at =
-            cat(mission.file, ":",
-                line_it == step.parameter_lines.end() ? step.line : line_it->second, ": ");
-        const v1::ParameterSchema* schema = nullptr;
-        std::vector<std::string> known;
-        for (const auto& p : d->parameters()) {
-          known.push_back(p.name());
-          if (p.name() == key) schema = &p;
-        }
-        const std::string field = cat(step.path, ".parameters.", key);
-        if (schema == nullptr) {
-          return stepError(
-              field, cat(at, step.behavior, " has no parameter '", key,
-                         "' (its parameters: ", known.empty() ? "none" : yaml::join(known), ")"));
-        }
-        if (!literalMatches(*schema, value)) {
-          return stepError(field, cat(at, step.behavior, " parameter '", key, "' must be ",
-                                      schema->repeated() ? "a list of " : "a ", schema->type()));
-        }
+    }
+  }
+  return std::nullopt;
+}
+
+void checkParameters(const MissionSpec& mission, const MissionStep& step,
+                     const v1::BehaviorDescription& d, Problems* problems) {
+  std::vector<std::string> known;
+  for (const auto& p : d.parameters()) known.push_back(p.name());
+  for (const auto& [key, value] : step.parameters.fields()) {
+    const auto line_it = step.parameter_lines.find(key);
+    const std::string at =
+        cat(mission.file, ":", line_it == step.parameter_lines.end() ? step.line : line_it->second,
+            ": ");
+    const std::string field = cat(step.path, ".parameters.", key);
+    const v1::ParameterSchema* schema = nullptr;
+    for (const auto& p : d.parameters()) {
+      if (p.name() == key) schema = &p;
+    }
+    if (schema == nullptr) {
+      problems->add(field, cat(at, step.behavior, " has no parameter '", key, "' (its parameters: ",
+                               known.empty() ? "none" : yaml::join(known), ")"));
+    } else if (!literalMatches(*schema, value)) {
+      problems->add(field, cat(at, step.behavior, " parameter '", key, "' must be ",
+                               schema->repeated() ? "a list of " : "a ", schema->type()));
+    } else if (auto range = outOfRange(*schema, value, key)) {
+      problems->add(field, cat(at, step.behavior, " ", *range));
+    }
+  }
+  for (const auto& p : d.parameters()) {
+    if (p.required() && p.default_json().empty() && !step.parameters.fields().contains(p.name())) {
+      problems->add(cat(step.path, ".parameters.", p.name()),
+                    cat(mission.file, ":", step.line, ": ", step.behavior, " needs parameter '",
+                        p.name(), "'", p.description().empty() ? "" : ": " + p.description()));
+    }
+  }
+}
+
+void checkSteps(const MissionSpec& mission, const std::vector<MissionStep>& steps,
+                const BehaviorLookup& lookup, Problems* problems) {
+  for (const auto& step : steps) {
+    if (!step.behavior.empty()) {
+      if (const v1::BehaviorDescription* d = lookup(step.behavior)) {
+        checkParameters(mission, step, *d, problems);
+      } else {
+        problems->add(step.path + ".behavior",
+                      cat(mission.file, ":", step.line, ": behavior ", step.behavior,
+                          " is not hosted by any registered system",
+                          mission.robot_id.empty() ? "" : " of robot '" + mission.robot_id + "'"));
       }
     }
     for (const auto& [cause, action] : step.on) {
       for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
-        if (auto s = checkSteps(mission, a->fallback, lookup); !s.ok()) return s;
+        checkSteps(mission, a->fallback, lookup, problems);
       }
     }
   }
-  return absl::OkStatus();
 }
 
 }  // namespace
@@ -371,10 +445,11 @@ absl::StatusOr<MissionSpec> loadMission(const std::string& path) {
 }
 
 absl::Status checkMission(const MissionSpec& mission, const BehaviorLookup& lookup) {
+  Problems problems;
   for (const auto* list : {&mission.recurrent, &mission.steps, &mission.safety}) {
-    if (auto s = checkSteps(mission, *list, lookup); !s.ok()) return s;
+    checkSteps(mission, *list, lookup, &problems);
   }
-  return absl::OkStatus();
+  return problems.status();
 }
 
 std::string causeName(v1::TerminationCause cause) {

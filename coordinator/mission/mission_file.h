@@ -32,7 +32,9 @@
 // parameters, situation). A recurrent behavior that finishes during the
 // mission aborts it. A step may have no behavior and only `remember`.
 //
-// Every problem is INVALID_ARGUMENT "<file>:<line>: <what>: <problem>".
+// A problem of the file's form is INVALID_ARGUMENT "<file>:<line>: <what>:
+// <problem>"; checkMission() then lists every problem against the registered
+// behaviors.
 
 #include <google/protobuf/struct.pb.h>
 
@@ -116,9 +118,12 @@ absl::StatusOr<MissionSpec> loadMission(const std::string& path);
 using BehaviorLookup = std::function<const v1::BehaviorDescription*(const std::string& behavior)>;
 
 /// Checks a parsed mission against what is registered, before anything
-/// flies: every behavior is hosted, every parameter is one of the
-/// behavior's, and literal values have the parameter's JSON type (bindings
-/// are checked when they are resolved). INVALID_ARGUMENT with file and line.
+/// flies, and finds every problem at once: a behavior that no system hosts,
+/// a parameter the behavior does not have, a literal value of the wrong JSON
+/// type or out of the parameter's range, a required parameter missing
+/// (bindings are checked when they are resolved). INVALID_ARGUMENT
+/// MISSION_INVALID: the message lists each problem with file:line, one a
+/// line (at most 50, then how many more); each is a field violation.
 absl::Status checkMission(const MissionSpec& mission, const BehaviorLookup& lookup);
 
 /// "GOAL_ACHIEVED", ... for a TerminationCause.

@@ -730,13 +730,32 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
                                             "hosted"),
             std::string::npos)
       << bad.status.error_message();
+  // Every problem at once, before anything flies: a parameter out of its
+  // range (the TAKE_OFF at 500 m, which used to fly the WAIT before
+  // it) and a behavior nobody hosts, each with its line.
+  bad = startMissionText(
+      "robot: drone1\nsteps:\n  - behavior: WAIT\n    parameters: {duration_s: 1}\n"
+      "  - behavior: TAKE_OFF\n    parameters: {altitude_m: 500}\n"
+      "  - behavior: FLY_TO_THE_MOON\n");
+  ASSERT_EQ(bad.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(bad.status);
+  for (const char* part : {"2 problems in the mission",
+                           "<mission text>:6: TAKE_OFF parameter 'altitude_m' = 500 is out of "
+                           "range [0.2, 30]",
+                           "<mission text>:7: behavior FLY_TO_THE_MOON is not hosted"}) {
+    EXPECT_NE(bad.status.error_message().find(part), std::string::npos)
+        << part << " in " << bad.status.error_message();
+  }
   auto listed = unary(*stub_, &v1::Coordinator::Stub::ListMissions, v1::ListMissionsRequest());
   ASSERT_TRUE(listed.status.ok());
   EXPECT_EQ(listed.response.missions_size(), 0) << "no mission was started";
   EXPECT_FALSE(events.waitFor([](const v1::BehaviorEvent&) { return true; }, milliseconds(200)))
       << "nothing was activated";
 
-  // REFUSED: WAIT beyond its range (the system refuses it) -> continue.
+  // REFUSED: WAIT beyond its range -> continue. A literal out of range is
+  // refused at StartMission (above); a belief's value is known only when
+  // its step starts, and the system refuses it then.
+  ASSERT_TRUE(writeBelief("drone1/too_long_s", "100000").status.ok());
+  ASSERT_TRUE(writeBelief("drone1/negative_s", "-1").status.ok());
   // TIME_OUT: the dead reckoning with a 0.3 s limit, retried once, then a
   // fallback. WRONG_PROGRESS: the dead reckoning's drift bound (5 mm/s)
   // passes a 5 cm limit after 10 s -> continue. A step whose condition does
@@ -747,7 +766,7 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
       "steps:\n"
       "  - name: too_long\n"
       "    behavior: WAIT\n"
-      "    parameters: {duration_s: 100000}\n"
+      "    parameters: {duration_s: \"${belief.drone1/too_long_s}\"}\n"
       "    on:\n"
       "      REFUSED: continue\n"
       "  - name: reckon\n"
@@ -824,7 +843,7 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
       "steps:\n"
       "  - name: too_long\n"
       "    behavior: WAIT\n"
-      "    parameters: {duration_s: -1}\n"
+      "    parameters: {duration_s: \"${belief.drone1/negative_s}\"}\n"
       "  - name: never\n"
       "    behavior: WAIT\n"
       "    parameters: {duration_s: 0.1}\n");
@@ -949,7 +968,8 @@ TEST_F(CoordinatorPlansMissionsTest, PauseResumeAndAbortWhichRunsTheSafetyStepLa
   const std::string hold_id = holding->steps(2).activation_id();
   ASSERT_TRUE(events.activated(hold_id));
   // One mission per robot at a time.
-  auto second = startMissionText("robot: drone1\nsteps:\n  - behavior: WAIT\n");
+  auto second = startMissionText(
+      "robot: drone1\nsteps:\n  - behavior: WAIT\n    parameters: {duration_s: 1}\n");
   EXPECT_EQ(second.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION)
       << describe(second.status);
   EXPECT_NE(second.status.error_message().find("hold-1"), std::string::npos)

@@ -672,7 +672,7 @@ absl::Status applyDefault(const v1::ParameterRule& rule, const FD& field, pb::Me
   return absl::OkStatus();
 }
 
-std::string rangeText(const v1::Range& range) {
+std::string describeRange(const v1::Range& range) {
   return absl::StrCat(
       range.has_min() ? absl::StrCat("[", formatNumber(range.min())) : std::string("(-inf"), ", ",
       range.has_max() ? absl::StrCat(formatNumber(range.max()), "]") : std::string("+inf)"));
@@ -730,10 +730,10 @@ absl::Status checkNumeric(const pb::Message& m, const FD& field, int index,
   if (!rule.has_range()) return absl::OkStatus();
   const v1::Range& range = rule.range();
   if ((range.has_min() && n->value < range.min()) || (range.has_max() && n->value > range.max())) {
-    return fieldError(
-        path,
-        absl::StrCat("parameter '", path, "' = ", n->text, " is out of range ", rangeText(range)),
-        v1::PARAMETER_OUT_OF_RANGE);
+    return fieldError(path,
+                      absl::StrCat("parameter '", path, "' = ", n->text, " is out of range ",
+                                   describeRange(range)),
+                      v1::PARAMETER_OUT_OF_RANGE);
   }
   return absl::OkStatus();
 }
@@ -1005,5 +1005,9 @@ std::string unitOfFieldName(std::string_view name) {
   }
   return std::string(unit);
 }
+
+std::string numberText(double value) { return formatNumber(value); }
+
+std::string rangeText(const v1::Range& range) { return describeRange(range); }
 
 }  // namespace behaviorlib::params

@@ -3,6 +3,9 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <map>
+#include <string>
+
 #include "behaviorlib/error_details.h"
 
 namespace behaviorlib::coordinator {
@@ -167,6 +170,104 @@ TEST(MissionFile, CheckedAgainstTheRegisteredBehaviorsBeforeAnythingFlies) {
   ASSERT_TRUE(errors::badRequest(in_fallback).has_value());
   EXPECT_EQ(errors::badRequest(in_fallback)->field_violations(0).field(),
             "steps[0].on.WRONG_PROGRESS.fallback[0].behavior");
+}
+
+// Every problem at once, each with its line: a mission with four mistakes
+// on four lines is refused naming all four, before anything flies.
+TEST(MissionFile, TheCheckFindsEveryProblemAtOnceWithItsLine) {
+  auto mission = parseMission(R"(name: four_mistakes
+robot: drone1
+steps:
+  - name: wait
+    behavior: WAIT
+    parameters: {duration_s: 2}
+  - name: take_off
+    behavior: TAKE_OFF
+    parameters:
+      altitude_m: 500
+  - name: fly
+    behavior: FOLLW_PATH
+  - name: land
+    behavior: LAND
+    parameters: {speed: 1}
+  - name: climb
+    behavior: TAKE_OFF
+    parameters: {altitude_m: [1, 2]}
+)",
+                              "four.yaml");
+  ASSERT_TRUE(mission.ok()) << mission.status();
+  std::map<std::string, v1::BehaviorDescription> registered;
+  for (const char* name : {"WAIT", "TAKE_OFF", "LAND"})
+    registered[name] = v1::BehaviorDescription();
+  auto* duration = registered["WAIT"].add_parameters();
+  duration->set_name("duration_s");
+  duration->set_type("number");
+  duration->set_required(true);
+  auto* altitude = registered["TAKE_OFF"].add_parameters();
+  altitude->set_name("altitude_m");
+  altitude->set_type("number");
+  altitude->mutable_range()->set_min(0.2);
+  altitude->mutable_range()->set_max(30);
+  auto lookup = [&](const std::string& b) -> const v1::BehaviorDescription* {
+    auto it = registered.find(b);
+    return it == registered.end() ? nullptr : &it->second;
+  };
+  const absl::Status checked = checkMission(*mission, lookup);
+  EXPECT_EQ(checked.code(), absl::StatusCode::kInvalidArgument);
+  EXPECT_EQ(errors::reasonOf(checked), "MISSION_INVALID");
+  const std::string message(checked.message());
+  EXPECT_THAT(message, HasSubstr("4 problems in the mission"));
+  EXPECT_THAT(message,
+              HasSubstr("four.yaml:10: TAKE_OFF parameter 'altitude_m' = 500 is out of range "
+                        "[0.2, 30]"));
+  EXPECT_THAT(message, HasSubstr("four.yaml:11: behavior FOLLW_PATH is not hosted by any "
+                                 "registered system of robot 'drone1'"));
+  EXPECT_THAT(message, HasSubstr("four.yaml:15: LAND has no parameter 'speed'"));
+  EXPECT_THAT(message, HasSubstr("four.yaml:18: TAKE_OFF parameter 'altitude_m' must be a number"));
+  auto violations = errors::badRequest(checked);
+  ASSERT_TRUE(violations.has_value());
+  ASSERT_EQ(violations->field_violations_size(), 4);
+  EXPECT_EQ(violations->field_violations(0).field(), "steps[1].parameters.altitude_m");
+  EXPECT_EQ(violations->field_violations(1).field(), "steps[2].behavior");
+  EXPECT_EQ(violations->field_violations(2).field(), "steps[3].parameters.speed");
+  EXPECT_EQ(violations->field_violations(3).field(), "steps[4].parameters.altitude_m");
+
+  // A required parameter left out; a value in range and a list within it pass.
+  auto bad_wait = parseMission(
+      "steps:\n  - behavior: WAIT\n  - behavior: TAKE_OFF\n"
+      "    parameters: {altitude_m: 30}\n",
+      "w.yaml");
+  ASSERT_TRUE(bad_wait.ok()) << bad_wait.status();
+  const absl::Status missing = checkMission(*bad_wait, lookup);
+  EXPECT_EQ(std::string(missing.message()), "w.yaml:2: WAIT needs parameter 'duration_s'");
+  altitude->set_repeated(true);
+  auto in_range = parseMission(
+      "steps:\n  - behavior: TAKE_OFF\n    parameters: {altitude_m: "
+      "[0.2, 30]}\n",
+      "r.yaml");
+  ASSERT_TRUE(in_range.ok());
+  EXPECT_TRUE(checkMission(*in_range, lookup).ok());
+  auto list_out = parseMission(
+      "steps:\n  - behavior: TAKE_OFF\n    parameters: {altitude_m: "
+      "[1, 0.1]}\n",
+      "r.yaml");
+  ASSERT_TRUE(list_out.ok());
+  EXPECT_THAT(std::string(checkMission(*list_out, lookup).message()),
+              HasSubstr("parameter 'altitude_m[1]' = 0.1 is out of range [0.2, 30]"));
+}
+
+// At most 50 problems are listed; the rest are counted.
+TEST(MissionFile, TheCheckListsAtMostFiftyProblems) {
+  std::string text = "steps:\n";
+  for (int i = 0; i < 60; ++i) text += "  - behavior: NOT_HOSTED_" + std::to_string(i) + "\n";
+  auto mission = parseMission(text, "many.yaml");
+  ASSERT_TRUE(mission.ok()) << mission.status();
+  const absl::Status checked = checkMission(
+      *mission, [](const std::string&) -> const v1::BehaviorDescription* { return nullptr; });
+  EXPECT_THAT(std::string(checked.message()), HasSubstr("60 problems in the mission"));
+  EXPECT_THAT(std::string(checked.message()), HasSubstr("... and 10 more"));
+  ASSERT_TRUE(errors::badRequest(checked).has_value());
+  EXPECT_EQ(errors::badRequest(checked)->field_violations_size(), 50);
 }
 
 }  // namespace

@@ -57,6 +57,12 @@ void mergeUpdate(const google::protobuf::Message& update, google::protobuf::Mess
 void describe(const google::protobuf::Descriptor& descriptor,
               google::protobuf::RepeatedPtrField<v1::ParameterSchema>* out);
 
+/// A number as the parameter errors print it: the shortest text that reads
+/// back to the same double ("0.2", "30", "1e-06").
+std::string numberText(double value);
+/// A range as the parameter errors print it: "[0.2, 30]", "(-inf, 3]".
+std::string rangeText(const v1::Range& range);
+
 /// The unit carried by a field name's suffix ("duration_s" -> "s",
 /// "speed_m_s" -> "m/s", "yaw_rad" -> "rad", "accel_m_s2" -> "m/s^2",
 /// "rate_hz" -> "Hz"), or "" if none is recognised.

@@ -1,7 +1,8 @@
 #pragma once
 
 // Mission files (YAML): what a mission activates, in which order, and what
-// each termination cause leads to.
+// each termination cause leads to. The grammar, with an example a construct
+// (each run by coordinator_plans_missions_test), is docs/missions.md.
 //
 //   name: inspect_and_land
 //   robot: drone1                       # the start request may name another

@@ -861,6 +861,68 @@ TEST_F(CoordinatorPlansMissionsTest, MissionsBranchOnTerminationCausesAndBadFile
   EXPECT_EQ(safety->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
 }
 
+// docs/missions.md, the grammar's one page: each ```yaml block is a whole
+// mission, and the comment above it says what it does (SUCCEEDED, FAILED,
+// or refused at StartMission, with the lines of the ```text block that
+// follows in its message). Every example is run here, as the page says.
+TEST_F(CoordinatorPlansMissionsTest, DocumentedMissionsRunAsDocumented) {
+  std::ifstream in(BEHAVIORLIB_MISSIONS_DOC_PATH);
+  ASSERT_TRUE(in) << "cannot read " << BEHAVIORLIB_MISSIONS_DOC_PATH;
+  struct Example {
+    int line = 0;
+    std::string expect;
+    std::string yaml;
+    std::vector<std::string> refusal;
+  };
+  std::vector<Example> examples;
+  std::string expect;
+  std::string line;
+  enum class In { kProse, kYaml, kText } in_block = In::kProse;
+  for (int number = 1; std::getline(in, line); ++number) {
+    if (in_block != In::kProse) {
+      if (line == "```") {
+        in_block = In::kProse;
+      } else if (in_block == In::kYaml) {
+        examples.back().yaml += line + "\n";
+      } else if (!examples.empty() && examples.back().expect == "refused" &&
+                 line.find_first_not_of(' ') != std::string::npos) {
+        examples.back().refusal.push_back(line.substr(line.find_first_not_of(' ')));
+      }
+      continue;
+    }
+    if (line.rfind("<!-- expect: ", 0) == 0) {
+      expect = line.substr(13, line.find(" -->") - 13);
+    } else if (line == "```yaml") {
+      ASSERT_FALSE(expect.empty()) << "docs/missions.md:" << number << ": no expect comment above";
+      examples.push_back({number, expect, "", {}});
+      expect.clear();
+      in_block = In::kYaml;
+    } else if (line == "```text") {
+      in_block = In::kText;
+    }
+  }
+  ASSERT_GE(examples.size(), 6u) << "the page lost its examples";
+  for (const Example& example : examples) {
+    SCOPED_TRACE("docs/missions.md:" + std::to_string(example.line) + " (" + example.expect + ")");
+    if (example.expect == "refused") {
+      auto refused = startMissionText(example.yaml);
+      EXPECT_EQ(refused.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+          << describe(refused.status);
+      EXPECT_FALSE(example.refusal.empty()) << "a refused example shows its refusal";
+      for (const std::string& part : example.refusal) {
+        EXPECT_NE(refused.status.error_message().find(part), std::string::npos)
+            << part << " in " << refused.status.error_message();
+      }
+      continue;
+    }
+    v1::MissionState state = v1::MISSION_STATE_UNSPECIFIED;
+    ASSERT_TRUE(v1::MissionState_Parse("MISSION_STATE_" + example.expect, &state))
+        << example.expect;
+    const v1::MissionStatus done = runMission(example.yaml, seconds(60));
+    EXPECT_EQ(done.state(), state) << json(done);
+  }
+}
+
 // ${belief.key} in a step's parameters takes the belief's value (a path
 // written by an operator, flown by FOLLOW_PATH); WatchBeliefs streams the
 // current beliefs, then new ones (the mission's own `remember` included).

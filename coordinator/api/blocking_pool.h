@@ -33,8 +33,7 @@ class BlockingPool {
       absl::MutexLock lock(&mutex_);
       if (stopping_) return false;
       tasks_.push_back(std::move(task));
-    }
-    cv_.Signal();
+    }  // a waiting thread's Await sees the task at this unlock
     return true;
   }
 
@@ -44,7 +43,6 @@ class BlockingPool {
       absl::MutexLock lock(&mutex_);
       stopping_ = true;
     }
-    cv_.SignalAll();
     for (auto& t : threads_) {
       if (t.joinable()) t.join();
     }
@@ -56,7 +54,7 @@ class BlockingPool {
       std::function<void()> task;
       {
         absl::MutexLock lock(&mutex_);
-        while (!stopping_ && tasks_.empty()) cv_.Wait(&mutex_);
+        mutex_.Await(absl::Condition(this, &BlockingPool::hasWorkLocked));
         if (tasks_.empty()) return;
         task = std::move(tasks_.front());
         tasks_.pop_front();
@@ -65,8 +63,12 @@ class BlockingPool {
     }
   }
 
+  bool hasWorkLocked() const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return stopping_ || !tasks_.empty();
+  }
+
+  // The threads wait on mutex_ (Mutex::Await) for a task or the stop.
   absl::Mutex mutex_;
-  absl::CondVar cv_;
   std::deque<std::function<void()>> tasks_ ABSL_GUARDED_BY(mutex_);
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   std::vector<std::thread> threads_;

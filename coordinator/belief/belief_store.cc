@@ -151,8 +151,7 @@ absl::StatusOr<v1::Belief> BeliefStore::write(const std::string& key,
     version_ = belief.version();
     account(existing == beliefs_.end() ? nullptr : &existing->second, &belief);
     beliefs_[key] = belief;
-  }
-  changed_.SignalAll();
+  }  // a waitForChanges' Await sees the new version_ at this unlock
   return belief;
 }
 
@@ -197,7 +196,6 @@ absl::Status BeliefStore::erase(const std::string& key, const std::string& write
     it->second = tombstone;
     forgetOldTombstones();
   }
-  changed_.SignalAll();
   return absl::OkStatus();
 }
 
@@ -239,11 +237,14 @@ std::vector<v1::Belief> BeliefStore::waitForChanges(uint64_t since_version,
     return out;
   };
   std::vector<v1::Belief> out = collect();
-  const auto deadline = std::chrono::steady_clock::now() + timeout;
+  const absl::Time deadline = absl::Now() + absl::FromChrono(timeout);
   while (out.empty() && !woken_) {
-    changed_.WaitWithTimeout(&mutex_,
-                             absl::FromChrono(deadline - std::chrono::steady_clock::now()));
-    if (std::chrono::steady_clock::now() >= deadline) break;  // as wait_until's timeout
+    // Until any write (a new version_) or wakeAll, then look again.
+    const uint64_t seen = version_;
+    const auto changed = [this, seen]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+      return woken_ || version_ != seen;
+    };
+    if (!mutex_.AwaitWithDeadline(absl::Condition(&changed), deadline)) break;
     out = collect();
   }
   return out;
@@ -254,7 +255,6 @@ void BeliefStore::wakeAll() {
     absl::MutexLock lock(&mutex_);
     woken_ = true;
   }
-  changed_.SignalAll();
 }
 
 absl::StatusOr<google::protobuf::Value> BeliefStore::resolveValue(

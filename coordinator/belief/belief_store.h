@@ -110,11 +110,12 @@ class BeliefStore {
 
   Journal* journal_;
   const BeliefLimits limits_;
+  // waitForChanges waits on mutex_ (Mutex::Await) for a new version_ or
+  // wakeAll.
   mutable absl::Mutex mutex_;
   size_t live_count_ ABSL_GUARDED_BY(mutex_) = 0;
   size_t live_bytes_ ABSL_GUARDED_BY(mutex_) = 0;
   std::set<std::pair<uint64_t, std::string>> tombstones_ ABSL_GUARDED_BY(mutex_);  // by version
-  mutable absl::CondVar changed_;
   std::map<std::string, v1::Belief> beliefs_ ABSL_GUARDED_BY(mutex_);  // tombstones included
   uint64_t version_ ABSL_GUARDED_BY(mutex_) = 0;
   bool woken_ ABSL_GUARDED_BY(mutex_) = false;

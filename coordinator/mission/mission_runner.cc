@@ -61,7 +61,6 @@ MissionRunner::~MissionRunner() {
     absl::MutexLock lock(&mutex_);
     quit_ = true;
   }
-  cv_.SignalAll();
   if (thread_.joinable()) thread_.join();
 }
 
@@ -80,7 +79,6 @@ absl::Status MissionRunner::pause() {
     return absl::FailedPreconditionError("mission '" + status_.mission_id() +
                                          "' is already pausing");
   pause_requested_ = true;
-  cv_.SignalAll();
   return absl::OkStatus();
 }
 
@@ -90,7 +88,6 @@ absl::Status MissionRunner::resume() {
     return absl::FailedPreconditionError("mission '" + status_.mission_id() + "' is not paused");
   }
   pause_requested_ = false;
-  cv_.SignalAll();
   return absl::OkStatus();
 }
 
@@ -104,7 +101,6 @@ absl::Status MissionRunner::abort(const std::string& reason, bool run_safety) {
   abort_requested_ = true;
   abort_reason_ = reason.empty() ? "aborted by request" : reason;
   if (!run_safety) skip_safety_ = true;
-  cv_.SignalAll();
   return absl::OkStatus();
 }
 
@@ -130,7 +126,6 @@ void MissionRunner::publish() {
     copy = status_;
   }
   if (on_change_) on_change_(copy);
-  cv_.SignalAll();
 }
 
 int MissionRunner::addRecord(v1::MissionStepRecord record) {
@@ -358,7 +353,10 @@ MissionRunner::Flow MissionRunner::waitWhilePaused() {
     publish();
     mutex_.Lock();
   }
-  while (!quit_ && !abort_requested_ && pause_requested_) cv_.Wait(&mutex_);
+  const auto paused = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return quit_ || abort_requested_ || !pause_requested_;
+  };
+  mutex_.Await(absl::Condition(&paused));
   Flow flow = Flow::kDone;
   bool resumed = false;
   if (quit_) {

@@ -132,8 +132,9 @@ class MissionRunner {
   BeliefStore& beliefs_;
   OnChange on_change_;
 
+  // The runner waits on mutex_ (Mutex::Await) while paused; waitFinished
+  // for done_.
   mutable absl::Mutex mutex_;
-  mutable absl::CondVar cv_;
   v1::MissionStatus status_ ABSL_GUARDED_BY(mutex_);
   bool quit_ ABSL_GUARDED_BY(mutex_) = false;
   bool abort_requested_ ABSL_GUARDED_BY(mutex_) = false;

@@ -144,9 +144,8 @@ void SafetyController::stop() {
   {
     absl::MutexLock lock(&mutex_);
     if (stopping_ && !policy_.joinable() && actions_.empty()) return;
-    stopping_ = true;
+    stopping_ = true;  // the policy's Await sees it at this unlock
   }
-  cv_.SignalAll();
   if (policy_.joinable()) policy_.join();
   {
     absl::MutexLock lock(&mutex_);
@@ -181,8 +180,8 @@ std::vector<std::string> SafetyController::firedRules() const {
 }
 
 void SafetyController::onEvents() {
-  // Runs on the log's appending thread: only note what happened.
-  bool noted = false;
+  // Runs on the log's appending thread: only note what happened (the
+  // policy's Await sees pending_failures_ at the unlock).
   absl::MutexLock lock(&mutex_);
   if (!subscription_) return;
   while (FleetEventPtr event = subscription_->pop()) {
@@ -199,9 +198,7 @@ void SafetyController::onEvents() {
     if (!controller || robot == robots_.end()) continue;
     if (robot->second->preempted_controllers.contains(e.activation_id())) continue;
     pending_failures_.push_back(e.robot_id() + "\n" + e.behavior() + ": " + e.finished().message());
-    noted = true;
   }
-  if (noted) cv_.SignalAll();
 }
 
 void SafetyController::policyLoop() {
@@ -335,7 +332,6 @@ void SafetyController::fire(Robot& robot, const std::string& trigger, const std:
                 standDown(robot_id, "safety: " + rule, abort_with_safety_steps);
                 absl::MutexLock lock(&mutex_);
                 *stood_down = true;
-                cv_.SignalAll();
               });
         }
       }
@@ -360,7 +356,13 @@ void SafetyController::fire(Robot& robot, const std::string& trigger, const std:
             }
             break;
           }
-          cv_.WaitWithTimeout(&mutex_, absl::FromChrono(hover.wallWait(kRenewPeriod)));
+          // Until the stand-down is done, the stop, the next renewal or
+          // the hover's end, whichever is first.
+          const auto ended = [this, &stood_down]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+            return stopping_ || *stood_down;
+          };
+          mutex_.AwaitWithTimeout(absl::Condition(&ended),
+                                  absl::FromChrono(hover.wallWait(kRenewPeriod)));
         }
         if (lease.ok() && std::chrono::steady_clock::now() - renewed >= kRenewPeriod) {
           (void)robot.fc->renewLease(lease_id);

@@ -169,8 +169,9 @@ class SafetyController {
   const Clock& clock_;
   std::unique_ptr<channel::ChannelClient> channel_;
 
+  // The policy thread and the landings wait on mutex_ (Mutex::Await) for a
+  // noted failure, a finished stand-down or the stop.
   mutable absl::Mutex mutex_;
-  absl::CondVar cv_;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   std::map<std::string, std::unique_ptr<Robot>> robots_ ABSL_GUARDED_BY(mutex_);
   std::vector<std::string> fired_ ABSL_GUARDED_BY(mutex_);

@@ -808,8 +808,7 @@ Broker::~Broker() {
       absl::MutexLock topic_lock(&topic->mutex);
       dropRingLocked(*topic);
     }
-  }
-  housekeeping_cv_.SignalAll();
+  }  // the housekeeper's Await sees shutting_down_ at this unlock
   housekeeper_.join();
 }
 
@@ -1320,11 +1319,16 @@ void Broker::housekeep() {
         mutex_.Lock();
         continue;
       }
+      // Until the next deadline, a new timed topic, or the shutdown.
+      const uint64_t seen = housekeeping_wakes_;
+      const auto woken = [this, seen]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+        return shutting_down_ || housekeeping_wakes_ != seen;
+      };
       if (next == std::chrono::steady_clock::time_point::max()) {
-        housekeeping_cv_.Wait(&mutex_);
+        mutex_.Await(absl::Condition(&woken));
       } else {
-        housekeeping_cv_.WaitWithTimeout(&mutex_,
-                                         absl::FromChrono(next - std::chrono::steady_clock::now()));
+        mutex_.AwaitWithTimeout(absl::Condition(&woken),
+                                absl::FromChrono(next - std::chrono::steady_clock::now()));
       }
     }
     // Shutting down: answer whoever still waits.
@@ -1387,7 +1391,7 @@ grpc::ServerUnaryReactor* Broker::GetLatest(grpc::CallbackServerContext* context
         }
       }
       timed_topics_.insert(topic);
-      housekeeping_cv_.SignalAll();
+      ++housekeeping_wakes_;
       if (!was_wanted) interestChangedLocked(&watchers);
     } else if (it != topics_.end()) {
       absl::MutexLock topic_lock(&it->second->mutex);
@@ -1451,7 +1455,7 @@ void Broker::shutdown() {
     for (Publisher* publisher : publishers_) publisher->requestFinish(shuttingDownStatus());
     watchers = interest_watchers_;
   }
-  housekeeping_cv_.SignalAll();  // answers the waiting GetLatest calls
+  // The housekeeper answers the waiting GetLatest calls (it saw shutting_down_).
   for (const auto& subscriber : subscribers) subscriber->requestFinish(shuttingDownStatus());
   for (const auto& watcher : watchers) watcher->requestFinish(shuttingDownStatus());
 }

@@ -52,18 +52,25 @@ grpc::ChannelArguments channelArguments() {
 
 }  // namespace
 
-// Wakes ChannelClient::waitDelivered when a subscription processed a sample
-// or its connection changed.
+// Wakes ChannelClient::waitDelivered (Mutex::Await on a new generation) when
+// a subscription processed a sample or its connection changed.
 struct ProgressSignal {
   void notify() {
-    {
-      absl::MutexLock lock(&mutex);
-      ++generation;
-    }
-    cv.SignalAll();
+    absl::MutexLock lock(&mutex);
+    ++generation;
+  }
+  uint64_t current() {
+    absl::MutexLock lock(&mutex);
+    return generation;
+  }
+  // Whether a notify() came after `seen`, within `timeout`.
+  bool awaitAfter(uint64_t seen, absl::Duration timeout) {
+    absl::MutexLock lock(&mutex);
+    const auto moved = [this, seen]()
+                           ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex) { return generation != seen; };
+    return mutex.AwaitWithTimeout(absl::Condition(&moved), timeout);
   }
   absl::Mutex mutex;
-  absl::CondVar cv;
   uint64_t generation ABSL_GUARDED_BY(mutex) = 0;
 };
 
@@ -98,7 +105,6 @@ class Subscription::Impl {
       stopping_ = true;
       if (context_ != nullptr) context_->TryCancel();
     }
-    cv_.SignalAll();
     if (thread_.joinable()) thread_.join();
   }
 
@@ -109,14 +115,7 @@ class Subscription::Impl {
 
   bool waitConnected(std::chrono::milliseconds timeout) const {
     absl::MutexLock lock(&mutex_);
-    const auto deadline = std::chrono::steady_clock::now() + timeout;
-    while (!connected_) {
-      if (cv_.WaitWithTimeout(&mutex_,
-                              absl::FromChrono(deadline - std::chrono::steady_clock::now()))) {
-        return connected_;
-      }
-    }
-    return true;
+    return mutex_.AwaitWithTimeout(absl::Condition(&connected_), absl::FromChrono(timeout));
   }
 
   uint64_t connectCount() const {
@@ -190,7 +189,6 @@ class Subscription::Impl {
           ++connect_count_;
           backoff = kInitialBackoff;
         }
-        cv_.SignalAll();
         progress_->notify();
       }
       if (ring) {
@@ -205,7 +203,6 @@ class Subscription::Impl {
       context_ = nullptr;
       connected_ = false;
       status_ = toAbsl(status);
-      cv_.SignalAll();
       // A request the broker itself refuses will be refused again.
       if (stopping_ || status.error_code() == grpc::StatusCode::INVALID_ARGUMENT) return;
       // Until stopped, at most backoff.
@@ -298,8 +295,8 @@ class Subscription::Impl {
   std::atomic<uint64_t> received_{0};
   std::atomic<uint64_t> processed_seq_{0};
 
+  // waitConnected waits on mutex_ (Mutex::Await) for connected_.
   mutable absl::Mutex mutex_;
-  mutable absl::CondVar cv_;
   grpc::ClientContext* context_ ABSL_GUARDED_BY(mutex_) = nullptr;  // of the stream in progress
   std::shared_ptr<ShmRing> ring_ ABSL_GUARDED_BY(mutex_);           // the ring being read, if any
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
@@ -339,7 +336,6 @@ class InterestWatch::Impl {
       stopping_ = true;
       if (context_ != nullptr) context_->TryCancel();
     }
-    cv_.SignalAll();
     if (thread_.joinable()) thread_.join();
   }
 
@@ -424,7 +420,6 @@ class InterestWatch::Impl {
   std::thread thread_;
 
   mutable absl::Mutex mutex_;
-  absl::CondVar cv_;
   grpc::ClientContext* context_ ABSL_GUARDED_BY(mutex_) = nullptr;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   bool known_ ABSL_GUARDED_BY(mutex_) = false;
@@ -569,19 +564,11 @@ class ChannelClient::Impl {
                      std::chrono::milliseconds timeout) const {
     const auto deadline = std::chrono::steady_clock::now() + timeout;
     while (true) {
-      uint64_t generation = 0;
-      {
-        absl::MutexLock lock(&progress_->mutex);
-        generation = progress_->generation;
-      }
+      const uint64_t generation = progress_->current();
       if (delivered(topic_seq)) return true;
-      absl::MutexLock lock(&progress_->mutex);
-      while (progress_->generation == generation) {
-        if (progress_->cv.WaitWithTimeout(
-                &progress_->mutex, absl::FromChrono(deadline - std::chrono::steady_clock::now()))) {
-          if (progress_->generation == generation) return false;
-          break;
-        }
+      if (!progress_->awaitAfter(generation,
+                                 absl::FromChrono(deadline - std::chrono::steady_clock::now()))) {
+        return false;
       }
     }
   }

@@ -84,8 +84,7 @@ void BehaviorHost::stop() {
   for (auto& behavior : behaviors_) behavior->stop();
   {
     absl::MutexLock lock(&mutex_);
-    stopping_ = true;
-    cv_.SignalAll();
+    stopping_ = true;  // the watchdog's Await sees it at the unlock
   }
   if (watchdog_.joinable()) watchdog_.join();
   started_ = false;
@@ -106,7 +105,6 @@ int BehaviorHost::activeCount() const {
 void BehaviorHost::onActiveChanged(bool active) {
   absl::MutexLock lock(&mutex_);
   active_count_ += active ? 1 : -1;
-  if (active) cv_.SignalAll();
 }
 
 void BehaviorHost::watchdogLoop() {
@@ -117,18 +115,16 @@ void BehaviorHost::watchdogLoop() {
     period = std::min(period, behavior->options().watchdog_timeout / 4);
   }
   period = std::max(period, std::chrono::milliseconds(5));
+  const auto active_or_stop = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return stopping_ || active_count_ > 0;
+  };
   absl::MutexLock lock(&mutex_);
   while (!stopping_) {
-    if (active_count_ <= 0) {
-      cv_.Wait(&mutex_);
-      continue;
-    }
-    // Waits out the period unless stopped meanwhile (a spurious or
-    // activation wake-up waits again for the rest).
-    const absl::Time deadline = absl::Now() + absl::FromChrono(period);
-    while (!stopping_ && !cv_.WaitWithDeadline(&mutex_, deadline)) {
-    }
+    // Idle: no CPU until a behavior becomes active or the host stops.
+    mutex_.Await(absl::Condition(&active_or_stop));
     if (stopping_) break;
+    // Waits out the period unless stopped meanwhile.
+    if (mutex_.AwaitWithTimeout(absl::Condition(&stopping_), absl::FromChrono(period))) break;
     mutex_.Unlock();
     const auto now = std::chrono::steady_clock::now();
     for (auto& behavior : behaviors_) behavior->watchdogCheck(now);

@@ -180,7 +180,6 @@ void CoordinatorRegistration::stop(std::chrono::milliseconds timeout) {
     stopping_ = true;
     if (in_flight_ != nullptr) in_flight_->TryCancel();
   }
-  cv_.SignalAll();
   if (thread_.joinable()) thread_.join();
   {
     absl::MutexLock lock(&mutex_);

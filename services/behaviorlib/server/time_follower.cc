@@ -60,7 +60,6 @@ void TimeFollower::stop() {
     stopping_ = true;
     if (context_ != nullptr) context_->TryCancel();
   }
-  cv_.SignalAll();
   if (thread_.joinable()) thread_.join();
 }
 
@@ -78,15 +77,7 @@ void TimeFollower::awaitTurn() {
     send();
     mutex_.Lock();
   }
-  const auto deadline = std::chrono::steady_clock::now() + kTurnLimit;
-  bool turn = true;
-  while (!ready()) {
-    if (cv_.WaitWithTimeout(&mutex_,
-                            absl::FromChrono(deadline - std::chrono::steady_clock::now()))) {
-      turn = ready();
-      break;
-    }
-  }
+  const bool turn = mutex_.AwaitWithTimeout(absl::Condition(&ready), absl::FromChrono(kTurnLimit));
   if (!turn && !told_turn_timeout_) {
     told_turn_timeout_ = true;
     std::fprintf(stderr,
@@ -164,7 +155,6 @@ void TimeFollower::run() {
           };
         }
       }
-      cv_.SignalAll();
     };
     v1::FollowTimeRequest join;
     join.set_participant(participant_);
@@ -233,7 +223,6 @@ void TimeFollower::run() {
           awaited_ = grant.awaited();
           wake_sent_ = false;
         }
-        cv_.SignalAll();
         const TimePoint granted = toTimePoint(grant.clock().time());
         if (!awaitUntil([&] { return caught_up_(granted); })) break;
         // What the behaviors published reaches the broker before the report,

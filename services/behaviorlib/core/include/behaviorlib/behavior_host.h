@@ -93,8 +93,9 @@ class BehaviorHost {
   ObserverFactory observer_factory_;
   bool started_ = false;
 
+  // The watchdog thread waits on mutex_ (Mutex::Await) for an active
+  // behavior or the stop.
   mutable absl::Mutex mutex_;
-  absl::CondVar cv_;
   int active_count_ ABSL_GUARDED_BY(mutex_) = 0;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   std::thread watchdog_;

@@ -175,7 +175,9 @@ class Broker final : public v1::DataChannel::CallbackService {
   InterestReactors interest_watchers_ ABSL_GUARDED_BY(mutex_);
   // Topics with a transient interest or waiting GetLatest calls.
   std::set<std::shared_ptr<Topic>> timed_topics_ ABSL_GUARDED_BY(mutex_);
-  absl::CondVar housekeeping_cv_;
+  // The housekeeper waits on mutex_ (Mutex::Await) for its next deadline,
+  // a new timed topic (a count of them) or the shutdown.
+  uint64_t housekeeping_wakes_ ABSL_GUARDED_BY(mutex_) = 0;
   bool shutting_down_ ABSL_GUARDED_BY(mutex_) = false;
   // The link to other hosts (null: this host only) and what it carries.
   std::atomic<BrokerLink*> link_{nullptr};

@@ -82,8 +82,9 @@ class CoordinatorRegistration {
   std::unique_ptr<v1::Coordinator::Stub> stub_;
   std::thread thread_;
 
+  // The heartbeat thread sleeps on mutex_ (Mutex::AwaitWithTimeout) until
+  // its next beat or the stop.
   mutable absl::Mutex mutex_;
-  absl::CondVar cv_;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   bool stopped_ ABSL_GUARDED_BY(mutex_) = false;
   grpc::ClientContext* in_flight_ ABSL_GUARDED_BY(mutex_) = nullptr;

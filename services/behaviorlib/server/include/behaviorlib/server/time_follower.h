@@ -107,8 +107,8 @@ class TimeFollower {
   std::shared_ptr<grpc::Channel> channel_;
   std::atomic<uint64_t> reported_{0};
 
+  // awaitTurn() waits on mutex_ (Mutex::Await) for the gate or the stop.
   absl::Mutex mutex_;
-  absl::CondVar cv_;
   grpc::ClientContext* context_ ABSL_GUARDED_BY(mutex_) = nullptr;
   bool stopping_ ABSL_GUARDED_BY(mutex_) = false;
   // The gate (guarded by mutex_): a grant was applied on the current stream;

@@ -83,6 +83,8 @@ int main(int argc, char** argv) {
       "  belief list [PREFIX] | get KEY | set KEY JSON | delete KEY   (--coordinator only)\n"
       "  mission run FILE [--mission-id ID] [--detach]   start (the file is sent as text) and\n"
       "                                       follow it; exit 0 when it SUCCEEDED\n"
+      "  mission check FILE [--robot ID]      every problem with file:line, and each step's\n"
+      "                                       plan; exit 1 when it has problems\n"
       "  mission status ID | list | watch ID | pause ID | resume ID | abort ID [REASON]\n"
       "  emergency-land [REASON] | kill --confirm [REASON]   (--coordinator, --robot)\n"
       "  health                               gRPC health check; exit 0 when SERVING\n"

@@ -243,20 +243,29 @@ int beliefCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
   return 2;
 }
 
+// A mission file's text (sent as text: the coordinator need not see the
+// file); false, having said why, when it cannot be read.
+bool readMissionFile(const std::string& path, std::string* text) {
+  std::ifstream in(path);
+  if (!in) {
+    std::fprintf(stderr, "behaviorctl: cannot read mission file %s\n", path.c_str());
+    return false;
+  }
+  std::stringstream read;
+  read << in.rdbuf();
+  *text = read.str();
+  return true;
+}
+
 int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
   const std::string verb = c.args.size() > 1 ? c.args[1] : "";
   const std::string arg = c.args.size() > 2 ? c.args[2] : "";
   auto printStatus = [&](const auto& r) { printMessage(c, r.status()); };
   if (verb == "run" && !arg.empty()) {
-    std::ifstream in(arg);
-    if (!in) {
-      std::fprintf(stderr, "behaviorctl: cannot read mission file %s\n", arg.c_str());
-      return 2;
-    }
-    std::stringstream text;
-    text << in.rdbuf();
+    std::string text;
+    if (!readMissionFile(arg, &text)) return 2;
     v1::StartMissionRequest request;
-    request.set_text(text.str());
+    request.set_text(text);
     request.set_source_name(arg);
     request.set_robot_id(c.robot);
     request.set_mission_id(c.mission_id);
@@ -269,6 +278,28 @@ int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
         });
     if (code != 0 || c.detach) return code;
     return followMission(c, stub, started);
+  }
+  if (verb == "check" && !arg.empty()) {
+    std::string text;
+    if (!readMissionFile(arg, &text)) return 2;
+    v1::CheckMissionRequest request;
+    request.set_text(text);
+    request.set_source_name(arg);
+    request.set_robot_id(c.robot);
+    bool problems = false;
+    const int code = unary<v1::CheckMissionResponse>(
+        c, [&](auto* context, auto* r) { return stub.CheckMission(context, request, r); },
+        [&](const v1::CheckMissionResponse& r) {
+          problems = r.problems_size() > 0 || r.problems_left_out() > 0;
+          const OutputFormat format = formatOf(c, true);
+          if (format == OutputFormat::kTable || format == OutputFormat::kWide) {
+            std::cout << missionCheckText(r, format == OutputFormat::kWide);
+          } else {
+            printMessage(c, r);
+          }
+        });
+    // As a linter: 1 when the mission has problems.
+    return code != 0 ? code : problems ? 1 : 0;
   }
   if (verb == "watch" && !arg.empty()) return followMission(c, stub, arg);
   if (verb == "status" && !arg.empty()) {
@@ -303,7 +334,8 @@ int missionCommand(v1::Coordinator::Stub& stub, const CtlOptions& c) {
   }
   std::fputs(
       "usage: behaviorctl --coordinator ADDR mission run FILE [--robot ID] [--mission-id ID] "
-      "[--detach] | status ID | list | watch ID | pause ID | resume ID | abort ID [REASON]\n",
+      "[--detach] | check FILE [--robot ID] | status ID | list | watch ID | pause ID | resume ID | "
+      "abort ID [REASON]\n",
       stderr);
   return 2;
 }

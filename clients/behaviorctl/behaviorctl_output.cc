@@ -11,6 +11,7 @@
 #include <utility>
 
 #include "absl/status/status.h"
+#include "absl/strings/ascii.h"
 #include "absl/strings/str_cat.h"
 #include "absl/strings/str_join.h"
 #include "behaviorlib/error_details.h"
@@ -283,6 +284,46 @@ Table missionsTable(const v1::ListMissionsResponse& response, bool wide,
     table.rows.push_back(std::move(row));
   }
   return table;
+}
+
+std::string missionCheckText(const v1::CheckMissionResponse& response, bool wide) {
+  std::string out;
+  for (const auto& problem : response.problems())
+    absl::StrAppend(&out, problem.description(), "\n");
+  const size_t count = response.problems_size() + response.problems_left_out();
+  if (response.problems_left_out() > 0) {
+    absl::StrAppend(&out, "... and ", response.problems_left_out(), " more\n");
+  }
+  const std::string what =
+      absl::StrCat("mission '", response.name(), "' for robot '", response.robot_id(), "'");
+  if (count == 0) {
+    absl::StrAppend(&out, what, ": no problem found\n");
+  } else {
+    absl::StrAppend(&out, what, ": ", count, count == 1 ? " problem" : " problems", "\n");
+  }
+  if (response.plans().empty()) return out;
+  Table table{{"NODE", "STEP", "LINE", "PLAN"}, {}};
+  std::string reasons;
+  for (const auto& plan : response.plans()) {
+    std::vector<std::string> steps;
+    for (const auto& step : plan.plan()) {
+      const std::string kind = shortName(v1::ActivationPlanStep::Kind_Name(step.kind()), "KIND_");
+      // The situation checks only in the wide form.
+      if (wide || step.kind() != v1::ActivationPlanStep::KIND_CHECK_SITUATION) {
+        steps.push_back(absl::StrCat(absl::AsciiStrToLower(kind), " ", step.behavior()));
+      }
+      if (wide) {
+        absl::StrAppend(&reasons, plan.node(), ": ", absl::AsciiStrToLower(kind), " ",
+                        step.behavior(), ": ", step.reason(), "\n");
+      }
+    }
+    table.rows.push_back(
+        {plan.node(), plan.name().empty() ? plan.behavior() : plan.name(),
+         std::to_string(plan.line()),
+         plan.no_plan().empty() ? absl::StrJoin(steps, ", ") : "no plan: " + plan.no_plan()});
+  }
+  absl::StrAppend(&out, "\n", table.render(), reasons.empty() ? "" : "\n", reasons);
+  return out;
 }
 
 Table beliefsTable(const v1::ListBeliefsResponse& response, bool wide,

@@ -58,6 +58,13 @@ Table missionsTable(const v1::ListMissionsResponse& response, bool wide,
 Table beliefsTable(const v1::ListBeliefsResponse& response, bool wide,
                    std::chrono::system_clock::time_point now);
 
+/// A mission check as the user reads it: each problem on a line ("file:line:
+/// what"), a summary line, then a table of each step's plan (NODE, STEP,
+/// LINE, PLAN: "deactivate HOVER, activate TAKE_OFF", or why there is none).
+/// `wide` adds the situation checks to PLAN and each plan step's reason, one
+/// a line under the table.
+std::string missionCheckText(const v1::CheckMissionResponse& response, bool wide);
+
 /// A failed call as the user reads it:
 ///   behaviorctl: INVALID_ARGUMENT: <message>
 ///     reason: PARAMETER_OUT_OF_RANGE

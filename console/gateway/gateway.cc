@@ -426,6 +426,7 @@ void Gateway::routes() {
       {"ListMissions", unary(stub, &S::ListMissions, timeout)},
       {"GetMission", unary(stub, &S::GetMission, timeout)},
       {"StartMission", unary(stub, &S::StartMission, timeout)},
+      {"CheckMission", unary(stub, &S::CheckMission, timeout)},
       {"PauseMission", unary(stub, &S::PauseMission, timeout)},
       {"ResumeMission", unary(stub, &S::ResumeMission, timeout)},
       {"AbortMission", unary(stub, &S::AbortMission, timeout)},

@@ -391,6 +391,32 @@ document.getElementById("start-mission").addEventListener("submit", (event) => {
   call("StartMission", request).then(() => showError(null), showError);
 });
 
+// CheckMission: every problem with its file and line, or each step's plan.
+function showCheck(reply) {
+  const lines = (reply.problems || []).map((p) => p.description);
+  if (reply.problems_left_out) lines.push("... and " + reply.problems_left_out + " more");
+  if (lines.length === 0) {
+    lines.push("no problem found");
+    for (const plan of reply.plans || []) {
+      const steps = (plan.plan || []).map((s) =>
+        String(s.kind).replace("KIND_", "").toLowerCase() + " " + s.behavior);
+      lines.push(plan.node + "  " + (plan.name || plan.behavior) + ": " +
+        (plan.no_plan ? "no plan: " + plan.no_plan : steps.join(", ")));
+    }
+  }
+  document.getElementById("mission-check").textContent = lines.join("\n");
+}
+
+document.getElementById("check-mission").addEventListener("click", () => {
+  const form = new FormData(document.getElementById("start-mission"));
+  const request = { file_path: form.get("file_path") };
+  if (form.get("robot_id")) request.robot_id = form.get("robot_id");
+  call("CheckMission", request).then((reply) => {
+    showError(null);
+    showCheck(reply);
+  }, showError);
+});
+
 document.getElementById("emergency-land").addEventListener("submit", (event) => {
   event.preventDefault();
   const form = new FormData(event.target);

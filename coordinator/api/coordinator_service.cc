@@ -456,16 +456,7 @@ grpc::ServerUnaryReactor* CoordinatorService::ActivateBehavior(
     response->set_robot_id(request->robot_id());
     response->set_system(done->system);
     *response->mutable_activation() = std::move(done->activation);
-    for (const auto& step : done->plan.steps) {
-      auto* out = response->add_plan();
-      out->set_kind(step.kind == StepKind::kDeactivate ? v1::ActivationPlanStep::KIND_DEACTIVATE
-                    : step.kind == StepKind::kCheckSituation
-                        ? v1::ActivationPlanStep::KIND_CHECK_SITUATION
-                        : v1::ActivationPlanStep::KIND_ACTIVATE);
-      out->set_behavior(step.behavior);
-      *out->mutable_parameters() = step.parameters;
-      out->set_reason(step.reason);
-    }
+    planToProto(done->plan, response->mutable_plan());
     return grpc::Status::OK;
   });
 }

@@ -106,6 +106,9 @@ class CoordinatorService final
   grpc::ServerUnaryReactor* StartMission(grpc::CallbackServerContext* context,
                                          const v1::StartMissionRequest* request,
                                          v1::StartMissionResponse* response) override;
+  grpc::ServerUnaryReactor* CheckMission(grpc::CallbackServerContext* context,
+                                         const v1::CheckMissionRequest* request,
+                                         v1::CheckMissionResponse* response) override;
   grpc::ServerUnaryReactor* GetMission(grpc::CallbackServerContext* context,
                                        const v1::GetMissionRequest* request,
                                        v1::GetMissionResponse* response) override;

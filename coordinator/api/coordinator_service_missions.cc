@@ -313,6 +313,19 @@ grpc::ServerUnaryReactor* CoordinatorService::StartMission(grpc::CallbackServerC
   return finishWith(context, grpc::Status::OK);
 }
 
+grpc::ServerUnaryReactor* CoordinatorService::CheckMission(grpc::CallbackServerContext* context,
+                                                           const v1::CheckMissionRequest* request,
+                                                           v1::CheckMissionResponse* response) {
+  if (options_.missions == nullptr)
+    return finishWith(context, notServed("missions", "missions", "no missions"));
+  // Parsing, the registry's behaviors and the catalog's plans: no call to
+  // another process.
+  auto checked = options_.missions->check(*request);
+  if (!checked.ok()) return finishWith(context, errors::toGrpc(checked.status()));
+  *response = std::move(*checked);
+  return finishWith(context, grpc::Status::OK);
+}
+
 grpc::ServerUnaryReactor* CoordinatorService::GetMission(grpc::CallbackServerContext* context,
                                                          const v1::GetMissionRequest* request,
                                                          v1::GetMissionResponse* response) {

@@ -241,6 +241,27 @@ const char* stepKindName(StepKind kind) {
   return "?";
 }
 
+void planToProto(const Plan& plan,
+                 google::protobuf::RepeatedPtrField<v1::ActivationPlanStep>* out) {
+  for (const PlanStep& step : plan.steps) {
+    v1::ActivationPlanStep* added = out->Add();
+    added->set_kind(step.kind == StepKind::kDeactivate ? v1::ActivationPlanStep::KIND_DEACTIVATE
+                    : step.kind == StepKind::kCheckSituation
+                        ? v1::ActivationPlanStep::KIND_CHECK_SITUATION
+                        : v1::ActivationPlanStep::KIND_ACTIVATE);
+    added->set_behavior(step.behavior);
+    *added->mutable_parameters() = step.parameters;
+    added->set_reason(step.reason);
+  }
+}
+
+void applyToActive(const Plan& plan, std::set<std::string>* active) {
+  for (const PlanStep& step : plan.steps) {
+    if (step.kind == StepKind::kDeactivate) active->erase(step.behavior);
+    if (step.kind == StepKind::kActivate) active->insert(step.behavior);
+  }
+}
+
 absl::StatusOr<Plan> makePlan(const Catalog& catalog, const PlanRequest& request) {
   return Planner(catalog, request).run();
 }

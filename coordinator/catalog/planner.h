@@ -30,6 +30,7 @@
 #include <vector>
 
 #include "absl/status/statusor.h"
+#include "behaviorlib/v1/coordinator.pb.h"
 #include "coordinator/catalog/catalog.h"
 
 namespace behaviorlib::coordinator {
@@ -73,6 +74,13 @@ struct PlanRequest {
 /// the target conflict with its own requirements. Messages name the robot,
 /// the behaviors and the capability or resource involved.
 absl::StatusOr<Plan> makePlan(const Catalog& catalog, const PlanRequest& request);
+
+/// Appends the plan's steps as the API's ActivationPlanStep messages.
+void planToProto(const Plan& plan, google::protobuf::RepeatedPtrField<v1::ActivationPlanStep>* out);
+
+/// What applying `plan` leaves active, from `active` (its deactivations
+/// removed, its activations added): for planning the steps after it.
+void applyToActive(const Plan& plan, std::set<std::string>* active);
 
 /// Carries out plan steps (the coordinator's FleetControl, coordinator/control/,
 /// routes them to the robot's behavior systems; tests fake them).

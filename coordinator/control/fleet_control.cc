@@ -166,6 +166,19 @@ std::vector<SystemLink::BehaviorView> FleetControl::robotView(const std::string&
   return view;
 }
 
+PlanRequest FleetControl::planningView(const std::string& robot_id) const {
+  PlanRequest view;
+  view.robot_id = robot_id;
+  for (const auto& b : robotView(robot_id)) {
+    if (!b.system_up) continue;
+    view.available.insert(b.name);
+    if (b.state == v1::BEHAVIOR_STATE_ACTIVE || b.state == v1::BEHAVIOR_STATE_PAUSED) {
+      view.active.insert(b.name);
+    }
+  }
+  return view;
+}
+
 void FleetControl::awaitIndexLocked(const std::function<bool()>& found,
                                     std::chrono::milliseconds timeout) {
   auto ready = [&]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(index_mutex_) { return stopped_ || found(); };
@@ -321,17 +334,9 @@ absl::StatusOr<FleetControl::ActivateResult> FleetControl::activateBehavior(
     return result;
   }
 
-  PlanRequest plan_request;
-  plan_request.robot_id = request.robot_id;
+  PlanRequest plan_request = planningView(request.robot_id);
   plan_request.target = request.behavior;
   plan_request.parameters = request.parameters;
-  for (const auto& b : robotView(request.robot_id)) {
-    if (!b.system_up) continue;
-    plan_request.available.insert(b.name);
-    if (b.state == v1::BEHAVIOR_STATE_ACTIVE || b.state == v1::BEHAVIOR_STATE_PAUSED) {
-      plan_request.active.insert(b.name);
-    }
-  }
   // A retried request (same request id) for a target that is active already
   // goes to its system, which answers with the activation it remembers.
   if (!request.request_id.empty() && plan_request.active.contains(request.behavior)) {

@@ -112,6 +112,11 @@ class FleetControl final : public MissionActions {
   /// with their activation ids.
   std::map<std::string, std::string> activeBehaviors(const std::string& robot_id) const;
 
+  /// What a plan for `robot_id` starts from: the behaviors its systems that
+  /// are up host (`available`) and those active or paused now (`active`).
+  /// The rest of the request is the caller's; nothing is called.
+  PlanRequest planningView(const std::string& robot_id) const;
+
   /// Ends every blocking call in progress (CANCELLED) and refuses new ones.
   void stop();
 

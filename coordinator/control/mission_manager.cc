@@ -284,60 +284,173 @@ void MissionManager::onChange(const v1::MissionStatus& status) {
   for (const auto& listener : listeners) listener(status);
 }
 
-absl::Status MissionManager::checkAgainstRegistry(const MissionSpec& spec,
-                                                  const std::string& robot_id) const {
+MissionProblems MissionManager::problemsAgainstRegistry(const MissionSpec& spec,
+                                                        const std::string& robot_id,
+                                                        bool* registered) const {
   v1::ListFleetBehaviorsResponse list;
   registry_.listBehaviors(robot_id, "", &list);
   std::map<std::string, v1::BehaviorDescription> hosted;
   for (const auto& b : list.behaviors()) hosted[b.description().name()] = b.description();
+  *registered = !hosted.empty();
   if (hosted.empty()) {
+    MissionProblems problems;
+    problems.add(spec.file, spec.robot_line, "robot",
+                 absl::StrCat("robot '", robot_id,
+                              "' has no registered behavior system: start its systems first"));
+    return problems;
+  }
+  return checkMissionProblems(spec, [&](const std::string& behavior) {
+    auto it = hosted.find(behavior);
+    return it == hosted.end() ? nullptr : &it->second;
+  });
+}
+
+absl::Status MissionManager::checkAgainstRegistry(const MissionSpec& spec,
+                                                  const std::string& robot_id) const {
+  bool registered = false;
+  MissionProblems problems = problemsAgainstRegistry(spec, robot_id, &registered);
+  if (!registered) {
     return errors::withReason(
         absl::FailedPreconditionError(absl::StrCat(
             "robot '", robot_id, "' has no registered behavior system: start its systems first")),
         v1::UNKNOWN_ROBOT, {{"robot", robot_id}});
   }
-  return errors::withDefaultReason(
-      checkMission(spec,
-                   [&](const std::string& behavior) -> const v1::BehaviorDescription* {
-                     auto it = hosted.find(behavior);
-                     return it == hosted.end() ? nullptr : &it->second;
-                   }),
-      v1::MISSION_INVALID);
+  return problems.status();
+}
+
+template <class Request>
+absl::StatusOr<MissionManager::Source> MissionManager::readSource(const Request& request) const {
+  Source source;
+  if (request.has_file_path()) {
+    source.file = request.file_path();
+    absl::StatusOr<std::string> read = options_.mission_files.read(source.file);
+    if (!read.ok()) return read.status();
+    source.text = std::move(*read);
+    return source;
+  }
+  if (!request.has_text()) {
+    return errors::withReason(
+        absl::InvalidArgumentError("no mission: set file_path (a mission file in the coordinator's "
+                                   "--mission-dir) or text"),
+        v1::INVALID_REQUEST);
+  }
+  if (request.text().size() > options_.max_mission_bytes) {
+    return errors::withReason(
+        absl::InvalidArgumentError(absl::StrCat("the mission text is ", request.text().size(),
+                                                " bytes, more than the ",
+                                                options_.max_mission_bytes, " allowed")),
+        v1::LIMIT_EXCEEDED, {{"limit", std::to_string(options_.max_mission_bytes)}});
+  }
+  if (request.source_name().size() > kMaxSourceNameBytes) {
+    return errors::withReason(absl::InvalidArgumentError(absl::StrCat(
+                                  "source_name is longer than ", kMaxSourceNameBytes, " bytes")),
+                              v1::LIMIT_EXCEEDED, {{"limit", std::to_string(kMaxSourceNameBytes)}});
+  }
+  source.file = request.source_name().empty() ? "<mission text>" : request.source_name();
+  source.text = request.text();
+  return source;
+}
+
+absl::StatusOr<v1::CheckMissionResponse> MissionManager::check(
+    const v1::CheckMissionRequest& request) const {
+  absl::StatusOr<Source> source = readSource(request);
+  if (!source.ok()) return source.status();
+  v1::CheckMissionResponse response;
+  MissionProblems problems;
+  absl::StatusOr<MissionSpec> spec = parseMission(source->text, source->file);
+  const std::string robot_id = !request.robot_id().empty() ? request.robot_id()
+                               : spec.ok()                 ? spec->robot_id
+                                                           : "";
+  response.set_robot_id(robot_id);
+  if (!spec.ok()) {
+    problems.addStatus(spec.status(), source->file);
+  } else {
+    response.set_name(spec->name);
+    bool registered = false;
+    if (robot_id.empty()) {
+      problems.add(source->file, 0, "robot",
+                   "no robot: give `robot:` in the mission file or robot_id in the request");
+    } else {
+      problems = problemsAgainstRegistry(*spec, robot_id, &registered);
+    }
+    if (registered) planSteps(*spec, robot_id, &response);
+  }
+  for (const MissionProblem& p : problems.list) {
+    v1::MissionProblem* out = response.add_problems();
+    out->set_file(p.file);
+    out->set_line(static_cast<uint32_t>(std::max(p.line, 0)));
+    out->set_field(p.field);
+    out->set_description(p.description);
+  }
+  response.set_problems_left_out(static_cast<uint32_t>(problems.left_out));
+  return response;
+}
+
+void MissionManager::planSteps(const MissionSpec& spec, const std::string& robot_id,
+                               v1::CheckMissionResponse* response) const {
+  const Catalog* catalog = fleet_.catalog();
+  const PlanRequest view = fleet_.planningView(robot_id);
+  // Plans `steps` one after another from `active`, which receives what they
+  // leave active (a step's target ends with its step unless `stays`).
+  std::function<void(const std::vector<MissionStep>&, const std::string&, bool,
+                     std::set<std::string>*)>
+      plan_list = [&](const std::vector<MissionStep>& steps, const std::string& prefix, bool stays,
+                      std::set<std::string>* active) {
+        for (size_t i = 0; i < steps.size(); ++i) {
+          const MissionStep& step = steps[i];
+          const std::string node = absl::StrCat(prefix, "/", i);
+          if (!step.behavior.empty()) {
+            v1::MissionStepPlan* out = response->add_plans();
+            out->set_node(node);
+            out->set_name(step.name);
+            out->set_behavior(step.behavior);
+            out->set_line(static_cast<uint32_t>(std::max(step.line, 0)));
+            absl::StatusOr<google::protobuf::Struct> parameters = beliefs_.resolve(step.parameters);
+            if (!parameters.ok()) {
+              out->set_no_plan(absl::StrCat(
+                  "its parameters are bound to beliefs that resolve when the step starts: ",
+                  parameters.status().message()));
+            } else if (catalog == nullptr) {
+              out->set_no_plan("the coordinator has no catalog");
+            } else {
+              PlanRequest request = view;
+              request.active = *active;
+              request.target = step.behavior;
+              request.parameters = std::move(*parameters);
+              absl::StatusOr<Plan> plan = makePlan(*catalog, request);
+              if (plan.ok()) {
+                planToProto(*plan, out->mutable_plan());
+                applyToActive(*plan, active);
+                if (!stays) active->erase(step.behavior);
+              } else {
+                out->set_no_plan(std::string(plan.status().message()));
+              }
+            }
+          }
+          // A fallback starts from what the failed step left.
+          for (const auto& [cause, action] : step.on) {
+            for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
+              if (a->fallback.empty()) continue;
+              std::set<std::string> after = *active;
+              plan_list(a->fallback, node + "/fallback", false, &after);
+            }
+          }
+        }
+      };
+  std::set<std::string> active = view.active;
+  plan_list(spec.recurrent, "recurrent", true, &active);
+  std::set<std::string> after_recurrent = active;
+  plan_list(spec.steps, "steps", false, &active);
+  plan_list(spec.safety, "safety", false, &after_recurrent);
 }
 
 absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRequest& request) {
-  std::string text;
-  std::string file;
-  absl::StatusOr<MissionSpec> spec = errors::withReason(
-      absl::InvalidArgumentError(
-          "no mission: set file_path (a mission file in the coordinator's --mission-dir) or text"),
-      v1::INVALID_REQUEST);
-  if (request.has_file_path()) {
-    file = request.file_path();
-    // Read once: the text is kept so that a restarted coordinator can parse
-    // it again.
-    absl::StatusOr<std::string> read = options_.mission_files.read(file);
-    if (!read.ok()) return read.status();
-    text = std::move(*read);
-    spec = parseMission(text, file);
-  } else if (request.has_text()) {
-    if (request.text().size() > options_.max_mission_bytes) {
-      return errors::withReason(
-          absl::InvalidArgumentError(absl::StrCat("the mission text is ", request.text().size(),
-                                                  " bytes, more than the ",
-                                                  options_.max_mission_bytes, " allowed")),
-          v1::LIMIT_EXCEEDED, {{"limit", std::to_string(options_.max_mission_bytes)}});
-    }
-    if (request.source_name().size() > kMaxSourceNameBytes) {
-      return errors::withReason(absl::InvalidArgumentError(absl::StrCat(
-                                    "source_name is longer than ", kMaxSourceNameBytes, " bytes")),
-                                v1::LIMIT_EXCEEDED,
-                                {{"limit", std::to_string(kMaxSourceNameBytes)}});
-    }
-    file = request.source_name().empty() ? "<mission text>" : request.source_name();
-    text = request.text();
-    spec = parseMission(text, file);
-  }
+  absl::StatusOr<Source> source = readSource(request);
+  if (!source.ok()) return source.status();
+  // The text is kept so that a restarted coordinator can parse it again.
+  std::string text = std::move(source->text);
+  const std::string file = std::move(source->file);
+  absl::StatusOr<MissionSpec> spec = parseMission(text, file);
   if (!spec.ok()) return errors::withDefaultReason(spec.status(), v1::MISSION_INVALID);
   const std::string robot_id = request.robot_id().empty() ? spec->robot_id : request.robot_id();
   if (robot_id.empty()) {

@@ -84,6 +84,11 @@ class MissionManager {
   /// FAILED_PRECONDITION when the robot runs another mission; an existing
   /// mission id returns that mission.
   absl::StatusOr<v1::MissionStatus> start(const v1::StartMissionRequest& request);
+  /// Checks a mission as start() would, without starting it: every
+  /// problem as data (a mission with problems is not an error), and each
+  /// step's plan. The request's own errors (no source, a file outside the
+  /// mission directory, a text too long) are statuses, as for start().
+  absl::StatusOr<v1::CheckMissionResponse> check(const v1::CheckMissionRequest& request) const;
   absl::StatusOr<v1::MissionStatus> get(const std::string& mission_id) const;
   /// Newest first.
   std::vector<v1::MissionStatus> list() const;
@@ -126,7 +131,21 @@ class MissionManager {
   /// FAILED_PRECONDITION when it is not running in this coordinator.
   absl::StatusOr<v1::MissionStatus> control(
       const std::string& mission_id, const std::function<absl::Status(MissionRunner&)>& request);
+  // A mission's text and the name its problems give it.
+  struct Source {
+    std::string text;
+    std::string file;
+  };
+  template <class Request>
+  absl::StatusOr<Source> readSource(const Request& request) const;
+  /// The problems of `spec` for `robot_id` against the registry;
+  /// `registered` receives whether the robot has a registered system.
+  MissionProblems problemsAgainstRegistry(const MissionSpec& spec, const std::string& robot_id,
+                                          bool* registered) const;
   absl::Status checkAgainstRegistry(const MissionSpec& spec, const std::string& robot_id) const;
+  /// Each step's plan, in file order (v1::MissionStepPlan).
+  void planSteps(const MissionSpec& spec, const std::string& robot_id,
+                 v1::CheckMissionResponse* response) const;
   bool behaviorsRoutable(const MissionSpec& spec, const std::string& robot_id,
                          std::string* missing) const;
   void resumeOne(const std::string& mission_id);

@@ -56,6 +56,7 @@ class MissionParser {
     }
     if (root["robot"]) {
       if (auto s = r_.text(root["robot"], "mission robot", &spec.robot_id); !s.ok()) return s;
+      spec.robot_line = lineOf(root["robot"]);
     }
     if (root["geofence"]) {
       if (auto s = geofence(root["geofence"], &spec); !s.ok()) return s;
@@ -303,42 +304,6 @@ bool literalMatches(const v1::ParameterSchema& schema, const google::protobuf::V
   return valueHasType(schema, value);
 }
 
-// What a check found: every problem with its field path, at most
-// kMaxProblems of them (the count of the others is said).
-class Problems {
- public:
-  static constexpr std::size_t kMaxProblems = 50;
-
-  void add(std::string field, std::string message) {
-    if (list_.size() < kMaxProblems) {
-      list_.emplace_back(std::move(field), std::move(message));
-    } else {
-      ++left_out_;
-    }
-  }
-
-  // OK, or INVALID_ARGUMENT MISSION_INVALID: the message lists every
-  // problem, one a line; each is a field violation.
-  absl::Status status() const {
-    if (list_.empty()) return absl::OkStatus();
-    std::vector<std::string> lines;
-    for (const auto& [field, message] : list_) lines.push_back(message);
-    if (left_out_ > 0) lines.push_back(cat("... and ", left_out_, " more"));
-    const std::size_t count = list_.size() + left_out_;
-    absl::Status status = absl::InvalidArgumentError(
-        count == 1 ? lines.front()
-                   : cat(count, " problems in the mission:\n  ", absl::StrJoin(lines, "\n  ")));
-    for (const auto& [field, message] : list_) {
-      status = errors::withFieldViolation(status, field, message);
-    }
-    return errors::withReason(status, v1::MISSION_INVALID);
-  }
-
- private:
-  std::vector<std::pair<std::string, std::string>> list_;
-  std::size_t left_out_ = 0;
-};
-
 // A literal number (or each number of a literal list) outside the schema's
 // range, as the behavior would refuse it at activation.
 std::optional<std::string> outOfRange(const v1::ParameterSchema& schema,
@@ -366,48 +331,47 @@ std::optional<std::string> outOfRange(const v1::ParameterSchema& schema,
 }
 
 void checkParameters(const MissionSpec& mission, const MissionStep& step,
-                     const v1::BehaviorDescription& d, Problems* problems) {
+                     const v1::BehaviorDescription& d, MissionProblems* problems) {
   std::vector<std::string> known;
   for (const auto& p : d.parameters()) known.push_back(p.name());
   for (const auto& [key, value] : step.parameters.fields()) {
     const auto line_it = step.parameter_lines.find(key);
-    const std::string at =
-        cat(mission.file, ":", line_it == step.parameter_lines.end() ? step.line : line_it->second,
-            ": ");
+    const int line = line_it == step.parameter_lines.end() ? step.line : line_it->second;
     const std::string field = cat(step.path, ".parameters.", key);
     const v1::ParameterSchema* schema = nullptr;
     for (const auto& p : d.parameters()) {
       if (p.name() == key) schema = &p;
     }
     if (schema == nullptr) {
-      problems->add(field, cat(at, step.behavior, " has no parameter '", key, "' (its parameters: ",
-                               known.empty() ? "none" : yaml::join(known), ")"));
+      problems->add(mission.file, line, field,
+                    cat(step.behavior, " has no parameter '", key,
+                        "' (its parameters: ", known.empty() ? "none" : yaml::join(known), ")"));
     } else if (!literalMatches(*schema, value)) {
-      problems->add(field, cat(at, step.behavior, " parameter '", key, "' must be ",
-                               schema->repeated() ? "a list of " : "a ", schema->type()));
+      problems->add(mission.file, line, field,
+                    cat(step.behavior, " parameter '", key, "' must be ",
+                        schema->repeated() ? "a list of " : "a ", schema->type()));
     } else if (auto range = outOfRange(*schema, value, key)) {
-      problems->add(field, cat(at, step.behavior, " ", *range));
+      problems->add(mission.file, line, field, cat(step.behavior, " ", *range));
     }
   }
   for (const auto& p : d.parameters()) {
     if (p.required() && p.default_json().empty() && !step.parameters.fields().contains(p.name())) {
-      problems->add(cat(step.path, ".parameters.", p.name()),
-                    cat(mission.file, ":", step.line, ": ", step.behavior, " needs parameter '",
-                        p.name(), "'", p.description().empty() ? "" : ": " + p.description()));
+      problems->add(mission.file, step.line, cat(step.path, ".parameters.", p.name()),
+                    cat(step.behavior, " needs parameter '", p.name(), "'",
+                        p.description().empty() ? "" : ": " + p.description()));
     }
   }
 }
 
 void checkSteps(const MissionSpec& mission, const std::vector<MissionStep>& steps,
-                const BehaviorLookup& lookup, Problems* problems) {
+                const BehaviorLookup& lookup, MissionProblems* problems) {
   for (const auto& step : steps) {
     if (!step.behavior.empty()) {
       if (const v1::BehaviorDescription* d = lookup(step.behavior)) {
         checkParameters(mission, step, *d, problems);
       } else {
-        problems->add(step.path + ".behavior",
-                      cat(mission.file, ":", step.line, ": behavior ", step.behavior,
-                          " is not hosted by any registered system",
+        problems->add(mission.file, step.line, step.path + ".behavior",
+                      cat("behavior ", step.behavior, " is not hosted by any registered system",
                           mission.robot_id.empty() ? "" : " of robot '" + mission.robot_id + "'"));
       }
     }
@@ -444,12 +408,68 @@ absl::StatusOr<MissionSpec> loadMission(const std::string& path) {
   return parseMission(text.str(), path);
 }
 
-absl::Status checkMission(const MissionSpec& mission, const BehaviorLookup& lookup) {
-  Problems problems;
+void MissionProblems::add(const std::string& file, int line, std::string field,
+                          const std::string& what) {
+  if (list.size() >= kMaxProblems) {
+    ++left_out;
+    return;
+  }
+  MissionProblem problem;
+  problem.file = file;
+  problem.line = line;
+  problem.field = std::move(field);
+  problem.description = line > 0 ? cat(file, ":", line, ": ", what) : cat(file, ": ", what);
+  list.push_back(std::move(problem));
+}
+
+void MissionProblems::addStatus(const absl::Status& status, const std::string& file) {
+  // The parser's messages start "<file>:<line>: " (yaml::Reader).
+  int line = 0;
+  const std::string message(status.message());
+  const std::string prefix = file + ":";
+  if (message.rfind(prefix, 0) == 0) {
+    size_t i = prefix.size();
+    while (i < message.size() && message[i] >= '0' && message[i] <= '9') {
+      line = line * 10 + (message[i] - '0');
+      if (line > 100000000) break;
+      ++i;
+    }
+  }
+  std::string field;
+  const std::optional<google::rpc::BadRequest> bad = errors::badRequest(status);
+  if (bad && bad->field_violations_size() > 0) field = bad->field_violations(0).field();
+  if (list.size() >= kMaxProblems) {
+    ++left_out;
+    return;
+  }
+  list.push_back({file, line, std::move(field), message});
+}
+
+absl::Status MissionProblems::status() const {
+  if (list.empty()) return absl::OkStatus();
+  std::vector<std::string> lines;
+  for (const MissionProblem& p : list) lines.push_back(p.description);
+  if (left_out > 0) lines.push_back(cat("... and ", left_out, " more"));
+  const std::size_t count = list.size() + left_out;
+  absl::Status status = absl::InvalidArgumentError(
+      count == 1 ? lines.front()
+                 : cat(count, " problems in the mission:\n  ", absl::StrJoin(lines, "\n  ")));
+  for (const MissionProblem& p : list) {
+    status = errors::withFieldViolation(status, p.field, p.description);
+  }
+  return errors::withReason(status, v1::MISSION_INVALID);
+}
+
+MissionProblems checkMissionProblems(const MissionSpec& mission, const BehaviorLookup& lookup) {
+  MissionProblems problems;
   for (const auto* list : {&mission.recurrent, &mission.steps, &mission.safety}) {
     checkSteps(mission, *list, lookup, &problems);
   }
-  return problems.status();
+  return problems;
+}
+
+absl::Status checkMission(const MissionSpec& mission, const BehaviorLookup& lookup) {
+  return checkMissionProblems(mission, lookup).status();
 }
 
 std::string causeName(v1::TerminationCause cause) {

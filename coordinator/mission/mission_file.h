@@ -101,6 +101,7 @@ struct MissionSpec {
   std::string name;
   std::string description;
   std::string robot_id;
+  int robot_line = 0;  ///< of `robot:`; 0 when the file has none
   /// Leaving it makes the coordinator hover the vehicle and abort the mission.
   std::optional<Geofence> geofence;
   std::vector<MissionStep> recurrent;
@@ -118,6 +119,31 @@ absl::StatusOr<MissionSpec> loadMission(const std::string& path);
 /// nullptr when no system of the robot hosts it.
 using BehaviorLookup = std::function<const v1::BehaviorDescription*(const std::string& behavior)>;
 
+/// One problem a check found.
+struct MissionProblem {
+  std::string file;
+  int line = 0;             ///< 0: the whole mission
+  std::string field;        ///< e.g. "steps[2].parameters.altitude_m"
+  std::string description;  ///< "<file>:<line>: <what>"
+};
+
+/// What a check found: every problem in file order, at most kMaxProblems
+/// (the others are counted).
+struct MissionProblems {
+  static constexpr std::size_t kMaxProblems = 50;
+  std::vector<MissionProblem> list;
+  std::size_t left_out = 0;
+
+  void add(const std::string& file, int line, std::string field, const std::string& what);
+  /// A problem the parser or a lookup returned as a status ("<file>:<line>:
+  /// ..." and its first field violation).
+  void addStatus(const absl::Status& status, const std::string& file);
+  bool empty() const { return list.empty() && left_out == 0; }
+  /// OK, or INVALID_ARGUMENT MISSION_INVALID: the message lists each
+  /// problem, one a line (then how many more); each is a field violation.
+  absl::Status status() const;
+};
+
 /// Checks a parsed mission against what is registered, before anything
 /// flies, and finds every problem at once: a behavior that no system hosts,
 /// a parameter the behavior does not have, a literal value of the wrong JSON
@@ -125,6 +151,8 @@ using BehaviorLookup = std::function<const v1::BehaviorDescription*(const std::s
 /// (bindings are checked when they are resolved). INVALID_ARGUMENT
 /// MISSION_INVALID: the message lists each problem with file:line, one a
 /// line (at most 50, then how many more); each is a field violation.
+MissionProblems checkMissionProblems(const MissionSpec& mission, const BehaviorLookup& lookup);
+/// checkMissionProblems as a status.
 absl::Status checkMission(const MissionSpec& mission, const BehaviorLookup& lookup);
 
 /// "GOAL_ACHIEVED", ... for a TerminationCause.

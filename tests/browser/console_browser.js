@@ -73,6 +73,17 @@ async function main() {
     log(`the vehicle stands at (${start.map((v) => v.toFixed(2)).join(", ")})`);
 
     await page.type("#start-mission input[name=file_path]", missionFile);
+    // Check first: no problem, and a plan for each step (nothing starts).
+    await press(page, "#check-mission");
+    const checked = await (await page.waitForFunction(() => {
+      const text = document.getElementById("mission-check").textContent;
+      return text.length > 0 && text;
+    }, { timeout: WAIT_MS })).jsonValue();
+    if (!checked.startsWith("no problem found") || !checked.includes("steps/0")) {
+      throw new Error(`the check shows: ${checked}`);
+    }
+    if (await page.$("#missions tbody tr")) throw new Error("a check started a mission");
+    log(`checked: ${checked.split("\n").length - 1} steps planned`);
     await press(page, "#start-mission button[type=submit]");
     const stepsOf = () => page.$eval("#missions tbody tr", (row) => ({
       steps: Number(row.querySelector(".steps").textContent),

@@ -289,6 +289,13 @@ class ConsoleGatewayTest(unittest.TestCase):
         self.assertIn("MISSION_INVALID", reasons, body)
         violations = [v for d in body["details"] for v in d.get("field_violations", [])]
         self.assertTrue(violations, body)
+        # CheckMission: the same problem as data, with its line, in an OK reply.
+        status, body = self.call("CheckMission", {
+            "text": "name: bad\nrobot: robot-a\nsteps:\n  - behavior: FLY_TO_THE_MOON\n"})
+        self.assertEqual(status, 200, body)
+        self.assertEqual(len(body["problems"]), 1, body)
+        self.assertEqual(body["problems"][0]["line"], 4, body)
+        self.assertEqual(body["problems"][0]["field"], "steps[0].behavior", body)
         status, body = self.call("GetMission", {"mission_id": "no-such-mission"})
         self.assertEqual(status, 404)
         self.assertEqual(body["details"][0]["reason"], "MISSION_NOT_FOUND")

@@ -26,8 +26,10 @@
 #include <set>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
+#include "absl/strings/str_split.h"
 #include "behaviorlib/error_details.h"
 #include "behaviorlib/v1/simulator.grpc.pb.h"
 #include "coordinator/belief/belief_store.h"
@@ -875,15 +877,32 @@ TEST_F(CoordinatorPlansMissionsTest, DocumentedMissionsRunAsDocumented) {
     std::vector<std::string> refusal;
   };
   std::vector<Example> examples;
+  // A text block that starts with "$ behaviorctl --coordinator ADDR ...":
+  // the command, run from the repository's root, prints the block's lines.
+  struct Command {
+    int line = 0;
+    std::string arguments;
+    std::vector<std::string> output;
+  };
+  std::vector<Command> commands;
+  const std::string prompt = "$ behaviorctl --coordinator 127.0.0.1:50060 ";
   std::string expect;
   std::string line;
-  enum class In { kProse, kYaml, kText } in_block = In::kProse;
+  enum class In { kProse, kYaml, kText, kCommand } in_block = In::kProse;
+  bool block_start = false;
   for (int number = 1; std::getline(in, line); ++number) {
     if (in_block != In::kProse) {
+      const bool first = block_start;
+      block_start = false;
       if (line == "```") {
         in_block = In::kProse;
       } else if (in_block == In::kYaml) {
         examples.back().yaml += line + "\n";
+      } else if (in_block == In::kText && first && line.rfind(prompt, 0) == 0) {
+        in_block = In::kCommand;
+        commands.push_back({number, line.substr(prompt.size()), {}});
+      } else if (in_block == In::kCommand) {
+        commands.back().output.push_back(line);
       } else if (!examples.empty() && examples.back().expect == "refused" &&
                  line.find_first_not_of(' ') != std::string::npos) {
         examples.back().refusal.push_back(line.substr(line.find_first_not_of(' ')));
@@ -899,9 +918,23 @@ TEST_F(CoordinatorPlansMissionsTest, DocumentedMissionsRunAsDocumented) {
       in_block = In::kYaml;
     } else if (line == "```text") {
       in_block = In::kText;
+      block_start = true;
     }
   }
   ASSERT_GE(examples.size(), 6u) << "the page lost its examples";
+  ASSERT_GE(commands.size(), 1u) << "the page lost its mission check";
+  const std::string demo = kDemoMission;
+  const std::string root = demo.substr(0, demo.rfind("/deploy/missions/"));
+  for (const Command& command : commands) {
+    SCOPED_TRACE("docs/missions.md:" + std::to_string(command.line));
+    std::string output;
+    run("cd '" + root + "' && " + std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " +
+            coordinator_->address() + " " + command.arguments,
+        &output);
+    std::vector<std::string> printed = absl::StrSplit(output, '\n');
+    while (!printed.empty() && printed.back().empty()) printed.pop_back();
+    EXPECT_EQ(printed, command.output) << output;
+  }
   for (const Example& example : examples) {
     SCOPED_TRACE("docs/missions.md:" + std::to_string(example.line) + " (" + example.expect + ")");
     if (example.expect == "refused") {
@@ -1301,6 +1334,108 @@ TEST(RegistryTest, ASecondSystemHostingABehaviorOfTheRobotIsAlreadyHosted) {
 
 // behaviorctl against the coordinator: health, a dry run, and `mission run`
 // of the demo (exit 0 when it SUCCEEDED).
+// CheckMission: every problem StartMission would refuse the mission for, as
+// data with its file, line and field; a robot without systems or without a
+// name is a problem too; a good mission gets each step's plan, each planned
+// against what the steps before it leave active. Nothing is activated.
+TEST_F(CoordinatorPlansMissionsTest, CheckMissionListsEveryProblemAndPlansEveryStep) {
+  FleetRecorder& events = recorder();
+  auto check = [&](const std::string& text, const std::string& robot = "") {
+    v1::CheckMissionRequest request;
+    request.set_text(text);
+    request.set_source_name("check.yaml");
+    request.set_robot_id(robot);
+    return unary(*stub_, &v1::Coordinator::Stub::CheckMission, request);
+  };
+  // Three problems on three lines, found at once.
+  auto checked = check(
+      "name: three\nrobot: drone1\nsteps:\n"
+      "  - behavior: WAIT\n    parameters: {duration_s: 1, duration: 1}\n"
+      "  - behavior: TAKE_OFF\n    parameters: {altitude_m: 500}\n"
+      "  - behavior: FLY_TO_THE_MOON\n");
+  ASSERT_TRUE(checked.status.ok()) << describe(checked.status);
+  const v1::CheckMissionResponse& three = checked.response;
+  EXPECT_EQ(three.name(), "three");
+  EXPECT_EQ(three.robot_id(), kRobot);
+  ASSERT_EQ(three.problems_size(), 3) << json(three);
+  const std::vector<std::tuple<uint32_t, std::string, std::string>> expected = {
+      {5, "steps[0].parameters.duration", "check.yaml:5: WAIT has no parameter 'duration'"},
+      {7, "steps[1].parameters.altitude_m",
+       "check.yaml:7: TAKE_OFF parameter 'altitude_m' = 500 is out of range [0.2, 30]"},
+      {8, "steps[2].behavior", "check.yaml:8: behavior FLY_TO_THE_MOON is not hosted"}};
+  for (int i = 0; i < 3; ++i) {
+    const auto& [line, field, description] = expected[i];
+    EXPECT_EQ(three.problems(i).file(), "check.yaml");
+    EXPECT_EQ(three.problems(i).line(), line) << json(three.problems(i));
+    EXPECT_EQ(three.problems(i).field(), field) << json(three.problems(i));
+    EXPECT_EQ(three.problems(i).description().rfind(description, 0), 0u) << json(three.problems(i));
+  }
+  // A file that does not parse: one problem, with its line.
+  checked = check("robot: drone1\nsteps:\n  - behavior: WAIT\n    on: {TIME_OUT: forever}\n");
+  ASSERT_TRUE(checked.status.ok()) << describe(checked.status);
+  ASSERT_EQ(checked.response.problems_size(), 1) << json(checked.response);
+  EXPECT_EQ(checked.response.problems(0).line(), 4u) << json(checked.response);
+  EXPECT_TRUE(checked.response.plans().empty());
+  // No robot, and a robot with no registered system.
+  checked = check("steps: [{behavior: LAND}]\n");
+  ASSERT_EQ(checked.response.problems_size(), 1) << json(checked.response);
+  EXPECT_NE(checked.response.problems(0).description().find("no robot"), std::string::npos);
+  checked = check("robot: drone1\nsteps: [{behavior: LAND}]\n", "drone9");
+  ASSERT_EQ(checked.response.problems_size(), 1) << json(checked.response);
+  EXPECT_EQ(checked.response.problems(0).field(), "robot");
+  EXPECT_EQ(checked.response.problems(0).line(), 1u) << "the line of `robot:`";
+  EXPECT_NE(checked.response.problems(0).description().find("'drone9' has no registered"),
+            std::string::npos)
+      << json(checked.response);
+  // The request's own errors stay errors.
+  auto no_source = unary(*stub_, &v1::Coordinator::Stub::CheckMission, v1::CheckMissionRequest());
+  EXPECT_EQ(no_source.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT);
+  v1::CheckMissionRequest outside;
+  outside.set_file_path("/etc/passwd");
+  EXPECT_EQ(unary(*stub_, &v1::Coordinator::Stub::CheckMission, outside).status.error_code(),
+            grpc::StatusCode::PERMISSION_DENIED);
+
+  // The demo mission: no problem, and a plan for every step in file order.
+  v1::CheckMissionRequest demo;
+  demo.set_file_path(std::filesystem::path(demo_mission_).filename().string());
+  checked = unary(*stub_, &v1::Coordinator::Stub::CheckMission, demo);
+  ASSERT_TRUE(checked.status.ok()) << describe(checked.status);
+  EXPECT_EQ(checked.response.problems_size(), 0) << json(checked.response);
+  std::vector<std::string> nodes;
+  std::map<std::string, std::vector<std::string>> plans;  // node -> "kind behavior"
+  for (const auto& plan : checked.response.plans()) {
+    nodes.push_back(plan.node());
+    EXPECT_TRUE(plan.no_plan().empty()) << json(plan);
+    ASSERT_FALSE(plan.plan().empty()) << json(plan);
+    EXPECT_EQ(plan.plan(plan.plan_size() - 1).kind(), v1::ActivationPlanStep::KIND_ACTIVATE);
+    EXPECT_EQ(plan.plan(plan.plan_size() - 1).behavior(), plan.behavior()) << "the target last";
+    for (const auto& step : plan.plan()) {
+      plans[plan.node()].push_back(v1::ActivationPlanStep::Kind_Name(step.kind()) + " " +
+                                   step.behavior());
+    }
+  }
+  EXPECT_EQ(nodes, (std::vector<std::string>{"recurrent/0", "steps/0", "steps/1", "steps/2",
+                                             "steps/3", "steps/4", "safety/0"}));
+  // FOLLOW_PATH's plan activates the motion controller it needs; the
+  // recurrent localization, active from recurrent/0 on, is never planned
+  // again.
+  const auto has = [&](const std::string& node, const std::string& what) {
+    const auto& steps = plans[node];
+    return std::find(steps.begin(), steps.end(), what) != steps.end();
+  };
+  EXPECT_TRUE(has("steps/2", std::string("KIND_ACTIVATE ") + kPid)) << json(checked.response);
+  for (const std::string& node : nodes) {
+    if (node == "recurrent/0") continue;
+    EXPECT_FALSE(has(node, std::string("KIND_ACTIVATE ") + kSelfLocalize)) << node;
+  }
+  EXPECT_TRUE(activeBehaviors().empty()) << "a check activates nothing";
+  EXPECT_FALSE(events.waitFor([](const v1::BehaviorEvent&) { return true; }, milliseconds(200)))
+      << "nothing was activated";
+  auto listed = unary(*stub_, &v1::Coordinator::Stub::ListMissions, v1::ListMissionsRequest());
+  ASSERT_TRUE(listed.status.ok());
+  EXPECT_EQ(listed.response.missions_size(), 0) << "no mission was started";
+}
+
 TEST_F(CoordinatorPlansMissionsTest, BehaviorctlRunsTheDemoMissionAndChecksHealth) {
   const std::string ctl =
       std::string(BEHAVIORLIB_BEHAVIORCTL_PATH) + " --coordinator " + coordinator_->address();
@@ -1317,6 +1452,25 @@ TEST_F(CoordinatorPlansMissionsTest, BehaviorctlRunsTheDemoMissionAndChecksHealt
   EXPECT_NE(output.find("KIND_ACTIVATE"), std::string::npos) << output;
   EXPECT_NE(output.find(kPid), std::string::npos) << output;
   EXPECT_TRUE(activeBehaviors().empty()) << "a dry run activates nothing";
+
+  // mission check: 0 and each step's plan for a good mission, 1 and each
+  // problem with its file and line for a bad one.
+  output.clear();
+  ASSERT_EQ(run(ctl + " mission check " + std::string(kDemoMission), &output), 0) << output;
+  EXPECT_NE(output.find("mission 'demo_square' for robot 'drone1': no problem found"),
+            std::string::npos)
+      << output;
+  EXPECT_NE(output.find("steps/2"), std::string::npos) << output;
+  EXPECT_NE(output.find(std::string("activate ") + kPid), std::string::npos) << output;
+  const std::string bad_file = state_dir_ + "/check_bad.yaml";
+  std::ofstream(bad_file) << "robot: drone1\nsteps:\n  - behavior: TAKE_OFF\n"
+                             "    parameters: {altitude_m: 500}\n  - behavior: NOPE\n";
+  output.clear();
+  ASSERT_EQ(run(ctl + " mission check " + bad_file, &output), 1) << output;
+  EXPECT_NE(output.find(bad_file + ":4: TAKE_OFF parameter 'altitude_m' = 500"), std::string::npos)
+      << output;
+  EXPECT_NE(output.find(bad_file + ":5: behavior NOPE is not hosted"), std::string::npos) << output;
+  EXPECT_NE(output.find("2 problems"), std::string::npos) << output;
 
   output.clear();
   const int code = run("timeout 60 " + ctl + " mission run " + kDemoMission, &output);

@@ -482,14 +482,17 @@ def robot_call(name, robot_id, behavior, activation_id="", parameters=None):
 
 
 def mission_request(file=None, text=None, server_file=None, robot_id="", mission_id="",
-                    source_name=""):
-    """StartMissionRequest from exactly one of: `file` (a local file, read
-    here and sent as text), `text`, or `server_file` (a path in the
-    coordinator's --mission-dir)."""
+                    source_name="", check=False):
+    """StartMissionRequest (CheckMissionRequest with `check`) from exactly
+    one of: `file` (a local file, read here and sent as text), `text`, or
+    `server_file` (a path in the coordinator's --mission-dir)."""
     given = [x for x in (file, text, server_file) if x is not None]
     if len(given) != 1:
         raise ValueError("give exactly one of file, text and server_file")
-    request = coordinator_pb2.StartMissionRequest(robot_id=robot_id, mission_id=mission_id)
+    if check:
+        request = coordinator_pb2.CheckMissionRequest(robot_id=robot_id)
+    else:
+        request = coordinator_pb2.StartMissionRequest(robot_id=robot_id, mission_id=mission_id)
     if file is not None:
         with open(file, encoding="utf-8") as f:
             request.text = f.read()

@@ -282,6 +282,12 @@ class Missions:
         return (await _call(self._fleet._stub.StartMission, request,
                             self._fleet._credentials)).status
 
+    async def check(self, *, file=None, text=None, server_file=None, robot_id="",
+                    source_name=""):
+        request = _core.mission_request(file, text, server_file, robot_id, "", source_name,
+                                        check=True)
+        return await _call(self._fleet._stub.CheckMission, request, self._fleet._credentials)
+
     async def get(self, mission_id):
         request = coordinator_pb2.GetMissionRequest(mission_id=mission_id)
         return (await _call(self._fleet._stub.GetMission, request, self._fleet._credentials)).status

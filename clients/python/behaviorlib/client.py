@@ -313,6 +313,15 @@ class Missions:
                                         source_name)
         return _call(self._fleet._stub.StartMission, request, self._fleet._credentials).status
 
+    def check(self, *, file=None, text=None, server_file=None, robot_id="", source_name=""):
+        """Checks a mission without starting it; returns the
+        CheckMissionResponse: every problem (`problems`, each with its file,
+        line and field; empty when the mission would start) and each step's
+        plan (`plans`)."""
+        request = _core.mission_request(file, text, server_file, robot_id, "", source_name,
+                                        check=True)
+        return _call(self._fleet._stub.CheckMission, request, self._fleet._credentials)
+
     def get(self, mission_id):
         request = coordinator_pb2.GetMissionRequest(mission_id=mission_id)
         return _call(self._fleet._stub.GetMission, request, self._fleet._credentials).status

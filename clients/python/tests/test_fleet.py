@@ -191,6 +191,19 @@ def test_a_bad_mission_text_is_invalid_argument_naming_its_source(fleet):
                              robot_id="drone2", source_name="broken.yaml")
 
 
+def test_a_check_lists_the_problems_of_a_mission_and_plans_a_good_one(fleet):
+    text = ("name: x\nsteps:\n  - behavior: NO_SUCH_BEHAVIOR\n"
+            "  - behavior: TAKE_OFF\n    parameters: {altitude_m: 500}\n")
+    checked = fleet.missions.check(text=text, robot_id="drone2", source_name="broken.yaml")
+    assert [(p.line, p.field) for p in checked.problems] == [
+        (3, "steps[0].behavior"), (5, "steps[1].parameters.altitude_m")], checked
+    assert checked.problems[0].description.startswith("broken.yaml:3: ")
+    good = fleet.missions.check(file=DEMO_MISSION, robot_id="drone2")
+    assert list(good.problems) == [], good
+    assert [p.node for p in good.plans][:2] == ["recurrent/0", "steps/0"], good
+    assert all(p.plan and p.plan[-1].behavior == p.behavior for p in good.plans), good
+
+
 def test_emergency_land_aborts_the_robots_mission_and_kill_needs_a_confirmation(fleet):
     mission_id = start_long_wait(fleet, "drone2")
     message = fleet.robot("drone2").emergency_land(reason="pytest")

@@ -108,6 +108,50 @@ TEST(TablesTest, AMissionShowsTheStepItIsAt) {
   EXPECT_EQ(table.rows[0][4], "FOLLOW_PATH RUNNING");
 }
 
+TEST(MissionCheckTest, ProblemsComeFirstThenEachStepsPlanAndWideAddsTheReasons) {
+  v1::CheckMissionResponse response;
+  response.set_name("demo");
+  response.set_robot_id("drone1");
+  response.add_problems()->set_description("m.yaml:7: TAKE_OFF parameter 'altitude_m' = 500");
+  response.set_problems_left_out(2);
+  auto* plan = response.add_plans();
+  plan->set_node("steps/0");
+  plan->set_name("take_off");
+  plan->set_behavior("TAKE_OFF");
+  plan->set_line(6);
+  auto* step = plan->add_plan();
+  step->set_kind(v1::ActivationPlanStep::KIND_DEACTIVATE);
+  step->set_behavior("HOVER");
+  step->set_reason("holds platform_commands");
+  step = plan->add_plan();
+  step->set_kind(v1::ActivationPlanStep::KIND_ACTIVATE);
+  step->set_behavior("TAKE_OFF");
+  step->set_reason("the target");
+  auto* bound = response.add_plans();
+  bound->set_node("steps/1");
+  bound->set_behavior("FOLLOW_PATH");
+  bound->set_no_plan("bound to beliefs");
+  const std::string text = missionCheckText(response, false);
+  EXPECT_EQ(text,
+            "m.yaml:7: TAKE_OFF parameter 'altitude_m' = 500\n"
+            "... and 2 more\n"
+            "mission 'demo' for robot 'drone1': 3 problems\n"
+            "\n"
+            "NODE     STEP         LINE  PLAN\n"
+            "steps/0  take_off     6     deactivate HOVER, activate TAKE_OFF\n"
+            "steps/1  FOLLOW_PATH  0     no plan: bound to beliefs\n");
+  const std::string wide = missionCheckText(response, true);
+  EXPECT_NE(wide.find("steps/0: deactivate HOVER: holds platform_commands\n"), std::string::npos)
+      << wide;
+  response.clear_problems();
+  response.set_problems_left_out(0);
+  EXPECT_EQ(missionCheckText(response, false)
+                .rfind("mission 'demo' for robot 'drone1': no "
+                       "problem found\n",
+                       0),
+            0u);
+}
+
 TEST(TablesTest, ABeliefValueIsCutInTheNarrowTableOnly) {
   v1::ListBeliefsResponse response;
   auto* belief = response.add_beliefs();

@@ -25,7 +25,8 @@
 //   POST /api/coordinator/NAME  one unary Coordinator call of the console's
 //                               (the request as JSON, proto field names; the
 //                               response as JSON), e.g. ListSystems,
-//                               StartMission, AbortMission, EmergencyLand
+//                               StartMission, CheckMission, AbortMission,
+//                               EmergencyLand
 //
 // An `Authorization` header is passed on to the coordinator, so the roles of
 // its access policy apply to the browser's calls. A refused call answers the

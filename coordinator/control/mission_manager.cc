@@ -215,7 +215,17 @@ void MissionManager::resumeOne(const std::string& mission_id) {
     *status.mutable_end_time() = google::protobuf::util::TimeUtil::GetCurrentTime();
     onChange(status);
   };
-  auto spec = parseMission(status.source(), status.file());
+  // The imported files as they were when it started (journaled with it).
+  const std::map<std::string, std::string> imported(status.imports().begin(),
+                                                    status.imports().end());
+  auto spec = parseMission(status.source(), status.file(),
+                           [&imported](const std::string& path) -> absl::StatusOr<std::string> {
+                             const auto it = imported.find(path);
+                             if (it == imported.end()) {
+                               return absl::NotFoundError("not journaled with the mission");
+                             }
+                             return it->second;
+                           });
   if (!spec.ok()) {
     fail(absl::StrCat("cannot resume after a coordinator restart: ", spec.status().message()));
     return;
@@ -351,13 +361,18 @@ absl::StatusOr<MissionManager::Source> MissionManager::readSource(const Request&
   return source;
 }
 
+ImportReader MissionManager::importReader() const {
+  if (!options_.mission_files.enabled()) return nullptr;
+  return [this](const std::string& path) { return options_.mission_files.read(path); };
+}
+
 absl::StatusOr<v1::CheckMissionResponse> MissionManager::check(
     const v1::CheckMissionRequest& request) const {
   absl::StatusOr<Source> source = readSource(request);
   if (!source.ok()) return source.status();
   v1::CheckMissionResponse response;
   MissionProblems problems;
-  absl::StatusOr<MissionSpec> spec = parseMission(source->text, source->file);
+  absl::StatusOr<MissionSpec> spec = parseMission(source->text, source->file, importReader());
   const std::string robot_id = !request.robot_id().empty() ? request.robot_id()
                                : spec.ok()                 ? spec->robot_id
                                                            : "";
@@ -427,6 +442,9 @@ void MissionManager::planSteps(const MissionSpec& spec, const std::string& robot
               }
             }
           }
+          // A call's steps, planned where it stands.
+          if (!step.call.empty())
+            plan_list(step.body, node + "/attempt/1/call/steps", false, active);
           // A fallback starts from what the failed step left.
           for (const auto& [cause, action] : step.on) {
             for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
@@ -450,7 +468,7 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   // The text is kept so that a restarted coordinator can parse it again.
   std::string text = std::move(source->text);
   const std::string file = std::move(source->file);
-  absl::StatusOr<MissionSpec> spec = parseMission(text, file);
+  absl::StatusOr<MissionSpec> spec = parseMission(text, file, importReader());
   if (!spec.ok()) return errors::withDefaultReason(spec.status(), v1::MISSION_INVALID);
   const std::string robot_id = request.robot_id().empty() ? spec->robot_id : request.robot_id();
   if (robot_id.empty()) {

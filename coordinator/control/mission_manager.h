@@ -138,6 +138,9 @@ class MissionManager {
   };
   template <class Request>
   absl::StatusOr<Source> readSource(const Request& request) const;
+  /// Reads the files a mission imports from the mission directory (null
+  /// without one: a mission then cannot import).
+  ImportReader importReader() const;
   /// The problems of `spec` for `robot_id` against the registry;
   /// `registered` receives whether the robot has a registered system.
   MissionProblems problemsAgainstRegistry(const MissionSpec& spec, const std::string& robot_id,

@@ -30,40 +30,85 @@ absl::Status stepError(const std::string& field, const std::string& message) {
       v1::MISSION_INVALID);
 }
 
+bool hasBinding(const google::protobuf::Value& value);
+
+// A sub-mission's declared parameter.
+struct SubParameter {
+  std::string name;
+  std::string type;  // number, string, bool, list, object or any
+  std::string description;
+  std::optional<double> min;
+  std::optional<double> max;
+  std::optional<google::protobuf::Value> default_value;
+  int line = 0;
+};
+
+// What is wrong with `value` for `parameter`, if anything (a value bound to
+// a belief is known only when its step starts).
+std::optional<std::string> argumentProblem(const SubParameter& parameter,
+                                           const google::protobuf::Value& value) {
+  if (hasBinding(value)) return std::nullopt;
+  const std::string& type = parameter.type;
+  const bool matches = type == "any" || (type == "number" && value.has_number_value()) ||
+                       (type == "string" && value.has_string_value()) ||
+                       (type == "bool" && value.has_bool_value()) ||
+                       (type == "list" && value.has_list_value()) ||
+                       (type == "object" && value.has_struct_value());
+  if (!matches) return cat("expected a ", type);
+  if (value.has_number_value()) {
+    const double v = value.number_value();
+    if ((parameter.min && v < *parameter.min) || (parameter.max && v > *parameter.max)) {
+      v1::Range range;
+      if (parameter.min) range.set_min(*parameter.min);
+      if (parameter.max) range.set_max(*parameter.max);
+      return cat(params::numberText(v), " is out of range ", params::rangeText(range));
+    }
+  }
+  return std::nullopt;
+}
+
 class MissionParser {
  public:
-  explicit MissionParser(const std::string& file) : r_(file) {}
+  MissionParser(const std::string& file, ImportReader imports)
+      : main_(file), r_(&main_), imports_(std::move(imports)) {}
 
   absl::StatusOr<MissionSpec> parse(const YAML::Node& root) {
     MissionSpec spec;
-    spec.file = r_.file();
-    r_.index(root);
-    if (root.IsNull()) return absl::InvalidArgumentError(r_.file() + ":1: the mission is empty");
-    if (auto s = r_.mapping(
-            root, "mission",
-            {"name", "description", "robot", "geofence", "recurrent", "safety", "steps"});
+    spec.file = r_->file();
+    r_->index(root);
+    if (root.IsNull()) return absl::InvalidArgumentError(r_->file() + ":1: the mission is empty");
+    if (auto s = r_->mapping(root, "mission",
+                             {"name", "description", "robot", "geofence", "import", "submissions",
+                              "recurrent", "safety", "steps"});
         !s.ok()) {
       return s;
     }
+    if (root["import"]) {
+      if (auto s = importAll(root["import"], &spec); !s.ok()) return s;
+    }
+    if (root["submissions"]) {
+      if (auto s = definitions(root["submissions"], r_); !s.ok()) return s;
+    }
+    for (const auto& [name, definition] : defs_) spec.submissions.push_back(name);
     if (root["name"]) {
-      if (auto s = r_.text(root["name"], "mission name", &spec.name); !s.ok()) return s;
+      if (auto s = r_->text(root["name"], "mission name", &spec.name); !s.ok()) return s;
     }
     if (root["description"]) {
-      if (auto s = r_.text(root["description"], "mission description", &spec.description);
+      if (auto s = r_->text(root["description"], "mission description", &spec.description);
           !s.ok()) {
         return s;
       }
     }
     if (root["robot"]) {
-      if (auto s = r_.text(root["robot"], "mission robot", &spec.robot_id); !s.ok()) return s;
+      if (auto s = r_->text(root["robot"], "mission robot", &spec.robot_id); !s.ok()) return s;
       spec.robot_line = lineOf(root["robot"]);
     }
     if (root["geofence"]) {
       if (auto s = geofence(root["geofence"], &spec); !s.ok()) return s;
     }
-    if (!root["steps"]) return r_.error(root, "mission: missing 'steps'");
+    if (!root["steps"]) return r_->error(root, "mission: missing 'steps'");
     if (auto s = stepList(root["steps"], "steps", &spec.steps); !s.ok()) return s;
-    if (spec.steps.empty()) return r_.error(root["steps"], "mission: 'steps' is empty");
+    if (spec.steps.empty()) return r_->error(root["steps"], "mission: 'steps' is empty");
     for (auto [key, out] :
          {std::pair{"recurrent", &spec.recurrent}, std::pair{"safety", &spec.safety}}) {
       if (!root[key]) continue;
@@ -71,12 +116,12 @@ class MissionParser {
       for (const auto& step : *out) {
         if (step.behavior.empty()) {
           return stepError(step.path + ".behavior",
-                           cat(r_.file(), ":", step.line, ": ", key, " step: missing 'behavior'"));
+                           cat(r_->file(), ":", step.line, ": ", key, " step: missing 'behavior'"));
         }
         if (!step.on.empty() || step.condition) {
-          return stepError(
-              step.path + (step.on.empty() ? ".if" : ".on"),
-              cat(r_.file(), ":", step.line, ": ", key, " step: 'on' and 'if' are for steps only"));
+          return stepError(step.path + (step.on.empty() ? ".if" : ".on"),
+                           cat(r_->file(), ":", step.line, ": ", key,
+                               " step: 'on' and 'if' are for steps only"));
         }
       }
     }
@@ -84,32 +129,33 @@ class MissionParser {
   }
 
  private:
+  struct Definition;
   // geofence: {min_m: [x, y, z], max_m: [x, y, z]} (world ENU, metres).
   absl::Status geofence(const YAML::Node& node, MissionSpec* spec) {
-    if (auto s = r_.mapping(node, "geofence", {"min_m", "max_m"}); !s.ok()) return s;
+    if (auto s = r_->mapping(node, "geofence", {"min_m", "max_m"}); !s.ok()) return s;
     Geofence fence;
     for (auto [key, out] : {std::pair{"min_m", &fence.min_m}, std::pair{"max_m", &fence.max_m}}) {
       const YAML::Node corner = node[key];
       if (!corner)
-        return r_.error(node, cat("geofence: missing '", key, "' ([x, y, z] in metres)"));
+        return r_->error(node, cat("geofence: missing '", key, "' ([x, y, z] in metres)"));
       if (!corner.IsSequence() || corner.size() != 3) {
-        return r_.error(corner, cat("geofence ", key, ": expected [x, y, z] in metres"));
+        return r_->error(corner, cat("geofence ", key, ": expected [x, y, z] in metres"));
       }
       for (size_t i = 0; i < 3; ++i) {
         try {
           (*out)[i] = corner[i].as<double>();
         } catch (const YAML::Exception&) {
-          return r_.error(corner[i],
-                          cat("geofence ", key, ": '", corner[i].Scalar(), "' is not a number"));
+          return r_->error(corner[i],
+                           cat("geofence ", key, ": '", corner[i].Scalar(), "' is not a number"));
         }
         if (!std::isfinite((*out)[i])) {
-          return r_.error(corner[i], cat("geofence ", key, ": coordinates must be finite"));
+          return r_->error(corner[i], cat("geofence ", key, ": coordinates must be finite"));
         }
       }
     }
     for (size_t i = 0; i < 3; ++i) {
       if (!(fence.min_m[i] < fence.max_m[i])) {
-        return r_.error(node, "geofence: min_m must be below max_m on every axis");
+        return r_->error(node, "geofence: min_m must be below max_m on every axis");
       }
     }
     fence.line = node.Mark().line + 1;
@@ -119,7 +165,7 @@ class MissionParser {
 
   absl::Status stepList(const YAML::Node& node, const std::string& what,
                         std::vector<MissionStep>* out) {
-    if (!node.IsSequence()) return r_.error(node, what + ": expected a list of steps");
+    if (!node.IsSequence()) return r_->error(node, what + ": expected a list of steps");
     for (const auto& item : node) {
       MissionStep step;
       if (auto s = parseStep(item, what, &step); !s.ok()) return s;
@@ -130,78 +176,89 @@ class MissionParser {
 
   absl::Status parseStep(const YAML::Node& node, const std::string& list, MissionStep* step) {
     step->line = lineOf(node);
-    step->path = r_.pathOf(node);
+    step->path = r_->pathOf(node);
     const std::string what = list + " step";
-    if (auto s = r_.mapping(node, what, {"name", "behavior", "parameters", "on", "if", "remember"});
+    step->file = r_->file();
+    if (auto s = r_->mapping(
+            node, what, {"name", "behavior", "call", "with", "parameters", "on", "if", "remember"});
         !s.ok()) {
       return s;
     }
     if (node["name"]) {
-      if (auto s = r_.text(node["name"], what + " name", &step->name); !s.ok()) return s;
+      if (auto s = r_->text(node["name"], what + " name", &step->name); !s.ok()) return s;
     }
     const std::string label = step->name.empty() ? what : what + " '" + step->name + "'";
     if (node["behavior"]) {
-      if (auto s = r_.text(node["behavior"], label + " behavior", &step->behavior); !s.ok())
+      if (auto s = r_->text(node["behavior"], label + " behavior", &step->behavior); !s.ok())
         return s;
     }
     if (const YAML::Node params = node["parameters"]) {
-      if (!params.IsMap()) return r_.error(params, label + " parameters: expected a mapping");
+      if (!params.IsMap()) return r_->error(params, label + " parameters: expected a mapping");
       google::protobuf::Value value;
-      if (auto s = r_.value(params, label + " parameters", &value); !s.ok()) return s;
+      if (auto s = r_->value(params, label + " parameters", &value); !s.ok()) return s;
+      if (auto s = substitute(params, label + " parameters", &value); !s.ok()) return s;
+      if (auto s = checkBindings(params, value, label); !s.ok()) return s;
       step->parameters = value.struct_value();
       for (const auto& entry : params) {
         step->parameter_lines[entry.first.as<std::string>()] = lineOf(entry.first);
       }
-      if (auto s = checkBindings(params, label); !s.ok()) return s;
     }
     if (const YAML::Node remember = node["remember"]) {
-      if (auto s = r_.mapping(remember, label + " remember", {}); !s.ok()) return s;
+      if (auto s = r_->mapping(remember, label + " remember", {}); !s.ok()) return s;
       for (const auto& entry : remember) {
         if (auto s = BeliefStore::checkKey(entry.first.as<std::string>()); !s.ok()) {
-          return r_.keyError(entry.first, label + " remember: " + std::string(s.message()));
+          return r_->keyError(entry.first, label + " remember: " + std::string(s.message()));
         }
       }
       google::protobuf::Value value;
-      if (auto s = r_.value(remember, label + " remember", &value); !s.ok()) return s;
+      if (auto s = r_->value(remember, label + " remember", &value); !s.ok()) return s;
+      if (auto s = substitute(remember, label + " remember", &value); !s.ok()) return s;
+      if (auto s = checkBindings(remember, value, label); !s.ok()) return s;
       step->remember = value.struct_value();
-      if (auto s = checkBindings(remember, label); !s.ok()) return s;
     }
-    if (step->behavior.empty() && step->remember.fields().empty()) {
-      return r_.error(node, label + ": needs a 'behavior' (or only 'remember')");
+    if (node["call"]) {
+      if (auto s = call(node, label, step); !s.ok()) return s;
+    } else if (node["with"]) {
+      return r_->error(node["with"], label + ": 'with' goes with 'call'");
+    }
+    if (step->behavior.empty() && step->call.empty() && step->remember.fields().empty()) {
+      return r_->error(node, label + ": needs a 'behavior' or a 'call' (or only 'remember')");
     }
     if (const YAML::Node condition = node["if"]) {
-      if (auto s = r_.mapping(condition, label + " if", {"belief", "exists", "equals"}); !s.ok()) {
+      if (auto s = r_->mapping(condition, label + " if", {"belief", "exists", "equals"}); !s.ok()) {
         return s;
       }
       BeliefCondition c;
       c.line = lineOf(condition);
       if (!condition["belief"])
-        return r_.error(condition, label + " if: missing 'belief' (the key)");
-      if (auto s = r_.text(condition["belief"], label + " if belief", &c.key); !s.ok()) return s;
+        return r_->error(condition, label + " if: missing 'belief' (the key)");
+      if (auto s = r_->text(condition["belief"], label + " if belief", &c.key); !s.ok()) return s;
       if (auto s = BeliefStore::checkKey(c.key); !s.ok()) {
-        return r_.error(condition["belief"], label + " if: " + std::string(s.message()));
+        return r_->error(condition["belief"], label + " if: " + std::string(s.message()));
       }
       if (condition["exists"]) {
         bool exists = false;
         if (!condition["exists"].IsScalar() ||
             !YAML::convert<bool>::decode(condition["exists"], exists)) {
-          return r_.error(condition["exists"], label + " if exists: expected true or false");
+          return r_->error(condition["exists"], label + " if exists: expected true or false");
         }
         c.exists = exists;
       }
       if (condition["equals"]) {
         google::protobuf::Value v;
-        if (auto s = r_.value(condition["equals"], label + " if equals", &v); !s.ok()) return s;
+        if (auto s = r_->value(condition["equals"], label + " if equals", &v); !s.ok()) return s;
         c.equals = v;
       }
       if (c.exists.has_value() == c.equals.has_value()) {
-        return r_.error(condition, label + " if: give exactly one of 'exists' and 'equals'");
+        return r_->error(condition, label + " if: give exactly one of 'exists' and 'equals'");
       }
       step->condition = c;
     }
     if (const YAML::Node on = node["on"]) {
-      if (step->behavior.empty()) return r_.error(on, label + ": 'on' needs a 'behavior'");
-      if (auto s = r_.mapping(on, label + " on", causeKeys()); !s.ok()) return s;
+      if (step->behavior.empty() && step->call.empty()) {
+        return r_->error(on, label + ": 'on' needs a 'behavior' or a 'call'");
+      }
+      if (auto s = r_->mapping(on, label + " on", causeKeys()); !s.ok()) return s;
       for (const auto& entry : on) {
         MissionAction action;
         const std::string cause = entry.first.as<std::string>();
@@ -221,18 +278,20 @@ class MissionParser {
       } else if (word == "abort") {
         action->kind = MissionAction::Kind::kAbort;
       } else {
-        return r_.error(node, cat(what, ": unknown action '", word,
-                                  "' (expected continue, abort, {retry: N}, {fallback: [steps]})"));
+        return r_->error(node,
+                         cat(what, ": unknown action '", word,
+                             "' (expected continue, abort, {retry: N}, {fallback: [steps]})"));
       }
       return absl::OkStatus();
     }
-    if (auto s = r_.mapping(node, what, {"retry", "then", "fallback"}); !s.ok()) return s;
+    if (auto s = r_->mapping(node, what, {"retry", "then", "fallback"}); !s.ok()) return s;
     if (node["retry"]) {
-      if (node["fallback"]) return r_.error(node, what + ": give 'retry' or 'fallback', not both");
+      if (node["fallback"]) return r_->error(node, what + ": give 'retry' or 'fallback', not both");
       int retries = -1;
       if (!node["retry"].IsScalar() || !YAML::convert<int>::decode(node["retry"], retries) ||
           retries < 1 || retries > 100) {
-        return r_.error(node["retry"], what + " retry: expected a whole number of retries, 1..100");
+        return r_->error(node["retry"],
+                         what + " retry: expected a whole number of retries, 1..100");
       }
       action->kind = MissionAction::Kind::kRetry;
       action->retries = retries;
@@ -241,38 +300,373 @@ class MissionParser {
         if (auto s = parseAction(node["then"], what + " then", action->then.get()); !s.ok())
           return s;
         if (action->then->kind == MissionAction::Kind::kRetry) {
-          return r_.error(node["then"], what + " then: a retry cannot follow a retry");
+          return r_->error(node["then"], what + " then: a retry cannot follow a retry");
         }
       }
       return absl::OkStatus();
     }
-    if (node["then"]) return r_.error(node["then"], what + ": 'then' goes with 'retry'");
-    if (!node["fallback"]) return r_.error(node, what + ": expected 'retry' or 'fallback'");
+    if (node["then"]) return r_->error(node["then"], what + ": 'then' goes with 'retry'");
+    if (!node["fallback"]) return r_->error(node, what + ": expected 'retry' or 'fallback'");
     action->kind = MissionAction::Kind::kFallback;
     if (auto s = stepList(node["fallback"], what + " fallback", &action->fallback); !s.ok())
       return s;
-    if (action->fallback.empty()) return r_.error(node["fallback"], what + " fallback: empty");
+    if (action->fallback.empty()) return r_->error(node["fallback"], what + " fallback: empty");
     return absl::OkStatus();
   }
 
-  // Checks the syntax of every ${belief.<key>} in the strings under `node`.
-  absl::Status checkBindings(const YAML::Node& node, const std::string& what) {
-    if (node.IsScalar()) {
-      auto keys = BeliefStore::bindingsIn(node.Scalar());
-      if (!keys.ok()) return r_.error(node, what + ": " + std::string(keys.status().message()));
-    } else if (node.IsSequence()) {
-      for (const auto& item : node) {
-        if (auto s = checkBindings(item, what); !s.ok()) return s;
-      }
-    } else if (node.IsMap()) {
-      for (const auto& entry : node) {
-        if (auto s = checkBindings(entry.second, what); !s.ok()) return s;
+  // Checks the syntax of every ${belief.<key>} in the strings of `value`
+  // (read from the mapping `node`, after ${param.x} were replaced); a
+  // problem is named at its entry's line.
+  absl::Status checkBindings(const YAML::Node& node, const google::protobuf::Value& value,
+                             const std::string& what) const {
+    const auto& fields = value.struct_value().fields();
+    for (const auto& entry : node) {
+      const auto it = fields.find(entry.first.Scalar());
+      if (it == fields.end()) continue;
+      if (auto s = bindingsValid(it->second); !s.ok()) {
+        return r_->error(entry.second, what + ": " + std::string(s.message()));
       }
     }
     return absl::OkStatus();
   }
 
-  yaml::Reader r_;
+  static absl::Status bindingsValid(const google::protobuf::Value& value) {
+    if (value.has_string_value()) return BeliefStore::bindingsIn(value.string_value()).status();
+    if (value.has_list_value()) {
+      for (const auto& item : value.list_value().values()) {
+        if (auto s = bindingsValid(item); !s.ok()) return s;
+      }
+    }
+    if (value.has_struct_value()) {
+      for (const auto& [key, field] : value.struct_value().fields()) {
+        if (auto s = bindingsValid(field); !s.ok()) return s;
+      }
+    }
+    return absl::OkStatus();
+  }
+
+  // import: [file, ...]: files of sub-missions, read through imports_ (the
+  // mission directory), each a mapping with `submissions` (and an optional
+  // `description`); an imported file imports nothing itself.
+  absl::Status importAll(const YAML::Node& node, MissionSpec* spec) {
+    std::vector<std::string> files;
+    if (auto s = r_->names(node, "import", &files); !s.ok()) return s;
+    if (files.size() > kMaxImports) {
+      return r_->error(node, cat("import: at most ", kMaxImports, " files"));
+    }
+    for (size_t i = 0; i < files.size(); ++i) {
+      const YAML::Node at = node.IsSequence() ? node[i] : node;
+      if (!imports_) {
+        return r_->error(at,
+                         "import: this mission cannot import files (the coordinator has no "
+                         "--mission-dir)");
+      }
+      absl::StatusOr<std::string> text = imports_(files[i]);
+      if (!text.ok())
+        return r_->error(at, cat("import '", files[i], "': ", text.status().message()));
+      YAML::Node root;
+      if (auto s = yaml::load(*text, files[i], &root); !s.ok()) return s;
+      readers_.push_back(std::make_unique<yaml::Reader>(files[i]));
+      yaml::Reader* reader = readers_.back().get();
+      reader->index(root);
+      roots_.push_back(root);
+      if (!root.IsMap()) return reader->error(root, "imported file: expected a mapping");
+      if (auto s = reader->mapping(root, "imported file", {"description", "submissions"}); !s.ok())
+        return s;
+      if (!root["submissions"]) return reader->error(root, "imported file: missing 'submissions'");
+      if (auto s = definitions(root["submissions"], reader); !s.ok()) return s;
+      spec->imports[files[i]] = std::move(*text);
+    }
+    return absl::OkStatus();
+  }
+
+  // submissions: {name: {description, parameters: {p: {type, default, min,
+  // max, description}}, steps: [...]}}. Their steps are parsed at each call,
+  // with the call's parameters in place of ${param.<name>}.
+  absl::Status definitions(const YAML::Node& node, yaml::Reader* reader) {
+    if (auto s = reader->mapping(node, "submissions", {}); !s.ok()) return s;
+    for (const auto& entry : node) {
+      const std::string name = entry.first.Scalar();
+      const std::string what = "submission '" + name + "'";
+      if (!validName(name)) {
+        return reader->keyError(entry.first, what + ": a name is letters, digits and '_'");
+      }
+      if (const auto found = defs_.find(name); found != defs_.end()) {
+        return reader->keyError(
+            entry.first, cat(what, ": defined twice (also ", found->second.reader->file(), ":",
+                             found->second.line, ")"));
+      }
+      if (auto s = reader->mapping(entry.second, what, {"description", "parameters", "steps"});
+          !s.ok()) {
+        return s;
+      }
+      Definition definition;
+      definition.reader = reader;
+      definition.line = lineOf(entry.first);
+      if (const YAML::Node params = entry.second["parameters"]) {
+        if (auto s = reader->mapping(params, what + " parameters", {}); !s.ok()) return s;
+        for (const auto& p : params) {
+          SubParameter parameter;
+          if (auto s = subParameter(*reader, p.first, p.second, what, &parameter); !s.ok())
+            return s;
+          definition.parameters.push_back(std::move(parameter));
+        }
+      }
+      definition.steps = entry.second["steps"];
+      if (!definition.steps) return reader->error(entry.second, what + ": missing 'steps'");
+      if (!definition.steps.IsSequence() || definition.steps.size() == 0) {
+        return reader->error(definition.steps, what + " steps: expected a list of steps");
+      }
+      if (auto s = usesDeclared(*reader, definition.steps, definition, what); !s.ok()) return s;
+      defs_[name] = std::move(definition);
+    }
+    return absl::OkStatus();
+  }
+
+  absl::Status subParameter(const yaml::Reader& reader, const YAML::Node& key,
+                            const YAML::Node& node, const std::string& what, SubParameter* out) {
+    out->name = key.Scalar();
+    out->line = lineOf(key);
+    const std::string label = cat(what, " parameter '", out->name, "'");
+    if (!validName(out->name)) return reader.keyError(key, label + ": letters, digits and '_'");
+    if (auto s = reader.mapping(node, label, {"type", "default", "min", "max", "description"});
+        !s.ok()) {
+      return s;
+    }
+    if (!node["type"]) {
+      return reader.error(node, label +
+                                    ": missing 'type' (number, string, bool, list, object or "
+                                    "any)");
+    }
+    if (auto s = reader.text(node["type"], label + " type", &out->type); !s.ok()) return s;
+    static const std::set<std::string> kTypes = {"number", "string", "bool",
+                                                 "list",   "object", "any"};
+    if (!kTypes.contains(out->type)) {
+      return reader.error(node["type"], cat(label, ": unknown type '", out->type,
+                                            "' (number, string, bool, list, object or any)"));
+    }
+    if (node["description"]) {
+      if (auto s = reader.text(node["description"], label + " description", &out->description);
+          !s.ok())
+        return s;
+    }
+    for (auto [bound, target] : {std::pair{"min", &out->min}, std::pair{"max", &out->max}}) {
+      if (!node[bound]) continue;
+      double v = 0;
+      if (out->type != "number" || !node[bound].IsScalar() ||
+          !YAML::convert<double>::decode(node[bound], v) || !std::isfinite(v)) {
+        return reader.error(node[bound], cat(label, " ", bound, ": a number, for type number"));
+      }
+      *target = v;
+    }
+    if (node["default"]) {
+      google::protobuf::Value v;
+      if (auto s = reader.value(node["default"], label + " default", &v); !s.ok()) return s;
+      if (auto problem = argumentProblem(*out, v)) {
+        return reader.error(node["default"], cat(label, " default: ", *problem));
+      }
+      out->default_value = v;
+    }
+    return absl::OkStatus();
+  }
+
+  // Every ${param.<name>} under `node` names a declared parameter.
+  absl::Status usesDeclared(const yaml::Reader& reader, const YAML::Node& node,
+                            const Definition& definition, const std::string& what) {
+    if (node.IsScalar()) {
+      for (const std::string& name : paramNames(node.Scalar())) {
+        bool declared = false;
+        for (const auto& p : definition.parameters) declared = declared || p.name == name;
+        if (!declared) {
+          return reader.error(node,
+                              cat(what, ": ${param.", name, "} is not one of its parameters"));
+        }
+      }
+    } else if (node.IsSequence() || node.IsMap()) {
+      for (const auto& item : node) {
+        const YAML::Node child = node.IsMap() ? item.second : YAML::Node(item);
+        if (auto s = usesDeclared(reader, child, definition, what); !s.ok()) return s;
+      }
+    }
+    return absl::OkStatus();
+  }
+
+  // A call step: `call: name` and `with: {parameter: value}`; its body is the
+  // sub-mission's steps, parsed with the call's parameters.
+  absl::Status call(const YAML::Node& node, const std::string& label, MissionStep* step) {
+    if (node["behavior"]) return r_->error(node["call"], label + ": give 'behavior' or 'call'");
+    if (node["parameters"]) {
+      return r_->error(node["parameters"], label + ": a call takes 'with', not 'parameters'");
+    }
+    if (auto s = r_->text(node["call"], label + " call", &step->call); !s.ok()) return s;
+    const auto found = defs_.find(step->call);
+    if (found == defs_.end()) {
+      std::vector<std::string> known;
+      for (const auto& [name, d] : defs_) known.push_back(name);
+      return r_->error(node["call"], cat(label, ": no sub-mission '", step->call, "' (defined: ",
+                                         known.empty() ? "none" : yaml::join(known), ")"));
+    }
+    const Definition& definition = found->second;
+    if (std::find(calling_.begin(), calling_.end(), step->call) != calling_.end() ||
+        calling_.size() >= kMaxCallDepth) {
+      std::string chain;
+      for (const auto& name : calling_) chain += name + " -> ";
+      return r_->error(node["call"],
+                       calling_.size() >= kMaxCallDepth
+                           ? cat(label, ": sub-missions nest deeper than ", kMaxCallDepth)
+                           : cat(label, ": sub-mission '", step->call, "' calls itself (", chain,
+                                 step->call, ")"));
+    }
+    std::map<std::string, google::protobuf::Value> arguments;
+    if (const YAML::Node with = node["with"]) {
+      if (auto s = r_->mapping(with, label + " with", {}); !s.ok()) return s;
+      google::protobuf::Value value;
+      if (auto s = r_->value(with, label + " with", &value); !s.ok()) return s;
+      if (auto s = substitute(with, label + " with", &value); !s.ok()) return s;
+      if (auto s = checkBindings(with, value, label); !s.ok()) return s;
+      for (const auto& entry : with) {
+        const std::string key = entry.first.Scalar();
+        const SubParameter* parameter = nullptr;
+        std::vector<std::string> names;
+        for (const auto& p : definition.parameters) {
+          names.push_back(p.name);
+          if (p.name == key) parameter = &p;
+        }
+        if (parameter == nullptr) {
+          return r_->keyError(entry.first, cat(label, ": sub-mission '", step->call,
+                                               "' has no parameter '", key, "' (its parameters: ",
+                                               names.empty() ? "none" : yaml::join(names), ")"));
+        }
+        const google::protobuf::Value& given = value.struct_value().fields().at(key);
+        if (auto problem = argumentProblem(*parameter, given)) {
+          return r_->error(entry.second, cat(label, " with ", key, ": ", *problem));
+        }
+        arguments[key] = given;
+      }
+      step->with = value.struct_value();
+    }
+    for (const auto& p : definition.parameters) {
+      if (arguments.contains(p.name)) continue;
+      if (!p.default_value) {
+        return r_->error(node["call"],
+                         cat(label, ": sub-mission '", step->call, "' needs parameter '", p.name,
+                             "'", p.description.empty() ? "" : ": " + p.description));
+      }
+      arguments[p.name] = *p.default_value;
+    }
+    // The body, in the sub-mission's file, with these parameters.
+    yaml::Reader* const saved_reader = r_;
+    std::map<std::string, google::protobuf::Value> saved_params = std::move(params_);
+    r_ = definition.reader;
+    params_ = std::move(arguments);
+    calling_.push_back(step->call);
+    absl::Status parsed =
+        stepList(definition.steps, "submission '" + step->call + "'", &step->body);
+    calling_.pop_back();
+    params_ = std::move(saved_params);
+    r_ = saved_reader;
+    return parsed;
+  }
+
+  // ${param.<name>} in the strings of `value` (read from `node`) replaced by
+  // the current call's parameters: a whole string by the value itself, a
+  // part by its text.
+  absl::Status substitute(const YAML::Node& node, const std::string& what,
+                          google::protobuf::Value* value) const {
+    if (value->has_list_value()) {
+      for (auto& item : *value->mutable_list_value()->mutable_values()) {
+        if (auto s = substitute(node, what, &item); !s.ok()) return s;
+      }
+      return absl::OkStatus();
+    }
+    if (value->has_struct_value()) {
+      for (auto& [key, field] : *value->mutable_struct_value()->mutable_fields()) {
+        if (auto s = substitute(node, what, &field); !s.ok()) return s;
+      }
+      return absl::OkStatus();
+    }
+    if (!value->has_string_value()) return absl::OkStatus();
+    const std::string text = value->string_value();
+    const std::vector<std::string> names = paramNames(text);
+    if (names.empty()) return absl::OkStatus();
+    for (const std::string& name : names) {
+      if (!params_.contains(name)) {
+        return r_->error(node, calling_.empty()
+                                   ? cat(what, ": ${param.", name,
+                                         "} is only for a sub-mission's "
+                                         "steps")
+                                   : cat(what, ": ${param.", name, "} is not a parameter"));
+      }
+    }
+    if (names.size() == 1 && text == "${param." + names[0] + "}") {
+      *value = params_.at(names[0]);
+      return absl::OkStatus();
+    }
+    std::string out = text;
+    for (const std::string& name : names) {
+      const google::protobuf::Value& v = params_.at(name);
+      std::string part;
+      if (v.has_string_value()) {
+        part = v.string_value();
+      } else if (v.has_number_value()) {
+        part = params::numberText(v.number_value());
+      } else if (v.has_bool_value()) {
+        part = v.bool_value() ? "true" : "false";
+      } else {
+        return r_->error(node, cat(what, ": ${param.", name,
+                                   "} is a list or an object; it can "
+                                   "only stand alone in a value, not inside a text"));
+      }
+      const std::string token = "${param." + name + "}";
+      for (size_t at = out.find(token); at != std::string::npos;
+           at = out.find(token, at + part.size())) {
+        out.replace(at, token.size(), part);
+      }
+    }
+    value->set_string_value(out);
+    return absl::OkStatus();
+  }
+
+  static bool validName(const std::string& name) {
+    if (name.empty() || name.size() > 64 || std::isdigit(static_cast<unsigned char>(name[0]))) {
+      return false;
+    }
+    for (char c : name) {
+      if (!std::isalnum(static_cast<unsigned char>(c)) && c != '_') return false;
+    }
+    return true;
+  }
+
+  // The names in every ${param.<name>} of `text`.
+  static std::vector<std::string> paramNames(const std::string& text) {
+    std::vector<std::string> names;
+    const std::string open = "${param.";
+    for (size_t at = text.find(open); at != std::string::npos; at = text.find(open, at + 1)) {
+      const size_t end = text.find('}', at);
+      if (end == std::string::npos) break;
+      names.push_back(text.substr(at + open.size(), end - at - open.size()));
+    }
+    return names;
+  }
+
+  static constexpr size_t kMaxImports = 16;
+  static constexpr size_t kMaxCallDepth = 8;
+
+  struct Definition {
+    yaml::Reader* reader = nullptr;
+    int line = 0;
+    std::vector<SubParameter> parameters;
+    YAML::Node steps;
+  };
+
+  yaml::Reader main_;
+  yaml::Reader* r_;  // of the document being read: the mission, or an imported file
+  ImportReader imports_;
+  std::vector<std::unique_ptr<yaml::Reader>> readers_;  // of the imported files
+  std::vector<YAML::Node> roots_;                       // the imported documents
+  std::map<std::string, Definition> defs_;
+  std::vector<std::string> calling_;  // the sub-missions whose calls are being parsed
+  std::map<std::string, google::protobuf::Value> params_;  // of the innermost call
 };
 
 bool hasBinding(const google::protobuf::Value& value) {
@@ -330,6 +724,10 @@ std::optional<std::string> outOfRange(const v1::ParameterSchema& schema,
   return std::nullopt;
 }
 
+const std::string& fileOf(const MissionSpec& mission, const MissionStep& step) {
+  return step.file.empty() ? mission.file : step.file;
+}
+
 void checkParameters(const MissionSpec& mission, const MissionStep& step,
                      const v1::BehaviorDescription& d, MissionProblems* problems) {
   std::vector<std::string> known;
@@ -343,20 +741,20 @@ void checkParameters(const MissionSpec& mission, const MissionStep& step,
       if (p.name() == key) schema = &p;
     }
     if (schema == nullptr) {
-      problems->add(mission.file, line, field,
+      problems->add(fileOf(mission, step), line, field,
                     cat(step.behavior, " has no parameter '", key,
                         "' (its parameters: ", known.empty() ? "none" : yaml::join(known), ")"));
     } else if (!literalMatches(*schema, value)) {
-      problems->add(mission.file, line, field,
+      problems->add(fileOf(mission, step), line, field,
                     cat(step.behavior, " parameter '", key, "' must be ",
                         schema->repeated() ? "a list of " : "a ", schema->type()));
     } else if (auto range = outOfRange(*schema, value, key)) {
-      problems->add(mission.file, line, field, cat(step.behavior, " ", *range));
+      problems->add(fileOf(mission, step), line, field, cat(step.behavior, " ", *range));
     }
   }
   for (const auto& p : d.parameters()) {
     if (p.required() && p.default_json().empty() && !step.parameters.fields().contains(p.name())) {
-      problems->add(mission.file, step.line, cat(step.path, ".parameters.", p.name()),
+      problems->add(fileOf(mission, step), step.line, cat(step.path, ".parameters.", p.name()),
                     cat(step.behavior, " needs parameter '", p.name(), "'",
                         p.description().empty() ? "" : ": " + p.description()));
     }
@@ -370,11 +768,12 @@ void checkSteps(const MissionSpec& mission, const std::vector<MissionStep>& step
       if (const v1::BehaviorDescription* d = lookup(step.behavior)) {
         checkParameters(mission, step, *d, problems);
       } else {
-        problems->add(mission.file, step.line, step.path + ".behavior",
+        problems->add(fileOf(mission, step), step.line, step.path + ".behavior",
                       cat("behavior ", step.behavior, " is not hosted by any registered system",
                           mission.robot_id.empty() ? "" : " of robot '" + mission.robot_id + "'"));
       }
     }
+    checkSteps(mission, step.body, lookup, problems);
     for (const auto& [cause, action] : step.on) {
       for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
         checkSteps(mission, a->fallback, lookup, problems);
@@ -385,14 +784,15 @@ void checkSteps(const MissionSpec& mission, const std::vector<MissionStep>& step
 
 }  // namespace
 
-absl::StatusOr<MissionSpec> parseMission(const std::string& text, const std::string& file) {
+absl::StatusOr<MissionSpec> parseMission(const std::string& text, const std::string& file,
+                                         const ImportReader& imports) {
   YAML::Node root;
   if (auto s = yaml::load(text, file, &root); !s.ok()) {
     return errors::withReason(errors::withFieldViolation(s, "", s.message()), v1::MISSION_INVALID);
   }
   absl::StatusOr<MissionSpec> mission = absl::InternalError("not parsed");
   const absl::Status guarded = server_kit::guardYamlParse(file, [&] {
-    mission = MissionParser(file).parse(root);
+    mission = MissionParser(file, imports).parse(root);
     return absl::OkStatus();
   });
   if (!guarded.ok()) return errors::withReason(guarded, v1::MISSION_INVALID);
@@ -410,6 +810,12 @@ absl::StatusOr<MissionSpec> loadMission(const std::string& path) {
 
 void MissionProblems::add(const std::string& file, int line, std::string field,
                           const std::string& what) {
+  const std::string description =
+      line > 0 ? cat(file, ":", line, ": ", what) : cat(file, ": ", what);
+  for (const MissionProblem& seen : list) {
+    // A sub-mission called twice has its problems once.
+    if (seen.description == description && seen.field == field) return;
+  }
   if (list.size() >= kMaxProblems) {
     ++left_out;
     return;
@@ -418,7 +824,7 @@ void MissionProblems::add(const std::string& file, int line, std::string field,
   problem.file = file;
   problem.line = line;
   problem.field = std::move(field);
-  problem.description = line > 0 ? cat(file, ":", line, ": ", what) : cat(file, ": ", what);
+  problem.description = description;
   list.push_back(std::move(problem));
 }
 

@@ -74,7 +74,13 @@ struct BeliefCondition {
 
 struct MissionStep {
   std::string name;      ///< empty: "step <n>"
-  std::string behavior;  ///< empty: a step that only remembers
+  std::string behavior;  ///< empty: a call, or a step that only remembers
+  /// A call of a sub-mission: its name, the `with` given, and its steps
+  /// parsed with the call's parameters (${param.x} replaced).
+  std::string call;
+  google::protobuf::Struct with;
+  std::vector<MissionStep> body;
+  std::string file;  ///< the file the step is in (an imported one for a sub-mission's)
   google::protobuf::Struct parameters;
   std::map<std::string, int> parameter_lines;
   /// Keyed by cause name ("TIME_OUT", ..., "REFUSED") or "otherwise".
@@ -107,11 +113,20 @@ struct MissionSpec {
   std::vector<MissionStep> recurrent;
   std::vector<MissionStep> safety;
   std::vector<MissionStep> steps;
+  /// The sub-missions it defines or imports, by name.
+  std::vector<std::string> submissions;
+  /// The imported files' texts, by the path the mission names them with
+  /// (journaled with the mission, so that a restart parses the same).
+  std::map<std::string, std::string> imports;
   int line = 1;
 };
 
+/// Reads a file that a mission imports (confined to the mission directory).
+using ImportReader = std::function<absl::StatusOr<std::string>(const std::string& path)>;
+
 /// Parses mission text; `file` names it in messages.
-absl::StatusOr<MissionSpec> parseMission(const std::string& yaml, const std::string& file);
+absl::StatusOr<MissionSpec> parseMission(const std::string& yaml, const std::string& file,
+                                         const ImportReader& imports = nullptr);
 /// Reads and parses a mission file.
 absl::StatusOr<MissionSpec> loadMission(const std::string& path);
 

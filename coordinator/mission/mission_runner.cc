@@ -5,28 +5,94 @@
 
 #include <sstream>
 
+#include "absl/strings/numbers.h"
+#include "absl/strings/str_split.h"
+
 namespace behaviorlib::coordinator {
 namespace {
 
 using google::protobuf::util::TimeUtil;
 
-std::string pathText(const std::vector<int>& path) {
+// A record's position: its node, or (journaled before nodes) its path.
+Position positionOf(const v1::MissionStepRecord& r) {
+  if (!r.node().empty()) {
+    if (auto parsed = parseNode(r.node())) return *parsed;
+  }
+  Position position;
+  for (int i = 0; i < r.path_size(); ++i) {
+    position.push_back(
+        {i == 0 ? MissionNode::Kind::kStep : MissionNode::Kind::kFallback, r.path(i), 0});
+  }
+  return position;
+}
+
+bool startsWith(const Position& path, const Position& prefix) {
+  return path.size() >= prefix.size() && std::equal(prefix.begin(), prefix.end(), path.begin());
+}
+
+// A record at `path`: its node, and its v1 path where it has one (no call).
+v1::MissionStepRecord recordAt(const Position& path) {
+  v1::MissionStepRecord record;
+  record.set_node(nodeText(path));
+  bool plain = true;
+  for (const MissionNode& n : path) plain = plain && n.kind != MissionNode::Kind::kCall;
+  if (plain) {
+    for (const MissionNode& n : path) record.add_path(n.index);
+  }
+  return record;
+}
+
+}  // namespace
+
+std::string nodeText(const Position& position) {
   std::string out;
-  for (size_t i = 0; i < path.size(); ++i) {
-    out += (i == 0 ? "steps/" : "/fallback/") + std::to_string(path[i]);
+  for (size_t i = 0; i < position.size(); ++i) {
+    const MissionNode& n = position[i];
+    switch (n.kind) {
+      case MissionNode::Kind::kStep:
+        out += (i == 0 ? "steps/" : "/steps/") + std::to_string(n.index);
+        break;
+      case MissionNode::Kind::kFallback:
+        out += "/fallback/" + std::to_string(n.index);
+        break;
+      case MissionNode::Kind::kCall:
+        out +=
+            "/attempt/" + std::to_string(n.call_attempt) + "/call/steps/" + std::to_string(n.index);
+        break;
+    }
   }
   return out;
 }
 
-std::vector<int> pathOf(const v1::MissionStepRecord& r) {
-  return {r.path().begin(), r.path().end()};
+std::optional<Position> parseNode(const std::string& text) {
+  std::vector<std::string> parts = absl::StrSplit(text, '/');
+  Position position;
+  auto number = [](const std::string& part, int* out) {
+    return absl::SimpleAtoi(part, out) && *out >= 0;
+  };
+  size_t i = 0;
+  while (i < parts.size()) {
+    MissionNode n;
+    if (i == 0 && parts[i] == "steps" && i + 1 < parts.size() && number(parts[i + 1], &n.index)) {
+      n.kind = MissionNode::Kind::kStep;
+      i += 2;
+    } else if (i > 0 && parts[i] == "fallback" && i + 1 < parts.size() &&
+               number(parts[i + 1], &n.index)) {
+      n.kind = MissionNode::Kind::kFallback;
+      i += 2;
+    } else if (i > 0 && parts[i] == "attempt" && i + 4 < parts.size() && parts[i + 2] == "call" &&
+               parts[i + 3] == "steps" && number(parts[i + 1], &n.call_attempt) &&
+               number(parts[i + 4], &n.index)) {
+      n.kind = MissionNode::Kind::kCall;
+      i += 5;
+    } else {
+      return std::nullopt;
+    }
+    position.push_back(n);
+  }
+  if (position.empty()) return std::nullopt;
+  return position;
 }
-
-bool startsWith(const std::vector<int>& path, const std::vector<int>& prefix) {
-  return path.size() >= prefix.size() && std::equal(prefix.begin(), prefix.end(), path.begin());
-}
-
-}  // namespace
 
 MissionRunner::MissionRunner(MissionSpec spec, std::string mission_id, std::string robot_id,
                              std::string source, MissionActions& actions, BeliefStore& beliefs,
@@ -40,6 +106,7 @@ MissionRunner::MissionRunner(MissionSpec spec, std::string mission_id, std::stri
   status_.set_robot_id(std::move(robot_id));
   status_.set_file(spec_.file);
   status_.set_source(std::move(source));
+  status_.mutable_imports()->insert(spec_.imports.begin(), spec_.imports.end());
   status_.set_state(v1::MISSION_STATE_RUNNING);
   *status_.mutable_start_time() = TimeUtil::GetCurrentTime();
 }
@@ -157,9 +224,10 @@ void MissionRunner::setState(v1::MissionState state, const std::string& message)
   publish();
 }
 
-std::string MissionRunner::stepLabel(const MissionStep& step, const std::vector<int>& path) const {
-  std::string label = step.name.empty() ? pathText(path) : "'" + step.name + "'";
+std::string MissionRunner::stepLabel(const MissionStep& step, const Position& path) const {
+  std::string label = step.name.empty() ? nodeText(path) : "'" + step.name + "'";
   if (!step.behavior.empty()) label += " (" + step.behavior + ")";
+  if (!step.call.empty()) label += " (call " + step.call + ")";
   return "step " + label;
 }
 
@@ -191,10 +259,10 @@ void MissionRunner::run() {
   if (safety_pending) {
     failure_ = status().message();
   } else {
-    std::vector<int> resume_path;
-    if (resuming_ && !resume_from_.empty()) resume_path = pathOf(resume_from_.back());
+    Position resume_path;
+    if (resuming_ && !resume_from_.empty()) resume_path = positionOf(resume_from_.back());
     if (!resuming_ || resume_from_.empty()) publish();  // the first record of a new mission
-    flow = runList(spec_.steps, {}, resume_path);
+    flow = runList(spec_.steps, {}, MissionNode::Kind::kStep, 0, resume_path);
   }
   switch (flow) {
     case Flow::kQuit:
@@ -302,20 +370,20 @@ std::optional<std::string> MissionRunner::recurrentFinished() {
 }
 
 MissionRunner::Flow MissionRunner::runList(const std::vector<MissionStep>& steps,
-                                           const std::vector<int>& prefix,
-                                           std::vector<int> resume_path) {
+                                           const Position& prefix, MissionNode::Kind kind,
+                                           int call_attempt, Position resume_path) {
   size_t start = 0;
-  std::vector<int> tail;
+  Position tail;
   if (!resume_path.empty()) {
-    start = static_cast<size_t>(resume_path.front());
+    start = static_cast<size_t>(resume_path.front().index);
     tail.assign(resume_path.begin() + 1, resume_path.end());
   }
   for (size_t i = start; i < steps.size(); ++i) {
-    std::vector<int> path = prefix;
-    path.push_back(static_cast<int>(i));
-    const Flow flow =
-        runStep(steps[i], path, i == start && !resume_path.empty() ? tail : std::vector<int>{});
-    if (i == start && !resume_path.empty()) resume_from_.clear();  // resumed: live from here
+    Position path = prefix;
+    path.push_back({kind, static_cast<int>(i), call_attempt});
+    const bool resumed_here = i == start && !resume_path.empty();
+    const Flow flow = runStep(steps[i], path, resumed_here ? tail : Position{});
+    if (resumed_here) resume_from_.clear();  // resumed: live from here
     if (flow != Flow::kDone) return flow;
   }
   return Flow::kDone;
@@ -410,28 +478,31 @@ MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
     if (auto r = recurrentFinished()) {
       (void)actions_.deactivate(robot, step.behavior);
       failure_ = *r;
+      failed_cause_.clear();  // not a step's cause: a call does not branch on it
       return Flow::kAbort;
     }
   }
 }
 
-MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::vector<int>& path,
-                                           std::vector<int> resume_tail) {
+MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Position& path,
+                                           Position resume_tail) {
   const std::string robot = status().robot_id();
   const std::string label = stepLabel(step, path);
 
   // The latest record of this step, when resuming into it.
   std::optional<v1::MissionStepRecord> recorded;
   for (auto it = resume_from_.rbegin(); it != resume_from_.rend(); ++it) {
-    if (pathOf(*it) == path) {
+    if (positionOf(*it) == path) {
       recorded = *it;
       break;
     }
   }
-  const bool resume_here = !resume_from_.empty() && startsWith(pathOf(resume_from_.back()), path);
+  const bool resume_here =
+      !resume_from_.empty() && startsWith(positionOf(resume_from_.back()), path);
   if (!resume_here) recorded.reset();
 
-  if (!resume_tail.empty() && recorded) {
+  if (!resume_tail.empty() && recorded &&
+      resume_tail.front().kind == MissionNode::Kind::kFallback) {
     // We were inside this step's fallback: the recorded cause says which.
     const std::string cause = recorded->state() == v1::MISSION_STEP_STATE_REFUSED
                                   ? "REFUSED"
@@ -439,7 +510,7 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
     const MissionAction* action = actionFor(step, cause);
     while (action && action->kind == MissionAction::Kind::kRetry) action = action->then.get();
     if (action && action->kind == MissionAction::Kind::kFallback) {
-      return runList(action->fallback, path, resume_tail);
+      return runList(action->fallback, path, MissionNode::Kind::kFallback, 0, resume_tail);
     }
   }
 
@@ -447,10 +518,10 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
 
   if (step.condition && !(recorded && recorded->state() == v1::MISSION_STEP_STATE_SKIPPED)) {
     if (!conditionHolds(*step.condition)) {
-      v1::MissionStepRecord skipped;
-      for (int p : path) skipped.add_path(p);
+      v1::MissionStepRecord skipped = recordAt(path);
       skipped.set_name(step.name);
       skipped.set_behavior(step.behavior);
+      skipped.set_call(step.call);
       skipped.set_state(v1::MISSION_STEP_STATE_SKIPPED);
       skipped.set_message("condition on belief '" + step.condition->key + "' does not hold");
       addRecord(std::move(skipped));
@@ -459,6 +530,7 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
   } else if (recorded && recorded->state() == v1::MISSION_STEP_STATE_SKIPPED) {
     return Flow::kDone;
   }
+  if (!step.call.empty()) return runCall(step, path, std::move(resume_tail), recorded);
   if (step.behavior.empty()) {
     rememberAll(step);
     return Flow::kDone;
@@ -467,7 +539,7 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
   int attempt = recorded ? recorded->attempt() : 1;
   for (;;) {
     const std::string request_id =
-        status().mission_id() + "/" + pathText(path) + "/attempt/" + std::to_string(attempt);
+        status().mission_id() + "/" + nodeText(path) + "/attempt/" + std::to_string(attempt);
     std::string cause;
     std::string message;
     FinishedActivation finished;
@@ -493,8 +565,7 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
       }
       auto params = beliefs_.resolve(step.parameters);
       if (index < 0) {
-        v1::MissionStepRecord record;
-        for (int p : path) record.add_path(p);
+        v1::MissionStepRecord record = recordAt(path);
         record.set_name(step.name);
         record.set_behavior(step.behavior);
         record.set_attempt(attempt);
@@ -543,31 +614,119 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const std::v
       }
     }
     recorded.reset();
-    const MissionAction* action = actionFor(step, cause);
-    if (action == nullptr || action->kind == MissionAction::Kind::kContinue) {
-      if (cause == "GOAL_ACHIEVED") rememberAll(step);
-      return Flow::kDone;
+    if (std::optional<Flow> flow = afterCause(step, path, cause, message, &attempt)) return *flow;
+  }
+}
+
+std::optional<MissionRunner::Flow> MissionRunner::afterCause(const MissionStep& step,
+                                                             const Position& path,
+                                                             const std::string& cause,
+                                                             const std::string& message,
+                                                             int* attempt) {
+  const MissionAction* action = actionFor(step, cause);
+  if (action == nullptr || action->kind == MissionAction::Kind::kContinue) {
+    if (cause == "GOAL_ACHIEVED") rememberAll(step);
+    return Flow::kDone;
+  }
+  const std::string what = stepLabel(step, path) + " " +
+                           (cause == "REFUSED" ? "was refused" : "finished " + cause) +
+                           (message.empty() ? "" : ": " + message);
+  if (action->kind == MissionAction::Kind::kRetry) {
+    if (*attempt <= action->retries) {
+      ++*attempt;
+      return std::nullopt;
     }
-    const std::string what = label + " " +
-                             (cause == "REFUSED" ? "was refused" : "finished " + cause) +
-                             (message.empty() ? "" : ": " + message);
-    if (action->kind == MissionAction::Kind::kRetry) {
-      if (attempt <= action->retries) {
-        ++attempt;
-        continue;
-      }
-      action = action->then.get();
-      if (action == nullptr || action->kind == MissionAction::Kind::kAbort) {
-        failure_ = what + " (after " + std::to_string(attempt) + " attempts)";
-        return Flow::kAbort;
-      }
-      if (action->kind == MissionAction::Kind::kContinue) return Flow::kDone;
-    }
-    if (action->kind == MissionAction::Kind::kAbort) {
-      failure_ = what;
+    action = action->then.get();
+    if (action == nullptr || action->kind == MissionAction::Kind::kAbort) {
+      failure_ = what + " (after " + std::to_string(*attempt) + " attempts)";
+      failed_cause_ = cause;
       return Flow::kAbort;
     }
-    return runList(action->fallback, path, {});  // kFallback
+    if (action->kind == MissionAction::Kind::kContinue) return Flow::kDone;
+  }
+  if (action->kind == MissionAction::Kind::kAbort) {
+    failure_ = what;
+    failed_cause_ = cause;
+    return Flow::kAbort;
+  }
+  return runList(action->fallback, path, MissionNode::Kind::kFallback, 0, {});  // kFallback
+}
+
+MissionRunner::Flow MissionRunner::runCall(const MissionStep& step, const Position& path,
+                                           Position resume_tail,
+                                           std::optional<v1::MissionStepRecord> recorded) {
+  int attempt = recorded ? recorded->attempt() : 1;
+  for (;;) {
+    std::string cause;
+    std::string message;
+    const bool reuse = recorded && recorded->attempt() == attempt;
+    if (reuse && (recorded->state() == v1::MISSION_STEP_STATE_FINISHED ||
+                  recorded->state() == v1::MISSION_STEP_STATE_REFUSED)) {
+      // It ended before the restart: follow its recorded cause.
+      cause = recorded->state() == v1::MISSION_STEP_STATE_REFUSED ? "REFUSED"
+                                                                  : causeName(recorded->cause());
+      message = recorded->message();
+    } else {
+      const std::string node = nodeText(path);
+      int index = -1;
+      if (reuse) {
+        absl::MutexLock lock(&mutex_);
+        for (int i = status_.steps_size() - 1; i >= 0; --i) {
+          if (status_.steps(i).node() == node && status_.steps(i).attempt() == attempt) {
+            index = i;
+            break;
+          }
+        }
+      }
+      if (index < 0) {
+        v1::MissionStepRecord record = recordAt(path);
+        record.set_name(step.name);
+        record.set_call(step.call);
+        record.set_attempt(attempt);
+        record.set_state(v1::MISSION_STEP_STATE_RUNNING);
+        *record.mutable_parameters() = step.with;
+        index = addRecord(std::move(record));
+      }
+      // Resuming inside this attempt's steps: where it was.
+      Position tail;
+      if (reuse && !resume_tail.empty() && resume_tail.front().kind == MissionNode::Kind::kCall &&
+          resume_tail.front().call_attempt == attempt) {
+        tail = resume_tail;
+      }
+      resume_tail.clear();
+      failed_cause_.clear();
+      const Flow flow = runList(step.body, path, MissionNode::Kind::kCall, attempt, tail);
+      if (flow == Flow::kDone) {
+        cause = "GOAL_ACHIEVED";
+      } else if (flow == Flow::kAbort && !failed_cause_.empty()) {
+        // A step of the sub-mission failed it: the call ends with its cause.
+        cause = failed_cause_;
+        message = failure_;
+      } else {
+        if (flow == Flow::kAbortRequested) {
+          updateRecord(index, [&](v1::MissionStepRecord& r) {
+            r.set_state(v1::MISSION_STEP_STATE_FINISHED);
+            r.set_cause(v1::TERMINATION_CAUSE_INTERRUPTED);
+            r.set_message("mission aborted");
+          });
+        }
+        return flow;  // the mission stops, aborts or fails for another reason
+      }
+      updateRecord(index, [&](v1::MissionStepRecord& r) {
+        if (cause == "REFUSED") {
+          r.set_state(v1::MISSION_STEP_STATE_REFUSED);
+        } else {
+          r.set_state(v1::MISSION_STEP_STATE_FINISHED);
+          v1::TerminationCause parsed = v1::TERMINATION_CAUSE_UNSPECIFIED;
+          v1::TerminationCause_Parse("TERMINATION_CAUSE_" + cause, &parsed);
+          r.set_cause(parsed);
+        }
+        r.set_message(message);
+      });
+    }
+    recorded.reset();
+    failed_cause_.clear();
+    if (std::optional<Flow> flow = afterCause(step, path, cause, message, &attempt)) return *flow;
   }
 }
 

@@ -65,6 +65,21 @@ class MissionActions {
                                                           std::chrono::milliseconds timeout) = 0;
 };
 
+/// One level of a step's position in a mission (MissionStepRecord.node).
+struct MissionNode {
+  enum class Kind { kStep, kFallback, kCall };
+  Kind kind = Kind::kStep;
+  int index = 0;
+  int call_attempt = 0;  ///< kCall: the attempt of the call whose steps these are
+  bool operator==(const MissionNode&) const = default;
+};
+using Position = std::vector<MissionNode>;
+
+/// "steps/2", "steps/2/fallback/0", "steps/2/attempt/1/call/steps/0".
+std::string nodeText(const Position& position);
+/// nodeText's inverse; nullopt for text it does not make.
+std::optional<Position> parseNode(const std::string& text);
+
 class MissionRunner {
  public:
   /// Receives the mission's status after every change (runner thread; the
@@ -106,9 +121,22 @@ class MissionRunner {
   enum class Flow { kDone, kAbort, kAbortRequested, kQuit };
 
   void run();
-  Flow runList(const std::vector<MissionStep>& steps, const std::vector<int>& prefix,
-               std::vector<int> resume_path);
-  Flow runStep(const MissionStep& step, const std::vector<int>& path, std::vector<int> resume_tail);
+  /// Runs `steps`, whose positions are `prefix` and then `kind` (a step,
+  /// a fallback's step, or a step of the call's attempt `call_attempt`);
+  /// `resume` is where to go on from, below `prefix`.
+  Flow runList(const std::vector<MissionStep>& steps, const Position& prefix,
+               MissionNode::Kind kind, int call_attempt, Position resume);
+  Flow runStep(const MissionStep& step, const Position& path, Position resume_tail);
+  /// A call of a sub-mission: its steps, ending like a behavior (the cause
+  /// of the step that failed it), and its own `on:`.
+  Flow runCall(const MissionStep& step, const Position& path, Position resume_tail,
+               std::optional<v1::MissionStepRecord> recorded);
+  /// What the step's `on:` does after `cause`: nullopt to try again
+  /// (`attempt` raised), else the flow (failure_ and failed_cause_ set on an
+  /// abort; a fallback run).
+  std::optional<Flow> afterCause(const MissionStep& step, const Position& path,
+                                 const std::string& cause, const std::string& message,
+                                 int* attempt);
   Flow waitFor(const MissionStep& step, const std::string& activation_id,
                FinishedActivation* finished);
   Flow waitWhilePaused();
@@ -125,7 +153,7 @@ class MissionRunner {
   void setState(v1::MissionState state, const std::string& message = "");
   /// Hands a copy of the status to on_change_ (called without the mutex).
   void publish();
-  std::string stepLabel(const MissionStep& step, const std::vector<int>& path) const;
+  std::string stepLabel(const MissionStep& step, const Position& path) const;
 
   MissionSpec spec_;
   MissionActions& actions_;
@@ -144,6 +172,9 @@ class MissionRunner {
   std::string abort_reason_ ABSL_GUARDED_BY(mutex_);
   // The runner thread's own (not guarded):
   std::string failure_;  // why the mission is failing (set before the safety steps)
+  // The cause of the step whose `on:` aborted (what a call ends with);
+  // empty when the abort has another reason (a recurrent behavior ended).
+  std::string failed_cause_;
   std::vector<std::pair<std::string, std::string>> recurrent_;  // behavior, activation id
   std::vector<v1::MissionStepRecord> resume_from_;              // history when resuming
   bool resuming_ = false;

@@ -125,6 +125,159 @@ v1::BehaviorDescription description(const std::string& name) {
   return d;
 }
 
+// A sub-mission is defined once with typed parameters and called as a step:
+// each call's steps are its own, with the call's values in place of
+// ${param.x} (a whole value, or a part of a text), and the defaults where
+// the call gives none.
+constexpr const char* kRooms = R"(name: rooms
+robot: drone1
+submissions:
+  plan_and_fly:
+    parameters:
+      goal_m: {type: list, description: where to go}
+      speed_m_s: {type: number, default: 1.0, min: 0.1, max: 3}
+      room: {type: string, default: "?"}
+    steps:
+      - name: plan
+        behavior: GENERATE_PATH
+        parameters: {goal_m: "${param.goal_m}", belief_key: "drone1/path_${param.room}"}
+      - name: fly
+        behavior: FOLLOW_PATH
+        parameters: {path_m: "${belief.drone1/path_${param.room}}", speed_m_s: "${param.speed_m_s}"}
+steps:
+  - name: room_b
+    call: plan_and_fly
+    with: {goal_m: [1, 2, 3], room: b}
+    on:
+      WRONG_PROGRESS: {retry: 1}
+  - call: plan_and_fly
+    with: {goal_m: [4, 5, 6], speed_m_s: 2.5, room: c}
+)";
+
+TEST(MissionFile, ASubMissionIsCalledWithItsParameters) {
+  auto mission = parseMission(kRooms, "rooms.yaml");
+  ASSERT_TRUE(mission.ok()) << mission.status();
+  EXPECT_EQ(mission->submissions, std::vector<std::string>{"plan_and_fly"});
+  ASSERT_EQ(mission->steps.size(), 2u);
+  const MissionStep& b = mission->steps[0];
+  EXPECT_EQ(b.call, "plan_and_fly");
+  EXPECT_TRUE(b.behavior.empty());
+  EXPECT_EQ(b.on.at("WRONG_PROGRESS").retries, 1);
+  ASSERT_EQ(b.body.size(), 2u);
+  EXPECT_EQ(b.body[0].behavior, "GENERATE_PATH");
+  EXPECT_EQ(b.body[0].line, 10) << "the sub-mission's own line";
+  EXPECT_EQ(b.body[0].parameters.fields().at("goal_m").list_value().values_size(), 3);
+  EXPECT_EQ(b.body[0].parameters.fields().at("belief_key").string_value(), "drone1/path_b");
+  EXPECT_EQ(b.body[1].parameters.fields().at("path_m").string_value(), "${belief.drone1/path_b}");
+  EXPECT_EQ(b.body[1].parameters.fields().at("speed_m_s").number_value(), 1.0) << "the default";
+  const MissionStep& c = mission->steps[1];
+  EXPECT_EQ(c.body[1].parameters.fields().at("speed_m_s").number_value(), 2.5);
+  EXPECT_EQ(c.body[0].parameters.fields().at("belief_key").string_value(), "drone1/path_c");
+  // The check goes into the calls: a behavior nobody hosts is named once,
+  // at its line in the sub-mission.
+  v1::BehaviorDescription follow;
+  follow.set_name("FOLLOW_PATH");
+  for (const char* name : {"path_m", "speed_m_s"}) follow.add_parameters()->set_name(name);
+  follow.mutable_parameters(1)->set_type("number");
+  follow.mutable_parameters(0)->set_type("object");
+  follow.mutable_parameters(0)->set_repeated(true);
+  const MissionProblems problems = checkMissionProblems(
+      *mission, [&](const std::string& name) -> const v1::BehaviorDescription* {
+        return name == "FOLLOW_PATH" ? &follow : nullptr;
+      });
+  ASSERT_EQ(problems.list.size(), 1u) << problems.status();
+  EXPECT_EQ(problems.list[0].description,
+            "rooms.yaml:10: behavior GENERATE_PATH is not hosted by any registered system of "
+            "robot 'drone1'");
+}
+
+TEST(MissionFile, ACallIsCheckedAgainstTheSubMissionsParameters) {
+  const std::string head =
+      std::string(kRooms).substr(0, std::string(kRooms).find("steps:\n  - name"));
+  struct Case {
+    std::string steps;
+    std::string message;
+  };
+  for (const Case& c : std::vector<Case>{
+           {"steps: [{call: nope}]\n", "no sub-mission 'nope' (defined: plan_and_fly)"},
+           {"steps: [{call: plan_and_fly}]\n", "needs parameter 'goal_m': where to go"},
+           {"steps: [{call: plan_and_fly, with: {goal_m: [1], height: 2}}]\n",
+            "has no parameter 'height' (its parameters: goal_m, speed_m_s, room)"},
+           {"steps: [{call: plan_and_fly, with: {goal_m: 5}}]\n", "with goal_m: expected a list"},
+           {"steps: [{call: plan_and_fly, with: {goal_m: [1], speed_m_s: 9}}]\n",
+            "with speed_m_s: 9 is out of range [0.1, 3]"},
+           {"steps: [{call: plan_and_fly, behavior: WAIT}]\n", "give 'behavior' or 'call'"},
+           {"steps: [{behavior: WAIT, with: {a: 1}}]\n", "'with' goes with 'call'"},
+           {"steps: [{behavior: WAIT, parameters: {d: \"${param.x}\"}}]\n",
+            "${param.x} is only for a sub-mission's steps"},
+       }) {
+    auto mission = parseMission(head + c.steps, "rooms.yaml");
+    ASSERT_FALSE(mission.ok()) << c.steps;
+    EXPECT_THAT(std::string(mission.status().message()), HasSubstr(c.message)) << c.steps;
+    EXPECT_THAT(std::string(mission.status().message()), HasSubstr("rooms.yaml:"));
+  }
+  // A sub-mission that calls itself, through another.
+  auto loop = parseMission(R"(robot: drone1
+submissions:
+  a: {steps: [{call: b}]}
+  b: {steps: [{behavior: WAIT}, {call: a}]}
+steps: [{call: a}]
+)",
+                           "loop.yaml");
+  ASSERT_FALSE(loop.ok());
+  EXPECT_THAT(
+      std::string(loop.status().message()),
+      HasSubstr("loop.yaml:4: submission 'b' step: sub-mission 'a' calls itself (a -> b -> a)"));
+  // A parameter the steps use but the sub-mission does not declare.
+  auto undeclared = parseMission(R"(robot: drone1
+submissions:
+  s:
+    parameters: {a: {type: number}}
+    steps: [{behavior: WAIT, parameters: {duration_s: "${param.b}"}}]
+steps: [{call: s, with: {a: 1}}]
+)",
+                                 "u.yaml");
+  ASSERT_FALSE(undeclared.ok());
+  EXPECT_THAT(std::string(undeclared.status().message()),
+              HasSubstr("u.yaml:5: submission 's': ${param.b} is not one of its parameters"));
+}
+
+TEST(MissionFile, SubMissionsAreImportedFromTheMissionDirectory) {
+  const std::map<std::string, std::string> files = {
+      {"common/fly.yaml",
+       "description: shared\nsubmissions:\n  fly:\n"
+       "    parameters: {to: {type: number}}\n"
+       "    steps:\n      - behavior: TAKE_OFF\n"
+       "        parameters: {altitude_m: \"${param.to}\"}\n"},
+      {"bad.yaml", "submissions:\n  broken: {steps: []}\n"}};
+  const ImportReader reader = [&](const std::string& path) -> absl::StatusOr<std::string> {
+    auto it = files.find(path);
+    if (it == files.end()) return absl::NotFoundError("no such file");
+    return it->second;
+  };
+  auto mission = parseMission(
+      "robot: drone1\nimport: [common/fly.yaml]\nsteps: [{call: fly, with: {to: 2}}]\n", "m.yaml",
+      reader);
+  ASSERT_TRUE(mission.ok()) << mission.status();
+  EXPECT_EQ(mission->imports.at("common/fly.yaml"), files.at("common/fly.yaml"));
+  const MissionStep& take_off = mission->steps[0].body.at(0);
+  EXPECT_EQ(take_off.file, "common/fly.yaml");
+  EXPECT_EQ(take_off.line, 6);
+  EXPECT_EQ(take_off.parameters.fields().at("altitude_m").number_value(), 2);
+  // A problem in an imported file names that file; a missing one, the import.
+  auto bad = parseMission("robot: drone1\nimport: [bad.yaml]\nsteps: [{behavior: WAIT}]\n",
+                          "m.yaml", reader);
+  ASSERT_FALSE(bad.ok());
+  EXPECT_THAT(std::string(bad.status().message()), HasSubstr("bad.yaml:2: "));
+  auto missing = parseMission("robot: drone1\nimport: nowhere.yaml\nsteps: [{behavior: WAIT}]\n",
+                              "m.yaml", reader);
+  EXPECT_THAT(std::string(missing.status().message()),
+              HasSubstr("m.yaml:2: import 'nowhere.yaml': no such file"));
+  auto no_dir =
+      parseMission("robot: drone1\nimport: [common/fly.yaml]\nsteps: [{call: fly}]\n", "m.yaml");
+  EXPECT_THAT(std::string(no_dir.status().message()), HasSubstr("cannot import files"));
+}
+
 TEST(MissionFile, CheckedAgainstTheRegisteredBehaviorsBeforeAnythingFlies) {
   auto mission = parseMission(kMission, "demo.yaml");
   ASSERT_TRUE(mission.ok());

@@ -428,23 +428,35 @@ TEST(MissionRunner, AResumedMissionActivatesNothingTwice) {
   std::remove(name);
 }
 
+// Runs `yaml` until `until` holds, then drops the runner as a coordinator
+// that dies would (the mission not aborted); its last status, as journaled.
+std::optional<v1::MissionStatus> runUntilTheCoordinatorDies(const char* yaml,
+                                                            ScriptedActions& actions,
+                                                            BeliefStore& beliefs,
+                                                            const std::function<bool()>& until) {
+  std::vector<v1::MissionStatus> changes;
+  std::mutex mutex;
+  auto runner = std::make_unique<MissionRunner>(mission(yaml), "m8", "drone1", yaml, actions,
+                                                beliefs, [&](const v1::MissionStatus& s) {
+                                                  std::lock_guard lock(mutex);
+                                                  changes.push_back(s);
+                                                });
+  runner->start();
+  const bool reached = eventually(until);
+  runner.reset();  // its thread joined: `changes` holds all it said
+  if (!reached) return std::nullopt;
+  return changes.back();
+}
+
 TEST(MissionRunner, AMissionResumedInsideAFallbackFinishesTheFallback) {
   ScriptedActions actions;
   actions.script("STEP", {v1::TERMINATION_CAUSE_WRONG_PROGRESS});
   actions.hold("RECOVER");
   BeliefStore beliefs;
-  std::vector<v1::MissionStatus> changes;
-  std::mutex mutex;
-  {
-    MissionRunner runner(mission(kBranches), "m8", "drone1", kBranches, actions, beliefs,
-                         [&](const v1::MissionStatus& s) {
-                           std::lock_guard lock(mutex);
-                           changes.push_back(s);
-                         });
-    runner.start();
-    ASSERT_TRUE(eventually([&] { return actions.active("RECOVER"); }));
-  }
-  MissionRunner resumed(mission(kBranches), changes.back(), actions, beliefs, nullptr);
+  const auto last = runUntilTheCoordinatorDies(kBranches, actions, beliefs,
+                                               [&] { return actions.active("RECOVER"); });
+  ASSERT_TRUE(last.has_value());
+  MissionRunner resumed(mission(kBranches), *last, actions, beliefs, nullptr);
   resumed.start();
   ASSERT_TRUE(eventually([&] { return actions.count("same activation RECOVER") == 1; }));
   actions.finish("RECOVER", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
@@ -453,6 +465,109 @@ TEST(MissionRunner, AMissionResumedInsideAFallbackFinishesTheFallback) {
   EXPECT_THAT(actions.calls(),
               ElementsAre("activate STEP", "activate RECOVER", "same activation RECOVER",
                           "activate RECOVER_MORE", "activate NEXT"));
+}
+
+// A sub-mission's call ends like a behavior: GOAL_ACHIEVED when its steps
+// went on, or the cause of the step that failed it, which the call's `on:`
+// branches on. A retried call runs its steps again under new request ids.
+constexpr const char* kCalls = R"(name: calls
+safety:
+  - behavior: LAND
+submissions:
+  go:
+    parameters: {speed: {type: number, default: 1}}
+    steps:
+      - behavior: PLAN
+      - behavior: FLY
+        parameters: {speed: "${param.speed}"}
+steps:
+  - name: first
+    call: go
+    with: {speed: 2}
+    on:
+      WRONG_PROGRESS: {retry: 1, then: {fallback: [{behavior: RECOVER}]}}
+  - call: go
+  - behavior: LAND
+)";
+
+TEST(MissionRunner, ACallRunsTheSubMissionAndBranchesOnTheCauseOfItsFailedStep) {
+  MissionRun run;
+  // FLY fails the first call twice (the call is retried once), then the
+  // fallback; the second call succeeds.
+  run.actions.script("FLY",
+                     {v1::TERMINATION_CAUSE_WRONG_PROGRESS, v1::TERMINATION_CAUSE_WRONG_PROGRESS});
+  run.start(kCalls);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_SUCCEEDED) << status.message();
+  EXPECT_THAT(run.actions.calls(),
+              ElementsAre("activate PLAN", "activate FLY", "activate PLAN", "activate FLY",
+                          "activate RECOVER", "activate PLAN", "activate FLY", "activate LAND"));
+  std::vector<std::string> nodes;
+  for (const auto& step : status.steps()) {
+    nodes.push_back(step.node() + " " +
+                    (step.call().empty() ? step.behavior() : "call " + step.call()) + " " +
+                    v1::TerminationCause_Name(step.cause()));
+  }
+  EXPECT_THAT(nodes,
+              ElementsAre("steps/0 call go TERMINATION_CAUSE_WRONG_PROGRESS",
+                          "steps/0/attempt/1/call/steps/0 PLAN TERMINATION_CAUSE_GOAL_ACHIEVED",
+                          "steps/0/attempt/1/call/steps/1 FLY TERMINATION_CAUSE_WRONG_PROGRESS",
+                          "steps/0 call go TERMINATION_CAUSE_WRONG_PROGRESS",
+                          "steps/0/attempt/2/call/steps/0 PLAN TERMINATION_CAUSE_GOAL_ACHIEVED",
+                          "steps/0/attempt/2/call/steps/1 FLY TERMINATION_CAUSE_WRONG_PROGRESS",
+                          "steps/0/fallback/0 RECOVER TERMINATION_CAUSE_GOAL_ACHIEVED",
+                          "steps/1 call go TERMINATION_CAUSE_GOAL_ACHIEVED",
+                          "steps/1/attempt/1/call/steps/0 PLAN TERMINATION_CAUSE_GOAL_ACHIEVED",
+                          "steps/1/attempt/1/call/steps/1 FLY TERMINATION_CAUSE_GOAL_ACHIEVED",
+                          "steps/2 LAND TERMINATION_CAUSE_GOAL_ACHIEVED"));
+  EXPECT_EQ(status.steps(2).request_id(), "m1/steps/0/attempt/1/call/steps/1/attempt/1");
+  EXPECT_TRUE(status.steps(2).path().empty()) << "a step inside a call has only its node";
+  EXPECT_THAT(status.steps(6).path(), ElementsAre(0, 0)) << "a fallback keeps its v1 path";
+  EXPECT_EQ(run.actions.lastParameters("FLY").fields().at("speed").number_value(), 1)
+      << "the second call's default";
+}
+
+TEST(MissionRunner, ACallThatFailsWithoutABranchAbortsTheMissionNamingIt) {
+  MissionRun run;
+  run.actions.script("FLY", {v1::TERMINATION_CAUSE_TIME_OUT});
+  run.start(kCalls);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_FAILED);
+  EXPECT_THAT(status.message(), HasSubstr("step 'first' (call go) finished TIME_OUT"));
+  EXPECT_THAT(status.message(), HasSubstr("(FLY) finished TIME_OUT"));
+  EXPECT_EQ(run.actions.count("activate LAND"), 1) << "the safety step";
+}
+
+TEST(MissionRunner, AMissionResumedInsideACallActivatesNothingTwice) {
+  ScriptedActions actions;
+  actions.hold("FLY");
+  BeliefStore beliefs;
+  // The coordinator is gone while the first call flies.
+  const auto last =
+      runUntilTheCoordinatorDies(kCalls, actions, beliefs, [&] { return actions.active("FLY"); });
+  ASSERT_TRUE(last.has_value());
+  MissionRunner resumed(mission(kCalls), *last, actions, beliefs, nullptr);
+  resumed.start();
+  ASSERT_TRUE(eventually([&] { return actions.count("same activation FLY") == 1; }));
+  actions.finish("FLY", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  ASSERT_TRUE(resumed.waitFinished(seconds(10)));
+  EXPECT_EQ(resumed.status().state(), v1::MISSION_STATE_SUCCEEDED) << resumed.status().message();
+  EXPECT_THAT(actions.calls(), ElementsAre("activate PLAN", "activate FLY", "same activation FLY",
+                                           "activate PLAN", "activate FLY", "activate LAND"));
+}
+
+TEST(MissionNode, PositionsReadBackFromTheirText) {
+  for (const std::string text :
+       {"steps/0", "steps/3/fallback/1", "steps/2/attempt/1/call/steps/0",
+        "steps/2/attempt/3/call/steps/1/fallback/0/attempt/1/call/steps/4"}) {
+    auto position = parseNode(text);
+    ASSERT_TRUE(position.has_value()) << text;
+    EXPECT_EQ(nodeText(*position), text);
+  }
+  for (const std::string bad : {"", "steps", "fallback/1", "steps/x", "steps/1/call/steps/0",
+                                "steps/-1", "steps/1/attempt/1/call/steps"}) {
+    EXPECT_FALSE(parseNode(bad).has_value()) << bad;
+  }
 }
 
 }  // namespace

@@ -80,8 +80,9 @@ void printProgress(const v1::MissionStatus& status, int* printed_steps) {
     if (step.cause() != v1::TERMINATION_CAUSE_UNSPECIFIED) {
       cause = v1::TerminationCause_Name(step.cause());
     }
+    const std::string what = step.call().empty() ? step.behavior() : "call " + step.call();
     std::fprintf(stderr, "mission %s: %-16s %-36s attempt %d  %s%s%s\n",
-                 status.mission_id().c_str(), step.name().c_str(), step.behavior().c_str(),
+                 status.mission_id().c_str(), step.name().c_str(), what.c_str(),
                  step.attempt(), v1::MissionStepState_Name(step.state()).c_str(),
                  cause.empty() ? "" : " ", cause.c_str());
   }

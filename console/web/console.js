@@ -168,7 +168,9 @@ function renderMissions() {
     cell(row, m.name || m.mission_id);
     cell(row, m.robot_id);
     cell(row, state, "state");
-    cell(row, last ? last.behavior : "", "step");
+    // The step it is at, and where in the mission's tree (its node).
+    const step = cell(row, last ? last.behavior || "call " + last.call : "", "step");
+    if (last && last.node) step.title = last.node;
     cell(row, m.steps.length, "steps");
     const controls = cell(row, "");
     for (const [label, method] of [["Pause", "PauseMission"], ["Resume", "ResumeMission"],

@@ -255,7 +255,9 @@ class ProgressPrinter:
                 self._seen.append(key)
             else:
                 self._seen[i] = key
-            label = f"{record.get('name', '?')} ({record.get('behavior', '-')})"
+            what = record.get('behavior') or (f"call {record['call']}" if record.get('call')
+                                               else '-')
+            label = f"{record.get('name', '?')} ({what})"
             attempt = int(record.get("attempt", 1))
             if attempt > 1:
                 label += f" attempt {attempt}"

@@ -443,8 +443,13 @@ void MissionManager::planSteps(const MissionSpec& spec, const std::string& robot
             }
           }
           // A call's steps, planned where it stands.
-          if (!step.call.empty())
+          if (!step.call.empty()) {
             plan_list(step.body, node + "/attempt/1/call/steps", false, active);
+          }
+          // A loop's first iteration.
+          if (step.loop) {
+            plan_list(step.body, node + "/attempt/1/iteration/0/steps", false, active);
+          }
           // A fallback starts from what the failed step left.
           for (const auto& [cause, action] : step.on) {
             for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {

@@ -179,8 +179,9 @@ class MissionParser {
     step->path = r_->pathOf(node);
     const std::string what = list + " step";
     step->file = r_->file();
-    if (auto s = r_->mapping(
-            node, what, {"name", "behavior", "call", "with", "parameters", "on", "if", "remember"});
+    if (auto s = r_->mapping(node, what,
+                             {"name", "behavior", "call", "with", "for_each", "repeat", "steps",
+                              "parameters", "on", "if", "remember"});
         !s.ok()) {
       return s;
     }
@@ -221,42 +222,25 @@ class MissionParser {
     } else if (node["with"]) {
       return r_->error(node["with"], label + ": 'with' goes with 'call'");
     }
-    if (step->behavior.empty() && step->call.empty() && step->remember.fields().empty()) {
-      return r_->error(node, label + ": needs a 'behavior' or a 'call' (or only 'remember')");
+    if (node["for_each"] || node["repeat"]) {
+      if (auto s = loop(node, label, step); !s.ok()) return s;
+    } else if (node["steps"]) {
+      return r_->error(node["steps"], label + ": 'steps' goes with 'for_each' or 'repeat'");
+    }
+    if (step->behavior.empty() && step->call.empty() && !step->loop &&
+        step->remember.fields().empty()) {
+      return r_->error(node, label +
+                                 ": needs a 'behavior', a 'call' or a loop (or only "
+                                 "'remember')");
     }
     if (const YAML::Node condition = node["if"]) {
-      if (auto s = r_->mapping(condition, label + " if", {"belief", "exists", "equals"}); !s.ok()) {
-        return s;
-      }
       BeliefCondition c;
-      c.line = lineOf(condition);
-      if (!condition["belief"])
-        return r_->error(condition, label + " if: missing 'belief' (the key)");
-      if (auto s = r_->text(condition["belief"], label + " if belief", &c.key); !s.ok()) return s;
-      if (auto s = BeliefStore::checkKey(c.key); !s.ok()) {
-        return r_->error(condition["belief"], label + " if: " + std::string(s.message()));
-      }
-      if (condition["exists"]) {
-        bool exists = false;
-        if (!condition["exists"].IsScalar() ||
-            !YAML::convert<bool>::decode(condition["exists"], exists)) {
-          return r_->error(condition["exists"], label + " if exists: expected true or false");
-        }
-        c.exists = exists;
-      }
-      if (condition["equals"]) {
-        google::protobuf::Value v;
-        if (auto s = r_->value(condition["equals"], label + " if equals", &v); !s.ok()) return s;
-        c.equals = v;
-      }
-      if (c.exists.has_value() == c.equals.has_value()) {
-        return r_->error(condition, label + " if: give exactly one of 'exists' and 'equals'");
-      }
+      if (auto s = this->condition(condition, label + " if", &c); !s.ok()) return s;
       step->condition = c;
     }
     if (const YAML::Node on = node["on"]) {
-      if (step->behavior.empty() && step->call.empty()) {
-        return r_->error(on, label + ": 'on' needs a 'behavior' or a 'call'");
+      if (step->behavior.empty() && step->call.empty() && !step->loop) {
+        return r_->error(on, label + ": 'on' needs a 'behavior', a 'call' or a loop");
       }
       if (auto s = r_->mapping(on, label + " on", causeKeys()); !s.ok()) return s;
       for (const auto& entry : on) {
@@ -266,6 +250,37 @@ class MissionParser {
         step->on[cause] = std::move(action);
       }
     }
+    return absl::OkStatus();
+  }
+
+  // {belief: key, exists: true|false} or {belief: key, equals: value}.
+  absl::Status condition(const YAML::Node& condition, const std::string& what,
+                         BeliefCondition* out) {
+    if (auto s = r_->mapping(condition, what, {"belief", "exists", "equals"}); !s.ok()) return s;
+    BeliefCondition c;
+    c.line = lineOf(condition);
+    if (!condition["belief"]) return r_->error(condition, what + ": missing 'belief' (the key)");
+    if (auto s = r_->text(condition["belief"], what + " belief", &c.key); !s.ok()) return s;
+    if (auto s = BeliefStore::checkKey(c.key); !s.ok()) {
+      return r_->error(condition["belief"], what + ": " + std::string(s.message()));
+    }
+    if (condition["exists"]) {
+      bool exists = false;
+      if (!condition["exists"].IsScalar() ||
+          !YAML::convert<bool>::decode(condition["exists"], exists)) {
+        return r_->error(condition["exists"], what + " exists: expected true or false");
+      }
+      c.exists = exists;
+    }
+    if (condition["equals"]) {
+      google::protobuf::Value v;
+      if (auto s = r_->value(condition["equals"], what + " equals", &v); !s.ok()) return s;
+      c.equals = v;
+    }
+    if (c.exists.has_value() == c.equals.has_value()) {
+      return r_->error(condition, what + ": give exactly one of 'exists' and 'equals'");
+    }
+    *out = std::move(c);
     return absl::OkStatus();
   }
 
@@ -325,6 +340,38 @@ class MissionParser {
       if (it == fields.end()) continue;
       if (auto s = bindingsValid(it->second); !s.ok()) {
         return r_->error(entry.second, what + ": " + std::string(s.message()));
+      }
+      if (auto s = eachValid(it->second); !s.ok()) {
+        return r_->error(entry.second, what + ": " + std::string(s.message()));
+      }
+    }
+    return absl::OkStatus();
+  }
+
+  // Every ${each.<name>} names the item of a for_each around it.
+  absl::Status eachValid(const google::protobuf::Value& value) const {
+    if (value.has_string_value()) {
+      const std::string& text = value.string_value();
+      const std::string open = "${each.";
+      for (size_t at = text.find(open); at != std::string::npos; at = text.find(open, at + 1)) {
+        const size_t end = text.find('}', at);
+        const std::string name =
+            end == std::string::npos ? "" : text.substr(at + open.size(), end - at - open.size());
+        if (std::find(each_.begin(), each_.end(), name) == each_.end()) {
+          return absl::InvalidArgumentError(
+              cat("${each.", name, "} is not the item of a for_each around it",
+                  each_.empty() ? "" : " (its items: " + yaml::join(each_) + ")"));
+        }
+      }
+    }
+    if (value.has_list_value()) {
+      for (const auto& item : value.list_value().values()) {
+        if (auto s = eachValid(item); !s.ok()) return s;
+      }
+    }
+    if (value.has_struct_value()) {
+      for (const auto& [key, field] : value.struct_value().fields()) {
+        if (auto s = eachValid(field); !s.ok()) return s;
       }
     }
     return absl::OkStatus();
@@ -568,6 +615,106 @@ class MissionParser {
     return parsed;
   }
 
+  // A loop: `for_each: {in: [...] | {belief: key}, as: name, max_items: N}`
+  // or `repeat: {times: N}` or `repeat: {until: <belief condition>,
+  // max_times: N}`, with its `steps`. Every loop is bounded.
+  absl::Status loop(const YAML::Node& node, const std::string& label, MissionStep* step) {
+    if (node["behavior"] || node["call"]) {
+      return r_->error(node, label + ": a loop has 'steps', not a 'behavior' or a 'call'");
+    }
+    if (node["for_each"] && node["repeat"]) {
+      return r_->error(node, label + ": give 'for_each' or 'repeat', not both");
+    }
+    if (node["parameters"])
+      return r_->error(node["parameters"], label + ": a loop has no parameters");
+    MissionLoop loop;
+    auto whole = [&](const YAML::Node& n, const std::string& what, int low, int high, int* out) {
+      if (!n.IsScalar() || !YAML::convert<int>::decode(n, *out) || *out < low || *out > high) {
+        return r_->error(n, cat(label, " ", what, ": a whole number, ", low, "..", high));
+      }
+      return absl::OkStatus();
+    };
+    if (const YAML::Node each = node["for_each"]) {
+      loop.kind = MissionLoop::Kind::kForEach;
+      if (auto s = r_->mapping(each, label + " for_each", {"in", "as", "max_items"}); !s.ok())
+        return s;
+      if (!each["in"] || !each["as"]) {
+        return r_->error(each, label + " for_each: needs 'in' (a list, or {belief: key}) and 'as'");
+      }
+      if (auto s = r_->text(each["as"], label + " for_each as", &loop.as); !s.ok()) return s;
+      if (!validName(loop.as)) {
+        return r_->error(each["as"], label + " for_each as: letters, digits and '_'");
+      }
+      loop.max_items = kMaxLoopItems;
+      if (each["max_items"]) {
+        if (auto s =
+                whole(each["max_items"], "for_each max_items", 1, kMaxLoopItems, &loop.max_items);
+            !s.ok())
+          return s;
+      }
+      const YAML::Node in = each["in"];
+      if (in.IsMap()) {
+        if (auto s = r_->mapping(in, label + " for_each in", {"belief"}); !s.ok()) return s;
+        if (!in["belief"]) return r_->error(in, label + " for_each in: expected {belief: key}");
+        if (auto s = r_->text(in["belief"], label + " for_each in belief", &loop.belief); !s.ok())
+          return s;
+        if (auto s = BeliefStore::checkKey(loop.belief); !s.ok()) {
+          return r_->error(in["belief"], label + " for_each in: " + std::string(s.message()));
+        }
+      } else {
+        google::protobuf::Value items;
+        if (auto s = r_->value(in, label + " for_each in", &items); !s.ok()) return s;
+        if (!items.has_list_value()) {
+          return r_->error(in, label + " for_each in: expected a list, or {belief: key}");
+        }
+        if (auto s = substitute(in, label + " for_each in", &items); !s.ok()) return s;
+        if (items.list_value().values_size() > loop.max_items) {
+          return r_->error(in, cat(label, " for_each in: ", items.list_value().values_size(),
+                                   " items, more than max_items ", loop.max_items));
+        }
+        loop.items = items.list_value();
+      }
+    } else {
+      const YAML::Node repeat = node["repeat"];
+      if (auto s = r_->mapping(repeat, label + " repeat", {"times", "until", "max_times"}); !s.ok())
+        return s;
+      if (repeat["times"]) {
+        if (repeat["until"] || repeat["max_times"]) {
+          return r_->error(repeat, label + " repeat: give 'times', or 'until' with 'max_times'");
+        }
+        loop.kind = MissionLoop::Kind::kTimes;
+        if (auto s = whole(repeat["times"], "repeat times", 1, kMaxLoopItems, &loop.times); !s.ok())
+          return s;
+      } else if (repeat["until"]) {
+        loop.kind = MissionLoop::Kind::kUntil;
+        if (!repeat["max_times"]) {
+          return r_->error(repeat, label +
+                                       " repeat: 'until' needs 'max_times' (every loop has a "
+                                       "bound, so that a mission always ends)");
+        }
+        if (auto s = whole(repeat["max_times"], "repeat max_times", 1, kMaxLoopItems, &loop.times);
+            !s.ok())
+          return s;
+        BeliefCondition until;
+        if (auto s = condition(repeat["until"], label + " repeat until", &until); !s.ok()) return s;
+        loop.until = until;
+      } else {
+        return r_->error(repeat, label +
+                                     " repeat: needs 'times', or 'until' with 'max_times' "
+                                     "(every loop has a bound, so that a mission always ends)");
+      }
+    }
+    if (!node["steps"]) return r_->error(node, label + ": a loop needs 'steps'");
+    step->loop = std::move(loop);
+    if (!step->loop->as.empty()) each_.push_back(step->loop->as);
+    absl::Status parsed = stepList(node["steps"], label, &step->body);
+    if (!step->loop->as.empty()) each_.pop_back();
+    if (parsed.ok() && step->body.empty()) {
+      return r_->error(node["steps"], label + " steps: empty");
+    }
+    return parsed;
+  }
+
   // ${param.<name>} in the strings of `value` (read from `node`) replaced by
   // the current call's parameters: a whole string by the value itself, a
   // part by its text.
@@ -650,6 +797,7 @@ class MissionParser {
   }
 
   static constexpr size_t kMaxImports = 16;
+  static constexpr int kMaxLoopItems = 1000;
   static constexpr size_t kMaxCallDepth = 8;
 
   struct Definition {
@@ -667,10 +815,15 @@ class MissionParser {
   std::map<std::string, Definition> defs_;
   std::vector<std::string> calling_;  // the sub-missions whose calls are being parsed
   std::map<std::string, google::protobuf::Value> params_;  // of the innermost call
+  std::vector<std::string> each_;  // the `as` names of the for_each loops being parsed
 };
 
 bool hasBinding(const google::protobuf::Value& value) {
-  if (value.has_string_value()) return value.string_value().find("${belief.") != std::string::npos;
+  if (value.has_string_value()) {
+    // A belief's value, or a for_each item: known when the step starts.
+    return value.string_value().find("${belief.") != std::string::npos ||
+           value.string_value().find("${each.") != std::string::npos;
+  }
   if (value.has_list_value()) {
     for (const auto& v : value.list_value().values()) {
       if (hasBinding(v)) return true;

@@ -72,6 +72,22 @@ struct BeliefCondition {
   int line = 0;
 };
 
+/// A loop: its steps (MissionStep::body) run once an item or an iteration.
+struct MissionLoop {
+  enum class Kind { kForEach, kTimes, kUntil };
+  Kind kind = Kind::kTimes;
+  /// kForEach: the items (literal), or the belief that holds them (read
+  /// when the loop starts); each is ${each.<as>} in the steps.
+  google::protobuf::ListValue items;
+  std::string belief;
+  std::string as;
+  int max_items = 0;
+  /// kTimes: how many times; kUntil: at most how many (then it ends
+  /// WRONG_PROGRESS), checking `until` after each iteration.
+  int times = 0;
+  std::optional<BeliefCondition> until;
+};
+
 struct MissionStep {
   std::string name;      ///< empty: "step <n>"
   std::string behavior;  ///< empty: a call, or a step that only remembers
@@ -80,6 +96,8 @@ struct MissionStep {
   std::string call;
   google::protobuf::Struct with;
   std::vector<MissionStep> body;
+  /// A loop over `body` (a step with a loop has no behavior and no call).
+  std::optional<MissionLoop> loop;
   std::string file;  ///< the file the step is in (an imported one for a sub-mission's)
   google::protobuf::Struct parameters;
   std::map<std::string, int> parameter_lines;

@@ -3,10 +3,12 @@
 #include <google/protobuf/util/message_differencer.h>
 #include <google/protobuf/util/time_util.h>
 
+#include <functional>
 #include <sstream>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
+#include "behaviorlib/parameters.h"
 
 namespace behaviorlib::coordinator {
 namespace {
@@ -28,6 +30,23 @@ Position positionOf(const v1::MissionStepRecord& r) {
 
 bool startsWith(const Position& path, const Position& prefix) {
   return path.size() >= prefix.size() && std::equal(prefix.begin(), prefix.end(), path.begin());
+}
+
+// How a loop's record names it: "for_each point in 3 items", "repeat 3
+// times", "repeat until drone1/done (at most 5 times)".
+std::string loopText(const MissionLoop& loop) {
+  switch (loop.kind) {
+    case MissionLoop::Kind::kForEach:
+      return "for_each " + loop.as + " in " +
+             (loop.belief.empty() ? std::to_string(loop.items.values_size()) + " items"
+                                  : "belief " + loop.belief);
+    case MissionLoop::Kind::kTimes:
+      return "repeat " + std::to_string(loop.times) + " times";
+    case MissionLoop::Kind::kUntil:
+      return "repeat until " + loop.until->key + " (at most " + std::to_string(loop.times) +
+             " times)";
+  }
+  return "loop";
 }
 
 // A record at `path`: its node, and its v1 path where it has one (no call).
@@ -59,6 +78,10 @@ std::string nodeText(const Position& position) {
         out +=
             "/attempt/" + std::to_string(n.call_attempt) + "/call/steps/" + std::to_string(n.index);
         break;
+      case MissionNode::Kind::kIteration:
+        out += "/attempt/" + std::to_string(n.call_attempt) + "/iteration/" +
+               std::to_string(n.iteration) + "/steps/" + std::to_string(n.index);
+        break;
     }
   }
   return out;
@@ -85,6 +108,12 @@ std::optional<Position> parseNode(const std::string& text) {
                number(parts[i + 4], &n.index)) {
       n.kind = MissionNode::Kind::kCall;
       i += 5;
+    } else if (i > 0 && parts[i] == "attempt" && i + 5 < parts.size() &&
+               parts[i + 2] == "iteration" && parts[i + 4] == "steps" &&
+               number(parts[i + 1], &n.call_attempt) && number(parts[i + 3], &n.iteration) &&
+               number(parts[i + 5], &n.index)) {
+      n.kind = MissionNode::Kind::kIteration;
+      i += 6;
     } else {
       return std::nullopt;
     }
@@ -228,6 +257,7 @@ std::string MissionRunner::stepLabel(const MissionStep& step, const Position& pa
   std::string label = step.name.empty() ? nodeText(path) : "'" + step.name + "'";
   if (!step.behavior.empty()) label += " (" + step.behavior + ")";
   if (!step.call.empty()) label += " (call " + step.call + ")";
+  if (step.loop) label += " (" + loopText(*step.loop) + ")";
   return "step " + label;
 }
 
@@ -371,7 +401,7 @@ std::optional<std::string> MissionRunner::recurrentFinished() {
 
 MissionRunner::Flow MissionRunner::runList(const std::vector<MissionStep>& steps,
                                            const Position& prefix, MissionNode::Kind kind,
-                                           int call_attempt, Position resume_path) {
+                                           int call_attempt, Position resume_path, int iteration) {
   size_t start = 0;
   Position tail;
   if (!resume_path.empty()) {
@@ -380,7 +410,7 @@ MissionRunner::Flow MissionRunner::runList(const std::vector<MissionStep>& steps
   }
   for (size_t i = start; i < steps.size(); ++i) {
     Position path = prefix;
-    path.push_back({kind, static_cast<int>(i), call_attempt});
+    path.push_back({kind, static_cast<int>(i), call_attempt, iteration});
     const bool resumed_here = i == start && !resume_path.empty();
     const Flow flow = runStep(steps[i], path, resumed_here ? tail : Position{});
     if (resumed_here) resume_from_.clear();  // resumed: live from here
@@ -398,7 +428,8 @@ bool MissionRunner::conditionHolds(const BeliefCondition& c) const {
 
 void MissionRunner::rememberAll(const MissionStep& step) {
   if (step.remember.fields().empty()) return;
-  auto values = beliefs_.resolve(step.remember);
+  absl::StatusOr<google::protobuf::Struct> values = withItems(step.remember);
+  if (values.ok()) values = beliefs_.resolve(*values);
   const std::string writer = "mission:" + status().mission_id();
   if (!values.ok()) return;
   for (const auto& [key, value] : values->fields()) (void)beliefs_.write(key, value, writer);
@@ -530,7 +561,9 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Positi
   } else if (recorded && recorded->state() == v1::MISSION_STEP_STATE_SKIPPED) {
     return Flow::kDone;
   }
-  if (!step.call.empty()) return runCall(step, path, std::move(resume_tail), recorded);
+  if (!step.call.empty() || step.loop) {
+    return runCall(step, path, std::move(resume_tail), recorded);
+  }
   if (step.behavior.empty()) {
     rememberAll(step);
     return Flow::kDone;
@@ -563,7 +596,8 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Positi
           }
         }
       }
-      auto params = beliefs_.resolve(step.parameters);
+      absl::StatusOr<google::protobuf::Struct> params = withItems(step.parameters);
+      if (params.ok()) params = beliefs_.resolve(*params);
       if (index < 0) {
         v1::MissionStepRecord record = recordAt(path);
         record.set_name(step.name);
@@ -685,24 +719,21 @@ MissionRunner::Flow MissionRunner::runCall(const MissionStep& step, const Positi
         record.set_attempt(attempt);
         record.set_state(v1::MISSION_STEP_STATE_RUNNING);
         *record.mutable_parameters() = step.with;
+        if (step.loop) record.set_loop(loopText(*step.loop));
         index = addRecord(std::move(record));
       }
       // Resuming inside this attempt's steps: where it was.
       Position tail;
-      if (reuse && !resume_tail.empty() && resume_tail.front().kind == MissionNode::Kind::kCall &&
+      if (reuse && !resume_tail.empty() &&
+          (resume_tail.front().kind == MissionNode::Kind::kCall ||
+           resume_tail.front().kind == MissionNode::Kind::kIteration) &&
           resume_tail.front().call_attempt == attempt) {
         tail = resume_tail;
       }
       resume_tail.clear();
-      failed_cause_.clear();
-      const Flow flow = runList(step.body, path, MissionNode::Kind::kCall, attempt, tail);
-      if (flow == Flow::kDone) {
-        cause = "GOAL_ACHIEVED";
-      } else if (flow == Flow::kAbort && !failed_cause_.empty()) {
-        // A step of the sub-mission failed it: the call ends with its cause.
-        cause = failed_cause_;
-        message = failure_;
-      } else {
+      Flow flow = Flow::kDone;
+      std::optional<std::string> ended = runBody(step, path, attempt, tail, &message, &flow);
+      if (!ended) {
         if (flow == Flow::kAbortRequested) {
           updateRecord(index, [&](v1::MissionStepRecord& r) {
             r.set_state(v1::MISSION_STEP_STATE_FINISHED);
@@ -712,6 +743,7 @@ MissionRunner::Flow MissionRunner::runCall(const MissionStep& step, const Positi
         }
         return flow;  // the mission stops, aborts or fails for another reason
       }
+      cause = *ended;
       updateRecord(index, [&](v1::MissionStepRecord& r) {
         if (cause == "REFUSED") {
           r.set_state(v1::MISSION_STEP_STATE_REFUSED);
@@ -728,6 +760,121 @@ MissionRunner::Flow MissionRunner::runCall(const MissionStep& step, const Positi
     failed_cause_.clear();
     if (std::optional<Flow> flow = afterCause(step, path, cause, message, &attempt)) return *flow;
   }
+}
+
+std::optional<std::string> MissionRunner::runBody(const MissionStep& step, const Position& path,
+                                                  int attempt, const Position& tail,
+                                                  std::string* message, Flow* flow) {
+  if (step.loop) return runLoop(step, path, attempt, tail, message, flow);
+  failed_cause_.clear();
+  *flow = runList(step.body, path, MissionNode::Kind::kCall, attempt, tail);
+  if (*flow == Flow::kDone) return "GOAL_ACHIEVED";
+  if (*flow == Flow::kAbort && !failed_cause_.empty()) {
+    // A step of the sub-mission failed it: the call ends with its cause.
+    *message = failure_;
+    return failed_cause_;
+  }
+  return std::nullopt;
+}
+
+std::optional<std::string> MissionRunner::runLoop(const MissionStep& step, const Position& path,
+                                                  int attempt, const Position& tail,
+                                                  std::string* message, Flow* flow) {
+  const MissionLoop& loop = *step.loop;
+  google::protobuf::ListValue items = loop.items;
+  int count = loop.times;
+  if (loop.kind == MissionLoop::Kind::kForEach) {
+    if (!loop.belief.empty()) {
+      // The belief's list as it is when the loop starts (each attempt).
+      const std::optional<v1::Belief> belief = beliefs_.get(loop.belief);
+      if (!belief || !belief->value().has_list_value()) {
+        *message = "for_each: belief '" + loop.belief + "' " +
+                   (belief ? "is not a list" : "is not in memory");
+        return "REFUSED";
+      }
+      items = belief->value().list_value();
+      if (items.values_size() > loop.max_items) {
+        *message = "for_each: belief '" + loop.belief + "' holds " +
+                   std::to_string(items.values_size()) + " items, more than max_items " +
+                   std::to_string(loop.max_items);
+        return "REFUSED";
+      }
+    }
+    count = items.values_size();
+  }
+  int first = 0;
+  if (!tail.empty() && tail.front().kind == MissionNode::Kind::kIteration) {
+    first = tail.front().iteration;
+  }
+  for (int i = first; i < count; ++i) {
+    if (loop.kind == MissionLoop::Kind::kForEach) items_.emplace_back(loop.as, items.values(i));
+    failed_cause_.clear();
+    *flow = runList(step.body, path, MissionNode::Kind::kIteration, attempt,
+                    i == first ? tail : Position{}, i);
+    if (loop.kind == MissionLoop::Kind::kForEach) items_.pop_back();
+    if (*flow == Flow::kAbort && !failed_cause_.empty()) {
+      *message = failure_;
+      return failed_cause_;
+    }
+    if (*flow != Flow::kDone) return std::nullopt;
+    if (loop.kind == MissionLoop::Kind::kUntil && conditionHolds(*loop.until)) {
+      return "GOAL_ACHIEVED";
+    }
+  }
+  if (loop.kind == MissionLoop::Kind::kUntil) {
+    *message = "repeat: belief '" + loop.until->key + "' did not come to hold in " +
+               std::to_string(count) + " iterations";
+    return "WRONG_PROGRESS";
+  }
+  return "GOAL_ACHIEVED";
+}
+
+absl::StatusOr<google::protobuf::Struct> MissionRunner::withItems(
+    const google::protobuf::Struct& parameters) {
+  if (items_.empty()) return parameters;
+  std::function<absl::Status(google::protobuf::Value*)> replace =
+      [&](google::protobuf::Value* value) -> absl::Status {
+    if (value->has_list_value()) {
+      for (auto& item : *value->mutable_list_value()->mutable_values()) {
+        if (auto s = replace(&item); !s.ok()) return s;
+      }
+    } else if (value->has_struct_value()) {
+      for (auto& [key, field] : *value->mutable_struct_value()->mutable_fields()) {
+        if (auto s = replace(&field); !s.ok()) return s;
+      }
+    } else if (value->has_string_value() &&
+               value->string_value().find("${each.") != std::string::npos) {
+      std::string text = value->string_value();
+      for (auto it = items_.rbegin(); it != items_.rend(); ++it) {
+        const std::string token = "${each." + it->first + "}";
+        if (text == token) {
+          *value = it->second;  // a whole value: the item itself
+          return absl::OkStatus();
+        }
+        if (text.find(token) == std::string::npos) continue;
+        std::string part;
+        if (it->second.has_string_value()) {
+          part = it->second.string_value();
+        } else if (it->second.has_number_value()) {
+          part = params::numberText(it->second.number_value());
+        } else {
+          return absl::InvalidArgumentError(token +
+                                            " is a list or an object; it can only stand "
+                                            "alone in a value, not inside a text");
+        }
+        for (size_t at = text.find(token); at != std::string::npos;
+             at = text.find(token, at + part.size())) {
+          text.replace(at, token.size(), part);
+        }
+      }
+      value->set_string_value(text);
+    }
+    return absl::OkStatus();
+  };
+  google::protobuf::Value whole;
+  *whole.mutable_struct_value() = parameters;
+  if (auto s = replace(&whole); !s.ok()) return s;
+  return whole.struct_value();
 }
 
 }  // namespace behaviorlib::coordinator

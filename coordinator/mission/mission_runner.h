@@ -67,15 +67,18 @@ class MissionActions {
 
 /// One level of a step's position in a mission (MissionStepRecord.node).
 struct MissionNode {
-  enum class Kind { kStep, kFallback, kCall };
+  enum class Kind { kStep, kFallback, kCall, kIteration };
   Kind kind = Kind::kStep;
   int index = 0;
-  int call_attempt = 0;  ///< kCall: the attempt of the call whose steps these are
+  /// kCall, kIteration: the attempt of the call or loop whose steps these are
+  int call_attempt = 0;
+  int iteration = 0;  ///< kIteration: which one, from 0
   bool operator==(const MissionNode&) const = default;
 };
 using Position = std::vector<MissionNode>;
 
-/// "steps/2", "steps/2/fallback/0", "steps/2/attempt/1/call/steps/0".
+/// "steps/2", "steps/2/fallback/0", "steps/2/attempt/1/call/steps/0",
+/// "steps/2/attempt/1/iteration/3/steps/0".
 std::string nodeText(const Position& position);
 /// nodeText's inverse; nullopt for text it does not make.
 std::optional<Position> parseNode(const std::string& text);
@@ -125,12 +128,23 @@ class MissionRunner {
   /// a fallback's step, or a step of the call's attempt `call_attempt`);
   /// `resume` is where to go on from, below `prefix`.
   Flow runList(const std::vector<MissionStep>& steps, const Position& prefix,
-               MissionNode::Kind kind, int call_attempt, Position resume);
+               MissionNode::Kind kind, int call_attempt, Position resume, int iteration = 0);
   Flow runStep(const MissionStep& step, const Position& path, Position resume_tail);
   /// A call of a sub-mission: its steps, ending like a behavior (the cause
   /// of the step that failed it), and its own `on:`.
   Flow runCall(const MissionStep& step, const Position& path, Position resume_tail,
                std::optional<v1::MissionStepRecord> recorded);
+  /// Runs a call's or a loop's steps (attempt `attempt`, resuming at
+  /// `tail`): GOAL_ACHIEVED when they all went on, else the cause of the step
+  /// that failed them (REFUSED for a loop that could not start), or nullopt
+  /// with `flow` for an end of the mission.
+  std::optional<std::string> runBody(const MissionStep& step, const Position& path, int attempt,
+                                     const Position& tail, std::string* message, Flow* flow);
+  /// The steps of a loop, an iteration at a time.
+  std::optional<std::string> runLoop(const MissionStep& step, const Position& path, int attempt,
+                                     const Position& tail, std::string* message, Flow* flow);
+  /// `parameters` with each ${each.<name>} of the loops around replaced.
+  absl::StatusOr<google::protobuf::Struct> withItems(const google::protobuf::Struct& parameters);
   /// What the step's `on:` does after `cause`: nullopt to try again
   /// (`attempt` raised), else the flow (failure_ and failed_cause_ set on an
   /// abort; a fallback run).
@@ -175,6 +189,8 @@ class MissionRunner {
   // The cause of the step whose `on:` aborted (what a call ends with);
   // empty when the abort has another reason (a recurrent behavior ended).
   std::string failed_cause_;
+  // The items of the for_each loops around the running step (innermost last).
+  std::vector<std::pair<std::string, google::protobuf::Value>> items_;
   std::vector<std::pair<std::string, std::string>> recurrent_;  // behavior, activation id
   std::vector<v1::MissionStepRecord> resume_from_;              // history when resuming
   bool resuming_ = false;

@@ -278,6 +278,33 @@ TEST(MissionFile, SubMissionsAreImportedFromTheMissionDirectory) {
   EXPECT_THAT(std::string(no_dir.status().message()), HasSubstr("cannot import files"));
 }
 
+// Every loop has a bound: a repeat-until without max_times, a loop without
+// steps, or more items than max_items is refused with its line.
+TEST(MissionFile, ALoopWithoutABoundIsRefused) {
+  struct Case {
+    std::string step;
+    std::string message;
+  };
+  for (const Case& c : std::vector<Case>{
+           {"  - repeat: {until: {belief: d/x, exists: true}}\n    steps: [{behavior: A}]\n",
+            "t.yaml:3: steps step repeat: 'until' needs 'max_times' (every loop has a bound"},
+           {"  - repeat: {}\n    steps: [{behavior: A}]\n", "needs 'times', or 'until' with"},
+           {"  - repeat: {times: 0}\n    steps: [{behavior: A}]\n",
+            "repeat times: a whole number, 1..1000"},
+           {"  - repeat: {times: 2}\n", "a loop needs 'steps'"},
+           {"  - for_each: {in: [1, 2, 3], as: i, max_items: 2}\n    steps: [{behavior: A}]\n",
+            "3 items, more than max_items 2"},
+           {"  - for_each: {in: 5, as: i}\n    steps: [{behavior: A}]\n",
+            "expected a list, or {belief: key}"},
+           {"  - behavior: A\n    steps: [{behavior: B}]\n",
+            "'steps' goes with 'for_each' or 'repeat'"},
+       }) {
+    auto mission = parseMission("robot: drone1\nsteps:\n" + c.step, "t.yaml");
+    ASSERT_FALSE(mission.ok()) << c.step;
+    EXPECT_THAT(std::string(mission.status().message()), HasSubstr(c.message)) << c.step;
+  }
+}
+
 TEST(MissionFile, CheckedAgainstTheRegisteredBehaviorsBeforeAnythingFlies) {
   auto mission = parseMission(kMission, "demo.yaml");
   ASSERT_TRUE(mission.ok());

@@ -556,10 +556,157 @@ TEST(MissionRunner, AMissionResumedInsideACallActivatesNothingTwice) {
                                            "activate PLAN", "activate FLY", "activate LAND"));
 }
 
+// Loops: for_each over a literal list or a belief's list (the item as
+// ${each.<as>}), repeat N times, repeat until a belief condition (at most
+// max_times, then WRONG_PROGRESS). Each iteration's steps activate anew.
+constexpr const char* kLoops = R"(name: loops
+steps:
+  - name: visit
+    for_each: {in: [{x: 1}, {x: 2}], as: point}
+    steps:
+      - behavior: FLY
+        parameters: {goal: "${each.point}", label: "to ${each.point_name}"}
+  - name: found
+    for_each: {in: {belief: drone1/codes}, as: code, max_items: 5}
+    steps:
+      - behavior: READ
+        parameters: {code: "${each.code}"}
+  - name: twice
+    repeat: {times: 2}
+    steps:
+      - behavior: SCAN
+  - name: until_done
+    repeat: {until: {belief: drone1/done, exists: true}, max_times: 4}
+    steps:
+      - behavior: SEARCH
+      - remember: {drone1/searched: true}
+)";
+
+TEST(MissionRunner, LoopsRunTheirStepsOnceAnItemOrAnIteration) {
+  // ${each.point_name} is not a loop's item: refused when parsed.
+  auto bad = parseMission(kLoops, "loops.yaml");
+  ASSERT_FALSE(bad.ok());
+  EXPECT_THAT(
+      std::string(bad.status().message()),
+      HasSubstr("loops.yaml:7: steps step 'visit' step: ${each.point_name} is not the item of a "
+                "for_each around it (its items: point)"));
+  std::string text = kLoops;
+  text.replace(text.find(", label: \"to ${each.point_name}\""),
+               std::string(", label: \"to ${each.point_name}\"").size(), "");
+  MissionRun run;
+  ASSERT_TRUE(run.beliefs
+                  .write(
+                      "drone1/codes",
+                      [] {
+                        google::protobuf::Value v;
+                        v.mutable_list_value()->add_values()->set_string_value("A7");
+                        v.mutable_list_value()->add_values()->set_string_value("B2");
+                        v.mutable_list_value()->add_values()->set_string_value("C9");
+                        return v;
+                      }(),
+                      "test")
+                  .ok());
+  run.start(text);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_FAILED) << "until_done never holds";
+  EXPECT_THAT(status.message(),
+              HasSubstr("step 'until_done' (repeat until drone1/done (at most 4 times)) finished "
+                        "WRONG_PROGRESS: repeat: belief 'drone1/done' did not come to hold in 4 "
+                        "iterations"));
+  EXPECT_EQ(run.actions.count("activate FLY"), 2);
+  EXPECT_EQ(run.actions.count("activate READ"), 3);
+  EXPECT_EQ(run.actions.count("activate SCAN"), 2);
+  EXPECT_EQ(run.actions.count("activate SEARCH"), 4);
+  EXPECT_EQ(run.actions.lastParameters("READ").fields().at("code").string_value(), "C9");
+  EXPECT_EQ(run.actions.lastParameters("FLY")
+                .fields()
+                .at("goal")
+                .struct_value()
+                .fields()
+                .at("x")
+                .number_value(),
+            2)
+      << "a whole item is the item itself";
+  std::vector<std::string> nodes;
+  for (const auto& step : status.steps()) {
+    if (step.behavior() == "SCAN" || !step.loop().empty())
+      nodes.push_back(step.node() + " " + step.loop());
+  }
+  EXPECT_THAT(nodes, ::testing::IsSupersetOf({"steps/0 for_each point in 2 items",
+                                              "steps/1 for_each code in belief drone1/codes",
+                                              "steps/2 repeat 2 times",
+                                              "steps/2/attempt/1/iteration/0/steps/0 ",
+                                              "steps/2/attempt/1/iteration/1/steps/0 "}));
+
+  // The condition holds after the second iteration: the loop ends there.
+  MissionRun until;
+  until.actions.script("SEARCH", {});
+  const std::string only_until =
+      "name: u\nsteps:\n  - repeat: {until: {belief: drone1/found, "
+      "exists: true}, max_times: 5}\n    steps:\n"
+      "      - behavior: SEARCH\n"
+      "      - if: {belief: drone1/searched_once, exists: true}\n"
+      "        remember: {drone1/found: true}\n"
+      "      - remember: {drone1/searched_once: true}\n";
+  until.start(only_until);
+  EXPECT_EQ(until.finish().state(), v1::MISSION_STATE_SUCCEEDED);
+  EXPECT_EQ(until.actions.count("activate SEARCH"), 2);
+
+  // A belief that is not a list: the loop is refused (REFUSED, aborting).
+  MissionRun refused;
+  ASSERT_TRUE(refused.beliefs
+                  .write(
+                      "drone1/codes",
+                      [] {
+                        google::protobuf::Value v;
+                        v.set_string_value("not a list");
+                        return v;
+                      }(),
+                      "test")
+                  .ok());
+  refused.start(
+      "name: r\nsteps:\n  - for_each: {in: {belief: drone1/codes}, as: c}\n"
+      "    steps: [{behavior: READ}]\n");
+  const v1::MissionStatus r = refused.finish();
+  EXPECT_EQ(r.state(), v1::MISSION_STATE_FAILED);
+  EXPECT_THAT(r.message(), HasSubstr("was refused: for_each: belief 'drone1/codes' is not a list"));
+}
+
+TEST(MissionRunner, AMissionResumedInsideALoopGoesOnFromItsIteration) {
+  ScriptedActions actions;
+  actions.hold("SCAN");
+  BeliefStore beliefs;
+  const char* yaml =
+      "name: l\nsteps:\n  - repeat: {times: 3}\n    steps:\n"
+      "      - behavior: MOVE\n      - behavior: SCAN\n";
+  // The coordinator dies in the second iteration's SCAN.
+  int scans = 0;
+  const auto last = runUntilTheCoordinatorDies(yaml, actions, beliefs, [&] {
+    if (actions.active("SCAN") && actions.count("activate SCAN") == 2) return true;
+    if (actions.active("SCAN") && actions.count("activate SCAN") > scans) {
+      scans = actions.count("activate SCAN");
+      actions.finish("SCAN", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+      actions.hold("SCAN");
+    }
+    return false;
+  });
+  ASSERT_TRUE(last.has_value());
+  MissionRunner resumed(mission(yaml), *last, actions, beliefs, nullptr);
+  resumed.start();
+  ASSERT_TRUE(eventually([&] { return actions.count("same activation SCAN") == 1; }));
+  actions.finish("SCAN", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  ASSERT_TRUE(eventually([&] { return actions.count("activate SCAN") == 3; }));
+  actions.finish("SCAN", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  ASSERT_TRUE(resumed.waitFinished(seconds(10)));
+  EXPECT_EQ(resumed.status().state(), v1::MISSION_STATE_SUCCEEDED) << resumed.status().message();
+  EXPECT_EQ(actions.count("activate MOVE"), 3) << "each iteration's MOVE once";
+  EXPECT_EQ(actions.count("activate SCAN"), 3);
+}
+
 TEST(MissionNode, PositionsReadBackFromTheirText) {
-  for (const std::string text :
-       {"steps/0", "steps/3/fallback/1", "steps/2/attempt/1/call/steps/0",
-        "steps/2/attempt/3/call/steps/1/fallback/0/attempt/1/call/steps/4"}) {
+  for (const std::string text : {"steps/0", "steps/3/fallback/1", "steps/2/attempt/1/call/steps/0",
+                                 "steps/2/attempt/3/call/steps/1/fallback/0/attempt/1/call/steps/4",
+                                 "steps/1/attempt/2/iteration/7/steps/0/attempt/1/call/steps/2"}) {
     auto position = parseNode(text);
     ASSERT_TRUE(position.has_value()) << text;
     EXPECT_EQ(nodeText(*position), text);

@@ -201,7 +201,10 @@ def test_a_check_lists_the_problems_of_a_mission_and_plans_a_good_one(fleet):
     good = fleet.missions.check(file=DEMO_MISSION, robot_id="drone2")
     assert list(good.problems) == [], good
     assert [p.node for p in good.plans][:2] == ["recurrent/0", "steps/0"], good
-    assert all(p.plan and p.plan[-1].behavior == p.behavior for p in good.plans), good
+    # A plan, or why there is none (a behavior another test left active is
+    # "already active"): which, depends on the robot's state, not the file.
+    for plan in good.plans:
+        assert (plan.plan and plan.plan[-1].behavior == plan.behavior) or plan.no_plan, plan
 
 
 def test_emergency_land_aborts_the_robots_mission_and_kill_needs_a_confirmation(fleet):

@@ -40,7 +40,6 @@ struct SubParameter {
   std::optional<double> min;
   std::optional<double> max;
   std::optional<google::protobuf::Value> default_value;
-  int line = 0;
 };
 
 // What is wrong with `value` for `parameter`, if anything (a value bound to
@@ -350,46 +349,21 @@ class MissionParser {
 
   // Every ${each.<name>} names the item of a for_each around it.
   absl::Status eachValid(const google::protobuf::Value& value) const {
-    if (value.has_string_value()) {
-      const std::string& text = value.string_value();
-      const std::string open = "${each.";
-      for (size_t at = text.find(open); at != std::string::npos; at = text.find(open, at + 1)) {
-        const size_t end = text.find('}', at);
-        const std::string name =
-            end == std::string::npos ? "" : text.substr(at + open.size(), end - at - open.size());
+    return forEachString(value, [&](const std::string& text) {
+      for (const std::string& name : tokenNames(text, "each")) {
         if (std::find(each_.begin(), each_.end(), name) == each_.end()) {
           return absl::InvalidArgumentError(
               cat("${each.", name, "} is not the item of a for_each around it",
                   each_.empty() ? "" : " (its items: " + yaml::join(each_) + ")"));
         }
       }
-    }
-    if (value.has_list_value()) {
-      for (const auto& item : value.list_value().values()) {
-        if (auto s = eachValid(item); !s.ok()) return s;
-      }
-    }
-    if (value.has_struct_value()) {
-      for (const auto& [key, field] : value.struct_value().fields()) {
-        if (auto s = eachValid(field); !s.ok()) return s;
-      }
-    }
-    return absl::OkStatus();
+      return absl::OkStatus();
+    });
   }
 
   static absl::Status bindingsValid(const google::protobuf::Value& value) {
-    if (value.has_string_value()) return BeliefStore::bindingsIn(value.string_value()).status();
-    if (value.has_list_value()) {
-      for (const auto& item : value.list_value().values()) {
-        if (auto s = bindingsValid(item); !s.ok()) return s;
-      }
-    }
-    if (value.has_struct_value()) {
-      for (const auto& [key, field] : value.struct_value().fields()) {
-        if (auto s = bindingsValid(field); !s.ok()) return s;
-      }
-    }
-    return absl::OkStatus();
+    return forEachString(
+        value, [](const std::string& text) { return BeliefStore::bindingsIn(text).status(); });
   }
 
   // import: [file, ...]: files of sub-missions, read through imports_ (the
@@ -473,7 +447,6 @@ class MissionParser {
   absl::Status subParameter(const yaml::Reader& reader, const YAML::Node& key,
                             const YAML::Node& node, const std::string& what, SubParameter* out) {
     out->name = key.Scalar();
-    out->line = lineOf(key);
     const std::string label = cat(what, " parameter '", out->name, "'");
     if (!validName(out->name)) return reader.keyError(key, label + ": letters, digits and '_'");
     if (auto s = reader.mapping(node, label, {"type", "default", "min", "max", "description"});
@@ -521,7 +494,7 @@ class MissionParser {
   absl::Status usesDeclared(const yaml::Reader& reader, const YAML::Node& node,
                             const Definition& definition, const std::string& what) {
     if (node.IsScalar()) {
-      for (const std::string& name : paramNames(node.Scalar())) {
+      for (const std::string& name : tokenNames(node.Scalar(), "param")) {
         bool declared = false;
         for (const auto& p : definition.parameters) declared = declared || p.name == name;
         if (!declared) {
@@ -720,57 +693,17 @@ class MissionParser {
   // part by its text.
   absl::Status substitute(const YAML::Node& node, const std::string& what,
                           google::protobuf::Value* value) const {
-    if (value->has_list_value()) {
-      for (auto& item : *value->mutable_list_value()->mutable_values()) {
-        if (auto s = substitute(node, what, &item); !s.ok()) return s;
-      }
-      return absl::OkStatus();
-    }
-    if (value->has_struct_value()) {
-      for (auto& [key, field] : *value->mutable_struct_value()->mutable_fields()) {
-        if (auto s = substitute(node, what, &field); !s.ok()) return s;
-      }
-      return absl::OkStatus();
-    }
-    if (!value->has_string_value()) return absl::OkStatus();
-    const std::string text = value->string_value();
-    const std::vector<std::string> names = paramNames(text);
-    if (names.empty()) return absl::OkStatus();
-    for (const std::string& name : names) {
-      if (!params_.contains(name)) {
-        return r_->error(node, calling_.empty()
-                                   ? cat(what, ": ${param.", name,
-                                         "} is only for a sub-mission's "
-                                         "steps")
-                                   : cat(what, ": ${param.", name, "} is not a parameter"));
-      }
-    }
-    if (names.size() == 1 && text == "${param." + names[0] + "}") {
-      *value = params_.at(names[0]);
-      return absl::OkStatus();
-    }
-    std::string out = text;
-    for (const std::string& name : names) {
-      const google::protobuf::Value& v = params_.at(name);
-      std::string part;
-      if (v.has_string_value()) {
-        part = v.string_value();
-      } else if (v.has_number_value()) {
-        part = params::numberText(v.number_value());
-      } else if (v.has_bool_value()) {
-        part = v.bool_value() ? "true" : "false";
-      } else {
-        return r_->error(node, cat(what, ": ${param.", name,
-                                   "} is a list or an object; it can "
-                                   "only stand alone in a value, not inside a text"));
-      }
-      const std::string token = "${param." + name + "}";
-      for (size_t at = out.find(token); at != std::string::npos;
-           at = out.find(token, at + part.size())) {
-        out.replace(at, token.size(), part);
-      }
-    }
-    value->set_string_value(out);
+    const absl::Status s = substituteTokens(
+        value, "param",
+        [this](const std::string& name) -> const google::protobuf::Value* {
+          const auto it = params_.find(name);
+          return it == params_.end() ? nullptr : &it->second;
+        },
+        [this](const std::string& name) {
+          return cat("${param.", name, "} ",
+                     calling_.empty() ? "is only for a sub-mission's steps" : "is not a parameter");
+        });
+    if (!s.ok()) return r_->error(node, cat(what, ": ", s.message()));
     return absl::OkStatus();
   }
 
@@ -782,18 +715,6 @@ class MissionParser {
       if (!std::isalnum(static_cast<unsigned char>(c)) && c != '_') return false;
     }
     return true;
-  }
-
-  // The names in every ${param.<name>} of `text`.
-  static std::vector<std::string> paramNames(const std::string& text) {
-    std::vector<std::string> names;
-    const std::string open = "${param.";
-    for (size_t at = text.find(open); at != std::string::npos; at = text.find(open, at + 1)) {
-      const size_t end = text.find('}', at);
-      if (end == std::string::npos) break;
-      names.push_back(text.substr(at + open.size(), end - at - open.size()));
-    }
-    return names;
   }
 
   static constexpr size_t kMaxImports = 16;
@@ -1029,6 +950,81 @@ MissionProblems checkMissionProblems(const MissionSpec& mission, const BehaviorL
 
 absl::Status checkMission(const MissionSpec& mission, const BehaviorLookup& lookup) {
   return checkMissionProblems(mission, lookup).status();
+}
+
+std::vector<std::string> tokenNames(const std::string& text, const std::string& kind) {
+  std::vector<std::string> names;
+  const std::string open = "${" + kind + ".";
+  for (size_t at = text.find(open); at != std::string::npos; at = text.find(open, at + 1)) {
+    const size_t end = text.find('}', at);
+    if (end == std::string::npos) break;
+    names.push_back(text.substr(at + open.size(), end - at - open.size()));
+  }
+  return names;
+}
+
+absl::Status forEachString(const google::protobuf::Value& value,
+                           const std::function<absl::Status(const std::string&)>& check) {
+  if (value.has_string_value()) return check(value.string_value());
+  if (value.has_list_value()) {
+    for (const auto& item : value.list_value().values()) {
+      if (auto s = forEachString(item, check); !s.ok()) return s;
+    }
+  }
+  if (value.has_struct_value()) {
+    for (const auto& [key, field] : value.struct_value().fields()) {
+      if (auto s = forEachString(field, check); !s.ok()) return s;
+    }
+  }
+  return absl::OkStatus();
+}
+
+absl::Status substituteTokens(
+    google::protobuf::Value* value, const std::string& kind,
+    const std::function<const google::protobuf::Value*(const std::string&)>& lookup,
+    const std::function<std::string(const std::string&)>& unknown) {
+  if (value->has_list_value()) {
+    for (auto& item : *value->mutable_list_value()->mutable_values()) {
+      if (auto s = substituteTokens(&item, kind, lookup, unknown); !s.ok()) return s;
+    }
+    return absl::OkStatus();
+  }
+  if (value->has_struct_value()) {
+    for (auto& [key, field] : *value->mutable_struct_value()->mutable_fields()) {
+      if (auto s = substituteTokens(&field, kind, lookup, unknown); !s.ok()) return s;
+    }
+    return absl::OkStatus();
+  }
+  if (!value->has_string_value()) return absl::OkStatus();
+  const std::vector<std::string> names = tokenNames(value->string_value(), kind);
+  std::string out = value->string_value();
+  for (const std::string& name : names) {
+    const google::protobuf::Value* replacement = lookup(name);
+    if (replacement == nullptr) return absl::InvalidArgumentError(unknown(name));
+    const std::string token = "${" + kind + "." + name + "}";
+    if (out == token) {
+      *value = *replacement;  // a whole value: the value itself
+      return absl::OkStatus();
+    }
+    std::string part;
+    if (replacement->has_string_value()) {
+      part = replacement->string_value();
+    } else if (replacement->has_number_value()) {
+      part = params::numberText(replacement->number_value());
+    } else if (replacement->has_bool_value()) {
+      part = replacement->bool_value() ? "true" : "false";
+    } else {
+      return absl::InvalidArgumentError(token +
+                                        " is a list or an object; it can only stand alone in a "
+                                        "value, not inside a text");
+    }
+    for (size_t at = out.find(token); at != std::string::npos;
+         at = out.find(token, at + part.size())) {
+      out.replace(at, token.size(), part);
+    }
+  }
+  if (!names.empty()) value->set_string_value(out);
+  return absl::OkStatus();
 }
 
 std::string causeName(v1::TerminationCause cause) {

@@ -171,7 +171,6 @@ struct MissionProblems {
   /// A problem the parser or a lookup returned as a status ("<file>:<line>:
   /// ..." and its first field violation).
   void addStatus(const absl::Status& status, const std::string& file);
-  bool empty() const { return list.empty() && left_out == 0; }
   /// OK, or INVALID_ARGUMENT MISSION_INVALID: the message lists each
   /// problem, one a line (then how many more); each is a field violation.
   absl::Status status() const;
@@ -187,6 +186,22 @@ struct MissionProblems {
 MissionProblems checkMissionProblems(const MissionSpec& mission, const BehaviorLookup& lookup);
 /// checkMissionProblems as a status.
 absl::Status checkMission(const MissionSpec& mission, const BehaviorLookup& lookup);
+
+/// The names in every ${<kind>.<name>} of `text` ("param", "each").
+std::vector<std::string> tokenNames(const std::string& text, const std::string& kind);
+/// Runs `check` on every string in `value` (lists and objects walked) until
+/// one fails.
+absl::Status forEachString(const google::protobuf::Value& value,
+                           const std::function<absl::Status(const std::string&)>& check);
+/// Replaces each ${<kind>.<name>} in the strings of `value` by lookup(name):
+/// a whole string by the value itself, inside a text by its text (a list or
+/// an object there is INVALID_ARGUMENT). A name lookup() does not know is
+/// INVALID_ARGUMENT with unknown(name). Sub-missions' ${param.x} when parsed,
+/// loops' ${each.x} when a step starts.
+absl::Status substituteTokens(
+    google::protobuf::Value* value, const std::string& kind,
+    const std::function<const google::protobuf::Value*(const std::string&)>& lookup,
+    const std::function<std::string(const std::string&)>& unknown);
 
 /// "GOAL_ACHIEVED", ... for a TerminationCause.
 std::string causeName(v1::TerminationCause cause);

@@ -3,12 +3,10 @@
 #include <google/protobuf/util/message_differencer.h>
 #include <google/protobuf/util/time_util.h>
 
-#include <functional>
 #include <sstream>
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
-#include "behaviorlib/parameters.h"
 
 namespace behaviorlib::coordinator {
 namespace {
@@ -832,48 +830,18 @@ std::optional<std::string> MissionRunner::runLoop(const MissionStep& step, const
 absl::StatusOr<google::protobuf::Struct> MissionRunner::withItems(
     const google::protobuf::Struct& parameters) {
   if (items_.empty()) return parameters;
-  std::function<absl::Status(google::protobuf::Value*)> replace =
-      [&](google::protobuf::Value* value) -> absl::Status {
-    if (value->has_list_value()) {
-      for (auto& item : *value->mutable_list_value()->mutable_values()) {
-        if (auto s = replace(&item); !s.ok()) return s;
-      }
-    } else if (value->has_struct_value()) {
-      for (auto& [key, field] : *value->mutable_struct_value()->mutable_fields()) {
-        if (auto s = replace(&field); !s.ok()) return s;
-      }
-    } else if (value->has_string_value() &&
-               value->string_value().find("${each.") != std::string::npos) {
-      std::string text = value->string_value();
-      for (auto it = items_.rbegin(); it != items_.rend(); ++it) {
-        const std::string token = "${each." + it->first + "}";
-        if (text == token) {
-          *value = it->second;  // a whole value: the item itself
-          return absl::OkStatus();
-        }
-        if (text.find(token) == std::string::npos) continue;
-        std::string part;
-        if (it->second.has_string_value()) {
-          part = it->second.string_value();
-        } else if (it->second.has_number_value()) {
-          part = params::numberText(it->second.number_value());
-        } else {
-          return absl::InvalidArgumentError(token +
-                                            " is a list or an object; it can only stand "
-                                            "alone in a value, not inside a text");
-        }
-        for (size_t at = text.find(token); at != std::string::npos;
-             at = text.find(token, at + part.size())) {
-          text.replace(at, token.size(), part);
-        }
-      }
-      value->set_string_value(text);
-    }
-    return absl::OkStatus();
-  };
   google::protobuf::Value whole;
   *whole.mutable_struct_value() = parameters;
-  if (auto s = replace(&whole); !s.ok()) return s;
+  const absl::Status s = substituteTokens(
+      &whole, "each",
+      [this](const std::string& name) -> const google::protobuf::Value* {
+        for (auto it = items_.rbegin(); it != items_.rend(); ++it) {  // the innermost loop's first
+          if (it->first == name) return &it->second;
+        }
+        return nullptr;
+      },
+      [](const std::string& name) { return "${each." + name + "} is no loop's item here"; });
+  if (!s.ok()) return s;
   return whole.struct_value();
 }
 

@@ -70,23 +70,31 @@ void printListing(const CtlOptions& c, const Response& response, MakeTable make_
   }
 }
 
-// One line per change of a mission's status, on stderr (the last status is
-// printed as JSON on stdout by the caller).
-void printProgress(const v1::MissionStatus& status, int* printed_steps) {
+// One line per change of a mission's step records, on stderr (the last
+// status is printed as JSON on stdout by the caller). `seen` holds each
+// record's state and cause as last printed: a fleet mission's branches change
+// earlier records too.
+void printProgress(const v1::MissionStatus& status, std::vector<std::string>* seen) {
   const int n = status.steps_size();
-  for (int i = std::max(0, *printed_steps - 1); i < n; ++i) {
+  seen->resize(std::max<size_t>(seen->size(), static_cast<size_t>(n)));
+  for (int i = 0; i < n; ++i) {
     const auto& step = status.steps(i);
     std::string cause;
     if (step.cause() != v1::TERMINATION_CAUSE_UNSPECIFIED) {
       cause = v1::TerminationCause_Name(step.cause());
     }
-    const std::string what = step.call().empty() ? step.behavior() : "call " + step.call();
+    const std::string state = v1::MissionStepState_Name(step.state());
+    if ((*seen)[i] == state + cause) continue;
+    (*seen)[i] = state + cause;
+    std::string what = step.behavior();
+    if (!step.call().empty()) what = "call " + step.call();
+    if (!step.parallel().empty()) what = "parallel, " + step.parallel();
+    if (!step.wait_for().empty()) what = "wait for " + step.wait_for();
+    if (status.robot_ids_size() > 1) what += " on " + step.robot_id();
     std::fprintf(stderr, "mission %s: %-16s %-36s attempt %d  %s%s%s\n",
-                 status.mission_id().c_str(), step.name().c_str(), what.c_str(),
-                 step.attempt(), v1::MissionStepState_Name(step.state()).c_str(),
-                 cause.empty() ? "" : " ", cause.c_str());
+                 status.mission_id().c_str(), step.name().c_str(), what.c_str(), step.attempt(),
+                 state.c_str(), cause.empty() ? "" : " ", cause.c_str());
   }
-  *printed_steps = n;
   if (status.has_end_time() || status.state() == v1::MISSION_STATE_SUCCEEDED) {
     std::fprintf(stderr, "mission %s: %s%s%s\n", status.mission_id().c_str(),
                  v1::MissionState_Name(status.state()).c_str(),
@@ -102,7 +110,7 @@ int followMission(const CtlOptions& c, v1::Coordinator::Stub& stub, const std::s
   auto reader = stub.WatchMission(&context, request);
   v1::WatchMissionResponse message;
   v1::MissionStatus last;
-  int printed = 0;
+  std::vector<std::string> printed;
   while (reader->Read(&message)) {
     last = message.status();
     printProgress(last, &printed);

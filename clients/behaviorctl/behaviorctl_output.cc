@@ -275,7 +275,10 @@ Table missionsTable(const v1::ListMissionsResponse& response, bool wide,
     }
     std::string state = shortName(v1::MissionState_Name(m.state()), "MISSION_STATE_");
     if (m.in_safety_steps()) state += " (safety steps)";
-    std::vector<std::string> row = {m.mission_id(), m.name(), m.robot_id(),
+    // A fleet mission's robots, its own first.
+    const std::string robots =
+        m.robot_ids_size() > 1 ? absl::StrJoin(m.robot_ids(), ",") : m.robot_id();
+    std::vector<std::string> row = {m.mission_id(), m.name(), robots,
                                     state,          step,     age(m.start_time(), now)};
     if (wide) {
       row.push_back(m.file());

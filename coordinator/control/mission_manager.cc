@@ -32,14 +32,32 @@ std::string newMissionId(const std::string& name) {
   return absl::StrCat(name.empty() ? "mission" : name, "-", suffix);
 }
 
-void collectBehaviors(const std::vector<MissionStep>& steps, std::set<std::string>* out) {
+// The behaviors of `steps` by robot (a step that names none: `robot`),
+// calls', loops' and branches' steps and fallbacks included.
+using RobotBehaviors = std::map<std::string, std::set<std::string>>;
+void collectBehaviors(const std::vector<MissionStep>& steps, const std::string& robot,
+                      RobotBehaviors* out) {
   for (const auto& step : steps) {
-    if (!step.behavior.empty()) out->insert(step.behavior);
+    const std::string& on = step.robot.empty() ? robot : step.robot;
+    if (!step.behavior.empty()) (*out)[on].insert(step.behavior);
+    collectBehaviors(step.body, robot, out);
+    if (step.parallel) {
+      for (const auto& branch : step.parallel->branches) collectBehaviors(branch.steps, robot, out);
+    }
     for (const auto& [cause, action] : step.on) {
-      collectBehaviors(action.fallback, out);
-      for (auto then = action.then; then; then = then->then) collectBehaviors(then->fallback, out);
+      for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
+        collectBehaviors(a->fallback, robot, out);
+      }
     }
   }
+}
+
+// Whether the mission commands `robot` (its robot, or one of a fleet
+// mission's; a status journaled before robot_ids has only robot_id).
+bool commands(const v1::MissionStatus& status, const std::string& robot) {
+  if (status.robot_id() == robot) return true;
+  return std::find(status.robot_ids().begin(), status.robot_ids().end(), robot) !=
+         status.robot_ids().end();
 }
 
 absl::Status unknownMission(const std::string& mission_id) {
@@ -53,11 +71,11 @@ absl::Status shuttingDown() {
                             v1::SHUTTING_DOWN);
 }
 
-std::set<std::string> behaviorsOf(const MissionSpec& spec) {
-  std::set<std::string> names;
-  collectBehaviors(spec.recurrent, &names);
-  collectBehaviors(spec.safety, &names);
-  collectBehaviors(spec.steps, &names);
+RobotBehaviors behaviorsOf(const MissionSpec& spec, const std::string& robot_id) {
+  RobotBehaviors names;
+  for (const auto* list : {&spec.recurrent, &spec.safety, &spec.steps}) {
+    collectBehaviors(*list, robot_id, &names);
+  }
   return names;
 }
 
@@ -193,12 +211,15 @@ void MissionManager::resumeRestored() {
 
 bool MissionManager::behaviorsRoutable(const MissionSpec& spec, const std::string& robot_id,
                                        std::string* missing) const {
-  for (const auto& behavior : behaviorsOf(spec)) {
-    Registry::Route route;
-    if (!registry_.route(robot_id, behavior, &route).ok()) {
-      *missing = behavior;
-      return false;
+  for (const auto& [robot, behaviors] : behaviorsOf(spec, robot_id)) {
+    for (const auto& behavior : behaviors) {
+      Registry::Route route;
+      if (!registry_.route(robot, behavior, &route).ok()) {
+        *missing = absl::StrCat(behavior, " on robot '", robot, "'");
+        return false;
+      }
     }
+    if (!systemsCaughtUp(registry_, behaviors, robot, missing)) return false;
   }
   return true;
 }
@@ -235,10 +256,7 @@ void MissionManager::resumeOne(const std::string& mission_id) {
   const auto deadline = std::chrono::steady_clock::now() + options_.resume_wait;
   std::string missing;
   for (;;) {
-    if (behaviorsRoutable(*spec, status.robot_id(), &missing) &&
-        systemsCaughtUp(registry_, behaviorsOf(*spec), status.robot_id(), &missing)) {
-      break;
-    }
+    if (behaviorsRoutable(*spec, status.robot_id(), &missing)) break;
     {
       absl::MutexLock lock(&mutex_);
       mutex_.AwaitWithTimeout(absl::Condition(&stopped_),
@@ -246,9 +264,8 @@ void MissionManager::resumeOne(const std::string& mission_id) {
       if (stopped_) return;
     }
     if (std::chrono::steady_clock::now() > deadline) {
-      fail(absl::StrCat("cannot resume after a coordinator restart: ", missing, " on robot '",
-                        status.robot_id(), "' was not served again within ",
-                        options_.resume_wait.count(), " ms"));
+      fail(absl::StrCat("cannot resume after a coordinator restart: ", missing,
+                        " was not served again within ", options_.resume_wait.count(), " ms"));
       return;
     }
   }
@@ -258,9 +275,9 @@ void MissionManager::resumeOne(const std::string& mission_id) {
                v1::MissionState_Name(status.state()).c_str(), status.robot_id().c_str());
   Entry& entry = missions_.at(mission_id);
   entry.geofence = spec->geofence;
-  entry.runner =
-      std::make_shared<MissionRunner>(std::move(*spec), status, fleet_, beliefs_,
-                                      [this](const v1::MissionStatus& s) { onChange(s); });
+  entry.runner = std::make_shared<MissionRunner>(
+      std::move(*spec), status, fleet_, beliefs_,
+      [this](const v1::MissionStatus& s) { onChange(s); }, options_.clock);
   countLocked();
   entry.runner->start();
 }
@@ -296,34 +313,39 @@ void MissionManager::onChange(const v1::MissionStatus& status) {
 
 MissionProblems MissionManager::problemsAgainstRegistry(const MissionSpec& spec,
                                                         const std::string& robot_id,
-                                                        bool* registered) const {
-  v1::ListFleetBehaviorsResponse list;
-  registry_.listBehaviors(robot_id, "", &list);
-  std::map<std::string, v1::BehaviorDescription> hosted;
-  for (const auto& b : list.behaviors()) hosted[b.description().name()] = b.description();
-  *registered = !hosted.empty();
-  if (hosted.empty()) {
-    MissionProblems problems;
-    problems.add(spec.file, spec.robot_line, "robot",
-                 absl::StrCat("robot '", robot_id,
-                              "' has no registered behavior system: start its systems first"));
-    return problems;
+                                                        std::string* unregistered) const {
+  std::map<std::string, std::map<std::string, v1::BehaviorDescription>> hosted;
+  MissionProblems problems;
+  for (const std::string& robot : missionRobots(spec, robot_id)) {
+    v1::ListFleetBehaviorsResponse list;
+    registry_.listBehaviors(robot, "", &list);
+    auto& of_robot = hosted[robot];
+    for (const auto& b : list.behaviors()) of_robot[b.description().name()] = b.description();
+    if (of_robot.empty()) {
+      if (unregistered->empty()) *unregistered = robot;
+      problems.add(spec.file, robot == robot_id ? spec.robot_line : 0, "robot",
+                   absl::StrCat("robot '", robot,
+                                "' has no registered behavior system: start its systems first"));
+    }
   }
-  return checkMissionProblems(spec, [&](const std::string& behavior) {
-    auto it = hosted.find(behavior);
-    return it == hosted.end() ? nullptr : &it->second;
+  if (!unregistered->empty()) return problems;
+  return checkMissionProblems(spec, [&](const std::string& robot, const std::string& behavior) {
+    const auto& of_robot = hosted[robot.empty() ? robot_id : robot];
+    auto it = of_robot.find(behavior);
+    return it == of_robot.end() ? nullptr : &it->second;
   });
 }
 
 absl::Status MissionManager::checkAgainstRegistry(const MissionSpec& spec,
                                                   const std::string& robot_id) const {
-  bool registered = false;
-  MissionProblems problems = problemsAgainstRegistry(spec, robot_id, &registered);
-  if (!registered) {
+  std::string unregistered;
+  MissionProblems problems = problemsAgainstRegistry(spec, robot_id, &unregistered);
+  if (!unregistered.empty()) {
     return errors::withReason(
-        absl::FailedPreconditionError(absl::StrCat(
-            "robot '", robot_id, "' has no registered behavior system: start its systems first")),
-        v1::UNKNOWN_ROBOT, {{"robot", robot_id}});
+        absl::FailedPreconditionError(absl::StrCat("robot '", unregistered,
+                                                   "' has no registered behavior system: start "
+                                                   "its systems first")),
+        v1::UNKNOWN_ROBOT, {{"robot", unregistered}});
   }
   return problems.status();
 }
@@ -381,14 +403,14 @@ absl::StatusOr<v1::CheckMissionResponse> MissionManager::check(
     problems.addStatus(spec.status(), source->file);
   } else {
     response.set_name(spec->name);
-    bool registered = false;
+    std::string unregistered;
     if (robot_id.empty()) {
       problems.add(source->file, 0, "robot",
                    "no robot: give `robot:` in the mission file or robot_id in the request");
     } else {
-      problems = problemsAgainstRegistry(*spec, robot_id, &registered);
+      problems = problemsAgainstRegistry(*spec, robot_id, &unregistered);
+      if (unregistered.empty()) planSteps(*spec, robot_id, &response);
     }
-    if (registered) planSteps(*spec, robot_id, &response);
   }
   for (const MissionProblem& p : problems.list) {
     v1::MissionProblem* out = response.add_problems();
@@ -404,16 +426,29 @@ absl::StatusOr<v1::CheckMissionResponse> MissionManager::check(
 void MissionManager::planSteps(const MissionSpec& spec, const std::string& robot_id,
                                v1::CheckMissionResponse* response) const {
   const Catalog* catalog = fleet_.catalog();
-  const PlanRequest view = fleet_.planningView(robot_id);
+  // Each robot's view, and what is active on each robot as the plans go.
+  std::map<std::string, PlanRequest> views;
+  using Active = std::map<std::string, std::set<std::string>>;
+  auto view_of = [&](const std::string& robot) -> const PlanRequest& {
+    auto it = views.find(robot);
+    if (it == views.end()) it = views.emplace(robot, fleet_.planningView(robot)).first;
+    return it->second;
+  };
+  auto active_on = [&](Active* active, const std::string& robot) -> std::set<std::string>& {
+    auto it = active->find(robot);
+    if (it == active->end()) it = active->emplace(robot, view_of(robot).active).first;
+    return it->second;
+  };
   // Plans `steps` one after another from `active`, which receives what they
-  // leave active (a step's target ends with its step unless `stays`).
-  std::function<void(const std::vector<MissionStep>&, const std::string&, bool,
-                     std::set<std::string>*)>
+  // leave active (a step's target ends with its step unless `stays`); a
+  // parallel step's branches are planned one after the other.
+  std::function<void(const std::vector<MissionStep>&, const std::string&, bool, Active*)>
       plan_list = [&](const std::vector<MissionStep>& steps, const std::string& prefix, bool stays,
-                      std::set<std::string>* active) {
+                      Active* active) {
         for (size_t i = 0; i < steps.size(); ++i) {
           const MissionStep& step = steps[i];
           const std::string node = absl::StrCat(prefix, "/", i);
+          const std::string& robot = step.robot.empty() ? robot_id : step.robot;
           if (!step.behavior.empty()) {
             v1::MissionStepPlan* out = response->add_plans();
             out->set_node(node);
@@ -428,15 +463,16 @@ void MissionManager::planSteps(const MissionSpec& spec, const std::string& robot
             } else if (catalog == nullptr) {
               out->set_no_plan("the coordinator has no catalog");
             } else {
-              PlanRequest request = view;
-              request.active = *active;
+              std::set<std::string>& on_robot = active_on(active, robot);
+              PlanRequest request = view_of(robot);
+              request.active = on_robot;
               request.target = step.behavior;
               request.parameters = std::move(*parameters);
               absl::StatusOr<Plan> plan = makePlan(*catalog, request);
               if (plan.ok()) {
                 planToProto(*plan, out->mutable_plan());
-                applyToActive(*plan, active);
-                if (!stays) active->erase(step.behavior);
+                applyToActive(*plan, &on_robot);
+                if (!stays) on_robot.erase(step.behavior);
               } else {
                 out->set_no_plan(std::string(plan.status().message()));
               }
@@ -450,19 +486,25 @@ void MissionManager::planSteps(const MissionSpec& spec, const std::string& robot
           if (step.loop) {
             plan_list(step.body, node + "/attempt/1/iteration/0/steps", false, active);
           }
+          if (step.parallel) {
+            for (size_t b = 0; b < step.parallel->branches.size(); ++b) {
+              plan_list(step.parallel->branches[b].steps,
+                        absl::StrCat(node, "/attempt/1/branch/", b, "/steps"), false, active);
+            }
+          }
           // A fallback starts from what the failed step left.
           for (const auto& [cause, action] : step.on) {
             for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
               if (a->fallback.empty()) continue;
-              std::set<std::string> after = *active;
+              Active after = *active;
               plan_list(a->fallback, node + "/fallback", false, &after);
             }
           }
         }
       };
-  std::set<std::string> active = view.active;
+  Active active;
   plan_list(spec.recurrent, "recurrent", true, &active);
-  std::set<std::string> after_recurrent = active;
+  Active after_recurrent = active;
   plan_list(spec.steps, "steps", false, &active);
   plan_list(spec.safety, "safety", false, &after_recurrent);
 }
@@ -496,13 +538,15 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   finished.swap(finished_);
   countLocked();
   if (stopped_) return shuttingDown();
-  for (const auto& [id, entry] : missions_) {
-    if (entry.status.robot_id() == robot_id && !ended(entry.status)) {
-      return errors::withReason(
-          absl::FailedPreconditionError(
-              absl::StrCat("robot '", robot_id, "' runs mission '", id, "' (",
-                           v1::MissionState_Name(entry.status.state()), "): abort it first")),
-          v1::MISSION_STATE_CONFLICT, {{"robot", robot_id}, {"mission_id", id}});
+  for (const std::string& robot : missionRobots(*spec, robot_id)) {
+    for (const auto& [id, entry] : missions_) {
+      if (commands(entry.status, robot) && !ended(entry.status)) {
+        return errors::withReason(
+            absl::FailedPreconditionError(
+                absl::StrCat("robot '", robot, "' runs mission '", id, "' (",
+                             v1::MissionState_Name(entry.status.state()), "): abort it first")),
+            v1::MISSION_STATE_CONFLICT, {{"robot", robot}, {"mission_id", id}});
+      }
     }
   }
   const std::string mission_id =
@@ -512,7 +556,7 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   entry.geofence = spec->geofence;
   entry.runner = std::make_shared<MissionRunner>(
       std::move(*spec), mission_id, robot_id, text, fleet_, beliefs_,
-      [this](const v1::MissionStatus& s) { onChange(s); });
+      [this](const v1::MissionStatus& s) { onChange(s); }, options_.clock);
   entry.status = entry.runner->status();
   if (options_.metrics != nullptr)
     options_.metrics->missions_started.Add({{"robot", robot_id}}).Increment();
@@ -545,7 +589,7 @@ std::vector<v1::MissionStatus> MissionManager::list() const {
 std::optional<std::string> MissionManager::runningMissionOf(const std::string& robot_id) const {
   absl::MutexLock lock(&mutex_);
   for (const auto& [id, entry] : missions_) {
-    if (entry.status.robot_id() == robot_id && !ended(entry.status)) return id;
+    if (commands(entry.status, robot_id) && !ended(entry.status)) return id;
   }
   return std::nullopt;
 }
@@ -554,7 +598,7 @@ std::optional<std::pair<std::string, Geofence>> MissionManager::geofenceOf(
     const std::string& robot_id) const {
   absl::MutexLock lock(&mutex_);
   for (const auto& [id, entry] : missions_) {
-    if (entry.status.robot_id() == robot_id && !ended(entry.status) && entry.geofence) {
+    if (commands(entry.status, robot_id) && !ended(entry.status) && entry.geofence) {
       return std::make_pair(id, *entry.geofence);
     }
   }
@@ -602,9 +646,9 @@ absl::StatusOr<v1::MissionStatus> MissionManager::resume(const std::string& miss
 }
 
 absl::StatusOr<v1::MissionStatus> MissionManager::abort(const std::string& mission_id,
-                                                        const std::string& reason,
-                                                        bool run_safety) {
-  return control(mission_id, [&](MissionRunner& r) { return r.abort(reason, run_safety); });
+                                                        const std::string& reason, bool run_safety,
+                                                        const std::string& robot) {
+  return control(mission_id, [&](MissionRunner& r) { return r.abort(reason, run_safety, robot); });
 }
 
 absl::StatusOr<uint64_t> MissionManager::watch(const std::string& mission_id, Listener listener) {

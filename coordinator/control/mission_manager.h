@@ -60,6 +60,9 @@ struct MissionManagerOptions {
   /// The clock that end times are compared with (missions' times are wall
   /// times); a test gives its own.
   std::function<google::protobuf::Timestamp()> now;
+  /// The vehicles' clock, which the missions' waits are measured on (null:
+  /// the host's steady clock). Must outlive the manager.
+  const Clock* clock = nullptr;
   /// Where missions started and ended are counted; none if null.
   CoordinatorMetrics* metrics = nullptr;
 };
@@ -94,9 +97,12 @@ class MissionManager {
   std::vector<v1::MissionStatus> list() const;
   absl::StatusOr<v1::MissionStatus> pause(const std::string& mission_id);
   absl::StatusOr<v1::MissionStatus> resume(const std::string& mission_id);
+  /// `run_safety` false with `robot`: only that robot's safety steps are
+  /// skipped (a fleet mission's other robots still run theirs).
   absl::StatusOr<v1::MissionStatus> abort(const std::string& mission_id, const std::string& reason,
-                                          bool run_safety = true);
-  /// The id of the robot's mission that has not ended, if any.
+                                          bool run_safety = true, const std::string& robot = "");
+  /// The id of the mission that commands the robot and has not ended, if
+  /// any (a fleet mission commands several).
   std::optional<std::string> runningMissionOf(const std::string& robot_id) const;
   /// The geofence of the robot's running mission, with the mission's id.
   std::optional<std::pair<std::string, Geofence>> geofenceOf(const std::string& robot_id) const;
@@ -141,10 +147,11 @@ class MissionManager {
   /// Reads the files a mission imports from the mission directory (null
   /// without one: a mission then cannot import).
   ImportReader importReader() const;
-  /// The problems of `spec` for `robot_id` against the registry;
-  /// `registered` receives whether the robot has a registered system.
+  /// The problems of `spec` for `robot_id` (and every robot its steps
+  /// name) against the registry; `unregistered` receives the first robot
+  /// with no registered system (the steps are then not checked).
   MissionProblems problemsAgainstRegistry(const MissionSpec& spec, const std::string& robot_id,
-                                          bool* registered) const;
+                                          std::string* unregistered) const;
   absl::Status checkAgainstRegistry(const MissionSpec& spec, const std::string& robot_id) const;
   /// Each step's plan, in file order (v1::MissionStepPlan).
   void planSteps(const MissionSpec& spec, const std::string& robot_id,

@@ -107,12 +107,26 @@ class MissionParser {
     }
     if (!root["steps"]) return r_->error(root, "mission: missing 'steps'");
     if (auto s = stepList(root["steps"], "steps", &spec.steps); !s.ok()) return s;
+    // Every wait_for names a step of the mission (in any branch or call).
+    for (const auto& [name, node] : waits_) {
+      if (!names_.contains(name)) {
+        return r_->error(
+            node,
+            cat("wait_for step '", name, "': no step of the mission has that name",
+                names_.empty() ? ""
+                               : " (named: " + yaml::join({names_.begin(), names_.end()}) + ")"));
+      }
+    }
     if (spec.steps.empty()) return r_->error(root["steps"], "mission: 'steps' is empty");
     for (auto [key, out] :
          {std::pair{"recurrent", &spec.recurrent}, std::pair{"safety", &spec.safety}}) {
       if (!root[key]) continue;
       if (auto s = stepList(root[key], key, out); !s.ok()) return s;
       for (const auto& step : *out) {
+        if (step.parallel || step.wait) {
+          return stepError(step.path, cat(r_->file(), ":", step.line, ": ", key,
+                                          " step: 'parallel' and 'wait_for' are for steps only"));
+        }
         if (step.behavior.empty()) {
           return stepError(step.path + ".behavior",
                            cat(r_->file(), ":", step.line, ": ", key, " step: missing 'behavior'"));
@@ -124,6 +138,7 @@ class MissionParser {
         }
       }
     }
+    spec.robots = robots_;
     return spec;
   }
 
@@ -178,16 +193,41 @@ class MissionParser {
     step->path = r_->pathOf(node);
     const std::string what = list + " step";
     step->file = r_->file();
-    if (auto s = r_->mapping(node, what,
-                             {"name", "behavior", "call", "with", "for_each", "repeat", "steps",
-                              "parameters", "on", "if", "remember"});
+    if (auto s =
+            r_->mapping(node, what,
+                        {"name", "robot", "behavior", "call", "with", "for_each", "repeat", "steps",
+                         "parallel", "wait_for", "parameters", "on", "if", "remember"});
         !s.ok()) {
       return s;
     }
     if (node["name"]) {
       if (auto s = r_->text(node["name"], what + " name", &step->name); !s.ok()) return s;
+      names_.insert(step->name);
     }
     const std::string label = step->name.empty() ? what : what + " '" + step->name + "'";
+    step->robot = robot_;
+    if (node["robot"]) {
+      if (auto s = robot(node["robot"], label, &step->robot); !s.ok()) return s;
+    }
+    // What the step contains runs on its robot.
+    const std::string saved_robot = robot_;
+    robot_ = step->robot;
+    absl::Status contents = stepContents(node, label, step);
+    robot_ = saved_robot;
+    return contents;
+  }
+
+  // `robot: name` of a step or a branch.
+  absl::Status robot(const YAML::Node& node, const std::string& label, std::string* out) {
+    if (auto s = r_->text(node, label + " robot", out); !s.ok()) return s;
+    if (out->empty() || out->size() > 128) {
+      return r_->error(node, label + " robot: a robot id of 1 to 128 characters");
+    }
+    if (std::find(robots_.begin(), robots_.end(), *out) == robots_.end()) robots_.push_back(*out);
+    return absl::OkStatus();
+  }
+
+  absl::Status stepContents(const YAML::Node& node, const std::string& label, MissionStep* step) {
     if (node["behavior"]) {
       if (auto s = r_->text(node["behavior"], label + " behavior", &step->behavior); !s.ok())
         return s;
@@ -226,11 +266,27 @@ class MissionParser {
     } else if (node["steps"]) {
       return r_->error(node["steps"], label + ": 'steps' goes with 'for_each' or 'repeat'");
     }
-    if (step->behavior.empty() && step->call.empty() && !step->loop &&
-        step->remember.fields().empty()) {
+    for (const char* key : {"parallel", "wait_for"}) {
+      if (!node[key]) continue;
+      for (const char* other : {"behavior", "call", "for_each", "repeat", "parameters", "remember",
+                                key == std::string("parallel") ? "wait_for" : "parallel"}) {
+        if (node[other]) {
+          return r_->error(node[other], cat(label, ": '", key, "' goes with no '", other, "'"));
+        }
+      }
+    }
+    if (node["parallel"]) {
+      if (auto s = parallel(node["parallel"], label, step); !s.ok()) return s;
+    }
+    if (node["wait_for"]) {
+      if (auto s = waitFor(node["wait_for"], label, step); !s.ok()) return s;
+    }
+    const bool runs = !step->behavior.empty() || !step->call.empty() || step->loop ||
+                      step->parallel || step->wait;
+    if (!runs && step->remember.fields().empty()) {
       return r_->error(node, label +
-                                 ": needs a 'behavior', a 'call' or a loop (or only "
-                                 "'remember')");
+                                 ": needs a 'behavior', a 'call', a loop, 'parallel' or "
+                                 "'wait_for' (or only 'remember')");
     }
     if (const YAML::Node condition = node["if"]) {
       BeliefCondition c;
@@ -238,8 +294,10 @@ class MissionParser {
       step->condition = c;
     }
     if (const YAML::Node on = node["on"]) {
-      if (step->behavior.empty() && step->call.empty() && !step->loop) {
-        return r_->error(on, label + ": 'on' needs a 'behavior', a 'call' or a loop");
+      if (!runs) {
+        return r_->error(on, label +
+                                 ": 'on' needs a 'behavior', a 'call', a loop, 'parallel' or "
+                                 "'wait_for'");
       }
       if (auto s = r_->mapping(on, label + " on", causeKeys()); !s.ok()) return s;
       for (const auto& entry : on) {
@@ -253,9 +311,11 @@ class MissionParser {
   }
 
   // {belief: key, exists: true|false} or {belief: key, equals: value}.
-  absl::Status condition(const YAML::Node& condition, const std::string& what,
-                         BeliefCondition* out) {
-    if (auto s = r_->mapping(condition, what, {"belief", "exists", "equals"}); !s.ok()) return s;
+  absl::Status condition(const YAML::Node& condition, const std::string& what, BeliefCondition* out,
+                         const std::vector<std::string>& more_keys = {}) {
+    std::vector<std::string> keys = {"belief", "exists", "equals"};
+    keys.insert(keys.end(), more_keys.begin(), more_keys.end());
+    if (auto s = r_->mapping(condition, what, keys); !s.ok()) return s;
     BeliefCondition c;
     c.line = lineOf(condition);
     if (!condition["belief"]) return r_->error(condition, what + ": missing 'belief' (the key)");
@@ -688,6 +748,89 @@ class MissionParser {
     return parsed;
   }
 
+  // parallel: {end: all|any, branches: [...]}: each branch is {name, robot,
+  // steps: [...]}, or a single step.
+  absl::Status parallel(const YAML::Node& node, const std::string& label, MissionStep* step) {
+    if (auto s = r_->mapping(node, label + " parallel", {"end", "branches"}); !s.ok()) return s;
+    MissionParallel parallel;
+    if (node["end"]) {
+      std::string end;
+      if (auto s = r_->text(node["end"], label + " parallel end", &end); !s.ok()) return s;
+      if (end != "all" && end != "any") {
+        return r_->error(node["end"], cat(label, " parallel end: '", end, "' (all or any)"));
+      }
+      parallel.any = end == "any";
+    }
+    const YAML::Node branches = node["branches"];
+    if (!branches || !branches.IsSequence() || branches.size() < 2 ||
+        branches.size() > kMaxBranches) {
+      return r_->error(branches ? branches : node, cat(label, " parallel branches: a list of 2 to ",
+                                                       kMaxBranches, " branches"));
+    }
+    // Each branch runs on a thread of its own while its step runs: bounded.
+    branch_count_ += branches.size();
+    if (branch_count_ > kMaxBranchesInMission) {
+      return r_->error(branches, cat(label, " parallel: more than ", kMaxBranchesInMission,
+                                     " branches in the mission (sub-missions' calls included)"));
+    }
+    for (size_t i = 0; i < branches.size(); ++i) {
+      const YAML::Node b = branches[i];
+      const std::string what = cat(label, " branch ", i);
+      MissionBranch branch;
+      branch.line = lineOf(b);
+      if (b.IsMap() && b["steps"] && !b["for_each"] && !b["repeat"]) {
+        if (auto s = r_->mapping(b, what, {"name", "robot", "steps"}); !s.ok()) return s;
+        if (b["name"]) {
+          if (auto s = r_->text(b["name"], what + " name", &branch.name); !s.ok()) return s;
+        }
+        const std::string saved_robot = robot_;
+        absl::Status parsed = absl::OkStatus();
+        if (b["robot"]) parsed = robot(b["robot"], what, &robot_);
+        if (parsed.ok()) parsed = stepList(b["steps"], what, &branch.steps);
+        robot_ = saved_robot;
+        if (!parsed.ok()) return parsed;
+        if (branch.steps.empty()) return r_->error(b["steps"], what + " steps: empty");
+      } else {
+        MissionStep one;
+        if (auto s = parseStep(b, what, &one); !s.ok()) return s;
+        branch.name = one.name;
+        branch.steps.push_back(std::move(one));
+      }
+      parallel.branches.push_back(std::move(branch));
+    }
+    step->parallel = std::move(parallel);
+    return absl::OkStatus();
+  }
+
+  // wait_for: {step: name, timeout_s: T} or {belief: key, exists|equals,
+  // timeout_s: T}.
+  absl::Status waitFor(const YAML::Node& node, const std::string& label, MissionStep* step) {
+    const std::string what = label + " wait_for";
+    if (!node.IsMap()) return r_->error(node, what + ": expected a mapping");
+    MissionWait wait;
+    if (node["step"]) {
+      if (auto s = r_->mapping(node, what, {"step", "timeout_s"}); !s.ok()) return s;
+      if (auto s = r_->text(node["step"], what + " step", &wait.step); !s.ok()) return s;
+      waits_.emplace_back(wait.step, node["step"]);
+    } else if (node["belief"]) {
+      BeliefCondition c;
+      if (auto s = condition(node, what, &c, {"timeout_s"}); !s.ok()) return s;
+      wait.belief = std::move(c);
+    } else {
+      return r_->error(node, what + ": needs 'step' (a step's name) or 'belief' (a condition)");
+    }
+    const YAML::Node timeout = node["timeout_s"];
+    if (!timeout || !timeout.IsScalar() ||
+        !YAML::convert<double>::decode(timeout, wait.timeout_s) ||
+        !(wait.timeout_s > 0 && wait.timeout_s <= kMaxWaitS)) {
+      return r_->error(timeout ? timeout : node,
+                       cat(what, ": needs 'timeout_s', a number of seconds in (0, ", kMaxWaitS,
+                           "] (every wait has a bound, so that a mission always ends)"));
+    }
+    step->wait = std::move(wait);
+    return absl::OkStatus();
+  }
+
   // ${param.<name>} in the strings of `value` (read from `node`) replaced by
   // the current call's parameters: a whole string by the value itself, a
   // part by its text.
@@ -720,6 +863,9 @@ class MissionParser {
   static constexpr size_t kMaxImports = 16;
   static constexpr int kMaxLoopItems = 1000;
   static constexpr size_t kMaxCallDepth = 8;
+  static constexpr size_t kMaxBranches = 16;
+  static constexpr size_t kMaxBranchesInMission = 64;
+  static constexpr double kMaxWaitS = 86400;
 
   struct Definition {
     yaml::Reader* reader = nullptr;
@@ -736,7 +882,12 @@ class MissionParser {
   std::map<std::string, Definition> defs_;
   std::vector<std::string> calling_;  // the sub-missions whose calls are being parsed
   std::map<std::string, google::protobuf::Value> params_;  // of the innermost call
-  std::vector<std::string> each_;  // the `as` names of the for_each loops being parsed
+  std::vector<std::string> each_;    // the `as` names of the for_each loops being parsed
+  std::string robot_;                // the robot of the step or branch being parsed
+  size_t branch_count_ = 0;          // parallel branches so far
+  std::vector<std::string> robots_;  // every robot named, in order
+  std::set<std::string> names_;      // every step's name
+  std::vector<std::pair<std::string, YAML::Node>> waits_;  // wait_for step: name, where
 };
 
 bool hasBinding(const google::protobuf::Value& value) {
@@ -839,15 +990,21 @@ void checkSteps(const MissionSpec& mission, const std::vector<MissionStep>& step
                 const BehaviorLookup& lookup, MissionProblems* problems) {
   for (const auto& step : steps) {
     if (!step.behavior.empty()) {
-      if (const v1::BehaviorDescription* d = lookup(step.behavior)) {
+      if (const v1::BehaviorDescription* d = lookup(step.robot, step.behavior)) {
         checkParameters(mission, step, *d, problems);
       } else {
+        const std::string& robot = step.robot.empty() ? mission.robot_id : step.robot;
         problems->add(fileOf(mission, step), step.line, step.path + ".behavior",
                       cat("behavior ", step.behavior, " is not hosted by any registered system",
-                          mission.robot_id.empty() ? "" : " of robot '" + mission.robot_id + "'"));
+                          robot.empty() ? "" : " of robot '" + robot + "'"));
       }
     }
     checkSteps(mission, step.body, lookup, problems);
+    if (step.parallel) {
+      for (const MissionBranch& branch : step.parallel->branches) {
+        checkSteps(mission, branch.steps, lookup, problems);
+      }
+    }
     for (const auto& [cause, action] : step.on) {
       for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
         checkSteps(mission, a->fallback, lookup, problems);
@@ -872,6 +1029,14 @@ absl::StatusOr<MissionSpec> parseMission(const std::string& text, const std::str
   if (!guarded.ok()) return errors::withReason(guarded, v1::MISSION_INVALID);
   if (!mission.ok()) return errors::withReason(mission.status(), v1::MISSION_INVALID);
   return mission;
+}
+
+std::vector<std::string> missionRobots(const MissionSpec& mission, const std::string& robot_id) {
+  std::vector<std::string> robots = {robot_id};
+  for (const std::string& robot : mission.robots) {
+    if (robot != robot_id) robots.push_back(robot);
+  }
+  return robots;
 }
 
 absl::StatusOr<MissionSpec> loadMission(const std::string& path) {

@@ -88,8 +88,38 @@ struct MissionLoop {
   std::optional<BeliefCondition> until;
 };
 
+/// One branch of a parallel step: a sequence of steps (a single step, a
+/// call or a loop is a sequence of one).
+struct MissionBranch {
+  std::string name;
+  std::vector<MissionStep> steps;
+  int line = 0;
+};
+
+/// Branches that run at once. `all`: it ends GOAL_ACHIEVED when every branch
+/// did, or with the cause of the first branch that failed (the others are
+/// interrupted). `any`: it ends GOAL_ACHIEVED with the first branch that
+/// did (the others are interrupted), or, when every branch failed, with the
+/// cause of the last one.
+struct MissionParallel {
+  bool any = false;
+  std::vector<MissionBranch> branches;
+};
+
+/// A synchronisation point: a step that waits until another step (by
+/// name, in any branch, on any robot) ended GOAL_ACHIEVED, or until a belief
+/// condition holds; TIME_OUT after `timeout_s` of the vehicles' time.
+struct MissionWait {
+  std::string step;
+  std::optional<BeliefCondition> belief;
+  double timeout_s = 0;
+};
+
 struct MissionStep {
-  std::string name;      ///< empty: "step <n>"
+  std::string name;  ///< empty: "step <n>"
+  /// The robot it commands: its own `robot:`, else its branch's or
+  /// enclosing step's; empty: the mission's robot.
+  std::string robot;
   std::string behavior;  ///< empty: a call, or a step that only remembers
   /// A call of a sub-mission: its name, the `with` given, and its steps
   /// parsed with the call's parameters (${param.x} replaced).
@@ -98,6 +128,10 @@ struct MissionStep {
   std::vector<MissionStep> body;
   /// A loop over `body` (a step with a loop has no behavior and no call).
   std::optional<MissionLoop> loop;
+  /// Branches that run at once (a step with them has nothing else to run).
+  std::optional<MissionParallel> parallel;
+  /// A wait (a step with it has nothing else to run).
+  std::optional<MissionWait> wait;
   std::string file;  ///< the file the step is in (an imported one for a sub-mission's)
   google::protobuf::Struct parameters;
   std::map<std::string, int> parameter_lines;
@@ -131,6 +165,10 @@ struct MissionSpec {
   std::vector<MissionStep> recurrent;
   std::vector<MissionStep> safety;
   std::vector<MissionStep> steps;
+  /// Every robot its steps name (`robot:` of a step or a branch, recurrent
+  /// and safety steps included), in file order; the mission's robot is not
+  /// among them unless a step names it.
+  std::vector<std::string> robots;
   /// The sub-missions it defines or imports, by name.
   std::vector<std::string> submissions;
   /// The imported files' texts, by the path the mission names them with
@@ -138,6 +176,10 @@ struct MissionSpec {
   std::map<std::string, std::string> imports;
   int line = 1;
 };
+
+/// The robots a mission commands when started for `robot_id` (the file's
+/// or the request's): `robot_id` first, then the others its steps name.
+std::vector<std::string> missionRobots(const MissionSpec& mission, const std::string& robot_id);
 
 /// Reads a file that a mission imports (confined to the mission directory).
 using ImportReader = std::function<absl::StatusOr<std::string>(const std::string& path)>;
@@ -148,9 +190,10 @@ absl::StatusOr<MissionSpec> parseMission(const std::string& yaml, const std::str
 /// Reads and parses a mission file.
 absl::StatusOr<MissionSpec> loadMission(const std::string& path);
 
-/// The registered description of `behavior` on the mission's robot, or
-/// nullptr when no system of the robot hosts it.
-using BehaviorLookup = std::function<const v1::BehaviorDescription*(const std::string& behavior)>;
+/// The registered description of `behavior` on `robot` (empty: the
+/// mission's robot), or nullptr when no system of the robot hosts it.
+using BehaviorLookup = std::function<const v1::BehaviorDescription*(const std::string& robot,
+                                                                    const std::string& behavior)>;
 
 /// One problem a check found.
 struct MissionProblem {

@@ -7,6 +7,7 @@
 
 #include "absl/strings/numbers.h"
 #include "absl/strings/str_split.h"
+#include "behaviorlib/parameters.h"
 
 namespace behaviorlib::coordinator {
 namespace {
@@ -47,12 +48,26 @@ std::string loopText(const MissionLoop& loop) {
   return "loop";
 }
 
+std::string parallelText(const MissionParallel& parallel) {
+  return std::string(parallel.any ? "any" : "all") + " of " +
+         std::to_string(parallel.branches.size()) + " branches";
+}
+
+std::string waitText(const MissionWait& wait) {
+  if (!wait.belief) return "step '" + wait.step + "' achieved";
+  return "belief '" + wait.belief->key + "' " +
+         (wait.belief->exists ? (*wait.belief->exists ? "exists" : "does not exist")
+                              : "equals the value given");
+}
+
 // A record at `path`: its node, and its v1 path where it has one (no call).
 v1::MissionStepRecord recordAt(const Position& path) {
   v1::MissionStepRecord record;
   record.set_node(nodeText(path));
   bool plain = true;
-  for (const MissionNode& n : path) plain = plain && n.kind != MissionNode::Kind::kCall;
+  for (const MissionNode& n : path) {
+    plain = plain && n.kind != MissionNode::Kind::kCall && n.kind != MissionNode::Kind::kBranch;
+  }
   if (plain) {
     for (const MissionNode& n : path) record.add_path(n.index);
   }
@@ -78,6 +93,10 @@ std::string nodeText(const Position& position) {
         break;
       case MissionNode::Kind::kIteration:
         out += "/attempt/" + std::to_string(n.call_attempt) + "/iteration/" +
+               std::to_string(n.iteration) + "/steps/" + std::to_string(n.index);
+        break;
+      case MissionNode::Kind::kBranch:
+        out += "/attempt/" + std::to_string(n.call_attempt) + "/branch/" +
                std::to_string(n.iteration) + "/steps/" + std::to_string(n.index);
         break;
     }
@@ -107,10 +126,11 @@ std::optional<Position> parseNode(const std::string& text) {
       n.kind = MissionNode::Kind::kCall;
       i += 5;
     } else if (i > 0 && parts[i] == "attempt" && i + 5 < parts.size() &&
-               parts[i + 2] == "iteration" && parts[i + 4] == "steps" &&
-               number(parts[i + 1], &n.call_attempt) && number(parts[i + 3], &n.iteration) &&
-               number(parts[i + 5], &n.index)) {
-      n.kind = MissionNode::Kind::kIteration;
+               (parts[i + 2] == "iteration" || parts[i + 2] == "branch") &&
+               parts[i + 4] == "steps" && number(parts[i + 1], &n.call_attempt) &&
+               number(parts[i + 3], &n.iteration) && number(parts[i + 5], &n.index)) {
+      n.kind =
+          parts[i + 2] == "branch" ? MissionNode::Kind::kBranch : MissionNode::Kind::kIteration;
       i += 6;
     } else {
       return std::nullopt;
@@ -123,14 +143,17 @@ std::optional<Position> parseNode(const std::string& text) {
 
 MissionRunner::MissionRunner(MissionSpec spec, std::string mission_id, std::string robot_id,
                              std::string source, MissionActions& actions, BeliefStore& beliefs,
-                             OnChange on_change)
+                             OnChange on_change, const Clock* clock)
     : spec_(std::move(spec)),
+      robot_(robot_id),
       actions_(actions),
       beliefs_(beliefs),
-      on_change_(std::move(on_change)) {
+      on_change_(std::move(on_change)),
+      clock_(clock != nullptr ? *clock : steady_clock_) {
   status_.set_mission_id(std::move(mission_id));
   status_.set_name(spec_.name);
   status_.set_robot_id(std::move(robot_id));
+  for (const std::string& robot : missionRobots(spec_, robot_)) status_.add_robot_ids(robot);
   status_.set_file(spec_.file);
   status_.set_source(std::move(source));
   status_.mutable_imports()->insert(spec_.imports.begin(), spec_.imports.end());
@@ -139,15 +162,21 @@ MissionRunner::MissionRunner(MissionSpec spec, std::string mission_id, std::stri
 }
 
 MissionRunner::MissionRunner(MissionSpec spec, const v1::MissionStatus& status,
-                             MissionActions& actions, BeliefStore& beliefs, OnChange on_change)
+                             MissionActions& actions, BeliefStore& beliefs, OnChange on_change,
+                             const Clock* clock)
     : spec_(std::move(spec)),
+      robot_(status.robot_id()),
       actions_(actions),
       beliefs_(beliefs),
       on_change_(std::move(on_change)),
-      status_(status) {
+      status_(status),
+      clock_(clock != nullptr ? *clock : steady_clock_) {
   resuming_ = true;
   resume_from_.assign(status.steps().begin(), status.steps().end());
   pause_requested_ = status.state() == v1::MISSION_STATE_PAUSED;
+  if (status_.robot_ids().empty()) {
+    for (const std::string& robot : missionRobots(spec_, robot_)) status_.add_robot_ids(robot);
+  }
 }
 
 MissionRunner::~MissionRunner() {
@@ -185,7 +214,8 @@ absl::Status MissionRunner::resume() {
   return absl::OkStatus();
 }
 
-absl::Status MissionRunner::abort(const std::string& reason, bool run_safety) {
+absl::Status MissionRunner::abort(const std::string& reason, bool run_safety,
+                                  const std::string& robot) {
   absl::MutexLock lock(&mutex_);
   if (done_ || status_.state() == v1::MISSION_STATE_FAILED ||
       status_.state() == v1::MISSION_STATE_ABORTED) {
@@ -194,7 +224,14 @@ absl::Status MissionRunner::abort(const std::string& reason, bool run_safety) {
   }
   abort_requested_ = true;
   abort_reason_ = reason.empty() ? "aborted by request" : reason;
-  if (!run_safety) skip_safety_ = true;
+  if (!run_safety) {
+    // A fleet mission's other robots still run their safety steps.
+    if (robot.empty() || status_.robot_ids_size() <= 1) {
+      skip_safety_ = true;
+    } else {
+      skip_safety_of_.push_back(robot);
+    }
+  }
   return absl::OkStatus();
 }
 
@@ -251,16 +288,54 @@ void MissionRunner::setState(v1::MissionState state, const std::string& message)
   publish();
 }
 
+int MissionRunner::findRecord(const std::string& node, int attempt) const {
+  absl::MutexLock lock(&mutex_);
+  for (int i = status_.steps_size() - 1; i >= 0; --i) {
+    if (status_.steps(i).node() == node && status_.steps(i).attempt() == attempt) return i;
+  }
+  return -1;
+}
+
+void MissionRunner::recordStopped(int index, Flow flow) {
+  if (flow != Flow::kAbortRequested && flow != Flow::kInterrupted) return;
+  updateRecord(index, [&](v1::MissionStepRecord& r) {
+    r.set_state(v1::MISSION_STEP_STATE_FINISHED);
+    r.set_cause(v1::TERMINATION_CAUSE_INTERRUPTED);
+    r.set_message(flow == Flow::kAbortRequested
+                      ? "mission aborted"
+                      : "interrupted: another branch decided the parallel step");
+  });
+}
+
+const std::string& MissionRunner::robotOf(const MissionStep& step) const {
+  return step.robot.empty() ? robot_ : step.robot;
+}
+
+bool MissionRunner::interruptedLocked(const Track& t) const {
+  for (int id : t.parallels) {
+    if (auto it = parallels_.find(id); it != parallels_.end() && it->second) return true;
+  }
+  return false;
+}
+
+bool MissionRunner::interrupted(const Track& t) const {
+  if (t.parallels.empty()) return false;
+  absl::MutexLock lock(&mutex_);
+  return interruptedLocked(t);
+}
+
 std::string MissionRunner::stepLabel(const MissionStep& step, const Position& path) const {
   std::string label = step.name.empty() ? nodeText(path) : "'" + step.name + "'";
   if (!step.behavior.empty()) label += " (" + step.behavior + ")";
   if (!step.call.empty()) label += " (call " + step.call + ")";
   if (step.loop) label += " (" + loopText(*step.loop) + ")";
+  if (step.parallel) label += " (parallel, " + parallelText(*step.parallel) + ")";
+  if (step.wait) label += " (wait for " + waitText(*step.wait) + ")";
+  if (!step.robot.empty() && step.robot != robot_) label += " on " + step.robot;
   return "step " + label;
 }
 
 void MissionRunner::run() {
-  const std::string robot = status().robot_id();
   const std::string id = status().mission_id();
   const bool safety_pending = status().in_safety_steps();
 
@@ -270,27 +345,28 @@ void MissionRunner::run() {
     const MissionStep& r = spec_.recurrent[i];
     auto params = beliefs_.resolve(r.parameters);
     absl::StatusOr<std::string> activation =
-        params.ok()
-            ? actions_.activate(robot, r.behavior, *params, id + "/recurrent/" + std::to_string(i))
-            : absl::StatusOr<std::string>(params.status());
+        params.ok() ? actions_.activate(robotOf(r), r.behavior, *params,
+                                        id + "/recurrent/" + std::to_string(i))
+                    : absl::StatusOr<std::string>(params.status());
     if (!activation.ok()) {
       if (safety_pending) continue;
-      failure_ = "recurrent behavior " + r.behavior +
-                 " was refused: " + std::string(activation.status().message());
-      runSafety();
+      runSafety("recurrent behavior " + r.behavior + (r.robot.empty() ? "" : " on " + r.robot) +
+                " was refused: " + std::string(activation.status().message()));
       return;
     }
-    recurrent_.emplace_back(r.behavior, *activation);
+    recurrent_.push_back({robotOf(r), r.behavior, *activation});
   }
 
+  Track main;
   Flow flow = Flow::kAbort;
   if (safety_pending) {
-    failure_ = status().message();
+    main.failure = status().message();
   } else {
     Position resume_path;
     if (resuming_ && !resume_from_.empty()) resume_path = positionOf(resume_from_.back());
     if (!resuming_ || resume_from_.empty()) publish();  // the first record of a new mission
-    flow = runList(spec_.steps, {}, MissionNode::Kind::kStep, 0, resume_path);
+    main.resume_from = resume_from_;
+    flow = runList(spec_.steps, {}, MissionNode::Kind::kStep, 0, resume_path, 0, main);
   }
   switch (flow) {
     case Flow::kQuit:
@@ -307,72 +383,106 @@ void MissionRunner::run() {
       publish();
       return;
     case Flow::kAbortRequested:
-      if (failure_.empty()) {
-        absl::MutexLock lock(&mutex_);
-        failure_ = abort_reason_;
-      }
-      {
-        absl::MutexLock lock(&mutex_);
-        status_.set_state(v1::MISSION_STATE_ABORTED);
-      }
-      runSafety();
+    case Flow::kInterrupted:  // no parallel step around the main sequence: not reached
+    {
+      absl::MutexLock lock(&mutex_);
+      if (main.failure.empty()) main.failure = abort_reason_;
+      status_.set_state(v1::MISSION_STATE_ABORTED);
+    }
+      runSafety(main.failure);
       return;
     case Flow::kAbort:
-      runSafety();
+      runSafety(main.failure);
       return;
   }
 }
 
-void MissionRunner::runSafety() {
-  const std::string robot = status().robot_id();
+void MissionRunner::runSafety(const std::string& failure) {
   const std::string id = status().mission_id();
-  bool skip = false;
-  // What the safety steps did (or that they were skipped), after the failure.
-  std::string notes;
+  std::vector<std::string> skipped;
+  bool skip_all = false;
   {
     absl::MutexLock lock(&mutex_);
     if (status_.state() != v1::MISSION_STATE_ABORTED) status_.set_state(v1::MISSION_STATE_FAILED);
     status_.set_in_safety_steps(true);
-    skip = skip_safety_;
-    if (skip) {
-      notes = "; safety steps skipped (the vehicle is landed by the coordinator's safety action)";
-    }
-    status_.set_message(failure_ + notes);
+    skip_all = skip_safety_;
+    skipped = skip_safety_of_;
+    status_.set_message(failure);
+  }
+  // What the safety steps did (or that they were skipped), after the failure.
+  absl::Mutex notes_mutex;
+  std::string notes;
+  if (skip_all) {
+    notes = "; safety steps skipped (the vehicle is landed by the coordinator's safety action)";
+  }
+  for (const std::string& robot : skipped) {
+    notes += "; " + robot +
+             "'s safety steps skipped (the vehicle is landed by the coordinator's safety action)";
+  }
+  if (!notes.empty()) {
+    absl::MutexLock lock(&mutex_);
+    status_.set_message(failure + notes);
   }
   publish();
-  const std::vector<MissionStep> no_steps;
-  const std::vector<MissionStep>& safety = skip ? no_steps : spec_.safety;
-  for (size_t i = 0; i < safety.size(); ++i) {
-    const MissionStep& step = safety[i];
-    auto params = beliefs_.resolve(step.parameters);
-    absl::StatusOr<std::string> activation =
-        params.ok()
-            ? actions_.activate(robot, step.behavior, *params, id + "/safety/" + std::to_string(i))
-            : absl::StatusOr<std::string>(params.status());
-    if (!activation.ok()) {
-      notes += "; safety step " + step.behavior +
-               " refused: " + std::string(activation.status().message());
-      continue;
-    }
-    for (;;) {
-      {
-        absl::MutexLock lock(&mutex_);
-        if (quit_) return;  // resumed by the next coordinator
-      }
-      auto finished = actions_.awaitFinished(robot, *activation, kPoll);
-      if (!finished) continue;
-      if (finished->cause != v1::TERMINATION_CAUSE_GOAL_ACHIEVED) {
-        notes += "; safety step " + step.behavior + " finished " + causeName(finished->cause) +
-                 ": " + finished->message;
-      }
-      break;
+  // Each robot's safety steps in order, the robots at once.
+  std::map<std::string, std::vector<size_t>> by_robot;
+  for (size_t i = 0; i < spec_.safety.size() && !skip_all; ++i) {
+    const std::string& robot = robotOf(spec_.safety[i]);
+    if (std::find(skipped.begin(), skipped.end(), robot) == skipped.end()) {
+      by_robot[robot].push_back(i);
     }
   }
+  std::atomic<bool> quit{false};
+  auto run_robot = [&](const std::string& robot, const std::vector<size_t>& steps) {
+    for (size_t i : steps) {
+      const MissionStep& step = spec_.safety[i];
+      auto params = beliefs_.resolve(step.parameters);
+      absl::StatusOr<std::string> activation =
+          params.ok() ? actions_.activate(robot, step.behavior, *params,
+                                          id + "/safety/" + std::to_string(i))
+                      : absl::StatusOr<std::string>(params.status());
+      const std::string what = "safety step " + step.behavior +
+                               (robot == robot_ && step.robot.empty() ? "" : " on " + robot);
+      if (!activation.ok()) {
+        absl::MutexLock lock(&notes_mutex);
+        notes += "; " + what + " refused: " + std::string(activation.status().message());
+        continue;
+      }
+      for (;;) {
+        {
+          absl::MutexLock lock(&mutex_);
+          if (quit_) {
+            quit = true;
+            return;  // resumed by the next coordinator
+          }
+        }
+        auto finished = actions_.awaitFinished(robot, *activation, kPoll);
+        if (!finished) continue;
+        if (finished->cause != v1::TERMINATION_CAUSE_GOAL_ACHIEVED) {
+          absl::MutexLock lock(&notes_mutex);
+          notes +=
+              "; " + what + " finished " + causeName(finished->cause) + ": " + finished->message;
+        }
+        break;
+      }
+    }
+  };
+  std::vector<std::thread> robots;
+  for (const auto& [robot, steps] : by_robot) {
+    if (robots.size() + 1 == by_robot.size()) {
+      run_robot(robot, steps);  // the last one on this thread
+    } else {
+      robots.emplace_back(run_robot, robot, steps);
+    }
+  }
+  for (auto& thread : robots) thread.join();
+  if (quit) return;
   deactivateRecurrent();
   {
     absl::MutexLock lock(&mutex_);
+    absl::MutexLock notes_lock(&notes_mutex);
     status_.set_in_safety_steps(false);
-    status_.set_message(failure_ + notes);
+    status_.set_message(failure + notes);
     *status_.mutable_end_time() = TimeUtil::GetCurrentTime();
     done_ = true;
   }
@@ -380,18 +490,16 @@ void MissionRunner::runSafety() {
 }
 
 void MissionRunner::deactivateRecurrent() {
-  const std::string robot = status().robot_id();
   for (auto it = recurrent_.rbegin(); it != recurrent_.rend(); ++it) {
-    (void)actions_.deactivate(robot, it->first);
+    (void)actions_.deactivate(it->robot, it->behavior);
   }
 }
 
 std::optional<std::string> MissionRunner::recurrentFinished() {
-  const std::string robot = status().robot_id();
-  for (const auto& [behavior, activation] : recurrent_) {
-    if (auto f = actions_.awaitFinished(robot, activation, std::chrono::milliseconds(0))) {
-      return "recurrent behavior " + behavior + " finished " + causeName(f->cause) +
-             (f->message.empty() ? "" : ": " + f->message);
+  for (const Recurrent& r : recurrent_) {
+    if (auto f = actions_.awaitFinished(r.robot, r.activation_id, std::chrono::milliseconds(0))) {
+      return "recurrent behavior " + r.behavior + (r.robot == robot_ ? "" : " on " + r.robot) +
+             " finished " + causeName(f->cause) + (f->message.empty() ? "" : ": " + f->message);
     }
   }
   return std::nullopt;
@@ -399,7 +507,8 @@ std::optional<std::string> MissionRunner::recurrentFinished() {
 
 MissionRunner::Flow MissionRunner::runList(const std::vector<MissionStep>& steps,
                                            const Position& prefix, MissionNode::Kind kind,
-                                           int call_attempt, Position resume_path, int iteration) {
+                                           int call_attempt, Position resume_path, int iteration,
+                                           Track& t) {
   size_t start = 0;
   Position tail;
   if (!resume_path.empty()) {
@@ -407,11 +516,12 @@ MissionRunner::Flow MissionRunner::runList(const std::vector<MissionStep>& steps
     tail.assign(resume_path.begin() + 1, resume_path.end());
   }
   for (size_t i = start; i < steps.size(); ++i) {
+    if (interrupted(t)) return Flow::kInterrupted;
     Position path = prefix;
     path.push_back({kind, static_cast<int>(i), call_attempt, iteration});
     const bool resumed_here = i == start && !resume_path.empty();
-    const Flow flow = runStep(steps[i], path, resumed_here ? tail : Position{});
-    if (resumed_here) resume_from_.clear();  // resumed: live from here
+    const Flow flow = runStep(steps[i], path, resumed_here ? tail : Position{}, t);
+    if (resumed_here) t.resume_from.clear();  // resumed: live from here
     if (flow != Flow::kDone) return flow;
   }
   return Flow::kDone;
@@ -424,9 +534,21 @@ bool MissionRunner::conditionHolds(const BeliefCondition& c) const {
          google::protobuf::util::MessageDifferencer::Equals(belief->value(), *c.equals);
 }
 
-void MissionRunner::rememberAll(const MissionStep& step) {
+bool MissionRunner::waitHolds(const MissionWait& wait) const {
+  if (wait.belief) return conditionHolds(*wait.belief);
+  absl::MutexLock lock(&mutex_);
+  for (const v1::MissionStepRecord& r : status_.steps()) {
+    if (r.name() == wait.step && r.state() == v1::MISSION_STEP_STATE_FINISHED &&
+        r.cause() == v1::TERMINATION_CAUSE_GOAL_ACHIEVED) {
+      return true;
+    }
+  }
+  return false;
+}
+
+void MissionRunner::rememberAll(const MissionStep& step, const Track& t) {
   if (step.remember.fields().empty()) return;
-  absl::StatusOr<google::protobuf::Struct> values = withItems(step.remember);
+  absl::StatusOr<google::protobuf::Struct> values = withItems(step.remember, t);
   if (values.ok()) values = beliefs_.resolve(*values);
   const std::string writer = "mission:" + status().mission_id();
   if (!values.ok()) return;
@@ -442,7 +564,7 @@ const MissionAction* MissionRunner::actionFor(const MissionStep& step,
   return &kAbort;
 }
 
-MissionRunner::Flow MissionRunner::waitWhilePaused() {
+MissionRunner::Flow MissionRunner::waitWhilePaused(const Track& t) {
   mutex_.Lock();
   if (pause_requested_ && status_.state() == v1::MISSION_STATE_RUNNING) {
     status_.set_state(v1::MISSION_STATE_PAUSED);
@@ -450,8 +572,8 @@ MissionRunner::Flow MissionRunner::waitWhilePaused() {
     publish();
     mutex_.Lock();
   }
-  const auto paused = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
-    return quit_ || abort_requested_ || !pause_requested_;
+  const auto paused = [this, &t]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+    return quit_ || abort_requested_ || !pause_requested_ || interruptedLocked(t);
   };
   mutex_.Await(absl::Condition(&paused));
   Flow flow = Flow::kDone;
@@ -460,6 +582,8 @@ MissionRunner::Flow MissionRunner::waitWhilePaused() {
     flow = Flow::kQuit;
   } else if (abort_requested_) {
     flow = Flow::kAbortRequested;
+  } else if (interruptedLocked(t)) {
+    flow = Flow::kInterrupted;
   } else if (status_.state() == v1::MISSION_STATE_PAUSED) {
     status_.set_state(v1::MISSION_STATE_RUNNING);
     resumed = true;
@@ -471,21 +595,22 @@ MissionRunner::Flow MissionRunner::waitWhilePaused() {
 
 MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
                                            const std::string& activation_id,
-                                           FinishedActivation* finished) {
-  const std::string robot = status().robot_id();
+                                           FinishedActivation* finished, Track& t) {
+  const std::string& robot = robotOf(step);
   bool paused_behavior = false;
   for (;;) {
-    bool quit, abort, pause;
+    bool quit, abort, pause, stop_branch;
     {
       absl::MutexLock lock(&mutex_);
       quit = quit_;
       abort = abort_requested_;
       pause = pause_requested_;
+      stop_branch = interruptedLocked(t);
     }
     if (quit) return Flow::kQuit;
-    if (abort) {
+    if (abort || stop_branch) {
       (void)actions_.deactivate(robot, step.behavior);
-      return Flow::kAbortRequested;
+      return abort ? Flow::kAbortRequested : Flow::kInterrupted;
     }
     if (pause != paused_behavior) {
       absl::Status s =
@@ -506,28 +631,27 @@ MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
     }
     if (auto r = recurrentFinished()) {
       (void)actions_.deactivate(robot, step.behavior);
-      failure_ = *r;
-      failed_cause_.clear();  // not a step's cause: a call does not branch on it
+      t.failure = *r;
+      t.failed_cause.clear();  // not a step's cause: a call does not branch on it
       return Flow::kAbort;
     }
   }
 }
 
 MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Position& path,
-                                           Position resume_tail) {
-  const std::string robot = status().robot_id();
-  const std::string label = stepLabel(step, path);
+                                           Position resume_tail, Track& t) {
+  const std::string& robot = robotOf(step);
 
   // The latest record of this step, when resuming into it.
   std::optional<v1::MissionStepRecord> recorded;
-  for (auto it = resume_from_.rbegin(); it != resume_from_.rend(); ++it) {
+  for (auto it = t.resume_from.rbegin(); it != t.resume_from.rend(); ++it) {
     if (positionOf(*it) == path) {
       recorded = *it;
       break;
     }
   }
   const bool resume_here =
-      !resume_from_.empty() && startsWith(positionOf(resume_from_.back()), path);
+      !t.resume_from.empty() && startsWith(positionOf(t.resume_from.back()), path);
   if (!resume_here) recorded.reset();
 
   if (!resume_tail.empty() && recorded &&
@@ -539,11 +663,11 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Positi
     const MissionAction* action = actionFor(step, cause);
     while (action && action->kind == MissionAction::Kind::kRetry) action = action->then.get();
     if (action && action->kind == MissionAction::Kind::kFallback) {
-      return runList(action->fallback, path, MissionNode::Kind::kFallback, 0, resume_tail);
+      return runList(action->fallback, path, MissionNode::Kind::kFallback, 0, resume_tail, 0, t);
     }
   }
 
-  if (Flow f = waitWhilePaused(); f != Flow::kDone) return f;
+  if (Flow f = waitWhilePaused(t); f != Flow::kDone) return f;
 
   if (step.condition && !(recorded && recorded->state() == v1::MISSION_STEP_STATE_SKIPPED)) {
     if (!conditionHolds(*step.condition)) {
@@ -551,6 +675,7 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Positi
       skipped.set_name(step.name);
       skipped.set_behavior(step.behavior);
       skipped.set_call(step.call);
+      skipped.set_robot_id(robot);
       skipped.set_state(v1::MISSION_STEP_STATE_SKIPPED);
       skipped.set_message("condition on belief '" + step.condition->key + "' does not hold");
       addRecord(std::move(skipped));
@@ -559,11 +684,12 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Positi
   } else if (recorded && recorded->state() == v1::MISSION_STEP_STATE_SKIPPED) {
     return Flow::kDone;
   }
-  if (!step.call.empty() || step.loop) {
-    return runCall(step, path, std::move(resume_tail), recorded);
+  if (!step.call.empty() || step.loop || step.parallel) {
+    return runCall(step, path, std::move(resume_tail), recorded, t);
   }
+  if (step.wait) return runWait(step, path, recorded, t);
   if (step.behavior.empty()) {
-    rememberAll(step);
+    rememberAll(step, t);
     return Flow::kDone;
   }
 
@@ -594,12 +720,13 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Positi
           }
         }
       }
-      absl::StatusOr<google::protobuf::Struct> params = withItems(step.parameters);
+      absl::StatusOr<google::protobuf::Struct> params = withItems(step.parameters, t);
       if (params.ok()) params = beliefs_.resolve(*params);
       if (index < 0) {
         v1::MissionStepRecord record = recordAt(path);
         record.set_name(step.name);
         record.set_behavior(step.behavior);
+        record.set_robot_id(robot);
         record.set_attempt(attempt);
         record.set_request_id(request_id);
         record.set_state(v1::MISSION_STEP_STATE_RUNNING);
@@ -618,14 +745,8 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Positi
         });
       } else {
         updateRecord(index, [&](v1::MissionStepRecord& r) { r.set_activation_id(*activation); });
-        const Flow flow = waitFor(step, *activation, &finished);
-        if (flow == Flow::kAbortRequested) {
-          updateRecord(index, [&](v1::MissionStepRecord& r) {
-            r.set_state(v1::MISSION_STEP_STATE_FINISHED);
-            r.set_cause(v1::TERMINATION_CAUSE_INTERRUPTED);
-            r.set_message("mission aborted");
-          });
-        }
+        const Flow flow = waitFor(step, *activation, &finished, t);
+        recordStopped(index, flow);
         if (flow != Flow::kDone) return flow;
         cause = causeName(finished.cause);
         message = finished.message;
@@ -646,7 +767,9 @@ MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Positi
       }
     }
     recorded.reset();
-    if (std::optional<Flow> flow = afterCause(step, path, cause, message, &attempt)) return *flow;
+    if (std::optional<Flow> flow = afterCause(step, path, cause, message, &attempt, t)) {
+      return *flow;
+    }
   }
 }
 
@@ -654,10 +777,10 @@ std::optional<MissionRunner::Flow> MissionRunner::afterCause(const MissionStep& 
                                                              const Position& path,
                                                              const std::string& cause,
                                                              const std::string& message,
-                                                             int* attempt) {
+                                                             int* attempt, Track& t) {
   const MissionAction* action = actionFor(step, cause);
   if (action == nullptr || action->kind == MissionAction::Kind::kContinue) {
-    if (cause == "GOAL_ACHIEVED") rememberAll(step);
+    if (cause == "GOAL_ACHIEVED") rememberAll(step, t);
     return Flow::kDone;
   }
   const std::string what = stepLabel(step, path) + " " +
@@ -670,23 +793,24 @@ std::optional<MissionRunner::Flow> MissionRunner::afterCause(const MissionStep& 
     }
     action = action->then.get();
     if (action == nullptr || action->kind == MissionAction::Kind::kAbort) {
-      failure_ = what + " (after " + std::to_string(*attempt) + " attempts)";
-      failed_cause_ = cause;
+      t.failure = what + " (after " + std::to_string(*attempt) + " attempts)";
+      t.failed_cause = cause;
       return Flow::kAbort;
     }
     if (action->kind == MissionAction::Kind::kContinue) return Flow::kDone;
   }
   if (action->kind == MissionAction::Kind::kAbort) {
-    failure_ = what;
-    failed_cause_ = cause;
+    t.failure = what;
+    t.failed_cause = cause;
     return Flow::kAbort;
   }
-  return runList(action->fallback, path, MissionNode::Kind::kFallback, 0, {});  // kFallback
+  return runList(action->fallback, path, MissionNode::Kind::kFallback, 0, {}, 0, t);
 }
 
 MissionRunner::Flow MissionRunner::runCall(const MissionStep& step, const Position& path,
                                            Position resume_tail,
-                                           std::optional<v1::MissionStepRecord> recorded) {
+                                           std::optional<v1::MissionStepRecord> recorded,
+                                           Track& t) {
   int attempt = recorded ? recorded->attempt() : 1;
   for (;;) {
     std::string cause;
@@ -699,25 +823,17 @@ MissionRunner::Flow MissionRunner::runCall(const MissionStep& step, const Positi
                                                                   : causeName(recorded->cause());
       message = recorded->message();
     } else {
-      const std::string node = nodeText(path);
-      int index = -1;
-      if (reuse) {
-        absl::MutexLock lock(&mutex_);
-        for (int i = status_.steps_size() - 1; i >= 0; --i) {
-          if (status_.steps(i).node() == node && status_.steps(i).attempt() == attempt) {
-            index = i;
-            break;
-          }
-        }
-      }
+      int index = reuse ? findRecord(nodeText(path), attempt) : -1;
       if (index < 0) {
         v1::MissionStepRecord record = recordAt(path);
         record.set_name(step.name);
         record.set_call(step.call);
+        record.set_robot_id(robotOf(step));
         record.set_attempt(attempt);
         record.set_state(v1::MISSION_STEP_STATE_RUNNING);
         *record.mutable_parameters() = step.with;
         if (step.loop) record.set_loop(loopText(*step.loop));
+        if (step.parallel) record.set_parallel(parallelText(*step.parallel));
         index = addRecord(std::move(record));
       }
       // Resuming inside this attempt's steps: where it was.
@@ -730,15 +846,16 @@ MissionRunner::Flow MissionRunner::runCall(const MissionStep& step, const Positi
       }
       resume_tail.clear();
       Flow flow = Flow::kDone;
-      std::optional<std::string> ended = runBody(step, path, attempt, tail, &message, &flow);
+      std::optional<std::string> ended;
+      if (step.parallel) {
+        // Each branch finds where it was in the records below this attempt.
+        if (!reuse) t.resume_from.clear();
+        ended = runParallel(step, path, attempt, &message, &flow, t);
+      } else {
+        ended = runBody(step, path, attempt, tail, &message, &flow, t);
+      }
       if (!ended) {
-        if (flow == Flow::kAbortRequested) {
-          updateRecord(index, [&](v1::MissionStepRecord& r) {
-            r.set_state(v1::MISSION_STEP_STATE_FINISHED);
-            r.set_cause(v1::TERMINATION_CAUSE_INTERRUPTED);
-            r.set_message("mission aborted");
-          });
-        }
+        recordStopped(index, flow);
         return flow;  // the mission stops, aborts or fails for another reason
       }
       cause = *ended;
@@ -755,29 +872,118 @@ MissionRunner::Flow MissionRunner::runCall(const MissionStep& step, const Positi
       });
     }
     recorded.reset();
-    failed_cause_.clear();
-    if (std::optional<Flow> flow = afterCause(step, path, cause, message, &attempt)) return *flow;
+    t.failed_cause.clear();
+    if (std::optional<Flow> flow = afterCause(step, path, cause, message, &attempt, t)) {
+      return *flow;
+    }
+  }
+}
+
+MissionRunner::Flow MissionRunner::runWait(const MissionStep& step, const Position& path,
+                                           std::optional<v1::MissionStepRecord> recorded,
+                                           Track& t) {
+  const MissionWait& wait = *step.wait;
+  int attempt = recorded ? recorded->attempt() : 1;
+  for (;;) {
+    std::string cause;
+    std::string message;
+    const bool reuse = recorded && recorded->attempt() == attempt;
+    if (reuse && recorded->state() == v1::MISSION_STEP_STATE_FINISHED) {
+      cause = causeName(recorded->cause());
+      message = recorded->message();
+    } else {
+      // The limit counts from now (after a restart, from the resumption), in
+      // the vehicles' time, and not while the mission is paused.
+      Duration left = seconds(wait.timeout_s);
+      TimePoint last = clock_.now();
+      int index = reuse ? findRecord(nodeText(path), attempt) : -1;
+      if (index < 0) {
+        v1::MissionStepRecord record = recordAt(path);
+        record.set_name(step.name);
+        record.set_robot_id(robotOf(step));
+        record.set_attempt(attempt);
+        record.set_state(v1::MISSION_STEP_STATE_RUNNING);
+        record.set_wait_for(waitText(wait));
+        index = addRecord(std::move(record));
+      }
+      Flow flow = Flow::kDone;
+      for (;;) {
+        bool paused = false;
+        {
+          absl::MutexLock lock(&mutex_);
+          if (quit_) return Flow::kQuit;
+          if (abort_requested_) flow = Flow::kAbortRequested;
+          if (flow == Flow::kDone && interruptedLocked(t)) flow = Flow::kInterrupted;
+          paused = pause_requested_;
+        }
+        if (flow != Flow::kDone) break;
+        if (paused) {
+          flow = waitWhilePaused(t);
+          if (flow == Flow::kQuit) return flow;
+          if (flow != Flow::kDone) break;
+          last = clock_.now();
+          continue;
+        }
+        if (waitHolds(wait)) {
+          cause = "GOAL_ACHIEVED";
+          break;
+        }
+        const TimePoint now = clock_.now();
+        left -= now - last;
+        last = now;
+        if (left <= Duration::zero()) {
+          cause = "TIME_OUT";
+          message = "waited " + params::numberText(wait.timeout_s) + " s for " + waitText(wait);
+          break;
+        }
+        if (auto r = recurrentFinished()) {
+          t.failure = *r;
+          t.failed_cause.clear();
+          flow = Flow::kAbort;
+          break;
+        }
+        const auto stopping = [this]() ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_) {
+          return quit_ || abort_requested_;
+        };
+        absl::MutexLock lock(&mutex_);
+        mutex_.AwaitWithTimeout(absl::Condition(&stopping), absl::FromChrono(kPoll));
+      }
+      if (flow != Flow::kDone) {
+        recordStopped(index, flow);
+        return flow;
+      }
+      updateRecord(index, [&](v1::MissionStepRecord& r) {
+        r.set_state(v1::MISSION_STEP_STATE_FINISHED);
+        r.set_cause(cause == "GOAL_ACHIEVED" ? v1::TERMINATION_CAUSE_GOAL_ACHIEVED
+                                             : v1::TERMINATION_CAUSE_TIME_OUT);
+        r.set_message(message);
+      });
+    }
+    recorded.reset();
+    if (std::optional<Flow> flow = afterCause(step, path, cause, message, &attempt, t)) {
+      return *flow;
+    }
   }
 }
 
 std::optional<std::string> MissionRunner::runBody(const MissionStep& step, const Position& path,
                                                   int attempt, const Position& tail,
-                                                  std::string* message, Flow* flow) {
-  if (step.loop) return runLoop(step, path, attempt, tail, message, flow);
-  failed_cause_.clear();
-  *flow = runList(step.body, path, MissionNode::Kind::kCall, attempt, tail);
+                                                  std::string* message, Flow* flow, Track& t) {
+  if (step.loop) return runLoop(step, path, attempt, tail, message, flow, t);
+  t.failed_cause.clear();
+  *flow = runList(step.body, path, MissionNode::Kind::kCall, attempt, tail, 0, t);
   if (*flow == Flow::kDone) return "GOAL_ACHIEVED";
-  if (*flow == Flow::kAbort && !failed_cause_.empty()) {
+  if (*flow == Flow::kAbort && !t.failed_cause.empty()) {
     // A step of the sub-mission failed it: the call ends with its cause.
-    *message = failure_;
-    return failed_cause_;
+    *message = t.failure;
+    return t.failed_cause;
   }
   return std::nullopt;
 }
 
 std::optional<std::string> MissionRunner::runLoop(const MissionStep& step, const Position& path,
                                                   int attempt, const Position& tail,
-                                                  std::string* message, Flow* flow) {
+                                                  std::string* message, Flow* flow, Track& t) {
   const MissionLoop& loop = *step.loop;
   google::protobuf::ListValue items = loop.items;
   int count = loop.times;
@@ -805,14 +1011,14 @@ std::optional<std::string> MissionRunner::runLoop(const MissionStep& step, const
     first = tail.front().iteration;
   }
   for (int i = first; i < count; ++i) {
-    if (loop.kind == MissionLoop::Kind::kForEach) items_.emplace_back(loop.as, items.values(i));
-    failed_cause_.clear();
+    if (loop.kind == MissionLoop::Kind::kForEach) t.items.emplace_back(loop.as, items.values(i));
+    t.failed_cause.clear();
     *flow = runList(step.body, path, MissionNode::Kind::kIteration, attempt,
-                    i == first ? tail : Position{}, i);
-    if (loop.kind == MissionLoop::Kind::kForEach) items_.pop_back();
-    if (*flow == Flow::kAbort && !failed_cause_.empty()) {
-      *message = failure_;
-      return failed_cause_;
+                    i == first ? tail : Position{}, i, t);
+    if (loop.kind == MissionLoop::Kind::kForEach) t.items.pop_back();
+    if (*flow == Flow::kAbort && !t.failed_cause.empty()) {
+      *message = t.failure;
+      return t.failed_cause;
     }
     if (*flow != Flow::kDone) return std::nullopt;
     if (loop.kind == MissionLoop::Kind::kUntil && conditionHolds(*loop.until)) {
@@ -827,15 +1033,132 @@ std::optional<std::string> MissionRunner::runLoop(const MissionStep& step, const
   return "GOAL_ACHIEVED";
 }
 
+std::optional<std::string> MissionRunner::runParallel(const MissionStep& step, const Position& path,
+                                                      int attempt, std::string* message, Flow* flow,
+                                                      Track& t) {
+  const MissionParallel& parallel = *step.parallel;
+  const size_t n = parallel.branches.size();
+  int id = 0;
+  {
+    absl::MutexLock lock(&mutex_);
+    id = next_parallel_++;
+    parallels_[id] = false;
+  }
+  // How each branch ended, in the order they ended.
+  struct Outcome {
+    Flow flow = Flow::kDone;
+    std::string cause;  // GOAL_ACHIEVED, or the cause that failed it
+    std::string message;
+  };
+  std::vector<Outcome> outcomes(n);
+  std::vector<size_t> order;  // guarded by mutex_
+  auto run_branch = [&](size_t b) {
+    Track branch;
+    branch.items = t.items;
+    branch.parallels = t.parallels;
+    branch.parallels.push_back(id);
+    // Where this branch was: the records below it, the last one latest.
+    Position prefix = path;
+    for (const v1::MissionStepRecord& r : t.resume_from) {
+      const Position at = positionOf(r);
+      if (at.size() > prefix.size() && startsWith(at, prefix) &&
+          at[prefix.size()].kind == MissionNode::Kind::kBranch &&
+          at[prefix.size()].call_attempt == attempt &&
+          at[prefix.size()].iteration == static_cast<int>(b)) {
+        branch.resume_from.push_back(r);
+      }
+    }
+    Position tail;
+    if (!branch.resume_from.empty()) {
+      const Position last = positionOf(branch.resume_from.back());
+      tail.assign(last.begin() + static_cast<std::ptrdiff_t>(prefix.size()), last.end());
+    }
+    Outcome out;
+    out.flow = runList(parallel.branches[b].steps, path, MissionNode::Kind::kBranch, attempt, tail,
+                       static_cast<int>(b), branch);
+    if (out.flow == Flow::kDone) {
+      out.cause = "GOAL_ACHIEVED";
+    } else if (out.flow == Flow::kAbort && !branch.failed_cause.empty()) {
+      out.cause = branch.failed_cause;  // a step of the branch failed it
+      out.message = branch.failure;
+    } else {
+      out.message = branch.failure;  // interrupted, or the end of the mission
+    }
+    absl::MutexLock lock(&mutex_);
+    outcomes[b] = std::move(out);
+    order.push_back(b);
+    const Outcome& o = outcomes[b];
+    // `all` is decided by the first branch that fails, `any` by the first
+    // that achieves (or the last that fails); an end of the mission stops
+    // every branch.
+    const bool achieved = o.cause == "GOAL_ACHIEVED";
+    const bool failed = !o.cause.empty() && !achieved;
+    if ((parallel.any && achieved) || (!parallel.any && failed) ||
+        (o.cause.empty() && o.flow != Flow::kInterrupted)) {
+      parallels_[id] = true;
+    }
+  };
+  std::vector<std::thread> threads;
+  for (size_t b = 1; b < n; ++b) threads.emplace_back(run_branch, b);
+  run_branch(0);
+  for (auto& thread : threads) thread.join();
+  t.resume_from.clear();
+  {
+    absl::MutexLock lock(&mutex_);
+    parallels_.erase(id);
+  }
+  // The mission ends (quit, abort requested, or a failure with no step's
+  // cause) or a parallel step around this one was decided.
+  for (Flow end : {Flow::kQuit, Flow::kAbortRequested, Flow::kAbort, Flow::kInterrupted}) {
+    for (size_t b : order) {
+      const Outcome& o = outcomes[b];
+      if (o.flow == end && o.cause.empty() && (end != Flow::kInterrupted || interrupted(t))) {
+        *flow = end;
+        if (end == Flow::kAbort) t.failure = o.message;
+        t.failed_cause.clear();
+        return std::nullopt;
+      }
+    }
+  }
+  const auto label = [&](size_t b) {
+    const std::string& name = parallel.branches[b].name;
+    return "branch " + std::to_string(b) + (name.empty() ? "" : " '" + name + "'");
+  };
+  size_t deciding = n;
+  for (size_t b : order) {
+    const Outcome& o = outcomes[b];
+    const bool achieved = o.cause == "GOAL_ACHIEVED";
+    if (parallel.any ? achieved : (!o.cause.empty() && !achieved)) {
+      deciding = b;
+      break;
+    }
+  }
+  if (deciding == n && parallel.any) {
+    // No branch achieved: every one failed; the last one's cause.
+    for (size_t b : order) {
+      if (!outcomes[b].cause.empty()) deciding = b;
+    }
+  }
+  if (deciding == n) return "GOAL_ACHIEVED";  // all: every branch achieved
+  const Outcome& o = outcomes[deciding];
+  if (o.cause == "GOAL_ACHIEVED") {
+    *message = label(deciding) + " achieved its steps";
+    return o.cause;
+  }
+  *message = label(deciding) + ": " + o.message;
+  return o.cause;
+}
+
 absl::StatusOr<google::protobuf::Struct> MissionRunner::withItems(
-    const google::protobuf::Struct& parameters) {
-  if (items_.empty()) return parameters;
+    const google::protobuf::Struct& parameters, const Track& t) {
+  if (t.items.empty()) return parameters;
   google::protobuf::Value whole;
   *whole.mutable_struct_value() = parameters;
   const absl::Status s = substituteTokens(
       &whole, "each",
-      [this](const std::string& name) -> const google::protobuf::Value* {
-        for (auto it = items_.rbegin(); it != items_.rend(); ++it) {  // the innermost loop's first
+      [&t](const std::string& name) -> const google::protobuf::Value* {
+        for (auto it = t.items.rbegin(); it != t.items.rend();
+             ++it) {  // the innermost loop's first
           if (it->first == name) return &it->second;
         }
         return nullptr;

@@ -16,6 +16,12 @@
 // answers with the same activation (nothing is activated twice), and its
 // finished event (replayed if it happened meanwhile) decides what comes next.
 //
+// A parallel step runs each branch in a thread of its own (each branch is a
+// Track: its failure, its loops' items, its part of the journaled history);
+// the branches share the status, and a branch that decides the step
+// interrupts the others. A fleet mission's steps name their robots; its
+// safety steps run per robot, the robots at once.
+//
 // No gRPC: the coordinator's FleetControl (coordinator/control/) implements
 // MissionActions (through the catalog's activation plans and its event
 // stream); tests fake them.
@@ -25,6 +31,7 @@
 #include <atomic>
 #include <chrono>
 #include <functional>
+#include <map>
 #include <memory>
 #include <optional>
 #include <string>
@@ -34,6 +41,7 @@
 #include "absl/base/thread_annotations.h"
 #include "absl/status/statusor.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/clock.h"
 #include "behaviorlib/v1/mission.pb.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/mission/mission_file.h"
@@ -67,18 +75,19 @@ class MissionActions {
 
 /// One level of a step's position in a mission (MissionStepRecord.node).
 struct MissionNode {
-  enum class Kind { kStep, kFallback, kCall, kIteration };
+  enum class Kind { kStep, kFallback, kCall, kIteration, kBranch };
   Kind kind = Kind::kStep;
   int index = 0;
-  /// kCall, kIteration: the attempt of the call or loop whose steps these are
+  /// kCall, kIteration, kBranch: the attempt of the call, loop or parallel
+  /// step whose steps these are
   int call_attempt = 0;
-  int iteration = 0;  ///< kIteration: which one, from 0
+  int iteration = 0;  ///< kIteration: which one; kBranch: which branch (from 0)
   bool operator==(const MissionNode&) const = default;
 };
 using Position = std::vector<MissionNode>;
 
 /// "steps/2", "steps/2/fallback/0", "steps/2/attempt/1/call/steps/0",
-/// "steps/2/attempt/1/iteration/3/steps/0".
+/// "steps/2/attempt/1/iteration/3/steps/0", "steps/2/attempt/1/branch/0/steps/1".
 std::string nodeText(const Position& position);
 /// nodeText's inverse; nullopt for text it does not make.
 std::optional<Position> parseNode(const std::string& text);
@@ -91,11 +100,14 @@ class MissionRunner {
 
   /// A new mission. `source` is the mission file's text (kept in the status
   /// so that a restarted coordinator can parse it again).
+  /// `clock` measures the waits' time limits (the vehicles' time; null:
+  /// the host's steady clock); it must outlive the runner.
   MissionRunner(MissionSpec spec, std::string mission_id, std::string robot_id, std::string source,
-                MissionActions& actions, BeliefStore& beliefs, OnChange on_change);
+                MissionActions& actions, BeliefStore& beliefs, OnChange on_change,
+                const Clock* clock = nullptr);
   /// A mission recorded as `status` (not finished), continued where it was.
   MissionRunner(MissionSpec spec, const v1::MissionStatus& status, MissionActions& actions,
-                BeliefStore& beliefs, OnChange on_change);
+                BeliefStore& beliefs, OnChange on_change, const Clock* clock = nullptr);
   /// Stops the thread without aborting the mission (it stays RUNNING in the
   /// journal, to be resumed by the next coordinator).
   ~MissionRunner();
@@ -107,10 +119,12 @@ class MissionRunner {
   absl::Status pause();
   /// FAILED_PRECONDITION when the mission is not paused.
   absl::Status resume();
-  /// Deactivates the current behavior, runs the safety steps (unless
-  /// `run_safety` is false: a safety action lands the vehicle itself), ends
-  /// ABORTED. FAILED_PRECONDITION when the mission already ended.
-  absl::Status abort(const std::string& reason, bool run_safety = true);
+  /// Deactivates the current behaviors, runs the safety steps (unless
+  /// `run_safety` is false: a safety action lands the vehicle itself; with
+  /// `robot`, only that robot's are skipped), ends ABORTED.
+  /// FAILED_PRECONDITION when the mission already ended.
+  absl::Status abort(const std::string& reason, bool run_safety = true,
+                     const std::string& robot = "");
 
   v1::MissionStatus status() const;
   bool finished() const;
@@ -121,45 +135,87 @@ class MissionRunner {
   static constexpr std::chrono::milliseconds kPoll{50};
 
  private:
-  enum class Flow { kDone, kAbort, kAbortRequested, kQuit };
+  /// How a run of steps ended: went on; the mission fails (Track::failure);
+  /// an abort was requested; the coordinator stops; a parallel step around
+  /// was decided by another branch.
+  enum class Flow { kDone, kAbort, kAbortRequested, kQuit, kInterrupted };
+
+  /// What one thread of the mission carries: the main sequence's, or a
+  /// parallel branch's.
+  struct Track {
+    std::string failure;  // why it is failing (set on kAbort)
+    // The cause of the step whose `on:` aborted (what a call, a loop or a
+    // branch ends with); empty when the abort has another reason.
+    std::string failed_cause;
+    // The items of the for_each loops around the running step (innermost last).
+    std::vector<std::pair<std::string, google::protobuf::Value>> items;
+    // The journaled records below this track, when resuming (the last one is
+    // where it was); cleared once it resumed.
+    std::vector<v1::MissionStepRecord> resume_from;
+    // The parallel steps around it (ids in interrupted_).
+    std::vector<int> parallels;
+  };
 
   void run();
   /// Runs `steps`, whose positions are `prefix` and then `kind` (a step,
-  /// a fallback's step, or a step of the call's attempt `call_attempt`);
-  /// `resume` is where to go on from, below `prefix`.
+  /// a fallback's step, or a step of the attempt `call_attempt` of a call,
+  /// an iteration or a branch); `resume` is where to go on from, below
+  /// `prefix`.
   Flow runList(const std::vector<MissionStep>& steps, const Position& prefix,
-               MissionNode::Kind kind, int call_attempt, Position resume, int iteration = 0);
-  Flow runStep(const MissionStep& step, const Position& path, Position resume_tail);
-  /// A call of a sub-mission: its steps, ending like a behavior (the cause
-  /// of the step that failed it), and its own `on:`.
+               MissionNode::Kind kind, int call_attempt, Position resume, int iteration, Track& t);
+  Flow runStep(const MissionStep& step, const Position& path, Position resume_tail, Track& t);
+  /// A call of a sub-mission, a loop or a parallel step: its steps, ending
+  /// like a behavior (the cause of the step that failed it), and its own
+  /// `on:`.
   Flow runCall(const MissionStep& step, const Position& path, Position resume_tail,
-               std::optional<v1::MissionStepRecord> recorded);
-  /// Runs a call's or a loop's steps (attempt `attempt`, resuming at
-  /// `tail`): GOAL_ACHIEVED when they all went on, else the cause of the step
+               std::optional<v1::MissionStepRecord> recorded, Track& t);
+  /// A wait_for step.
+  Flow runWait(const MissionStep& step, const Position& path,
+               std::optional<v1::MissionStepRecord> recorded, Track& t);
+  /// Runs a call's, a loop's or a parallel step's steps (attempt `attempt`,
+  /// resuming at `tail`): GOAL_ACHIEVED when they went on, else the cause
   /// that failed them (REFUSED for a loop that could not start), or nullopt
   /// with `flow` for an end of the mission.
   std::optional<std::string> runBody(const MissionStep& step, const Position& path, int attempt,
-                                     const Position& tail, std::string* message, Flow* flow);
+                                     const Position& tail, std::string* message, Flow* flow,
+                                     Track& t);
   /// The steps of a loop, an iteration at a time.
   std::optional<std::string> runLoop(const MissionStep& step, const Position& path, int attempt,
-                                     const Position& tail, std::string* message, Flow* flow);
+                                     const Position& tail, std::string* message, Flow* flow,
+                                     Track& t);
+  /// The branches of a parallel step, each in a thread.
+  std::optional<std::string> runParallel(const MissionStep& step, const Position& path, int attempt,
+                                         std::string* message, Flow* flow, Track& t);
   /// `parameters` with each ${each.<name>} of the loops around replaced.
-  absl::StatusOr<google::protobuf::Struct> withItems(const google::protobuf::Struct& parameters);
+  static absl::StatusOr<google::protobuf::Struct> withItems(
+      const google::protobuf::Struct& parameters, const Track& t);
   /// What the step's `on:` does after `cause`: nullopt to try again
-  /// (`attempt` raised), else the flow (failure_ and failed_cause_ set on an
-  /// abort; a fallback run).
+  /// (`attempt` raised), else the flow (t.failure and t.failed_cause set on
+  /// an abort; a fallback run).
   std::optional<Flow> afterCause(const MissionStep& step, const Position& path,
-                                 const std::string& cause, const std::string& message,
-                                 int* attempt);
+                                 const std::string& cause, const std::string& message, int* attempt,
+                                 Track& t);
   Flow waitFor(const MissionStep& step, const std::string& activation_id,
-               FinishedActivation* finished);
-  Flow waitWhilePaused();
-  void runSafety();
+               FinishedActivation* finished, Track& t);
+  Flow waitWhilePaused(const Track& t);
+  void runSafety(const std::string& failure);
   void deactivateRecurrent();
   std::optional<std::string> recurrentFinished();
   const MissionAction* actionFor(const MissionStep& step, const std::string& cause) const;
   bool conditionHolds(const BeliefCondition& c) const;
-  void rememberAll(const MissionStep& step);
+  /// Whether `wait` holds now, and what it waits for (a record's text).
+  bool waitHolds(const MissionWait& wait) const;
+  void rememberAll(const MissionStep& step, const Track& t);
+  /// The robot `step` commands.
+  const std::string& robotOf(const MissionStep& step) const;
+  /// Whether a parallel step around `t` was decided by another branch.
+  bool interruptedLocked(const Track& t) const ABSL_EXCLUSIVE_LOCKS_REQUIRED(mutex_);
+  bool interrupted(const Track& t) const;
+  /// The record of the call, loop, parallel or wait step at `node` and
+  /// `attempt` (journaled before a restart), or -1.
+  int findRecord(const std::string& node, int attempt) const;
+  /// Marks the record `index` INTERRUPTED after `flow` stopped it.
+  void recordStopped(int index, Flow flow);
 
   // Status updates (each one published through on_change_).
   int addRecord(v1::MissionStepRecord record);
@@ -170,6 +226,7 @@ class MissionRunner {
   std::string stepLabel(const MissionStep& step, const Position& path) const;
 
   MissionSpec spec_;
+  const std::string robot_;  // the mission's robot (steps that name none)
   MissionActions& actions_;
   BeliefStore& beliefs_;
   OnChange on_change_;
@@ -183,17 +240,23 @@ class MissionRunner {
   bool pause_requested_ ABSL_GUARDED_BY(mutex_) = false;
   bool done_ ABSL_GUARDED_BY(mutex_) = false;
   bool skip_safety_ ABSL_GUARDED_BY(mutex_) = false;
+  std::vector<std::string> skip_safety_of_ ABSL_GUARDED_BY(mutex_);  // robots landed by safety
   std::string abort_reason_ ABSL_GUARDED_BY(mutex_);
-  // The runner thread's own (not guarded):
-  std::string failure_;  // why the mission is failing (set before the safety steps)
-  // The cause of the step whose `on:` aborted (what a call ends with);
-  // empty when the abort has another reason (a recurrent behavior ended).
-  std::string failed_cause_;
-  // The items of the for_each loops around the running step (innermost last).
-  std::vector<std::pair<std::string, google::protobuf::Value>> items_;
-  std::vector<std::pair<std::string, std::string>> recurrent_;  // behavior, activation id
-  std::vector<v1::MissionStepRecord> resume_from_;              // history when resuming
+  // The parallel steps running, by id: true once decided (its other
+  // branches then stop).
+  std::map<int, bool> parallels_ ABSL_GUARDED_BY(mutex_);
+  int next_parallel_ ABSL_GUARDED_BY(mutex_) = 0;
+  // Set before the thread starts, then read only:
+  struct Recurrent {
+    std::string robot;
+    std::string behavior;
+    std::string activation_id;
+  };
+  std::vector<Recurrent> recurrent_;
+  std::vector<v1::MissionStepRecord> resume_from_;  // history when resuming
   bool resuming_ = false;
+  SteadyClock steady_clock_;
+  const Clock& clock_;  // the given clock, else steady_clock_
   std::thread thread_;
 };
 

@@ -137,9 +137,11 @@ struct Coordinator::Parts {
   std::unique_ptr<BeliefStore> beliefs;
   std::unique_ptr<BlockingPool> pool;
   std::unique_ptr<FleetControl> fleet;
-  std::unique_ptr<MissionManager> missions;
-  // The vehicles' simulated time (--clock sim), for the safety rules.
+  // The vehicles' simulated time (--clock sim), for the safety rules and the
+  // missions' waits (declared before the missions: their runners read it
+  // until they stop).
   std::unique_ptr<channel::SimClock> vehicle_clock;
+  std::unique_ptr<MissionManager> missions;
   std::unique_ptr<SafetyController> safety;
   std::unique_ptr<CoordinatorService> service;
   bool stopped = false;
@@ -242,6 +244,11 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   if (!mission_files.ok()) return mission_files.status();
   mission_options.mission_files = std::move(*mission_files);
   mission_options.metrics = p->metrics.get();
+  if (options.clock == "sim") {
+    // The vehicles' time: the missions' waits and the safety policy's.
+    p->vehicle_clock = std::make_unique<channel::SimClock>(options.channel_address);
+    mission_options.clock = p->vehicle_clock.get();
+  }
   p->missions = std::make_unique<MissionManager>(*p->fleet, *p->registry, *p->beliefs,
                                                  p->journal.get(), mission_options);
   for (const auto& status : replayed.missions) p->missions->restore(status);
@@ -284,10 +291,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   safety_options.channel_address = options.channel_address;
   safety_options.metrics = p->metrics.get();
   if (!options.flight_controllers.empty()) {
-    if (options.clock == "sim") {
-      p->vehicle_clock = std::make_unique<channel::SimClock>(options.channel_address);
-      safety_options.clock = p->vehicle_clock.get();
-    }
+    if (p->vehicle_clock) safety_options.clock = p->vehicle_clock.get();
     p->safety =
         std::make_unique<SafetyController>(*p->fleet, *p->missions, *p->log, safety_options);
     for (const auto& [robot, address] : options.flight_controllers) {

@@ -418,7 +418,7 @@ std::string SafetyController::standDown(const std::string& robot_id, const std::
                                         bool run_safety_steps) {
   std::string done;
   if (auto mission = missions_.runningMissionOf(robot_id)) {
-    auto aborted = missions_.abort(*mission, reason, run_safety_steps);
+    auto aborted = missions_.abort(*mission, reason, run_safety_steps, robot_id);
     auto now = missions_.get(*mission);
     if (!aborted.ok() && now.ok() && now->state() == v1::MISSION_STATE_ABORTED) {
       done = absl::StrCat("; mission ", *mission, " aborted");  // by an earlier call
@@ -552,7 +552,7 @@ absl::StatusOr<std::string> SafetyController::kill(const std::string& robot_id, 
   // Motors off first; the mission is told at once (so that it ends ABORTED
   // for this reason), its behaviors are deactivated after.
   if (auto mission = missions_.runningMissionOf(robot_id)) {
-    (void)missions_.abort(*mission, why, /*run_safety=*/false);
+    (void)missions_.abort(*mission, why, /*run_safety=*/false, robot_id);
   }
   auto done = flightAction(*robot, v1::FLIGHT_ACTION_KILL, true);
   if (!done.ok()) return done.status();

@@ -255,8 +255,12 @@ class ProgressPrinter:
                 self._seen.append(key)
             else:
                 self._seen[i] = key
-            what = record.get('behavior') or (f"call {record['call']}" if record.get('call')
-                                               else '-')
+            what = (record.get('behavior')
+                    or (f"call {record['call']}" if record.get('call') else None)
+                    or (f"parallel, {record['parallel']}" if record.get('parallel') else None)
+                    or (f"wait for {record['wait_for']}" if record.get('wait_for') else '-'))
+            if len(status.get("robot_ids", [])) > 1 and record.get("robot_id"):
+                what += f" on {record['robot_id']}"
             label = f"{record.get('name', '?')} ({what})"
             attempt = int(record.get("attempt", 1))
             if attempt > 1:

@@ -31,10 +31,9 @@ The paper's applications:
         --sensor-config deploy/config/simulator_sensors_aircraft.yaml \
         --mission deploy/missions/aircraft_inspection.yaml
     # two vehicles sharing their positions: every behavior system once per
-    # robot (process names suffixed with the robot), both missions at once
+    # robot (process names suffixed with the robot), one fleet mission for both
     deploy/local/launch.py --demo --vehicles drone1,drone2 \
-        --mission drone1=deploy/missions/swarm_two_vehicles.yaml \
-        --mission drone2=deploy/missions/swarm_two_vehicles.yaml
+        --mission drone1=deploy/missions/swarm_two_vehicles.yaml
     # room exploration: the saved map's coverage of the building in the report
     deploy/local/launch.py --demo --world rooms --mission deploy/missions/room_exploration.yaml
 
@@ -477,7 +476,10 @@ def run_demo(args, run_dir, simulator, coordinator, systems, state):
                         for robot, path, _ in missions) + " ==")
 
         def on_status(robot, status):
-            state["missions"][robot] = status
+            # A fleet mission commands several robots: each one's report
+            # shows it.
+            for commanded in status.get("robot_ids") or [robot]:
+                state["missions"][commanded] = status
 
         demo.run_missions(coordinator_client, missions, args.mission_timeout_s, say, on_status)
     for robot, events in state["events"].items():
@@ -611,6 +613,10 @@ def robot_reports(args, build_dir, state, run_dir):
         if tracks:
             findings["swarm_tracks"] = tracks
         path = args.missions.get(robot)
+        if path is None:
+            # A fleet mission started for another robot commands this one.
+            path = next((args.missions[r] for r in args.missions
+                         if robot in state["missions"].get(r, {}).get("robot_ids", [])), None)
         events = state["events"].get(robot)
         trajectory = state["trajectories"].get(robot)
         robots.append({"robot_id": robot,

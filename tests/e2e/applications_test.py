@@ -15,8 +15,8 @@ every marker of simulator/worlds/aircraft.yaml is in the report with its
 text and a position within 0.3 m of the world file's centre.
 
 swarm: two vehicles (--vehicles drone1,drone2, every behavior system once
-per robot) flying deploy/missions/swarm_two_vehicles.yaml at once: both
-missions SUCCEEDED and each robot's report holds the other's position, where
+per robot) flying the fleet mission deploy/missions/swarm_two_vehicles.yaml:
+it SUCCEEDED, its waits were reached, and each robot's report holds the other's position, where
 the other vehicle was (its ground truth at the belief's stamp; drone2 starts
 2 m east of drone1 in the empty field and both go straight up and down).
 
@@ -188,9 +188,31 @@ class ApplicationsTest(unittest.TestCase):
         mission = os.path.join(MISSIONS, "swarm_two_vehicles.yaml")
         report, markdown = self._launch(
             "swarm", 150, "--vehicles", "drone1,drone2", "--mission", f"drone1={mission}",
-            "--mission", f"drone2={mission}", "--mission-timeout-s", "90")
+            "--mission-timeout-s", "90")
         robots = ("drone1", "drone2")
         self.assertEqual(list(report["robots"]), list(robots))
+        # One fleet mission commands both vehicles: its branches ran at once,
+        # and each vehicle's synchronisation points were reached, not timed
+        # out.
+        fleet = report["robots"]["drone1"]["mission"]
+        self.assertEqual(fleet.get("robot_ids"), list(robots))
+        self.assertEqual(report["robots"]["drone2"]["mission"].get("mission_id"),
+                         fleet.get("mission_id"))
+        by_name = {s.get("name"): s for s in fleet.get("steps", []) if s.get("name")}
+        for robot, other in (("drone1", "drone2"), ("drone2", "drone1")):
+            knows = by_name.get(f"{robot}_knows_{other}", {})
+            self.assertEqual(knows.get("cause"), "TERMINATION_CAUSE_GOAL_ACHIEVED", knows)
+            self.assertEqual(knows.get("robot_id"), robot)
+            land = by_name.get(f"land_{robot}", {})
+            self.assertEqual(land.get("robot_id"), robot)
+            self.assertIn(f"/branch/{robots.index(robot)}/", land.get("node", ""))
+        # Each lands only after both shared their 20 s: the waits before
+        # landing are recorded achieved (not TIME_OUT).
+        waits = [s for s in fleet.get("steps", []) if s.get("wait_for", "").startswith("step ")]
+        self.assertEqual(sorted(s.get("wait_for") for s in waits),
+                         ["step 'share_drone1' achieved", "step 'share_drone2' achieved"])
+        for wait in waits:
+            self.assertEqual(wait.get("cause"), "TERMINATION_CAUSE_GOAL_ACHIEVED", wait)
         # Every behavior system once per robot, named after it.
         pids = self._pids()
         for system in ("basic_quadrotor_behaviors", "swarm_interaction"):

@@ -11,6 +11,7 @@
 namespace behaviorlib::coordinator {
 namespace {
 
+using ::testing::ElementsAre;
 using ::testing::HasSubstr;
 
 constexpr const char* kMission = R"(name: demo
@@ -110,7 +111,32 @@ INSTANTIATE_TEST_SUITE_P(
             "'on' and 'if' are for steps only", "safety[0].on"},
         BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: {fallback: []}\n", 4,
                    "fallback: empty", "steps[0].on.TIME_OUT.fallback"},
-        BadMission{"steps: [\n", 2, "not valid YAML", ""}));
+        BadMission{"steps: [\n", 2, "not valid YAML", ""},
+        // Parallel branches and waits.
+        BadMission{"steps:\n  - parallel: {branches: [{behavior: A}]}\n", 2,
+                   "a list of 2 to 16 branches", "steps[0].parallel.branches"},
+        BadMission{"steps:\n  - parallel:\n      end: most\n      branches: [{behavior: A}, "
+                   "{behavior: B}]\n",
+                   3, "'most' (all or any)", "steps[0].parallel.end"},
+        BadMission{"steps:\n  - behavior: A\n    parallel: {branches: [{behavior: A}, {behavior: "
+                   "B}]}\n",
+                   2, "'parallel' goes with no 'behavior'", "steps[0].behavior"},
+        BadMission{"steps:\n  - parallel:\n      branches:\n        - {robot: \"\", behavior: A}\n"
+                   "        - {behavior: B}\n",
+                   4, "a robot id of 1 to 128 characters", "steps[0].parallel.branches[0].robot"},
+        BadMission{"steps:\n  - wait_for: {step: up}\n", 2, "needs 'timeout_s'",
+                   "steps[0].wait_for"},
+        BadMission{"steps:\n  - wait_for: {step: up, timeout_s: 0}\n", 2, "needs 'timeout_s'",
+                   "steps[0].wait_for.timeout_s"},
+        BadMission{"steps:\n  - name: down\n    behavior: A\n  - wait_for: {step: up, timeout_s: "
+                   "5}\n",
+                   4, "wait_for step 'up': no step of the mission has that name (named: down)",
+                   "steps[1].wait_for.step"},
+        BadMission{"steps:\n  - wait_for: {belief: k, timeout_s: 5}\n", 2,
+                   "exactly one of 'exists' and 'equals'", "steps[0].wait_for"},
+        BadMission{"safety:\n  - wait_for: {belief: k, exists: true, timeout_s: 5}\n"
+                   "steps:\n  - behavior: A\n",
+                   2, "'parallel' and 'wait_for' are for steps only", "safety[0]"}));
 
 v1::BehaviorDescription description(const std::string& name) {
   v1::BehaviorDescription d;
@@ -182,7 +208,8 @@ TEST(MissionFile, ASubMissionIsCalledWithItsParameters) {
   follow.mutable_parameters(0)->set_type("object");
   follow.mutable_parameters(0)->set_repeated(true);
   const MissionProblems problems = checkMissionProblems(
-      *mission, [&](const std::string& name) -> const v1::BehaviorDescription* {
+      *mission,
+      [&](const std::string& /*robot*/, const std::string& name) -> const v1::BehaviorDescription* {
         return name == "FOLLOW_PATH" ? &follow : nullptr;
       });
   ASSERT_EQ(problems.list.size(), 1u) << problems.status();
@@ -312,7 +339,8 @@ TEST(MissionFile, CheckedAgainstTheRegisteredBehaviorsBeforeAnythingFlies) {
   for (const char* name : {"SELF_LOCALIZE_WITH_GROUND_TRUTH", "LAND", "TAKE_OFF", "FOLLOW_PATH"}) {
     registered[name] = description(name);
   }
-  auto lookup = [&](const std::string& b) -> const v1::BehaviorDescription* {
+  auto lookup = [&](const std::string& /*robot*/,
+                    const std::string& b) -> const v1::BehaviorDescription* {
     auto it = registered.find(b);
     return it == registered.end() ? nullptr : &it->second;
   };
@@ -388,7 +416,8 @@ steps:
   altitude->set_type("number");
   altitude->mutable_range()->set_min(0.2);
   altitude->mutable_range()->set_max(30);
-  auto lookup = [&](const std::string& b) -> const v1::BehaviorDescription* {
+  auto lookup = [&](const std::string& /*robot*/,
+                    const std::string& b) -> const v1::BehaviorDescription* {
     auto it = registered.find(b);
     return it == registered.end() ? nullptr : &it->second;
   };
@@ -443,11 +472,61 @@ TEST(MissionFile, TheCheckListsAtMostFiftyProblems) {
   auto mission = parseMission(text, "many.yaml");
   ASSERT_TRUE(mission.ok()) << mission.status();
   const absl::Status checked = checkMission(
-      *mission, [](const std::string&) -> const v1::BehaviorDescription* { return nullptr; });
+      *mission, [](const std::string&, const std::string&) -> const v1::BehaviorDescription* {
+        return nullptr;
+      });
   EXPECT_THAT(std::string(checked.message()), HasSubstr("60 problems in the mission"));
   EXPECT_THAT(std::string(checked.message()), HasSubstr("... and 10 more"));
   ASSERT_TRUE(errors::badRequest(checked).has_value());
   EXPECT_EQ(errors::badRequest(checked)->field_violations_size(), 50);
+}
+
+// A fleet mission: steps and branches name their robots (inherited by
+// what they contain); the check looks each behavior up on its step's robot.
+TEST(MissionFile, AFleetMissionsStepsAreCheckedOnTheirRobots) {
+  auto mission = parseMission(R"(name: fleet
+robot: drone1
+safety:
+  - {robot: drone2, behavior: LAND}
+steps:
+  - parallel:
+      branches:
+        - {behavior: TAKE_OFF}
+        - robot: drone2
+          steps:
+            - behavior: TAKE_OFF
+            - behavior: SCAN
+              on: {TIME_OUT: {fallback: [{behavior: HOVER}]}}
+  - {robot: drone3, wait_for: {belief: drone2/done, exists: true, timeout_s: 60}}
+)",
+                              "fleet.yaml");
+  ASSERT_TRUE(mission.ok()) << mission.status();
+  EXPECT_THAT(mission->robots, ElementsAre("drone2", "drone3"));
+  EXPECT_THAT(missionRobots(*mission, "drone1"), ElementsAre("drone1", "drone2", "drone3"));
+  EXPECT_THAT(missionRobots(*mission, "drone2"), ElementsAre("drone2", "drone3"));
+  const auto& branches = mission->steps[0].parallel->branches;
+  ASSERT_EQ(branches.size(), 2u);
+  EXPECT_EQ(branches[0].steps[0].robot, "");
+  EXPECT_EQ(branches[1].steps[1].robot, "drone2");
+  EXPECT_EQ(branches[1].steps[1].on.at("TIME_OUT").fallback[0].robot, "drone2");
+  EXPECT_DOUBLE_EQ(mission->steps[1].wait->timeout_s, 60);
+  // drone2 hosts no SCAN and no HOVER; drone1 hosts everything.
+  std::vector<std::string> asked;
+  const MissionProblems problems = checkMissionProblems(
+      *mission,
+      [&](const std::string& robot, const std::string& behavior) -> const v1::BehaviorDescription* {
+        static const v1::BehaviorDescription d;
+        asked.push_back((robot.empty() ? "drone1" : robot) + ":" + behavior);
+        return robot == "drone2" && (behavior == "SCAN" || behavior == "HOVER") ? nullptr : &d;
+      });
+  ASSERT_EQ(problems.list.size(), 2u) << problems.status();
+  EXPECT_EQ(
+      problems.list[0].description,
+      "fleet.yaml:12: behavior SCAN is not hosted by any registered system of robot 'drone2'");
+  EXPECT_EQ(problems.list[1].description,
+            "fleet.yaml:13: behavior HOVER is not hosted by any registered system of robot "
+            "'drone2'");
+  EXPECT_THAT(asked, ::testing::Contains("drone2:LAND"));
 }
 
 }  // namespace

@@ -64,9 +64,15 @@ class ScriptedActions : public MissionActions {
     return parameters_.at(behavior);
   }
 
-  absl::StatusOr<std::string> activate(const std::string&, const std::string& behavior,
+  // A behavior of another robot than drone1 is "<behavior>@<robot>".
+  static std::string on(const std::string& robot, const std::string& behavior) {
+    return robot == "drone1" ? behavior : behavior + "@" + robot;
+  }
+
+  absl::StatusOr<std::string> activate(const std::string& robot, const std::string& of_robot,
                                        const google::protobuf::Struct& parameters,
                                        const std::string& request_id) override {
+    const std::string behavior = on(robot, of_robot);
     std::lock_guard lock(mutex_);
     if (auto it = by_request_.find(request_id); it != by_request_.end()) {
       calls_.push_back("same activation " + behavior);
@@ -93,7 +99,8 @@ class ScriptedActions : public MissionActions {
     }
     return id;
   }
-  absl::Status deactivate(const std::string&, const std::string& behavior) override {
+  absl::Status deactivate(const std::string& robot, const std::string& of_robot) override {
+    const std::string behavior = on(robot, of_robot);
     std::lock_guard lock(mutex_);
     calls_.push_back("deactivate " + behavior);
     for (auto& [id, b] : behavior_of_) {
@@ -102,14 +109,14 @@ class ScriptedActions : public MissionActions {
     }
     return absl::OkStatus();
   }
-  absl::Status pause(const std::string&, const std::string& behavior) override {
+  absl::Status pause(const std::string& robot, const std::string& behavior) override {
     std::lock_guard lock(mutex_);
-    calls_.push_back("pause " + behavior);
+    calls_.push_back("pause " + on(robot, behavior));
     return absl::OkStatus();
   }
-  absl::Status resume(const std::string&, const std::string& behavior) override {
+  absl::Status resume(const std::string& robot, const std::string& behavior) override {
     std::lock_guard lock(mutex_);
-    calls_.push_back("resume " + behavior);
+    calls_.push_back("resume " + on(robot, behavior));
     return absl::OkStatus();
   }
   std::optional<FinishedActivation> awaitFinished(const std::string&, const std::string& id,
@@ -147,12 +154,14 @@ struct MissionRun {
   std::vector<v1::MissionStatus> changes;
   std::unique_ptr<MissionRunner> runner;
 
-  void start(const std::string& yaml, const std::string& id = "m1") {
-    runner = std::make_unique<MissionRunner>(mission(yaml), id, "drone1", yaml, actions, beliefs,
-                                             [this](const v1::MissionStatus& s) {
-                                               std::lock_guard lock(mutex);
-                                               changes.push_back(s);
-                                             });
+  void start(const std::string& yaml, const std::string& id = "m1", const Clock* clock = nullptr) {
+    runner = std::make_unique<MissionRunner>(
+        mission(yaml), id, "drone1", yaml, actions, beliefs,
+        [this](const v1::MissionStatus& s) {
+          std::lock_guard lock(mutex);
+          changes.push_back(s);
+        },
+        clock);
     runner->start();
   }
   v1::MissionStatus finish() {
@@ -703,8 +712,197 @@ TEST(MissionRunner, AMissionResumedInsideALoopGoesOnFromItsIteration) {
   EXPECT_EQ(actions.count("activate SCAN"), 3);
 }
 
+// Parallel branches run at once, each on its robot (a fleet mission); `all`
+// waits for every branch, and the first that fails decides (the others are
+// interrupted); `any` ends with the first that achieves. Their steps are at
+// ".../attempt/<a>/branch/<b>/steps/<j>".
+constexpr const char* kFleet = R"(name: fleet
+robot: drone1
+safety:
+  - behavior: LAND
+  - {robot: drone2, behavior: LAND}
+steps:
+  - name: take_off
+    parallel:
+      branches:
+        - {name: one, steps: [{behavior: TAKE_OFF}, {behavior: FLY}]}
+        - {name: two, robot: drone2, steps: [{behavior: TAKE_OFF}, {behavior: FLY}]}
+    on:
+      WRONG_PROGRESS: continue
+  - name: land
+    parallel:
+      end: any
+      branches:
+        - behavior: LAND
+        - {robot: drone2, behavior: LAND}
+)";
+
+v1::MissionStepRecord recordOf(const v1::MissionStatus& status, const std::string& node) {
+  for (const auto& r : status.steps()) {
+    if (r.node() == node) return r;
+  }
+  ADD_FAILURE() << "no record at " << node;
+  return {};
+}
+
+// Starts kFleet with both vehicles' FLY held; true once both fly.
+bool flyBoth(MissionRun& run) {
+  run.actions.hold("FLY");
+  run.actions.hold("FLY@drone2");
+  run.start(kFleet);
+  return eventually([&] { return run.actions.active("FLY") && run.actions.active("FLY@drone2"); });
+}
+
+TEST(MissionRunner, ParallelBranchesRunAtOnceEachOnItsRobot) {
+  MissionRun run;
+  run.actions.hold("FLY");
+  run.actions.hold("FLY@drone2");
+  run.actions.hold("LAND");
+  run.actions.hold("LAND@drone2");
+  run.start(kFleet);
+  // Both branches fly at once.
+  ASSERT_TRUE(
+      eventually([&] { return run.actions.active("FLY") && run.actions.active("FLY@drone2"); }));
+  EXPECT_THAT(run.runner->status().robot_ids(), ElementsAre("drone1", "drone2"));
+  run.actions.finish("FLY", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  // `all`: the step waits for the other branch.
+  std::this_thread::sleep_for(milliseconds(200));
+  EXPECT_EQ(run.actions.count("activate LAND"), 0);
+  run.actions.finish("FLY@drone2", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  // `any`: drone1's LAND achieves first; drone2's is interrupted.
+  ASSERT_TRUE(
+      eventually([&] { return run.actions.active("LAND") && run.actions.active("LAND@drone2"); }));
+  run.actions.finish("LAND", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_SUCCEEDED) << status.message();
+  EXPECT_EQ(run.actions.count("deactivate LAND@drone2"), 1);
+  const auto take_off = recordOf(status, "steps/0");
+  EXPECT_EQ(take_off.parallel(), "all of 2 branches");
+  EXPECT_EQ(take_off.cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  const auto fly_two = recordOf(status, "steps/0/attempt/1/branch/1/steps/1");
+  EXPECT_EQ(fly_two.behavior(), "FLY");
+  EXPECT_EQ(fly_two.robot_id(), "drone2");
+  EXPECT_EQ(fly_two.request_id(), "m1/steps/0/attempt/1/branch/1/steps/1/attempt/1");
+  EXPECT_EQ(recordOf(status, "steps/1").message(), "branch 0 achieved its steps");
+  const auto land_two = recordOf(status, "steps/1/attempt/1/branch/1/steps/0");
+  EXPECT_EQ(land_two.cause(), v1::TERMINATION_CAUSE_INTERRUPTED);
+  EXPECT_THAT(land_two.message(), HasSubstr("another branch decided the parallel step"));
+}
+
+TEST(MissionRunner, TheFirstBranchThatFailsEndsAnAllParallelStepWithItsCause) {
+  MissionRun run;
+  ASSERT_TRUE(flyBoth(run));
+  run.actions.finish("FLY@drone2", v1::TERMINATION_CAUSE_WRONG_PROGRESS);
+  const v1::MissionStatus status = run.finish();
+  // WRONG_PROGRESS: continue, and the mission lands.
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_SUCCEEDED) << status.message();
+  EXPECT_EQ(run.actions.count("deactivate FLY"), 1) << "drone1's branch is interrupted";
+  const auto take_off = recordOf(status, "steps/0");
+  EXPECT_EQ(take_off.cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS);
+  EXPECT_THAT(take_off.message(), HasSubstr("branch 1 'two': step"));
+  EXPECT_EQ(recordOf(status, "steps/0/attempt/1/branch/0/steps/1").cause(),
+            v1::TERMINATION_CAUSE_INTERRUPTED);
+}
+
+TEST(MissionRunner, AnAbortedFleetMissionRunsEachRobotsSafetySteps) {
+  MissionRun run;
+  ASSERT_TRUE(flyBoth(run));
+  // The coordinator's safety action lands drone2 itself: only drone1's
+  // safety steps run.
+  ASSERT_TRUE(run.runner->abort("geofence breached by drone2", false, "drone2").ok());
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_ABORTED);
+  EXPECT_EQ(run.actions.count("deactivate FLY"), 1);
+  EXPECT_EQ(run.actions.count("deactivate FLY@drone2"), 1);
+  EXPECT_EQ(run.actions.count("activate LAND"), 1);
+  EXPECT_EQ(run.actions.count("activate LAND@drone2"), 0);
+  EXPECT_THAT(status.message(), HasSubstr("drone2's safety steps skipped"));
+
+  MissionRun both;
+  ASSERT_TRUE(flyBoth(both));
+  ASSERT_TRUE(both.runner->abort("by request").ok());
+  EXPECT_EQ(both.finish().state(), v1::MISSION_STATE_ABORTED);
+  EXPECT_EQ(both.actions.count("activate LAND"), 1);
+  EXPECT_EQ(both.actions.count("activate LAND@drone2"), 1);
+}
+
+// wait_for: a synchronisation point on another branch's step (by name) or a
+// belief, bounded by a time limit on the injected clock.
+constexpr const char* kWaits = R"(name: waits
+steps:
+  - parallel:
+      branches:
+        - steps:
+            - behavior: TAKE_OFF
+            - wait_for: {step: two_up, timeout_s: 30}
+            - behavior: FLY
+        - robot: drone2
+          steps:
+            - {name: two_up, behavior: TAKE_OFF}
+  - name: sync
+    wait_for: {belief: drone2/ready, exists: true, timeout_s: 5}
+    on:
+      TIME_OUT: continue
+  - behavior: LAND
+)";
+
+TEST(MissionRunner, AWaitHoldsItsBranchUntilTheOtherRobotsStepAchievedOrItsTimeLimit) {
+  FakeClock clock;
+  MissionRun run;
+  run.actions.hold("TAKE_OFF@drone2");
+  run.start(kWaits, "m1", &clock);
+  ASSERT_TRUE(eventually([&] { return run.actions.count("activate TAKE_OFF") == 1; }));
+  std::this_thread::sleep_for(milliseconds(200));
+  EXPECT_EQ(run.actions.count("activate FLY"), 0) << "drone1 waits for drone2's take-off";
+  run.actions.finish("TAKE_OFF@drone2", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  ASSERT_TRUE(eventually([&] { return run.actions.count("activate FLY") == 1; }));
+  // The belief never comes: TIME_OUT after 5 s of the clock's time, not before.
+  ASSERT_TRUE(eventually([&] {
+    const auto s = run.runner->status();
+    return s.steps_size() > 0 &&
+           s.steps(s.steps_size() - 1).wait_for() == "belief 'drone2/ready' exists";
+  }));
+  clock.advance(std::chrono::seconds(4));
+  std::this_thread::sleep_for(milliseconds(200));
+  EXPECT_EQ(run.actions.count("activate LAND"), 0);
+  clock.advance(std::chrono::seconds(2));
+  const v1::MissionStatus status = run.finish();
+  EXPECT_EQ(status.state(), v1::MISSION_STATE_SUCCEEDED) << status.message();
+  const auto sync = recordOf(status, "steps/1");
+  EXPECT_EQ(sync.cause(), v1::TERMINATION_CAUSE_TIME_OUT);
+  EXPECT_EQ(sync.message(), "waited 5 s for belief 'drone2/ready' exists");
+  EXPECT_EQ(recordOf(status, "steps/0/attempt/1/branch/0/steps/1").wait_for(),
+            "step 'two_up' achieved");
+}
+
+TEST(MissionRunner, AMissionResumedInsideAParallelStepActivatesNothingTwice) {
+  ScriptedActions actions;
+  actions.hold("FLY");
+  actions.hold("FLY@drone2");
+  BeliefStore beliefs;
+  // The coordinator is gone while both branches fly.
+  const auto last = runUntilTheCoordinatorDies(kFleet, actions, beliefs, [&] {
+    return actions.active("FLY") && actions.active("FLY@drone2");
+  });
+  ASSERT_TRUE(last.has_value());
+  MissionRunner resumed(mission(kFleet), *last, actions, beliefs, nullptr);
+  resumed.start();
+  ASSERT_TRUE(eventually([&] {
+    return actions.count("same activation FLY") == 1 &&
+           actions.count("same activation FLY@drone2") == 1;
+  }));
+  actions.finish("FLY", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  actions.finish("FLY@drone2", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  ASSERT_TRUE(resumed.waitFinished(seconds(10)));
+  EXPECT_EQ(resumed.status().state(), v1::MISSION_STATE_SUCCEEDED) << resumed.status().message();
+  for (const char* b : {"TAKE_OFF", "TAKE_OFF@drone2", "FLY", "FLY@drone2"}) {
+    EXPECT_EQ(actions.count(std::string("activate ") + b), 1) << b;
+  }
+}
+
 TEST(MissionNode, PositionsReadBackFromTheirText) {
   for (const std::string text : {"steps/0", "steps/3/fallback/1", "steps/2/attempt/1/call/steps/0",
+                                 "steps/0/attempt/2/branch/1/steps/3",
                                  "steps/2/attempt/3/call/steps/1/fallback/0/attempt/1/call/steps/4",
                                  "steps/1/attempt/2/iteration/7/steps/0/attempt/1/call/steps/2"}) {
     auto position = parseNode(text);

@@ -81,7 +81,7 @@ BROKER_PORT, COORDINATOR_PORT, SIMULATOR_PORT = 50051, 50060, 50070
 SYSTEM_PORT, RELAYED_OFFSET = 50061, 10000
 METRICS_OFFSET = 1000  # a server's /metrics: its gRPC port + 1000 (9xxx clash with nothing)
 
-SWARM_MISSION = os.path.join(REPO, "deploy", "missions", "swarm_two_vehicles.yaml")
+SWARM_MISSION = os.path.join(REPO, "deploy", "missions", "swarm_member.yaml")
 CATALOG = os.path.join(REPO, "deploy", "config", "catalog.yaml")
 SYSTEMS_DIR = os.path.join(REPO, "services", "systems")
 DEFAULT_SYSTEMS = ["basic_quadrotor_behaviors", "swarm_interaction"]

@@ -3,7 +3,10 @@
 #include <gmock/gmock.h>
 #include <gtest/gtest.h>
 
+#include <filesystem>
+#include <fstream>
 #include <map>
+#include <sstream>
 #include <string>
 
 #include "behaviorlib/error_details.h"
@@ -527,6 +530,34 @@ steps:
             "fleet.yaml:13: behavior HOVER is not hosted by any registered system of robot "
             "'drone2'");
   EXPECT_THAT(asked, ::testing::Contains("drone2:LAND"));
+}
+
+// Every shipped mission parses (its sub-missions imported from the mission
+// directory), and the fleet ones name the robots they command.
+TEST(MissionFile, EveryShippedMissionParses) {
+  const std::filesystem::path dir = BEHAVIORLIB_SHIPPED_MISSIONS_DIR;
+  const ImportReader read = [&](const std::string& path) -> absl::StatusOr<std::string> {
+    std::ifstream in(dir / path);
+    if (!in) return absl::NotFoundError(path);
+    std::stringstream text;
+    text << in.rdbuf();
+    return text.str();
+  };
+  int parsed = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(dir)) {
+    if (entry.path().extension() != ".yaml") continue;
+    SCOPED_TRACE(entry.path().filename().string());
+    absl::StatusOr<std::string> text = read(entry.path().filename().string());
+    ASSERT_TRUE(text.ok());
+    auto mission = parseMission(*text, entry.path().filename().string(), read);
+    ASSERT_TRUE(mission.ok()) << mission.status();
+    EXPECT_FALSE(mission->robot_id.empty());
+    if (entry.path().filename() == "swarm_two_vehicles.yaml") {
+      EXPECT_THAT(missionRobots(*mission, mission->robot_id), ElementsAre("drone1", "drone2"));
+    }
+    ++parsed;
+  }
+  EXPECT_GE(parsed, 7);
 }
 
 }  // namespace

@@ -277,7 +277,8 @@ void MissionManager::resumeOne(const std::string& mission_id) {
   entry.geofence = spec->geofence;
   entry.runner = std::make_shared<MissionRunner>(
       std::move(*spec), status, fleet_, beliefs_,
-      [this](const v1::MissionStatus& s) { onChange(s); }, options_.clock);
+      [this](const v1::MissionStatus& s) { onChange(s); },
+      MissionRunner::Options{.clock = options_.clock, .vehicles = options_.vehicles});
   countLocked();
   entry.runner->start();
 }
@@ -329,11 +330,36 @@ MissionProblems MissionManager::problemsAgainstRegistry(const MissionSpec& spec,
     }
   }
   if (!unregistered->empty()) return problems;
-  return checkMissionProblems(spec, [&](const std::string& robot, const std::string& behavior) {
+  problems = checkMissionProblems(spec, [&](const std::string& robot, const std::string& behavior) {
     const auto& of_robot = hosted[robot.empty() ? robot_id : robot];
     auto it = of_robot.find(behavior);
     return it == of_robot.end() ? nullptr : &it->second;
   });
+  if (options_.vehicles == nullptr) {
+    // `when:` reads the vehicles' topics, on the data channel.
+    std::function<void(const std::vector<MissionStep>&)> walk =
+        [&](const std::vector<MissionStep>& steps) {
+          for (const MissionStep& step : steps) {
+            if (!step.when.empty()) {
+              problems.add(step.file.empty() ? spec.file : step.file, step.when.front().line,
+                           step.path + ".when",
+                           "conditions on the vehicle need the coordinator's --channel (it reads "
+                           "no vehicle topics)");
+            }
+            walk(step.body);
+            if (step.parallel) {
+              for (const MissionBranch& b : step.parallel->branches) walk(b.steps);
+            }
+            for (const auto& [cause, action] : step.on) {
+              for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
+                walk(a->fallback);
+              }
+            }
+          }
+        };
+    walk(spec.steps);
+  }
+  return problems;
 }
 
 absl::Status MissionManager::checkAgainstRegistry(const MissionSpec& spec,
@@ -556,7 +582,8 @@ absl::StatusOr<v1::MissionStatus> MissionManager::start(const v1::StartMissionRe
   entry.geofence = spec->geofence;
   entry.runner = std::make_shared<MissionRunner>(
       std::move(*spec), mission_id, robot_id, text, fleet_, beliefs_,
-      [this](const v1::MissionStatus& s) { onChange(s); }, options_.clock);
+      [this](const v1::MissionStatus& s) { onChange(s); },
+      MissionRunner::Options{.clock = options_.clock, .vehicles = options_.vehicles});
   entry.status = entry.runner->status();
   if (options_.metrics != nullptr)
     options_.metrics->missions_started.Add({{"robot", robot_id}}).Increment();

@@ -63,6 +63,9 @@ struct MissionManagerOptions {
   /// The vehicles' clock, which the missions' waits are measured on (null:
   /// the host's steady clock). Must outlive the manager.
   const Clock* clock = nullptr;
+  /// Reads the vehicles' topics for the steps' `when:` conditions (null: a
+  /// mission with conditions is refused). Must outlive the manager.
+  VehicleReader* vehicles = nullptr;
   /// Where missions started and ended are counted; none if null.
   CoordinatorMetrics* metrics = nullptr;
 };

@@ -131,10 +131,12 @@ class MissionParser {
           return stepError(step.path + ".behavior",
                            cat(r_->file(), ":", step.line, ": ", key, " step: missing 'behavior'"));
         }
-        if (!step.on.empty() || step.condition) {
-          return stepError(step.path + (step.on.empty() ? ".if" : ".on"),
+        if (!step.on.empty() || step.condition || !step.when.empty()) {
+          return stepError(step.path + (!step.on.empty() ? ".on"
+                                        : step.condition ? ".if"
+                                                         : ".when"),
                            cat(r_->file(), ":", step.line, ": ", key,
-                               " step: 'on' and 'if' are for steps only"));
+                               " step: 'on', 'if' and 'when' are for steps only"));
         }
       }
     }
@@ -196,7 +198,7 @@ class MissionParser {
     if (auto s =
             r_->mapping(node, what,
                         {"name", "robot", "behavior", "call", "with", "for_each", "repeat", "steps",
-                         "parallel", "wait_for", "parameters", "on", "if", "remember"});
+                         "parallel", "wait_for", "parameters", "on", "if", "when", "remember"});
         !s.ok()) {
       return s;
     }
@@ -287,6 +289,21 @@ class MissionParser {
       return r_->error(node, label +
                                  ": needs a 'behavior', a 'call', a loop, 'parallel' or "
                                  "'wait_for' (or only 'remember')");
+    }
+    if (const YAML::Node when = node["when"]) {
+      if (step->behavior.empty()) {
+        return r_->error(when,
+                         label + ": 'when' goes with a 'behavior' (it is checked while it runs)");
+      }
+      if (!when.IsSequence() || when.size() == 0 || when.size() > kMaxVehicleConditions) {
+        return r_->error(when, cat(label, " when: a list of 1 to ", kMaxVehicleConditions,
+                                   " conditions on the vehicle"));
+      }
+      for (const auto& item : when) {
+        VehicleCondition c;
+        if (auto s = vehicleCondition(item, label + " when", &c); !s.ok()) return s;
+        step->when.push_back(c);
+      }
     }
     if (const YAML::Node condition = node["if"]) {
       BeliefCondition c;
@@ -748,6 +765,63 @@ class MissionParser {
     return parsed;
   }
 
+  // {battery_below: r} or {near: {point_m: [x, y, z], radius_m: r}}, with
+  // `ends: <cause>` (default SITUATION_CHANGE) and `max_age_s`.
+  absl::Status vehicleCondition(const YAML::Node& node, const std::string& what,
+                                VehicleCondition* out) {
+    if (auto s = r_->mapping(node, what, {"battery_below", "near", "ends", "max_age_s"}); !s.ok())
+      return s;
+    out->line = lineOf(node);
+    auto number = [&](const YAML::Node& n, const std::string& field, double low, double high,
+                      double* value) {
+      if (!n.IsScalar() || !YAML::convert<double>::decode(n, *value) || !std::isfinite(*value) ||
+          *value < low || *value > high) {
+        return r_->error(n, cat(what, " ", field, ": a number in [", params::numberText(low), ", ",
+                                params::numberText(high), "]"));
+      }
+      return absl::OkStatus();
+    };
+    if (node["battery_below"] && !node["near"]) {
+      out->kind = VehicleCondition::Kind::kBatteryBelow;
+      if (auto s = number(node["battery_below"], "battery_below", 0, 1, &out->battery_ratio);
+          !s.ok())
+        return s;
+    } else if (node["near"] && !node["battery_below"]) {
+      out->kind = VehicleCondition::Kind::kNear;
+      const YAML::Node near = node["near"];
+      if (auto s = r_->mapping(near, what + " near", {"point_m", "radius_m"}); !s.ok()) return s;
+      const YAML::Node point = near["point_m"];
+      if (!point || !point.IsSequence() || point.size() != 3) {
+        return r_->error(point ? point : near, what + " near: point_m is [x, y, z] in metres");
+      }
+      for (size_t i = 0; i < 3; ++i) {
+        if (auto s = number(point[i], "near point_m", -1e6, 1e6, &out->point_m[i]); !s.ok())
+          return s;
+      }
+      if (!near["radius_m"]) return r_->error(near, what + " near: needs radius_m");
+      if (auto s = number(near["radius_m"], "near radius_m", 0.01, 1e6, &out->radius_m); !s.ok())
+        return s;
+    } else {
+      return r_->error(node,
+                       what + ": give one of battery_below (0..1) and near ({point_m, radius_m})");
+    }
+    if (node["ends"]) {
+      if (auto s = r_->text(node["ends"], what + " ends", &out->ends); !s.ok()) return s;
+      static const std::set<std::string> kEnds = {"GOAL_ACHIEVED", "SITUATION_CHANGE",
+                                                  "WRONG_PROGRESS", "TIME_OUT"};
+      if (!kEnds.contains(out->ends)) {
+        return r_->error(node["ends"], cat(what, " ends: '", out->ends,
+                                           "' (GOAL_ACHIEVED, SITUATION_CHANGE, WRONG_PROGRESS or "
+                                           "TIME_OUT)"));
+      }
+    }
+    if (node["max_age_s"]) {
+      if (auto s = number(node["max_age_s"], "max_age_s", 0.05, 60, &out->max_age_s); !s.ok())
+        return s;
+    }
+    return absl::OkStatus();
+  }
+
   // parallel: {end: all|any, branches: [...]}: each branch is {name, robot,
   // steps: [...]}, or a single step.
   absl::Status parallel(const YAML::Node& node, const std::string& label, MissionStep* step) {
@@ -865,6 +939,7 @@ class MissionParser {
   static constexpr size_t kMaxCallDepth = 8;
   static constexpr size_t kMaxBranches = 16;
   static constexpr size_t kMaxBranchesInMission = 64;
+  static constexpr size_t kMaxVehicleConditions = 8;
   static constexpr double kMaxWaitS = 86400;
 
   struct Definition {

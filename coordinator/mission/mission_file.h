@@ -115,6 +115,25 @@ struct MissionWait {
   double timeout_s = 0;
 };
 
+/// A condition on the vehicle, evaluated while a behavior step runs: when
+/// it holds, the behavior is deactivated and the step ends with `ends`.
+/// Each reads the latest sample of a topic of the step's robot; a topic whose
+/// sample did not advance for `max_age_s` (the flight behaviors' staleness
+/// rule) ends the step PROCESS_FAILURE.
+struct VehicleCondition {
+  enum class Kind {
+    kBatteryBelow,  ///< FlightStatus.battery_ratio on robots/{robot}/flight_state
+    kNear,          ///< the pose estimate within `radius_m` of `point_m`
+  };
+  Kind kind = Kind::kBatteryBelow;
+  double battery_ratio = 0;
+  std::array<double, 3> point_m{};
+  double radius_m = 0;
+  std::string ends = "SITUATION_CHANGE";  ///< a cause name
+  double max_age_s = 1.0;
+  int line = 0;
+};
+
 struct MissionStep {
   std::string name;  ///< empty: "step <n>"
   /// The robot it commands: its own `robot:`, else its branch's or
@@ -138,6 +157,8 @@ struct MissionStep {
   /// Keyed by cause name ("TIME_OUT", ..., "REFUSED") or "otherwise".
   std::map<std::string, MissionAction> on;
   std::optional<BeliefCondition> condition;
+  /// Conditions on the vehicle while its behavior runs (`when:`).
+  std::vector<VehicleCondition> when;
   google::protobuf::Struct remember;
   int line = 0;
   std::string path;  ///< in the document, e.g. "steps[2]" (error details)

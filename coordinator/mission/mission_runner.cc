@@ -3,6 +3,7 @@
 #include <google/protobuf/util/message_differencer.h>
 #include <google/protobuf/util/time_util.h>
 
+#include <cmath>
 #include <sstream>
 
 #include "absl/strings/numbers.h"
@@ -143,13 +144,14 @@ std::optional<Position> parseNode(const std::string& text) {
 
 MissionRunner::MissionRunner(MissionSpec spec, std::string mission_id, std::string robot_id,
                              std::string source, MissionActions& actions, BeliefStore& beliefs,
-                             OnChange on_change, const Clock* clock)
+                             OnChange on_change, Options options)
     : spec_(std::move(spec)),
       robot_(robot_id),
       actions_(actions),
       beliefs_(beliefs),
       on_change_(std::move(on_change)),
-      clock_(clock != nullptr ? *clock : steady_clock_) {
+      clock_(options.clock != nullptr ? *options.clock : steady_clock_),
+      vehicles_(options.vehicles) {
   status_.set_mission_id(std::move(mission_id));
   status_.set_name(spec_.name);
   status_.set_robot_id(std::move(robot_id));
@@ -163,14 +165,15 @@ MissionRunner::MissionRunner(MissionSpec spec, std::string mission_id, std::stri
 
 MissionRunner::MissionRunner(MissionSpec spec, const v1::MissionStatus& status,
                              MissionActions& actions, BeliefStore& beliefs, OnChange on_change,
-                             const Clock* clock)
+                             Options options)
     : spec_(std::move(spec)),
       robot_(status.robot_id()),
       actions_(actions),
       beliefs_(beliefs),
       on_change_(std::move(on_change)),
       status_(status),
-      clock_(clock != nullptr ? *clock : steady_clock_) {
+      clock_(options.clock != nullptr ? *options.clock : steady_clock_),
+      vehicles_(options.vehicles) {
   resuming_ = true;
   resume_from_.assign(status.steps().begin(), status.steps().end());
   pause_requested_ = status.state() == v1::MISSION_STATE_PAUSED;
@@ -598,6 +601,7 @@ MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
                                            FinishedActivation* finished, Track& t) {
   const std::string& robot = robotOf(step);
   bool paused_behavior = false;
+  std::map<std::string, TopicSeen> seen;  // the `when:` conditions' topics
   for (;;) {
     bool quit, abort, pause, stop_branch;
     {
@@ -629,6 +633,15 @@ MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
       *finished = *f;
       return Flow::kDone;
     }
+    if (!step.when.empty() && !pause) {
+      if (auto ended = vehicleConditionHolds(step, &seen)) {
+        // The condition ends the step: its behavior is deactivated (and its
+        // own finished event, INTERRUPTED, is not the step's cause).
+        (void)actions_.deactivate(robot, step.behavior);
+        *finished = *ended;
+        return Flow::kDone;
+      }
+    }
     if (auto r = recurrentFinished()) {
       (void)actions_.deactivate(robot, step.behavior);
       t.failure = *r;
@@ -636,6 +649,76 @@ MissionRunner::Flow MissionRunner::waitFor(const MissionStep& step,
       return Flow::kAbort;
     }
   }
+}
+
+std::optional<FinishedActivation> MissionRunner::vehicleConditionHolds(
+    const MissionStep& step, std::map<std::string, TopicSeen>* seen) {
+  const std::string& robot = robotOf(step);
+  const TimePoint now = clock_.now();
+  auto cause = [](const std::string& name) {
+    v1::TerminationCause parsed = v1::TERMINATION_CAUSE_UNSPECIFIED;
+    v1::TerminationCause_Parse("TERMINATION_CAUSE_" + name, &parsed);
+    return parsed;
+  };
+  // Whether the topic's sample is fresh: its stamp advanced within
+  // max_age_s (counted from the step's first look when there is none yet).
+  auto fresh = [&](const std::string& topic, const v1::Header* header, double max_age_s,
+                   FinishedActivation* stale) {
+    const int64_t stamp_ns =
+        header == nullptr ? -1 : header->stamp().seconds() * 1000000000LL + header->stamp().nanos();
+    auto [it, added] = seen->try_emplace(topic, TopicSeen{stamp_ns, now});
+    if (!added && stamp_ns != it->second.stamp_ns) it->second = {stamp_ns, now};
+    const double age_s = toSeconds(now - it->second.since);
+    if (age_s <= max_age_s) return true;
+    stale->cause = v1::TERMINATION_CAUSE_PROCESS_FAILURE;
+    stale->message = "condition on the vehicle: " + topic +
+                     (stamp_ns < 0 ? " has no sample" : " did not advance") + " for " +
+                     params::numberText(std::round(age_s * 100) / 100) + " s (limit " +
+                     params::numberText(max_age_s) + " s)";
+    return false;
+  };
+  for (const VehicleCondition& c : step.when) {
+    FinishedActivation ended;
+    if (vehicles_ == nullptr) {
+      ended.cause = v1::TERMINATION_CAUSE_PROCESS_FAILURE;
+      ended.message =
+          "condition on the vehicle: the coordinator reads no vehicle topics (no --channel)";
+      return ended;
+    }
+    if (c.kind == VehicleCondition::Kind::kBatteryBelow) {
+      const std::string topic = "robots/" + robot + "/flight_state";
+      absl::StatusOr<v1::FlightStatus> status = vehicles_->flightStatus(robot);
+      if (!fresh(topic, status.ok() ? &status->header() : nullptr, c.max_age_s, &ended)) {
+        return ended;
+      }
+      if (status.ok() && status->battery_ratio() < c.battery_ratio) {
+        ended.cause = cause(c.ends);
+        ended.message = "condition on the vehicle: battery " +
+                        params::numberText(std::round(status->battery_ratio() * 1000) / 1000) +
+                        " below " + params::numberText(c.battery_ratio);
+        return ended;
+      }
+    } else {
+      const std::string topic = "robots/" + robot + "/self_localization/pose";
+      absl::StatusOr<v1::PoseStamped> pose = vehicles_->poseEstimate(robot);
+      if (!fresh(topic, pose.ok() ? &pose->header() : nullptr, c.max_age_s, &ended)) return ended;
+      if (pose.ok()) {
+        const auto& p = pose->pose().position_m();
+        const double d =
+            std::hypot(p.x() - c.point_m[0], p.y() - c.point_m[1], p.z() - c.point_m[2]);
+        if (d < c.radius_m) {
+          ended.cause = cause(c.ends);
+          ended.message =
+              "condition on the vehicle: " + params::numberText(std::round(d * 100) / 100) +
+              " m from (" + params::numberText(c.point_m[0]) + ", " +
+              params::numberText(c.point_m[1]) + ", " + params::numberText(c.point_m[2]) +
+              "), within " + params::numberText(c.radius_m) + " m";
+          return ended;
+        }
+      }
+    }
+  }
+  return std::nullopt;
 }
 
 MissionRunner::Flow MissionRunner::runStep(const MissionStep& step, const Position& path,

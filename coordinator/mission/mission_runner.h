@@ -43,6 +43,8 @@
 #include "absl/synchronization/mutex.h"
 #include "behaviorlib/clock.h"
 #include "behaviorlib/v1/mission.pb.h"
+#include "behaviorlib/v1/platform.pb.h"
+#include "behaviorlib/v1/types.pb.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/mission/mission_file.h"
 
@@ -73,6 +75,18 @@ class MissionActions {
                                                           std::chrono::milliseconds timeout) = 0;
 };
 
+/// The robots' latest samples on the data channel, for the conditions on
+/// the vehicle that a step checks while it runs (`when:`).
+class VehicleReader {
+ public:
+  virtual ~VehicleReader() = default;
+  /// The newest FlightStatus on robots/{robot}/flight_state; NOT_FOUND
+  /// when there is none.
+  virtual absl::StatusOr<v1::FlightStatus> flightStatus(const std::string& robot) = 0;
+  /// The newest pose estimate on robots/{robot}/self_localization/pose.
+  virtual absl::StatusOr<v1::PoseStamped> poseEstimate(const std::string& robot) = 0;
+};
+
 /// One level of a step's position in a mission (MissionStepRecord.node).
 struct MissionNode {
   enum class Kind { kStep, kFallback, kCall, kIteration, kBranch };
@@ -92,22 +106,33 @@ std::string nodeText(const Position& position);
 /// nodeText's inverse; nullopt for text it does not make.
 std::optional<Position> parseNode(const std::string& text);
 
+/// What a MissionRunner reads besides its actions and beliefs.
+struct MissionRunnerOptions {
+  /// Measures the waits' limits and the vehicle conditions' staleness
+  /// (the vehicles' time; null: the host's steady clock).
+  const Clock* clock = nullptr;
+  /// Reads the vehicles' topics for `when:` conditions (null: a step with
+  /// conditions ends PROCESS_FAILURE; the manager refuses such a mission).
+  VehicleReader* vehicles = nullptr;
+};
+
 class MissionRunner {
  public:
   /// Receives the mission's status after every change (runner thread; the
   /// runner acts only after it returns).
   using OnChange = std::function<void(const v1::MissionStatus&)>;
 
+  using Options = MissionRunnerOptions;
+
   /// A new mission. `source` is the mission file's text (kept in the status
-  /// so that a restarted coordinator can parse it again).
-  /// `clock` measures the waits' time limits (the vehicles' time; null:
-  /// the host's steady clock); it must outlive the runner.
+  /// so that a restarted coordinator can parse it again). What `options`
+  /// points to must outlive the runner.
   MissionRunner(MissionSpec spec, std::string mission_id, std::string robot_id, std::string source,
                 MissionActions& actions, BeliefStore& beliefs, OnChange on_change,
-                const Clock* clock = nullptr);
+                Options options = {});
   /// A mission recorded as `status` (not finished), continued where it was.
   MissionRunner(MissionSpec spec, const v1::MissionStatus& status, MissionActions& actions,
-                BeliefStore& beliefs, OnChange on_change, const Clock* clock = nullptr);
+                BeliefStore& beliefs, OnChange on_change, Options options = {});
   /// Stops the thread without aborting the mission (it stays RUNNING in the
   /// journal, to be resumed by the next coordinator).
   ~MissionRunner();
@@ -197,6 +222,15 @@ class MissionRunner {
                                  Track& t);
   Flow waitFor(const MissionStep& step, const std::string& activation_id,
                FinishedActivation* finished, Track& t);
+  /// The step's `when:` conditions now: the cause and message of the first
+  /// that holds (or of a stale topic: PROCESS_FAILURE), else nullopt.
+  /// `seen` keeps, per topic, the last stamp and when it was first seen.
+  struct TopicSeen {
+    int64_t stamp_ns = -1;
+    TimePoint since;
+  };
+  std::optional<FinishedActivation> vehicleConditionHolds(const MissionStep& step,
+                                                          std::map<std::string, TopicSeen>* seen);
   Flow waitWhilePaused(const Track& t);
   void runSafety(const std::string& failure);
   void deactivateRecurrent();
@@ -257,6 +291,7 @@ class MissionRunner {
   bool resuming_ = false;
   SteadyClock steady_clock_;
   const Clock& clock_;  // the given clock, else steady_clock_
+  VehicleReader* const vehicles_;
   std::thread thread_;
 };
 

@@ -14,8 +14,10 @@
 
 #include "absl/status/status.h"
 #include "absl/synchronization/mutex.h"
+#include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/channel/sim_clock.h"
 #include "behaviorlib/clock.h"
+#include "behaviorlib/flight_common/topics.h"
 #include "behaviorlib/server_kit/server_runtime.h"
 #include "coordinator/api/blocking_pool.h"
 #include "coordinator/api/coordinator_service.h"
@@ -31,6 +33,36 @@
 namespace behaviorlib::coordinator {
 
 namespace {
+
+// The vehicles' latest samples, as the missions' `when:` conditions read
+// them: the broker's newest sample of each topic, asked when a condition is
+// evaluated (no subscription stays open).
+class ChannelVehicleReader final : public VehicleReader {
+ public:
+  explicit ChannelVehicleReader(const std::string& address) : channel_(address) {}
+  absl::StatusOr<v1::FlightStatus> flightStatus(const std::string& robot) override {
+    return latest<v1::FlightStatus>(flight::flightStateTopic(robot));
+  }
+  absl::StatusOr<v1::PoseStamped> poseEstimate(const std::string& robot) override {
+    return latest<v1::PoseStamped>(flight::poseEstimateTopic(robot));
+  }
+
+ private:
+  template <class T>
+  absl::StatusOr<T> latest(const std::string& topic) {
+    absl::StatusOr<v1::SubscribeResponse> sample =
+        channel_.getLatest(topic, std::chrono::milliseconds(500));
+    if (!sample.ok()) return sample.status();
+    T message;
+    if (!sample->sample().UnpackTo(&message)) {
+      return absl::InvalidArgumentError(topic + " does not carry " +
+                                        std::string(T::descriptor()->full_name()));
+    }
+    return message;
+  }
+
+  channel::ChannelClient channel_;
+};
 
 template <class D>
 std::chrono::milliseconds millis(D d) {
@@ -141,6 +173,8 @@ struct Coordinator::Parts {
   // missions' waits (declared before the missions: their runners read it
   // until they stop).
   std::unique_ptr<channel::SimClock> vehicle_clock;
+  // The vehicles' topics for the missions' `when:` conditions (--channel).
+  std::unique_ptr<ChannelVehicleReader> vehicle_reader;
   std::unique_ptr<MissionManager> missions;
   std::unique_ptr<SafetyController> safety;
   std::unique_ptr<CoordinatorService> service;
@@ -244,6 +278,10 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   if (!mission_files.ok()) return mission_files.status();
   mission_options.mission_files = std::move(*mission_files);
   mission_options.metrics = p->metrics.get();
+  if (!options.channel_address.empty()) {
+    p->vehicle_reader = std::make_unique<ChannelVehicleReader>(options.channel_address);
+    mission_options.vehicles = p->vehicle_reader.get();
+  }
   if (options.clock == "sim") {
     // The vehicles' time: the missions' waits and the safety policy's.
     p->vehicle_clock = std::make_unique<channel::SimClock>(options.channel_address);

@@ -54,6 +54,13 @@ constexpr char kSeed[] = "7";
 constexpr char kSelfLocalize[] = "SELF_LOCALIZE_WITH_GROUND_TRUTH";
 constexpr char kPid[] = "QUADROTOR_PID_MOTION_CONTROL";
 constexpr char kReckon[] = "ESTIMATE_POSITION_WITH_LINEAR_SPEED";
+// A mission's start: drone1 localized, landed by its safety step, settled.
+constexpr char kDemoPreamble[] =
+    "robot: drone1\n"
+    "recurrent: [{behavior: SELF_LOCALIZE_WITH_GROUND_TRUTH}]\n"
+    "safety: [{behavior: LAND}]\n"
+    "steps:\n"
+    "  - {name: settle, behavior: WAIT, parameters: {duration_s: 1.0}}\n";
 
 /// The behavior events of kRobot in the coordinator's WatchEvents, kept in
 /// order; waits look at the whole history, so the order of the waits does
@@ -218,14 +225,11 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
   }
 
   void startCoordinator(std::vector<std::string> extra) {
-    std::vector<std::string> args = {"--catalog",
-                                     kCatalog,
-                                     "--state-dir",
-                                     state_dir_,
-                                     "--mission-dir",
-                                     mission_dir_,
-                                     "--heartbeat-interval-s",
-                                     "0.25"};
+    std::vector<std::string> args = {"--catalog", kCatalog, "--state-dir", state_dir_,
+                                     "--mission-dir", mission_dir_, "--heartbeat-interval-s",
+                                     "0.25",
+                                     // The vehicles' topics, for the missions' `when:`.
+                                     "--channel", broker_.address()};
     args.insert(args.end(), extra.begin(), extra.end());
     coordinator_ = std::make_unique<support::ServerProcess>(BEHAVIORLIB_COORDINATOR_PATH, args);
     ASSERT_TRUE(coordinator_->start()) << coordinator_->error();
@@ -1577,6 +1581,82 @@ TEST_F(CoordinatorPlansMissionsTest, AMissionBranchesOnSituationChangeWhenTheBat
   }
   std::printf("battery drop while hovering: %s; fallback %s %s\n", causeOf(*hover_end).c_str(),
               fallback.behavior().c_str(), v1::TerminationCause_Name(fallback.cause()).c_str());
+}
+
+// `when:` conditions on the vehicle, read from its topics while a step runs:
+// a TAKE_OFF to 4 m ends GOAL_ACHIEVED as it passes 1.5 m (its condition,
+// not its goal), and a long WAIT ends SITUATION_CHANGE when the battery
+// drops below 0.5, which its fallback lands on. Neither behavior looks at
+// what its condition reads.
+TEST_F(CoordinatorPlansMissionsTest, ConditionsOnTheVehicleEndAStepWhileItRuns) {
+  // After the usual localization, safety step and settling WAIT:
+  const std::string settled = std::string(kDemoPreamble);
+  auto started = startMissionText(settled +
+                                      "  - name: take_off\n"
+                                      "    behavior: TAKE_OFF\n"
+                                      "    parameters: {altitude_m: 4.0}\n"
+                                      "    when:\n"
+                                      "      - {near: {point_m: [0, 0, 1.5], radius_m: 0.6}, "
+                                      "ends: GOAL_ACHIEVED}\n"
+                                      "    on: {REFUSED: {retry: 2}}\n"
+                                      "  - name: hold\n"
+                                      "    behavior: WAIT\n"
+                                      "    parameters: {duration_s: 600}\n"
+                                      "    when: [{battery_below: 0.5}]\n"
+                                      "    on:\n"
+                                      "      SITUATION_CHANGE: {fallback: [{name: "
+                                      "land_on_low_battery, behavior: LAND}]}\n",
+                                  "conditions-1");
+  ASSERT_TRUE(started.status.ok()) << describe(started.status);
+  MissionWatcher watcher(coordinator_->address(), "conditions-1");
+  // The hold activated: the take-off ended before it.
+  auto holding = watcher.waitFor(
+      [](const v1::MissionStatus& s) {
+        for (const auto& r : s.steps()) {
+          if (r.name() == "hold" && !r.activation_id().empty()) return true;
+        }
+        return false;
+      },
+      seconds(60));
+  ASSERT_TRUE(holding) << "the mission did not reach its hold";
+  const auto& take_off = holding->steps(1);
+  EXPECT_EQ(take_off.cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED) << json(take_off);
+  EXPECT_EQ(take_off.message().rfind("condition on the vehicle: ", 0), 0u) << take_off.message();
+  EXPECT_NE(take_off.message().find("from (0, 0, 1.5), within 0.6 m"), std::string::npos)
+      << take_off.message();
+  // Still below 4 m: the condition, not the goal, ended it.
+  auto simulator = v1::Simulator::NewStub(
+      grpc::CreateChannel(simulator_->address(), grpc::InsecureChannelCredentials()));
+  {
+    grpc::ClientContext context;
+    context.set_deadline(std::chrono::system_clock::now() + kCallTimeout);
+    v1::WatchStateRequest request;
+    request.add_robot_ids(kRobot);
+    auto reader = simulator->WatchState(&context, request);
+    v1::WatchStateResponse now;
+    ASSERT_TRUE(reader->Read(&now)) << "the vehicle's current state first";
+    EXPECT_LT(now.state().pose().position_m().z(), 3.0);
+    context.TryCancel();
+    (void)reader->Finish();
+  }
+
+  v1::InjectFailureRequest drop;
+  drop.set_robot_id(kRobot);
+  drop.set_component(v1::FAILURE_COMPONENT_BATTERY);
+  drop.set_type(v1::FAILURE_TYPE_DEGRADED);
+  drop.set_intensity(0.85);
+  auto injected = unary(*simulator, &v1::Simulator::Stub::InjectFailure, drop);
+  ASSERT_TRUE(injected.status.ok()) << describe(injected.status);
+  const auto last = watcher.waitEnd(seconds(60));
+  ASSERT_TRUE(last);
+  ASSERT_EQ(last->state(), v1::MISSION_STATE_SUCCEEDED) << json(*last);
+  ASSERT_EQ(last->steps_size(), 4) << json(*last);
+  const auto& hold = last->steps(2);
+  EXPECT_EQ(hold.cause(), v1::TERMINATION_CAUSE_SITUATION_CHANGE) << json(hold);
+  EXPECT_EQ(hold.message().rfind("condition on the vehicle: battery ", 0), 0u) << hold.message();
+  EXPECT_NE(hold.message().find(" below 0.5"), std::string::npos) << hold.message();
+  EXPECT_EQ(last->steps(3).name(), "land_on_low_battery");
+  EXPECT_EQ(last->steps(3).cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED) << json(last->steps(3));
 }
 
 // A mission branches on INTERRUPTED (its WAIT deactivated through the

@@ -111,7 +111,7 @@ INSTANTIATE_TEST_SUITE_P(
                    "steps[0].remember.bad key"},
         BadMission{
             "safety:\n  - behavior: LAND\n    on: {TIME_OUT: abort}\nsteps:\n  - behavior: A\n", 2,
-            "'on' and 'if' are for steps only", "safety[0].on"},
+            "'on', 'if' and 'when' are for steps only", "safety[0].on"},
         BadMission{"steps:\n  - behavior: A\n    on:\n      TIME_OUT: {fallback: []}\n", 4,
                    "fallback: empty", "steps[0].on.TIME_OUT.fallback"},
         BadMission{"steps: [\n", 2, "not valid YAML", ""},
@@ -137,6 +137,16 @@ INSTANTIATE_TEST_SUITE_P(
                    "steps[1].wait_for.step"},
         BadMission{"steps:\n  - wait_for: {belief: k, timeout_s: 5}\n", 2,
                    "exactly one of 'exists' and 'equals'", "steps[0].wait_for"},
+        // Conditions on the vehicle.
+        BadMission{"steps:\n  - behavior: A\n    when: [{battery_below: 1.5}]\n", 3,
+                   "battery_below: a number in [0, 1]", "steps[0].when[0].battery_below"},
+        BadMission{"steps:\n  - behavior: A\n    when: [{near: {point_m: [1, 2]}, radius_m: 1}]\n",
+                   3, "unknown key 'radius_m'", "steps[0].when[0].radius_m"},
+        BadMission{"steps:\n  - behavior: A\n    when: [{battery_below: 0.2, ends: ABORT}]\n", 3,
+                   "ends: 'ABORT' (GOAL_ACHIEVED, SITUATION_CHANGE", "steps[0].when[0].ends"},
+        BadMission{"steps:\n  - wait_for: {belief: k, exists: true, timeout_s: 5}\n    when: "
+                   "[{battery_below: 0.2}]\n",
+                   3, "'when' goes with a 'behavior'", "steps[0].when"},
         BadMission{"safety:\n  - wait_for: {belief: k, exists: true, timeout_s: 5}\n"
                    "steps:\n  - behavior: A\n",
                    2, "'parallel' and 'wait_for' are for steps only", "safety[0]"}));

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <array>
 #include <deque>
 #include <map>
 #include <set>
@@ -154,14 +155,15 @@ struct MissionRun {
   std::vector<v1::MissionStatus> changes;
   std::unique_ptr<MissionRunner> runner;
 
-  void start(const std::string& yaml, const std::string& id = "m1", const Clock* clock = nullptr) {
+  void start(const std::string& yaml, const std::string& id = "m1",
+             MissionRunner::Options options = {}) {
     runner = std::make_unique<MissionRunner>(
         mission(yaml), id, "drone1", yaml, actions, beliefs,
         [this](const v1::MissionStatus& s) {
           std::lock_guard lock(mutex);
           changes.push_back(s);
         },
-        clock);
+        options);
     runner->start();
   }
   v1::MissionStatus finish() {
@@ -850,7 +852,7 @@ TEST(MissionRunner, AWaitHoldsItsBranchUntilTheOtherRobotsStepAchievedOrItsTimeL
   FakeClock clock;
   MissionRun run;
   run.actions.hold("TAKE_OFF@drone2");
-  run.start(kWaits, "m1", &clock);
+  run.start(kWaits, "m1", MissionRunner::Options{.clock = &clock});
   ASSERT_TRUE(eventually([&] { return run.actions.count("activate TAKE_OFF") == 1; }));
   std::this_thread::sleep_for(milliseconds(200));
   EXPECT_EQ(run.actions.count("activate FLY"), 0) << "drone1 waits for drone2's take-off";
@@ -897,6 +899,110 @@ TEST(MissionRunner, AMissionResumedInsideAParallelStepActivatesNothingTwice) {
   EXPECT_EQ(resumed.status().state(), v1::MISSION_STATE_SUCCEEDED) << resumed.status().message();
   for (const char* b : {"TAKE_OFF", "TAKE_OFF@drone2", "FLY", "FLY@drone2"}) {
     EXPECT_EQ(actions.count(std::string("activate ") + b), 1) << b;
+  }
+}
+
+// `when:` conditions on the vehicle, read from its topics while the step
+// runs (a scripted reader stands for the data channel; time is a FakeClock).
+class ScriptedVehicle : public VehicleReader {
+ public:
+  void set(double battery, std::array<double, 3> position, int64_t stamp_s) {
+    std::lock_guard lock(mutex_);
+    battery_ = battery;
+    position_ = position;
+    stamp_s_ = stamp_s;
+  }
+  absl::StatusOr<v1::FlightStatus> flightStatus(const std::string&) override {
+    std::lock_guard lock(mutex_);
+    v1::FlightStatus status;
+    status.mutable_header()->mutable_stamp()->set_seconds(stamp_s_);
+    status.set_battery_ratio(battery_);
+    return status;
+  }
+  absl::StatusOr<v1::PoseStamped> poseEstimate(const std::string&) override {
+    std::lock_guard lock(mutex_);
+    v1::PoseStamped pose;
+    pose.mutable_header()->mutable_stamp()->set_seconds(stamp_s_);
+    pose.mutable_pose()->mutable_position_m()->set_x(position_[0]);
+    pose.mutable_pose()->mutable_position_m()->set_y(position_[1]);
+    pose.mutable_pose()->mutable_position_m()->set_z(position_[2]);
+    return pose;
+  }
+
+ private:
+  std::mutex mutex_;
+  double battery_ = 1.0;
+  std::array<double, 3> position_{};
+  int64_t stamp_s_ = 1;
+};
+
+constexpr const char* kWhen = R"(name: when
+safety:
+  - behavior: LAND
+steps:
+  - name: fly
+    behavior: FLY
+    when:
+      - battery_below: 0.3
+      - {near: {point_m: [5, 0, 1], radius_m: 0.5}, ends: GOAL_ACHIEVED}
+    on:
+      SITUATION_CHANGE: abort
+  - behavior: NEXT
+)";
+
+TEST(MissionRunner, AConditionOnTheVehicleEndsItsStepWhileItRuns) {
+  // Near the point: the step ends GOAL_ACHIEVED, its behavior deactivated.
+  {
+    FakeClock clock;
+    ScriptedVehicle vehicle;
+    MissionRun run;
+    run.actions.hold("FLY");
+    run.start(kWhen, "m1", MissionRunner::Options{.clock = &clock, .vehicles = &vehicle});
+    ASSERT_TRUE(eventually([&] { return run.actions.active("FLY"); }));
+    std::this_thread::sleep_for(milliseconds(150));
+    EXPECT_TRUE(run.actions.active("FLY")) << "far from the point, battery full";
+    vehicle.set(0.9, {4.8, 0.1, 1.0}, 2);
+    const v1::MissionStatus status = run.finish();
+    EXPECT_EQ(status.state(), v1::MISSION_STATE_SUCCEEDED) << status.message();
+    EXPECT_EQ(run.actions.count("deactivate FLY"), 1);
+    EXPECT_EQ(status.steps(0).cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+    EXPECT_EQ(status.steps(0).message(),
+              "condition on the vehicle: 0.22 m from (5, 0, 1), within 0.5 m");
+  }
+  // The battery low: SITUATION_CHANGE, which this step aborts on.
+  {
+    FakeClock clock;
+    ScriptedVehicle vehicle;
+    MissionRun run;
+    run.actions.hold("FLY");
+    run.start(kWhen, "m2", MissionRunner::Options{.clock = &clock, .vehicles = &vehicle});
+    ASSERT_TRUE(eventually([&] { return run.actions.active("FLY"); }));
+    vehicle.set(0.25, {0, 0, 1}, 2);
+    const v1::MissionStatus status = run.finish();
+    EXPECT_EQ(status.state(), v1::MISSION_STATE_FAILED);
+    EXPECT_EQ(status.steps(0).cause(), v1::TERMINATION_CAUSE_SITUATION_CHANGE);
+    EXPECT_EQ(status.steps(0).message(), "condition on the vehicle: battery 0.25 below 0.3");
+    EXPECT_EQ(run.actions.count("activate LAND"), 1) << "the safety steps ran";
+  }
+  // The topics stop: after max_age_s (1 s) of the clock's time the step
+  // ends PROCESS_FAILURE, not before.
+  {
+    FakeClock clock;
+    ScriptedVehicle vehicle;
+    MissionRun run;
+    run.actions.hold("FLY");
+    run.start(kWhen, "m3", MissionRunner::Options{.clock = &clock, .vehicles = &vehicle});
+    ASSERT_TRUE(eventually([&] { return run.actions.active("FLY"); }));
+    std::this_thread::sleep_for(milliseconds(150));
+    clock.advance(std::chrono::milliseconds(900));
+    std::this_thread::sleep_for(milliseconds(150));
+    EXPECT_TRUE(run.actions.active("FLY"));
+    clock.advance(std::chrono::milliseconds(200));
+    const v1::MissionStatus status = run.finish();
+    EXPECT_EQ(status.state(), v1::MISSION_STATE_FAILED);
+    EXPECT_EQ(status.steps(0).cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+    EXPECT_THAT(status.steps(0).message(),
+                HasSubstr("robots/drone1/flight_state did not advance for 1.1 s (limit 1 s)"));
   }
 }
 

@@ -7,6 +7,8 @@
 //   robots/{id}/ground_truth/pose       PoseStamped   simulator, 100 Hz (world frame)
 //   robots/{id}/ground_truth/twist      TwistStamped  simulator, 100 Hz (linear world,
 //                                                     angular body)
+//   robots/{id}/flight_state            FlightStatus  simulator (the platform's state,
+//                                                     lease and battery ratio)
 // Written by SELF_LOCALIZE_WITH_GROUND_TRUTH, read by the flight behaviors:
 //   robots/{id}/self_localization/pose  PoseStamped   the pose estimate (world frame)
 //   robots/{id}/self_localization/twist TwistStamped  the velocity estimate (linear
@@ -21,6 +23,9 @@ inline std::string groundTruthPoseTopic(const std::string& robot_id) {
 }
 inline std::string groundTruthTwistTopic(const std::string& robot_id) {
   return "robots/" + robot_id + "/ground_truth/twist";
+}
+inline std::string flightStateTopic(const std::string& robot_id) {
+  return "robots/" + robot_id + "/flight_state";
 }
 inline std::string poseEstimateTopic(const std::string& robot_id) {
   return "robots/" + robot_id + "/self_localization/pose";

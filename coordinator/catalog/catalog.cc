@@ -95,8 +95,8 @@ absl::StatusOr<Catalog> Catalog::parseTree(const YAML::Node& root, const std::st
     const std::string what = "behavior '" + b.name + "'";
     if (!entry.second.IsNull()) {
       const YAML::Node& body = entry.second;
-      if (auto s =
-              p.mapping(body, what, {"description", "provides", "requires", "holds", "defaults"});
+      if (auto s = p.mapping(
+              body, what, {"description", "provides", "requires", "holds", "defaults", "writes"});
           !s.ok()) {
         return s;
       }
@@ -116,6 +116,14 @@ absl::StatusOr<Catalog> Catalog::parseTree(const YAML::Node& root, const std::st
           }
         }
       }
+      if (const YAML::Node writes = body["writes"]) {
+        if (auto s = p.names(writes, what + " writes", &b.writes); !s.ok()) return s;
+        for (const auto& pattern : b.writes) {
+          if (auto problem = beliefPatternProblem(pattern)) {
+            return p.error(writes, cat(what, " writes '", pattern, "': ", *problem));
+          }
+        }
+      }
       if (const YAML::Node defaults = body["defaults"]) {
         if (!defaults.IsMap()) return p.error(defaults, what + " defaults: expected a mapping");
         google::protobuf::Value value;
@@ -127,6 +135,50 @@ absl::StatusOr<Catalog> Catalog::parseTree(const YAML::Node& root, const std::st
   }
   if (auto s = catalog.validate(); !s.ok()) return s;
   return catalog;
+}
+
+std::optional<std::string> beliefPatternProblem(const std::string& pattern) {
+  if (pattern.empty()) return "empty";
+  for (size_t at = pattern.find('{'); at != std::string::npos; at = pattern.find('{', at + 1)) {
+    const size_t end = pattern.find('}', at);
+    if (end == std::string::npos) return "a '{' without its '}'";
+    const std::string inside = pattern.substr(at + 1, end - at - 1);
+    if (inside != "robot" && (inside.rfind("parameter:", 0) != 0 || inside.size() == 10)) {
+      return "'{" + inside + "}' is neither {robot} nor {parameter:NAME}";
+    }
+  }
+  const size_t star = pattern.find('*');
+  if (star != std::string::npos && star != pattern.size() - 1) return "'*' only at the end";
+  return std::nullopt;
+}
+
+std::optional<std::string> instantiateBeliefPattern(const std::string& pattern,
+                                                    const std::string& robot,
+                                                    const google::protobuf::Struct& parameters) {
+  std::string out;
+  size_t i = 0;
+  while (i < pattern.size()) {
+    if (pattern[i] != '{') {
+      out += pattern[i++];
+      continue;
+    }
+    const size_t end = pattern.find('}', i);
+    if (end == std::string::npos) return std::nullopt;
+    const std::string inside = pattern.substr(i + 1, end - i - 1);
+    if (inside == "robot") {
+      out += robot;
+    } else {
+      const auto it = parameters.fields().find(inside.substr(10));
+      if (it == parameters.fields().end() || !it->second.has_string_value() ||
+          it->second.string_value().empty() ||
+          it->second.string_value().find("${") != std::string::npos) {
+        return std::nullopt;  // not given, or known only when the step starts
+      }
+      out += it->second.string_value();
+    }
+    i = end + 1;
+  }
+  return out;
 }
 
 std::string Catalog::where(int line) const { return cat(file_name_, ":", line, ": "); }

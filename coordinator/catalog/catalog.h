@@ -20,6 +20,8 @@
 //       requires: [self_localization, motion_control]
 //       holds: [motion_reference]
 //       defaults: {speed_m_s: 1.0}   # when a plan activates it as a requirement
+//     GENERATE_PATH_WITH_OCCUPANCY_GRID:
+//       writes: ["{parameter:belief_key}", "{robot}/path"]   # beliefs it may write
 //
 // Every problem is reported as "<file>:<line>: <what>: <problem>"
 // (INVALID_ARGUMENT): unknown keys, undeclared capabilities or resources, a
@@ -30,6 +32,7 @@
 #include <google/protobuf/struct.pb.h>
 
 #include <map>
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -51,8 +54,19 @@ struct CatalogBehavior {
   std::vector<std::string> requires_;  ///< capabilities
   std::vector<std::string> holds;      ///< exclusive resources
   google::protobuf::Struct defaults;   ///< parameters when a plan activates it as a requirement
-  int line = 0;                        ///< of the entry, for messages
+  /// The belief keys it may write: patterns with {robot}, {parameter:NAME}
+  /// (the step's literal string parameter) and a trailing '*' (any rest).
+  std::vector<std::string> writes;
+  int line = 0;  ///< of the entry, for messages
 };
+
+/// What is wrong with a `writes` pattern, or nullopt.
+std::optional<std::string> beliefPatternProblem(const std::string& pattern);
+/// `pattern` for a step on `robot` with `parameters`; nullopt when it names
+/// a parameter the step does not give as a literal string.
+std::optional<std::string> instantiateBeliefPattern(const std::string& pattern,
+                                                    const std::string& robot,
+                                                    const google::protobuf::Struct& parameters);
 
 /// A capability some behaviors provide and others require.
 struct Capability {

@@ -32,24 +32,33 @@ std::string newMissionId(const std::string& name) {
   return absl::StrCat(name.empty() ? "mission" : name, "-", suffix);
 }
 
+// Calls `visit` on every step of `steps`, and of their calls, loops,
+// branches and fallbacks.
+void forEachStep(const std::vector<MissionStep>& steps,
+                 const std::function<void(const MissionStep&)>& visit) {
+  for (const MissionStep& step : steps) {
+    visit(step);
+    forEachStep(step.body, visit);
+    if (step.parallel) {
+      for (const MissionBranch& b : step.parallel->branches) forEachStep(b.steps, visit);
+    }
+    for (const auto& [cause, action] : step.on) {
+      for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
+        forEachStep(a->fallback, visit);
+      }
+    }
+  }
+}
+
 // The behaviors of `steps` by robot (a step that names none: `robot`),
 // calls', loops' and branches' steps and fallbacks included.
 using RobotBehaviors = std::map<std::string, std::set<std::string>>;
 void collectBehaviors(const std::vector<MissionStep>& steps, const std::string& robot,
                       RobotBehaviors* out) {
-  for (const auto& step : steps) {
-    const std::string& on = step.robot.empty() ? robot : step.robot;
-    if (!step.behavior.empty()) (*out)[on].insert(step.behavior);
-    collectBehaviors(step.body, robot, out);
-    if (step.parallel) {
-      for (const auto& branch : step.parallel->branches) collectBehaviors(branch.steps, robot, out);
-    }
-    for (const auto& [cause, action] : step.on) {
-      for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
-        collectBehaviors(a->fallback, robot, out);
-      }
-    }
-  }
+  forEachStep(steps, [&](const MissionStep& step) {
+    if (!step.behavior.empty())
+      (*out)[step.robot.empty() ? robot : step.robot].insert(step.behavior);
+  });
 }
 
 // Whether the mission commands `robot` (its robot, or one of a fleet
@@ -335,31 +344,92 @@ MissionProblems MissionManager::problemsAgainstRegistry(const MissionSpec& spec,
     auto it = of_robot.find(behavior);
     return it == of_robot.end() ? nullptr : &it->second;
   });
+  unwrittenBeliefProblems(spec, robot_id, &problems);
   if (options_.vehicles == nullptr) {
     // `when:` reads the vehicles' topics, on the data channel.
-    std::function<void(const std::vector<MissionStep>&)> walk =
-        [&](const std::vector<MissionStep>& steps) {
-          for (const MissionStep& step : steps) {
-            if (!step.when.empty()) {
-              problems.add(step.file.empty() ? spec.file : step.file, step.when.front().line,
-                           step.path + ".when",
-                           "conditions on the vehicle need the coordinator's --channel (it reads "
-                           "no vehicle topics)");
-            }
-            walk(step.body);
-            if (step.parallel) {
-              for (const MissionBranch& b : step.parallel->branches) walk(b.steps);
-            }
-            for (const auto& [cause, action] : step.on) {
-              for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
-                walk(a->fallback);
-              }
-            }
-          }
-        };
-    walk(spec.steps);
+    forEachStep(spec.steps, [&](const MissionStep& step) {
+      if (step.when.empty()) return;
+      problems.add(step.file.empty() ? spec.file : step.file, step.when.front().line,
+                   step.path + ".when",
+                   "conditions on the vehicle need the coordinator's --channel (it reads no "
+                   "vehicle topics)");
+    });
   }
   return problems;
+}
+
+void MissionManager::unwrittenBeliefProblems(const MissionSpec& spec, const std::string& robot_id,
+                                             MissionProblems* problems) const {
+  // What the mission provides: the keys its steps remember, the beliefs its
+  // behaviors may write (their catalog entries' `writes`), and the beliefs
+  // it waits for (something outside it writes those).
+  std::set<std::string> exact;
+  std::vector<std::string> prefixes;
+  auto provide = [&](const std::string& key) {
+    const size_t open = key.find("${");
+    if (open != std::string::npos) {
+      prefixes.push_back(key.substr(0, open));  // a loop's item completes it
+    } else if (!key.empty() && key.back() == '*') {
+      prefixes.push_back(key.substr(0, key.size() - 1));
+    } else {
+      exact.insert(key);
+    }
+  };
+  const Catalog* catalog = fleet_.catalog();
+  const auto provided_by = [&](const MissionStep& step) {
+    const std::string& robot = step.robot.empty() ? robot_id : step.robot;
+    if (const CatalogBehavior* b =
+            catalog != nullptr && !step.behavior.empty() ? catalog->find(step.behavior) : nullptr) {
+      for (const std::string& pattern : b->writes) {
+        if (auto key = instantiateBeliefPattern(pattern, robot, step.parameters)) provide(*key);
+      }
+    }
+    for (const auto& [key, value] : step.remember.fields()) provide(key);
+    if (step.wait && step.wait->belief) provide(step.wait->belief->key);
+  };
+  for (const auto* list : {&spec.recurrent, &spec.steps, &spec.safety}) {
+    forEachStep(*list, provided_by);
+  }
+  auto known = [&](const std::string& key) {
+    if (exact.contains(key) || beliefs_.get(key).has_value()) return true;
+    for (const std::string& prefix : prefixes) {
+      if (key.rfind(prefix, 0) == 0) return true;
+    }
+    return false;
+  };
+  const auto check = [&](const MissionStep& step) {
+    std::vector<std::pair<std::string, std::string>> bound;  // key, field
+    auto bindings = [&](const google::protobuf::Struct& values, const std::string& field) {
+      for (const auto& [name, value] : values.fields()) {
+        (void)forEachString(value, [&](const std::string& text) {
+          if (text.find("${each.") != std::string::npos) return absl::OkStatus();
+          if (auto keys = BeliefStore::bindingsIn(text); keys.ok()) {
+            for (const std::string& key : *keys) bound.emplace_back(key, field + "." + name);
+          }
+          return absl::OkStatus();
+        });
+      }
+    };
+    bindings(step.parameters, step.path + ".parameters");
+    bindings(step.with, step.path + ".with");
+    bindings(step.remember, step.path + ".remember");
+    if (step.loop && !step.loop->belief.empty()) {
+      bound.emplace_back(step.loop->belief, step.path + ".for_each.in");
+    }
+    for (const auto& [key, field] : bound) {
+      // A step that runs only if the belief exists guards its own binding.
+      if (step.condition && step.condition->key == key) continue;
+      if (known(key)) continue;
+      const auto line_it = step.parameter_lines.find(field.substr(field.rfind('.') + 1));
+      problems->add(step.file.empty() ? spec.file : step.file,
+                    line_it == step.parameter_lines.end() ? step.line : line_it->second, field,
+                    absl::StrCat("${belief.", key, "}: belief '", key,
+                                 "' is not in memory, and no step of the mission writes it (its "
+                                 "`remember`, or a behavior whose catalog entry lists it under "
+                                 "`writes`) or waits for it"));
+    }
+  };
+  for (const auto* list : {&spec.recurrent, &spec.steps, &spec.safety}) forEachStep(*list, check);
 }
 
 absl::Status MissionManager::checkAgainstRegistry(const MissionSpec& spec,

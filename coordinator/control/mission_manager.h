@@ -156,6 +156,11 @@ class MissionManager {
   MissionProblems problemsAgainstRegistry(const MissionSpec& spec, const std::string& robot_id,
                                           std::string* unregistered) const;
   absl::Status checkAgainstRegistry(const MissionSpec& spec, const std::string& robot_id) const;
+  /// A problem for each binding to a belief that is not in memory, that no
+  /// step of the mission writes (its `remember`, or its behavior's catalog
+  /// `writes`) and that no step waits for.
+  void unwrittenBeliefProblems(const MissionSpec& spec, const std::string& robot_id,
+                               MissionProblems* problems) const;
   /// Each step's plan, in file order (v1::MissionStepPlan).
   void planSteps(const MissionSpec& spec, const std::string& robot_id,
                  v1::CheckMissionResponse* response) const;

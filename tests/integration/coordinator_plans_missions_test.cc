@@ -1583,6 +1583,49 @@ TEST_F(CoordinatorPlansMissionsTest, AMissionBranchesOnSituationChangeWhenTheBat
               fallback.behavior().c_str(), v1::TerminationCause_Name(fallback.cause()).c_str());
 }
 
+// A step bound to a belief that is not in memory, that no step of the mission
+// writes and that it does not wait for is a problem of the check (and of
+// StartMission) with its line and field; a `remember` of an earlier step, a
+// behavior's catalog `writes`, a wait_for or an `if` on the same belief
+// provide it.
+TEST_F(CoordinatorPlansMissionsTest, TheCheckFindsBindingsToBeliefsNothingWrites) {
+  auto check = [&](const std::string& steps) {
+    v1::CheckMissionRequest request;
+    request.set_text("name: bound\nrobot: drone1\nsteps:\n" + steps);
+    request.set_source_name("bound.yaml");
+    auto checked = unary(*stub_, &v1::Coordinator::Stub::CheckMission, request);
+    EXPECT_TRUE(checked.status.ok()) << describe(checked.status);
+    std::vector<std::string> problems;
+    for (const auto& p : checked.response.problems()) {
+      problems.push_back(p.field() + " " + p.description());
+    }
+    return problems;
+  };
+  const std::string wait_bound =
+      "  - behavior: WAIT\n"
+      "    parameters:\n"
+      "      duration_s: \"${belief.drone1/check_wait_s}\"\n";
+  const auto nothing = check(wait_bound);
+  ASSERT_EQ(nothing.size(), 1u);
+  EXPECT_EQ(nothing[0],
+            "steps[0].parameters.duration_s bound.yaml:6: ${belief.drone1/check_wait_s}: belief "
+            "'drone1/check_wait_s' is not in memory, and no step of the mission writes it (its "
+            "`remember`, or a behavior whose catalog entry lists it under `writes`) or waits for "
+            "it");
+  auto refused = startMissionText("name: bound\nrobot: drone1\nsteps:\n" + wait_bound);
+  EXPECT_EQ(refused.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT)
+      << describe(refused.status);
+  // Remembered by an earlier step; waited for; guarded by its own `if`.
+  EXPECT_TRUE(check("  - remember: {drone1/check_wait_s: 0.1}\n" + wait_bound).empty());
+  EXPECT_TRUE(check("  - wait_for: {belief: drone1/check_wait_s, exists: true, timeout_s: 5}\n" +
+                    wait_bound)
+                  .empty());
+  EXPECT_TRUE(check(wait_bound + "    if: {belief: drone1/check_wait_s, exists: true}\n").empty());
+  // In memory already.
+  ASSERT_TRUE(writeBelief("drone1/check_wait_s", "0.1").status.ok());
+  EXPECT_TRUE(check(wait_bound).empty());
+}
+
 // `when:` conditions on the vehicle, read from its topics while a step runs:
 // a TAKE_OFF to 4 m ends GOAL_ACHIEVED as it passes 1.5 m (its condition,
 // not its goal), and a long WAIT ends SITUATION_CHANGE when the battery

@@ -163,5 +163,37 @@ TEST(Catalog, AMissingFileIsNamed) {
   EXPECT_THAT(std::string(catalog.status().message()), HasSubstr("/nonexistent/catalog.yaml"));
 }
 
+// `writes`: the belief keys a behavior may write, as patterns of the step's
+// robot and literal string parameters, with a trailing '*'.
+TEST(Catalog, WritesArePatternsOfTheRobotAndTheStepsParameters) {
+  auto catalog = Catalog::parse(
+      "behaviors:\n"
+      "  PLAN:\n"
+      "    writes: [\"{parameter:belief_key}\", \"{robot}/path\", \"{robot}/plans/*\"]\n",
+      "c.yaml");
+  ASSERT_TRUE(catalog.ok()) << catalog.status();
+  const auto& writes = catalog->find("PLAN")->writes;
+  ASSERT_EQ(writes.size(), 3u);
+  google::protobuf::Struct given;
+  (*given.mutable_fields())["belief_key"].set_string_value("drone2/route");
+  EXPECT_EQ(instantiateBeliefPattern(writes[0], "drone2", given), "drone2/route");
+  EXPECT_EQ(instantiateBeliefPattern(writes[1], "drone2", given), "drone2/path");
+  EXPECT_EQ(instantiateBeliefPattern(writes[2], "drone2", given), "drone2/plans/*");
+  EXPECT_EQ(instantiateBeliefPattern(writes[0], "drone2", {}), std::nullopt) << "not given";
+  (*given.mutable_fields())["belief_key"].set_string_value("${belief.where}");
+  EXPECT_EQ(instantiateBeliefPattern(writes[0], "drone2", given), std::nullopt)
+      << "known only when the step starts";
+  for (const auto& [pattern, problem] :
+       std::vector<std::pair<std::string, std::string>>{{"{robot/path", "without its '}'"},
+                                                        {"{name}/x", "neither {robot}"},
+                                                        {"{parameter:}", "neither {robot}"},
+                                                        {"a*/b", "'*' only at the end"}}) {
+    auto bad = Catalog::parse("behaviors:\n  PLAN: {writes: [\"" + pattern + "\"]}\n", "c.yaml");
+    ASSERT_FALSE(bad.ok()) << pattern;
+    EXPECT_THAT(std::string(bad.status().message()), HasSubstr("c.yaml:2: "));
+    EXPECT_THAT(std::string(bad.status().message()), HasSubstr(problem));
+  }
+}
+
 }  // namespace
 }  // namespace behaviorlib::coordinator

@@ -400,8 +400,9 @@ void MissionManager::unwrittenBeliefProblems(const MissionSpec& spec, const std:
   const auto check = [&](const MissionStep& step) {
     std::vector<std::pair<std::string, std::string>> bound;  // key, field
     auto bindings = [&](const google::protobuf::Struct& values, const std::string& field) {
-      for (const auto& [name, value] : values.fields()) {
-        (void)forEachString(value, [&](const std::string& text) {
+      for (const auto& entry : values.fields()) {
+        const std::string& name = entry.first;  // (a lambda cannot capture a structured binding)
+        (void)forEachString(entry.second, [&](const std::string& text) {
           if (text.find("${each.") != std::string::npos) return absl::OkStatus();
           if (auto keys = BeliefStore::bindingsIn(text); keys.ok()) {
             for (const std::string& key : *keys) bound.emplace_back(key, field + "." + name);

@@ -74,6 +74,10 @@ class FleetMissionsTest : public ::testing::Test {
     char dir[] = "/tmp/fleet_missions_XXXXXX";
     ASSERT_NE(mkdtemp(dir), nullptr);
     state_dir_ = dir;
+    // The coordinator's --mission-dir, where missions import sub-missions.
+    char missions[] = "/tmp/fleet_mission_dir_XXXXXX";
+    ASSERT_NE(mkdtemp(missions), nullptr);
+    mission_dir_ = missions;
     ASSERT_TRUE(broker_.start()) << broker_.error();
     simulator_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_SIMULATOR_PATH,
@@ -104,12 +108,21 @@ class FleetMissionsTest : public ::testing::Test {
     }
     if (simulator_ && simulator_->running()) simulator_->kill();
     std::filesystem::remove_all(state_dir_);
+    std::filesystem::remove_all(mission_dir_);
   }
 
   void startCoordinator(std::vector<std::string> extra) {
-    std::vector<std::string> args = {"--catalog", kCatalog,          "--state-dir",
-                                     state_dir_,  "--clock",         "sim",
-                                     "--channel", broker_.address(), "--heartbeat-interval-s",
+    std::vector<std::string> args = {"--catalog",
+                                     kCatalog,
+                                     "--state-dir",
+                                     state_dir_,
+                                     "--mission-dir",
+                                     mission_dir_,
+                                     "--clock",
+                                     "sim",
+                                     "--channel",
+                                     broker_.address(),
+                                     "--heartbeat-interval-s",
                                      "0.25"};
     args.insert(args.end(), extra.begin(), extra.end());
     coordinator_ = std::make_unique<support::ServerProcess>(BEHAVIORLIB_COORDINATOR_PATH, args);
@@ -151,6 +164,7 @@ class FleetMissionsTest : public ::testing::Test {
   }
 
   std::string state_dir_;
+  std::string mission_dir_;
   support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
   std::unique_ptr<support::ServerProcess> simulator_;
   std::unique_ptr<support::ServerProcess> coordinator_;
@@ -278,6 +292,75 @@ TEST_F(FleetMissionsTest, AKilledCoordinatorResumesEveryBranchWithoutDoublingAct
   std::map<std::string, int> nodes;
   for (const auto& r : last->steps()) ++nodes[r.node()];
   for (const auto& [node, n] : nodes) EXPECT_EQ(n, 1) << node;
+}
+
+// kill -9 of the coordinator in the second iteration of a loop inside a
+// sub-mission imported from the mission directory, on drone2 of a fleet
+// mission; the restarted coordinator parses the imported file as journaled
+// (it is deleted from the directory meanwhile) and resumes at that
+// iteration: each iteration's behaviors activated once.
+TEST_F(FleetMissionsTest, AKilledCoordinatorResumesALoopOfAnImportedSubMission) {
+  {
+    std::ofstream out(mission_dir_ + "/laps.yaml");
+    out << "submissions:\n"
+           "  laps:\n"
+           "    parameters: {hold_s: {type: number, min: 0.1, max: 60}}\n"
+           "    steps:\n"
+           "      - repeat: {times: 3}\n"
+           "        steps:\n"
+           "          - {name: lap, behavior: WAIT, parameters: {duration_s: "
+           "\"${param.hold_s}\"}}\n";
+  }
+  auto started = start(
+      "name: laps_on_drone2\n"
+      "robot: drone1\n"
+      "import: [laps.yaml]\n"
+      "steps:\n"
+      "  - {robot: drone2, call: laps, with: {hold_s: 8}}\n",
+      "laps-crash");
+  ASSERT_TRUE(started.status.ok()) << describe(started.status);
+  std::string second_id;
+  {
+    MissionWatcher watcher(coordinator_->address(), "laps-crash");
+    auto second = watcher.waitFor(
+        [](const v1::MissionStatus& s) {
+          for (const auto& r : s.steps()) {
+            if (r.node().find("/iteration/1/") != std::string::npos && !r.activation_id().empty()) {
+              return true;
+            }
+          }
+          return false;
+        },
+        seconds(60));
+    ASSERT_TRUE(second) << "the loop did not reach its second iteration";
+    for (const auto& r : second->steps()) {
+      if (r.node().find("/iteration/1/") != std::string::npos) second_id = r.activation_id();
+    }
+  }
+  const int port = coordinator_->grpcPort();
+  coordinator_->kill();
+  std::filesystem::remove(mission_dir_ + "/laps.yaml");  // the journal has its text
+  ASSERT_NO_FATAL_FAILURE(startCoordinator({"--listen", "127.0.0.1:" + std::to_string(port)}));
+  ASSERT_NO_FATAL_FAILURE(waitForSystems());
+  MissionWatcher watcher(coordinator_->address(), "laps-crash");
+  const auto last = watcher.waitEnd(seconds(90));
+  ASSERT_TRUE(last);
+  ASSERT_EQ(last->state(), v1::MISSION_STATE_SUCCEEDED) << json(*last);
+  std::vector<std::string> laps;
+  for (const auto& r : last->steps()) {
+    if (r.name() != "lap") continue;
+    laps.push_back(r.node());
+    EXPECT_EQ(r.robot_id(), "drone2");
+    if (r.node().find("/iteration/1/") != std::string::npos) {
+      EXPECT_EQ(r.activation_id(), second_id) << "the same activation, not a new one";
+    }
+  }
+  EXPECT_EQ(laps, (std::vector<std::string>{
+                      "steps/0/attempt/1/call/steps/0/attempt/1/iteration/0/steps/0",
+                      "steps/0/attempt/1/call/steps/0/attempt/1/iteration/1/steps/0",
+                      "steps/0/attempt/1/call/steps/0/attempt/1/iteration/2/steps/0"}));
+  EXPECT_EQ(activations("drone2").at("WAIT"), 3) << "each iteration's WAIT once";
+  EXPECT_EQ(activations("drone1").count("WAIT"), 0u);
 }
 
 // The check before flight looks up each step on its own robot: a robot with

@@ -828,6 +828,25 @@ TEST(MissionRunner, AnAbortedFleetMissionRunsEachRobotsSafetySteps) {
   EXPECT_EQ(both.actions.count("activate LAND@drone2"), 1);
 }
 
+// Pause and Resume reach every running branch: each robot's behavior.
+TEST(MissionRunner, PauseAndResumeReachEveryBranch) {
+  MissionRun run;
+  ASSERT_TRUE(flyBoth(run));
+  ASSERT_TRUE(run.runner->pause().ok());
+  ASSERT_TRUE(eventually([&] {
+    return run.actions.count("pause FLY") == 1 && run.actions.count("pause FLY@drone2") == 1;
+  }));
+  EXPECT_EQ(run.runner->status().state(), v1::MISSION_STATE_PAUSED);
+  ASSERT_TRUE(run.runner->resume().ok());
+  ASSERT_TRUE(eventually([&] {
+    return run.actions.count("resume FLY") == 1 && run.actions.count("resume FLY@drone2") == 1;
+  }));
+  EXPECT_EQ(run.runner->status().state(), v1::MISSION_STATE_RUNNING);
+  run.actions.finish("FLY", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  run.actions.finish("FLY@drone2", v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  EXPECT_EQ(run.finish().state(), v1::MISSION_STATE_SUCCEEDED);
+}
+
 // wait_for: a synchronisation point on another branch's step (by name) or a
 // belief, bounded by a time limit on the injected clock.
 constexpr const char* kWaits = R"(name: waits

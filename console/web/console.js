@@ -154,6 +154,150 @@ function addEvent(fleetEvent) {
   while (body.rows.length > MAX_EVENTS) body.deleteRow(body.rows.length - 1);
 }
 
+// What a mission step record runs: its behavior, "call NAME", its loop
+// ("repeat 3 times"), "parallel, all of 2 branches" or "wait for ...".
+function recordWhat(r) {
+  if (!r) return "";
+  if (r.behavior) return r.behavior;
+  if (r.call) return "call " + r.call;
+  if (r.loop) return r.loop;
+  if (r.parallel) return "parallel, " + r.parallel;
+  if (r.wait_for) return "wait for " + r.wait_for;
+  return "";
+}
+
+// A record's node split at "/" ("steps/2/attempt/1/call/steps/0"); from its
+// path (steps, then fallback lists) when it has no node.
+function nodeParts(r) {
+  if (r.node) return r.node.split("/");
+  const path = r.path || [];
+  if (!path.length) return [];
+  const parts = ["steps", String(path[0])];
+  for (const i of path.slice(1)) parts.push("fallback", String(i));
+  return parts;
+}
+
+// Within one position, a step's attempts (and their calls, iterations and
+// branches) come before its fallback.
+const NODE_WORDS = ["steps", "attempt", "call", "iteration", "branch", "fallback"];
+
+// The key that orders records depth-first in mission order: the node part by
+// part (numbers as numbers), then the record's attempt, so that a call's
+// attempt 1 and its steps come before its attempt 2.
+function nodeKey(parts, attempt) {
+  return [...parts, "attempt", String(attempt || 0)].map((p) =>
+    (/^\d+$/.test(p) ? [1, Number(p)] : [0, NODE_WORDS.indexOf(p)]));
+}
+
+function compareKeys(a, b) {
+  for (let i = 0; i < Math.min(a.length, b.length); ++i) {
+    if (a[i][0] !== b[i][0]) return a[i][0] - b[i][0];
+    if (a[i][1] !== b[i][1]) return a[i][1] - b[i][1];
+  }
+  return a.length - b.length;
+}
+
+// The groups a record's node passes through, outermost first: a fallback
+// list, a loop's iteration, a parallel step's branch (with the robot of its
+// first record). `depth` is that of the records inside the group.
+function nodeGroups(parts, robot) {
+  const groups = [];
+  let lists = 0;  // "steps" and "fallback" parts so far
+  for (let i = 0; i < parts.length; ++i) {
+    const part = parts[i];
+    if (part === "steps" || part === "fallback") ++lists;
+    if (part === "fallback") {
+      groups.push({ key: parts.slice(0, i + 1).join("/"), label: "fallback", depth: lists - 1 });
+    } else if (part === "attempt" && (parts[i + 2] === "iteration" || parts[i + 2] === "branch")) {
+      let label = parts[i + 2] + " " + parts[i + 3];
+      if (parts[i + 2] === "branch" && robot) label += " (" + robot + ")";
+      if (Number(parts[i + 1]) > 1) label += ", attempt " + parts[i + 1];
+      groups.push({ key: parts.slice(0, i + 4).join("/"), label, depth: lists });
+    }
+  }
+  return groups;
+}
+
+// A mission's records as the rows of a tree: depth-first by node (a parallel
+// step's branches one after the other, though their records interleave), each
+// record at its depth (0 for the mission's own steps, 1 inside a call, an
+// iteration, a branch or a fallback, and so on), a group's row before its
+// first record.
+function missionTree(status) {
+  const records = (status.steps || []).map((record, index) => {
+    const parts = nodeParts(record);
+    const lists = parts.filter((p) => p === "steps" || p === "fallback").length;
+    return { record, index, parts, depth: Math.max(0, lists - 1),
+             key: nodeKey(parts, record.attempt) };
+  });
+  records.sort((a, b) => compareKeys(a.key, b.key) || a.index - b.index);
+  const rows = [];
+  let open = [];
+  for (const r of records) {
+    const groups = nodeGroups(r.parts, r.record.robot_id);
+    let same = 0;
+    while (same < groups.length && same < open.length && groups[same].key === open[same].key) {
+      ++same;
+    }
+    for (const g of groups.slice(same)) rows.push({ group: true, ...g });
+    open = groups;
+    rows.push({ group: false, record: r.record, node: r.parts.join("/"), depth: r.depth,
+                position: r.parts[r.parts.length - 1] || "" });
+  }
+  return rows;
+}
+
+// The mission whose tree is shown: the one clicked, else the newest running
+// (or paused) one, else the newest.
+let selectedMission = null;
+
+function renderTree(sorted) {
+  const shown = missions.get(selectedMission) ||
+    sorted.find((m) => /RUNNING|PAUSED/.test(m.state || "")) || sorted[0];
+  const table = document.getElementById("mission-tree");
+  const body = table.querySelector("tbody");
+  body.replaceChildren();
+  table.hidden = !shown;
+  document.getElementById("mission-tree-title").textContent = shown
+    ? "Steps of " + (shown.name || shown.mission_id) + " (" + shown.mission_id + ")" : "";
+  if (!shown) return;
+  table.dataset.mission = shown.mission_id;
+  const indent = (levels) => (0.5 + 0.8 * Math.max(0, levels)) + "em";
+  for (const item of missionTree(shown)) {
+    const row = body.insertRow();
+    row.dataset.depth = item.depth;
+    if (item.group) {
+      // The group's row, half way between its parent and its records.
+      row.className = "group";
+      row.dataset.group = item.key;
+      const label = cell(row, item.label, "label");
+      label.colSpan = 6;
+      label.style.paddingLeft = indent(2 * item.depth - 1);
+      continue;
+    }
+    const r = item.record;
+    row.className = "record";
+    row.dataset.node = item.node;
+    const label = cell(row, "", "label");
+    label.style.paddingLeft = indent(2 * item.depth);
+    label.title = item.node;
+    const name = document.createElement("span");
+    name.className = "name";
+    name.textContent = r.name || "step " + item.position;
+    const what = document.createElement("span");
+    what.className = "what";
+    what.textContent = recordWhat(r);
+    label.append(name, " ", what);
+    cell(row, r.robot_id, "robot");
+    cell(row, r.attempt || "", "attempt");
+    cell(row, shortState(r.state, "MISSION_STEP_STATE_"), "state");
+    const cause = r.cause === "TERMINATION_CAUSE_UNSPECIFIED" ? ""
+      : shortState(r.cause, "TERMINATION_CAUSE_");
+    cell(row, cause, cause ? "cause cause-" + cause : "cause");
+    cell(row, r.message, "message");
+  }
+}
+
 function renderMissions() {
   if (deferred) return;
   const body = document.querySelector("#missions tbody");
@@ -163,13 +307,21 @@ function renderMissions() {
   for (const m of sorted) {
     const row = body.insertRow();
     row.dataset.mission = m.mission_id;
+    // A click shows its records as a tree (renderTree).
+    row.className = "selectable" + (m.mission_id === selectedMission ? " selected" : "");
+    row.onclick = () => {
+      selectedMission = m.mission_id;
+      renderMissions();
+    };
     const state = shortState(m.state, "MISSION_STATE_");
     const last = m.steps.length ? m.steps[m.steps.length - 1] : null;
     cell(row, m.name || m.mission_id);
-    cell(row, m.robot_id);
+    // A fleet mission's robots, robot_id first.
+    const robots = m.robot_ids || [];
+    cell(row, robots.length > 1 ? robots.join(",") : m.robot_id, "robot");
     cell(row, state, "state");
     // The step it is at, and where in the mission's tree (its node).
-    const step = cell(row, last ? last.behavior || "call " + last.call : "", "step");
+    const step = cell(row, recordWhat(last), "step");
     if (last && last.node) step.title = last.node;
     cell(row, m.steps.length, "steps");
     const controls = cell(row, "");
@@ -183,6 +335,7 @@ function renderMissions() {
       controls.appendChild(button);
     }
   }
+  renderTree(sorted);
 }
 
 // The world under the vehicles (GET /api/world): what stands at MAP_HEIGHT_M,

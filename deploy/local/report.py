@@ -215,13 +215,115 @@ def _findings(robot, findings, world_markers, samples_by_robot):
 
 # --- markdown ------------------------------------------------------------------
 
+# Within one position, a step's attempts (and their calls, iterations and
+# branches) come before its fallback.
+_NODE_WORDS = ("steps", "attempt", "call", "iteration", "branch", "fallback")
+
+
+def _node_parts(record):
+    """A step record's node split at "/" ("steps/2/attempt/1/call/steps/0");
+    from its path (steps, then fallback lists) when it has no node."""
+    if record.get("node"):
+        return record["node"].split("/")
+    path = [str(i) for i in record.get("path", [])]
+    return (["steps", path[0]] + [p for i in path[1:] for p in ("fallback", i)]) if path else []
+
+
+def _node_key(record):
+    """Orders records depth-first in mission order: the node part by part
+    (numbers as numbers), then the record's attempt, so that a call's attempt 1
+    and its steps come before its attempt 2, and a parallel step's branches
+    one after the other."""
+    key = []
+    for part in _node_parts(record) + ["attempt", str(record.get("attempt", 0) or 0)]:
+        if part.isdigit():
+            key.append((1, int(part)))
+        else:
+            key.append((0, _NODE_WORDS.index(part) if part in _NODE_WORDS else len(_NODE_WORDS)))
+    return key
+
+
+def _node_depth(parts):
+    """0 for the mission's own steps, 1 inside a call, a loop's iteration, a
+    parallel step's branch or a fallback, and so on."""
+    return max(0, sum(1 for p in parts if p in ("steps", "fallback")) - 1)
+
+
+def _node_group(parts, robot):
+    """The innermost group a record is in: "fallback", "iteration i",
+    "branch b (robot)" (with ", attempt a" from the second attempt of the
+    step that holds it), "call" (only from its second attempt); "" at the
+    top."""
+    for i in range(len(parts) - 1, -1, -1):
+        if parts[i] == "fallback":
+            return "fallback"
+        if parts[i] == "attempt" and i + 2 < len(parts):
+            kind = parts[i + 2]
+            label = kind if kind == "call" else f"{kind} {parts[i + 3]}"
+            if kind == "branch" and robot:
+                label += f" ({robot})"
+            if parts[i + 1] != "1":
+                label += f", attempt {parts[i + 1]}"
+            return "" if label == "call" else label
+    return ""
+
+
+def _record_what(record):
+    """What a step record runs: its behavior, "call NAME", its loop ("repeat
+    3 times"), "parallel, all of 2 branches" or "wait for ..."."""
+    if record.get("behavior"):
+        return record["behavior"]
+    if record.get("call"):
+        return f"call {record['call']}"
+    if record.get("loop"):
+        return record["loop"]
+    if record.get("parallel"):
+        return f"parallel, {record['parallel']}"
+    if record.get("wait_for"):
+        return f"wait for {record['wait_for']}"
+    return ""
+
+
+def mission_tree(mission):
+    """The mission's step records as a tree: (record, depth, label) in
+    depth-first mission order (records are stored in the order they were
+    created, which interleaves parallel branches); the label is the step's
+    name (or "step <n>"), after the group it is in (iteration, branch,
+    fallback) when it is not at the top."""
+    rows = sorted(((_node_key(r), i, r) for i, r in enumerate(mission.get("steps", []))),
+                  key=lambda row: (row[0], row[1]))
+    tree = []
+    for _, _, record in rows:
+        parts = _node_parts(record)
+        name = record.get("name") or (f"step {parts[-1]}" if parts else "step")
+        group = _node_group(parts, record.get("robot_id", ""))
+        tree.append((record, _node_depth(parts), f"{group} · {name}" if group else name))
+    return tree
+
+
+def _cell(text):
+    """Text for a markdown table's cell."""
+    return str(text).replace("|", "\\|").replace("\n", " ")
+
+
 def _steps_md(mission, h):
+    """The mission's step records as a tree (mission_tree): each step
+    indented by its depth, with its node; the robot of each for a fleet
+    mission."""
+    fleet = len(mission.get("robot_ids", [])) > 1
     lines = ["", f"{h} Mission steps", "",
-             "| step | behavior | attempt | state | cause | message |", "|---|---|---|---|---|---|"]
-    for r in mission.get("steps", []):
-        lines.append(f"| {r.get('name', '')} | {r.get('behavior', '')} | {r.get('attempt', 1)} | "
+             "Depth-first in mission order; a call's, a loop iteration's, a parallel branch's "
+             "and a fallback's steps indented (↳) under the step that runs them.", "",
+             "| step | behavior | node | " + ("robot | " if fleet else "")
+             + "attempt | state | cause | message |",
+             "|---|---|---|" + ("---|" if fleet else "") + "---|---|---|---|"]
+    for r, depth, label in mission_tree(mission):
+        indent = "\u00a0\u00a0\u00a0\u00a0" * (depth - 1) + "↳ " if depth else ""
+        robot = f"{r.get('robot_id', '')} | " if fleet else ""
+        lines.append(f"| {indent}{_cell(label)} | {_cell(_record_what(r))} | "
+                     f"{'/'.join(_node_parts(r))} | {robot}{r.get('attempt', 1)} | "
                      f"{r.get('state', '').replace('MISSION_STEP_STATE_', '')} | "
-                     f"{short_cause(r.get('cause'))} | {r.get('message', '')} |")
+                     f"{short_cause(r.get('cause'))} | {_cell(r.get('message', ''))} |")
     return lines
 
 

@@ -7,13 +7,21 @@
 // It fails (exit 1, the reason on stderr) unless, in order:
 // - the page loads and the coordinator's systems appear, UP;
 // - the mission started from the page's form advances step by step;
+// - its tree of step records shows its loop's iterations, their records one
+//   level deeper than the mission's steps, each with its state and cause, as
+//   the mission goes on;
 // - a terminated behavior shows its cause (TAKE_OFF, GOAL_ACHIEVED);
 // - the vehicle's marker moves on the map, over the world's walls and the
 //   OctoMap's occupied voxels;
-// - pressing "Emergency land" lands the vehicle (its flight state LANDED);
+// - pressing "Emergency land" lands the vehicle (its flight state LANDED),
+//   and the mission's tree shows its hover step INTERRUPTED;
 // - the flight's recording (the launcher's --record) opens in the page, and
 //   scrubbing through it shows the flight again: fewer events at its start
 //   than at its end, TAKE_OFF's GOAL_ACHIEVED, the vehicle at two places at least;
+// - a fleet mission's status given to the page (its parallel branches'
+//   records interleaved, a call retried) is drawn as a tree: depth-first in
+//   mission order, each branch under its header with its robot, a call's
+//   steps under its attempt, and the missions table names both robots;
 // - and no console error or uncaught exception happened on the way.
 // Each wait is a bound for what must happen, never a measure of speed.
 "use strict";
@@ -125,17 +133,63 @@ async function main() {
                                              document.querySelectorAll("#map rect.cell").length]);
     log(`the map shows ${drawn[0]} walls of the world and ${drawn[1]} occupied voxels`);
 
-    // The hover step: the vehicle is in the air, and stays there.
+    // The hover step (steps/3): the vehicle is in the air, and stays there.
     await page.waitForFunction(() => {
       const row = document.querySelector("#missions tbody tr");
-      return row && Number(row.querySelector(".steps").textContent) >= 4 &&
-        row.querySelector(".step").textContent === "WAIT";
+      return row && Number(row.querySelector(".steps").textContent) >= 6 &&
+        row.querySelector(".step").textContent === "WAIT" &&
+        row.querySelector(".step").title === "steps/3";
     }, { timeout: WAIT_MS });
     const hovering = await stepsOf();
     if (!(hovering.steps > first.steps)) {
       throw new Error(`the mission's steps did not advance: ${JSON.stringify([first, hovering])}`);
     }
     log(`mission advanced to ${JSON.stringify(hovering)}`);
+
+    // The mission's tree (the row clicked): the loop `settle` at depth 0, each
+    // iteration's header and its WAIT at depth 1, indented further, then the
+    // mission's other steps at depth 0, the hover step still running. Each
+    // record was drawn RUNNING first: FINISHED shows the tree follows them.
+    await page.$eval("#missions tbody tr td", (td) => td.click());
+    const treeOf = () => [...document.querySelectorAll("#mission-tree tbody tr")].map((row) => ({
+      kind: row.className, depth: Number(row.dataset.depth),
+      at: row.dataset.node || row.dataset.group,
+      label: row.querySelector(".label").textContent,
+      state: row.querySelector(".state") ? row.querySelector(".state").textContent : "",
+      cause: row.querySelector(".cause") ? row.querySelector(".cause").textContent : "",
+      indent: parseFloat(getComputedStyle(row.querySelector(".label")).paddingLeft),
+    }));
+    await page.waitForFunction((hover) => {
+      const row = document.querySelector('#mission-tree tr[data-node="steps/3"]');
+      return row && row.querySelector(".state").textContent === hover;
+    }, { timeout: WAIT_MS }, "RUNNING");
+    const tree = await page.evaluate(treeOf);
+    const shape = tree.map((r) => `${r.kind} ${r.depth} ${r.at} ${r.label} ${r.state} ${r.cause}`);
+    const loopIn = "steps/0/attempt/1/iteration/";
+    const expected = [
+      "record 0 steps/0 settle repeat 2 times FINISHED GOAL_ACHIEVED",
+      `group 1 ${loopIn}0 iteration 0  `,
+      `record 1 ${loopIn}0/steps/0 step 0 WAIT FINISHED GOAL_ACHIEVED`,
+      `group 1 ${loopIn}1 iteration 1  `,
+      `record 1 ${loopIn}1/steps/0 step 0 WAIT FINISHED GOAL_ACHIEVED`,
+    ];
+    if (JSON.stringify(shape.slice(0, expected.length)) !== JSON.stringify(expected)) {
+      throw new Error(`the mission's tree starts:\n${shape.join("\n")}`);
+    }
+    const rest = tree.slice(expected.length);
+    if (!rest.every((r) => r.kind === "record" && r.depth === 0) ||
+        rest[0].at !== "steps/1" || rest[rest.length - 1].at !== "steps/3" ||
+        !rest[rest.length - 1].label.endsWith("WAIT")) {
+      throw new Error(`the mission's tree goes on:\n${shape.join("\n")}`);
+    }
+    if (tree.filter((r) => r.kind === "record").length !== hovering.steps) {
+      throw new Error(`the tree does not show the ${hovering.steps} records:\n${shape.join("\n")}`);
+    }
+    if (!(tree[0].indent < tree[1].indent && tree[1].indent < tree[2].indent &&
+          tree[2].indent === tree[4].indent && tree[5].indent === tree[0].indent)) {
+      throw new Error(`the tree's indents: ${tree.map((r) => r.indent)}`);
+    }
+    log(`the mission's tree: ${shape.length} rows, the loop's WAITs at depth 1`);
     const flying = await page.$eval(`#vehicles tr[data-robot="${robot}"] .flight-state`,
       (cell) => cell.textContent);
     if (flying === "LANDED") throw new Error("the vehicle is not in the air before the landing");
@@ -154,6 +208,14 @@ async function main() {
     const error = await page.$eval("#error", (p) => p.textContent);
     if (error) throw new Error(`the page shows an error: ${error}`);
     log(`emergency land pressed in flight (${flying}): the vehicle LANDED`);
+    // The landing stood the mission down: its tree shows the hover step
+    // (RUNNING before) ended, interrupted.
+    await page.waitForFunction(() => {
+      const row = document.querySelector('#mission-tree tr[data-node="steps/3"]');
+      return row && row.querySelector(".state").textContent === "FINISHED" &&
+        row.querySelector(".cause").textContent === "INTERRUPTED";
+    }, { timeout: WAIT_MS });
+    log("the tree shows the hover step INTERRUPTED");
 
     await page.screenshot({ path: screenshot });
     log(`screenshot: ${screenshot}`);
@@ -193,6 +255,69 @@ async function main() {
     if (places.size < 2) {
       throw new Error(`the vehicle does not move in the recording: ${[...places]}`);
     }
+
+    // A fleet mission's status as the coordinator writes it (records in the
+    // order they were created: the branches interleave; the call `hop` failed
+    // its attempt 1 and ran again), given to the page as the feed gives one:
+    // the tree puts each branch's records together, in mission order.
+    const fleet = await page.evaluate(() => {
+      const run = "MISSION_STEP_STATE_RUNNING";
+      const done = "MISSION_STEP_STATE_FINISHED";
+      const ok = "TERMINATION_CAUSE_GOAL_ACHIEVED";
+      const b0 = "steps/1/attempt/1/branch/0/steps/";
+      const b1 = "steps/1/attempt/1/branch/1/steps/";
+      const record = (node, robot, fields) => ({ node, robot_id: robot, attempt: 1, name: "",
+        behavior: "", call: "", loop: "", parallel: "", wait_for: "", state: done,
+        cause: ok, message: "", ...fields });
+      onMission({ mission_id: "fleet-tree", name: "fleet_tree", robot_id: "drone1",
+        robot_ids: ["drone1", "drone2"], state: "MISSION_STATE_RUNNING",
+        start_time: "2100-01-01T00:00:00Z", steps: [
+          record("steps/0", "drone1", { name: "settle", behavior: "WAIT" }),
+          record("steps/1", "drone1", { name: "both", parallel: "all of 2 branches",
+                                        state: run, cause: "" }),
+          record(b0 + "0", "drone1", { behavior: "TAKE_OFF" }),
+          record(b1 + "0", "drone2", { behavior: "TAKE_OFF" }),
+          record(b0 + "1", "drone1", { name: "hop", call: "hop",
+                                       cause: "TERMINATION_CAUSE_TIME_OUT" }),
+          record(b1 + "1", "drone2", { name: "meet", wait_for: "step 'hop' achieved",
+                                       state: run, cause: "" }),
+          record(b0 + "1/attempt/1/call/steps/0", "drone1", { behavior: "GO_TO",
+            cause: "TERMINATION_CAUSE_TIME_OUT" }),
+          record(b0 + "1", "drone1", { name: "hop", call: "hop", attempt: 2, state: run,
+                                       cause: "" }),
+          record(b0 + "1/attempt/2/call/steps/0", "drone1", { behavior: "GO_TO", state: run,
+                                                             cause: "" }),
+        ] });
+      document.querySelector('#missions tr[data-mission="fleet-tree"] td').click();
+      return {
+        robots: document.querySelector('#missions tr[data-mission="fleet-tree"] .robot')
+          .textContent,
+        tree: [...document.querySelectorAll("#mission-tree tbody tr")].map((row) =>
+          `${row.dataset.depth} ${row.querySelector(".label").textContent}` +
+          (row.dataset.node ? ` ${row.querySelector(".robot").textContent} ` +
+           `${row.querySelector(".attempt").textContent} ` +
+           `${row.querySelector(".cause").textContent}` : "")),
+      };
+    });
+    const fleetTree = [
+      "0 settle WAIT drone1 1 GOAL_ACHIEVED",
+      "0 both parallel, all of 2 branches drone1 1 ",
+      "1 branch 0 (drone1)",
+      "1 step 0 TAKE_OFF drone1 1 GOAL_ACHIEVED",
+      "1 hop call hop drone1 1 TIME_OUT",
+      "2 step 0 GO_TO drone1 1 TIME_OUT",
+      "1 hop call hop drone1 2 ",
+      "2 step 0 GO_TO drone1 1 ",
+      "1 branch 1 (drone2)",
+      "1 step 0 TAKE_OFF drone2 1 GOAL_ACHIEVED",
+      "1 meet wait for step 'hop' achieved drone2 1 ",
+    ];
+    if (fleet.robots !== "drone1,drone2" ||
+        JSON.stringify(fleet.tree) !== JSON.stringify(fleetTree)) {
+      throw new Error(`the fleet mission's row names ${fleet.robots}, its tree:\n` +
+        fleet.tree.join("\n"));
+    }
+    log(`a fleet mission's tree: ${fleet.tree.length} rows, its branches apart`);
   } catch (error) {
     // What the page showed when it failed, for the log.
     const pages = await browser.pages();

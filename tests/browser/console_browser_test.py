@@ -7,9 +7,11 @@ mission flies.
         --work-dir build/tests/browser/npm
 
 The page must load without a console error, show the systems, advance the
-mission started from its form step by step, show a terminated behavior's
-cause, move the vehicle's marker, and land the vehicle when "Emergency land"
-is pressed. The screenshot is saved in the run directory, beside the logs,
+mission started from its form step by step, show its step records as a tree
+(its loop's iterations nested, updated as the mission goes on, and a fleet
+mission's interleaved branches apart), show a terminated behavior's cause,
+move the vehicle's marker, and land the vehicle when "Emergency land" is
+pressed. The screenshot is saved in the run directory, beside the logs,
 and copied to the work directory's parent (build/tests/browser/console.png).
 
 Exits 77 (skipped) when chromium or npm is not installed, or the npm

@@ -99,6 +99,11 @@ void runSteps(const std::vector<MissionStep>& steps, int depth) {
     activate(step, resolved.ok() ? *resolved : step.parameters);
     (void)beliefs().resolve(step.remember);
     for (const auto& [cause, action] : step.on) runAction(action, depth);
+    // A call's or a loop's steps, and a parallel step's branches.
+    runSteps(step.body, depth + 1);
+    if (step.parallel) {
+      for (const auto& branch : step.parallel->branches) runSteps(branch.steps, depth + 1);
+    }
   }
 }
 
@@ -114,7 +119,9 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   }
   const auto& descriptions = fuzz::behaviorDescriptions();
   (void)behaviorlib::coordinator::checkMission(
-      *mission, [&](const std::string& behavior) -> const v1::BehaviorDescription* {
+      *mission,
+      [&](const std::string& /*robot*/,
+          const std::string& behavior) -> const v1::BehaviorDescription* {
         const auto it = descriptions.find(behavior);
         return it == descriptions.end() ? nullptr : &it->second;
       });

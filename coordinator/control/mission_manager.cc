@@ -32,24 +32,6 @@ std::string newMissionId(const std::string& name) {
   return absl::StrCat(name.empty() ? "mission" : name, "-", suffix);
 }
 
-// Calls `visit` on every step of `steps`, and of their calls, loops,
-// branches and fallbacks.
-void forEachStep(const std::vector<MissionStep>& steps,
-                 const std::function<void(const MissionStep&)>& visit) {
-  for (const MissionStep& step : steps) {
-    visit(step);
-    forEachStep(step.body, visit);
-    if (step.parallel) {
-      for (const MissionBranch& b : step.parallel->branches) forEachStep(b.steps, visit);
-    }
-    for (const auto& [cause, action] : step.on) {
-      for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
-        forEachStep(a->fallback, visit);
-      }
-    }
-  }
-}
-
 // The behaviors of `steps` by robot (a step that names none: `robot`),
 // calls', loops' and branches' steps and fallbacks included.
 using RobotBehaviors = std::map<std::string, std::set<std::string>>;

@@ -851,7 +851,6 @@ class MissionParser {
       const YAML::Node b = branches[i];
       const std::string what = cat(label, " branch ", i);
       MissionBranch branch;
-      branch.line = lineOf(b);
       if (b.IsMap() && b["steps"] && !b["for_each"] && !b["repeat"]) {
         if (auto s = r_->mapping(b, what, {"name", "robot", "steps"}); !s.ok()) return s;
         if (b["name"]) {
@@ -1061,30 +1060,17 @@ void checkParameters(const MissionSpec& mission, const MissionStep& step,
   }
 }
 
-void checkSteps(const MissionSpec& mission, const std::vector<MissionStep>& steps,
-                const BehaviorLookup& lookup, MissionProblems* problems) {
-  for (const auto& step : steps) {
-    if (!step.behavior.empty()) {
-      if (const v1::BehaviorDescription* d = lookup(step.robot, step.behavior)) {
-        checkParameters(mission, step, *d, problems);
-      } else {
-        const std::string& robot = step.robot.empty() ? mission.robot_id : step.robot;
-        problems->add(fileOf(mission, step), step.line, step.path + ".behavior",
-                      cat("behavior ", step.behavior, " is not hosted by any registered system",
-                          robot.empty() ? "" : " of robot '" + robot + "'"));
-      }
-    }
-    checkSteps(mission, step.body, lookup, problems);
-    if (step.parallel) {
-      for (const MissionBranch& branch : step.parallel->branches) {
-        checkSteps(mission, branch.steps, lookup, problems);
-      }
-    }
-    for (const auto& [cause, action] : step.on) {
-      for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
-        checkSteps(mission, a->fallback, lookup, problems);
-      }
-    }
+// The registered-behavior checks of one step (forEachStep visits them all).
+void checkStep(const MissionSpec& mission, const MissionStep& step, const BehaviorLookup& lookup,
+               MissionProblems* problems) {
+  if (step.behavior.empty()) return;
+  if (const v1::BehaviorDescription* d = lookup(step.robot, step.behavior)) {
+    checkParameters(mission, step, *d, problems);
+  } else {
+    const std::string& robot = step.robot.empty() ? mission.robot_id : step.robot;
+    problems->add(fileOf(mission, step), step.line, step.path + ".behavior",
+                  cat("behavior ", step.behavior, " is not hosted by any registered system",
+                      robot.empty() ? "" : " of robot '" + robot + "'"));
   }
 }
 
@@ -1104,6 +1090,22 @@ absl::StatusOr<MissionSpec> parseMission(const std::string& text, const std::str
   if (!guarded.ok()) return errors::withReason(guarded, v1::MISSION_INVALID);
   if (!mission.ok()) return errors::withReason(mission.status(), v1::MISSION_INVALID);
   return mission;
+}
+
+void forEachStep(const std::vector<MissionStep>& steps,
+                 const std::function<void(const MissionStep&)>& visit) {
+  for (const MissionStep& step : steps) {
+    visit(step);
+    forEachStep(step.body, visit);
+    if (step.parallel) {
+      for (const MissionBranch& b : step.parallel->branches) forEachStep(b.steps, visit);
+    }
+    for (const auto& [cause, action] : step.on) {
+      for (const MissionAction* a = &action; a != nullptr; a = a->then.get()) {
+        forEachStep(a->fallback, visit);
+      }
+    }
+  }
 }
 
 std::vector<std::string> missionRobots(const MissionSpec& mission, const std::string& robot_id) {
@@ -1183,7 +1185,8 @@ absl::Status MissionProblems::status() const {
 MissionProblems checkMissionProblems(const MissionSpec& mission, const BehaviorLookup& lookup) {
   MissionProblems problems;
   for (const auto* list : {&mission.recurrent, &mission.steps, &mission.safety}) {
-    checkSteps(mission, *list, lookup, &problems);
+    forEachStep(*list,
+                [&](const MissionStep& step) { checkStep(mission, step, lookup, &problems); });
   }
   return problems;
 }

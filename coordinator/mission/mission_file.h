@@ -93,7 +93,6 @@ struct MissionLoop {
 struct MissionBranch {
   std::string name;
   std::vector<MissionStep> steps;
-  int line = 0;
 };
 
 /// Branches that run at once. `all`: it ends GOAL_ACHIEVED when every branch
@@ -201,6 +200,11 @@ struct MissionSpec {
 /// The robots a mission commands when started for `robot_id` (the file's
 /// or the request's): `robot_id` first, then the others its steps name.
 std::vector<std::string> missionRobots(const MissionSpec& mission, const std::string& robot_id);
+
+/// Calls `visit` on every step of `steps`, and of their calls, loops,
+/// parallel branches and fallbacks (depth-first, in file order).
+void forEachStep(const std::vector<MissionStep>& steps,
+                 const std::function<void(const MissionStep&)>& visit);
 
 /// Reads a file that a mission imports (confined to the mission directory).
 using ImportReader = std::function<absl::StatusOr<std::string>(const std::string& path)>;

@@ -83,6 +83,9 @@ ABSL_FLAG(int, max_beliefs, static_cast<int>(kDefaults.belief_limits.max_beliefs
 ABSL_FLAG(int, max_belief_bytes, static_cast<int>(kDefaults.belief_limits.max_value_bytes),
           "largest value of one belief, in bytes (serialized)");
 
+ABSL_FLAG(int, max_vehicle_watches, static_cast<int>(kDefaults.max_vehicle_watches),
+          "WatchVehicle streams open at once, each a data-channel subscription (one caller "
+          "may hold a quarter of them)");
 ABSL_FLAG(int, max_ended_missions, static_cast<int>(kDefaults.max_ended_missions),
           "ended missions kept for GetMission and ListMissions (the most recent)");
 ABSL_FLAG(int64_t, max_ended_mission_age_s, kDefaults.max_ended_mission_age.count(),
@@ -145,6 +148,8 @@ int main(int argc, char** argv) {
   options.mission_dir = absl::GetFlag(FLAGS_mission_dir);
   options.journal_compact_bytes = static_cast<uint64_t>(absl::GetFlag(FLAGS_journal_compact_bytes));
   options.max_ended_missions = static_cast<size_t>(absl::GetFlag(FLAGS_max_ended_missions));
+  options.max_vehicle_watches =
+      static_cast<size_t>(std::max(0, absl::GetFlag(FLAGS_max_vehicle_watches)));
   options.max_ended_mission_age =
       std::chrono::seconds(absl::GetFlag(FLAGS_max_ended_mission_age_s));
   // Negative values become huge and are refused by validate().

@@ -17,6 +17,7 @@
 #include <chrono>
 #include <functional>
 #include <map>
+#include <memory>
 #include <set>
 #include <string>
 #include <string_view>
@@ -38,6 +39,8 @@ class BlockingPool;
 class FleetControl;
 class MissionManager;
 class SafetyController;
+class VehicleStreamReactor;
+class VehicleTelemetry;
 
 struct CoordinatorServiceOptions {
   /// Told to systems at registration: how often to send Heartbeat.
@@ -53,6 +56,9 @@ struct CoordinatorServiceOptions {
   MissionManager* missions = nullptr;
   /// EmergencyLand and Kill; null: they answer FAILED_PRECONDITION.
   SafetyController* safety = nullptr;
+  /// GetVehicleSample and WatchVehicle; null: they answer
+  /// FAILED_PRECONDITION (the coordinator has no --channel).
+  VehicleTelemetry* telemetry = nullptr;
 };
 
 // WatchEvents is a raw method: its events are written from their stored
@@ -132,6 +138,11 @@ class CoordinatorService final
   grpc::ServerUnaryReactor* Kill(grpc::CallbackServerContext* context,
                                  const v1::SafetyActionRequest* request,
                                  v1::SafetyActionResponse* response) override;
+  grpc::ServerUnaryReactor* GetVehicleSample(grpc::CallbackServerContext* context,
+                                             const v1::GetVehicleSampleRequest* request,
+                                             v1::GetVehicleSampleResponse* response) override;
+  grpc::ServerWriteReactor<v1::WatchVehicleResponse>* WatchVehicle(
+      grpc::CallbackServerContext* context, const v1::WatchVehicleRequest* request) override;
   grpc::ServerUnaryReactor* ActivateBehavior(grpc::CallbackServerContext* context,
                                              const v1::ActivateFleetBehaviorRequest* request,
                                              v1::ActivateFleetBehaviorResponse* response) override;
@@ -159,6 +170,7 @@ class CoordinatorService final
   friend class FleetStreamReactor;
   friend class MissionStreamReactor;
   friend class BeliefStreamReactor;
+  friend class VehicleStreamReactor;
   void removeStream(FleetStreamReactor* stream);
   /// PERMISSION_DENIED when the caller is bound to another robot than the
   /// mission's (RobotScope); the mission lookup's error; else OK.
@@ -171,6 +183,12 @@ class CoordinatorService final
   /// addShutdownHook returns false (and keeps nothing) once it has run.
   uint64_t newHookId();
   bool addShutdownHook(uint64_t id, std::function<void()> hook);
+  /// For a QueuedStream: ends it with UNAVAILABLE (SHUTTING_DOWN) and
+  /// `message` when the streams are shut down (hook `id`). False, with the
+  /// stream ended already, when they are shut down by now.
+  template <class Stream>
+  bool endOnShutdown(uint64_t id, const std::shared_ptr<typename Stream::Core>& core,
+                     std::string message);
   void removeShutdownHook(uint64_t id);
 
   Registry& registry_;

@@ -1,5 +1,6 @@
-// The coordinator's blocking calls and its mission, belief-watch and safety
-// RPCs (the rest of CoordinatorService is in coordinator_service.cc).
+// The coordinator's blocking calls and its mission, belief-watch, safety and
+// vehicle-telemetry RPCs (the rest of CoordinatorService is in
+// coordinator_service.cc).
 
 #include <deque>
 #include <limits>
@@ -16,10 +17,12 @@
 #include "behaviorlib/server_kit/reactor_order.h"
 #include "coordinator/api/blocking_pool.h"
 #include "coordinator/api/coordinator_service.h"
+#include "coordinator/api/queued_stream.h"
 #include "coordinator/belief/belief_store.h"
 #include "coordinator/control/fleet_control.h"
 #include "coordinator/control/mission_manager.h"
 #include "coordinator/safety/safety.h"
+#include "coordinator/telemetry/vehicle_telemetry.h"
 
 namespace behaviorlib::coordinator {
 
@@ -49,104 +52,28 @@ bool missionEnded(const v1::MissionStatus& status) {
   return status.has_end_time() || status.state() == v1::MISSION_STATE_SUCCEEDED;
 }
 
-// A server stream fed from other threads: messages are queued and written
-// one at a time; end() finishes once the queue is written. The queue and
-// the reactor's liveness live in a shared Core, so that a producer holding
-// the core never touches a reactor that is gone.
-template <class Response>
-class QueuedStream : public server_kit::Ordered<grpc::ServerWriteReactor<Response>> {
- public:
-  struct Core {
-    absl::Mutex mutex;
-    QueuedStream* stream ABSL_GUARDED_BY(mutex) = nullptr;  // null once the call is done
-  };
-
-  QueuedStream() : core_(std::make_shared<Core>()) { core_->stream = this; }
-
-  std::shared_ptr<Core> core() const { return core_; }
-
-  /// Queues `message`; with `last`, finishes OK after it. Call with
-  /// core()->mutex held and core()->stream non-null.
-  void pushLocked(Response message, bool last) ABSL_EXCLUSIVE_LOCKS_REQUIRED(core_->mutex) {
-    if (ending_) return;
-    queue_.push_back(std::move(message));
-    if (last) end_status_ = grpc::Status::OK, ending_ = true;
-    if (!writing_) writeNextLocked();
-  }
-  /// Finishes with `status` once the queue is written (core mutex held).
-  void endLocked(const grpc::Status& status) ABSL_EXCLUSIVE_LOCKS_REQUIRED(core_->mutex) {
-    if (ending_) return;
-    ending_ = true;
-    end_status_ = status;
-    if (!writing_) writeNextLocked();
-  }
-  /// For a producer that holds core()->mutex and reached this stream through
-  /// core()->stream: tells the thread-safety analysis, which cannot see that
-  /// it is this stream's core mutex, that it is held (and checks it).
-  void assertLocked() const ABSL_ASSERT_EXCLUSIVE_LOCK(core_->mutex) { core_->mutex.AssertHeld(); }
-
-  void OnWriteDone(bool ok) override {
-    this->ordered();
-    absl::MutexLock lock(&core_->mutex);
-    writing_ = false;
-    if (!ok) {
-      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "stream broken"));
-      return;
-    }
-    writeNextLocked();
-  }
-  void OnCancel() override {
-    this->ordered();
-    absl::MutexLock lock(&core_->mutex);
-    cancelled_ = true;
-    if (!writing_) finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
-  }
-  void OnDone() override {
-    this->ordered();
-    {
-      absl::MutexLock lock(&core_->mutex);
-      core_->stream = nullptr;
-    }
-    onDone();
-    delete this;
-  }
-
- protected:
-  virtual void onDone() {}
-
- private:
-  void writeNextLocked() ABSL_EXCLUSIVE_LOCKS_REQUIRED(core_->mutex) {
-    if (finished_) return;
-    if (cancelled_) {
-      finishLocked(grpc::Status(grpc::StatusCode::CANCELLED, "cancelled by client"));
-      return;
-    }
-    if (!queue_.empty()) {
-      current_ = std::move(queue_.front());
-      queue_.pop_front();
-      writing_ = true;
-      this->StartWrite(&current_);
-      return;
-    }
-    if (ending_) finishLocked(end_status_);
-  }
-  void finishLocked(const grpc::Status& status) ABSL_EXCLUSIVE_LOCKS_REQUIRED(core_->mutex) {
-    if (finished_) return;
-    finished_ = true;
-    this->Finish(status);
-  }
-
-  std::shared_ptr<Core> core_;
-  std::deque<Response> queue_ ABSL_GUARDED_BY(core_->mutex);
-  Response current_ ABSL_GUARDED_BY(core_->mutex);
-  bool writing_ ABSL_GUARDED_BY(core_->mutex) = false;
-  bool finished_ ABSL_GUARDED_BY(core_->mutex) = false;
-  bool cancelled_ ABSL_GUARDED_BY(core_->mutex) = false;
-  bool ending_ ABSL_GUARDED_BY(core_->mutex) = false;
-  grpc::Status end_status_ ABSL_GUARDED_BY(core_->mutex);
-};
-
 }  // namespace
+
+template <class Stream>
+bool CoordinatorService::endOnShutdown(uint64_t id,
+                                       const std::shared_ptr<typename Stream::Core>& core,
+                                       std::string message) {
+  const bool added = addShutdownHook(id, [core, message = std::move(message)] {
+    absl::MutexLock lock(&core->mutex);
+    if (core->stream != nullptr) {
+      auto* stream = static_cast<Stream*>(core->stream);
+      stream->assertLocked();
+      stream->endLocked(shuttingDown(message));
+    }
+  });
+  if (!added) {
+    absl::MutexLock lock(&core->mutex);
+    auto* stream = static_cast<Stream*>(core->stream);
+    stream->assertLocked();
+    stream->endLocked(shuttingDown("the coordinator is shutting down"));
+  }
+  return added;
+}
 
 // WatchMission: the mission's status now, then after every change, until it
 // ends.
@@ -176,19 +103,8 @@ class MissionStreamReactor final : public QueuedStream<v1::WatchMissionResponse>
       return;
     }
     token_ = *token;
-    const bool added = service_->addShutdownHook(hook_, [core] {
-      absl::MutexLock lock(&core->mutex);
-      if (core->stream != nullptr) {
-        auto* stream = static_cast<MissionStreamReactor*>(core->stream);
-        stream->assertLocked();
-        stream->endLocked(
-            shuttingDown("the coordinator is shutting down; watch the mission again"));
-      }
-    });
-    if (!added) {
-      absl::MutexLock lock(&core->mutex);
-      endLocked(shuttingDown("the coordinator is shutting down"));
-    }
+    service_->endOnShutdown<MissionStreamReactor>(
+        hook_, core, "the coordinator is shutting down; watch the mission again");
   }
 
  private:
@@ -215,20 +131,9 @@ class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> 
       endLocked(notServed("beliefs", "belief memory", "started without it"));
       return;
     }
-    const bool added = service_->addShutdownHook(hook_, [core] {
-      absl::MutexLock lock(&core->mutex);
-      if (core->stream != nullptr) {
-        auto* stream = static_cast<BeliefStreamReactor*>(core->stream);
-        stream->assertLocked();
-        stream->endLocked(
-            shuttingDown("the coordinator is shutting down; resume with since_version"));
-      }
-    });
-    if (!added) {
-      absl::MutexLock lock(&core->mutex);
-      endLocked(shuttingDown("the coordinator is shutting down"));
+    if (!service_->endOnShutdown<BeliefStreamReactor>(
+            hook_, core, "the coordinator is shutting down; resume with since_version"))
       return;
-    }
     thread_ = std::thread([this, core, beliefs, prefix = request.prefix(),
                            since = request.since_version()]() mutable {
       // since_version 0: the current beliefs first (no tombstones).
@@ -271,6 +176,92 @@ class BeliefStreamReactor final : public QueuedStream<v1::WatchBeliefsResponse> 
   std::atomic<bool> stop_{false};
   std::thread thread_;
 };
+
+// WatchVehicle: a vehicle's samples, from a broker subscription of its own
+// (rate-limited by the broker); a slow reader gets the newest few.
+class VehicleStreamReactor final : public QueuedStream<v1::WatchVehicleResponse> {
+ public:
+  // Unsent samples kept for a slow reader; older ones are dropped.
+  static constexpr size_t kMaxQueued = 8;
+
+  VehicleStreamReactor(CoordinatorService* service, const grpc::CallbackServerContext& context,
+                       const v1::WatchVehicleRequest& request)
+      : service_(service), hook_(service->newHookId()) {
+    auto core = this->core();
+    VehicleTelemetry* telemetry = service_->options_.telemetry;
+    {
+      absl::MutexLock lock(&core->mutex);
+      boundQueueLocked(kMaxQueued);
+    }
+    if (telemetry == nullptr) {
+      absl::MutexLock lock(&core->mutex);
+      endLocked(notServed("telemetry", "the vehicles' telemetry", "started without --channel"));
+      return;
+    }
+    if (!service_->endOnShutdown<VehicleStreamReactor>(
+            hook_, core, "the coordinator is shutting down; watch the vehicle again"))
+      return;
+    auto watch =
+        telemetry->watch(callerKey(context), request, [core](v1::WatchVehicleResponse message) {
+          absl::MutexLock lock(&core->mutex);
+          if (core->stream == nullptr) return;
+          auto* stream = static_cast<VehicleStreamReactor*>(core->stream);
+          stream->assertLocked();
+          message.set_dropped_count(message.dropped_count() + stream->droppedLocked());
+          stream->pushLocked(std::move(message), false);
+        });
+    if (!watch.ok()) {
+      absl::MutexLock lock(&core->mutex);
+      endLocked(errors::toGrpc(watch.status()));
+      return;
+    }
+    watch_ = *std::move(watch);
+  }
+
+ private:
+  // Whom the per-caller bound counts: the authenticated identity, else the
+  // peer's address without its port.
+  static std::string callerKey(const grpc::CallbackServerContext& context) {
+    if (auto caller = server_kit::callerOf(context); caller && !caller->identity.empty()) {
+      return caller->identity;
+    }
+    std::string peer = context.peer();
+    if (const size_t colon = peer.rfind(':'); colon != std::string::npos && colon > 5) {
+      peer.resize(colon);
+    }
+    return peer;
+  }
+  void onDone() override {
+    watch_.reset();  // the subscription's reader is joined before the slot is freed
+    service_->removeShutdownHook(hook_);
+  }
+
+  CoordinatorService* service_;
+  uint64_t hook_;
+  std::unique_ptr<VehicleTelemetry::Watch> watch_;
+};
+
+grpc::ServerWriteReactor<v1::WatchVehicleResponse>* CoordinatorService::WatchVehicle(
+    grpc::CallbackServerContext* context, const v1::WatchVehicleRequest* request) {
+  return new VehicleStreamReactor(this, *context, *request);
+}
+
+grpc::ServerUnaryReactor* CoordinatorService::GetVehicleSample(
+    grpc::CallbackServerContext* context, const v1::GetVehicleSampleRequest* request,
+    v1::GetVehicleSampleResponse* response) {
+  VehicleTelemetry* telemetry = options_.telemetry;
+  if (telemetry == nullptr) {
+    return finishWith(
+        context, notServed("telemetry", "the vehicles' telemetry", "started without --channel"));
+  }
+  // The broker read may wait (a gated topic): off the callback threads.
+  return runBlocking(context, [telemetry, request, response] {
+    auto sample = telemetry->latest(request->robot_id(), request->kind(), request->max_age_s());
+    if (!sample.ok()) return errors::toGrpc(sample.status());
+    *response->mutable_sample() = *std::move(sample);
+    return grpc::Status::OK;
+  });
+}
 
 grpc::ServerUnaryReactor* CoordinatorService::runBlocking(grpc::CallbackServerContext* context,
                                                           std::function<grpc::Status()> work) {

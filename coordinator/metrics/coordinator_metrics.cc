@@ -62,7 +62,9 @@ CoordinatorMetrics::CoordinatorMetrics(prometheus::Registry& registry)
                               "Missions held: running, and ended ones retained")),
       mission_runners(gauge(registry, "behaviorlib_coordinator_mission_runners",
                             "Mission runners alive (thread and parsed mission): running "
-                            "missions and those ended since the last start")) {}
+                            "missions and those ended since the last start")),
+      vehicle_watches(gauge(registry, "behaviorlib_coordinator_vehicle_watches",
+                            "Open WatchVehicle streams (each a data-channel subscription)")) {}
 
 void CoordinatorMetrics::missionEnded(const v1::MissionStatus& status) {
   std::string outcome = "failed";

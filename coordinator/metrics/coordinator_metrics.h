@@ -49,6 +49,9 @@ struct CoordinatorMetrics {
   /// Mission runners alive (each with its thread and parsed mission): the
   /// running missions, plus those that ended since the last start.
   prometheus::Gauge& mission_runners;
+  /// Open WatchVehicle streams, each a data-channel subscription (counted
+  /// until the subscription has ended).
+  prometheus::Gauge& vehicle_watches;
 
   /// Counts an ended mission in missions_finished.
   void missionEnded(const v1::MissionStatus& status);

@@ -9,6 +9,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <map>
+#include <set>
 #include <sstream>
 #include <thread>
 
@@ -29,6 +30,7 @@
 #include "coordinator/process/replayed_state.h"
 #include "coordinator/registry/registry.h"
 #include "coordinator/safety/safety.h"
+#include "coordinator/telemetry/vehicle_telemetry.h"
 
 namespace behaviorlib::coordinator {
 
@@ -39,7 +41,7 @@ namespace {
 // evaluated (no subscription stays open).
 class ChannelVehicleReader final : public VehicleReader {
  public:
-  explicit ChannelVehicleReader(const std::string& address) : channel_(address) {}
+  explicit ChannelVehicleReader(channel::ChannelClient& channel) : channel_(channel) {}
   absl::StatusOr<v1::FlightStatus> flightStatus(const std::string& robot) override {
     return latest<v1::FlightStatus>(flight::flightStateTopic(robot));
   }
@@ -61,7 +63,7 @@ class ChannelVehicleReader final : public VehicleReader {
     return message;
   }
 
-  channel::ChannelClient channel_;
+  channel::ChannelClient& channel_;
 };
 
 template <class D>
@@ -99,6 +101,7 @@ absl::Status CoordinatorOptions::validate() const {
       {"--max-beliefs", static_cast<double>(belief_limits.max_beliefs), 1, 10000000},
       {"--journal-compact-bytes", static_cast<double>(journal_compact_bytes), 4096,
        static_cast<double>(1ull << 40)},
+      {"--max-vehicle-watches", static_cast<double>(max_vehicle_watches), 1, 10000},
       {"--max-ended-missions", static_cast<double>(max_ended_missions), 0, 1000000},
       {"--max-ended-mission-age-s", static_cast<double>(max_ended_mission_age.count()), 1,
        10 * 365 * 24 * 3600.0},
@@ -173,8 +176,12 @@ struct Coordinator::Parts {
   // missions' waits (declared before the missions: their runners read it
   // until they stop).
   std::unique_ptr<channel::SimClock> vehicle_clock;
-  // The vehicles' topics for the missions' `when:` conditions (--channel).
+  // The data channel (--channel), read by the missions' `when:` conditions
+  // and the telemetry calls.
+  std::unique_ptr<channel::ChannelClient> vehicle_channel;
   std::unique_ptr<ChannelVehicleReader> vehicle_reader;
+  // GetVehicleSample and WatchVehicle (--channel).
+  std::unique_ptr<VehicleTelemetry> telemetry;
   std::unique_ptr<MissionManager> missions;
   std::unique_ptr<SafetyController> safety;
   std::unique_ptr<CoordinatorService> service;
@@ -278,14 +285,31 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   if (!mission_files.ok()) return mission_files.status();
   mission_options.mission_files = std::move(*mission_files);
   mission_options.metrics = p->metrics.get();
-  if (!options.channel_address.empty()) {
-    p->vehicle_reader = std::make_unique<ChannelVehicleReader>(options.channel_address);
-    mission_options.vehicles = p->vehicle_reader.get();
-  }
   if (options.clock == "sim") {
     // The vehicles' time: the missions' waits and the safety policy's.
     p->vehicle_clock = std::make_unique<channel::SimClock>(options.channel_address);
     mission_options.clock = p->vehicle_clock.get();
+  }
+  if (!options.channel_address.empty()) {
+    p->vehicle_channel = std::make_unique<channel::ChannelClient>(options.channel_address);
+    p->vehicle_reader = std::make_unique<ChannelVehicleReader>(*p->vehicle_channel);
+    mission_options.vehicles = p->vehicle_reader.get();
+    // A robot is known when one of its systems is registered or a
+    // --flight-controller names it.
+    std::set<std::string> controlled;
+    for (const auto& entry : options.flight_controllers) controlled.insert(entry.first);
+    VehicleTelemetryLimits limits;
+    limits.max_watches = options.max_vehicle_watches;
+    limits.max_watches_per_caller = std::max<size_t>(1, options.max_vehicle_watches / 4);
+    p->telemetry = std::make_unique<VehicleTelemetry>(
+        *p->vehicle_channel, p->vehicle_clock.get(),
+        [registry = p->registry.get(), controlled](const std::string& robot) {
+          return controlled.count(robot) != 0 || !registry->robotBehaviors(robot).empty();
+        },
+        limits,
+        [gauge = &p->metrics->vehicle_watches](size_t open) {
+          gauge->Set(static_cast<double>(open));
+        });
   }
   p->missions = std::make_unique<MissionManager>(*p->fleet, *p->registry, *p->beliefs,
                                                  p->journal.get(), mission_options);
@@ -340,6 +364,7 @@ absl::StatusOr<std::unique_ptr<Coordinator>> Coordinator::start(CoordinatorOptio
   service_options.beliefs = p->beliefs.get();
   service_options.missions = p->missions.get();
   service_options.safety = p->safety.get();
+  service_options.telemetry = p->telemetry.get();
   service_options.heartbeat_interval = millis(options.heartbeat_interval);
   p->service = std::make_unique<CoordinatorService>(*p->registry, *p->log, *p->metrics, *p->fleet,
                                                     *p->pool, service_options);

@@ -77,6 +77,9 @@ struct CoordinatorOptions {
   uint64_t journal_compact_bytes = 64ull << 20;
   /// Ended missions kept: the most recent this many, none older than the age.
   size_t max_ended_missions = 1000;
+  /// WatchVehicle streams open at once (each a broker subscription); one
+  /// caller may hold a quarter of them.
+  size_t max_vehicle_watches = 64;
   std::chrono::seconds max_ended_mission_age{7 * 24 * 3600};
 
   /// INVALID_ARGUMENT naming the flag of the first setting out of its range.

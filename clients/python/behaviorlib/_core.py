@@ -1,7 +1,7 @@
 """What the sync client (client.py) and the asyncio client (aio.py) share:
 channel set-up, request building, behavior methods made from the behavior
-descriptors, the event stream's resume position, and the index of finished
-activations. No I/O here."""
+descriptors, the event stream's resume position, the index of finished
+activations, and the vehicle samples' kinds. No I/O here."""
 
 import collections
 import dataclasses
@@ -14,7 +14,7 @@ import grpc
 from google.protobuf import json_format, struct_pb2
 from google.protobuf import message as protobuf_message
 
-from behaviorlib.v1 import behavior_pb2, coordinator_pb2, mission_pb2
+from behaviorlib.v1 import behavior_pb2, coordinator_pb2, mission_pb2, platform_pb2, types_pb2
 
 # Default deadline of a unary call, seconds.
 DEFAULT_TIMEOUT_S = 10.0
@@ -508,3 +508,62 @@ def mission_request(file=None, text=None, server_file=None, robot_id="", mission
 def mission_state(status):
     """RUNNING, PAUSED, SUCCEEDED, FAILED or ABORTED."""
     return short_enum(mission_pb2.MissionState, status.state, "MISSION_STATE_")
+
+
+# --- the vehicles' state (telemetry) ---------------------------------------------
+
+# What a telemetry call may read, by the name a script uses: the
+# coordinator's VehicleSampleKind, and the message each carries.
+SAMPLE_KINDS = {
+    "pose": (coordinator_pb2.VEHICLE_SAMPLE_KIND_POSE, types_pb2.PoseStamped),
+    "twist": (coordinator_pb2.VEHICLE_SAMPLE_KIND_TWIST, types_pb2.TwistStamped),
+    "flight_state": (coordinator_pb2.VEHICLE_SAMPLE_KIND_FLIGHT_STATE, platform_pb2.FlightStatus),
+    "battery": (coordinator_pb2.VEHICLE_SAMPLE_KIND_BATTERY, types_pb2.BatteryState),
+    "imu": (coordinator_pb2.VEHICLE_SAMPLE_KIND_IMU, types_pb2.Imu),
+    "gps": (coordinator_pb2.VEHICLE_SAMPLE_KIND_GPS, types_pb2.PositionFix),
+    "baro": (coordinator_pb2.VEHICLE_SAMPLE_KIND_BARO, types_pb2.Altitude),
+    "linear_speed": (coordinator_pb2.VEHICLE_SAMPLE_KIND_LINEAR_SPEED, types_pb2.TwistStamped),
+    "ground_truth_pose": (coordinator_pb2.VEHICLE_SAMPLE_KIND_GROUND_TRUTH_POSE,
+                          types_pb2.PoseStamped),
+    "ground_truth_twist": (coordinator_pb2.VEHICLE_SAMPLE_KIND_GROUND_TRUTH_TWIST,
+                           types_pb2.TwistStamped),
+}
+# A sample older than this (seconds of the vehicles' time) is refused as
+# stale unless the call says otherwise: the flight behaviors' limit.
+DEFAULT_MAX_AGE_S = 1.0
+
+
+def sample_kind(name):
+    """The VehicleSampleKind of `name` ("pose", "imu", ...); ValueError,
+    listing the names, for another."""
+    try:
+        return SAMPLE_KINDS[name][0]
+    except (KeyError, TypeError):
+        raise ValueError(f"no vehicle sample named {name!r}: use one of "
+                         f"{', '.join(SAMPLE_KINDS)}") from None
+
+
+def sample_request(robot_id, name, max_age_s):
+    """GetVehicleSampleRequest; max_age_s None means no limit."""
+    return coordinator_pb2.GetVehicleSampleRequest(
+        robot_id=robot_id, kind=sample_kind(name),
+        max_age_s=-1.0 if max_age_s is None else float(max_age_s))
+
+
+def watch_vehicle_request(robot_id, name, max_rate_hz, latest_first):
+    return coordinator_pb2.WatchVehicleRequest(robot_id=robot_id, kind=sample_kind(name),
+                                               max_rate_hz=float(max_rate_hz),
+                                               send_latest_first=latest_first)
+
+
+def unpack_sample(sample):
+    """The API's own message (PoseStamped, FlightStatus, ...) of a
+    VehicleSample."""
+    for kind, message_type in SAMPLE_KINDS.values():
+        if kind == sample.kind:
+            message = message_type()
+            if not sample.sample.Unpack(message):
+                raise ValueError(f"{sample.topic} carries {sample.sample.type_url}, not "
+                                 f"{message_type.DESCRIPTOR.full_name}")
+            return message
+    raise ValueError(f"unknown vehicle sample kind {sample.kind}")

@@ -198,8 +198,62 @@ class BehaviorMethod:
         return f"<behavior {self._robot.id}.{self.spec.method}{self.__signature__}>"
 
 
+class Samples:
+    """As client.Samples, an async iterator:
+
+        async with drone.subscribe("imu", max_rate_hz=20) as imu:
+            async for sample in imu:
+                ...
+    """
+
+    def __init__(self, fleet, request):
+        self._fleet = fleet
+        self._request = request
+        self._call = None
+        self._closed = False
+        self.dropped = 0
+        self.last = None
+        self._replies = _resuming(fleet, self._open, ends=lambda reply: self._closed)
+
+    def _open(self):
+        self._call = self._fleet._stub.WatchVehicle(self._request,
+                                                    metadata=self._fleet._credentials.metadata())
+        return self._call
+
+    def __aiter__(self):
+        return self
+
+    async def __anext__(self):
+        if self._closed:
+            raise StopAsyncIteration
+        try:
+            reply = await self._replies.__anext__()
+        except (asyncio.CancelledError, grpc.RpcError, Cancelled):
+            if self._closed:
+                raise StopAsyncIteration from None
+            raise
+        if self._closed:
+            raise StopAsyncIteration
+        self.dropped = reply.dropped_count
+        self.last = reply.sample
+        return _core.unpack_sample(reply.sample)
+
+    async def close(self):
+        """Ends the stream: an iteration waiting in another task stops."""
+        self._closed = True
+        if self._call is not None:
+            self._call.cancel()
+
+    async def __aenter__(self):
+        return self
+
+    async def __aexit__(self, *exc):
+        await self.close()
+
+
 class Robot(_core.RobotMethods):
-    """One robot: a coroutine method per behavior, and its safety actions."""
+    """One robot: a coroutine method per behavior, its safety actions, and
+    its vehicle's state."""
 
     def __init__(self, fleet, robot_id, specs):
         super().__init__(fleet, robot_id, specs, BehaviorMethod)
@@ -264,6 +318,30 @@ class Robot(_core.RobotMethods):
 
     async def run_mission(self, **source):
         return await self.fleet.missions.run(robot_id=self.id, **source)
+
+    async def sample(self, name, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        """The newest VehicleSample of `name` (see client.Robot.sample)."""
+        return (await _call(self.fleet._stub.GetVehicleSample,
+                            _core.sample_request(self.id, name, max_age_s),
+                            self.fleet._credentials)).sample
+
+    async def pose(self, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        return _core.unpack_sample(await self.sample("pose", max_age_s=max_age_s))
+
+    async def twist(self, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        return _core.unpack_sample(await self.sample("twist", max_age_s=max_age_s))
+
+    async def flight_state(self, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        return _core.unpack_sample(await self.sample("flight_state", max_age_s=max_age_s))
+
+    async def battery(self, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        return _core.unpack_sample(await self.sample("battery", max_age_s=max_age_s))
+
+    def subscribe(self, name, *, max_rate_hz=10.0, latest_first=True):
+        """The samples of `name` as they come: an async iterator (see
+        client.Robot.subscribe) that ends once close() is called."""
+        return Samples(self.fleet, _core.watch_vehicle_request(self.id, name, max_rate_hz,
+                                                               latest_first))
 
     def __repr__(self):
         return f"Robot({self.id!r}, behaviors={sorted(self.behaviors)})"

@@ -207,9 +207,82 @@ class BehaviorMethod:
         return f"<behavior {self._robot.id}.{self.spec.method}{self.__signature__}>"
 
 
+class Samples:
+    """A vehicle's samples as they come (Robot.subscribe): an iterator of
+    the API's messages that ends cleanly once close() is called (or the fleet
+    is closed), and opens its stream again after a coordinator restart.
+
+        with drone.subscribe("imu", max_rate_hz=20) as imu:
+            for sample in imu:
+                ...
+
+    `dropped` counts the samples skipped so far (the rate limit, or a slow
+    reader); `last` is the newest VehicleSample (its age and topic_seq)."""
+
+    def __init__(self, fleet, request):
+        self._fleet = fleet
+        self._request = request
+        self._lock = threading.Lock()
+        self._call = None
+        self._closed = False
+        self.dropped = 0
+        self.last = None
+        self._replies = self._run()
+
+    def _open(self):
+        with self._lock:
+            if self._closed:
+                return iter(())
+            self._call = self._fleet._stub.WatchVehicle(
+                self._request, metadata=self._fleet._credentials.metadata())
+            return self._call
+
+    def _run(self):
+        backoff = _core.Backoff()
+        while not self._over():
+            try:
+                for reply in self._open():
+                    backoff.reset()
+                    yield reply
+            except grpc.RpcError as error:
+                if self._over():
+                    return
+                if not _core.retryable(error):
+                    raise from_rpc_error(error) from None
+            if self._over():
+                return
+            time.sleep(backoff.next_delay_s())
+
+    def _over(self):
+        return self._closed or self._fleet.closed
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        reply = next(self._replies)
+        self.dropped = reply.dropped_count
+        self.last = reply.sample
+        return _core.unpack_sample(reply.sample)
+
+    def close(self):
+        """Ends the stream; the iteration then stops."""
+        with self._lock:
+            self._closed = True
+            if self._call is not None:
+                self._call.cancel()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
 class Robot(_core.RobotMethods):
     """One robot of the fleet: a method per behavior its systems host
-    (TAKE_OFF -> take_off), and its safety actions."""
+    (TAKE_OFF -> take_off), its safety actions, and its vehicle's state
+    (pose, twist, flight_state, battery, subscribe)."""
 
     def __init__(self, fleet, robot_id, specs):
         super().__init__(fleet, robot_id, specs, BehaviorMethod)
@@ -293,6 +366,38 @@ class Robot(_core.RobotMethods):
         """Starts a mission for this robot and waits for its end (see
         Missions.run)."""
         return self.fleet.missions.run(robot_id=self.id, **source)
+
+    def sample(self, name, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        """The newest VehicleSample of `name` ("pose", "twist",
+        "flight_state", "battery", "imu", "gps", "baro", "linear_speed",
+        "ground_truth_pose", "ground_truth_twist"), with its stamp and its age
+        in the vehicles' time. NotFound when there is none yet; Stale when it
+        is older than max_age_s (None: no limit)."""
+        return _call(self.fleet._stub.GetVehicleSample,
+                     _core.sample_request(self.id, name, max_age_s),
+                     self.fleet._credentials).sample
+
+    def pose(self, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        """The pose estimate (PoseStamped) of the robot's localization."""
+        return _core.unpack_sample(self.sample("pose", max_age_s=max_age_s))
+
+    def twist(self, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        """The velocity estimate (TwistStamped)."""
+        return _core.unpack_sample(self.sample("twist", max_age_s=max_age_s))
+
+    def flight_state(self, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        """The platform's FlightStatus (state, lease holder, battery ratio)."""
+        return _core.unpack_sample(self.sample("flight_state", max_age_s=max_age_s))
+
+    def battery(self, *, max_age_s=_core.DEFAULT_MAX_AGE_S):
+        """The BatteryState (charge_ratio, voltage_v, current_a)."""
+        return _core.unpack_sample(self.sample("battery", max_age_s=max_age_s))
+
+    def subscribe(self, name, *, max_rate_hz=10.0, latest_first=True):
+        """The samples of `name` as they come, at most max_rate_hz a second
+        (0: the coordinator's default; at most 200): a Samples iterator."""
+        return Samples(self.fleet, _core.watch_vehicle_request(self.id, name, max_rate_hz,
+                                                               latest_first))
 
     def __repr__(self):
         return f"Robot({self.id!r}, behaviors={sorted(self.behaviors)})"

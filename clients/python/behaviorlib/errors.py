@@ -52,6 +52,12 @@ class FailedPrecondition(Error):
     """FAILED_PRECONDITION: e.g. the behavior's situation does not allow it now."""
 
 
+class Stale(FailedPrecondition):
+    """FAILED_PRECONDITION with reason SAMPLE_STALE: the vehicle's newest
+    sample is older than the call's limit (its metadata: topic, age_s,
+    max_age_s)."""
+
+
 class Aborted(Error):
     """ABORTED: e.g. the named activation is no longer the current one."""
 
@@ -95,9 +101,13 @@ _BY_CODE = {
 }
 
 
-def error_class(code):
-    """The Error subclass raised for a grpc.StatusCode."""
-    return _BY_CODE.get(code, Error)
+# Finer classes for some ErrorInfo reasons.
+_BY_REASON = {"SAMPLE_STALE": Stale}
+
+
+def error_class(code, reason=""):
+    """The Error subclass raised for a grpc.StatusCode (and reason)."""
+    return _BY_REASON.get(reason) or _BY_CODE.get(code, Error)
 
 
 def _details(trailing_metadata):
@@ -153,5 +163,5 @@ def from_rpc_error(error):
         rebuilt = _policy_refusal(code, message)
         if rebuilt is not None:
             reason, metadata = rebuilt
-    return error_class(code)(code, message, reason=reason, metadata=metadata,
+    return error_class(code, reason)(code, message, reason=reason, metadata=metadata,
                              field_violations=violations, details=details)

@@ -170,3 +170,29 @@ def test_the_access_policy_refusal_gets_its_reason_back():
     other = behaviorlib.errors.from_rpc_error(_Refused(grpc.StatusCode.PERMISSION_DENIED,
                                                        "no"))
     assert other.reason == "" and other.metadata == {}
+
+
+def test_vehicle_sample_kinds_and_numpy_views():
+    import math
+
+    from behaviorlib import numpy_helpers as nph
+    from behaviorlib.v1 import coordinator_pb2, types_pb2
+
+    with pytest.raises(ValueError, match="ground_truth_pose"):
+        _core.sample_kind("thermometer")
+    request = _core.sample_request("drone1", "imu", None)
+    assert (request.kind, request.max_age_s) == (coordinator_pb2.VEHICLE_SAMPLE_KIND_IMU, -1.0)
+    pose = types_pb2.PoseStamped()
+    pose.pose.position_m.x, pose.pose.position_m.y, pose.pose.position_m.z = 1.0, 2.0, 3.0
+    # 90 degrees about z: w = cos(45), z = sin(45).
+    pose.pose.orientation.w = pose.pose.orientation.z = math.sqrt(0.5)
+    sample = coordinator_pb2.VehicleSample(kind=coordinator_pb2.VEHICLE_SAMPLE_KIND_POSE)
+    sample.sample.Pack(pose)
+    unpacked = _core.unpack_sample(sample)
+    assert list(nph.position(unpacked)) == [1.0, 2.0, 3.0]
+    assert nph.yaw(unpacked) == pytest.approx(math.pi / 2)
+    assert nph.yaw(unpacked.pose) == pytest.approx(math.pi / 2)
+    # A sample whose Any holds another type is refused, not misread.
+    sample.kind = coordinator_pb2.VEHICLE_SAMPLE_KIND_BATTERY
+    with pytest.raises(ValueError, match="BatteryState"):
+        _core.unpack_sample(sample)

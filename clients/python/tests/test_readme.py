@@ -9,6 +9,10 @@ import subprocess
 import sys
 import tempfile
 
+import pytest
+
+from behaviorlib import Fleet, _core
+from behaviorlib import numpy_helpers as nph
 from conftest import REPO
 
 
@@ -22,7 +26,7 @@ def readme_blocks():
 
 def test_the_readme_marks_its_python_blocks():
     assert {name: language for name, (language, _) in readme_blocks().items()} == {
-        "install": "sh", "sync": "python", "asyncio": "python"}
+        "install": "sh", "sync": "python", "asyncio": "python", "telemetry": "python"}
 
 
 def test_the_install_commands_make_a_venv_with_the_package():
@@ -76,3 +80,18 @@ def test_the_asyncio_block_writes_a_belief_and_watches_an_event(coordinator):
     out = run_block("asyncio", coordinator)
     assert out.splitlines()[0] == "{'x': 1.0, 'y': 2.0}"
     assert "cause: TERMINATION_CAUSE_GOAL_ACHIEVED" in out
+
+
+def test_the_telemetry_block_reads_the_vehicle_while_it_flies(coordinator):
+    lines = run_block("telemetry", coordinator).splitlines()
+    assert lines[0] == "1", lines  # FLIGHT_STATE_LANDED
+    assert 0.0 < float(lines[1]) <= 1.0, lines
+    cause, yaw = lines[2].split()
+    # The heading it printed is the vehicle's (which the tests before may
+    # have turned): the simulator's true one, to the printed 0.01 rad.
+    with Fleet(coordinator) as fleet:
+        truth = _core.unpack_sample(fleet.robot("drone1").sample("ground_truth_pose",
+                                                                 max_age_s=None))
+    assert cause == "GOAL_ACHIEVED" and float(yaw) == pytest.approx(nph.yaw(truth), abs=0.02), \
+        (lines, nph.yaw(truth))
+    assert lines[3] == "GOAL_ACHIEVED", lines

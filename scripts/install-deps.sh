@@ -26,7 +26,7 @@ RUNTIME_PACKAGES="libstdc++6 libgcc-s1 zlib1g libssl3 libgrpc++1.51 libgrpc29 li
   libabsl20220623 libprometheus-cpp-core1.0 libprometheus-cpp-pull1.0 libyaml-cpp0.7 \
   liboctomap1.9 libompl16 libcpp-httplib0.11 libturbojpeg0 libpng16-16 \
   libtbb12 liblapack3 libblas3 libx11-6 libnats3.4 nats-server"
-TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-numpy python3-yaml python3-venv python3-setuptools \
+TEST_PACKAGES="python3 python3-grpcio python3-protobuf python3-numpy python3-prometheus-client python3-yaml python3-venv python3-setuptools \
   python3-wheel python3-websocket python3-pytest python3-matplotlib python3-pil prometheus docker-compose procps openssl \
   clang-14 libclang-rt-14-dev libfuzzer-14-dev llvm-14 chromium \
   nats-server cyclonedds-dev cyclonedds-tools iproute2 iptables stress-ng"

@@ -79,7 +79,7 @@ setup(
     name="behaviorlib",
     version="0.1.0",
     description="Python client of behaviorlib: fly robots through the coordinator",
-    packages=["behaviorlib"],
+    packages=["behaviorlib", "behaviorlib.system"],
     python_requires=">=3.9",
     # Debian's python3-grpcio and python3-protobuf (not listed as
     # install_requires: pip would look for them on an index).

@@ -1,0 +1,26 @@
+"""behaviorlib.system: behaviors written in Python, run by a port of the C++ engine's contract
+(decision 47, section 2). This package is the transport-free core: the injected clock
+(clock.py), parameter validation driven by the (behaviorlib.v1.param) options (parameters.py),
+and the Behavior base class with its ExecutionManager and the resumable event log (engine.py).
+The gRPC services, the registration with the coordinator and the metrics are built on it.
+"""
+
+from .clock import (NANOS_PER_SECOND, Clock, ClockListener, FakeClock, SteadyClock, seconds,
+                    to_seconds)
+from .engine import (Behavior, BehaviorContext, BehaviorObserver, BehaviorOptions, Delivery,
+                     EventLog, ExecutionManager, Situation, Subscription, Verdict, cause_name,
+                     declared_behavior_name, new_incarnation_id, parameter_error)
+from .parameters import (StatusError, apply_defaults_and_validate, describe, from_struct,
+                         leading_comment, load_descriptor_set, merge_update, number_text,
+                         range_text, to_struct, unit_of_field_name)
+
+__all__ = [
+    "NANOS_PER_SECOND", "Clock", "ClockListener", "FakeClock", "SteadyClock", "seconds",
+    "to_seconds",
+    "Behavior", "BehaviorContext", "BehaviorObserver", "BehaviorOptions", "Delivery", "EventLog",
+    "ExecutionManager", "Situation", "Subscription", "Verdict", "cause_name",
+    "declared_behavior_name", "new_incarnation_id", "parameter_error",
+    "StatusError", "apply_defaults_and_validate", "describe", "from_struct", "leading_comment",
+    "load_descriptor_set", "merge_update", "number_text", "range_text", "to_struct",
+    "unit_of_field_name",
+]

@@ -11,7 +11,6 @@
 #include "absl/strings/str_format.h"
 #include "absl/strings/strip.h"
 #include "behaviorlib/errors/status_details.h"
-#include "behaviorlib/flight_common/topics.h"
 #include "behaviorlib/v1/platform.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "google/protobuf/message.h"

@@ -49,7 +49,7 @@ _HEADERS = {}  # include path -> repository-relative file, built on first use
 # coordinator's folders"): a folder's code includes only folders listed
 # before it, and every folder of coordinator/ is listed.
 COORDINATOR_FOLDERS = ("common", "durable", "belief", "catalog", "mission", "events", "metrics",
-                       "registry", "control", "safety", "api", "process")
+                       "registry", "control", "safety", "telemetry", "api", "process")
 # What of the coordinator a client may include: the gRPC health check (it
 # sits in coordinator/registry/, beside the links that use it).
 CLIENT_VISIBLE = {os.path.join("coordinator", "registry", "health_check.h")}

@@ -54,6 +54,13 @@ class BuildWithStubs(build_py):
                         f"--grpc_python_out={out}", f"--plugin=protoc-gen-grpc_python={plugin}",
                         *[os.path.relpath(p, PROTO_DIR) for p in protos]],
                        check=True, cwd=PROTO_DIR)
+        # The protos' comments, for the Python behavior systems' descriptions of their
+        # parameters (behaviorlib.system.parameters.leading_comment).
+        subprocess.run([protoc, f"--proto_path={PROTO_DIR}", "--include_source_info",
+                        "--include_imports",
+                        f"--descriptor_set_out={os.path.join(out, 'behaviorlib', 'v1', 'descriptors.binpb')}",
+                        *[os.path.relpath(p, PROTO_DIR) for p in protos]],
+                       check=True, cwd=PROTO_DIR)
         # google.rpc.Status, ErrorInfo and BadRequest (the error details of
         # errors.proto), from Debian's golang-github-gogo-googleapis-dev: a
         # google/rpc package beside google/protobuf (google/ is a namespace).

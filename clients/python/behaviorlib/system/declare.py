@@ -121,8 +121,8 @@ def _json_name(name):
 
 def declare_parameters(name, *, package, behavior, kind="GOAL_BASED", doc="", fields=(), **docs):
     """The message class of a behavior's parameters, declared as above. `name` is the message's
-    name, `package` its proto package (the typed service is `<package>.<Behavior>Service`, as
-    for a .proto), `behavior` the behavior's name (UPPER_SNAKE), `kind` GOAL_BASED or RECURRENT,
+    name, `package` its proto package (the typed service is named after the message without
+    "Parameters", `<package>.CircleAround` for CircleAroundParameters, as for a .proto), `behavior` the behavior's name (UPPER_SNAKE), `kind` GOAL_BASED or RECURRENT,
     `doc` the behavior's description, and the keyword arguments `activate_doc`,
     `deactivate_doc`, ... the typed methods' descriptions (behaviorlib.v1.BehaviorDeclaration).
     Declaring the same message twice is an error (its name is taken in the pool)."""

@@ -24,6 +24,16 @@ no, a process that exits stops the stack (while serving).
     deploy/local/launch.py --build-dir build --demo
     deploy/local/launch.py --build-dir build          # serve until Ctrl-C
 
+Behavior systems written in Python (behaviorlib.system.run_system, decision
+47) start beside the C++ ones, per robot and with the same flags, from their
+scripts: --python-systems examples/python_behavior/system.py. They run on
+the interpreter that $BEHAVIORLIB_PYTHON names (default
+<build-dir>/venv/bin/python, which the build installs the behaviorlib
+package into); each process is named after its script (without .py), and
+the system name it registers is asked of the process once it serves
+(BehaviorSystem.ListBehaviors), so the launcher waits for the name the
+script chose. They serve no TLS yet: --tls refuses them.
+
 The paper's applications:
 
     # aircraft inspection: QR markers found, with their positions, in the report
@@ -119,6 +129,13 @@ BEHAVIOR_SYSTEMS = [
     "operator_interaction",
 ]
 REQUIRED_SYSTEMS = ["basic_quadrotor_behaviors"]
+# The stack's other processes (their logs and port files are named so).
+STACK_PROCESSES = ["channel_broker", "simulator", "coordinator", "console", "recorder"]
+# The interpreter of the Python behavior systems (--python-systems): this
+# variable, else the build's virtual environment, which has the behaviorlib
+# package.
+PYTHON_ENV = "BEHAVIORLIB_PYTHON"
+BEHAVIOR_SYSTEM_SERVICE = "behaviorlib.v1.BehaviorSystem"
 
 
 class Interrupted(Exception):
@@ -243,6 +260,30 @@ def system_binaries(args, build_dir):
     return found
 
 
+def python_interpreter(build_dir):
+    """The interpreter of the Python behavior systems ($BEHAVIORLIB_PYTHON,
+    else <build-dir>/venv/bin/python)."""
+    path = os.environ.get(PYTHON_ENV) or os.path.join(build_dir, "venv", "bin", "python")
+    if not os.access(path, os.X_OK):
+        raise StartError(f"{path} not found: the Python behavior systems need an interpreter "
+                         f"with the behaviorlib package (the build's venv, or ${PYTHON_ENV})")
+    return path
+
+
+def python_system_name(process):
+    """The system name a Python behavior system registers, as it says it
+    (ListBehaviors' `system`): run_system's `system` argument, which need
+    not be its script's name."""
+    client = rpc.Client(process.address, [BEHAVIOR_SYSTEM_SERVICE])
+    try:
+        reply = client.call(BEHAVIOR_SYSTEM_SERVICE, "ListBehaviors", {"page_size": 1})
+    finally:
+        client.close()
+    if not reply.get("system"):
+        raise StartError(f"{process.name} does not say which system it is (ListBehaviors)")
+    return reply["system"]
+
+
 def output_root(run_dir):
     """Where behaviors may write files (maps): --map-dir of the systems.
     Apart from the coordinator's journal, which it must not reach."""
@@ -308,6 +349,7 @@ def start_stack(args, build_dir, stack):
     several = len(robots) > 1
     deterministic = args.time_scale == "max"
     binaries = system_binaries(args, build_dir)
+    python = python_interpreter(build_dir) if args.python_systems else None
     system_processes = {(f"{name}-{robot}" if several else name): (robot, name)
                         for name, _ in binaries for robot in robots}
     certs = (make_certs(stack.run_dir,
@@ -342,7 +384,8 @@ def start_stack(args, build_dir, stack):
         simulator_argv.append("--enable-fault-injection")
     if deterministic:
         # Time starts once every behavior system follows the grants.
-        simulator_argv += ["--min-followers", str(len(binaries) * len(robots))]
+        followers = (len(binaries) + len(args.python_systems)) * len(robots)
+        simulator_argv += ["--min-followers", str(followers)]
     if args.clock_publish != "line":
         simulator_argv += ["--clock-publish", args.clock_publish]
     simulator_argv += args.simulator_arg or []
@@ -409,6 +452,19 @@ def start_stack(args, build_dir, stack):
                 argv += ["--map-dir", output_root(stack.run_dir)]
             systems.append(stack.start(Process(process_name, argv, stack.run_dir,
                                                "behavior_system", robot, system=name)))
+    for name, script in args.python_systems:
+        for robot in robots:
+            process_name = f"{name}-{robot}" if several else name
+            argv = [python, script, *listen_as(process_name), "--robot-id", robot,
+                    "--channel", broker.address,
+                    "--clock", "sim", "--flight-controller", simulator.address,
+                    "--coordinator", coordinator.address]
+            if deterministic:
+                argv += ["--follow-time", simulator.address]
+            process = stack.start(Process(process_name, argv, stack.run_dir, "behavior_system",
+                                          robot))
+            process.system = python_system_name(process)
+            systems.append(process)
     return simulator, coordinator, systems, console
 
 
@@ -561,6 +617,25 @@ def save_console(console, run_dir, robots):
     return "console.png"
 
 
+def parse_python_systems(parser, args):
+    """args.python_systems: [(process name, absolute script path)] from
+    --python-systems (paths relative to the repository root); a name is
+    its script's file name without .py, and must be new."""
+    found = []
+    for value in [v for v in args.python_systems.split(",") if v]:
+        path = value if os.path.isabs(value) else os.path.join(REPO, value)
+        if not os.path.isfile(path):
+            parser.error(f"--python-systems: {path} is not a file")
+        name = os.path.splitext(os.path.basename(path))[0]
+        if name in STACK_PROCESSES + BEHAVIOR_SYSTEMS + [n for n, _ in found]:
+            parser.error(f"--python-systems {value}: a process is named {name} already (one "
+                         "is named after its script's file)")
+        found.append((name, path))
+    if found and args.tls:
+        parser.error("--python-systems: Python behavior systems serve no TLS yet (--tls)")
+    return found
+
+
 def parse_missions(parser, args):
     """args.missions: robot -> absolute mission file, from the --mission
     values (FILE for the first robot, or ROBOT=FILE); the demo mission on
@@ -672,6 +747,12 @@ def main():
                              "basic_quadrotor_behaviors always is), e.g. "
                              "quadrotor_motion_with_pid_control,swarm_interaction: a lighter "
                              "stack; default: every behavior system that is built")
+    parser.add_argument("--python-systems", default="", metavar="PATH[,PATH...]",
+                        help="behavior systems written in Python to start too, after the C++ "
+                             "ones: scripts that call behaviorlib.system.run_system (paths "
+                             "relative to the repository root, or absolute), each per robot "
+                             "with a C++ system's flags, named after its file (without .py), "
+                             f"run by ${PYTHON_ENV} (default <build-dir>/venv/bin/python)")
     parser.add_argument("--sensor-config", default="",
                         help="the simulator's sensor configuration (YAML; e.g. "
                              "deploy/config/simulator_sensors_aircraft.yaml); default: the "
@@ -741,6 +822,7 @@ def main():
         if name not in BEHAVIOR_SYSTEMS:
             parser.error(f"--systems: no behavior system {name} (known: "
                          f"{', '.join(BEHAVIOR_SYSTEMS)})")
+    args.python_systems = parse_python_systems(parser, args)
     args.missions = parse_missions(parser, args)
     if args.record is None:
         args.record = args.demo

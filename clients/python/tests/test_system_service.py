@@ -160,6 +160,7 @@ class Stack:
     def kill_all(self):
         for process in self.processes:
             if process.popen.poll() is None:
+                process.popen.send_signal(signal.SIGCONT)  # a frozen one too
                 process.popen.kill()
                 process.popen.wait()
 
@@ -690,7 +691,7 @@ def _activated(process, request):
 
 
 @pytest.mark.parametrize("flags, said", [
-    (["--follow-time", "127.0.0.1:1"], "--follow-time (the deterministic mode"),
+    (["--follow-time", "127.0.0.1:1"], "--follow-time needs --clock sim"),
     (["--config", "x.yaml"], "--config (the system's YAML configuration) is not supported"),
     (["--clock", "sim"], "--clock sim needs --channel"),
     (["--listen", "0.0.0.0:0"], "give --insecure to accept that risk"),

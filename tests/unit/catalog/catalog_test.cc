@@ -151,9 +151,12 @@ TEST(Catalog, TheShippedCatalogListsExactlyTheDeclaredBehaviors) {
   ASSERT_TRUE(catalog.ok()) << catalog.status();
   std::set<std::string> listed;
   for (const auto& [name, behavior] : catalog->behaviors()) listed.insert(name);
-  const std::set<std::string> declared = declaredBehaviors();
+  std::set<std::string> declared = declaredBehaviors();
   // The paper's table has 30; the set itself comes from the protos.
   EXPECT_GE(declared.size(), 30u);
+  // And the behaviors written in Python, whose parameters are declared in
+  // Python (examples/python_behavior; its test checks this entry).
+  declared.insert("CIRCLE_AROUND");
   EXPECT_EQ(listed, declared);
 }
 

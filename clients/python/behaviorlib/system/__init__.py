@@ -5,7 +5,8 @@ and the Behavior base class with its ExecutionManager and the resumable event lo
 The process around it (main.py: run_system) serves what a C++ behavior system serves: the
 BehaviorSystem service and a typed service per behavior (service.py, typed.py), health
 (health.py), reflection (reflection.py) and /metrics (metrics.py), and registers with the
-coordinator (registration.py).
+coordinator (registration.py). With --follow-time it follows the simulator's time grants
+(time_follower.py: the deterministic mode).
 """
 
 from .clock import (NANOS_PER_SECOND, Clock, ClockListener, FakeClock, SteadyClock, seconds,
@@ -17,6 +18,7 @@ from .main import BehaviorSystemProcess, SystemContext, run_system
 from .parameters import (StatusError, apply_defaults_and_validate, describe, from_struct,
                          leading_comment, load_descriptor_set, merge_update, number_text,
                          range_text, to_struct, unit_of_field_name)
+from .time_follower import TimeFollower
 
 __all__ = [
     "NANOS_PER_SECOND", "Clock", "ClockListener", "FakeClock", "SteadyClock", "seconds",
@@ -28,4 +30,5 @@ __all__ = [
     "StatusError", "apply_defaults_and_validate", "describe", "from_struct", "leading_comment",
     "load_descriptor_set", "merge_update", "number_text", "range_text", "to_struct",
     "unit_of_field_name",
+    "TimeFollower",
 ]

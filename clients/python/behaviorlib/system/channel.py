@@ -12,6 +12,14 @@ services/channel/channel_client.h gives them to C++ behaviors.
     subscription.close()
     channel.close()
 
+The deterministic mode's data barrier (time_follower.py) uses the rest, as the C++ follower uses
+ChannelClient's acceptedSeqs(), delivered(), waitDelivered() and awaitedTopics():
+
+    channel.sync(if_published=True)     # no round trip when nothing was published since the last
+    channel.accepted_seqs()             # {topic: topic_seq of the last sample published there}
+    channel.wait_delivered({"robots/drone1/ground_truth/pose": 42}, timeout_s=0.05)
+    channel.awaited_topics()            # the topics wait_delivered() looks at
+
 Publishing uses one PublishAcked stream per client, opened on first use and opened again after
 sync() saw it fail (what was published on the failed stream after the refused sample is lost, as
 with the C++ client's stream). sync() asks the stream
@@ -21,10 +29,17 @@ calls its callback for each sample and subscribes again (backing off from 0.1 s 
 stream breaks, until closed; it stops for good only when the broker refuses the request itself
 (INVALID_ARGUMENT: a bad topic name). Errors are parameters.StatusError with the broker's code and
 message.
+
+A subscription knows the topic_seq of the newest sample it has processed (its callback returned),
+and counts from the broker's registration on (its initial metadata "behaviorlib-subscribed"
+names the topic_seq the topic had then: samples before it never come). delivered() asks whether
+every connected subscription that is not rate-limited has processed the samples a time grant
+names; a disconnected one counts as done, as in the C++ client (it waits for no sample).
 """
 
 import queue
 import threading
+import time
 
 import grpc
 
@@ -39,6 +54,9 @@ DEFAULT_TIMEOUT_S = 5.0
 # Samples a publisher may have queued for its stream before publish() blocks (a bound on memory
 # when the broker is slow or away).
 MAX_QUEUED_SAMPLES = 1024
+# The broker's initial metadata on a registered subscription: the topic's topic_seq then
+# (services/channel/include/behaviorlib/channel/topic.h kSubscribedMetadataKey).
+SUBSCRIBED_METADATA_KEY = "behaviorlib-subscribed"
 
 
 def _status_error(error):
@@ -96,9 +114,11 @@ class _PublishStream:
 
 class Subscription:
     """A running subscription (DataChannel.subscribe): its reader thread calls the callback for
-    every sample until close()."""
+    every sample until close(). `on_progress` is called (on the reader thread) whenever
+    processed_seq or connected changed: the channel's wait_delivered() wakes on it."""
 
-    def __init__(self, stub, request, message_type, on_sample, on_error, metadata=()):
+    def __init__(self, stub, request, message_type, on_sample, on_error, metadata=(),
+                 on_progress=None):
         self.topic = request.topic
         self._stub = stub
         self._metadata = metadata
@@ -106,11 +126,15 @@ class Subscription:
         self._message_type = message_type
         self._on_sample = on_sample
         self._on_error = on_error
+        self._on_progress = on_progress
         self._lock = threading.Lock()
         self._closed = threading.Event()
         self._call = None
         self._connected = threading.Event()
         self.received = 0
+        # The topic_seq of the newest sample whose callback returned, or that the broker's
+        # registration said came before this subscription (0 before either).
+        self.processed_seq = 0
         # Why the last stream ended (None while the first runs); final when the broker refused
         # the request (INVALID_ARGUMENT).
         self.status = None
@@ -123,6 +147,30 @@ class Subscription:
         reaches this subscription)."""
         return self._connected.wait(timeout_s)
 
+    @property
+    def connected(self):
+        """Whether a stream is registered at the broker now."""
+        return self._connected.is_set()
+
+    @property
+    def rate_limited(self):
+        """Read at a rate (max_rate_hz): it promises no particular sample, so delivered() does
+        not wait for it."""
+        return self._request.max_rate_hz > 0
+
+    @property
+    def closed(self):
+        return self._closed.is_set()
+
+    def _processed(self, topic_seq):
+        if topic_seq > self.processed_seq:
+            self.processed_seq = topic_seq
+        self._progress()
+
+    def _progress(self):
+        if self._on_progress is not None:
+            self._on_progress()
+
     def _run(self):
         delay = FIRST_RETRY_S
         while not self._closed.is_set():
@@ -131,21 +179,30 @@ class Subscription:
                     return
                 self._call = self._stub.Subscribe(self._request, metadata=self._metadata)
             try:
-                # The broker sends its initial metadata once the subscription is registered.
-                self._call.initial_metadata()
-                self._connected.set()
+                # The broker sends its initial metadata once the subscription is registered,
+                # naming the topic_seq that samples published before it had reached: those never
+                # come (unless the latest is sent first), so delivered() must not wait for them.
+                # A refused or failed call carries none of ours.
+                registered = dict(self._call.initial_metadata() or ()).get(
+                    SUBSCRIBED_METADATA_KEY)
+                if registered is not None:
+                    if registered.isdigit():
+                        self.processed_seq = max(self.processed_seq, int(registered))
+                    self._connected.set()
+                    self._progress()
                 for response in self._call:
                     delay = FIRST_RETRY_S
                     message = self._message_type()
-                    if not response.sample.Unpack(message):
+                    if response.sample.Unpack(message):
+                        self.received += 1
+                        self._on_sample(message)
+                    else:
                         self.status = StatusError(
                             grpc.StatusCode.FAILED_PRECONDITION,
                             f"{self.topic} carries {response.sample.type_url}, not "
                             f"{self._message_type.DESCRIPTOR.full_name}")
                         self._report(self.status)
-                        continue
-                    self.received += 1
-                    self._on_sample(message)
+                    self._processed(response.topic_seq)
                 self.status = StatusError(grpc.StatusCode.UNAVAILABLE, "the stream ended")
             except grpc.RpcError as error:
                 self.status = _status_error(error)
@@ -156,6 +213,7 @@ class Subscription:
                     return
             finally:
                 self._connected.clear()
+                self._progress()
             if self._closed.wait(delay):
                 return
             delay = min(delay * 2, MAX_RETRY_S)
@@ -188,11 +246,22 @@ class DataChannel:
         self._stub = channel_pb2_grpc.DataChannelStub(self._channel)
         self._lock = threading.Lock()
         self._stream = None
+        # Something was published on the current stream since its last sync.
+        self._unsynced = False
+        # PublishResponse.topic_seqs of the syncs, merged (emptied when a stream failed: a
+        # restarted broker numbers its topics anew). Locks of their own: a sync holds _lock for
+        # its round trip, and the barrier's reads must not wait for it.
+        self._accepted_lock = threading.Lock()
+        self._accepted_seqs = {}
+        self._subscriptions_lock = threading.Lock()
         self._subscriptions = []
+        # Notified whenever a subscription processed a sample or (dis)connected.
+        self._progress = threading.Condition()
 
     def _open_stream(self):
         if self._stream is None or self._stream.broken is not None:
             self._stream = _PublishStream(self._stub, self._metadata)
+            self._unsynced = False
         return self._stream
 
     def publish(self, topic, message):
@@ -202,19 +271,77 @@ class DataChannel:
         request.sample.Pack(message)
         with self._lock:
             self._open_stream().put(request)
+            self._unsynced = True
 
-    def sync(self, timeout_s=DEFAULT_TIMEOUT_S):
+    def sync(self, timeout_s=DEFAULT_TIMEOUT_S, *, if_published=False):
         """Returns the PublishResponse once the broker took every sample published so far (with
-        each topic's last topic_seq); StatusError when a sample was refused or the broker is
-        away. The next publish() opens a new stream."""
+        each topic's last topic_seq, also merged into accepted_seqs()); StatusError when a
+        sample was refused or the broker is away. The next publish() opens a new stream.
+        With `if_published`, returns None at once when nothing was published since the last
+        sync (the C++ ChannelClient::sync()'s skip: a time follower syncs once a grant)."""
         with self._lock:
+            if if_published and not self._unsynced:
+                return None
             stream = self._open_stream()
             stream.put(channel_pb2.PublishRequest(sync=True))
             try:
-                return stream.next_reply(timeout_s)
+                reply = stream.next_reply(timeout_s)
             except StatusError:
                 self._stream = None
+                self._unsynced = False
+                with self._accepted_lock:
+                    self._accepted_seqs.clear()
                 raise
+            self._unsynced = False
+            with self._accepted_lock:
+                for topic, seq in reply.topic_seqs.items():
+                    self._accepted_seqs[topic] = max(self._accepted_seqs.get(topic, 0), seq)
+            return reply
+
+    def accepted_seqs(self):
+        """{topic: the topic_seq of the last sample this client published there}, as the broker
+        answered the syncs so far; what a time follower's report names
+        (FollowTimeRequest.topic_seqs)."""
+        with self._accepted_lock:
+            return dict(self._accepted_seqs)
+
+    def _live_subscriptions(self):
+        with self._subscriptions_lock:
+            return [s for s in self._subscriptions if not s.closed]
+
+    def delivered(self, topic_seqs):
+        """Whether every connected subscription of this client that is not rate-limited has
+        processed the sample numbered topic_seqs[its topic], or a later one (a topic not in the
+        mapping, and a subscription not connected, count as done): the deterministic mode's
+        data barrier, ChannelClient::delivered()."""
+        for subscription in self._live_subscriptions():
+            if not subscription.connected or subscription.rate_limited:
+                continue
+            if subscription.processed_seq < topic_seqs.get(subscription.topic, 0):
+                return False
+        return True
+
+    def wait_delivered(self, topic_seqs, timeout_s):
+        """Waits until delivered(topic_seqs) (True) or `timeout_s` passes (False); woken by the
+        subscriptions' progress, not by polling."""
+        deadline = time.monotonic() + timeout_s
+        with self._progress:
+            while not self.delivered(topic_seqs):
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    return False
+                self._progress.wait(remaining)
+            return True
+
+    def awaited_topics(self):
+        """The topics delivered() looks at (its live subscriptions' that are not rate-limited,
+        connected or not), sorted, each once: a time follower names them to the simulator, whose
+        grants then name only theirs."""
+        return sorted({s.topic for s in self._live_subscriptions() if not s.rate_limited})
+
+    def _notify_progress(self):
+        with self._progress:
+            self._progress.notify_all()
 
     def get_latest(self, topic, message_type, timeout_s=DEFAULT_TIMEOUT_S):
         """The newest sample on `topic` as `message_type`; StatusError NOT_FOUND when nothing
@@ -241,16 +368,17 @@ class DataChannel:
             mode=(channel_pb2.DELIVERY_MODE_QUEUE if queue_size else
                   channel_pb2.DELIVERY_MODE_LATEST), queue_size=queue_size)
         subscription = Subscription(self._stub, request, message_type, on_sample, on_error,
-                                    self._metadata)
-        with self._lock:
-            self._subscriptions = [s for s in self._subscriptions if not s._closed.is_set()]
+                                    self._metadata, on_progress=self._notify_progress)
+        with self._subscriptions_lock:
+            self._subscriptions = [s for s in self._subscriptions if not s.closed]
             self._subscriptions.append(subscription)
         return subscription
 
     def close(self):
         """Ends the publish stream and every subscription, then the connection."""
-        with self._lock:
+        with self._subscriptions_lock:
             subscriptions, self._subscriptions = self._subscriptions, []
+        with self._lock:
             stream, self._stream = self._stream, None
         for subscription in subscriptions:
             subscription.close()

@@ -17,22 +17,26 @@ It serves, on --listen: behaviorlib.v1.BehaviorSystem and each behavior's typed 
 (reflection.py); on --metrics-listen, /metrics (metrics.py); it registers with --coordinator
 and sends heartbeats (registration.py). --port-file gets "grpc_port=N" and "metrics_port=M"
 lines, written atomically once it serves, as the C++ systems write them (the local launcher and
-the tests read it). SIGTERM or SIGINT shut it down in the C++ order: lifecycle calls refused,
-active behaviors ended INTERRUPTED (their events reach the subscribers and the coordinator),
-UnregisterSystem naming the last event, event streams ended once drained (UNAVAILABLE with the
-resume point), every service NOT_SERVING, the server stopped after a 0.5 s grace; exit 0.
+the tests read it). SIGTERM or SIGINT shut it down in the C++ order: the time grants left
+(--follow-time), lifecycle calls refused, active behaviors ended INTERRUPTED (their events reach
+the subscribers and the coordinator), UnregisterSystem naming the last event, event streams
+ended once drained (UNAVAILABLE with the resume point), every service NOT_SERVING, the server
+stopped after a 0.5 s grace; exit 0.
 
 The flags are the C++ systems' (hyphens or underscores alike): --robot-id, --listen, --advertise,
 --metrics-listen, --port-file, --coordinator, --channel (the data channel, given to behaviors
 as SystemContext.channel), --clock steady|sim (sim: the channel's `clock` topic, sim_clock.py),
---flight-controller (given to behaviors), --insecure, --grpc-metrics; and --descriptor-set, a
-FileDescriptorSet with source info (protoc --include_imports --include_source_info) whose
-comments describe the behaviors of protos compiled outside this package, in ListBehaviors and
-reflection (the package's own behaviorlib/v1/descriptors.binpb is read first). Not built yet,
-and refused with a message saying so rather than ignored: --follow-time (the deterministic mode:
-the simulator's time grants), --config (the YAML of decision 45), --link-loss-timeout-s and
---link-loss-action, and TLS (--tls-cert, --tls-key, --tls-ca, --access-policy): without TLS
-the process listens only on loopback unless --insecure, as the C++ servers do.
+--follow-time SIMULATOR_ADDR (the deterministic mode, simulator --time-scale max: the system
+follows the simulator's time grants, time_follower.py, and the simulator waits until every
+behavior ran what was due; needs --clock sim, and then the grants are the clock, the `clock`
+topic is not read), --flight-controller (given to behaviors), --insecure, --grpc-metrics; and
+--descriptor-set, a FileDescriptorSet with source info (protoc --include_imports
+--include_source_info) whose comments describe the behaviors of protos compiled outside this
+package, in ListBehaviors and reflection (the package's own behaviorlib/v1/descriptors.binpb is
+read first). Not built yet, and refused with a message saying so rather than ignored: --config
+(the YAML of decision 45), --link-loss-timeout-s and --link-loss-action, and TLS (--tls-cert,
+--tls-key, --tls-ca, --access-policy): without TLS the process listens only on loopback unless
+--insecure, as the C++ servers do.
 
 Call run_system from the main thread, first thing: it blocks SIGTERM and SIGINT in every thread
 it starts and waits for them with sigwait, as the C++ runtime does.
@@ -62,6 +66,7 @@ from .reflection import ReflectionService
 from .registration import CoordinatorRegistration, advertised_address
 from .service import AcceptGate, BehaviorHost, BehaviorSystemService, TypedServices
 from .sim_clock import SimClock
+from .time_follower import TimeFollower
 
 # A grpcio server runs each call on a thread of its pool; streams (event and health watches,
 # reflection) may hold at most half of them, so that unary calls (health checks among them)
@@ -84,8 +89,6 @@ SERVER_OPTIONS = (
 SHUTDOWN_GRACE_S = 0.5
 _SYSTEM_SERVICE = "behaviorlib.v1.BehaviorSystem"
 _NOT_YET = {
-    "follow_time": "--follow-time (the deterministic mode, following the simulator's time "
-                   "grants)",
     "config": "--config (the system's YAML configuration)",
     "link_loss_timeout_s": "--link-loss-timeout-s (the link-loss action)",
     "link_loss_action": "--link-loss-action",
@@ -120,6 +123,8 @@ class SystemOptions:
     coordinator: str = ""
     channel: str = ""
     clock: str = "steady"
+    # The simulator whose time grants the system follows (the deterministic mode); "": none.
+    follow_time: str = ""
     flight_controller: str = ""
     insecure: bool = False
     grpc_metrics: bool = True
@@ -162,6 +167,10 @@ def _parser(system):
     flag("clock", default="steady",
          help="behavior clock: 'steady' (host monotonic time) or 'sim' (the channel's 'clock' "
               "topic, published by the simulator)")
+    flag("follow-time", default="",
+         help="simulator address host:port: follow its time grants (deterministic mode, "
+              "simulator --time-scale max): each granted time is reported back once every "
+              "behavior ran what was due, and the simulator waits for it; needs --clock sim")
     flag("flight-controller", default="",
          help="FlightController address host:port, given to the behaviors")
     flag("insecure", type=_flag_bool, nargs="?", const=True, default=False,
@@ -172,7 +181,7 @@ def _parser(system):
          help="a FileDescriptorSet with source info (protoc --include_imports "
               "--include_source_info) describing behaviors compiled outside this package; "
               "may be repeated")
-    for name in ("follow-time", "config", "link-loss-timeout-s", "link-loss-action", "tls-cert",
+    for name in ("config", "link-loss-timeout-s", "link-loss-action", "tls-cert",
                  "tls-key", "tls-ca", "access-policy"):
         flag(name, default=None, help=argparse.SUPPRESS)
     return parser
@@ -191,6 +200,9 @@ def parse_flags(argv, system):
         if getattr(args, name) is not None:
             raise StatusError(grpc.StatusCode.INVALID_ARGUMENT,
                               f"{what} is not supported by Python behavior systems yet")
+    if args.follow_time and args.clock != "sim":
+        raise StatusError(grpc.StatusCode.INVALID_ARGUMENT,
+                          "--follow-time needs --clock sim (the grants set simulated time)")
     if args.clock not in ("steady", "sim"):
         raise StatusError(grpc.StatusCode.INVALID_ARGUMENT,
                           f"--clock must be 'steady' or 'sim', not '{args.clock}'")
@@ -201,7 +213,8 @@ def parse_flags(argv, system):
     options = SystemOptions(
         system=system, robot_id=args.robot_id, listen=args.listen, advertise=args.advertise,
         metrics_listen=args.metrics_listen, coordinator=args.coordinator, channel=args.channel,
-        clock=args.clock, flight_controller=args.flight_controller, insecure=args.insecure,
+        clock=args.clock, follow_time=args.follow_time,
+        flight_controller=args.flight_controller, insecure=args.insecure,
         grpc_metrics=args.grpc_metrics, descriptor_sets=tuple(args.descriptor_set))
     return options, args.port_file
 
@@ -271,6 +284,7 @@ class BehaviorSystemProcess:
         self._host = None
         self._server = None
         self._registration = None
+        self._follower = None
         try:
             self._start(options, behaviors)
         except BaseException:
@@ -284,7 +298,10 @@ class BehaviorSystemProcess:
             self._channel = DataChannel(o.channel)
         if o.clock == "sim":
             self._clock = SimClock()
-            self._clock.follow(self._channel)
+            # Following the time grants, the grants are the time: the clock topic would only
+            # repeat them.
+            if not o.follow_time:
+                self._clock.follow(self._channel)
         else:
             self._clock = SteadyClock()
         if callable(behaviors):
@@ -292,8 +309,12 @@ class BehaviorSystemProcess:
                 system=o.system, robot_id=o.robot_id, clock=self._clock, channel=self._channel,
                 flight_controller=o.flight_controller))
         self.metrics = SystemMetrics(o.robot_id, o.system)
+        if o.follow_time:
+            self._follower = TimeFollower(o.follow_time, f"{o.system}/{o.robot_id}", self._clock,
+                                          self._channel, o.robot_id)
         host = BehaviorHost(list(behaviors), robot_id=o.robot_id, system=o.system,
-                            clock=self._clock, observer_factory=self.metrics.observer_factory)
+                            clock=self._clock, observer_factory=self.metrics.observer_factory,
+                            before_command=self._follower.await_turn if self._follower else None)
         self.metrics_port = 0
         if o.metrics_listen:
             try:
@@ -340,6 +361,14 @@ class BehaviorSystemProcess:
                 incarnation=host.events.incarnation, final_seq=host.events.latest_seq,
                 log_prefix=o.system)
             self._registration.start()
+        if self._follower is not None:
+            engines = host.engines
+            clock = self._clock
+            # Caught up: every behavior ran what was due, and so did the work on the clock
+            # outside the ticks (ClockListener.caught_up: lease renewals).
+            self._follower.start(
+                lambda t: all(e.caught_up(t) for e in engines) and clock.listeners_caught_up(t),
+                lambda: all(e.idle() for e in engines))
 
     @property
     def incarnation(self):
@@ -357,13 +386,16 @@ class BehaviorSystemProcess:
         os.replace(temporary, path)
 
     def shutdown(self):
-        """In order: refuses new lifecycle calls, ends active behaviors with INTERRUPTED (their
-        events reach the subscribers and the coordinator), unregisters naming the last event,
-        ends the event streams once drained, reports every service NOT_SERVING, stops
-        serving. Idempotent."""
+        """In order: leaves the simulator's time grants (--follow-time: commands then run at
+        the last granted time), refuses new lifecycle calls, ends active behaviors with
+        INTERRUPTED (their events reach the subscribers and the coordinator), unregisters naming
+        the last event, ends the event streams once drained, reports every service NOT_SERVING,
+        stops serving. Idempotent."""
         if self._stopped:
             return
         self._stopped = True
+        if self._follower is not None:
+            self._follower.stop()  # leaves the simulator's barrier first
         if self._server is not None:
             self._gate.close()
         if self._host is not None:

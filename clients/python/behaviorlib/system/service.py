@@ -72,13 +72,17 @@ class AcceptGate:
 class BehaviorHost:
     """The behaviors of one process, each in its engine, sharing the process's event log and
     clock (services/behaviorlib/core/behavior_host.cc). `observer_factory`, when given, makes
-    each behavior's BehaviorObserver (the metrics) from its ExecutionManager. Two behaviors of
-    one name are refused (StatusError INVALID_ARGUMENT)."""
+    each behavior's BehaviorObserver (the metrics) from its ExecutionManager; `before_command`,
+    when given, is every behavior's BehaviorContext.before_command (the deterministic mode's
+    time gate, TimeFollower.await_turn). Two behaviors of one name are refused (StatusError
+    INVALID_ARGUMENT)."""
 
-    def __init__(self, behaviors, *, robot_id, system, clock, observer_factory=None):
+    def __init__(self, behaviors, *, robot_id, system, clock, observer_factory=None,
+                 before_command=None):
         self.robot_id = robot_id
         self.system = system
         self.clock = clock
+        self._before_command = before_command
         self.events = EventLog(robot_id=robot_id, system=system)
         self.engines = [ExecutionManager(behavior) for behavior in behaviors]
         self._observer_factory = observer_factory
@@ -95,7 +99,8 @@ class BehaviorHost:
         for engine in self.engines:
             observer = self._observer_factory(engine) if self._observer_factory else None
             context = BehaviorContext(clock=self.clock, events=self.events, observer=observer,
-                                      robot_id=self.robot_id)
+                                      robot_id=self.robot_id,
+                                      before_command=self._before_command)
             try:
                 engine.start(context)
             except StatusError:

@@ -44,13 +44,18 @@ def _pages(method, request, items, credentials):
         request.page_token = reply.next_page_token
 
 
-def _resuming(fleet, open_stream, ends=lambda reply: False):
+def _resuming(fleet, open_stream, ends=lambda reply: False, closed=lambda: False):
     """The replies of the stream that `open_stream()` opens, opened again
     after a back-off when it breaks with a retryable code (the coordinator
     restarted) or ends early; stops after the reply for which `ends(reply)`
-    is true, or quietly once the fleet is closed."""
+    is true, or quietly once the fleet is closed or `closed()` is true (the
+    caller cancelled the stream)."""
     backoff = _core.Backoff()
-    while not fleet.closed:
+
+    def over():
+        return fleet.closed or closed()
+
+    while not over():
         try:
             for reply in open_stream():
                 backoff.reset()
@@ -58,10 +63,12 @@ def _resuming(fleet, open_stream, ends=lambda reply: False):
                 if ends(reply):
                     return
         except grpc.RpcError as error:
-            if fleet.closed:
+            if over():
                 return
             if not _core.retryable(error):
                 raise from_rpc_error(error) from None
+        if over():
+            return
         time.sleep(backoff.next_delay_s())
 
 
@@ -227,7 +234,7 @@ class Samples:
         self._closed = False
         self.dropped = 0
         self.last = None
-        self._replies = self._run()
+        self._replies = _resuming(fleet, self._open, closed=lambda: self._closed)
 
     def _open(self):
         with self._lock:
@@ -236,25 +243,6 @@ class Samples:
             self._call = self._fleet._stub.WatchVehicle(
                 self._request, metadata=self._fleet._credentials.metadata())
             return self._call
-
-    def _run(self):
-        backoff = _core.Backoff()
-        while not self._over():
-            try:
-                for reply in self._open():
-                    backoff.reset()
-                    yield reply
-            except grpc.RpcError as error:
-                if self._over():
-                    return
-                if not _core.retryable(error):
-                    raise from_rpc_error(error) from None
-            if self._over():
-                return
-            time.sleep(backoff.next_delay_s())
-
-    def _over(self):
-        return self._closed or self._fleet.closed
 
     def __iter__(self):
         return self

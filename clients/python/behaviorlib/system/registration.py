@@ -33,11 +33,11 @@ MAX_BACKOFF_S = 2.0
 DEFAULT_HEARTBEAT_S = 1.0
 REGISTER_DEADLINE_S = 5.0
 
-# gRPC's default reconnect backoff grows to 120 s; a restarted coordinator must be found again
-# within our own 2 s retry period. Each connection attempt gets at least 5 s (gRPC's "minimum
+# gRPC's default reconnect backoff grows to 120 s; a restarted coordinator (or simulator, for
+# time_follower.py) must be found again within our own 2 s retry period. Each connection attempt gets at least 5 s (gRPC's "minimum
 # connect timeout"): at 100 ms, a server slow to send its HTTP/2 settings on a loaded machine
 # failed the call.
-_CHANNEL_OPTIONS = (
+RECONNECTING_CHANNEL_OPTIONS = (
     ("grpc.initial_reconnect_backoff_ms", int(INITIAL_BACKOFF_S * 1000)),
     ("grpc.min_reconnect_backoff_ms", 5000),
     ("grpc.max_reconnect_backoff_ms", int(MAX_BACKOFF_S * 1000)),
@@ -71,7 +71,7 @@ class CoordinatorRegistration:
         self._incarnation = incarnation
         self._final_seq = final_seq
         self._log_prefix = log_prefix
-        self._channel = grpc.insecure_channel(coordinator, options=_CHANNEL_OPTIONS)
+        self._channel = grpc.insecure_channel(coordinator, options=RECONNECTING_CHANNEL_OPTIONS)
         self._stub = coordinator_pb2_grpc.CoordinatorStub(self._channel)
         self._thread = threading.Thread(target=self._run, daemon=True,
                                         name="coordinator-registration")

@@ -58,9 +58,9 @@ from behaviorlib.v1 import simulator_pb2, simulator_pb2_grpc, types_pb2
 
 from .clock import NANOS_PER_SECOND
 from .parameters import StatusError
+from .registration import (INITIAL_BACKOFF_S, MAX_BACKOFF_S,  # the same retry period
+                           RECONNECTING_CHANNEL_OPTIONS)
 
-INITIAL_BACKOFF_S = 0.1
-MAX_BACKOFF_S = 2.0
 # How often the behaviors' progress is looked at while catching up.
 CATCH_UP_POLL_S = 100e-6
 # How often a wait for data looks whether the follower is stopping.
@@ -70,13 +70,6 @@ DATA_WAIT_LIMIT_S = 2.0
 # The longest wait of a command for its turn (wall time): the simulator may be held up by
 # another follower, for at most its --follower-timeout-s.
 TURN_LIMIT_S = 6.0
-# gRPC's default reconnect backoff grows to 120 s; a restarted simulator must be found again
-# within our own 2 s retry period (registration.py's reasons).
-_CHANNEL_OPTIONS = (
-    ("grpc.initial_reconnect_backoff_ms", int(INITIAL_BACKOFF_S * 1000)),
-    ("grpc.min_reconnect_backoff_ms", 5000),
-    ("grpc.max_reconnect_backoff_ms", int(MAX_BACKOFF_S * 1000)),
-)
 _END = object()
 
 
@@ -99,7 +92,7 @@ class TimeFollower:
         self._robot_id = robot_id
         self._clock = clock
         self._data = channel
-        self._grpc_channel = grpc.insecure_channel(simulator_address, _CHANNEL_OPTIONS)
+        self._grpc_channel = grpc.insecure_channel(simulator_address, RECONNECTING_CHANNEL_OPTIONS)
         self._caught_up = None
         self._idle = None
         self._thread = None

@@ -1,7 +1,17 @@
-// Integration tests of a real behavior-system process: the
-// basic_quadrotor_behaviors binary (hosting WAIT) and, for simulated time, the
-// real channel_broker, both started on free loopback ports and driven over
-// gRPC exactly as the coordinator, scripts or grpcurl would. No mocks.
+// The lifecycle contract of a behavior system, tested on a real process: by
+// default the basic_quadrotor_behaviors binary (hosting WAIT) and, for
+// simulated time, the real channel_broker, both started on free loopback
+// ports and driven over gRPC exactly as the coordinator, scripts or grpcurl
+// would. No mocks.
+//
+// The same suite runs against the contract's systems (decision 47), which
+// host WAIT and CONTRACT_PROBE: contract_behaviors in C++ and its twin in
+// Python, named by the environment:
+//   BEHAVIORLIB_SYSTEM_UNDER_TEST  the command, split at spaces (the program,
+//                                  then its leading arguments: a script);
+//   BEHAVIORLIB_SYSTEM_NAME        the name the system registers under.
+// The LifecycleContractTest cases need CONTRACT_PROBE; they are filtered out
+// of the run against basic_quadrotor_behaviors.
 
 #include <google/protobuf/struct.pb.h>
 #include <google/protobuf/util/json_util.h>
@@ -30,10 +40,12 @@
 #include <thread>
 #include <vector>
 
+#include "absl/strings/str_split.h"
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
+#include "coordinator_test_support.h"
 #include "support/paging.h"
 #include "support/server_process.h"
 
@@ -44,10 +56,43 @@ using std::chrono::milliseconds;
 using std::chrono::seconds;
 using Clock = std::chrono::steady_clock;
 
-constexpr char kSystemBinary[] = BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH;
 constexpr char kBrokerBinary[] = BEHAVIORLIB_CHANNEL_BROKER_PATH;
+constexpr char kCoordinatorBinary[] = BEHAVIORLIB_COORDINATOR_PATH;
+constexpr char kContractSystemBinary[] = BEHAVIORLIB_CONTRACT_SYSTEM_PATH;
 constexpr char kRobot[] = "it-drone-7";
-constexpr char kSystem[] = "basic_quadrotor_behaviors";
+
+// The system under test: its command (program, then leading arguments) and
+// the name it registers under.
+struct SystemUnderTest {
+  std::vector<std::string> command;
+  std::string name;
+};
+
+const SystemUnderTest& systemUnderTest() {
+  static const SystemUnderTest sut = [] {
+    SystemUnderTest s{{BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH}, "basic_quadrotor_behaviors"};
+    if (const char* command = std::getenv("BEHAVIORLIB_SYSTEM_UNDER_TEST");
+        command != nullptr && *command != '\0') {
+      s.command = absl::StrSplit(command, ' ', absl::SkipEmpty());
+    }
+    if (const char* name = std::getenv("BEHAVIORLIB_SYSTEM_NAME");
+        name != nullptr && *name != '\0') {
+      s.name = name;
+    }
+    return s;
+  }();
+  return sut;
+}
+
+const std::string& systemName() { return systemUnderTest().name; }
+
+// A process of the system under test with `args` after the test's flags.
+std::unique_ptr<support::ServerProcess> systemProcess(std::vector<std::string> args) {
+  const auto& command = systemUnderTest().command;
+  return std::make_unique<support::ServerProcess>(
+      command.front(), std::vector<std::string>(command.begin() + 1, command.end()),
+      std::move(args));
+}
 
 // Every RPC and every wait in this file is bounded.
 constexpr milliseconds kCallTimeout = seconds(5);
@@ -282,8 +327,7 @@ class EventWatcher {
 class BehaviorSystemTest : public ::testing::Test {
  protected:
   void SetUp() override {
-    system_ = std::make_unique<support::ServerProcess>(
-        kSystemBinary, std::vector<std::string>{"--robot-id", kRobot});
+    system_ = systemProcess({"--robot-id", kRobot});
     ASSERT_TRUE(system_->start()) << system_->error();
     client_ = std::make_unique<SystemClient>(system_->address());
   }
@@ -342,7 +386,7 @@ TEST_F(BehaviorSystemTest, TypedWaitActivatesReportsAndFinishesWithGoalAchieved)
   EXPECT_EQ(second->seq(), first->seq() + 1);
   for (const auto* event : {&*first, &*second}) {
     EXPECT_EQ(event->robot_id(), kRobot);
-    EXPECT_EQ(event->system(), kSystem);
+    EXPECT_EQ(event->system(), systemName());
     EXPECT_EQ(event->behavior(), "WAIT");
     EXPECT_EQ(event->incarnation(), start->incarnation());
     EXPECT_TRUE(event->has_time());
@@ -548,7 +592,7 @@ TEST_F(BehaviorSystemTest, ListBehaviorsDescribesWaitFromItsProto) {
   ASSERT_TRUE(list.status.ok()) << describe(list.status);
   const auto& r = list.response;
   EXPECT_EQ(r.robot_id(), kRobot);
-  EXPECT_EQ(r.system(), kSystem);
+  EXPECT_EQ(r.system(), systemName());
   EXPECT_FALSE(r.incarnation().empty());
   {
     EventWatcher watcher(system_->address());
@@ -557,7 +601,7 @@ TEST_F(BehaviorSystemTest, ListBehaviorsDescribesWaitFromItsProto) {
     EXPECT_EQ(start->incarnation(), r.incarnation());
   }
 
-  // The system hosts the flight behaviors too; WAIT is found by name.
+  // The system hosts other behaviors too; WAIT is found by name.
   auto find_wait = [](const v1::ListBehaviorsResponse& response) -> const v1::BehaviorDescription* {
     for (const auto& b : response.behaviors()) {
       if (b.name() == "WAIT") return &b;
@@ -610,19 +654,19 @@ TEST_F(BehaviorSystemTest, ListBehaviorsPagesThroughEveryBehaviorOnce) {
                                 v1::ListBehaviorsRequest(), items, name, &whole)
                   .ok());
   ASSERT_EQ(whole.size(), 1u);  // the default page holds them all
-  ASSERT_GE(whole[0].size(), 5u);
+  ASSERT_GE(whole[0].size(), 2u);
   EXPECT_TRUE(std::is_sorted(whole[0].begin(), whole[0].end()));
 
   v1::ListBehaviorsRequest small;
-  small.set_page_size(2);
+  small.set_page_size(1);
   std::vector<std::vector<std::string>> pages;
   ASSERT_TRUE(
       support::pageKeys(*stub, &v1::BehaviorSystem::Stub::ListBehaviors, small, items, name, &pages)
           .ok());
-  EXPECT_EQ(pages.size(), (whole[0].size() + 1) / 2);
+  EXPECT_EQ(pages.size(), whole[0].size());
   std::vector<std::string> joined;
   for (const auto& page : pages) {
-    EXPECT_LE(page.size(), 2u);
+    EXPECT_EQ(page.size(), 1u);
     joined.insert(joined.end(), page.begin(), page.end());
   }
   EXPECT_EQ(joined, whole[0]);
@@ -766,8 +810,7 @@ TEST_F(BehaviorSystemTest, WatchEventsResumesWithoutLossAndDetectsRestarts) {
   const uint64_t old_latest = missed.back().seq() + 1;
   all.disconnect();
   EXPECT_EQ(system_->terminate(), 0);
-  system_ = std::make_unique<support::ServerProcess>(
-      kSystemBinary, std::vector<std::string>{"--robot-id", kRobot});
+  system_ = systemProcess({"--robot-id", kRobot});
   ASSERT_TRUE(system_->start()) << system_->error();
   {
     EventWatcher after(system_->address(), old_latest, incarnation);
@@ -864,7 +907,7 @@ TEST_F(BehaviorSystemTest, MetricsEndpointCountsActivationsTerminationsAndTiming
 
   const std::vector<std::string> wait_labels = {"behavior=\"WAIT\"",
                                                 std::string("robot=\"") + kRobot + "\"",
-                                                std::string("system=\"") + kSystem + "\""};
+                                                std::string("system=\"") + systemName() + "\""};
   auto with = [&](const std::string& extra) {
     auto labels = wait_labels;
     labels.push_back(extra);
@@ -955,9 +998,10 @@ int runToExit(const std::vector<std::string>& args, milliseconds timeout,
 
 TEST_F(BehaviorSystemTest, SecondProcessOnAPortInUseExitsWithAnError) {
   std::string err;
-  const int status = runToExit({kSystemBinary, "--listen", system_->address(), "--metrics-listen",
-                                "127.0.0.1:0", "--robot-id", kRobot},
-                               seconds(10), &err);
+  std::vector<std::string> command = systemUnderTest().command;
+  command.insert(command.end(), {"--listen", system_->address(), "--metrics-listen", "127.0.0.1:0",
+                                 "--robot-id", kRobot});
+  const int status = runToExit(command, seconds(10), &err);
   ASSERT_NE(status, -1) << "the second process did not exit by itself";
   ASSERT_TRUE(WIFEXITED(status)) << "killed by signal " << WTERMSIG(status) << "\n" << err;
   EXPECT_NE(WEXITSTATUS(status), 0) << err;
@@ -971,13 +1015,195 @@ TEST_F(BehaviorSystemTest, SecondProcessOnAPortInUseExitsWithAnError) {
 }
 
 // ---------------------------------------------------------------------------
+// The contract's termination causes, refusals and supervision, provoked
+// through CONTRACT_PROBE (contract_behaviors, in C++ or in Python).
+
+class LifecycleContractTest : public BehaviorSystemTest {
+ protected:
+  // Activates CONTRACT_PROBE with `json` and returns its finished event.
+  std::optional<v1::BehaviorEvent> probe(const std::string& json,
+                                         milliseconds timeout = kEventTimeout) {
+    EventWatcher watcher(system_->address());
+    if (!watcher.start()) return std::nullopt;
+    auto r = client_->activateBehavior("CONTRACT_PROBE", json);
+    EXPECT_TRUE(r.status.ok()) << json << ": " << describe(r.status);
+    if (!r.status.ok()) return std::nullopt;
+    return watcher.waitFinished(r.response.activation_id(), timeout);
+  }
+};
+
+TEST_F(LifecycleContractTest, EachMonitoringFunctionEndsWithItsCauseAndMessage) {
+  struct Case {
+    const char* parameter;
+    v1::TerminationCause cause;
+    const char* message;
+  };
+  for (const Case& c : {
+           Case{"fail_processes", v1::TERMINATION_CAUSE_PROCESS_FAILURE,
+                "the probe's process failed"},
+           Case{"change_situation", v1::TERMINATION_CAUSE_SITUATION_CHANGE,
+                "the probe's situation changed"},
+           Case{"achieve_goal", v1::TERMINATION_CAUSE_GOAL_ACHIEVED, "the probe's goal achieved"},
+           Case{"wrong_progress", v1::TERMINATION_CAUSE_WRONG_PROGRESS,
+                "the probe made no progress"},
+       }) {
+    const std::string json = std::string(R"({"after_s": 0.05, ")") + c.parameter + R"(": true})";
+    auto finished = probe(json);
+    ASSERT_TRUE(finished) << json << ": no finished event";
+    EXPECT_EQ(finished->finished().cause(), c.cause) << finished->ShortDebugString();
+    EXPECT_EQ(finished->finished().message(), c.message) << finished->ShortDebugString();
+    EXPECT_GE(toSeconds(finished->finished().active_duration()), 0.05);
+    EXPECT_TRUE(finished->finished().parameters().fields().at(c.parameter).bool_value());
+  }
+}
+
+TEST_F(LifecycleContractTest, TheMonitoringOrderDecidesWhenSeveralFunctionsWouldEnd) {
+  // checkProcesses, checkSituation, checkGoal, checkProgress: the first that
+  // ends the activation wins, whatever the others say at the same tick.
+  auto finished = probe(
+      R"({"fail_processes": true, "change_situation": true, "achieve_goal": true,
+          "wrong_progress": true})");
+  ASSERT_TRUE(finished);
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  finished = probe(R"({"change_situation": true, "achieve_goal": true, "wrong_progress": true})");
+  ASSERT_TRUE(finished);
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_SITUATION_CHANGE);
+  finished = probe(R"({"achieve_goal": true, "wrong_progress": true})");
+  ASSERT_TRUE(finished);
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+}
+
+TEST_F(LifecycleContractTest, TheMaximumActiveTimeEndsWithTimeOut) {
+  auto finished = probe(R"({"time_out_s": 0.3})");
+  ASSERT_TRUE(finished);
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_TIME_OUT)
+      << finished->ShortDebugString();
+  EXPECT_EQ(finished->finished().message(), "the probe's time_out_s of active time passed");
+  EXPECT_GE(toSeconds(finished->finished().active_duration()), 0.3);
+}
+
+TEST_F(LifecycleContractTest, AnExceptionIsProcessFailureNamingItAndTheSystemGoesOn) {
+  auto finished = probe(R"({"throw_in_execute": true})");
+  ASSERT_TRUE(finished);
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  const std::string& message = finished->finished().message();
+  EXPECT_NE(message.find("threw"), std::string::npos) << message;
+  EXPECT_NE(message.find("the probe throws"), std::string::npos) << message;
+  EXPECT_TRUE(system_->running());
+  finished = probe(R"({"achieve_goal": true})");
+  ASSERT_TRUE(finished);
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+}
+
+TEST_F(LifecycleContractTest, TheWatchdogEndsAStuckFunctionAndActivationsResumeAfterIt) {
+  // onExecute blocks 2.5 s; the watchdog (1 s) ends the activation while it
+  // does, and new activations are refused until the call returns.
+  const auto t0 = Clock::now();
+  auto finished = probe(R"({"block_s": 2.5})");
+  ASSERT_TRUE(finished);
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  EXPECT_NE(finished->finished().message().find("watchdog"), std::string::npos)
+      << finished->finished().message();
+  EXPECT_GE(elapsedSeconds(t0), 1.0);
+  Reply<v1::ActivateResponse> again;
+  const auto deadline = Clock::now() + seconds(10);
+  do {
+    again = client_->activateBehavior("CONTRACT_PROBE", R"({"achieve_goal": true})");
+    if (again.status.ok()) break;
+    EXPECT_EQ(again.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION)
+        << describe(again.status);
+    std::this_thread::sleep_for(milliseconds(50));
+  } while (Clock::now() < deadline);
+  ASSERT_TRUE(again.status.ok()) << describe(again.status);
+  EXPECT_GE(elapsedSeconds(t0), 2.5) << "accepted while the stuck call still ran";
+  EXPECT_TRUE(system_->running());
+}
+
+TEST_F(LifecycleContractTest, ARefusalInOnActivateIsItsStatusAndNothingStarts) {
+  EventWatcher watcher(system_->address());
+  ASSERT_TRUE(watcher.start());
+  auto r = client_->activateBehavior("CONTRACT_PROBE", R"({"refuse_activation": "not today"})");
+  EXPECT_EQ(r.status.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << describe(r.status);
+  EXPECT_NE(r.status.error_message().find("not today"), std::string::npos)
+      << r.status.error_message();
+  EXPECT_FALSE(watcher.nextEvent(milliseconds(300))) << "a refused activation emits nothing";
+  // Out of range and unknown: the parameter named.
+  r = client_->activateBehavior("CONTRACT_PROBE", R"({"block_s": 11})");
+  EXPECT_EQ(r.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(r.status);
+  EXPECT_NE(r.status.error_message().find("block_s"), std::string::npos)
+      << r.status.error_message();
+  r = client_->activateBehavior("CONTRACT_PROBE", R"({"after_s": 0, "fail_processes": 1})");
+  EXPECT_EQ(r.status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(r.status);
+  EXPECT_NE(r.status.error_message().find("fail_processes"), std::string::npos)
+      << r.status.error_message();
+}
+
+// The words of a description: those of a C++ system come from the descriptor
+// sets it embeds, the shipped protos' only; a behavior declared outside them
+// (CONTRACT_PROBE, an out-of-tree system's) is described without them.
+void clearDocumentation(v1::BehaviorDescription* description) {
+  description->clear_description();
+  for (auto& parameter : *description->mutable_parameters()) parameter.clear_description();
+}
+
+TEST_F(LifecycleContractTest, DescribesItsBehaviorsAsTheCppSystemDoes) {
+  // The reference: the C++ contract system (the same process when it is the
+  // one under test). Every description, byte for byte: WAIT's with its words,
+  // CONTRACT_PROBE's without them.
+  support::ServerProcess reference(kContractSystemBinary, {"--robot-id", kRobot});
+  ASSERT_TRUE(reference.start()) << reference.error();
+  auto ours = client_->listBehaviors();
+  auto theirs = SystemClient(reference.address()).listBehaviors();
+  ASSERT_TRUE(ours.status.ok()) << describe(ours.status);
+  ASSERT_TRUE(theirs.status.ok()) << describe(theirs.status);
+  ASSERT_EQ(ours.response.behaviors_size(), 2);
+  ASSERT_EQ(theirs.response.behaviors_size(), 2);
+  ASSERT_EQ(ours.response.behaviors(0).name(), "CONTRACT_PROBE");
+  clearDocumentation(ours.response.mutable_behaviors(0));
+  clearDocumentation(theirs.response.mutable_behaviors(0));
+  EXPECT_FALSE(ours.response.behaviors(1).description().empty());
+  for (int i = 0; i < 2; ++i) {
+    EXPECT_EQ(ours.response.behaviors(i).SerializeAsString(),
+              theirs.response.behaviors(i).SerializeAsString())
+        << ours.response.behaviors(i).DebugString() << "\nvs the C++ system's\n"
+        << theirs.response.behaviors(i).DebugString();
+  }
+  EXPECT_EQ(reference.terminate(), 0);
+}
+
+TEST_F(LifecycleContractTest, AKilledSystemIsProcessFailureAtTheCoordinator) {
+  // SIGKILL: no event from the system, no unregistration; the coordinator's
+  // supervision ends the activation it knew (kill -9 as PROCESS_FAILURE).
+  support::ServerProcess coordinator(kCoordinatorBinary, {});
+  ASSERT_TRUE(coordinator.start()) << coordinator.error();
+  system_ = systemProcess({"--robot-id", kRobot, "--coordinator", coordinator.address()});
+  ASSERT_TRUE(system_->start()) << system_->error();
+  coordinator_test::CoordinatorClient fleet(coordinator.address());
+  ASSERT_TRUE(fleet.waitForSystem(kRobot, v1::SYSTEM_STATE_UP));
+  coordinator_test::FleetWatcher watcher(coordinator.address());
+  ASSERT_TRUE(watcher.start());
+  auto activated = fleet.activate(kRobot, "WAIT", R"({"duration_s": 60})");
+  ASSERT_TRUE(activated.status.ok()) << describe(activated.status);
+  const std::string id = activated.response.activation().activation_id();
+  ASSERT_TRUE(watcher.waitActivated(id));
+  system_->kill();
+  auto finished = watcher.waitFinished(id, seconds(10));
+  ASSERT_TRUE(finished) << "no finished event after the kill";
+  EXPECT_EQ(finished->behavior_event().finished().cause(), v1::TERMINATION_CAUSE_PROCESS_FAILURE);
+  EXPECT_TRUE(finished->synthesized());
+  EXPECT_EQ(finished->behavior_event().system(), systemName());
+  EXPECT_EQ(coordinator.terminate(), 0);
+}
+
+// ---------------------------------------------------------------------------
 // Simulated time from the channel broker's `clock` topic.
 
 TEST(BehaviorSystemSimClockTest, WaitFollowsSimulatedTimeFromTheChannel) {
   support::ServerProcess broker(kBrokerBinary, {});
   ASSERT_TRUE(broker.start()) << broker.error();
-  support::ServerProcess system(
-      kSystemBinary, {"--robot-id", kRobot, "--channel", broker.address(), "--clock", "sim"});
+  auto process =
+      systemProcess({"--robot-id", kRobot, "--channel", broker.address(), "--clock", "sim"});
+  support::ServerProcess& system = *process;
   ASSERT_TRUE(system.start()) << system.error();
   SystemClient client(system.address());
 

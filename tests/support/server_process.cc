@@ -84,15 +84,26 @@ int readPortFromFile(const std::string& path, const std::string& key) {
 ServerProcess::ServerProcess(std::string binary, std::vector<std::string> args)
     : binary_(std::move(binary)), args_(std::move(args)), port_file_(tempPath()) {}
 
+ServerProcess::ServerProcess(std::string binary, std::vector<std::string> leading,
+                             std::vector<std::string> args)
+    : binary_(std::move(binary)),
+      leading_(std::move(leading)),
+      args_(std::move(args)),
+      port_file_(tempPath()) {}
+
 ServerProcess::~ServerProcess() {
   if (pid_ > 0) kill();
   unlink(port_file_.c_str());
 }
 
 bool ServerProcess::start(std::chrono::milliseconds timeout) {
-  std::vector<std::string> argv_s = {
-      binary_,       "--listen",    "127.0.0.1:0", "--metrics-listen",
-      "127.0.0.1:0", "--port-file", port_file_};
+  std::vector<std::string> argv_s = {binary_};
+  argv_s.insert(argv_s.end(), leading_.begin(), leading_.end());
+  for (const char* flag :
+       {"--listen", "127.0.0.1:0", "--metrics-listen", "127.0.0.1:0", "--port-file"}) {
+    argv_s.emplace_back(flag);
+  }
+  argv_s.push_back(port_file_);
   argv_s.insert(argv_s.end(), args_.begin(), args_.end());
   std::vector<char*> argv;
   for (auto& a : argv_s) argv.push_back(a.data());

@@ -22,6 +22,10 @@ class ServerProcess {
   /// `args` are appended after `--listen 127.0.0.1:0 --metrics-listen
   /// 127.0.0.1:0 --port-file <tmp>`.
   ServerProcess(std::string binary, std::vector<std::string> args);
+  /// `leading` come right after `binary`, before the flags: a script after
+  /// its interpreter (`python3 system.py --listen ...`).
+  ServerProcess(std::string binary, std::vector<std::string> leading,
+                std::vector<std::string> args);
   ~ServerProcess();  // kills the process if still running
   ServerProcess(const ServerProcess&) = delete;
   ServerProcess& operator=(const ServerProcess&) = delete;
@@ -55,6 +59,7 @@ class ServerProcess {
 
  private:
   std::string binary_;
+  std::vector<std::string> leading_;
   std::vector<std::string> args_;
   std::string port_file_;
   std::string error_;

@@ -732,7 +732,7 @@ class Observer(BehaviorObserver):
         self.finished.append(cause)
 
 
-def test_the_watchdog_abandons_a_stuck_function_and_a_new_worker_serves(harness):
+def test_the_watchdog_ends_the_activation_and_blocks_until_the_stuck_function_returns(harness):
     observer = Observer()
     h = harness(options=BehaviorOptions(watchdog_timeout=seconds(0.2)), observer=observer)
     stuck = Blocks()
@@ -743,32 +743,44 @@ def test_the_watchdog_abandons_a_stuck_function_and_a_new_worker_serves(harness)
         assert finished.activation_id == first.activation_id
         assert finished.finished.cause == Cause.Value("TERMINATION_CAUSE_PROCESS_FAILURE")
         assert finished.finished.message == (
-            "on_execute did not return within 0.2 s (watchdog); its thread is abandoned and "
-            "SCRIPTED accepts activations again")
-        assert h.behavior.count("on_deactivate") == 1
-        assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_INACTIVE
+            "on_execute did not return within 0.2 s (watchdog); SCRIPTED accepts activations "
+            "again once it returns")
         assert observer.blocked == [True]
         old_worker = h.behavior.threads()[0]
-        new_worker = h.behavior.threads()[-1]
-        assert new_worker is not old_worker, "on_deactivate ran on the new worker"
         assert old_worker.is_alive(), "the stuck function still runs"
 
-        # The next activation is served while the stuck function still blocks.
-        h.behavior.execute_hook = lambda: None
-        second = h.activate()
-        assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_ACTIVE
-        assert h.tick() == 1
-        assert h.behavior.threads()[-1] is new_worker
-        h.engine.deactivate_and_wait(second.activation_id)
-        assert h.count_kind("finished") == 2
+        # BLOCKED, as in C++: every call that would run the behavior's code is refused.
+        assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_BLOCKED
+        check = h.engine.check_activation()
+        assert not check.active and check.state == behavior_pb2.BEHAVIOR_STATE_BLOCKED
+        blocked = "is blocked: user code of its previous activation has not returned yet"
+        for call in (lambda: h.engine.activate_and_wait(wait_params(1)),
+                     lambda: h.engine.pause_and_wait(first.activation_id),
+                     lambda: h.engine.resume_and_wait(first.activation_id),
+                     lambda: h.engine.check_situation_and_wait(),
+                     lambda: h.engine.deactivate_and_wait()):
+            expect_refusal(call, grpc.StatusCode.FAILED_PRECONDITION, "BEHAVIOR_BLOCKED", blocked)
+        # The finished activation, named, is said finished.
+        gone = h.engine.deactivate_and_wait(first.activation_id)
+        assert gone.already_finished
+        assert gone.cause == Cause.Value("TERMINATION_CAUSE_PROCESS_FAILURE")
+        assert h.behavior.count("on_deactivate") == 0, "nothing runs beside the stuck function"
     finally:
         stuck.release.set()
-    # Once the stuck function returns, its thread ends without running anything else.
-    calls = len(h.behavior.calls())
+    # Once it returns, its own thread runs on_deactivate and ends; activations are accepted.
     old_worker.join(WAIT_S)
     assert not old_worker.is_alive()
-    assert len(h.behavior.calls()) == calls
+    assert h.behavior.count("on_deactivate") == 1
+    assert h.behavior.threads()[-1] is old_worker, "on_deactivate ran on the stuck worker"
+    assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_INACTIVE
     assert eventually(lambda: observer.blocked == [True, False])
+    h.behavior.execute_hook = lambda: None
+    second = h.activate()
+    assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_ACTIVE
+    assert h.tick() == 1
+    assert h.behavior.threads()[-1] is not old_worker, "a new worker serves"
+    h.engine.deactivate_and_wait(second.activation_id)
+    assert h.count_kind("finished") == 2
 
 
 def test_the_watchdog_answers_the_call_waiting_on_a_stuck_hook(harness):
@@ -787,10 +799,11 @@ def test_the_watchdog_answers_the_call_waiting_on_a_stuck_hook(harness):
         assert finished.finished.cause == Cause.Value("TERMINATION_CAUSE_PROCESS_FAILURE")
         assert finished.finished.message.startswith("on_pause did not return within 0.2 s")
         assert h.count_kind("paused") == 0
-        h.activate()
-        assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_ACTIVE
     finally:
         stuck.release.set()
+    assert eventually(lambda: h.engine.state() == behavior_pb2.BEHAVIOR_STATE_INACTIVE)
+    h.activate()
+    assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_ACTIVE
 
 
 def test_a_stuck_on_deactivate_ends_the_activation_once(harness):
@@ -813,12 +826,14 @@ def test_a_stuck_on_deactivate_ends_the_activation_once(harness):
         finished = h.finished()
         assert finished.finished.cause == Cause.Value("TERMINATION_CAUSE_PROCESS_FAILURE")
         assert finished.finished.message.startswith("on_deactivate did not return within 0.2 s")
-        assert h.behavior.count("on_deactivate") == 1, "not run again on the new worker"
+        assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_BLOCKED
         h.behavior.block = False
-        h.activate()
-        assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_ACTIVE
     finally:
         stuck.release.set()
+    assert eventually(lambda: h.engine.state() == behavior_pb2.BEHAVIOR_STATE_INACTIVE)
+    assert h.behavior.count("on_deactivate") == 1, "not run again once it returned"
+    h.activate()
+    assert h.engine.state() == behavior_pb2.BEHAVIOR_STATE_ACTIVE
 
 
 def test_a_stuck_check_situation_while_active_answers_infeasible(harness):

@@ -40,25 +40,25 @@ PROCESS_FAILURE, the message naming the function and the exception. Activation w
 worker at once: the first tick follows on_activate immediately, without waiting for the clock.
 
 The watchdog. A user function of a running activation that does not return within the
-behavior's watchdog_timeout (wall time) ends the activation with PROCESS_FAILURE. Where the
-C++ engine marks the behavior BLOCKED until the stuck call returns, a Python thread cannot be
-stopped, so the stuck worker is abandoned instead: a new worker thread takes over at once, runs
-on_deactivate() (unless that was the stuck function), emits the finished event, answers the
-call that was waiting on the stuck function, and serves the next activation. The abandoned
-thread keeps running the stuck function; when it returns, its thread ends and its result is
-dropped. Until then it runs beside the new worker, so a function that can hang (blocking I/O)
-should leave shared state consistent at every point. A thread stuck forever costs its stack
-until the process ends (the threads are daemon threads). As in C++, functions that run while
-no activation does (on_configure, the check_situation and on_activate of an activation that is
+behavior's watchdog_timeout (wall time) ends the activation with PROCESS_FAILURE, and the
+behavior is BLOCKED until the stuck call returns, as in C++: activation, deactivation, pause,
+resume, modify and check_situation are refused with BEHAVIOR_BLOCKED (a deactivation naming the
+finished activation is answered already_finished). A Python thread cannot be stopped, so the
+stuck worker is abandoned: a new worker thread takes over at once and answers the call that was
+waiting on the stuck function, but runs no user code of the behavior while it is BLOCKED. When
+the stuck function returns, its own thread runs on_deactivate() (unless that was the stuck
+function), the behavior is INACTIVE again, and that thread ends. Calls are thus never answered
+with the behavior's code running twice at once. A thread stuck forever costs its stack until the
+process ends (the threads are daemon threads). As in C++, functions that run while no
+activation does (on_configure, the check_situation and on_activate of an activation that is
 being decided) are not watched: a caller waiting on one gets BEHAVIOR_UNRESPONSIVE from the
 *_and_wait forms.
 
 Refusals raise (or set on the Future) parameters.StatusError with the C++ codes, messages and
 ErrorInfo reasons: BEHAVIOR_ALREADY_ACTIVE, SITUATION_NOT_SUITABLE, BEHAVIOR_NOT_ACTIVE,
 ACTIVATION_MISMATCH, BEHAVIOR_ALREADY_PAUSED, BEHAVIOR_NOT_PAUSED, BEHAVIOR_FAILED,
-CLOCK_NOT_READY, SHUTTING_DOWN, BEHAVIOR_UNRESPONSIVE, PARAMETER_INVALID, PARAMETER_OUT_OF_RANGE
-and INVALID_REQUEST. BEHAVIOR_BLOCKED (and BEHAVIOR_STATE_BLOCKED) never occur here: the
-watchdog's new worker serves calls at once.
+CLOCK_NOT_READY, SHUTTING_DOWN, BEHAVIOR_UNRESPONSIVE, BEHAVIOR_BLOCKED, PARAMETER_INVALID,
+PARAMETER_OUT_OF_RANGE and INVALID_REQUEST.
 
 Function names in messages are the Python ones ("on_execute threw: ZeroDivisionError: division
 by zero", "check_goal did not return within 0.2 s (watchdog); ..."), where C++ writes
@@ -85,6 +85,7 @@ from .parameters import StatusError, apply_defaults_and_validate, merge_update, 
 _INACTIVE = behavior_pb2.BEHAVIOR_STATE_INACTIVE
 _ACTIVE = behavior_pb2.BEHAVIOR_STATE_ACTIVE
 _PAUSED = behavior_pb2.BEHAVIOR_STATE_PAUSED
+_BLOCKED = behavior_pb2.BEHAVIOR_STATE_BLOCKED
 
 _UNSPECIFIED = behavior_pb2.TERMINATION_CAUSE_UNSPECIFIED
 _GOAL_ACHIEVED = behavior_pb2.TERMINATION_CAUSE_GOAL_ACHIEVED
@@ -958,6 +959,12 @@ class ExecutionManager:
                 return
             call.fired = True
             self._call = None
+            self._record_finished_locked(
+                _PROCESS_FAILURE,
+                f"{call.function} did not return within "
+                f"{_seconds_text(self._options.watchdog_timeout)} (watchdog); {self.name} "
+                "accepts activations again once it returns")
+            self._state = _BLOCKED
             self._worker.retired = True
             worker = self._new_worker_locked()
             self._commands.appendleft(_Command(lambda: self._recover(call), None))
@@ -985,6 +992,8 @@ class ExecutionManager:
             future.set_exception(parameter_error(error, self.name))
             return future
         received = time.monotonic_ns() if received is None else received
+        if self._refused_while_blocked(future):
+            return future
         self._post(lambda: self._do_activate(owned, request_id, received, future),
                    self._cancel_with(future))
         return future
@@ -994,6 +1003,16 @@ class ExecutionManager:
         the current activation, except a finished one while nothing else runs: success with
         already_finished and its cause."""
         future = concurrent.futures.Future()
+        with self._lock:
+            if self._state == _BLOCKED:
+                known = [cause for finished_id, cause in self._finished
+                         if activation_id and finished_id == activation_id]
+                if known:
+                    future.set_result(behavior_pb2.DeactivateResponse(
+                        activation_id=activation_id, cause=known[-1], already_finished=True))
+                else:
+                    future.set_exception(self._blocked_error_locked())
+                return future
 
         def run():
             response = error = None
@@ -1021,6 +1040,8 @@ class ExecutionManager:
     def pause(self, activation_id=""):
         """Pauses the activation: no ticks, the active time stops; on_pause() runs."""
         future = concurrent.futures.Future()
+        if self._refused_while_blocked(future):
+            return future
 
         def run():
             with self._lock:
@@ -1051,6 +1072,8 @@ class ExecutionManager:
     def resume(self, activation_id=""):
         """Resumes a paused activation: on_resume() runs, then a tick at once."""
         future = concurrent.futures.Future()
+        if self._refused_while_blocked(future):
+            return future
 
         def run():
             with self._lock:
@@ -1089,6 +1112,8 @@ class ExecutionManager:
             return future
         owned = self.parameters_type()
         owned.CopyFrom(update)
+        if self._refused_while_blocked(future):
+            return future
 
         def run():
             with self._lock:
@@ -1136,6 +1161,8 @@ class ExecutionManager:
     def check_situation(self):
         """Runs check_situation() on the worker: a CheckSituationResponse."""
         future = concurrent.futures.Future()
+        if self._refused_while_blocked(future):
+            return future
 
         def run():
             result = None
@@ -1364,10 +1391,43 @@ class ExecutionManager:
             if self._call is call:
                 self._call = None
         if fired:
-            if self._context.observer is not None:
-                self._context.observer.on_blocked(False)
+            self._unblock(call.function)
             raise _Abandoned
         return failure
+
+    def _unblock(self, function):
+        """On the abandoned worker, once the stuck `function` returned: on_deactivate() (unless
+        it was the stuck one), then INACTIVE, accepting activations again (C++'s guarded())."""
+        if function != "on_deactivate":
+            try:
+                self._behavior.on_deactivate()
+            except BaseException:  # user code: the activation has already ended
+                pass
+        with self._lock:
+            self._state = _INACTIVE
+            self._activation_id = ""
+            self._parameters = None
+            self._generation += 1
+        self._report_active(False)
+        if self._context.observer is not None:
+            self._context.observer.on_blocked(False)
+
+    def _blocked_error_locked(self):
+        """BEHAVIOR_BLOCKED while a stuck function has not returned, else None."""
+        if self._state != _BLOCKED:
+            return None
+        return _error(grpc.StatusCode.FAILED_PRECONDITION,
+                      f"{self.name} is blocked: user code of its previous activation has not "
+                      "returned yet (stopped by the watchdog); try again later",
+                      errors_pb2.BEHAVIOR_BLOCKED, {"behavior": self.name})
+
+    def _refused_while_blocked(self, future):
+        """Sets BEHAVIOR_BLOCKED on `future` and returns True while blocked."""
+        with self._lock:
+            error = self._blocked_error_locked()
+        if error is not None:
+            future.set_exception(error)
+        return error is not None
 
     def _hook_or_abort(self, function, hook, future):
         """Runs a lifecycle hook; if it fails, ends the activation with PROCESS_FAILURE,
@@ -1386,27 +1446,17 @@ class ExecutionManager:
             f"{self.name}: {failure}; the activation ended with PROCESS_FAILURE"))
         return False
 
-    def _recover(self, call):
-        """On the new worker, after the watchdog abandoned `call`: ends the activation and
-        answers the caller that waited on the stuck function."""
-        message = (f"{call.function} did not return within "
-                   f"{_seconds_text(self._options.watchdog_timeout)} (watchdog); its thread is "
-                   f"abandoned and {self.name} accepts activations again")
-        if call.function == "on_deactivate":
-            with self._lock:
-                ended = self._running()
-                if ended:
-                    self._end_locked(_PROCESS_FAILURE, message)
-            if ended:
-                self._report_active(False)
-        elif self._running():
-            self._finish(_PROCESS_FAILURE, message)
+    @staticmethod
+    def _recover(call):
+        """On the new worker, after the watchdog abandoned `call` (the activation has ended,
+        the behavior is BLOCKED): answers the caller that waited on the stuck function."""
         if call.abandoned is not None:
             call.abandoned()
 
     def _deliver(self, inbox):
         with self._lock:
-            stale = inbox.generation not in (0, self._generation)
+            stale = (inbox.generation not in (0, self._generation)
+                     or self._state == _BLOCKED)
             active = self._running()
         if stale:
             inbox.discard()
@@ -1596,6 +1646,8 @@ class ExecutionManager:
                 replay = behavior_pb2.ActivateResponse()
                 replay.CopyFrom(self._request_ids[request_id])
                 replay.replayed = True
+            elif self._state == _BLOCKED:
+                refusal = self._blocked_error_locked()
             elif self._state != _INACTIVE:
                 refusal = _error(grpc.StatusCode.FAILED_PRECONDITION,
                                  f"{self.name} is already active (activation "

@@ -44,8 +44,10 @@
 #include "behaviorlib/channel/channel_client.h"
 #include "behaviorlib/v1/behavior.grpc.pb.h"
 #include "behaviorlib/v1/behaviors/basic_quadrotor_behaviors_services.grpc.pb.h"
+#include "behaviorlib/v1/channel.grpc.pb.h"
 #include "behaviorlib/v1/types.pb.h"
 #include "coordinator_test_support.h"
+#include "support/deterministic.h"
 #include "support/paging.h"
 #include "support/server_process.h"
 
@@ -58,6 +60,7 @@ using Clock = std::chrono::steady_clock;
 
 constexpr char kBrokerBinary[] = BEHAVIORLIB_CHANNEL_BROKER_PATH;
 constexpr char kCoordinatorBinary[] = BEHAVIORLIB_COORDINATOR_PATH;
+constexpr char kSimulatorBinary[] = BEHAVIORLIB_SIMULATOR_PATH;
 constexpr char kContractSystemBinary[] = BEHAVIORLIB_CONTRACT_SYSTEM_PATH;
 constexpr char kRobot[] = "it-drone-7";
 
@@ -1287,6 +1290,90 @@ TEST(BehaviorSystemSimClockTest, WaitFollowsSimulatedTimeFromTheChannel) {
   EXPECT_EQ(system.terminate(), 0);
   stop = true;
   if (simulator.joinable()) simulator.join();
+  EXPECT_EQ(broker.terminate(), 0);
+}
+
+// ---------------------------------------------------------------------------
+// The deterministic mode (decision 18): the simulator steps itself in quanta
+// granted to the systems that follow its time (--follow-time), and waits for
+// a busy one.
+
+// The newest simulated time on the channel's clock topic, in seconds (-1
+// when there is none yet): the sample's own time, not extrapolated.
+double latestClockSeconds(v1::DataChannel::Stub& data) {
+  grpc::ClientContext context;
+  context.set_deadline(std::chrono::system_clock::now() + kCallTimeout);
+  v1::GetLatestRequest request;
+  request.set_topic("clock");
+  v1::GetLatestResponse response;
+  v1::Clock clock;
+  if (!data.GetLatest(&context, request, &response).ok() ||
+      !response.sample().sample().UnpackTo(&clock)) {
+    return -1;
+  }
+  return toSeconds(clock.time());
+}
+
+TEST(BehaviorSystemDeterministicTest, AWaitRunsItsSimulatedTimeAndAFrozenBusySystemStopsTime) {
+  support::ServerProcess broker(kBrokerBinary, {});
+  ASSERT_TRUE(broker.start()) << broker.error();
+  support::ServerProcess simulator(
+      kSimulatorBinary, support::deterministicSimulatorArgs(
+                            {"--channel", broker.address(), "--follower-timeout-s", "600"}, 1));
+  ASSERT_TRUE(simulator.start()) << simulator.error();
+  auto process = systemProcess(support::followTimeArgs(
+      {"--robot-id", kRobot, "--channel", broker.address(), "--clock", "sim"},
+      simulator.address()));
+  support::ServerProcess& system = *process;
+  ASSERT_TRUE(system.start(seconds(20))) << system.error();
+  auto data = v1::DataChannel::NewStub(
+      grpc::CreateChannel(broker.address(), grpc::InsecureChannelCredentials()));
+
+  // Time starts once the system joined.
+  double t = -1;
+  for (int attempt = 0; attempt < 500 && t < 0.5; ++attempt) {
+    std::this_thread::sleep_for(milliseconds(20));
+    t = latestClockSeconds(*data);
+  }
+  ASSERT_GE(t, 0.5) << "time did not start with the system following it";
+
+  // A WAIT of 2 s runs 2 s of simulated time and ends within one tick (10 ms)
+  // of it, however loaded the machine is.
+  SystemClient client(system.address());
+  EventWatcher watcher(system.address());
+  ASSERT_TRUE(watcher.start());
+  auto activated = client.activate(2);
+  ASSERT_TRUE(activated.status.ok()) << describe(activated.status);
+  auto finished = watcher.waitFinished(activated.response.activation_id(), seconds(60));
+  ASSERT_TRUE(finished) << "WAIT{2} did not finish";
+  EXPECT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED);
+  const double active = toSeconds(finished->finished().active_duration());
+  EXPECT_GE(active, 2.0);
+  EXPECT_LE(active, 2.0 + 0.0101) << "one tick at most past its end";
+  EXPECT_NEAR(toSeconds(finished->time()) - toSeconds(activated.response.activation_time()), active,
+              1e-6)
+      << "nothing paused it: the event's time is the activation's plus its active time";
+
+  // Busy (a long WAIT active) and frozen: time stands, within the grant in
+  // flight. Thawed, it goes on.
+  auto busy = client.activate(3600);
+  ASSERT_TRUE(busy.status.ok()) << describe(busy.status);
+  ASSERT_TRUE(system.freeze()) << system.error();
+  std::this_thread::sleep_for(milliseconds(200));
+  const double frozen = latestClockSeconds(*data);
+  std::this_thread::sleep_for(milliseconds(700));
+  EXPECT_LE(latestClockSeconds(*data) - frozen, 0.051) << "time went on without the busy system";
+  ASSERT_TRUE(system.thaw()) << system.error();
+  double after = frozen;
+  for (int attempt = 0; attempt < 500 && after < frozen + 0.5; ++attempt) {
+    std::this_thread::sleep_for(milliseconds(20));
+    after = latestClockSeconds(*data);
+  }
+  EXPECT_GE(after, frozen + 0.5) << "time did not go on once the system thawed";
+  ASSERT_TRUE(client.deactivate(busy.response.activation_id()).status.ok());
+
+  EXPECT_EQ(system.terminate(), 0);
+  EXPECT_EQ(simulator.terminate(), 0);
   EXPECT_EQ(broker.terminate(), 0);
 }
 

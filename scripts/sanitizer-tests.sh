@@ -37,9 +37,12 @@ case "$mode" in
       behavior_system_test behavior_system_in_process_test simulator_in_process_test
       simulator_service_test coordinator_in_process_test coordinator_beliefs_test
       coordinator_hardening_test authorizer_in_process_test"
-    # Tests that are scripts (not build targets) driving the programs above.
-    SCRIPTS="console_gateway_test"
-    PROGRAMS="coordinator channel_broker simulator basic_quadrotor_behaviors console behaviorctl"
+    # Tests that are scripts or second runs (not build targets) driving the
+    # programs above: the contract suite against contract_behaviors (its
+    # watchdog, exception and time-out paths).
+    SCRIPTS="console_gateway_test behavior_system_contract_test"
+    PROGRAMS="coordinator channel_broker simulator basic_quadrotor_behaviors console behaviorctl
+      contract_behaviors"
     FUZZERS="fuzz_mission_file fuzz_world_file fuzz_sensor_config fuzz_catalog
       fuzz_systems_config fuzz_parameters_struct fuzz_parameters_json fuzz_journal
       fuzz_channel_sample fuzz_mcap"

@@ -10,6 +10,7 @@
 #include "behaviorlib/motion_behaviors/motion_messages.h"
 #include "behaviorlib/navigation/frontiers.h"
 #include "behaviorlib/navigation/path_planner.h"
+#include "behaviorlib/navigation_with_lidar/lidar_flight.h"
 
 namespace behaviorlib::nav {
 namespace {
@@ -28,9 +29,8 @@ std::string percent(double fraction) {
   return out.str();
 }
 
-constexpr double kArrivedM = 0.3;  // a leg ends this close to its target
-constexpr double kGivenUpM = 0.5;  // a target given up rules out those this close
-constexpr double kAccelerationM_S2 = 0.5;
+constexpr double kArrivedM = 0.3;        // a leg ends this close to its target
+constexpr double kGivenUpM = 0.5;        // a target given up rules out those this close
 constexpr int kCandidatesPerChoice = 4;  // plans tried per choice
 constexpr uint32_t kChoiceRetries = 3;   // choices again when every plan failed
 
@@ -51,23 +51,8 @@ absl::Status ExploreBehavior::onConfigure(const config::v1::ExploreWithFrontiers
 }
 
 Situation ExploreBehavior::checkSituation() {
-  if (!mapper_.channel()) {
-    return Situation::infeasible(
-        v1::SITUATION_REASON_CONFIGURATION,
-        "no data channel configured: start the behavior system with --channel HOST:PORT");
-  }
-  Situation s = ReferenceBehavior::checkSituation();
-  if (!support().active()) {
-    const bool empty =
-        mapper_.withMap([](const OccupancyMap& map) { return map.tree().size() == 0; });
-    if (empty) {
-      s.feasible = false;
-      s.performance_ratio = 0;
-      s.add(v1::SITUATION_REASON_MAP_UNAVAILABLE,
-            "the map is empty: no lidar scan on " + mapper_.scanTopic() + " has been mapped yet");
-    }
-  }
-  return s;
+  return lidarFlightSituation(
+      mapper_, [this] { return ReferenceBehavior::checkSituation(); }, support().active());
 }
 
 absl::Status ExploreBehavior::onActivate() {
@@ -247,18 +232,13 @@ ExploreBehavior::Choice ExploreBehavior::choose(const Request& request,
 }
 
 void ExploreBehavior::startLeg(const std::vector<Eigen::Vector3d>& path) {
-  google::protobuf::RepeatedPtrField<v1::Vector3> points;
-  for (const Eigen::Vector3d& q : path) toProto(q, points.Add());
-  auto tracker =
-      motion_behaviors::makePathTracker(points, parameters().speed_m_s(), kAccelerationM_S2,
-                                        path_settings_, support().settings().min_altitude_m);
+  auto tracker = trackerFromVehicle(path, parameters().speed_m_s(), path_settings_, support());
   if (!tracker.ok()) {
     given_up_.push_back(path.back());
     startChoice();
     return;
   }
   tracker_ = std::move(*tracker);
-  tracker_->start(support().state().position_m, support().yawRad());
   leg_path_ = path;
   last_check_ = now();
   hold_m_.reset();
@@ -270,45 +250,13 @@ void ExploreBehavior::startLeg(const std::vector<Eigen::Vector3d>& path) {
 }
 
 bool ExploreBehavior::legBlocked() const {
-  // The path from the distance already covered by the reference, sampled
-  // every half voxel, up to look_ahead_m ahead.
-  const double done = tracker_->lengthM() - tracker_->remainingM();
-  const double radius = parameters().vehicle_radius_m();
-  return mapper_.withMap([&](const OccupancyMap& map) {
-    const double step = 0.5 * map.resolutionM();
-    double at = 0.0;  // distance along the path of leg_path_[i - 1]
-    for (size_t i = 1; i < leg_path_.size(); ++i) {
-      const Eigen::Vector3d a = leg_path_[i - 1], b = leg_path_[i];
-      const double length = (b - a).norm();
-      for (double s = std::max(0.0, done - at); s <= length; s += step) {
-        if (at + s > done + look_ahead_m_) return false;
-        if (map.collides(a + (b - a) * (length > 0 ? s / length : 0.0), radius)) return true;
-      }
-      at += length;
-    }
-    return false;
-  });
-}
-
-void ExploreBehavior::hold() {
-  if (!hold_m_) hold_m_ = support().state().position_m;
-  motion::MotionReference reference;
-  reference.mode = motion::MotionReference::Mode::kPosition;
-  reference.point.position_m = *hold_m_;
-  reference.point.yaw_rad = support().yawRad();
-  (void)support().publish(reference, now());
+  return pathAheadBlocked(mapper_, leg_path_, tracker_->lengthM() - tracker_->remainingM(),
+                          look_ahead_m_, parameters().vehicle_radius_m());
 }
 
 void ExploreBehavior::onExecute() {
-  const TimePoint t = now();
-  const double dt = std::chrono::duration<double>(t - last_update_).count();
-  last_update_ = t;
-  if (!paused_ && phase_ == Phase::kFlying && tracker_) {
-    // A refused sample shows in the controller's status (it stops following).
-    (void)support().publish(tracker_->update(support().state().position_m, dt), t);
-    return;
-  }
-  hold();
+  followOrHold(support(), !paused_ && phase_ == Phase::kFlying && tracker_ ? &*tracker_ : nullptr,
+               hold_m_, last_update_, now());
 }
 
 void ExploreBehavior::onDeactivate() {

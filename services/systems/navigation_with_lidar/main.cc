@@ -18,6 +18,7 @@
 #include "behaviorlib/navigation_with_lidar/generate_path_behavior.h"
 #include "behaviorlib/navigation_with_lidar/lidar_mapper.h"
 #include "behaviorlib/navigation_with_lidar/map_behaviors.h"
+#include "behaviorlib/navigation_with_lidar/navigate_behavior.h"
 #include "behaviorlib/navigation_with_lidar/slam_behavior.h"
 #include "behaviorlib/server/behavior_system_main.h"
 #include "behaviorlib/server_kit/confined_files.h"
@@ -53,6 +54,7 @@ int main(int argc, char** argv) {
         auto& link = b.own(std::make_unique<behaviorlib::motion_behaviors::RemoteMotionLink>(
             context.channel, context.robot_id));
         b.add<nav::ExploreBehavior>(mapper, vehicle, link);
+        b.add<nav::NavigateBehavior>(mapper, vehicle, link);
         b.add<nav::ClearOccupancyGridBehavior>(mapper);
         const std::string map_dir = absl::GetFlag(FLAGS_map_dir);
         std::error_code made;

@@ -100,7 +100,6 @@ class ExploreBehavior final
   Choice choose(const Request& request, std::stop_token stop) const;
   void startChoice();
   void startLeg(const std::vector<Eigen::Vector3d>& path);
-  void hold();
   /// Whether the next look_ahead_m of the leg's path now passes within the
   /// vehicle's radius of an occupied voxel (a wall seen since it was planned:
   /// unknown space counts as free for the plan).

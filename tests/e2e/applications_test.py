@@ -6,6 +6,7 @@ the launcher's report.
     /usr/bin/python3 tests/e2e/applications_test.py --build-dir build --case swarm
     /usr/bin/python3 tests/e2e/applications_test.py --build-dir build --case exploration
     /usr/bin/python3 tests/e2e/applications_test.py --build-dir build --case exploration_slam
+    /usr/bin/python3 tests/e2e/applications_test.py --build-dir build --case go_to_room_d
     /usr/bin/python3 tests/e2e/applications_test.py --build-dir build   # all four
 
 aircraft: the aircraft inspection (deploy/missions/aircraft_inspection.yaml
@@ -27,6 +28,12 @@ space mapped.
 
 exploration_slam: the same with deploy/missions/room_exploration_slam.yaml,
 localized by SELF_LOCALIZE_AND_MAP_WITH_LIDAR instead of the ground truth.
+
+go_to_room_d: deploy/missions/go_to_room_d.yaml, on the lidar SLAM: NAVIGATE_TO
+from room A to a point in room D the map has not seen, with no intermediate
+point, then back to room B: the mission SUCCEEDED, the vehicle's true track
+came within 0.5 m of the point in room D and ended in room B, and it never
+came nearer a wall of the world file than the vehicle's body.
 
 Each case prints its wall time. Every case runs in the deterministic mode
 (TIME_SCALES below). A failed case keeps its
@@ -54,6 +61,7 @@ WORLDS = os.path.join(REPO, "simulator", "worlds")
 MISSIONS = os.path.join(REPO, "deploy", "missions")
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(LAUNCHER))
 from local_demo_test import (CAUSE_COLORS, CELL_COLOR, WALL_COLOR, alive,  # noqa: E402
                              kill_launched, launched_pids, pixels_near, plot_area, read_png)
 
@@ -69,7 +77,7 @@ from local_demo_test import (CAUSE_COLORS, CELL_COLOR, WALL_COLOR, alive,  # noq
 # for good. Decision 19 and the column that falls fixed both.) Each case
 # still starts only the systems its mission needs (SYSTEMS below).
 TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "max", "exploration_slam": "max",
-               "exploration_autonomous": "max"}
+               "exploration_autonomous": "max", "go_to_room_d": "max"}
 # The behavior systems each case starts (--systems; basic_quadrotor_behaviors
 # always runs): what its mission needs, so that the idle rest of the stack
 # does not take the CPU the controllers need.
@@ -79,6 +87,7 @@ SYSTEMS = {
     "exploration": "quadrotor_motion_with_pid_control,navigation_with_lidar",
     "exploration_slam": "quadrotor_motion_with_pid_control,navigation_with_lidar",
     "exploration_autonomous": "quadrotor_motion_with_pid_control,navigation_with_lidar",
+    "go_to_room_d": "quadrotor_motion_with_pid_control,navigation_with_lidar",
 }
 SUCCEEDED = "MISSION_STATE_SUCCEEDED"
 GOAL_ACHIEVED_COLOR = CAUSE_COLORS["GOAL_ACHIEVED"]
@@ -92,6 +101,27 @@ MIN_MAPPED_FRACTION = 0.8
 # Mean distance of the saved map's occupied voxels at the scan height from the
 # world's surfaces (issue 17).
 MAX_WALL_ERROR_M = 0.10
+# The quadrotor's arms reach this far from its centre: a track nearer a wall
+# touched it.
+BODY_M = 0.25
+
+
+def _segment_distance(p, a, b):
+    """Distance from point p to segment ab (plan view, metres)."""
+    (px, py), (ax, ay), (bx, by) = p, a, b
+    dx, dy = bx - ax, by - ay
+    length2 = dx * dx + dy * dy
+    t = 0.0 if length2 == 0 else max(0.0, min(1.0, ((px - ax) * dx + (py - ay) * dy) / length2))
+    return math.hypot(px - (ax + t * dx), py - (ay + t * dy))
+
+
+def _polygon_distance(p, corners):
+    """Distance from p to a convex polygon (0 inside), plan view."""
+    edges = list(zip(corners, corners[1:] + corners[:1]))
+    signs = {(b[0] - a[0]) * (p[1] - a[1]) - (b[1] - a[1]) * (p[0] - a[0]) > 0 for a, b in edges}
+    if len(signs) == 1:
+        return 0.0
+    return min(_segment_distance(p, a, b) for a, b in edges)
 
 
 class ApplicationsTest(unittest.TestCase):
@@ -282,6 +312,30 @@ class ApplicationsTest(unittest.TestCase):
     def test_exploration_autonomous(self):
         self._explore("exploration_autonomous", "room_exploration_autonomous.yaml")
 
+    def test_go_to_room_d(self):
+        import report  # noqa: E402 (deploy/local/report.py: the world file's plan view)
+        mission = os.path.join(MISSIONS, "go_to_room_d.yaml")
+        world = os.path.join(WORLDS, "rooms.yaml")
+        report_json, _ = self._launch("go_to_room_d", 200, "--world", "rooms",
+                                      "--mission", mission, "--mission-timeout-s", "180")
+        self._assert_succeeded(report_json, "drone1")
+        steps = {s.get("name"): s for s in report_json["robots"]["drone1"]["mission"]["steps"]}
+        print("to_room_d: " + steps["to_room_d"].get("message", ""))
+        print("back_to_room_b: " + steps["back_to_room_b"].get("message", ""))
+        with open(os.path.join(self.run_dir, "trajectory.json")) as f:
+            track = [s for s in json.load(f)["drone1"] if s[4] == "FLIGHT_STATE_FLYING"]
+        self.assertGreater(len(track), 100)
+        nearest_d = min(math.hypot(x - 15.5, y - 8.0) for _, x, y, _, _ in track)
+        self.assertLessEqual(nearest_d, 0.5, "the vehicle did not reach the point in room D")
+        _, x, y, _, _ = track[-1]
+        self.assertTrue(6.0 < x < 12.0 and 0.0 < y < 10.0, f"it ended at ({x}, {y}), not in B")
+        walls = report.world_footprints(world)["walls"]
+        closest = min(_polygon_distance((x, y), w) for _, x, y, z, _ in track for w in walls
+                      if z > 0.3)
+        print(f"closest approach to a wall: {closest:.3f} m")
+        self.assertGreaterEqual(closest, BODY_M, "the vehicle touched a wall")
+        self.passed = True
+
     def _explore(self, case, mission_file):
         mission = os.path.join(MISSIONS, mission_file)
         self.assertTrue(os.path.isfile(mission), f"{mission} does not exist yet")
@@ -316,7 +370,7 @@ class ApplicationsTest(unittest.TestCase):
 
 
 CASES = {"aircraft": "test_aircraft", "swarm": "test_swarm", "exploration": "test_exploration",
-         "exploration_slam": "test_exploration_slam",
+         "exploration_slam": "test_exploration_slam", "go_to_room_d": "test_go_to_room_d",
          "exploration_autonomous": "test_exploration_autonomous"}
 
 if __name__ == "__main__":

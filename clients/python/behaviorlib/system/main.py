@@ -29,14 +29,24 @@ as SystemContext.channel), --clock steady|sim (sim: the channel's `clock` topic,
 --follow-time SIMULATOR_ADDR (the deterministic mode, simulator --time-scale max: the system
 follows the simulator's time grants, time_follower.py, and the simulator waits until every
 behavior ran what was due; needs --clock sim, and then the grants are the clock, the `clock`
-topic is not read), --flight-controller (given to behaviors), --insecure, --grpc-metrics; and
---descriptor-set, a FileDescriptorSet with source info (protoc --include_imports
---include_source_info) whose comments describe the behaviors of protos compiled outside this
-package, in ListBehaviors and reflection (the package's own behaviorlib/v1/descriptors.binpb is
-read first). Not built yet, and refused with a message saying so rather than ignored: --config
-(the YAML of decision 45), --link-loss-timeout-s and --link-loss-action, and TLS (--tls-cert,
---tls-key, --tls-ca, --access-policy): without TLS the process listens only on loopback unless
---insecure, as the C++ servers do.
+topic is not read), --flight-controller (given to behaviors, with the process's credentials:
+SystemContext.dial), --insecure, --grpc-metrics; --descriptor-set, a FileDescriptorSet with
+source info (protoc --include_imports --include_source_info) whose comments describe the
+behaviors of protos compiled outside this package, in ListBehaviors and reflection (the
+package's own behaviorlib/v1/descriptors.binpb is read first); and the security of decisions 23
+and 24 (security.py, access_policy.py, audit.py):
+  - --tls-cert, --tls-key, --tls-ca: mutual TLS on the server (a client certificate from the CA
+    required) and on every channel the process opens (coordinator, channel broker, simulator,
+    flight controller); without TLS the process listens only on loopback unless --insecure;
+  - --access-policy: the roles of the C++ servers' policy file, checked on every call before
+    any handler, and the robot scope of the lifecycle calls; it needs TLS;
+  - --audit-log, --audit-log-max-bytes, --audit-log-keep: every control call and every refusal,
+    one JSON line each, rotated by size; behaviorlib_audited_calls_total counts them with or
+    without a file.
+Not built yet, and refused with a message saying so rather than ignored: --config (the YAML of
+decision 45), --link-loss-timeout-s and --link-loss-action. A refused or inconsistent command
+line, and TLS files or a policy that cannot be read, stop the start with exit code 2 and one line
+saying why, in the C++ systems' words (which exit 1 for the TLS, policy and listen refusals).
 
 Call run_system from the main thread, first thing: it blocks SIGTERM and SIGINT in every thread
 it starts and waits for them with sigwait, as the C++ runtime does.
@@ -58,12 +68,15 @@ import behaviorlib.v1
 from . import health as health_module
 from . import parameters
 from ._protocol import StreamSlots
+from .access_policy import AccessPolicy
+from .audit import DEFAULT_KEEP, DEFAULT_MAX_BYTES, AuditLog
 from .channel import DataChannel
 from .clock import SteadyClock
 from .metrics import SystemMetrics
 from .parameters import StatusError
 from .reflection import ReflectionService
 from .registration import CoordinatorRegistration, advertised_address
+from .security import CallGuard, TransportSecurity, open_channel
 from .service import AcceptGate, BehaviorHost, BehaviorSystemService, TypedServices
 from .sim_clock import SimClock
 from .time_follower import TimeFollower
@@ -92,10 +105,6 @@ _NOT_YET = {
     "config": "--config (the system's YAML configuration)",
     "link_loss_timeout_s": "--link-loss-timeout-s (the link-loss action)",
     "link_loss_action": "--link-loss-action",
-    "tls_cert": "TLS (--tls-cert)",
-    "tls_key": "TLS (--tls-key)",
-    "tls_ca": "TLS (--tls-ca)",
-    "access_policy": "--access-policy (roles need TLS)",
 }
 
 
@@ -110,6 +119,14 @@ class SystemContext:
     channel: object = None
     # --flight-controller: the FlightController's address ("host:port"), "" when not given.
     flight_controller: str = ""
+    # The process's TLS client credentials (--tls-cert, --tls-key, --tls-ca); None without TLS.
+    channel_credentials: object = None
+
+    def dial(self, address, options=()):
+        """A grpc.Channel to `address` (the flight controller's, another server's) with the
+        process's credentials: mutual TLS when the process has TLS, as every channel of a C++
+        system."""
+        return open_channel(address, self.channel_credentials, options)
 
 
 @dataclasses.dataclass
@@ -129,6 +146,16 @@ class SystemOptions:
     insecure: bool = False
     grpc_metrics: bool = True
     descriptor_sets: tuple = ()
+    # Mutual TLS: this process's certificate, its key, the CA (all three, or none).
+    tls_cert: str = ""
+    tls_key: str = ""
+    tls_ca: str = ""
+    # The roles' policy file (needs TLS); "": every caller may call anything.
+    access_policy: str = ""
+    # The audit log ("": the metric only) and its rotation.
+    audit_log: str = ""
+    audit_log_max_bytes: int = DEFAULT_MAX_BYTES
+    audit_log_keep: int = DEFAULT_KEEP
 
 
 def _flag_bool(text):
@@ -174,15 +201,32 @@ def _parser(system):
     flag("flight-controller", default="",
          help="FlightController address host:port, given to the behaviors")
     flag("insecure", type=_flag_bool, nargs="?", const=True, default=False,
-         help="allow plaintext gRPC on an address other than loopback")
+         help="allow plaintext gRPC on an address other than loopback: anyone who can reach "
+              "the port can then command, land or kill the vehicles")
+    flag("tls-cert", default="",
+         help="PEM certificate of this process; with --tls-key and --tls-ca, the server and "
+              "every client channel of the process use mutual TLS (scripts/make-dev-certs.sh "
+              "makes a set)")
+    flag("tls-key", default="", help="PEM private key of --tls-cert")
+    flag("tls-ca", default="",
+         help="PEM CA certificates that every peer's certificate must chain to")
+    flag("access-policy", default="",
+         help="YAML file mapping certificate names and bearer tokens to roles (viewer, "
+              "operator, safety, system, admin); needs TLS; empty: every peer with a "
+              "certificate from the CA may call anything")
+    flag("audit-log", default="",
+         help="file that every control call and every refused call is appended to (JSON lines)")
+    flag("audit-log-max-bytes", type=int, default=DEFAULT_MAX_BYTES,
+         help="the audit log is rotated (FILE -> FILE.1 -> FILE.2 ...) when it passes this size")
+    flag("audit-log-keep", type=int, default=DEFAULT_KEEP,
+         help="rotated audit log files kept (FILE.1 .. FILE.N)")
     flag("grpc-metrics", type=_flag_bool, nargs="?", const=True, default=True,
          help="count and time every call by service, method and status code (grpc_server_*)")
     flag("descriptor-set", action="append", default=[],
          help="a FileDescriptorSet with source info (protoc --include_imports "
               "--include_source_info) describing behaviors compiled outside this package; "
               "may be repeated")
-    for name in ("config", "link-loss-timeout-s", "link-loss-action", "tls-cert",
-                 "tls-key", "tls-ca", "access-policy"):
+    for name in ("config", "link-loss-timeout-s", "link-loss-action"):
         flag(name, default=None, help=argparse.SUPPRESS)
     return parser
 
@@ -215,30 +259,35 @@ def parse_flags(argv, system):
         metrics_listen=args.metrics_listen, coordinator=args.coordinator, channel=args.channel,
         clock=args.clock, follow_time=args.follow_time,
         flight_controller=args.flight_controller, insecure=args.insecure,
-        grpc_metrics=args.grpc_metrics, descriptor_sets=tuple(args.descriptor_set))
+        grpc_metrics=args.grpc_metrics, descriptor_sets=tuple(args.descriptor_set),
+        tls_cert=args.tls_cert, tls_key=args.tls_key, tls_ca=args.tls_ca,
+        access_policy=args.access_policy, audit_log=args.audit_log,
+        audit_log_max_bytes=args.audit_log_max_bytes, audit_log_keep=args.audit_log_keep)
     return options, args.port_file
 
 
-def _is_loopback(address):
-    if address.startswith(("unix:", "unix-abstract:")):
-        return True
-    host = address.rpartition(":")[0].strip("[]")
-    return host in ("localhost", "::1") or host.startswith("127.")
-
-
-def _check_listen(options):
-    """Plaintext only on loopback, unless --insecure (transport_security.cc)."""
-    if _is_loopback(options.listen):
-        return
-    if options.insecure:
-        print(f"warning: --listen {options.listen} without TLS (--insecure): anyone who can "
-              "reach this port can command, land or kill the vehicles", file=sys.stderr)
-        return
-    raise StatusError(grpc.StatusCode.INVALID_ARGUMENT,
-                      f"--listen {options.listen} is not a loopback address and there is no TLS: "
-                      "anyone who could reach it could command, land or kill the vehicles. Python "
-                      "behavior systems serve no TLS yet: give --insecure to accept that risk on "
-                      "a private network")
+def _security(o, registry):
+    """(TransportSecurity, AccessPolicy or None, AuditLog) of the options, checked in the C++
+    order (ServerRuntime::startServer): the listen address, the TLS files, the policy (which
+    needs TLS), the audit log. Raises StatusError INVALID_ARGUMENT with the C++ message."""
+    security = TransportSecurity(o.tls_cert, o.tls_key, o.tls_ca, insecure=o.insecure)
+    security.check_listen(o.listen)
+    security.load()
+    policy = None
+    if o.access_policy:
+        if not security.tls:
+            raise StatusError(grpc.StatusCode.INVALID_ARGUMENT,
+                              "--access-policy needs TLS (--tls-cert, --tls-key, --tls-ca): roles "
+                              "are given to certificates and to bearer tokens sent over TLS")
+        try:
+            policy = AccessPolicy.load(o.access_policy)
+        except StatusError as error:
+            raise error.rewrap(f"--access-policy: {error.message}") from error
+    try:
+        audit = AuditLog(o.audit_log, registry, o.audit_log_max_bytes, o.audit_log_keep)
+    except StatusError as error:
+        raise error.rewrap(f"--audit-log: {error.message}") from error
+    return security, policy, audit
 
 
 def _documented_files(paths):
@@ -285,6 +334,7 @@ class BehaviorSystemProcess:
         self._server = None
         self._registration = None
         self._follower = None
+        self._audit = None
         try:
             self._start(options, behaviors)
         except BaseException:
@@ -292,10 +342,12 @@ class BehaviorSystemProcess:
             raise
 
     def _start(self, o, behaviors):
-        _check_listen(o)
+        self.metrics = SystemMetrics(o.robot_id, o.system)
+        security, policy, self._audit = _security(o, self.metrics.registry)
+        credentials = security.channel_credentials
         documented = _documented_files(o.descriptor_sets)
         if o.channel:
-            self._channel = DataChannel(o.channel)
+            self._channel = DataChannel(o.channel, channel_credentials=credentials)
         if o.clock == "sim":
             self._clock = SimClock()
             # Following the time grants, the grants are the time: the clock topic would only
@@ -307,11 +359,11 @@ class BehaviorSystemProcess:
         if callable(behaviors):
             behaviors = behaviors(SystemContext(
                 system=o.system, robot_id=o.robot_id, clock=self._clock, channel=self._channel,
-                flight_controller=o.flight_controller))
-        self.metrics = SystemMetrics(o.robot_id, o.system)
+                flight_controller=o.flight_controller, channel_credentials=credentials))
         if o.follow_time:
             self._follower = TimeFollower(o.follow_time, f"{o.system}/{o.robot_id}", self._clock,
-                                          self._channel, o.robot_id)
+                                          self._channel, o.robot_id,
+                                          channel_credentials=credentials)
         host = BehaviorHost(list(behaviors), robot_id=o.robot_id, system=o.system,
                             clock=self._clock, observer_factory=self.metrics.observer_factory,
                             before_command=self._follower.await_turn if self._follower else None)
@@ -328,7 +380,7 @@ class BehaviorSystemProcess:
                                grpc.StatusCode.INVALID_ARGUMENT) from error
         self._host = host
 
-        self._gate = AcceptGate()
+        self._gate = AcceptGate(o.robot_id, policy)
         slots = StreamSlots(MAX_STREAMS)
         typed = TypedServices(host, self._gate, documented)
         self._system_service = BehaviorSystemService(host, self._gate, slots, typed.names)
@@ -337,16 +389,23 @@ class BehaviorSystemProcess:
         self._served = ([_SYSTEM_SERVICE] + [typed.names[name] for name in sorted(typed.names)]
                         + [health_module.SERVICE])
         reflection = ReflectionService(self._served, slots, {**documented, **typed.files})
+        # The guard first: a call it refuses is neither run nor counted in grpc_server_*.
+        interceptors = [CallGuard(policy, self._audit)]
+        if o.grpc_metrics:
+            interceptors.append(self.metrics.interceptor())
         self._server = grpc.server(
             concurrent.futures.ThreadPoolExecutor(max_workers=MAX_WORKERS,
                                                   thread_name_prefix="grpc"),
-            interceptors=[self.metrics.interceptor()] if o.grpc_metrics else None,
-            options=SERVER_OPTIONS)
+            interceptors=interceptors, options=SERVER_OPTIONS)
         self._server.add_generic_rpc_handlers([self._system_service.handler(),
                                                *typed.handlers(), self._health.handler(),
                                                *reflection.handlers()])
         try:
-            self.grpc_port = self._server.add_insecure_port(o.listen)
+            if security.tls:
+                self.grpc_port = self._server.add_secure_port(o.listen,
+                                                              security.server_credentials())
+            else:
+                self.grpc_port = self._server.add_insecure_port(o.listen)
         except RuntimeError as error:
             raise StatusError(grpc.StatusCode.UNAVAILABLE,
                               f"cannot listen on {o.listen} (address in use or invalid); choose "
@@ -359,7 +418,7 @@ class BehaviorSystemProcess:
                 o.coordinator, robot_id=o.robot_id, system=o.system,
                 address=o.advertise or advertised_address(o.listen, self.grpc_port),
                 incarnation=host.events.incarnation, final_seq=host.events.latest_seq,
-                log_prefix=o.system)
+                log_prefix=o.system, channel_credentials=credentials)
             self._registration.start()
         if self._follower is not None:
             engines = host.engines
@@ -412,6 +471,8 @@ class BehaviorSystemProcess:
             self._clock.close()
         if self._channel is not None:
             self._channel.close()
+        if self._audit is not None:
+            self._audit.close()
 
 
 def _fatal(program, error):

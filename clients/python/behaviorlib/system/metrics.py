@@ -12,6 +12,8 @@ serve both:
     grpc_server_handling_seconds, counted by a server interceptor (--grpc-metrics). A call of a
     method the server does not serve never reaches an interceptor in grpcio, so it is not
     counted (the C++ servers count it under "unknown");
+  - the audit (audit.py, in this registry): behaviorlib_audited_calls_total{identity, method,
+    outcome}, every control call and every call the access policy refused;
   - the process: process_cpu_seconds_total, process_resident_memory_bytes,
     process_virtual_memory_bytes, process_start_time_seconds, process_open_fds,
     process_max_fds (the client's ProcessCollector, the same names as the C++ collector),

@@ -28,6 +28,8 @@ import grpc
 
 from behaviorlib.v1 import coordinator_pb2, coordinator_pb2_grpc
 
+from .security import open_channel
+
 INITIAL_BACKOFF_S = 0.1
 MAX_BACKOFF_S = 2.0
 DEFAULT_HEARTBEAT_S = 1.0
@@ -60,10 +62,12 @@ def _describe(error):
 
 class CoordinatorRegistration:
     """Registers one system with the coordinator at `coordinator` and keeps it registered.
-    `final_seq()` gives the seq of the last event emitted, read when unregistering."""
+    `final_seq()` gives the seq of the last event emitted, read when unregistering;
+    `channel_credentials` (the process's TLS, security.TransportSecurity) makes the channel
+    TLS."""
 
     def __init__(self, coordinator, *, robot_id, system, address, incarnation, final_seq,
-                 log_prefix="behavior system"):
+                 log_prefix="behavior system", channel_credentials=None):
         self._coordinator = coordinator
         self._robot_id = robot_id
         self._system = system
@@ -71,7 +75,7 @@ class CoordinatorRegistration:
         self._incarnation = incarnation
         self._final_seq = final_seq
         self._log_prefix = log_prefix
-        self._channel = grpc.insecure_channel(coordinator, options=RECONNECTING_CHANNEL_OPTIONS)
+        self._channel = open_channel(coordinator, channel_credentials, RECONNECTING_CHANNEL_OPTIONS)
         self._stub = coordinator_pb2_grpc.CoordinatorStub(self._channel)
         self._thread = threading.Thread(target=self._run, daemon=True,
                                         name="coordinator-registration")

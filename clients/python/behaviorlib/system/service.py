@@ -22,8 +22,10 @@ What a client sees is what a C++ system serves:
 Refusals carry the C++ codes, messages and details (an unknown behavior is NOT_FOUND
 UNKNOWN_BEHAVIOR naming what the system hosts; a Struct that does not fit is INVALID_ARGUMENT
 naming the parameter; a process shutting down refuses lifecycle calls UNAVAILABLE
-SHUTTING_DOWN). The C++ systems' robot scope (a certificate bound to another robot is refused)
-needs TLS, which Python systems do not serve yet, so there is none here.
+SHUTTING_DOWN). Under an access policy (access_policy.py), a caller bound to another robot
+than the system's is refused the calls that command a behavior (activate, deactivate, pause,
+resume, modify) PERMISSION_DENIED ROBOT_NOT_PERMITTED, as by lifecycle_calls.cc; the roles
+themselves are checked before any handler runs (security.CallGuard).
 
 Threads. grpcio runs each call on a thread of the server's pool. A lifecycle call waits there
 for its behavior's worker (as the C++ reactor waits for its callback), but no longer than the
@@ -41,6 +43,7 @@ import grpc
 from behaviorlib.v1 import behavior_pb2, errors_pb2, options_pb2
 
 from . import _protocol, typed
+from .access_policy import robot_scope_of
 from .engine import BehaviorContext, EventLog, ExecutionManager
 from .parameters import StatusError, describe, from_struct, leading_comment
 
@@ -56,10 +59,14 @@ _SYSTEM_SERVICE = behavior_pb2.DESCRIPTOR.services_by_name["BehaviorSystem"]
 
 
 class AcceptGate:
-    """Refuses lifecycle calls once the process is shutting down."""
+    """Refuses lifecycle calls once the process is shutting down and, under an access policy
+    (access_policy.AccessPolicy), the commands of a caller bound to another robot than
+    `robot_id`, the robot whose behaviors the process hosts."""
 
-    def __init__(self):
+    def __init__(self, robot_id="", policy=None):
         self._accepting = True
+        self.robot_id = robot_id
+        self._policy = policy
 
     @property
     def accepting(self):
@@ -67,6 +74,15 @@ class AcceptGate:
 
     def close(self):
         self._accepting = False
+
+    def refusal(self, context, what):
+        """Why a call that commands a behavior (`what`: "activate behaviors") is refused, as a
+        StatusError, or None (lifecycle_calls.cc refusal)."""
+        if not self._accepting:
+            return _shutting_down()
+        if not self.robot_id or self._policy is None:
+            return None
+        return robot_scope_of(context, self._policy).permits(self.robot_id, what)
 
 
 class BehaviorHost:
@@ -121,11 +137,9 @@ class BehaviorHost:
         return [engine.name for engine in self.engines]
 
 
-def _gate_refusal(gate):
-    if not gate.accepting:
-        return StatusError(grpc.StatusCode.UNAVAILABLE, "the behavior system is shutting down",
-                           reason=errors_pb2.SHUTTING_DOWN)
-    return None
+def _shutting_down():
+    return StatusError(grpc.StatusCode.UNAVAILABLE, "the behavior system is shutting down",
+                       reason=errors_pb2.SHUTTING_DOWN)
 
 
 class _Lifecycle:
@@ -135,34 +149,40 @@ class _Lifecycle:
     def __init__(self, gate):
         self._gate = gate
 
-    def _run(self, context, start):
-        refusal = _gate_refusal(self._gate)
+    def _run(self, context, what, start):
+        """`what` names a command for the robot scope's refusal ("activate behaviors"); None
+        for a call that commands nothing (CheckSituation), which only the shutdown refuses."""
+        refusal = (self._gate.refusal(context, what) if what
+                   else None if self._gate.accepting else _shutting_down())
         if refusal is not None:
             _protocol.abort(context, refusal)
         return _protocol.answer(start(), context)
 
     def activate(self, context, engine, parameters, request_id):
         received = time.monotonic_ns()
-        return self._run(context, lambda: engine.activate(parameters, request_id, received))
+        return self._run(context, "activate behaviors",
+                         lambda: engine.activate(parameters, request_id, received))
 
     def deactivate(self, context, engine, activation_id):
-        return self._run(context, lambda: engine.deactivate(activation_id))
+        return self._run(context, "deactivate behaviors",
+                         lambda: engine.deactivate(activation_id))
 
     @staticmethod
     def check_activation(engine):
         return engine.check_activation()
 
     def check_situation(self, context, engine):
-        return self._run(context, engine.check_situation)
+        return self._run(context, None, engine.check_situation)
 
     def pause(self, context, engine, activation_id):
-        return self._run(context, lambda: engine.pause(activation_id))
+        return self._run(context, "pause behaviors", lambda: engine.pause(activation_id))
 
     def resume(self, context, engine, activation_id):
-        return self._run(context, lambda: engine.resume(activation_id))
+        return self._run(context, "resume behaviors", lambda: engine.resume(activation_id))
 
     def modify(self, context, engine, activation_id, update):
-        return self._run(context, lambda: engine.modify(update, activation_id))
+        return self._run(context, "modify behaviors",
+                         lambda: engine.modify(update, activation_id))
 
 
 # ---- The generic BehaviorSystem service ----------------------------------------------------------

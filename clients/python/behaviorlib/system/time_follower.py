@@ -60,6 +60,7 @@ from .clock import NANOS_PER_SECOND
 from .parameters import StatusError
 from .registration import (INITIAL_BACKOFF_S, MAX_BACKOFF_S,  # the same retry period
                            RECONNECTING_CHANNEL_OPTIONS)
+from .security import open_channel
 
 # How often the behaviors' progress is looked at while catching up.
 CATCH_UP_POLL_S = 100e-6
@@ -85,14 +86,18 @@ class TimeFollower:
     """Follows the time grants of the simulator at `simulator_address` as `participant` (e.g.
     "my_behaviors/drone1": the simulator's logs name it). `clock` is the system's SimClock,
     which takes each grant; `channel` (a DataChannel, or None) is the data barrier's, and
-    `robot_id` names the vehicle whose broker it is (FollowTimeRequest.robot_id)."""
+    `robot_id` names the vehicle whose broker it is (FollowTimeRequest.robot_id);
+    `channel_credentials` (the process's TLS, security.TransportSecurity) makes the channel to
+    the simulator TLS."""
 
-    def __init__(self, simulator_address, participant, clock, channel=None, robot_id=""):
+    def __init__(self, simulator_address, participant, clock, channel=None, robot_id="",
+                 channel_credentials=None):
         self._participant = participant
         self._robot_id = robot_id
         self._clock = clock
         self._data = channel
-        self._grpc_channel = grpc.insecure_channel(simulator_address, RECONNECTING_CHANNEL_OPTIONS)
+        self._grpc_channel = open_channel(simulator_address, channel_credentials,
+                                          RECONNECTING_CHANNEL_OPTIONS)
         self._caught_up = None
         self._idle = None
         self._thread = None

@@ -102,6 +102,46 @@ TEST_F(MotionPidTest, FollowsA4mSquareWithinTheCrossTrackBoundRotates90DegreesAn
   ASSERT_NO_FATAL_FAILURE(stack_.land());
 }
 
+// FOLLOW_PATH's Modify with a new path_m while it flies at speed: the path is
+// taken up from the reference where it is, so the vehicle neither jumps back
+// to where the reference restarted nor stops (measured on the ground truth:
+// its speed over the second after the change), and it ends on the new path's
+// last point. (Before, the new path started from the vehicle's position at
+// rest: the vehicle braked to a near stop.)
+TEST_F(MotionPidTest, AModifiedPathIsTakenUpWithoutAJumpOrAStop) {
+  ASSERT_NO_FATAL_FAILURE(stack_.localizeAndTakeOff(kAltitude));
+  ASSERT_FALSE(client_->start("QUADROTOR_PID_MOTION_CONTROL", "{}").empty());
+  const Eigen::Vector3d start = position();
+  const double z = start.z();
+  const std::string path =
+      client_->start("FOLLOW_PATH", pathJson({{start.x() + 8, start.y(), z}}, R"("speed_m_s": 1)"));
+  ASSERT_FALSE(path.empty());
+  ASSERT_TRUE(FlightStack::waitFor([&] { return position().x() >= start.x() + 3; }, seconds(30)))
+      << "the vehicle did not get 3 m along the path";
+  const double changed_s = stack_.truth().latest()->t_s;
+  // The same line further on, then aside.
+  const std::vector<Eigen::Vector3d> new_path = {{start.x() + 6, start.y(), z},
+                                                 {start.x() + 6, start.y() + 2, z}};
+  const grpc::Status modified = client_->modify("FOLLOW_PATH", pathJson(new_path));
+  ASSERT_TRUE(modified.ok()) << describe(modified);
+  const auto done = finished(path, seconds(30));
+  ASSERT_EQ(done.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << done.ShortDebugString();
+  EXPECT_LE((position() - new_path.back()).norm(), 0.15) << "ends at the new last point";
+  // The ground truth's speed over the second after the change (100 Hz).
+  const auto around = stack_.truth().between(changed_s, changed_s + 1.0);
+  ASSERT_GT(around.size(), 50u);
+  double slowest = 1e9;
+  for (size_t i = 5; i < around.size(); i += 5) {
+    const double dt = around[i].t_s - around[i - 5].t_s;
+    if (dt <= 0) continue;
+    slowest = std::min(slowest, (around[i].position_m - around[i - 5].position_m).norm() / dt);
+  }
+  std::printf("FOLLOW_PATH modified at speed: slowest %.2f m/s over the next second (%s)\n",
+              slowest, done.finished().message().c_str());
+  EXPECT_GE(slowest, 0.7) << "the vehicle slowed down at the change";
+}
+
 TEST_F(MotionPidTest, ThrustControlFollowsAPathAndKeepMovingMovesAtTheRequestedVelocity) {
   ASSERT_NO_FATAL_FAILURE(stack_.localizeAndTakeOff(kAltitude));
   const std::string controller = client_->start("QUADROTOR_PID_THRUST_CONTROL", "{}");

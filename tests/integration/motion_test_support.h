@@ -133,6 +133,16 @@ class SystemClient {
     EXPECT_TRUE(status.ok()) << behavior << ": " << describe(status);
     return response.activation_id();
   }
+  /// ModifyBehavior with the parameters in `json` (fields left out keep their values).
+  grpc::Status modify(const std::string& behavior, const std::string& json) {
+    v1::ModifyBehaviorRequest request;
+    request.set_behavior(behavior);
+    EXPECT_TRUE(
+        google::protobuf::util::JsonStringToMessage(json, request.mutable_parameters()).ok())
+        << json;
+    v1::ModifyResponse response;
+    return stub_->ModifyBehavior(deadline().get(), request, &response);
+  }
   grpc::Status deactivate(const std::string& behavior) {
     v1::DeactivateBehaviorRequest request;
     request.set_behavior(behavior);

@@ -37,6 +37,15 @@ absl::StatusOr<PathTracker> PathTracker::create(std::vector<Eigen::Vector3d> way
 }
 
 void PathTracker::start(const Eigen::Vector3d& position_m, double yaw_rad) {
+  startAt(position_m, yaw_rad, Eigen::Vector3d::Zero());
+}
+
+void PathTracker::continueFrom(const ReferencePoint& from, double yaw_rad) {
+  startAt(from.position_m, yaw_rad, from.velocity_m_s);
+}
+
+void PathTracker::startAt(const Eigen::Vector3d& position_m, double yaw_rad,
+                          const Eigen::Vector3d& velocity) {
   points_.clear();
   points_.push_back(position_m);
   for (const auto& w : waypoints_) {
@@ -44,10 +53,14 @@ void PathTracker::start(const Eigen::Vector3d& position_m, double yaw_rad) {
   }
   yaw_rad_ = yaw_rad;
   time_s_ = 0.0;
-  plan();
+  double entry = 0.0;
+  if (points_.size() > 1) {
+    entry = std::max(0.0, velocity.dot((points_[1] - points_[0]).normalized()));
+  }
+  plan(entry);
 }
 
-void PathTracker::plan() {
+void PathTracker::plan(double entry_speed) {
   segments_.clear();
   length_m_ = 0.0;
   double t = 0.0;
@@ -58,10 +71,28 @@ void PathTracker::plan() {
     const Eigen::Vector3d d = points_[i] - points_[i - 1];
     s.length = d.norm();
     s.direction = d / s.length;
-    s.peak_speed = std::min(v, std::sqrt(s.length * a));
-    s.accel_time = s.peak_speed / a;
-    const double cruise = (s.length - s.peak_speed * s.accel_time) / s.peak_speed;
-    s.duration = 2.0 * s.accel_time + std::max(0.0, cruise);
+    const double u = i == 1 ? entry_speed : 0.0;
+    s.entry_speed = u;
+    if (u * u >= 2.0 * a * s.length) {
+      // Too short to stop in from u at a: brake at once, as hard as it takes.
+      s.peak_speed = u;
+      s.first_accel = 0.0;
+      s.first_time = 0.0;
+      s.braking = u * u / (2.0 * s.length);
+      s.braking_time = 2.0 * s.length / u;
+    } else {
+      // Up (or down) from u to the peak, then down to rest, both at a; the
+      // peak is the speed, or what the length allows.
+      s.peak_speed = std::min(v, std::sqrt(a * s.length + 0.5 * u * u));
+      s.first_accel = s.peak_speed >= u ? a : -a;
+      s.first_time = std::abs(s.peak_speed - u) / a;
+      s.braking = a;
+      s.braking_time = s.peak_speed / a;
+    }
+    const double first_m = 0.5 * (u + s.peak_speed) * s.first_time;
+    const double braking_m = 0.5 * s.peak_speed * s.braking_time;
+    const double cruise_m = std::max(0.0, s.length - first_m - braking_m);
+    s.duration = s.first_time + cruise_m / s.peak_speed + s.braking_time;
     s.start_time = t;
     t += s.duration;
     length_m_ += s.length;
@@ -89,21 +120,21 @@ ReferencePoint PathTracker::sample(double t_s) const {
                              [](double t, const Segment& s) { return t < s.start_time; });
   const Segment& s = *std::prev(it);
   const double tau = std::min(t_s - s.start_time, s.duration);
-  const double a = params_.acceleration_m_s2;
   double distance, speed, accel;
-  if (tau < s.accel_time) {
-    distance = 0.5 * a * tau * tau;
-    speed = a * tau;
-    accel = a;
-  } else if (tau < s.duration - s.accel_time) {
-    distance = 0.5 * s.peak_speed * s.accel_time + s.peak_speed * (tau - s.accel_time);
+  if (tau < s.first_time) {
+    distance = s.entry_speed * tau + 0.5 * s.first_accel * tau * tau;
+    speed = s.entry_speed + s.first_accel * tau;
+    accel = s.first_accel;
+  } else if (tau < s.duration - s.braking_time) {
+    distance =
+        0.5 * (s.entry_speed + s.peak_speed) * s.first_time + s.peak_speed * (tau - s.first_time);
     speed = s.peak_speed;
     accel = 0.0;
   } else {
     const double left = s.duration - tau;
-    distance = s.length - 0.5 * a * left * left;
-    speed = a * left;
-    accel = left > 0.0 ? -a : 0.0;
+    distance = s.length - 0.5 * s.braking * left * left;
+    speed = s.braking * left;
+    accel = left > 0.0 ? -s.braking : 0.0;
   }
   p.position_m = s.start + s.direction * std::min(distance, s.length);
   p.velocity_m_s = s.direction * speed;

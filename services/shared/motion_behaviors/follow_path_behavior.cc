@@ -127,8 +127,10 @@ absl::Status FollowPathBehavior<Params>::onModify(const Params& p) {
   auto tracker = makePathTracker(p.path_m(), p.speed_m_s(), p.acceleration_m_s2(), path_settings_,
                                  support().settings().min_altitude_m);
   if (!tracker.ok()) return tracker.status();
+  // Taken up from the reference where it is, without a jump or a stop: the
+  // controller follows on, and no motion is lost to the change.
+  tracker->continueFrom(tracker_->current(), support().yawRad());
   tracker_ = std::move(*tracker);
-  tracker_->start(support().state().position_m, support().yawRad());
   tolerance_m_ = p.tolerance_m();
   restartWindows();
   return absl::OkStatus();

@@ -48,13 +48,19 @@ bool pathAheadBlocked(const LidarMapper& mapper, const std::vector<Eigen::Vector
 absl::StatusOr<motion::PathTracker> trackerFromVehicle(
     const std::vector<Eigen::Vector3d>& path, double speed_m_s,
     const motion_behaviors::PathSettings& settings,
-    const motion_behaviors::ReferenceSupport& support) {
+    const motion_behaviors::ReferenceSupport& support,
+    const motion::ReferencePoint* continue_from) {
   constexpr double kAccelerationM_S2 = 0.5;
   google::protobuf::RepeatedPtrField<v1::Vector3> points;
   for (const Eigen::Vector3d& q : path) motion_behaviors::toProto(q, points.Add());
   auto tracker = motion_behaviors::makePathTracker(points, speed_m_s, kAccelerationM_S2, settings,
                                                    support.settings().min_altitude_m);
-  if (tracker.ok()) tracker->start(support.state().position_m, support.yawRad());
+  if (!tracker.ok()) return tracker;
+  if (continue_from != nullptr) {
+    tracker->continueFrom(*continue_from, support.yawRad());
+  } else {
+    tracker->start(support.state().position_m, support.yawRad());
+  }
   return tracker;
 }
 

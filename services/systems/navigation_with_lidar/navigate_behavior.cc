@@ -135,7 +135,9 @@ absl::Status NavigateBehavior::onActivate() {
 }
 
 void NavigateBehavior::startPlan(bool flying) {
-  const Eigen::Vector3d start = support().state().position_m;
+  // While flying, from the reference: a plan followed continues from there.
+  const Eigen::Vector3d start =
+      flying && tracker_ ? tracker_->current().position_m : support().state().position_m;
   const UnknownSpacePlanOptions options = planOptions();
   planning_ = true;
   planning_flying_ = flying;
@@ -172,7 +174,12 @@ NavigateBehavior::Plan NavigateBehavior::plan(const Eigen::Vector3d& start_m,
 }
 
 void NavigateBehavior::startPath(const std::vector<Eigen::Vector3d>& path) {
-  auto tracker = trackerFromVehicle(path, parameters().speed_m_s(), path_settings_, support());
+  // A plan made while flying is taken up from the reference (no jump, no
+  // stop); one made while holding starts from the vehicle.
+  std::optional<motion::ReferencePoint> from;
+  if (tracker_ && phase_ == Phase::kFlying) from = tracker_->current();
+  auto tracker = trackerFromVehicle(path, parameters().speed_m_s(), path_settings_, support(),
+                                    from ? &*from : nullptr);
   if (!tracker.ok()) {
     failure_ = std::string(tracker.status().message());
     ++failures_;

@@ -248,4 +248,68 @@ TEST(PathTracker, RefusesBadPathsNamingThePoint) {
 }
 
 }  // namespace
+// A path changed in flight (FOLLOW_PATH's Modify) continues from the
+// reference of the old one: the position does not jump, and along the same
+// direction the speed does not drop; across it, the crossing part is dropped.
+TEST(PathTracker, APathChangedInFlightContinuesWithoutAJumpOrAStop) {
+  PathTrackerParams params;  // 1 m/s, 1 m/s^2
+  auto old_path = PathTracker::create({{10, 0, 1}}, params);
+  ASSERT_TRUE(old_path.ok());
+  old_path->start({0, 0, 1}, 0.0);
+  for (int k = 0; k < 300; ++k) old_path->update(old_path->current().position_m, 0.01);
+  const ReferencePoint before = old_path->current();  // 3 s in: cruising at 1 m/s
+  ASSERT_NEAR(before.velocity_m_s.x(), 1.0, 1e-9);
+
+  // Further along the same line, then aside: entered at full speed.
+  auto ahead = PathTracker::create({{8, 0, 1}, {8, 3, 1}}, params);
+  ASSERT_TRUE(ahead.ok());
+  ahead->continueFrom(before, 0.0);
+  const ReferencePoint first = ahead->current();
+  EXPECT_NEAR((first.position_m - before.position_m).norm(), 0.0, 1e-12);
+  EXPECT_NEAR((first.velocity_m_s - before.velocity_m_s).norm(), 0.0, 1e-9);
+  // Followed tick by tick: each step at most what the speed covers, never at
+  // rest before the first waypoint.
+  Eigen::Vector3d last = first.position_m;
+  double slowest = 1e9;
+  for (int k = 0; k < 2000 && !ahead->referenceAtEnd(); ++k) {
+    const MotionReference r = ahead->update(ahead->current().position_m, 0.01);
+    EXPECT_LE((r.point.position_m - last).norm(), 1.0 * 0.01 + 1e-9) << "at step " << k;
+    last = r.point.position_m;
+    if (r.point.position_m.x() < 7.0) slowest = std::min(slowest, r.point.velocity_m_s.norm());
+  }
+  EXPECT_GT(slowest, 0.99) << "it slowed down before it had to";
+  EXPECT_TRUE(ahead->referenceAtEnd());
+  EXPECT_NEAR((ahead->current().position_m - Eigen::Vector3d(8, 3, 1)).norm(), 0.0, 1e-9);
+
+  // Straight across: the crossing velocity is dropped, the position kept.
+  auto across = PathTracker::create({{before.position_m.x(), 4, 1}}, params);
+  ASSERT_TRUE(across.ok());
+  across->continueFrom(before, 0.0);
+  EXPECT_NEAR((across->current().position_m - before.position_m).norm(), 0.0, 1e-12);
+  EXPECT_NEAR(across->current().velocity_m_s.norm(), 0.0, 1e-9);
+
+  // Back towards where it came from at speed: 0 along the new segment too.
+  auto back = PathTracker::create({{0, 0, 1}}, params);
+  ASSERT_TRUE(back.ok());
+  back->continueFrom(before, 0.0);
+  EXPECT_NEAR(back->current().velocity_m_s.norm(), 0.0, 1e-9);
+}
+
+// Entered at a speed it cannot stop from within its first segment at the
+// acceleration, the reference brakes harder and still stops on the waypoint.
+TEST(PathTracker, AShortFirstSegmentAtSpeedBrakesHarderAndStopsOnTheWaypoint) {
+  PathTrackerParams params;  // 1 m/s, 1 m/s^2: 0.5 m to stop
+  ReferencePoint from;
+  from.position_m = {0, 0, 1};
+  from.velocity_m_s = {1, 0, 0};
+  auto tracker = PathTracker::create({{0.2, 0, 1}}, params);
+  ASSERT_TRUE(tracker.ok());
+  tracker->continueFrom(from, 0.0);
+  EXPECT_NEAR(tracker->totalTimeS(), 0.4, 1e-9);  // 2 L / u
+  EXPECT_NEAR(tracker->sample(0.2).position_m.x(), 0.15, 1e-9);
+  EXPECT_NEAR(tracker->sample(0.2).acceleration_m_s2.x(), -2.5, 1e-9);  // u^2 / 2L
+  EXPECT_NEAR(tracker->sample(0.4).position_m.x(), 0.2, 1e-9);
+  EXPECT_NEAR(tracker->sample(0.4).velocity_m_s.norm(), 0.0, 1e-9);
+}
+
 }  // namespace behaviorlib::motion

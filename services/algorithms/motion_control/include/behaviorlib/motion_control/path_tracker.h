@@ -5,7 +5,8 @@
 // waypoint (trapezoidal speed profile per segment: accelerate, cruise,
 // decelerate) and hands the motion controller, at every step, the reference
 // point now plus a horizon of future points (for the MPC), with velocity and
-// acceleration feed-forward.
+// acceleration feed-forward. A path changed in flight continues from the
+// reference of the old one (continueFrom): no jump, no stop.
 //
 // The reference waits for the vehicle: its time advances at full rate only
 // while the vehicle is within `max_lag_m / 2` of the reference point, and
@@ -47,6 +48,16 @@ class PathTracker {
   /// Starts from the vehicle's position (the first segment leads from it to
   /// the first waypoint) holding `yaw_rad`.
   void start(const Eigen::Vector3d& position_m, double yaw_rad);
+  /// Starts from a reference of another path (the one followed until now,
+  /// current()), so that a path changed in flight is taken up without a jump
+  /// and without stopping: the first segment leads from its position, entered
+  /// at the part of its velocity along that segment (the part across it is
+  /// dropped: a turn is not flown at speed), holding `yaw_rad`. The segment
+  /// then brakes at the acceleration, or harder when it is too short to stop
+  /// in from that speed.
+  void continueFrom(const ReferencePoint& from, double yaw_rad);
+  /// The reference now (at timeS()).
+  ReferencePoint current() const { return sample(time_s_); }
   /// Advances by `dt_s` (less when the vehicle lags) and returns the reference.
   MotionReference update(const Eigen::Vector3d& position_m, double dt_s);
 
@@ -67,12 +78,17 @@ class PathTracker {
   ReferencePoint sample(double t_s) const;
 
  private:
+  // A segment's speed profile: from entry_speed to peak_speed at
+  // first_accel (negative when it slows), cruise, then down to rest at
+  // braking.
   struct Segment {
     Eigen::Vector3d start, direction;
-    double length, start_time, duration, peak_speed, accel_time;
+    double length, start_time, duration;
+    double entry_speed = 0.0, peak_speed, first_accel, first_time, braking, braking_time;
   };
   PathTracker(std::vector<Eigen::Vector3d> waypoints, PathTrackerParams params);
-  void plan();
+  void startAt(const Eigen::Vector3d& position_m, double yaw_rad, const Eigen::Vector3d& velocity);
+  void plan(double entry_speed);
 
   std::vector<Eigen::Vector3d> waypoints_;
   PathTrackerParams params_;

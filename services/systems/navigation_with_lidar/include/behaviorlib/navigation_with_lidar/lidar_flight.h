@@ -33,11 +33,14 @@ bool pathAheadBlocked(const LidarMapper& mapper, const std::vector<Eigen::Vector
                       double done_m, double look_ahead_m, double radius_m);
 
 /// A path follower along `path` (waypoints, world frame) at `speed_m_s`,
-/// started from the vehicle's position and yaw; makePathTracker's errors.
+/// started from the vehicle's position and yaw, or continuing from
+/// `*continue_from` (the reference of the path followed until now: no jump,
+/// no stop); makePathTracker's errors.
 absl::StatusOr<motion::PathTracker> trackerFromVehicle(
     const std::vector<Eigen::Vector3d>& path, double speed_m_s,
     const motion_behaviors::PathSettings& settings,
-    const motion_behaviors::ReferenceSupport& support);
+    const motion_behaviors::ReferenceSupport& support,
+    const motion::ReferencePoint* continue_from = nullptr);
 
 /// One tick's reference: `tracker`'s, advanced since `last_update` (then
 /// set to `now`), when it is given; else a position reference that holds

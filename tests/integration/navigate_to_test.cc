@@ -6,8 +6,9 @@
 // no intermediate point; the flown track never comes nearer the world's
 // true surfaces than the vehicle's body. With the C-D door walled up (a
 // world variant), it ends WRONG_PROGRESS naming the cause, without touching
-// anything. A goal outside the bounds, or at an altitude the plans do not
-// use, is refused at activation.
+// anything; a partition the map has not seen is flown around after a new
+// plan. A goal outside the bounds, or at an altitude the plans do not use, is
+// refused at activation.
 
 #include <unistd.h>
 
@@ -149,6 +150,51 @@ TEST_F(NavigateToTest, AGoalBehindAClosedDoorEndsWrongProgressWithoutTouchingAny
   EXPECT_NE(finished->finished().message().find("unreachable"), std::string::npos)
       << finished->finished().message();
   EXPECT_NE(stack_.flightStatus().state(), v1::FLIGHT_STATE_CRASHED);
+  const double closest = closestApproach();
+  std::printf("closest approach to a surface: %.3f m\n", closest);
+  EXPECT_GE(closest, kBodyM) << "the vehicle touched a surface";
+}
+
+// A partition across room B that the map has not seen when the first plan
+// is made (from room A the lidar sees only its middle, through the door): the
+// vehicle meets it on the way, holds, plans again around its south end (the
+// only way past it) and reaches room D, touching nothing.
+TEST_F(NavigateToTest, AWallTheMapHasNotSeenIsFlownAroundAfterANewPlan) {
+  std::string text = roomsText();
+  const std::string marker = "\nboxes:";
+  const size_t at = text.find(marker);
+  ASSERT_NE(at, std::string::npos);
+  text.insert(at, R"(
+  - name: partition_b
+    from_m: [9, 1.8]
+    to_m: [9, 10]
+    height_m: 3.0
+)");
+  ASSERT_NO_FATAL_FAILURE(startIn(text));
+  const std::string id = nav_client_->start(kNavigate, goalJson(15.5, 8, kAltitude));
+  ASSERT_FALSE(id.empty());
+  const auto finished = nav_client_->finished(id, seconds(240));
+  ASSERT_TRUE(finished.has_value()) << "the navigation did not finish";
+  const std::string& message = finished->finished().message();
+  std::printf("NAVIGATE_TO past a partition: %s\n", message.c_str());
+  ASSERT_EQ(finished->finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << finished->ShortDebugString();
+  // At least one new plan for a wall seen ahead, beyond the building's own
+  // (the flight without the partition makes 3).
+  const size_t counted = message.find(" after a wall seen ahead");
+  ASSERT_NE(counted, std::string::npos) << message;
+  const size_t number = message.rfind(", ", counted);
+  ASSERT_NE(number, std::string::npos) << message;
+  EXPECT_GE(std::stoi(message.substr(number + 2, counted - number - 2)), 4) << message;
+  // It passed the partition's line south of its end.
+  const auto track = stack_.truth().between(0, 1e9);
+  for (size_t i = 1; i < track.size(); ++i) {
+    const auto& a = track[i - 1].position_m;
+    const auto& b = track[i].position_m;
+    if ((a.x() < 9) != (b.x() < 9)) {
+      EXPECT_LT(b.y(), 1.8) << "crossed x = 9 at y " << b.y();
+    }
+  }
   const double closest = closestApproach();
   std::printf("closest approach to a surface: %.3f m\n", closest);
   EXPECT_GE(closest, kBodyM) << "the vehicle touched a surface";

@@ -146,24 +146,28 @@ void NavigateBehavior::startPlan(bool flying) {
   // A newer plan supersedes the running one: called off, its result never
   // reaches plan_.
   planning_stop_.request_stop();
-  planning_stop_ = inBackground<Plan>(
-      [this, start, options](std::stop_token stop) { return plan(start, options, stop); },
-      [this](const Plan& result) {
-        plan_ = result;
-        planning_ = false;
-      });
+  const Eigen::Vector3d goal = toEigen(parameters().goal_m());
+  planning_stop_ =
+      inBackground<Plan>([this, start, goal, options](
+                             std::stop_token stop) { return plan(start, goal, options, stop); },
+                         [this](const Plan& result) {
+                           plan_ = result;
+                           planning_ = false;
+                         });
 }
 
 NavigateBehavior::Plan NavigateBehavior::plan(const Eigen::Vector3d& start_m,
+                                              const Eigen::Vector3d& goal_m,
                                               const UnknownSpacePlanOptions& options,
                                               std::stop_token stop) const {
   Plan result;
   result.done = true;
   if (stop.stop_requested()) return result;  // superseded
-  const Eigen::Vector3d goal = toEigen(parameters().goal_m());
+  // Off the worker: only what the request carries (the parameters are the
+  // worker's).
   mapper_.withMap([&](const OccupancyMap& map) {
     result.revision = map.revision();
-    auto planned = planThroughUnknown(map, start_m, goal, options);
+    auto planned = planThroughUnknown(map, start_m, goal_m, options);
     if (planned.ok()) {
       result.path = std::move(*planned);
     } else {

@@ -84,8 +84,10 @@ class NavigateBehavior final
   /// Plans from the vehicle in the background; `flying`: the path followed
   /// is kept until the plan is known to be better.
   void startPlan(bool flying);
-  Plan plan(const Eigen::Vector3d& start_m, const UnknownSpacePlanOptions& options,
-            std::stop_token stop) const;
+  /// The background job: plans on the map with nothing of the worker's but
+  /// what it is given.
+  Plan plan(const Eigen::Vector3d& start_m, const Eigen::Vector3d& goal_m,
+            const UnknownSpacePlanOptions& options, std::stop_token stop) const;
   void startPath(const std::vector<Eigen::Vector3d>& path);
   void toPlanning();
   /// Whether the next look_ahead_m of the path now passes within the

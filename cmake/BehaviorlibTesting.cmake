@@ -5,14 +5,16 @@
 #                        TIMEOUT s
 #                        SOURCES ... [LIBS ...] [ARGS ...]     a GoogleTest program
 #                        | COMMAND ...                          any other command
-#                        [PROPERTIES name value ...])           more test properties
+#                        [PROPERTIES name value ...]            more test properties
+#                        [ENVIRONMENT NAME=VALUE ...])          its environment
 #
 # A program is built from SOURCES with GoogleTest and gmock, with the
 # project's warnings as errors; unit and integration test code is built at
 # -O1 (a third less compile time; the code under test keeps the build type's
 # optimisation). Sanitized builds run 2-10x slower: their timeouts are 4x.
 function(behaviorlib_add_test)
-  cmake_parse_arguments(T "" "NAME;TIMEOUT" "LABEL;SOURCES;LIBS;ARGS;COMMAND;PROPERTIES" ${ARGN})
+  cmake_parse_arguments(T "" "NAME;TIMEOUT" "LABEL;SOURCES;LIBS;ARGS;COMMAND;PROPERTIES;ENVIRONMENT"
+    ${ARGN})
   if(NOT T_NAME OR NOT T_LABEL OR NOT T_TIMEOUT)
     message(FATAL_ERROR "behaviorlib_add_test(${T_NAME}): NAME, LABEL and TIMEOUT are required")
   endif()
@@ -38,4 +40,9 @@ function(behaviorlib_add_test)
     add_test(NAME ${T_NAME} COMMAND ${T_COMMAND})
   endif()
   set_tests_properties(${T_NAME} PROPERTIES LABELS "${T_LABEL}" TIMEOUT ${T_TIMEOUT} ${T_PROPERTIES})
+  # NAME=VALUE items, each one argument (a value may hold spaces); kept a list
+  # here, where PROPERTIES would flatten it.
+  if(T_ENVIRONMENT)
+    set_tests_properties(${T_NAME} PROPERTIES ENVIRONMENT "${T_ENVIRONMENT}")
+  endif()
 endfunction()

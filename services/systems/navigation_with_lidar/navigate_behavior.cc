@@ -191,6 +191,7 @@ void NavigateBehavior::startPath(const std::vector<Eigen::Vector3d>& path) {
     return;
   }
   tracker_ = std::move(*tracker);
+  failures_ = 0;
   path_ = path;
   last_check_ = now();
   hold_m_.reset();
@@ -291,7 +292,6 @@ Verdict NavigateBehavior::checkProgress() {
     ++plans_;
     plan_times_s_.push_back(result.path.planning_time_s);
     if (result.status.ok()) {
-      failures_ = 0;
       const double length = result.path.length_m;
       const bool better = !tracker_ || length < (1.0 - replan_gain_) * wayLeftM();
       if (phase_ == Phase::kPlanning || better) {
@@ -305,11 +305,12 @@ Verdict NavigateBehavior::checkProgress() {
     } else if (phase_ == Phase::kPlanning) {
       ++failures_;
       failure_ = std::string(result.status.message());
-      if (failures_ >= kPlanAttempts) {
-        return Verdict::finish(absl::StrFormat(
-            "no way to the goal after %d plans on newer maps: %s", failures_, failure_));
-      }
     }
+  }
+  // A plan that failed, or a path that could not be followed (startPath).
+  if (phase_ == Phase::kPlanning && failures_ >= kPlanAttempts) {
+    return Verdict::finish(absl::StrFormat("no way to the goal after %d plans on newer maps: %s",
+                                           failures_, failure_));
   }
   // Planning again after a failure, once the map had time to grow.
   if (phase_ == Phase::kPlanning && !planning_ && failures_ > 0 &&

@@ -13,12 +13,12 @@
 #include <unistd.h>
 
 #include <filesystem>
-#include <fstream>
 #include <sstream>
 #include <string>
 
 #include "formats/world/world.h"
 #include "motion_test_support.h"
+#include "support/rooms_world.h"
 
 namespace {
 
@@ -31,13 +31,6 @@ constexpr double kRadius = 0.35;
 constexpr double kBodyM = 0.25;
 constexpr char kBuilding[] = R"("bounds_min_m": {"x": 0.1, "y": 0.1, "z": 0.0},
                                 "bounds_max_m": {"x": 17.9, "y": 9.9, "z": 3.0})";
-
-std::string roomsText() {
-  std::ifstream in(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
-  std::stringstream all;
-  all << in.rdbuf();
-  return all.str();
-}
 
 std::string goalJson(double x, double y, double z) {
   std::ostringstream out;
@@ -111,7 +104,7 @@ class NavigateToTest : public ::testing::Test {
 };
 
 TEST_F(NavigateToTest, FromRoomAToRoomDWithNoIntermediatePoint) {
-  ASSERT_NO_FATAL_FAILURE(startIn(roomsText()));
+  ASSERT_NO_FATAL_FAILURE(startIn(support::roomsWorldText()));
   const std::string id = nav_client_->start(kNavigate, goalJson(15.5, 8, kAltitude));
   ASSERT_FALSE(id.empty());
   const auto finished = nav_client_->finished(id, seconds(240));
@@ -130,16 +123,9 @@ TEST_F(NavigateToTest, FromRoomAToRoomDWithNoIntermediatePoint) {
 }
 
 TEST_F(NavigateToTest, AGoalBehindAClosedDoorEndsWrongProgressWithoutTouchingAnything) {
-  std::string text = roomsText();
-  const std::string door = R"(    doors:
-      - offset_m: 3.0        # C <-> D at x = 15
-        width_m: 1.2
-        height_m: 2.2
-)";
-  const size_t at = text.find(door);
-  ASSERT_NE(at, std::string::npos);
-  text.erase(at, door.size());
-  ASSERT_NO_FATAL_FAILURE(startIn(text));
+  const auto text = support::roomsWithTheCdDoorWalledUp();
+  ASSERT_TRUE(text) << "rooms.yaml declares the C-D door otherwise";
+  ASSERT_NO_FATAL_FAILURE(startIn(*text));
   const std::string id = nav_client_->start(kNavigate, goalJson(15.5, 8, kAltitude));
   ASSERT_FALSE(id.empty());
   const auto finished = nav_client_->finished(id, seconds(240));
@@ -160,7 +146,7 @@ TEST_F(NavigateToTest, AGoalBehindAClosedDoorEndsWrongProgressWithoutTouchingAny
 // vehicle meets it on the way, holds, plans again around its south end (the
 // only way past it) and reaches room D, touching nothing.
 TEST_F(NavigateToTest, AWallTheMapHasNotSeenIsFlownAroundAfterANewPlan) {
-  std::string text = roomsText();
+  std::string text = support::roomsWorldText();
   const std::string marker = "\nboxes:";
   const size_t at = text.find(marker);
   ASSERT_NE(at, std::string::npos);
@@ -201,7 +187,7 @@ TEST_F(NavigateToTest, AWallTheMapHasNotSeenIsFlownAroundAfterANewPlan) {
 }
 
 TEST_F(NavigateToTest, GoalsOutsideTheBoundsOrTheirAltitudesAreRefusedAtActivation) {
-  ASSERT_NO_FATAL_FAILURE(startIn(roomsText()));
+  ASSERT_NO_FATAL_FAILURE(startIn(support::roomsWorldText()));
   v1::ActivateResponse response;
   grpc::Status status = nav_client_->activate(kNavigate, goalJson(25, 8, kAltitude), &response);
   EXPECT_EQ(status.error_code(), grpc::StatusCode::INVALID_ARGUMENT) << describe(status);

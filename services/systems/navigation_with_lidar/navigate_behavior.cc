@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <sstream>
 
 #include "absl/strings/str_format.h"
 #include "behaviorlib/flight_common/flight_support.h"
@@ -118,7 +117,6 @@ absl::Status NavigateBehavior::onActivate() {
   planning_ = false;
   plan_ = Plan();
   tracker_.reset();
-  path_.clear();
   hold_m_ = position;
   failures_ = 0;
   failure_.clear();
@@ -140,7 +138,6 @@ void NavigateBehavior::startPlan(bool flying) {
       flying && tracker_ ? tracker_->current().position_m : support().state().position_m;
   const UnknownSpacePlanOptions options = planOptions();
   planning_ = true;
-  planning_flying_ = flying;
   last_plan_ = now();
   plan_ = Plan();
   // A newer plan supersedes the running one: called off, its result never
@@ -192,7 +189,6 @@ void NavigateBehavior::startPath(const std::vector<Eigen::Vector3d>& path) {
   }
   tracker_ = std::move(*tracker);
   failures_ = 0;
-  path_ = path;
   last_check_ = now();
   hold_m_.reset();
   lagging_.reset();

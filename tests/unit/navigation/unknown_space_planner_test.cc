@@ -8,11 +8,11 @@
 
 #include <gtest/gtest.h>
 
-#include <fstream>
 #include <memory>
 #include <sstream>
 #include <string>
 
+#include "support/rooms_world.h"
 #include "unit/navigation/mapping.h"
 
 namespace behaviorlib::nav {
@@ -44,13 +44,7 @@ class UnknownSpacePlannerTest : public ::testing::Test {
   // The building of `yaml_text` (the shipped one by default), seen by a
   // plane lidar at kPlane.
   void load(const std::string& yaml_text = "") {
-    std::string text = yaml_text;
-    if (text.empty()) {
-      std::ifstream in(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
-      std::stringstream all;
-      all << in.rdbuf();
-      text = all.str();
-    }
+    const std::string text = yaml_text.empty() ? support::roomsWorldText() : yaml_text;
     auto world = world::parseWorld(text, "rooms");
     ASSERT_TRUE(world.ok()) << world.status();
     world_ = std::make_unique<world::World>(std::move(*world));
@@ -148,20 +142,9 @@ TEST_F(UnknownSpacePlannerTest, WithTheBuildingKnownItGoesThroughTheDoorsNearThe
 }
 
 TEST_F(UnknownSpacePlannerTest, AClosedDoorMakesTheGoalUnreachable) {
-  // The building with the C-D door walled up.
-  std::ifstream in(std::string(BEHAVIORLIB_WORLDS_DIR) + "/rooms.yaml");
-  std::stringstream all;
-  all << in.rdbuf();
-  std::string text = all.str();
-  const std::string door = R"(    doors:
-      - offset_m: 3.0        # C <-> D at x = 15
-        width_m: 1.2
-        height_m: 2.2
-)";
-  const size_t at = text.find(door);
-  ASSERT_NE(at, std::string::npos);
-  text.erase(at, door.size());
-  ASSERT_NO_FATAL_FAILURE(load(text));
+  const auto text = support::roomsWithTheCdDoorWalledUp();
+  ASSERT_TRUE(text) << "rooms.yaml declares the C-D door otherwise";
+  ASSERT_NO_FATAL_FAILURE(load(*text));
   OccupancyMap map;
   scanEveryRoom(map);
   // Room D seen from where its door was: its walls are known all round.

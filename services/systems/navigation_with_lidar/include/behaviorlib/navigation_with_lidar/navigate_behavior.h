@@ -81,8 +81,9 @@ class NavigateBehavior final
 
  private:
   UnknownSpacePlanOptions planOptions() const;
-  /// Plans from the vehicle in the background; `flying`: the path followed
-  /// is kept until the plan is known to be better.
+  /// Plans in the background, from the vehicle, or from the reference while
+  /// `flying` (the path followed is kept until the plan is known to be
+  /// better).
   void startPlan(bool flying);
   /// The background job: plans on the map with nothing of the worker's but
   /// what it is given.
@@ -113,12 +114,10 @@ class NavigateBehavior final
   enum class Phase { kPlanning, kFlying, kDone };
   Phase phase_ = Phase::kPlanning;
   bool paused_ = false;
-  bool planning_ = false;         // a plan runs in the background
-  bool planning_flying_ = false;  // ... while the vehicle follows a path
-  Plan plan_;                     // the latest finished plan
+  bool planning_ = false;  // a plan runs in the background
+  Plan plan_;              // the latest finished plan
   std::optional<motion::PathTracker> tracker_;
-  std::vector<Eigen::Vector3d> path_;
-  uint64_t path_revision_ = 0;  // the map's when path_ was planned
+  uint64_t path_revision_ = 0;  // the map's when the path followed was planned
   std::optional<Eigen::Vector3d> hold_m_;
   TimePoint last_update_{}, last_check_{}, last_plan_{};
   flight::DwellTracker lagging_{std::chrono::seconds(3)};

@@ -96,10 +96,10 @@ def _planned_legs(mission, timeline, samples):
     return legs
 
 
-def _cross_track(samples, path, timeline, activation):
-    """RMS and maximum horizontal distance to the planned polyline while the
-    path was followed (ground truth); None when that time is unknown (e.g.
-    the coordinator's finished event for a system that died has none)."""
+def _cross_track_errors(samples, path, timeline, activation):
+    """The horizontal distances to the planned polyline while the path was
+    followed (ground truth); None when that time is unknown (e.g. the
+    coordinator's finished event for a system that died has none)."""
     times = {r["event"]: r["sim_time_s"] for r in timeline if r["activation_id"] == activation}
     if len(path) < 2 or times.get("activated") is None or times.get("finished") is None:
         return None
@@ -114,12 +114,32 @@ def _cross_track(samples, path, timeline, activation):
             best = min(best, math.hypot(px - ax - t * dx, py - ay - t * dy))
         return best
 
-    errors = [distance(s[1], s[2]) for s in samples
-              if times["activated"] <= s[0] <= times["finished"]]
+    return [distance(s[1], s[2]) for s in samples
+            if times["activated"] <= s[0] <= times["finished"]]
+
+
+def _error_summary(errors):
     if not errors:
         return None
     return {"rms_m": math.sqrt(sum(e * e for e in errors) / len(errors)),
             "max_m": max(errors), "samples": len(errors)}
+
+
+def _cross_track(samples, path, timeline, activation):
+    """RMS and maximum horizontal cross-track error of one FOLLOW_PATH
+    activation (ground truth), or None."""
+    return _error_summary(_cross_track_errors(samples, path, timeline, activation))
+
+
+def _cross_track_every_path(mission, timeline, samples):
+    """The same over every FOLLOW_PATH activation of the mission (each
+    attempt of each step), pooled; None without one."""
+    errors = []
+    for record in mission.get("steps", []):
+        if record.get("behavior") == "FOLLOW_PATH":
+            errors += _cross_track_errors(samples, _follow_path(record, timeline, samples),
+                                          timeline, record.get("activation_id", "")) or []
+    return _error_summary(errors)
 
 
 def _position_at(samples, t):
@@ -171,6 +191,7 @@ def _trajectory(samples, mission, timeline):
         "max_altitude_m": max((s[3] for s in samples), default=0.0),
         "planned_path_m": [list(p) for p in planned],
         "follow_path_cross_track": _cross_track(samples, planned, timeline, follow_activation),
+        "every_follow_path_cross_track": _cross_track_every_path(mission, timeline, samples),
     }
 
 
@@ -379,6 +400,10 @@ def _trajectory_bullets(trajectory):
     if ct:
         lines.append(f"- FOLLOW_PATH horizontal cross-track error: RMS {ct['rms_m']:.3f} m, "
                      f"max {ct['max_m']:.3f} m ({ct['samples']} samples)")
+    every = trajectory.get("every_follow_path_cross_track")
+    if every and every["samples"] != (ct or {}).get("samples"):
+        lines.append(f"- over every FOLLOW_PATH: RMS {every['rms_m']:.3f} m, "
+                     f"max {every['max_m']:.3f} m ({every['samples']} samples)")
     return lines
 
 

@@ -13,7 +13,9 @@ aircraft: the aircraft inspection (deploy/missions/aircraft_inspection.yaml
 in the aircraft world, the camera pitched down by
 deploy/config/simulator_sensors_aircraft.yaml): the mission SUCCEEDED and
 every marker of simulator/worlds/aircraft.yaml is in the report with its
-text and a position within 0.3 m of the world file's centre.
+text and a position within 0.3 m of the world file's centre, localized by
+the EKF on GPS, IMU and barometer (never the ground truth), the true track
+within 0.3 m of every path it followed.
 
 swarm: two vehicles (--vehicles drone1,drone2, every behavior system once
 per robot) flying the fleet mission deploy/missions/swarm_two_vehicles.yaml:
@@ -82,7 +84,7 @@ TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "max", "explora
 # always runs): what its mission needs, so that the idle rest of the stack
 # does not take the CPU the controllers need.
 SYSTEMS = {
-    "aircraft": "quadrotor_motion_with_pid_control,attention_to_visual_markers",
+    "aircraft": "quadrotor_motion_with_pid_control,attention_to_visual_markers,multi_sensor_fusion",
     "swarm": "swarm_interaction",
     "exploration": "quadrotor_motion_with_pid_control,navigation_with_lidar",
     "exploration_slam": "quadrotor_motion_with_pid_control,navigation_with_lidar",
@@ -181,6 +183,13 @@ class ApplicationsTest(unittest.TestCase):
         self.assertEqual(mission.get("state"), SUCCEEDED,
                          f"{robot}: {mission.get('message', '')}; steps {steps}")
 
+    def _assert_localized_by(self, entry, behavior):
+        """The robot's pose came from `behavior` alone: no other
+        SELF_LOCALIZE_* behavior was activated for it."""
+        used = {r["behavior"] for r in entry["timeline"]
+                if r["event"] == "activated" and r["behavior"].startswith("SELF_LOCALIZE_")}
+        self.assertEqual(used, {behavior})
+
     def test_aircraft(self):
         with open(os.path.join(WORLDS, "aircraft.yaml")) as f:
             world = yaml.safe_load(f)
@@ -197,6 +206,12 @@ class ApplicationsTest(unittest.TestCase):
                          "deploy/config/simulator_sensors_aircraft.yaml")
         self._assert_succeeded(report, "drone1")
         entry = report["robots"]["drone1"]
+        self._assert_localized_by(entry, "SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION")
+        # How closely the true track kept to the paths, on the EKF's pose.
+        tracking = entry["trajectory"]["every_follow_path_cross_track"]
+        print(f"FOLLOW_PATH cross-track error (true track): RMS {tracking['rms_m']:.3f} m, "
+              f"max {tracking['max_m']:.3f} m over {tracking['samples']} samples")
+        self.assertLess(tracking["max_m"], MARKER_TOLERANCE_M)
         found = {m["text"]: m for m in entry.get("markers", [])}
         for text, centre in sorted(markers.items()):
             with self.subTest(marker=text):

@@ -7,7 +7,7 @@ namespace {
 
 constexpr double kGravity = 9.81;
 // Indexes of the error state.
-constexpr int kP = 0, kV = 3, kTheta = 6, kBa = 9, kBg = 12;
+constexpr int kP = 0, kV = 3, kTheta = 6, kBa = 9, kBg = 12, kBaro = 15;
 
 Eigen::Quaterniond deltaRotation(const Eigen::Vector3d& rotation_vector) {
   const double angle = rotation_vector.norm();
@@ -39,6 +39,7 @@ void InsEkf::initialize(const Eigen::Vector3d& position_m, const Eigen::Vector3d
   q_ = orientation.normalized();
   ba_.setZero();
   bg_.setZero();
+  baro_offset_m_ = 0.0;
   P_.setZero();
   auto block = [&](int i, double stddev) {
     P_.block<3, 3>(i, i) = Eigen::Matrix3d::Identity() * stddev * stddev;
@@ -48,6 +49,7 @@ void InsEkf::initialize(const Eigen::Vector3d& position_m, const Eigen::Vector3d
   block(kTheta, noise_.initial_attitude_stddev_rad);
   block(kBa, noise_.initial_accel_bias_stddev_m_s2);
   block(kBg, noise_.initial_gyro_bias_stddev_rad_s);
+  P_(kBaro, kBaro) = noise_.initial_baro_offset_stddev_m * noise_.initial_baro_offset_stddev_m;
   rejected_ = 0;
   initialized_ = true;
 }
@@ -64,26 +66,27 @@ void InsEkf::predict(const Eigen::Vector3d& gyro_rad_s, const Eigen::Vector3d& s
   v_ += a * dt_s;
   q_ = (q_ * deltaRotation(w * dt_s)).normalized();
 
-  Matrix15 F = Matrix15::Identity();
+  ErrorMatrix F = ErrorMatrix::Identity();
   F.block<3, 3>(kP, kV) = Eigen::Matrix3d::Identity() * dt_s;
   F.block<3, 3>(kV, kTheta) = -R * skew(f) * dt_s;
   F.block<3, 3>(kV, kBa) = -R * dt_s;
   F.block<3, 3>(kTheta, kTheta) = deltaRotation(-w * dt_s).toRotationMatrix();
   F.block<3, 3>(kTheta, kBg) = -Eigen::Matrix3d::Identity() * dt_s;
 
-  Matrix15 Q = Matrix15::Zero();
+  ErrorMatrix Q = ErrorMatrix::Zero();
   const auto I = Eigen::Matrix3d::Identity();
   Q.block<3, 3>(kV, kV) = I * std::pow(noise_.accel_noise_m_s2, 2) * dt_s;
   Q.block<3, 3>(kTheta, kTheta) = I * std::pow(noise_.gyro_noise_rad_s, 2) * dt_s;
   Q.block<3, 3>(kBa, kBa) = I * std::pow(noise_.accel_bias_walk_m_s3, 2) * dt_s;
   Q.block<3, 3>(kBg, kBg) = I * std::pow(noise_.gyro_bias_walk_rad_s2, 2) * dt_s;
+  Q(kBaro, kBaro) = std::pow(noise_.baro_drift_m_sqrt_s, 2) * dt_s;
   P_ = F * P_ * F.transpose() + Q;
   P_ = 0.5 * (P_ + P_.transpose());
 }
 
 template <int M>
 UpdateResult InsEkf::update(const Eigen::Matrix<double, M, 1>& innovation,
-                            const Eigen::Matrix<double, M, 15>& H,
+                            const Eigen::Matrix<double, M, kErrorStates>& H,
                             const Eigen::Matrix<double, M, M>& R) {
   UpdateResult result;
   if (!initialized_ || !innovation.allFinite() || !R.allFinite()) {
@@ -97,26 +100,27 @@ UpdateResult InsEkf::update(const Eigen::Matrix<double, M, 1>& innovation,
     ++rejected_;
     return result;
   }
-  const Eigen::Matrix<double, 15, M> K = P_ * H.transpose() * S_inv;
+  const Eigen::Matrix<double, kErrorStates, M> K = P_ * H.transpose() * S_inv;
   inject(K * innovation);
   // Joseph form: stays symmetric positive semi-definite.
-  const Matrix15 IKH = Matrix15::Identity() - K * H;
+  const ErrorMatrix IKH = ErrorMatrix::Identity() - K * H;
   P_ = IKH * P_ * IKH.transpose() + K * R * K.transpose();
   result.accepted = true;
   return result;
 }
 
-void InsEkf::inject(const Vector15& dx) {
+void InsEkf::inject(const ErrorVector& dx) {
   p_ += dx.segment<3>(kP);
   v_ += dx.segment<3>(kV);
   q_ = (q_ * deltaRotation(dx.segment<3>(kTheta))).normalized();
   ba_ += dx.segment<3>(kBa);
   bg_ += dx.segment<3>(kBg);
+  baro_offset_m_ += dx(kBaro);
 }
 
 UpdateResult InsEkf::updatePosition(const Eigen::Vector3d& position_m, double stddev_horizontal_m,
                                     double stddev_vertical_m) {
-  Eigen::Matrix<double, 3, 15> H = Eigen::Matrix<double, 3, 15>::Zero();
+  Eigen::Matrix<double, 3, kErrorStates> H = Eigen::Matrix<double, 3, kErrorStates>::Zero();
   H.block<3, 3>(0, kP) = Eigen::Matrix3d::Identity();
   Eigen::Matrix3d R = Eigen::Vector3d(stddev_horizontal_m * stddev_horizontal_m,
                                       stddev_horizontal_m * stddev_horizontal_m,
@@ -127,16 +131,18 @@ UpdateResult InsEkf::updatePosition(const Eigen::Vector3d& position_m, double st
 
 UpdateResult InsEkf::updateHorizontalPosition(const Eigen::Vector2d& position_m,
                                               const Eigen::Matrix2d& covariance_m2) {
-  Eigen::Matrix<double, 2, 15> H = Eigen::Matrix<double, 2, 15>::Zero();
+  Eigen::Matrix<double, 2, kErrorStates> H = Eigen::Matrix<double, 2, kErrorStates>::Zero();
   H.block<2, 2>(0, kP) = Eigen::Matrix2d::Identity();
   return update<2>(position_m - p_.head<2>(), H, covariance_m2);
 }
 
-UpdateResult InsEkf::updateAltitude(double altitude_m, double stddev_m) {
-  Eigen::Matrix<double, 1, 15> H = Eigen::Matrix<double, 1, 15>::Zero();
+UpdateResult InsEkf::updateBarometer(double altitude_m, double stddev_m) {
+  // The barometer reads the altitude plus its own slowly drifting offset.
+  Eigen::Matrix<double, 1, kErrorStates> H = Eigen::Matrix<double, 1, kErrorStates>::Zero();
   H(0, kP + 2) = 1.0;
+  H(0, kBaro) = 1.0;
   Eigen::Matrix<double, 1, 1> z, R;
-  z << altitude_m - p_.z();
+  z << altitude_m - (p_.z() + baro_offset_m_);
   R << stddev_m * stddev_m;
   return update<1>(z, H, R);
 }
@@ -145,7 +151,7 @@ UpdateResult InsEkf::updateBodyVelocity(const Eigen::Vector3d& velocity_body_m_s
                                         double stddev_m_s) {
   const Eigen::Matrix3d Rt = q_.toRotationMatrix().transpose();
   const Eigen::Vector3d predicted = Rt * v_;
-  Eigen::Matrix<double, 3, 15> H = Eigen::Matrix<double, 3, 15>::Zero();
+  Eigen::Matrix<double, 3, kErrorStates> H = Eigen::Matrix<double, 3, kErrorStates>::Zero();
   H.block<3, 3>(0, kV) = Rt;
   H.block<3, 3>(0, kTheta) = skew(predicted);
   const Eigen::Matrix3d R = Eigen::Matrix3d::Identity() * stddev_m_s * stddev_m_s;
@@ -156,7 +162,7 @@ UpdateResult InsEkf::updateYaw(double yaw_rad, double stddev_rad) {
   // d(yaw)/d(dtheta) for a body-frame rotation error: the world z axis
   // expressed in the body frame.
   const Eigen::Vector3d z_body = q_.conjugate() * Eigen::Vector3d::UnitZ();
-  Eigen::Matrix<double, 1, 15> H = Eigen::Matrix<double, 1, 15>::Zero();
+  Eigen::Matrix<double, 1, kErrorStates> H = Eigen::Matrix<double, 1, kErrorStates>::Zero();
   H.block<1, 3>(0, kTheta) = z_body.transpose();
   Eigen::Matrix<double, 1, 1> z, R;
   z << wrap(yaw_rad - yawOf(q_));
@@ -169,7 +175,8 @@ double InsEkf::horizontalStddevM() const {
 }
 
 bool InsEkf::finite() const {
-  return p_.allFinite() && v_.allFinite() && q_.coeffs().allFinite() && P_.allFinite();
+  return p_.allFinite() && v_.allFinite() && q_.coeffs().allFinite() &&
+         std::isfinite(baro_offset_m_) && P_.allFinite();
 }
 
 double InsEkf::gate(int dimension) {

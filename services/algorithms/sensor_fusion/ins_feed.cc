@@ -41,7 +41,7 @@ bool InsFeed::imu(std::chrono::nanoseconds stamp, const Eigen::Quaterniond& orie
 
 UpdateResult InsFeed::altitude(double altitude_m, double stated_stddev_m) {
   if (!ekf_.initialized()) return {};
-  return ekf_.updateAltitude(altitude_m, std::max(stated_stddev_m, settings_.baro_stddev_m));
+  return ekf_.updateBarometer(altitude_m, std::max(stated_stddev_m, settings_.baro_stddev_m));
 }
 
 UpdateResult InsFeed::bodyVelocity(const Eigen::Vector3d& velocity_body_m_s) {

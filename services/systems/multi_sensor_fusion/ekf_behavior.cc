@@ -42,6 +42,8 @@ absl::Status EkfSelfLocalizationBehavior::onConfigure(
   yaw_stddev_rad_ = config.yaw_stddev_rad();
   noise_.gyro_noise_rad_s = config.gyro_noise_rad_s();
   noise_.accel_noise_m_s2 = config.accel_noise_m_s2();
+  noise_.baro_drift_m_sqrt_s = config.baro_drift_m_sqrt_s();
+  if (noise_.baro_drift_m_sqrt_s == 0.0) noise_.initial_baro_offset_stddev_m = 0.0;
   return absl::OkStatus();
 }
 

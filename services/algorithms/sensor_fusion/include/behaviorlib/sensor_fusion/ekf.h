@@ -6,12 +6,19 @@
 // linear speed (optical flow) and the IMU's orientation (yaw) correct it.
 //
 // Nominal state: position p and velocity v (world ENU), orientation q (world
-// <- body), accelerometer bias b_a and gyro bias b_g (body). Error state
-// (15): dp, dv, dtheta (body-frame rotation error), db_a, db_g; the nominal
-// state absorbs the error after every update (standard ESKF reset).
+// <- body), accelerometer bias b_a and gyro bias b_g (body), and the
+// barometer's offset b_baro (m). Error state (16): dp, dv, dtheta
+// (body-frame rotation error), db_a, db_g, db_baro; the nominal state absorbs
+// the error after every update (standard ESKF reset).
 //
 //   p+ = p + v dt + 1/2 a dt^2,  v+ = v + a dt,  a = R (f - b_a) + g
-//   q+ = q * exp((w - b_g) dt)
+//   q+ = q * exp((w - b_g) dt),  b_baro+ = b_baro + random walk
+//
+// A barometer reads p_z + b_baro. Its offset starts near zero (the barometer
+// is zeroed on the ground) and drifts with the weather and its temperature;
+// an absolute altitude (GPS) makes it observable, so the altitude follows
+// the barometer's low noise without its drift. Without one (the lidar SLAM
+// indoors), the offset stays at its last estimate and its uncertainty grows.
 //
 // Every update is gated: an innovation whose normalised squared size (NIS)
 // exceeds the chi-square bound of its dimension is rejected and counted, so
@@ -37,6 +44,8 @@ struct EkfNoise {
   double initial_attitude_stddev_rad = 0.1;
   double initial_accel_bias_stddev_m_s2 = 0.2;
   double initial_gyro_bias_stddev_rad_s = 0.02;
+  double baro_drift_m_sqrt_s = 0.02;  ///< random walk of the barometer's offset
+  double initial_baro_offset_stddev_m = 0.1;
 };
 
 /// Outcome of one measurement update.
@@ -47,8 +56,9 @@ struct UpdateResult {
 
 class InsEkf {
  public:
-  using Vector15 = Eigen::Matrix<double, 15, 1>;
-  using Matrix15 = Eigen::Matrix<double, 15, 15>;
+  static constexpr int kErrorStates = 16;
+  using ErrorVector = Eigen::Matrix<double, kErrorStates, 1>;
+  using ErrorMatrix = Eigen::Matrix<double, kErrorStates, kErrorStates>;
 
   explicit InsEkf(EkfNoise noise = {});
 
@@ -68,7 +78,9 @@ class InsEkf {
   /// tight across a wall, loose along a corridor).
   UpdateResult updateHorizontalPosition(const Eigen::Vector2d& position_m,
                                         const Eigen::Matrix2d& covariance_m2);
-  UpdateResult updateAltitude(double altitude_m, double stddev_m);
+  /// A barometric altitude (m): the altitude plus the barometer's offset,
+  /// which the filter estimates.
+  UpdateResult updateBarometer(double altitude_m, double stddev_m);
   /// Velocity measured in the body frame (optical flow + range).
   UpdateResult updateBodyVelocity(const Eigen::Vector3d& velocity_body_m_s, double stddev_m_s);
   /// Yaw from an attitude sensor (the IMU's orientation output).
@@ -79,7 +91,9 @@ class InsEkf {
   const Eigen::Quaterniond& orientation() const { return q_; }
   const Eigen::Vector3d& accelBias() const { return ba_; }
   const Eigen::Vector3d& gyroBias() const { return bg_; }
-  const Matrix15& covariance() const { return P_; }
+  /// The barometer's offset: what it reads above the true altitude (m).
+  double baroOffsetM() const { return baro_offset_m_; }
+  const ErrorMatrix& covariance() const { return P_; }
   /// Standard deviation of the horizontal position (m).
   double horizontalStddevM() const;
   bool finite() const;
@@ -91,15 +105,17 @@ class InsEkf {
  private:
   template <int M>
   UpdateResult update(const Eigen::Matrix<double, M, 1>& innovation,
-                      const Eigen::Matrix<double, M, 15>& H, const Eigen::Matrix<double, M, M>& R);
-  void inject(const Vector15& dx);
+                      const Eigen::Matrix<double, M, kErrorStates>& H,
+                      const Eigen::Matrix<double, M, M>& R);
+  void inject(const ErrorVector& dx);
 
   EkfNoise noise_;
   bool initialized_ = false;
   Eigen::Vector3d p_ = Eigen::Vector3d::Zero(), v_ = Eigen::Vector3d::Zero();
   Eigen::Quaterniond q_ = Eigen::Quaterniond::Identity();
   Eigen::Vector3d ba_ = Eigen::Vector3d::Zero(), bg_ = Eigen::Vector3d::Zero();
-  Matrix15 P_ = Matrix15::Identity();
+  double baro_offset_m_ = 0.0;
+  ErrorMatrix P_ = ErrorMatrix::Identity();
   uint64_t rejected_ = 0;
 };
 

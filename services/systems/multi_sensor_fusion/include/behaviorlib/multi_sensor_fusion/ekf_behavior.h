@@ -36,7 +36,8 @@
 // max_rejected_ratio [0.5], gps_window [20], baro_stddev_m [0.5],
 // linear_speed_stddev_m_s [0.1], yaw_stddev_rad [0.05], gyro_noise_rad_s
 // [0.005], accel_noise_m_s2 [0.05] (noise densities of the IMU, per
-// sqrt(Hz): EkfNoise's defaults).
+// sqrt(Hz): EkfNoise's defaults), baro_drift_m_sqrt_s [0.02] (the
+// barometer's offset, estimated against GPS altitude; 0 fixes it at 0).
 
 #include <deque>
 #include <memory>

@@ -84,7 +84,7 @@ METRICS_OFFSET = 1000  # a server's /metrics: its gRPC port + 1000 (9xxx clash w
 SWARM_MISSION = os.path.join(REPO, "deploy", "missions", "swarm_member.yaml")
 CATALOG = os.path.join(REPO, "deploy", "config", "catalog.yaml")
 SYSTEMS_DIR = os.path.join(REPO, "services", "systems")
-DEFAULT_SYSTEMS = ["basic_quadrotor_behaviors", "swarm_interaction"]
+DEFAULT_SYSTEMS = ["basic_quadrotor_behaviors", "multi_sensor_fusion", "swarm_interaction"]
 # The coordinator's supervision in the deterministic mode (deploy/local/launch.py).
 DETERMINISTIC_GRACE_S = 5.0
 # A vehicle that has lost the ground this long (its own time) lands by itself

@@ -18,10 +18,11 @@ the EKF on GPS, IMU and barometer (never the ground truth), the true track
 within 0.3 m of every path it followed.
 
 swarm: two vehicles (--vehicles drone1,drone2, every behavior system once
-per robot) flying the fleet mission deploy/missions/swarm_two_vehicles.yaml:
-it SUCCEEDED, its waits were reached, and each robot's report holds the other's position, where
-the other vehicle was (its ground truth at the belief's stamp; drone2 starts
-2 m east of drone1 in the empty field and both go straight up and down).
+per robot) flying the fleet mission deploy/missions/swarm_two_vehicles.yaml,
+each localized by its own EKF: it SUCCEEDED, its waits were reached, and each
+robot's report holds the other's position, where the other vehicle was
+(within 0.5 m of its ground truth at the belief's stamp; drone2 starts 2 m
+east of drone1 in the empty field and both go straight up and down).
 
 exploration: the room exploration (deploy/missions/room_exploration.yaml in
 the four-room building): the mission SUCCEEDED, the map it saved exists and
@@ -85,7 +86,7 @@ TIME_SCALES = {"aircraft": "max", "swarm": "max", "exploration": "max", "explora
 # does not take the CPU the controllers need.
 SYSTEMS = {
     "aircraft": "quadrotor_motion_with_pid_control,attention_to_visual_markers,multi_sensor_fusion",
-    "swarm": "swarm_interaction",
+    "swarm": "swarm_interaction,multi_sensor_fusion",
     "exploration": "quadrotor_motion_with_pid_control,navigation_with_lidar",
     "exploration_slam": "quadrotor_motion_with_pid_control,navigation_with_lidar",
     "exploration_autonomous": "quadrotor_motion_with_pid_control,navigation_with_lidar",
@@ -96,9 +97,11 @@ GOAL_ACHIEVED_COLOR = CAUSE_COLORS["GOAL_ACHIEVED"]
 # How far a marker found may be from the world file's centre.
 MARKER_TOLERANCE_M = 0.3
 # How far a robot's belief about another may be from that robot's ground
-# truth at the belief's stamp (the pose estimate is the ground truth; the
-# trajectory is sampled at 20 Hz of simulated time).
-SWARM_TOLERANCE_M = 0.3
+# truth at the belief's stamp (the trajectory is sampled at 20 Hz of simulated
+# time). The belief is the other robot's EKF estimate on GPS fixes of 0.5 m:
+# over 11 flights the farthest was 0.30 m (docs/benchmarks.md), so the bound
+# is a fix's standard deviation.
+SWARM_TOLERANCE_M = 0.5
 MIN_MAPPED_FRACTION = 0.8
 # Mean distance of the saved map's occupied voxels at the scan height from the
 # world's surfaces (issue 17).
@@ -260,7 +263,7 @@ class ApplicationsTest(unittest.TestCase):
             self.assertEqual(wait.get("cause"), "TERMINATION_CAUSE_GOAL_ACHIEVED", wait)
         # Every behavior system once per robot, named after it.
         pids = self._pids()
-        for system in ("basic_quadrotor_behaviors", "swarm_interaction"):
+        for system in ("basic_quadrotor_behaviors", "swarm_interaction", "multi_sensor_fusion"):
             for robot in robots:
                 self.assertIn(f"{system}-{robot}", pids)
             self.assertNotIn(system, pids)
@@ -276,6 +279,7 @@ class ApplicationsTest(unittest.TestCase):
             with self.subTest(robot=robot):
                 self._assert_succeeded(report, robot)
                 entry = report["robots"][robot]
+                self._assert_localized_by(entry, "SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION")
                 self.assertGreater(entry["trajectory"]["max_altitude_m"], 1.3, robot)
                 positions = entry.get("swarm", {}).get("positions", {})
                 self.assertEqual(list(positions), [other], f"{robot}'s swarm beliefs")

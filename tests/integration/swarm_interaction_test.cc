@@ -2,7 +2,8 @@
 // (drone1 and drone2, 5x, fixed seed), basic_quadrotor_behaviors and
 // swarm_interaction for each robot, and the coordinator's belief memory.
 // Each vehicle learns where the other one is (its beliefs match the
-// simulator's ground truth), a message of INFORM_ROBOTS reaches the robot it
+// simulator's ground truth), an estimate looser than INFORM_POSITION_TO_ROBOTS'
+// bound is not shared, a message of INFORM_ROBOTS reaches the robot it
 // is for and no other, a malformed message is counted and skipped, and a
 // silent swarm ends PAY_ATTENTION_TO_ROBOT_MESSAGES with PROCESS_FAILURE.
 
@@ -136,6 +137,19 @@ class SwarmInteractionTest : public ::testing::Test {
     return Eigen::Vector3d(number(p, "x"), number(p, "y"), number(p, "z"));
   }
 
+  // Publishes `robot`'s pose estimate as an estimator would: at its ground
+  // truth, stamped with the ground truth's (simulated) stamp, stating
+  // `stddev_m` of horizontal standard deviation. False when there is no
+  // ground truth yet.
+  bool publishEstimate(const std::string& robot, double stddev_m) {
+    auto latest = channel_->getLatest("robots/" + robot + "/ground_truth/pose");
+    v1::PoseStamped pose;
+    if (!latest.ok() || !latest->sample().UnpackTo(&pose)) return false;
+    pose.set_horizontal_stddev_m(stddev_m);
+    return channel_->publish("robots/" + robot + "/self_localization/pose", pose).ok() &&
+           channel_->flush().ok();
+  }
+
   // Localizes `robot` on the ground truth and takes it off to `altitude_m`.
   void takeOff(const std::string& robot, double altitude_m) {
     SystemClient& basic = *robots_[robot].basic_client;
@@ -252,6 +266,41 @@ TEST_F(SwarmInteractionTest, EachVehicleLearnsTheOthersPositionAndMessagesReachT
       << stale->ShortDebugString();
   EXPECT_NE(stale->finished().message().find("stale"), std::string::npos)
       << stale->finished().message();
+}
+
+TEST_F(SwarmInteractionTest, AnEstimateLooserThanTheBoundIsNotSharedUntilItTightens) {
+  ASSERT_FALSE(
+      robots_[kDrone2]
+          .swarm_client->start("PAY_ATTENTION_TO_ROBOT_MESSAGES", R"({"max_silence_s": 60})")
+          .empty());
+  // drone1's estimator still converging: it states 1 m.
+  ASSERT_TRUE(FlightStack::waitFor([&] { return publishEstimate(kDrone1, 1.0); }));
+  ASSERT_FALSE(
+      robots_[kDrone1]
+          .swarm_client
+          ->start("INFORM_POSITION_TO_ROBOTS", R"({"rate_hz": 10, "max_horizontal_stddev_m": 0.5})")
+          .empty());
+  const std::string key = std::string(kDrone2) + "/swarm/" + kDrone1 + "/position";
+  // Two seconds of wall time at 10 Hz, every estimate stating 1 m: none is
+  // shared.
+  EXPECT_FALSE(FlightStack::waitFor(
+      [&] {
+        publishEstimate(kDrone1, 1.0);
+        return read(key).has_value();
+      },
+      seconds(2)))
+      << "an estimate stating 1 m was shared past the 0.5 m bound";
+  // Tighter than the bound: shared, with what it states.
+  std::optional<v1::Belief> belief;
+  ASSERT_TRUE(FlightStack::waitFor(
+      [&] {
+        publishEstimate(kDrone1, 0.2);
+        return (belief = read(key)).has_value();
+      },
+      seconds(10)))
+      << "an estimate stating 0.2 m was not shared";
+  EXPECT_DOUBLE_EQ(number(belief->value(), "horizontal_stddev_m"), 0.2)
+      << belief->ShortDebugString();
 }
 
 TEST_F(SwarmInteractionTest, BadParametersAndMissingEstimatesAreRefusedWithAReason) {

@@ -73,6 +73,13 @@ void InformPositionToRobotsBehavior::onExecute() {
   if (next_publish_ && t < *next_publish_) return;
   const std::optional<v1::PoseStamped>& pose = latest_;
   if (!pose) return;
+  const double max_stddev_m = parameters().max_horizontal_stddev_m();
+  if (max_stddev_m > 0.0 && pose->has_horizontal_stddev_m() &&
+      pose->horizontal_stddev_m() > max_stddev_m) {
+    // Not worth sharing yet: the next estimate is judged a period later.
+    next_publish_ = t + periodOf(parameters().rate_hz());
+    return;
+  }
   v1::SwarmPosition position;
   *position.mutable_header() = pose->header();
   position.mutable_header()->set_frame_id("world");
@@ -80,6 +87,8 @@ void InformPositionToRobotsBehavior::onExecute() {
   position.mutable_header()->set_seq(++seq_);
   *position.mutable_recipient_ids() = parameters().robot_ids();
   *position.mutable_pose() = pose->pose();
+  if (pose->has_horizontal_stddev_m())
+    position.set_horizontal_stddev_m(pose->horizontal_stddev_m());
   if (absl::Status s = channel_->publish(kPositionsTopic, position); !s.ok()) error_ = s;
   const Duration period = periodOf(parameters().rate_hz());
   // Keeps the rate without drifting; after a stall it restarts from now.

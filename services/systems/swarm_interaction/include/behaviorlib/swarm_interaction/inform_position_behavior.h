@@ -6,6 +6,10 @@
 //   robots/{id}/self_localization/pose  PoseStamped, latest
 //   -> robots/swarm/positions           SwarmPosition at rate_hz (behavior clock)
 //
+// An estimate stating a horizontal standard deviation above
+// max_horizontal_stddev_m (when set) is not shared; the one shared carries
+// what its estimator states.
+//
 //   onActivate      INVALID_ARGUMENT for a bad robot id in robot_ids
 //   checkSituation  before: a data channel and a fresh pose estimate
 //   checkProcesses  no estimate within pose_timeout_s of the activation, an

@@ -209,7 +209,9 @@ class LocalDemoTest(unittest.TestCase):
         # The recurrent localization ran through the whole mission and was
         # ended by it; the motion controller came from the catalog's plan.
         localization = [r for r in report["timeline"]
-                        if r["behavior"] == "SELF_LOCALIZE_WITH_GROUND_TRUTH"]
+                        if r["behavior"].startswith("SELF_LOCALIZE_")]
+        self.assertEqual({r["behavior"] for r in localization},
+                         {"SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION"}, "the demo flies on the EKF")
         self.assertEqual([r["event"] for r in localization], ["activated", "finished"])
         self.assertEqual(localization[-1]["cause"], "INTERRUPTED")
         self.assertIn("QUADROTOR_PID_MOTION_CONTROL",
@@ -217,7 +219,7 @@ class LocalDemoTest(unittest.TestCase):
 
         processes = {p["name"]: p for p in report["processes"]}
         for name in ("channel_broker", "simulator", "coordinator", "basic_quadrotor_behaviors",
-                     "quadrotor_motion_with_pid_control", "console"):
+                     "quadrotor_motion_with_pid_control", "multi_sensor_fusion", "console"):
             self.assertGreater(processes[name]["rss_kib"], 0, name)
             self.assertGreater(processes[name]["cpu_user_s"] + processes[name]["cpu_system_s"],
                                0, name)

@@ -5,7 +5,7 @@ worst moments.
     /usr/bin/python3 tests/e2e/local_restart_test.py --build-dir build
 
 test_motion_system_killed_in_flight: a light stack (--systems
-quadrotor_motion_with_pid_control) serving; the test flies
+quadrotor_motion_with_pid_control,multi_sensor_fusion) serving; the test flies
 deploy/missions/demo.yaml through the coordinator (demo.run_mission, as
 --demo does) and, while FOLLOW_PATH flies the vehicle, SIGKILLs
 quadrotor_motion_with_pid_control. Then the motion controller
@@ -63,7 +63,9 @@ from deploy_support import wait_for  # noqa: E402
 ROBOT = "drone1"
 MOTION_SYSTEM = "quadrotor_motion_with_pid_control"
 MOTION_CONTROLLER = "QUADROTOR_PID_MOTION_CONTROL"
-SYSTEMS = ["basic_quadrotor_behaviors", MOTION_SYSTEM]
+# The demo mission's EKF.
+FUSION_SYSTEM = "multi_sensor_fusion"
+SYSTEMS = ["basic_quadrotor_behaviors", MOTION_SYSTEM, FUSION_SYSTEM]
 DEMO_MISSION = os.path.join(REPO, "deploy", "missions", "demo.yaml")
 # As local_demo_test.py: the deterministic mode, where a loaded machine slows
 # the mission instead of failing it.
@@ -190,7 +192,8 @@ class LocalRestartTest(unittest.TestCase):
     def _argv(self, *extra):
         """The launcher's command line for the light stack."""
         return [sys.executable, LAUNCHER, "--build-dir", BUILD_DIR, "--run-dir", self.run_dir,
-                "--time-scale", TIME_SCALE, "--systems", MOTION_SYSTEM, *extra]
+                "--time-scale", TIME_SCALE, "--systems", f"{MOTION_SYSTEM},{FUSION_SYSTEM}",
+                *extra]
 
     def _serve(self, *extra):
         """Starts the launcher serving the light stack; returns once it does."""

@@ -54,7 +54,7 @@ class LocalTlsTest(unittest.TestCase):
         self.launcher = subprocess.Popen(
             [sys.executable, LAUNCHER, "--build-dir", BUILD_DIR, "--run-dir", self.run_dir,
              "--time-scale", "max", "--tls",
-             "--systems", "quadrotor_motion_with_pid_control"],
+             "--systems", "quadrotor_motion_with_pid_control,multi_sensor_fusion"],
             stdout=self.log, stderr=subprocess.STDOUT, text=True)
 
     def tearDown(self):

@@ -4,7 +4,7 @@ one seed, and compares each run with the first.
 
     python3 tests/bench/stack/determinism_check.py --build-dir build --runs 3
     python3 tests/bench/stack/determinism_check.py --runs 3 -- \
-        --systems quadrotor_motion_with_pid_control
+        --systems quadrotor_motion_with_pid_control,multi_sensor_fusion
 
 Per run it prints the mission's result, the simulated and wall time of the
 mission and their ratio (the speed-up over real time), and against the first

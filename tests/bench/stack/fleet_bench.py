@@ -1,6 +1,7 @@
 """A fleet flying the demo at once: N vehicles in the empty field (vehicle
-i starts at x = 2 i m), each with basic_quadrotor_behaviors and
-quadrotor_motion_with_pid_control, each flying the demo mission
+i starts at x = 2 i m), each with basic_quadrotor_behaviors,
+quadrotor_motion_with_pid_control and multi_sensor_fusion (the demo's EKF),
+each flying the demo mission
 (deploy/missions/demo.yaml) on a square of its own (side --side-m, from its
 start, so that no two squares overlap), all started at once through the
 launcher's --demo.
@@ -9,7 +10,7 @@ launcher's --demo.
         --time-scale 1
 
 prints each mission's outcome and wall time, and CPU (seconds and % of one
-core over the flight) and peak RSS per process and per vehicle (its two
+core over the flight) and peak RSS per process and per vehicle (its three
 behavior systems), from the launcher's report.json. Exits 1 unless every
 mission succeeded.
 """
@@ -26,6 +27,10 @@ REPO = os.path.abspath(os.path.join(os.path.dirname(os.path.abspath(__file__)), 
 LAUNCHER = os.path.join(REPO, "deploy", "local", "launch.py")
 DEMO = os.path.join(REPO, "deploy", "missions", "demo.yaml")
 
+
+# What each vehicle runs besides basic_quadrotor_behaviors: the motion
+# controller and the EKF the demo mission localizes with.
+FLEET_SYSTEMS = "quadrotor_motion_with_pid_control,multi_sensor_fusion"
 
 def mission_for(robot, start_x, side_m):
     """The demo mission's text for `robot`, its square moved to start at the
@@ -71,7 +76,7 @@ def main():
     robots = [f"drone{i + 1}" for i in range(args.vehicles)]
     argv = [sys.executable, LAUNCHER, "--build-dir", os.path.abspath(args.build_dir),
             "--run-dir", run_dir, "--demo", "--time-scale", args.time_scale,
-            "--vehicles", ",".join(robots), "--systems", "quadrotor_motion_with_pid_control",
+            "--vehicles", ",".join(robots), "--systems", FLEET_SYSTEMS,
             "--mission-timeout-s", str(args.timeout_s)]
     for i, robot in enumerate(robots):
         path = os.path.join(run_dir, f"mission-{robot}.yaml")
@@ -114,7 +119,7 @@ def main():
     print(f"| **total** | {total_cpu:.2f} | {100 * total_cpu / wall_s:.1f} | |")
     cpus = sorted(v[0] for v in per_vehicle.values())
     rsss = sorted(v[1] for v in per_vehicle.values())
-    print(f"\nper vehicle (its two behavior systems): CPU median {cpus[len(cpus) // 2]:.2f} s "
+    print(f"\nper vehicle (its three behavior systems): CPU median {cpus[len(cpus) // 2]:.2f} s "
           f"({100 * cpus[len(cpus) // 2] / wall_s:.1f} % of a core), peak RSS median "
           f"{rsss[len(rsss) // 2]:.1f} MiB")
     succeeded = all(outcomes.get(robot) == "SUCCEEDED" for robot in robots)

@@ -45,7 +45,7 @@ The paper's applications:
     deploy/local/launch.py --demo --vehicles drone1,drone2 \
         --mission drone1=deploy/missions/swarm_two_vehicles.yaml
     # room exploration: the saved map's coverage of the building in the report
-    deploy/local/launch.py --demo --world rooms --mission deploy/missions/room_exploration.yaml
+    deploy/local/launch.py --demo --world rooms --mission deploy/missions/room_exploration_slam.yaml
 
 Before the missions start, belief {robot}/output_dir names the directory
 where a mission may write its files (e.g. SAVE_OCCUPANCY_GRID's map):

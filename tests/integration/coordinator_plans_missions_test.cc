@@ -52,6 +52,8 @@ constexpr char kCatalog[] = BEHAVIORLIB_CATALOG_PATH;
 constexpr char kDemoMission[] = BEHAVIORLIB_DEMO_MISSION_PATH;
 constexpr char kSeed[] = "7";
 constexpr char kSelfLocalize[] = "SELF_LOCALIZE_WITH_GROUND_TRUTH";
+// The shipped demo's localization (multi_sensor_fusion).
+constexpr char kDemoLocalize[] = "SELF_LOCALIZE_WITH_EKF_SENSOR_FUSION";
 constexpr char kPid[] = "QUADROTOR_PID_MOTION_CONTROL";
 constexpr char kReckon[] = "ESTIMATE_POSITION_WITH_LINEAR_SPEED";
 // A mission's start: drone1 localized, landed by its safety step, settled.
@@ -207,13 +209,16 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
     ASSERT_NO_FATAL_FAILURE(startCoordinator({}));
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH);
     pid_ = startSystem(BEHAVIORLIB_PID_SYSTEM_PATH, BEHAVIORLIB_PID_CONFIG_PATH);
-    ASSERT_TRUE(basic_ && pid_);
+    // The demo's localization: the EKF on GPS, IMU, barometer and flow.
+    fusion_ =
+        startSystem(BEHAVIORLIB_MULTI_SENSOR_FUSION_PATH, BEHAVIORLIB_FUSION_CONFIG_PATH);
+    ASSERT_TRUE(basic_ && pid_ && fusion_);
     ASSERT_NO_FATAL_FAILURE(waitForSystems());
   }
 
   void TearDown() override {
     recorder_.reset();
-    for (auto* p : {&pid_, &basic_}) {
+    for (auto* p : {&fusion_, &pid_, &basic_}) {
       if (*p && (*p)->running()) (*p)->kill();
     }
     if (coordinator_ && coordinator_->running()) {
@@ -253,12 +258,12 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
     return system;
   }
 
-  // Both systems of kRobot registered and UP.
+  // The three systems of kRobot registered and UP.
   void waitForSystems() {
     ASSERT_TRUE(waitUntil(
         [&] {
           auto reply = client_->listSystems(kRobot);
-          if (!reply.status.ok() || reply.response.systems_size() != 2) return false;
+          if (!reply.status.ok() || reply.response.systems_size() != 3) return false;
           for (const auto& s : reply.response.systems()) {
             if (s.state() != v1::SYSTEM_STATE_UP) return false;
           }
@@ -369,6 +374,7 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
   std::unique_ptr<support::ServerProcess> coordinator_;
   std::unique_ptr<support::ServerProcess> basic_;
   std::unique_ptr<support::ServerProcess> pid_;
+  std::unique_ptr<support::ServerProcess> fusion_;
   std::unique_ptr<CoordinatorClient> client_;
   std::unique_ptr<v1::Coordinator::Stub> stub_;
   std::unique_ptr<FleetRecorder> recorder_;
@@ -1077,7 +1083,7 @@ TEST_F(CoordinatorPlansMissionsTest,
   // Every behavior the mission used was activated once, and finished once,
   // as each behavior system itself recorded it.
   std::map<std::string, int> activated, finished;
-  for (const auto* system : {basic_.get(), pid_.get()}) {
+  for (const auto* system : {basic_.get(), pid_.get(), fusion_.get()}) {
     for (const auto& e : systemHistory(system->address())) {
       activated[e.behavior()] += e.has_activated();
       finished[e.behavior()] += e.has_finished();
@@ -1085,11 +1091,11 @@ TEST_F(CoordinatorPlansMissionsTest,
   }
   const std::map<std::string, int> once = {
       {"WAIT", 1}, {"TAKE_OFF", 1},    {"FOLLOW_PATH", 1}, {"ROTATE_WITH_PID_CONTROL", 1},
-      {"LAND", 1}, {kSelfLocalize, 1}, {kPid, 1}};
+      {"LAND", 1}, {kDemoLocalize, 1}, {kPid, 1}};
   EXPECT_EQ(activated, once);
   EXPECT_TRUE(waitUntil([&] { return activeBehaviors().empty(); }, seconds(5)));
   finished.clear();
-  for (const auto* system : {basic_.get(), pid_.get()}) {
+  for (const auto* system : {basic_.get(), pid_.get(), fusion_.get()}) {
     for (const auto& e : systemHistory(system->address()))
       finished[e.behavior()] += e.has_finished();
   }

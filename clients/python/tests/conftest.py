@@ -89,7 +89,8 @@ def barrier_notes(run_dir):
 
 @pytest.fixture(scope="session")
 def stack(request):
-    stack = Stack(["drone1", "drone2"], ["quadrotor_motion_with_pid_control"])
+    # The motion controller, and the EKF the demo mission localizes with.
+    stack = Stack(["drone1", "drone2"], ["quadrotor_motion_with_pid_control", "multi_sensor_fusion"])
     yield stack
     print(stack.stop())
     if request.session.testsfailed:

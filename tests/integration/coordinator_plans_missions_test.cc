@@ -210,8 +210,7 @@ class CoordinatorPlansMissionsTest : public ::testing::Test {
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH);
     pid_ = startSystem(BEHAVIORLIB_PID_SYSTEM_PATH, BEHAVIORLIB_PID_CONFIG_PATH);
     // The demo's localization: the EKF on GPS, IMU, barometer and flow.
-    fusion_ =
-        startSystem(BEHAVIORLIB_MULTI_SENSOR_FUSION_PATH, BEHAVIORLIB_FUSION_CONFIG_PATH);
+    fusion_ = startSystem(BEHAVIORLIB_MULTI_SENSOR_FUSION_PATH, BEHAVIORLIB_FUSION_CONFIG_PATH);
     ASSERT_TRUE(basic_ && pid_ && fusion_);
     ASSERT_NO_FATAL_FAILURE(waitForSystems());
   }

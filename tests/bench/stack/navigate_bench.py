@@ -51,6 +51,19 @@ CELL_M = 0.05
 PLANS = re.compile(r"(\d+) plans \((\d+) followed while flying, (\d+) after a wall seen ahead, "
                    r"(\d+) after straying\)")
 TIMES = re.compile(r"plan time median ([\d.]+) ms, longest ([\d.]+) ms")
+LONGEST = re.compile(r"the (\d+) longest: ([\d., ]+) ms")
+
+
+def pooled_p99(runs):
+    """The 99th percentile (nearest rank) of every plan of `runs`, exact from
+    each flight's longest plans as long as each stated at least as many as
+    the percentile lies from the top; None otherwise."""
+    total = sum(r["plans"] for r in runs)
+    from_top = total - int(math.ceil(0.99 * total)) + 1  # 1: the longest
+    if not runs or any(len(r["plan_longest_ms_list"]) < min(from_top, r["plans"]) for r in runs):
+        return None
+    longest = sorted((t for r in runs for t in r["plan_longest_ms_list"]), reverse=True)
+    return longest[from_top - 1], total
 
 
 def percentile(values, q):
@@ -180,6 +193,7 @@ def fly(build_dir, seed, keep):
     message = finished.get("message", "")
     plans = PLANS.search(message)
     times = TIMES.search(message)
+    longest = LONGEST.search(message)
     out.update(
         ok=finished.get("cause") == "GOAL_ACHIEVED"
         and mission.get("state") == "MISSION_STATE_SUCCEEDED",
@@ -191,6 +205,7 @@ def fly(build_dir, seed, keep):
         walls_ahead=int(plans.group(3)) if plans else None,
         plan_median_ms=float(times.group(1)) if times else None,
         plan_longest_ms=float(times.group(2)) if times else None,
+        plan_longest_ms_list=[float(t) for t in longest.group(2).split(", ")] if longest else [],
         flying=[(s[1], s[2]) for s in flying if s[3] > 0.3])
     if out["ok"] and not keep:
         shutil.rmtree(run_dir, ignore_errors=True)
@@ -240,9 +255,12 @@ def main():
               f"{statistics.median(r['followed'] for r in good)}; after a wall ahead: median "
               f"{statistics.median(r['walls_ahead'] for r in good)}, max "
               f"{max(r['walls_ahead'] for r in good)}")
+        p99 = pooled_p99(good)
         print(f"plan time (ms): median of the flights' medians "
-              f"{statistics.median(r['plan_median_ms'] for r in good):.1f}, longest of all "
-              f"{max(r['plan_longest_ms'] for r in good):.1f}")
+              f"{statistics.median(r['plan_median_ms'] for r in good):.1f}, p99 of all "
+              + (f"{p99[0]:.1f} (nearest rank over {p99[1]} plans)" if p99 else
+                 "not known (a flight stated too few of its longest)")
+              + f", longest of all {max(r['plan_longest_ms'] for r in good):.1f}")
     closest = [r["closest_m"] for r in runs if "closest_m" in r]
     if closest:
         print(f"closest approach to a surface: {min(closest):.3f} m (median of the flights' "

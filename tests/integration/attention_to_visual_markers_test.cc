@@ -1,8 +1,9 @@
 // PAY_ATTENTION_TO_QR_CODES with real processes: the channel broker, the
 // simulator in the aircraft world (4x, fixed seed, fault injection, the
 // camera pitched down by 0.7 rad), the coordinator (catalog, belief memory,
-// missions), basic_quadrotor_behaviors, quadrotor_motion_with_pid_control and
-// attention_to_visual_markers, each registering with the coordinator.
+// missions), basic_quadrotor_behaviors, quadrotor_motion_with_pid_control,
+// attention_to_visual_markers and multi_sensor_fusion (the mission's EKF),
+// each registering with the coordinator.
 //
 // The inspection mission (deploy/missions/aircraft_inspection.yaml) flies
 // around the aircraft through StartMission; every marker of the world file
@@ -119,18 +120,20 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
     basic_ = startSystem(BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH, BEHAVIORLIB_BASIC_CONFIG_PATH);
     pid_ = startSystem(BEHAVIORLIB_PID_SYSTEM_PATH, BEHAVIORLIB_PID_CONFIG_PATH);
     attention_ = startSystem(BEHAVIORLIB_ATTENTION_SYSTEM_PATH, "");
-    ASSERT_TRUE(basic_ && pid_ && attention_);
+    // The inspection's localization: the EKF on GPS, IMU, barometer and flow.
+    fusion_ = startSystem(BEHAVIORLIB_MULTI_SENSOR_FUSION_PATH, BEHAVIORLIB_FUSION_CONFIG_PATH);
+    ASSERT_TRUE(basic_ && pid_ && attention_ && fusion_);
     basic_client_ = std::make_unique<SystemClient>(basic_->address());
     attention_client_ = std::make_unique<SystemClient>(attention_->address());
     channel_ = std::make_unique<behaviorlib::channel::ChannelClient>(broker_.address());
-    // The three systems registered and UP.
+    // The four systems registered and UP.
     ASSERT_TRUE(FlightStack::waitFor(
         [&] {
           v1::ListSystemsRequest request;
           request.set_robot_id(kRobot);
           v1::ListSystemsResponse response;
           if (!coordinator_stub_->ListSystems(deadline().get(), request, &response).ok() ||
-              response.systems_size() != 3) {
+              response.systems_size() != 4) {
             return false;
           }
           for (const auto& s : response.systems()) {
@@ -144,7 +147,7 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
   void TearDown() override {
     basic_client_.reset();
     attention_client_.reset();
-    for (auto* p : {&attention_, &pid_, &basic_, &coordinator_, &simulator_}) {
+    for (auto* p : {&fusion_, &attention_, &pid_, &basic_, &coordinator_, &simulator_}) {
       if (*p && (*p)->running()) (*p)->kill();
     }
     std::filesystem::remove_all(state_dir_);
@@ -193,7 +196,8 @@ class AttentionToVisualMarkersTest : public ::testing::Test {
 
   std::string state_dir_;
   support::ServerProcess broker_{BEHAVIORLIB_CHANNEL_BROKER_PATH, {}};
-  std::unique_ptr<support::ServerProcess> simulator_, coordinator_, basic_, pid_, attention_;
+  std::unique_ptr<support::ServerProcess> simulator_, coordinator_, basic_, pid_, attention_,
+      fusion_;
   std::unique_ptr<v1::Coordinator::Stub> coordinator_stub_;
   std::unique_ptr<SystemClient> basic_client_, attention_client_;
   std::unique_ptr<behaviorlib::channel::ChannelClient> channel_;

@@ -111,10 +111,10 @@ class FlightBehaviorsTest : public ::testing::Test {
     ASSERT_TRUE(simulator_->start()) << simulator_->error();
     system_ = std::make_unique<support::ServerProcess>(
         BEHAVIORLIB_BASIC_QUADROTOR_BEHAVIORS_PATH,
-        support::followTimeArgs(
-            {"--robot-id", kRobot, "--channel", broker_.address(), "--clock", "sim",
-             "--flight-controller", simulator_->address(), "--config", BEHAVIORLIB_BASIC_CONFIG_PATH},
-            simulator_->address()));
+        support::followTimeArgs({"--robot-id", kRobot, "--channel", broker_.address(), "--clock",
+                                 "sim", "--flight-controller", simulator_->address(), "--config",
+                                 BEHAVIORLIB_BASIC_CONFIG_PATH},
+                                simulator_->address()));
     ASSERT_TRUE(system_->start()) << system_->error();
     auto channel = grpc::CreateChannel(system_->address(), grpc::InsecureChannelCredentials());
     behaviors_ = v1::BehaviorSystem::NewStub(channel);
@@ -209,6 +209,29 @@ class FlightBehaviorsTest : public ::testing::Test {
       std::this_thread::sleep_for(milliseconds(10));
     }
     ASSERT_TRUE(estimated());
+  }
+
+  // Publishes drone1's pose and velocity estimates as an estimator would: at
+  // its ground truth, stamped as the ground truth, the pose stating
+  // `stddev_m` of horizontal standard deviation.
+  void publishEstimate(double stddev_m) {
+    auto pose = latest<v1::PoseStamped>("robots/drone1/ground_truth/pose");
+    auto twist = latest<v1::TwistStamped>("robots/drone1/ground_truth/twist");
+    ASSERT_TRUE(pose && twist);
+    pose->set_horizontal_stddev_m(stddev_m);
+    v1::PublishRequest request;
+    request.set_topic("robots/drone1/self_localization/pose");
+    request.mutable_sample()->PackFrom(*pose);
+    request.set_sync(true);
+    v1::PublishRequest* velocity = request.add_more();
+    velocity->set_topic("robots/drone1/self_localization/twist");
+    velocity->mutable_sample()->PackFrom(*twist);
+    auto context = deadline();
+    v1::PublishResponse response;
+    auto writer = data_->Publish(context.get(), &response);
+    ASSERT_TRUE(writer->Write(request));
+    writer->WritesDone();
+    ASSERT_TRUE(writer->Finish().ok());
   }
 
   // Takes off to `altitude_m` with the typed API and waits for the end.
@@ -308,6 +331,32 @@ TEST_F(FlightBehaviorsTest, TakeOffReachesTheAltitudeRefusesASecondTakeOffAndLan
   // Landed: LAND is now infeasible, TAKE_OFF feasible again.
   EXPECT_FALSE(checkSituation("LAND").feasible());
   EXPECT_TRUE(checkSituation("TAKE_OFF").feasible());
+}
+
+TEST_F(FlightBehaviorsTest, TakeOffWaitsForAnEstimateThatHasConverged) {
+  // An EKF just started: it states 1.2 m. TAKE_OFF is refused, with the reason.
+  const auto until = WallClock::now() + seconds(30);  // a bound for a stuck stack
+  while ((!latest<v1::PoseStamped>("robots/drone1/ground_truth/pose") ||
+          !latest<v1::TwistStamped>("robots/drone1/ground_truth/twist")) &&
+         WallClock::now() < until) {
+    std::this_thread::sleep_for(milliseconds(10));
+  }
+  ASSERT_NO_FATAL_FAILURE(publishEstimate(1.2));
+  auto situation = checkSituation("TAKE_OFF");
+  EXPECT_FALSE(situation.feasible()) << situation.ShortDebugString();
+  ASSERT_GT(situation.reasons_size(), 0);
+  EXPECT_NE(situation.reasons(0).find("1.20 m, above max_pose_stddev_m 0.30 m"), std::string::npos)
+      << situation.reasons(0);
+  ASSERT_GT(situation.reason_codes_size(), 0);
+  EXPECT_EQ(situation.reason_codes(0), v1::SITUATION_REASON_INPUT_INVALID);
+  v1::ActivateResponse activated;
+  auto refused = activate("TAKE_OFF", R"({"altitude_m": 1})", &activated);
+  EXPECT_EQ(refused.error_code(), grpc::StatusCode::FAILED_PRECONDITION) << describe(refused);
+  EXPECT_EQ(flightStatus().state(), v1::FLIGHT_STATE_LANDED) << "nothing moved";
+  // Converged: 0.1 m. TAKE_OFF may go.
+  ASSERT_NO_FATAL_FAILURE(publishEstimate(0.1));
+  situation = checkSituation("TAKE_OFF");
+  EXPECT_TRUE(situation.feasible()) << situation.ShortDebugString();
 }
 
 TEST_F(FlightBehaviorsTest, HoverHoldsTheLeaseUntilDeactivatedAndLeavesTheVehicleHovering) {

@@ -21,6 +21,7 @@ absl::Status TakeOffBehavior::onConfigure(const config::v1::TakeOffConfig& confi
   altitude_tolerance_m_ = config.altitude_tolerance_m();
   max_vertical_speed_m_s_ = config.max_vertical_speed_m_s();
   min_climb_m_ = config.min_climb_m();
+  max_pose_stddev_m_ = config.max_pose_stddev_m();
   dwell_.setDwell(seconds(config.goal_dwell_s()));
   climb_.setWindow(settings_.progress_window);
   return absl::OkStatus();
@@ -162,6 +163,18 @@ Situation TakeOffBehavior::checkSituation() {
     flight::refuseFirst(&situation, v1::SITUATION_REASON_FLIGHT_STATE,
                         "TAKE_OFF needs " + robotId() + " LANDED; it is " +
                             platform::flightStateName(status->state()));
+  }
+  if (situation.feasible && max_pose_stddev_m_ > 0.0) {
+    // The pre-flight check of the estimate (read fresh by the checks above).
+    auto pose = vehicle_.poseEstimate();
+    if (pose.ok() && pose->has_horizontal_stddev_m() &&
+        pose->horizontal_stddev_m() > max_pose_stddev_m_) {
+      flight::refuseFirst(&situation, v1::SITUATION_REASON_INPUT_INVALID,
+                          "the pose estimate states a horizontal standard deviation of " +
+                              flight::fixed2(pose->horizontal_stddev_m()) +
+                              " m, above max_pose_stddev_m " + flight::fixed2(max_pose_stddev_m_) +
+                              " m: its estimator has not converged (wait, then take off)");
+    }
   }
   return situation;
 }

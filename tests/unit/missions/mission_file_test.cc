@@ -543,7 +543,8 @@ steps:
 }
 
 // Every shipped mission parses (its sub-missions imported from the mission
-// directory), and the fleet ones name the robots they command.
+// directory), the fleet ones name the robots they command, and none
+// localizes on the ground truth.
 TEST(MissionFile, EveryShippedMissionParses) {
   const std::filesystem::path dir = BEHAVIORLIB_SHIPPED_MISSIONS_DIR;
   const ImportReader read = [&](const std::string& path) -> absl::StatusOr<std::string> {
@@ -565,6 +566,10 @@ TEST(MissionFile, EveryShippedMissionParses) {
     if (entry.path().filename() == "swarm_two_vehicles.yaml") {
       EXPECT_THAT(missionRobots(*mission, mission->robot_id), ElementsAre("drone1", "drone2"));
     }
+    // A vehicle has no ground truth: every shipped mission localizes on an
+    // estimator it has (the EKF, the lidar SLAM); the ground truth is the
+    // tests' (decision 49).
+    EXPECT_EQ(text->find("SELF_LOCALIZE_WITH_GROUND_TRUTH"), std::string::npos);
     ++parsed;
   }
   EXPECT_GE(parsed, 7);

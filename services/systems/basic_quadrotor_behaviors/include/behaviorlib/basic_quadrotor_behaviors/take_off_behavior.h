@@ -7,7 +7,9 @@
 // vertical speed below max_vertical_speed_m_s for goal_dwell_s.
 //
 //   checkSituation  before: flight controller answers, LANDED, battery >=
-//                   min_battery_ratio, fresh pose estimate; while active: no
+//                   min_battery_ratio, fresh pose estimate stating no more than
+//                   max_pose_stddev_m of horizontal standard deviation (the
+//                   pre-flight check: an EKF still converging); while active: no
 //                   emergency, lease not taken; performance follows the battery
 //                   and, once airborne, the wind (flight::WindWatch)
 //   checkGoal       altitude within tolerance, small vertical speed, for a dwell
@@ -19,7 +21,8 @@
 //
 // Config (its section of --config): the flight::FlightSettings keys plus
 // altitude_tolerance_m [0.1], max_vertical_speed_m_s [0.1], goal_dwell_s [1],
-// min_climb_m [0.1] (per progress window).
+// min_climb_m [0.1] (per progress window), max_pose_stddev_m [0.3] (0: no
+// pre-flight check of the estimate).
 
 #include <cmath>
 #include <limits>
@@ -62,6 +65,7 @@ class TakeOffBehavior final : public Behavior<v1::TakeOffParameters, config::v1:
   double altitude_tolerance_m_ = 0.1;
   double max_vertical_speed_m_s_ = 0.1;
   double min_climb_m_ = 0.1;
+  double max_pose_stddev_m_ = 0.3;
   flight::DwellTracker dwell_{std::chrono::seconds(1)};
   // Hovering still after the take-off action, before correctAltitude acts:
   // the platform's own climb settles first.

@@ -6,7 +6,7 @@ deterministic mode (--time-scale max), and a report of how it went.
     deploy/local/campaign.py --seed-list 1,2,7 --fault take_off+3:motor_off:motor=0@seeds=7
     deploy/local/campaign.py --seeds 20 --fault-schedule faults.yaml --check-determinism
     deploy/local/campaign.py --seeds 50 --mission deploy/missions/demo.yaml -- \\
-        --systems quadrotor_motion_with_pid_control
+        --systems quadrotor_motion_with_pid_control,multi_sensor_fusion
 
 Every run flies the mission (default deploy/missions/demo.yaml) once, with
 one seed and the faults of that seed; the same seed and faults give the same

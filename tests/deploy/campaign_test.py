@@ -124,7 +124,7 @@ class CampaignTest(unittest.TestCase):
         self.assertEqual(causes["land"].get("not reached"), 1, causes)
         durations = {row["step"]: row for row in report["step_durations_s"]}
         self.assertEqual(durations["settle"]["attempts"], 3)
-        self.assertAlmostEqual(durations["settle"]["median_s"], 1.0, delta=0.02)
+        self.assertAlmostEqual(durations["settle"]["median_s"], 2.0, delta=0.02)
         self.assertEqual(durations["fly_square"]["attempts"], 2)
 
         # The worst run is the failed one, kept with its recording and its

@@ -52,6 +52,7 @@ absl::Status TakeOffBehavior::onActivate() {
   commanded_z_ = target_z_;
   seen_airborne_ = false;
   correcting_ = false;
+  holding_zero_speed_ = false;
   settled_.reset();
   command_error_.clear();
   dwell_.reset();
@@ -73,6 +74,7 @@ void TakeOffBehavior::onExecute() {
   auto sent = lease_->goTo(origin_x_, origin_y_, target_z_, origin_yaw_);
   if (sent.ok()) {
     commanded_z_ = target_z_;
+    holding_zero_speed_ = false;
   } else {
     command_error_ =
         "the platform refused the altitude setpoint: " + std::string(sent.status().message());
@@ -83,25 +85,41 @@ void TakeOffBehavior::onExecute() {
 // goal is judged on the pose estimate. A barometric altitude drifts: the
 // lidar SLAM's moved by up to 0.1 m between the ground and 1.2 m, and the
 // vehicle then hovered short of the target for good (WRONG_PROGRESS, no
-// progress). Once the take-off action has ended and the vehicle has hovered
-// still for a second beyond the tolerance, the rest is closed with a
-// vertical speed, which needs no frame, then a speed of zero.
+// progress). An EKF's height converges while the vehicle climbs and hovers: in
+// the compose stack one hovered 0.11 m short of its target and ended
+// WRONG_PROGRESS. Once the platform holds the vehicle still (HOVERING after its
+// take-off action, or FLYING on this behavior's own speed of zero) for a
+// second beyond the tolerance, the rest is closed with a vertical speed, which
+// needs no frame, then a speed of zero; as often as the estimate moves away
+// again.
+//   - The settle is judged on the platform's state, not on the estimate's
+//     vertical speed: a converging estimate's speed is not the vehicle's.
+//   - The speed is at least kMinSpeedMS until within half the tolerance, so a
+//     few centimetres are closed in a fraction of the progress window.
+//   - The progress window restarts when a correction starts: the settle is
+//     the behavior waiting, not the vehicle failing to climb. A correction
+//     that does not move the estimate still ends WRONG_PROGRESS.
 void TakeOffBehavior::correctAltitude() {
   constexpr double kGainPerS = 1.0;
+  constexpr double kMinSpeedMS = 0.1;
   constexpr double kMaxSpeedMS = 0.3;
   const double to_go = target_z_ - pose_->pose().position_m().z();
   if (!correcting_) {
-    const double vz = twist_->twist().linear_m_s().z();
-    const bool still =
-        status_->state() == v1::FLIGHT_STATE_HOVERING && std::abs(vz) <= max_vertical_speed_m_s_;
+    const auto state = status_->state();
+    const bool still = state == v1::FLIGHT_STATE_HOVERING ||
+                       (state == v1::FLIGHT_STATE_FLYING && holding_zero_speed_);
     if (!settled_.update(now(), still) || std::abs(to_go) <= altitude_tolerance_m_) return;
     correcting_ = true;
+    climb_.reset();
   }
-  double speed = std::clamp(kGainPerS * to_go, -kMaxSpeedMS, kMaxSpeedMS);
+  double speed =
+      std::copysign(std::clamp(kGainPerS * std::abs(to_go), kMinSpeedMS, kMaxSpeedMS), to_go);
   if (std::abs(to_go) <= 0.5 * altitude_tolerance_m_) {
     speed = 0.0;
     correcting_ = false;
+    settled_.reset();
   }
+  holding_zero_speed_ = speed == 0.0;
   v1::SetpointRequest setpoint;
   setpoint.mutable_velocity_yaw_rate()->mutable_velocity_m_s()->set_z(speed);
   if (auto sent = lease_->send(std::move(setpoint)); !sent.ok()) {

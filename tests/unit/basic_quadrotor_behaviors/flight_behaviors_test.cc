@@ -120,6 +120,46 @@ TEST_F(FlightBehaviorsUnitTest, TakeOffClosesTheRestOfTheClimbOnTheEstimate) {
   EXPECT_EQ(vehicle_.setpoints().size(), sent) << "no setpoint once there";
 }
 
+TEST_F(FlightBehaviorsUnitTest, TakeOffClosesTheClimbAgainWhenAConvergingEstimateMovesAway) {
+  // An EKF's height at the take-off point was 0.27 m (the target is then
+  // 1.77 m); it converges while the vehicle hovers. The fake vehicle moves
+  // at the vertical speed last sent, and the estimate falls 0.12 m once the
+  // first correction has ended.
+  vehicle_.setPosition(0, 0, 0.27);
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(1.5)).ok());
+  double z = 1.66;
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setPosition(0, 0, z);
+  vehicle_.setVerticalSpeed(0.0);
+  int corrections = 0;
+  double last_vz = 0.0;
+  bool converged = false;
+  for (int i = 0; i < 300 && take_off_->state() == v1::BEHAVIOR_STATE_ACTIVE; ++i) {
+    fly(milliseconds(50), take_off_);
+    const auto sent = vehicle_.setpoints();
+    const double vz = sent.empty() ? 0.0 : sent.back().velocity_yaw_rate().velocity_m_s().z();
+    if (vz != 0.0 && last_vz == 0.0) {
+      ++corrections;
+      EXPECT_GE(vz, 0.1) << "at least 0.1 m/s: a few centimetres close within the window";
+    }
+    if (vz == 0.0 && last_vz != 0.0 && !converged) {
+      converged = true;
+      z -= 0.12;
+    }
+    last_vz = vz;
+    if (!sent.empty()) vehicle_.setState(v1::FLIGHT_STATE_FLYING);
+    z += vz * 0.05;
+    vehicle_.setPosition(0, 0, z);
+    vehicle_.setVerticalSpeed(vz);
+  }
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_GOAL_ACHIEVED)
+      << finished.ShortDebugString();
+  EXPECT_NE(finished.finished().message().find("target 1.77"), std::string::npos)
+      << finished.ShortDebugString();
+  EXPECT_EQ(corrections, 2) << "closed once after the take-off, once after the estimate moved";
+}
+
 TEST_F(FlightBehaviorsUnitTest, TakeOffWithAVerticalSpeedAboveTheLimitIsNotAGoal) {
   ASSERT_TRUE(take_off_->activateAndWait(altitude(1.0)).ok());
   vehicle_.setState(v1::FLIGHT_STATE_HOVERING);

@@ -568,12 +568,8 @@ TEST(MissionFile, EveryShippedMissionParses) {
     }
     // A vehicle has no ground truth: every shipped mission localizes on an
     // estimator it has (the EKF, the lidar SLAM); the ground truth is the
-    // tests' (decision 49). Not yet swarm_member.yaml, the compose stack's
-    // and the fleet's per-vehicle mission: on the EKF, a take-off in the
-    // compose stack ended WRONG_PROGRESS (the estimate's height at take-off).
-    if (entry.path().filename() != "swarm_member.yaml") {
-      EXPECT_EQ(text->find("SELF_LOCALIZE_WITH_GROUND_TRUTH"), std::string::npos);
-    }
+    // tests' (decision 49).
+    EXPECT_EQ(text->find("SELF_LOCALIZE_WITH_GROUND_TRUTH"), std::string::npos);
     ++parsed;
   }
   EXPECT_GE(parsed, 7);

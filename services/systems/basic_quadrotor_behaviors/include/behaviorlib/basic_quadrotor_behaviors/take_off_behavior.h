@@ -4,7 +4,10 @@
 // action to altitude_m above the take-off point, holding the vehicle's
 // command lease while active, and finishes GOAL_ACHIEVED when the pose
 // estimate has stayed within altitude_tolerance_m of the target with a
-// vertical speed below max_vertical_speed_m_s for goal_dwell_s.
+// vertical speed below max_vertical_speed_m_s for goal_dwell_s. The target
+// is on the estimate; what the platform's own climb leaves (a drifting
+// barometer, a converging EKF) is closed with vertical speeds, as often as
+// the estimate moves away while the vehicle holds still.
 //
 //   checkSituation  before: flight controller answers, LANDED, battery >=
 //                   min_battery_ratio, fresh pose estimate stating no more than
@@ -82,6 +85,9 @@ class TakeOffBehavior final : public Behavior<v1::TakeOffParameters, config::v1:
   bool seen_airborne_ = false;
   // Closing the rest of the climb on the estimate (correctAltitude).
   bool correcting_ = false;
+  // The last setpoint was this behavior's vertical speed of zero: the
+  // platform holds the vehicle still, though it reports FLYING.
+  bool holding_zero_speed_ = false;
   std::string command_error_;
   // Inputs read by checkProcesses() for the checks after it.
   flight::Held<v1::FlightStatus> status_;

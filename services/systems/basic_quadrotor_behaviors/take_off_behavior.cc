@@ -92,8 +92,9 @@ void TakeOffBehavior::onExecute() {
 // second beyond the tolerance, the rest is closed with a vertical speed, which
 // needs no frame, then a speed of zero; as often as the estimate moves away
 // again.
-//   - The settle is judged on the platform's state, not on the estimate's
-//     vertical speed: a converging estimate's speed is not the vehicle's.
+//   - The settle needs the platform's state and a vertical speed within the
+//     goal's: a vehicle falling (a motor lost) is not corrected but ends
+//     WRONG_PROGRESS on the progress window, before it crashes.
 //   - The speed is at least kMinSpeedMS until within half the tolerance, so a
 //     few centimetres are closed in a fraction of the progress window.
 //   - The progress window restarts when a correction starts: the settle is
@@ -106,8 +107,10 @@ void TakeOffBehavior::correctAltitude() {
   const double to_go = target_z_ - pose_->pose().position_m().z();
   if (!correcting_) {
     const auto state = status_->state();
-    const bool still = state == v1::FLIGHT_STATE_HOVERING ||
-                       (state == v1::FLIGHT_STATE_FLYING && holding_zero_speed_);
+    const double vz = twist_->twist().linear_m_s().z();
+    const bool still = (state == v1::FLIGHT_STATE_HOVERING ||
+                        (state == v1::FLIGHT_STATE_FLYING && holding_zero_speed_)) &&
+                       std::abs(vz) <= max_vertical_speed_m_s_;
     if (!settled_.update(now(), still) || std::abs(to_go) <= altitude_tolerance_m_) return;
     correcting_ = true;
     climb_.reset();

@@ -4,6 +4,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <thread>
 
@@ -158,6 +159,27 @@ TEST_F(FlightBehaviorsUnitTest, TakeOffClosesTheClimbAgainWhenAConvergingEstimat
   EXPECT_NE(finished.finished().message().find("target 1.77"), std::string::npos)
       << finished.ShortDebugString();
   EXPECT_EQ(corrections, 2) << "closed once after the take-off, once after the estimate moved";
+}
+
+TEST_F(FlightBehaviorsUnitTest, AVehicleFallingAfterItsTakeOffIsNotCorrectedButWrongProgress) {
+  // A motor lost after the platform's take-off: the platform still reports
+  // HOVERING while the vehicle falls at 0.5 m/s. That is no settle to
+  // correct from; the progress window ends it before the vehicle reaches the
+  // ground.
+  ASSERT_TRUE(take_off_->activateAndWait(altitude(3.0)).ok());
+  vehicle_.setState(v1::FLIGHT_STATE_HOVERING);
+  vehicle_.setVerticalSpeed(-0.5);
+  double z = 2.9;
+  for (int i = 0; i < 80 && take_off_->state() == v1::BEHAVIOR_STATE_ACTIVE; ++i) {
+    vehicle_.setPosition(0, 0, z);
+    fly(milliseconds(50), take_off_);
+    z = std::max(0.0, z - 0.025);
+  }
+  const auto finished = events_.waitFinished();
+  EXPECT_EQ(finished.finished().cause(), v1::TERMINATION_CAUSE_WRONG_PROGRESS)
+      << finished.ShortDebugString();
+  EXPECT_GT(z, 0.0) << "ended before the ground";
+  EXPECT_TRUE(vehicle_.setpoints().empty()) << "a fall is not an altitude to correct";
 }
 
 TEST_F(FlightBehaviorsUnitTest, TakeOffWithAVerticalSpeedAboveTheLimitIsNotAGoal) {
